@@ -1,0 +1,155 @@
+"""The ``servotune`` command: demo, serve, sim, bench."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from servotune import __version__
+from servotune.config import ConfigError, LinkSpec, load_config_file, parse_link_spec
+from servotune.storage import default_data_dir
+
+
+def _addresses(text: str) -> list[int]:
+    try:
+        values = [int(a) for a in text.split(",") if a.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"addresses must be like 0,1 (got {text!r})") from None
+    if not values or any(not 0 <= a <= 15 for a in values) or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError("addresses must be distinct numbers 0..15")
+    return values
+
+
+def _run_server(app_config: object, host: str, port: int) -> None:
+    import uvicorn
+
+    from servotune.api.app import AppConfig, create_app
+
+    assert isinstance(app_config, AppConfig)
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        logging.getLogger(__name__).warning(
+            "listening on %s: anyone who can reach this address can move the motors", host
+        )
+    print(f"servotune {__version__}: http://{host}:{port}  (API docs: /docs)", flush=True)
+    uvicorn.run(create_app(app_config), host=host, port=port, log_level="warning")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from servotune.api.app import AppConfig
+    from servotune.demo import demo_simulators
+
+    data_dir = args.data_dir or default_data_dir() / "demo"
+    config = AppConfig(
+        data_dir=data_dir,
+        autopilot=not args.no_autopilot,
+        simulators=demo_simulators(data_dir),
+    )
+    _run_server(config, args.host, args.port)
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from servotune.api.app import AppConfig
+
+    links: list[LinkSpec] = []
+    host, port = args.host, args.port
+    try:
+        if args.config:
+            file_config = load_config_file(Path(args.config))
+            links.extend(file_config.links)
+            host = args.host if args.host != "127.0.0.1" else (file_config.host or host)
+            port = args.port if args.port != 8000 else (file_config.port or port)
+        links.extend(parse_link_spec(spec) for spec in args.link)
+    except ConfigError as exc:
+        print(f"servotune serve: {exc}", file=sys.stderr)
+        return 2
+    if not links:
+        print(
+            "servotune serve: give at least one --link (e.g. "
+            "'slap2:/dev/ttyUSB0?addresses=0,1&baud=19200&lines=512') or --config FILE",
+            file=sys.stderr,
+        )
+        return 2
+    config = AppConfig(links=links, data_dir=args.data_dir or default_data_dir())
+    _run_server(config, host, port)
+    return 0
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from servotune.sim.serial_sim import serve_slap2
+
+    if args.device != "slap2":
+        print(f"servotune sim: unknown device {args.device!r} (slap2)", file=sys.stderr)
+        return 2
+    serve_slap2(args.addresses, args.baud, args.state_dir, args.link)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from servotune.bench import run_bench
+
+    return run_bench(
+        device=args.device,
+        baud=args.baud,
+        addresses=args.addresses,
+        duration_s=args.seconds,
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="servotune", description=__doc__)
+    parser.add_argument("--version", action="version", version=__version__)
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug output")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="dashboard with simulated devices")
+    demo.add_argument("--host", default="127.0.0.1")
+    demo.add_argument("--port", type=int, default=8000)
+    demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
+    demo.add_argument("--data-dir", type=Path, default=None)
+    demo.set_defaults(func=cmd_demo)
+
+    serve = sub.add_parser("serve", help="dashboard for real devices")
+    serve.add_argument(
+        "--link",
+        action="append",
+        default=[],
+        help="device:path?options, e.g. slap2:/dev/ttyUSB0?addresses=0,1&baud=19200&lines=512",
+    )
+    serve.add_argument("--config", help="TOML file with [[link]] tables")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--data-dir", type=Path, default=None)
+    serve.set_defaults(func=cmd_serve)
+
+    sim = sub.add_parser("sim", help="serve a simulated device on a new pseudo-terminal")
+    sim.add_argument("device", choices=["slap2"])
+    sim.add_argument("--addresses", type=_addresses, default=[0, 1])
+    sim.add_argument("--baud", type=int, default=19200)
+    sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
+    sim.add_argument("--link", default=None, help="also create this symlink to the pty")
+    sim.set_defaults(func=cmd_sim)
+
+    bench = sub.add_parser("bench", help="telemetry rate against the wire limit")
+    bench.add_argument("device", choices=["slap2"])
+    bench.add_argument("--baud", type=int, default=19200)
+    bench.add_argument("--addresses", type=_addresses, default=[0])
+    bench.add_argument("--seconds", type=float, default=5.0)
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    result: int = args.func(args)
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,160 @@
+"""Device descriptors: what a device offers, as data the web UI renders.
+
+A descriptor lists a device's parameters (with unit, range, whether the device can
+persist them, and the wire commands that set and read them), its telemetry channels,
+its status flags and its commands. The UI builds every axis page from this data, so a
+new controller family is a new descriptor, not a new page.
+
+Layering: this module has no imports from the rest of the package; drivers build
+descriptors, the API serves them, and ``servotune.wire_ts`` turns these models into
+TypeScript types for the web client.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+
+class Conversion(BaseModel):
+    """An alternative display unit: ``display = raw * factor``."""
+
+    unit: str
+    factor: float
+    digits: int = 1
+
+
+class BitDescriptor(BaseModel):
+    """One bit of a bit-field parameter (e.g. a configuration word)."""
+
+    bit: int
+    name: str
+    label: str
+    description: str
+
+
+class ParameterDescriptor(BaseModel):
+    """A settable device parameter.
+
+    ``minimum``/``maximum`` are enforced by the server before anything reaches the wire.
+    ``persisted`` means the device's own save command (e.g. SLAP2 ``pg``) stores it.
+    """
+
+    name: str
+    label: str
+    unit: str
+    minimum: int
+    maximum: int
+    default: int | None = None
+    persisted: bool = False
+    group: str
+    description: str
+    set_command: str = Field(description="wire form, '{value}' is replaced")
+    read_command: str
+    conversions: list[Conversion] = []
+    kind: Literal["int", "bits"] = "int"
+    bits: list[BitDescriptor] = []
+    slider: bool = True
+    slider_maximum: int | None = Field(
+        default=None, description="upper end of the slider when the range is much larger"
+    )
+
+
+class ChannelDescriptor(BaseModel):
+    """A telemetry channel streamed over the websocket."""
+
+    name: str
+    label: str
+    unit: str
+    description: str
+    conversions: list[Conversion] = []
+
+
+class FlagDescriptor(BaseModel):
+    """A boolean status flag streamed with telemetry."""
+
+    name: str
+    label: str
+    description: str
+    bit: int | None = None
+    source: str = ""
+    severity: Literal["info", "warning", "fault"] = "info"
+
+
+class PlotDescriptor(BaseModel):
+    """A plot the UI draws: a group of channels sharing a y axis."""
+
+    name: str
+    label: str
+    unit: str
+    series: list[str]
+    kind: Literal["line", "flags"] = "line"
+
+
+class Choice(BaseModel):
+    value: int
+    label: str
+    description: str
+
+
+class ArgumentDescriptor(BaseModel):
+    name: str
+    label: str
+    unit: str = ""
+    minimum: int
+    maximum: int
+    default: int = 0
+    choices: list[Choice] = []
+
+
+class CommandDescriptor(BaseModel):
+    """An action the user can trigger: ``POST /api/axes/{id}/commands``."""
+
+    name: str
+    label: str
+    description: str
+    group: Literal["stop", "mode", "motion", "calibration", "persist", "other"]
+    arguments: list[ArgumentDescriptor] = []
+    confirm: str | None = Field(
+        default=None, description="text of a confirmation the UI must show before sending"
+    )
+    abort_command: str | None = Field(
+        default=None, description="command that aborts this one while it runs"
+    )
+    marks_operated: bool = True
+
+
+class ConsoleDescriptor(BaseModel):
+    help: str
+    multiline_commands: list[str] = []
+    examples: list[str] = []
+
+
+class DeviceDescriptor(BaseModel):
+    """Everything the UI needs to render one axis of a device family."""
+
+    device: str
+    model: str
+    title: str
+    summary: str
+    parameters: list[ParameterDescriptor]
+    channels: list[ChannelDescriptor]
+    flags: list[FlagDescriptor]
+    plots: list[PlotDescriptor]
+    commands: list[CommandDescriptor]
+    console: ConsoleDescriptor
+
+    def parameter(self, name: str) -> ParameterDescriptor:
+        """Return the parameter called ``name``; KeyError if the device has none."""
+        for parameter in self.parameters:
+            if parameter.name == name:
+                return parameter
+        raise KeyError(name)
+
+    def command(self, name: str) -> CommandDescriptor:
+        """Return the command called ``name``; KeyError if the device has none."""
+        for command in self.commands:
+            if command.name == name:
+                return command
+        raise KeyError(name)

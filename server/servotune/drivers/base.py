@@ -1,0 +1,146 @@
+"""What every device driver offers the hub, and what the hub offers drivers.
+
+A *link* owns one physical connection (a serial line with several SLAP2 modules, a
+Z1100 chip, an EtherCAT slave) and runs one owner task; its *axes* are what the user
+tunes. Drivers report telemetry and state changes through a ``DriverSink`` the hub
+implements, so drivers never import the hub (one-way layering).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from servotune.descriptor import DeviceDescriptor
+from servotune.wire import AxisHealth, EventLevel, LinkState
+
+
+class DriverError(Exception):
+    """Base of the errors a driver reports to a user."""
+
+
+class DeviceRefusedError(DriverError):
+    """The device (or the server on its behalf) refused a command; ``str`` says why."""
+
+
+class LinkDownError(DriverError):
+    """The link is not connected; nothing was sent."""
+
+
+class DeviceTimeoutError(DriverError):
+    """The device did not answer in time (no echo, no reply)."""
+
+
+class ProtocolError(DriverError):
+    """The device answered something the protocol does not allow (bad echo, garbage)."""
+
+
+class InvalidArgumentError(DriverError):
+    """An argument is missing or out of range; nothing was sent."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One telemetry sample of one axis, in device units."""
+
+    t: float
+    channels: Mapping[str, float | None]
+    flags: Mapping[str, bool]
+
+
+@dataclass(slots=True)
+class CommandOutcome:
+    sent: list[str] = field(default_factory=list)
+    message: str = ""
+
+
+class DriverSink(Protocol):
+    """Callbacks from a link's owner task to the hub. They must not block."""
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None: ...
+
+    def on_link_status(
+        self,
+        link_id: str,
+        state: LinkState,
+        message: str,
+        rate_hz: float,
+        wire_limit_hz: float,
+        errors: int,
+    ) -> None: ...
+
+    def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None: ...
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None: ...
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None: ...
+
+
+class AxisDriver(Protocol):
+    """One tunable axis. All methods go through the link's command queue."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def address(self) -> int: ...
+
+    @property
+    def descriptor(self) -> DeviceDescriptor: ...
+
+    async def read_params(self) -> dict[str, int]:
+        """Read every descriptor parameter from the device."""
+        ...
+
+    async def write_params(self, values: Mapping[str, int]) -> dict[str, int]:
+        """Write validated values, then read them back; returns the read-back values."""
+        ...
+
+    async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
+        """Run a descriptor command with validated arguments.
+
+        Raises DeviceRefusedError when the device refuses or a device rule forbids it.
+        """
+        ...
+
+    async def console(self, line: str) -> list[str]:
+        """Send one raw line and return the reply lines."""
+        ...
+
+    async def stop(self) -> None:
+        """Stop this axis; goes to the wire ahead of every queued poll or command."""
+        ...
+
+
+class Link(Protocol):
+    """One physical connection and its owner task."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def device(self) -> str: ...
+
+    @property
+    def path(self) -> str: ...
+
+    @property
+    def baud(self) -> int: ...
+
+    @property
+    def axes(self) -> list[AxisDriver]: ...
+
+    @property
+    def state(self) -> LinkState: ...
+
+    async def run(self) -> None:
+        """Connect, poll and reconnect until cancelled; never raises for link faults."""
+        ...

@@ -1,0 +1,904 @@
+"""SLAP2 link engine and axis driver.
+
+One ``Slap2Link`` owns one RS232 line with up to 16 modules (multi-drop). Its owner
+task is the only code that touches the port; everything else submits *jobs*. Between
+two wire transactions the owner takes, in this order: a stop job, a user job, the
+next poll transaction. A stop therefore waits at most for the one transaction in
+flight (a few ms at 19200 baud), never for queued polls or commands.
+
+The exchange follows the manual's host algorithm exactly ("sstring"/"rstring"): send
+one character, wait for its echo and compare it, then the next; after the last one
+send CR and wait for its echo; then collect the reply (chars > 31) up to CR. Decisions
+where the manual is silent (also in docs/slap2.md):
+
+* Echo mismatch or echo timeout before CR was sent: send Ctrl-X (the module discards
+  its input buffer, so nothing executes), drain the line until it is quiet, and retry
+  the command once. After CR a failure is not retried: the module may have executed
+  it (``mr`` is not idempotent).
+* Selection (``se n``) is cached. If no module is selected nobody echoes, so when
+  the first character of ``se`` gets no echo the driver sends Ctrl-X and then the
+  ``se`` line "blind", paced at two character times per character, and waits for the
+  CR reply of the newly selected module. That is the only time a character is sent
+  without waiting for the previous echo.
+* Bytes that arrive while no transaction runs are unsolicited. Text among them after
+  the initial connect is a power-on banner (only address 0 sends one): that module
+  was reset. Further reset cues: ``pm``/``vm`` dropping while the driver expects them,
+  the ``cal`` flag falling, and a periodic read-back of one persisted parameter that
+  no longer matches the last value read or written.
+* Refusal: ``-1UC`` (syscon ``ucon`` set) or, when ``ucon`` is off, the ``uc`` bit of
+  an ``rss`` read right after the command.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from servotune.descriptor import DeviceDescriptor
+from servotune.drivers.base import (
+    AxisDriver,
+    CommandOutcome,
+    DeviceRefusedError,
+    DeviceTimeoutError,
+    DriverError,
+    DriverSink,
+    InvalidArgumentError,
+    LinkDownError,
+    ProtocolError,
+    Sample,
+)
+from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.protocols import slap2 as codec
+from servotune.transports.base import ByteChannel, Connector, LinkClosedError
+from servotune.wire import LinkState
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
+REFUSAL_HINTS = {
+    "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
+    "mr": "a move needs position mode: switch on 'Position mode' (pm) first",
+    "pg": "pg is refused while position or velocity mode is on: press STOP first",
+    "cal": "the module could not start the calibration",
+    "ca": "the module could not start the calibration",
+}
+
+
+@dataclass(slots=True)
+class Slap2LinkConfig:
+    """Settings of one SLAP2 line. Times are deliberately below the manual's 200 ms."""
+
+    link_id: str
+    path: str
+    addresses: list[int]
+    baud: int = 19200
+    lines: int = 512
+    names: dict[int, str] = field(default_factory=dict)
+    char_timeout_s: float = 0.15
+    quiet_s: float = 0.03
+    banner_quiet_s: float = 0.25
+    banner_max_s: float = 2.0
+    poll_commands: tuple[str, ...] = ("rp", "pe", "rss")
+    rve_every: int = 8
+    verify_period_s: float = 2.0
+    status_period_s: float = 1.0
+    reconnect_max_s: float = 5.0
+    offline_retry_s: float = 1.0
+
+
+@dataclass(slots=True)
+class _Job:
+    run: Callable[[], Awaitable[object]]
+    future: asyncio.Future[object]
+
+
+@dataclass(slots=True)
+class _ModuleState:
+    """What the owner task knows about one module; touched only by the owner task."""
+
+    address: int
+    online: bool = False
+    position: int | None = None
+    position_t: float | None = None
+    following_error: int | None = None
+    velocity: float | None = None
+    rss: int | None = None
+    cycles: int = 0
+    hex_mode: bool = False
+    ucon: bool = False
+    expected_mode: str = "unknown"  # off | pm | vm | unknown
+    known: dict[str, int] = field(default_factory=dict)
+    verify_index: int = 0
+    samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
+
+
+class Slap2Link:
+    """Owner of one SLAP2 RS232 line; see the module docstring for the protocol rules."""
+
+    device = "slap2"
+
+    def __init__(
+        self,
+        config: Slap2LinkConfig,
+        connector: Connector,
+        sink: DriverSink,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not config.addresses:
+            raise ValueError("a SLAP2 link needs at least one module address")
+        self.config = config
+        self._connector = connector
+        self._sink = sink
+        self._clock = clock
+        self._descriptor = slap2_descriptor(config.lines)
+        self._modules = {a: _ModuleState(a) for a in config.addresses}
+        self._axes = [Slap2Axis(self, a) for a in config.addresses]
+        self._channel: ByteChannel | None = None
+        self._selected: int | None = None
+        self._state: LinkState = "connecting"
+        self._message = ""
+        self._errors = 0
+        self._urgent: deque[_Job] = deque()
+        self._normal: deque[_Job] = deque()
+        self._wakeup = asyncio.Event()
+        self._poll_index = 0
+        self._last_verify_t = 0.0
+        self._last_status_t = 0.0
+        self._reply_chars: dict[str, int] = {}
+        self._connected_once = False
+        self._consecutive_failures = 0
+
+    # --- Link protocol ---------------------------------------------------------------
+
+    @property
+    def id(self) -> str:
+        return self.config.link_id
+
+    @property
+    def path(self) -> str:
+        return self.config.path
+
+    @property
+    def baud(self) -> int:
+        return self.config.baud
+
+    @property
+    def axes(self) -> list[AxisDriver]:
+        return list(self._axes)
+
+    @property
+    def state(self) -> LinkState:
+        return self._state
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._descriptor
+
+    def axis_id(self, address: int) -> str:
+        return f"{self.config.link_id}-{address}"
+
+    def module_state(self, address: int) -> _ModuleState:
+        return self._modules[address]
+
+    async def run(self) -> None:
+        """Connect, poll, and reconnect with backoff until cancelled."""
+        backoff_s = 0.25
+        while True:
+            try:
+                channel = await self._connector.open()
+            except LinkClosedError as exc:
+                self._set_state("disconnected" if self._connected_once else "error", str(exc))
+                await self._sleep_rejecting_jobs(backoff_s)
+                backoff_s = min(backoff_s * 2, self.config.reconnect_max_s)
+                continue
+            backoff_s = 0.25
+            self._channel = channel
+            try:
+                await self._session(channel)
+            except LinkClosedError as exc:
+                self._sink.on_event("error", None, f"{self.id}: link lost: {exc}")
+                self._set_state("reconnecting", f"link lost: {exc}")
+            finally:
+                self._channel = None
+                self._fail_jobs(LinkDownError(f"link {self.id} is down"))
+                for module in self._modules.values():
+                    if module.online:
+                        module.online = False
+                        self._sink.on_axis_health(
+                            self.axis_id(module.address), "offline", "link down"
+                        )
+                with contextlib.suppress(Exception):
+                    await channel.close()
+
+    # --- job submission ---------------------------------------------------------------
+
+    async def submit(self, run: Callable[[], Awaitable[T]], *, urgent: bool = False) -> T:
+        """Run ``run`` on the owner task with exclusive use of the line.
+
+        Urgent jobs (stops) go ahead of everything queued. Jobs are refused at once
+        while the link is down: a motion command must never be replayed later.
+        """
+        if self._channel is None or self._state not in ("connected", "error"):
+            raise LinkDownError(f"link {self.id} is {self._state}: nothing was sent")
+        future: asyncio.Future[object] = asyncio.get_running_loop().create_future()
+        job = _Job(run, future)
+        (self._urgent if urgent else self._normal).append(job)
+        self._wakeup.set()
+        result = await future
+        return result  # type: ignore[return-value]
+
+    def _take_job(self) -> _Job | None:
+        if self._urgent:
+            return self._urgent.popleft()
+        if self._normal:
+            return self._normal.popleft()
+        return None
+
+    def _fail_jobs(self, error: Exception) -> None:
+        for queue in (self._urgent, self._normal):
+            while queue:
+                job = queue.popleft()
+                if not job.future.done():
+                    job.future.set_exception(error)
+
+    async def _sleep_rejecting_jobs(self, delay_s: float) -> None:
+        self._fail_jobs(LinkDownError(f"link {self.id} is down"))
+        await asyncio.sleep(delay_s)
+
+    async def _run_job(self, job: _Job) -> None:
+        if job.future.done():  # the caller gave up (cancelled)
+            return
+        try:
+            result = await job.run()
+        except LinkClosedError:
+            job.future.set_exception(LinkDownError(f"link {self.id} was lost"))
+            raise
+        except Exception as exc:  # delivered to the caller, who reports it
+            if not job.future.done():
+                job.future.set_exception(exc)
+        else:
+            if not job.future.done():
+                job.future.set_result(result)
+
+    # --- session ---------------------------------------------------------------------
+
+    async def _session(self, channel: ByteChannel) -> None:
+        self._selected = None
+        self._set_state("connecting", f"draining power-on output on {self.path}")
+        banner = await self._drain(channel, self.config.banner_quiet_s, self.config.banner_max_s)
+        if banner.strip():
+            text = codec.LineDecoder().feed(banner + b"\r")
+            self._sink.on_event("info", None, f"{self.id}: power-on banner: {' | '.join(text)}")
+        for module in self._modules.values():
+            await self._probe(module)
+        self._connected_once = True
+        self._set_state("connected", self._connector.description)
+        while True:
+            job = self._take_job()
+            if job is not None:
+                await self._run_job(job)
+                continue
+            now = self._clock()
+            if now - self._last_status_t >= self.config.status_period_s:
+                self._last_status_t = now
+                self._publish_status()
+            online = [m for m in self._modules.values() if m.online]
+            if not online:
+                await self._wait_job_or(self.config.offline_retry_s)
+                if not self._urgent and not self._normal:
+                    for module in self._modules.values():
+                        await self._probe(module)
+                continue
+            if now - self._last_verify_t >= self.config.verify_period_s:
+                self._last_verify_t = now
+                await self._verify_step(online)
+                continue
+            await self._poll_step(online)
+            offline = [m for m in self._modules.values() if not m.online]
+            if offline and now - self._last_verify_t >= self.config.offline_retry_s / 2:
+                # Retry absent modules occasionally without starving the others.
+                self._last_verify_t = now
+                await self._probe(offline[0])
+
+    async def _wait_job_or(self, timeout_s: float) -> None:
+        self._wakeup.clear()
+        if self._urgent or self._normal:
+            return
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self._wakeup.wait()
+
+    async def _probe(self, module: _ModuleState) -> None:
+        """Select a module and read all its parameters; marks it online or offline."""
+        axis_id = self.axis_id(module.address)
+        try:
+            values = await self._read_params(module)
+            rss = await self._read_int(module.address, "rss")
+        except (DeviceTimeoutError, ProtocolError) as exc:
+            if module.online or not self._connected_once:
+                self._sink.on_event("warning", axis_id, f"module {module.address}: {exc}")
+            module.online = False
+            self._sink.on_axis_health(axis_id, "offline", str(exc))
+            return
+        module.rss = rss
+        flags = codec.decode_rss(rss)
+        module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
+        module.online = True
+        self._sink.on_params(axis_id, values, "read")
+        self._sink.on_axis_health(axis_id, "ok", "")
+
+    # --- the wire exchange ------------------------------------------------------------
+
+    def _require_channel(self) -> ByteChannel:
+        if self._channel is None:
+            raise LinkClosedError(f"link {self.id} is not open")
+        return self._channel
+
+    async def _drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
+        """Read until nothing arrives for ``quiet_s`` (or ``max_s`` passed)."""
+        collected = bytearray(channel.discard_input())
+        deadline = self._clock() + max_s
+        while self._clock() < deadline:
+            data = await channel.read_available(quiet_s)
+            if not data:
+                break
+            collected += data
+        return bytes(collected)
+
+    def _note_unsolicited(self, data: bytes) -> None:
+        text = " ".join(codec.LineDecoder().feed(data + b"\r")).strip()
+        self._errors += 1
+        if self._connected_once and sum(c.isalpha() for c in text) >= 4:
+            # Only address 0 sends a banner after power-on; all modules lose selection.
+            self._selected = None
+            message = f"power-on banner received ({text!r}): module reset"
+            self._sink.on_event("warning", None, f"{self.id}: {message}")
+            if 0 in self._modules:
+                self._mark_reset(self._modules[0], "module reset (power-on banner) — settings may be lost")
+        else:
+            self._sink.on_event(
+                "warning", None, f"{self.id}: {len(data)} unsolicited byte(s) dropped: {data[:16]!r}"
+            )
+
+    def _mark_reset(self, module: _ModuleState, message: str) -> None:
+        module.expected_mode = "unknown"
+        self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
+        self._sink.on_event("warning", self.axis_id(module.address), message)
+
+    async def _abandon(self, channel: ByteChannel) -> None:
+        """Ctrl-X discards a half-sent command in the module; then wait for quiet."""
+        await channel.write(bytes([codec.CTRL_X]))
+        leftover = await self._drain(channel, self.config.quiet_s, 0.5)
+        leftover = leftover.replace(bytes([codec.CTRL_X]), b"")
+        if leftover.strip(b"\r\n"):
+            self._note_unsolicited(leftover)
+
+    async def _send_echoed(self, channel: ByteChannel, text: str) -> None:
+        """Send ``text`` + CR one char at a time, each after the previous echo.
+
+        Raises ``_BeforeCR`` wrappers for failures that happened before CR was sent
+        (the command was abandoned with Ctrl-X and may be retried).
+        """
+        payload = text.encode("ascii") + b"\r"
+        for index, byte in enumerate(payload):
+            await channel.write(bytes([byte]))
+            echo = await channel.read_byte(self.config.char_timeout_s)
+            is_cr = index == len(payload) - 1
+            if echo == byte:
+                continue
+            if echo is None:
+                error: DriverError = DeviceTimeoutError(
+                    f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
+                )
+            else:
+                error = ProtocolError(f"echo mismatch in {text!r}: sent {byte:#04x}, got {echo:#04x}")
+            if is_cr:
+                raise error
+            await self._abandon(channel)
+            raise _AbandonedError(error)
+
+    async def _read_reply(self, channel: ByteChannel, command: codec.Command) -> list[str]:
+        decoder = codec.LineDecoder()
+        first_timeout_s = max(
+            self.config.char_timeout_s, SLOW_COMMANDS_REPLY_S.get(_mnemonic(command.text), 0.0)
+        )
+        lines: list[str] = []
+        timeout_s = first_timeout_s
+        while not lines:
+            byte = await channel.read_byte(timeout_s)
+            if byte is None:
+                raise DeviceTimeoutError(f"no reply to {command.text!r}")
+            lines.extend(decoder.feed(bytes([byte])))
+            timeout_s = self.config.char_timeout_s
+        if command.multiline:
+            # Listings are for terminals: read until the line goes quiet.
+            while True:
+                data = await channel.read_available(self.config.quiet_s)
+                if not data:
+                    break
+                lines.extend(decoder.feed(data))
+            if decoder.pending:
+                lines.append(decoder.flush())
+        return lines
+
+    async def _exchange(self, command: codec.Command) -> list[str]:
+        channel = self._require_channel()
+        stray = channel.discard_input()
+        if stray:
+            self._note_unsolicited(stray)
+        for attempt in range(2):
+            try:
+                await self._send_echoed(channel, command.text)
+                lines = await self._read_reply(channel, command)
+            except _AbandonedError as abandoned:
+                self._errors += 1
+                if attempt == 0:
+                    continue
+                raise abandoned.error from None
+            except DeviceTimeoutError:
+                self._errors += 1
+                self._selected = None
+                await self._abandon(channel)
+                raise
+            self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
+            return lines
+        raise AssertionError("unreachable")
+
+    async def _select(self, address: int) -> None:
+        if self._selected == address:
+            return
+        channel = self._require_channel()
+        command = codec.make_select(address)
+        try:
+            lines = await self._exchange(command)
+        except DeviceTimeoutError:
+            lines = await self._select_blind(channel, command)
+        if lines != [""]:
+            raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
+        self._selected = address
+
+    async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
+        """Nobody is selected, so nobody echoes: send ``se n`` paced, await its CR."""
+        char_s = 10 / self.config.baud
+        channel.discard_input()
+        for byte in command.text.encode("ascii") + b"\r":
+            await channel.write(bytes([byte]))
+            await asyncio.sleep(2 * char_s)
+        received = await self._drain(channel, self.config.char_timeout_s, 0.5)
+        # The new module's reply is a bare CR; an echo cannot come from anyone.
+        if b"\r" not in received:
+            raise DeviceTimeoutError(
+                f"no module answers at address {command.text[2:]} (power, cable, address pins?)"
+            )
+        return [""]
+
+    async def _transact(self, address: int, command: codec.Command) -> list[str]:
+        await self._select(address)
+        return await self._exchange(command)
+
+    async def _read_int(self, address: int, mnemonic: str) -> int:
+        lines = await self._transact(address, codec.make_read(mnemonic))
+        reply = codec.parse_reply(lines[0] if lines else "")
+        if reply.kind is not codec.ReplyKind.NUMBER or reply.value is None:
+            raise ProtocolError(f"{mnemonic} answered {reply.text!r}, expected a number")
+        return reply.value
+
+    async def _execute(self, module: _ModuleState, command: codec.Command) -> list[str]:
+        """Run a state-changing command and raise DeviceRefusedError if refused."""
+        lines = await self._transact(module.address, command)
+        reply = codec.parse_reply(lines[0] if lines else "")
+        mnemonic = _mnemonic(command.text)
+        hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
+        if reply.kind is codec.ReplyKind.REFUSED:
+            raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
+        if command.changes_device and not module.ucon:
+            rss = await self._read_int(module.address, "rss")
+            module.rss = rss
+            if codec.decode_rss(rss)["uc"]:
+                raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
+        return lines
+
+    # --- parameters -------------------------------------------------------------------
+
+    async def _read_params(self, module: _ModuleState) -> dict[str, int]:
+        values: dict[str, int] = {}
+        for parameter in self._descriptor.parameters:
+            values[parameter.name] = await self._read_int(module.address, parameter.read_command)
+        self._learn_syscon(module, values.get("syscon"))
+        module.known.update(values)
+        return values
+
+    def _learn_syscon(self, module: _ModuleState, syscon: int | None) -> None:
+        if syscon is None:
+            return
+        bits = codec.decode_syscon(syscon)
+        module.hex_mode = bits["hex"]
+        module.ucon = bits["ucon"]
+
+    async def _write_params(self, module: _ModuleState, values: Mapping[str, int]) -> dict[str, int]:
+        readback: dict[str, int] = {}
+        for name, value in values.items():
+            parameter = self._descriptor.parameter(name)
+            command = codec.make_set(_mnemonic(parameter.set_command), value)
+            try:
+                await self._execute(module, command)
+            except DeviceRefusedError as exc:
+                raise DeviceRefusedError(f"{name}: {exc}") from exc
+            readback[name] = await self._read_int(module.address, parameter.read_command)
+            module.known[name] = readback[name]
+            if name == "syscon":
+                self._learn_syscon(module, readback[name])
+        return readback
+
+    async def _verify_step(self, online: list[_ModuleState]) -> None:
+        """Read back one persisted parameter of one module to catch silent resets."""
+        module = online[self._poll_index % len(online)]
+        names = [p.name for p in self._descriptor.parameters if p.name in module.known]
+        if not names:
+            return
+        name = names[module.verify_index % len(names)]
+        module.verify_index += 1
+        parameter = self._descriptor.parameter(name)
+        try:
+            value = await self._read_int(module.address, parameter.read_command)
+        except (DeviceTimeoutError, ProtocolError):
+            return
+        expected = module.known[name]
+        if value != expected:
+            module.known[name] = value
+            default = parameter.default
+            why = "back at its default" if value == default else "changed outside servotune"
+            self._mark_reset(
+                module,
+                f"{name} reads {value}, last known {expected} ({why}): module reset? "
+                "Settings may be lost",
+            )
+            self._sink.on_params(self.axis_id(module.address), {name: value}, "read")
+
+    # --- polling ----------------------------------------------------------------------
+
+    async def _poll_step(self, online: list[_ModuleState]) -> None:
+        """Poll one module completely (rp, pe, rss; rve every n-th cycle)."""
+        module = online[self._poll_index % len(online)]
+        self._poll_index += 1
+        try:
+            await self._poll_module(module)
+            self._consecutive_failures = 0
+        except (DeviceTimeoutError, ProtocolError) as exc:
+            self._consecutive_failures += 1
+            if self._consecutive_failures >= 3:
+                if self._state != "error":
+                    self._sink.on_event("error", None, f"{self.id}: {exc}")
+                self._set_state("error", str(exc))
+                if self._consecutive_failures >= 3 * len(self._modules):
+                    for m in self._modules.values():
+                        m.online = False
+                        self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
+
+    async def _poll_module(self, module: _ModuleState) -> None:
+        address = module.address
+        position: int | None = None
+        t_position = 0.0
+        following_error: int | None = None
+        rss: int | None = None
+        for mnemonic in self.config.poll_commands:
+            if self._urgent:
+                # A stop is waiting: give the line up now, finish the sample later.
+                return
+            value = await self._read_int(address, mnemonic)
+            if mnemonic == "rp":
+                position, t_position = value, self._clock()
+            elif mnemonic == "pe":
+                following_error = value
+            elif mnemonic == "rss":
+                rss = value
+        measured: float | None = None
+        module.cycles += 1
+        if self.config.rve_every and module.cycles % self.config.rve_every == 0:
+            measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
+        if self._state == "error":
+            self._set_state("connected", self._connector.description)
+        self._emit_sample(module, position, t_position, following_error, rss, measured)
+
+    def _emit_sample(
+        self,
+        module: _ModuleState,
+        position: int | None,
+        t_position: float,
+        following_error: int | None,
+        rss: int | None,
+        measured: float | None,
+    ) -> None:
+        t = t_position or self._clock()
+        if position is not None:
+            if module.position is not None and module.position_t is not None:
+                dt = t - module.position_t
+                if dt > 0:
+                    module.velocity = (position - module.position) / dt
+            module.position, module.position_t = position, t
+        if following_error is not None:
+            module.following_error = following_error
+        if rss is not None:
+            self._check_rss(module, rss)
+            module.rss = rss
+        flags = codec.decode_rss(module.rss or 0)
+        channels: dict[str, float | None] = {
+            "position": module.position,
+            "setpoint": (
+                module.position + module.following_error
+                if module.position is not None and module.following_error is not None
+                else None
+            ),
+            "following_error": module.following_error,
+            "velocity": module.velocity,
+            "velocity_measured": measured,
+        }
+        module.samples.append(t)
+        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+
+    def _check_rss(self, module: _ModuleState, rss: int) -> None:
+        flags = codec.decode_rss(rss)
+        previous = codec.decode_rss(module.rss) if module.rss is not None else None
+        if module.expected_mode in ("pm", "vm") and not flags["pm"] and not flags["vm"]:
+            self._mark_reset(
+                module,
+                f"module left {module.expected_mode} without a stop: module reset? "
+                "Settings may be lost",
+            )
+            module.expected_mode = "off"
+        elif previous is not None and previous["cal"] and not flags["cal"]:
+            self._mark_reset(module, "the cal flag fell: module reset? Settings may be lost")
+
+    # --- status -----------------------------------------------------------------------
+
+    def _set_state(self, state: LinkState, message: str) -> None:
+        changed = state != self._state or message != self._message
+        self._state, self._message = state, message
+        if changed:
+            self._publish_status()
+
+    def wire_limit_hz(self) -> float:
+        """Samples/s per axis the wire allows for the poll set, from actual reply lengths.
+
+        Per transaction: every command char and CR is sent and echoed (2 chars each),
+        then the reply and its CR: all at 10 bit times per character.
+        """
+        char_s = 10 / self.config.baud
+        online = [m for m in self._modules.values() if m.online] or list(self._modules.values())
+        per_module = 0.0
+        for mnemonic in self.config.poll_commands:
+            reply = self._reply_chars.get(mnemonic, 2)
+            per_module += 2 * (len(mnemonic) + 1) + reply
+        if self.config.rve_every:
+            per_module += (2 * 4 + self._reply_chars.get("rve", 2)) / self.config.rve_every
+        if len(online) > 1:
+            per_module += 2 * (len(f"se{online[0].address}") + 1) + 1
+        cycle_s = per_module * char_s * len(online)
+        return 1 / cycle_s
+
+    def achieved_rate_hz(self) -> float:
+        """Mean telemetry samples per second per online axis over the last 2 s."""
+        now = self._clock()
+        rates = []
+        for module in self._modules.values():
+            if not module.online:
+                continue
+            recent = [t for t in module.samples if now - t <= 2.0]
+            if len(recent) >= 2:
+                rates.append((len(recent) - 1) / (recent[-1] - recent[0]))
+            else:
+                rates.append(0.0)
+        return sum(rates) / len(rates) if rates else 0.0
+
+    def _publish_status(self) -> None:
+        self._sink.on_link_status(
+            self.id,
+            self._state,
+            self._message,
+            self.achieved_rate_hz(),
+            self.wire_limit_hz(),
+            self._errors,
+        )
+
+    # --- operations used by Slap2Axis -------------------------------------------------
+
+    async def op_read_params(self, address: int) -> dict[str, int]:
+        module = self._modules[address]
+
+        async def job() -> dict[str, int]:
+            return await self._read_params(module)
+
+        values = await self.submit(job)
+        self._sink.on_params(self.axis_id(address), values, "read")
+        return values
+
+    async def op_write_params(
+        self, address: int, values: Mapping[str, int], source: str
+    ) -> dict[str, int]:
+        module = self._modules[address]
+
+        async def job() -> dict[str, int]:
+            return await self._write_params(module, values)
+
+        readback = await self.submit(job)
+        self._sink.on_params(self.axis_id(address), readback, source)
+        return readback
+
+    async def op_execute(
+        self, address: int, commands: list[codec.Command], *, urgent: bool = False
+    ) -> list[str]:
+        module = self._modules[address]
+
+        async def job() -> list[str]:
+            sent: list[str] = []
+            for command in commands:
+                await self._execute(module, command)
+                sent.append(command.text)
+                self._track_mode(module, command.text)
+            return sent
+
+        return await self.submit(job, urgent=urgent)
+
+    async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None:
+        """Send one control character (Ctrl-K) to a module and drain its echo."""
+
+        async def job() -> None:
+            await self._select(address)
+            channel = self._require_channel()
+            await channel.write(bytes([byte]))
+            await self._drain(channel, self.config.quiet_s, 0.2)
+
+        await self.submit(job, urgent=urgent)
+
+    async def op_console(self, address: int, line: str) -> tuple[str, list[str]]:
+        module = self._modules[address]
+        text = codec.normalise_line(line)
+        mnemonic = _mnemonic(text)
+        if mnemonic == "se":
+            raise InvalidArgumentError(
+                "line", "se is managed by servotune: pick the module in the navigation"
+            )
+        command = codec.Command(text, multiline=True)
+
+        async def job() -> list[str]:
+            lines = await self._transact(address, command)
+            self._track_mode(module, text)
+            if mnemonic == "ssyscon" or mnemonic in ("ssb", "rsb"):
+                module.known.pop("syscon", None)
+                self._learn_syscon(module, await self._read_int(address, "rsyscon"))
+            return lines
+
+        return text, await self.submit(job)
+
+    def _track_mode(self, module: _ModuleState, text: str) -> None:
+        mnemonic = _mnemonic(text)
+        if mnemonic == "st":
+            module.expected_mode = "off"
+        elif mnemonic in ("pm", "vm"):
+            module.expected_mode = mnemonic
+        elif mnemonic in ("spwm", "cal", "ca"):
+            module.expected_mode = "unknown"
+        elif mnemonic in _PARAM_SETTERS:
+            module.known.pop(_PARAM_SETTERS[mnemonic], None)
+
+
+class _AbandonedError(Exception):
+    """A command abandoned with Ctrl-X before its CR: it did not execute."""
+
+    def __init__(self, error: DriverError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def _mnemonic(text: str) -> str:
+    """The command word of a wire line: its leading letters (``sv1000`` -> ``sv``)."""
+    end = 0
+    while end < len(text) and text[end].isalpha():
+        end += 1
+    return text[:end].lower()
+
+
+_PARAM_SETTERS = {
+    "kp": "kp",
+    "ki": "ki",
+    "kd": "kd",
+    "sv": "velocity",
+    "sa": "acceleration",
+    "sipw": "inpos_window",
+    "ws": "inpos_window",
+    "sipt": "inpos_time",
+    "scl": "current_limit_ma",
+    "sc": "current_limit_ma",
+    "scv": "cal_velocity",
+    "sca": "cal_acceleration",
+    "ssyscon": "syscon",
+    "ssb": "syscon",
+    "rsb": "syscon",
+    "li": "syscon",
+    "il": "syscon",
+}
+
+
+class Slap2Axis(AxisDriver):
+    """One SLAP2 module: the axis the user tunes. All I/O goes through its link."""
+
+    def __init__(self, link: Slap2Link, address: int) -> None:
+        self._link = link
+        self._address = address
+
+    @property
+    def id(self) -> str:
+        return self._link.axis_id(self._address)
+
+    @property
+    def name(self) -> str:
+        return self._link.config.names.get(self._address, f"SLAP2 #{self._address}")
+
+    @property
+    def address(self) -> int:
+        return self._address
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._link.descriptor
+
+    async def read_params(self) -> dict[str, int]:
+        return await self._link.op_read_params(self._address)
+
+    async def write_params(self, values: Mapping[str, int], source: str = "write") -> dict[str, int]:
+        return await self._link.op_write_params(self._address, values, source)
+
+    def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:
+        """Build the wire commands for a descriptor command (pure; no I/O)."""
+        if name == "stop":
+            return [codec.make_simple("st")]
+        if name == "position_mode":
+            return [codec.make_simple("pm")]
+        if name == "velocity_mode":
+            return [codec.make_simple("vm")]
+        if name == "move_absolute":
+            return [codec.make_move_absolute(args["position"])]
+        if name == "move_relative":
+            return [codec.make_move_relative(args["distance"])]
+        if name == "set_position":
+            return [codec.make_set_position(args["position"])]
+        if name == "open_loop_pwm":
+            return [codec.make_pwm(args["pwm"])]
+        if name == "calibrate":
+            return [codec.make_calibrate(args["mode"])]
+        if name == "save_eeprom":
+            return [codec.make_simple("pg")]
+        raise InvalidArgumentError("command", f"unknown command {name!r}")
+
+    async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
+        if name == "abort_calibration":
+            await self._link.op_raw_byte(self._address, codec.CTRL_K, urgent=True)
+            return CommandOutcome(["<Ctrl-K>"], "calibration aborted")
+        if name == "save_eeprom":
+            rss = self._link.module_state(self._address).rss
+            flags = codec.decode_rss(rss or 0)
+            if flags["pm"] or flags["vm"]:
+                mode = "position mode" if flags["pm"] else "velocity mode"
+                raise DeviceRefusedError(
+                    f"pg is not allowed while {mode} is on (manual: 'nicht während pm oder "
+                    "vm'): press STOP, then save"
+                )
+        commands = self.make_command(name, args)
+        sent = await self._link.op_execute(self._address, commands, urgent=name == "stop")
+        return CommandOutcome(sent, "ok")
+
+    async def console(self, line: str) -> list[str]:
+        _, lines = await self._link.op_console(self._address, line)
+        return lines
+
+    async def stop(self) -> None:
+        await self._link.op_execute(self._address, [codec.make_simple("st")], urgent=True)

@@ -1,0 +1,530 @@
+"""The SLAP2 device descriptor: parameters, channels, flags and commands as data.
+
+Texts paraphrase the vendor manual (``shared/seeds/000_...``, German) in English.
+Unit conversions use the manual's formulas and the encoder line count of the link
+(``lines`` in the link spec): rpm = SV * 140.417 / lines, rpm/min = SA * 35946.7 /
+lines, ms = ticks * 0.8415.
+"""
+
+from __future__ import annotations
+
+from servotune.descriptor import (
+    ArgumentDescriptor,
+    BitDescriptor,
+    ChannelDescriptor,
+    Choice,
+    CommandDescriptor,
+    ConsoleDescriptor,
+    Conversion,
+    DeviceDescriptor,
+    FlagDescriptor,
+    ParameterDescriptor,
+    PlotDescriptor,
+)
+from servotune.protocols import slap2 as codec
+
+POSITION_LIMIT = codec.POSITION_LIMIT
+
+CALIBRATION_MODES = [
+    Choice(
+        value=0,
+        label="cal 0: limit switch E1",
+        description=(
+            "Drive toward E1 (negative) with scv/sca; stop at once on E1; back off toward "
+            "E2 at 1/16 speed and acceleration until E1 releases; stop."
+        ),
+    ),
+    Choice(
+        value=1,
+        label="cal 1: limit switch E2",
+        description=(
+            "Drive toward E2 (positive) with scv/sca; stop at once on E2; back off toward "
+            "E1 at 1/16 speed and acceleration until E2 releases; stop."
+        ),
+    ),
+    Choice(
+        value=2,
+        label="cal 2: E1 + index",
+        description="As cal 0, then keep turning (toward E2) until the encoder's index pulse.",
+    ),
+    Choice(
+        value=3,
+        label="cal 3: E2 + index",
+        description="As cal 1, then keep turning (toward E1) until the encoder's index pulse.",
+    ),
+    Choice(
+        value=4,
+        label="cal 4: index, negative",
+        description="Turn in the negative direction until the index pulse only; stop.",
+    ),
+    Choice(
+        value=5,
+        label="cal 5: index, positive",
+        description="Turn in the positive direction until the index pulse only; stop.",
+    ),
+]
+
+SYSCON_BITS = [
+    BitDescriptor(bit=0, name="l1on", label="E1 on", description="Limit switch E1 enabled."),
+    BitDescriptor(bit=1, name="l2on", label="E2 on", description="Limit switch E2 enabled."),
+    BitDescriptor(
+        bit=2, name="inv1", label="invert E1", description="E1 level inverted (normally open)."
+    ),
+    BitDescriptor(
+        bit=3, name="inv2", label="invert E2", description="E2 level inverted (normally open)."
+    ),
+    BitDescriptor(
+        bit=4,
+        name="hex",
+        label="hex output",
+        description="The module answers numbers in hex (0x3E8). servotune reads both forms.",
+    ),
+    BitDescriptor(
+        bit=5,
+        name="ucon",
+        label="-1UC replies",
+        description="Unknown or refused commands answer '-1UC' instead of an empty line.",
+    ),
+]
+
+
+def slap2_descriptor(lines: int) -> DeviceDescriptor:
+    """Build the descriptor for a SLAP2 axis whose encoder has ``lines`` lines per rev."""
+    counts_per_rev = 4 * lines
+    rpm_per_sv = codec.RPM_PER_SV_LINE / lines
+    rpm_min_per_sa = codec.RPM_PER_MIN_PER_SA_LINE / lines
+    counts_s_per_sv = codec.COUNTS_S_PER_SV
+    revs = Conversion(unit="rev", factor=1 / counts_per_rev, digits=3)
+    deg = Conversion(unit="°", factor=360 / counts_per_rev, digits=1)
+    rpm_of_counts_s = Conversion(unit="rpm", factor=60 / counts_per_rev, digits=1)
+    parameters = [
+        ParameterDescriptor(
+            name="kp",
+            label="P gain",
+            unit="",
+            minimum=0,
+            maximum=codec.GAIN_MAX,
+            default=40,
+            persisted=True,
+            group="gains",
+            description="Proportional gain: stiffness. Raise with D; too much oscillates.",
+            set_command="kp{value}",
+            read_command="qp",
+            slider_maximum=2000,
+        ),
+        ParameterDescriptor(
+            name="ki",
+            label="I gain",
+            unit="",
+            minimum=0,
+            maximum=codec.GAIN_MAX,
+            default=40,
+            persisted=True,
+            group="gains",
+            description=(
+                "Integral gain: accuracy at the target. The manual: tune with I at 0 or 1 "
+                "first, then raise I until positioning is accurate."
+            ),
+            set_command="ki{value}",
+            read_command="qi",
+            slider_maximum=2000,
+        ),
+        ParameterDescriptor(
+            name="kd",
+            label="D gain",
+            unit="",
+            minimum=0,
+            maximum=codec.GAIN_MAX,
+            default=80,
+            persisted=True,
+            group="gains",
+            description="Derivative gain: damps oscillation. Vary D against ringing.",
+            set_command="kd{value}",
+            read_command="qd",
+            slider_maximum=4000,
+        ),
+        ParameterDescriptor(
+            name="velocity",
+            label="Velocity (sv)",
+            unit="sv",
+            minimum=0,
+            maximum=codec.VELOCITY_MAX,
+            default=2000,
+            persisted=True,
+            group="profile",
+            description=(
+                "Profile velocity of moves, or the speed in velocity mode (may change "
+                "while running). rpm = SV x 140.417 / lines."
+            ),
+            set_command="sv{value}",
+            read_command="rv",
+            conversions=[
+                Conversion(unit="rpm", factor=rpm_per_sv, digits=1),
+                Conversion(unit="counts/s", factor=counts_s_per_sv, digits=0),
+            ],
+            slider_maximum=20000,
+        ),
+        ParameterDescriptor(
+            name="acceleration",
+            label="Acceleration (sa)",
+            unit="sa",
+            minimum=0,
+            maximum=codec.ACCELERATION_MAX,
+            default=1000,
+            persisted=True,
+            group="profile",
+            description=(
+                "Acceleration and deceleration of moves and of velocity mode. "
+                "rpm/min = SA x 35946.7 / lines."
+            ),
+            set_command="sa{value}",
+            read_command="ra",
+            conversions=[
+                Conversion(unit="rpm/min", factor=rpm_min_per_sa, digits=0),
+                Conversion(unit="counts/s²", factor=codec.COUNTS_S2_PER_SA, digits=0),
+            ],
+            slider_maximum=10000,
+        ),
+        ParameterDescriptor(
+            name="inpos_window",
+            label="In-position window (sipw)",
+            unit="counts",
+            minimum=0,
+            maximum=codec.WINDOW_MAX,
+            default=5,
+            persisted=True,
+            group="in-position",
+            description=(
+                "inpos needs the motor within ± this many counts of the target for the "
+                "in-position time."
+            ),
+            set_command="sipw{value}",
+            read_command="ripw",
+            slider_maximum=200,
+        ),
+        ParameterDescriptor(
+            name="inpos_time",
+            label="In-position time (sipt)",
+            unit="ticks",
+            minimum=0,
+            maximum=codec.WINDOW_MAX,
+            default=50,
+            persisted=True,
+            group="in-position",
+            description=(
+                "Ticks of 841.5 µs the motor must stay inside the window before inpos "
+                "goes high (50 ≈ 42 ms)."
+            ),
+            set_command="sipt{value}",
+            read_command="ript",
+            conversions=[Conversion(unit="ms", factor=codec.TICK_S * 1000, digits=1)],
+            slider_maximum=1000,
+        ),
+        ParameterDescriptor(
+            name="current_limit_ma",
+            label="Current limit (scl)",
+            unit="mA",
+            minimum=0,
+            maximum=codec.CURRENT_LIMIT_MAX_MA,
+            default=2000,
+            persisted=True,
+            group="limits",
+            description=(
+                "Motor current limit. While it acts, the oc flag is high: usually a sign "
+                "that something in motor or mechanics is wrong."
+            ),
+            set_command="scl{value}",
+            read_command="rcl",
+        ),
+        ParameterDescriptor(
+            name="cal_velocity",
+            label="Calibration velocity (scv)",
+            unit="sv",
+            minimum=0,
+            maximum=codec.VELOCITY_MAX,
+            default=500,
+            persisted=True,
+            group="calibration",
+            description="Velocity of cal 0..5 (ca uses sv). Same units as sv.",
+            set_command="scv{value}",
+            read_command="rcv",
+            conversions=[Conversion(unit="rpm", factor=rpm_per_sv, digits=1)],
+            slider_maximum=5000,
+        ),
+        ParameterDescriptor(
+            name="cal_acceleration",
+            label="Calibration acceleration (sca)",
+            unit="sa",
+            minimum=0,
+            maximum=codec.ACCELERATION_MAX,
+            default=200,
+            persisted=True,
+            group="calibration",
+            description="Acceleration of cal 0..5. A switch stops the motor abruptly anyway.",
+            set_command="sca{value}",
+            read_command="rca",
+            conversions=[Conversion(unit="rpm/min", factor=rpm_min_per_sa, digits=0)],
+            slider_maximum=5000,
+        ),
+        ParameterDescriptor(
+            name="syscon",
+            label="System configuration (ssyscon)",
+            unit="",
+            minimum=0,
+            maximum=63,
+            default=3,
+            persisted=True,
+            group="configuration",
+            description=(
+                "Limit switches on/off and their polarity, hex output, -1UC replies. "
+                "Rotary axes without switches must clear E1 on / E2 on."
+            ),
+            set_command="ssyscon{value}",
+            read_command="rsyscon",
+            kind="bits",
+            bits=SYSCON_BITS,
+            slider=False,
+        ),
+    ]
+    channels = [
+        ChannelDescriptor(
+            name="position",
+            label="Position",
+            unit="counts",
+            description="Encoder position (rp). The counter runs in every mode.",
+            conversions=[revs, deg],
+        ),
+        ChannelDescriptor(
+            name="setpoint",
+            label="Setpoint",
+            unit="counts",
+            description="Profile generator setpoint = position + following error.",
+            conversions=[revs, deg],
+        ),
+        ChannelDescriptor(
+            name="following_error",
+            label="Following error",
+            unit="counts",
+            description="pe: setpoint minus actual position (Schleppfehler).",
+            conversions=[deg],
+        ),
+        ChannelDescriptor(
+            name="velocity",
+            label="Velocity",
+            unit="counts/s",
+            description="Derived from successive positions and their times.",
+            conversions=[rpm_of_counts_s],
+        ),
+        ChannelDescriptor(
+            name="velocity_measured",
+            label="Velocity (rve)",
+            unit="counts/s",
+            description="The module's own velocity measurement, read at a lower rate.",
+            conversions=[rpm_of_counts_s],
+        ),
+    ]
+    flag_texts = {
+        "limit1": ("E1", "Level at limit switch input E1 (negative end).", "warning"),
+        "limit2": ("E2", "Level at limit switch input E2 (positive end).", "warning"),
+        "vm": ("vm", "Velocity mode is on. Low after st.", "info"),
+        "pm": ("pm", "Position mode is on. Low after st.", "info"),
+        "move": (
+            "move",
+            "The profile generator is running (after ma/mr); the next move may start "
+            "when it is low. The setpoint need not equal the position yet (see pe).",
+            "info",
+        ),
+        "inpos": (
+            "inpos",
+            "Motor in position: within ±sipw of the target for sipt ticks (841.5 µs "
+            "each). Goes low at the start of every move.",
+            "info",
+        ),
+        "cal": ("cal", "Calibrated with cal/ca since power-on.", "info"),
+        "oc": (
+            "oc",
+            "Current limit active: the motor wants more current than scl allows. "
+            "Normally a sign that motor or mechanics are not in order.",
+            "fault",
+        ),
+        "uc": (
+            "uc",
+            "The previous command was unknown, malformed or could not be executed.",
+            "warning",
+        ),
+    }
+    flags = [
+        FlagDescriptor(
+            name=bit.name,
+            label=flag_texts[bit.name][0],
+            description=flag_texts[bit.name][1],
+            bit=bit.value,
+            source="rss",
+            severity=flag_texts[bit.name][2],  # type: ignore[arg-type]
+        )
+        for bit in codec.RssBit
+    ]
+    plots = [
+        PlotDescriptor(
+            name="position", label="Position", unit="counts", series=["position", "setpoint"]
+        ),
+        PlotDescriptor(
+            name="following_error",
+            label="Following error",
+            unit="counts",
+            series=["following_error"],
+        ),
+        PlotDescriptor(
+            name="velocity",
+            label="Velocity",
+            unit="counts/s",
+            series=["velocity", "velocity_measured"],
+        ),
+        PlotDescriptor(
+            name="flags",
+            label="Flags",
+            unit="",
+            series=["move", "inpos", "oc", "limit1", "limit2"],
+            kind="flags",
+        ),
+    ]
+    position_arg = ArgumentDescriptor(
+        name="position",
+        label="Position",
+        unit="counts",
+        minimum=-POSITION_LIMIT,
+        maximum=POSITION_LIMIT,
+    )
+    commands = [
+        CommandDescriptor(
+            name="stop",
+            label="STOP",
+            description="st: controller off, motor unpowered; leaves pm, vm and spwm.",
+            group="stop",
+        ),
+        CommandDescriptor(
+            name="position_mode",
+            label="Position mode",
+            description="pm: controller on, holds the current position.",
+            group="mode",
+        ),
+        CommandDescriptor(
+            name="velocity_mode",
+            label="Velocity mode",
+            description="vm: controller on, accelerates with sa to sv at once.",
+            group="mode",
+        ),
+        CommandDescriptor(
+            name="move_absolute",
+            label="Move to",
+            description="ma: move to a position (needs position mode).",
+            group="motion",
+            arguments=[position_arg],
+        ),
+        CommandDescriptor(
+            name="move_relative",
+            label="Move by",
+            description="mr: move by a distance (needs position mode). Jog uses it too.",
+            group="motion",
+            arguments=[
+                ArgumentDescriptor(
+                    name="distance",
+                    label="Distance",
+                    unit="counts",
+                    minimum=-2 * POSITION_LIMIT,
+                    maximum=2 * POSITION_LIMIT,
+                    default=2000,
+                )
+            ],
+        ),
+        CommandDescriptor(
+            name="set_position",
+            label="Set position",
+            description="sp: set the position counter (allowed while moving).",
+            group="motion",
+            arguments=[position_arg],
+        ),
+        CommandDescriptor(
+            name="open_loop_pwm",
+            label="Open-loop PWM",
+            description=(
+                "spwm: drive the motor with a fixed PWM, no position control and no "
+                "encoder needed. -255..255 (the manual's table says ±254; its command "
+                "section ±255)."
+            ),
+            group="motion",
+            arguments=[
+                ArgumentDescriptor(
+                    name="pwm", label="PWM", unit="", minimum=-255, maximum=255, default=30
+                )
+            ],
+            confirm=(
+                "Open-loop PWM turns the motor without position control. Limit switches "
+                "do not hold it. Make sure the mechanics can turn freely."
+            ),
+        ),
+        CommandDescriptor(
+            name="calibrate",
+            label="Calibrate",
+            description="cal n: home on a limit switch and/or the index pulse with scv/sca.",
+            group="calibration",
+            arguments=[
+                ArgumentDescriptor(
+                    name="mode",
+                    label="Mode",
+                    minimum=0,
+                    maximum=5,
+                    default=4,
+                    choices=CALIBRATION_MODES,
+                )
+            ],
+            abort_command="abort_calibration",
+        ),
+        CommandDescriptor(
+            name="abort_calibration",
+            label="Abort calibration",
+            description="Ctrl-K: aborts a running calibration; the cal flag stays 0.",
+            group="calibration",
+        ),
+        CommandDescriptor(
+            name="save_eeprom",
+            label="Save to EEPROM",
+            description=(
+                "pg: store kp ki kd sipw sipt scv sca scl syscon sv sa in the module's "
+                "EEPROM (restored at power-on). Not while pm or vm is on: stop first."
+            ),
+            group="persist",
+            confirm="Store the current settings permanently in the module's EEPROM?",
+        ),
+        CommandDescriptor(
+            name="restore_parameters",
+            label="Re-apply last settings",
+            description=(
+                "Write the last settings servotune applied or read to this module again "
+                "(after a reset)."
+            ),
+            group="persist",
+        ),
+    ]
+    return DeviceDescriptor(
+        device="slap2",
+        model="gräbner SLAP2",
+        title="SLAP2 DC servo module",
+        summary=(
+            f"Brushed DC motor, PID position loop, quadrature encoder ({lines} lines = "
+            f"{counts_per_rev} counts/rev), limit switches E1/E2, RS232 multi-drop."
+        ),
+        parameters=parameters,
+        channels=channels,
+        flags=flags,
+        plots=plots,
+        commands=commands,
+        console=ConsoleDescriptor(
+            help=(
+                "Lines go to this module as typed (spaces removed; the module ignores "
+                "them). Replies of rep, rrss and rrsyscon span several lines."
+            ),
+            multiline_commands=list(codec.MULTILINE_COMMANDS),
+            examples=["rp", "rss", "rrss", "rep", "id", "qp"],
+        ),
+    )

@@ -1,0 +1,576 @@
+"""The hub: owns the links, validates every change, and fans telemetry out to clients.
+
+Every command that changes a device goes through ``Hub.write_params``,
+``Hub.command``, ``Hub.console`` or ``Hub.stop_all``: one path where input is checked
+against the device descriptor before anything is sent, where the axis is marked as
+operated (which switches the demo autopilot off for it), and where a later control
+lock, authentication and audit log will sit.
+
+Fan-out: samples are batched per axis about 30 times a second and serialised once;
+every websocket client has its own bounded queue. A slow client loses its oldest
+telemetry batches (counted and reported to it), never status or events, and never
+slows the serial side or the other clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+from servotune import __version__
+from servotune.descriptor import DeviceDescriptor
+from servotune.drivers.base import (
+    AxisDriver,
+    CommandOutcome,
+    DriverError,
+    InvalidArgumentError,
+    Link,
+    Sample,
+)
+from servotune.storage import Storage
+from servotune.wire import (
+    AxisHealth,
+    AxisInfo,
+    AxisState,
+    AxisStatus,
+    ClientStats,
+    Event,
+    EventLevel,
+    Hello,
+    LinkInfo,
+    LinkState,
+    LinkStatus,
+    Params,
+    Telemetry,
+)
+
+logger = logging.getLogger(__name__)
+
+BATCH_PERIOD_S = 1 / 30
+STATUS_PERIOD_S = 1.0
+CLIENT_QUEUE_MESSAGES = 256
+
+
+class UnknownAxisError(KeyError):
+    pass
+
+
+@dataclass(slots=True)
+class AxisEntry:
+    driver: AxisDriver
+    link: Link
+    info: AxisInfo
+    storage_key: str
+    latest: Sample | None = None
+    pending: list[Sample] = field(default_factory=list)
+    health: AxisHealth = "offline"
+    health_message: str = "connecting"
+    operated: bool = False
+    device_values: dict[str, int] = field(default_factory=dict)
+    last_known: dict[str, int] = field(default_factory=dict)
+    compared_at_connect: bool = False
+
+
+@dataclass(slots=True)
+class LinkEntry:
+    link: Link
+    status: LinkStatus
+
+
+class ClientQueue:
+    """Outgoing messages of one websocket client (JSON text), bounded.
+
+    When full, the oldest *telemetry* message is dropped first; status, params and
+    events are kept because a client must not miss a state change.
+    """
+
+    def __init__(self, max_messages: int = CLIENT_QUEUE_MESSAGES) -> None:
+        self._items: deque[tuple[bool, str]] = deque()
+        self._max = max_messages
+        self._event = asyncio.Event()
+        self.sent = 0
+        self.dropped = 0
+
+    def put(self, text: str, *, droppable: bool) -> None:
+        self._items.append((droppable, text))
+        while len(self._items) > self._max:
+            for index, (is_droppable, _) in enumerate(self._items):
+                if is_droppable:
+                    del self._items[index]
+                    self.dropped += 1
+                    break
+            else:
+                # Only non-droppable messages: keep the newest ones.
+                self._items.popleft()
+                self.dropped += 1
+        self._event.set()
+
+    async def get(self) -> str:
+        while not self._items:
+            self._event.clear()
+            await self._event.wait()
+        self.sent += 1
+        return self._items.popleft()[1]
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Hub:
+    """Owns links and their tasks for the lifetime of the app (see ``api.app``)."""
+
+    def __init__(
+        self,
+        links: list[Link],
+        storage: Storage,
+        *,
+        autopilot: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+        link_sink_binder: Callable[[Hub], None] | None = None,
+    ) -> None:
+        self._clock = clock
+        self._t0 = clock()
+        self._storage = storage
+        self.autopilot = autopilot
+        self._links: dict[str, LinkEntry] = {}
+        self._axes: dict[str, AxisEntry] = {}
+        self._clients: set[ClientQueue] = set()
+        self._events: deque[Event] = deque(maxlen=200)
+        self._tasks: list[asyncio.Task[None]] = []
+        for link in links:
+            self.add_link(link)
+
+    # --- construction -----------------------------------------------------------------
+
+    def add_link(self, link: Link) -> None:
+        if link.id in self._links:
+            raise ValueError(f"duplicate link id {link.id!r}")
+        self._links[link.id] = LinkEntry(
+            link,
+            LinkStatus(
+                link=link.id,
+                state="connecting",
+                message="",
+                rate_hz=0.0,
+                wire_limit_hz=0.0,
+                errors=0,
+            ),
+        )
+        for axis in link.axes:
+            info = AxisInfo(
+                id=axis.id, device=link.device, link=link.id, address=axis.address, name=axis.name
+            )
+            key = f"{link.device}/{link.id}/{axis.address}"
+            self._axes[axis.id] = AxisEntry(axis, link, info, key)
+
+    async def start(self) -> None:
+        """Load stored settings and start every link's owner task and the fan-out."""
+        for entry in self._axes.values():
+            entry.last_known = await asyncio.to_thread(self._storage.last_params, entry.storage_key)
+        for link_entry in self._links.values():
+            self._tasks.append(asyncio.create_task(self._run_link(link_entry.link)))
+        self._tasks.append(asyncio.create_task(self._fan_out()))
+        if self.autopilot:
+            for entry in self._axes.values():
+                self._tasks.append(asyncio.create_task(self._autopilot(entry)))
+
+    async def stop(self) -> None:
+        """Cancel every task; the links close their ports."""
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks.clear()
+
+    async def _run_link(self, link: Link) -> None:
+        try:
+            await link.run()
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            # A driver bug must be visible, not silently kill the link.
+            logger.exception("link %s crashed", link.id)
+            self.on_event("error", None, f"link {link.id} stopped after an internal error")
+
+    # --- queries ----------------------------------------------------------------------
+
+    def now(self) -> float:
+        return self._clock() - self._t0
+
+    def axes_info(self) -> list[AxisInfo]:
+        return [entry.info for entry in self._axes.values()]
+
+    def links_info(self) -> list[LinkInfo]:
+        return [
+            LinkInfo(id=e.link.id, device=e.link.device, path=e.link.path, baud=e.link.baud)
+            for e in self._links.values()
+        ]
+
+    def entry(self, axis_id: str) -> AxisEntry:
+        try:
+            return self._axes[axis_id]
+        except KeyError:
+            raise UnknownAxisError(axis_id) from None
+
+    def descriptor(self, axis_id: str) -> DeviceDescriptor:
+        return self.entry(axis_id).driver.descriptor
+
+    def link_status(self, link_id: str) -> LinkStatus:
+        return self._links[link_id].status
+
+    def axis_state(self, axis_id: str) -> AxisState | None:
+        entry = self.entry(axis_id)
+        sample = entry.latest
+        if sample is None:
+            return None
+        channels = {k: float(v) for k, v in sample.channels.items() if v is not None}
+        return AxisState(
+            t=sample.t - self._t0,
+            position=channels.get("position", 0.0),
+            following_error=channels.get("following_error", 0.0),
+            velocity=channels.get("velocity", 0.0),
+            channels=channels,
+            flags=dict(sample.flags),
+            health=entry.health,
+            link_state=self._links[entry.link.id].status.state,
+        )
+
+    def hello(self) -> Hello:
+        return Hello(
+            server_version=__version__,
+            axes=self.axes_info(),
+            links=self.links_info(),
+            autopilot=self.autopilot,
+        )
+
+    def snapshot_messages(self) -> list[str]:
+        """What a new client needs besides ``hello``: statuses, params, recent events."""
+        messages = [e.status.model_dump_json() for e in self._links.values()]
+        for entry in self._axes.values():
+            messages.append(self._axis_status(entry).model_dump_json())
+            if entry.device_values:
+                messages.append(
+                    Params(axis=entry.info.id, values=entry.device_values, source="read")
+                    .model_dump_json()
+                )
+        messages.extend(event.model_dump_json() for event in self._events)
+        return messages
+
+    # --- the one command path ---------------------------------------------------------
+
+    def _validate_params(self, entry: AxisEntry, values: Mapping[str, object]) -> dict[str, int]:
+        if not values:
+            raise InvalidArgumentError("body", "no parameters given")
+        descriptor = entry.driver.descriptor
+        checked: dict[str, int] = {}
+        for name, value in values.items():
+            try:
+                parameter = descriptor.parameter(name)
+            except KeyError:
+                known = ", ".join(p.name for p in descriptor.parameters)
+                raise InvalidArgumentError(
+                    name, f"{name}: unknown parameter for {descriptor.model} (known: {known})"
+                ) from None
+            unit = f" {parameter.unit}" if parameter.unit else ""
+            allowed = f"{parameter.minimum}..{parameter.maximum}{unit}"
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(name, f"{name} must be an integer in {allowed}")
+            if not parameter.minimum <= value <= parameter.maximum:
+                raise InvalidArgumentError(
+                    name, f"{name} = {value} is out of range: allowed {allowed}"
+                )
+            checked[name] = value
+        return checked
+
+    def _validate_command(
+        self, entry: AxisEntry, name: str, args: Mapping[str, object]
+    ) -> dict[str, int]:
+        descriptor = entry.driver.descriptor
+        try:
+            command = descriptor.command(name)
+        except KeyError:
+            known = ", ".join(c.name for c in descriptor.commands)
+            raise InvalidArgumentError(
+                "command", f"unknown command {name!r} (known: {known})"
+            ) from None
+        expected = {a.name: a for a in command.arguments}
+        extra = set(args) - set(expected)
+        if extra:
+            raise InvalidArgumentError(
+                sorted(extra)[0], f"{name} takes no argument {sorted(extra)[0]!r}"
+            )
+        checked: dict[str, int] = {}
+        for argument in command.arguments:
+            allowed = f"{argument.minimum}..{argument.maximum}"
+            if argument.unit:
+                allowed += f" {argument.unit}"
+            if argument.name not in args:
+                raise InvalidArgumentError(
+                    argument.name, f"{name} needs {argument.name} ({allowed})"
+                )
+            value = args[argument.name]
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InvalidArgumentError(
+                    argument.name, f"{argument.name} must be an integer in {allowed}"
+                )
+            if not argument.minimum <= value <= argument.maximum:
+                raise InvalidArgumentError(
+                    argument.name, f"{argument.name} = {value} is out of range: allowed {allowed}"
+                )
+            checked[argument.name] = value
+        return checked
+
+    def _operate(self, entry: AxisEntry) -> None:
+        if not entry.operated:
+            entry.operated = True
+            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+
+    async def read_params(self, axis_id: str) -> dict[str, int]:
+        entry = self.entry(axis_id)
+        return await entry.driver.read_params()
+
+    async def write_params(self, axis_id: str, values: Mapping[str, object]) -> dict[str, int]:
+        """Validate all values (422 before anything is sent), write, read back."""
+        entry = self.entry(axis_id)
+        checked = self._validate_params(entry, values)
+        self._operate(entry)
+        return await entry.driver.write_params(checked)
+
+    async def command(
+        self, axis_id: str, name: str, args: Mapping[str, object]
+    ) -> CommandOutcome:
+        entry = self.entry(axis_id)
+        checked = self._validate_command(entry, name, args)
+        self._operate(entry)
+        if name == "restore_parameters":
+            return await self._restore(entry)
+        outcome = await entry.driver.command(name, checked)
+        level: EventLevel = "warning" if name == "stop" else "info"
+        self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}")
+        return outcome
+
+    async def _restore(self, entry: AxisEntry) -> CommandOutcome:
+        values = dict(entry.last_known)
+        if not values:
+            raise InvalidArgumentError(
+                "command", "no earlier settings of this axis are stored: nothing to re-apply"
+            )
+        readback = await entry.driver.write_params(values)
+        entry.health, entry.health_message = "ok", ""
+        self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+        self.on_event("info", entry.info.id, f"re-applied {len(readback)} stored settings")
+        return CommandOutcome([f"{k}={v}" for k, v in readback.items()], "settings re-applied")
+
+    async def console(self, axis_id: str, line: str) -> list[str]:
+        entry = self.entry(axis_id)
+        self._operate(entry)
+        return await entry.driver.console(line)
+
+    async def stop_all(self) -> list[str]:
+        """Stop every axis at once; returns the ids of axes whose stop failed."""
+        entries = list(self._axes.values())
+        for entry in entries:
+            entry.operated = True
+        results = await asyncio.gather(
+            *(e.driver.stop() for e in entries), return_exceptions=True
+        )
+        failed = []
+        for entry, result in zip(entries, results, strict=True):
+            if isinstance(result, BaseException):
+                failed.append(entry.info.id)
+                self.on_event("error", entry.info.id, f"STOP failed: {result}")
+            else:
+                self.on_event("warning", entry.info.id, "STOP")
+        for entry in entries:
+            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+        return failed
+
+    # --- DriverSink -------------------------------------------------------------------
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        entry = self._axes[axis_id]
+        entry.latest = sample
+        entry.pending.append(sample)
+
+    def on_link_status(
+        self,
+        link_id: str,
+        state: LinkState,
+        message: str,
+        rate_hz: float,
+        wire_limit_hz: float,
+        errors: int,
+    ) -> None:
+        link_entry = self._links[link_id]
+        previous = link_entry.status.state
+        link_entry.status = LinkStatus(
+            link=link_id,
+            state=state,
+            message=message,
+            rate_hz=round(rate_hz, 2),
+            wire_limit_hz=round(wire_limit_hz, 2),
+            errors=errors,
+        )
+        if previous != state:
+            level: EventLevel = "info" if state == "connected" else "warning"
+            self.on_event(level, None, f"link {link_id}: {state} {message}".strip())
+        self._broadcast(link_entry.status.model_dump_json(), droppable=False)
+
+    def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
+        entry = self._axes[axis_id]
+        if entry.health == "reset" and health == "ok":
+            # A reset stays flagged until the user re-applies the settings (_restore).
+            return
+        entry.health, entry.health_message = health, message
+        self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None:
+        entry = self._axes[axis_id]
+        entry.device_values.update(values)
+        if source in ("write", "restore"):
+            entry.last_known.update(values)
+            self._save_soon(entry, dict(values))
+        else:
+            missing = {k: v for k, v in values.items() if k not in entry.last_known}
+            if missing:
+                entry.last_known.update(missing)
+                self._save_soon(entry, missing)
+            if not entry.compared_at_connect and len(values) > 1:
+                entry.compared_at_connect = True
+                self._compare_with_last_known(entry, values)
+        msg_source = source if source in ("read", "write", "restore") else "read"
+        self._broadcast(
+            Params(axis=axis_id, values=dict(values), source=msg_source).model_dump_json(),  # type: ignore[arg-type]
+            droppable=False,
+        )
+
+    def _compare_with_last_known(self, entry: AxisEntry, values: Mapping[str, int]) -> None:
+        differing = [
+            f"{name} {values[name]} (last {entry.last_known[name]})"
+            for name in values
+            if name in entry.last_known and entry.last_known[name] != values[name]
+        ]
+        if differing:
+            entry.health = "reset"
+            entry.health_message = (
+                "device settings differ from the last ones servotune applied: "
+                + ", ".join(differing[:6])
+                + (" …" if len(differing) > 6 else "")
+            )
+            self.on_event("warning", entry.info.id, entry.health_message)
+            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+
+    def _save_soon(self, entry: AxisEntry, values: dict[str, int]) -> None:
+        task = asyncio.get_running_loop().create_task(
+            asyncio.to_thread(self._storage.save_params, entry.storage_key, values)
+        )
+        self._tasks.append(task)  # type: ignore[arg-type]
+        task.add_done_callback(self._forget_task)
+
+    def _forget_task(self, task: asyncio.Task[None]) -> None:
+        with contextlib.suppress(ValueError):
+            self._tasks.remove(task)
+        if not task.cancelled() and task.exception() is not None:
+            logger.error("saving settings failed: %s", task.exception())
+            self.on_event("error", None, f"saving settings failed: {task.exception()}")
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None:
+        event = Event(t=round(self.now(), 3), level=level, axis=axis_id, message=message)
+        self._events.append(event)
+        log = logger.warning if level != "info" else logger.info
+        log("%s%s", f"[{axis_id}] " if axis_id else "", message)
+        self._broadcast(event.model_dump_json(), droppable=False)
+
+    # --- fan-out ----------------------------------------------------------------------
+
+    def subscribe(self) -> ClientQueue:
+        queue = ClientQueue()
+        self._clients.add(queue)
+        return queue
+
+    def unsubscribe(self, queue: ClientQueue) -> None:
+        self._clients.discard(queue)
+
+    def _broadcast(self, text: str, *, droppable: bool) -> None:
+        for client in self._clients:
+            client.put(text, droppable=droppable)
+
+    def _axis_status(self, entry: AxisEntry) -> AxisStatus:
+        return AxisStatus(
+            axis=entry.info.id,
+            health=entry.health,
+            message=entry.health_message,
+            operated=entry.operated or not self.autopilot,
+        )
+
+    def _telemetry(self, entry: AxisEntry, samples: list[Sample]) -> Telemetry:
+        descriptor = entry.driver.descriptor
+        return Telemetry(
+            axis=entry.info.id,
+            t=[round(s.t - self._t0, 5) for s in samples],
+            channels={
+                c.name: [s.channels.get(c.name) for s in samples] for c in descriptor.channels
+            },
+            flags={f.name: [int(s.flags.get(f.name, False)) for s in samples] for f in descriptor.flags},
+        )
+
+    async def _fan_out(self) -> None:
+        last_status = self._clock()
+        while True:
+            await asyncio.sleep(BATCH_PERIOD_S)
+            for entry in self._axes.values():
+                if not entry.pending:
+                    continue
+                samples, entry.pending = entry.pending, []
+                if self._clients:
+                    self._broadcast(
+                        self._telemetry(entry, samples).model_dump_json(), droppable=True
+                    )
+            now = self._clock()
+            if now - last_status >= STATUS_PERIOD_S:
+                last_status = now
+                for link_entry in self._links.values():
+                    self._broadcast(link_entry.status.model_dump_json(), droppable=False)
+                for client in self._clients:
+                    stats = ClientStats(sent=client.sent, dropped=client.dropped)
+                    client.put(stats.model_dump_json(), droppable=True)
+
+    # --- demo autopilot ---------------------------------------------------------------
+
+    async def _autopilot(self, entry: AxisEntry) -> None:
+        """Gentle repeating moves until someone operates the axis (demo only)."""
+        amplitude = 1500 + 700 * (entry.info.address % 3)
+        direction = 1
+        while not entry.operated:
+            await asyncio.sleep(0.5)
+            link_state = self._links[entry.link.id].status.state
+            sample = entry.latest
+            if link_state != "connected" or entry.health == "offline" or sample is None:
+                continue
+            try:
+                if not sample.flags.get("pm"):
+                    await entry.driver.command("position_mode", {})
+                    await asyncio.sleep(0.3)
+                if entry.operated:
+                    break
+                await entry.driver.command("move_absolute", {"position": direction * amplitude})
+                direction = -direction
+                deadline = self._clock() + 6.0
+                await asyncio.sleep(0.2)
+                while not entry.operated and self._clock() < deadline:
+                    latest = entry.latest
+                    if latest is not None and not latest.flags.get("move") and latest.flags.get(
+                        "inpos"
+                    ):
+                        break
+                    await asyncio.sleep(0.05)
+                await asyncio.sleep(0.8)
+            except DriverError as exc:
+                logger.info("autopilot on %s: %s", entry.info.id, exc)
+                await asyncio.sleep(1.0)

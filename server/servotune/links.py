@@ -1,0 +1,23 @@
+"""Turn link specs into running drivers: the only place that picks a transport."""
+
+from __future__ import annotations
+
+from servotune.config import LinkSpec
+from servotune.drivers.base import DriverSink, Link
+from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
+from servotune.transports.serial import SerialConnector
+
+
+def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
+    """Build the driver for ``spec`` with its transport injected."""
+    if spec.device == "slap2":
+        config = Slap2LinkConfig(
+            link_id=spec.link_id,
+            path=spec.path,
+            addresses=list(spec.addresses),
+            baud=spec.baud,
+            lines=spec.lines,
+            names=dict(spec.names),
+        )
+        return Slap2Link(config, SerialConnector(spec.path, spec.baud), sink)
+    raise ValueError(f"unsupported device {spec.device!r}")

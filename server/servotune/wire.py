@@ -1,0 +1,163 @@
+"""The one schema of everything the server and the web client exchange as JSON.
+
+Every websocket message has an explicit ``type`` field (not derived from a class
+name), so the client can switch on it and the TypeScript types generated from this
+module (``python -m servotune.wire_ts``, checked in CI) stay in step with the server.
+
+Websocket ``/ws`` (server -> client):
+  ``hello`` once on connect, then ``telemetry`` batches (about 30 per second per
+  axis), ``link_status`` and ``axis_status`` when they change (and every second),
+  ``params`` after every read or write of device parameters, ``event`` for things a
+  user should see in the log (stops, refusals, resets), ``client_stats`` every second.
+Client -> server: ``ping`` (answered by ``client_stats``). Commands go over REST.
+
+Times ``t`` are seconds on the server's monotonic clock since the server started.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, Field
+
+LinkState = Literal["connecting", "connected", "reconnecting", "error", "disconnected"]
+AxisHealth = Literal["ok", "reset", "offline"]
+EventLevel = Literal["info", "warning", "error"]
+
+
+class AxisInfo(BaseModel):
+    """One axis as listed by ``GET /api/axes``."""
+
+    id: str
+    device: str
+    link: str
+    address: int
+    name: str
+
+
+class LinkInfo(BaseModel):
+    id: str
+    device: str
+    path: str
+    baud: int
+
+
+class Hello(BaseModel):
+    type: Literal["hello"] = "hello"
+    server_version: str
+    axes: list[AxisInfo]
+    links: list[LinkInfo]
+    autopilot: bool
+
+
+class Telemetry(BaseModel):
+    """A batch of samples of one axis, oldest first; all lists have the length of ``t``.
+
+    ``channels`` maps a descriptor channel name to values in device units (``null``
+    where a slower channel has no sample at that time);
+    ``flags`` maps a descriptor flag name to 0/1 per sample.
+    """
+
+    type: Literal["telemetry"] = "telemetry"
+    axis: str
+    t: list[float]
+    channels: dict[str, list[float | None]]
+    flags: dict[str, list[int]]
+
+
+class LinkStatus(BaseModel):
+    type: Literal["link_status"] = "link_status"
+    link: str
+    state: LinkState
+    message: str
+    rate_hz: float = Field(description="telemetry samples per second per axis, achieved")
+    wire_limit_hz: float = Field(description="what the wire allows for the same poll set")
+    errors: int
+
+
+class AxisStatus(BaseModel):
+    type: Literal["axis_status"] = "axis_status"
+    axis: str
+    health: AxisHealth
+    message: str
+    operated: bool = Field(description="a user has operated this axis (autopilot is off)")
+
+
+class Params(BaseModel):
+    type: Literal["params"] = "params"
+    axis: str
+    values: dict[str, int]
+    source: Literal["read", "write", "restore"]
+
+
+class Event(BaseModel):
+    type: Literal["event"] = "event"
+    t: float
+    level: EventLevel
+    axis: str | None
+    message: str
+
+
+class ClientStats(BaseModel):
+    type: Literal["client_stats"] = "client_stats"
+    sent: int
+    dropped: int
+
+
+ServerMessage = Annotated[
+    Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | ClientStats,
+    Field(discriminator="type"),
+]
+
+
+class Ping(BaseModel):
+    type: Literal["ping"] = "ping"
+
+
+ClientMessage = Annotated[Ping, Field(discriminator="type")]
+
+
+# --- REST bodies ---------------------------------------------------------------------
+
+
+class AxisState(BaseModel):
+    """``GET /api/axes/{id}/state``: the latest telemetry sample."""
+
+    t: float
+    position: float
+    following_error: float
+    velocity: float
+    channels: dict[str, float]
+    flags: dict[str, bool]
+    health: AxisHealth
+    link_state: LinkState
+
+
+class CommandRequest(BaseModel, extra="allow"):
+    """``POST /api/axes/{id}/commands``: ``{"command": name, <argument>: value, ...}``."""
+
+    command: str
+
+
+class CommandResult(BaseModel):
+    command: str
+    sent: list[str] = Field(description="wire lines sent, in order")
+    message: str
+
+
+class ConsoleRequest(BaseModel):
+    line: str = Field(max_length=64)
+
+
+class ConsoleReply(BaseModel):
+    line: str
+    sent: str
+    reply: list[str]
+    error: str | None
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx/5xx body: ``detail`` says what is wrong in words a user can act on."""
+
+    detail: str
+    field: str | None = None
