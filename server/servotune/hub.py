@@ -256,8 +256,9 @@ class Hub:
             messages.append(self._axis_status(entry).model_dump_json())
             if entry.device_values:
                 messages.append(
-                    Params(axis=entry.info.id, values=entry.device_values, source="read")
-                    .model_dump_json()
+                    Params(
+                        axis=entry.info.id, values=entry.device_values, source="read"
+                    ).model_dump_json()
                 )
         messages.extend(event.model_dump_json() for event in self._events)
         return messages
@@ -342,9 +343,7 @@ class Hub:
         self._operate(entry)
         return await entry.driver.write_params(checked)
 
-    async def command(
-        self, axis_id: str, name: str, args: Mapping[str, object]
-    ) -> CommandOutcome:
+    async def command(self, axis_id: str, name: str, args: Mapping[str, object]) -> CommandOutcome:
         entry = self.entry(axis_id)
         checked = self._validate_command(entry, name, args)
         self._operate(entry)
@@ -377,9 +376,7 @@ class Hub:
         entries = list(self._axes.values())
         for entry in entries:
             entry.operated = True
-        results = await asyncio.gather(
-            *(e.driver.stop() for e in entries), return_exceptions=True
-        )
+        results = await asyncio.gather(*(e.driver.stop() for e in entries), return_exceptions=True)
         failed = []
         for entry, result in zip(entries, results, strict=True):
             if isinstance(result, BaseException):
@@ -470,7 +467,7 @@ class Hub:
         task = asyncio.get_running_loop().create_task(
             asyncio.to_thread(self._storage.save_params, entry.storage_key, values)
         )
-        self._tasks.append(task)  # type: ignore[arg-type]
+        self._tasks.append(task)
         task.add_done_callback(self._forget_task)
 
     def _forget_task(self, task: asyncio.Task[None]) -> None:
@@ -517,7 +514,9 @@ class Hub:
             channels={
                 c.name: [s.channels.get(c.name) for s in samples] for c in descriptor.channels
             },
-            flags={f.name: [int(s.flags.get(f.name, False)) for s in samples] for f in descriptor.flags},
+            flags={
+                f.name: [int(s.flags.get(f.name, False)) for s in samples] for f in descriptor.flags
+            },
         )
 
     async def _fan_out(self) -> None:
@@ -565,8 +564,10 @@ class Hub:
                 await asyncio.sleep(0.2)
                 while not entry.operated and self._clock() < deadline:
                     latest = entry.latest
-                    if latest is not None and not latest.flags.get("move") and latest.flags.get(
-                        "inpos"
+                    if (
+                        latest is not None
+                        and not latest.flags.get("move")
+                        and latest.flags.get("inpos")
                     ):
                         break
                     await asyncio.sleep(0.05)

@@ -46,10 +46,21 @@ MODELS: list[type[BaseModel]] = [
     wire.ConsoleReply,
     wire.ErrorBody,
 ]
-ALIASES = {"LinkState": wire.LinkState, "AxisHealth": wire.AxisHealth, "EventLevel": wire.EventLevel}
-UNIONS = {
-    "ServerMessage": [wire.Hello, wire.Telemetry, wire.LinkStatus, wire.AxisStatus, wire.Params,
-                      wire.Event, wire.ClientStats],
+ALIASES = {
+    "LinkState": wire.LinkState,
+    "AxisHealth": wire.AxisHealth,
+    "EventLevel": wire.EventLevel,
+}
+UNIONS: dict[str, list[type[BaseModel]]] = {
+    "ServerMessage": [
+        wire.Hello,
+        wire.Telemetry,
+        wire.LinkStatus,
+        wire.AxisStatus,
+        wire.Params,
+        wire.Event,
+        wire.ClientStats,
+    ],
     "ClientMessage": [wire.Ping],
 }
 
@@ -95,9 +106,9 @@ def render() -> str:
     for model in MODELS:
         hints = typing.get_type_hints(model)
         lines.append(f"export interface {model.__name__} {{")
-        for name, info in model.model_fields.items():
-            optional = ""  # the server always sends every field
-            lines.append(f"  {name}{optional}: {ts_type(hints[name])};")
+        # Every field is required: the server always sends every field.
+        for name in model.model_fields:
+            lines.append(f"  {name}: {ts_type(hints[name])};")
         lines.append("}")
         lines.append("")
     for union, members in UNIONS.items():

@@ -32,11 +32,10 @@ where the manual is silent (also in docs/slap2.md):
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TypeVar
 
@@ -49,14 +48,13 @@ from servotune.drivers.base import (
     DriverError,
     DriverSink,
     InvalidArgumentError,
-    LinkDownError,
     ProtocolError,
     Sample,
 )
+from servotune.drivers.engine import LinkEngine
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.protocols import slap2 as codec
-from servotune.transports.base import ByteChannel, Connector, LinkClosedError
-from servotune.wire import LinkState
+from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
 
@@ -95,12 +93,6 @@ class Slap2LinkConfig:
 
 
 @dataclass(slots=True)
-class _Job:
-    run: Callable[[], Awaitable[object]]
-    future: asyncio.Future[object]
-
-
-@dataclass(slots=True)
 class _ModuleState:
     """What the owner task knows about one module; touched only by the owner task."""
 
@@ -120,7 +112,7 @@ class _ModuleState:
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
 
 
-class Slap2Link:
+class Slap2Link(LinkEngine):
     """Owner of one SLAP2 RS232 line; see the module docstring for the protocol rules."""
 
     device = "slap2"
@@ -135,49 +127,29 @@ class Slap2Link:
     ) -> None:
         if not config.addresses:
             raise ValueError("a SLAP2 link needs at least one module address")
+        super().__init__(
+            config.link_id,
+            config.path,
+            config.baud,
+            connector,
+            sink,
+            clock=clock,
+            reconnect_max_s=config.reconnect_max_s,
+        )
         self.config = config
-        self._connector = connector
-        self._sink = sink
-        self._clock = clock
         self._descriptor = slap2_descriptor(config.lines)
         self._modules = {a: _ModuleState(a) for a in config.addresses}
         self._axes = [Slap2Axis(self, a) for a in config.addresses]
-        self._channel: ByteChannel | None = None
         self._selected: int | None = None
-        self._state: LinkState = "connecting"
-        self._message = ""
-        self._errors = 0
-        self._urgent: deque[_Job] = deque()
-        self._normal: deque[_Job] = deque()
-        self._wakeup = asyncio.Event()
         self._poll_index = 0
         self._last_verify_t = 0.0
         self._last_status_t = 0.0
         self._reply_chars: dict[str, int] = {}
-        self._connected_once = False
         self._consecutive_failures = 0
-
-    # --- Link protocol ---------------------------------------------------------------
-
-    @property
-    def id(self) -> str:
-        return self.config.link_id
-
-    @property
-    def path(self) -> str:
-        return self.config.path
-
-    @property
-    def baud(self) -> int:
-        return self.config.baud
 
     @property
     def axes(self) -> list[AxisDriver]:
         return list(self._axes)
-
-    @property
-    def state(self) -> LinkState:
-        return self._state
 
     @property
     def descriptor(self) -> DeviceDescriptor:
@@ -189,85 +161,11 @@ class Slap2Link:
     def module_state(self, address: int) -> _ModuleState:
         return self._modules[address]
 
-    async def run(self) -> None:
-        """Connect, poll, and reconnect with backoff until cancelled."""
-        backoff_s = 0.25
-        while True:
-            try:
-                channel = await self._connector.open()
-            except LinkClosedError as exc:
-                self._set_state("disconnected" if self._connected_once else "error", str(exc))
-                await self._sleep_rejecting_jobs(backoff_s)
-                backoff_s = min(backoff_s * 2, self.config.reconnect_max_s)
-                continue
-            backoff_s = 0.25
-            self._channel = channel
-            try:
-                await self._session(channel)
-            except LinkClosedError as exc:
-                self._sink.on_event("error", None, f"{self.id}: link lost: {exc}")
-                self._set_state("reconnecting", f"link lost: {exc}")
-            finally:
-                self._channel = None
-                self._fail_jobs(LinkDownError(f"link {self.id} is down"))
-                for module in self._modules.values():
-                    if module.online:
-                        module.online = False
-                        self._sink.on_axis_health(
-                            self.axis_id(module.address), "offline", "link down"
-                        )
-                with contextlib.suppress(Exception):
-                    await channel.close()
-
-    # --- job submission ---------------------------------------------------------------
-
-    async def submit(self, run: Callable[[], Awaitable[T]], *, urgent: bool = False) -> T:
-        """Run ``run`` on the owner task with exclusive use of the line.
-
-        Urgent jobs (stops) go ahead of everything queued. Jobs are refused at once
-        while the link is down: a motion command must never be replayed later.
-        """
-        if self._channel is None or self._state not in ("connected", "error"):
-            raise LinkDownError(f"link {self.id} is {self._state}: nothing was sent")
-        future: asyncio.Future[object] = asyncio.get_running_loop().create_future()
-        job = _Job(run, future)
-        (self._urgent if urgent else self._normal).append(job)
-        self._wakeup.set()
-        result = await future
-        return result  # type: ignore[return-value]
-
-    def _take_job(self) -> _Job | None:
-        if self._urgent:
-            return self._urgent.popleft()
-        if self._normal:
-            return self._normal.popleft()
-        return None
-
-    def _fail_jobs(self, error: Exception) -> None:
-        for queue in (self._urgent, self._normal):
-            while queue:
-                job = queue.popleft()
-                if not job.future.done():
-                    job.future.set_exception(error)
-
-    async def _sleep_rejecting_jobs(self, delay_s: float) -> None:
-        self._fail_jobs(LinkDownError(f"link {self.id} is down"))
-        await asyncio.sleep(delay_s)
-
-    async def _run_job(self, job: _Job) -> None:
-        if job.future.done():  # the caller gave up (cancelled)
-            return
-        try:
-            result = await job.run()
-        except LinkClosedError:
-            job.future.set_exception(LinkDownError(f"link {self.id} was lost"))
-            raise
-        except Exception as exc:  # delivered to the caller, who reports it
-            if not job.future.done():
-                job.future.set_exception(exc)
-        else:
-            if not job.future.done():
-                job.future.set_result(result)
+    def _on_link_down(self) -> None:
+        for module in self._modules.values():
+            if module.online:
+                module.online = False
+                self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
 
     # --- session ---------------------------------------------------------------------
 
@@ -294,7 +192,7 @@ class Slap2Link:
             online = [m for m in self._modules.values() if m.online]
             if not online:
                 await self._wait_job_or(self.config.offline_retry_s)
-                if not self._urgent and not self._normal:
+                if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
                 continue
@@ -308,14 +206,6 @@ class Slap2Link:
                 # Retry absent modules occasionally without starving the others.
                 self._last_verify_t = now
                 await self._probe(offline[0])
-
-    async def _wait_job_or(self, timeout_s: float) -> None:
-        self._wakeup.clear()
-        if self._urgent or self._normal:
-            return
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(timeout_s):
-                await self._wakeup.wait()
 
     async def _probe(self, module: _ModuleState) -> None:
         """Select a module and read all its parameters; marks it online or offline."""
@@ -338,11 +228,6 @@ class Slap2Link:
 
     # --- the wire exchange ------------------------------------------------------------
 
-    def _require_channel(self) -> ByteChannel:
-        if self._channel is None:
-            raise LinkClosedError(f"link {self.id} is not open")
-        return self._channel
-
     async def _drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
         """Read until nothing arrives for ``quiet_s`` (or ``max_s`` passed)."""
         collected = bytearray(channel.discard_input())
@@ -363,10 +248,14 @@ class Slap2Link:
             message = f"power-on banner received ({text!r}): module reset"
             self._sink.on_event("warning", None, f"{self.id}: {message}")
             if 0 in self._modules:
-                self._mark_reset(self._modules[0], "module reset (power-on banner) — settings may be lost")
+                self._mark_reset(
+                    self._modules[0], "module reset (power-on banner) — settings may be lost"
+                )
         else:
             self._sink.on_event(
-                "warning", None, f"{self.id}: {len(data)} unsolicited byte(s) dropped: {data[:16]!r}"
+                "warning",
+                None,
+                f"{self.id}: {len(data)} unsolicited byte(s) dropped: {data[:16]!r}",
             )
 
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
@@ -400,7 +289,9 @@ class Slap2Link:
                     f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
                 )
             else:
-                error = ProtocolError(f"echo mismatch in {text!r}: sent {byte:#04x}, got {echo:#04x}")
+                error = ProtocolError(
+                    f"echo mismatch in {text!r}: sent {byte:#04x}, got {echo:#04x}"
+                )
             if is_cr:
                 raise error
             await self._abandon(channel)
@@ -524,7 +415,9 @@ class Slap2Link:
         module.hex_mode = bits["hex"]
         module.ucon = bits["ucon"]
 
-    async def _write_params(self, module: _ModuleState, values: Mapping[str, int]) -> dict[str, int]:
+    async def _write_params(
+        self, module: _ModuleState, values: Mapping[str, int]
+    ) -> dict[str, int]:
         readback: dict[str, int] = {}
         for name, value in values.items():
             parameter = self._descriptor.parameter(name)
@@ -591,7 +484,7 @@ class Slap2Link:
         following_error: int | None = None
         rss: int | None = None
         for mnemonic in self.config.poll_commands:
-            if self._urgent:
+            if self.urgent_pending:
                 # A stop is waiting: give the line up now, finish the sample later.
                 return
             value = await self._read_int(address, mnemonic)
@@ -660,12 +553,6 @@ class Slap2Link:
 
     # --- status -----------------------------------------------------------------------
 
-    def _set_state(self, state: LinkState, message: str) -> None:
-        changed = state != self._state or message != self._message
-        self._state, self._message = state, message
-        if changed:
-            self._publish_status()
-
     def wire_limit_hz(self) -> float:
         """Samples/s per axis the wire allows for the poll set, from actual reply lengths.
 
@@ -698,16 +585,6 @@ class Slap2Link:
             else:
                 rates.append(0.0)
         return sum(rates) / len(rates) if rates else 0.0
-
-    def _publish_status(self) -> None:
-        self._sink.on_link_status(
-            self.id,
-            self._state,
-            self._message,
-            self.achieved_rate_hz(),
-            self.wire_limit_hz(),
-            self._errors,
-        )
 
     # --- operations used by Slap2Axis -------------------------------------------------
 
@@ -854,7 +731,9 @@ class Slap2Axis(AxisDriver):
     async def read_params(self) -> dict[str, int]:
         return await self._link.op_read_params(self._address)
 
-    async def write_params(self, values: Mapping[str, int], source: str = "write") -> dict[str, int]:
+    async def write_params(
+        self, values: Mapping[str, int], source: str = "write"
+    ) -> dict[str, int]:
         return await self._link.op_write_params(self._address, values, source)
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:

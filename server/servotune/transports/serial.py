@@ -110,7 +110,7 @@ class SerialConnector:
         return f"{self.path} @ {self.baud} baud"
 
     async def open(self) -> SerialChannel:
-        if not os.path.exists(self.path):
+        if not os.path.exists(self.path):  # noqa: ASYNC240 - a stat, not blocking I/O
             raise LinkClosedError(f"{self.path} does not exist (adapter unplugged?)")
         loop = asyncio.get_running_loop()
         protocol = _SerialProtocol()

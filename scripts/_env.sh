@@ -1,0 +1,40 @@
+# Shared by scripts/demo.sh and scripts/test.sh: install what is missing, idempotently.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+PY="${PYTHON:-python3}"
+
+ensure_venv() {  # $1: pip extras, e.g. "" or "[dev]"
+  local extras="$1"
+  local stamp="$VENV/.servotune-installed$extras"
+  if [ ! -x "$VENV/bin/python" ]; then
+    echo "==> creating $VENV"
+    "$PY" -m venv "$VENV"
+  fi
+  if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
+    echo "==> installing servotune$extras into .venv"
+    "$VENV/bin/pip" install -q --upgrade pip
+    "$VENV/bin/pip" install -q -e "$ROOT$extras"
+    touch "$stamp"
+  fi
+}
+
+ensure_web() {
+  local stamp="$ROOT/web/node_modules/.servotune-installed"
+  if [ ! -f "$stamp" ] || [ "$ROOT/web/package-lock.json" -nt "$stamp" ]; then
+    echo "==> npm ci (web)"
+    (cd "$ROOT/web" && npm ci --no-audit --no-fund --loglevel=error)
+    touch "$stamp"
+  fi
+  echo "==> building the web bundle"
+  (cd "$ROOT/web" && npm run --silent build)
+}
+
+ensure_chromium() {
+  if [ -x /usr/bin/chromium ]; then return; fi
+  echo "==> installing Debian's chromium for the browser tests"
+  local sudo=""
+  if [ "$(id -u)" != 0 ]; then sudo="sudo"; fi
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq chromium >/dev/null
+}

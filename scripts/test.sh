@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Quick start 2: the whole test suite — lint, format, types, generated types, unit,
+# simulator, driver-on-pty, API, websocket and headless-browser tests.
+# Extra arguments go to pytest (e.g. -k codec).
+source "$(dirname "${BASH_SOURCE[0]}")/_env.sh"
+ensure_venv "[dev]"
+ensure_web
+ensure_chromium
+cd "$ROOT"
+echo "==> ruff"
+"$VENV/bin/ruff" check server tests
+"$VENV/bin/ruff" format --check server tests
+echo "==> mypy"
+"$VENV/bin/mypy"
+echo "==> generated TypeScript wire types are current"
+"$VENV/bin/python" -m servotune.wire_ts --check web/src/wire.gen.ts
+echo "==> pytest"
+"$VENV/bin/pytest" "$@"

@@ -1,0 +1,126 @@
+"""Benchmark: telemetry samples per second per axis against the wire limit.
+
+Runs ``servotune sim <device>`` as a separate process on a pseudo-terminal (the real
+serial path: pty, pyserial-asyncio-fast, the simulator's wire timing at the chosen
+baud) and the real driver against it, then prints what it achieved next to what the
+wire allows for the same poll set. Not a test: the figures depend on the machine.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Mapping
+
+from servotune.drivers.base import Sample
+from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
+from servotune.transports.serial import SerialConnector
+from servotune.wire import AxisHealth, EventLevel, LinkState
+
+
+class _CountingSink:
+    def __init__(self) -> None:
+        self.samples: dict[str, list[float]] = defaultdict(list)
+        self.state: LinkState = "connecting"
+        self.wire_limit_hz = 0.0
+        self.errors = 0
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        self.samples[axis_id].append(sample.t)
+
+    def on_link_status(
+        self,
+        link_id: str,
+        state: LinkState,
+        message: str,
+        rate_hz: float,
+        wire_limit_hz: float,
+        errors: int,
+    ) -> None:
+        self.state, self.wire_limit_hz, self.errors = state, wire_limit_hz, errors
+
+    def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
+        pass
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None:
+        pass
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None:
+        pass
+
+
+async def _measure(path: str, baud: int, addresses: list[int], duration_s: float) -> int:
+    sink = _CountingSink()
+    config = Slap2LinkConfig(link_id="bench", path=path, addresses=addresses, baud=baud)
+    link = Slap2Link(config, SerialConnector(path, baud), sink)
+    task = asyncio.create_task(link.run())
+    try:
+        deadline = time.monotonic() + 10
+        while link.state != "connected":
+            if time.monotonic() > deadline:
+                print("bench: the link did not connect", file=sys.stderr)
+                return 1
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.5)  # settle: learn reply lengths
+        for samples in sink.samples.values():
+            samples.clear()
+        await asyncio.sleep(duration_s)
+        wire_limit_hz = link.wire_limit_hz()
+        poll_set = "+".join(config.poll_commands)
+        print(
+            f"SLAP2 {baud} baud, {len(addresses)} module(s) on one line, poll set {poll_set} "
+            f"(+rve every {config.rve_every}th cycle)"
+        )
+        print(f"wire limit for this poll set: {wire_limit_hz:.1f} samples/s per axis")
+        ratios = []
+        for axis_id, times in sorted(sink.samples.items()):
+            if len(times) < 2:
+                print(f"  {axis_id}: no samples")
+                ratios.append(0.0)
+                continue
+            rate_hz = (len(times) - 1) / (times[-1] - times[0])
+            ratio = rate_hz / wire_limit_hz
+            ratios.append(ratio)
+            print(f"  {axis_id}: {rate_hz:6.1f} samples/s = {ratio:6.1%} of the wire limit")
+        print(f"link errors during the run: {link.errors}")
+        print(f"worst axis: {min(ratios):.1%} of the wire limit (target >= 90 %)")
+        return 0
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+def run_bench(*, device: str, baud: int, addresses: list[int], duration_s: float) -> int:
+    """Start the simulator process, measure, print, clean up. Returns an exit code."""
+    command = [
+        sys.executable,
+        "-m",
+        "servotune.cli",
+        "sim",
+        device,
+        "--baud",
+        str(baud),
+        "--addresses",
+        ",".join(map(str, addresses)),
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
+    try:
+        assert process.stdout is not None
+        path = process.stdout.readline().strip()
+        if not path:
+            print("bench: the simulator printed no path", file=sys.stderr)
+            return 1
+        return asyncio.run(_measure(path, baud, addresses, duration_s))
+    finally:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            process.kill()

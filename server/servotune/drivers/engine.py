@@ -1,0 +1,218 @@
+"""The device-independent part of every link: owner task, job queues, reconnects.
+
+A ``LinkEngine`` subclass implements ``_session`` (what happens on an open channel:
+probe, then poll forever) and the wire exchange of its device. The engine provides:
+
+* ``run()``: open the channel through the injected ``Connector``, run the session,
+  and on a lost port report it and reopen with backoff (0.25 s doubling to
+  ``reconnect_max_s``) — the server never needs a restart;
+* ``submit(job, urgent=...)``: run a coroutine on the owner task with exclusive use of
+  the line. ``_take_job`` hands out urgent jobs (stops) before user jobs; the session
+  calls it between two wire transactions, so a stop waits at most for the one
+  transaction in flight, never for queued polls. Jobs are refused at once while the
+  link is down: a motion command must never be replayed later;
+* link state and status publishing through the ``DriverSink``.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import contextlib
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import TypeVar
+
+from servotune.drivers.base import DriverSink, LinkDownError
+from servotune.transports.base import ByteChannel, Connector, LinkClosedError
+from servotune.wire import LinkState
+
+T = TypeVar("T")
+
+
+@dataclass(slots=True)
+class _Job:
+    run: Callable[[], Awaitable[object]]
+    future: asyncio.Future[object]
+
+
+class LinkEngine(abc.ABC):
+    """Base of every link driver; see the module docstring."""
+
+    device: str = ""
+
+    def __init__(
+        self,
+        link_id: str,
+        path: str,
+        baud: int,
+        connector: Connector,
+        sink: DriverSink,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        reconnect_max_s: float = 5.0,
+    ) -> None:
+        self._link_id = link_id
+        self._path = path
+        self._baud = baud
+        self._connector = connector
+        self._sink = sink
+        self._clock = clock
+        self._reconnect_max_s = reconnect_max_s
+        self._channel: ByteChannel | None = None
+        self._state: LinkState = "connecting"
+        self._message = ""
+        self._errors = 0
+        self._urgent: deque[_Job] = deque()
+        self._normal: deque[_Job] = deque()
+        self._wakeup = asyncio.Event()
+        self._connected_once = False
+
+    # --- Link protocol ----------------------------------------------------------------
+
+    @property
+    def id(self) -> str:
+        return self._link_id
+
+    @property
+    def path(self) -> str:
+        return self._path
+
+    @property
+    def baud(self) -> int:
+        return self._baud
+
+    @property
+    def state(self) -> LinkState:
+        return self._state
+
+    @property
+    def errors(self) -> int:
+        """Wire errors since start: timeouts, bad echoes or checksums, stray bytes."""
+        return self._errors
+
+    async def run(self) -> None:
+        """Connect, run sessions and reconnect with backoff until cancelled."""
+        backoff_s = 0.25
+        while True:
+            try:
+                channel = await self._connector.open()
+            except LinkClosedError as exc:
+                self._set_state("disconnected" if self._connected_once else "error", str(exc))
+                self._fail_jobs(LinkDownError(f"link {self.id} is down"))
+                await asyncio.sleep(backoff_s)
+                backoff_s = min(backoff_s * 2, self._reconnect_max_s)
+                continue
+            backoff_s = 0.25
+            self._channel = channel
+            try:
+                await self._session(channel)
+            except LinkClosedError as exc:
+                self._sink.on_event("error", None, f"{self.id}: link lost: {exc}")
+                self._set_state("reconnecting", f"link lost: {exc}")
+            finally:
+                self._channel = None
+                self._fail_jobs(LinkDownError(f"link {self.id} is down"))
+                self._on_link_down()
+                with contextlib.suppress(Exception):
+                    await channel.close()
+
+    @abc.abstractmethod
+    async def _session(self, channel: ByteChannel) -> None:
+        """Probe the devices, then serve jobs and poll until the channel fails."""
+
+    @abc.abstractmethod
+    def _on_link_down(self) -> None:
+        """Mark every axis offline (called after a session ended)."""
+
+    @abc.abstractmethod
+    def wire_limit_hz(self) -> float:
+        """Telemetry samples/s per axis the wire allows for the current poll set."""
+
+    @abc.abstractmethod
+    def achieved_rate_hz(self) -> float:
+        """Telemetry samples/s per axis achieved recently."""
+
+    # --- jobs -------------------------------------------------------------------------
+
+    async def submit(self, run: Callable[[], Awaitable[T]], *, urgent: bool = False) -> T:
+        """Run ``run`` on the owner task with exclusive use of the line."""
+        if self._channel is None or self._state not in ("connected", "error"):
+            raise LinkDownError(f"link {self.id} is {self._state}: nothing was sent")
+        future: asyncio.Future[object] = asyncio.get_running_loop().create_future()
+        (self._urgent if urgent else self._normal).append(_Job(run, future))
+        self._wakeup.set()
+        result = await future
+        return result  # type: ignore[return-value]
+
+    @property
+    def urgent_pending(self) -> bool:
+        """A stop is waiting: a poll sequence should give the line up now."""
+        return bool(self._urgent)
+
+    @property
+    def jobs_pending(self) -> bool:
+        return bool(self._urgent or self._normal)
+
+    def _take_job(self) -> _Job | None:
+        if self._urgent:
+            return self._urgent.popleft()
+        if self._normal:
+            return self._normal.popleft()
+        return None
+
+    def _fail_jobs(self, error: Exception) -> None:
+        for queue in (self._urgent, self._normal):
+            while queue:
+                job = queue.popleft()
+                if not job.future.done():
+                    job.future.set_exception(error)
+
+    async def _run_job(self, job: _Job) -> None:
+        if job.future.done():  # the caller gave up (cancelled)
+            return
+        try:
+            result = await job.run()
+        except LinkClosedError:
+            job.future.set_exception(LinkDownError(f"link {self.id} was lost"))
+            raise
+        except Exception as exc:  # delivered to the caller, who reports it
+            if not job.future.done():
+                job.future.set_exception(exc)
+        else:
+            if not job.future.done():
+                job.future.set_result(result)
+
+    async def _wait_job_or(self, timeout_s: float) -> None:
+        """Sleep until a job is submitted or ``timeout_s`` passed."""
+        self._wakeup.clear()
+        if self.jobs_pending:
+            return
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self._wakeup.wait()
+
+    def _require_channel(self) -> ByteChannel:
+        if self._channel is None:
+            raise LinkClosedError(f"link {self.id} is not open")
+        return self._channel
+
+    # --- status -----------------------------------------------------------------------
+
+    def _set_state(self, state: LinkState, message: str) -> None:
+        changed = state != self._state or message != self._message
+        self._state, self._message = state, message
+        if changed:
+            self._publish_status()
+
+    def _publish_status(self) -> None:
+        self._sink.on_link_status(
+            self.id,
+            self._state,
+            self._message,
+            self.achieved_rate_hz(),
+            self.wire_limit_hz(),
+            self._errors,
+        )
