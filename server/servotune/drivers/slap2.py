@@ -141,6 +141,9 @@ class Slap2Link(LinkEngine):
         self._modules = {a: _ModuleState(a) for a in config.addresses}
         self._axes = [Slap2Axis(self, a) for a in config.addresses]
         self._selected: int | None = None
+        # The last module we selected, kept when ``_selected`` is forgotten after an
+        # error, to tell a reset (it lost its selection) from a glitch.
+        self._believed_selected: int | None = None
         self._poll_index = 0
         self._last_verify_t = 0.0
         self._last_status_t = 0.0
@@ -170,7 +173,7 @@ class Slap2Link(LinkEngine):
     # --- session ---------------------------------------------------------------------
 
     async def _session(self, channel: ByteChannel) -> None:
-        self._selected = None
+        self._selected = self._believed_selected = None
         self._set_state("connecting", f"draining power-on output on {self.path}")
         banner = await self._drain(channel, self.config.banner_quiet_s, self.config.banner_max_s)
         if banner.strip():
@@ -244,7 +247,7 @@ class Slap2Link(LinkEngine):
         self._errors += 1
         if self._connected_once and sum(c.isalpha() for c in text) >= 4:
             # Only address 0 sends a banner after power-on; all modules lose selection.
-            self._selected = None
+            self._selected = self._believed_selected = None
             message = f"power-on banner received ({text!r}): module reset"
             self._sink.on_event("warning", None, f"{self.id}: {message}")
             if 0 in self._modules:
@@ -321,41 +324,58 @@ class Slap2Link(LinkEngine):
                 lines.append(decoder.flush())
         return lines
 
-    async def _exchange(self, command: codec.Command) -> list[str]:
+    async def _exchange_once(self, command: codec.Command) -> list[str]:
+        """One exchange with the selected module; no retry.
+
+        Raises ``_AbandonedError`` when it failed before CR (nothing executed),
+        ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
+        """
         channel = self._require_channel()
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
-        for attempt in range(2):
-            try:
-                await self._send_echoed(channel, command.text)
-                lines = await self._read_reply(channel, command)
-            except _AbandonedError as abandoned:
-                self._errors += 1
-                if attempt == 0:
-                    continue
-                raise abandoned.error from None
-            except DeviceTimeoutError:
-                self._errors += 1
-                self._selected = None
-                await self._abandon(channel)
-                raise
-            self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
-            return lines
-        raise AssertionError("unreachable")
+        try:
+            await self._send_echoed(channel, command.text)
+            lines = await self._read_reply(channel, command)
+        except _AbandonedError:
+            self._errors += 1
+            raise
+        except DeviceTimeoutError:
+            self._errors += 1
+            self._selected = None
+            await self._abandon(channel)
+            raise
+        self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
+        return lines
 
     async def _select(self, address: int) -> None:
         if self._selected == address:
             return
         channel = self._require_channel()
+        believed = self._believed_selected
         command = codec.make_select(address)
+        blind = False
         try:
-            lines = await self._exchange(command)
+            lines = await self._exchange_once(command)
+        except _AbandonedError as abandoned:
+            if not isinstance(abandoned.error, DeviceTimeoutError):
+                raise abandoned.error from None
+            # No echo: perhaps nobody is selected (nobody could echo).
+            lines = await self._select_blind(channel, command)
+            blind = True
         except DeviceTimeoutError:
             lines = await self._select_blind(channel, command)
+            blind = True
         if lines != [""]:
             raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
-        self._selected = address
+        self._selected = self._believed_selected = address
+        if blind and believed is not None and believed in self._modules:
+            # The module we had selected stopped transmitting without an ``se``:
+            # only a reset (power-on deselects every address but 0) does that.
+            self._mark_reset(
+                self._modules[believed],
+                "module stopped answering until selected again: reset? Settings may be lost",
+            )
 
     async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
         """Nobody is selected, so nobody echoes: send ``se n`` paced, await its CR."""
@@ -373,8 +393,21 @@ class Slap2Link(LinkEngine):
         return [""]
 
     async def _transact(self, address: int, command: codec.Command) -> list[str]:
-        await self._select(address)
-        return await self._exchange(command)
+        """Select ``address`` and exchange ``command``; retried once if abandoned.
+
+        A retry re-selects first: a missing echo may mean the module lost its
+        selection (reset), which a plain resend could not fix.
+        """
+        for attempt in range(2):
+            await self._select(address)
+            try:
+                return await self._exchange_once(command)
+            except _AbandonedError as abandoned:
+                if isinstance(abandoned.error, DeviceTimeoutError):
+                    self._selected = None
+                if attempt == 1:
+                    raise abandoned.error from None
+        raise AssertionError("unreachable")
 
     async def _read_int(self, address: int, mnemonic: str) -> int:
         lines = await self._transact(address, codec.make_read(mnemonic))
@@ -435,7 +468,13 @@ class Slap2Link(LinkEngine):
     async def _verify_step(self, online: list[_ModuleState]) -> None:
         """Read back one persisted parameter of one module to catch silent resets."""
         module = online[self._poll_index % len(online)]
-        names = [p.name for p in self._descriptor.parameters if p.name in module.known]
+        # Values that differ from the defaults betray a reset first; check them only
+        # while there are any.
+        names = [
+            p.name
+            for p in self._descriptor.parameters
+            if p.name in module.known and module.known[p.name] != p.default
+        ] or [p.name for p in self._descriptor.parameters if p.name in module.known]
         if not names:
             return
         name = names[module.verify_index % len(names)]

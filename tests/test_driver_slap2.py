@@ -1,0 +1,168 @@
+"""The SLAP2 driver against the simulator on a real pseudo-terminal, faults included."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+
+from servotune.drivers.base import DeviceRefusedError, LinkDownError
+from servotune.drivers.slap2 import Slap2Axis
+from servotune.protocols import slap2 as codec
+
+from .conftest import RunningLink, gather_in_order, run_link, running_simulator, wait_for
+
+
+def axis(line: RunningLink, address: int) -> Slap2Axis:
+    found = next(a for a in line.link.axes if a.address == address)
+    assert isinstance(found, Slap2Axis)
+    return found
+
+
+async def test_connect_reads_defaults_and_streams_both_modules(line: RunningLink) -> None:
+    assert line.sink.params["line-0"]["kp"] == 40
+    assert line.sink.params["line-1"]["kd"] == 80
+    assert line.sink.params["line-0"]["velocity"] == 2000
+    await line.until(
+        lambda: all(len(line.sink.samples[f"line-{a}"]) > 10 for a in (0, 1)), "samples"
+    )
+    sample = line.sink.samples["line-1"][-1]
+    assert set(sample.channels) >= {"position", "setpoint", "following_error", "velocity"}
+    assert sample.flags["pm"] is False
+    # Fair polling: neither module starves the other.
+    counts = [len(line.sink.samples[f"line-{a}"]) for a in (0, 1)]
+    assert min(counts) >= 0.7 * max(counts)
+
+
+async def test_write_reads_back_from_the_module(line: RunningLink) -> None:
+    readback = await axis(line, 1).write_params({"kp": 120, "velocity": 9116})
+    assert readback == {"kp": 120, "velocity": 9116}
+    module = line.bus.module(1)
+    assert module.settings["kp"] == 120
+    assert line.bus.module(0).settings["kp"] == 40
+
+
+async def test_move_needs_position_mode_then_reaches_target(line: RunningLink) -> None:
+    drive = axis(line, 0)
+    with pytest.raises(DeviceRefusedError, match="position mode"):
+        await drive.command("move_absolute", {"position": 2000})
+    await drive.command("position_mode", {})
+    await drive.command("move_absolute", {"position": 2000})
+    samples = line.sink.samples["line-0"]
+    await line.until(
+        lambda: (
+            samples[-1].flags["inpos"]
+            and not samples[-1].flags["move"]
+            and abs((samples[-1].channels["position"] or 0) - 2000) <= 5
+        ),
+        "the move to end in position",
+    )
+    assert any(s.flags["move"] for s in samples), "move flag was never seen high"
+
+
+async def test_stop_overtakes_queued_jobs(line: RunningLink) -> None:
+    drive = axis(line, 0)
+    await drive.command("position_mode", {})
+    queued = [drive.console("rp") for _ in range(15)]
+    order = await gather_in_order(*queued, drive.stop())
+    stop_index = 15
+    # At most the transaction already on the wire finishes before the stop.
+    assert order.index(stop_index) <= 1, order
+    await line.until(lambda: not line.bus.module(0).rss & (1 << codec.RssBit.pm), "pm off")
+
+
+async def test_dropped_echo_is_retried_after_ctrl_x(line: RunningLink) -> None:
+    errors_before = line.link.errors
+    line.simulator.drop_echoes(1)
+    readback = await axis(line, 0).write_params({"ki": 7})
+    assert readback == {"ki": 7}
+    assert line.bus.module(0).settings["ki"] == 7
+    assert line.link.errors > errors_before
+
+
+async def test_garbage_on_the_line_is_survived(line: RunningLink) -> None:
+    line.simulator.inject_garbage(b"\x00\xff#?%\r\n")
+    await asyncio.sleep(0.1)
+    readback = await axis(line, 1).write_params({"kd": 99})
+    assert readback == {"kd": 99}
+    count = len(line.sink.samples["line-1"])
+    await line.until(lambda: len(line.sink.samples["line-1"]) > count + 5, "polling to go on")
+
+
+async def test_unplug_reports_and_replug_resumes(line: RunningLink) -> None:
+    line.simulator.unplug()
+    await line.until(
+        lambda: line.link.state in ("disconnected", "reconnecting"), "the link to go down"
+    )
+    with pytest.raises(LinkDownError):
+        await axis(line, 0).command("position_mode", {})
+    await asyncio.sleep(0.5)
+    line.simulator.replug()
+    await line.until(lambda: line.link.state == "connected", "reconnect", timeout_s=10)
+    count = len(line.sink.samples["line-0"])
+    await line.until(lambda: len(line.sink.samples["line-0"]) > count + 5, "samples again")
+
+
+async def test_power_on_banner_marks_module_reset(line: RunningLink) -> None:
+    await axis(line, 0).write_params({"kp": 150})
+    line.simulator.power_cycle(0)
+    await line.until(lambda: line.sink.health.get("line-0", ("", ""))[0] == "reset", "reset")
+    assert "reset" in line.sink.health["line-0"][1]
+    # Polling goes on after the module's power-on selected itself again.
+    count = len(line.sink.samples["line-1"])
+    await line.until(lambda: len(line.sink.samples["line-1"]) > count + 5, "line-1 samples")
+
+
+async def test_silent_reset_found_by_read_back(tmp_path: Path) -> None:
+    with running_simulator([1], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [1], verify_period_s=0.2) as line:
+            await line.connected()
+            await axis(line, 1).write_params({"kp": 150})
+            simulator.power_cycle(1)  # address 1 sends no banner
+            await line.until(
+                lambda: line.sink.health.get("line-1", ("", ""))[0] == "reset", "reset"
+            )
+
+
+async def test_hex_mode_and_ucon_are_understood(line: RunningLink) -> None:
+    drive = axis(line, 0)
+    await drive.write_params({"syscon": 0b110011})  # l1on l2on hex ucon
+    assert (await drive.read_params())["kp"] == 40
+    assert line.bus.module(0).settings["syscon"] == 0b110011
+    with pytest.raises(DeviceRefusedError, match="-1UC"):
+        await drive.command("move_relative", {"distance": 100})
+    reply = await drive.console("qp")
+    assert reply == ["0x28"]
+
+
+async def test_blind_select_when_nobody_is_selected(tmp_path: Path) -> None:
+    # Addresses 2 and 3 only: after power-on no module transmits, so nobody echoes.
+    with running_simulator([2, 3], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [2, 3]) as line:
+            await line.connected()
+            assert line.sink.params["line-3"]["kp"] == 40
+            assert line.sink.health["line-2"][0] == "ok"
+
+
+async def test_absent_module_is_offline_and_others_work(tmp_path: Path) -> None:
+    with running_simulator([0], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [0, 5]) as line:
+            await line.connected()
+            assert line.sink.health["line-5"][0] == "offline"
+            assert "address 5" in line.sink.health["line-5"][1]
+            count = len(line.sink.samples["line-0"])
+            await line.until(lambda: len(line.sink.samples["line-0"]) > count + 5, "samples")
+
+
+async def test_console_multiline_and_pg_refused_in_pm(line: RunningLink) -> None:
+    drive = axis(line, 0)
+    lines = await drive.console("rep")
+    assert len(lines) > 3
+    await drive.command("position_mode", {})
+    await wait_for(lambda: line.sink.samples["line-0"][-1].flags["pm"], what="pm flag")
+    with pytest.raises(DeviceRefusedError, match="STOP"):
+        await drive.command("save_eeprom", {})
+    await drive.stop()
+    await wait_for(lambda: not line.sink.samples["line-0"][-1].flags["pm"], what="pm off")
+    await drive.command("save_eeprom", {})

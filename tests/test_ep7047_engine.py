@@ -1,0 +1,798 @@
+"""EP7047-1032 positioning engine: the manual's tables and examples, and the decisions.
+
+Modulo moves run in counts with 3600 counts per turn, so the manual's degrees (with
+two decimals, all multiples of 0.1°) become exact integers: 90.90° = 909 counts.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from dataclasses import replace
+from decimal import Decimal
+from pathlib import Path
+from typing import NamedTuple
+
+import pytest
+
+from servotune.protocols import ep7047 as codec
+from servotune.protocols.ep7047 import (
+    CYCLE_S,
+    DriveState,
+    EncControl,
+    Inputs,
+    Outputs,
+    PosControl,
+    PosDiag,
+    PosSettings,
+    PosStatus,
+    StartType,
+    StmControl,
+    StmStatus,
+)
+from servotune.sim.ep7047_engine import DriveConfig, Ep7047Engine, StepperPlant, modulo_travel
+
+CASES_CSV = (
+    Path(__file__).resolve().parents[1] / ".." / "shared" / "spec" / "ep7047_modulo_cases.csv"
+)
+TURN = 3600  # counts per 360°
+# 4000 full steps/s speed range (the spec's example) at 18 counts per full step
+# (a 200-step motor with 3600 counts per turn): 10000 bp = 72000 counts/s.
+MODULO_CONFIG = DriveConfig(speed_range_steps_s=4000, counts_per_full_step=18)
+# For the manual's examples in raw counts: 10000 bp = 256000 counts/s.
+FAST_CONFIG = DriveConfig(speed_range_steps_s=4000, counts_per_full_step=64)
+
+
+class Sample(NamedTuple):
+    inputs: Inputs
+    state: DriveState
+    diag: PosDiag
+    shaft_counts: float
+
+    def has(self, flag: PosStatus) -> bool:
+        return bool(self.inputs.pos_status & flag)
+
+    @property
+    def position(self) -> int:
+        return self.inputs.actual_position_counts
+
+    @property
+    def velocity_bp(self) -> int:
+        return self.inputs.actual_velocity_bp
+
+
+def command(
+    start_type: StartType | int,
+    target: int = 0,
+    *,
+    velocity_bp: int = 10000,
+    acceleration_ms: int = 100,
+    deceleration_ms: int = 100,
+    execute: bool = True,
+    emergency_stop: bool = False,
+    enable: bool = True,
+) -> Outputs:
+    pos = PosControl.NONE
+    if execute:
+        pos |= PosControl.EXECUTE
+    if emergency_stop:
+        pos |= PosControl.EMERGENCY_STOP
+    return Outputs(
+        stm_control=StmControl.ENABLE if enable else StmControl.NONE,
+        pos_control=pos,
+        target_position_counts=target,
+        velocity_bp=velocity_bp,
+        start_type=start_type,
+        acceleration_ms=acceleration_ms,
+        deceleration_ms=deceleration_ms,
+    )
+
+
+IDLE = Outputs(stm_control=StmControl.ENABLE)
+
+
+def run(
+    engine: Ep7047Engine,
+    outputs: Outputs,
+    *,
+    until: Callable[[Sample], bool] = lambda s: not s.inputs.busy,
+    max_cycles: int = 40_000,
+) -> list[Sample]:
+    """Step with ``outputs`` until ``until`` holds (default: Busy has fallen)."""
+    trace: list[Sample] = []
+    for _ in range(max_cycles):
+        inputs = engine.step(outputs)
+        sample = Sample(inputs, engine.state, engine.diag, engine.plant.shaft_counts)
+        trace.append(sample)
+        if until(sample):
+            return trace
+    raise AssertionError(f"not done after {max_cycles} cycles; last {trace[-1]}")
+
+
+def move(engine: Ep7047Engine, outputs: Outputs, max_cycles: int = 40_000) -> list[Sample]:
+    """One complete command: Execute low for a cycle, then high until Busy falls."""
+    engine.step(IDLE)
+    return run(engine, outputs, max_cycles=max_cycles)
+
+
+def states(trace: list[Sample]) -> list[DriveState]:
+    """The states a trace went through, consecutive repeats removed."""
+    seen: list[DriveState] = []
+    for sample in trace:
+        if not seen or seen[-1] != sample.state:
+            seen.append(sample.state)
+    return seen
+
+
+def is_subsequence(wanted: list[DriveState], seen: list[DriveState]) -> bool:
+    remaining = iter(seen)
+    return all(state in remaining for state in wanted)
+
+
+def modulo_engine(start_counts: int, window_counts: int = 0) -> Ep7047Engine:
+    settings = PosSettings(modulo_factor_counts=TURN, modulo_tolerance_window_counts=window_counts)
+    return Ep7047Engine(settings, MODULO_CONFIG, StepperPlant(shaft_counts=start_counts))
+
+
+def assert_clean_arrival(trace: list[Sample], position: int) -> None:
+    end = trace[-1]
+    assert end.position == position
+    assert end.has(PosStatus.IN_TARGET)
+    assert not end.has(PosStatus.ERROR) and not end.has(PosStatus.WARNING)
+
+
+# --- modulo: the manual's tables ------------------------------------------------------------
+
+
+def counts(degrees: str) -> int:
+    value = Decimal(degrees) * 10
+    assert value == value.to_integral_value(), degrees
+    return int(value)
+
+
+class ModuloCase(NamedTuple):
+    start_type: StartType
+    window: int
+    start: int
+    target: int
+    relative: int
+    abs_end: int
+    mod_end: int
+
+
+def load_cases() -> list[ModuloCase]:
+    with CASES_CSV.open(newline="") as file:
+        rows = [line for line in file if not line.startswith("#")]
+    return [
+        ModuloCase(
+            StartType[row["start_type"]],
+            counts(row["window"]),
+            counts(row["start"]),
+            counts(row["target"]),
+            counts(row["relative"]),
+            counts(row["abs_end"]),
+            counts(row["mod_end"]),
+        )
+        for row in csv.DictReader(rows)
+    ]
+
+
+CASES = load_cases()
+
+
+def test_the_csv_holds_both_manual_tables() -> None:
+    assert len(CASES) == 37
+    assert sum(case.window == 10 for case in CASES) == 30
+
+
+@pytest.mark.parametrize(
+    "case",
+    CASES,
+    ids=[f"{c.start_type.name}-w{c.window}-{c.start}to{c.target}" for c in CASES],
+)
+def test_modulo_table_row(case: ModuloCase) -> None:
+    engine = modulo_engine(case.start, case.window)
+    trace = move(engine, command(case.start_type, case.target))
+
+    assert_clean_arrival(trace, case.abs_end)
+    assert trace[-1].position - case.start == case.relative
+    assert trace[-1].position % TURN == case.mod_end
+    velocities = [s.velocity_bp for s in trace]
+    if case.relative > 0:
+        assert min(velocities) == 0 and max(velocities) > 0
+    elif case.relative < 0:
+        assert max(velocities) == 0 and min(velocities) < 0
+    else:  # "If the target equals the current modulo position, nothing moves."
+        assert set(velocities) == {0}
+        assert {s.position for s in trace} == {case.start}
+
+
+# --- modulo: further cases ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("start_type", "start", "target", "window", "end"),
+    [
+        # negative start positions: -270° is 90° modulo
+        (StartType.MODULO_PLUS, -2700, 0, 0, 0),
+        (StartType.MODULO_MINUS, -2700, 0, 0, -3600),
+        (StartType.MODULO_SHORT, -2700, 0, 0, -3600),
+        (StartType.MODULO_PLUS, -3595, 0, 10, -3600),  # 0.5° past 0: back, not a turn
+        (StartType.MODULO_MINUS, -3605, 0, 10, -3600),
+        # several revolutions
+        (StartType.MODULO_PLUS, 900, 3 * TURN + 1800, 0, 3 * TURN + 1800),
+        (StartType.MODULO_MINUS, 900, 3 * TURN + 1800, 0, -3 * TURN - 1800),
+        (StartType.MODULO_PLUS, 5 * TURN + 900, 2 * TURN + 900, 0, 7 * TURN + 900),
+        # _EXT ignores the window: the same starts as the table's in-window rows
+        (StartType.MODULO_PLUS_EXT, 909, 900, 10, 4500),
+        (StartType.MODULO_MINUS_EXT, 891, 900, 10, -2700),
+        (StartType.MODULO_PLUS_EXT, 909, 4500, 10, 8100),
+        (StartType.MODULO_SHORT_EXT, 909, 900, 10, 900),
+        # decisions: the window is closed; SHORT takes the positive way on a half turn
+        (StartType.MODULO_PLUS, 910, 900, 10, 900),
+        (StartType.MODULO_PLUS, 911, 900, 10, 4500),
+        (StartType.MODULO_SHORT, 0, 1800, 0, 1800),
+        (StartType.MODULO_SHORT, 100, 3500, 0, -100),
+    ],
+    ids=lambda v: v.name if isinstance(v, StartType) else str(v),
+)
+def test_modulo_more_cases(
+    start_type: StartType, start: int, target: int, window: int, end: int
+) -> None:
+    trace = move(modulo_engine(start, window), command(start_type, target))
+    assert_clean_arrival(trace, end)
+
+
+def test_modulo_current_follows_the_last_direction() -> None:
+    engine = modulo_engine(900, window_counts=10)
+    assert_clean_arrival(move(engine, command(StartType.ABSOLUTE, 450)), 450)  # negative
+    # 90° is 45° ahead, but the last travel was negative: the long way round, negative.
+    trace = move(engine, command(StartType.MODULO_CURRENT, 900))
+    assert_clean_arrival(trace, -2700)
+    assert max(s.velocity_bp for s in trace) == 0
+    assert_clean_arrival(move(engine, command(StartType.MODULO_PLUS, 1800)), -1800)
+    assert_clean_arrival(move(engine, command(StartType.MODULO_CURRENT, 900)), 900)
+    # 0.5° short of the last target: the window steps back, _EXT goes round once more
+    assert_clean_arrival(move(engine, command(StartType.MODULO_CURRENT, 895)), 895)
+    assert_clean_arrival(move(engine, command(StartType.MODULO_CURRENT_EXT, 890)), 895 + 3595)
+
+
+def test_modulo_current_keeps_the_ordered_direction_after_a_window_step_back() -> None:
+    engine = modulo_engine(909, window_counts=10)
+    assert_clean_arrival(move(engine, command(StartType.MODULO_PLUS, 900)), 900)  # moved -9
+    assert_clean_arrival(move(engine, command(StartType.MODULO_CURRENT, 1000)), 1000)
+
+
+def test_modulo_current_before_any_move_goes_positive() -> None:
+    trace = move(modulo_engine(900), command(StartType.MODULO_CURRENT, 0))
+    assert_clean_arrival(trace, 3600)
+
+
+@pytest.mark.parametrize("target", [TURN, TURN + 900, -1])
+def test_modulo_short_refuses_targets_outside_one_turn(target: int) -> None:
+    engine = modulo_engine(900)
+    trace = move(engine, command(StartType.MODULO_SHORT, target))
+    end = trace[-1]
+    assert end.has(PosStatus.ERROR)
+    assert not end.has(PosStatus.IN_TARGET)
+    assert DriveState.ERROR in states(trace)
+    assert {s.position for s in trace} == {900}
+    assert len(trace) < 10  # refused at once, Busy fell
+    # the next valid start clears the error
+    assert_clean_arrival(move(engine, command(StartType.MODULO_SHORT, 1800)), 1800)
+
+
+def test_modulo_without_a_modulo_factor_is_an_error() -> None:
+    engine = Ep7047Engine(PosSettings(), MODULO_CONFIG, StepperPlant(shaft_counts=900))
+    trace = move(engine, command(StartType.MODULO_PLUS, 0))
+    assert trace[-1].has(PosStatus.ERROR) and trace[-1].position == 900
+
+
+def test_modulo_travel_directly() -> None:
+    assert modulo_travel(StartType.MODULO_MINUS, 891, 900, TURN, 10, 1) == (9, -1)
+    assert modulo_travel(StartType.MODULO_CURRENT_EXT, 100, 0, TURN, 10, -1) == (-100, -1)
+
+
+# --- the manual's dynamic-change examples --------------------------------------------------
+
+
+def run_change_example(
+    first: tuple[int, int, int], change: tuple[int, int, int]
+) -> tuple[list[Sample], int]:
+    """Start to 200000, change to 100000 once the first ramp-up has ended.
+
+    Returns the trace and the index of the cycle the change was written in.
+    """
+    velocity, acc, dec = first
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    start = command(
+        StartType.ABSOLUTE,
+        200000,
+        velocity_bp=velocity,
+        acceleration_ms=acc,
+        deceleration_ms=dec,
+    )
+    trace = run(engine, start, until=lambda s: s.has(PosStatus.ACCELERATE))
+    assert trace[0].has(PosStatus.BUSY)  # t1: Busy = 1 with the Execute edge
+    trace += run(engine, start, until=lambda s: not s.has(PosStatus.ACCELERATE))  # t2
+    velocity, acc, dec = change
+    changed = command(
+        StartType.ABSOLUTE_CHANGE,
+        100000,
+        velocity_bp=velocity,
+        acceleration_ms=acc,
+        deceleration_ms=dec,
+    )
+    change_at = len(trace)
+    trace += run(engine, changed)
+    return trace, change_at
+
+
+def test_manual_dynamic_change_without_overrun() -> None:
+    trace, change_at = run_change_example((2000, 1000, 1000), (1500, 2000, 2000))
+    after = trace[change_at:]
+    assert after[0].state is DriveState.TARGET_RESTART
+    assert not any(s.has(PosStatus.WARNING) for s in trace)
+    assert all(s.diag == PosDiag.NONE for s in trace)
+    # t4: it decelerates onto the new target, never passing it, never reversing
+    assert any(s.has(PosStatus.DECELERATE) for s in after)
+    assert max(s.position for s in trace) == 100000
+    assert min(s.velocity_bp for s in trace) >= 0
+    assert max(s.velocity_bp for s in after[-4000:]) <= 1500  # the new velocity holds
+    # t5: Busy 0, In-Target 1, Decelerate 0
+    end = trace[-1]
+    assert not end.has(PosStatus.BUSY) and end.has(PosStatus.IN_TARGET)
+    assert not end.has(PosStatus.DECELERATE)
+    assert end.position == 100000
+
+
+def test_manual_dynamic_change_with_overrun() -> None:
+    trace, change_at = run_change_example((5000, 3000, 5000), (1500, 1000, 2000))
+    # t3: the change is taken with Warning (Target overrun) and braking starts at once
+    at_change = trace[change_at]
+    assert at_change.has(PosStatus.WARNING) and at_change.has(PosStatus.DECELERATE)
+    assert at_change.diag == PosDiag.TARGET_OVERRUN
+    assert at_change.position < 100000  # a warning before passing the target
+    after = trace[change_at:]
+    assert max(s.position for s in after) > 100000  # overran it ...
+    reversal = next(i for i, s in enumerate(after) if s.velocity_bp < 0)
+    # t4: end of the first deceleration, acceleration the other way
+    assert after[reversal].has(PosStatus.ACCELERATE)
+    # t5/t6: decelerates again and arrives, Warning still set
+    assert any(s.has(PosStatus.DECELERATE) for s in after[reversal:])
+    assert min(s.velocity_bp for s in after) >= -1500
+    end = trace[-1]
+    assert end.position == 100000
+    assert end.has(PosStatus.IN_TARGET) and end.has(PosStatus.WARNING)
+    assert not end.has(PosStatus.BUSY) and not end.has(PosStatus.ERROR)
+
+
+def test_change_during_acceleration_is_rejected_and_the_move_goes_on() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    start = command(StartType.ABSOLUTE, 200000, velocity_bp=5000, acceleration_ms=3000)
+    trace = run(engine, start, until=lambda s: s.has(PosStatus.ACCELERATE) and s.position > 1000)
+    trace += run(engine, command(StartType.ABSOLUTE_CHANGE, 100000, velocity_bp=5000))
+    rejected = next(s for s in trace if s.has(PosStatus.WARNING))
+    assert rejected.state is DriveState.WARNING
+    assert rejected.diag == PosDiag.COMMAND_REJECTED
+    assert trace[-1].position == 200000 and trace[-1].has(PosStatus.IN_TARGET)
+    assert engine.read_sdo(codec.DIAG_COMMAND_REJECTED) == 1
+    assert engine.read_sdo(codec.POS_STATUS_WORD) == 1
+
+
+def test_change_at_standstill_is_rejected() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    trace = move(engine, command(StartType.ABSOLUTE_CHANGE, 5000))
+    assert trace[-1].diag == PosDiag.COMMAND_REJECTED and trace[-1].has(PosStatus.WARNING)
+    assert {s.position for s in trace} == {0}
+    # Execute still high after a finished move: a change is rejected too
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    move(engine, command(StartType.ABSOLUTE, 1000))
+    after = run(engine, command(StartType.ABSOLUTE_CHANGE, 5000), until=lambda s: True)
+    assert after[-1].diag == PosDiag.COMMAND_REJECTED and after[-1].position == 1000
+
+
+def test_additive_and_relative_change() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    start = command(StartType.ABSOLUTE, 100000, velocity_bp=2000)
+    run(engine, start, until=lambda s: s.state is DriveState.CONST)
+    trace = run(engine, command(StartType.ADDITIVE_CHANGE, 20000, velocity_bp=2000))
+    assert_clean_arrival(trace, 120000)
+
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    run(engine, start, until=lambda s: s.state is DriveState.CONST)
+    here = run(engine, start, until=lambda s: s.position >= 30000)[-1].position
+    # RELATIVE_CHANGE adds to the actual position the drive sees when it takes the change
+    trace = run(engine, command(StartType.RELATIVE_CHANGE, 10000, velocity_bp=2000))
+    assert abs(trace[-1].position - (here + 10000)) <= 2 * 51200 * CYCLE_S
+    assert trace[-1].has(PosStatus.IN_TARGET)
+
+
+# --- calibration -----------------------------------------------------------------------------
+
+
+def calibration_engine(plant: StepperPlant, **settings: int | bool) -> Ep7047Engine:
+    base = PosSettings(
+        calibration_position_counts=100000,
+        calibration_velocity_towards_cam_bp=1000,  # 6.4 counts per cycle
+        calibration_velocity_off_cam_bp=100,  # 0.64 counts per cycle
+        in_target_timeout_ms=100,
+    )
+    return Ep7047Engine(replace(base, **settings), FAST_CONFIG, plant)
+
+
+OFF_CAM_STEP = 0.64  # counts per cycle at 100 bp
+
+
+def test_calibration_on_cam() -> None:
+    plant = StepperPlant(cam_counts=(5000.0, 6000.0))
+    engine = calibration_engine(plant)
+    assert not move(engine, command(StartType.SET_CALIBRATION))[-1].has(PosStatus.ERROR)
+    trace = move(engine, command(StartType.CALI_PLC_CAM))
+    assert is_subsequence(
+        [
+            DriveState.CALI_START,
+            DriveState.CALI_GO_CAM,
+            DriveState.CALI_ON_CAM,
+            DriveState.CALI_LEAVE_CAM,
+            DriveState.CALI_STOP,
+            DriveState.CALIBRATED,
+            DriveState.END,
+        ],
+        states(trace),
+    )
+    # Calibrated is cleared while calibrating, set at the end
+    assert not trace[1].has(PosStatus.CALIBRATED)
+    end = trace[-1]
+    assert end.has(PosStatus.CALIBRATED) and not end.has(PosStatus.ERROR)
+    assert end.position == 100000 == end.inputs.counter_counts
+    # it drove through the cam (both directions positive) and stopped just off it
+    assert 6000 < end.shaft_counts <= 6000 + OFF_CAM_STEP + 1e-9
+    # the calibration position is taken after the In-Target timeout at rest
+    stop_cycles = sum(s.state is DriveState.CALI_STOP for s in trace)
+    assert stop_cycles == pytest.approx(0.100 / CYCLE_S, abs=2)
+    # the cam shows as digital input 1 while the shaft is on it
+    assert any(s.inputs.stm_status & StmStatus.DIGITAL_INPUT_1 for s in trace)
+    # positions now refer to the calibration: 1000 counts back is on the cam's edge
+    move(engine, command(StartType.ABSOLUTE, 99000, velocity_bp=1000))
+    assert plant.shaft_counts == pytest.approx(end.shaft_counts - 1000)
+
+
+@pytest.mark.parametrize(
+    ("invert_cam", "invert_sync", "stop_low", "stop_high"),
+    [
+        (True, False, 6000.0, 6000.0 + OFF_CAM_STEP),  # back onto the cam, off the far side
+        (True, True, 5000.0 - OFF_CAM_STEP, 5000.0),  # onto the cam, off the near side
+    ],
+)
+def test_calibration_search_directions(
+    invert_cam: bool, invert_sync: bool, stop_low: float, stop_high: float
+) -> None:
+    plant = StepperPlant(shaft_counts=10000, cam_counts=(5000.0, 6000.0))
+    engine = calibration_engine(
+        plant, invert_calibration_cam_search=invert_cam, invert_sync_impulse_search=invert_sync
+    )
+    trace = move(engine, command(StartType.CALI_PLC_CAM))
+    going = [s for s in trace if s.state is DriveState.CALI_GO_CAM]
+    assert going and all(s.velocity_bp < 0 for s in going)
+    assert stop_low - 1e-9 <= trace[-1].shaft_counts <= stop_high + 1e-9
+    assert trace[-1].has(PosStatus.CALIBRATED) and trace[-1].position == 100000
+
+
+def test_calibration_on_cam_and_sync_pulse_is_exact_at_the_pulse() -> None:
+    # C-track pulses every 3600 counts at 1900, 5500 (on the cam), 9100, ...
+    plant = StepperPlant(
+        cam_counts=(5000.0, 6000.0), sync_period_counts=3600.0, sync_phase_counts=1900.0
+    )
+    engine = calibration_engine(plant)
+    trace = move(engine, command(StartType.CALI_HW_SYNC))
+    assert is_subsequence(
+        [
+            DriveState.CALI_START,
+            DriveState.CALI_GO_CAM,
+            DriveState.CALI_ON_CAM,
+            DriveState.CALI_LEAVE_CAM,
+            DriveState.CALI_GO_SYNC,
+            DriveState.CALI_STOP,
+            DriveState.CALIBRATED,
+        ],
+        states(trace),
+    )
+    end = trace[-1]
+    assert end.has(PosStatus.CALIBRATED)
+    # pulses before leaving the cam were ignored: it stopped just past the one at 9100
+    assert 9100 <= end.shaft_counts <= 9100 + OFF_CAM_STEP
+    # the calibration position belongs to the pulse itself: going there hits it exactly
+    move(engine, command(StartType.ABSOLUTE, 100000, velocity_bp=1000))
+    assert plant.shaft_counts == pytest.approx(9100)
+
+
+def test_calibration_aborted_by_emergency_stop_stays_uncalibrated() -> None:
+    engine = calibration_engine(StepperPlant(cam_counts=(5000.0, 6000.0)))
+    move(engine, command(StartType.SET_CALIBRATION))
+    engine.step(IDLE)
+    run(engine, command(StartType.CALI_PLC_CAM), until=lambda s: s.position > 1000)
+    trace = run(engine, command(StartType.CALI_PLC_CAM, emergency_stop=True))
+    end = trace[-1]
+    assert not end.has(PosStatus.CALIBRATED)
+    assert end.diag == PosDiag.COMMAND_ABORTED and end.has(PosStatus.WARNING)
+
+
+def test_set_and_clear_calibration() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    assert not engine.step(IDLE).pos_status & PosStatus.CALIBRATED
+    trace = move(engine, command(StartType.SET_CALIBRATION))
+    assert trace[-1].has(PosStatus.CALIBRATED) and DriveState.CALIBRATED in states(trace)
+    trace = move(engine, command(StartType.CLEAR_CALIBRATION))
+    assert not trace[-1].has(PosStatus.CALIBRATED)
+    assert DriveState.NOT_CALIBRATED in states(trace)
+    assert {s.position for s in trace} == {0}
+
+
+def test_set_calibration_auto_on_the_first_enable_edge_only() -> None:
+    settings = PosSettings(start_type=StartType.SET_CALIBRATION_AUTO)
+    engine = Ep7047Engine(settings, FAST_CONFIG)
+    disabled = Outputs()
+    assert not engine.step(disabled).pos_status & PosStatus.CALIBRATED
+    assert engine.step(IDLE).pos_status & PosStatus.CALIBRATED
+    move(engine, command(StartType.CLEAR_CALIBRATION))
+    engine.step(disabled)
+    assert not engine.step(IDLE).pos_status & PosStatus.CALIBRATED  # not the second edge
+    # without it as the default start type, Enable does nothing to Calibrated
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    engine.step(disabled)
+    assert not engine.step(IDLE).pos_status & PosStatus.CALIBRATED
+
+
+# --- motion -----------------------------------------------------------------------------------
+
+
+def test_velocity_min_creep_after_braking_half_a_percent_early() -> None:
+    engine = Ep7047Engine(PosSettings(velocity_min_bp=500), FAST_CONFIG)
+    trace = move(engine, command(StartType.ABSOLUTE, 100000, acceleration_ms=200))
+    assert_clean_arrival(trace, 100000)
+    last_braking = max(i for i, s in enumerate(trace) if s.has(PosStatus.DECELERATE))
+    # braking ends about 0.5 % of the distance (500 counts) before the target ...
+    assert 99400 <= trace[last_braking].position <= 99500
+    creep = [s for s in trace[last_braking + 1 :] if s.inputs.busy and s.velocity_bp]
+    # ... and the rest is crept at Velocity min. (500 bp) without braking
+    assert {s.velocity_bp for s in creep} == {500}
+    assert not any(s.has(PosStatus.DECELERATE) for s in creep)
+    assert len(creep) * 12800 * CYCLE_S == pytest.approx(
+        100000 - trace[last_braking].position, abs=4
+    )
+
+
+def test_in_target_timeout_without_reaching_the_window() -> None:
+    plant = StepperPlant(encoder_offset_counts=50)  # 50 counts the drive cannot pull in
+    engine = Ep7047Engine(
+        PosSettings(target_window_counts=10, in_target_timeout_ms=200), FAST_CONFIG, plant
+    )
+    trace = move(engine, command(StartType.ABSOLUTE, 20000))
+    end = trace[-1]
+    assert not end.has(PosStatus.IN_TARGET) and not end.has(PosStatus.BUSY)
+    assert not end.has(PosStatus.WARNING) and not end.has(PosStatus.ERROR)  # only Busy tells
+    assert end.position == 20050
+    waited = sum(s.state is DriveState.PRE_TARGET for s in trace)
+    assert waited == pytest.approx(0.200 / CYCLE_S, abs=2)
+    assert DriveState.TARGET not in states(trace)
+
+    plant = StepperPlant(encoder_offset_counts=8)  # inside the window: In-Target at once
+    engine = Ep7047Engine(
+        PosSettings(target_window_counts=10, in_target_timeout_ms=200), FAST_CONFIG, plant
+    )
+    trace = move(engine, command(StartType.ABSOLUTE, 20000))
+    assert trace[-1].has(PosStatus.IN_TARGET)
+    assert sum(s.state is DriveState.PRE_TARGET for s in trace) == 1
+
+
+def test_emergency_stop_aborts_and_additive_continues_from_the_old_target() -> None:
+    settings = PosSettings(emergency_deceleration_ms=50)
+    engine = Ep7047Engine(settings, FAST_CONFIG)
+    go = command(StartType.ABSOLUTE, 100000, velocity_bp=5000, acceleration_ms=500)
+    run(engine, go, until=lambda s: s.state is DriveState.CONST)
+    trace = run(engine, command(StartType.ABSOLUTE, 100000, velocity_bp=5000, emergency_stop=True))
+    assert is_subsequence([DriveState.EMCY, DriveState.STOP, DriveState.END], states(trace))
+    end = trace[-1]
+    assert end.diag == PosDiag.COMMAND_ABORTED
+    assert end.has(PosStatus.WARNING) and not end.has(PosStatus.IN_TARGET)
+    assert not end.has(PosStatus.ERROR)
+    # 50 % of the range in 50 ms x 50 % = 25 ms = 100 cycles
+    braking = [s for s in trace if s.state is DriveState.EMCY]
+    assert len(braking) == pytest.approx(100, abs=2)
+    assert all(s.has(PosStatus.DECELERATE) for s in braking[:-1])
+    stopped_at = end.position
+    assert 0 < stopped_at < 100000
+    # while Emergency stop is held nothing starts
+    held = move(engine, command(StartType.ABSOLUTE, 0, emergency_stop=True))
+    assert {s.position for s in held} == {stopped_at}
+    assert held[-1].diag == PosDiag.COMMAND_ABORTED
+    assert not any(s.has(PosStatus.READY_TO_EXECUTE) for s in held)
+    # ADDITIVE adds to the last target (100000), RELATIVE to where it stands
+    assert_clean_arrival(move(engine, command(StartType.ADDITIVE, 1000)), 101000)
+    assert_clean_arrival(move(engine, command(StartType.RELATIVE, 1000)), 102000)
+
+
+def test_execute_edge_semantics() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    first = engine.step(command(StartType.ABSOLUTE, 5000))
+    assert first.busy and engine.state is DriveState.START  # Busy with the rising edge
+    trace = run(engine, command(StartType.ABSOLUTE, 5000))
+    assert trace[-1].position == 5000
+    # Execute held high: nothing restarts, new values with a plain type are ignored
+    held = [engine.step(command(StartType.ABSOLUTE, 9000)) for _ in range(200)]
+    assert {i.actual_position_counts for i in held} == {5000}
+    assert not any(i.busy for i in held)
+    # a new rising edge starts it
+    assert_clean_arrival(move(engine, command(StartType.ABSOLUTE, 9000)), 9000)
+
+
+def test_dropping_execute_early_ramps_down_and_aborts() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    go = command(StartType.ABSOLUTE, 200000, velocity_bp=5000, acceleration_ms=500)
+    run(engine, go, until=lambda s: s.state is DriveState.CONST)
+    trace = run(engine, command(StartType.ABSOLUTE, 200000, velocity_bp=5000, execute=False))
+    end = trace[-1]
+    assert end.diag == PosDiag.COMMAND_ABORTED and not end.has(PosStatus.IN_TARGET)
+    assert end.position < 200000
+    # ramped down with the deceleration (100 ms for 100 %: 50 ms = 200 cycles from 50 %)
+    assert sum(s.has(PosStatus.DECELERATE) for s in trace) == pytest.approx(200, abs=2)
+    # a rising edge while still Busy is ignored
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    run(engine, go, until=lambda s: s.state is DriveState.CONST)
+    engine.step(IDLE)
+    engine.step(command(StartType.ABSOLUTE, 0, velocity_bp=5000))
+    trace = run(engine, command(StartType.ABSOLUTE, 0, velocity_bp=5000))
+    assert trace[-1].position > 0 and not trace[-1].has(PosStatus.IN_TARGET)
+
+
+@pytest.mark.parametrize(
+    ("start_type", "sign"), [(StartType.ENDLESS_PLUS, 1), (StartType.ENDLESS_MINUS, -1)]
+)
+def test_endless_runs_until_execute_drops(start_type: StartType, sign: int) -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    go = command(start_type, 123456, velocity_bp=-2500)  # target ignored, sign of velocity too
+    trace = run(engine, go, until=lambda s: s.state is DriveState.CONST)
+    trace += run(engine, go, until=lambda s: s.position * sign > 20000)
+    assert trace[-1].velocity_bp == sign * 2500 and trace[-1].has(PosStatus.BUSY)
+    assert trace[-1].state is DriveState.CONST
+    stop = run(engine, command(start_type, 0, velocity_bp=2500, execute=False))
+    end = stop[-1]
+    assert end.velocity_bp == 0 and end.diag == PosDiag.NONE  # stopping is not an abort
+    assert not end.has(PosStatus.IN_TARGET) and not end.has(PosStatus.WARNING)
+    assert DriveState.STOP in states(stop)
+    # ADDITIVE after an endless move adds to where it stopped
+    assert_clean_arrival(
+        move(engine, command(StartType.ADDITIVE, sign * 100)), end.position + sign * 100
+    )
+
+
+def test_ramp_times_are_relative_to_the_speed_range() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    trace = move(
+        engine, command(StartType.ABSOLUTE, 200000, velocity_bp=5000, acceleration_ms=1000)
+    )
+    # 1000 ms for 0..100 %: 0..50 % takes 500 ms = 2000 cycles
+    assert sum(s.has(PosStatus.ACCELERATE) for s in trace) == pytest.approx(2000, abs=2)
+    assert max(s.velocity_bp for s in trace) == 5000
+
+
+def test_coe_ramps_apply_per_direction_when_the_pdo_gives_none() -> None:
+    settings = PosSettings(acceleration_pos_ms=1000, acceleration_neg_ms=250)
+    engine = Ep7047Engine(settings, FAST_CONFIG)
+    up = move(engine, command(StartType.ABSOLUTE, 200000, velocity_bp=5000, acceleration_ms=0))
+    down = move(engine, command(StartType.ABSOLUTE, 0, velocity_bp=5000, acceleration_ms=0))
+    assert sum(s.has(PosStatus.ACCELERATE) for s in up) == pytest.approx(2000, abs=2)
+    assert sum(s.has(PosStatus.ACCELERATE) for s in down) == pytest.approx(500, abs=2)
+    assert down[-1].position == 0
+
+
+def test_velocity_is_limited_to_velocity_max() -> None:
+    engine = Ep7047Engine(PosSettings(velocity_max_bp=2500), FAST_CONFIG)
+    trace = move(engine, command(StartType.ABSOLUTE, 100000, velocity_bp=10000))
+    assert max(s.velocity_bp for s in trace) == 2500
+    assert_clean_arrival(trace, 100000)
+
+
+@pytest.mark.parametrize(
+    "outputs",
+    [
+        command(0x0007, 1000),  # unknown start type
+        command(StartType.ABSOLUTE, 1000, velocity_bp=0),
+        command(StartType.ABSOLUTE, 1000, enable=False),
+    ],
+    ids=["unknown-start-type", "velocity-0", "not-enabled"],
+)
+def test_refused_starts_set_error_and_reset_clears_it(outputs: Outputs) -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    trace = move(engine, outputs)
+    assert trace[-1].has(PosStatus.ERROR) and {s.position for s in trace} == {0}
+    engine.step(IDLE)
+    reset = Outputs(stm_control=StmControl.ENABLE | StmControl.RESET)
+    assert not engine.step(reset).pos_status & PosStatus.ERROR
+
+
+def test_default_start_type_applies_when_the_output_is_zero() -> None:
+    settings = PosSettings(start_type=StartType.RELATIVE)
+    engine = Ep7047Engine(settings, FAST_CONFIG, StepperPlant(shaft_counts=1000))
+    assert_clean_arrival(move(engine, command(0, 500)), 1500)
+
+
+def test_losing_enable_mid_move_is_an_error() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    go = command(StartType.ABSOLUTE, 100000)
+    run(engine, go, until=lambda s: s.position > 1000)
+    trace = run(engine, command(StartType.ABSOLUTE, 100000, enable=False))
+    end = trace[-1]
+    assert end.has(PosStatus.ERROR) and end.diag == PosDiag.COMMAND_ABORTED
+    assert end.velocity_bp == 0 and not end.inputs.stm_status & StmStatus.READY
+
+
+def test_actual_drive_time_is_the_elapsed_time_of_the_move() -> None:
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+    trace = move(engine, command(StartType.ABSOLUTE, 50000))
+    busy = sum(s.has(PosStatus.BUSY) for s in trace)
+    assert trace[-1].inputs.actual_drive_time_ms == pytest.approx(
+        (busy - 1) * CYCLE_S * 1000, abs=1
+    )
+    later = [engine.step(IDLE) for _ in range(100)]
+    assert later[-1].actual_drive_time_ms == trace[-1].inputs.actual_drive_time_ms  # frozen
+    assert move(engine, command(StartType.ABSOLUTE, 50000))[0].inputs.actual_drive_time_ms == 0
+
+
+def test_set_counter_and_c_latch() -> None:
+    plant = StepperPlant(sync_period_counts=1000.0, sync_phase_counts=500.0)
+    engine = Ep7047Engine(PosSettings(), FAST_CONFIG, plant)
+    set_counter = Outputs(
+        stm_control=StmControl.ENABLE, enc_control=EncControl.SET_COUNTER, set_counter_counts=-7000
+    )
+    inputs = engine.step(set_counter)
+    assert inputs.actual_position_counts == -7000 == inputs.counter_counts
+    assert inputs.enc_status & codec.EncStatus.SET_COUNTER_DONE
+    latch = Outputs(stm_control=StmControl.ENABLE, enc_control=EncControl.ENABLE_LATCH_C)
+    engine.step(latch)
+    go = Outputs(
+        stm_control=StmControl.ENABLE,
+        enc_control=EncControl.ENABLE_LATCH_C,
+        pos_control=PosControl.EXECUTE,
+        target_position_counts=-5000,
+        velocity_bp=1000,
+        start_type=StartType.ABSOLUTE,
+    )
+    trace = run(engine, go)
+    end = trace[-1].inputs
+    assert end.enc_status & codec.EncStatus.LATCH_C_VALID
+    assert end.latch_counts == -6500  # the first pulse passed: shaft 500
+    assert_clean_arrival(trace, -5000)
+
+
+def test_inputs_always_fit_the_wire_and_runs_are_deterministic() -> None:
+    def replay() -> list[bytes]:
+        engine = Ep7047Engine(PosSettings(), FAST_CONFIG)
+        trace = move(engine, command(StartType.ABSOLUTE, 30000, velocity_bp=-8000))
+        engine.step(IDLE)
+        trace += run(
+            engine,
+            command(StartType.ENDLESS_MINUS, velocity_bp=32767),
+            until=lambda s: s.position < -1_000_000,
+        )
+        return [codec.encode_inputs(s.inputs) for s in trace]
+
+    assert replay() == replay()
+
+
+def test_sdo_access() -> None:
+    engine = Ep7047Engine(PosSettings(), MODULO_CONFIG, StepperPlant(shaft_counts=900))
+    engine.write_sdo(codec.MODULO_FACTOR, TURN)
+    engine.write_sdo(codec.INVERT_SYNC_IMPULSE_SEARCH, 1)
+    assert engine.settings.modulo_factor_counts == TURN
+    assert engine.settings.invert_sync_impulse_search is True
+    assert engine.read_sdo(codec.MODULO_FACTOR) == TURN
+    assert_clean_arrival(move(engine, command(StartType.MODULO_PLUS, 0)), TURN)
+    assert engine.read_sdo(codec.DRIVE_STATE) == DriveState.END
+    with pytest.raises(codec.CodecError):
+        engine.write_sdo(codec.TARGET_WINDOW, -1)
+    with pytest.raises(KeyError):
+        engine.write_sdo(codec.DRIVE_STATE, 1)
+    with pytest.raises(KeyError):
+        engine.read_sdo(codec.IDENTITY_VENDOR_ID)
