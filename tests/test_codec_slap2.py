@@ -78,7 +78,9 @@ def test_line_decoder_never_raises_and_keeps_printables(data: bytes) -> None:
         assert all(31 < ord(c) < 127 for c in line)
 
 
-@given(st.lists(st.text(alphabet="0123456789abcdefx -", max_size=12), max_size=5), st.integers(1, 7))
+@given(
+    st.lists(st.text(alphabet="0123456789abcdefx -", max_size=12), max_size=5), st.integers(1, 7)
+)
 def test_line_decoder_is_chunking_independent(lines: list[str], chunk: int) -> None:
     data = "".join(f"{line}\r\n" for line in lines).encode()
     whole = codec.LineDecoder().feed(data)

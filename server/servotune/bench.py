@@ -16,7 +16,8 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Callable, Coroutine, Mapping
+from typing import Any
 
 from servotune.drivers.base import Sample
 from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
@@ -117,7 +118,17 @@ def run_bench(*, device: str, baud: int, addresses: list[int], duration_s: float
         if not path:
             print("bench: the simulator printed no path", file=sys.stderr)
             return 1
-        return asyncio.run(_measure(path, baud, addresses, duration_s))
+        # The server runs on uvloop when it is installed (uvicorn's default), so
+        # measure on the same loop.
+        try:
+            import uvloop
+
+            runner: Callable[[Coroutine[Any, Any, int]], int] = uvloop.run
+            loop_name = "uvloop"
+        except ImportError:
+            runner, loop_name = asyncio.run, "asyncio"
+        print(f"event loop: {loop_name}")
+        return runner(_measure(path, baud, addresses, duration_s))
     finally:
         process.send_signal(signal.SIGTERM)
         try:

@@ -91,7 +91,9 @@ def parse_link_spec(spec: str) -> LinkSpec:
     """Parse ``device:path?key=value&...``."""
     device, sep, rest = spec.partition(":")
     if not sep:
-        raise ConfigError(f"link spec must look like 'slap2:/dev/ttyUSB0?addresses=0,1', got {spec!r}")
+        raise ConfigError(
+            f"link spec must look like 'slap2:/dev/ttyUSB0?addresses=0,1', got {spec!r}"
+        )
     path, _, query = rest.partition("?")
     data: dict[str, Any] = {"device": device, "path": path}
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):

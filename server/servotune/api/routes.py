@@ -90,9 +90,7 @@ async def write_params(
     return await hub.write_params(axis_id, values)
 
 
-@router.get(
-    "/api/axes/{axis_id}/state", response_model=AxisState, responses=ERRORS, tags=["axes"]
-)
+@router.get("/api/axes/{axis_id}/state", response_model=AxisState, responses=ERRORS, tags=["axes"])
 async def axis_state(axis_id: str, hub: HubDep) -> AxisState:
     """The latest telemetry sample (503 until the first one arrived)."""
     state = hub.axis_state(axis_id)

@@ -1,0 +1,267 @@
+"""REST and websocket API on a live server, against simulated modules on a real pty."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+import websockets
+
+from servotune.api.app import AppConfig, create_app
+from servotune.config import LinkSpec
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.slap2 import Slap2Bus
+
+from .conftest import running_simulator, wait_for
+
+
+@dataclass
+class LiveServer:
+    base_url: str
+    ws_url: str
+    client: httpx.AsyncClient
+    simulator: PtySimulator
+    bus: Slap2Bus
+
+    async def state(self, axis_id: str) -> dict[str, Any]:
+        response = await self.client.get(f"/api/axes/{axis_id}/state")
+        assert response.status_code == 200, response.text
+        result: dict[str, Any] = response.json()
+        return result
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+@contextlib.asynccontextmanager
+async def live_server(
+    simulator: PtySimulator, bus: Slap2Bus, data_dir: Path
+) -> AsyncIterator[LiveServer]:
+    spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
+    app = create_app(AppConfig(links=[spec], data_dir=data_dir, web_dir=data_dir / "no-web"))
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        await wait_for(lambda: server.started, 10, "the server to start")
+        base = f"http://127.0.0.1:{port}"
+        async with httpx.AsyncClient(base_url=base, timeout=10) as client:
+            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus)
+            for axis_id in ("line-0", "line-1"):
+                for _ in range(250):
+                    response = await client.get(f"/api/axes/{axis_id}/state")
+                    if response.status_code == 200:
+                        break
+                    await asyncio.sleep(0.02)
+            yield live
+    finally:
+        server.should_exit = True
+        await task
+
+
+@pytest.fixture
+async def api(tmp_path: Path) -> AsyncIterator[LiveServer]:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            yield server
+
+
+async def test_axes_descriptor_and_params(api: LiveServer) -> None:
+    axes = (await api.client.get("/api/axes")).json()
+    assert [a["id"] for a in axes] == ["line-0", "line-1"]
+    assert axes[0] == {
+        "id": "line-0",
+        "device": "slap2",
+        "link": "line",
+        "address": 0,
+        "name": "SLAP2 #0",
+    }
+    descriptor = (await api.client.get("/api/axes/line-0/descriptor")).json()
+    kp = next(p for p in descriptor["parameters"] if p["name"] == "kp")
+    assert (kp["minimum"], kp["maximum"], kp["persisted"]) == (0, 32767, True)
+    assert {f["name"] for f in descriptor["flags"]} >= {"move", "inpos", "oc", "limit1"}
+    params = (await api.client.get("/api/axes/line-0/params")).json()
+    assert params["kp"] == 40 and params["ki"] == 40 and params["kd"] == 80
+    assert (await api.client.get("/api/axes/nope/params")).status_code == 404
+
+
+async def test_bad_input_is_422_and_nothing_is_written(api: LiveServer) -> None:
+    response = await api.client.patch("/api/axes/line-0/params", json={"kd": 90, "kp": 40000})
+    assert response.status_code == 422
+    body = response.json()
+    assert body["field"] == "kp"
+    assert "0..32767" in body["detail"]
+    # The valid kd in the same request was not written either.
+    assert api.bus.module(0).settings["kd"] == 80
+    for bad, field in [
+        ({"kp": "fast"}, "kp"),
+        ({"kp": 1.5}, "kp"),
+        ({"gain": 3}, "gain"),
+        ({"current_limit_ma": 2500}, "current_limit_ma"),
+    ]:
+        response = await api.client.patch("/api/axes/line-0/params", json=bad)
+        assert response.status_code == 422, bad
+        assert response.json()["field"] == field
+    response = await api.client.post(
+        "/api/axes/line-0/commands", json={"command": "move_absolute", "position": 1 << 30}
+    )
+    assert response.status_code == 422
+    assert response.json()["field"] == "position"
+    assert "16777216" in response.json()["detail"]
+    response = await api.client.post("/api/axes/line-0/commands", json={"command": "fly"})
+    assert response.status_code == 422
+    assert api.bus.module(0).settings["kp"] == 40
+
+
+async def test_patch_writes_and_reads_back(api: LiveServer) -> None:
+    response = await api.client.patch(
+        "/api/axes/line-1/params", json={"kp": 65, "inpos_window": 12}
+    )
+    assert response.status_code == 200, response.text
+    assert response.json() == {"kp": 65, "inpos_window": 12}
+    assert api.bus.module(1).settings["kp"] == 65
+    assert api.bus.module(1).settings["sipw"] == 12
+
+
+async def test_move_refused_without_pm_then_runs(api: LiveServer) -> None:
+    url = "/api/axes/line-0/commands"
+    response = await api.client.post(url, json={"command": "move_relative", "distance": 2000})
+    assert response.status_code == 409
+    assert "position mode" in response.json()["detail"]
+    assert (await api.client.post(url, json={"command": "position_mode"})).status_code == 200
+    response = await api.client.post(url, json={"command": "move_relative", "distance": 2000})
+    assert response.status_code == 200, response.text
+    assert response.json()["sent"] == ["mr2000"]
+
+    async def arrived() -> bool:
+        state = await api.state("line-0")
+        return bool(state["flags"]["inpos"]) and abs(state["position"] - 2000) <= 5
+
+    for _ in range(200):
+        if await arrived():
+            break
+        await asyncio.sleep(0.05)
+    else:
+        pytest.fail(f"no arrival: {await api.state('line-0')}")
+    # STOP for all axes: the controller goes off.
+    assert (await api.client.post("/api/stop")).json() == {"failed": []}
+    assert not api.bus.module(0).rss & (1 << 3)
+
+
+async def test_console_shows_multiline_replies(api: LiveServer) -> None:
+    body = (await api.client.post("/api/axes/line-1/console", json={"line": "rrss"})).json()
+    assert body["error"] is None
+    assert len(body["reply"]) >= 5
+    body = (await api.client.post("/api/axes/line-1/console", json={"line": "q p"})).json()
+    assert body["sent"] == "qp" and body["reply"] == ["40"]
+    response = await api.client.post("/api/axes/line-1/console", json={"line": "se 0"})
+    assert response.status_code == 422
+
+
+async def test_link_down_is_503_and_recovers(api: LiveServer) -> None:
+    api.simulator.unplug()
+    for _ in range(100):
+        status = (await api.client.get("/api/links/line/status")).json()
+        if status["state"] in ("disconnected", "reconnecting"):
+            break
+        await asyncio.sleep(0.05)
+    response = await api.client.post("/api/axes/line-0/commands", json={"command": "position_mode"})
+    assert response.status_code == 503
+    api.simulator.replug()
+    for _ in range(200):
+        status = (await api.client.get("/api/links/line/status")).json()
+        if status["state"] == "connected":
+            break
+        await asyncio.sleep(0.05)
+    assert status["state"] == "connected"
+    response = await api.client.post("/api/axes/line-0/commands", json={"command": "position_mode"})
+    assert response.status_code == 200
+
+
+async def test_reset_is_flagged_and_settings_restored(api: LiveServer) -> None:
+    await api.client.patch("/api/axes/line-0/params", json={"kp": 77, "kd": 150})
+    api.simulator.power_cycle(0)
+    for _ in range(200):
+        state = await api.state("line-0")
+        if state["health"] == "reset":
+            break
+        await asyncio.sleep(0.05)
+    assert state["health"] == "reset"
+    assert api.bus.module(0).settings["kp"] == 40
+    response = await api.client.post(
+        "/api/axes/line-0/commands", json={"command": "restore_parameters"}
+    )
+    assert response.status_code == 200, response.text
+    assert api.bus.module(0).settings["kp"] == 77
+    assert api.bus.module(0).settings["kd"] == 150
+    assert (await api.state("line-0"))["health"] == "ok"
+
+
+async def test_settings_survive_a_server_restart(tmp_path: Path) -> None:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            await server.client.patch("/api/axes/line-1/params", json={"ki": 3})
+        sim.power_cycle(None)
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            state = await server.state("line-1")
+            assert state["health"] == "reset"
+            await server.client.post(
+                "/api/axes/line-1/commands", json={"command": "restore_parameters"}
+            )
+            assert bus.module(1).settings["ki"] == 3
+
+
+async def test_websocket_streams_and_second_client_sees_changes(api: LiveServer) -> None:
+    async with websockets.connect(api.ws_url) as first, websockets.connect(api.ws_url) as second:
+        hello = json.loads(await first.recv())
+        assert hello["type"] == "hello"
+        assert [a["id"] for a in hello["axes"]] == ["line-0", "line-1"]
+        times: list[float] = []
+        while len(times) < 40:
+            message = json.loads(await asyncio.wait_for(first.recv(), 5))
+            if message["type"] == "telemetry" and message["axis"] == "line-0":
+                assert len(message["channels"]["position"]) == len(message["t"])
+                assert len(message["flags"]["inpos"]) == len(message["t"])
+                times.extend(message["t"])
+        assert times == sorted(times)
+        assert times[-1] > times[0]
+        await api.client.patch("/api/axes/line-0/params", json={"kd": 123})
+        for _ in range(500):
+            message = json.loads(await asyncio.wait_for(second.recv(), 5))
+            if message["type"] == "params" and message["values"].get("kd") == 123:
+                assert message["source"] == "write"
+                break
+        else:
+            pytest.fail("the second client never saw the change")
+
+
+async def test_a_stalled_client_does_not_slow_the_others(api: LiveServer) -> None:
+    async with websockets.connect(api.ws_url, max_queue=1) as stalled:
+        await stalled.recv()  # hello, then never read again
+        async with websockets.connect(api.ws_url) as reader:
+            count = 0
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            while loop.time() - start < 2.0:
+                message = json.loads(await asyncio.wait_for(reader.recv(), 5))
+                if message["type"] == "telemetry":
+                    count += len(message["t"])
+            status = (await api.client.get("/api/links/line/status")).json()
+    # Both axes keep streaming at the link's rate to the client that reads.
+    assert count >= 0.6 * 2 * 2.0 * status["rate_hz"], (count, status)
+    assert status["rate_hz"] > 10
