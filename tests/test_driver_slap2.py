@@ -132,8 +132,8 @@ async def test_hex_mode_and_ucon_are_understood(line: RunningLink) -> None:
     assert line.bus.module(0).settings["syscon"] == 0b110011
     with pytest.raises(DeviceRefusedError, match="-1UC"):
         await drive.command("move_relative", {"distance": 100})
-    reply = await drive.console("qp")
-    assert reply == ["0x28"]
+    sent, reply = await drive.console("qp")
+    assert (sent, reply) == ("qp", ["0x28"])
 
 
 async def test_blind_select_when_nobody_is_selected(tmp_path: Path) -> None:
@@ -157,7 +157,7 @@ async def test_absent_module_is_offline_and_others_work(tmp_path: Path) -> None:
 
 async def test_console_multiline_and_pg_refused_in_pm(line: RunningLink) -> None:
     drive = axis(line, 0)
-    lines = await drive.console("rep")
+    _, lines = await drive.console("rep")
     assert len(lines) > 3
     await drive.command("position_mode", {})
     await wait_for(lambda: line.sink.samples["line-0"][-1].flags["pm"], what="pm flag")

@@ -366,7 +366,8 @@ class Hub:
         self.on_event("info", entry.info.id, f"re-applied {len(readback)} stored settings")
         return CommandOutcome([f"{k}={v}" for k, v in readback.items()], "settings re-applied")
 
-    async def console(self, axis_id: str, line: str) -> list[str]:
+    async def console(self, axis_id: str, line: str) -> tuple[str, list[str]]:
+        """Send a raw line; returns (the line as sent, the reply lines)."""
         entry = self.entry(axis_id)
         self._operate(entry)
         return await entry.driver.console(line)

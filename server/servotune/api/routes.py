@@ -11,8 +11,12 @@ from pydantic import TypeAdapter, ValidationError
 
 from servotune.api.deps import HubDep, WsHubDep
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
-from servotune.protocols.slap2 import CodecError
+from servotune.drivers.base import (
+    DeviceRefusedError,
+    DriverError,
+    InvalidArgumentError,
+    LinkDownError,
+)
 from servotune.wire import (
     AxisInfo,
     AxisState,
@@ -95,8 +99,6 @@ async def axis_state(axis_id: str, hub: HubDep) -> AxisState:
     """The latest telemetry sample (503 until the first one arrived)."""
     state = hub.axis_state(axis_id)
     if state is None:
-        from servotune.drivers.base import LinkDownError
-
         raise LinkDownError(f"no telemetry from {axis_id} yet")
     return state
 
@@ -134,17 +136,11 @@ async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> Console
     so the console can show them next to the line.
     """
     try:
-        from servotune.protocols.slap2 import normalise_line
-
-        sent = normalise_line(request.line)
-    except CodecError as exc:
-        raise InvalidArgumentError("line", str(exc)) from None
-    try:
-        reply = await hub.console(axis_id, request.line)
-    except (DeviceRefusedError, InvalidArgumentError):
+        sent, reply = await hub.console(axis_id, request.line)
+    except (DeviceRefusedError, InvalidArgumentError, LinkDownError):
         raise
     except DriverError as exc:
-        return ConsoleReply(line=request.line, sent=sent, reply=[], error=str(exc))
+        return ConsoleReply(line=request.line, sent=request.line, reply=[], error=str(exc))
     return ConsoleReply(line=request.line, sent=sent, reply=reply, error=None)
 
 

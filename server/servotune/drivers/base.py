@@ -111,8 +111,11 @@ class AxisDriver(Protocol):
         """
         ...
 
-    async def console(self, line: str) -> list[str]:
-        """Send one raw line and return the reply lines."""
+    async def console(self, line: str) -> tuple[str, list[str]]:
+        """Send one raw line; return it as sent on the wire and the reply lines.
+
+        Raises InvalidArgumentError (field ``line``) for a line that cannot be sent.
+        """
         ...
 
     async def stop(self) -> None:

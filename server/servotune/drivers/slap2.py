@@ -677,7 +677,10 @@ class Slap2Link(LinkEngine):
 
     async def op_console(self, address: int, line: str) -> tuple[str, list[str]]:
         module = self._modules[address]
-        text = codec.normalise_line(line)
+        try:
+            text = codec.normalise_line(line)
+        except codec.CodecError as exc:
+            raise InvalidArgumentError("line", str(exc)) from None
         mnemonic = _mnemonic(text)
         if mnemonic == "se":
             raise InvalidArgumentError(
@@ -814,9 +817,8 @@ class Slap2Axis(AxisDriver):
         sent = await self._link.op_execute(self._address, commands, urgent=name == "stop")
         return CommandOutcome(sent, "ok")
 
-    async def console(self, line: str) -> list[str]:
-        _, lines = await self._link.op_console(self._address, line)
-        return lines
+    async def console(self, line: str) -> tuple[str, list[str]]:
+        return await self._link.op_console(self._address, line)
 
     async def stop(self) -> None:
         await self._link.op_execute(self._address, [codec.make_simple("st")], urgent=True)
