@@ -1,0 +1,964 @@
+"""Z1100 firmware emulation: three servo axes behind one serial line (sans-IO).
+
+:class:`Z1100Chip` implements ``servotune.sim.base.SimDevice``: ``receive(byte)``
+feeds one host byte and returns the reply when a packet completes; ``advance_to(t_s)``
+runs the servo loops and the motors up to simulation time ``t_s`` and returns bytes the
+chip sends by itself (the 100 ms packet-timeout reply, an injected noise reply). No
+clock, no sockets, no randomness: the same calls give the same bytes.
+
+Each axis is a ``DcMotor`` (``servotune.sim.physics``) under a servo law stepped at
+the axis's own sampling time, Stm x 32 us. The manual gives no equations; the law
+chosen here (docs/z1100-simulator.md has the reasoning and the tuning landscape) is,
+per sample, with ``e`` = profile position - encoder position and ``y`` = encoder
+position, differences taken over the last ``DERIVATIVE_WINDOW`` samples::
+
+    u    = K * (16 * e + A * delta(e)) - B * delta(y)
+    pwm  = clamp(trunc(u / 64), -255, 255)          # 8-bit PWM magnitude + DIR
+    duty = pwm / 255
+
+K = 0 never turns the motor; A is derivative action on the forward path (it scales
+with K); B is velocity ("tachometric") feedback. The derivative window (about 1 ms at
+Stm = 1) is what a real chip needs to get usable speed resolution from an encoder
+sampled every 32 us; its delay is also what makes a large K oscillate, as the manual
+warns.
+
+Decisions where the spec is silent are listed in docs/z1100-simulator.md and repeated
+next to the code that implements them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Final
+
+from servotune.protocols.z1100 import (
+    AXES,
+    BAUD_RATES,
+    CAB_MASK,
+    COMMANDS,
+    DEFAULT_BAUD,
+    INT16_MAX,
+    INT16_MIN,
+    LIMIT_MAX_COUNTS,
+    PACKET_TIMEOUT_S,
+    STM_DEFAULT,
+    STM_TICK_S,
+    BadRequest,
+    Cab,
+    Command,
+    Gains,
+    Job,
+    Reply,
+    ReplyCode,
+    Request,
+    RequestDecoder,
+    StartStatus,
+    StopStatus,
+    encode_reply,
+    moving_flag,
+    pack_error,
+    pack_int32,
+    pack_kab,
+    pack_start,
+    pack_stop,
+    unpack_axes,
+    unpack_int32,
+    unpack_kab,
+    unpack_start,
+)
+from servotune.sim.physics import DcMotor, DcMotorParams
+
+# --- servo law constants (see the module docstring) ----------------------------------
+DERIVATIVE_WINDOW: Final = 32  # samples: 1.024 ms at Stm = 1
+ERROR_WEIGHT: Final = 16  # weight of e against A * delta(e)
+OUTPUT_SHIFT_DIVISOR: Final = 64  # u / 64 -> PWM units
+PWM_FULL_SCALE: Final = 255
+# A "jammed" shaft (seized mechanism): Coulomb friction far beyond any stall torque.
+_JAM_FRICTION_NM: Final = 100.0
+
+FLASH_FORMAT: Final = "servotune-z1100-flash"
+FLASH_VERSION: Final = 1
+
+_ZERO_GAINS: Final = Gains(0, 0, 0)
+_TICKS_EPS: Final = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class AxisHardware:
+    """What is wired to one axis: motor and load, home switch, wiring mistakes.
+
+    ``motor``: plant parameters (``None``: the physics module's default motor, an
+    unloaded Faulhaber 2224 at 24 V with a 512-line encoder); ``load_inertia_kg_m2``
+    is added to it, so axes can carry different loads and need different gains.
+    The home switch sits at the negative end: it is pressed while the physical encoder
+    count is at or below ``home_switch_counts`` (the manual: counts increase away from
+    the switch). ``start_counts``: physical shaft position at construction.
+    ``motor_leads_reversed`` / ``encoder_swapped`` are wiring mistakes that the
+    matching Cab bits undo; ``switch_active_high``: the switch input reads 1 when
+    pressed (Cab bit 2 must then be set).
+    """
+
+    motor: DcMotorParams | None = None
+    load_inertia_kg_m2: float = 0.0
+    home_switch_counts: int = -2048
+    start_counts: int = 0
+    motor_leads_reversed: bool = False
+    encoder_swapped: bool = False
+    switch_active_high: bool = False
+
+    def motor_params(self) -> DcMotorParams:
+        """The plant: ``motor`` plus the load; the physics' limit switches E1/E2 are
+        not used by the Z1100 (it has one home switch, modelled here)."""
+        base = self.motor if self.motor is not None else DcMotorParams()
+        return replace(
+            base,
+            load_inertia_kg_m2=base.load_inertia_kg_m2 + self.load_inertia_kg_m2,
+            limit1_count=None,
+            limit2_count=None,
+        )
+
+
+@dataclass(slots=True)
+class AxisParameters:
+    """The RAM parameters of one axis that SetFlash saves (all zero after a reset with
+    a blank flash, except Stm = 1, the manual's power-on value)."""
+
+    kabh: Gains = _ZERO_GAINS
+    kabd: Gains = _ZERO_GAINS
+    vmax_counts_s: int = 0
+    acc_counts_s2: int = 0
+    stm: int = STM_DEFAULT
+    hvm_counts_s: int = 0
+    hac_counts_s2: int = 0
+    limit_counts: int = 0
+    cab: int = 0
+    busy: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "kabh": [self.kabh.k, self.kabh.a, self.kabh.b],
+            "kabd": [self.kabd.k, self.kabd.a, self.kabd.b],
+            "vmax_counts_s": self.vmax_counts_s,
+            "acc_counts_s2": self.acc_counts_s2,
+            "stm": self.stm,
+            "hvm_counts_s": self.hvm_counts_s,
+            "hac_counts_s2": self.hac_counts_s2,
+            "limit_counts": self.limit_counts,
+            "cab": self.cab,
+            "busy": self.busy,
+        }
+
+    @classmethod
+    def from_json(cls, document: object) -> AxisParameters:
+        """Parse one axis of a flash file; raises ``ValueError`` if anything is off
+        (the caller treats the whole flash as blank then, like a corrupt page)."""
+        if not isinstance(document, dict):
+            raise ValueError("axis entry is not an object")
+        entry: dict[str, Any] = document
+
+        def number(name: str, maximum: int, minimum: int = 0) -> int:
+            value = entry.get(name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{name} is not an integer")
+            if not minimum <= value <= maximum:
+                raise ValueError(f"{name} out of range")
+            return value
+
+        def gains(name: str) -> Gains:
+            value = entry.get(name)
+            if not isinstance(value, list) or len(value) != 3:
+                raise ValueError(f"{name} is not [K, A, B]")
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+                raise ValueError(f"{name} is not [K, A, B]")
+            return Gains(*value)  # Gains checks 0..255 (CodecError is a ValueError)
+
+        busy = entry.get("busy")
+        if not isinstance(busy, bool):
+            raise ValueError("busy is not a boolean")
+        return cls(
+            kabh=gains("kabh"),
+            kabd=gains("kabd"),
+            vmax_counts_s=number("vmax_counts_s", 0xFFFF_FFFF),
+            acc_counts_s2=number("acc_counts_s2", 0xFFFF_FFFF),
+            stm=number("stm", 255),
+            hvm_counts_s=number("hvm_counts_s", 0xFFFF_FFFF),
+            hac_counts_s2=number("hac_counts_s2", 0xFFFF_FFFF),
+            limit_counts=number("limit_counts", LIMIT_MAX_COUNTS),
+            cab=number("cab", CAB_MASK),
+            busy=busy,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class AxisState:
+    """A snapshot of one axis for tests, demos and plots (not on the wire)."""
+
+    encoder_counts: int  # the chip's counter (what GetEncoder reads, before wrapping)
+    physical_counts: int  # the shaft's own count (0 = angle 0), unaffected by Cab/Zero
+    reference_counts: float  # profile position in the chip's frame
+    error_counts: int  # last position error computed (what GetError reads)
+    running: bool  # start bit (GetStart)
+    powered: bool  # servo engaged
+    stalled: bool
+    stopped_by_command: bool
+    homing: bool
+    duty: float  # -1..1 as applied to the motor terminals
+    switch_pressed: bool  # as the chip reads it (after Cab bit 2)
+    job: int
+    speed_counts_s: float
+
+
+# Profile modes.
+_IDLE, _MOVE, _VELOCITY, _HOME = range(4)
+# Homing phases: leave the switch (if pressed at Zero), brake, seek it, brake, return.
+_H_LEAVE, _H_LEAVE_BRAKE, _H_SEEK, _H_BRAKE, _H_RETURN = range(5)
+
+
+def _positive(value: int) -> int:
+    """Speeds and accelerations are signed 32-bit on the chip; a negative one
+    ("must always be positive") is used as 0: the motor never turns."""
+    return max(0, unpack_int32(value))
+
+
+class _Axis:
+    """Firmware state of one axis plus its motor. Internal: the chip drives it."""
+
+    def __init__(self, index: int, hardware: AxisHardware) -> None:
+        self.index = index
+        self.hardware = hardware
+        self.params_base = hardware.motor_params()
+        self.motor = DcMotor(self.params_base)
+        self.motor.set_count(hardware.start_counts)
+        self.jammed = False
+        self.samples = 0
+        self.p = AxisParameters()
+        self.reset()
+
+    # --- state -----------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """As after a chip reset: servo off, counter 0 wherever the shaft is."""
+        self.job = int(Job.FREE)
+        self.target_counts = 0
+        self.running = False
+        self.powered = False
+        self.stalled = False
+        self.stopped_by_command = False
+        self.direction_positive = False
+        self.mode = _IDLE
+        self.home_phase = _H_SEEK
+        self.home_edge = 0
+        self.stopping = False
+        self.counter = 0
+        self.last_phys = self.motor.count
+        self.ref = 0.0
+        self.ref_v = 0.0  # counts per sample
+        self.error = 0
+        self.duty = 0.0
+        self.e_hist = [0] * DERIVATIVE_WINDOW
+        self.y_hist = [0] * DERIVATIVE_WINDOW
+        self.hist_i = 0
+        self.still = 0
+        self.e_last = 0
+        self.y_last = 0
+        self.frozen: tuple[int, float, float, object] | None = None
+        self.next_tick = 0
+        self.update_signs()
+        self.motor.current_a = 0.0  # the bridge is off
+
+    def update_signs(self) -> None:
+        cab = self.p.cab
+        hw = self.hardware
+        self.out_sign = -1.0 if hw.motor_leads_reversed != bool(cab & Cab.MOTOR_REVERSED) else 1.0
+        self.enc_sign = -1 if hw.encoder_swapped != bool(cab & Cab.ENCODER_SWAPPED) else 1
+
+    @property
+    def sample_s(self) -> float:
+        return max(1, self.p.stm) * STM_TICK_S  # Stm 0 cannot be a period: used as 1
+
+    @property
+    def switch_pressed(self) -> bool:
+        """The home switch as the chip reads it: pin level interpreted with Cab bit 2
+        (0: pressed reads 0, the manual's default wiring; 1: pressed reads 1)."""
+        hw = self.hardware
+        pressed = self.motor.count <= hw.home_switch_counts
+        level = pressed if hw.switch_active_high else not pressed
+        return level if self.p.cab & Cab.SWITCH_ACTIVE_HIGH else not level
+
+    def engage(self) -> None:
+        """Servo on, holding the current position (no derivative kick)."""
+        self.sync_counter()
+        self.powered = True
+        self.ref = float(self.counter)
+        self.ref_v = 0.0
+        self.error = 0
+        self.e_hist = [0] * DERIVATIVE_WINDOW
+        self.y_hist = [self.counter] * DERIVATIVE_WINDOW
+        self.still = 0
+        self.wake()
+
+    def power_off(self) -> None:
+        self.powered = False
+        self.running = False
+        self.mode = _IDLE
+        self.stopping = False
+        self.duty = 0.0
+        self.wake()
+
+    def wake(self) -> None:
+        self.frozen = None
+        self.still = 0
+
+    def sync_counter(self) -> None:
+        phys = self.motor.count
+        delta = phys - self.last_phys
+        if delta:
+            self.last_phys = phys
+            self.counter += delta * self.enc_sign
+
+    # --- profile -----------------------------------------------------------------------
+
+    def _per_sample(self, speed_counts_s: int, acc_counts_s2: int) -> tuple[float, float]:
+        ts = self.sample_s
+        return _positive(speed_counts_s) * ts, _positive(acc_counts_s2) * ts * ts
+
+    def _ramp(self, v_goal: float, acc: float) -> None:
+        v = self.ref_v
+        if v < v_goal:
+            v = min(v + acc, v_goal)
+        elif v > v_goal:
+            v = max(v - acc, v_goal)
+        self.ref_v = v
+        self.ref += v
+
+    def _approach(self, goal: float, vmax: float, acc: float) -> bool:
+        """One trapezoid step towards ``goal`` (from rest or moving towards it); True
+        when it is reached with zero speed. ``sqrt(2 a d)`` caps the speed so that the
+        motor can still stop at the goal: short moves never reach vmax."""
+        remaining = goal - self.ref
+        distance = abs(remaining)
+        speed = min(abs(self.ref_v) + acc, vmax, math.sqrt(2.0 * acc * distance))
+        if speed >= distance:
+            self.ref = goal
+            self.ref_v = 0.0
+            return True
+        step = speed if remaining > 0 else -speed
+        self.ref += step
+        self.ref_v = step
+        return False
+
+    def profile_step(self) -> None:
+        p = self.p
+        if self.mode == _MOVE:
+            vmax, acc = self._per_sample(p.vmax_counts_s, p.acc_counts_s2)
+            if self._approach(float(self.target_counts), vmax, acc):
+                self.finish()
+        elif self.mode == _VELOCITY:
+            vmax, acc = self._per_sample(p.vmax_counts_s, p.acc_counts_s2)
+            if self.stopping:
+                self._ramp(0.0, acc)
+                if self.ref_v == 0.0:
+                    self.finish()
+            else:
+                self._ramp(vmax if self.direction_positive else -vmax, acc)
+        elif self.mode == _HOME:
+            self._home_step()
+
+    def _home_step(self) -> None:
+        vmax, acc = self._per_sample(self.p.hvm_counts_s, self.p.hac_counts_s2)
+        phase = self.home_phase
+        pressed = self.switch_pressed
+        if phase == _H_LEAVE:
+            # Zero with the switch already pressed: move off it first, so that the
+            # edge is always found from the same side.
+            self._ramp(vmax, acc)
+            if not pressed:
+                self.home_phase = _H_LEAVE_BRAKE
+        elif phase == _H_LEAVE_BRAKE:
+            self._ramp(0.0, acc)
+            if self.ref_v == 0.0:
+                self.home_phase = _H_SEEK
+        elif phase == _H_SEEK:
+            self._ramp(-vmax, acc)
+            if pressed:
+                self.home_edge = self.counter  # the first count that presses it
+                self.home_phase = _H_BRAKE
+        elif phase == _H_BRAKE:
+            self._ramp(0.0, acc)
+            if self.ref_v == 0.0:
+                self.home_phase = _H_RETURN
+        elif self._approach(float(self.home_edge), vmax, acc):
+            # Home reached: the switch edge becomes position 0.
+            edge = self.home_edge
+            self.counter -= edge
+            self.ref -= edge
+            self.y_hist = [y - edge for y in self.y_hist]
+            self.y_last -= edge
+            self.finish()
+
+    def finish(self) -> None:
+        """The move ended: the start bit clears itself, KABD takes over."""
+        self.running = False
+        self.mode = _IDLE
+        self.stopping = False
+        self.ref_v = 0.0
+
+    # --- one servo sample ------------------------------------------------------------
+
+    def sample(self) -> bool:
+        """Run one sample (profile, stall check, law) and integrate the motor over
+        it. Returns True when the axis stalled in this sample."""
+        self.samples += 1
+        motor = self.motor
+        ts = self.sample_s
+        phys = motor.count
+        delta = phys - self.last_phys
+        if delta:
+            self.last_phys = phys
+            self.counter += delta * self.enc_sign
+        y = self.counter
+        if not self.powered:
+            motor.step(ts, None)
+            if motor.speed_rad_s == 0.0 and abs(motor.external_torque_nm) <= (
+                motor.params.coulomb_friction_nm
+            ):
+                self._freeze()
+            return False
+        if self.running:
+            self.profile_step()
+        e = math.floor(self.ref + 0.5) - y
+        self.error = e
+        limit = self.p.limit_counts
+        if e > limit or e < -limit:
+            # Stall protection: motor power off, reply bit 7, GetStop bit 4..6.
+            self.power_off()
+            self.stalled = True
+            motor.step(ts, None)
+            return True
+        i = self.hist_i
+        de = e - self.e_hist[i]
+        dy = y - self.y_hist[i]
+        self.e_hist[i] = e
+        self.y_hist[i] = y
+        self.hist_i = i + 1 if i + 1 < DERIVATIVE_WINDOW else 0
+        gains = self.p.kabh if self.running else self.p.kabd
+        u = gains.k * (ERROR_WEIGHT * e + gains.a * de) - gains.b * dy
+        pwm = int(u / OUTPUT_SHIFT_DIVISOR)  # truncates towards zero, like a shift of |u|
+        if pwm > PWM_FULL_SCALE:
+            pwm = PWM_FULL_SCALE
+        elif pwm < -PWM_FULL_SCALE:
+            pwm = -PWM_FULL_SCALE
+        duty = self.out_sign * pwm / PWM_FULL_SCALE
+        self.duty = duty
+        motor.step(ts, duty)
+        if self.running or e != self.e_last or y != self.y_last:
+            self.still = 0
+        else:
+            self.still += 1
+            if self.still >= DERIVATIVE_WINDOW and motor.speed_rad_s == 0.0:
+                self._freeze_if_stuck(duty)
+        self.e_last = e
+        self.y_last = y
+        return False
+
+    # --- idle fast path ------------------------------------------------------------------
+    # An axis at rest whose inputs have not changed for a whole derivative window puts
+    # out a constant PWM; if friction holds the shaft against the resulting torque,
+    # every further sample is identical, so they are skipped until a command, a fault
+    # injection or an outside change (load torque, shaft moved) wakes the axis.
+
+    def _freeze_if_stuck(self, duty: float) -> None:
+        motor = self.motor
+        params = motor.params
+        i_ss = duty * params.supply_v / params.resistance_ohm
+        kt = params.torque_constant_nm_per_a
+        ext = motor.external_torque_nm
+        tc = params.coulomb_friction_nm
+        if abs(kt * i_ss + ext) <= tc and abs(kt * motor.current_a + ext) <= tc:
+            motor.current_a = i_ss  # where the current settles anyway
+            self._freeze()
+
+    def _freeze(self) -> None:
+        motor = self.motor
+        self.frozen = (motor.count, motor.angle_rad, motor.external_torque_nm, motor.params)
+
+    def still_frozen(self) -> bool:
+        frozen = self.frozen
+        if frozen is None:
+            return False
+        motor = self.motor
+        if frozen != (motor.count, motor.angle_rad, motor.external_torque_nm, motor.params):
+            self.wake()
+            return False
+        return True
+
+    def run_until(self, due_tick: int) -> bool:
+        """Run the samples due up to ``due_tick`` (32 us ticks); True if it stalled."""
+        stm = max(1, self.p.stm)
+        stalled = False
+        while self.next_tick <= due_tick:
+            if self.still_frozen():
+                skipped = (due_tick - self.next_tick) // stm + 1
+                self.next_tick += skipped * stm
+                break
+            stalled |= self.sample()
+            self.next_tick += stm
+        return stalled
+
+    def state(self) -> AxisState:
+        return AxisState(
+            encoder_counts=self.counter,
+            physical_counts=self.motor.count,
+            reference_counts=self.ref,
+            error_counts=self.error,
+            running=self.running,
+            powered=self.powered,
+            stalled=self.stalled,
+            stopped_by_command=self.stopped_by_command,
+            homing=self.mode == _HOME,
+            duty=self.duty if self.powered else 0.0,
+            switch_pressed=self.switch_pressed,
+            job=self.job,
+            speed_counts_s=self.motor.speed_rad_s * self.params_base.counts_per_rev / math.tau,
+        )
+
+
+@dataclass
+class _Flash:
+    """Where SetFlash writes: a JSON file, or memory when no path is given."""
+
+    path: Path | None
+    memory: list[dict[str, Any]] | None = field(default=None)
+
+    def load(self) -> list[AxisParameters] | None:
+        """The saved parameters, or ``None`` for a blank (or unreadable) flash."""
+        document: object
+        if self.path is None:
+            document = {"axes": self.memory} if self.memory is not None else None
+        else:
+            try:
+                document = json.loads(self.path.read_text(encoding="utf-8"))
+            except FileNotFoundError:
+                return None
+            except (OSError, ValueError):
+                return None  # unreadable or corrupt: like a blank flash
+        if not isinstance(document, dict):
+            return None
+        axes = document.get("axes")
+        if not isinstance(axes, list) or len(axes) != AXES:
+            return None
+        try:
+            return [AxisParameters.from_json(entry) for entry in axes]
+        except ValueError:
+            return None
+
+    def save(self, parameters: Sequence[AxisParameters]) -> None:
+        entries = [p.to_json() for p in parameters]
+        if self.path is None:
+            self.memory = entries
+            return
+        document = {"format": FLASH_FORMAT, "version": FLASH_VERSION, "axes": entries}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = self.path.with_name(self.path.name + ".tmp")
+        temporary.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+        os.replace(temporary, self.path)  # never leave a half-written flash page
+
+
+class Z1100Chip:
+    """A simulated Z1100 with three motors; implements ``SimDevice`` and
+    ``PowerCyclable``.
+
+    Contract:
+
+    * ``receive(byte)`` takes one host byte at the current simulation time (the last
+      ``advance_to``) and returns the 6-byte reply when a packet completes, else
+      ``b""``. Bytes other than 0x5A between packets are ignored.
+    * ``advance_to(t_s)`` runs every axis's samples due up to ``t_s`` and returns what
+      the chip sends by itself meanwhile: the bit-2 reply when a packet stayed
+      incomplete for 100 ms, and replies queued by :meth:`inject_noise_reply`. The
+      timeout reply is produced at the first ``advance_to``/``receive`` at or after
+      the deadline, so its timing is as fine as the carrier's calls.
+    * ``power_cycle()`` and :meth:`inject_reset` reset the chip: RAM parameters come
+      from the flash (all zero, Stm 1, if it was never written), jobs go to 0 (motor
+      power off), counters read 0 wherever the shafts are, flags clear, a partial
+      packet is lost, the baud rate returns to the jumpers'. Shafts keep their angle.
+    * ``baud`` changes right after the SetBaud reply is returned; a carrier that can
+      change its rate should follow it.
+
+    ``hardware``: one :class:`AxisHardware` per axis (default: three unloaded
+    motors). ``flash_path``: JSON file that plays the flash (``None``: in memory,
+    lost with the object). ``jumper_baud``: the rate set by J3..J1.
+    """
+
+    def __init__(
+        self,
+        hardware: Sequence[AxisHardware] | None = None,
+        *,
+        flash_path: Path | str | None = None,
+        jumper_baud: int = DEFAULT_BAUD,
+    ) -> None:
+        hardware = list(hardware) if hardware is not None else [AxisHardware()] * AXES
+        if len(hardware) != AXES:
+            raise ValueError(f"the Z1100 has {AXES} axes, got {len(hardware)} hardware entries")
+        if jumper_baud not in BAUD_RATES:
+            raise ValueError(f"jumper_baud must be one of {BAUD_RATES}, got {jumper_baud}")
+        self.jumper_baud = jumper_baud
+        self._flash = _Flash(Path(flash_path) if flash_path is not None else None)
+        self._axes = [_Axis(i, hw) for i, hw in enumerate(hardware)]
+        self._decoder = RequestDecoder()
+        self._packet_start_s = 0.0
+        self._outbox = bytearray()
+        self._time_s = 0.0
+        self._tick = 0
+        self.baud = jumper_baud
+        self._reset()
+
+    @classmethod
+    def with_loads(
+        cls,
+        load_inertias_kg_m2: Sequence[float],
+        *,
+        flash_path: Path | str | None = None,
+        jumper_baud: int = DEFAULT_BAUD,
+    ) -> Z1100Chip:
+        """Three default motors carrying these extra load inertias."""
+        hardware = [AxisHardware(load_inertia_kg_m2=j) for j in load_inertias_kg_m2]
+        return cls(hardware, flash_path=flash_path, jumper_baud=jumper_baud)
+
+    # --- observation ---------------------------------------------------------------------
+
+    @property
+    def time_s(self) -> float:
+        """Simulation time reached."""
+        return self._time_s
+
+    @property
+    def samples_run(self) -> int:
+        """Servo samples computed so far (idle samples skipped are not counted)."""
+        return sum(a.samples for a in self._axes)
+
+    @property
+    def busy_pin(self) -> int:
+        """The BUSY output level: 0 while any motor that drives it (SetBusy) is
+        running, 1 otherwise (also when no motor drives it)."""
+        return 0 if any(a.running and a.p.busy for a in self._axes) else 1
+
+    @property
+    def motors(self) -> tuple[DcMotor, ...]:
+        """The plants (set ``external_torque_nm`` for a load torque)."""
+        return tuple(a.motor for a in self._axes)
+
+    def axis_state(self, axis: int) -> AxisState:
+        """A snapshot of one axis (0..2)."""
+        return self._axis(axis).state()
+
+    def parameters(self, axis: int) -> AxisParameters:
+        """A copy of one axis's RAM parameters."""
+        return replace(self._axis(axis).p)
+
+    def _axis(self, axis: int) -> _Axis:
+        if not 0 <= axis < AXES:
+            raise ValueError(f"axis must be 0..{AXES - 1}, got {axis}")
+        return self._axes[axis]
+
+    # --- faults --------------------------------------------------------------------------
+
+    def power_cycle(self, address: int | None = None) -> None:
+        """Switch the supply off and on (``address`` is ignored: one chip per line)."""
+        self._reset()
+
+    def inject_reset(self) -> None:
+        """An unexpected reset (EMI from motor switching, the manual's hint): RAM
+        parameters are lost. They read 0 (GetKABH, GetVmax, GetAcc) unless SetFlash
+        stored some, which the restarting firmware loads, as at power-on."""
+        self._reset()
+
+    def inject_noise_reply(self) -> None:
+        """Line noise reached the chip's receiver: it answers a packet nobody sent
+        (code bit 3, data 0). Sent at the next ``advance_to``."""
+        self._outbox += self._reply(ReplyCode.COMMUNICATION)
+
+    def jam(self, axis: int, jammed: bool = True) -> None:
+        """Seize (or free) an axis's mechanism: friction far above the stall torque,
+        so the servo error grows until the error limit cuts the power."""
+        a = self._axis(axis)
+        a.jammed = jammed
+        base = a.params_base
+        a.motor.params = replace(base, coulomb_friction_nm=_JAM_FRICTION_NM) if jammed else base
+        if jammed:
+            a.motor.speed_rad_s = 0.0
+        a.wake()
+
+    def _reset(self) -> None:
+        stored = self._flash.load()
+        for i, a in enumerate(self._axes):
+            a.p = replace(stored[i]) if stored is not None else AxisParameters()
+            a.reset()
+            a.next_tick = self._tick + 1
+        self._decoder.clear()
+        self._outbox.clear()
+        self.baud = self.jumper_baud
+
+    # --- SimDevice -----------------------------------------------------------------------
+
+    def advance_to(self, t_s: float) -> bytes:
+        """Run the servo loops up to ``t_s``; returns bytes sent unasked (see class)."""
+        if t_s > self._time_s:
+            self._expire_packet(t_s)
+            due = math.floor(t_s / STM_TICK_S + _TICKS_EPS)
+            if due > self._tick:
+                for a in self._axes:
+                    a.run_until(due)
+                self._tick = due
+            self._time_s = t_s
+        if not self._outbox:
+            return b""
+        data = bytes(self._outbox)
+        self._outbox.clear()
+        return data
+
+    def receive(self, byte: int) -> bytes:
+        """One host byte has arrived (see class); returns the reply, if any."""
+        out = bytearray()
+        self._expire_packet(self._time_s)
+        out += self._outbox  # an expired packet's reply goes first
+        self._outbox.clear()
+        was_idle = self._decoder.pending == 0
+        events = self._decoder.feed(bytes((byte & 0xFF,)))
+        if was_idle and self._decoder.pending:
+            self._packet_start_s = self._time_s
+        for event in events:
+            if isinstance(event, BadRequest):
+                out += self._reply(ReplyCode.CHECKSUM)
+            else:
+                out += self._execute(event)
+        return bytes(out)
+
+    def _expire_packet(self, now_s: float) -> None:
+        if self._decoder.pending and now_s - self._packet_start_s >= PACKET_TIMEOUT_S:
+            self._decoder.clear()  # the chip drops the bytes but still answers
+            self._outbox += self._reply(ReplyCode.TIMEOUT)
+
+    # --- command execution ---------------------------------------------------------------
+
+    def _reply(self, code: ReplyCode, data: int = 0) -> bytes:
+        if any(a.stalled for a in self._axes):
+            code |= ReplyCode.STALL
+        return encode_reply(Reply(code, data))
+
+    def _execute(self, request: Request) -> bytes:
+        command = request.command
+        if command is None:
+            return self._reply(ReplyCode.UNKNOWN_COMMAND)
+        axis = request.axis
+        info = COMMANDS[command]
+        data = request.data
+        if info.forbidden_while_moving:
+            refused = self._refusal(command, axis, data)
+            if refused:
+                return self._reply(refused)
+        if command.is_get:
+            return self._reply(ReplyCode.OK, self._read(command, axis))
+        for a in self._axes:
+            a.wake()  # any write may change what an idle axis does
+        new_baud = self._write(command, axis, data)
+        reply = self._reply(ReplyCode.OK)
+        if new_baud is not None:
+            self.baud = new_baud  # after the reply: it still goes out at the old rate
+        return reply
+
+    def _refusal(self, command: Command, axis: int | None, data: int) -> ReplyCode:
+        """The "forbidden while motor n is moving" bits for a command, or OK."""
+        if command is Command.SET_START:
+            code = ReplyCode.OK
+            for index in unpack_axes(data):
+                if self._axes[index].running:
+                    code |= moving_flag(index)
+            return code
+        assert axis is not None  # every other forbidden-while-moving command is per axis
+        if command is Command.SET_JOB and data & 0xFF == Job.FREE:
+            return ReplyCode.OK  # job 0 (power off) is allowed while moving
+        return moving_flag(axis) if self._axes[axis].running else ReplyCode.OK
+
+    def _read(self, command: Command, axis: int | None) -> int:
+        if command is Command.GET_START:
+            return pack_start(
+                StartStatus(
+                    frozenset(i for i, a in enumerate(self._axes) if a.running),
+                    frozenset(i for i, a in enumerate(self._axes) if a.direction_positive),
+                )
+            )
+        if command in (Command.GET_STOP, Command.GET_ESTOP):
+            return pack_stop(
+                StopStatus(
+                    frozenset(i for i, a in enumerate(self._axes) if a.stopped_by_command),
+                    frozenset(i for i, a in enumerate(self._axes) if a.stalled),
+                )
+            )
+        assert axis is not None
+        a = self._axes[axis]
+        p = a.p
+        if command is Command.GET_KABH:
+            return pack_kab(p.kabh)
+        if command is Command.GET_KABD:
+            return pack_kab(p.kabd)
+        if command is Command.GET_VMAX:
+            return p.vmax_counts_s
+        if command is Command.GET_ACC:
+            return p.acc_counts_s2
+        if command is Command.GET_STM:
+            return p.stm
+        if command is Command.GET_HVM:
+            return p.hvm_counts_s
+        if command is Command.GET_HAC:
+            return p.hac_counts_s2
+        if command is Command.GET_LIMIT:
+            return p.limit_counts  # D1:D0; D3:D2 read 0 (errata decision)
+        if command is Command.GET_CAB:
+            return p.cab
+        if command is Command.GET_JOB:
+            return a.job
+        if command is Command.GET_BUSY:
+            return int(p.busy)
+        if command is Command.GET_TARGET:
+            return pack_int32(a.target_counts)
+        if command is Command.GET_ENCODER:
+            a.sync_counter()
+            return a.counter & 0xFFFF_FFFF  # a 32-bit counter wraps
+        if command is Command.GET_ERROR:
+            return pack_error(max(INT16_MIN, min(INT16_MAX, a.error)))  # saturates
+        if command is Command.GET_SWITCH:
+            return int(a.switch_pressed)
+        raise AssertionError(f"no reader for {command!r}")
+
+    def _write(self, command: Command, axis: int | None, data: int) -> int | None:
+        """Execute a Set; returns a new baud rate for SetBaud, else None.
+
+        Bits outside a command's documented field are ignored, and values the chip
+        cannot use are stored as sent (the chip has no "bad value" bit; the codec's
+        builders refuse them before they are sent).
+        """
+        if command is Command.SET_START:
+            self._start(data)
+        elif command is Command.SET_STOP:
+            for index in unpack_axes(data):
+                a = self._axes[index]
+                # Stop acts only on a motor turning in the velocity job.
+                if a.running and a.mode == _VELOCITY:
+                    a.stopping = True
+                    a.stopped_by_command = True
+        elif command is Command.SET_ESTOP:
+            for index in unpack_axes(data):
+                a = self._axes[index]
+                if a.running:
+                    # Stop at once: the reference jumps to where the shaft is and the
+                    # servo brakes as hard as it can (the manual's "hard jolt").
+                    a.sync_counter()
+                    a.finish()
+                    a.ref = float(a.counter)
+                    a.stopped_by_command = True
+        elif command is Command.SET_CLR:
+            for a in self._axes:
+                a.stalled = False  # the motor stays unpowered until Start or Job
+        elif command is Command.SET_BAUD:
+            # A rate the jumpers cannot select is ignored (no reply bit says so).
+            return data if data in BAUD_RATES else None
+        elif command is Command.SET_FLASH:
+            self._flash.save([a.p for a in self._axes])
+        else:
+            assert axis is not None
+            self._write_axis(command, self._axes[axis], data)
+        return None
+
+    def _write_axis(self, command: Command, a: _Axis, data: int) -> None:
+        p = a.p
+        if command is Command.SET_KABH:
+            p.kabh = p.kabd = unpack_kab(data)  # KABH also overwrites KABD (manual)
+        elif command is Command.SET_KABD:
+            p.kabd = unpack_kab(data)
+        elif command is Command.SET_VMAX:
+            p.vmax_counts_s = data
+        elif command is Command.SET_ACC:
+            p.acc_counts_s2 = data
+        elif command is Command.SET_STM:
+            old_s = a.sample_s
+            p.stm = data & 0xFF
+            a.ref_v *= a.sample_s / old_s  # keep the profile speed in counts/s
+        elif command is Command.SET_HVM:
+            p.hvm_counts_s = data
+        elif command is Command.SET_HAC:
+            p.hac_counts_s2 = data
+        elif command is Command.SET_LIMIT:
+            p.limit_counts = min(data & 0xFFFF, LIMIT_MAX_COUNTS)
+        elif command is Command.SET_CAB:
+            a.sync_counter()  # counts so far keep the old direction
+            p.cab = data & CAB_MASK
+            a.update_signs()
+        elif command is Command.SET_JOB:
+            self._set_job(a, data & 0xFF)
+        elif command is Command.SET_BUSY:
+            p.busy = bool(data & 1)
+        elif command is Command.SET_TARGET:
+            a.target_counts = unpack_int32(data)
+        elif command is Command.SET_ZERO:
+            self._zero(a)
+        else:
+            raise AssertionError(f"no writer for {command!r}")
+
+    @staticmethod
+    def _set_job(a: _Axis, job: int) -> None:
+        a.job = job
+        a.stalled = False  # "earlier errors are cleared"
+        if job in (Job.TARGET, Job.VELOCITY):
+            if not a.powered:
+                a.engage()  # servo on, holding where the shaft is
+        else:
+            # Job 0 frees the shaft; "undefined" jobs (1, 4..255) do the same.
+            a.power_off()
+
+    @staticmethod
+    def _ready(a: _Axis, *, homing: bool) -> bool:
+        """The manual: K, A, B, Vmax, Acc, the error limit and the home speed must be
+        non-zero before Start. Decision: a motor that misses one is simply not
+        started - the reply is still OK (no bit exists for it) and its GetStart bit
+        stays 0, which the host can check. Zero needs Hac instead of Vmax/Acc."""
+        p = a.p
+        gains = p.kabh
+        common = gains.k and gains.a and gains.b and p.limit_counts and _positive(p.hvm_counts_s)
+        if not common or a.job not in (Job.TARGET, Job.VELOCITY):
+            return False
+        if homing:
+            return _positive(p.hac_counts_s2) > 0
+        return _positive(p.vmax_counts_s) > 0 and _positive(p.acc_counts_s2) > 0
+
+    def _start(self, data: int) -> None:
+        request = unpack_start(data)
+        for index in request.running:
+            a = self._axes[index]
+            if not self._ready(a, homing=False):
+                continue
+            a.stalled = False  # starting the motor clears its stall error
+            a.stopped_by_command = False
+            a.direction_positive = index in request.positive
+            if not a.powered:
+                a.engage()
+            a.running = True
+            a.stopping = False
+            a.mode = _MOVE if a.job == Job.TARGET else _VELOCITY
+
+    def _zero(self, a: _Axis) -> None:
+        if not self._ready(a, homing=True):
+            return
+        a.stalled = False
+        a.stopped_by_command = False
+        if not a.powered:
+            a.engage()
+        a.running = True
+        a.stopping = False
+        a.mode = _HOME
+        a.home_phase = _H_LEAVE if a.switch_pressed else _H_SEEK
