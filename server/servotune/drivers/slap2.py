@@ -277,42 +277,36 @@ class Slap2Link(LinkEngine):
     async def _send_echoed(self, channel: ByteChannel, text: str) -> None:
         """Send ``text`` + CR one char at a time, each after the previous echo.
 
-        Raises ``_BeforeCR`` wrappers for failures that happened before CR was sent
-        (the command was abandoned with Ctrl-X and may be retried).
+        Raises ``_AbandonedError`` for failures before CR was sent (the command was
+        abandoned with Ctrl-X and did not execute, so it may be retried).
         """
         payload = text.encode("ascii") + b"\r"
-        for index, byte in enumerate(payload):
-            await channel.write(bytes([byte]))
-            echo = await channel.read_byte(self.config.char_timeout_s)
-            is_cr = index == len(payload) - 1
-            if echo == byte:
-                continue
-            if echo is None:
-                error: DriverError = DeviceTimeoutError(
-                    f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
-                )
-            else:
-                error = ProtocolError(
-                    f"echo mismatch in {text!r}: sent {byte:#04x}, got {echo:#04x}"
-                )
-            if is_cr:
-                raise error
-            await self._abandon(channel)
-            raise _AbandonedError(error)
+        result = await channel.write_echoed(payload, self.config.char_timeout_s)
+        if result.echoed == len(payload):
+            return
+        byte = payload[result.echoed]
+        if result.got is None:
+            error: DriverError = DeviceTimeoutError(
+                f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
+            )
+        else:
+            error = ProtocolError(
+                f"echo mismatch in {text!r}: sent {byte:#04x}, got {result.got:#04x}"
+            )
+        if result.echoed == len(payload) - 1:  # CR was sent: it may have executed
+            raise error
+        await self._abandon(channel)
+        raise _AbandonedError(error)
 
     async def _read_reply(self, channel: ByteChannel, command: codec.Command) -> list[str]:
         decoder = codec.LineDecoder()
         first_timeout_s = max(
             self.config.char_timeout_s, SLOW_COMMANDS_REPLY_S.get(_mnemonic(command.text), 0.0)
         )
-        lines: list[str] = []
-        timeout_s = first_timeout_s
-        while not lines:
-            byte = await channel.read_byte(timeout_s)
-            if byte is None:
-                raise DeviceTimeoutError(f"no reply to {command.text!r}")
-            lines.extend(decoder.feed(bytes([byte])))
-            timeout_s = self.config.char_timeout_s
+        raw = await channel.read_until(codec.CR, first_timeout_s, self.config.char_timeout_s)
+        if raw is None:
+            raise DeviceTimeoutError(f"no reply to {command.text!r}")
+        lines = decoder.feed(raw)
         if command.multiline:
             # Listings are for terminals: read until the line goes quiet.
             while True:

@@ -7,11 +7,24 @@ pseudo-terminal and lets the demo use exactly the path real hardware uses.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 
 class LinkClosedError(ConnectionError):
     """The port went away (USB adapter unplugged, pty closed)."""
+
+
+@dataclass(frozen=True, slots=True)
+class EchoResult:
+    """Outcome of ``write_echoed``: how many bytes were echoed correctly.
+
+    ``echoed == len(data)`` means every byte came back. Otherwise byte ``echoed`` was
+    sent and either nothing came back in time (``got is None``) or ``got`` came back.
+    """
+
+    echoed: int
+    got: int | None
 
 
 class ByteChannel(Protocol):
@@ -25,6 +38,24 @@ class ByteChannel(Protocol):
     async def write(self, data: bytes) -> None: ...
 
     async def read_byte(self, timeout_s: float) -> int | None: ...
+
+    async def write_echoed(self, data: bytes, char_timeout_s: float) -> EchoResult:
+        """Send ``data`` one byte at a time, each only after the previous one's echo.
+
+        Stops at the first missing (``char_timeout_s``) or wrong echo. Bytes that
+        arrive after the last echo stay buffered for the next read.
+        """
+        ...
+
+    async def read_until(
+        self, terminator: int, first_timeout_s: float, char_timeout_s: float
+    ) -> bytes | None:
+        """Read up to and including ``terminator``; ``None`` if a gap exceeds its timeout.
+
+        ``first_timeout_s`` applies to the first byte, ``char_timeout_s`` between bytes.
+        On a timeout the bytes received so far stay buffered.
+        """
+        ...
 
     async def read_available(self, timeout_s: float) -> bytes: ...
 

@@ -8,7 +8,77 @@ import os
 
 import serial_asyncio_fast
 
-from servotune.transports.base import ByteChannel, LinkClosedError
+from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError
+
+
+class _Exchange:
+    """An echoed write or a read-until in progress, advanced from ``data_received``.
+
+    Running the per-character steps in the protocol callback, instead of waking the
+    waiting task for every echo, takes one task switch per character out of the
+    round trip (the SLAP2 protocol is nothing but round trips).
+    """
+
+    def __init__(
+        self,
+        protocol: _SerialProtocol,
+        *,
+        payload: bytes = b"",
+        terminator: int | None = None,
+        first_timeout_s: float,
+        char_timeout_s: float,
+    ) -> None:
+        self.protocol = protocol
+        self.payload = payload
+        self.terminator = terminator
+        self.char_timeout_s = char_timeout_s
+        self.index = 0
+        self.loop = asyncio.get_running_loop()
+        self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
+        self.timer = self.loop.call_later(first_timeout_s, self.on_timeout)
+
+    def restart_timer(self) -> None:
+        self.timer.cancel()
+        self.timer = self.loop.call_later(self.char_timeout_s, self.on_timeout)
+
+    def finish(self, result: EchoResult | bytes | None) -> None:
+        self.timer.cancel()
+        self.protocol.exchange = None
+        if not self.future.done():
+            self.future.set_result(result)
+
+    def on_timeout(self) -> None:
+        if self.terminator is None:
+            self.finish(EchoResult(self.index, None))
+        else:
+            self.finish(None)
+
+    def step(self) -> None:
+        """Consume what the buffer holds; called after every ``data_received``."""
+        buffer = self.protocol.buffer
+        if self.terminator is not None:
+            end = buffer.find(self.terminator)
+            if end < 0:
+                if buffer:
+                    self.restart_timer()
+                return
+            line = bytes(buffer[: end + 1])
+            del buffer[: end + 1]
+            self.finish(line)
+            return
+        while buffer:
+            expected = self.payload[self.index]
+            got = buffer[0]
+            del buffer[0]
+            if got != expected:
+                self.finish(EchoResult(self.index, got))
+                return
+            self.index += 1
+            if self.index == len(self.payload):
+                self.finish(EchoResult(self.index, None))
+                return
+            self.protocol.send(self.payload[self.index : self.index + 1])
+            self.restart_timer()
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -20,18 +90,27 @@ class _SerialProtocol(asyncio.Protocol):
         self.lost: Exception | None = None
         self.is_closed = False
         self.transport: asyncio.Transport | None = None
+        self.exchange: _Exchange | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
 
+    def send(self, data: bytes) -> None:
+        assert self.transport is not None
+        self.transport.write(data)
+
     def data_received(self, data: bytes) -> None:
         self.buffer += data
+        if self.exchange is not None:
+            self.exchange.step()
         self.data_event.set()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.is_closed = True
         self.lost = exc
+        if self.exchange is not None:
+            self.exchange.finish(None)
         self.data_event.set()
 
 
@@ -70,6 +149,52 @@ class SerialChannel(ByteChannel):
             return byte
         self._check_open()
         return None
+
+    async def write_echoed(self, data: bytes, char_timeout_s: float) -> EchoResult:
+        self._check_open()
+        if not data:
+            return EchoResult(0, None)
+        exchange = _Exchange(
+            self._protocol,
+            payload=data,
+            first_timeout_s=char_timeout_s,
+            char_timeout_s=char_timeout_s,
+        )
+        self._protocol.exchange = exchange
+        try:
+            self._protocol.send(data[:1])
+            exchange.step()  # an echo may already sit in the buffer (it would be stale)
+            result = await exchange.future
+        finally:
+            exchange.timer.cancel()
+            self._protocol.exchange = None
+        if result is None:  # the port closed meanwhile
+            self._check_open()
+        assert isinstance(result, EchoResult)
+        return result
+
+    async def read_until(
+        self, terminator: int, first_timeout_s: float, char_timeout_s: float
+    ) -> bytes | None:
+        self._check_open()
+        exchange = _Exchange(
+            self._protocol,
+            terminator=terminator,
+            first_timeout_s=first_timeout_s,
+            char_timeout_s=char_timeout_s,
+        )
+        self._protocol.exchange = exchange
+        try:
+            exchange.step()
+            result = await exchange.future
+        finally:
+            exchange.timer.cancel()
+            self._protocol.exchange = None
+        if result is None:
+            self._check_open()
+            return None
+        assert isinstance(result, bytes)
+        return result
 
     async def read_available(self, timeout_s: float) -> bytes:
         await self._wait_data(timeout_s)
