@@ -56,6 +56,9 @@ class ParameterDescriptor(BaseModel):
     kind: Literal["int", "bits"] = "int"
     bits: list[BitDescriptor] = []
     slider: bool = True
+    slider_minimum: int | None = Field(
+        default=None, description="lower end of the slider when the range is much larger"
+    )
     slider_maximum: int | None = Field(
         default=None, description="upper end of the slider when the range is much larger"
     )

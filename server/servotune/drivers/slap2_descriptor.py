@@ -147,14 +147,14 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="velocity",
             label="Velocity (sv)",
             unit="sv",
-            minimum=0,
+            minimum=-codec.VELOCITY_MAX,
             maximum=codec.VELOCITY_MAX,
             default=2000,
             persisted=True,
             group="profile",
             description=(
-                "Profile velocity of moves, or the speed in velocity mode (may change "
-                "while running). rpm = SV x 140.417 / lines."
+                "Profile velocity of moves (sign ignored), or the speed and direction in "
+                "velocity mode (may change while running). rpm = SV x 140.417 / lines."
             ),
             set_command="sv{value}",
             read_command="rv",
@@ -162,6 +162,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                 Conversion(unit="rpm", factor=rpm_per_sv, digits=1),
                 Conversion(unit="counts/s", factor=counts_s_per_sv, digits=0),
             ],
+            slider_minimum=-20000,
             slider_maximum=20000,
         ),
         ParameterDescriptor(
