@@ -19,9 +19,12 @@ from collections import defaultdict
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 
+from servotune.config import DEFAULT_BAUD, LinkSpec
 from servotune.drivers.base import Sample
-from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
-from servotune.transports.serial import SerialConnector
+from servotune.drivers.engine import LinkEngine
+from servotune.drivers.slap2 import Slap2Link
+from servotune.drivers.z1100 import Z1100Link
+from servotune.links import build_link
 from servotune.wire import AxisHealth, EventLevel, LinkState
 
 
@@ -56,10 +59,12 @@ class _CountingSink:
         pass
 
 
-async def _measure(path: str, baud: int, addresses: list[int], duration_s: float) -> int:
+async def _measure(
+    device: str, path: str, baud: int, addresses: list[int], duration_s: float
+) -> int:
     sink = _CountingSink()
-    config = Slap2LinkConfig(link_id="bench", path=path, addresses=addresses, baud=baud)
-    link = Slap2Link(config, SerialConnector(path, baud), sink)
+    link = build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
+    assert isinstance(link, LinkEngine)
     task = asyncio.create_task(link.run())
     try:
         deadline = time.monotonic() + 10
@@ -73,11 +78,18 @@ async def _measure(path: str, baud: int, addresses: list[int], duration_s: float
             samples.clear()
         await asyncio.sleep(duration_s)
         wire_limit_hz = link.wire_limit_hz()
-        poll_set = "+".join(config.poll_commands)
-        print(
-            f"SLAP2 {baud} baud, {len(addresses)} module(s) on one line, poll set {poll_set} "
-            f"(+rve every {config.rve_every}th cycle)"
-        )
+        if isinstance(link, Slap2Link):
+            poll_set = "+".join(link.config.poll_commands)
+            print(
+                f"SLAP2 {baud} baud, {len(addresses)} module(s) on one line, poll set "
+                f"{poll_set} (+rve every {link.config.rve_every}th cycle)"
+            )
+        elif isinstance(link, Z1100Link):
+            print(
+                f"Z1100 {baud} baud, 3 axes, poll set GetEncoder+GetError per axis "
+                f"(+GetStart, GetStop, GetSwitch every {link.config.status_every}th cycle), "
+                "13 bytes per transaction"
+            )
         print(f"wire limit for this poll set: {wire_limit_hz:.1f} samples/s per axis")
         ratios = []
         for axis_id, times in sorted(sink.samples.items()):
@@ -98,8 +110,11 @@ async def _measure(path: str, baud: int, addresses: list[int], duration_s: float
             await task
 
 
-def run_bench(*, device: str, baud: int, addresses: list[int], duration_s: float) -> int:
+def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s: float) -> int:
     """Start the simulator process, measure, print, clean up. Returns an exit code."""
+    baud = baud or DEFAULT_BAUD[device]
+    if device == "z1100":
+        addresses = [0, 1, 2]
     command = [
         sys.executable,
         "-m",
@@ -128,7 +143,7 @@ def run_bench(*, device: str, baud: int, addresses: list[int], duration_s: float
         except ImportError:
             runner, loop_name = asyncio.run, "asyncio"
         print(f"event loop: {loop_name}")
-        return runner(_measure(path, baud, addresses, duration_s))
+        return runner(_measure(device, path, baud, addresses, duration_s))
     finally:
         process.send_signal(signal.SIGTERM)
         try:

@@ -78,12 +78,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from servotune.sim.serial_sim import serve_slap2
+    from servotune.sim.serial_sim import run_pty_simulator, serve_slap2
 
-    if args.device != "slap2":
-        print(f"servotune sim: unknown device {args.device!r} (slap2)", file=sys.stderr)
-        return 2
-    serve_slap2(args.addresses, args.baud, args.state_dir, args.link)
+    if args.device == "slap2":
+        serve_slap2(args.addresses, args.baud or 19200, args.state_dir, args.link)
+        return 0
+    from servotune.sim.z1100 import Z1100Chip
+
+    baud = args.baud or 9600
+    flash = args.state_dir / "z1100_flash.json" if args.state_dir else None
+    chip = Z1100Chip(flash_path=flash, jumper_baud=baud)
+    run_pty_simulator(chip, baud=baud, link_path=args.link)
     return 0
 
 
@@ -125,16 +130,16 @@ def build_parser() -> argparse.ArgumentParser:
     serve.set_defaults(func=cmd_serve)
 
     sim = sub.add_parser("sim", help="serve a simulated device on a new pseudo-terminal")
-    sim.add_argument("device", choices=["slap2"])
-    sim.add_argument("--addresses", type=_addresses, default=[0, 1])
-    sim.add_argument("--baud", type=int, default=19200)
+    sim.add_argument("device", choices=["slap2", "z1100"])
+    sim.add_argument("--addresses", type=_addresses, default=[0, 1], help="SLAP2 modules")
+    sim.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
     sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
     sim.add_argument("--link", default=None, help="also create this symlink to the pty")
     sim.set_defaults(func=cmd_sim)
 
     bench = sub.add_parser("bench", help="telemetry rate against the wire limit")
-    bench.add_argument("device", choices=["slap2"])
-    bench.add_argument("--baud", type=int, default=19200)
+    bench.add_argument("device", choices=["slap2", "z1100"])
+    bench.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
     bench.add_argument("--addresses", type=_addresses, default=[0])
     bench.add_argument("--seconds", type=float, default=5.0)
     bench.set_defaults(func=cmd_bench)

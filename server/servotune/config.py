@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl
 
-DEVICES = ("slap2",)
+DEVICES = ("slap2", "z1100")
+DEFAULT_BAUD = {"slap2": 19200, "z1100": 9600}
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 
 
@@ -67,13 +68,15 @@ def link_from_mapping(data: dict[str, Any]) -> LinkSpec:
     path = str(data.get("path", ""))
     if not path:
         raise ConfigError("path is missing (e.g. /dev/ttyUSB0)")
-    baud = _int("baud", data.get("baud", 19200), 300, 1_000_000)
+    baud = _int("baud", data.get("baud", DEFAULT_BAUD[device]), 300, 1_000_000)
     if baud not in BAUD_RATES:
         raise ConfigError(f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}")
     raw_addresses = data.get("addresses", [0])
     if isinstance(raw_addresses, str):
         raw_addresses = [a for a in raw_addresses.split(",") if a.strip()]
     addresses = [_int("addresses", a, 0, 15) for a in raw_addresses]
+    if device == "z1100":
+        addresses = [0, 1, 2]  # one chip, three motors: there is nothing to address
     if not addresses or len(set(addresses)) != len(addresses):
         raise ConfigError("addresses must list distinct module addresses 0..15")
     lines = _int("lines", data.get("lines", 512), 1, 1_000_000)

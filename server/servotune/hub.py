@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from servotune import __version__
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
+    Autopilot,
     AxisDriver,
     CommandOutcome,
     DriverError,
@@ -544,8 +545,15 @@ class Hub:
     # --- demo autopilot ---------------------------------------------------------------
 
     async def _autopilot(self, entry: AxisEntry) -> None:
-        """Gentle repeating moves until someone operates the axis (demo only)."""
-        amplitude = 1500 + 700 * (entry.info.address % 3)
+        """Gentle repeating moves until someone operates the axis (demo only).
+
+        The moves come from the driver's ``autopilot_commands`` / ``autopilot_settled``
+        (see ``drivers.base.Autopilot``); axes whose driver has none stay still.
+        """
+        driver = entry.driver
+        if not isinstance(driver, Autopilot):
+            return
+        amplitude = driver.autopilot_amplitude()
         direction = 1
         while not entry.operated:
             await asyncio.sleep(0.5)
@@ -554,22 +562,17 @@ class Hub:
             if link_state != "connected" or entry.health == "offline" or sample is None:
                 continue
             try:
-                if not sample.flags.get("pm"):
-                    await entry.driver.command("position_mode", {})
-                    await asyncio.sleep(0.3)
-                if entry.operated:
-                    break
-                await entry.driver.command("move_absolute", {"position": direction * amplitude})
+                for name, args in driver.autopilot_commands(sample, direction * amplitude):
+                    if entry.operated:
+                        return
+                    await driver.command(name, args)
+                    await asyncio.sleep(0.05)
                 direction = -direction
-                deadline = self._clock() + 6.0
-                await asyncio.sleep(0.2)
+                deadline = self._clock() + 8.0
+                await asyncio.sleep(0.3)
                 while not entry.operated and self._clock() < deadline:
                     latest = entry.latest
-                    if (
-                        latest is not None
-                        and not latest.flags.get("move")
-                        and latest.flags.get("inpos")
-                    ):
+                    if latest is not None and driver.autopilot_settled(latest):
                         break
                     await asyncio.sleep(0.05)
                 await asyncio.sleep(0.8)

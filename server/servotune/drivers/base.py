@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from servotune.descriptor import DeviceDescriptor
 from servotune.wire import AxisHealth, EventLevel, LinkState
@@ -120,6 +120,23 @@ class AxisDriver(Protocol):
 
     async def stop(self) -> None:
         """Stop this axis; goes to the wire ahead of every queued poll or command."""
+        ...
+
+
+@runtime_checkable
+class Autopilot(Protocol):
+    """Optional: how the demo autopilot moves an axis of this device back and forth."""
+
+    def autopilot_amplitude(self) -> int:
+        """Half the stroke of the demo moves, in position units."""
+        ...
+
+    def autopilot_commands(self, latest: Sample, target: int) -> list[tuple[str, dict[str, int]]]:
+        """Descriptor commands that move the axis to ``target`` from its state now."""
+        ...
+
+    def autopilot_settled(self, latest: Sample) -> bool:
+        """The move has ended and the axis is at rest."""
         ...
 
 

@@ -816,3 +816,18 @@ class Slap2Axis(AxisDriver):
 
     async def stop(self) -> None:
         await self._link.op_execute(self._address, [codec.make_simple("st")], urgent=True)
+
+    # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
+
+    def autopilot_amplitude(self) -> int:
+        return 1500 + 700 * (self._address % 3)
+
+    def autopilot_commands(self, latest: Sample, target: int) -> list[tuple[str, dict[str, int]]]:
+        steps: list[tuple[str, dict[str, int]]] = []
+        if not latest.flags.get("pm"):
+            steps.append(("position_mode", {}))
+        steps.append(("move_absolute", {"position": target}))
+        return steps
+
+    def autopilot_settled(self, latest: Sample) -> bool:
+        return bool(latest.flags.get("inpos")) and not latest.flags.get("move")

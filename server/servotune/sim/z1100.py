@@ -140,6 +140,7 @@ class AxisParameters:
     busy: bool = False
 
     def to_json(self) -> dict[str, Any]:
+        """The flash file's entry for this axis."""
         return {
             "kabh": [self.kabh.k, self.kabh.a, self.kabh.b],
             "kabd": [self.kabd.k, self.kabd.a, self.kabd.b],
@@ -234,7 +235,6 @@ class _Axis:
         self.params_base = hardware.motor_params()
         self.motor = DcMotor(self.params_base)
         self.motor.set_count(hardware.start_counts)
-        self.jammed = False
         self.samples = 0
         self.p = AxisParameters()
         self.reset()
@@ -272,6 +272,7 @@ class _Axis:
         self.motor.current_a = 0.0  # the bridge is off
 
     def update_signs(self) -> None:
+        """Directions after Cab: the wiring mistake and the Cab bit cancel out."""
         cab = self.p.cab
         hw = self.hardware
         self.out_sign = -1.0 if hw.motor_leads_reversed != bool(cab & Cab.MOTOR_REVERSED) else 1.0
@@ -279,6 +280,7 @@ class _Axis:
 
     @property
     def sample_s(self) -> float:
+        """The sampling period, Stm x 32 us."""
         return max(1, self.p.stm) * STM_TICK_S  # Stm 0 cannot be a period: used as 1
 
     @property
@@ -303,6 +305,7 @@ class _Axis:
         self.wake()
 
     def power_off(self) -> None:
+        """Motor power off (free shaft); the move, if any, ends."""
         self.powered = False
         self.running = False
         self.mode = _IDLE
@@ -311,10 +314,12 @@ class _Axis:
         self.wake()
 
     def wake(self) -> None:
+        """Leave the idle fast path: something may have changed."""
         self.frozen = None
         self.still = 0
 
     def sync_counter(self) -> None:
+        """Bring the chip's counter up to the shaft (it counts edges continuously)."""
         phys = self.motor.count
         delta = phys - self.last_phys
         if delta:
@@ -353,6 +358,7 @@ class _Axis:
         return False
 
     def profile_step(self) -> None:
+        """Advance the reference by one sample in the current mode."""
         p = self.p
         if self.mode == _MOVE:
             vmax, acc = self._per_sample(p.vmax_counts_s, p.acc_counts_s2)
@@ -410,9 +416,9 @@ class _Axis:
 
     # --- one servo sample ------------------------------------------------------------
 
-    def sample(self) -> bool:
-        """Run one sample (profile, stall check, law) and integrate the motor over
-        it. Returns True when the axis stalled in this sample."""
+    def sample(self) -> None:
+        """Run one sample (encoder, profile, stall check, law) and integrate the motor
+        over the sampling period with the PWM just computed held (zero-order hold)."""
         self.samples += 1
         motor = self.motor
         ts = self.sample_s
@@ -428,7 +434,7 @@ class _Axis:
                 motor.params.coulomb_friction_nm
             ):
                 self._freeze()
-            return False
+            return
         if self.running:
             self.profile_step()
         e = math.floor(self.ref + 0.5) - y
@@ -439,7 +445,7 @@ class _Axis:
             self.power_off()
             self.stalled = True
             motor.step(ts, None)
-            return True
+            return
         i = self.hist_i
         de = e - self.e_hist[i]
         dy = y - self.y_hist[i]
@@ -464,7 +470,6 @@ class _Axis:
                 self._freeze_if_stuck(duty)
         self.e_last = e
         self.y_last = y
-        return False
 
     # --- idle fast path ------------------------------------------------------------------
     # An axis at rest whose inputs have not changed for a whole derivative window puts
@@ -488,6 +493,7 @@ class _Axis:
         self.frozen = (motor.count, motor.angle_rad, motor.external_torque_nm, motor.params)
 
     def still_frozen(self) -> bool:
+        """Whether the frozen axis may keep skipping samples (nothing moved it)."""
         frozen = self.frozen
         if frozen is None:
             return False
@@ -497,20 +503,19 @@ class _Axis:
             return False
         return True
 
-    def run_until(self, due_tick: int) -> bool:
-        """Run the samples due up to ``due_tick`` (32 us ticks); True if it stalled."""
+    def run_until(self, due_tick: int) -> None:
+        """Run the samples due up to ``due_tick`` (in 32 us ticks)."""
         stm = max(1, self.p.stm)
-        stalled = False
         while self.next_tick <= due_tick:
             if self.still_frozen():
                 skipped = (due_tick - self.next_tick) // stm + 1
                 self.next_tick += skipped * stm
                 break
-            stalled |= self.sample()
+            self.sample()
             self.next_tick += stm
-        return stalled
 
     def state(self) -> AxisState:
+        """A snapshot for observers."""
         return AxisState(
             encoder_counts=self.counter,
             physical_counts=self.motor.count,
@@ -558,6 +563,7 @@ class _Flash:
             return None
 
     def save(self, parameters: Sequence[AxisParameters]) -> None:
+        """Write all axes' parameters (atomically for a file)."""
         entries = [p.to_json() for p in parameters]
         if self.path is None:
             self.memory = entries
@@ -687,7 +693,6 @@ class Z1100Chip:
         """Seize (or free) an axis's mechanism: friction far above the stall torque,
         so the servo error grows until the error limit cuts the power."""
         a = self._axis(axis)
-        a.jammed = jammed
         base = a.params_base
         a.motor.params = replace(base, coulomb_friction_nm=_JAM_FRICTION_NM) if jammed else base
         if jammed:

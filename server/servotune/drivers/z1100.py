@@ -1,0 +1,649 @@
+"""Z1100 link engine and axis drivers: one chip, three motors, one request per reply.
+
+Rules (``shared/spec/z1100.md``), and decisions where it is silent:
+
+* One request, one reply, 100 ms reply timeout. Stale input is flushed before every
+  request (line noise can make the chip send a reply nobody asked for; it is counted
+  and logged). A reply with a bad checksum is skipped by the decoder, so it ends as a
+  timeout; a timeout, or a reply with bit 0 (the chip saw a bad checksum), bit 2
+  (packet incomplete) or bit 3 (line noise) is retried, up to ``retries`` attempts.
+* Bit 7 (stall) rides on valid data: the reply is used and a stall is noted; the next
+  GetStop says which motor.
+* Bits 4..6 (forbidden while motor n moves) become a ``DeviceRefusedError`` with the
+  chip's reason. The server refuses first when it knows the axis moves (GetStart).
+  A Start whose reply was lost and whose retry is refused as "moving" did start: the
+  retry is taken as success.
+* Polling: GetEncoder and GetError for the three motors every cycle; GetStart, GetStop
+  and one GetSwitch every ``status_every`` cycles (the running/stall bits change only
+  at move boundaries, and every extra 13-byte transaction costs 1.4 ms at 9600 baud).
+* Chip reset (the manual's hint): GetKABH, GetVmax or GetAcc reading 0 after they
+  were loaded. One of them is read back every ``verify_period_s``.
+* STOP is Estop for the motor (stops at once); ``decelerate`` is the chip's Stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+from servotune.descriptor import DeviceDescriptor
+from servotune.drivers.base import (
+    AxisDriver,
+    CommandOutcome,
+    DeviceRefusedError,
+    DeviceTimeoutError,
+    DriverSink,
+    InvalidArgumentError,
+    ProtocolError,
+    Sample,
+)
+from servotune.drivers.engine import LinkEngine
+from servotune.drivers.z1100_descriptor import (
+    FORBIDDEN_WHILE_MOVING,
+    MOVING_COMMANDS,
+    z1100_descriptor,
+)
+from servotune.protocols import z1100 as codec
+from servotune.transports.base import ByteChannel, Connector
+
+logger = logging.getLogger(__name__)
+
+RETRYABLE = codec.ReplyCode.CHECKSUM | codec.ReplyCode.TIMEOUT | codec.ReplyCode.COMMUNICATION
+MOVING_BITS = codec.ReplyCode.MOVING_1 | codec.ReplyCode.MOVING_2 | codec.ReplyCode.MOVING_3
+RESET_WITNESSES = ("kabh_k", "vmax", "acc")
+_SCALAR_PARAMS: dict[str, tuple[codec.Command, codec.Command]] = {
+    "vmax": (codec.Command.SET_VMAX, codec.Command.GET_VMAX),
+    "acc": (codec.Command.SET_ACC, codec.Command.GET_ACC),
+    "limit": (codec.Command.SET_LIMIT, codec.Command.GET_LIMIT),
+    "stm": (codec.Command.SET_STM, codec.Command.GET_STM),
+    "hvm": (codec.Command.SET_HVM, codec.Command.GET_HVM),
+    "hac": (codec.Command.SET_HAC, codec.Command.GET_HAC),
+    "cab": (codec.Command.SET_CAB, codec.Command.GET_CAB),
+    "busy": (codec.Command.SET_BUSY, codec.Command.GET_BUSY),
+}
+
+
+@dataclass(slots=True)
+class Z1100LinkConfig:
+    link_id: str
+    path: str
+    baud: int = codec.DEFAULT_BAUD
+    lines: int = 512
+    names: dict[int, str] = field(default_factory=dict)
+    reply_timeout_s: float = codec.REPLY_TIMEOUT_S
+    retries: int = 3
+    status_every: int = 4
+    verify_period_s: float = 2.0
+    status_period_s: float = 1.0
+    reconnect_max_s: float = 5.0
+
+
+@dataclass(slots=True)
+class _MotorState:
+    axis: int
+    position: int | None = None
+    position_t: float | None = None
+    following_error: int | None = None
+    velocity: float | None = None
+    target: int | None = None
+    running: bool = False
+    positive: bool = False
+    stopped: bool = False
+    stall: bool = False
+    switch: bool = False
+    known: dict[str, int] = field(default_factory=dict)
+    samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
+
+
+class Z1100Link(LinkEngine):
+    """Owner of the serial line to one Z1100 chip (three axes)."""
+
+    device = "z1100"
+
+    def __init__(
+        self,
+        config: Z1100LinkConfig,
+        connector: Connector,
+        sink: DriverSink,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(
+            config.link_id,
+            config.path,
+            config.baud,
+            connector,
+            sink,
+            clock=clock,
+            reconnect_max_s=config.reconnect_max_s,
+        )
+        self.config = config
+        self._descriptor = z1100_descriptor(4 * config.lines)
+        self._motors = [_MotorState(axis) for axis in range(codec.AXES)]
+        self._axes = [Z1100Axis(self, axis) for axis in range(codec.AXES)]
+        self._online = False
+        self._cycle = 0
+        self._verify_index = 0
+        self._last_verify_t = 0.0
+        self._last_status_t = 0.0
+        self._stall_noted = False
+
+    # --- identity ---------------------------------------------------------------------
+
+    @property
+    def axes(self) -> list[AxisDriver]:
+        return list(self._axes)
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._descriptor
+
+    def axis_id(self, axis: int) -> str:
+        return f"{self.id}-{'xyz'[axis]}"
+
+    def motor(self, axis: int) -> _MotorState:
+        return self._motors[axis]
+
+    def _on_link_down(self) -> None:
+        self._online = False
+        for motor in self._motors:
+            self._sink.on_axis_health(self.axis_id(motor.axis), "offline", "link down")
+
+    # --- the exchange -----------------------------------------------------------------
+
+    async def _request(self, request: codec.Request) -> codec.Reply:
+        """Send one request and return its reply; retries per the module docstring."""
+        channel = self._require_channel()
+        packet = request.encode()
+        name = _request_name(request)
+        last_problem = "no reply"
+        for attempt in range(self.config.retries):
+            if attempt:
+                # Replies have no header, and a rotation of a valid reply sums to 0 as
+                # well: a leftover byte of the failed exchange plus five bytes of the
+                # next reply would decode as a wrong "valid" reply. So before a retry
+                # wait until the line has been quiet for one reply time.
+                await self._drain_quiet(channel)
+            stray = channel.discard_input()
+            if stray:
+                self._errors += 1
+                self._sink.on_event(
+                    "warning", None, f"{self.id}: {len(stray)} unsolicited byte(s) dropped"
+                )
+            await channel.write(packet)
+            reply = await self._read_reply(channel)
+            if reply is None:
+                self._errors += 1
+                last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
+                continue
+            if reply.code & RETRYABLE:
+                self._errors += 1
+                last_problem = codec.error_message(reply.code) or "rejected"
+                continue
+            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
+                raise ProtocolError(f"{name}: the chip does not know this command")
+            if reply.code & MOVING_BITS:
+                if attempt > 0 and request.command is codec.Command.SET_START:
+                    return codec.Reply(codec.ReplyCode.OK)  # the lost first Start ran
+                raise DeviceRefusedError(f"{name}: refused, {codec.error_message(reply.code)}")
+            if reply.stall:
+                self._stall_noted = True
+            return reply
+        raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
+
+    async def _drain_quiet(self, channel: ByteChannel) -> None:
+        quiet_s = codec.REPLY_SIZE * 10 / self.config.baud + 0.002
+        deadline = self._clock() + 0.5
+        while self._clock() < deadline and await channel.read_available(quiet_s):
+            pass
+
+    async def _read_reply(self, channel: ByteChannel) -> codec.Reply | None:
+        decoder = codec.ReplyDecoder()
+        deadline = self._clock() + self.config.reply_timeout_s
+        while True:
+            remaining = deadline - self._clock()
+            if remaining <= 0:
+                return None
+            data = await channel.read_available(remaining)
+            if not data:
+                return None
+            replies = decoder.feed(data)
+            if replies:
+                return replies[0]
+
+    async def _get(self, command: codec.Command, axis: int | None = None) -> codec.GetValue:
+        reply = await self._request(codec.make_get(command, axis))
+        return codec.decode_get(command, reply.data)
+
+    async def _get_int(self, command: codec.Command, axis: int | None = None) -> int:
+        value = await self._get(command, axis)
+        assert isinstance(value, int)
+        return int(value)
+
+    # --- session ----------------------------------------------------------------------
+
+    async def _session(self, channel: ByteChannel) -> None:
+        self._set_state("connecting", f"probing the chip on {self.path}")
+        channel.discard_input()
+        await self._probe()
+        self._connected_once = True
+        self._set_state("connected", self._connector.description)
+        while True:
+            job = self._take_job()
+            if job is not None:
+                await self._run_job(job)
+                continue
+            now = self._clock()
+            if now - self._last_status_t >= self.config.status_period_s:
+                self._last_status_t = now
+                self._publish_status()
+            if not self._online:
+                await self._wait_job_or(1.0)
+                if not self.jobs_pending:
+                    await self._probe()
+                continue
+            try:
+                if now - self._last_verify_t >= self.config.verify_period_s:
+                    self._last_verify_t = now
+                    await self._verify_step()
+                    continue
+                await self._poll_cycle()
+                if self._state == "error":
+                    self._set_state("connected", self._connector.description)
+            except (DeviceTimeoutError, ProtocolError) as exc:
+                if self._state != "error":
+                    self._sink.on_event("error", None, f"{self.id}: {exc}")
+                self._set_state("error", str(exc))
+
+    async def _probe(self) -> None:
+        try:
+            for motor in self._motors:
+                values = await self._read_params(motor.axis)
+                motor.target = codec.unpack_int32(
+                    (await self._request(codec.make_get(codec.Command.GET_TARGET, motor.axis))).data
+                )
+                self._sink.on_params(self.axis_id(motor.axis), values, "read")
+            await self._read_status()
+        except (DeviceTimeoutError, ProtocolError) as exc:
+            if self._online or not self._connected_once:
+                self._sink.on_event("warning", None, f"{self.id}: {exc}")
+            self._online = False
+            for motor in self._motors:
+                self._sink.on_axis_health(self.axis_id(motor.axis), "offline", str(exc))
+            return
+        self._online = True
+        for motor in self._motors:
+            self._sink.on_axis_health(self.axis_id(motor.axis), "ok", "")
+
+    async def _poll_cycle(self) -> None:
+        self._cycle += 1
+        for motor in self._motors:
+            if self.urgent_pending:
+                return
+            position = codec.unpack_int32(
+                (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
+            )
+            t = self._clock()
+            error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
+            if motor.position is not None and motor.position_t is not None and t > motor.position_t:
+                motor.velocity = (position - motor.position) / (t - motor.position_t)
+            motor.position, motor.position_t, motor.following_error = position, t, error
+            self._emit(motor, t)
+        if self._stall_noted or self._cycle % self.config.status_every == 0:
+            self._stall_noted = False
+            await self._read_status()
+
+    async def _read_status(self) -> None:
+        start = await self._get(codec.Command.GET_START)
+        stop = await self._get(codec.Command.GET_STOP)
+        assert isinstance(start, codec.StartStatus) and isinstance(stop, codec.StopStatus)
+        axis = self._cycle % codec.AXES
+        switch = await self._get(codec.Command.GET_SWITCH, axis)
+        self._motors[axis].switch = bool(switch)
+        for motor in self._motors:
+            was_stalled = motor.stall
+            motor.running = motor.axis in start.running
+            motor.positive = motor.axis in start.positive
+            motor.stopped = motor.axis in stop.by_command
+            motor.stall = motor.axis in stop.stalled
+            if motor.stall and not was_stalled:
+                self._sink.on_event(
+                    "error",
+                    self.axis_id(motor.axis),
+                    "stall: the error limit was exceeded and the chip cut motor power",
+                )
+
+    def _emit(self, motor: _MotorState, t: float) -> None:
+        motor.samples.append(t)
+        position, error = motor.position, motor.following_error
+        channels: dict[str, float | None] = {
+            "position": position,
+            "target": motor.target,
+            "setpoint": position + error if position is not None and error is not None else None,
+            "following_error": error,
+            "velocity": motor.velocity,
+        }
+        flags = {
+            "running": motor.running,
+            "positive": motor.positive,
+            "stopped": motor.stopped,
+            "stall": motor.stall,
+            "switch": motor.switch,
+        }
+        self._sink.on_sample(self.axis_id(motor.axis), Sample(t, channels, flags))
+
+    async def _verify_step(self) -> None:
+        motor = self._motors[self._verify_index % codec.AXES]
+        witness = RESET_WITNESSES[(self._verify_index // codec.AXES) % len(RESET_WITNESSES)]
+        self._verify_index += 1
+        expected = motor.known.get(witness)
+        if not expected:
+            return
+        if witness == "kabh_k":
+            gains = await self._get(codec.Command.GET_KABH, motor.axis)
+            assert isinstance(gains, codec.Gains)
+            value = gains.k
+        else:
+            value = await self._get_int(_SCALAR_PARAMS[witness][1], motor.axis)
+        if value == 0:
+            for each in self._motors:
+                name = "KABH K" if witness == "kabh_k" else witness
+                each.known.clear()
+                self._sink.on_axis_health(
+                    self.axis_id(each.axis),
+                    "reset",
+                    f"chip reset: {name} reads 0 after it was loaded — parameters lost",
+                )
+            self._sink.on_event("warning", None, f"{self.id}: chip reset detected")
+            await self._probe_params_only()
+
+    async def _probe_params_only(self) -> None:
+        for motor in self._motors:
+            values = await self._read_params(motor.axis)
+            self._sink.on_params(self.axis_id(motor.axis), values, "read")
+
+    # --- parameters -------------------------------------------------------------------
+
+    async def _read_params(self, axis: int) -> dict[str, int]:
+        values: dict[str, int] = {}
+        for prefix, command in (("kabh", codec.Command.GET_KABH), ("kabd", codec.Command.GET_KABD)):
+            gains = await self._get(command, axis)
+            assert isinstance(gains, codec.Gains)
+            values.update({f"{prefix}_k": gains.k, f"{prefix}_a": gains.a, f"{prefix}_b": gains.b})
+        for name, (_, getter) in _SCALAR_PARAMS.items():
+            values[name] = int(await self._get_int(getter, axis))
+        self._motors[axis].known.update(values)
+        return values
+
+    async def _write_params(self, axis: int, values: Mapping[str, int]) -> dict[str, int]:
+        motor = self._motors[axis]
+        if motor.running:
+            blocked = sorted(FORBIDDEN_WHILE_MOVING & set(values))
+            if blocked:
+                raise DeviceRefusedError(
+                    f"{blocked[0]}: the chip refuses it while motor {axis + 1} is moving "
+                    "(forbidden while moving: Vmax, Acc, Hvm, Hac, Cab) — stop it first"
+                )
+        readback: dict[str, int] = {}
+        # KABH first: writing it overwrites KABD (manual), so KABD must come after.
+        for prefix, moving in (("kabh", True), ("kabd", False)):
+            names = [f"{prefix}_{g}" for g in "kab"]
+            if not any(n in values for n in names):
+                continue
+            k, a, b = (values.get(n, motor.known.get(n, 0)) for n in names)
+            await self._request(codec.make_set_kab(axis, k, a, b, moving=moving))
+            for read_prefix, command in (
+                ("kabh", codec.Command.GET_KABH),
+                ("kabd", codec.Command.GET_KABD),
+            ):
+                gains = await self._get(command, axis)
+                assert isinstance(gains, codec.Gains)
+                readback.update(
+                    {
+                        f"{read_prefix}_k": gains.k,
+                        f"{read_prefix}_a": gains.a,
+                        f"{read_prefix}_b": gains.b,
+                    }
+                )
+        for name, value in values.items():
+            if name not in _SCALAR_PARAMS:
+                continue
+            setter, getter = _SCALAR_PARAMS[name]
+            await self._request(codec.Request(setter + axis, int(value)))
+            readback[name] = await self._get_int(getter, axis)
+        motor.known.update(readback)
+        return readback
+
+    # --- operations used by Z1100Axis -------------------------------------------------
+
+    async def op_read_params(self, axis: int) -> dict[str, int]:
+        async def job() -> dict[str, int]:
+            return await self._read_params(axis)
+
+        values = await self.submit(job)
+        self._sink.on_params(self.axis_id(axis), values, "read")
+        return values
+
+    async def op_write_params(
+        self, axis: int, values: Mapping[str, int], source: str
+    ) -> dict[str, int]:
+        async def job() -> dict[str, int]:
+            return await self._write_params(axis, values)
+
+        readback = await self.submit(job)
+        self._sink.on_params(self.axis_id(axis), readback, source)
+        return readback
+
+    async def op_requests(
+        self,
+        axis: int,
+        requests: list[codec.Request],
+        *,
+        urgent: bool = False,
+        starts: bool = False,
+    ) -> list[str]:
+        async def job() -> list[str]:
+            sent = []
+            for request in requests:
+                reply = await self._request(request)
+                sent.append(_request_name(request))
+                if request.command is codec.Command.SET_TARGET:
+                    self._motors[axis].target = codec.unpack_int32(request.data)
+                del reply
+            if starts:
+                self._motors[axis].running = True
+            return sent
+
+        return await self.submit(job, urgent=urgent)
+
+    async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:
+        request = parse_console_line(line, axis)
+
+        async def job() -> list[str]:
+            reply = await self._request(request)
+            return describe_reply(request, reply)
+
+        return _request_name(request), await self.submit(job)
+
+    def wire_limit_hz(self) -> float:
+        """Samples/s per axis the wire allows: 13 bytes per transaction at 10 bits.
+
+        Per cycle: GetEncoder + GetError for three motors, plus GetStart, GetStop and
+        one GetSwitch every ``status_every`` cycles.
+        """
+        char_s = 10 / self.config.baud
+        per_cycle = 2 * codec.AXES + 3 / self.config.status_every
+        return 1 / (per_cycle * (codec.REQUEST_SIZE + codec.REPLY_SIZE) * char_s)
+
+    def achieved_rate_hz(self) -> float:
+        now = self._clock()
+        rates = []
+        for motor in self._motors:
+            recent = [t for t in motor.samples if now - t <= 2.0]
+            rates.append((len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) >= 2 else 0.0)
+        return sum(rates) / len(rates) if self._online else 0.0
+
+
+def _request_name(request: codec.Request) -> str:
+    command = request.command
+    if command is None:
+        return f"0x{request.command_byte:02X}"
+    info = codec.COMMANDS[command]
+    axis = request.axis
+    suffix = f"[motor {axis + 1}]" if axis is not None else ""
+    data = f" {request.data}" if not command.is_get and info.request is not codec.Field.NONE else ""
+    return f"{info.name}{suffix}{data}"
+
+
+_BY_NAME = {info.name.lower(): info for info in codec.COMMANDS.values()}
+
+
+def parse_console_line(line: str, axis: int) -> codec.Request:
+    """``GetKABH``, ``SetVmax 20000``, ``SetKABH 40 10 20``: a request for ``axis``.
+
+    Raises InvalidArgumentError naming the problem; nothing is sent then.
+    """
+    words = line.split()
+    if not words:
+        raise InvalidArgumentError("line", "empty line: type a command name, e.g. GetEncoder")
+    info = _BY_NAME.get(words[0].lower())
+    if info is None:
+        known = ", ".join(sorted(i.name for i in codec.COMMANDS.values()))
+        raise InvalidArgumentError("line", f"unknown command {words[0]!r}; known: {known}")
+    try:
+        numbers = [int(w, 0) for w in words[1:]]
+    except ValueError:
+        raise InvalidArgumentError("line", "data must be integers (decimal or 0x hex)") from None
+    try:
+        if info.request is codec.Field.KAB:
+            if len(numbers) != 3:
+                raise InvalidArgumentError("line", f"{info.name} takes K A B (0..255 each)")
+            data = codec.pack_kab(codec.Gains(*numbers))
+        elif info.request is codec.Field.INT32:
+            data = codec.pack_int32(numbers[0]) if numbers else 0
+        elif info.request is codec.Field.NONE:
+            if numbers:
+                raise InvalidArgumentError("line", f"{info.name} takes no data")
+            data = 0
+        else:
+            if len(numbers) != 1:
+                raise InvalidArgumentError("line", f"{info.name} takes one number")
+            data = numbers[0]
+        command_byte = info.command + (axis if info.per_axis else 0)
+        return codec.Request(command_byte, data)
+    except codec.CodecError as exc:
+        raise InvalidArgumentError("line", str(exc)) from None
+
+
+def describe_reply(request: codec.Request, reply: codec.Reply) -> list[str]:
+    """The console's view of a reply: code, raw data and the decoded value."""
+    lines = [f"code 0x{int(reply.code):02X} data 0x{reply.data:08X}"]
+    command = request.command
+    if command is not None and command.is_get:
+        lines.append(f"= {codec.decode_get(command, reply.data)}")
+    if reply.stall:
+        lines.append(f"bit 7: {codec.stall_message(reply.code)}")
+    return lines
+
+
+class Z1100Axis(AxisDriver):
+    """One motor of a Z1100 chip."""
+
+    def __init__(self, link: Z1100Link, axis: int) -> None:
+        self._link = link
+        self._axis = axis
+
+    @property
+    def id(self) -> str:
+        return self._link.axis_id(self._axis)
+
+    @property
+    def name(self) -> str:
+        return self._link.config.names.get(self._axis, f"Z1100 motor {self._axis + 1}")
+
+    @property
+    def address(self) -> int:
+        return self._axis
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._link.descriptor
+
+    async def read_params(self) -> dict[str, int]:
+        return await self._link.op_read_params(self._axis)
+
+    async def write_params(
+        self, values: Mapping[str, int], source: str = "write"
+    ) -> dict[str, int]:
+        return await self._link.op_write_params(self._axis, values, source)
+
+    def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Request]:
+        """Build the requests of a descriptor command (pure; no I/O)."""
+        axis = self._axis
+        if name == "stop":
+            return [codec.make_estop([axis])]
+        if name == "decelerate":
+            return [codec.make_stop([axis])]
+        if name == "go_to_target":
+            return [
+                codec.make_set_job(axis, codec.Job.TARGET),
+                codec.make_set_target(axis, args["target"]),
+                codec.make_start([axis]),
+            ]
+        if name == "constant_velocity":
+            positive = [axis] if args["direction"] else []
+            return [
+                codec.make_set_job(axis, codec.Job.VELOCITY),
+                codec.make_start([axis], positive=positive),
+            ]
+        if name == "free":
+            return [codec.make_set_job(axis, codec.Job.FREE)]
+        if name == "home":
+            return [codec.make_zero(axis)]
+        if name == "clear_errors":
+            return [codec.make_clr()]
+        if name == "save_flash":
+            return [codec.make_flash()]
+        raise InvalidArgumentError("command", f"unknown command {name!r}")
+
+    async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
+        motor = self._link.motor(self._axis)
+        if name in MOVING_COMMANDS and motor.running:
+            raise DeviceRefusedError(
+                f"motor {self._axis + 1} is moving: the chip forbids Job, Target, Start and "
+                "Zero while it moves — wait for the move to end or press STOP"
+            )
+        if name == "go_to_target" or name == "constant_velocity":
+            known = motor.known
+            missing = [n for n in ("kabh_k", "vmax", "acc", "limit") if not known.get(n)]
+            if missing:
+                raise DeviceRefusedError(
+                    f"set {', '.join(missing)} first: the chip needs K, A, B, Vmax, Acc and "
+                    "the error limit non-zero before Start"
+                )
+        requests = self.make_command(name, args)
+        sent = await self._link.op_requests(
+            self._axis, requests, urgent=name == "stop", starts=name in MOVING_COMMANDS
+        )
+        return CommandOutcome(sent, "ok")
+
+    async def console(self, line: str) -> tuple[str, list[str]]:
+        return await self._link.op_console(self._axis, line)
+
+    async def stop(self) -> None:
+        await self._link.op_requests(self._axis, [codec.make_estop([self._axis])], urgent=True)
+
+    # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
+
+    def autopilot_amplitude(self) -> int:
+        return 4096 * (self._axis + 1)
+
+    def autopilot_commands(self, latest: Sample, target: int) -> list[tuple[str, dict[str, int]]]:
+        return [("go_to_target", {"target": target})]
+
+    def autopilot_settled(self, latest: Sample) -> bool:
+        error = latest.channels.get("following_error")
+        return not latest.flags.get("running") and error is not None and abs(error) < 50

@@ -1,0 +1,125 @@
+"""The Z1100 driver against the simulated chip on a real pseudo-terminal."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
+from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
+from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.z1100 import Z1100Chip
+from servotune.transports.serial import SerialConnector
+
+from .conftest import RecordingSink, wait_for
+
+BAUD = 38400  # the fastest jumper setting keeps the tests short
+
+
+class Running:
+    def __init__(self, link: Z1100Link, sink: RecordingSink, sim: PtySimulator, chip: Z1100Chip):
+        self.link, self.sink, self.sim, self.chip = link, sink, sim, chip
+
+    def axis(self, index: int) -> Z1100Axis:
+        axis = self.link.axes[index]
+        assert isinstance(axis, Z1100Axis)
+        return axis
+
+    def samples(self, index: int) -> list[float | None]:
+        return [s.channels["position"] for s in self.sink.samples[self.link.axis_id(index)]]
+
+
+@contextlib.asynccontextmanager
+async def chip_line(tmp_path: Path, *, flash: bool = True) -> AsyncIterator[Running]:
+    path = tmp_path / "flash.json"
+    if flash:
+        _z1100_flash(path)
+    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
+    sim = PtySimulator(chip, baud=BAUD)
+    sim.start()
+    sink = RecordingSink()
+    config = Z1100LinkConfig(link_id="chip", path=sim.path, baud=BAUD, verify_period_s=0.3)
+    link = Z1100Link(config, SerialConnector(sim.path, BAUD), sink)
+    task = asyncio.create_task(link.run())
+    try:
+        await wait_for(lambda: link.state == "connected", 5, "the chip link")
+        yield Running(link, sink, sim, chip)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        sim.stop()
+
+
+async def test_three_axes_stream_and_read_flash_parameters(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:
+        assert [a.id for a in line.link.axes] == ["chip-x", "chip-y", "chip-z"]
+        assert line.sink.params["chip-y"]["kabh_k"] == 128
+        assert line.sink.params["chip-x"]["vmax"] == 100_000
+        await wait_for(lambda: all(len(line.samples(i)) > 5 for i in range(3)), 5, "samples")
+
+
+async def test_kabh_overwrites_kabd_and_both_are_read_back(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:
+        readback = await line.axis(0).write_params({"kabh_k": 40})
+        assert readback["kabh_k"] == 40
+        # The chip copied KABH into KABD (manual): the driver reports it.
+        assert (readback["kabd_k"], readback["kabd_a"], readback["kabd_b"]) == (40, 16, 8)
+        readback = await line.axis(0).write_params({"kabh_k": 50, "kabd_k": 20})
+        assert (readback["kabh_k"], readback["kabd_k"]) == (50, 20)
+
+
+async def test_move_and_refusals_while_moving(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:
+        axis = line.axis(0)
+        await axis.command("go_to_target", {"target": 60_000})
+        with pytest.raises(DeviceRefusedError, match="moving"):
+            await axis.write_params({"vmax": 50_000})
+        with pytest.raises(DeviceRefusedError, match="moving"):
+            await axis.command("go_to_target", {"target": 0})
+        await wait_for(
+            lambda: (
+                abs((line.samples(0)[-1] or 0) - 60_000) < 20
+                and not line.sink.samples["chip-x"][-1].flags["running"]
+            ),
+            5,
+            "the move to end at the target",
+        )
+        # Standing still again: Vmax may change.
+        assert (await axis.write_params({"vmax": 50_000}))["vmax"] == 50_000
+
+
+async def test_chip_reset_is_detected(tmp_path: Path) -> None:
+    async with chip_line(tmp_path, flash=False) as line:
+        await line.axis(1).write_params({"kabh_k": 30, "vmax": 20_000, "acc": 100_000})
+        line.sim.power_cycle()  # blank flash: RAM parameters read 0 afterwards
+        await wait_for(
+            lambda: line.sink.health.get("chip-y", ("", ""))[0] == "reset", 5, "reset flag"
+        )
+        assert "reads 0" in line.sink.health["chip-y"][1]
+
+
+async def test_noise_reply_and_console(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:
+        errors = line.link.errors
+        line.sim.inject_garbage(bytes([0x08, 0, 0, 0, 0, 0xF8]))  # a valid-looking reply
+        sent, reply = await line.axis(2).console("GetKABH")
+        assert sent == "GetKABH[motor 3]"
+        assert reply[-1] == "= Gains(k=128, a=64, b=8)"
+        assert line.link.errors >= errors
+        with pytest.raises(InvalidArgumentError, match="K A B"):
+            await line.axis(2).console("SetKABH 1 2")
+
+
+async def test_stall_is_flagged(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:
+        await line.axis(0).write_params({"limit": 200})
+        line.sim._call(lambda: line.chip.jam(0))
+        await line.axis(0).command("go_to_target", {"target": 40_000})
+        await wait_for(lambda: line.sink.samples["chip-x"][-1].flags["stall"], 5, "the stall flag")
+        assert any("stall" in message for _, _, message in line.sink.events)
