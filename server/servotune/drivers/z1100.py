@@ -163,9 +163,10 @@ class Z1100Link(LinkEngine):
         for attempt in range(self.config.retries):
             if attempt:
                 # Replies have no header, and a rotation of a valid reply sums to 0 as
-                # well: a leftover byte of the failed exchange plus five bytes of the
-                # next reply would decode as a wrong "valid" reply. So before a retry
-                # wait until the line has been quiet for one reply time.
+                # well: a late reply to the failed attempt, or its tail plus the head
+                # of the next reply, would decode as a wrong but "valid" reply. So
+                # before a retry the line must stay quiet for a whole reply timeout:
+                # whatever was late has then arrived (and is dropped) or is lost.
                 await self._drain_quiet(channel)
             stray = channel.discard_input()
             if stray:
@@ -195,10 +196,11 @@ class Z1100Link(LinkEngine):
         raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
 
     async def _drain_quiet(self, channel: ByteChannel) -> None:
-        quiet_s = codec.REPLY_SIZE * 10 / self.config.baud + 0.002
-        deadline = self._clock() + 0.5
-        while self._clock() < deadline and await channel.read_available(quiet_s):
-            pass
+        deadline = self._clock() + 1.0
+        while self._clock() < deadline:
+            if not await channel.read_available(self.config.reply_timeout_s):
+                return
+            self._errors += 1
 
     async def _read_reply(self, channel: ByteChannel) -> codec.Reply | None:
         decoder = codec.ReplyDecoder()
@@ -342,13 +344,12 @@ class Z1100Link(LinkEngine):
         expected = motor.known.get(witness)
         if not expected:
             return
-        if witness == "kabh_k":
-            gains = await self._get(codec.Command.GET_KABH, motor.axis)
-            assert isinstance(gains, codec.Gains)
-            value = gains.k
-        else:
-            value = await self._get_int(_SCALAR_PARAMS[witness][1], motor.axis)
-        if value == 0:
+        if await self._read_witness(motor.axis, witness) != 0:
+            return
+        # Confirm with a second reading of all three witnesses: one late or misframed
+        # reply (the protocol has no header) must not wipe the axis' state.
+        zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
+        if len(zeros) >= 2:
             for each in self._motors:
                 name = "KABH K" if witness == "kabh_k" else witness
                 each.known.clear()
@@ -359,6 +360,13 @@ class Z1100Link(LinkEngine):
                 )
             self._sink.on_event("warning", None, f"{self.id}: chip reset detected")
             await self._probe_params_only()
+
+    async def _read_witness(self, axis: int, witness: str) -> int:
+        if witness == "kabh_k":
+            gains = await self._get(codec.Command.GET_KABH, axis)
+            assert isinstance(gains, codec.Gains)
+            return gains.k
+        return await self._get_int(_SCALAR_PARAMS[witness][1], axis)
 
     async def _probe_params_only(self) -> None:
         for motor in self._motors:
