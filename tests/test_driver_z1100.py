@@ -123,3 +123,44 @@ async def test_stall_is_flagged(tmp_path: Path) -> None:
         await line.axis(0).command("go_to_target", {"target": 40_000})
         await wait_for(lambda: line.sink.samples["chip-x"][-1].flags["stall"], 5, "the stall flag")
         assert any("stall" in message for _, _, message in line.sink.events)
+
+
+async def test_api_refuses_while_moving_before_sending(tmp_path: Path) -> None:
+    """PATCH Vmax while the motor moves: 409 with the chip's rule, nothing sent."""
+    import httpx
+
+    from servotune.api.app import AppConfig, create_app
+    from servotune.config import LinkSpec
+
+    path = tmp_path / "flash.json"
+    _z1100_flash(path)
+    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
+    with PtySimulator(chip, baud=BAUD) as sim:
+        spec = LinkSpec("z1100", sim.path, "chip", BAUD, [0, 1, 2])
+        app = create_app(AppConfig(links=[spec], data_dir=tmp_path / "data"))
+        async with app.router.lifespan_context(app):
+            hub = app.state.hub
+            await wait_for(lambda: hub.link_status("chip").state == "connected", 5, "link")
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+                url = "/api/axes/chip-y"
+                response = await client.post(
+                    f"{url}/commands", json={"command": "go_to_target", "target": 80_000}
+                )
+                assert response.status_code == 200, response.text
+                await wait_for(
+                    lambda: (
+                        hub.entry("chip-y").latest is not None
+                        and bool(hub.entry("chip-y").latest.flags["running"])
+                    ),
+                    5,
+                    "running",
+                )
+                vmax_before = chip.parameters(1).vmax_counts_s
+                response = await client.patch(f"{url}/params", json={"vmax": 1234})
+                assert response.status_code == 409
+                assert "moving" in response.json()["detail"]
+                assert chip.parameters(1).vmax_counts_s == vmax_before
+                response = await client.patch(f"{url}/params", json={"kabh_k": 300})
+                assert response.status_code == 422
+                assert "0..255" in response.json()["detail"]
