@@ -1,0 +1,139 @@
+// Per-axis telemetry ring: contiguous typed arrays with compaction, so any time
+// window is a plain index range. Missing samples (null) are stored as NaN.
+import type { Telemetry } from "./wire.gen";
+
+export const KEEP_SECONDS = 60;
+const INITIAL_CAPACITY = 8192;
+const MAX_CAPACITY = 1 << 21;
+
+export class AxisBuffer {
+  capacity = INITIAL_CAPACITY;
+  start = 0;
+  end = 0;
+  t = new Float64Array(INITIAL_CAPACITY);
+  readonly channels = new Map<string, Float64Array>();
+  readonly flags = new Map<string, Uint8Array>();
+  /** Latest non-null value per channel and latest state per flag. */
+  readonly latest = new Map<string, number>();
+  readonly latestFlags = new Map<string, number>();
+  samplesReceived = 0;
+  lastT = Number.NaN;
+  /** Bumped on every push, so views can tell whether to redraw. */
+  version = 0;
+
+  get length(): number {
+    return this.end - this.start;
+  }
+
+  clear(): void {
+    this.start = this.end = 0;
+    this.latest.clear();
+    this.latestFlags.clear();
+    this.lastT = Number.NaN;
+    this.version += 1;
+  }
+
+  push(msg: Telemetry): void {
+    const n = msg.t.length;
+    if (n === 0) return;
+    const first = msg.t[0] as number;
+    // The server restarted (its clock starts at 0 again): start over.
+    if (Number.isFinite(this.lastT) && first < this.lastT - 1) this.clear();
+    this.reserve(n);
+    const at = this.end;
+    this.t.set(msg.t, at);
+    for (const [name, values] of Object.entries(msg.channels)) {
+      const column = this.channel(name);
+      let latest: number | undefined;
+      for (let i = 0; i < n; i++) {
+        const v = values[i];
+        if (v === null || v === undefined) column[at + i] = Number.NaN;
+        else {
+          column[at + i] = v;
+          latest = v;
+        }
+      }
+      if (latest !== undefined) this.latest.set(name, latest);
+    }
+    for (const [name, column] of this.channels) {
+      if (!(name in msg.channels)) column.fill(Number.NaN, at, at + n);
+    }
+    for (const [name, values] of Object.entries(msg.flags)) {
+      const column = this.flag(name);
+      for (let i = 0; i < n; i++) column[at + i] = values[i] ? 1 : 0;
+      this.latestFlags.set(name, values[n - 1] ? 1 : 0);
+    }
+    for (const [name, column] of this.flags) {
+      if (!(name in msg.flags)) column.fill(column[at - 1] ?? 0, at, at + n);
+    }
+    this.end += n;
+    this.samplesReceived += n;
+    this.lastT = msg.t[n - 1] as number;
+    this.version += 1;
+  }
+
+  /** First index whose time is >= ``time`` (binary search). */
+  indexAt(time: number): number {
+    let lo = this.start;
+    let hi = this.end;
+    while (lo < hi) {
+      const mid = (lo + hi) >>> 1;
+      if ((this.t[mid] as number) < time) lo = mid + 1;
+      else hi = mid;
+    }
+    return lo;
+  }
+
+  get firstT(): number {
+    return this.length ? (this.t[this.start] as number) : Number.NaN;
+  }
+
+  private channel(name: string): Float64Array {
+    let column = this.channels.get(name);
+    if (!column) {
+      column = new Float64Array(this.capacity).fill(Number.NaN);
+      this.channels.set(name, column);
+    }
+    return column;
+  }
+
+  private flag(name: string): Uint8Array {
+    let column = this.flags.get(name);
+    if (!column) {
+      column = new Uint8Array(this.capacity);
+      this.flags.set(name, column);
+    }
+    return column;
+  }
+
+  /** Make room for ``n`` more samples: drop what is older than KEEP_SECONDS, compact, grow. */
+  private reserve(n: number): void {
+    if (this.end + n <= this.capacity) return;
+    if (Number.isFinite(this.lastT)) {
+      this.start = Math.max(this.start, this.indexAt(this.lastT - KEEP_SECONDS));
+    }
+    let capacity = this.capacity;
+    while (this.length + n > capacity * 0.75 && capacity < MAX_CAPACITY) capacity *= 2;
+    if (this.length + n > capacity) {
+      // Faster than MAX_CAPACITY/60 s allows: keep what fits.
+      this.start = this.end - (capacity - n);
+    }
+    const move = <A extends Float64Array | Uint8Array>(old: A, make: (size: number) => A): A => {
+      if (capacity === this.capacity) {
+        old.copyWithin(0, this.start, this.end);
+        return old;
+      }
+      const fresh = make(capacity);
+      fresh.set(old.subarray(this.start, this.end));
+      return fresh;
+    };
+    this.t = move(this.t, (s) => new Float64Array(s));
+    for (const [name, col] of this.channels) {
+      this.channels.set(name, move(col, (s) => new Float64Array(s).fill(Number.NaN)));
+    }
+    for (const [name, col] of this.flags) this.flags.set(name, move(col, (s) => new Uint8Array(s)));
+    this.end -= this.start;
+    this.start = 0;
+    this.capacity = capacity;
+  }
+}

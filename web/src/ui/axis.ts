@@ -1,0 +1,204 @@
+// One axis page, built entirely from its device descriptor.
+import { api } from "../api";
+import { h, replace, setText, toggleClass } from "../dom";
+import { store } from "../store";
+import { UnitPrefs } from "../units";
+import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
+import { Controls, makeRunner } from "./commands";
+import { ConsolePanel } from "./console";
+import { PlotStack } from "./plots";
+import { Readouts } from "./readouts";
+import { TuningPanel } from "./tuning";
+
+export const HEALTH_TEXT: Record<string, string> = {
+  ok: "ok",
+  reset: "reset — settings may be lost",
+  offline: "offline",
+};
+
+/** Whether the console pane is unfolded, kept across axis switches. */
+let consoleOpen = false;
+
+export class AxisView {
+  readonly el: HTMLElement;
+  private readonly abort = new AbortController();
+  private plots: PlotStack | null = null;
+  private readouts: Readouts | null = null;
+  private controls: Controls | null = null;
+  private lastSlow = 0;
+  private readonly health: HTMLElement;
+  private readonly banner: HTMLElement;
+  private readonly operated: HTMLElement;
+
+  constructor(private readonly axis: AxisInfo) {
+    this.health = h("span", { class: "badge health", testid: "axis-health" });
+    this.operated = h("span", { class: "badge subtle", testid: "axis-operated" });
+    this.banner = h("div", { class: "banner-slot" });
+    this.el = h(
+      "div",
+      { class: "axis-view loading", "data-axis": axis.id },
+      h("div", { class: "axis-loading" }, `Loading ${axis.name} …`),
+    );
+    void this.load();
+  }
+
+  private async load(): Promise<void> {
+    let descriptor: DeviceDescriptor;
+    try {
+      descriptor = await store.descriptor(this.axis.id, () => api.descriptor(this.axis.id));
+    } catch (error) {
+      replace(
+        this.el,
+        h(
+          "div",
+          { class: "axis-loading error" },
+          `Cannot load the descriptor of ${this.axis.name}: ${(error as Error).message}`,
+          h("button", { class: "btn", onclick: () => void this.load() }, "Retry"),
+        ),
+      );
+      return;
+    }
+    if (this.abort.signal.aborted) return;
+    this.render(descriptor);
+  }
+
+  private render(d: DeviceDescriptor): void {
+    const signal = this.abort.signal;
+    const axis = this.axis;
+    const buffer = store.buffer(axis.id);
+    const units = new UnitPrefs(d);
+    this.readouts = new Readouts(d, buffer, units, signal);
+    this.plots = new PlotStack(d, buffer, units, axis.id, signal);
+    this.controls = new Controls(axis.id, d);
+    const tuning = new TuningPanel(axis.id, d, signal);
+    const consolePanel = new ConsolePanel(axis.id, axis.name, d);
+
+    const header = h(
+      "div",
+      { class: "axis-header" },
+      h(
+        "div",
+        { class: "axis-title" },
+        h("h1", { testid: "axis-name" }, axis.name),
+        h("span", { class: "axis-model", testid: "axis-model" }, d.model),
+        this.health,
+        this.operated,
+        h("span", { class: "axis-meta mono" }, `${axis.id} · ${axis.link} · addr ${axis.address}`),
+        h("span", { class: "tb-spacer" }),
+        this.controls.status,
+      ),
+      h("div", { class: "axis-summary", title: `${d.title} — ${d.summary}` }, h("b", null, d.title), " — ", d.summary),
+    );
+
+    // Tuning and console are both always on screen: the console docks below the
+    // parameters, folded to its input line until it is used.
+    const consolePane = h(
+      "section",
+      { class: "side-pane console-pane", testid: "console-pane" },
+      h(
+        "div",
+        { class: "pane-header" },
+        h("span", { class: "pane-title" }, "Console"),
+        h("span", { class: "pane-sub" }, `${axis.name} · raw device lines`),
+        h("span", { class: "tb-spacer" }),
+        consolePanel.toggleButton,
+      ),
+      consolePanel.el,
+    );
+    consolePanel.onExpand = (open) => {
+      consoleOpen = open;
+      toggleClass(consolePane, "open", open);
+    };
+    consolePanel.setExpanded(consoleOpen);
+    const side = h(
+      "aside",
+      { class: "side" },
+      h("section", { class: "side-pane tuning-pane" }, tuning.el),
+      consolePane,
+    );
+
+    replace(
+      this.el,
+      header,
+      this.banner,
+      this.readouts.el,
+      this.controls.el,
+      h("div", { class: "work" }, h("section", { class: "scope-area" }, this.plots.el), side),
+    );
+    this.el.classList.remove("loading");
+
+    const restore = d.commands.find((c) => c.name === "restore_parameters");
+    const bannerRunner = makeRunner(axis.id, this.controls.status);
+    const syncStatus = (): void => {
+      const status = store.axisStatus.get(axis.id);
+      const health = status?.health ?? "ok";
+      setText(this.health, HEALTH_TEXT[health] ?? health);
+      this.health.dataset.health = health;
+      this.health.title = status?.message || `health: ${health}`;
+      const autopilot = store.autopilot && status && !status.operated;
+      setText(this.operated, autopilot ? "autopilot moving" : "");
+      this.operated.hidden = !autopilot;
+      if (health === "reset") {
+        if (!this.banner.firstChild) {
+          const button = restore
+            ? h("button", { class: "btn warn", testid: "reset-restore", title: restore.description }, restore.label)
+            : null;
+          button?.addEventListener("click", () => void bannerRunner.run(restore as NonNullable<typeof restore>, {}, button));
+          replace(
+            this.banner,
+            h(
+              "div",
+              { class: "banner reset", testid: "reset-banner", role: "alert" },
+              h("span", { class: "banner-icon" }, "⚠"),
+              h("div", { class: "banner-text" }, h("b", null, "Module reset — settings may be lost"), h("span", { class: "banner-detail" }, status?.message ?? "")),
+              button,
+            ),
+          );
+        } else {
+          const detail = this.banner.querySelector(".banner-detail");
+          if (detail) setText(detail, status?.message ?? "");
+        }
+      } else if (health === "offline") {
+        replace(
+          this.banner,
+          h(
+            "div",
+            { class: "banner offline", testid: "offline-banner", role: "alert" },
+            h("span", { class: "banner-icon" }, "⨯"),
+            h("div", { class: "banner-text" }, h("b", null, "Axis offline"), h("span", { class: "banner-detail" }, status?.message ?? "")),
+          ),
+        );
+      } else replace(this.banner);
+    };
+    syncStatus();
+    store.on("axisStatus", (id) => id === axis.id && syncStatus(), signal);
+    store.on("topology", syncStatus, signal);
+    store.on(
+      "event",
+      (e) => {
+        if (/stop/i.test(e.message) && (e.axis === null || e.axis === axis.id)) this.controls?.stopped();
+      },
+      signal,
+    );
+  }
+
+  /** Animation frame: plots redraw if new data arrived; readouts at about 10 Hz. */
+  frame(now: number): void {
+    this.plots?.update();
+    if (now - this.lastSlow > 100) {
+      this.lastSlow = now;
+      this.readouts?.update();
+      this.plots?.refreshLegend();
+      if (this.controls) this.controls.tick(store.buffer(this.axis.id));
+    }
+  }
+
+  stopped(): void {
+    this.controls?.stopped();
+  }
+
+  destroy(): void {
+    this.abort.abort();
+    this.el.remove();
+  }
+}

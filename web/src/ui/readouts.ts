@@ -1,0 +1,86 @@
+// Big numbers for every channel (latest value, chosen unit) and a lamp per flag.
+import type { AxisBuffer } from "../buffer";
+import { h, setText, toggleClass } from "../dom";
+import { formatValue } from "../format";
+import type { UnitPrefs } from "../units";
+import type { DeviceDescriptor } from "../wire.gen";
+
+export class Readouts {
+  readonly el: HTMLElement;
+  private readonly values = new Map<string, HTMLElement>();
+  private readonly unitLabels = new Map<string, HTMLElement>();
+  private readonly lamps = new Map<string, HTMLElement>();
+
+  constructor(
+    private readonly descriptor: DeviceDescriptor,
+    private readonly buffer: AxisBuffer,
+    private readonly units: UnitPrefs,
+    signal: AbortSignal,
+  ) {
+    const numbers = h("div", { class: "readouts" });
+    for (const channel of descriptor.channels) {
+      const value = h("span", { class: "readout-value", testid: `readout-${channel.name}` }, "—");
+      const multi = channel.conversions.length > 0;
+      const unit = h(
+        multi ? "button" : "span",
+        {
+          class: multi ? "readout-unit switchable" : "readout-unit",
+          title: multi ? "Click to change the display unit" : undefined,
+          testid: `unit-readout-${channel.name}`,
+          onclick: multi ? () => units.cycle(channel.name) : undefined,
+        },
+        "",
+      );
+      this.values.set(channel.name, value);
+      this.unitLabels.set(channel.name, unit);
+      numbers.appendChild(
+        h(
+          "div",
+          { class: "readout", title: `${channel.label}: ${channel.description}` },
+          h("div", { class: "readout-label" }, channel.label),
+          h("div", { class: "readout-line" }, value, unit),
+        ),
+      );
+    }
+    const lamps = h("div", { class: "lamps" });
+    // Two rows for a handful of flags, up to four for devices with many.
+    const rows = Math.min(4, Math.max(2, Math.ceil(descriptor.flags.length / 7)));
+    lamps.style.setProperty("--lamp-cols", String(Math.max(1, Math.ceil(descriptor.flags.length / rows))));
+    for (const flag of descriptor.flags) {
+      const lamp = h(
+        "div",
+        {
+          class: `lamp sev-${flag.severity}`,
+          testid: `flag-${flag.name}`,
+          title: `${flag.label} (${flag.severity}): ${flag.description}`,
+          "data-on": "0",
+        },
+        h("span", { class: "lamp-dot" }),
+        h("span", { class: "lamp-label" }, flag.label),
+      );
+      this.lamps.set(flag.name, lamp);
+      lamps.appendChild(lamp);
+    }
+    this.el = h("div", { class: "readout-bar" }, numbers, lamps);
+    units.onChange(() => this.update(), signal);
+    this.update();
+  }
+
+  update(): void {
+    for (const channel of this.descriptor.channels) {
+      const unit = this.units.unit(channel.name);
+      const raw = this.buffer.latest.get(channel.name);
+      const el = this.values.get(channel.name) as HTMLElement;
+      setText(el, formatValue(raw === undefined ? null : raw * unit.factor, unit));
+      el.dataset.unit = unit.unit;
+      setText(this.unitLabels.get(channel.name) as HTMLElement, unit.unit);
+    }
+    const stale = !Number.isFinite(this.buffer.lastT);
+    for (const [name, lamp] of this.lamps) {
+      const on = this.buffer.latestFlags.get(name) === 1;
+      if (lamp.dataset.on !== (on ? "1" : "0")) lamp.dataset.on = on ? "1" : "0";
+      toggleClass(lamp, "on", on);
+      toggleClass(lamp, "stale", stale);
+    }
+  }
+}

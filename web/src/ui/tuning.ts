@@ -1,0 +1,313 @@
+// The tuning panel: one row per descriptor parameter. A change is written on slider
+// release or Enter (PATCH), and the field then shows what the device read back; a
+// field whose value the device does not have is marked until they agree.
+import { api } from "../api";
+import { h, replace, setText, toggleClass } from "../dom";
+import { formatConverted } from "../format";
+import { store } from "../store";
+import type { BitDescriptor, CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../wire.gen";
+import { commandWidget, makeRunner } from "./commands";
+import { errorText, showError, statusLabel } from "./feedback";
+
+function rangeText(p: ParameterDescriptor): string {
+  return `${p.minimum}..${p.maximum}${p.unit ? ` ${p.unit}` : ""}`;
+}
+
+function bitsOf(p: ParameterDescriptor): BitDescriptor[] {
+  if (p.bits.length) return p.bits;
+  const count = Math.max(1, Math.min(32, Math.floor(Math.log2(Math.max(1, p.maximum))) + 1));
+  return Array.from({ length: count }, (_, bit) => ({ bit, name: `bit${bit}`, label: `bit ${bit}`, description: `Bit ${bit} of ${p.label}` }));
+}
+
+class ParamRow {
+  readonly el: HTMLElement;
+  private readonly input: HTMLInputElement;
+  private readonly slider: HTMLInputElement | null = null;
+  private readonly device: HTMLElement;
+  private readonly deviceBox: HTMLElement;
+  private readonly conversions: HTMLElement;
+  private readonly error: HTMLElement;
+  private readonly checks: Map<number, HTMLInputElement> = new Map();
+  private readonly sliderMax: number;
+  private forceInput = false;
+  private busy = 0;
+
+  constructor(
+    private readonly axisId: string,
+    readonly p: ParameterDescriptor,
+  ) {
+    this.sliderMax = Math.min(p.maximum, p.slider_maximum ?? p.maximum);
+    const tip = `${p.description}\n\n${p.name} · range ${rangeText(p)}${p.default !== null ? ` · default ${p.default}` : ""}${p.persisted ? " · stored by the device's save command" : ""}`;
+    this.input = h("input", {
+      class: "input num param-input",
+      type: "number",
+      step: 1,
+      min: p.minimum,
+      max: p.maximum,
+      testid: `param-${p.name}-input`,
+      title: `${p.label}: ${rangeText(p)} — Enter writes it to the device`,
+      "aria-label": p.label,
+    });
+    this.device = h("span", { class: "device-value", testid: `param-${p.name}-device` }, "—");
+    this.deviceBox = h("span", { class: "device", title: "Value read back from the device" }, h("span", { class: "device-label" }, "device"), this.device);
+    this.conversions = h("div", { class: "param-conv", testid: `param-${p.name}-conv` });
+    this.error = h("div", { class: "param-error", testid: `param-${p.name}-error`, role: "status" });
+
+    this.input.addEventListener("input", () => {
+      const value = this.parse(this.input.value);
+      if (value !== null) this.setUi(value);
+      else toggleClass(this.input, "invalid", this.input.value.trim() !== "");
+    });
+    this.input.addEventListener("keydown", (event) => {
+      if (event.key === "Enter") {
+        event.preventDefault();
+        const text = this.input.value.trim();
+        const value = text === "" ? Number.NaN : Number(text);
+        void this.commit(value);
+      }
+    });
+    this.input.addEventListener("blur", () => this.render());
+
+    const label = h(
+      "div",
+      { class: "param-label", title: tip },
+      h("span", { class: "param-name" }, p.label),
+      p.persisted ? h("span", { class: "tag eeprom", title: "Stored in the device's non-volatile memory by its save command" }, "EEPROM") : null,
+    );
+    let control: HTMLElement;
+    if (p.kind === "bits") {
+      const boxes = bitsOf(p).map((b) => {
+        const check = h("input", { type: "checkbox", testid: `param-${p.name}-bit-${b.name}` });
+        check.addEventListener("change", () => void this.commit(this.wordFromChecks()));
+        this.checks.set(b.bit, check);
+        return h("label", { class: "bit", title: `bit ${b.bit}: ${b.description}` }, check, h("span", null, b.label));
+      });
+      control = h(
+        "div",
+        { class: "param-control bits-control" },
+        h("div", { class: "bits" }, boxes),
+        h("div", { class: "param-entry" }, this.input, h("span", { class: "unit" }, p.unit || "word")),
+      );
+    } else {
+      if (p.slider) {
+        this.slider = h("input", {
+          class: "slider",
+          type: "range",
+          min: p.minimum,
+          max: this.sliderMax,
+          step: 1,
+          testid: `param-${p.name}-slider`,
+          "aria-label": `${p.label} slider`,
+          title: `${p.label}: drag and release to write`,
+        });
+        const slider = this.slider;
+        slider.addEventListener("input", () => this.setUi(Number(slider.value)));
+        slider.addEventListener("change", () => void this.commit(Number(slider.value)));
+      }
+      control = h(
+        "div",
+        { class: "param-control" },
+        this.slider ?? h("div", { class: "slider-none" }),
+        h("div", { class: "param-entry" }, this.input, h("span", { class: "unit" }, p.unit)),
+      );
+    }
+    this.el = h(
+      "div",
+      { class: `param-row kind-${p.kind}`, "data-param": p.name, title: "" },
+      h("div", { class: "param-head" }, label, this.deviceBox),
+      control,
+      this.conversions,
+      this.error,
+    );
+    this.render();
+  }
+
+  private parse(text: string): number | null {
+    if (text.trim() === "") return null;
+    const value = Number(text);
+    return Number.isInteger(value) ? value : null;
+  }
+
+  private setUi(value: number): void {
+    const ui = store.uiValues(this.axisId);
+    const device = store.deviceValues(this.axisId).get(this.p.name);
+    if (value === device) ui.delete(this.p.name);
+    else ui.set(this.p.name, value);
+    this.render();
+  }
+
+  private wordFromChecks(): number {
+    let word = this.current() ?? 0;
+    for (const [bit, check] of this.checks) {
+      if (check.checked) word |= 1 << bit;
+      else word &= ~(1 << bit);
+    }
+    return word >>> 0;
+  }
+
+  /** The value the UI shows: the user's pending value, else the device's. */
+  private current(): number | undefined {
+    return store.uiValues(this.axisId).get(this.p.name) ?? store.deviceValues(this.axisId).get(this.p.name);
+  }
+
+  async commit(value: number): Promise<void> {
+    const name = this.p.name;
+    if (Number.isInteger(value)) store.uiValues(this.axisId).set(name, value);
+    this.busy += 1;
+    this.forceInput = true;
+    this.render();
+    try {
+      // Always asked, even when out of range here: the server's 422 names the range.
+      const readback = await api.writeParams(this.axisId, { [name]: value });
+      setText(this.error, "");
+      this.el.classList.remove("has-error");
+      this.forceInput = true;
+      store.setDeviceParams(this.axisId, readback, true);
+      if (readback[name] !== undefined && readback[name] !== value) {
+        setText(this.error, `The device kept ${readback[name]} (asked for ${value}).`);
+        this.el.classList.add("has-note");
+      } else this.el.classList.remove("has-note");
+    } catch (error) {
+      const text = showError(`${this.p.label} (${name})`, error);
+      setText(this.error, `${statusLabel(error)}: ${text}`);
+      this.error.title = errorText(error);
+      this.el.classList.add("has-error");
+      this.el.classList.remove("has-note");
+    } finally {
+      this.busy -= 1;
+      this.forceInput = true;
+      this.render();
+    }
+  }
+
+  render(): void {
+    const p = this.p;
+    const device = store.deviceValues(this.axisId).get(p.name);
+    const pending = store.uiValues(this.axisId).get(p.name);
+    const value = pending ?? device;
+    const differs = pending !== undefined && pending !== device;
+    toggleClass(this.el, "differs", differs);
+    toggleClass(this.el, "busy", this.busy > 0);
+    toggleClass(this.el, "unknown", device === undefined);
+    this.el.dataset.differs = differs ? "1" : "0";
+    setText(this.device, device === undefined ? "—" : p.kind === "bits" ? `${device} (0x${device.toString(16).toUpperCase()})` : String(device));
+    this.deviceBox.title = differs
+      ? `The device has ${device ?? "unknown"}; this field shows ${pending}. Press Enter (or release the slider) to write it.`
+      : "Value read back from the device";
+    const focused = document.activeElement === this.input;
+    if ((!focused || this.forceInput) && value !== undefined) {
+      if (this.input.value !== String(value)) this.input.value = String(value);
+    } else if (!focused && value === undefined) this.input.value = "";
+    this.forceInput = false;
+    const ok = value === undefined || (value >= p.minimum && value <= p.maximum);
+    toggleClass(this.input, "invalid", !ok);
+    if (this.slider && value !== undefined) {
+      const top = Math.max(this.sliderMax, Math.min(value, p.maximum));
+      if (Number(this.slider.max) !== top) this.slider.max = String(top);
+      toggleClass(this.slider, "extended", top > this.sliderMax);
+      if (document.activeElement !== this.slider || this.slider.value !== String(value)) {
+        if (this.slider.value !== String(value)) this.slider.value = String(value);
+      }
+    }
+    for (const [bit, check] of this.checks) {
+      const on = value !== undefined && ((value >>> bit) & 1) === 1;
+      if (check.checked !== on) check.checked = on;
+      check.disabled = value === undefined;
+      const devOn = device !== undefined && ((device >>> bit) & 1) === 1;
+      toggleClass(check.parentElement as HTMLElement, "bit-differs", differs && devOn !== on);
+    }
+    if (value === undefined) setText(this.conversions, "");
+    else if (p.conversions.length) {
+      const head = `${value}${p.unit ? ` ${p.unit}` : ""}`;
+      setText(this.conversions, `${head} = ${p.conversions.map((c) => formatConverted(value, c)).join(" = ")}`);
+    } else setText(this.conversions, "");
+  }
+}
+
+export class TuningPanel {
+  readonly el: HTMLElement;
+  private readonly rows = new Map<string, ParamRow>();
+  private readonly readButton: HTMLButtonElement;
+  private readonly status: HTMLElement;
+
+  constructor(
+    private readonly axisId: string,
+    descriptor: DeviceDescriptor,
+    signal: AbortSignal,
+  ) {
+    this.status = h("div", { class: "cmd-status tuning-status", testid: "tuning-status", "aria-live": "polite" });
+    const runner = makeRunner(axisId, this.status);
+    this.readButton = h(
+      "button",
+      { class: "btn", testid: "params-read", title: "Read every parameter from the device now", onclick: () => void this.read() },
+      "Read from device",
+    );
+    const persist = descriptor.commands
+      .filter((c: CommandDescriptor) => c.group === "persist")
+      .map((c) => commandWidget(runner, c, c.confirm ? "warn" : ""));
+    const filter = h("input", { class: "input filter", type: "search", placeholder: "Filter…", testid: "params-filter", "aria-label": "Filter parameters" });
+    filter.addEventListener("input", () => this.filter(filter.value));
+    const header = h(
+      "div",
+      { class: "tuning-header" },
+      h("div", { class: "tuning-actions" }, h("span", { class: "pane-title" }, "Tuning"), this.readButton, persist, h("span", { class: "tb-spacer" }), filter),
+      this.status,
+    );
+    const body = h("div", { class: "tuning-body" });
+    const groups = new Map<string, ParameterDescriptor[]>();
+    for (const p of descriptor.parameters) {
+      const list = groups.get(p.group) ?? [];
+      list.push(p);
+      groups.set(p.group, list);
+    }
+    for (const [group, params] of groups) {
+      const section = h("section", { class: "param-group", "data-group": group }, h("div", { class: "param-group-title" }, group));
+      for (const p of params) {
+        const row = new ParamRow(axisId, p);
+        this.rows.set(p.name, row);
+        section.appendChild(row.el);
+      }
+      body.appendChild(section);
+    }
+    if (!descriptor.parameters.length) replace(body, h("div", { class: "empty" }, "This device has no parameters."));
+    this.el = h("div", { class: "tuning" }, header, body);
+    store.on(
+      "params",
+      ({ axis, names }) => {
+        if (axis !== this.axisId) return;
+        for (const name of names) this.rows.get(name)?.render();
+      },
+      signal,
+    );
+    if (store.deviceValues(axisId).size === 0 && descriptor.parameters.length) void this.read(true);
+  }
+
+  private filter(text: string): void {
+    const needle = text.trim().toLowerCase();
+    for (const [name, row] of this.rows) {
+      const hay = `${name} ${row.p.label} ${row.p.description} ${row.p.group}`.toLowerCase();
+      row.el.hidden = needle !== "" && !hay.includes(needle);
+    }
+    for (const section of this.el.querySelectorAll<HTMLElement>(".param-group")) {
+      section.hidden = [...section.querySelectorAll<HTMLElement>(".param-row")].every((r) => r.hidden);
+    }
+  }
+
+  async read(quiet = false): Promise<void> {
+    this.readButton.classList.add("busy");
+    this.status.dataset.kind = "pending";
+    setText(this.status, "Reading parameters …");
+    try {
+      const values = await api.readParams(this.axisId);
+      store.setDeviceParams(this.axisId, values, true);
+      this.status.dataset.kind = "ok";
+      setText(this.status, `✓ Read ${Object.keys(values).length} parameters from the device`);
+    } catch (error) {
+      const text = quiet ? errorText(error) : showError("Read from device", error);
+      this.status.dataset.kind = "error";
+      setText(this.status, `✗ Read from device: ${statusLabel(error)} — ${text}`);
+    } finally {
+      this.readButton.classList.remove("busy");
+    }
+  }
+}
