@@ -48,10 +48,11 @@ def free_port() -> int:
 
 @contextlib.asynccontextmanager
 async def live_server(
-    simulator: PtySimulator, bus: Slap2Bus, data_dir: Path
+    simulator: PtySimulator, bus: Slap2Bus, data_dir: Path, *, web_dir: Path | None = None
 ) -> AsyncIterator[LiveServer]:
     spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
-    app = create_app(AppConfig(links=[spec], data_dir=data_dir, web_dir=data_dir / "no-web"))
+    config = AppConfig(links=[spec], data_dir=data_dir, web_dir=web_dir or data_dir / "no-web")
+    app = create_app(config)
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")

@@ -22,6 +22,8 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+from pydantic import BaseModel
+
 from servotune import __version__
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
@@ -75,6 +77,9 @@ class AxisEntry:
     device_values: dict[str, int] = field(default_factory=dict)
     last_known: dict[str, int] = field(default_factory=dict)
     compared_at_connect: bool = False
+    # Set when a stop could not reach the axis (link down during a bench test): the
+    # stop is sent as soon as the axis is back.
+    stop_on_reconnect: bool = False
 
 
 @dataclass(slots=True)
@@ -143,6 +148,7 @@ class Hub:
         self._clients: set[ClientQueue] = set()
         self._events: deque[Event] = deque(maxlen=200)
         self._tasks: list[asyncio.Task[None]] = []
+        self._sample_listeners: list[Callable[[str, Sample], None]] = []
         for link in links:
             self.add_link(link)
 
@@ -328,6 +334,10 @@ class Hub:
             checked[argument.name] = value
         return checked
 
+    def mark_operated(self, entry: AxisEntry) -> None:
+        """A user acts on the axis: the demo autopilot leaves it alone from now on."""
+        self._operate(entry)
+
     def _operate(self, entry: AxisEntry) -> None:
         if not entry.operated:
             entry.operated = True
@@ -396,6 +406,16 @@ class Hub:
         entry = self._axes[axis_id]
         entry.latest = sample
         entry.pending.append(sample)
+        for listener in self._sample_listeners:
+            listener(axis_id, sample)
+
+    def add_sample_listener(self, listener: Callable[[str, Sample], None]) -> None:
+        """Call ``listener`` with every sample of every axis (the bench's recorder)."""
+        self._sample_listeners.append(listener)
+
+    def broadcast_model(self, message: BaseModel) -> None:
+        """Send a wire message to every client (never dropped for slowness)."""
+        self._broadcast(message.model_dump_json(), droppable=False)
 
     def on_link_status(
         self,
@@ -423,6 +443,11 @@ class Hub:
 
     def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
         entry = self._axes[axis_id]
+        if health != "offline" and entry.stop_on_reconnect:
+            entry.stop_on_reconnect = False
+            task = asyncio.get_running_loop().create_task(self._stop_after_reconnect(entry))
+            self._tasks.append(task)
+            task.add_done_callback(self._forget_task)
         if entry.health == "reset" and health == "ok":
             # A reset stays flagged until the user re-applies the settings (_restore).
             return
@@ -464,6 +489,20 @@ class Hub:
             )
             self.on_event("warning", entry.info.id, entry.health_message)
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+
+    async def _stop_after_reconnect(self, entry: AxisEntry) -> None:
+        # Health turns ok while the link still probes its other axes; wait for it.
+        for _ in range(100):
+            if self._links[entry.link.id].status.state == "connected":
+                break
+            await asyncio.sleep(0.05)
+        try:
+            await entry.driver.stop()
+        except DriverError as exc:
+            entry.stop_on_reconnect = True
+            self.on_event("error", entry.info.id, f"stop after reconnect failed: {exc}")
+        else:
+            self.on_event("warning", entry.info.id, "stopped after reconnect (test was cut off)")
 
     def _save_soon(self, entry: AxisEntry, values: dict[str, int]) -> None:
         task = asyncio.get_running_loop().create_task(

@@ -98,6 +98,18 @@ class Event(BaseModel):
     message: str
 
 
+class RunUpdate(BaseModel):
+    """Progress of a bench run: every browser sees runs appear, record and finish."""
+
+    type: Literal["run"] = "run"
+    axis: str
+    run_id: str
+    status: Literal["recording", "complete", "incomplete"]
+    elapsed_s: float
+    samples: int
+    message: str
+
+
 class ClientStats(BaseModel):
     type: Literal["client_stats"] = "client_stats"
     sent: int
@@ -105,7 +117,7 @@ class ClientStats(BaseModel):
 
 
 ServerMessage = Annotated[
-    Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | ClientStats,
+    Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | ClientStats,
     Field(discriminator="type"),
 ]
 

@@ -38,6 +38,7 @@ MODELS: list[type[BaseModel]] = [
     wire.AxisStatus,
     wire.Params,
     wire.Event,
+    wire.RunUpdate,
     wire.ClientStats,
     wire.Ping,
     wire.AxisState,

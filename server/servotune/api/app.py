@@ -15,6 +15,7 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from servotune import __version__
+from servotune.api.bench_routes import router as bench_router
 from servotune.api.routes import router
 from servotune.config import LinkSpec
 from servotune.drivers.base import (
@@ -27,6 +28,7 @@ from servotune.drivers.base import (
 from servotune.hub import Hub, UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, default_data_dir
+from servotune.testbench import TestBench
 
 logger = logging.getLogger(__name__)
 
@@ -63,11 +65,15 @@ def create_app(config: AppConfig) -> FastAPI:
             hub = Hub([], storage, autopilot=config.autopilot)
             for spec in specs:
                 hub.add_link(build_link(spec, hub))
+            bench = TestBench(hub, storage)
             app.state.hub = hub
+            app.state.bench = bench
             await hub.start()
+            await bench.start()
             try:
                 yield
             finally:
+                await bench.stop()
                 await hub.stop()
                 # Let pending storage writes finish before the database closes.
                 await asyncio.sleep(0)
@@ -80,6 +86,7 @@ def create_app(config: AppConfig) -> FastAPI:
         lifespan=lifespan,
     )
     app.include_router(router)
+    app.include_router(bench_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 from servotune.descriptor import DeviceDescriptor
 from servotune.wire import AxisHealth, EventLevel, LinkState
@@ -137,6 +137,55 @@ class Autopilot(Protocol):
 
     def autopilot_settled(self, latest: Sample) -> bool:
         """The move has ended and the axis is at rest."""
+        ...
+
+
+BenchKind = Literal["move", "position_step", "velocity_step", "pwm_step"]
+
+
+@dataclass(frozen=True, slots=True)
+class BenchTest:
+    """A test of the bench (validated against the user's limits by the caller)."""
+
+    kind: BenchKind
+    distance: int = 0
+    velocity: int = 0
+    pwm: int = 0
+    duration_s: float = 2.0
+
+
+@dataclass(slots=True)
+class BenchPlan:
+    """How a device runs a bench test, in descriptor commands and parameters.
+
+    ``overrides`` are written before the test and the previous values restored after
+    it, whatever happens. ``trigger`` is sent at t0. ``finish`` leaves the axis in a
+    safe state. ``response`` is the channel the metrics look at, ``y_final`` its
+    commanded final value; ``done_flag`` (e.g. in-position) lets a recording end
+    early once the axis has settled.
+    """
+
+    setup: list[tuple[str, dict[str, int]]]
+    trigger: list[tuple[str, dict[str, int]]]
+    finish: list[tuple[str, dict[str, int]]]
+    response: str
+    y0: float
+    y_final: float
+    band: float | None
+    overrides: dict[str, int] = field(default_factory=dict)
+    done_flag: str | None = None
+    moving_flag: str | None = None
+    fault_flags: list[str] = field(default_factory=list)
+
+
+@runtime_checkable
+class BenchPlanner(Protocol):
+    """Optional: the bench tests a device can run and how."""
+
+    def bench_kinds(self) -> list[BenchKind]: ...
+
+    def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
+        """Plan ``test`` from the axis' state now; DeviceRefusedError if it cannot run."""
         ...
 
 

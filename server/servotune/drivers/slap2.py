@@ -42,6 +42,9 @@ from typing import TypeVar
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
+    BenchKind,
+    BenchPlan,
+    BenchTest,
     CommandOutcome,
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -831,3 +834,66 @@ class Slap2Axis(AxisDriver):
 
     def autopilot_settled(self, latest: Sample) -> bool:
         return bool(latest.flags.get("inpos")) and not latest.flags.get("move")
+
+    # --- test bench (drivers.base.BenchPlanner) ----------------------------------------
+
+    def bench_kinds(self) -> list[BenchKind]:
+        return ["move", "position_step", "velocity_step", "pwm_step"]
+
+    def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
+        """SLAP2 tests: a move is ``mr`` with the profile as set; a position step is
+        the same move with sv and sa at their maximum for the test (the SLAP2 has no
+        way to bypass its profile generator, so this is the closest to a step); a
+        velocity step is ``vm`` at the given sv; a PWM step is ``spwm``. Position
+        tests end with the controller holding (pm), velocity and PWM tests with st.
+        """
+        position = latest.channels.get("position") or 0.0
+        band = float(params.get("inpos_window", 5))
+        faults = ["oc", "limit1", "limit2"]
+        if test.kind in ("move", "position_step"):
+            if test.distance == 0:
+                raise InvalidArgumentError("distance", "distance must not be 0")
+            overrides = (
+                {"velocity": codec.VELOCITY_MAX, "acceleration": codec.ACCELERATION_MAX}
+                if test.kind == "position_step"
+                else {}
+            )
+            return BenchPlan(
+                setup=[] if latest.flags.get("pm") else [("position_mode", {})],
+                trigger=[("move_relative", {"distance": test.distance})],
+                finish=[],
+                response="position",
+                y0=position,
+                y_final=position + test.distance,
+                band=band,
+                overrides=overrides,
+                done_flag="inpos",
+                moving_flag="move",
+                fault_flags=faults,
+            )
+        if test.kind == "velocity_step":
+            if test.velocity == 0:
+                raise InvalidArgumentError("velocity", "velocity must not be 0")
+            return BenchPlan(
+                setup=[("stop", {})] if latest.flags.get("pm") else [],
+                overrides={"velocity": test.velocity},
+                trigger=[("velocity_mode", {})],
+                finish=[("stop", {})],
+                response="velocity",
+                y0=latest.channels.get("velocity") or 0.0,
+                y_final=test.velocity * codec.COUNTS_S_PER_SV,
+                band=None,
+                fault_flags=faults,
+            )
+        if test.pwm == 0:
+            raise InvalidArgumentError("pwm", "pwm must not be 0")
+        return BenchPlan(
+            setup=[],
+            trigger=[("open_loop_pwm", {"pwm": test.pwm})],
+            finish=[("stop", {})],
+            response="velocity",
+            y0=latest.channels.get("velocity") or 0.0,
+            y_final=latest.channels.get("velocity") or 0.0,
+            band=None,
+            fault_flags=faults,
+        )

@@ -32,6 +32,9 @@ from dataclasses import dataclass, field
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
+    BenchKind,
+    BenchPlan,
+    BenchTest,
     CommandOutcome,
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -651,6 +654,49 @@ class Z1100Axis(AxisDriver):
 
     def autopilot_commands(self, latest: Sample, target: int) -> list[tuple[str, dict[str, int]]]:
         return [("go_to_target", {"target": target})]
+
+    # --- test bench (drivers.base.BenchPlanner) ----------------------------------------
+
+    def bench_kinds(self) -> list[BenchKind]:
+        return ["move", "velocity_step"]
+
+    def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
+        """Z1100 tests: a move is go-to-target by ``distance`` with Vmax/Acc as set;
+        a velocity step is the constant-velocity job at ``velocity`` counts/s (Vmax
+        for the test), ended with Stop (decelerate). The chip has no open-loop mode."""
+        if latest.flags.get("running"):
+            raise DeviceRefusedError("the motor is moving: wait for it to stop")
+        position = latest.channels.get("position") or 0.0
+        if test.kind == "move":
+            if test.distance == 0:
+                raise InvalidArgumentError("distance", "distance must not be 0")
+            target = int(position) + test.distance
+            return BenchPlan(
+                setup=[],
+                trigger=[("go_to_target", {"target": target})],
+                finish=[],
+                response="position",
+                y0=position,
+                y_final=float(target),
+                band=20.0,
+                moving_flag="running",
+                fault_flags=["stall"],
+            )
+        if test.kind == "velocity_step":
+            if test.velocity == 0:
+                raise InvalidArgumentError("velocity", "velocity must not be 0")
+            return BenchPlan(
+                setup=[],
+                overrides={"vmax": abs(test.velocity)},
+                trigger=[("constant_velocity", {"direction": int(test.velocity > 0)})],
+                finish=[("decelerate", {})],
+                response="velocity",
+                y0=0.0,
+                y_final=float(test.velocity),
+                band=None,
+                fault_flags=["stall"],
+            )
+        raise DeviceRefusedError(f"the Z1100 cannot run a {test.kind} test (no open-loop mode)")
 
     def autopilot_settled(self, latest: Sample) -> bool:
         error = latest.channels.get("following_error")

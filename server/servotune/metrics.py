@@ -1,0 +1,416 @@
+"""Step-response metrics of a recorded run (sans-IO, pure Python, no clocks).
+
+A run is the telemetry of one axis during a test: a position step or move, or a
+velocity step. The samples are *polled* (serial telemetry at tens of Hz, irregular
+spacing of about 10..60 ms), so every time below is quantised to the sample spacing;
+crossings of a level are located by linear interpolation between the two samples that
+bracket them, flags (booleans) cannot be interpolated and are timed at the first
+sample that shows them.
+
+Conventions shared by every metric (``docs/metrics.md`` repeats them with formulas):
+
+* Times are seconds after the command time ``t0_s``. Samples before ``t0_s`` are ignored
+  by the response metrics (a flag sample before ``t0_s`` still holds its value into it).
+* ``step = y_final - y0``; its sign is the step direction. The directional metrics work
+  on ``(y - y0) / step``, so a negative step gives the same numbers as the mirrored
+  positive one.
+* The command point ``(t0, y0)`` is the first point of the response (the axis cannot
+  have moved before the command): the first 10 % crossing and the settling crossing
+  can be interpolated from it when the first sample is already past the level.
+* Samples whose time or value is not finite (NaN, inf) are skipped; times must be in
+  non-decreasing order (``ValueError`` otherwise).
+
+``compute_metrics`` is the entry point; ``predict_first_order`` and
+``predict_second_order`` give the analytic step responses the metrics are tested
+against (and that an auto-tune assistant can fit).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+from typing import ClassVar, Final
+
+ARRIVAL_FLAGS: Final = frozenset({"inpos", "in_target"})
+"""Flags that drop at move start and rise on arrival: timed by ``time_to_flag_s``.
+Every other flag (``oc``, ``stall``, ...) is totalled by ``time_in_flag_s``."""
+
+RISE_LOW: Final = 0.1
+RISE_HIGH: Final = 0.9
+DEFAULT_BAND_FRACTION: Final = 0.02
+STEADY_STATE_FRACTION: Final = 0.1
+STEADY_STATE_MIN_SAMPLES: Final = 3
+_CRITICAL_ZETA_TOLERANCE: Final = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class Metrics:
+    """Metrics of one run. Times in seconds after t0; None when not defined or not reached."""
+
+    step: float
+    band: float | None
+    samples: int
+    max_sample_gap_s: float | None
+    rise_time_s: float | None
+    overshoot_pct: float | None
+    peak_time_s: float | None
+    peak_value: float | None
+    settling_time_s: float | None
+    steady_state_error: float | None
+    oscillations: int | None
+    peak_following_error: float | None
+    rms_following_error: float | None
+    time_to_flag_s: dict[str, float | None]
+    time_in_flag_s: dict[str, float]
+
+    definitions: ClassVar[dict[str, str]] = {
+        "step": (
+            "Commanded step y_final − y0 in units of y; its sign is the step direction "
+            "used by the directional metrics."
+        ),
+        "band": (
+            "Settling band ± in units of y: the in-position window passed in, or 2 % of "
+            "|step| when none is given (None for a zero step without a window)."
+        ),
+        "samples": (
+            "Number of samples used: finite time and value, at or after the command time t0."
+        ),
+        "max_sample_gap_s": (
+            "Largest interval between consecutive samples from t0 (counted as the first "
+            "point) to the last sample: every time metric is quantised to about this."
+        ),
+        "rise_time_s": (
+            "Time from the first 10 % crossing of the step to the first 90 % crossing "
+            "after it, both in the step direction and located by linear interpolation "
+            "between the two samples around them, with (t0, y0) as the first point "
+            "(None for a zero step or when 90 % is never reached)."
+        ),
+        "overshoot_pct": (
+            "Largest excursion of y beyond y_final in the step direction as a percentage "
+            "of |step|, 0 when y never passes y_final (None for a zero step)."
+        ),
+        "peak_time_s": (
+            "Time after t0 of the first sample furthest in the step direction (for a "
+            "zero step: furthest from y_final)."
+        ),
+        "peak_value": "Value of y at the sample of peak_time_s.",
+        "settling_time_s": (
+            "Time after which |y − y_final| ≤ band to the end of the record, linearly "
+            "interpolated between the last point outside the band and the next sample "
+            "(0 when no point from (t0, y0) on is outside; None when the last sample is "
+            "outside the band or there is no band)."
+        ),
+        "steady_state_error": (
+            "Mean of (y_final − y) over the samples in the last 10 % of the time from t0 "
+            "to the last sample, at least the last 3 samples, signed and in units of y "
+            "(None with fewer than 3 samples)."
+        ),
+        "oscillations": (
+            "Number of sign changes of y − y_final with a hysteresis of ± band, starting "
+            "from the side the response approaches from, i.e. the overshoot and "
+            "undershoot half-cycles that leave the band (None for a zero step)."
+        ),
+        "peak_following_error": (
+            "Largest |following error| over the samples from t0 on, missing values "
+            "skipped (None without data)."
+        ),
+        "rms_following_error": (
+            "Root mean square of the following error over the same samples, each sample "
+            "weighted equally (None without data)."
+        ),
+        "time_to_flag_s": (
+            "For the arrival flags inpos and in_target: time after t0 of the first sample "
+            "with the flag set that follows a sample (from t0 on) with it clear, None if "
+            "it never drops and rises again."
+        ),
+        "time_in_flag_s": (
+            "For every other flag (oc, stall, ...): total time it was set after t0, each "
+            "sample holding its value until the next sample (the last one for no time)."
+        ),
+    }
+
+
+def compute_metrics(
+    t_s: Sequence[float],
+    y: Sequence[float],
+    *,
+    t0_s: float,
+    y0: float,
+    y_final: float,
+    band: float | None = None,
+    following_error: Sequence[float | None] | None = None,
+    flags: Mapping[str, Sequence[bool]] | None = None,
+) -> Metrics:
+    """Metrics of one run; see ``Metrics.definitions`` for what each one is.
+
+    ``band`` is the settling band (± in units of y, e.g. the device's in-position
+    window); without it 2 % of ``|y_final - y0|``. ``following_error`` and each
+    ``flags`` series are aligned with ``t_s`` (same length).
+
+    Raises ``ValueError`` for times out of order, series of different lengths, a
+    non-finite ``t0_s``/``y0``/``y_final`` or a negative or non-finite ``band``. Data
+    edge cases (no samples, NaN samples, a zero step, a record that ends before the
+    step completes) give None metrics instead.
+    """
+    n = len(t_s)
+    if len(y) != n:
+        raise ValueError(f"t_s and y differ in length: {n} != {len(y)}")
+    if following_error is not None and len(following_error) != n:
+        raise ValueError(f"following_error and t_s differ in length: {len(following_error)} != {n}")
+    for name, series in (flags or {}).items():
+        if len(series) != n:
+            raise ValueError(f"flag series {name!r} and t_s differ in length: {len(series)} != {n}")
+    for name, value in (("t0_s", t0_s), ("y0", y0), ("y_final", y_final)):
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+    if band is not None and not (math.isfinite(band) and band >= 0):
+        raise ValueError(f"band must be finite and >= 0, got {band!r}")
+
+    rel = _relative_times(t_s, t0_s)
+    step = y_final - y0
+    if band is None and step != 0:
+        band = DEFAULT_BAND_FRACTION * abs(step)
+
+    ts: list[float] = []
+    ys: list[float] = []
+    for tr, v in zip(rel, y, strict=True):
+        if tr is not None and tr >= 0 and math.isfinite(v):
+            ts.append(tr)
+            ys.append(v)
+    # The response as a curve starts at the command point (t0, y0).
+    if ts and ts[0] == 0:
+        curve_t, curve_y = ts, ys
+    else:
+        curve_t, curve_y = [0.0, *ts], [y0, *ys]
+
+    rise: float | None = None
+    overshoot: float | None = None
+    peak_t: float | None = None
+    peak_v: float | None = None
+    settling: float | None = None
+    sse: float | None = None
+    max_gap: float | None = None
+    oscillations: int | None = None
+    if ts:
+        max_gap = max(b - a for a, b in pairwise(curve_t)) if len(curve_t) > 1 else 0.0
+        errors = [v - y_final for v in curve_y]
+        if band is not None:
+            settling = _settling_time(curve_t, errors, band)
+        sse = _steady_state_error(ts, ys, y_final)
+        if step != 0:
+            direction = 1.0 if step > 0 else -1.0
+            rise = _rise_time(curve_t, [(v - y0) / step for v in curve_y])
+            beyond = [(v - y_final) * direction for v in ys]
+            overshoot = max(0.0, max(beyond)) / abs(step) * 100.0
+            i_peak = _argmax([(v - y0) * direction for v in ys])
+            oscillations = None if band is None else _oscillations(beyond, band)
+        else:
+            i_peak = _argmax([abs(v - y_final) for v in ys])
+        peak_t, peak_v = ts[i_peak], ys[i_peak]
+
+    peak_fe, rms_fe = _following_error_stats(rel, following_error)
+    time_to: dict[str, float | None] = {}
+    time_in: dict[str, float] = {}
+    for name, series in (flags or {}).items():
+        if name in ARRIVAL_FLAGS:
+            time_to[name] = _time_to_flag(rel, series)
+        else:
+            time_in[name] = _time_in_flag(rel, series)
+
+    return Metrics(
+        step=step,
+        band=band,
+        samples=len(ts),
+        max_sample_gap_s=max_gap,
+        rise_time_s=rise,
+        overshoot_pct=overshoot,
+        peak_time_s=peak_t,
+        peak_value=peak_v,
+        settling_time_s=settling,
+        steady_state_error=sse,
+        oscillations=oscillations,
+        peak_following_error=peak_fe,
+        rms_following_error=rms_fe,
+        time_to_flag_s=time_to,
+        time_in_flag_s=time_in,
+    )
+
+
+def predict_first_order(
+    tau_s: float, step: float, t_s: Sequence[float], *, y0: float = 0.0
+) -> list[float]:
+    """``y0 + step * (1 - exp(-t / tau))`` for t >= 0, ``y0`` before (t relative to the step)."""
+    if not (math.isfinite(tau_s) and tau_s > 0):
+        raise ValueError(f"tau_s must be finite and > 0, got {tau_s!r}")
+    return [y0 + step * -math.expm1(-t / tau_s) if t > 0 else y0 for t in t_s]
+
+
+def predict_second_order(
+    wn_rad_s: float, zeta: float, step: float, t_s: Sequence[float], *, y0: float = 0.0
+) -> list[float]:
+    """Step response of ``wn² / (s² + 2 zeta wn s + wn²)`` (unity DC gain), scaled by ``step``.
+
+    Underdamped (zeta < 1): ``1 - exp(-zeta wn t) / sqrt(1 - zeta²) * sin(wd t + acos zeta)``
+    with ``wd = wn sqrt(1 - zeta²)``; critically damped: ``1 - (1 + wn t) exp(-wn t)``;
+    overdamped: ``1 + (s2 exp(s1 t) - s1 exp(s2 t)) / (s1 - s2)`` with the real poles
+    ``s1,2 = -wn (zeta -+ sqrt(zeta² - 1))``. ``y0`` before t = 0 (t relative to the step).
+    """
+    if not (math.isfinite(wn_rad_s) and wn_rad_s > 0):
+        raise ValueError(f"wn_rad_s must be finite and > 0, got {wn_rad_s!r}")
+    if not (math.isfinite(zeta) and zeta >= 0):
+        raise ValueError(f"zeta must be finite and >= 0, got {zeta!r}")
+
+    if abs(zeta - 1.0) < _CRITICAL_ZETA_TOLERANCE:
+
+        def unit(t: float) -> float:
+            return 1.0 - (1.0 + wn_rad_s * t) * math.exp(-wn_rad_s * t)
+
+    elif zeta < 1.0:
+        root = math.sqrt(1.0 - zeta * zeta)
+        wd = wn_rad_s * root
+        phase = math.acos(zeta)
+
+        def unit(t: float) -> float:
+            return 1.0 - math.exp(-zeta * wn_rad_s * t) / root * math.sin(wd * t + phase)
+
+    else:
+        root = math.sqrt(zeta * zeta - 1.0)
+        s1 = -wn_rad_s * (zeta - root)
+        s2 = -wn_rad_s * (zeta + root)
+
+        def unit(t: float) -> float:
+            return 1.0 + (s2 * math.exp(s1 * t) - s1 * math.exp(s2 * t)) / (s1 - s2)
+
+    return [y0 + step * unit(t) if t > 0 else y0 for t in t_s]
+
+
+def _relative_times(t_s: Sequence[float], t0_s: float) -> list[float | None]:
+    """``t - t0`` per sample, None where t is not finite; ValueError if out of order."""
+    out: list[float | None] = []
+    prev_i = -1
+    prev = -math.inf
+    for i, t in enumerate(t_s):
+        if not math.isfinite(t):
+            out.append(None)
+            continue
+        if t < prev:
+            raise ValueError(
+                f"t_s must be in non-decreasing order: t_s[{i}] = {t!r} "
+                f"comes after t_s[{prev_i}] = {prev!r}"
+            )
+        prev_i, prev = i, t
+        out.append(t - t0_s)
+    return out
+
+
+def _crossing(t: list[float], u: list[float], level: float, start: int) -> tuple[float, int] | None:
+    """First time from index ``start`` on where ``u`` reaches ``level`` from below.
+
+    Linear interpolation between the sample before and the first sample at or above
+    ``level``; returns (time, index of that sample), None if never reached.
+    """
+    for i in range(start, len(u)):
+        if u[i] >= level:
+            if i == 0:
+                return t[0], 0
+            ta, ua, tb, ub = t[i - 1], u[i - 1], t[i], u[i]
+            # ua < level <= ub: the first sample at or above level is i, and the 90 %
+            # search starts at the 10 % sample, whose predecessor is below 10 %.
+            return ta + (level - ua) / (ub - ua) * (tb - ta), i
+    return None
+
+
+def _rise_time(t: list[float], u: list[float]) -> float | None:
+    low = _crossing(t, u, RISE_LOW, 0)
+    if low is None:
+        return None
+    high = _crossing(t, u, RISE_HIGH, low[1])
+    if high is None:
+        return None
+    return high[0] - low[0]
+
+
+def _settling_time(t: list[float], errors: list[float], band: float) -> float | None:
+    last_out = next((i for i in range(len(errors) - 1, -1, -1) if abs(errors[i]) > band), None)
+    if last_out is None:
+        return t[0]
+    if last_out == len(errors) - 1:
+        return None
+    ea, eb = errors[last_out], errors[last_out + 1]
+    edge = band if ea > 0 else -band
+    ta, tb = t[last_out], t[last_out + 1]
+    return ta + (ea - edge) / (ea - eb) * (tb - ta)
+
+
+def _steady_state_error(t: list[float], y: list[float], y_final: float) -> float | None:
+    n = len(t)
+    if n < STEADY_STATE_MIN_SAMPLES:
+        return None
+    t_from = t[-1] * (1.0 - STEADY_STATE_FRACTION)  # t relative to t0
+    start = next(i for i, ti in enumerate(t) if ti >= t_from)
+    start = min(start, n - STEADY_STATE_MIN_SAMPLES)
+    window = y[start:]
+    return sum(y_final - v for v in window) / len(window)
+
+
+def _oscillations(beyond: list[float], band: float) -> int:
+    """Sign changes of ``beyond`` (y - y_final in the step direction) with hysteresis ±band.
+
+    Starts on the approach side (below), so the first overshoot beyond the band counts 1.
+    """
+    side = -1
+    count = 0
+    for e in beyond:
+        if e > band and side < 0:
+            side, count = 1, count + 1
+        elif e < -band and side > 0:
+            side, count = -1, count + 1
+    return count
+
+
+def _argmax(values: list[float]) -> int:
+    best = 0
+    for i, v in enumerate(values):
+        if v > values[best]:
+            best = i
+    return best
+
+
+def _following_error_stats(
+    rel: list[float | None], following_error: Sequence[float | None] | None
+) -> tuple[float | None, float | None]:
+    if following_error is None:
+        return None, None
+    values = [
+        e
+        for tr, e in zip(rel, following_error, strict=True)
+        if tr is not None and tr >= 0 and e is not None and math.isfinite(e)
+    ]
+    if not values:
+        return None, None
+    peak = max(abs(e) for e in values)
+    rms = math.sqrt(sum(e * e for e in values) / len(values))
+    return peak, rms
+
+
+def _time_to_flag(rel: list[float | None], series: Sequence[bool]) -> float | None:
+    seen_low = False
+    for tr, v in zip(rel, series, strict=True):
+        if tr is None or tr < 0:
+            continue
+        if not v:
+            seen_low = True
+        elif seen_low:
+            return tr
+    return None
+
+
+def _time_in_flag(rel: list[float | None], series: Sequence[bool]) -> float:
+    points = [(tr, bool(v)) for tr, v in zip(rel, series, strict=True) if tr is not None]
+    total = 0.0
+    for (ta, on), (tb, _) in pairwise(points):
+        if on and tb > 0:
+            total += tb - max(ta, 0.0)
+    return total

@@ -1,0 +1,456 @@
+"""The tuning test bench: repeatable tests, every sample recorded, metrics, runs kept.
+
+A test arms a recorder on the axis' sample stream (every sample the link delivers,
+not the plot's view), writes the test's parameter overrides, sends the trigger
+command, records for the requested duration or until the axis has settled, leaves
+the axis in a safe state, restores the parameters it changed and computes the
+metrics. The run is stored in SQLite as soon as it starts and its samples follow in
+chunks every half second, so a link loss or a crash keeps what was recorded; such a
+run is marked incomplete, and the axis is stopped.
+
+Refusals happen before anything moves: a test beyond the user's limits (422 naming
+the limit), a kind the device cannot run or an axis already under test (409).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import io
+import logging
+import math
+import time
+import uuid
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from servotune.drivers.base import (
+    BenchKind,
+    BenchPlan,
+    BenchPlanner,
+    BenchTest,
+    DeviceRefusedError,
+    DriverError,
+    InvalidArgumentError,
+    Sample,
+)
+from servotune.hub import AxisEntry, Hub
+from servotune.metrics import compute_metrics
+from servotune.storage import Storage
+from servotune.wire import RunUpdate
+
+logger = logging.getLogger(__name__)
+
+PRE_TRIGGER_S = 0.2
+FLUSH_PERIOD_S = 0.5
+SETTLED_HOLD_S = 0.3
+
+
+class BenchLimits(BaseModel):
+    """What the user allows the bench to do on one axis (checked before every test)."""
+
+    max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
+    max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
+    max_pwm: int = Field(default=80, ge=1, le=255)
+    max_duration_s: float = Field(default=10.0, gt=0, le=60)
+
+
+class BenchTestRequest(BaseModel):
+    """``POST /api/axes/{id}/bench/runs``: what to run (units are the device's)."""
+
+    kind: BenchKind = Field(description="move | position_step | velocity_step | pwm_step")
+    distance: int = 0
+    velocity: int = 0
+    pwm: int = 0
+    duration_s: float = Field(default=2.0, gt=0)
+    note: str = Field(default="", max_length=200)
+
+
+@dataclass(slots=True)
+class _Recording:
+    run_id: str
+    entry: AxisEntry
+    plan: BenchPlan
+    columns: list[str]
+    flags: list[str]
+    t0: float | None = None
+    samples: list[list[Any]] = field(default_factory=list)
+    flushed: int = 0
+    chunk_seq: int = 0
+
+
+def _value(x: float | None) -> float | None:
+    return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
+
+
+class TestBench:
+    """Runs bench tests on the hub's axes; one test at a time per axis."""
+
+    __test__ = False  # not a pytest class
+
+    def __init__(self, hub: Hub, storage: Storage, clock: Any = time.monotonic) -> None:
+        self._hub = hub
+        self._storage = storage
+        self._clock = clock
+        self._active: dict[str, _Recording] = {}
+        self._tasks: set[asyncio.Task[None]] = set()
+        hub.add_sample_listener(self._on_sample)
+
+    async def start(self) -> None:
+        interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
+        if interrupted:
+            self._hub.on_event(
+                "warning",
+                None,
+                f"{interrupted} bench run(s) were cut off by a restart: kept as incomplete",
+            )
+
+    async def stop(self) -> None:
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    # --- limits -----------------------------------------------------------------------
+
+    def _limits_key(self, entry: AxisEntry) -> str:
+        return f"bench-limits:{entry.storage_key}"
+
+    async def limits(self, axis_id: str) -> BenchLimits:
+        entry = self._hub.entry(axis_id)
+        stored = await asyncio.to_thread(self._storage.get_meta, self._limits_key(entry))
+        return BenchLimits.model_validate(stored) if stored else BenchLimits()
+
+    async def set_limits(self, axis_id: str, limits: BenchLimits) -> BenchLimits:
+        entry = self._hub.entry(axis_id)
+        await asyncio.to_thread(
+            self._storage.set_meta, self._limits_key(entry), limits.model_dump()
+        )
+        return limits
+
+    # --- runs -------------------------------------------------------------------------
+
+    def kinds(self, axis_id: str) -> list[str]:
+        driver = self._hub.entry(axis_id).driver
+        return list(driver.bench_kinds()) if isinstance(driver, BenchPlanner) else []
+
+    async def start_run(self, axis_id: str, request: BenchTestRequest) -> dict[str, Any]:
+        """Check, plan and start a test; returns the run summary (status 'recording')."""
+        entry = self._hub.entry(axis_id)
+        driver = entry.driver
+        if not isinstance(driver, BenchPlanner):
+            raise DeviceRefusedError(f"{entry.info.device} has no bench tests yet")
+        kinds = driver.bench_kinds()
+        if request.kind not in kinds:
+            raise InvalidArgumentError(
+                "kind", f"kind must be one of {', '.join(kinds)} for this device"
+            )
+        limits = await self.limits(axis_id)
+        self._check_limits(request, limits)
+        if axis_id in self._active:
+            raise DeviceRefusedError("a test is already running on this axis")
+        if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
+            raise DeviceRefusedError("the axis is not connected: no telemetry")
+        test = BenchTest(
+            kind=request.kind,
+            distance=request.distance,
+            velocity=request.velocity,
+            pwm=request.pwm,
+            duration_s=request.duration_s,
+        )
+        plan = driver.bench_plan(test, entry.latest, entry.device_values)
+        self._hub.mark_operated(entry)
+        descriptor = driver.descriptor
+        columns = ["t_s", *(c.name for c in descriptor.channels)]
+        flags = [f.name for f in descriptor.flags]
+        run_id = uuid.uuid4().hex[:12]
+        meta = {
+            "axis_key": entry.storage_key,
+            "device": entry.info.device,
+            "model": descriptor.model,
+            "identity": {
+                "link": entry.info.link,
+                "path": entry.link.path,
+                "address": entry.info.address,
+                "name": entry.info.name,
+            },
+            "test": asdict(test) | {"note": request.note},
+            "params": dict(entry.device_values),
+            "plan": {
+                "response": plan.response,
+                "y0": plan.y0,
+                "y_final": plan.y_final,
+                "band": plan.band,
+                "overrides": plan.overrides,
+            },
+            "columns": columns,
+            "flags": flags,
+            "metrics": None,
+            "message": "",
+        }
+        created_s = time.time()
+        await asyncio.to_thread(
+            self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
+        )
+        recording = _Recording(run_id, entry, plan, columns, flags)
+        self._active[axis_id] = recording
+        task = asyncio.create_task(self._run(recording, test, meta))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        self._update(recording, "recording", "armed")
+        return {
+            "id": run_id,
+            "axis_id": axis_id,
+            "created_s": created_s,
+            "status": "recording",
+            **meta,
+        }
+
+    def _check_limits(self, request: BenchTestRequest, limits: BenchLimits) -> None:
+        if abs(request.distance) > limits.max_distance_counts:
+            raise InvalidArgumentError(
+                "distance",
+                f"distance {request.distance} exceeds your limit of ±{limits.max_distance_counts}"
+                " counts (bench limits)",
+            )
+        if abs(request.velocity) > limits.max_velocity:
+            raise InvalidArgumentError(
+                "velocity",
+                f"velocity {request.velocity} exceeds your limit of ±{limits.max_velocity}",
+            )
+        if abs(request.pwm) > limits.max_pwm:
+            raise InvalidArgumentError(
+                "pwm", f"pwm {request.pwm} exceeds your limit of ±{limits.max_pwm}"
+            )
+        if request.duration_s > limits.max_duration_s:
+            raise InvalidArgumentError(
+                "duration_s",
+                f"duration {request.duration_s} s exceeds your limit of {limits.max_duration_s} s",
+            )
+
+    def _on_sample(self, axis_id: str, sample: Sample) -> None:
+        recording = self._active.get(axis_id)
+        if recording is None:
+            return
+        row: list[Any] = [round(sample.t, 6)]
+        row += [_value(sample.channels.get(name)) for name in recording.columns[1:]]
+        row.append([int(bool(sample.flags.get(name))) for name in recording.flags])
+        recording.samples.append(row)
+
+    async def _flush(self, recording: _Recording) -> None:
+        rows = recording.samples[recording.flushed :]
+        if not rows:
+            return
+        recording.flushed = len(recording.samples)
+        seq = recording.chunk_seq
+        recording.chunk_seq += 1
+        await asyncio.to_thread(self._storage.append_samples, recording.run_id, seq, rows)
+
+    async def _send(self, entry: AxisEntry, steps: list[tuple[str, dict[str, int]]]) -> None:
+        for name, args in steps:
+            await entry.driver.command(name, args)
+
+    async def _run(self, recording: _Recording, test: BenchTest, meta: dict[str, Any]) -> None:
+        entry, plan = recording.entry, recording.plan
+        status, message = "complete", ""
+        saved: dict[str, int] = {}
+        try:
+            if plan.overrides:
+                saved = {
+                    k: entry.device_values[k] for k in plan.overrides if k in entry.device_values
+                }
+                await entry.driver.write_params(plan.overrides)
+            await self._send(entry, plan.setup)
+            await asyncio.sleep(PRE_TRIGGER_S)
+            recording.t0 = self._clock()
+            await self._send(entry, plan.trigger)
+            self._update(recording, "recording", "triggered")
+            await self._record(recording, test)
+            await self._send(entry, plan.finish)
+        except DriverError as exc:
+            status, message = "incomplete", f"test stopped: {exc}"
+            try:
+                await entry.driver.stop()
+            except DriverError:
+                # The link is down: stop the axis the moment it is back.
+                entry.stop_on_reconnect = True
+                message += "; the axis will be stopped when its link is back"
+        except asyncio.CancelledError:
+            status, message = "incomplete", "server stopped during the test"
+            with contextlib.suppress(DriverError):
+                await entry.driver.stop()
+            raise
+        finally:
+            try:
+                if saved and status == "complete":
+                    await self._restore(entry, saved)
+                elif saved:
+                    try:
+                        await self._restore(entry, saved)
+                    except DriverError:
+                        changed = ", ".join(f"{k}={v}" for k, v in saved.items())
+                        message += f"; could not restore {changed}: re-apply them"
+                await self._flush(recording)
+            finally:
+                self._active.pop(entry.info.id, None)
+                meta["message"] = message
+                meta["metrics"] = self._metrics(recording)
+                await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
+                self._update(recording, status, message or "done")
+
+    async def _restore(self, entry: AxisEntry, saved: Mapping[str, int]) -> None:
+        """Restore test overrides; some devices refuse while the axis still moves."""
+        for attempt in range(20):
+            try:
+                await entry.driver.write_params(saved)
+                return
+            except DeviceRefusedError:
+                if attempt == 19:
+                    raise
+                await asyncio.sleep(0.25)
+
+    async def _record(self, recording: _Recording, test: BenchTest) -> None:
+        plan = recording.plan
+        assert recording.t0 is not None
+        start = recording.t0
+        settled_since: float | None = None
+        last_flush = self._clock()
+        while True:
+            await asyncio.sleep(0.05)
+            now = self._clock()
+            if now - last_flush >= FLUSH_PERIOD_S:
+                last_flush = now
+                await self._flush(recording)
+                self._update(recording, "recording", f"{now - start:.1f} s")
+            if self._hub.link_status(recording.entry.link.id).state != "connected":
+                raise DriverError("the link went down during the test")
+            if now - start >= test.duration_s:
+                return
+            latest = recording.entry.latest
+            if plan.done_flag and latest is not None and now - start > SETTLED_HOLD_S:
+                moving = bool(plan.moving_flag and latest.flags.get(plan.moving_flag))
+                if latest.flags.get(plan.done_flag) and not moving:
+                    settled_since = settled_since or now
+                    if now - settled_since >= SETTLED_HOLD_S:
+                        return
+                else:
+                    settled_since = None
+
+    def _metrics(self, recording: _Recording) -> dict[str, Any] | None:
+        if recording.t0 is None or not recording.samples:
+            return None
+        plan = recording.plan
+        index = recording.columns.index(plan.response)
+        rows = [r for r in recording.samples if r[index] is not None]
+        if len(rows) < 3:
+            return None
+        error_index = (
+            recording.columns.index("following_error")
+            if "following_error" in recording.columns
+            else None
+        )
+        flag_series = {
+            name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
+        }
+        metrics = compute_metrics(
+            [r[0] for r in rows],
+            [r[index] for r in rows],
+            t0_s=recording.t0,
+            y0=plan.y0,
+            y_final=plan.y_final,
+            band=plan.band,
+            following_error=[r[error_index] for r in rows] if error_index is not None else None,
+            flags=flag_series,
+        )
+        return asdict(metrics)
+
+    def _update(self, recording: _Recording, status: str, message: str) -> None:
+        elapsed = self._clock() - recording.t0 if recording.t0 is not None else 0.0
+        self._hub.broadcast_model(
+            RunUpdate(
+                axis=recording.entry.info.id,
+                run_id=recording.run_id,
+                status=status,  # type: ignore[arg-type]
+                elapsed_s=round(elapsed, 2),
+                samples=len(recording.samples),
+                message=message,
+            )
+        )
+
+    # --- stored runs ------------------------------------------------------------------
+
+    async def list_runs(self, axis_id: str) -> list[dict[str, Any]]:
+        entry = self._hub.entry(axis_id)
+        return await asyncio.to_thread(self._storage.list_runs, entry.storage_key)
+
+    async def get_run(self, run_id: str) -> dict[str, Any]:
+        run = await asyncio.to_thread(self._storage.get_run, run_id)
+        if run is None:
+            raise KeyError(run_id)
+        return run
+
+    async def delete_run(self, run_id: str) -> None:
+        if not await asyncio.to_thread(self._storage.delete_run, run_id):
+            raise KeyError(run_id)
+
+    async def set_baseline(self, run_id: str) -> None:
+        if not await asyncio.to_thread(self._storage.set_baseline, run_id):
+            raise KeyError(run_id)
+
+    @staticmethod
+    def to_csv(run: Mapping[str, Any]) -> str:
+        """Samples as CSV: the run's columns, then one 0/1 column per flag."""
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow([*run["columns"], *run["flags"]])
+        for row in run["samples"]:
+            values = ["" if v is None else repr(v) for v in row[:-1]]
+            writer.writerow([*values, *row[-1]])
+        return out.getvalue()
+
+    @staticmethod
+    def to_json(run: Mapping[str, Any]) -> dict[str, Any]:
+        """Everything but the samples (those go to CSV)."""
+        return {k: v for k, v in run.items() if k != "samples"}
+
+    async def import_run(self, axis_id: str, meta: Mapping[str, Any], csv_text: str) -> str:
+        """Store a run exported elsewhere (JSON + CSV) under ``axis_id``; new id."""
+        entry = self._hub.entry(axis_id)
+        try:
+            columns = list(meta["columns"])
+            flags = list(meta["flags"])
+        except (KeyError, TypeError):
+            raise InvalidArgumentError("meta", "meta must be the run's JSON export") from None
+        reader = csv.reader(io.StringIO(csv_text))
+        header = next(reader, None)
+        if header != [*columns, *flags]:
+            raise InvalidArgumentError("csv", "the CSV header does not match the JSON's columns")
+        samples: list[list[Any]] = []
+        for line_no, row in enumerate(reader, start=2):
+            try:
+                values: list[Any] = [float(v) if v != "" else None for v in row[: len(columns)]]
+                values.append([int(v) for v in row[len(columns) :]])
+            except ValueError:
+                raise InvalidArgumentError("csv", f"line {line_no}: not a number") from None
+            samples.append(values)
+        run_id = uuid.uuid4().hex[:12]
+        stored = {
+            k: v
+            for k, v in meta.items()
+            if k not in ("id", "axis_id", "status", "baseline", "created_s")
+        }
+        stored["imported_from"] = meta.get("id")
+        created_s = float(meta.get("created_s") or time.time())
+        await asyncio.to_thread(
+            self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, stored
+        )
+        await asyncio.to_thread(self._storage.append_samples, run_id, 0, samples)
+        await asyncio.to_thread(
+            self._storage.finish_run, run_id, str(meta.get("status", "complete")), stored
+        )
+        return run_id

@@ -1,0 +1,140 @@
+"""The tuning test bench through the API, on simulated SLAP2 modules on a real pty."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from servotune.storage import Storage
+
+from .conftest import running_simulator
+from .test_api import LiveServer, live_server
+
+
+async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[str, Any]:
+    for _ in range(400):
+        runs = (await server.client.get(f"/api/axes/{axis_id}/bench/runs")).json()
+        run = next(r for r in runs if r["id"] == run_id)
+        if run["status"] != "recording":
+            full: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+            return full
+        await asyncio.sleep(0.05)
+    pytest.fail(f"run {run_id} never finished")
+
+
+async def start(server: LiveServer, axis_id: str, **test: Any) -> str:
+    response = await server.client.post(f"/api/axes/{axis_id}/bench/runs", json=test)
+    assert response.status_code == 202, response.text
+    run_id: str = response.json()["id"]
+    return run_id
+
+
+@pytest.fixture
+async def api(tmp_path: Path) -> Any:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            yield server
+
+
+async def test_moves_with_different_kp_give_different_metrics(api: LiveServer) -> None:
+    info = (await api.client.get("/api/axes/line-1/bench")).json()
+    assert "move" in info["kinds"] and "pwm_step" in info["kinds"]
+    first = await finished_run(
+        api, "line-1", await start(api, "line-1", kind="move", distance=2000)
+    )
+    await api.client.patch("/api/axes/line-1/params", json={"kp": 160, "kd": 300})
+    second = await finished_run(
+        api, "line-1", await start(api, "line-1", kind="move", distance=2000)
+    )
+    for run in (first, second):
+        assert run["status"] == "complete", run["message"]
+        assert len(run["samples"]) > 20
+        metrics = run["metrics"]
+        assert metrics["rise_time_s"] is not None
+        assert metrics["settling_time_s"] is not None
+        assert metrics["time_to_flag_s"]["inpos"] is not None
+        assert abs(metrics["steady_state_error"]) <= 5
+    assert first["params"]["kp"] == 40 and second["params"]["kp"] == 160
+    assert first["metrics"] != second["metrics"]
+    # Every sample row: time, one value per column, then the flags.
+    row = first["samples"][-1]
+    assert len(row) == len(first["columns"]) + 1
+    assert len(row[-1]) == len(first["flags"])
+
+
+async def test_limits_refuse_before_anything_moves(api: LiveServer) -> None:
+    response = await api.client.put(
+        "/api/axes/line-0/bench/limits",
+        json={
+            "max_distance_counts": 1000,
+            "max_velocity": 5000,
+            "max_pwm": 40,
+            "max_duration_s": 5,
+        },
+    )
+    assert response.status_code == 200
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json={"kind": "move", "distance": 5000}
+    )
+    assert response.status_code == 422
+    assert response.json()["field"] == "distance"
+    assert "1000" in response.json()["detail"]
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json={"kind": "pwm_step", "pwm": 200}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "pwm"
+    assert not api.bus.module(0).rss & 0b1100  # neither pm nor vm: nothing moved
+    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
+
+
+async def test_export_import_round_trip(api: LiveServer) -> None:
+    run = await finished_run(api, "line-0", await start(api, "line-0", kind="move", distance=-1500))
+    csv_text = (await api.client.get(f"/api/bench/runs/{run['id']}/samples.csv")).text
+    meta = (await api.client.get(f"/api/bench/runs/{run['id']}/run.json")).json()
+    response = await api.client.post(
+        "/api/axes/line-1/bench/runs/import", json={"meta": meta, "csv": csv_text}
+    )
+    assert response.status_code == 201, response.text
+    imported = (await api.client.get(f"/api/bench/runs/{response.json()['id']}")).json()
+    assert imported["samples"] == run["samples"]
+    for key in ("test", "params", "metrics", "columns", "flags", "plan"):
+        assert imported[key] == run[key], key
+    assert imported["imported_from"] == run["id"]
+
+
+async def test_link_loss_keeps_samples_marks_incomplete_and_stops(api: LiveServer) -> None:
+    run_id = await start(api, "line-0", kind="velocity_step", velocity=3000, duration_s=5)
+    for _ in range(100):
+        if api.bus.module(0).rss & 0b0100:  # vm on
+            break
+        await asyncio.sleep(0.02)
+    await asyncio.sleep(0.5)
+    api.simulator.unplug()
+    run = await finished_run(api, "line-0", run_id)
+    assert run["status"] == "incomplete"
+    assert len(run["samples"]) > 5
+    api.simulator.replug()
+    for _ in range(200):
+        if not api.bus.module(0).rss & 0b1100:
+            break
+        await asyncio.sleep(0.05)
+    assert not api.bus.module(0).rss & 0b1100, "the axis was not stopped after the link came back"
+
+
+async def test_runs_survive_restart_and_cut_runs_become_incomplete(tmp_path: Path) -> None:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            run = await finished_run(
+                server, "line-0", await start(server, "line-0", kind="move", distance=800)
+            )
+        storage = Storage(tmp_path / "data" / "servotune.db")
+        storage.create_run("cut", "slap2/line/0", "line-0", 1.0, {"test": {}, "metrics": None})
+        storage.close()
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+            by_id = {r["id"]: r for r in runs}
+            assert by_id[run["id"]]["status"] == "complete"
+            assert by_id["cut"]["status"] == "incomplete"
