@@ -63,6 +63,14 @@ class UnknownAxisError(KeyError):
     pass
 
 
+class NotFoundError(LookupError):
+    """A stored thing (run, parameter set) that does not exist: HTTP 404."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
 @dataclass(slots=True)
 class AxisEntry:
     driver: AxisDriver

@@ -34,6 +34,15 @@ CREATE TABLE IF NOT EXISTS runs (
     meta TEXT NOT NULL
 );
 CREATE INDEX IF NOT EXISTS runs_by_axis ON runs (axis_key, created_s);
+CREATE TABLE IF NOT EXISTS param_sets (
+    axis_key TEXT NOT NULL,
+    name TEXT NOT NULL,
+    created_s REAL NOT NULL,
+    device TEXT NOT NULL,
+    params TEXT NOT NULL,
+    note TEXT NOT NULL DEFAULT '',
+    PRIMARY KEY (axis_key, name)
+);
 CREATE TABLE IF NOT EXISTS run_chunks (
     run_id TEXT NOT NULL REFERENCES runs (id) ON DELETE CASCADE,
     seq INTEGER NOT NULL,
@@ -89,6 +98,38 @@ class Storage:
                 self._db.execute("ROLLBACK")
                 raise
             self._db.execute("COMMIT")
+
+    # --- parameter sets ----------------------------------------------------------------
+
+    def save_param_set(
+        self, axis_key: str, name: str, device: str, params: dict[str, int], note: str
+    ) -> None:
+        with self._lock:
+            self._db.execute(
+                "INSERT INTO param_sets(axis_key, name, created_s, device, params, note) "
+                "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT(axis_key, name) DO UPDATE SET "
+                "created_s = excluded.created_s, params = excluded.params, note = excluded.note",
+                (axis_key, name, time.time(), device, json.dumps(params), note),
+            )
+
+    def list_param_sets(self, axis_key: str) -> list[dict[str, Any]]:
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT name, created_s, device, params, note FROM param_sets "
+                "WHERE axis_key = ? ORDER BY created_s",
+                (axis_key,),
+            ).fetchall()
+        return [
+            {"name": n, "created_s": c, "device": d, "params": json.loads(p), "note": note}
+            for n, c, d, p, note in rows
+        ]
+
+    def delete_param_set(self, axis_key: str, name: str) -> bool:
+        with self._lock:
+            cursor = self._db.execute(
+                "DELETE FROM param_sets WHERE axis_key = ? AND name = ?", (axis_key, name)
+            )
+            return cursor.rowcount > 0
 
     def get_meta(self, key: str) -> Any:
         with self._lock:

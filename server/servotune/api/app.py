@@ -16,6 +16,7 @@ from fastapi.staticfiles import StaticFiles
 
 from servotune import __version__
 from servotune.api.bench_routes import router as bench_router
+from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
 from servotune.config import LinkSpec
 from servotune.drivers.base import (
@@ -25,7 +26,7 @@ from servotune.drivers.base import (
     LinkDownError,
     ProtocolError,
 )
-from servotune.hub import Hub, UnknownAxisError
+from servotune.hub import Hub, NotFoundError, UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, default_data_dir
 from servotune.testbench import TestBench
@@ -68,6 +69,7 @@ def create_app(config: AppConfig) -> FastAPI:
             bench = TestBench(hub, storage)
             app.state.hub = hub
             app.state.bench = bench
+            app.state.storage = storage
             await hub.start()
             await bench.start()
             try:
@@ -87,6 +89,7 @@ def create_app(config: AppConfig) -> FastAPI:
     )
     app.include_router(router)
     app.include_router(bench_router)
+    app.include_router(param_set_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:
@@ -115,6 +118,10 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(ProtocolError)
     async def protocol(_: Request, exc: ProtocolError) -> JSONResponse:
         return _error(502, f"device protocol error: {exc}")
+
+    @app.exception_handler(NotFoundError)
+    async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:
+        return _error(404, str(exc), exc.field)
 
     @app.exception_handler(UnknownAxisError)
     async def unknown_axis(_: Request, exc: UnknownAxisError) -> JSONResponse:

@@ -9,7 +9,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from pydantic import BaseModel
 
 from servotune.api.routes import ERRORS
-from servotune.drivers.base import InvalidArgumentError
+from servotune.hub import NotFoundError
 from servotune.testbench import BenchLimits, BenchTestRequest, TestBench
 
 router = APIRouter(tags=["bench"])
@@ -33,8 +33,8 @@ class ImportRequest(BaseModel):
     csv: str
 
 
-def _missing(run_id: str) -> JSONResponse:
-    return JSONResponse(status_code=404, content={"detail": f"no run {run_id!r}", "field": "run"})
+def _missing(run_id: str) -> NotFoundError:
+    return NotFoundError("run", f"no run {run_id!r}")
 
 
 @router.get("/api/axes/{axis_id}/bench", response_model=BenchInfo, responses=ERRORS)
@@ -68,33 +68,31 @@ async def import_run(axis_id: str, body: ImportRequest, bench: BenchDep) -> dict
     return {"id": await bench.import_run(axis_id, body.meta, body.csv)}
 
 
-@router.get("/api/bench/runs/{run_id}", responses=ERRORS, response_model=None)
-async def get_run(run_id: str, bench: BenchDep) -> dict[str, Any] | JSONResponse:
+@router.get("/api/bench/runs/{run_id}", responses=ERRORS)
+async def get_run(run_id: str, bench: BenchDep) -> dict[str, Any]:
     """One run with its samples: ``columns`` name the values of each sample row, the
     last element of a row is the list of flag values in ``flags`` order."""
     try:
         return await bench.get_run(run_id)
     except KeyError:
-        return _missing(run_id)
+        raise _missing(run_id) from None
 
 
 @router.delete("/api/bench/runs/{run_id}", status_code=204, response_model=None)
-async def delete_run(run_id: str, bench: BenchDep) -> JSONResponse | None:
+async def delete_run(run_id: str, bench: BenchDep) -> None:
     try:
         await bench.delete_run(run_id)
     except KeyError:
-        return _missing(run_id)
-    return None
+        raise _missing(run_id) from None
 
 
 @router.post("/api/bench/runs/{run_id}/baseline", status_code=204, response_model=None)
-async def set_baseline(run_id: str, bench: BenchDep) -> JSONResponse | None:
+async def set_baseline(run_id: str, bench: BenchDep) -> None:
     """Mark this run as the baseline of its axis."""
     try:
         await bench.set_baseline(run_id)
     except KeyError:
-        return _missing(run_id)
-    return None
+        raise _missing(run_id) from None
 
 
 @router.get("/api/bench/runs/{run_id}/samples.csv", response_class=PlainTextResponse)
@@ -102,7 +100,7 @@ async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
     try:
         run = await bench.get_run(run_id)
     except KeyError:
-        raise InvalidArgumentError("run", f"no run {run_id!r}") from None
+        raise _missing(run_id) from None
     return PlainTextResponse(
         TestBench.to_csv(run),
         media_type="text/csv",
@@ -115,7 +113,7 @@ async def export_json(run_id: str, bench: BenchDep) -> JSONResponse:
     try:
         run = await bench.get_run(run_id)
     except KeyError:
-        return _missing(run_id)
+        raise _missing(run_id) from None
     return JSONResponse(
         TestBench.to_json(run),
         headers={"Content-Disposition": f'attachment; filename="run-{run_id}.json"'},

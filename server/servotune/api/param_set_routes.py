@@ -1,0 +1,111 @@
+"""Named parameter sets per axis: save what the device has now, compare, restore.
+
+Restoring goes through the hub's one command path (validated against the descriptor,
+written, read back). Persisting in the device is a separate, explicit step: the
+device's own save command (SLAP2 ``save_eeprom``, Z1100 ``save_flash``) with its own
+conditions, e.g. the SLAP2 refuses ``pg`` while pm or vm is on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+from pydantic import BaseModel, Field
+
+from servotune.api.deps import HubDep
+from servotune.api.routes import ERRORS
+from servotune.drivers.base import InvalidArgumentError
+from servotune.hub import NotFoundError
+from servotune.storage import Storage
+
+router = APIRouter(tags=["parameter sets"])
+
+
+def get_storage(request: Request) -> Storage:
+    storage: Storage = request.app.state.storage
+    return storage
+
+
+StorageDep = Annotated[Storage, Depends(get_storage)]
+
+
+class SaveSetRequest(BaseModel):
+    name: str = Field(min_length=1, max_length=60, pattern=r"^[\w .,+()#-]+$")
+    note: str = Field(default="", max_length=200)
+
+
+class ParamSetComparison(BaseModel):
+    """``device`` (read now) against the set; ``differing`` names the parameters whose
+    values differ (the UI adds its own unsaved values as the third column)."""
+
+    name: str
+    device: dict[str, int]
+    saved: dict[str, int]
+    differing: list[str]
+
+
+@router.get("/api/axes/{axis_id}/param-sets", responses=ERRORS)
+async def list_sets(axis_id: str, hub: HubDep, storage: StorageDep) -> list[dict[str, Any]]:
+    entry = hub.entry(axis_id)
+    return await asyncio.to_thread(storage.list_param_sets, entry.storage_key)
+
+
+@router.post("/api/axes/{axis_id}/param-sets", status_code=201, responses=ERRORS)
+async def save_set(
+    axis_id: str, body: SaveSetRequest, hub: HubDep, storage: StorageDep
+) -> dict[str, Any]:
+    """Read every parameter from the device now and store them under ``name``."""
+    entry = hub.entry(axis_id)
+    params = await hub.read_params(axis_id)
+    await asyncio.to_thread(
+        storage.save_param_set, entry.storage_key, body.name, entry.info.device, params, body.note
+    )
+    return {"name": body.name, "params": params}
+
+
+async def _find(storage: Storage, key: str, name: str) -> dict[str, Any] | None:
+    sets = await asyncio.to_thread(storage.list_param_sets, key)
+    return next((s for s in sets if s["name"] == name), None)
+
+
+@router.get(
+    "/api/axes/{axis_id}/param-sets/{name}/compare",
+    response_model=ParamSetComparison,
+    responses=ERRORS,
+)
+async def compare_set(
+    axis_id: str, name: str, hub: HubDep, storage: StorageDep
+) -> ParamSetComparison:
+    entry = hub.entry(axis_id)
+    found = await _find(storage, entry.storage_key, name)
+    if found is None:
+        raise NotFoundError("name", f"no parameter set {name!r} for this axis")
+    device = await hub.read_params(axis_id)
+    saved: dict[str, int] = found["params"]
+    differing = sorted(k for k in set(device) | set(saved) if device.get(k) != saved.get(k))
+    return ParamSetComparison(name=name, device=device, saved=saved, differing=differing)
+
+
+@router.post("/api/axes/{axis_id}/param-sets/{name}/restore", responses=ERRORS)
+async def restore_set(axis_id: str, name: str, hub: HubDep, storage: StorageDep) -> dict[str, int]:
+    """Write the set to the device through the normal path (validated, read back).
+
+    Does not persist it in the device: that is the device's save command."""
+    entry = hub.entry(axis_id)
+    found = await _find(storage, entry.storage_key, name)
+    if found is None:
+        raise NotFoundError("name", f"no parameter set {name!r} for this axis")
+    if found["device"] != entry.info.device:
+        raise InvalidArgumentError(
+            "name", f"set {name!r} is for a {found['device']}, this axis is a {entry.info.device}"
+        )
+    return await hub.write_params(axis_id, found["params"])
+
+
+@router.delete("/api/axes/{axis_id}/param-sets/{name}", status_code=204, response_model=None)
+async def delete_set(axis_id: str, name: str, hub: HubDep, storage: StorageDep) -> None:
+    entry = hub.entry(axis_id)
+    if not await asyncio.to_thread(storage.delete_param_set, entry.storage_key, name):
+        raise NotFoundError("name", f"no parameter set {name!r} for this axis")
