@@ -12,8 +12,8 @@ Conventions shared by every metric (``docs/metrics.md`` repeats them with formul
 * Times are seconds after the command time ``t0_s``. Samples before ``t0_s`` are ignored
   by the response metrics (a flag sample before ``t0_s`` still holds its value into it).
 * ``step = y_final - y0``; its sign is the step direction. The directional metrics work
-  on ``(y - y0) / step``, so a negative step gives the same numbers as the mirrored
-  positive one.
+  on ``(y - y0) * sign(step)`` and ``(y - y_final) * sign(step)``, so a negative step
+  gives exactly the numbers of the mirrored positive one.
 * The command point ``(t0, y0)`` is the first point of the response (the axis cannot
   have moved before the command): the first 10 % crossing and the settling crossing
   can be interpolated from it when the first sample is already past the level.
@@ -201,9 +201,13 @@ def compute_metrics(
         sse = _steady_state_error(ts, ys, y_final)
         if step != 0:
             direction = 1.0 if step > 0 else -1.0
-            rise = _rise_time(curve_t, [(v - y0) / step for v in curve_y])
+            # Distances travelled in the step direction, compared with fractions of
+            # |step| (no division by the step: a tiny step cannot overflow).
+            rise = _rise_time(curve_t, [(v - y0) * direction for v in curve_y], abs(step))
             beyond = [(v - y_final) * direction for v in ys]
             overshoot = max(0.0, max(beyond)) / abs(step) * 100.0
+            if not math.isfinite(overshoot):  # a step too small to be a reference
+                overshoot = None
             i_peak = _argmax([(v - y0) * direction for v in ys])
             oscillations = None if band is None else _oscillations(beyond, band)
         else:
@@ -305,28 +309,30 @@ def _relative_times(t_s: Sequence[float], t0_s: float) -> list[float | None]:
     return out
 
 
-def _crossing(t: list[float], u: list[float], level: float, start: int) -> tuple[float, int] | None:
-    """First time from index ``start`` on where ``u`` reaches ``level`` from below.
+def _crossing(
+    t: list[float], values: list[float], level: float, start: int
+) -> tuple[float, int] | None:
+    """First time from index ``start`` on where ``values`` reach ``level`` from below.
 
     Linear interpolation between the sample before and the first sample at or above
     ``level``; returns (time, index of that sample), None if never reached.
     """
-    for i in range(start, len(u)):
-        if u[i] >= level:
+    for i in range(start, len(values)):
+        if values[i] >= level:
             if i == 0:
                 return t[0], 0
-            ta, ua, tb, ub = t[i - 1], u[i - 1], t[i], u[i]
+            ta, ua, tb, ub = t[i - 1], values[i - 1], t[i], values[i]
             # ua < level <= ub: the first sample at or above level is i, and the 90 %
             # search starts at the 10 % sample, whose predecessor is below 10 %.
             return ta + (level - ua) / (ub - ua) * (tb - ta), i
     return None
 
 
-def _rise_time(t: list[float], u: list[float]) -> float | None:
-    low = _crossing(t, u, RISE_LOW, 0)
+def _rise_time(t: list[float], travel: list[float], size: float) -> float | None:
+    low = _crossing(t, travel, RISE_LOW * size, 0)
     if low is None:
         return None
-    high = _crossing(t, u, RISE_HIGH, low[1])
+    high = _crossing(t, travel, RISE_HIGH * size, low[1])
     if high is None:
         return None
     return high[0] - low[0]
@@ -391,7 +397,10 @@ def _following_error_stats(
     if not values:
         return None, None
     peak = max(abs(e) for e in values)
-    rms = math.sqrt(sum(e * e for e in values) / len(values))
+    if peak == 0:
+        return 0.0, 0.0
+    # scaled by the peak so that squaring cannot overflow
+    rms = peak * math.sqrt(sum((e / peak) ** 2 for e in values) / len(values))
     return peak, rms
 
 

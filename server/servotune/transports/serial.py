@@ -35,11 +35,20 @@ class _Exchange:
         self.index = 0
         self.loop = asyncio.get_running_loop()
         self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
-        self.timer = self.loop.call_later(first_timeout_s, self.on_timeout)
+        self.deadline = self.loop.time() + first_timeout_s
+        self.timer = self.loop.call_at(self.deadline, self.on_timer)
 
     def restart_timer(self) -> None:
-        self.timer.cancel()
-        self.timer = self.loop.call_later(self.char_timeout_s, self.on_timeout)
+        # Only move the deadline; the armed timer re-arms itself when it fires early.
+        # Cancelling and re-arming a timer for every character would cost more than
+        # the rest of the per-character work.
+        self.deadline = self.loop.time() + self.char_timeout_s
+
+    def on_timer(self) -> None:
+        if self.loop.time() < self.deadline:
+            self.timer = self.loop.call_at(self.deadline, self.on_timer)
+        else:
+            self.on_timeout()
 
     def finish(self, result: EchoResult | bytes | None) -> None:
         self.timer.cancel()
