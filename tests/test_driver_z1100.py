@@ -104,6 +104,24 @@ async def test_chip_reset_is_detected(tmp_path: Path) -> None:
         assert "reads 0" in line.sink.health["chip-y"][1]
 
 
+async def test_reset_with_flashed_parameters_is_detected_by_the_job(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as line:  # flash holds good parameters
+        await line.axis(0).command("go_to_target", {"target": 3000})
+        await wait_for(
+            lambda: (
+                not line.sink.samples["chip-x"][-1].flags["running"]
+                and abs((line.samples(0)[-1] or 0) - 3000) < 50
+            ),
+            5,
+            "the move",
+        )
+        line.sim.power_cycle()  # parameters come back from flash, the job does not
+        await wait_for(
+            lambda: line.sink.health.get("chip-x", ("", ""))[0] == "reset", 5, "reset flag"
+        )
+        assert "job" in line.sink.health["chip-x"][1]
+
+
 async def test_noise_reply_and_console(tmp_path: Path) -> None:
     async with chip_line(tmp_path) as line:
         errors = line.link.errors

@@ -97,6 +97,7 @@ class _MotorState:
     stopped: bool = False
     stall: bool = False
     switch: bool = False
+    job: int = codec.Job.FREE  # the job servotune last set (a reset makes it 0)
     known: dict[str, int] = field(default_factory=dict)
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
 
@@ -342,6 +343,23 @@ class Z1100Link(LinkEngine):
 
     async def _verify_step(self) -> None:
         motor = self._motors[self._verify_index % codec.AXES]
+        if motor.job in (codec.Job.TARGET, codec.Job.VELOCITY) and not motor.running:
+            # Parameters stored with SetFlash come back after a reset, so the 0-reads
+            # miss it; the job does not survive a reset (it powers up as 0, free shaft).
+            job = await self._get(codec.Command.GET_JOB, motor.axis)
+            if job == codec.Job.FREE and await self._get(codec.Command.GET_JOB, motor.axis) == 0:
+                motor.job = codec.Job.FREE
+                for each in self._motors:
+                    each.job = codec.Job.FREE
+                    self._sink.on_axis_health(
+                        self.axis_id(each.axis),
+                        "reset",
+                        "chip reset: the job reads 0 (free shaft) although servotune set it — "
+                        "the motors are unpowered and RAM settings may be lost",
+                    )
+                self._sink.on_event("warning", None, f"{self.id}: chip reset detected (job 0)")
+                await self._probe_params_only()
+                return
         witness = RESET_WITNESSES[(self._verify_index // codec.AXES) % len(RESET_WITNESSES)]
         self._verify_index += 1
         expected = motor.known.get(witness)
@@ -463,6 +481,8 @@ class Z1100Link(LinkEngine):
                 sent.append(_request_name(request))
                 if request.command is codec.Command.SET_TARGET:
                     self._motors[axis].target = codec.unpack_int32(request.data)
+                elif request.command is codec.Command.SET_JOB:
+                    self._motors[axis].job = request.data & 0xFF
                 del reply
             if starts:
                 self._motors[axis].running = True
