@@ -48,9 +48,14 @@ def free_port() -> int:
 
 @contextlib.asynccontextmanager
 async def live_server(
-    simulator: PtySimulator, bus: Slap2Bus, data_dir: Path, *, web_dir: Path | None = None
+    simulator: PtySimulator,
+    bus: Any,
+    data_dir: Path,
+    *,
+    web_dir: Path | None = None,
+    spec: LinkSpec | None = None,
 ) -> AsyncIterator[LiveServer]:
-    spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
+    spec = spec or LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
     config = AppConfig(links=[spec], data_dir=data_dir, web_dir=web_dir or data_dir / "no-web")
     app = create_app(config)
     port = free_port()
@@ -63,7 +68,8 @@ async def live_server(
         base = f"http://127.0.0.1:{port}"
         async with httpx.AsyncClient(base_url=base, timeout=10) as client:
             live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus)
-            for axis_id in ("line-0", "line-1"):
+            for axis in (await client.get("/api/axes")).json():
+                axis_id = axis["id"]
                 for _ in range(250):
                     response = await client.get(f"/api/axes/{axis_id}/state")
                     if response.status_code == 200:

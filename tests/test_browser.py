@@ -1,0 +1,161 @@
+"""The dashboard in headless Chromium, against a live server and simulated modules."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from playwright.async_api import Browser, Page, async_playwright, expect
+
+from servotune.api.app import WEB_DIST
+
+from .conftest import running_simulator
+from .test_api import LiveServer, live_server
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = "/usr/bin/chromium"
+ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
+
+
+@pytest.fixture
+async def browser() -> AsyncIterator[Browser]:
+    assert Path(CHROMIUM).exists(), "install Debian's chromium (scripts/test.sh does)"
+    assert (WEB_DIST / "index.html").exists(), "build the web bundle (scripts/test.sh does)"
+    async with async_playwright() as playwright:
+        browser = await playwright.chromium.launch(
+            executable_path=CHROMIUM,
+            args=[
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--no-first-run",
+            ],
+        )
+        try:
+            yield browser
+        finally:
+            await browser.close()
+
+
+@pytest.fixture
+async def dashboard(tmp_path: Path, browser: Browser) -> AsyncIterator[tuple[Page, LiveServer]]:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data", web_dir=WEB_DIST) as server:
+            page = await browser.new_page(viewport={"width": 1400, "height": 900})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            await page.goto(server.base_url)
+            yield page, server
+            assert not errors, f"JavaScript errors: {errors}"
+            await page.close()
+
+
+async def samples_received(page: Page, axis_id: str) -> int:
+    count: int = await page.evaluate(f"window.__servotune.samplesReceived({axis_id!r})")
+    return count
+
+
+async def test_tune_kp_and_stop_in_the_browser(dashboard: tuple[Page, LiveServer]) -> None:
+    page, server = dashboard
+    await page.get_by_test_id("axis-link-line-0").click()
+    await expect(page.get_by_test_id("plot-position")).to_be_visible()
+
+    # Live plots: samples keep arriving.
+    first = await samples_received(page, "line-0")
+    await asyncio.sleep(1.0)
+    assert await samples_received(page, "line-0") > first + 10
+
+    # Move the kp slider: applied on release, read back from the simulated module.
+    await page.get_by_test_id("param-kp-slider").fill("65")
+    await expect(page.get_by_test_id("param-kp-device")).to_contain_text("65", timeout=5000)
+    assert server.bus.module(0).settings["kp"] == 65
+    await expect(page.get_by_test_id("param-kp-input")).to_have_value("65")
+
+    # Out-of-range typed value: a clear error, nothing sent.
+    await page.get_by_test_id("param-kd-input").fill("40000")
+    await page.get_by_test_id("param-kd-input").press("Enter")
+    await expect(page.get_by_test_id("error-message")).to_contain_text("32767")
+    assert server.bus.module(0).settings["kd"] == 80
+
+    # Position mode and a move, then STOP.
+    await page.get_by_test_id("cmd-position_mode").click()
+    await page.get_by_test_id("cmd-move_absolute-position").fill("3000")
+    await page.get_by_test_id("cmd-move_absolute").click()
+    for _ in range(100):
+        if server.bus.module(0).moving:
+            break
+        await asyncio.sleep(0.02)
+    await page.get_by_test_id("stop-all").click()
+    for _ in range(100):
+        if not server.bus.module(0).rss & 0b1100:  # neither pm nor vm
+            break
+        await asyncio.sleep(0.02)
+    assert not server.bus.module(0).rss & 0b1100, "STOP did not switch the controller off"
+
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    await page.screenshot(path=str(ARTIFACTS / "dashboard-slap2.png"), full_page=True)
+
+
+async def test_escape_key_stops_every_axis(dashboard: tuple[Page, LiveServer]) -> None:
+    page, server = dashboard
+    await page.get_by_test_id("axis-link-line-1").click()
+    await page.get_by_test_id("cmd-velocity_mode").click()
+    for _ in range(100):
+        if server.bus.module(1).rss & 0b0100:
+            break
+        await asyncio.sleep(0.02)
+    assert server.bus.module(1).rss & 0b0100, "velocity mode did not start"
+    await page.get_by_test_id("console-input").focus()
+    await page.keyboard.press("Escape")
+    for _ in range(100):
+        if not server.bus.module(1).rss & 0b1100:
+            break
+        await asyncio.sleep(0.02)
+    assert not server.bus.module(1).rss & 0b1100, "Esc did not stop the axis"
+
+
+async def test_console_shows_multiline_reply(dashboard: tuple[Page, LiveServer]) -> None:
+    page, _ = dashboard
+    await page.get_by_test_id("axis-link-line-0").click()
+    console = page.get_by_test_id("console-input")
+    await console.fill("rrss")
+    await console.press("Enter")
+    output = page.get_by_test_id("console-output")
+    await expect(output).to_contain_text("rrss")
+    await expect(output).to_contain_text("inpos", timeout=5000)
+
+
+async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Browser) -> None:
+    from servotune.config import LinkSpec
+    from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
+    from servotune.sim.serial_sim import PtySimulator
+    from servotune.sim.z1100 import Z1100Chip
+
+    flash = tmp_path / "flash.json"
+    _z1100_flash(flash)
+    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
+    with PtySimulator(chip, baud=38400) as sim:
+        spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
+        async with live_server(sim, chip, tmp_path / "data", web_dir=WEB_DIST, spec=spec) as server:
+            page = await browser.new_page(viewport={"width": 1400, "height": 900})
+            await page.goto(server.base_url)
+            await page.get_by_test_id("axis-link-chip-y").click()
+            await expect(page.get_by_test_id("plot-position")).to_be_visible()
+            field = page.get_by_test_id("param-kabh_k-input")
+            await field.fill("100")
+            await field.press("Enter")
+            await expect(page.get_by_test_id("param-kabh_k-device")).to_have_text(
+                "100", timeout=5000
+            )
+            assert chip.parameters(1).kabh.k == 100
+            # KABH overwrote KABD on the chip: the UI shows the device's new KABD.
+            await expect(page.get_by_test_id("param-kabd_k-device")).to_have_text("100")
+            ARTIFACTS.mkdir(parents=True, exist_ok=True)
+            await page.screenshot(path=str(ARTIFACTS / "dashboard-z1100.png"))
+            await page.close()
