@@ -56,6 +56,11 @@ class ParameterDescriptor(BaseModel):
     kind: Literal["int", "bits"] = "int"
     bits: list[BitDescriptor] = []
     slider: bool = True
+    overwrites: list[str] = Field(
+        default=[],
+        description="parameters the device changes too when this one is written (the UI "
+        "offers to write the user's values of those again)",
+    )
     slider_minimum: int | None = Field(
         default=None, description="lower end of the slider when the range is much larger"
     )

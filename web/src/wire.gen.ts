@@ -34,6 +34,7 @@ export interface ParameterDescriptor {
   kind: "int" | "bits";
   bits: BitDescriptor[];
   slider: boolean;
+  overwrites: string[];
   slider_minimum: number | null;
   slider_maximum: number | null;
 }

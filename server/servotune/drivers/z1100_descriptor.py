@@ -87,6 +87,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                     description=f"{text} Used {when}.{note}",
                     set_command=f"Set{prefix.upper()} {gain.upper()}={{value}}",
                     read_command=f"Get{prefix.upper()}",
+                    overwrites=[f"kabd_{g}" for g in GAINS] if prefix == "kabh" else [],
                 )
             )
     parameters += [
