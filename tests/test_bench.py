@@ -138,3 +138,30 @@ async def test_runs_survive_restart_and_cut_runs_become_incomplete(tmp_path: Pat
             by_id = {r["id"]: r for r in runs}
             assert by_id[run["id"]]["status"] == "complete"
             assert by_id["cut"]["status"] == "incomplete"
+
+
+async def test_velocity_test_is_stopped_at_the_travel_limit(api: LiveServer) -> None:
+    limits = {"max_distance_counts": 3000, "max_velocity": 5000, "max_pwm": 40, "max_duration_s": 5}
+    assert (await api.client.put("/api/axes/line-1/bench/limits", json=limits)).status_code == 200
+    run_id = await start(api, "line-1", kind="velocity_step", velocity=3000, duration_s=4)
+    run = await finished_run(api, "line-1", run_id)
+    assert run["status"] == "incomplete"
+    assert "exceeded your limit" in run["message"]
+    assert not api.bus.module(1).rss & 0b1100, "the axis was left running"
+    assert abs(api.bus.module(1).position) < 3000 * 1.05 + 100 + 3000  # stopped near the limit
+
+
+async def test_a_test_is_refused_while_the_axis_moves(api: LiveServer) -> None:
+    await api.client.post("/api/axes/line-0/commands", json={"command": "position_mode"})
+    await api.client.post(
+        "/api/axes/line-0/commands", json={"command": "move_relative", "distance": 15000}
+    )
+    for _ in range(100):  # the server knows the axis moves once a sample shows it
+        if (await api.state("line-0"))["flags"]["move"]:
+            break
+        await asyncio.sleep(0.02)
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json={"kind": "move", "distance": 1000}
+    )
+    assert response.status_code == 409
+    assert "moving" in response.json()["detail"]

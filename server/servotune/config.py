@@ -25,8 +25,10 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl
 
-DEVICES = ("slap2", "z1100")
-DEFAULT_BAUD = {"slap2": 19200, "z1100": 9600}
+DEVICES = ("slap2", "z1100", "ep7047")
+DEFAULT_BAUD = {"slap2": 19200, "z1100": 9600, "ep7047": 0}
+# ``ep7047:sim`` runs the simulated slave in-process instead of a NIC (demo, trials).
+SIMULATED_NIC = "sim"
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 
 
@@ -68,15 +70,23 @@ def link_from_mapping(data: dict[str, Any]) -> LinkSpec:
     path = str(data.get("path", ""))
     if not path:
         raise ConfigError("path is missing (e.g. /dev/ttyUSB0)")
-    baud = _int("baud", data.get("baud", DEFAULT_BAUD[device]), 300, 1_000_000)
-    if baud not in BAUD_RATES:
-        raise ConfigError(f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}")
+    if device == "ep7047":
+        baud = 0  # EtherCAT: no baud rate
+    else:
+        baud = _int("baud", data.get("baud", DEFAULT_BAUD[device]), 300, 1_000_000)
+        if baud not in BAUD_RATES:
+            raise ConfigError(
+                f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}"
+            )
     raw_addresses = data.get("addresses", [0])
     if isinstance(raw_addresses, str):
         raw_addresses = [a for a in raw_addresses.split(",") if a.strip()]
     addresses = [_int("addresses", a, 0, 15) for a in raw_addresses]
     if device == "z1100":
         addresses = [0, 1, 2]  # one chip, three motors: there is nothing to address
+    if device == "ep7047":
+        # The slave's position on the bus (1 = first slave after the master).
+        addresses = [_int("slave", data.get("slave", 1), 1, 65535)]
     if not addresses or len(set(addresses)) != len(addresses):
         raise ConfigError("addresses must list distinct module addresses 0..15")
     lines = _int("lines", data.get("lines", 512), 1, 1_000_000)
@@ -100,8 +110,10 @@ def parse_link_spec(spec: str) -> LinkSpec:
     path, _, query = rest.partition("?")
     data: dict[str, Any] = {"device": device, "path": path}
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
-        if key not in ("addresses", "baud", "lines", "name", "names"):
-            raise ConfigError(f"unknown link option {key!r} (addresses, baud, lines, name, names)")
+        if key not in ("addresses", "baud", "lines", "name", "names", "slave"):
+            raise ConfigError(
+                f"unknown link option {key!r} (addresses, baud, lines, name, names, slave)"
+            )
         data[key] = value
     return link_from_mapping(data)
 

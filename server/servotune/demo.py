@@ -119,4 +119,21 @@ def demo_simulators(
     return [
         lambda: slap2_demo_line(data_dir / "sim"),
         lambda: z1100_demo_line(data_dir / "sim"),
+        ep7047_demo_slave,
+    ]
+
+
+@contextlib.contextmanager
+def ep7047_demo_slave() -> Iterator[list[LinkSpec]]:
+    """One simulated EP7047-1032 (stepper, encoder, cam, C track) on the in-process
+    fake master: EtherCAT needs no pty; the link spec's NIC ``sim`` selects it."""
+    yield [
+        LinkSpec(
+            device="ep7047",
+            path="sim",
+            link_id="demo-ep7047",
+            baud=0,
+            addresses=[1],
+            names={1: "EP7047 stepper"},
+        )
     ]

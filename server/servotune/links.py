@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from servotune.config import LinkSpec
+from servotune.config import SIMULATED_NIC, LinkSpec
 from servotune.drivers.base import DriverSink, Link
+from servotune.drivers.ep7047 import build_ep7047_link
 from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
 from servotune.drivers.z1100 import Z1100Link, Z1100LinkConfig
+from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S, demo_master
 from servotune.transports.serial import SerialConnector
 
 
@@ -30,4 +32,26 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
             names=dict(spec.names),
         )
         return Z1100Link(z_config, SerialConnector(spec.path, spec.baud), sink)
+    if spec.device == "ep7047":
+        if spec.path == SIMULATED_NIC:
+            # The simulated slave in-process, behind the same master interface pysoem
+            # offers: the demo, or trying the page without hardware.
+            return build_ep7047_link(
+                spec.link_id,
+                spec.path,
+                spec.addresses[0],
+                sink,
+                master=demo_master(),
+                speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+                counts_per_rev=DEMO_COUNTS_PER_REV,
+                name=spec.names.get(spec.addresses[0]),
+            )
+        return build_ep7047_link(
+            spec.link_id,
+            spec.path,
+            spec.addresses[0],
+            sink,
+            counts_per_rev=4 * spec.lines,
+            name=spec.names.get(spec.addresses[0]),
+        )
     raise ValueError(f"unsupported device {spec.device!r}")

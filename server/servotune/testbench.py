@@ -270,7 +270,7 @@ class TestBench:
             recording.t0 = self._clock()
             await self._send(entry, plan.trigger)
             self._update(recording, "recording", "triggered")
-            await self._record(recording, test)
+            await self._record(recording, test, await self.limits(entry.info.id))
             await self._send(entry, plan.finish)
         except DriverError as exc:
             status, message = "incomplete", f"test stopped: {exc}"
@@ -299,6 +299,7 @@ class TestBench:
             finally:
                 self._active.pop(entry.info.id, None)
                 meta["message"] = message
+                meta["t0_s"] = recording.t0
                 meta["metrics"] = self._metrics(recording)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")
@@ -314,10 +315,12 @@ class TestBench:
                     raise
                 await asyncio.sleep(0.25)
 
-    async def _record(self, recording: _Recording, test: BenchTest) -> None:
+    async def _record(self, recording: _Recording, test: BenchTest, limits: BenchLimits) -> None:
         plan = recording.plan
         assert recording.t0 is not None
         start = recording.t0
+        first = recording.entry.latest
+        origin = first.channels.get("position") if first is not None else None
         settled_since: float | None = None
         last_flush = self._clock()
         while True:
@@ -332,6 +335,16 @@ class TestBench:
             if now - start >= test.duration_s:
                 return
             latest = recording.entry.latest
+            position = latest.channels.get("position") if latest is not None else None
+            if origin is not None and position is not None:
+                # Velocity and PWM tests have no end position of their own: the travel
+                # limit stops them. Moves are checked before they start.
+                travel = abs(position - origin)
+                if travel > limits.max_distance_counts * 1.05 + 100:
+                    raise DriverError(
+                        f"travel {travel:.0f} counts exceeded your limit of "
+                        f"{limits.max_distance_counts}: axis stopped"
+                    )
             if plan.done_flag and latest is not None and now - start > SETTLED_HOLD_S:
                 moving = bool(plan.moving_flag and latest.flags.get(plan.moving_flag))
                 if latest.flags.get(plan.done_flag) and not moving:

@@ -52,17 +52,18 @@ ALIASES = {
     "AxisHealth": wire.AxisHealth,
     "EventLevel": wire.EventLevel,
 }
+
+
+def _members(annotated: object) -> list[type[BaseModel]]:
+    """The models of an ``Annotated[A | B | ..., Field(discriminator=...)]`` union."""
+    union = typing.get_args(annotated)[0]
+    return list(typing.get_args(union)) or [union]
+
+
+# Derived from the schema itself, so a new message type cannot be forgotten here.
 UNIONS: dict[str, list[type[BaseModel]]] = {
-    "ServerMessage": [
-        wire.Hello,
-        wire.Telemetry,
-        wire.LinkStatus,
-        wire.AxisStatus,
-        wire.Params,
-        wire.Event,
-        wire.ClientStats,
-    ],
-    "ClientMessage": [wire.Ping],
+    "ServerMessage": _members(wire.ServerMessage),
+    "ClientMessage": _members(wire.ClientMessage),
 }
 
 

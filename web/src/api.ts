@@ -61,6 +61,79 @@ async function request<T>(method: string, path: string, body?: unknown): Promise
   return parsed as T;
 }
 
+// --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---
+
+export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step";
+
+export interface BenchLimits {
+  max_distance_counts: number;
+  max_velocity: number;
+  max_pwm: number;
+  max_duration_s: number;
+}
+
+export interface BenchInfo {
+  kinds: BenchKind[];
+  limits: BenchLimits;
+}
+
+export interface BenchTestRequest {
+  kind: BenchKind;
+  distance: number;
+  velocity: number;
+  pwm: number;
+  duration_s: number;
+  note: string;
+}
+
+/** servotune/metrics.py ``Metrics`` (times in s after the trigger t0). */
+export interface RunMetrics {
+  step?: number;
+  band?: number | null;
+  samples?: number;
+  max_sample_gap_s?: number | null;
+  rise_time_s: number | null;
+  overshoot_pct: number | null;
+  peak_time_s: number | null;
+  peak_value: number | null;
+  settling_time_s: number | null;
+  steady_state_error: number | null;
+  oscillations: number | null;
+  peak_following_error: number | null;
+  rms_following_error: number | null;
+  time_to_flag_s: Record<string, number | null>;
+  time_in_flag_s: Record<string, number>;
+}
+
+export type RunStatus = "recording" | "complete" | "incomplete";
+
+/** A stored run without its samples (``GET /api/axes/{id}/bench/runs``). */
+export interface BenchRun {
+  id: string;
+  axis_id: string;
+  created_s: number; // unix seconds
+  status: RunStatus;
+  baseline: boolean;
+  device: string;
+  model: string;
+  identity?: Record<string, unknown>;
+  test: Omit<BenchTestRequest, "kind"> & { kind: BenchKind };
+  params: Record<string, number>;
+  plan: { response: string; y0: number; y_final: number; band: number | null; overrides: Record<string, number> };
+  columns: string[]; // columns[0] == "t_s"
+  flags: string[];
+  metrics: RunMetrics | null;
+  message: string;
+  imported_from?: string | null;
+}
+
+/** A sample row: [t_s, one value per columns[1..], [flag 0/1 in flags order]]. */
+export type RunSample = [number, ...(number | null | number[])[]];
+
+export interface BenchRunDetail extends BenchRun {
+  samples: RunSample[];
+}
+
 const axis = (id: string): string => `/api/axes/${encodeURIComponent(id)}`;
 
 export const api = {
@@ -75,4 +148,17 @@ export const api = {
     request<CommandResult>("POST", `${axis(id)}/commands`, { command, ...args }),
   console: (id: string, line: string) => request<ConsoleReply>("POST", `${axis(id)}/console`, { line }),
   stopAll: () => request<{ failed: string[] }>("POST", "/api/stop"),
+  bench: (id: string) => request<BenchInfo>("GET", `${axis(id)}/bench`),
+  setBenchLimits: (id: string, limits: BenchLimits) => request<BenchLimits>("PUT", `${axis(id)}/bench/limits`, limits),
+  startRun: (id: string, test: BenchTestRequest) => request<BenchRun>("POST", `${axis(id)}/bench/runs`, test),
+  runs: (id: string) => request<BenchRun[]>("GET", `${axis(id)}/bench/runs`),
+  run: (runId: string) => request<BenchRunDetail>("GET", runUrl(runId)),
+  deleteRun: (runId: string) => request<null>("DELETE", runUrl(runId)),
+  setBaseline: (runId: string) => request<null>("POST", `${runUrl(runId)}/baseline`),
+  importRun: (id: string, meta: unknown, csv: string) =>
+    request<{ id: string }>("POST", `${axis(id)}/bench/runs/import`, { meta, csv }),
 };
+
+export function runUrl(runId: string): string {
+  return `/api/bench/runs/${encodeURIComponent(runId)}`;
+}

@@ -7,9 +7,9 @@ import type {
   Event as WireEvent,
   LinkInfo,
   LinkStatus,
-  ServerMessage,
+  RunUpdate,
 } from "./wire.gen";
-import type { WsState } from "./ws";
+import type { Incoming, WsState } from "./ws";
 
 export interface Topics {
   topology: void; // axes or links changed (hello)
@@ -17,6 +17,7 @@ export interface Topics {
   axisStatus: string; // axis id
   params: { axis: string; names: string[] };
   event: WireEvent;
+  run: RunUpdate; // bench run progress (every browser gets it)
   clientStats: void;
   ws: WsState;
   error: string;
@@ -39,6 +40,8 @@ export class Store {
   readonly uiParams = new Map<string, Map<string, number>>();
   readonly descriptors = new Map<string, Promise<DeviceDescriptor>>();
   readonly events: WireEvent[] = [];
+  /** The latest bench ``run`` message per axis (a recording one means "busy"). */
+  readonly runs = new Map<string, RunUpdate>();
   stats = { sent: 0, dropped: 0 };
   ws: WsState = { kind: "connecting", attempt: 0 };
   private readonly listeners = new Map<keyof Topics, Set<Listener<never>>>();
@@ -121,7 +124,7 @@ export class Store {
     return promise;
   }
 
-  handle(msg: ServerMessage): void {
+  handle(msg: Incoming): void {
     switch (msg.type) {
       case "telemetry":
         this.buffer(msg.axis).push(msg);
@@ -150,6 +153,10 @@ export class Store {
         this.events.push(msg);
         if (this.events.length > 1000) this.events.splice(0, this.events.length - 1000);
         this.emit("event", msg);
+        break;
+      case "run":
+        this.runs.set(msg.axis, msg);
+        this.emit("run", msg);
         break;
       case "client_stats":
         this.stats = { sent: msg.sent, dropped: msg.dropped };

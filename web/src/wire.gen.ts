@@ -227,5 +227,5 @@ export interface ErrorBody {
   field: string | null;
 }
 
-export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | ClientStats;
+export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | ClientStats;
 export type ClientMessage = Ping;

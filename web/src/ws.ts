@@ -1,5 +1,10 @@
 // The websocket: reconnects with exponential backoff and reports its state.
-import type { ClientMessage, ServerMessage } from "./wire.gen";
+import type { ClientMessage, RunUpdate, ServerMessage } from "./wire.gen";
+
+/** What the server sends. ``RunUpdate`` (bench progress) is listed on its own because the
+ * generated ``ServerMessage`` union does not include it yet; once it does, this is the
+ * same type (a repeated member of a union is harmless). */
+export type Incoming = ServerMessage | RunUpdate;
 
 export type WsState =
   | { kind: "connecting"; attempt: number }
@@ -7,7 +12,7 @@ export type WsState =
   | { kind: "waiting"; attempt: number; retryAt: number; reason: string };
 
 export interface WsHandlers {
-  message(msg: ServerMessage): void;
+  message(msg: Incoming): void;
   state(state: WsState): void;
 }
 
@@ -78,9 +83,9 @@ export class WsClient {
     };
     socket.onmessage = (event: MessageEvent) => {
       if (typeof event.data !== "string") return;
-      let msg: ServerMessage;
+      let msg: Incoming;
       try {
-        msg = JSON.parse(event.data) as ServerMessage;
+        msg = JSON.parse(event.data) as Incoming;
       } catch {
         return;
       }

@@ -6,10 +6,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from servotune.api.routes import ERRORS
 from servotune.hub import NotFoundError
+from servotune.metrics import Metrics
 from servotune.testbench import BenchLimits, BenchTestRequest, TestBench
 
 router = APIRouter(tags=["bench"])
@@ -26,6 +27,7 @@ BenchDep = Annotated[TestBench, Depends(get_bench)]
 class BenchInfo(BaseModel):
     kinds: list[str]
     limits: BenchLimits
+    definitions: dict[str, str] = Field(description="how each metric is computed")
 
 
 class ImportRequest(BaseModel):
@@ -40,7 +42,11 @@ def _missing(run_id: str) -> NotFoundError:
 @router.get("/api/axes/{axis_id}/bench", response_model=BenchInfo, responses=ERRORS)
 async def bench_info(axis_id: str, bench: BenchDep) -> BenchInfo:
     """The tests this axis' device can run, and the user's limits for them."""
-    return BenchInfo(kinds=bench.kinds(axis_id), limits=await bench.limits(axis_id))
+    return BenchInfo(
+        kinds=bench.kinds(axis_id),
+        limits=await bench.limits(axis_id),
+        definitions=dict(Metrics.definitions),
+    )
 
 
 @router.put("/api/axes/{axis_id}/bench/limits", response_model=BenchLimits, responses=ERRORS)

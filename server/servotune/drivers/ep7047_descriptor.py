@@ -206,7 +206,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
     )
 
     def velocity_parameter(
-        name: str, label: str, default: int, minimum: int, text: str
+        name: str, label: str, default: int, minimum: int, text: str, group: str = "velocity"
     ) -> ParameterDescriptor:
         obj = PARAMETER_SDO[name]
         return ParameterDescriptor(
@@ -217,7 +217,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             maximum=VELOCITY_MAX_BP,
             default=default,
             persisted=True,
-            group="velocity" if "calibration" not in name else "calibration",
+            group=group,
             description=f"{text} {range_text}",
             set_command=_sdo_set(obj),
             read_command=_sdo_read(obj),
@@ -359,8 +359,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             name="default_start_type",
             label="Default start type",
             unit="",
-            minimum=min(StartType),
-            maximum=max(StartType),
+            minimum=int(min(StartType)),
+            maximum=int(max(StartType)),
             default=int(StartType.ABSOLUTE),
             persisted=True,
             group="features",
@@ -394,6 +394,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             100,
             0,
             "Velocity of a calibration while it drives onto the cam (no ramp).",
+            group="calibration",
         ),
         velocity_parameter(
             "calibration_velocity_off_cam_bp",
@@ -401,6 +402,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             10,
             0,
             "Velocity while it drives off the cam and on to the C-track pulse (no ramp).",
+            group="calibration",
         ),
         ParameterDescriptor(
             name=INVERSION_PARAMETER,
@@ -732,8 +734,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 ArgumentDescriptor(
                     name="start_type",
                     label="Start type",
-                    minimum=min(StartType),
-                    maximum=max(StartType),
+                    minimum=int(min(StartType)),
+                    maximum=int(max(StartType)),
                     default=int(StartType.ABSOLUTE),
                     choices=start_type_choices,
                 ),

@@ -847,6 +847,10 @@ class Slap2Axis(AxisDriver):
         velocity step is ``vm`` at the given sv; a PWM step is ``spwm``. Position
         tests end with the controller holding (pm), velocity and PWM tests with st.
         """
+        if latest.flags.get("move") or latest.flags.get("vm"):
+            raise DeviceRefusedError(
+                "the axis is moving: a test must start from rest (wait, or press STOP)"
+            )
         position = latest.channels.get("position") or 0.0
         band = float(params.get("inpos_window", 5))
         faults = ["oc", "limit1", "limit2"]

@@ -4,6 +4,7 @@ import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
 import { UnitPrefs } from "../units";
 import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
+import { BenchView } from "./bench";
 import { Controls, makeRunner } from "./commands";
 import { ConsolePanel } from "./console";
 import { PlotStack } from "./plots";
@@ -18,6 +19,8 @@ export const HEALTH_TEXT: Record<string, string> = {
 
 /** Whether the console pane is unfolded, kept across axis switches. */
 let consoleOpen = false;
+/** Whether the bench replaces the scope, kept across axis switches and reloads. */
+let benchOpen = localStorage.getItem("servotune.view") === "bench";
 
 export class AxisView {
   readonly el: HTMLElement;
@@ -29,11 +32,26 @@ export class AxisView {
   private readonly health: HTMLElement;
   private readonly banner: HTMLElement;
   private readonly operated: HTMLElement;
+  private bench: BenchView | null = null;
+  private benchArea: HTMLElement | null = null;
+  private descriptor: DeviceDescriptor | null = null;
+  private readonly liveButton: HTMLButtonElement;
+  private readonly benchButton: HTMLButtonElement;
 
   constructor(private readonly axis: AxisInfo) {
     this.health = h("span", { class: "badge health", testid: "axis-health" });
     this.operated = h("span", { class: "badge subtle", testid: "axis-operated" });
     this.banner = h("div", { class: "banner-slot" });
+    this.liveButton = h(
+      "button",
+      { class: "seg-btn", testid: "live-toggle", title: "Live scope, readouts and commands", onclick: () => this.setBench(false) },
+      "Live",
+    );
+    this.benchButton = h(
+      "button",
+      { class: "seg-btn", testid: "bench-toggle", title: "Tuning test bench: repeatable tests, metrics, run comparison", onclick: () => this.setBench(true) },
+      "Bench",
+    );
     this.el = h(
       "div",
       { class: "axis-view loading", "data-axis": axis.id },
@@ -59,7 +77,31 @@ export class AxisView {
       return;
     }
     if (this.abort.signal.aborted) return;
+    this.descriptor = descriptor;
     this.render(descriptor);
+  }
+
+  /** Show the bench (built on first use) instead of the scope, or the scope again. */
+  setBench(open: boolean): void {
+    benchOpen = open;
+    try {
+      localStorage.setItem("servotune.view", open ? "bench" : "live");
+    } catch {
+      /* private mode */
+    }
+    this.syncView();
+  }
+
+  private syncView(): void {
+    toggleClass(this.liveButton, "on", !benchOpen);
+    toggleClass(this.benchButton, "on", benchOpen);
+    this.benchButton.setAttribute("aria-pressed", benchOpen ? "true" : "false");
+    toggleClass(this.el, "bench-open", benchOpen);
+    if (benchOpen && !this.bench && this.descriptor && this.benchArea) {
+      this.bench = new BenchView(this.axis.id, this.descriptor, this.abort.signal);
+      replace(this.benchArea, this.bench.el);
+    }
+    if (benchOpen) void this.bench?.refresh();
   }
 
   private render(d: DeviceDescriptor): void {
@@ -72,6 +114,7 @@ export class AxisView {
     this.controls = new Controls(axis.id, d);
     const tuning = new TuningPanel(axis.id, d, signal);
     const consolePanel = new ConsolePanel(axis.id, axis.name, d);
+    this.benchArea = h("section", { class: "bench-area" });
 
     const header = h(
       "div",
@@ -86,6 +129,7 @@ export class AxisView {
         h("span", { class: "axis-meta mono" }, `${axis.id} · ${axis.link} · addr ${axis.address}`),
         h("span", { class: "tb-spacer" }),
         this.controls.status,
+        h("div", { class: "seg view-toggle", role: "group", "aria-label": "View" }, this.liveButton, this.benchButton),
       ),
       h("div", { class: "axis-summary", title: `${d.title} — ${d.summary}` }, h("b", null, d.title), " — ", d.summary),
     );
@@ -123,9 +167,10 @@ export class AxisView {
       this.banner,
       this.readouts.el,
       this.controls.el,
-      h("div", { class: "work" }, h("section", { class: "scope-area" }, this.plots.el), side),
+      h("div", { class: "work" }, h("section", { class: "scope-area" }, this.plots.el), this.benchArea, side),
     );
     this.el.classList.remove("loading");
+    this.syncView();
 
     const restore = d.commands.find((c) => c.name === "restore_parameters");
     const bannerRunner = makeRunner(axis.id, this.controls.status);
@@ -184,7 +229,7 @@ export class AxisView {
 
   /** Animation frame: plots redraw if new data arrived; readouts at about 10 Hz. */
   frame(now: number): void {
-    this.plots?.update();
+    if (!benchOpen || !this.bench) this.plots?.update();
     if (now - this.lastSlow > 100) {
       this.lastSlow = now;
       this.readouts?.update();

@@ -28,6 +28,7 @@ class ParamRow {
   private readonly conversions: HTMLElement;
   private readonly error: HTMLElement;
   private readonly checks: Map<number, HTMLInputElement> = new Map();
+  private readonly sliderMin: number;
   private readonly sliderMax: number;
   private forceInput = false;
   private busy = 0;
@@ -36,6 +37,10 @@ class ParamRow {
     private readonly axisId: string,
     readonly p: ParameterDescriptor,
   ) {
+    // The slider covers the useful range (slider_minimum..slider_maximum, e.g. a signed
+    // velocity of ±20000 out of ±65535); the field takes the whole range, and the
+    // slider stretches to a value beyond its range (marked "extended").
+    this.sliderMin = Math.max(p.minimum, p.slider_minimum ?? p.minimum);
     this.sliderMax = Math.min(p.maximum, p.slider_maximum ?? p.maximum);
     const tip = `${p.description}\n\n${p.name} · range ${rangeText(p)}${p.default !== null ? ` · default ${p.default}` : ""}${p.persisted ? " · stored by the device's save command" : ""}`;
     this.input = h("input", {
@@ -72,7 +77,7 @@ class ParamRow {
       "div",
       { class: "param-label", title: tip },
       h("span", { class: "param-name" }, p.label),
-      p.persisted ? h("span", { class: "tag eeprom", title: "Stored in the device's non-volatile memory by its save command" }, "EEPROM") : null,
+      p.persisted ? h("span", { class: "tag persist", title: "stored by the device's save command" }, "saved") : null,
     );
     let control: HTMLElement;
     if (p.kind === "bits") {
@@ -93,7 +98,7 @@ class ParamRow {
         this.slider = h("input", {
           class: "slider",
           type: "range",
-          min: p.minimum,
+          min: this.sliderMin,
           max: this.sliderMax,
           step: 1,
           testid: `param-${p.name}-slider`,
@@ -203,8 +208,11 @@ class ParamRow {
     toggleClass(this.input, "invalid", !ok);
     if (this.slider && value !== undefined) {
       const top = Math.max(this.sliderMax, Math.min(value, p.maximum));
+      const bottom = Math.min(this.sliderMin, Math.max(value, p.minimum));
       if (Number(this.slider.max) !== top) this.slider.max = String(top);
+      if (Number(this.slider.min) !== bottom) this.slider.min = String(bottom);
       toggleClass(this.slider, "extended", top > this.sliderMax);
+      toggleClass(this.slider, "extended-low", bottom < this.sliderMin);
       if (document.activeElement !== this.slider || this.slider.value !== String(value)) {
         if (this.slider.value !== String(value)) this.slider.value = String(value);
       }
