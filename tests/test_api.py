@@ -19,7 +19,6 @@ import websockets
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus
 
 from .conftest import running_simulator, wait_for
 
@@ -29,8 +28,8 @@ class LiveServer:
     base_url: str
     ws_url: str
     client: httpx.AsyncClient
-    simulator: PtySimulator
-    bus: Slap2Bus
+    simulator: Any
+    bus: Any
 
     async def state(self, axis_id: str) -> dict[str, Any]:
         response = await self.client.get(f"/api/axes/{axis_id}/state")
@@ -48,14 +47,16 @@ def free_port() -> int:
 
 @contextlib.asynccontextmanager
 async def live_server(
-    simulator: PtySimulator,
+    simulator: PtySimulator | None,
     bus: Any,
     data_dir: Path,
     *,
     web_dir: Path | None = None,
     spec: LinkSpec | None = None,
 ) -> AsyncIterator[LiveServer]:
-    spec = spec or LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
+    if spec is None:
+        assert simulator is not None
+        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
     config = AppConfig(links=[spec], data_dir=data_dir, web_dir=web_dir or data_dir / "no-web")
     app = create_app(config)
     port = free_port()

@@ -159,3 +159,31 @@ async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Brow
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             await page.screenshot(path=str(ARTIFACTS / "dashboard-z1100.png"))
             await page.close()
+
+
+async def test_ep7047_modulo_plus_move_ends_in_target(tmp_path: Path, browser: Browser) -> None:
+    from servotune.config import LinkSpec
+
+    spec = LinkSpec("ep7047", "sim", "ep", 0, [1])
+    async with live_server(None, None, tmp_path / "data", web_dir=WEB_DIST, spec=spec) as server:
+        page = await browser.new_page(viewport={"width": 1400, "height": 900})
+        await page.goto(server.base_url)
+        await page.get_by_test_id("axis-link-ep-1").click()
+        await page.get_by_test_id("cmd-enable").click()
+        await expect(page.get_by_test_id("flag-stm_ready")).to_have_attribute("data-on", "1")
+        await page.get_by_test_id("cmd-execute_move-start_type").select_option(
+            label="MODULO_PLUS (0x0205)"
+        )
+        await page.get_by_test_id("cmd-execute_move-target").fill("1024")
+        await page.get_by_test_id("cmd-execute_move").click()
+        await expect(page.get_by_test_id("flag-busy")).to_have_attribute("data-on", "1")
+        await expect(page.get_by_test_id("flag-in_target")).to_have_attribute(
+            "data-on", "1", timeout=10_000
+        )
+        await expect(page.get_by_test_id("flag-busy")).to_have_attribute("data-on", "0")
+        state = (await server.client.get("/api/axes/ep-1/state")).json()
+        # Modulo factor of the demo axis: one turn of 4096 counts; target 1024 in it.
+        assert round(state["position"]) % 4096 == 1024
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        await page.screenshot(path=str(ARTIFACTS / "dashboard-ep7047.png"))
+        await page.close()
