@@ -70,13 +70,19 @@ class ParameterDescriptor(BaseModel):
 
 
 class ChannelDescriptor(BaseModel):
-    """A telemetry channel streamed over the websocket."""
+    """A telemetry channel streamed over the websocket.
+
+    ``value_names`` makes it an enumeration (e.g. a drive state): the UI shows the
+    name of the value (keys are the values as decimal strings) and plots it as a
+    timeline of named states.
+    """
 
     name: str
     label: str
     unit: str
     description: str
     conversions: list[Conversion] = []
+    value_names: dict[str, str] = {}
 
 
 class FlagDescriptor(BaseModel):
@@ -97,7 +103,7 @@ class PlotDescriptor(BaseModel):
     label: str
     unit: str
     series: list[str]
-    kind: Literal["line", "flags"] = "line"
+    kind: Literal["line", "flags", "states"] = "line"
 
 
 class Choice(BaseModel):

@@ -45,6 +45,7 @@ export interface ChannelDescriptor {
   unit: string;
   description: string;
   conversions: Conversion[];
+  value_names: Record<string, string>;
 }
 
 export interface FlagDescriptor {
@@ -61,7 +62,7 @@ export interface PlotDescriptor {
   label: string;
   unit: string;
   series: string[];
-  kind: "line" | "flags";
+  kind: "line" | "flags" | "states";
 }
 
 export interface Choice {

@@ -483,6 +483,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 + ", ".join(f"{s.value:#06x} {s.name}" for s in codec.DriveState)
                 + ". Sampled: states that last one 250 µs cycle are usually not seen."
             ),
+            value_names={str(s.value): s.name for s in codec.DriveState},
         ),
     ]
 
@@ -631,6 +632,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             label="Drive state (0x9020:03, sampled)",
             unit="id",
             series=["drive_state"],
+            kind="states",
         ),
         PlotDescriptor(
             name="flags",
