@@ -35,6 +35,7 @@ from servotune.drivers.base import (
     Link,
     Sample,
 )
+from servotune.drivers.validation import validate_command, validate_params
 from servotune.storage import Storage
 from servotune.wire import (
     AxisHealth,
@@ -280,68 +281,6 @@ class Hub:
 
     # --- the one command path ---------------------------------------------------------
 
-    def _validate_params(self, entry: AxisEntry, values: Mapping[str, object]) -> dict[str, int]:
-        if not values:
-            raise InvalidArgumentError("body", "no parameters given")
-        descriptor = entry.driver.descriptor
-        checked: dict[str, int] = {}
-        for name, value in values.items():
-            try:
-                parameter = descriptor.parameter(name)
-            except KeyError:
-                known = ", ".join(p.name for p in descriptor.parameters)
-                raise InvalidArgumentError(
-                    name, f"{name}: unknown parameter for {descriptor.model} (known: {known})"
-                ) from None
-            unit = f" {parameter.unit}" if parameter.unit else ""
-            allowed = f"{parameter.minimum}..{parameter.maximum}{unit}"
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise InvalidArgumentError(name, f"{name} must be an integer in {allowed}")
-            if not parameter.minimum <= value <= parameter.maximum:
-                raise InvalidArgumentError(
-                    name, f"{name} = {value} is out of range: allowed {allowed}"
-                )
-            checked[name] = value
-        return checked
-
-    def _validate_command(
-        self, entry: AxisEntry, name: str, args: Mapping[str, object]
-    ) -> dict[str, int]:
-        descriptor = entry.driver.descriptor
-        try:
-            command = descriptor.command(name)
-        except KeyError:
-            known = ", ".join(c.name for c in descriptor.commands)
-            raise InvalidArgumentError(
-                "command", f"unknown command {name!r} (known: {known})"
-            ) from None
-        expected = {a.name: a for a in command.arguments}
-        extra = set(args) - set(expected)
-        if extra:
-            raise InvalidArgumentError(
-                sorted(extra)[0], f"{name} takes no argument {sorted(extra)[0]!r}"
-            )
-        checked: dict[str, int] = {}
-        for argument in command.arguments:
-            allowed = f"{argument.minimum}..{argument.maximum}"
-            if argument.unit:
-                allowed += f" {argument.unit}"
-            if argument.name not in args:
-                raise InvalidArgumentError(
-                    argument.name, f"{name} needs {argument.name} ({allowed})"
-                )
-            value = args[argument.name]
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise InvalidArgumentError(
-                    argument.name, f"{argument.name} must be an integer in {allowed}"
-                )
-            if not argument.minimum <= value <= argument.maximum:
-                raise InvalidArgumentError(
-                    argument.name, f"{argument.name} = {value} is out of range: allowed {allowed}"
-                )
-            checked[argument.name] = value
-        return checked
-
     def mark_operated(self, entry: AxisEntry) -> None:
         """A user acts on the axis: the demo autopilot leaves it alone from now on."""
         self._operate(entry)
@@ -358,13 +297,13 @@ class Hub:
     async def write_params(self, axis_id: str, values: Mapping[str, object]) -> dict[str, int]:
         """Validate all values (422 before anything is sent), write, read back."""
         entry = self.entry(axis_id)
-        checked = self._validate_params(entry, values)
+        checked = validate_params(entry.driver.descriptor, values)
         self._operate(entry)
         return await entry.driver.write_params(checked)
 
     async def command(self, axis_id: str, name: str, args: Mapping[str, object]) -> CommandOutcome:
         entry = self.entry(axis_id)
-        checked = self._validate_command(entry, name, args)
+        checked = validate_command(entry.driver.descriptor, name, args)
         self._operate(entry)
         if name == "restore_parameters":
             return await self._restore(entry)

@@ -110,6 +110,7 @@ from servotune.drivers.ep7047_descriptor import (
     STM_FLAGS,
     ep7047_descriptor,
 )
+from servotune.drivers.validation import validate_command
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     CHANGE_START_TYPES,
@@ -1903,37 +1904,8 @@ class Ep7047Axis(AxisDriver):
     # --- commands -------------------------------------------------------------------------
 
     def _check_args(self, name: str, args: Mapping[str, int]) -> dict[str, int]:
-        try:
-            command = self.descriptor.command(name)
-        except KeyError:
-            known = ", ".join(c.name for c in self.descriptor.commands)
-            raise InvalidArgumentError(
-                "command", f"unknown command {name!r} (known: {known})"
-            ) from None
-        checked: dict[str, int] = {}
-        for argument in command.arguments:
-            allowed = f"{argument.minimum}..{argument.maximum}"
-            if argument.unit:
-                allowed += f" {argument.unit}"
-            if argument.name not in args:
-                raise InvalidArgumentError(
-                    argument.name, f"{name} needs {argument.name} ({allowed})"
-                )
-            value = args[argument.name]
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise InvalidArgumentError(
-                    argument.name, f"{argument.name} must be an integer in {allowed}"
-                )
-            if not argument.minimum <= value <= argument.maximum:
-                raise InvalidArgumentError(
-                    argument.name, f"{argument.name} = {value} is out of range: allowed {allowed}"
-                )
-            checked[argument.name] = value
-        extra = set(args) - set(checked)
-        if extra:
-            first = sorted(extra)[0]
-            raise InvalidArgumentError(first, f"{name} takes no argument {first!r}")
-        return checked
+        """The hub checks too; a direct caller (tests, scripts) gets the same checks."""
+        return validate_command(self.descriptor, name, args)
 
     def _start_request(self, args: Mapping[str, int]) -> _Request:
         code = args["start_type"]
