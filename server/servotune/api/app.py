@@ -15,9 +15,11 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from servotune import __version__
+from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -69,6 +71,7 @@ def create_app(config: AppConfig) -> FastAPI:
             bench = TestBench(hub, storage)
             app.state.hub = hub
             app.state.bench = bench
+            app.state.autotuner = AutoTuner(hub, bench)
             app.state.storage = storage
             await hub.start()
             await bench.start()
@@ -89,6 +92,7 @@ def create_app(config: AppConfig) -> FastAPI:
     )
     app.include_router(router)
     app.include_router(bench_router)
+    app.include_router(autotune_router)
     app.include_router(param_set_router)
 
     @app.exception_handler(InvalidArgumentError)

@@ -852,6 +852,10 @@ class Slap2Axis(AxisDriver):
                 "the axis is moving: a test must start from rest (wait, or press STOP)"
             )
         position = latest.channels.get("position") or 0.0
+        if latest.flags.get("pm") and latest.channels.get("setpoint") is not None:
+            # mr is relative to the target the controller holds, not to where the shaft
+            # happens to stand within its hold error.
+            position = float(latest.channels["setpoint"] or position)
         band = float(params.get("inpos_window", 5))
         faults = ["oc", "limit1", "limit2"]
         if test.kind in ("move", "position_step"):
