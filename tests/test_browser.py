@@ -187,3 +187,36 @@ async def test_ep7047_modulo_plus_move_ends_in_target(tmp_path: Path, browser: B
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         await page.screenshot(path=str(ARTIFACTS / "dashboard-ep7047.png"))
         await page.close()
+
+
+async def test_bench_overlays_two_runs_with_different_kp(
+    dashboard: tuple[Page, LiveServer],
+) -> None:
+    page, server = dashboard
+    await page.get_by_test_id("axis-link-line-0").click()
+    await page.get_by_test_id("bench-toggle").click()
+    await page.get_by_test_id("bench-kind").select_option("move")
+    await page.get_by_test_id("bench-distance").fill("2000")
+    run_ids: list[str] = []
+    for kp in (40, 120):
+        response = await server.client.patch("/api/axes/line-0/params", json={"kp": kp})
+        assert response.status_code == 200
+        await expect(page.get_by_test_id("bench-run")).to_be_enabled(timeout=10_000)
+        await page.get_by_test_id("bench-run").click()
+        await expect(page.get_by_test_id("bench-progress")).to_have_attribute(
+            "data-status", "complete", timeout=15_000
+        )
+        runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+        run_ids = [r["id"] for r in runs]
+    assert len(run_ids) == 2
+    for run_id in run_ids:
+        checkbox = page.get_by_test_id(f"bench-run-select-{run_id}")
+        if not await checkbox.is_checked():
+            await checkbox.check()
+        # A metric row per run, with a value from the server.
+        cell = page.get_by_test_id(f"bench-metric-{run_id}-rise_time_s")
+        await expect(cell).not_to_have_attribute("data-value", "")
+    await expect(page.get_by_test_id("bench-overlay")).to_have_attribute("data-series", "2")
+    await expect(page.get_by_test_id("bench-param-diff")).to_contain_text("kp")
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    await page.screenshot(path=str(ARTIFACTS / "bench-overlay.png"), full_page=True)
