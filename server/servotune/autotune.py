@@ -1315,6 +1315,7 @@ class AutoTuner:
         """Identify the plant within the user's limits and propose gains (see module doc)."""
         entry = self._check_device(axis_id)
         async with self._lock(axis_id):  # acquired at once: a second call is refused
+            await self._hub.take_over(entry)  # the demo autopilot lets go, moves end
             distance = await self._check_request(entry, request)
             current = self._current_gains(entry)
             session = self._session(axis_id)
@@ -1600,11 +1601,15 @@ class AutoTuner:
             session.result = result
             tuned_settle = result["measured"].get("settling_time_s")
             base_settle = (result["baseline_measured"] or {}).get("settling_time_s")
+
+            def ms(value: float | None) -> str:
+                return "never" if value is None else f"{value * 1000:.0f} ms"
+
             self._set(
                 session,
                 "verified",
-                f"verified: {result['verdict']} (settling {tuned_settle} s, baseline "
-                f"{base_settle} s)",
+                f"verified: {result['verdict']} (settles in {ms(tuned_settle)}; with the "
+                f"previous gains {ms(base_settle)})",
             )
             return result
 

@@ -281,6 +281,21 @@ class Hub:
 
     # --- the one command path ---------------------------------------------------------
 
+    async def take_over(self, entry: AxisEntry, timeout_s: float = 8.0) -> None:
+        """Mark the axis operated; if the demo autopilot was moving it, wait (up to
+        ``timeout_s``) for that move to end, so a test can start from rest."""
+        was_operated = entry.operated
+        self._operate(entry)
+        driver = entry.driver
+        if was_operated or not self.autopilot or not isinstance(driver, Autopilot):
+            return
+        deadline = self._clock() + timeout_s
+        while self._clock() < deadline:
+            latest = entry.latest
+            if latest is not None and driver.autopilot_settled(latest):
+                return
+            await asyncio.sleep(0.05)
+
     def mark_operated(self, entry: AxisEntry) -> None:
         """A user acts on the axis: the demo autopilot leaves it alone from now on."""
         self._operate(entry)

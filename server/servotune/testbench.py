@@ -154,6 +154,7 @@ class TestBench:
         self._check_limits(request, limits)
         if axis_id in self._active:
             raise DeviceRefusedError("a test is already running on this axis")
+        await self._hub.take_over(entry)
         if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
             raise DeviceRefusedError("the axis is not connected: no telemetry")
         test = BenchTest(

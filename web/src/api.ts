@@ -134,7 +134,97 @@ export interface BenchRunDetail extends BenchRun {
   samples: RunSample[];
 }
 
+// --- parameter sets (server/servotune/api/param_set_routes.py) ---
+
+/** A named set of parameter values as read from the device when it was saved. */
+export interface ParamSet {
+  name: string;
+  created_s: number; // unix seconds
+  device: string;
+  params: Record<string, number>;
+  note: string;
+}
+
+/** ``device`` read now against the set; ``differing``: parameters whose values differ. */
+export interface ParamSetComparison {
+  name: string;
+  device: Record<string, number>;
+  saved: Record<string, number>;
+  differing: string[];
+}
+
+// --- auto-tune (server/servotune/api/autotune_routes.py, servotune/autotune.py) ---
+
+export type AutoTuneGoal = "no_overshoot" | "fast";
+
+/** ``POST .../autotune/identify``: the user's limits and the goal. */
+export interface AutoTuneRequest {
+  max_pwm: number;
+  max_distance_counts: number;
+  response: AutoTuneGoal;
+  /** The bench test tuned for and verified with (server default position_step). */
+  test?: "position_step" | "move";
+  /** Identification and tests towards positive (1) or negative (-1) counts. */
+  direction?: 1 | -1;
+  /** Distance of the tests, counts (server default: 1000 or half the distance limit). */
+  distance?: number;
+}
+
+/** Gains by parameter name (kp, ki, kd for the SLAP2). */
+export type GainSet = Record<string, number>;
+
+/** The proposal: fitted model, gains, the metrics predicted on the model. */
+export interface AutoTuneProposal {
+  model: Record<string, number>; // gain_counts_s_per_pwm, tau_s, friction_pwm, rms_error_counts, samples, delay_s
+  test?: Record<string, number>; // the move tuned for: distance, velocity, acceleration, band, ...
+  response?: AutoTuneGoal;
+  gains: GainSet;
+  current_gains: GainSet;
+  predicted: RunMetrics;
+  predicted_default: RunMetrics; // the gains in use, on the same model
+  predicted_peak_pwm?: number;
+  predicted_excursion?: number;
+  default_excursion?: number;
+  design?: Record<string, unknown>;
+  rule: string;
+  candidates?: number;
+  simulations?: number;
+  identification_run_id: string;
+  identification_run_ids?: string[]; // every attempt (a failed fit is repeated)
+  travel_counts?: number;
+  warnings?: string[]; // doubts about the model, in words
+  baseline_possible?: boolean;
+}
+
+/** ``POST .../autotune/accept``: baseline test, write, verification test. */
+export interface AutoTuneResult {
+  gains?: GainSet;
+  previous_gains?: GainSet;
+  predicted: RunMetrics;
+  measured: RunMetrics | null;
+  predicted_default?: RunMetrics;
+  baseline_measured?: RunMetrics | null;
+  verification_run_id: string;
+  baseline_run_id: string | null;
+  baseline_note?: string;
+  verdict?: "better" | "not better" | "unknown" | string;
+}
+
+export interface AutoTuneSession {
+  axis: string;
+  state: "idle" | "identifying" | "proposed" | "verifying" | "verified" | "failed" | string;
+  message: string;
+  request: (AutoTuneRequest & Record<string, unknown>) | null;
+  identification_run_id: string | null;
+  model?: Record<string, number> | null;
+  proposal: AutoTuneProposal | null;
+  result: AutoTuneResult | null;
+  updated_s: number;
+}
+
 const axis = (id: string): string => `/api/axes/${encodeURIComponent(id)}`;
+/** Set names may hold '#', ' ', '+', ... : always one encoded path segment. */
+const paramSet = (id: string, name: string): string => `${axis(id)}/param-sets/${encodeURIComponent(name)}`;
 
 export const api = {
   axes: () => request<AxisInfo[]>("GET", "/api/axes"),
@@ -157,6 +247,16 @@ export const api = {
   setBaseline: (runId: string) => request<null>("POST", `${runUrl(runId)}/baseline`),
   importRun: (id: string, meta: unknown, csv: string) =>
     request<{ id: string }>("POST", `${axis(id)}/bench/runs/import`, { meta, csv }),
+  paramSets: (id: string) => request<ParamSet[]>("GET", `${axis(id)}/param-sets`),
+  saveParamSet: (id: string, name: string, note: string) =>
+    request<{ name: string; params: Record<string, number> }>("POST", `${axis(id)}/param-sets`, { name, note }),
+  compareParamSet: (id: string, name: string) => request<ParamSetComparison>("GET", `${paramSet(id, name)}/compare`),
+  restoreParamSet: (id: string, name: string) => request<Record<string, number>>("POST", `${paramSet(id, name)}/restore`),
+  deleteParamSet: (id: string, name: string) => request<null>("DELETE", paramSet(id, name)),
+  autotune: (id: string) => request<AutoTuneSession>("GET", `${axis(id)}/autotune`),
+  autotuneIdentify: (id: string, body: AutoTuneRequest) => request<AutoTuneProposal>("POST", `${axis(id)}/autotune/identify`, body),
+  autotuneAccept: (id: string) => request<AutoTuneResult>("POST", `${axis(id)}/autotune/accept`),
+  autotuneRevert: (id: string) => request<Record<string, number>>("POST", `${axis(id)}/autotune/revert`),
 };
 
 export function runUrl(runId: string): string {

@@ -43,3 +43,12 @@ export function formatClock(date: Date): string {
   const p = (n: number, w = 2): string => String(n).padStart(w, "0");
   return `${p(date.getHours())}:${p(date.getMinutes())}:${p(date.getSeconds())}.${p(date.getMilliseconds(), 3)}`;
 }
+
+/** A stored item's time (unix seconds): "14:03:22" today, "11-23 14:03" before. */
+export function clock(unixS: number): { time: string; full: string } {
+  const d = new Date(unixS * 1000);
+  const p = (n: number): string => String(n).padStart(2, "0");
+  const time = `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}`;
+  const today = new Date().toDateString() === d.toDateString();
+  return { time: today ? time : `${p(d.getMonth() + 1)}-${p(d.getDate())} ${time.slice(0, 5)}`, full: d.toLocaleString() };
+}

@@ -16,6 +16,7 @@ export interface Topics {
   link: string; // link id whose status changed
   axisStatus: string; // axis id
   params: { axis: string; names: string[] };
+  uiParams: string; // axis id: the user changed a value in the tuning fields
   event: WireEvent;
   run: RunUpdate; // bench run progress (every browser gets it)
   clientStats: void;

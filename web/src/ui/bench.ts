@@ -12,14 +12,15 @@ import {
   type BenchRun,
   type BenchRunDetail,
   type BenchTestRequest,
-  type RunMetrics,
 } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
-import { metricHelp } from "../metrics";
+import { clock } from "../format";
 import { store } from "../store";
 import type { Conversion, DeviceDescriptor, RunUpdate } from "../wire.gen";
+import { AutoTunePanel } from "./autotune";
 import { type Target, type Trace, Overlay, plotTheme, valueAt } from "./benchplot";
 import { confirmDialog, errorText, statusLabel } from "./feedback";
+import { type MetricColumn, metricCell, metricColumns, ms, num } from "./metriccols";
 
 /** The recorder arms this long before the trigger (servotune/testbench.py PRE_TRIGGER_S). */
 const PRE_TRIGGER_S = 0.2;
@@ -120,27 +121,6 @@ function shortId(id: string): string {
   return `#${id.slice(0, 4)}`;
 }
 
-function clock(unixS: number): { time: string; full: string } {
-  const d = new Date(unixS * 1000);
-  const p = (n: number): string => String(n).padStart(2, "0");
-  const time = `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}`;
-  const today = new Date().toDateString() === d.toDateString();
-  return { time: today ? time : `${p(d.getMonth() + 1)}-${p(d.getDate())} ${time.slice(0, 5)}`, full: d.toLocaleString() };
-}
-
-function num(v: number): string {
-  const abs = Math.abs(v);
-  if (Number.isInteger(v)) return String(v);
-  if (abs >= 100) return v.toFixed(0);
-  if (abs >= 10) return v.toFixed(1);
-  return v.toFixed(2);
-}
-
-const ms = (s: number): string => {
-  const v = s * 1000;
-  if (v === 0) return "0";
-  return Math.abs(v) >= 100 ? v.toFixed(0) : v.toFixed(1);
-};
 
 function testSize(run: BenchRun, units: Record<FieldName, string>, withUnit = true): string {
   const field = KINDS[run.test.kind]?.field ?? "distance";
@@ -148,22 +128,6 @@ function testSize(run: BenchRun, units: Record<FieldName, string>, withUnit = tr
   const unit = withUnit ? units[field] : "";
   return `${value > 0 && field === "distance" ? "+" : ""}${value}${unit ? ` ${unit}` : ""}`;
 }
-
-// --- metrics columns -----------------------------------------------------------------
-
-interface MetricColumn {
-  key: string; // testid suffix: bench-metric-{run}-{key}
-  label: string;
-  unit: string;
-  help: string;
-  get(m: RunMetrics): number | null | undefined;
-  text(v: number): string;
-  /** An absolute difference below this is not "better" or "worse". */
-  slack: number;
-}
-
-/** Relative change that colours a cell against the baseline. */
-const DELTA = 0.1;
 
 export class BenchView {
   readonly el: HTMLElement;
@@ -184,6 +148,7 @@ export class BenchView {
   private readonly limitInputs = new Map<keyof BenchLimits, HTMLInputElement>();
   private limitsSave: HTMLButtonElement | null = null;
   private readonly limitsStatus: HTMLElement;
+  private readonly autotune: AutoTunePanel;
   private readonly response: Overlay;
   private readonly following: Overlay;
   private readonly responseTitle: HTMLElement;
@@ -203,7 +168,6 @@ export class BenchView {
   private refreshAgain = false;
   private finished = new Set<string>(); // runs that finished while we watched: select them
   private drawToken = 0;
-  private readonly flagLabel: Map<string, string>;
 
   constructor(
     private readonly axisId: string,
@@ -211,7 +175,6 @@ export class BenchView {
     private readonly signal: AbortSignal,
   ) {
     this.descriptor = descriptor;
-    this.flagLabel = new Map(descriptor.flags.map((f) => [f.name, f.label]));
     this.form = forms.get(axisId) ?? { kind: null, distance: "4000", velocity: "2000", pwm: "30", duration: "2", note: "" };
     forms.set(axisId, this.form);
     const position = descriptor.channels.find((c) => c.name === "position");
@@ -312,7 +275,16 @@ export class BenchView {
       h("div", { class: "bench-diff-pane" }, this.diff),
     );
 
-    this.el = h("div", { class: "bench", "data-axis": axisId }, this.formHost, plots, runsPane);
+    this.autotune = new AutoTunePanel(
+      axisId,
+      descriptor,
+      {
+        columns: (metrics) => metricColumns(this.descriptor, [...this.runs.map((r) => r.metrics), ...metrics]),
+        showRuns: (ids) => this.showRuns(ids),
+      },
+      signal,
+    );
+    this.el = h("div", { class: "bench", "data-axis": axisId }, this.formHost, this.autotune.el, plots, runsPane);
 
     store.on("run", (msg) => msg.axis === axisId && this.onRun(msg), signal);
     // Runs may have started or finished while the websocket was down.
@@ -347,6 +319,7 @@ export class BenchView {
     }
     if (this.signal.aborted) return;
     this.renderForm();
+    this.autotune.setLimits(this.info.limits);
     await this.refresh();
   }
 
@@ -639,6 +612,7 @@ export class BenchView {
       const saved = await api.setBenchLimits(this.axisId, this.readLimits());
       this.info.limits = saved;
       this.fillLimits(saved);
+      this.autotune.setLimits(saved);
       setText(this.limitsStatus, "✓ saved");
     } catch (error) {
       this.showError(error, "max_distance_counts");
@@ -788,55 +762,7 @@ export class BenchView {
   // --- runs table ---------------------------------------------------------------------
 
   private metricColumns(): MetricColumn[] {
-    const responseUnit = (): string => "units of the response";
-    const cols: MetricColumn[] = [
-      { key: "rise_time_s", label: "rise", unit: "ms", help: metricHelp("rise_time_s"), get: (m) => m.rise_time_s, text: ms, slack: 0.005 },
-      { key: "overshoot_pct", label: "OS", unit: "%", help: metricHelp("overshoot_pct"), get: (m) => m.overshoot_pct, text: (v) => (v < 10 ? v.toFixed(2) : v.toFixed(1)), slack: 0.5 },
-      { key: "settling_time_s", label: "settle", unit: "ms", help: metricHelp("settling_time_s"), get: (m) => m.settling_time_s, text: ms, slack: 0.005 },
-      { key: "steady_state_error", label: "ss err", unit: "resp", help: `${metricHelp("steady_state_error")} (${responseUnit()})`, get: (m) => m.steady_state_error, text: num, slack: 1 },
-    ];
-    const hasFe = this.descriptor.channels.some((c) => c.name === "following_error") || this.runs.some((r) => r.metrics?.peak_following_error != null);
-    if (hasFe) {
-      const unit = this.channelUnit("following_error");
-      cols.push(
-        { key: "peak_following_error", label: "FE pk", unit, help: metricHelp("peak_following_error"), get: (m) => m.peak_following_error, text: num, slack: 1 },
-        { key: "rms_following_error", label: "FE rms", unit, help: metricHelp("rms_following_error"), get: (m) => m.rms_following_error, text: num, slack: 1 },
-      );
-    }
-    // Arrival flags (inpos, in_target): time to them; fault flags: time spent in them.
-    const arrival = new Set<string>();
-    const inFlag = new Set<string>();
-    for (const run of this.runs) {
-      for (const k of Object.keys(run.metrics?.time_to_flag_s ?? {})) arrival.add(k);
-      for (const k of Object.keys(run.metrics?.time_in_flag_s ?? {})) inFlag.add(k);
-    }
-    for (const f of this.descriptor.flags) if (f.severity === "fault") inFlag.add(f.name);
-    for (const flag of arrival) {
-      cols.push({
-        key: `time_to_flag_s.${flag}`,
-        label: `→ ${this.flagLabel.get(flag) ?? flag}`,
-        unit: "ms",
-        help: `Time to ${flag}: ${metricHelp("time_to_flag_s")}`,
-        get: (m) => m.time_to_flag_s?.[flag],
-        text: ms,
-        slack: 0.005,
-      });
-    }
-    for (const flag of inFlag) {
-      const severity = this.descriptor.flags.find((f) => f.name === flag)?.severity;
-      if (severity !== "fault") continue;
-      cols.push({
-        key: `time_in_flag_s.${flag}`,
-        label: `in ${this.flagLabel.get(flag) ?? flag}`,
-        unit: "ms",
-        help: `Time in ${flag}: ${metricHelp("time_in_flag_s")}`,
-        get: (m) => m.time_in_flag_s?.[flag],
-        text: ms,
-        slack: 0.005,
-      });
-    }
-    cols.push({ key: "oscillations", label: "osc", unit: "n", help: metricHelp("oscillations"), get: (m) => m.oscillations, text: (v) => String(v), slack: 0.5 });
-    return cols;
+    return metricColumns(this.descriptor, this.runs.map((r) => r.metrics));
   }
 
   private renderRuns(): void {
@@ -931,29 +857,7 @@ export class BenchView {
     else status = h("span", { class: "run-status bad" }, "✗");
     const statusCell = h("td", { class: "c-status", title: `${run.status}${run.message ? `: ${run.message}` : ""}` }, status);
     const reference = baseline && baseline.id !== run.id && baseline.test.kind === run.test.kind && baseline.metrics ? baseline.metrics : null;
-    const metricCells = cols.map((c) => {
-      const value = run.metrics ? c.get(run.metrics) : null;
-      const cell = h("td", { class: "c-metric num", testid: `bench-metric-${run.id}-${c.key}` });
-      if (value === null || value === undefined || !Number.isFinite(value)) {
-        setText(cell, "—");
-        cell.classList.add("none");
-        cell.dataset.value = "";
-        return cell;
-      }
-      cell.dataset.value = String(value);
-      setText(cell, c.text(value));
-      const ref = reference ? c.get(reference) : null;
-      if (ref !== null && ref !== undefined && Number.isFinite(ref)) {
-        const a = Math.abs(value);
-        const b = Math.abs(ref);
-        const rel = b > 0 ? (a - b) / b : a > 0 ? 1 : 0;
-        if (Math.abs(a - b) > c.slack && Math.abs(rel) >= DELTA) {
-          cell.classList.add(a < b ? "better" : "worse");
-          cell.title = `${c.text(value)} vs ${c.text(ref)} on the baseline (${rel > 0 ? "+" : ""}${(rel * 100).toFixed(0)} %)`;
-        } else cell.title = `${c.text(value)} ≈ baseline ${c.text(ref)}`;
-      } else if (run.baseline) cell.title = "baseline";
-      return cell;
-    });
+    const metricCells = cols.map((c) => metricCell(c, run.metrics, reference, `bench-metric-${run.id}-${c.key}`, run.baseline ? "baseline" : null));
     const actions = h(
       "td",
       { class: "c-actions" },
@@ -1004,6 +908,20 @@ export class BenchView {
     lines.push(`parameters: ${Object.entries(run.params).map(([k, v]) => `${k}=${v}`).join(" ")}`);
     if (run.test.note) lines.push(`note: ${run.test.note}`);
     return lines.join("\n");
+  }
+
+  /** Select exactly ``ids`` (those stored) in the overlay, e.g. the auto-tune's
+   * baseline and verification runs. */
+  async showRuns(ids: string[]): Promise<void> {
+    await this.refresh();
+    if (this.signal.aborted) return;
+    const known = new Set(this.runs.map((r) => r.id));
+    const sel = ids.filter((id) => known.has(id));
+    if (!sel.length) return;
+    saveSelection(this.axisId, sel);
+    this.assignColors(sel);
+    this.renderRuns();
+    await this.draw();
   }
 
   private toggleSelect(id: string, on: boolean): void {

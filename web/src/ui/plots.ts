@@ -6,6 +6,7 @@ import "uplot/dist/uPlot.min.css";
 import type { AxisBuffer } from "../buffer";
 import { h, replace, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
+import { StateNames } from "../states";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
 
@@ -15,7 +16,9 @@ const LANE_GAP = 0.55; // space between lanes
 const LANE_PX = 17;
 /** Lanes get thinner when a device has many flags, so line plots keep their room. */
 const lanePx = (lanes: number): number => (lanes <= 8 ? LANE_PX : Math.max(13, Math.floor(150 / lanes)));
-const Y_AXIS_PX = 68;
+const STATE_LANE_PX = 15; // one lane per state of a states plot
+const Y_AXIS_PX = 68; // at least; wider (up to Y_AXIS_MAX_PX) for long lane labels
+const Y_AXIS_MAX_PX = 116;
 const X_AXIS_PX = 26;
 const HEADER_PX = 24;
 const MIN_LINE_PX = 70;
@@ -155,6 +158,19 @@ function cut(
   return frame;
 }
 
+/** A "states" plot: the channel as a timeline, one lane per state that occurred. */
+interface StatesPanel {
+  channel: string;
+  names: StateNames;
+  seen: Set<number>;
+  lanes: number[]; // state values, ascending; the first lane is drawn at the top
+  scannedT: number; // the buffer is scanned for new states up to here
+  x: number[]; // the drawn run starts (and the last sample's time)
+  values: number[]; // the state from each x on
+  swatch: HTMLElement;
+  id: HTMLElement;
+}
+
 interface Panel {
   plot: PlotDescriptor;
   el: HTMLElement;
@@ -163,7 +179,12 @@ interface Panel {
   legendValues: HTMLElement[];
   unitButtons: HTMLButtonElement[];
   height: number;
+  states: StatesPanel | null;
 }
+
+/** Lanes drawn for a states plot (two at least, so one state is not a full-height bar). */
+const laneCount = (s: StatesPanel): number => Math.max(2, s.lanes.length);
+const statesPx = (s: StatesPanel): number => laneCount(s) * STATE_LANE_PX + 8;
 
 export class PlotStack {
   readonly el: HTMLElement;
@@ -186,6 +207,8 @@ export class PlotStack {
   private dragSource: uPlot | null = null;
   private readonly syncKey: string;
   private readonly flagByName: Map<string, FlagDescriptor>;
+  private readonly yAxisPx: number;
+  private readonly light = document.documentElement.dataset.theme === "light";
 
   constructor(
     descriptor: DeviceDescriptor,
@@ -196,6 +219,7 @@ export class PlotStack {
   ) {
     this.syncKey = `scope-${axisId}`;
     this.flagByName = new Map(descriptor.flags.map((f) => [f.name, f]));
+    this.yAxisPx = this.axisWidth(descriptor);
     this.pauseButton = h("button", { class: "btn", testid: "scope-pause", onclick: () => this.togglePause() });
     this.resetButton = h(
       "button",
@@ -245,6 +269,7 @@ export class PlotStack {
     const legendValues: HTMLElement[] = [];
     const unitButtons: HTMLButtonElement[] = [];
     const header = h("div", { class: "plot-header" }, h("span", { class: "plot-title" }, plot.label));
+    let states: StatesPanel | null = null;
     if (plot.kind === "line") {
       const legend = h("div", { class: "plot-legend" });
       plot.series.forEach((name, i) => {
@@ -279,12 +304,37 @@ export class PlotStack {
       } else {
         header.appendChild(h("span", { class: "plot-unit" }, this.units.unit(plot.series[0] ?? "").unit || plot.unit));
       }
+    } else if (plot.kind === "states") {
+      const name = plot.series[0] ?? "";
+      const channel = this.units.channel(name);
+      // A states plot of a channel without value_names still gets lanes (named by id).
+      const names = new StateNames(channel ?? { name, label: name, unit: "", description: "", conversions: [], value_names: {} });
+      const swatch = h("span", { class: "swatch state-swatch" });
+      const value = h("span", { class: "legend-value state-value", testid: `plot-${plot.name}-state` }, "—");
+      const id = h("span", { class: "state-id" }, "");
+      legendValues.push(value);
+      header.appendChild(
+        h(
+          "div",
+          { class: "plot-legend" },
+          h("span", { class: "legend-item", title: channel?.description ?? name }, swatch, h("span", { class: "legend-label" }, channel?.label ?? name), value, id),
+        ),
+      );
+      header.appendChild(
+        h(
+          "span",
+          { class: "plot-unit", title: `One lane per state seen since this page opened (sampled values: short states may be missed). All named states:\n${names.values.map((v) => `${names.id(v)} ${names.name(v)}`).join("\n")}` },
+          "states",
+        ),
+      );
+      states = { channel: name, names, seen: new Set(), lanes: [], scannedT: Number.NEGATIVE_INFINITY, x: [], values: [], swatch, id };
     } else {
       header.appendChild(h("span", { class: "plot-unit" }, "status flags"));
     }
     const el = h("div", { class: `plot-panel kind-${plot.kind}` }, header, host);
     this.scroller.appendChild(el);
-    const panel: Panel = { plot, el, host, u: null, legendValues, unitButtons, height: 0 };
+    if (states) this.scanStates(states);
+    const panel: Panel = { plot, el, host, u: null, legendValues, unitButtons, height: 0, states };
     this.syncUnitButtons(panel);
     return panel;
   }
@@ -298,24 +348,27 @@ export class PlotStack {
     return this.theme.series[i % this.theme.series.length] as string;
   }
 
-  /** Heights: flag plots get their lanes, line plots share the rest. */
-  private layout(): void {
+  /** Heights: flag and states plots get their lanes, line plots share the rest. */
+  private layout(redraw = true): void {
     const width = Math.floor(this.scroller.clientWidth);
     const height = Math.floor(this.scroller.clientHeight);
     if (width < 50 || height < 50) return;
     const last = this.panels.length - 1;
     let fixed = 0;
     let lines = 0;
+    const fixedPx = (p: Panel): number | null =>
+      p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : p.states ? statesPx(p.states) : null;
     this.panels.forEach((p, i) => {
       fixed += HEADER_PX + 6 + (i === last ? X_AXIS_PX : 4);
-      if (p.plot.kind === "flags") fixed += p.plot.series.length * lanePx(p.plot.series.length) + 8;
+      const px = fixedPx(p);
+      if (px !== null) fixed += px;
       else lines += 1;
     });
     const each = lines ? Math.max(MIN_LINE_PX, Math.floor((height - fixed - 2) / lines)) : 0;
     let changed = width !== this.width;
     this.panels.forEach((p, i) => {
       const axisPx = i === last ? X_AXIS_PX : 4;
-      const plotPx = p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : each;
+      const plotPx = fixedPx(p) ?? each;
       const total = plotPx + axisPx;
       if (total !== p.height) changed = true;
       p.height = total;
@@ -327,7 +380,176 @@ export class PlotStack {
       else this.create(p);
     }
     this.dirty = true;
-    this.update();
+    if (redraw) this.update();
+  }
+
+  /** The y axis fits the longest lane label (flags, states), within limits. */
+  private axisWidth(descriptor: DeviceDescriptor): number {
+    const labels: string[] = [];
+    for (const plot of descriptor.plots) {
+      if (plot.kind === "flags") labels.push(...plot.series.map((n) => this.flagByName.get(n)?.label ?? n));
+      if (plot.kind === "states") {
+        for (const n of plot.series) labels.push(...Object.values(descriptor.channels.find((c) => c.name === n)?.value_names ?? {}));
+      }
+    }
+    const widest = Math.max(0, ...labels.map((l) => this.textWidth(l)));
+    return Math.round(Math.min(Y_AXIS_MAX_PX, Math.max(Y_AXIS_PX, widest + 10)));
+  }
+
+  private measure: CanvasRenderingContext2D | null = null;
+
+  private textWidth(text: string): number {
+    if (!this.measure) {
+      this.measure = document.createElement("canvas").getContext("2d");
+      if (this.measure) this.measure.font = this.theme.font;
+    }
+    return this.measure ? this.measure.measureText(text).width : text.length * 7;
+  }
+
+  /** A lane label cut to the axis width ("NOT_CALIBRA…"). */
+  private fitLabel(text: string): string {
+    const room = this.yAxisPx - 8;
+    if (this.textWidth(text) <= room) return text;
+    let cut = text;
+    while (cut.length > 1 && this.textWidth(`${cut}…`) > room) cut = cut.slice(0, -1);
+    return `${cut}…`;
+  }
+
+  /** Add the states that occurred in the buffer since the last scan; true if any is new. */
+  private scanStates(s: StatesPanel): boolean {
+    const buffer = this.buffer;
+    const col = buffer.channels.get(s.channel);
+    if (!col) return false;
+    const from = Math.max(buffer.start, buffer.indexAt(s.scannedT));
+    let added = false;
+    for (let i = from; i < buffer.end; i++) {
+      const v = col[i] as number;
+      if (Number.isNaN(v) || s.seen.has(v)) continue;
+      s.seen.add(v);
+      added = true;
+    }
+    if (buffer.end > buffer.start) s.scannedT = (buffer.t[buffer.end - 1] as number) + 1e-9;
+    if (added) s.lanes = [...s.seen].sort((a, b) => a - b);
+    return added;
+  }
+
+  /** y of a state's lane: the first lane (lowest value) at the top. */
+  private lanePos(s: StatesPanel, value: number): number {
+    return laneCount(s) - 1 - s.lanes.indexOf(value);
+  }
+
+  /** The run-length form of [lo, hi): a point where the state changes, and the end.
+   * A missing sample (slow or skipped read) holds the state before it. */
+  private statesRuns(s: StatesPanel, lo: number, hi: number): void {
+    const buffer = this.buffer;
+    const col = buffer.channels.get(s.channel);
+    s.x = [];
+    s.values = [];
+    if (!col || hi <= lo) return;
+    let current = Number.NaN;
+    for (let i = lo - 1; i >= Math.max(buffer.start, lo - 4096) && Number.isNaN(current); i--) current = col[i] as number;
+    if (!Number.isNaN(current)) {
+      s.x.push(buffer.t[lo] as number);
+      s.values.push(current);
+    }
+    for (let i = lo; i < hi; i++) {
+      const v = col[i] as number;
+      if (Number.isNaN(v) || v === current) continue;
+      const t = buffer.t[i] as number;
+      if (s.x.length && (s.x[s.x.length - 1] as number) >= t) s.values[s.values.length - 1] = v;
+      else {
+        s.x.push(t);
+        s.values.push(v);
+      }
+      current = v;
+    }
+    const end = buffer.t[hi - 1] as number;
+    if (s.x.length && end > (s.x[s.x.length - 1] as number)) {
+      s.x.push(end);
+      s.values.push(current);
+    }
+  }
+
+  /** The state at time ``x`` of what is drawn (null before the first run). */
+  private stateAt(s: StatesPanel, x: number): number | null {
+    let lo = 0;
+    let hi = s.x.length - 1;
+    if (hi < 0 || x < (s.x[0] as number)) return null;
+    while (lo < hi) {
+      const mid = (lo + hi + 1) >> 1;
+      if ((s.x[mid] as number) <= x) lo = mid;
+      else hi = mid - 1;
+    }
+    return s.values[lo] ?? null;
+  }
+
+  private showState(panel: Panel, value: number | null | undefined): void {
+    const s = panel.states;
+    const el = panel.legendValues[0];
+    if (!s || !el) return;
+    const known = value !== null && value !== undefined;
+    setText(el, known ? s.names.name(value) : "—");
+    setText(s.id, known && s.names.has(value) ? s.names.id(value) : "");
+    s.swatch.style.background = known ? s.names.color(value, this.light) : "transparent";
+    el.title = known ? s.names.describe(value) : "";
+  }
+
+  /** Coloured bars, one per run of a state, in its lane, joined by a step trace. */
+  private drawStates(panel: Panel, u: uPlot): void {
+    const s = panel.states;
+    if (!s) return;
+    const ctx = u.ctx;
+    const { left, top, width, height } = u.bbox;
+    const px = devicePixelRatio || 1;
+    const lane = height / laneCount(s);
+    const bar = Math.max(3 * px, lane * 0.64);
+    ctx.save();
+    ctx.beginPath();
+    ctx.rect(left, top, width, height);
+    ctx.clip();
+    // Faint lane guides.
+    ctx.fillStyle = this.theme.grid;
+    for (let i = 0; i < laneCount(s); i++) ctx.fillRect(left, Math.round(top + (i + 0.5) * lane), width, px);
+    ctx.font = `${10 * px}px ${css("--mono", "monospace")}`;
+    ctx.textBaseline = "middle";
+    ctx.textAlign = "left";
+    // The step trace: a vertical connector at each change, bar edge to bar edge.
+    ctx.strokeStyle = this.theme.axis;
+    ctx.lineWidth = px;
+    ctx.beginPath();
+    for (let i = 1; i + 1 < s.x.length; i++) {
+      const from = s.values[i - 1] as number;
+      const to = s.values[i] as number;
+      const x = Math.round(u.valToPos(s.x[i] as number, "x", true)) + 0.5;
+      if (x < left || x > left + width) continue;
+      const y0 = u.valToPos(this.lanePos(s, from), "y", true);
+      const y1 = u.valToPos(this.lanePos(s, to), "y", true);
+      const dir = y1 > y0 ? 1 : -1;
+      ctx.moveTo(x, y0 + (dir * bar) / 2);
+      ctx.lineTo(x, y1 - (dir * bar) / 2);
+    }
+    ctx.stroke();
+    for (let i = 0; i + 1 < s.x.length; i++) {
+      const value = s.values[i] as number;
+      const x0 = u.valToPos(s.x[i] as number, "x", true);
+      const x1 = u.valToPos(s.x[i + 1] as number, "x", true);
+      if (x1 < left || x0 > left + width) continue;
+      const y = u.valToPos(this.lanePos(s, value), "y", true);
+      const w = Math.max(2 * px, x1 - x0);
+      ctx.fillStyle = s.names.color(value, this.light);
+      ctx.globalAlpha = 0.85;
+      ctx.fillRect(x0, y - bar / 2, w, bar);
+      ctx.globalAlpha = 1;
+      // The name inside a bar wide enough for it (the lane label is on the axis too).
+      const name = s.names.name(value);
+      const visible0 = Math.max(x0, left);
+      const visibleW = Math.min(x1, left + width) - visible0;
+      if (bar >= 9 * px && visibleW > ctx.measureText(name).width + 8 * px) {
+        ctx.fillStyle = this.light ? "#ffffff" : "#0b0f14";
+        ctx.fillText(name, visible0 + 4 * px, y + 0.5 * px);
+      }
+    }
+    ctx.restore();
   }
 
   private rebuild(): void {
@@ -346,12 +568,25 @@ export class PlotStack {
     const theme = this.theme;
     const isLast = panel === this.panels[this.panels.length - 1];
     const flags = plot.kind === "flags";
+    const states = panel.states;
     const lanes = plot.series.length;
     const laneBase = (i: number): number => (lanes - 1 - i) * (LANE + LANE_GAP);
     const unitOf = (name: string) => this.units.unit(name);
     const series: uPlot.Series[] = [{ label: "t" }];
     plot.series.forEach((name, i) => {
-      if (flags) {
+      if (states) {
+        // Bars and the step connectors are drawn by drawStates; the series only
+        // carries the data (cursor sync).
+        if (i === 0) {
+          series.push({
+            label: this.units.channel(name)?.label ?? name,
+            stroke: "transparent",
+            width: 0,
+            paths: () => null,
+            points: { show: false },
+          });
+        }
+      } else if (flags) {
         const severity = this.flagByName.get(name)?.severity ?? "info";
         const color = theme.severity[severity];
         // Off is a muted baseline; on is a block in the severity colour.
@@ -388,11 +623,26 @@ export class PlotStack {
         ? (_u, splits, _ai, _space, incr) => splits.map((v) => `${v.toFixed(decimals(incr))} s`)
         : (_u, splits) => splits.map(() => ""),
     };
-    const yAxis: uPlot.Axis = flags
+    const yAxis: uPlot.Axis = states
       ? {
           stroke: theme.text,
           font: theme.font,
-          size: Y_AXIS_PX,
+          size: this.yAxisPx,
+          gap: 4,
+          grid: { show: false },
+          ticks: { show: false },
+          splits: () => states.lanes.map((v) => this.lanePos(states, v)),
+          values: (_u, splits) =>
+            splits.map((pos) => {
+              const value = states.lanes[laneCount(states) - 1 - pos];
+              return value === undefined ? "" : this.fitLabel(states.names.name(value));
+            }),
+        }
+      : flags
+      ? {
+          stroke: theme.text,
+          font: theme.font,
+          size: this.yAxisPx,
           gap: 4,
           grid: { show: false },
           ticks: { show: false },
@@ -400,13 +650,13 @@ export class PlotStack {
           values: (_u, splits) =>
             splits.map((_v, i) => {
               const name = plot.series[i] ?? "";
-              return this.flagByName.get(name)?.label ?? name;
+              return this.fitLabel(this.flagByName.get(name)?.label ?? name);
             }),
         }
       : {
           stroke: theme.axis,
           font: theme.font,
-          size: Y_AXIS_PX,
+          size: this.yAxisPx,
           gap: 4,
           space: 18,
           grid: { stroke: theme.grid, width: 1 },
@@ -417,16 +667,18 @@ export class PlotStack {
       width: this.width,
       height: panel.height,
       legend: { show: false },
-      padding: [flags ? 4 : 9, 10, 0, 0],
+      padding: [flags || states ? 4 : 9, 10, 0, 0],
       cursor: {
         sync: { key: this.syncKey, setSeries: false },
         drag: { x: true, y: false, setScale: false },
-        points: { size: 5, fill: (u, si) => (u.series[si]?.stroke as (u: uPlot, si: number) => string)?.(u, si) },
+        points: states ? { show: false } : { size: 5, fill: (u, si) => (u.series[si]?.stroke as (u: uPlot, si: number) => string)?.(u, si) },
         focus: { prox: -1 },
       },
       scales: {
         x: { time: false },
-        y: flags
+        y: states
+          ? { auto: true, range: () => [-0.5, laneCount(states) - 0.5] }
+          : flags
           ? { auto: false, range: [-0.35, laneBase(0) + LANE + 0.35] }
           : {
               auto: true,
@@ -446,9 +698,10 @@ export class PlotStack {
       hooks: {
         setSelect: [(u) => this.onSelect(u)],
         setCursor: [(u) => this.onCursor(panel, u)],
+        drawAxes: states ? [(u) => this.drawStates(panel, u)] : [],
       },
     };
-    const empty: uPlot.AlignedData = [[], ...plot.series.map(() => [] as number[])];
+    const empty: uPlot.AlignedData = [[], ...(states ? [[] as number[]] : plot.series.map(() => [] as number[]))];
     panel.u = new uPlot(opts, empty, panel.host);
     const u = panel.u;
     // Synced plots mirror the selection; only the plot that was dragged on zooms.
@@ -481,6 +734,11 @@ export class PlotStack {
 
   private onCursor(panel: Panel, u: uPlot): void {
     const idx = u.cursor.idx;
+    if (panel.states) {
+      const left = u.cursor.left;
+      if (left !== undefined && left >= 0) this.showState(panel, this.stateAt(panel.states, u.posToVal(left, "x")));
+      return;
+    }
     if (idx === null || idx === undefined || panel.plot.kind !== "line") return;
     panel.plot.series.forEach((name, i) => {
       const column = u.data[i + 1];
@@ -496,6 +754,7 @@ export class PlotStack {
   refreshLegend(): void {
     if (this.hovering) return;
     for (const p of this.panels) {
+      if (p.states) this.showState(p, this.buffer.latest.get(p.states.channel));
       if (p.plot.kind !== "line") continue;
       p.plot.series.forEach((name, i) => {
         const el = p.legendValues[i];
@@ -574,15 +833,29 @@ export class PlotStack {
     const channels = new Map<string, number>();
     const flags: string[] = [];
     for (const p of this.panels) {
+      if (p.states) continue;
       for (const name of p.plot.series) {
         if (p.plot.kind === "flags") flags.push(name);
         else channels.set(name, this.units.unit(name).factor);
       }
     }
-    const buckets = Math.max(50, Math.floor(this.width - Y_AXIS_PX));
+    const buckets = Math.max(50, Math.floor(this.width - this.yAxisPx));
     const frame = cut(buffer, lo, hi, buckets, channels, flags);
+    let newLanes = false;
+    for (const p of this.panels) if (p.states && this.scanStates(p.states)) newLanes = true;
+    if (newLanes) this.layout(false);
     for (const p of this.panels) {
       const u = p.u as uPlot;
+      const s = p.states;
+      if (s) {
+        this.statesRuns(s, lo, hi);
+        const ys = s.values.map((v) => this.lanePos(s, v));
+        u.batch(() => {
+          u.setData([s.x, ys] as uPlot.AlignedData, false);
+          u.setScale("x", { min, max });
+        });
+        continue;
+      }
       const lanes = p.plot.series.length;
       const ys = p.plot.series.map((name, i) => {
         if (p.plot.kind === "flags") {

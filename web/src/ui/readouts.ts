@@ -2,6 +2,7 @@
 import type { AxisBuffer } from "../buffer";
 import { h, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
+import { StateNames } from "../states";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor } from "../wire.gen";
 
@@ -10,6 +11,8 @@ export class Readouts {
   private readonly values = new Map<string, HTMLElement>();
   private readonly unitLabels = new Map<string, HTMLElement>();
   private readonly lamps = new Map<string, HTMLElement>();
+  /** Enumerated channels: the value shows as its name, the id small beside it. */
+  private readonly states = new Map<string, { names: StateNames; box: HTMLElement }>();
 
   constructor(
     private readonly descriptor: DeviceDescriptor,
@@ -20,7 +23,8 @@ export class Readouts {
     const numbers = h("div", { class: "readouts" });
     for (const channel of descriptor.channels) {
       const value = h("span", { class: "readout-value", testid: `readout-${channel.name}` }, "—");
-      const multi = channel.conversions.length > 0;
+      const names = StateNames.of(channel);
+      const multi = channel.conversions.length > 0 && !names;
       const unit = h(
         multi ? "button" : "span",
         {
@@ -33,14 +37,17 @@ export class Readouts {
       );
       this.values.set(channel.name, value);
       this.unitLabels.set(channel.name, unit);
-      numbers.appendChild(
-        h(
-          "div",
-          { class: "readout", title: `${channel.label}: ${channel.description}` },
-          h("div", { class: "readout-label" }, channel.label),
-          h("div", { class: "readout-line" }, value, unit),
-        ),
+      const box = h(
+        "div",
+        { class: names ? "readout enum" : "readout", title: `${channel.label}: ${channel.description}` },
+        h("div", { class: "readout-label" }, channel.label),
+        h("div", { class: "readout-line" }, value, unit),
       );
+      if (names) {
+        unit.classList.add("readout-id");
+        this.states.set(channel.name, { names, box });
+      }
+      numbers.appendChild(box);
     }
     const lamps = h("div", { class: "lamps" });
     // Two rows for a handful of flags, up to four for devices with many.
@@ -71,6 +78,18 @@ export class Readouts {
       const unit = this.units.unit(channel.name);
       const raw = this.buffer.latest.get(channel.name);
       const el = this.values.get(channel.name) as HTMLElement;
+      const state = this.states.get(channel.name);
+      if (state) {
+        const known = raw !== undefined && state.names.has(raw);
+        setText(el, raw === undefined ? "—" : state.names.name(raw));
+        toggleClass(el, "unnamed", raw !== undefined && !known);
+        el.dataset.value = raw === undefined ? "" : String(raw);
+        // The id beside a name; an unnamed value already shows as its id.
+        setText(this.unitLabels.get(channel.name) as HTMLElement, known ? state.names.id(raw) : channel.unit);
+        const title = raw === undefined ? `${channel.label}: ${channel.description}` : state.names.describe(raw);
+        if (state.box.title !== title) state.box.title = title;
+        continue;
+      }
       setText(el, formatValue(raw === undefined ? null : raw * unit.factor, unit));
       el.dataset.unit = unit.unit;
       setText(this.unitLabels.get(channel.name) as HTMLElement, unit.unit);

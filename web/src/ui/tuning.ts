@@ -8,9 +8,36 @@ import { store } from "../store";
 import type { BitDescriptor, CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../wire.gen";
 import { commandWidget, makeRunner } from "./commands";
 import { errorText, showError, statusLabel } from "./feedback";
+import { ParamSetsPanel } from "./paramsets";
 
 function rangeText(p: ParameterDescriptor): string {
   return `${p.minimum}..${p.maximum}${p.unit ? ` ${p.unit}` : ""}`;
+}
+
+/** "100/16/8": values of several parameters, "?" for one not known. */
+function joined(names: string[], values: (name: string) => number | undefined): string {
+  return names.map((n) => values(n) ?? "?").join("/");
+}
+
+/** How the parameters a write also changed are named in its offer: their group when
+ * they are exactly one whole group ("gains standstill (KABD)"), else their labels. */
+function subjectOf(names: string[], byName: Map<string, ParameterDescriptor>): string {
+  const params = names.map((n) => byName.get(n));
+  const group = params[0]?.group;
+  const whole =
+    group !== undefined &&
+    params.every((p) => p?.group === group) &&
+    [...byName.values()].filter((p) => p.group === group).length === names.length;
+  if (whole && names.length > 1) return group;
+  return params.map((p, i) => p?.label ?? names[i]).join(" / ");
+}
+
+/** A write changed other parameters on the device too (``overwrites``): the values the
+ * user had for them before, and the offer to write those again. */
+interface Offer {
+  names: string[];
+  before: Map<string, number>;
+  el: HTMLElement;
 }
 
 function bitsOf(p: ParameterDescriptor): BitDescriptor[] {
@@ -32,10 +59,13 @@ class ParamRow {
   private readonly sliderMax: number;
   private forceInput = false;
   private busy = 0;
+  private offer: Offer | null = null;
+  private readonly offerHost: HTMLElement;
 
   constructor(
     private readonly axisId: string,
     readonly p: ParameterDescriptor,
+    private readonly byName: Map<string, ParameterDescriptor>,
   ) {
     // The slider covers the useful range (slider_minimum..slider_maximum, e.g. a signed
     // velocity of ±20000 out of ±65535); the field takes the whole range, and the
@@ -57,6 +87,7 @@ class ParamRow {
     this.deviceBox = h("span", { class: "device", title: "Value read back from the device" }, h("span", { class: "device-label" }, "device"), this.device);
     this.conversions = h("div", { class: "param-conv", testid: `param-${p.name}-conv` });
     this.error = h("div", { class: "param-error", testid: `param-${p.name}-error`, role: "status" });
+    this.offerHost = h("div", { class: "overwrite-slot" });
 
     this.input.addEventListener("input", () => {
       const value = this.parse(this.input.value);
@@ -123,6 +154,7 @@ class ParamRow {
       control,
       this.conversions,
       this.error,
+      this.offerHost,
     );
     this.render();
   }
@@ -139,6 +171,7 @@ class ParamRow {
     if (value === device) ui.delete(this.p.name);
     else ui.set(this.p.name, value);
     this.render();
+    store.emit("uiParams", this.axisId);
   }
 
   private wordFromChecks(): number {
@@ -157,6 +190,17 @@ class ParamRow {
 
   async commit(value: number): Promise<void> {
     const name = this.p.name;
+    // What the user has for the parameters this write also changes on the device: the
+    // values typed and not applied, else the device's (what the fields show).
+    const ui = store.uiValues(this.axisId);
+    const device = store.deviceValues(this.axisId);
+    const overwritten = this.p.overwrites.filter((n) => n !== name);
+    const typed = new Map(overwritten.filter((n) => ui.has(n)).map((n) => [n, ui.get(n) as number]));
+    const before = new Map<string, number>();
+    for (const n of overwritten) {
+      const v = ui.get(n) ?? device.get(n);
+      if (v !== undefined) before.set(n, v);
+    }
     if (Number.isInteger(value)) store.uiValues(this.axisId).set(name, value);
     this.busy += 1;
     this.forceInput = true;
@@ -172,6 +216,7 @@ class ParamRow {
         setText(this.error, `The device kept ${readback[name]} (asked for ${value}).`);
         this.el.classList.add("has-note");
       } else this.el.classList.remove("has-note");
+      if (overwritten.length) this.afterOverwrite(overwritten, before, typed);
     } catch (error) {
       const text = showError(`${this.p.label} (${name})`, error);
       setText(this.error, `${statusLabel(error)}: ${text}`);
@@ -185,7 +230,113 @@ class ParamRow {
     }
   }
 
+  /** After a write that also changed ``names`` on the device: keep the values the user
+   * typed for them, and offer to write the user's values if the device's now differ. */
+  private afterOverwrite(names: string[], before: Map<string, number>, typed: Map<string, number>): void {
+    const ui = store.uiValues(this.axisId);
+    const device = store.deviceValues(this.axisId);
+    for (const [n, v] of typed) if (device.get(n) !== v) ui.set(n, v);
+    store.emit("params", { axis: this.axisId, names });
+    const changed = names.filter((n) => before.has(n) && device.get(n) !== before.get(n));
+    if (!changed.length) {
+      this.clearOffer();
+      return;
+    }
+    const subject = subjectOf(names, this.byName);
+    const now = joined(names, (n) => device.get(n));
+    const mine = joined(names, (n) => before.get(n));
+    const name = this.p.name;
+    const text = h("span", { class: "overwrite-text" });
+    const writeButton = h(
+      "button",
+      {
+        class: "btn small warn",
+        testid: `overwrite-write-${name}`,
+        title: `Write ${names.map((n) => `${n}=${before.get(n) ?? "?"}`).join(" ")} to the device`,
+        onclick: () => void this.writeOffer(),
+      },
+      `Write ${mine}`,
+    );
+    const keepButton = h(
+      "button",
+      { class: "btn small ghost", testid: `overwrite-keep-${name}`, title: `Keep ${now} as the device has it now`, onclick: () => this.keepOffer() },
+      "Keep",
+    );
+    replace(
+      text,
+      `Writing ${this.p.label} also set ${subject} to `,
+      h("b", { class: "mono" }, now),
+      " on the device. Write your ",
+      names.length > 1 ? "values " : "value ",
+      h("b", { class: "mono" }, mine),
+      " now?",
+    );
+    const el = h(
+      "div",
+      { class: "overwrite-offer", testid: `overwrite-offer-${name}`, role: "alert", "data-params": names.join(" ") },
+      h("span", { class: "overwrite-icon", "aria-hidden": "true" }, "↺"),
+      text,
+      h("span", { class: "overwrite-actions" }, writeButton, keepButton),
+    );
+    this.offer = { names, before, el };
+    replace(this.offerHost, el);
+  }
+
+  get hasOffer(): boolean {
+    return this.offer !== null;
+  }
+
+  private clearOffer(): void {
+    this.offer = null;
+    replace(this.offerHost);
+  }
+
+  private async writeOffer(): Promise<void> {
+    const offer = this.offer;
+    if (!offer) return;
+    const values: Record<string, number> = {};
+    for (const n of offer.names) {
+      const v = offer.before.get(n);
+      if (v !== undefined) values[n] = v;
+    }
+    const button = offer.el.querySelector<HTMLElement>(".btn.warn");
+    button?.classList.add("busy");
+    try {
+      const readback = await api.writeParams(this.axisId, values);
+      store.setDeviceParams(this.axisId, readback, true);
+      const kept = offer.names.filter((n) => readback[n] !== undefined && readback[n] !== values[n]);
+      this.clearOffer();
+      if (kept.length) {
+        setText(this.error, `The device kept ${kept.map((n) => `${n}=${readback[n]}`).join(", ")} (asked for ${kept.map((n) => values[n]).join(", ")}).`);
+        this.el.classList.add("has-note");
+      }
+    } catch (error) {
+      const text = showError(`${offer.names.join(", ")}`, error);
+      const note = offer.el.querySelector(".overwrite-error") ?? offer.el.appendChild(h("span", { class: "overwrite-error" }));
+      setText(note, `${statusLabel(error)}: ${text}`);
+    } finally {
+      button?.classList.remove("busy");
+    }
+  }
+
+  private keepOffer(): void {
+    const offer = this.offer;
+    if (!offer) return;
+    const ui = store.uiValues(this.axisId);
+    for (const n of offer.names) ui.delete(n);
+    this.clearOffer();
+    store.emit("params", { axis: this.axisId, names: offer.names });
+    store.emit("uiParams", this.axisId);
+  }
+
   render(): void {
+    // An offer is settled once the device has the user's values again (written here,
+    // in their own rows, or by a restore).
+    if (this.offer) {
+      const device = store.deviceValues(this.axisId);
+      const offer = this.offer;
+      if (offer.names.every((n) => !offer.before.has(n) || device.get(n) === offer.before.get(n))) this.clearOffer();
+    }
     const p = this.p;
     const device = store.deviceValues(this.axisId).get(p.name);
     const pending = store.uiValues(this.axisId).get(p.name);
@@ -262,6 +413,8 @@ export class TuningPanel {
       this.status,
     );
     const body = h("div", { class: "tuning-body" });
+    const byName = new Map(descriptor.parameters.map((p) => [p.name, p]));
+    if (descriptor.parameters.length) body.appendChild(new ParamSetsPanel(axisId, descriptor, signal).el);
     const groups = new Map<string, ParameterDescriptor[]>();
     for (const p of descriptor.parameters) {
       const list = groups.get(p.group) ?? [];
@@ -271,7 +424,7 @@ export class TuningPanel {
     for (const [group, params] of groups) {
       const section = h("section", { class: "param-group", "data-group": group }, h("div", { class: "param-group-title" }, group));
       for (const p of params) {
-        const row = new ParamRow(axisId, p);
+        const row = new ParamRow(axisId, p, byName);
         this.rows.set(p.name, row);
         section.appendChild(row.el);
       }
@@ -284,6 +437,7 @@ export class TuningPanel {
       ({ axis, names }) => {
         if (axis !== this.axisId) return;
         for (const name of names) this.rows.get(name)?.render();
+        for (const [name, row] of this.rows) if (row.hasOffer && !names.includes(name)) row.render();
       },
       signal,
     );

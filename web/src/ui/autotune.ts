@@ -1,0 +1,671 @@
+// The auto-tune assistant in the bench (server/servotune/api/autotune_routes.py):
+// identify the plant within the user's limits, show the fitted model, the rule, the
+// proposed gains and the metrics predicted for them and for the gains in use; accept
+// and verify, then predicted against measured with both runs in the bench overlay.
+// Which devices it supports is the server's answer (409 for the others).
+import {
+  ApiError,
+  api,
+  type AutoTuneGoal,
+  type AutoTuneProposal,
+  type AutoTuneRequest,
+  type AutoTuneResult,
+  type AutoTuneSession,
+  type BenchLimits,
+  type GainSet,
+  type RunMetrics,
+} from "../api";
+import { h, replace, setText, toggleClass } from "../dom";
+import { store } from "../store";
+import type { DeviceDescriptor } from "../wire.gen";
+import { errorText, statusLabel } from "./feedback";
+import { type MetricColumn, metricCell, metricHeads, num } from "./metriccols";
+
+const GOALS: Record<AutoTuneGoal, { label: string; help: string }> = {
+  no_overshoot: { label: "No overshoot (≤ 1 %)", help: "The fastest gains whose predicted overshoot stays within 1 %" },
+  fast: { label: "Fast (≤ 10 %)", help: "The fastest gains whose predicted overshoot stays within 10 %" },
+};
+
+/** The fitted model's fields, as the server names them. */
+const MODEL_FIELDS: { key: string; label: string; help: string; text(v: number): string }[] = [
+  { key: "gain_counts_s_per_pwm", label: "gain K", help: "Steady velocity per PWM unit above friction", text: (v) => `${num(v)} counts/s per PWM` },
+  { key: "tau_s", label: "time constant τ", help: "Mechanical time constant of the velocity response", text: (v) => `${(v * 1000).toFixed(1)} ms` },
+  { key: "friction_pwm", label: "friction", help: "PWM that just overcomes friction (Coulomb friction and stiction)", text: (v) => `${v.toFixed(1)} PWM` },
+  { key: "rms_error_counts", label: "fit error", help: "RMS of the model's positions against the recorded ones", text: (v) => `${v.toFixed(2)} counts rms` },
+  { key: "samples", label: "samples", help: "Samples of the identification run used by the fit", text: (v) => String(v) },
+  { key: "delay_s", label: "delay", help: "When the PWM steps took effect after their timestamps (fitted)", text: (v) => `${(v * 1000).toFixed(2)} ms` },
+];
+
+const TESTS: Record<"position_step" | "move", { label: string; help: string }> = {
+  position_step: { label: "position step", help: "Tune for (and verify with) a move with velocity and acceleration at their maximum: the closest to a step" },
+  move: { label: "move", help: "Tune for (and verify with) a move with the axis' own velocity and acceleration" },
+};
+
+interface Form {
+  max_pwm: string;
+  max_distance: string;
+  response: AutoTuneGoal;
+  test: "position_step" | "move";
+  direction: "1" | "-1";
+  distance: string; // "" = the server's default
+}
+
+/** Remembered per axis across view switches. */
+const forms = new Map<string, Form>();
+const OPEN_KEY = "servotune.autotune.open";
+
+export interface AutoTuneHost {
+  /** Metric columns as in the runs table, including those ``metrics`` need. */
+  columns(metrics: (RunMetrics | null | undefined)[]): MetricColumn[];
+  /** Select exactly these runs in the bench overlay (after re-reading the list). */
+  showRuns(ids: string[]): Promise<void>;
+}
+
+function gainsText(g: GainSet | undefined): string {
+  return g ? Object.entries(g).map(([k, v]) => `${k} ${v}`).join(" · ") : "—";
+}
+
+export class AutoTunePanel {
+  readonly el: HTMLElement;
+  private readonly form: Form;
+  private readonly maxPwm: HTMLInputElement;
+  private readonly maxDistance: HTMLInputElement;
+  private readonly goal: HTMLSelectElement;
+  private readonly test: HTMLSelectElement;
+  private readonly direction: HTMLSelectElement;
+  private readonly distance: HTMLInputElement;
+  private readonly identifyButton: HTMLButtonElement;
+  private readonly progress: HTMLElement;
+  private readonly error: HTMLElement;
+  private readonly details: HTMLElement;
+  private readonly toggle: HTMLButtonElement;
+  private open: boolean;
+  private limits: BenchLimits | null = null;
+  private proposal: AutoTuneProposal | null = null;
+  private result: AutoTuneResult | null = null;
+  private busy: "identify" | "accept" | "revert" | null = null;
+  private busySince = 0;
+  private lastEvent = "";
+  private timer: number | undefined;
+  private poll: number | undefined;
+
+  constructor(
+    private readonly axisId: string,
+    private readonly descriptor: DeviceDescriptor,
+    private readonly host: AutoTuneHost,
+    private readonly signal: AbortSignal,
+  ) {
+    this.form = forms.get(axisId) ?? { max_pwm: "", max_distance: "", response: "no_overshoot", test: "position_step", direction: "1", distance: "" };
+    forms.set(axisId, this.form);
+    this.open = localStorage.getItem(OPEN_KEY) !== "0";
+
+    const numberInput = (testid: string, label: string, key: "max_pwm" | "max_distance" | "distance", title: string): HTMLInputElement => {
+      const input = h("input", { class: "input num small", type: "number", step: 1, min: 1, testid, "aria-label": label, title, value: this.form[key] });
+      input.addEventListener("input", () => {
+        this.form[key] = input.value;
+        input.classList.remove("server-invalid");
+        this.validate();
+      });
+      input.addEventListener("keydown", (event) => {
+        if (event.key === "Enter") {
+          event.preventDefault();
+          void this.identify();
+        }
+      });
+      return input;
+    };
+    this.maxPwm = numberInput("at-max-pwm", "largest PWM", "max_pwm", "Largest open-loop PWM of the identification staircase (±, within your bench limit)");
+    this.maxDistance = numberInput(
+      "at-max-distance",
+      "largest distance",
+      "max_distance",
+      "No identification or test travels further than this from where it starts (counts, within your bench limit)",
+    );
+    this.goal = h(
+      "select",
+      { class: "input", testid: "at-response", "aria-label": "Response", title: "What the proposal optimises for" },
+      (Object.keys(GOALS) as AutoTuneGoal[]).map((g) => h("option", { value: g, title: GOALS[g].help }, GOALS[g].label)),
+    );
+    this.goal.value = this.form.response;
+    this.goal.addEventListener("change", () => (this.form.response = this.goal.value as AutoTuneGoal));
+    this.test = h(
+      "select",
+      { class: "input", testid: "at-test", "aria-label": "Test", title: "The bench test the gains are tuned for and verified with" },
+      (Object.keys(TESTS) as (keyof typeof TESTS)[]).map((t) => h("option", { value: t, title: TESTS[t].help }, TESTS[t].label)),
+    );
+    this.test.value = this.form.test;
+    this.test.addEventListener("change", () => (this.form.test = this.test.value as Form["test"]));
+    this.direction = h(
+      "select",
+      { class: "input", testid: "at-direction", "aria-label": "Direction", title: "Identification and tests towards positive or negative counts: mind the mechanics (the open-loop staircase may ignore limit switches)" },
+      h("option", { value: "1" }, "+"),
+      h("option", { value: "-1" }, "−"),
+    );
+    this.direction.value = this.form.direction;
+    this.direction.addEventListener("change", () => (this.form.direction = this.direction.value as Form["direction"]));
+    this.distance = numberInput("at-distance", "test distance", "distance", "Distance of the baseline and verification tests (counts); empty: the server's default (1000, or half the distance limit)");
+    this.distance.placeholder = "auto";
+    this.identifyButton = h(
+      "button",
+      {
+        class: "btn primary",
+        testid: "at-identify",
+        title: "Open-loop PWM staircase within your limits (the axis moves), fit a model, propose gains. STOP / Esc stops.",
+        onclick: () => void this.identify(),
+      },
+      "Identify",
+    );
+    this.progress = h("span", { class: "at-progress", testid: "at-progress", "aria-live": "polite" });
+    this.error = h("div", { class: "at-error", testid: "at-error", role: "alert", hidden: true });
+    this.details = h("div", { class: "at-details" });
+    this.toggle = h(
+      "button",
+      { class: "at-toggle", testid: "at-toggle", title: "Show or hide the proposal and the verification", onclick: () => this.setOpen(!this.open) },
+      h("span", { class: "ps-caret", "aria-hidden": "true" }),
+      h("span", { class: "pane-title" }, "Auto-tune"),
+    );
+    const field = (label: string, input: HTMLElement, unit: string): HTMLElement =>
+      h("label", { class: "bl" }, h("span", { class: "bl-label" }, label), input, unit ? h("span", { class: "unit" }, unit) : null);
+    this.el = h(
+      "section",
+      { class: "autotune", testid: "at-panel", "data-open": "1" },
+      h(
+        "div",
+        { class: "at-bar" },
+        this.toggle,
+        field("PWM ±", this.maxPwm, ""),
+        field("distance ±", this.maxDistance, this.descriptor.channels.find((c) => c.name === "position")?.unit ?? "counts"),
+        field("goal", this.goal, ""),
+        h(
+          "span",
+          { class: "at-test-fields" },
+          field("test", this.test, ""),
+          field("", this.direction, ""),
+          field("", this.distance, this.descriptor.channels.find((c) => c.name === "position")?.unit ?? "counts"),
+        ),
+        this.identifyButton,
+        this.progress,
+      ),
+      this.error,
+      this.details,
+    );
+    this.setOpen(this.open);
+    store.on(
+      "event",
+      (e) => {
+        if (e.axis !== axisId || !/auto-?tune/i.test(e.message)) return;
+        this.lastEvent = e.message.replace(/^auto-tune:\s*/i, "");
+        this.syncProgress();
+      },
+      signal,
+    );
+    store.on(
+      "run",
+      (msg) => {
+        if (msg.axis === axisId && this.busy) {
+          this.lastEvent = `${msg.message || msg.status} · run #${msg.run_id.slice(0, 4)} ${msg.elapsed_s.toFixed(1)} s`;
+          this.syncProgress();
+        }
+      },
+      signal,
+    );
+    signal.addEventListener(
+      "abort",
+      () => {
+        window.clearInterval(this.timer);
+        window.clearTimeout(this.poll);
+      },
+      { once: true },
+    );
+    void this.loadSession();
+  }
+
+  /** The bench limits: the defaults of the fields and the client-side check. */
+  setLimits(limits: BenchLimits): void {
+    this.limits = limits;
+    if (!this.form.max_pwm) this.form.max_pwm = String(Math.min(60, limits.max_pwm));
+    if (!this.form.max_distance) this.form.max_distance = String(Math.min(4000, limits.max_distance_counts));
+    this.maxPwm.value = this.form.max_pwm;
+    this.maxDistance.value = this.form.max_distance;
+    this.maxPwm.max = String(limits.max_pwm);
+    this.maxDistance.max = String(limits.max_distance_counts);
+    this.validate();
+  }
+
+  private setOpen(open: boolean): void {
+    this.open = open;
+    try {
+      localStorage.setItem(OPEN_KEY, open ? "1" : "0");
+    } catch {
+      /* private mode */
+    }
+    this.el.dataset.open = open ? "1" : "0";
+    this.details.hidden = !open;
+    this.toggle.setAttribute("aria-expanded", open ? "true" : "false");
+  }
+
+  private validate(): void {
+    const check = (input: HTMLInputElement, limit: number | undefined): void => {
+      const v = Number(input.value);
+      toggleClass(input, "invalid", input.value.trim() === "" || !Number.isInteger(v) || v < 1 || (limit !== undefined && v > limit));
+    };
+    check(this.maxPwm, this.limits?.max_pwm);
+    check(this.maxDistance, this.limits?.max_distance_counts);
+    const d = Number(this.distance.value);
+    const dLimit = Number(this.maxDistance.value);
+    toggleClass(this.distance, "invalid", this.distance.value.trim() !== "" && (!Number.isInteger(d) || d < 1 || (Number.isFinite(dLimit) && d > dLimit)));
+  }
+
+  // --- session ------------------------------------------------------------------------
+
+  private async loadSession(): Promise<void> {
+    let session: AutoTuneSession;
+    try {
+      session = await api.autotune(this.axisId);
+    } catch (error) {
+      if (this.signal.aborted) return;
+      this.showError(error, true);
+      return;
+    }
+    if (this.signal.aborted) return;
+    this.el.dataset.state = session.state;
+    if (session.request && !forms.get(this.axisId)?.max_pwm) {
+      this.form.max_pwm = String(session.request.max_pwm);
+      this.form.max_distance = String(session.request.max_distance_counts);
+    }
+    const req = session.request;
+    if (req) {
+      this.form.response = req.response;
+      this.goal.value = req.response;
+      if (req.test === "position_step" || req.test === "move") this.test.value = this.form.test = req.test;
+      if (req.direction === 1 || req.direction === -1) this.direction.value = this.form.direction = String(req.direction) as Form["direction"];
+    }
+    this.proposal = session.proposal;
+    this.result = session.result;
+    if (session.state === "identifying" || session.state === "verifying") {
+      // Running from another browser: follow it until it ends.
+      setText(this.progress, `${session.state} … ${session.message}`);
+      this.progress.dataset.kind = "pending";
+      this.poll = window.setTimeout(() => void this.loadSession(), 1000);
+    } else if (session.state === "failed") {
+      this.setProgress("error", session.message);
+    } else if (session.message) this.setProgress("", session.message);
+    this.render();
+  }
+
+  // --- identify -----------------------------------------------------------------------
+
+  private request(): AutoTuneRequest {
+    const n = (input: HTMLInputElement): number => (input.value.trim() === "" ? Number.NaN : Number(input.value));
+    const body: AutoTuneRequest = {
+      max_pwm: n(this.maxPwm),
+      max_distance_counts: n(this.maxDistance),
+      response: this.goal.value as AutoTuneGoal,
+      test: this.test.value as Form["test"],
+      direction: this.direction.value === "-1" ? -1 : 1,
+    };
+    if (this.distance.value.trim() !== "") body.distance = n(this.distance);
+    return body;
+  }
+
+  private async identify(): Promise<void> {
+    if (this.busy) return;
+    this.clearError();
+    this.start("identify");
+    try {
+      const proposal = await api.autotuneIdentify(this.axisId, this.request());
+      const took = this.elapsed();
+      this.stop();
+      this.proposal = proposal;
+      this.result = null;
+      this.el.dataset.state = "proposed";
+      this.setProgress("ok", `✓ model fitted, gains proposed (${took})`);
+      this.setOpen(true);
+    } catch (error) {
+      this.stop();
+      this.showError(error);
+      this.setProgress("", "");
+    } finally {
+      this.render();
+    }
+  }
+
+  private async accept(): Promise<void> {
+    if (this.busy || !this.proposal) return;
+    this.clearError();
+    this.start("accept");
+    let result: AutoTuneResult;
+    try {
+      result = await api.autotuneAccept(this.axisId);
+    } catch (error) {
+      this.stop();
+      this.showError(error);
+      this.setProgress("", "");
+      this.render();
+      return;
+    }
+    const took = this.elapsed();
+    this.stop();
+    this.result = result;
+    this.el.dataset.state = "verified";
+    this.setProgress("ok", `✓ verified: ${result.verdict ?? "done"} (${took})`);
+    this.render();
+    await this.host.showRuns([result.baseline_run_id, result.verification_run_id].filter((id): id is string => !!id));
+  }
+
+  private async revert(): Promise<void> {
+    if (this.busy) return;
+    this.clearError();
+    this.start("revert");
+    try {
+      const readback = await api.autotuneRevert(this.axisId);
+      this.stop();
+      store.setDeviceParams(this.axisId, readback, true);
+      this.setProgress("ok", `✓ reverted to ${gainsText(readback)}`);
+      this.result = null;
+      this.proposal = null;
+      this.el.dataset.state = "idle";
+    } catch (error) {
+      this.stop();
+      this.showError(error);
+      this.setProgress("", "");
+    } finally {
+      this.render();
+    }
+  }
+
+  private start(kind: "identify" | "accept" | "revert"): void {
+    this.busy = kind;
+    this.busySince = performance.now();
+    this.lastEvent = "";
+    this.identifyButton.disabled = true;
+    this.identifyButton.classList.add("busy");
+    this.el.dataset.busy = kind;
+    this.render();
+    this.syncProgress();
+    window.clearInterval(this.timer);
+    this.timer = window.setInterval(() => this.syncProgress(), 200);
+  }
+
+  private stop(): void {
+    this.busy = null;
+    window.clearInterval(this.timer);
+    this.identifyButton.disabled = false;
+    this.identifyButton.classList.remove("busy");
+    delete this.el.dataset.busy;
+  }
+
+  private elapsed(): string {
+    return `${((performance.now() - this.busySince) / 1000).toFixed(1)} s`;
+  }
+
+  private syncProgress(): void {
+    if (!this.busy) return;
+    const what = { identify: "Identifying: PWM staircase, fit, gain search", accept: "Verifying: baseline test, write, verification test", revert: "Reverting" }[this.busy];
+    this.setProgress("pending", `● ${what} … ${this.elapsed()}${this.lastEvent ? ` · ${this.lastEvent}` : ""}`);
+  }
+
+  private setProgress(kind: string, text: string): void {
+    this.progress.dataset.kind = kind;
+    setText(this.progress, text);
+    this.progress.title = text;
+  }
+
+  private showError(error: unknown, onLoad = false): void {
+    const field = error instanceof ApiError ? error.field : null;
+    const input = { max_pwm: this.maxPwm, max_distance_counts: this.maxDistance, distance: this.distance, test: this.test, direction: this.direction }[field ?? ""] ?? null;
+    input?.classList.add("server-invalid");
+    let text = `${statusLabel(error)}: ${errorText(error)}`;
+    if (error instanceof ApiError && error.status === 404 && !field) {
+      text = `Auto-tune is not available on this server (${errorText(error)}): its /autotune routes are missing.`;
+    }
+    this.error.dataset.status = error instanceof ApiError ? String(error.status) : "";
+    this.error.dataset.field = field ?? "";
+    toggleClass(this.error, "unsupported", onLoad);
+    setText(this.error, text);
+    this.error.hidden = false;
+  }
+
+  private clearError(): void {
+    this.error.hidden = true;
+    setText(this.error, "");
+    for (const input of [this.maxPwm, this.maxDistance, this.distance, this.test, this.direction]) input.classList.remove("server-invalid");
+  }
+
+  // --- proposal and result ------------------------------------------------------------
+
+  private label(name: string): string {
+    return this.descriptor.parameters.find((p) => p.name === name)?.label ?? name;
+  }
+
+  private render(): void {
+    const p = this.proposal;
+    if (!p) {
+      replace(this.details);
+      this.toggle.disabled = true;
+      return;
+    }
+    this.toggle.disabled = false;
+    const busy = this.busy !== null;
+    const cols = this.host.columns([p.predicted, p.predicted_default, this.result?.measured, this.result?.baseline_measured]);
+    replace(this.details, this.proposalView(p, cols, busy), this.result ? this.resultView(p, this.result, cols, busy) : null);
+  }
+
+  private proposalView(p: AutoTuneProposal, cols: MetricColumn[], busy: boolean): HTMLElement {
+    const model = h(
+      "div",
+      { class: "at-card at-model", testid: "at-model" },
+      h("div", { class: "at-card-title" }, "Fitted model"),
+      h(
+        "dl",
+        { class: "at-kv" },
+        MODEL_FIELDS.filter((f) => typeof p.model[f.key] === "number").map((f) => [
+          h("dt", { title: f.help }, f.label),
+          h("dd", { class: "mono", "data-key": f.key }, f.text(p.model[f.key] as number)),
+        ]),
+        Object.entries(p.model)
+          .filter(([k]) => !MODEL_FIELDS.some((f) => f.key === k))
+          .map(([k, v]) => [h("dt", null, k), h("dd", { class: "mono" }, String(v))]),
+      ),
+      p.test
+        ? h(
+            "div",
+            { class: "at-sub", title: Object.entries(p.test).map(([k, v]) => `${k} = ${v}`).join("\n") },
+            `tuned for a ${p.test.distance !== undefined ? `${p.test.distance > 0 ? "+" : ""}${p.test.distance} counts ` : ""}move${p.test.band !== undefined ? `, settled within ±${p.test.band}` : ""}`,
+          )
+        : null,
+    );
+    const names = [...new Set([...Object.keys(p.current_gains), ...Object.keys(p.gains)])];
+    const gains = h(
+      "div",
+      { class: "at-card at-gains" },
+      h("div", { class: "at-card-title" }, "Gains"),
+      h(
+        "table",
+        { class: "diff-table at-gains-table", testid: "at-gains" },
+        h("thead", null, h("tr", null, h("th", { class: "d-name" }, ""), h("th", null, "now"), h("th", null, "proposed"))),
+        h(
+          "tbody",
+          null,
+          names.map((n) => {
+            const now = p.current_gains[n];
+            const next = p.gains[n];
+            const changed = now !== next;
+            const factor = now && next !== undefined ? next / now : null;
+            return h(
+              "tr",
+              { "data-param": n },
+              h("td", { class: "d-name", title: n }, this.label(n), h("span", { class: "d-key mono" }, ` ${n}`)),
+              h("td", { class: "d-val num" }, now === undefined ? "—" : String(now)),
+              h(
+                "td",
+                { class: `d-val num${changed ? " differs" : ""}`, testid: `at-gain-${n}`, title: factor !== null && changed ? `× ${factor.toFixed(2)}` : "unchanged" },
+                next === undefined ? "—" : String(next),
+              ),
+            );
+          }),
+        ),
+      ),
+      p.design?.unchanged === true ? h("div", { class: "at-sub" }, "the gains in use already fit the rule best") : null,
+    );
+    const rowLabel = (title: string, sub: string): HTMLElement => h("td", { class: "at-row-label" }, h("b", null, title), h("span", { class: "at-row-sub mono" }, sub));
+    const excursion = (v: number | undefined): HTMLElement => h("td", { class: "c-metric num" }, v === undefined ? "—" : String(v));
+    const metrics = h(
+      "div",
+      { class: "at-card at-predicted" },
+      h("div", { class: "at-card-title" }, "Predicted on the model", h("span", { class: "at-card-sub" }, " — same metrics as the runs table; colours: proposed vs now")),
+      h(
+        "div",
+        { class: "at-table-scroll" },
+        h(
+          "table",
+          { class: "bench-table at-metrics", testid: "at-predicted" },
+          h("thead", null, h("tr", null, h("th", { class: "at-row-label" }, ""), metricHeads(cols), h("th", { class: "c-metric", title: "Largest distance from the start, predicted (counts)" }, h("span", null, "travel"), h("span", { class: "th-unit" }, "counts")))),
+          h(
+            "tbody",
+            null,
+            h(
+              "tr",
+              { "data-row": "current" },
+              rowLabel("now", gainsText(p.current_gains)),
+              cols.map((c) => metricCell(c, p.predicted_default, null, `at-predicted-current-${c.key}`, null)),
+              excursion(p.default_excursion),
+            ),
+            h(
+              "tr",
+              { "data-row": "proposed", class: "at-proposed-row" },
+              rowLabel("proposed", gainsText(p.gains)),
+              cols.map((c) => metricCell(c, p.predicted, p.predicted_default, `at-predicted-proposed-${c.key}`, null, "the gains in use")),
+              excursion(p.predicted_excursion),
+            ),
+          ),
+        ),
+      ),
+      h(
+        "div",
+        { class: "at-sub" },
+        [
+          p.predicted_peak_pwm !== undefined ? `peak PWM ${p.predicted_peak_pwm}` : "",
+          p.travel_counts !== undefined ? `identification travelled ${p.travel_counts} counts` : "",
+          p.candidates !== undefined ? `${p.candidates} candidates, ${p.simulations ?? "?"} robustness simulations` : "",
+          p.design ? Object.entries(p.design).filter(([k]) => k !== "unchanged").map(([k, v]) => `${k} ${typeof v === "number" ? num(v) : String(v)}`).join(", ") : "",
+        ]
+          .filter(Boolean)
+          .join(" · "),
+      ),
+    );
+    const ruleText = h("p", { class: "at-rule-text", title: "Click to show all / less" }, p.rule);
+    ruleText.addEventListener("click", () => ruleText.classList.toggle("expanded"));
+    const rule = h(
+      "div",
+      { class: "at-card at-rule", testid: "at-rule" },
+      h("div", { class: "at-card-title" }, "Rule", h("span", { class: "at-card-sub" }, ` — ${p.response ? GOALS[p.response]?.label ?? p.response : ""}`)),
+      ruleText,
+    );
+    // A proposal is accepted once: after its verification, Identify gives a new one.
+    const acceptButton = this.result
+      ? null
+      : h(
+          "button",
+          {
+            class: "btn primary",
+            testid: "at-accept",
+            disabled: busy,
+            title: "Run a baseline test with the gains in use, write the proposed gains (validated, read back), run the same test again. The axis moves; STOP / Esc stops.",
+            onclick: () => void this.accept(),
+          },
+          "Accept and verify",
+        );
+    const noBaseline = p.baseline_possible === false;
+    const distance = p.test?.distance;
+    const attempts = p.identification_run_ids?.length ?? 1;
+    return h(
+      "div",
+      { class: "at-proposal", testid: "at-proposal", "data-run": p.identification_run_id },
+      (p.warnings ?? []).map((w) => h("div", { class: "at-warning", testid: "at-warning", role: "note" }, h("b", null, "⚠ "), w)),
+      attempts > 1 ? h("div", { class: "at-sub" }, `identified in ${attempts} attempts (runs ${(p.identification_run_ids ?? []).map((id) => `#${id.slice(0, 4)}`).join(", ")})`) : null,
+      h("div", { class: "at-grid" }, model, gains, rule),
+      // Once verified, the result table repeats the predictions next to the measurements.
+      this.result ? null : metrics,
+      h(
+        "div",
+        { class: "at-actions" },
+        acceptButton,
+        h(
+          "span",
+          { class: `at-hint${noBaseline ? " warn" : ""}` },
+          this.result
+            ? "Accepted and verified (below). Identify again for a new proposal."
+            : noBaseline
+            ? `The gains in use are predicted to travel ${p.default_excursion ?? "?"} counts, beyond your distance limit: the baseline test is skipped, only the verification runs.`
+            : `Moves the axis: a baseline test with the gains in use, then the same test with the proposed gains${distance !== undefined ? ` (${distance} counts each)` : ""}.`,
+        ),
+      ),
+    );
+  }
+
+  private resultView(p: AutoTuneProposal, r: AutoTuneResult, cols: MetricColumn[], busy: boolean): HTMLElement {
+    const previous = r.previous_gains ?? p.current_gains;
+    const proposed = r.gains ?? p.gains;
+    const verdict = r.verdict ?? "unknown";
+    const rowLabel = (title: string, sub: string, run: string | null): HTMLElement =>
+      h("td", { class: "at-row-label", title: run ? `run ${run}` : "" }, h("b", null, title), h("span", { class: "at-row-sub mono" }, sub));
+    const rows = [
+      h(
+        "tr",
+        { "data-row": "proposed-predicted" },
+        rowLabel("proposed · predicted", gainsText(proposed), null),
+        cols.map((c) => metricCell(c, r.predicted, null, `at-result-predicted-${c.key}`, null)),
+      ),
+      h(
+        "tr",
+        { "data-row": "proposed-measured", class: "at-proposed-row", "data-run": r.verification_run_id },
+        rowLabel("proposed · measured", `run #${r.verification_run_id.slice(0, 4)}`, r.verification_run_id),
+        cols.map((c) => metricCell(c, r.measured, r.baseline_measured ?? null, `at-result-measured-${c.key}`, null, "the baseline run")),
+      ),
+      h(
+        "tr",
+        { "data-row": "previous-predicted" },
+        rowLabel("before · predicted", gainsText(previous), null),
+        cols.map((c) => metricCell(c, r.predicted_default ?? p.predicted_default, null, `at-result-previous-predicted-${c.key}`, null)),
+      ),
+      h(
+        "tr",
+        { "data-row": "previous-measured", "data-run": r.baseline_run_id ?? "" },
+        rowLabel("before · measured", r.baseline_run_id ? `baseline run #${r.baseline_run_id.slice(0, 4)}` : "no baseline run", r.baseline_run_id),
+        cols.map((c) => metricCell(c, r.baseline_measured ?? null, null, `at-result-baseline-${c.key}`, null)),
+      ),
+    ];
+    const ids = [r.baseline_run_id, r.verification_run_id].filter((id): id is string => !!id);
+    return h(
+      "div",
+      { class: "at-result", testid: "at-result", "data-verdict": verdict },
+      h(
+        "div",
+        { class: "at-result-head" },
+        h("span", { class: "at-card-title" }, "Verification"),
+        h("span", { class: `at-verdict v-${verdict.replace(/\s+/g, "-")}`, testid: "at-verdict", title: "Measured settling (and overshoot) of the verification run against the baseline run" }, verdict),
+        r.baseline_note ? h("span", { class: "at-hint warn" }, r.baseline_note) : null,
+        h("span", { class: "tb-spacer" }),
+        h("button", { class: "btn small", testid: "at-show-runs", title: "Select the baseline and verification runs in the overlay", onclick: () => void this.host.showRuns(ids) }, "Show both runs"),
+        h(
+          "button",
+          {
+            class: "btn small warn",
+            testid: "at-revert",
+            disabled: busy,
+            title: `Write back the gains in use before: ${gainsText(previous)}`,
+            onclick: () => void this.revert(),
+          },
+          `Revert to ${gainsText(previous)}`,
+        ),
+      ),
+      h(
+        "div",
+        { class: "at-table-scroll" },
+        h("table", { class: "bench-table at-metrics", testid: "at-result-table" }, h("thead", null, h("tr", null, h("th", { class: "at-row-label" }, ""), metricHeads(cols))), h("tbody", null, rows)),
+      ),
+      h("div", { class: "at-sub" }, "Colours of the measured row: the verification run against the baseline run. The proposed gains stay on the device (not persisted in it)."),
+    );
+  }
+}
