@@ -75,9 +75,7 @@ def link_from_mapping(data: dict[str, Any]) -> LinkSpec:
     else:
         baud = _int("baud", data.get("baud", DEFAULT_BAUD[device]), 300, 1_000_000)
         if baud not in BAUD_RATES:
-            raise ConfigError(
-                f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}"
-            )
+            raise ConfigError(f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}")
     raw_addresses = data.get("addresses", [0])
     if isinstance(raw_addresses, str):
         raw_addresses = [a for a in raw_addresses.split(",") if a.strip()]
