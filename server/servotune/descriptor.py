@@ -137,6 +137,11 @@ class CommandDescriptor(BaseModel):
         default=None, description="command that aborts this one while it runs"
     )
     marks_operated: bool = True
+    active_flag: str | None = Field(
+        default=None,
+        description="a flag that is on while the mode this command selects is active "
+        "(the UI shows the button as engaged)",
+    )
 
 
 class ConsoleDescriptor(BaseModel):

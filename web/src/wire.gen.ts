@@ -90,6 +90,7 @@ export interface CommandDescriptor {
   confirm: string | null;
   abort_command: string | null;
   marks_operated: boolean;
+  active_flag: string | null;
 }
 
 export interface ConsoleDescriptor {

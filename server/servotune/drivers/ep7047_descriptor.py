@@ -704,6 +704,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 "Needed for every move."
             ),
             group="mode",
+            active_flag="enable_out",
         ),
         CommandDescriptor(
             name="disable",

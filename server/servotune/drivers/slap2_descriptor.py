@@ -408,12 +408,14 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             label="Position mode",
             description="pm: controller on, holds the current position.",
             group="mode",
+            active_flag="pm",
         ),
         CommandDescriptor(
             name="velocity_mode",
             label="Velocity mode",
             description="vm: controller on, accelerates with sa to sv at once.",
             group="mode",
+            active_flag="vm",
         ),
         CommandDescriptor(
             name="move_absolute",

@@ -292,6 +292,8 @@ export class Controls {
   readonly status: HTMLElement;
   readonly runner: CommandRunner;
   private readonly running: RunningCommand[] = [];
+  /** Mode buttons shown as engaged while their descriptor flag is on. */
+  private readonly engaged: [string, HTMLElement][] = [];
 
   constructor(axisId: string, descriptor: DeviceDescriptor) {
     this.status = h("div", { class: "cmd-status", testid: "command-status", "aria-live": "polite" });
@@ -326,6 +328,7 @@ export class Controls {
         widget = commandWidget(this.runner, cmd, "danger");
       } else {
         widget = commandWidget(this.runner, cmd, cmd.group === "mode" ? "mode" : "");
+        if (cmd.active_flag) this.engaged.push([cmd.active_flag, widget]);
       }
       const list = groups.get(cmd.group) ?? [];
       list.push(widget);
@@ -348,6 +351,14 @@ export class Controls {
 
   tick(buffer: AxisBuffer): void {
     for (const rc of this.running) rc.tick(buffer);
+    for (const [flag, widget] of this.engaged) {
+      const on = buffer.latestFlags.get(flag) === 1;
+      const button = widget.querySelector("button");
+      if (button && button.classList.contains("engaged") !== on) {
+        button.classList.toggle("engaged", on);
+        button.setAttribute("aria-pressed", on ? "true" : "false");
+      }
+    }
   }
 
   /** A STOP (this axis or all) ends whatever was running. */
