@@ -64,12 +64,26 @@ async def test_move_needs_position_mode_then_reaches_target(line: RunningLink) -
 async def test_stop_overtakes_queued_jobs(line: RunningLink) -> None:
     drive = axis(line, 0)
     await drive.command("position_mode", {})
-    queued = [drive.console("rp") for _ in range(15)]
+    # Parameter writes are not motion: they stay queued, and the stop overtakes them.
+    queued = [drive.write_params({"kd": 80 + i}) for i in range(8)]
     order = await gather_in_order(*queued, drive.stop())
-    stop_index = 15
+    stop_index = 8
     # At most the transaction already on the wire finishes before the stop.
     assert order.index(stop_index) <= 1, order
     await line.until(lambda: not line.bus.module(0).rss & (1 << codec.RssBit.pm), "pm off")
+
+
+async def test_motion_queued_before_stop_is_never_sent(line: RunningLink) -> None:
+    drive = axis(line, 0)
+    busy = [drive.console("rp") for _ in range(6)]
+    velocity = asyncio.ensure_future(drive.command("velocity_mode", {}))
+    await asyncio.sleep(0)  # queued behind the reads
+    stop = asyncio.ensure_future(drive.stop())
+    await asyncio.gather(*busy, stop)
+    with pytest.raises(DeviceRefusedError, match="STOP"):
+        await velocity
+    await asyncio.sleep(0.2)
+    assert not line.bus.module(0).rss & 0b1100, "a move queued before STOP ran after it"
 
 
 async def test_dropped_echo_is_retried_after_ctrl_x(line: RunningLink) -> None:

@@ -30,9 +30,11 @@ from servotune.drivers.base import (
     Autopilot,
     AxisDriver,
     CommandOutcome,
+    DeviceRefusedError,
     DriverError,
     InvalidArgumentError,
     Link,
+    LinkDownError,
     Sample,
 )
 from servotune.drivers.validation import validate_command, validate_params
@@ -89,6 +91,8 @@ class AxisEntry:
     # Set when a stop could not reach the axis (link down during a bench test): the
     # stop is sent as soon as the axis is back.
     stop_on_reconnect: bool = False
+    # Bumped by every user STOP; sequences (bench, auto-tune) compare it before each step.
+    stop_generation: int = 0
 
 
 @dataclass(slots=True)
@@ -316,13 +320,38 @@ class Hub:
         self._operate(entry)
         return await entry.driver.write_params(checked)
 
-    async def command(self, axis_id: str, name: str, args: Mapping[str, object]) -> CommandOutcome:
+    async def command(
+        self,
+        axis_id: str,
+        name: str,
+        args: Mapping[str, object],
+        *,
+        origin: str = "user",
+        stop_generation: int | None = None,
+    ) -> CommandOutcome:
+        """Validate and run a descriptor command.
+
+        ``origin`` is who asks (the user, the bench, auto-tune). A user's ``stop``
+        bumps the axis' stop generation; a sequence that passes the generation it
+        started with (``stop_generation``) is refused from then on, so a STOP ends a
+        bench test or an auto-tune run instead of being overtaken by its next step.
+        """
         entry = self.entry(axis_id)
+        if stop_generation is not None and entry.stop_generation != stop_generation:
+            raise DeviceRefusedError("not sent: STOP was pressed during this sequence")
         checked = validate_command(entry.driver.descriptor, name, args)
         self._operate(entry)
         if name == "restore_parameters":
             return await self._restore(entry)
-        outcome = await entry.driver.command(name, checked)
+        if name == "stop" and origin == "user":
+            entry.stop_generation += 1
+        try:
+            outcome = await entry.driver.command(name, checked)
+        except LinkDownError:
+            if name == "stop":
+                # The stop could not reach the axis: send it the moment it is back.
+                entry.stop_on_reconnect = True
+            raise
         level: EventLevel = "warning" if name == "stop" else "info"
         self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}")
         return outcome
@@ -350,12 +379,16 @@ class Hub:
         entries = list(self._axes.values())
         for entry in entries:
             entry.operated = True
+            entry.stop_generation += 1
         results = await asyncio.gather(*(e.driver.stop() for e in entries), return_exceptions=True)
         failed = []
         for entry, result in zip(entries, results, strict=True):
             if isinstance(result, BaseException):
                 failed.append(entry.info.id)
-                self.on_event("error", entry.info.id, f"STOP failed: {result}")
+                entry.stop_on_reconnect = True
+                self.on_event(
+                    "error", entry.info.id, f"STOP failed: {result} (sent again on reconnect)"
+                )
             else:
                 self.on_event("warning", entry.info.id, "STOP")
         for entry in entries:
@@ -407,12 +440,18 @@ class Hub:
         entry = self._axes[axis_id]
         if health != "offline" and entry.stop_on_reconnect:
             entry.stop_on_reconnect = False
-            task = asyncio.get_running_loop().create_task(self._stop_after_reconnect(entry))
+            task = asyncio.get_running_loop().create_task(
+                self._stop_after_reconnect(entry), name=f"stop after reconnect ({axis_id})"
+            )
             self._tasks.append(task)
             task.add_done_callback(self._forget_task)
         if entry.health == "reset" and health == "ok":
             # A reset stays flagged until the user re-applies the settings (_restore).
             return
+        if health == "offline":
+            # After an outage the device may have been power-cycled: compare its
+            # values with the last applied ones again when it is back.
+            entry.compared_at_connect = False
         entry.health, entry.health_message = health, message
         self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
 
@@ -468,7 +507,8 @@ class Hub:
 
     def _save_soon(self, entry: AxisEntry, values: dict[str, int]) -> None:
         task = asyncio.get_running_loop().create_task(
-            asyncio.to_thread(self._storage.save_params, entry.storage_key, values)
+            asyncio.to_thread(self._storage.save_params, entry.storage_key, values),
+            name=f"saving settings of {entry.info.id}",
         )
         self._tasks.append(task)
         task.add_done_callback(self._forget_task)
@@ -477,8 +517,8 @@ class Hub:
         with contextlib.suppress(ValueError):
             self._tasks.remove(task)
         if not task.cancelled() and task.exception() is not None:
-            logger.error("saving settings failed: %s", task.exception())
-            self.on_event("error", None, f"saving settings failed: {task.exception()}")
+            logger.error("background task %s failed: %s", task.get_name(), task.exception())
+            self.on_event("error", None, f"{task.get_name()} failed: {task.exception()}")
 
     def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None:
         event = Event(t=round(self.now(), 3), level=level, axis=axis_id, message=message)

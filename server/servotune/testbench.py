@@ -38,6 +38,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     Sample,
 )
+from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
 from servotune.storage import Storage
@@ -78,6 +79,8 @@ class _Recording:
     columns: list[str]
     flags: list[str]
     t0: float | None = None
+    # The axis' stop generation when the test started (None: not checked).
+    stop_generation: int | None = None
     samples: list[list[Any]] = field(default_factory=list)
     flushed: int = 0
     chunk_seq: int = 0
@@ -97,6 +100,7 @@ class TestBench:
         self._storage = storage
         self._clock = clock
         self._active: dict[str, _Recording] = {}
+        self._claimed: set[str] = set()
         self._tasks: set[asyncio.Task[None]] = set()
         hub.add_sample_listener(self._on_sample)
 
@@ -152,8 +156,23 @@ class TestBench:
             )
         limits = await self.limits(axis_id)
         self._check_limits(request, limits)
-        if axis_id in self._active:
+        if axis_id in self._active or axis_id in self._claimed:
             raise DeviceRefusedError("a test is already running on this axis")
+        # Claimed before the first await, so a second request cannot slip in.
+        self._claimed.add(axis_id)
+        try:
+            return await self._start_claimed(axis_id, entry, driver, request, limits)
+        finally:
+            self._claimed.discard(axis_id)
+
+    async def _start_claimed(
+        self,
+        axis_id: str,
+        entry: AxisEntry,
+        driver: BenchPlanner,
+        request: BenchTestRequest,
+        limits: BenchLimits,
+    ) -> dict[str, Any]:
         await self._hub.take_over(entry)
         if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
             raise DeviceRefusedError("the axis is not connected: no telemetry")
@@ -165,8 +184,14 @@ class TestBench:
             duration_s=request.duration_s,
         )
         plan = driver.bench_plan(test, entry.latest, entry.device_values)
+        # The plan is checked like user input before anything moves (422 naming the
+        # field): a test must not put a value on the wire the descriptor forbids.
+        if plan.overrides:
+            validate_params(entry.driver.descriptor, plan.overrides)
+        for name, args in (*plan.setup, *plan.trigger, *plan.finish):
+            validate_command(entry.driver.descriptor, name, args)
         self._hub.mark_operated(entry)
-        descriptor = driver.descriptor
+        descriptor = entry.driver.descriptor
         columns = ["t_s", *(c.name for c in descriptor.channels)]
         flags = [f.name for f in descriptor.flags]
         run_id = uuid.uuid4().hex[:12]
@@ -198,7 +223,9 @@ class TestBench:
         await asyncio.to_thread(
             self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
         )
-        recording = _Recording(run_id, entry, plan, columns, flags)
+        recording = _Recording(
+            run_id, entry, plan, columns, flags, stop_generation=entry.stop_generation
+        )
         self._active[axis_id] = recording
         task = asyncio.create_task(self._run(recording, test, meta))
         self._tasks.add(task)
@@ -252,9 +279,15 @@ class TestBench:
         recording.chunk_seq += 1
         await asyncio.to_thread(self._storage.append_samples, recording.run_id, seq, rows)
 
-    async def _send(self, entry: AxisEntry, steps: list[tuple[str, dict[str, int]]]) -> None:
+    async def _send(self, recording: _Recording, steps: list[tuple[str, dict[str, int]]]) -> None:
         for name, args in steps:
-            await entry.driver.command(name, args)
+            await self._hub.command(
+                recording.entry.info.id,
+                name,
+                args,
+                origin="bench",
+                stop_generation=recording.stop_generation,
+            )
 
     async def _run(self, recording: _Recording, test: BenchTest, meta: dict[str, Any]) -> None:
         entry, plan = recording.entry, recording.plan
@@ -266,13 +299,13 @@ class TestBench:
                     k: entry.device_values[k] for k in plan.overrides if k in entry.device_values
                 }
                 await entry.driver.write_params(plan.overrides)
-            await self._send(entry, plan.setup)
+            await self._send(recording, plan.setup)
             await asyncio.sleep(PRE_TRIGGER_S)
             recording.t0 = self._clock()
-            await self._send(entry, plan.trigger)
+            await self._send(recording, plan.trigger)
             self._update(recording, "recording", "triggered")
             await self._record(recording, test, await self.limits(entry.info.id))
-            await self._send(entry, plan.finish)
+            await self._send(recording, plan.finish)
         except DriverError as exc:
             status, message = "incomplete", f"test stopped: {exc}"
             try:
@@ -289,7 +322,14 @@ class TestBench:
         finally:
             try:
                 if saved and status == "complete":
-                    await self._restore(entry, saved)
+                    try:
+                        await self._restore(entry, saved)
+                    except DriverError as exc:
+                        status = "incomplete"
+                        changed = ", ".join(f"{k}={v}" for k, v in saved.items())
+                        message = (
+                            f"could not restore {changed} after the test ({exc}): re-apply them"
+                        )
                 elif saved:
                     try:
                         await self._restore(entry, saved)
@@ -333,6 +373,9 @@ class TestBench:
                 self._update(recording, "recording", f"{now - start:.1f} s")
             if self._hub.link_status(recording.entry.link.id).state != "connected":
                 raise DriverError("the link went down during the test")
+            generation = recording.stop_generation
+            if generation is not None and recording.entry.stop_generation != generation:
+                raise DriverError("STOP was pressed during the test")
             if now - start >= test.duration_s:
                 return
             latest = recording.entry.latest

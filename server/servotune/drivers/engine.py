@@ -25,7 +25,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
-from servotune.drivers.base import DriverSink, LinkDownError
+from servotune.drivers.base import DeviceRefusedError, DriverSink, LinkDownError
 from servotune.transports.base import ByteChannel, Connector, LinkClosedError
 from servotune.wire import LinkState
 
@@ -36,6 +36,8 @@ T = TypeVar("T")
 class _Job:
     run: Callable[[], Awaitable[object]]
     future: asyncio.Future[object]
+    axis: int | None = None
+    motion: bool = False
 
 
 class LinkEngine(abc.ABC):
@@ -137,12 +139,30 @@ class LinkEngine(abc.ABC):
 
     # --- jobs -------------------------------------------------------------------------
 
-    async def submit(self, run: Callable[[], Awaitable[T]], *, urgent: bool = False) -> T:
-        """Run ``run`` on the owner task with exclusive use of the line."""
+    async def submit(
+        self,
+        run: Callable[[], Awaitable[T]],
+        *,
+        urgent: bool = False,
+        axis: int | None = None,
+        motion: bool = False,
+        stop: bool = False,
+    ) -> T:
+        """Run ``run`` on the owner task with exclusive use of the line.
+
+        ``motion`` marks a job that may move ``axis`` (a command, a raw console
+        line). A ``stop`` job (always urgent) first fails every queued motion job of
+        its axis (``axis=None``: of every axis) with "not sent": a move queued a
+        moment before the user pressed STOP must never run after it.
+        """
         if self._channel is None or self._state not in ("connected", "error"):
             raise LinkDownError(f"link {self.id} is {self._state}: nothing was sent")
+        if stop:
+            urgent = True
+            self._cancel_motion(axis)
         future: asyncio.Future[object] = asyncio.get_running_loop().create_future()
-        (self._urgent if urgent else self._normal).append(_Job(run, future))
+        job = _Job(run, future, axis, motion)
+        (self._urgent if urgent else self._normal).append(job)
         self._wakeup.set()
         result = await future
         return result  # type: ignore[return-value]
@@ -162,6 +182,18 @@ class LinkEngine(abc.ABC):
         if self._normal:
             return self._normal.popleft()
         return None
+
+    def _cancel_motion(self, axis: int | None) -> None:
+        kept: deque[_Job] = deque()
+        for job in self._normal:
+            if job.motion and (axis is None or job.axis == axis):
+                if not job.future.done():
+                    job.future.set_exception(
+                        DeviceRefusedError("not sent: STOP was pressed before it went out")
+                    )
+            else:
+                kept.append(job)
+        self._normal = kept
 
     def _fail_jobs(self, error: Exception) -> None:
         for queue in (self._urgent, self._normal):

@@ -659,7 +659,8 @@ class Slap2Link(LinkEngine):
                 self._track_mode(module, command.text)
             return sent
 
-        return await self.submit(job, urgent=urgent)
+        is_stop = any(c.text == "st" for c in commands)
+        return await self.submit(job, urgent=urgent, axis=address, motion=True, stop=is_stop)
 
     async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None:
         """Send one control character (Ctrl-K) to a module and drain its echo."""
@@ -693,7 +694,8 @@ class Slap2Link(LinkEngine):
                 self._learn_syscon(module, await self._read_int(address, "rsyscon"))
             return lines
 
-        return text, await self.submit(job)
+        # A raw line may move the axis (vm, ma, spwm ...): a STOP discards it too.
+        return text, await self.submit(job, axis=address, motion=True, stop=mnemonic == "st")
 
     def _track_mode(self, module: _ModuleState, text: str) -> None:
         mnemonic = _mnemonic(text)

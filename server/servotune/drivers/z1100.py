@@ -488,7 +488,8 @@ class Z1100Link(LinkEngine):
                 self._motors[axis].running = True
             return sent
 
-        return await self.submit(job, urgent=urgent)
+        is_stop = any(r.command is codec.Command.SET_ESTOP for r in requests)
+        return await self.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
 
     async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:
         request = parse_console_line(line, axis)
@@ -497,7 +498,7 @@ class Z1100Link(LinkEngine):
             reply = await self._request(request)
             return describe_reply(request, reply)
 
-        return _request_name(request), await self.submit(job)
+        return _request_name(request), await self.submit(job, axis=axis, motion=True)
 
     def wire_limit_hz(self) -> float:
         """Samples/s per axis the wire allows: 13 bytes per transaction at 10 bits.
