@@ -180,3 +180,25 @@ async def test_console_multiline_and_pg_refused_in_pm(line: RunningLink) -> None
     await drive.stop()
     await wait_for(lambda: not line.sink.samples["line-0"][-1].flags["pm"], what="pm off")
     await drive.command("save_eeprom", {})
+
+
+async def test_absent_module_does_not_flag_the_present_one_or_delay_stop(
+    tmp_path: Path,
+) -> None:
+    with running_simulator([0], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [0, 5]) as line:
+            await line.connected()
+            await asyncio.sleep(2.5)  # several re-probes of address 5
+            assert line.sink.health["line-0"][0] == "ok", line.sink.health["line-0"]
+            assert not [h for a, h, _ in line.sink.health_log if a == "line-0" and h == "reset"]
+            drive = axis(line, 0)
+            await drive.command("position_mode", {})
+            latencies = []
+            for _ in range(5):
+                start = asyncio.get_running_loop().time()
+                await drive.stop()
+                latencies.append(asyncio.get_running_loop().time() - start)
+                await asyncio.sleep(0.13)
+            # Re-probes back off, so most stops find the line free (a probe can still
+            # hold it for a few character timeouts once in a while).
+            assert sorted(latencies)[len(latencies) // 2] < 0.1, latencies

@@ -107,7 +107,7 @@ class LinkEngine(abc.ABC):
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, self._reconnect_max_s)
                 continue
-            backoff_s = 0.25
+            opened_at = self._clock()
             self._channel = channel
             try:
                 await self._session(channel)
@@ -120,6 +120,13 @@ class LinkEngine(abc.ABC):
                 self._on_link_down()
                 with contextlib.suppress(Exception):
                     await channel.close()
+            # A port that opens and fails at once (an adapter that enumerates, then
+            # errors) must not make this loop spin: back off unless the session ran.
+            if self._clock() - opened_at < 5.0:
+                await asyncio.sleep(backoff_s)
+                backoff_s = min(backoff_s * 2, self._reconnect_max_s)
+            else:
+                backoff_s = 0.25
 
     @abc.abstractmethod
     async def _session(self, channel: ByteChannel) -> None:

@@ -113,6 +113,8 @@ class _ModuleState:
     known: dict[str, int] = field(default_factory=dict)
     verify_index: int = 0
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
+    next_probe_t: float = 0.0
+    probe_interval_s: float = 0.0
 
 
 class Slap2Link(LinkEngine):
@@ -207,11 +209,17 @@ class Slap2Link(LinkEngine):
                 await self._verify_step(online)
                 continue
             await self._poll_step(online)
-            offline = [m for m in self._modules.values() if not m.online]
-            if offline and now - self._last_verify_t >= self.config.offline_retry_s / 2:
-                # Retry absent modules occasionally without starving the others.
-                self._last_verify_t = now
-                await self._probe(offline[0])
+            due = [m for m in self._modules.values() if not m.online and now >= m.next_probe_t]
+            if due and not self.jobs_pending:
+                # Retry absent modules with a growing interval: each try holds the line
+                # for a few character timeouts, which must not starve the others or
+                # delay a STOP more than once in a while.
+                module = due[0]
+                module.probe_interval_s = min(
+                    max(module.probe_interval_s * 2, self.config.offline_retry_s), 30.0
+                )
+                module.next_probe_t = now + module.probe_interval_s
+                await self._probe(module)
 
     async def _probe(self, module: _ModuleState) -> None:
         """Select a module and read all its parameters; marks it online or offline."""
@@ -229,6 +237,7 @@ class Slap2Link(LinkEngine):
         flags = codec.decode_rss(rss)
         module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
         module.online = True
+        module.probe_interval_s = 0.0
         self._sink.on_params(axis_id, values, "read")
         self._sink.on_axis_health(axis_id, "ok", "")
 
@@ -353,16 +362,22 @@ class Slap2Link(LinkEngine):
         command = codec.make_select(address)
         blind = False
         try:
-            lines = await self._exchange_once(command)
-        except _AbandonedError as abandoned:
-            if not isinstance(abandoned.error, DeviceTimeoutError):
-                raise abandoned.error from None
-            # No echo: perhaps nobody is selected (nobody could echo).
-            lines = await self._select_blind(channel, command)
-            blind = True
-        except DeviceTimeoutError:
-            lines = await self._select_blind(channel, command)
-            blind = True
+            try:
+                lines = await self._exchange_once(command)
+            except _AbandonedError as abandoned:
+                if not isinstance(abandoned.error, DeviceTimeoutError):
+                    raise abandoned.error from None
+                # No echo: perhaps nobody is selected (nobody could echo).
+                lines = await self._select_blind(channel, command)
+                blind = True
+            except DeviceTimeoutError:
+                lines = await self._select_blind(channel, command)
+                blind = True
+        except BaseException:
+            # Every module saw ``se n``: whoever was selected switched its transmitter
+            # off, for a known reason; its later silence is no sign of a reset.
+            self._selected = self._believed_selected = None
+            raise
         if lines != [""]:
             raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
         self._selected = self._believed_selected = address

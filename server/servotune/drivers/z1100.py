@@ -391,6 +391,8 @@ class Z1100Link(LinkEngine):
 
     async def _probe_params_only(self) -> None:
         for motor in self._motors:
+            if self.urgent_pending:
+                return  # a STOP first; the next verify step reads again
             values = await self._read_params(motor.axis)
             self._sink.on_params(self.axis_id(motor.axis), values, "read")
 
