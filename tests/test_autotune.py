@@ -369,3 +369,35 @@ def _summary(metrics: dict[str, Any] | None) -> str:
         f"overshoot {metrics['overshoot_pct']:.1f} %, oscillations {metrics['oscillations']}, "
         f"sse {metrics['steady_state_error']:.1f}"
     )
+
+
+async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) -> None:
+    """The STOP button during identification: the staircase ends, the axis stays off."""
+    from servotune.sim.serial_sim import PtySimulator
+    from servotune.sim.slap2 import Slap2Bus, Slap2Module
+
+    from .test_api import live_server
+
+    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    with PtySimulator(bus, baud=19200) as sim:
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            identify = asyncio.ensure_future(
+                server.client.post(
+                    "/api/axes/line-0/autotune/identify",
+                    json={"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"},
+                )
+            )
+            for _ in range(200):
+                if bus.module(0).pwm != 0:
+                    break
+                await asyncio.sleep(0.01)
+            assert bus.module(0).pwm != 0, "identification never drove the motor"
+            assert (await server.client.post("/api/stop")).json() == {"failed": []}
+            response = await identify
+            assert response.status_code == 409, response.text
+            assert "STOP" in response.json()["detail"]
+            pwm_seen = set()
+            for _ in range(40):
+                pwm_seen.add(bus.module(0).pwm)
+                await asyncio.sleep(0.025)
+            assert pwm_seen == {0}, f"the motor was driven after STOP: {pwm_seen}"

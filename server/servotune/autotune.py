@@ -1178,7 +1178,12 @@ class AutoTuner:
         self._sessions: dict[str, _Session] = {}
         self._locks: dict[str, asyncio.Lock] = {}
         self._sample_events: dict[str, asyncio.Event] = {}
+        # Per axis: the stop generation when the running sequence started.
+        self._generations: dict[str, int] = {}
         hub.add_sample_listener(self._on_sample)
+        from servotune.autotune_z1100 import Z1100Tuner
+
+        self._z1100 = Z1100Tuner(self)
 
     # --- queries ----------------------------------------------------------------------
 
@@ -1194,9 +1199,17 @@ class AutoTuner:
 
     def _check_device(self, axis_id: str) -> AxisEntry:
         entry = self._hub.entry(axis_id)
-        if entry.info.device != "slap2":
-            raise DeviceRefusedError("auto-tune supports SLAP2 so far")
-        return entry
+        if entry.info.device == "slap2" or self._is_z1100(entry):
+            return entry
+        raise DeviceRefusedError("auto-tune supports SLAP2 so far (and Z1100 chip axes)")
+
+    @staticmethod
+    def _is_z1100(entry: AxisEntry) -> bool:
+        from servotune.drivers.z1100 import Z1100Axis
+
+        return entry.info.device == "z1100" and isinstance(
+            getattr(entry, "driver", None), Z1100Axis
+        )
 
     def _lock(self, axis_id: str) -> asyncio.Lock:
         lock = self._locks.get(axis_id)
@@ -1316,6 +1329,9 @@ class AutoTuner:
         entry = self._check_device(axis_id)
         async with self._lock(axis_id):  # acquired at once: a second call is refused
             await self._hub.take_over(entry)  # the demo autopilot lets go, moves end
+            self._generations[axis_id] = entry.stop_generation
+            if self._is_z1100(entry):
+                return await self._identify_z1100(entry, request)
             distance = await self._check_request(entry, request)
             current = self._current_gains(entry)
             session = self._session(axis_id)
@@ -1340,6 +1356,35 @@ class AutoTuner:
                     raise
                 raise DeviceRefusedError(f"identification failed: {exc}") from exc
             return proposal
+
+    async def _identify_z1100(self, entry: AxisEntry, request: IdentifyRequest) -> dict[str, Any]:
+        distance = await self._z1100.check_request(entry, request)
+        session = self._session(entry.info.id)
+        session.request = request
+        session.proposal = session.proposal_dict = session.result = session.model = None
+        session.identification_run_id = None
+        self._set(session, "identifying", "identifying the plant (closed-loop move, gains in use)")
+        try:
+            body = await self._z1100.identify(entry, session, request, distance)
+        except asyncio.CancelledError:
+            await self._safe_stop(entry)
+            self._set(session, "failed", "cancelled: the axis was stopped")
+            raise
+        except (DriverError, ValueError) as exc:
+            await self._safe_stop(entry)
+            self._set(session, "failed", f"identification failed: {exc}; axis stopped")
+            if isinstance(exc, DriverError):
+                raise
+            raise DeviceRefusedError(f"identification failed: {exc}") from exc
+        g, c = body["gains"], body["current_gains"]
+        self._set(
+            session,
+            "proposed",
+            f"proposed KABH {g['kabh_k']}/{g['kabh_a']}/{g['kabh_b']} KABD "
+            f"{g['kabd_k']}/{g['kabd_a']}/{g['kabd_b']} (now KABH "
+            f"{c['kabh_k']}/{c['kabh_a']}/{c['kabh_b']})",
+        )
+        return body
 
     async def _identify(
         self,
@@ -1458,7 +1503,15 @@ class AutoTuner:
     async def _command(self, entry: AxisEntry, name: str, args: dict[str, int]) -> float:
         """Send a command through the hub (validated); returns its round trip."""
         sent = self._clock()
-        await self._hub.command(entry.info.id, name, args)
+        # A user's STOP during identification or verification ends the sequence:
+        # the hub refuses every later step (stop generation), nothing moves again.
+        await self._hub.command(
+            entry.info.id,
+            name,
+            args,
+            origin="autotune",
+            stop_generation=self._generations.get(entry.info.id),
+        )
         return self._clock() - sent
 
     async def _staircase(
@@ -1572,6 +1625,10 @@ class AutoTuner:
         entry = self._check_device(axis_id)
         lock = self._lock(axis_id)
         session = self._session(axis_id)
+        # From now on a user's STOP ends the verification (see _command).
+        self._generations[axis_id] = entry.stop_generation
+        if self._is_z1100(entry):
+            return await self._accept_z1100(entry, session, lock)
         proposal = session.proposal
         if session.state != "proposed" or proposal is None or session.request is None:
             raise DeviceRefusedError("no proposal to accept: run identify first")
@@ -1611,6 +1668,37 @@ class AutoTuner:
                 f"verified: {result['verdict']} (settles in {ms(tuned_settle)}; with the "
                 f"previous gains {ms(base_settle)})",
             )
+            return result
+
+    def _check_idle_z1100(self, entry: AxisEntry) -> None:
+        if entry.info.id in self._bench._active:
+            raise DeviceRefusedError("a test is already running on this axis")
+        if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
+            raise DeviceRefusedError("the axis is not connected: no telemetry")
+        if entry.latest.flags.get("running"):
+            raise DeviceRefusedError("the axis is moving: wait until it stands still")
+
+    async def _accept_z1100(
+        self, entry: AxisEntry, session: _Session, lock: asyncio.Lock
+    ) -> dict[str, Any]:
+        if session.state != "proposed":
+            raise DeviceRefusedError("no proposal to accept: run identify first")
+        self._z1100.check_unchanged(entry, session)
+        self._check_idle_z1100(entry)
+        async with lock:
+            self._set(session, "verifying", "baseline and verification tests")
+            try:
+                result = await self._z1100.accept(entry, session)
+            except asyncio.CancelledError:
+                await self._safe_stop(entry)
+                self._set(session, "failed", "cancelled: the axis was stopped")
+                raise
+            except DriverError as exc:
+                await self._safe_stop(entry)
+                self._set(session, "failed", f"verification failed: {exc}; axis stopped")
+                raise
+            session.result = result
+            self._set(session, "verified", f"verified: {result['verdict']}")
             return result
 
     async def _run_test(
@@ -1681,9 +1769,16 @@ class AutoTuner:
 
     async def revert(self, axis_id: str) -> dict[str, int]:
         """Write the gains that were in use before the accepted proposal."""
-        self._check_device(axis_id)
+        entry = self._check_device(axis_id)
         lock = self._lock(axis_id)
         session = self._session(axis_id)
+        if self._is_z1100(entry):
+            if session.state not in ("verified", "failed"):
+                raise DeviceRefusedError("nothing to revert: no accepted proposal")
+            async with lock:
+                written = await self._z1100.revert(entry)
+                self._set(session, "idle", "reverted to the previous KABH/KABD")
+                return written
         if session.proposal is None or session.state not in ("verified", "failed"):
             raise DeviceRefusedError("nothing to revert: no accepted proposal")
         async with lock:

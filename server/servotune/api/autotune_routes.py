@@ -40,8 +40,9 @@ async def autotune_identify(
 ) -> dict[str, Any]:
     """Run the identification within the given limits, fit the plant model and
     propose gains: ``{model, gains, current_gains, predicted, predicted_default, rule,
-    identification_run_id, ...}``. 422 naming the limit, 409 for a non-SLAP2 axis or a
-    busy/moving/disconnected one; nothing moves before these checks."""
+    identification_run_id, ...}``. 422 naming the limit; 409 for an axis that is
+    neither a SLAP2 module nor a Z1100 motor, or a busy, moving or disconnected one;
+    nothing moves before these checks."""
     return await autotuner.identify(axis_id, body)
 
 
