@@ -114,7 +114,7 @@ export class AutoTunePanel {
       });
       return input;
     };
-    this.maxPwm = numberInput("at-max-pwm", "largest PWM", "max_pwm", "Largest open-loop PWM of the identification staircase (±, within your bench limit)");
+    this.maxPwm = numberInput("at-max-pwm", "largest PWM", "max_pwm", "Largest open-loop PWM of the identification staircase (±, within your bench limit; devices without open loop identify with a move and ignore it)");
     this.maxDistance = numberInput(
       "at-max-distance",
       "largest distance",
@@ -150,7 +150,7 @@ export class AutoTunePanel {
       {
         class: "btn primary",
         testid: "at-identify",
-        title: "Open-loop PWM staircase within your limits (the axis moves), fit a model, propose gains. STOP / Esc stops.",
+        title: "An identification test within your limits (the axis moves: an open-loop PWM staircase, or a move where the device has no open loop), fit a model, propose gains. STOP / Esc stops.",
         onclick: () => void this.identify(),
       },
       "Identify",
@@ -401,7 +401,7 @@ export class AutoTunePanel {
 
   private syncProgress(): void {
     if (!this.busy) return;
-    const what = { identify: "Identifying: PWM staircase, fit, gain search", accept: "Verifying: baseline test, write, verification test", revert: "Reverting" }[this.busy];
+    const what = { identify: "Identifying: test, fit, gain search", accept: "Verifying: baseline test, write, verification test", revert: "Reverting" }[this.busy];
     this.setProgress("pending", `● ${what} … ${this.elapsed()}${this.lastEvent ? ` · ${this.lastEvent}` : ""}`);
   }
 
