@@ -54,7 +54,7 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
-from servotune.drivers.engine import LinkEngine
+from servotune.drivers.engine import EngineAxis, LinkEngine
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.protocols import slap2 as codec
 from servotune.transports.base import ByteChannel, Connector
@@ -165,6 +165,9 @@ class Slap2Link(LinkEngine):
 
     def axis_id(self, address: int) -> str:
         return f"{self.config.link_id}-{address}"
+
+    def axis_name(self, address: int) -> str:
+        return self.config.names.get(address, f"SLAP2 #{address}")
 
     def module_state(self, address: int) -> _ModuleState:
         return self._modules[address]
@@ -761,36 +764,10 @@ _PARAM_SETTERS = {
 }
 
 
-class Slap2Axis(AxisDriver):
+class Slap2Axis(EngineAxis, AxisDriver):
     """One SLAP2 module: the axis the user tunes. All I/O goes through its link."""
 
-    def __init__(self, link: Slap2Link, address: int) -> None:
-        self._link = link
-        self._address = address
-
-    @property
-    def id(self) -> str:
-        return self._link.axis_id(self._address)
-
-    @property
-    def name(self) -> str:
-        return self._link.config.names.get(self._address, f"SLAP2 #{self._address}")
-
-    @property
-    def address(self) -> int:
-        return self._address
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._link.descriptor
-
-    async def read_params(self) -> dict[str, int]:
-        return await self._link.op_read_params(self._address)
-
-    async def write_params(
-        self, values: Mapping[str, int], source: str = "write"
-    ) -> dict[str, int]:
-        return await self._link.op_write_params(self._address, values, source)
+    _link: Slap2Link
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:
         """Build the wire commands for a descriptor command (pure; no I/O)."""

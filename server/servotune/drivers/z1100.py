@@ -43,7 +43,7 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
-from servotune.drivers.engine import LinkEngine
+from servotune.drivers.engine import EngineAxis, LinkEngine
 from servotune.drivers.z1100_descriptor import (
     FORBIDDEN_WHILE_MOVING,
     MOVING_COMMANDS,
@@ -147,6 +147,9 @@ class Z1100Link(LinkEngine):
 
     def axis_id(self, axis: int) -> str:
         return f"{self.id}-{'xyz'[axis]}"
+
+    def axis_name(self, axis: int) -> str:
+        return self.config.names.get(axis, f"Z1100 motor {axis + 1}")
 
     def motor(self, axis: int) -> _MotorState:
         return self._motors[axis]
@@ -583,36 +586,14 @@ def describe_reply(request: codec.Request, reply: codec.Reply) -> list[str]:
     return lines
 
 
-class Z1100Axis(AxisDriver):
+class Z1100Axis(EngineAxis, AxisDriver):
     """One motor of a Z1100 chip."""
 
+    _link: Z1100Link
+
     def __init__(self, link: Z1100Link, axis: int) -> None:
-        self._link = link
+        super().__init__(link, axis)
         self._axis = axis
-
-    @property
-    def id(self) -> str:
-        return self._link.axis_id(self._axis)
-
-    @property
-    def name(self) -> str:
-        return self._link.config.names.get(self._axis, f"Z1100 motor {self._axis + 1}")
-
-    @property
-    def address(self) -> int:
-        return self._axis
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._link.descriptor
-
-    async def read_params(self) -> dict[str, int]:
-        return await self._link.op_read_params(self._axis)
-
-    async def write_params(
-        self, values: Mapping[str, int], source: str = "write"
-    ) -> dict[str, int]:
-        return await self._link.op_write_params(self._axis, values, source)
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Request]:
         """Build the requests of a descriptor command (pure; no I/O)."""
