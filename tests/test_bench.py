@@ -181,3 +181,19 @@ async def test_stop_ends_a_running_test(api: LiveServer) -> None:
     assert "STOP" in run["message"]
     await asyncio.sleep(0.3)
     assert not api.bus.module(0).rss & 0b1100, "the test went on after STOP"
+
+
+async def test_ep7047_move_on_the_bench_ends_in_target(tmp_path: Path) -> None:
+    from servotune.config import LinkSpec
+
+    spec = LinkSpec("ep7047", "sim", "ep", 0, [1])
+    async with live_server(None, None, tmp_path / "data", spec=spec) as server:
+        info = (await server.client.get("/api/axes/ep-1/bench")).json()
+        assert info["kinds"] == ["move"]
+        run = await finished_run(
+            server, "ep-1", await start(server, "ep-1", kind="move", distance=2048)
+        )
+        assert run["status"] == "complete", run["message"]
+        assert run["metrics"]["time_to_flag_s"]["in_target"] is not None
+        assert abs(run["metrics"]["steady_state_error"]) <= (run["plan"]["band"] or 5)
+        assert run["samples"][-1][-1][run["flags"].index("in_target")] == 1

@@ -89,6 +89,9 @@ from typing import Any, Final, Protocol
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
+    BenchKind,
+    BenchPlan,
+    BenchTest,
     CommandOutcome,
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -2065,6 +2068,47 @@ class Ep7047Axis(AxisDriver):
 
     def autopilot_settled(self, latest: Sample) -> bool:
         return not latest.flags.get("busy") and not latest.flags.get("execute_out")
+
+    # --- test bench (drivers.base.BenchPlanner) --------------------------------------
+
+    def bench_kinds(self) -> list[BenchKind]:
+        return ["move"]
+
+    def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
+        """EP7047: a RELATIVE move by ``distance`` with the profile of the settings
+        (velocity max, the per-direction ramps: acceleration/deceleration 0 in the
+        outputs selects them). Tuning this drive means its profile, so the metrics to
+        watch are time to In-Target, drive time and the approach; the band is the
+        target window."""
+        if latest.flags.get("busy"):
+            raise DeviceRefusedError("the drive is busy with a move: wait, or press STOP")
+        if test.distance == 0:
+            raise InvalidArgumentError("distance", "distance must not be 0")
+        position = float(latest.channels.get("position") or 0.0)
+        velocity = int(params.get("velocity_max_bp", 10000)) or 10000
+        setup: list[tuple[str, dict[str, int]]] = []
+        if not latest.flags.get("enable_out") or not latest.flags.get("stm_ready"):
+            setup.append(("enable", {}))
+        move = {
+            "start_type": int(StartType.RELATIVE),
+            "target": test.distance,
+            "velocity": min(velocity, 10000),
+            "acceleration_ms": 0,
+            "deceleration_ms": 0,
+        }
+        window = params.get("target_window_counts")
+        return BenchPlan(
+            setup=setup,
+            trigger=[("execute_move", move)],
+            finish=[],
+            response="position",
+            y0=position,
+            y_final=position + test.distance,
+            band=float(window) if window else None,
+            done_flag="in_target",
+            moving_flag="busy",
+            fault_flags=["motor_stall", "error", "warning"],
+        )
 
 
 # --- glue ---------------------------------------------------------------------------------------
