@@ -24,7 +24,7 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Final, Literal
 
@@ -48,7 +48,7 @@ from servotune.protocols.slap2 import (
     TICK_S,
     VELOCITY_MAX,
 )
-from servotune.testbench import BenchTestRequest, TestBench, _Recording
+from servotune.testbench import BenchTestRequest, TestBench, _Recording, run_meta
 
 logger = logging.getLogger(__name__)
 
@@ -1040,9 +1040,6 @@ class _IdentificationRun:
     def __init__(self, bench: TestBench, entry: AxisEntry, p0: float, max_pwm: int) -> None:
         self.bench = bench
         self.entry = entry
-        descriptor = entry.driver.descriptor
-        columns = ["t_s", *(c.name for c in descriptor.channels)]
-        flags = [f.name for f in descriptor.flags]
         plan = BenchPlan(
             setup=[],
             trigger=[("open_loop_pwm", {"pwm": IDENT_START_PWM})],
@@ -1053,38 +1050,18 @@ class _IdentificationRun:
             band=None,
         )
         self.run_id = uuid.uuid4().hex[:12]
-        self.recording = _Recording(self.run_id, entry, plan, columns, flags)
-        self.meta: dict[str, Any] = {
-            "axis_key": entry.storage_key,
-            "device": entry.info.device,
-            "model": descriptor.model,
-            "identity": {
-                "link": entry.info.link,
-                "path": entry.link.path,
-                "address": entry.info.address,
-                "name": entry.info.name,
-            },
-            "test": {
-                "kind": "pwm_step",
-                "distance": 0,
-                "velocity": 0,
-                "pwm": max_pwm,
-                "duration_s": 0.0,
-                "note": "auto-tune identification: open-loop PWM staircase",
-            },
-            "params": dict(entry.device_values),
-            "plan": {
-                "response": "position",
-                "y0": p0,
-                "y_final": p0,
-                "band": None,
-                "overrides": {},
-            },
-            "columns": columns,
-            "flags": flags,
-            "metrics": None,
-            "message": "",
+        test = {
+            "kind": "pwm_step",
+            "distance": 0,
+            "velocity": 0,
+            "pwm": max_pwm,
+            "duration_s": 0.0,
+            "note": "auto-tune identification: open-loop PWM staircase",
         }
+        self.meta: dict[str, Any] = run_meta(entry, test, plan)
+        self.recording = _Recording(
+            self.run_id, entry, plan, self.meta["columns"], self.meta["flags"]
+        )
 
     @property
     def samples(self) -> list[list[Any]]:
@@ -1295,7 +1272,8 @@ class AutoTuner:
         if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
             raise DeviceRefusedError("the axis is not connected: no telemetry")
         flags = entry.latest.flags
-        if flags.get("move") or flags.get("vm"):
+        # SLAP2: a move or velocity mode; Z1100: a running motor.
+        if flags.get("move") or flags.get("vm") or flags.get("running"):
             raise DeviceRefusedError("the axis is moving: wait until it stands still")
 
     def _current_gains(self, entry: AxisEntry) -> Gains:
@@ -1644,18 +1622,9 @@ class AutoTuner:
             )
         self._check_idle(entry)
         async with lock:
-            self._set(session, "verifying", "baseline and verification tests")
-            try:
-                result = await self._verify(entry, session, proposal)
-            except asyncio.CancelledError:
-                await self._safe_stop(entry)
-                self._set(session, "failed", "cancelled: the axis was stopped")
-                raise
-            except DriverError as exc:
-                await self._safe_stop(entry)
-                self._set(session, "failed", f"verification failed: {exc}; axis stopped")
-                raise
-            session.result = result
+            result = await self._guarded_verify(
+                entry, session, self._verify(entry, session, proposal)
+            )
             tuned_settle = result["measured"].get("settling_time_s")
             base_settle = (result["baseline_measured"] or {}).get("settling_time_s")
 
@@ -1670,13 +1639,26 @@ class AutoTuner:
             )
             return result
 
-    def _check_idle_z1100(self, entry: AxisEntry) -> None:
-        if entry.info.id in self._bench._active:
-            raise DeviceRefusedError("a test is already running on this axis")
-        if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
-            raise DeviceRefusedError("the axis is not connected: no telemetry")
-        if entry.latest.flags.get("running"):
-            raise DeviceRefusedError("the axis is moving: wait until it stands still")
+    async def _guarded_verify(
+        self,
+        entry: AxisEntry,
+        session: _Session,
+        verification: Coroutine[Any, Any, dict[str, Any]],
+    ) -> dict[str, Any]:
+        """Run a device's verification; on any failure stop the axis and say so."""
+        self._set(session, "verifying", "baseline and verification tests")
+        try:
+            result = await verification
+        except asyncio.CancelledError:
+            await self._safe_stop(entry)
+            self._set(session, "failed", "cancelled: the axis was stopped")
+            raise
+        except DriverError as exc:
+            await self._safe_stop(entry)
+            self._set(session, "failed", f"verification failed: {exc}; axis stopped")
+            raise
+        session.result = result
+        return result
 
     async def _accept_z1100(
         self, entry: AxisEntry, session: _Session, lock: asyncio.Lock
@@ -1684,20 +1666,9 @@ class AutoTuner:
         if session.state != "proposed":
             raise DeviceRefusedError("no proposal to accept: run identify first")
         self._z1100.check_unchanged(entry, session)
-        self._check_idle_z1100(entry)
+        self._check_idle(entry)
         async with lock:
-            self._set(session, "verifying", "baseline and verification tests")
-            try:
-                result = await self._z1100.accept(entry, session)
-            except asyncio.CancelledError:
-                await self._safe_stop(entry)
-                self._set(session, "failed", "cancelled: the axis was stopped")
-                raise
-            except DriverError as exc:
-                await self._safe_stop(entry)
-                self._set(session, "failed", f"verification failed: {exc}; axis stopped")
-                raise
-            session.result = result
+            result = await self._guarded_verify(entry, session, self._z1100.accept(entry, session))
             self._set(session, "verified", f"verified: {result['verdict']}")
             return result
 

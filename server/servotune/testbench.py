@@ -86,6 +86,35 @@ class _Recording:
     chunk_seq: int = 0
 
 
+def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
+    """Everything stored with a run besides its samples (the JSON export)."""
+    descriptor = entry.driver.descriptor
+    return {
+        "axis_key": entry.storage_key,
+        "device": entry.info.device,
+        "model": descriptor.model,
+        "identity": {
+            "link": entry.info.link,
+            "path": entry.link.path,
+            "address": entry.info.address,
+            "name": entry.info.name,
+        },
+        "test": test,
+        "params": dict(entry.device_values),
+        "plan": {
+            "response": plan.response,
+            "y0": plan.y0,
+            "y_final": plan.y_final,
+            "band": plan.band,
+            "overrides": plan.overrides,
+        },
+        "columns": ["t_s", *(c.name for c in descriptor.channels)],
+        "flags": [f.name for f in descriptor.flags],
+        "metrics": None,
+        "message": "",
+    }
+
+
 def _value(x: float | None) -> float | None:
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
 
@@ -191,34 +220,9 @@ class TestBench:
         for name, args in (*plan.setup, *plan.trigger, *plan.finish):
             validate_command(entry.driver.descriptor, name, args)
         self._hub.mark_operated(entry)
-        descriptor = entry.driver.descriptor
-        columns = ["t_s", *(c.name for c in descriptor.channels)]
-        flags = [f.name for f in descriptor.flags]
         run_id = uuid.uuid4().hex[:12]
-        meta = {
-            "axis_key": entry.storage_key,
-            "device": entry.info.device,
-            "model": descriptor.model,
-            "identity": {
-                "link": entry.info.link,
-                "path": entry.link.path,
-                "address": entry.info.address,
-                "name": entry.info.name,
-            },
-            "test": asdict(test) | {"note": request.note},
-            "params": dict(entry.device_values),
-            "plan": {
-                "response": plan.response,
-                "y0": plan.y0,
-                "y_final": plan.y_final,
-                "band": plan.band,
-                "overrides": plan.overrides,
-            },
-            "columns": columns,
-            "flags": flags,
-            "metrics": None,
-            "message": "",
-        }
+        meta = run_meta(entry, asdict(test) | {"note": request.note}, plan)
+        columns, flags = meta["columns"], meta["flags"]
         created_s = time.time()
         await asyncio.to_thread(
             self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import DeviceRefusedError, DriverSink, LinkDownError
+from servotune.drivers.base import AxisDriver, DeviceRefusedError, DriverSink, LinkDownError
 from servotune.transports.base import ByteChannel, Connector, LinkClosedError
 from servotune.wire import LinkState
 
@@ -72,6 +72,8 @@ class LinkEngine(abc.ABC):
         self._normal: deque[_Job] = deque()
         self._wakeup = asyncio.Event()
         self._connected_once = False
+        self._axes: list[AxisDriver] = []
+        self._descriptor: DeviceDescriptor
 
     # --- Link protocol ----------------------------------------------------------------
 
@@ -90,6 +92,16 @@ class LinkEngine(abc.ABC):
     @property
     def state(self) -> LinkState:
         return self._state
+
+    @property
+    def axes(self) -> list[AxisDriver]:
+        """The link's axes; a subclass fills ``_axes`` in its constructor."""
+        return list(self._axes)
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        """The descriptor all axes of this link share (set as ``_descriptor``)."""
+        return self._descriptor
 
     @property
     def errors(self) -> int:

@@ -39,7 +39,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TypeVar
 
-from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
     BenchKind,
@@ -154,14 +153,6 @@ class Slap2Link(LinkEngine):
         self._last_status_t = 0.0
         self._reply_chars: dict[str, int] = {}
         self._consecutive_failures = 0
-
-    @property
-    def axes(self) -> list[AxisDriver]:
-        return list(self._axes)
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._descriptor
 
     def axis_id(self, address: int) -> str:
         return f"{self.config.link_id}-{address}"

@@ -29,7 +29,6 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
     BenchKind,
@@ -136,14 +135,6 @@ class Z1100Link(LinkEngine):
         self._stall_noted = False
 
     # --- identity ---------------------------------------------------------------------
-
-    @property
-    def axes(self) -> list[AxisDriver]:
-        return list(self._axes)
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._descriptor
 
     def axis_id(self, axis: int) -> str:
         return f"{self.id}-{'xyz'[axis]}"
