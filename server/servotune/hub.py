@@ -32,10 +32,12 @@ from servotune.drivers.base import (
     CommandOutcome,
     DeviceRefusedError,
     DriverError,
+    HasCounters,
     InvalidArgumentError,
     Link,
     LinkDownError,
     Sample,
+    check_console_line,
 )
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.storage import Storage
@@ -59,7 +61,13 @@ logger = logging.getLogger(__name__)
 
 BATCH_PERIOD_S = 1 / 30
 STATUS_PERIOD_S = 1.0
+# A link that has not published its status for this long is shown stalled, not connected.
+STATUS_STALE_S = 3.5
 CLIENT_QUEUE_MESSAGES = 256
+LINK_RESTART_MAX_S = 5.0
+# A STOP that could not be sent is sent again once the link and axis are back; while the
+# link is connected it is tried this many times before the user is told to press again.
+STOP_RETRIES_CONNECTED = 10
 
 
 class UnknownAxisError(KeyError):
@@ -93,12 +101,19 @@ class AxisEntry:
     stop_on_reconnect: bool = False
     # Bumped by every user STOP; sequences (bench, auto-tune) compare it before each step.
     stop_generation: int = 0
+    # The task that delivers a STOP that could not be sent at once (see _deliver_stop).
+    stop_task: asyncio.Task[None] | None = None
 
 
 @dataclass(slots=True)
 class LinkEntry:
     link: Link
     status: LinkStatus
+    # Supervision: is the link's task running, when it last published its status, how
+    # often the hub had to restart it.
+    running: bool = False
+    updated_at: float = 0.0
+    restarts: int = 0
 
 
 class ClientQueue:
@@ -193,7 +208,8 @@ class Hub:
         for entry in self._axes.values():
             entry.last_known = await asyncio.to_thread(self._storage.last_params, entry.storage_key)
         for link_entry in self._links.values():
-            self._tasks.append(asyncio.create_task(self._run_link(link_entry.link)))
+            link_entry.updated_at = self._clock()
+            self._tasks.append(asyncio.create_task(self._run_link(link_entry)))
         self._tasks.append(asyncio.create_task(self._fan_out()))
         if self.autopilot:
             for entry in self._axes.values():
@@ -208,15 +224,42 @@ class Hub:
                 await task
         self._tasks.clear()
 
-    async def _run_link(self, link: Link) -> None:
-        try:
-            await link.run()
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            # A driver bug must be visible, not silently kill the link.
-            logger.exception("link %s crashed", link.id)
-            self.on_event("error", None, f"link {link.id} stopped after an internal error")
+    async def _run_link(self, link_entry: LinkEntry) -> None:
+        """Supervise a link's task: whatever ends it (a driver bug out of ``run``, or
+        ``run`` returning although it must not), the link is shown down with the
+        reason, its axes offline, and it is started again with backoff."""
+        link = link_entry.link
+        backoff_s = 0.25
+        while True:
+            started = self._clock()
+            link_entry.running = True
+            try:
+                await link.run()
+                problem = "its task ended"
+            except asyncio.CancelledError:
+                link_entry.running = False
+                raise
+            except Exception as exc:
+                # A driver bug must be visible, not silently kill the link.
+                logger.exception("link %s crashed", link.id)
+                problem = f"internal error: {type(exc).__name__}: {exc}"
+            link_entry.running = False
+            link_entry.restarts += 1
+            if self._clock() - started > 30.0:
+                backoff_s = 0.25
+            message = f"link task stopped ({problem}); restarting in {backoff_s:g} s"
+            self.on_event("error", None, f"link {link.id}: {message}")
+            self._show_link_down(link_entry, message)
+            await asyncio.sleep(backoff_s)
+            backoff_s = min(backoff_s * 2, LINK_RESTART_MAX_S)
+
+    def _show_link_down(self, link_entry: LinkEntry, message: str) -> None:
+        """The hub's own view when the link cannot report: error, rate 0, axes offline."""
+        status = link_entry.status
+        self.on_link_status(status.link, "error", message, 0.0, status.wire_limit_hz, status.errors)
+        for entry in self._axes.values():
+            if entry.link is link_entry.link and entry.health != "offline":
+                self.on_axis_health(entry.info.id, "offline", message)
 
     # --- queries ----------------------------------------------------------------------
 
@@ -242,13 +285,36 @@ class Hub:
         return self.entry(axis_id).driver.descriptor
 
     def link_status(self, link_id: str) -> LinkStatus:
-        return self._links[link_id].status
+        """The link's status as last published, never ``connected`` for a link whose
+        task is not running or has not reported for ``STATUS_STALE_S``."""
+        link_entry = self._links[link_id]
+        self._check_stale(link_entry)
+        return link_entry.status
+
+    def _check_stale(self, link_entry: LinkEntry) -> None:
+        status = link_entry.status
+        if status.state != "connected":
+            return
+        if not link_entry.running:
+            self._show_link_down(link_entry, "the link's task is not running")
+            return
+        silent_s = self._clock() - link_entry.updated_at
+        if link_entry.updated_at and silent_s > STATUS_STALE_S:
+            self.on_link_status(
+                status.link,
+                "error",
+                f"no status from the link for {silent_s:.0f} s: its task is stalled",
+                0.0,
+                status.wire_limit_hz,
+                status.errors,
+            )
 
     def axis_state(self, axis_id: str) -> AxisState | None:
         entry = self.entry(axis_id)
         sample = entry.latest
         if sample is None:
             return None
+        self._check_stale(self._links[entry.link.id])
         channels = {k: float(v) for k, v in sample.channels.items() if v is not None}
         return AxisState(
             t=sample.t - self._t0,
@@ -347,11 +413,13 @@ class Hub:
             entry.stop_generation += 1
         try:
             outcome = await entry.driver.command(name, checked)
-        except LinkDownError:
-            if name == "stop":
-                # The stop could not reach the axis: send it the moment it is back.
-                entry.stop_on_reconnect = True
+        except DriverError as exc:
+            if name == "stop" and not isinstance(exc, DeviceRefusedError):
+                # The stop could not reach the axis: deliver it as soon as it can go.
+                self._schedule_stop(entry, exc)
             raise
+        if name == "stop":
+            self._cancel_pending_stop(entry)
         level: EventLevel = "warning" if name == "stop" else "info"
         self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}")
         return outcome
@@ -369,10 +437,27 @@ class Hub:
         return CommandOutcome([f"{k}={v}" for k, v in readback.items()], "settings re-applied")
 
     async def console(self, axis_id: str, line: str) -> tuple[str, list[str]]:
-        """Send a raw line; returns (the line as sent, the reply lines)."""
+        """Send a raw line; returns (the line as sent, the reply lines).
+
+        A line with control characters is refused (InvalidArgumentError, field
+        ``line``) before anything is sent; every line sent is logged as an event with
+        its reply or its error.
+        """
         entry = self.entry(axis_id)
+        check_console_line(line)
         self._operate(entry)
-        return await entry.driver.console(line)
+        try:
+            sent, reply = await entry.driver.console(line)
+        except InvalidArgumentError:
+            raise
+        except DriverError as exc:
+            self.on_event("warning", axis_id, f"console {line!r}: {exc}")
+            raise
+        shown = " | ".join(reply)
+        if len(shown) > 200:
+            shown = shown[:200] + " …"
+        self.on_event("info", axis_id, f"console {sent!r} -> {shown!r}")
+        return sent, reply
 
     async def stop_all(self) -> list[str]:
         """Stop every axis at once; returns the ids of axes whose stop failed."""
@@ -385,11 +470,12 @@ class Hub:
         for entry, result in zip(entries, results, strict=True):
             if isinstance(result, BaseException):
                 failed.append(entry.info.id)
-                entry.stop_on_reconnect = True
-                self.on_event(
-                    "error", entry.info.id, f"STOP failed: {result} (sent again on reconnect)"
-                )
+                if isinstance(result, Exception):
+                    self._schedule_stop(entry, result)
+                else:
+                    raise result
             else:
+                self._cancel_pending_stop(entry)
                 self.on_event("warning", entry.info.id, "STOP")
         for entry in entries:
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
@@ -423,6 +509,11 @@ class Hub:
     ) -> None:
         link_entry = self._links[link_id]
         previous = link_entry.status.state
+        link = link_entry.link
+        counters = dict(link.counters) if isinstance(link, HasCounters) else {}
+        if link_entry.restarts:
+            counters["restarts"] = counters.get("restarts", 0) + link_entry.restarts
+        link_entry.updated_at = self._clock()
         link_entry.status = LinkStatus(
             link=link_id,
             state=state,
@@ -430,6 +521,7 @@ class Hub:
             rate_hz=round(rate_hz, 2),
             wire_limit_hz=round(wire_limit_hz, 2),
             errors=errors,
+            counters=counters,
         )
         if previous != state:
             level: EventLevel = "info" if state == "connected" else "warning"
@@ -439,12 +531,7 @@ class Hub:
     def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
         entry = self._axes[axis_id]
         if health != "offline" and entry.stop_on_reconnect:
-            entry.stop_on_reconnect = False
-            task = asyncio.get_running_loop().create_task(
-                self._stop_after_reconnect(entry), name=f"stop after reconnect ({axis_id})"
-            )
-            self._tasks.append(task)
-            task.add_done_callback(self._forget_task)
+            self._ensure_stop_task(entry)
         if entry.health == "reset" and health == "ok":
             # A reset stays flagged until the user re-applies the settings (_restore).
             return
@@ -491,19 +578,72 @@ class Hub:
             self.on_event("warning", entry.info.id, entry.health_message)
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
 
-    async def _stop_after_reconnect(self, entry: AxisEntry) -> None:
-        # Health turns ok while the link still probes its other axes; wait for it.
-        for _ in range(100):
-            if self._links[entry.link.id].status.state == "connected":
-                break
-            await asyncio.sleep(0.05)
-        try:
-            await entry.driver.stop()
-        except DriverError as exc:
-            entry.stop_on_reconnect = True
-            self.on_event("error", entry.info.id, f"stop after reconnect failed: {exc}")
+    # --- STOPs that could not be sent at once -------------------------------------------
+
+    def _schedule_stop(self, entry: AxisEntry, error: Exception) -> None:
+        """A STOP failed: say why and what happens next, and make it happen."""
+        link_state = self.link_status(entry.link.id).state
+        entry.stop_on_reconnect = True
+        if isinstance(error, LinkDownError) or link_state != "connected":
+            plan = (
+                f"link {entry.link.id} is {link_state}: the STOP will be sent the moment "
+                "the link and the axis are back"
+            )
         else:
-            self.on_event("warning", entry.info.id, "stopped after reconnect (test was cut off)")
+            plan = "the STOP is being sent again now"
+        self.on_event("error", entry.info.id, f"STOP not delivered: {error}; {plan}")
+        if link_state == "connected":
+            self._ensure_stop_task(entry)
+
+    def _cancel_pending_stop(self, entry: AxisEntry) -> None:
+        entry.stop_on_reconnect = False
+        task, entry.stop_task = entry.stop_task, None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+
+    def _ensure_stop_task(self, entry: AxisEntry) -> None:
+        if entry.stop_task is not None and not entry.stop_task.done():
+            return
+        task = asyncio.get_running_loop().create_task(
+            self._deliver_stop(entry), name=f"delivering a STOP to {entry.info.id}"
+        )
+        entry.stop_task = task
+        self._tasks.append(task)
+        task.add_done_callback(self._forget_task)
+
+    async def _deliver_stop(self, entry: AxisEntry) -> None:
+        """Send the pending STOP as soon as the link is connected and the axis online;
+        retried while the link stays connected, until it is on the wire. A link that
+        goes down again keeps the STOP pending for its next return."""
+        tries = 0
+        while entry.stop_on_reconnect:
+            link_state = self.link_status(entry.link.id).state
+            if link_state != "connected" or entry.health == "offline":
+                # Health turns ok while the link still probes its other axes.
+                await asyncio.sleep(0.05)
+                continue
+            try:
+                await entry.driver.stop()
+            except LinkDownError:
+                await asyncio.sleep(0.05)
+                continue
+            except DriverError as exc:
+                tries += 1
+                if tries >= STOP_RETRIES_CONNECTED:
+                    entry.stop_on_reconnect = False
+                    self.on_event(
+                        "error",
+                        entry.info.id,
+                        f"STOP could not be delivered after {tries} tries: {exc} — "
+                        "check the axis and press STOP again",
+                    )
+                    return
+                await asyncio.sleep(0.1)
+                continue
+            entry.stop_on_reconnect = False
+            self.on_event("warning", entry.info.id, "STOP sent (it could not go out before)")
+            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+            return
 
     def _save_soon(self, entry: AxisEntry, values: dict[str, int]) -> None:
         task = asyncio.get_running_loop().create_task(
@@ -578,7 +718,14 @@ class Hub:
             if now - last_status >= STATUS_PERIOD_S:
                 last_status = now
                 for link_entry in self._links.values():
-                    self._broadcast(link_entry.status.model_dump_json(), droppable=False)
+                    self._check_stale(link_entry)
+                    if now - link_entry.updated_at >= STATUS_PERIOD_S:
+                        # Links publish their own status every second; repeat the last
+                        # one only for a link that did not.
+                        self._broadcast(link_entry.status.model_dump_json(), droppable=False)
+                for entry in self._axes.values():
+                    if entry.stop_on_reconnect and entry.health != "offline":
+                        self._ensure_stop_task(entry)
                 for client in self._clients:
                     stats = ClientStats(sent=client.sent, dropped=client.dropped)
                     client.put(stats.model_dump_json(), droppable=True)

@@ -73,6 +73,14 @@ class LinkStatus(BaseModel):
     rate_hz: float = Field(description="telemetry samples per second per axis, achieved")
     wire_limit_hz: float = Field(description="what the wire allows for the same poll set")
     errors: int
+    counters: dict[str, int] = Field(
+        default_factory=dict,
+        description=(
+            "what the link retried, resynchronised or dropped since start instead of "
+            "alarming (retries, desyncs, dropped_bytes, restarts; EP7047: lost_frames, "
+            "overruns, watchdog_trips)"
+        ),
+    )
 
 
 class AxisStatus(BaseModel):

@@ -44,6 +44,25 @@ class InvalidArgumentError(DriverError):
         self.field = field
 
 
+def check_console_line(line: str) -> None:
+    """Refuse a console line with control characters (CR, LF, Ctrl-X, TAB, DEL ...).
+
+    One console line is one command: a CR or LF inside it would run two commands
+    as one (``rp\\rsv0`` went out as ``rpsv0``), and a Ctrl-X would desynchronise
+    the echo exchange. The explicit control commands a device defines (SLAP2
+    Ctrl-K: ``abort_calibration``) are descriptor commands. Raises
+    InvalidArgumentError (field ``line``); nothing is sent.
+    """
+    for index, char in enumerate(line):
+        if ord(char) < 32 or ord(char) == 127:
+            raise InvalidArgumentError(
+                "line",
+                f"control character 0x{ord(char):02X} at position {index}: a console line "
+                "is one command of printable characters (no CR, LF, Ctrl-X, TAB ...); "
+                "nothing was sent",
+            )
+
+
 @dataclass(frozen=True, slots=True)
 class Sample:
     """One telemetry sample of one axis, in device units."""
@@ -187,6 +206,14 @@ class BenchPlanner(Protocol):
     def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
         """Plan ``test`` from the axis' state now; DeviceRefusedError if it cannot run."""
         ...
+
+
+@runtime_checkable
+class HasCounters(Protocol):
+    """Optional for a link: what it retried, resynchronised or dropped since start."""
+
+    @property
+    def counters(self) -> Mapping[str, int]: ...
 
 
 class Link(Protocol):

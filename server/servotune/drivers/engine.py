@@ -5,7 +5,16 @@ probe, then poll forever) and the wire exchange of its device. The engine provid
 
 * ``run()``: open the channel through the injected ``Connector``, run the session,
   and on a lost port report it and reopen with backoff (0.25 s doubling to
-  ``reconnect_max_s``) — the server never needs a restart;
+  ``reconnect_max_s``) — the server never needs a restart. The session is
+  *supervised*: any other exception out of it (a driver bug, a reply nobody
+  foresaw) is logged with its traceback, the link goes to ``error`` with the
+  message, the channel is closed and the link reconnects with the same backoff.
+  Nothing but a cancellation ends ``run()``;
+* a status ticker beside the session that publishes the link status every
+  ``STATUS_PERIOD_S`` whatever the session does, so a stalled session shows its
+  rate falling to 0 instead of a frozen value;
+* ``counters``: what was retried, resynchronised or dropped (shown with the link
+  status) — a slow host makes a few of these, which are counted, not alarmed;
 * ``submit(job, urgent=...)``: run a coroutine on the owner task with exclusive use of
   the line. ``_take_job`` hands out urgent jobs (stops) before user jobs; the session
   calls it between two wire transactions, so a stop waits at most for the one
@@ -19,9 +28,10 @@ from __future__ import annotations
 import abc
 import asyncio
 import contextlib
+import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
@@ -31,6 +41,32 @@ from servotune.transports.base import ByteChannel, Connector, LinkClosedError
 from servotune.wire import LinkState
 
 T = TypeVar("T")
+
+logger = logging.getLogger(__name__)
+
+STATUS_PERIOD_S = 1.0
+RATE_WINDOW_S = 2.0
+# Counters every link reports (``LinkStatus.counters``); a device may add its own.
+#   retries: transactions sent again after a timeout, a bad echo or a noisy reply;
+#   desyncs: replies that belonged to another request (late, or refused/unknown
+#            although the request cannot be), after which the line was resynchronised;
+#   dropped_bytes: unsolicited bytes read and dropped (late echoes, line noise);
+#   restarts: sessions ended by an internal error and restarted.
+COUNTER_NAMES = ("retries", "desyncs", "dropped_bytes", "restarts")
+
+
+def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WINDOW_S) -> float:
+    """Samples per second over the last ``window_s`` before ``now``.
+
+    Counted against the time from the oldest sample in the window to *now* (not to the
+    newest sample), so a link that stops delivering shows its rate falling to 0 within
+    ``window_s`` instead of keeping the rate of its last burst.
+    """
+    recent = [t for t in times if 0.0 <= now - t <= window_s]
+    if len(recent) < 2:
+        return 0.0
+    span_s = now - recent[0]
+    return (len(recent) - 1) / span_s if span_s > 0 else 0.0
 
 
 @dataclass(slots=True)
@@ -72,6 +108,7 @@ class LinkEngine(abc.ABC):
         self._normal: deque[_Job] = deque()
         self._wakeup = asyncio.Event()
         self._connected_once = False
+        self._counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
         self._axes: list[AxisDriver] = []
         self._descriptor: DeviceDescriptor
 
@@ -108,8 +145,34 @@ class LinkEngine(abc.ABC):
         """Wire errors since start: timeouts, bad echoes or checksums, stray bytes."""
         return self._errors
 
+    @property
+    def counters(self) -> dict[str, int]:
+        """Retried, resynchronised and dropped things since start (see COUNTER_NAMES)."""
+        return dict(self._counters)
+
+    def _count(self, name: str, n: int = 1) -> None:
+        self._counters[name] = self._counters.get(name, 0) + n
+
     async def run(self) -> None:
-        """Connect, run sessions and reconnect with backoff until cancelled."""
+        """Connect, run sessions and reconnect with backoff until cancelled.
+
+        Never returns and never raises but ``CancelledError``: a session that fails
+        for any reason is reported and started again (see the module docstring).
+        """
+        ticker = asyncio.create_task(self._status_ticker(), name=f"status of link {self.id}")
+        try:
+            await self._supervise()
+        finally:
+            ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await ticker
+
+    async def _status_ticker(self) -> None:
+        while True:
+            await asyncio.sleep(STATUS_PERIOD_S)
+            self._publish_status()
+
+    async def _supervise(self) -> None:
         backoff_s = 0.25
         while True:
             try:
@@ -127,6 +190,14 @@ class LinkEngine(abc.ABC):
             except LinkClosedError as exc:
                 self._sink.on_event("error", None, f"{self.id}: link lost: {exc}")
                 self._set_state("reconnecting", f"link lost: {exc}")
+            except Exception as exc:
+                # Supervision: whatever escaped the session (a bug, a reply nobody
+                # foresaw) must neither kill the link nor leave it shown as connected.
+                logger.exception("link %s: session ended by an internal error", self.id)
+                self._count("restarts")
+                message = f"internal error: {type(exc).__name__}: {exc}; reconnecting"
+                self._sink.on_event("error", None, f"{self.id}: {message}")
+                self._set_state("error", message)
             finally:
                 self._channel = None
                 self._fail_jobs(LinkDownError(f"link {self.id} is down"))
@@ -260,6 +331,9 @@ class LinkEngine(abc.ABC):
             self._publish_status()
 
     def _publish_status(self) -> None:
+        if self._channel is None and self._state == "connected":
+            # Never shown connected without an open channel (the session has ended).
+            self._state = "reconnecting"
         self._sink.on_link_status(
             self.id,
             self._state,

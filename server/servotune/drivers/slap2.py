@@ -20,11 +20,27 @@ where the manual is silent (also in docs/slap2.md):
   ``se`` line "blind", paced at two character times per character, and waits for the
   CR reply of the newly selected module. That is the only time a character is sent
   without waiting for the previous echo.
-* Bytes that arrive while no transaction runs are unsolicited. Text among them after
-  the initial connect is a power-on banner (only address 0 sends one): that module
-  was reset. Further reset cues: ``pm``/``vm`` dropping while the driver expects them,
-  the ``cal`` flag falling, and a periodic read-back of one persisted parameter that
-  no longer matches the last value read or written.
+* Bytes that arrive while no transaction runs are unsolicited: late echoes of our
+  own commands (a slow host let a timeout pass before they came), line noise, or a
+  power-on banner. Only a line naming the module type (``SLAP2 ...``, what address 0
+  sends after power-on) counts as a banner: that module was reset. Anything else is
+  dropped and counted (``dropped_bytes``), never an alarm — the driver's own ``se0``
+  or ``rss`` echo arriving late has letters too.
+* Reset evidence must survive a slow host. Strong cues flag a reset at once: the
+  banner, and a persisted parameter read back with another value than last read or
+  written. Weak cues only make the module *suspect*: ``pm``/``vm`` dropping while the
+  driver expects them, the ``cal`` flag falling (unless servotune started a
+  calibration), and a module that answered only after a blind re-selection (one
+  missed echo under load looks exactly like that). A suspect module is checked
+  again at once after resynchronising: ``rss`` read again and every setting that
+  differs from its default read back. Only if the check confirms (the mode is
+  still lost, the flag still down, a setting changed) is the module flagged
+  ``reset``; otherwise the cue is counted as a desync and forgotten.
+* Ctrl-X is echoed like every byte. ``_abandon`` waits for that echo before it
+  drains the line; an echo of Ctrl-X that comes even later is recognised where it
+  lands (no command servotune sends contains 0x18: console lines with control
+  characters are refused) and skipped, instead of being taken for the echo of the
+  next command.
 * Refusal: ``-1UC`` (syscon ``ucon`` set) or, when ``ucon`` is off, the ``uc`` bit of
   an ``rss`` read right after the command.
 """
@@ -52,11 +68,12 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     ProtocolError,
     Sample,
+    check_console_line,
 )
-from servotune.drivers.engine import EngineAxis, LinkEngine
+from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.protocols import slap2 as codec
-from servotune.transports.base import ByteChannel, Connector
+from servotune.transports.base import ByteChannel, Connector, EchoResult
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +106,6 @@ class Slap2LinkConfig:
     poll_commands: tuple[str, ...] = ("rp", "pe", "rss")
     rve_every: int = 8
     verify_period_s: float = 2.0
-    status_period_s: float = 1.0
     reconnect_max_s: float = 5.0
     offline_retry_s: float = 1.0
 
@@ -114,6 +130,10 @@ class _ModuleState:
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
     next_probe_t: float = 0.0
     probe_interval_s: float = 0.0
+    # A weak reset cue waiting to be confirmed (see the module docstring), and whether
+    # the cal flag was seen set since the last calibration servotune started.
+    suspect: str = ""
+    cal_seen: bool = False
 
 
 class Slap2Link(LinkEngine):
@@ -150,7 +170,6 @@ class Slap2Link(LinkEngine):
         self._believed_selected: int | None = None
         self._poll_index = 0
         self._last_verify_t = 0.0
-        self._last_status_t = 0.0
         self._reply_chars: dict[str, int] = {}
         self._consecutive_failures = 0
 
@@ -188,15 +207,16 @@ class Slap2Link(LinkEngine):
                 await self._run_job(job)
                 continue
             now = self._clock()
-            if now - self._last_status_t >= self.config.status_period_s:
-                self._last_status_t = now
-                self._publish_status()
             online = [m for m in self._modules.values() if m.online]
             if not online:
                 await self._wait_job_or(self.config.offline_retry_s)
                 if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
+                continue
+            suspect = next((m for m in online if m.suspect), None)
+            if suspect is not None:
+                await self._confirm_suspect(suspect)
                 continue
             if now - self._last_verify_t >= self.config.verify_period_s:
                 self._last_verify_t = now
@@ -221,7 +241,7 @@ class Slap2Link(LinkEngine):
         try:
             values = await self._read_params(module)
             rss = await self._read_int(module.address, "rss")
-        except (DeviceTimeoutError, ProtocolError) as exc:
+        except DriverError as exc:
             if module.online or not self._connected_once:
                 self._sink.on_event("warning", axis_id, f"module {module.address}: {exc}")
             module.online = False
@@ -230,6 +250,8 @@ class Slap2Link(LinkEngine):
         module.rss = rss
         flags = codec.decode_rss(rss)
         module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
+        module.cal_seen = flags["cal"]
+        module.suspect = ""
         module.online = True
         module.probe_interval_s = 0.0
         self._sink.on_params(axis_id, values, "read")
@@ -251,7 +273,7 @@ class Slap2Link(LinkEngine):
     def _note_unsolicited(self, data: bytes) -> None:
         text = " ".join(codec.LineDecoder().feed(data + b"\r")).strip()
         self._errors += 1
-        if self._connected_once and sum(c.isalpha() for c in text) >= 4:
+        if self._connected_once and is_banner(text):
             # Only address 0 sends a banner after power-on; all modules lose selection.
             self._selected = self._believed_selected = None
             message = f"power-on banner received ({text!r}): module reset"
@@ -261,24 +283,94 @@ class Slap2Link(LinkEngine):
                     self._modules[0], "module reset (power-on banner) — settings may be lost"
                 )
         else:
-            self._sink.on_event(
-                "warning",
-                None,
-                f"{self.id}: {len(data)} unsolicited byte(s) dropped: {data[:16]!r}",
-            )
+            # Late echoes and noise: counted (shown with the link status), not alarmed.
+            self._count("dropped_bytes", len(data))
+            logger.info("%s: %d unsolicited byte(s) dropped: %r", self.id, len(data), data[:16])
 
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
         module.expected_mode = "unknown"
+        module.suspect = ""
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
         self._sink.on_event("warning", self.axis_id(module.address), message)
 
+    def _suspect(self, module: _ModuleState, cue: str) -> None:
+        """A weak reset cue: check the module again before anyone is alarmed."""
+        if not module.suspect:
+            module.suspect = cue
+            logger.info("%s: module %d suspect: %s", self.id, module.address, cue)
+
+    async def _confirm_suspect(self, module: _ModuleState) -> None:
+        """Look for reset evidence that a slow host cannot fake (module docstring)."""
+        cue = module.suspect
+        try:
+            rss = await self._read_int(module.address, "rss")
+            evidence = self._rss_evidence(module, rss)
+            if not evidence:
+                evidence = await self._settings_evidence(module)
+        except DriverError as exc:
+            # Still no answer after resynchronising: the poll's own failure counting
+            # takes it from here (offline after repeated silence); no reset flag.
+            module.suspect = ""
+            self._count("desyncs")
+            logger.info(
+                "%s: module %d: check after %r failed: %s", self.id, module.address, cue, exc
+            )
+            return
+        module.suspect = ""
+        if evidence:
+            self._mark_reset(
+                module, f"{evidence} (after: {cue}): module reset? Settings may be lost"
+            )
+            module.expected_mode = "off"
+        else:
+            self._count("desyncs")
+            logger.info("%s: module %d: %s, but no reset evidence", self.id, module.address, cue)
+        module.rss = rss
+        module.cal_seen = module.cal_seen and codec.decode_rss(rss)["cal"]
+
+    def _rss_evidence(self, module: _ModuleState, rss: int) -> str:
+        """What a freshly read ``rss`` says of a reset ("" if nothing)."""
+        flags = codec.decode_rss(rss)
+        if module.expected_mode in ("pm", "vm") and not flags["pm"] and not flags["vm"]:
+            return f"the module left {module.expected_mode} without a stop"
+        if module.cal_seen and not flags["cal"]:
+            return "the cal flag fell without a new calibration"
+        return ""
+
+    async def _settings_evidence(self, module: _ModuleState) -> str:
+        """Read back every known setting that differs from its default ("" if all match)."""
+        for parameter in self._descriptor.parameters:
+            expected = module.known.get(parameter.name)
+            if expected is None or expected == parameter.default:
+                continue
+            value = await self._read_int(module.address, parameter.read_command)
+            if value != expected:
+                module.known[parameter.name] = value
+                self._sink.on_params(self.axis_id(module.address), {parameter.name: value}, "read")
+                return f"{parameter.name} reads {value}, last known {expected}"
+        return ""
+
     async def _abandon(self, channel: ByteChannel) -> None:
-        """Ctrl-X discards a half-sent command in the module; then wait for quiet."""
+        """Ctrl-X discards a half-sent command in the module; then wait for quiet.
+
+        The module echoes the Ctrl-X: wait for that echo first (up to a character
+        timeout), so it cannot arrive during the next command and pass for its echo.
+        """
         await channel.write(bytes([codec.CTRL_X]))
-        leftover = await self._drain(channel, self.config.quiet_s, 0.5)
-        leftover = leftover.replace(bytes([codec.CTRL_X]), b"")
-        if leftover.strip(b"\r\n"):
-            self._note_unsolicited(leftover)
+        leftover = bytearray()
+        deadline = self._clock() + self.config.char_timeout_s
+        while codec.CTRL_X not in leftover:
+            remaining = deadline - self._clock()
+            if remaining <= 0:
+                break
+            data = await channel.read_available(remaining)
+            if not data:
+                break
+            leftover += data
+        leftover += await self._drain(channel, self.config.quiet_s, 0.5)
+        stray = bytes(leftover).replace(bytes([codec.CTRL_X]), b"")
+        if stray.strip(b"\r\n"):
+            self._note_unsolicited(stray)
 
     async def _send_echoed(self, channel: ByteChannel, text: str) -> None:
         """Send ``text`` + CR one char at a time, each after the previous echo.
@@ -287,10 +379,25 @@ class Slap2Link(LinkEngine):
         abandoned with Ctrl-X and did not execute, so it may be retried).
         """
         payload = text.encode("ascii") + b"\r"
-        result = await channel.write_echoed(payload, self.config.char_timeout_s)
-        if result.echoed == len(payload):
-            return
-        byte = payload[result.echoed]
+        done = 0
+        while True:
+            result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
+            done += result.echoed
+            if done == len(payload):
+                return
+            if result.got != codec.CTRL_X:
+                break
+            # A late echo of our own Ctrl-X (nothing else sends 0x18): skip it; the
+            # echo of the byte just sent is due next.
+            self._count("desyncs")
+            echo = await channel.read_byte(self.config.char_timeout_s)
+            if echo != payload[done]:
+                result = EchoResult(result.echoed, echo)
+                break
+            done += 1
+            if done == len(payload):
+                return
+        byte = payload[done]
         if result.got is None:
             error: DriverError = DeviceTimeoutError(
                 f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
@@ -299,7 +406,7 @@ class Slap2Link(LinkEngine):
             error = ProtocolError(
                 f"echo mismatch in {text!r}: sent {byte:#04x}, got {result.got:#04x}"
             )
-        if result.echoed == len(payload) - 1:  # CR was sent: it may have executed
+        if done == len(payload) - 1:  # CR was sent: it may have executed
             raise error
         await self._abandon(channel)
         raise _AbandonedError(error)
@@ -376,12 +483,10 @@ class Slap2Link(LinkEngine):
             raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
         self._selected = self._believed_selected = address
         if blind and believed is not None and believed in self._modules:
-            # The module we had selected stopped transmitting without an ``se``:
-            # only a reset (power-on deselects every address but 0) does that.
-            self._mark_reset(
-                self._modules[believed],
-                "module stopped answering until selected again: reset? Settings may be lost",
-            )
+            # The module we had selected stopped transmitting without an ``se``: a
+            # reset (power-on deselects every address but 0) does that, but so does
+            # one echo lost or late on a slow host. Weak evidence: check it first.
+            self._suspect(self._modules[believed], "it answered only after a blind re-selection")
 
     async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
         """Nobody is selected, so nobody echoes: send ``se n`` paced, await its CR."""
@@ -405,6 +510,8 @@ class Slap2Link(LinkEngine):
         selection (reset), which a plain resend could not fix.
         """
         for attempt in range(2):
+            if attempt:
+                self._count("retries")
             await self._select(address)
             try:
                 return await self._exchange_once(command)
@@ -511,7 +618,10 @@ class Slap2Link(LinkEngine):
         try:
             await self._poll_module(module)
             self._consecutive_failures = 0
-        except (DeviceTimeoutError, ProtocolError) as exc:
+        except DriverError as exc:
+            # An odd reply to a poll is a desynchronisation, never the end of the
+            # session: counted, the next poll resynchronises (select, echo check).
+            self._count("desyncs")
             self._consecutive_failures += 1
             if self._consecutive_failures >= 3:
                 if self._state != "error":
@@ -584,17 +694,11 @@ class Slap2Link(LinkEngine):
         self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
 
     def _check_rss(self, module: _ModuleState, rss: int) -> None:
-        flags = codec.decode_rss(rss)
-        previous = codec.decode_rss(module.rss) if module.rss is not None else None
-        if module.expected_mode in ("pm", "vm") and not flags["pm"] and not flags["vm"]:
-            self._mark_reset(
-                module,
-                f"module left {module.expected_mode} without a stop: module reset? "
-                "Settings may be lost",
-            )
-            module.expected_mode = "off"
-        elif previous is not None and previous["cal"] and not flags["cal"]:
-            self._mark_reset(module, "the cal flag fell: module reset? Settings may be lost")
+        cue = self._rss_evidence(module, rss)
+        if cue:
+            self._suspect(module, cue)
+        elif codec.decode_rss(rss)["cal"]:
+            module.cal_seen = True
 
     # --- status -----------------------------------------------------------------------
 
@@ -620,15 +724,7 @@ class Slap2Link(LinkEngine):
     def achieved_rate_hz(self) -> float:
         """Mean telemetry samples per second per online axis over the last 2 s."""
         now = self._clock()
-        rates = []
-        for module in self._modules.values():
-            if not module.online:
-                continue
-            recent = [t for t in module.samples if now - t <= 2.0]
-            if len(recent) >= 2:
-                rates.append((len(recent) - 1) / (recent[-1] - recent[0]))
-            else:
-                rates.append(0.0)
+        rates = [recent_rate_hz(m.samples, now) for m in self._modules.values() if m.online]
         return sum(rates) / len(rates) if rates else 0.0
 
     # --- operations used by Slap2Axis -------------------------------------------------
@@ -684,6 +780,7 @@ class Slap2Link(LinkEngine):
 
     async def op_console(self, address: int, line: str) -> tuple[str, list[str]]:
         module = self._modules[address]
+        check_console_line(line)
         try:
             text = codec.normalise_line(line)
         except codec.CodecError as exc:
@@ -697,6 +794,16 @@ class Slap2Link(LinkEngine):
 
         async def job() -> list[str]:
             lines = await self._transact(address, command)
+            if lines and codec.parse_reply(lines[0]).kind is codec.ReplyKind.REFUSED:
+                raise DeviceRefusedError(f"{text}: refused by the module (-1UC)")
+            if not module.ucon and mnemonic not in ("rss", "ss", "rrss"):
+                # Without ucon a refusal is a bare CR: the uc flag tells (rss leaves it).
+                rss = await self._read_int(address, "rss")
+                if codec.decode_rss(rss)["uc"]:
+                    raise DeviceRefusedError(
+                        f"{text}: refused by the module (uc flag set: unknown command, "
+                        "bad argument, or not allowed in this mode)"
+                    )
             self._track_mode(module, text)
             if mnemonic == "ssyscon" or mnemonic in ("ssb", "rsb"):
                 module.known.pop("syscon", None)
@@ -714,6 +821,8 @@ class Slap2Link(LinkEngine):
             module.expected_mode = mnemonic
         elif mnemonic in ("spwm", "cal", "ca"):
             module.expected_mode = "unknown"
+            if mnemonic != "spwm":
+                module.cal_seen = False  # a new calibration clears the flag until it ends
         elif mnemonic in _PARAM_SETTERS:
             module.known.pop(_PARAM_SETTERS[mnemonic], None)
 
@@ -724,6 +833,12 @@ class _AbandonedError(Exception):
     def __init__(self, error: DriverError) -> None:
         super().__init__(str(error))
         self.error = error
+
+
+def is_banner(text: str) -> bool:
+    """A power-on banner names the module type (``SLAP2 V2205 HW3 SN10000``); late
+    echoes of servotune's own commands (``se0``, ``rss``) and noise never do."""
+    return "slap2" in text.lower()
 
 
 def _mnemonic(text: str) -> str:

@@ -13,6 +13,14 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
   chip's reason. The server refuses first when it knows the axis moves (GetStart).
   A Start whose reply was lost and whose retry is refused as "moving" did start: the
   retry is taken as success.
+* A Get can never be "forbidden while moving", nor unknown to the chip: a reply with
+  those bits to a Get is the reply to *another* request (a late one: replies have no
+  header). It is a desynchronisation: counted (``desyncs``), the line is left to go
+  quiet for a whole reply timeout (so whatever else was late arrives and is dropped),
+  and the Get is sent again. Never a refusal, never the end of a session.
+* A poll that still fails after its retries is counted and the poll goes on; the
+  link shows ``error`` only after three failed poll cycles in a row and turns
+  ``connected`` again with the next good one.
 * Polling: GetEncoder and GetError for the three motors every cycle; GetStart, GetStop
   and one GetSwitch every ``status_every`` cycles (the running/stall bits change only
   at move boundaries, and every extra 13-byte transaction costs 1.4 ms at 9600 baud).
@@ -37,12 +45,13 @@ from servotune.drivers.base import (
     CommandOutcome,
     DeviceRefusedError,
     DeviceTimeoutError,
+    DriverError,
     DriverSink,
     InvalidArgumentError,
     ProtocolError,
     Sample,
 )
-from servotune.drivers.engine import EngineAxis, LinkEngine
+from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
 from servotune.drivers.z1100_descriptor import (
     FORBIDDEN_WHILE_MOVING,
     MOVING_COMMANDS,
@@ -79,8 +88,10 @@ class Z1100LinkConfig:
     retries: int = 3
     status_every: int = 4
     verify_period_s: float = 2.0
-    status_period_s: float = 1.0
     reconnect_max_s: float = 5.0
+    # Failed poll cycles in a row before the link shows ``error`` (one failed cycle on
+    # a slow host is a retry, not an alarm).
+    error_after_failures: int = 3
 
 
 @dataclass(slots=True)
@@ -131,8 +142,8 @@ class Z1100Link(LinkEngine):
         self._cycle = 0
         self._verify_index = 0
         self._last_verify_t = 0.0
-        self._last_status_t = 0.0
         self._stall_noted = False
+        self._failed_cycles = 0
 
     # --- identity ---------------------------------------------------------------------
 
@@ -158,6 +169,7 @@ class Z1100Link(LinkEngine):
         packet = request.encode()
         name = _request_name(request)
         last_problem = "no reply"
+        is_get = request.command is not None and request.command.is_get
         for attempt in range(self.config.retries):
             if attempt:
                 # Replies have no header, and a rotation of a valid reply sums to 0 as
@@ -165,13 +177,14 @@ class Z1100Link(LinkEngine):
                 # of the next reply, would decode as a wrong but "valid" reply. So
                 # before a retry the line must stay quiet for a whole reply timeout:
                 # whatever was late has then arrived (and is dropped) or is lost.
+                self._count("retries")
                 await self._drain_quiet(channel)
             stray = channel.discard_input()
             if stray:
+                # Late bytes (of a reply that timed out, or noise): counted and shown
+                # in the link's counters, not an event each time.
                 self._errors += 1
-                self._sink.on_event(
-                    "warning", None, f"{self.id}: {len(stray)} unsolicited byte(s) dropped"
-                )
+                self._count("dropped_bytes", len(stray))
             await channel.write(packet)
             reply = await self._read_reply(channel)
             if reply is None:
@@ -181,6 +194,15 @@ class Z1100Link(LinkEngine):
             if reply.code & RETRYABLE:
                 self._errors += 1
                 last_problem = codec.error_message(reply.code) or "rejected"
+                continue
+            if is_get and reply.code & (codec.ReplyCode.UNKNOWN_COMMAND | MOVING_BITS):
+                # Impossible for a Get: this reply answered another request.
+                self._errors += 1
+                self._count("desyncs")
+                last_problem = (
+                    f"reply 0x{int(reply.code):02X} belongs to another request "
+                    f"({codec.error_message(reply.code) or 'unknown command'})"
+                )
                 continue
             if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
                 raise ProtocolError(f"{name}: the chip does not know this command")
@@ -196,9 +218,11 @@ class Z1100Link(LinkEngine):
     async def _drain_quiet(self, channel: ByteChannel) -> None:
         deadline = self._clock() + 1.0
         while self._clock() < deadline:
-            if not await channel.read_available(self.config.reply_timeout_s):
+            data = await channel.read_available(self.config.reply_timeout_s)
+            if not data:
                 return
             self._errors += 1
+            self._count("dropped_bytes", len(data))
 
     async def _read_reply(self, channel: ByteChannel) -> codec.Reply | None:
         decoder = codec.ReplyDecoder()
@@ -237,9 +261,6 @@ class Z1100Link(LinkEngine):
                 await self._run_job(job)
                 continue
             now = self._clock()
-            if now - self._last_status_t >= self.config.status_period_s:
-                self._last_status_t = now
-                self._publish_status()
             if not self._online:
                 await self._wait_job_or(1.0)
                 if not self.jobs_pending:
@@ -251,12 +272,24 @@ class Z1100Link(LinkEngine):
                     await self._verify_step()
                     continue
                 await self._poll_cycle()
+            except DriverError as exc:
+                # A poll is never a reason to end the session (a refusal or an odd
+                # reply to a poll is a desynchronisation): resynchronise and go on.
+                await self._poll_failed(channel, exc)
+            else:
+                self._failed_cycles = 0
                 if self._state == "error":
                     self._set_state("connected", self._connector.description)
-            except (DeviceTimeoutError, ProtocolError) as exc:
-                if self._state != "error":
-                    self._sink.on_event("error", None, f"{self.id}: {exc}")
-                self._set_state("error", str(exc))
+
+    async def _poll_failed(self, channel: ByteChannel, exc: DriverError) -> None:
+        self._failed_cycles += 1
+        self._count("desyncs")
+        logger.info("%s: poll failed (%s), resynchronising", self.id, exc)
+        await self._drain_quiet(channel)
+        if self._failed_cycles >= self.config.error_after_failures:
+            if self._state != "error":
+                self._sink.on_event("error", None, f"{self.id}: {exc}")
+            self._set_state("error", str(exc))
 
     async def _probe(self) -> None:
         try:
@@ -267,7 +300,7 @@ class Z1100Link(LinkEngine):
                 )
                 self._sink.on_params(self.axis_id(motor.axis), values, "read")
             await self._read_status()
-        except (DeviceTimeoutError, ProtocolError) as exc:
+        except DriverError as exc:
             if self._online or not self._connected_once:
                 self._sink.on_event("warning", None, f"{self.id}: {exc}")
             self._online = False
@@ -507,11 +540,9 @@ class Z1100Link(LinkEngine):
         return 1 / (per_cycle * (codec.REQUEST_SIZE + codec.REPLY_SIZE) * char_s)
 
     def achieved_rate_hz(self) -> float:
+        """Mean samples/s per motor over the last 2 s (falls to 0 when polling stops)."""
         now = self._clock()
-        rates = []
-        for motor in self._motors:
-            recent = [t for t in motor.samples if now - t <= 2.0]
-            rates.append((len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) >= 2 else 0.0)
+        rates = [recent_rate_hz(motor.samples, now) for motor in self._motors]
         return sum(rates) / len(rates) if self._online else 0.0
 
 
