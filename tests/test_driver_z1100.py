@@ -48,6 +48,10 @@ async def chip_line(tmp_path: Path, *, flash: bool = True) -> AsyncIterator[Runn
     task = asyncio.create_task(link.run())
     try:
         await wait_for(lambda: link.state == "connected", 5, "the chip link")
+        # Tests look at the latest sample of every axis: wait for the first ones.
+        await wait_for(
+            lambda: all(sink.samples[link.axis_id(i)] for i in range(3)), 5, "first samples"
+        )
         yield Running(link, sink, sim, chip)
     finally:
         task.cancel()
