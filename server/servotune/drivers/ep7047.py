@@ -101,7 +101,9 @@ from servotune.drivers.base import (
     LinkDownError,
     ProtocolError,
     Sample,
+    check_console_line,
 )
+from servotune.drivers.engine import recent_rate_hz
 from servotune.drivers.ep7047_descriptor import (
     CALIBRATION_COMMANDS,
     DIAG_FLAGS,
@@ -755,6 +757,9 @@ class Ep7047Link:
         self._message = ""
         self._errors = 0
         self._overruns = 0
+        self._lost_frames = 0
+        self._watchdog_trips = 0
+        self._restarts = 0
         self._sample_times: deque[float] = deque(maxlen=4096)
         # requests, shared with the cycle thread
         self._lock = threading.Lock()
@@ -819,41 +824,78 @@ class Ep7047Link:
         return 1 / self._cycle_s
 
     def achieved_rate_hz(self) -> float:
-        now = self._clock()
-        recent = [t for t in self._sample_times if now - t <= 2.0]
-        if len(recent) < 2 or recent[-1] <= recent[0]:
-            return 0.0
-        return (len(recent) - 1) / (recent[-1] - recent[0])
+        """Samples/s over the last 2 s, falling to 0 within 2 s when the cycles stop."""
+        return recent_rate_hz(self._sample_times, self._clock())
 
-    async def run(self) -> None:
-        """Create the master, run the cycle thread, publish status; never raises for faults."""
-        self._loop = asyncio.get_running_loop()
-        self._halt.clear()
+    @property
+    def counters(self) -> dict[str, int]:
+        """Lost frames (bad working counter), cycle overruns (a cycle thread more than one
+        period late), watchdog trips (more than ``watchdog_s`` without good process data:
+        the drive dropped its outputs), restarts of the cycle thread after an internal
+        error."""
+        return {
+            "lost_frames": self._lost_frames,
+            "overruns": self._overruns,
+            "watchdog_trips": self._watchdog_trips,
+            "restarts": self._restarts,
+        }
+
+    async def _create_master(self) -> EthercatMaster:
         while True:
             try:
-                master = self._master_factory()
+                return self._master_factory()
             except EthercatUnavailableError as exc:
                 self._set_state("error", str(exc))
-                await asyncio.sleep(self._reconnect_max_s)
-                continue
             except Exception as exc:
                 logger.exception("creating the EtherCAT master of %s failed", self.id)
                 self._set_state("error", f"cannot create the EtherCAT master: {exc!r}")
-                await asyncio.sleep(self._reconnect_max_s)
-                continue
-            break
-        thread = threading.Thread(
-            target=self._thread_main, args=(master,), name=f"ep7047-cycle-{self.id}", daemon=True
-        )
-        thread.start()
+            await asyncio.sleep(self._reconnect_max_s)
+
+    async def run(self) -> None:
+        """Create the master, run the cycle thread, publish status; never raises for faults.
+
+        Supervised: a cycle thread that ends without being asked to (an internal error,
+        which it logged and reported as ``error``) is replaced by a new one on a new
+        master with backoff (0.25 s doubling to ``reconnect_max_s``), exactly like a
+        drop-out; the axis never resumes Enable or a move by itself (the bring-up
+        starts from zero outputs).
+        """
+        self._loop = asyncio.get_running_loop()
+        self._halt.clear()
+        backoff_s = 0.25
+        thread: threading.Thread | None = None
         try:
             while True:
-                await asyncio.sleep(1.0)
-                self._publish_status()
+                master = await self._create_master()
+                self._cs = _CycleState()
+                thread = threading.Thread(
+                    target=self._thread_main,
+                    args=(master,),
+                    name=f"ep7047-cycle-{self.id}",
+                    daemon=True,
+                )
+                thread.start()
+                started = self._clock()
+                last_status = started
+                while thread.is_alive():
+                    await asyncio.sleep(0.1)
+                    if self._clock() - last_status >= 1.0:
+                        last_status = self._clock()
+                        self._publish_status()
+                thread = None
+                self._restarts += 1
+                if self._clock() - started > 30.0:
+                    backoff_s = 0.25
+                self._fail_queued(LinkDownError(f"link {self.id} is restarting: nothing was sent"))
+                reason = self._message or "the cycle thread ended"
+                self._set_state("error", f"{reason}; restarting in {backoff_s:g} s")
+                await asyncio.sleep(backoff_s)
+                backoff_s = min(backoff_s * 2, self._reconnect_max_s)
         finally:
             self._halt.set()
             self._fail_queued(LinkDownError(f"link {self.id} is shutting down"))
-            await asyncio.to_thread(thread.join, 10.0)
+            if thread is not None:
+                await asyncio.to_thread(thread.join, 10.0)
 
     # --- requests (event loop side) -----------------------------------------------------
 
@@ -1221,6 +1263,7 @@ class Ep7047Link:
             self._last_good = time.monotonic()
             return True
         self._errors += 1
+        self._lost_frames += 1
         self._cs.lost_in_row += 1
         master.read_state()
         state = slave.state
@@ -1286,6 +1329,7 @@ class Ep7047Link:
         cs.stop_phase = _StopPhase.NONE
         self._drop_execute()
         self._errors += 1
+        self._watchdog_trips += 1
         self._post_event(
             "error",
             f"no good process data for {gap * 1000:.0f} ms (> the {self._watchdog_s * 1000:.0f} ms "
@@ -1991,6 +2035,7 @@ class Ep7047Axis(AxisDriver):
         )
 
     async def console(self, line: str) -> tuple[str, list[str]]:
+        check_console_line(line)
         text = " ".join(line.split())
         if not text:
             raise InvalidArgumentError("line", "empty line: try 'list' or '0x9020:03'")
@@ -2021,14 +2066,9 @@ class Ep7047Axis(AxisDriver):
                 codec.encode_sdo(obj, value)
             except (ValueError, CodecError) as exc:
                 raise InvalidArgumentError("line", f"{label}: {exc}") from None
-            try:
-                await self._link.sdo_write(obj, value)
-            except DeviceRefusedError as exc:
-                return text, [f"! {exc}"]
-        try:
-            readback = await self._link.sdo_read(obj)
-        except DeviceRefusedError as exc:
-            return text, [f"! {exc}"]
+            # A refusal (an SDO abort) is raised: the console shows it as the answer.
+            await self._link.sdo_write(obj, value)
+        readback = await self._link.sdo_read(obj)
         self._report_console_value(obj, readback)
         unit = f" {obj.unit}" if obj.unit else ""
         shown = f"{readback} (0x{readback:X})" if obj.index >= 0x9000 else str(readback)

@@ -350,14 +350,14 @@ class Slap2Link(LinkEngine):
                 return f"{parameter.name} reads {value}, last known {expected}"
         return ""
 
-    async def _abandon(self, channel: ByteChannel) -> None:
+    async def _abandon(self, channel: ByteChannel, head: bytes = b"") -> None:
         """Ctrl-X discards a half-sent command in the module; then wait for quiet.
 
         The module echoes the Ctrl-X: wait for that echo first (up to a character
         timeout), so it cannot arrive during the next command and pass for its echo.
         """
         await channel.write(bytes([codec.CTRL_X]))
-        leftover = bytearray()
+        leftover = bytearray(head)
         deadline = self._clock() + self.config.char_timeout_s
         while codec.CTRL_X not in leftover:
             remaining = deadline - self._clock()
@@ -408,7 +408,8 @@ class Slap2Link(LinkEngine):
             )
         if done == len(payload) - 1:  # CR was sent: it may have executed
             raise error
-        await self._abandon(channel)
+        # The wrong byte may be the head of a banner: keep it with what follows.
+        await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
         raise _AbandonedError(error)
 
     async def _read_reply(self, channel: ByteChannel, command: codec.Command) -> list[str]:
@@ -452,6 +453,11 @@ class Slap2Link(LinkEngine):
             self._selected = None
             await self._abandon(channel)
             raise
+        if _mnemonic(command.text) != "id" and any(is_banner(x) for x in lines):
+            # A module powered up while we waited for this reply: its banner came
+            # instead (a reset). The reply, if any, is lost.
+            self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
+            raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
         self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
         return lines
 

@@ -1,0 +1,504 @@
+"""Links that never die and never lie: fault injection on the real drivers (issue 8).
+
+Each fault is injected in the simulated device, between the device and the pty (a
+``Tap`` that records every byte the device received and can hold back, drop or
+replace what it sends), or as an exception inside a driver's poll. After every fault
+the link must recover, its state must be right at every step (the sequence recorded
+by the sink), and a STOP sent afterwards must reach the wire (asserted on the
+simulator side's own record of what it received).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+
+import pytest
+
+from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
+from servotune.drivers.base import InvalidArgumentError, LinkDownError
+from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.protocols import z1100 as zcodec
+from servotune.sim.base import SimDevice
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.z1100 import Z1100Chip
+from servotune.transports.serial import SerialConnector
+
+from .conftest import RecordingSink, wait_for
+
+Z_BAUD = 38400
+CTRL_X = 0x18
+
+
+class Tap:
+    """A SimDevice between the pty and a device: records what the device received and
+    lets a test rewrite what it sends (called on the simulator's thread)."""
+
+    def __init__(self, device: SimDevice) -> None:
+        self.device = device
+        self.received = bytearray()
+        self._lock = threading.Lock()
+        # (received byte, device output) -> what goes on the wire instead
+        self.rewrite: Callable[[int, bytes], bytes] | None = None
+        self._late: list[tuple[float, bytes]] = []
+        self._now = 0.0
+
+    def power_cycle(self, address: int | None = None) -> None:
+        self.device.power_cycle(address)  # type: ignore[attr-defined]
+
+    def send_late(self, data: bytes, delay_s: float) -> None:
+        """Put ``data`` on the wire ``delay_s`` after the current simulation time."""
+        self._late.append((self._now + delay_s, data))
+
+    def advance_to(self, t_s: float) -> bytes:
+        self._now = max(self._now, t_s)
+        out = self.device.advance_to(t_s)
+        due = [item for item in self._late if item[0] <= t_s]
+        if due:
+            self._late = [item for item in self._late if item[0] > t_s]
+            out += b"".join(data for _, data in due)
+        return out
+
+    def receive(self, byte: int) -> bytes:
+        with self._lock:
+            self.received.append(byte)
+        out = self.device.receive(byte)
+        if self.rewrite is not None:
+            out = self.rewrite(byte, out)
+        return out
+
+    def mark(self) -> int:
+        with self._lock:
+            return len(self.received)
+
+    def since(self, mark: int) -> bytes:
+        with self._lock:
+            return bytes(self.received[mark:])
+
+
+def states_after(sink: RecordingSink, index: int) -> list[str]:
+    return [state for state, _ in sink.states[index:]]
+
+
+# --- fixtures -----------------------------------------------------------------------
+
+
+class ZLine:
+    def __init__(self, link: Z1100Link, sink: RecordingSink, tap: Tap) -> None:
+        self.link, self.sink, self.tap = link, sink, tap
+
+    def axis(self, index: int) -> Z1100Axis:
+        axis = self.link.axes[index]
+        assert isinstance(axis, Z1100Axis)
+        return axis
+
+    def requests_since(self, mark: int) -> list[zcodec.Request]:
+        events = zcodec.RequestDecoder().feed(self.tap.since(mark))
+        return [e for e in events if isinstance(e, zcodec.Request)]
+
+    def samples(self, index: int) -> int:
+        return len(self.sink.samples[self.link.axis_id(index)])
+
+
+@contextlib.asynccontextmanager
+async def z_line(tmp_path: Path) -> AsyncIterator[ZLine]:
+    flash = tmp_path / "flash.json"
+    _z1100_flash(flash)
+    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z_BAUD)
+    tap = Tap(chip)
+    with PtySimulator(tap, baud=Z_BAUD) as sim:
+        sink = RecordingSink()
+        config = Z1100LinkConfig(link_id="chip", path=sim.path, baud=Z_BAUD)
+        link = Z1100Link(config, SerialConnector(sim.path, Z_BAUD), sink)
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.state == "connected", 10, "the chip link")
+            line = ZLine(link, sink, tap)
+            await wait_for(lambda: all(line.samples(i) > 2 for i in range(3)), 10, "samples")
+            yield line
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+
+class SLine:
+    def __init__(self, link: Slap2Link, sink: RecordingSink, tap: Tap, bus: Slap2Bus) -> None:
+        self.link, self.sink, self.tap, self.bus = link, sink, tap, bus
+
+    def axis(self, address: int) -> Slap2Axis:
+        axis = next(a for a in self.link.axes if a.address == address)
+        assert isinstance(axis, Slap2Axis)
+        return axis
+
+    def samples(self, address: int) -> int:
+        return len(self.sink.samples[self.link.axis_id(address)])
+
+    def resets(self) -> list[tuple[str, str]]:
+        return [(a, m) for a, h, m in self.sink.health_log if h == "reset"]
+
+
+@contextlib.asynccontextmanager
+async def s_line(tmp_path: Path, addresses: tuple[int, ...] = (0, 1)) -> AsyncIterator[SLine]:
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
+    tap = Tap(bus)
+    with PtySimulator(tap, baud=19200) as sim:
+        sink = RecordingSink()
+        config = Slap2LinkConfig(
+            link_id="line", path=sim.path, addresses=list(addresses), baud=19200
+        )
+        link = Slap2Link(config, SerialConnector(sim.path, 19200), sink)
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.state == "connected", 10, "the SLAP2 link")
+            line = SLine(link, sink, tap, bus)
+            await wait_for(lambda: all(line.samples(a) > 2 for a in addresses), 10, "samples")
+            yield line
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+
+# --- an exception inside a poll --------------------------------------------------------
+
+
+async def test_exception_in_a_z1100_poll_restarts_the_session_and_stop_reaches_the_wire(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async with z_line(tmp_path) as line:
+        original = line.link._poll_cycle
+        injected = asyncio.Event()
+
+        async def failing_poll() -> None:
+            if not injected.is_set():
+                injected.set()
+                raise RuntimeError("injected fault in the poll")
+            await original()
+
+        monkeypatch.setattr(line.link, "_poll_cycle", failing_poll)
+        index = len(line.sink.states)
+        await asyncio.wait_for(injected.wait(), 10)
+        await wait_for(
+            lambda: "connected" in states_after(line.sink, index + 1), 15, "the link back"
+        )
+        seen = line.sink.states[index:]
+        assert seen[0][0] == "error"
+        assert "RuntimeError: injected fault in the poll" in seen[0][1]
+        assert "reconnecting" in seen[0][1]
+        # error -> connecting (probe) -> connected, never connected in between
+        assert [s for s, _ in seen][:3] == ["error", "connecting", "connected"]
+        assert line.link.counters["restarts"] == 1
+        assert any("internal error" in m for _, _, m in line.sink.events)
+        count = line.samples(1)
+        await wait_for(lambda: line.samples(1) > count + 3, 10, "polling again")
+        mark = line.tap.mark()
+        await line.axis(1).stop()
+        estops = [r for r in line.requests_since(mark) if r.command is zcodec.Command.SET_ESTOP]
+        assert estops and estops[0].data == zcodec.pack_axes([1])
+
+
+async def test_exception_in_a_slap2_poll_restarts_the_session_and_stop_reaches_the_wire(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async with s_line(tmp_path) as line:
+        original = line.link._poll_step
+        injected = asyncio.Event()
+
+        async def failing_poll(online: list[object]) -> None:
+            if not injected.is_set():
+                injected.set()
+                raise KeyError("injected")
+            await original(online)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(line.link, "_poll_step", failing_poll)
+        index = len(line.sink.states)
+        await asyncio.wait_for(injected.wait(), 10)
+        await wait_for(
+            lambda: "connected" in states_after(line.sink, index + 1), 15, "the link back"
+        )
+        assert [s for s, _ in line.sink.states[index:]][:3] == ["error", "connecting", "connected"]
+        assert "KeyError" in line.sink.states[index][1]
+        count = line.samples(0)
+        await wait_for(lambda: line.samples(0) > count + 3, 10, "polling again")
+        mark = line.tap.mark()
+        await line.axis(0).stop()
+        assert b"st\r" in line.tap.since(mark)
+        assert not line.resets()
+
+
+# --- a Z1100 Get answered with the moving bits, a late reply ---------------------------
+
+
+async def test_z1100_get_answered_with_moving_bits_is_a_desync_not_a_refusal(
+    tmp_path: Path,
+) -> None:
+    async with z_line(tmp_path) as line:
+        armed = threading.Event()
+        armed.set()
+
+        def moving_reply(byte: int, out: bytes) -> bytes:
+            if armed.is_set() and len(out) == zcodec.REPLY_SIZE:
+                armed.clear()  # the next reply (to a poll: a Get) says "motor 2 moves"
+                return zcodec.Reply(zcodec.ReplyCode.MOVING_2).encode()
+            return out
+
+        index = len(line.sink.states)
+        desyncs = line.link.counters["desyncs"]
+        line.tap.rewrite = moving_reply
+        await wait_for(lambda: not armed.is_set(), 5, "the fault")
+        count = line.samples(2)
+        await wait_for(lambda: line.samples(2) > count + 5, 10, "polling to go on")
+        assert line.link.counters["desyncs"] > desyncs
+        assert states_after(line.sink, index) == []  # stayed connected throughout
+        assert line.link.state == "connected"
+        assert not any("refused" in m for _, _, m in line.sink.events)
+        mark = line.tap.mark()
+        await line.axis(0).stop()
+        assert any(r.command is zcodec.Command.SET_ESTOP for r in line.requests_since(mark))
+
+
+async def test_z1100_late_reply_is_dropped_and_not_taken_for_the_next_one(tmp_path: Path) -> None:
+    async with z_line(tmp_path) as line:
+        await line.axis(0).write_params({"vmax": 54321})
+        armed = threading.Event()
+        armed.set()
+        tap = line.tap
+
+        def late_reply(byte: int, out: bytes) -> bytes:
+            if armed.is_set() and len(out) == zcodec.REPLY_SIZE:
+                armed.clear()
+                tap.send_late(out, 0.13)  # after the 100 ms reply timeout
+                return b""
+            return out
+
+        index = len(line.sink.states)
+        retries = line.link.counters["retries"]
+        tap.rewrite = late_reply
+        await wait_for(lambda: not armed.is_set(), 5, "the fault")
+        count = line.samples(0)
+        await wait_for(lambda: line.samples(0) > count + 5, 10, "polling to go on")
+        assert line.link.counters["retries"] > retries
+        assert states_after(line.sink, index) == []
+        # Every value read afterwards is the right one (no reply taken for another).
+        assert (await line.axis(0).read_params())["vmax"] == 54321
+        mark = line.tap.mark()
+        await line.axis(0).stop()
+        assert any(r.command is zcodec.Command.SET_ESTOP for r in line.requests_since(mark))
+
+
+# --- SLAP2: late Ctrl-X echo, a missed echo, a banner -----------------------------------
+
+
+async def test_slap2_late_ctrl_x_echo_is_not_taken_for_the_next_echo(tmp_path: Path) -> None:
+    async with s_line(tmp_path) as line:
+        armed = threading.Event()
+        armed.set()
+        tap = line.tap
+
+        def late_ctrl_x(byte: int, out: bytes) -> bytes:
+            if byte == CTRL_X and armed.is_set() and out:
+                armed.clear()
+                tap.send_late(out, 0.2)  # later than the driver's character timeout
+                return b""
+            return out
+
+        tap.rewrite = late_ctrl_x
+        index = len(line.sink.states)
+        errors = line.link.errors
+        # One lost echo makes the driver abandon that command with Ctrl-X.
+        await _drop_one_echo(line)
+        await wait_for(lambda: not armed.is_set(), 5, "the Ctrl-X")
+        await asyncio.sleep(0.4)
+        # Commands and polls go on: the late 0x18 was skipped, not an echo mismatch.
+        for kd in (11, 12, 13):
+            assert await line.axis(1).write_params({"kd": kd}) == {"kd": kd}
+        assert line.bus.module(1).settings["kd"] == 13
+        assert line.link.errors > errors
+        assert states_after(line.sink, index) == []
+        assert not line.resets()
+        mark = line.tap.mark()
+        await line.axis(1).stop()
+        assert b"st\r" in line.tap.since(mark)
+
+
+async def _drop_one_echo(line: SLine) -> None:
+    """Drop the echo of the next byte the host sends (whatever the command)."""
+    armed = threading.Event()
+    armed.set()
+    chained = line.tap.rewrite
+
+    def drop(byte: int, out: bytes) -> bytes:
+        if armed.is_set() and out and byte != CTRL_X:
+            armed.clear()
+            out = out[1:]
+        return chained(byte, out) if chained is not None else out
+
+    line.tap.rewrite = drop
+    await wait_for(lambda: not armed.is_set(), 5, "the dropped echo")
+
+
+async def test_slap2_missed_select_echo_does_not_flag_reset(tmp_path: Path) -> None:
+    """One lost echo of ``se`` (a slow host) makes the driver select blind; the module
+    answers, nothing else says reset: counted as a desync, no reset flag."""
+    async with s_line(tmp_path) as line:
+        await line.axis(1).write_params({"kp": 150})
+        armed = threading.Event()
+        armed.set()
+        previous = bytearray(b"\r")
+
+        def drop_se_echo(byte: int, out: bytes) -> bytes:
+            start = previous[-1:] == b"\r"
+            previous[:] = bytes([byte])
+            if armed.is_set() and start and byte == ord("s") and out:
+                armed.clear()  # the first echo of the next "se": lost
+                return out[1:]
+            return out
+
+        desyncs = line.link.counters["desyncs"]
+        line.tap.rewrite = drop_se_echo
+        await wait_for(lambda: not armed.is_set(), 5, "the lost se echo")
+        for address in (0, 1):
+            count = line.samples(address)
+            await wait_for(lambda a=address, c=count: line.samples(a) > c + 5, 10, "polls")
+        await wait_for(lambda: line.link.counters["desyncs"] > desyncs, 5, "the desync count")
+        assert not line.resets(), line.resets()
+        assert line.link.state == "connected"
+        assert not any(h == "offline" for _, h, _ in line.sink.health_log[-4:])
+
+
+async def test_slap2_own_echo_among_stray_bytes_is_no_banner(tmp_path: Path) -> None:
+    async with s_line(tmp_path) as line:
+        dropped = line.link.counters["dropped_bytes"]
+        events = len(line.sink.events)
+        line.tap.send_late(b"se0\rrss\r", 0.0)  # late echoes of the driver's own commands
+        await wait_for(
+            lambda: line.link.counters["dropped_bytes"] > dropped, 5, "the stray bytes dropped"
+        )
+        await asyncio.sleep(0.3)
+        assert not line.resets()
+        assert not any("banner" in m for _, _, m in line.sink.events[events:])
+
+
+async def test_slap2_power_on_banner_flags_reset(tmp_path: Path) -> None:
+    async with s_line(tmp_path) as line:
+        await line.axis(0).write_params({"kp": 150})
+        line.tap.power_cycle(0)
+        await wait_for(lambda: bool(line.resets()), 5, "the reset flag")
+        axis_id, message = line.resets()[0]
+        assert axis_id == "line-0" and "banner" in message
+
+
+async def test_slap2_console_refuses_control_characters_and_reports_refusals(
+    tmp_path: Path,
+) -> None:
+    async with s_line(tmp_path) as line:
+        mark = line.tap.mark()
+        for bad in ("rp\rsv0", "sv0\n", "rp\x18", "\x0bcal", "kp\t1"):
+            with pytest.raises(InvalidArgumentError) as refused:
+                await line.axis(0).console(bad)
+            assert refused.value.field == "line"
+        sent = line.tap.since(mark)
+        assert b"sv0" not in sent and b"rpsv" not in sent and bytes([CTRL_X]) not in sent
+        # A command the module refuses answers with the refusal, not with [""].
+        from servotune.drivers.base import DeviceRefusedError
+
+        with pytest.raises(DeviceRefusedError, match="refused"):
+            await line.axis(0).console("ma100")  # needs position mode
+
+
+# --- the hub: a link whose task died or stalled is not connected -----------------------
+
+
+class _FakeLink:
+    device = "z1100"
+    path = "/dev/fake"
+    baud = 9600
+
+    def __init__(self, hub_sink: Callable[[], object], behaviour: str) -> None:
+        self.id = "fake"
+        self.axes: list[object] = []
+        self.state = "connecting"
+        self.runs = 0
+        self._sink = hub_sink
+        self._behaviour = behaviour
+
+    async def run(self) -> None:
+        self.runs += 1
+        hub = self._sink()
+        hub.on_link_status(self.id, "connected", "fake", 10.0, 20.0, 0)  # type: ignore[attr-defined]
+        if self._behaviour == "crash" and self.runs == 1:
+            raise RuntimeError("driver bug")
+        await asyncio.Event().wait()  # stalls without ever publishing again
+
+
+async def test_hub_never_shows_a_dead_or_stalled_link_connected(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import servotune.hub as hub_module
+    from servotune.hub import Hub
+    from servotune.storage import Storage
+
+    monkeypatch.setattr(hub_module, "STATUS_STALE_S", 0.5)
+    holder: list[Hub] = []
+    crash = _FakeLink(lambda: holder[0], "crash")
+    hub = Hub([crash], Storage(tmp_path / "db.sqlite"))  # type: ignore[list-item]
+    holder.append(hub)
+    await hub.start()
+    try:
+        # The crash: shown as error with the reason, then restarted by the hub.
+        await wait_for(lambda: crash.runs >= 2, 5, "the hub to restart the link")
+        assert any("driver bug" in e.message and "restarting" in e.message for e in hub._events)
+        assert hub.link_status("fake").counters.get("restarts") == 1
+        # The restarted run published connected once and then stalled: not connected.
+        await wait_for(lambda: hub.link_status("fake").state != "connected", 3, "stale status")
+        status = hub.link_status("fake")
+        assert status.state == "error" and "stalled" in status.message
+        assert status.rate_hz == 0.0
+    finally:
+        await hub.stop()
+
+
+async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) -> None:
+    """STOP while the line is unplugged: it says it was not sent and that it will be
+    sent on reconnect, and it is (the simulator receives ``st``)."""
+    from servotune.hub import Hub
+    from servotune.storage import Storage
+
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    tap = Tap(bus)
+    with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
+        holder: list[Hub] = []
+        config = Slap2LinkConfig(link_id="line", path=sim.path, addresses=[0])
+
+        class Forward:
+            def __getattr__(self, name: str) -> object:
+                return getattr(holder[0], name)
+
+        link = Slap2Link(config, SerialConnector(sim.path, 19200), Forward())  # type: ignore[arg-type]
+        hub = Hub([link], Storage(tmp_path / "db.sqlite"))
+        holder.append(hub)
+        await hub.start()
+        try:
+            await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
+            sim.unplug()
+            await wait_for(lambda: hub.link_status("line").state != "connected", 10, "down")
+            assert await hub.stop_all() == ["line-0"]
+            message = next(e.message for e in reversed(hub._events) if "STOP" in e.message)
+            assert "not delivered" in message and "will be sent" in message
+            with pytest.raises(LinkDownError):
+                await link.axes[0].stop()
+            mark = tap.mark()
+            sim.replug()
+            await wait_for(lambda: b"st\r" in tap.since(mark), 15, "the STOP on the wire")
+            await wait_for(
+                lambda: any("STOP sent" in e.message for e in hub._events), 5, "the event"
+            )
+            assert not hub.entry("line-0").stop_on_reconnect
+        finally:
+            await hub.stop()
