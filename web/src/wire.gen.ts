@@ -151,6 +151,7 @@ export interface LinkStatus {
   rate_hz: number;
   wire_limit_hz: number;
   errors: number;
+  counters: Record<string, number>;
 }
 
 export interface AxisStatus {

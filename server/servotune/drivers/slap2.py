@@ -453,7 +453,11 @@ class Slap2Link(LinkEngine):
             self._selected = None
             await self._abandon(channel)
             raise
-        if _mnemonic(command.text) != "id" and any(is_banner(x) for x in lines):
+        if (
+            not command.multiline
+            and _mnemonic(command.text) != "id"
+            and any(is_banner(x) for x in lines)
+        ):
             # A module powered up while we waited for this reply: its banner came
             # instead (a reset). The reply, if any, is lost.
             self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
