@@ -228,15 +228,17 @@ class Z1100Link(LinkEngine):
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.reply_timeout_s
         while True:
-            remaining = deadline - self._clock()
-            if remaining <= 0:
-                return None
+            # Past the deadline, still take what is already buffered (once): on a host
+            # that was stalled the reply may have arrived while nobody looked.
+            remaining = max(deadline - self._clock(), 0.0)
             data = await channel.read_available(remaining)
             if not data:
                 return None
             replies = decoder.feed(data)
             if replies:
                 return replies[0]
+            if remaining <= 0:
+                return None
 
     async def _get(self, command: codec.Command, axis: int | None = None) -> codec.GetValue:
         reply = await self._request(codec.make_get(command, axis))
