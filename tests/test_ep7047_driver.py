@@ -174,10 +174,16 @@ async def test_fake_master_bring_up_assigns_pdos_in_preop_reads_settings_and_str
         assert params["calibration_search_inversion"] == 0b10  # sync search inverted
         assert params["in_target_timeout_ms"] == 500
         # every cycle delivers a sample carrying every descriptor channel and flag
+        # (How many cycles run in 0.5 s depends on the host; a sample per good
+        # exchange does not.)
         count = len(run.samples)
+        exchanged_before = len(run.master.history)
         await asyncio.sleep(0.5)
-        delivered = len(run.samples) - count
-        assert 150 <= delivered <= 300, delivered  # 2 ms cycle: about 250 in 0.5 s
+        exchanged = len(run.master.history) - exchanged_before
+        assert 0 < exchanged <= 0.5 / 0.002 + 5
+        await wait_for(
+            lambda: len(run.samples) >= count + exchanged, 2, "a sample for every exchange"
+        )
         sample = run.sink.samples[run.axis.id][-1]
         descriptor = run.axis.descriptor
         assert set(sample.channels) == {c.name for c in descriptor.channels}
@@ -265,7 +271,12 @@ async def test_fake_master_settings_are_written_by_sdo_and_read_back() -> None:
         assert settings.start_type == StartType.MODULO_PLUS
         assert run.sink.params[run.axis.id]["modulo_factor_counts"] == 3600
         # each value was written, then read back
-        log = [(op, index, sub) for _, op, index, sub, _ in run.slave.sdo_log]
+        # (the drive-state samples, 0x9020:03, may come in between: they are another job)
+        log = [
+            (op, index, sub)
+            for _, op, index, sub, _ in run.slave.sdo_log
+            if (index, sub) != (0x9020, 0x03)
+        ]
         write_at = log.index(("write", 0x8020, 0x02))
         assert log[write_at + 1] == ("read", 0x8020, 0x02)
         # a _CHANGE type cannot be the default start type: refused before any SDO
@@ -414,6 +425,10 @@ async def test_fake_master_stop_during_a_move_ramps_down_then_drops_enable() -> 
         # on the very next cycle (the one in flight may already have left)
         assert any(f.outputs.emergency_stop and not f.outputs.execute for f in frames[:2])
         await wait_for(lambda: not run.latest_flag("enable_out"), 2, "Enable off")
+        # the sample shows the decision; the next exchange carries it to the slave
+        await wait_for(
+            lambda: any(not f.outputs.enable for f in list(history)[first:]), 2, "Enable off sent"
+        )
         frames = list(history)[first:]
         enabled = [f.outputs.enable for f in frames]
         off = enabled.index(False)
@@ -503,8 +518,14 @@ async def test_fake_master_a_stall_past_the_watchdog_drops_enable_for_good() -> 
         await wait_for(
             lambda: any("watchdog" in m for _, _, m in run.sink.events), 2, "the stall event"
         )
-        await asyncio.sleep(0.05)
-        assert not run.latest_flag("enable_out"), "Enable re-asserted after the watchdog"
+        # The samples of the cycles after the stall (they may still be on their way to
+        # the event loop): Enable off, and it stays off.
+        await wait_for(lambda: not run.latest_flag("enable_out"), 2, "Enable dropped")
+        off_at = len(run.samples)
+        await wait_for(lambda: len(run.samples) > off_at + 20, 2, "more samples")
+        assert not any(s.flags["enable_out"] for s in run.samples[off_at:]), (
+            "Enable re-asserted after the watchdog"
+        )
         assert not run.latest_flag("stm_ready")
         assert run.link.state == "connected"
         await run.axis.command("enable", {})
@@ -520,8 +541,13 @@ async def test_fake_master_lost_frames_are_counted_and_a_long_gap_is_a_drop_out(
         assert run.link.state == "connected"
         assert all(state == "connected" for state, _ in run.sink.states)
         run.master.inject_lost_frames(50)
-        await wait_for(lambda: run.link.state == "reconnecting", 2, "the drop-out")
-        assert "no process data" in run.link._message
+        # (on a slow host the recovery may follow before a look at the state)
+        await wait_for(
+            lambda: any(state == "reconnecting" for state, _ in run.sink.states), 2, "the drop-out"
+        )
+        assert any(
+            "no process data" in m for state, m in run.sink.states if state == "reconnecting"
+        )
         await wait_for(lambda: run.link.state == "connected", 5, "recovery")
 
 
