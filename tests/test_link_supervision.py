@@ -502,3 +502,39 @@ async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) ->
             assert not hub.entry("line-0").stop_on_reconnect
         finally:
             await hub.stop()
+
+
+async def test_api_console_refuses_control_characters_and_logs_lines(tmp_path: Path) -> None:
+    """Through the API: 422 naming ``line`` and nothing sent; a refusal is a 409 with
+    the module's reason; every line sent is an event."""
+    import httpx
+
+    from servotune.api.app import AppConfig, create_app
+    from servotune.config import LinkSpec
+
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    tap = Tap(bus)
+    with PtySimulator(tap, baud=19200) as sim:
+        spec = LinkSpec("slap2", sim.path, "line", 19200, [0])
+        app = create_app(AppConfig(links=[spec], data_dir=tmp_path / "data"))
+        async with app.router.lifespan_context(app):
+            hub = app.state.hub
+            await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+                url = "/api/axes/line-0/console"
+                mark = tap.mark()
+                for bad in ("rp\rsv0", "se0\x18", "kp 1\n"):
+                    response = await client.post(url, json={"line": bad})
+                    assert response.status_code == 422, response.text
+                    assert response.json()["field"] == "line"
+                sent = tap.since(mark)
+                assert b"sv0" not in sent and bytes([CTRL_X]) not in sent
+                response = await client.post(url, json={"line": "ma 100"})  # pm is off
+                assert response.status_code == 409, response.text
+                assert "refused" in response.json()["detail"]
+                response = await client.post(url, json={"line": "qp"})
+                assert response.status_code == 200 and response.json()["reply"] == ["40"]
+                messages = [e.message for e in hub._events]
+                assert any("console 'qp'" in m for m in messages)
+                assert any("console 'ma 100'" in m and "refused" in m for m in messages)

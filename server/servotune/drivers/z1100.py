@@ -50,6 +50,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     ProtocolError,
     Sample,
+    check_console_line,
 )
 from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
 from servotune.drivers.z1100_descriptor import (
@@ -523,6 +524,7 @@ class Z1100Link(LinkEngine):
         return await self.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
 
     async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:
+        check_console_line(line)
         request = parse_console_line(line, axis)
 
         async def job() -> list[str]:
