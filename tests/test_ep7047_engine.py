@@ -32,9 +32,9 @@ from servotune.protocols.ep7047 import (
 )
 from servotune.sim.ep7047_engine import DriveConfig, Ep7047Engine, StepperPlant, modulo_travel
 
-CASES_CSV = (
-    Path(__file__).resolve().parents[1] / ".." / "shared" / "spec" / "ep7047_modulo_cases.csv"
-)
+# The project's copy of the manual's modulo tables (source named in the file's header):
+# tests never read anything outside the repository.
+CASES_CSV = Path(__file__).resolve().parent / "data" / "ep7047_modulo_cases.csv"
 TURN = 3600  # counts per 360°
 # 4000 full steps/s speed range (the spec's example) at 18 counts per full step
 # (a 200-step motor with 3600 counts per turn): 10000 bp = 72000 counts/s.
