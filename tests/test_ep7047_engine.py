@@ -32,9 +32,9 @@ from servotune.protocols.ep7047 import (
 )
 from servotune.sim.ep7047_engine import DriveConfig, Ep7047Engine, StepperPlant, modulo_travel
 
-CASES_CSV = (
-    Path(__file__).resolve().parents[1] / ".." / "shared" / "spec" / "ep7047_modulo_cases.csv"
-)
+# The project's copy of the manual's modulo tables (source named in the file's header):
+# tests never read anything outside the repository.
+CASES_CSV = Path(__file__).resolve().parent / "data" / "ep7047_modulo_cases.csv"
 TURN = 3600  # counts per 360°
 # 4000 full steps/s speed range (the spec's example) at 18 counts per full step
 # (a 200-step motor with 3600 counts per turn): 10000 bp = 72000 counts/s.
@@ -796,3 +796,63 @@ def test_sdo_access() -> None:
         engine.write_sdo(codec.DRIVE_STATE, 1)
     with pytest.raises(KeyError):
         engine.read_sdo(codec.IDENTITY_VENDOR_ID)
+
+
+def test_run_equals_stepping_cycle_by_cycle() -> None:
+    """``run(outputs, n)`` (which skips quiet stretches) gives exactly what ``n`` calls
+    of ``step`` give, through enable, a move, a _CHANGE, Execute dropped, a reset,
+    idle stretches and the watchdog's all-zero outputs."""
+    enabled = Outputs(stm_control=StmControl.ENABLE)
+    move = Outputs(
+        stm_control=StmControl.ENABLE,
+        pos_control=PosControl.EXECUTE,
+        target_position_counts=20_000,
+        velocity_bp=4000,
+        start_type=StartType.ABSOLUTE,
+        acceleration_ms=100,
+        deceleration_ms=100,
+    )
+    change = Outputs(
+        stm_control=StmControl.ENABLE,
+        pos_control=PosControl.EXECUTE,
+        target_position_counts=5_000,
+        velocity_bp=2000,
+        start_type=StartType.ABSOLUTE_CHANGE,
+        acceleration_ms=100,
+        deceleration_ms=100,
+    )
+    reset = Outputs(stm_control=StmControl.ENABLE | StmControl.RESET)
+    script = [
+        (Outputs(), 40),
+        (enabled, 1),
+        (enabled, 400),
+        (move, 1),
+        (move, 600),
+        (change, 3000),
+        (enabled, 7),
+        (enabled, 2000),
+        (reset, 5),
+        (enabled, 1000),
+        (Outputs(), 900),
+        (move, 50),  # a start without Enable: Error
+        (Outputs(), 300),
+    ]
+    stepped, skipped = Ep7047Engine(), Ep7047Engine()
+    for outputs, cycles in script:
+        for _ in range(cycles):
+            expected = stepped.step(outputs)
+        assert skipped.run(outputs, cycles) == expected
+        assert skipped.cycles == stepped.cycles
+        assert skipped.state == stepped.state
+        assert skipped.setpoint_counts == stepped.setpoint_counts
+    assert stepped.plant.actual_counts != 0  # the script did move the axis
+
+
+def test_run_skips_a_quiet_stretch_in_one_go() -> None:
+    engine = Ep7047Engine()
+    enabled = Outputs(stm_control=StmControl.ENABLE)
+    engine.run(enabled, 10)
+    assert engine._quiescent(enabled)
+    engine.run(enabled, 4_000_000)  # 1000 s of idle: instant, not four million cycles
+    assert engine.cycles == 4_000_010
+    assert not engine._quiescent(Outputs())  # other outputs: Enable falls, not quiet

@@ -80,6 +80,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_sim(args: argparse.Namespace) -> int:
     from servotune.sim.serial_sim import run_pty_simulator, serve_slap2
 
+    if args.device == "ep7047":
+        from servotune.sim.ep7047_process import run_ep7047_simulator
+
+        if not args.socket:
+            print("servotune sim ep7047: give --socket PATH (a Unix socket to create)")
+            return 2
+        run_ep7047_simulator(args.socket)
+        return 0
+
     if args.device == "slap2":
         serve_slap2(args.addresses, args.baud or 19200, args.state_dir, args.link)
         return 0
@@ -93,13 +102,23 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.device == "demo":
+        from servotune.bench_demo import run_demo_bench
+
+        return run_demo_bench(
+            seconds=args.seconds if args.seconds is not None else 30.0,
+            hog=args.hog,
+            port=args.port,
+            url=args.url,
+            pid=args.pid,
+        )
     from servotune.bench import run_bench
 
     return run_bench(
         device=args.device,
         baud=args.baud,
         addresses=args.addresses,
-        duration_s=args.seconds,
+        duration_s=args.seconds if args.seconds is not None else 5.0,
     )
 
 
@@ -129,19 +148,37 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", type=Path, default=None)
     serve.set_defaults(func=cmd_serve)
 
-    sim = sub.add_parser("sim", help="serve a simulated device on a new pseudo-terminal")
-    sim.add_argument("device", choices=["slap2", "z1100"])
+    sim = sub.add_parser(
+        "sim",
+        help="serve a simulated device on a new pseudo-terminal (slap2, z1100) or a Unix "
+        "socket (ep7047: link spec ep7047:sim:PATH)",
+    )
+    sim.add_argument("device", choices=["slap2", "z1100", "ep7047"])
     sim.add_argument("--addresses", type=_addresses, default=[0, 1], help="SLAP2 modules")
     sim.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
     sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
     sim.add_argument("--link", default=None, help="also create this symlink to the pty")
+    sim.add_argument("--socket", default=None, help="ep7047: the Unix socket to serve on")
     sim.set_defaults(func=cmd_sim)
 
-    bench = sub.add_parser("bench", help="telemetry rate against the wire limit")
-    bench.add_argument("device", choices=["slap2", "z1100"])
+    bench = sub.add_parser(
+        "bench",
+        help="telemetry rate against the wire limit (one device, or the whole demo: "
+        "CPU per process and every link's rate)",
+    )
+    bench.add_argument("device", choices=["slap2", "z1100", "demo"])
     bench.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
     bench.add_argument("--addresses", type=_addresses, default=[0])
-    bench.add_argument("--seconds", type=float, default=5.0)
+    bench.add_argument("--seconds", type=float, default=None, help="5 (device), 30 (demo)")
+    bench.add_argument(
+        "--hog",
+        choices=["off", "on", "both"],
+        default="both",
+        help="demo: measure without, with, or without and then with a CPU hog on every core",
+    )
+    bench.add_argument("--port", type=int, default=None, help="demo: port (default: a free one)")
+    bench.add_argument("--url", default=None, help="demo: measure this running server instead")
+    bench.add_argument("--pid", type=int, default=None, help="demo: process id of --url's server")
     bench.set_defaults(func=cmd_bench)
     return parser
 

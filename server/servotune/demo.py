@@ -1,20 +1,32 @@
-"""The demo: simulated devices on pseudo-terminals inside the server process.
+"""The demo: simulated devices, each in a process of its own.
 
-The simulators run on real ptys, so the driver opens them with exactly the code it
-uses for a USB adapter; only the far end of the cable is simulated.
+The serial simulators run on real ptys, so the driver opens them with exactly the
+code it uses for a USB adapter; only the far end of the cable is simulated. The
+EtherCAT slave runs behind the driver's master seam (``servotune.sim.ep7047_process``).
+Each simulator is a child process of the server (``servotune.sim.process``: spawned,
+named ``sim-<device>``, stopped with the server, and ending by itself when the server
+is killed), so the simulated devices never compete with the server's event loop for
+one Python interpreter - see docs/simulator.md, "The demo's processes".
+
+Every child writes a record of its device's state to
+``<data dir>/sim/<device>-record.json`` about four times a second: what reached the
+device, as the device sees it (the soak test checks a STOP against it).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from servotune.config import LinkSpec
 from servotune.protocols.z1100 import Gains
+from servotune.sim.ep7047_process import ep7047_sim_process
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.sim.z1100 import AxisParameters, Z1100Chip
 
@@ -27,23 +39,56 @@ SLAP2_BAUD = 19200
 SLAP2_LOADED = DcMotorParams(load_inertia_kg_m2=6.5e-7, coulomb_friction_nm=0.5e-3)
 
 
-@contextlib.contextmanager
-def slap2_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
-    """Two SLAP2 modules (addresses 0 and 1) sharing one simulated RS232 line."""
+def record_path(state_dir: Path, device: str) -> Path:
+    """Where the simulator of ``device`` writes its record (see the module docstring)."""
+    return state_dir / f"{device}-record.json"
+
+
+def build_slap2_bus(state_dir: Path) -> Slap2Bus:
+    """The demo's SLAP2 line: modules 0 (unloaded) and 1 (loaded), EEPROMs in files."""
     state_dir.mkdir(parents=True, exist_ok=True)
-    bus = Slap2Bus(
+    return Slap2Bus(
         [
             Slap2Module(0, eeprom_path=state_dir / "slap2_0.json"),
             Slap2Module(1, eeprom_path=state_dir / "slap2_1.json", params=SLAP2_LOADED),
         ]
     )
-    simulator = PtySimulator(bus, baud=SLAP2_BAUD)
-    simulator.start()
-    try:
+
+
+def slap2_record(bus: Slap2Bus) -> dict[str, Any]:
+    """Each module as its firmware sees it: status word, position, PWM, shaft speed."""
+    return {
+        "modules": [
+            {
+                "address": m.address,
+                "rss": m.rss,
+                "vm": bool(m.rss & 0b100),
+                "pm": bool(m.rss & 0b1000),
+                "moving": m.moving,
+                "position": m.position,
+                "pwm": m.pwm,
+                "speed_rad_s": m.motor.speed_rad_s,
+            }
+            for m in bus.modules
+        ]
+    }
+
+
+@contextlib.contextmanager
+def slap2_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """Two SLAP2 modules (addresses 0 and 1) sharing one simulated RS232 line."""
+    spec = SerialSimSpec(
+        "slap2",
+        functools.partial(build_slap2_bus, state_dir),
+        SLAP2_BAUD,
+        slap2_record,
+        record_path(state_dir, "slap2"),
+    )
+    with serial_sim_process(spec) as simulator:
         yield [
             LinkSpec(
                 device="slap2",
-                path=simulator.path,
+                path=simulator.ready["path"],
                 link_id="demo-slap2",
                 baud=SLAP2_BAUD,
                 addresses=[0, 1],
@@ -51,8 +96,6 @@ def slap2_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
                 names={0: "SLAP2 #0 unloaded", 1: "SLAP2 #1 with load"},
             )
         ]
-    finally:
-        simulator.stop()
 
 
 Z1100_BAUD = 9600
@@ -87,20 +130,49 @@ def _z1100_flash(path: Path) -> None:
     path.write_text(json.dumps({"axes": axes}))
 
 
-@contextlib.contextmanager
-def z1100_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
-    """One simulated Z1100 chip with three differently loaded motors."""
+def build_z1100_chip(state_dir: Path) -> Z1100Chip:
+    """The demo's Z1100: three differently loaded motors, flash in a file."""
     state_dir.mkdir(parents=True, exist_ok=True)
     flash = state_dir / "z1100_flash.json"
     _z1100_flash(flash)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
-    simulator = PtySimulator(chip, baud=Z1100_BAUD)
-    simulator.start()
-    try:
+    return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
+
+
+def z1100_record(chip: Z1100Chip) -> dict[str, Any]:
+    """Each axis as the chip sees it: job, start bit, power, speed, counter."""
+    axes = []
+    for axis in range(3):
+        state = chip.axis_state(axis)
+        axes.append(
+            {
+                "axis": axis,
+                "job": state.job,
+                "running": state.running,
+                "powered": state.powered,
+                "stopped_by_command": state.stopped_by_command,
+                "stalled": state.stalled,
+                "encoder_counts": state.encoder_counts,
+                "speed_counts_s": state.speed_counts_s,
+            }
+        )
+    return {"axes": axes}
+
+
+@contextlib.contextmanager
+def z1100_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """One simulated Z1100 chip with three differently loaded motors."""
+    spec = SerialSimSpec(
+        "z1100",
+        functools.partial(build_z1100_chip, state_dir),
+        Z1100_BAUD,
+        z1100_record,
+        record_path(state_dir, "z1100"),
+    )
+    with serial_sim_process(spec) as simulator:
         yield [
             LinkSpec(
                 device="z1100",
-                path=simulator.path,
+                path=simulator.ready["path"],
                 link_id="demo-z1100",
                 baud=Z1100_BAUD,
                 addresses=[0, 1, 2],
@@ -108,32 +180,32 @@ def z1100_demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
                 names={0: "Z1100 X unloaded", 1: "Z1100 Y 5x load", 2: "Z1100 Z 20x load"},
             )
         ]
-    finally:
-        simulator.stop()
+
+
+@contextlib.contextmanager
+def ep7047_demo_slave(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """One simulated EP7047-1032 (stepper, encoder, cam, C track) in its own process,
+    reached through ``ProcessMaster`` (the link spec's NIC is ``sim:<socket>``)."""
+    with ep7047_sim_process(record_path(state_dir, "ep7047")) as simulator:
+        yield [
+            LinkSpec(
+                device="ep7047",
+                path=simulator.ready["path"],
+                link_id="demo-ep7047",
+                baud=0,
+                addresses=[1],
+                names={1: "EP7047 stepper"},
+            )
+        ]
 
 
 def demo_simulators(
     data_dir: Path,
 ) -> list[Callable[[], contextlib.AbstractContextManager[list[LinkSpec]]]]:
     """Context managers that start the demo's simulators and yield their link specs."""
+    state_dir = data_dir / "sim"
     return [
-        lambda: slap2_demo_line(data_dir / "sim"),
-        lambda: z1100_demo_line(data_dir / "sim"),
-        ep7047_demo_slave,
-    ]
-
-
-@contextlib.contextmanager
-def ep7047_demo_slave() -> Iterator[list[LinkSpec]]:
-    """One simulated EP7047-1032 (stepper, encoder, cam, C track) on the in-process
-    fake master: EtherCAT needs no pty; the link spec's NIC ``sim`` selects it."""
-    yield [
-        LinkSpec(
-            device="ep7047",
-            path="sim",
-            link_id="demo-ep7047",
-            baud=0,
-            addresses=[1],
-            names={1: "EP7047 stepper"},
-        )
+        lambda: slap2_demo_line(state_dir),
+        lambda: z1100_demo_line(state_dir),
+        lambda: ep7047_demo_slave(state_dir),
     ]

@@ -7,6 +7,7 @@ from servotune.drivers.base import DriverSink, Link
 from servotune.drivers.ep7047 import build_ep7047_link
 from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
 from servotune.drivers.z1100 import Z1100Link, Z1100LinkConfig
+from servotune.sim.ep7047_process import ADDRESS_PREFIX, ProcessMaster, is_process_address
 from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S, demo_master
 from servotune.transports.serial import SerialConnector
 
@@ -33,9 +34,22 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
         )
         return Z1100Link(z_config, SerialConnector(spec.path, spec.baud), sink)
     if spec.device == "ep7047":
+        if is_process_address(spec.path):
+            # The simulated slave in a process of its own (the demo, or `servotune sim
+            # ep7047 --socket PATH`), behind the same master interface pysoem offers.
+            return build_ep7047_link(
+                spec.link_id,
+                spec.path,
+                spec.addresses[0],
+                sink,
+                master=ProcessMaster(spec.path.removeprefix(ADDRESS_PREFIX)),
+                speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+                counts_per_rev=DEMO_COUNTS_PER_REV,
+                name=spec.names.get(spec.addresses[0]),
+            )
         if spec.path == SIMULATED_NIC:
             # The simulated slave in-process, behind the same master interface pysoem
-            # offers: the demo, or trying the page without hardware.
+            # offers: tests, or trying the page without hardware.
             return build_ep7047_link(
                 spec.link_id,
                 spec.path,

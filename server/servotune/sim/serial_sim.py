@@ -211,6 +211,11 @@ class PtySimulator:
             raise TypeError(f"{type(device).__name__} cannot be power-cycled")
         self._call(lambda: device.power_cycle(address))
 
+    def call(self, function: Callable[[], T]) -> T:
+        """Run ``function`` on the owner thread between two events and return its result
+        (e.g. to read the device's state consistently from another thread)."""
+        return self._call(function)
+
     # --- owner thread -----------------------------------------------------------------
 
     def _call(self, function: Callable[[], T]) -> T:

@@ -194,6 +194,7 @@ class Slap2Module:
         self.eeprom_path = eeprom_path
         self._memory_eeprom: dict[str, int] | None = None
         self.motor = motor if motor is not None else DcMotor(params)
+        self.motor.prepare(TICK_S)
         self._commands = self._command_table()
         # Everything below is (re)initialised by power_cycle(); listed for clarity.
         self._settings: dict[str, int] = dict(FACTORY_DEFAULTS)

@@ -234,6 +234,7 @@ class _Axis:
         self.hardware = hardware
         self.params_base = hardware.motor_params()
         self.motor = DcMotor(self.params_base)
+        self.motor.prepare(STM_TICK_S)  # the slow part (importing scipy) before going online
         self.motor.set_count(hardware.start_counts)
         self.samples = 0
         self.p = AxisParameters()

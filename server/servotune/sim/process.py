@@ -1,0 +1,335 @@
+"""Simulators in processes of their own (what the demo runs).
+
+Why: a simulated device that runs inside the server shares one interpreter (the GIL)
+with the server's event loop and its driver threads; under load the two starve each
+other and the links look broken when only the host is busy. In a child process the
+simulator has its own interpreter and the kernel schedules it like the far end of a
+real cable.
+
+``SimProcess`` starts one child with the ``spawn`` method (a fresh interpreter: nothing
+of the server's state, threads or open files is inherited) and keeps a *lifeline*
+pipe to it:
+
+* the child reports ``ready`` with what the host must open (a pty path, or the
+  ``sim:`` address of the EtherCAT simulator) and then serves small requests on the
+  pipe (``stop``, ``record``, fault injection);
+* the child watches the pipe: when the parent ends for whatever reason - a normal
+  shutdown, a crash, SIGKILL - its end of the pipe is closed by the kernel, the child
+  reads end-of-file and shuts down (closes its pty or socket) within
+  ``LIFELINE_POLL_S``. No orphan is left behind;
+* the child ignores SIGINT: Ctrl-C in a terminal reaches the whole process group, and
+  the devices must stay on the line until the server has stopped its links (the
+  server then stops its children in order);
+* it names itself ``sim-<name>`` (``/proc/<pid>/comm``, what ``ps`` and ``servotune
+  bench demo`` show);
+* every ``LIFELINE_POLL_S`` it writes a *record* - a JSON snapshot of the simulated
+  device as the device itself sees it (modes, positions, speeds) - to
+  ``record_path`` if given, atomically (tests read it: it shows what reached the
+  device, independently of what the server believes).
+
+``serve_serial`` is the child for a serial device (``SimDevice`` on a
+``PtySimulator``); ``servotune.sim.ep7047_process.serve_ep7047`` the one for the
+EtherCAT slave.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from servotune.sim.base import SimDevice
+from servotune.sim.serial_sim import PtySimulator
+
+logger = logging.getLogger(__name__)
+
+LIFELINE_POLL_S = 0.25
+START_TIMEOUT_S = 60.0  # a cold spawn imports the package: seconds on a loaded host
+STOP_TIMEOUT_S = 5.0
+REQUEST_TIMEOUT_S = 10.0
+_PR_SET_NAME = 15  # linux/prctl.h
+
+Handler = Callable[..., Any]
+
+
+class SimProcessError(RuntimeError):
+    """A simulator process could not be started or did not answer."""
+
+
+@dataclass(frozen=True, slots=True)
+class SerialSimSpec:
+    """What ``serve_serial`` runs: ``build()`` makes the device (it must be picklable:
+    a module-level function or a ``functools.partial`` of one), on a pty at ``baud``.
+    ``record`` turns the device into the JSON record (see the module docstring)."""
+
+    name: str
+    build: Callable[[], SimDevice]
+    baud: int
+    record: Callable[[Any], dict[str, Any]] | None = None
+    record_path: Path | None = None
+
+
+class SimProcess:
+    """Parent side of one simulator child process (see the module docstring).
+
+    ``target(spec, conn)`` runs in the child (module-level, picklable); it must send
+    one ``{"ready": ...}`` dict on ``conn`` and then call :func:`serve_lifeline`.
+    Use as a context manager, or ``start()`` / ``stop()``.
+    """
+
+    def __init__(self, name: str, target: Callable[[Any, Connection], None], spec: Any) -> None:
+        self.name = name
+        self._target = target
+        self._spec = spec
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._conn: Connection | None = None
+        self.ready: dict[str, Any] = {}
+
+    @property
+    def pid(self) -> int | None:
+        return self._process.pid if self._process is not None else None
+
+    @property
+    def alive(self) -> bool:
+        return self._process is not None and self._process.is_alive()
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> dict[str, Any]:
+        """Spawn the child and wait for its ``ready`` message (returned)."""
+        if self._process is not None:
+            raise RuntimeError(f"simulator {self.name} already started")
+        context = multiprocessing.get_context("spawn")
+        parent_conn, child_conn = context.Pipe()
+        process = context.Process(
+            target=_child_main,
+            args=(self.name, self._target, self._spec, child_conn),
+            name=f"sim-{self.name}",
+            daemon=True,
+        )
+        process.start()
+        child_conn.close()  # only the child holds that end: its closing is our EOF
+        self._process, self._conn = process, parent_conn
+        try:
+            if not parent_conn.poll(timeout_s):
+                raise SimProcessError(f"simulator {self.name} did not start within {timeout_s} s")
+            message = parent_conn.recv()
+        except (EOFError, OSError) as exc:
+            self._reap()
+            raise SimProcessError(
+                f"simulator {self.name} ended while starting (exit code "
+                f"{process.exitcode}); see its log above"
+            ) from exc
+        except SimProcessError:
+            self._reap()
+            raise
+        if not isinstance(message, dict) or "ready" not in message:
+            self._reap()
+            raise SimProcessError(f"simulator {self.name} failed to start: {message!r}")
+        self.ready = message["ready"]
+        return self.ready
+
+    def request(self, op: str, timeout_s: float = REQUEST_TIMEOUT_S, **args: Any) -> Any:
+        """Run ``op`` in the child (its handlers); returns the result or raises."""
+        conn = self._conn
+        if conn is None or not self.alive:
+            raise SimProcessError(f"simulator {self.name} is not running")
+        try:
+            conn.send({"op": op, "args": args})
+            if not conn.poll(timeout_s):
+                raise SimProcessError(f"simulator {self.name} did not answer {op!r}")
+            reply = conn.recv()
+        except (EOFError, OSError) as exc:
+            raise SimProcessError(f"simulator {self.name} went away: {exc!r}") from exc
+        if "error" in reply:
+            raise SimProcessError(f"simulator {self.name}: {op} failed: {reply['error']}")
+        return reply.get("ok")
+
+    def stop(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+        """Ask the child to stop; terminate, then kill it if it does not. Idempotent."""
+        if self._process is None:
+            return
+        conn = self._conn
+        if conn is not None and self.alive:
+            with contextlib.suppress(EOFError, OSError):
+                conn.send({"op": "stop", "args": {}})
+                if conn.poll(timeout_s):
+                    conn.recv()
+        self._reap(timeout_s)
+
+    def _reap(self, timeout_s: float = STOP_TIMEOUT_S) -> None:
+        process, self._process = self._process, None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if process is None:
+            return
+        process.join(timeout_s)
+        if process.is_alive():
+            logger.warning("simulator %s did not stop; terminating it", self.name)
+            process.terminate()
+            process.join(timeout_s)
+        if process.is_alive():
+            process.kill()
+            process.join(timeout_s)
+        process.close()
+
+    def __enter__(self) -> SimProcess:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+@contextlib.contextmanager
+def serial_sim_process(spec: SerialSimSpec) -> Iterator[SimProcess]:
+    """A serial simulator in its own process; ``process.ready["path"]`` is its pty."""
+    with SimProcess(spec.name, serve_serial, spec) as process:
+        yield process
+
+
+# --- the child side -------------------------------------------------------------------
+
+
+def _child_main(
+    name: str, target: Callable[[Any, Connection], None], spec: Any, conn: Connection
+) -> None:
+    _set_process_name(f"sim-{name}")
+    # Ctrl-C goes to the whole process group; the server stops its children itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.basicConfig(
+        level=logging.INFO, format=f"%(asctime)s %(levelname)s sim-{name}: %(message)s"
+    )
+    try:
+        target(spec, conn)
+    except (BrokenPipeError, EOFError):
+        logger.info("the server went away before the simulator was ready: stopping")
+    except Exception as exc:
+        logger.exception("simulator %s failed", name)
+        with contextlib.suppress(OSError, EOFError):
+            conn.send({"failed": repr(exc)})
+        sys.exit(1)
+
+
+def _set_process_name(name: str) -> None:
+    """Best effort: ``/proc/<pid>/comm`` (15 characters) on Linux."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
+    except (OSError, AttributeError):
+        logger.debug("could not set the process name", exc_info=True)
+
+
+def write_record(path: Path, record: Mapping[str, Any]) -> None:
+    """Write ``record`` as JSON to ``path`` atomically (readers never see half a file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as file:
+            json.dump(record, file)
+        os.replace(temporary, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        raise
+
+
+def serve_lifeline(
+    conn: Connection,
+    handlers: Mapping[str, Handler],
+    *,
+    tick: Callable[[], None] | None = None,
+) -> None:
+    """The child's loop: answer requests on ``conn`` until ``stop`` or end-of-file.
+
+    ``tick`` runs every ``LIFELINE_POLL_S`` (records, health checks); an exception
+    from it ends the loop (and with it the child), so a dead simulator is not kept
+    alive as an empty shell.
+    """
+    while True:
+        try:
+            if not conn.poll(LIFELINE_POLL_S):
+                if tick is not None:
+                    tick()
+                continue
+            message = conn.recv()
+        except (EOFError, OSError):
+            logger.info("the server is gone: stopping")
+            return
+        op = message.get("op")
+        args = message.get("args", {})
+        if op == "stop":
+            with contextlib.suppress(OSError):
+                conn.send({"ok": None})
+            return
+        handler = handlers.get(op)
+        try:
+            if handler is None:
+                raise KeyError(f"unknown request {op!r}")
+            reply = {"ok": handler(**args)}
+        except Exception as exc:  # the parent gets it as a SimProcessError
+            reply = {"error": repr(exc)}
+        try:
+            conn.send(reply)
+        except OSError:
+            return
+
+
+def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
+    """Child: the device on a pty until the lifeline says stop (or ends)."""
+    device = spec.build()
+    simulator = PtySimulator(device, baud=spec.baud)
+    simulator.start()
+    started = time.monotonic()
+    try:
+        conn.send({"ready": {"path": simulator.path, "pid": os.getpid()}})
+
+        def record() -> dict[str, Any]:
+            def snapshot() -> dict[str, Any]:
+                data = spec.record(device) if spec.record is not None else {}
+                return {
+                    "name": spec.name,
+                    "pid": os.getpid(),
+                    "uptime_s": time.monotonic() - started,
+                    "overflow_bytes": simulator.overflow_bytes,
+                    "device": data,
+                }
+
+            result: dict[str, Any] = simulator.call(snapshot)
+            return result
+
+        def tick() -> None:
+            if not simulator.running:
+                raise SimProcessError(f"the pty simulator thread of {spec.name} stopped")
+            if spec.record_path is not None:
+                write_record(spec.record_path, record())
+
+        def power_cycle(address: int | None = None) -> None:
+            simulator.power_cycle(address)
+
+        serve_lifeline(
+            conn,
+            {"record": record, "power_cycle": power_cycle, "set_silent": simulator.set_silent},
+            tick=tick,
+        )
+    finally:
+        simulator.stop()

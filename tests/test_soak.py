@@ -1,0 +1,240 @@
+"""Soak: the whole demo (autopilot on, simulators as child processes) under a CPU hog.
+
+``python -m servotune demo`` runs as a subprocess, exactly as a user starts it; the
+test spawns one busy process per core for ``SOAK_S`` seconds, then watches the links
+recover, presses STOP and checks it on the simulated devices themselves (the records
+their processes write) and in the telemetry. Asserted are truths, not speeds:
+
+* no dead link: every link is connected again within ``RECOVER_S`` after the hog
+  stops, and its samples flow;
+* every link state is truthful: a link that the status calls ``connected`` for two
+  polls in a row delivered samples in that time (no more than ``STALE_S`` without);
+* no reset banner without a real reset (nothing power-cycles a device here);
+* STOP reaches every axis: the API reports no failure, each device's own record
+  shows it stopped, and so does the last telemetry.
+
+Printed (``-s`` shows them): CPU per process, link rates as a share of the wire
+limit, error counters, events by level and the most frequent event texts, and the
+load average - machine-dependent figures that are reported, never asserted.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from servotune.bench_demo import (
+    StreamWatcher,
+    cpu_hog,
+    cpu_seconds,
+    demo_server,
+    get_json,
+    load_average,
+    post_json,
+    process_name,
+    process_tree,
+)
+
+pytestmark = pytest.mark.slow
+
+SOAK_S = 100.0
+POLL_S = 1.0
+STALE_S = 5.0  # a connected link goes no longer than this without a sample
+RECOVER_S = 30.0
+STOP_S = 15.0
+
+
+def _read_record(path: Path) -> dict[str, Any]:
+    for _ in range(20):
+        try:
+            record: dict[str, Any] = json.loads(path.read_text())
+            return record
+        except (OSError, ValueError):
+            time.sleep(0.1)
+    raise AssertionError(f"no readable simulator record at {path}")
+
+
+def _device_stopped(device: str, record: dict[str, Any]) -> list[str]:
+    """What in a simulator's record says the device is not (yet) stopped."""
+    problems: list[str] = []
+    data = record["device"]
+    if device == "slap2":  # st: controller off, motor unpowered
+        for module in data["modules"]:
+            if module["vm"] or module["pm"] or module["moving"] or module["pwm"]:
+                problems.append(f"SLAP2 module {module['address']}: {module}")
+    elif device == "z1100":  # stop: decelerate to standstill
+        for axis in data["axes"]:
+            if axis["running"] or axis["speed_counts_s"] != 0.0:
+                problems.append(f"Z1100 axis {axis['axis']}: {axis}")
+    elif device == "ep7047":  # ramp down, then Enable off
+        for slave in data["slaves"]:
+            if slave["busy"] or slave["enabled"] or slave["velocity_counts_s"] != 0.0:
+                problems.append(f"EP7047 slave {slave['position']}: {slave}")
+    return problems
+
+
+STOPPED_FLAGS = {
+    "slap2": ("pm", "vm", "move"),
+    "z1100": ("running",),
+    "ep7047": ("busy", "enable_out", "execute_out"),
+}
+
+
+def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    log = tmp_path / "server.log"
+    lies: list[str] = []
+    load_seen: list[float] = []
+    with demo_server(data_dir=data_dir, log_path=log, connect_timeout_s=120) as server:
+        base = server.base_url
+        axes = get_json(f"{base}/api/axes")
+        links = get_json(f"{base}/api/links")
+        axes_of = {link["id"]: [a["id"] for a in axes if a["link"] == link["id"]] for link in links}
+        device_of = {link["id"]: link["device"] for link in links}
+        with StreamWatcher(base) as stream:
+            pids = process_tree(server.pid)
+            names = {pid: "server" if pid == server.pid else process_name(pid) for pid in pids}
+            cpu_start = {pid: cpu_seconds(pid) for pid in pids}
+            ratios: dict[str, list[float]] = {link_id: [] for link_id in axes_of}
+            first_status = {i: server.link_status(i) for i in axes_of}
+            connected_polls = Counter[str]()
+            samples_before: dict[str, int] = {}
+            last_progress = {a: time.monotonic() for ids in axes_of.values() for a in ids}
+            t0 = time.monotonic()
+            with cpu_hog():
+                while time.monotonic() - t0 < SOAK_S:
+                    time.sleep(POLL_S)
+                    load_seen.append(load_average()[0])
+                    now = time.monotonic()
+                    with stream.lock:
+                        counts = dict(stream.counts.samples)
+                    for link_id, axis_ids in axes_of.items():
+                        status = server.link_status(link_id)
+                        if status["wire_limit_hz"] > 0:
+                            ratios[link_id].append(status["rate_hz"] / status["wire_limit_hz"])
+                        for axis_id in axis_ids:
+                            if counts.get(axis_id, 0) > samples_before.get(axis_id, 0):
+                                last_progress[axis_id] = now
+                        if status["state"] == "connected":
+                            connected_polls[link_id] += 1
+                            for axis_id in axis_ids:
+                                stale_s = now - last_progress[axis_id]
+                                if connected_polls[link_id] >= 2 and stale_s > STALE_S:
+                                    lies.append(
+                                        f"{link_id} says connected but {axis_id} had no "
+                                        f"sample for {stale_s:.1f} s (t={now - t0:.0f} s)"
+                                    )
+                        else:
+                            connected_polls[link_id] = 0
+                            for axis_id in axis_ids:
+                                last_progress[axis_id] = now  # not claiming anything
+                    samples_before = counts
+            soak_s = time.monotonic() - t0
+            cpu: dict[str, float] = {}
+            for pid in pids:
+                before, after = cpu_start[pid], cpu_seconds(pid)
+                if before is not None and after is not None:
+                    cpu[f"{names[pid]} ({pid})"] = (after - before) / soak_s
+            # No dead link: all connected again (and delivering) once the hog is gone.
+            deadline = time.monotonic() + RECOVER_S
+            states: dict[str, str] = {}
+            while time.monotonic() < deadline:
+                states = {i: server.link_status(i)["state"] for i in axes_of}
+                if all(state == "connected" for state in states.values()):
+                    break
+                time.sleep(0.5)
+            final_status = {i: server.link_status(i) for i in axes_of}
+            with stream.lock:
+                before_stop = dict(stream.counts.samples)
+            time.sleep(2.0)
+            with stream.lock:
+                flowing = {
+                    a: stream.counts.samples.get(a, 0) > before_stop.get(a, 0)
+                    for ids in axes_of.values()
+                    for a in ids
+                }
+            # STOP, then the devices' own records and the telemetry.
+            stop_reply = post_json(f"{base}/api/stop")
+            deadline = time.monotonic() + STOP_S
+            not_stopped: list[str] = []
+            while time.monotonic() < deadline:
+                not_stopped = []
+                for device in set(device_of.values()):
+                    record = _read_record(data_dir / "sim" / f"{device}-record.json")
+                    not_stopped += _device_stopped(device, record)
+                if not not_stopped:
+                    break
+                time.sleep(0.25)
+            time.sleep(1.0)  # telemetry after the stop
+            with stream.lock:
+                flags = {a: dict(f) for a, f in stream.counts.last_flags.items()}
+                events = Counter(stream.counts.events)
+                resets = Counter(stream.counts.resets)
+                texts = Counter(_kind_of(text) for text in stream.counts.event_texts)
+            stream_error = stream.error
+
+    report = [
+        f"soak {soak_s:.0f} s with a CPU hog on every core; load average (1 min) "
+        f"min {min(load_seen):.1f} max {max(load_seen):.1f}",
+        "CPU per process (CPU s per s): "
+        + ", ".join(f"{name} {share:.3f}" for name, share in cpu.items()),
+    ]
+    for link_id, values in ratios.items():
+        values = sorted(values)
+        median = values[len(values) // 2] if values else 0.0
+        errors = final_status[link_id]["errors"] - first_status[link_id]["errors"]
+        extra = {
+            k: v
+            for k, v in final_status[link_id].items()
+            if k not in ("type", "link", "state", "message", "rate_hz", "wire_limit_hz")
+        }
+        report.append(
+            f"{link_id}: rate/wire median {median:.0%} min {values[0] if values else 0:.0%}; "
+            f"errors +{errors}; final {final_status[link_id]['state']} {extra}"
+        )
+    report.append(f"events by level: {dict(events)}; reset banners: {dict(resets)}")
+    report.append(
+        "most frequent events: " + "; ".join(f"{n}x {t}" for t, n in texts.most_common(8))
+    )
+    print("\n" + "\n".join(report))
+
+    assert stream_error is None, f"the websocket failed: {stream_error}"
+    # A link stuck in "error" after an internal error is issue 8 point 1 (supervision,
+    # drivers/ and hub.py, another branch): this assertion stays, whoever fixes it.
+    assert all(state == "connected" for state in states.values()), (
+        f"dead link(s) {RECOVER_S:g} s after the hog stopped: {states}\n{_tail(log)}"
+    )
+    assert all(flowing.values()), f"connected but no samples: {flowing}"
+    assert not lies, "link state not truthful:\n" + "\n".join(lies[:20])
+    assert stop_reply == {"failed": []}, stop_reply
+    assert not not_stopped, "STOP did not reach every axis:\n" + "\n".join(not_stopped)
+    for axis in axes:
+        device = axis["device"]
+        for flag in STOPPED_FLAGS[device]:
+            assert not flags.get(axis["id"], {}).get(flag), (
+                axis["id"],
+                flag,
+                flags.get(axis["id"]),
+            )
+    # Needs the false-alarm fixes of issue 8 point 4 (drivers/, another branch): a slow
+    # host alone must not produce "reset - settings may be lost". Nothing resets here.
+    assert sum(resets.values()) == 0, f"reset banner(s) without a reset: {dict(resets)}"
+
+
+def _kind_of(text: str) -> str:
+    """An event text without its numbers and quoted bytes, to count by kind."""
+    head = text.split(":", 2)
+    kind = ":".join(head[:2]) if len(head) > 2 else text
+    return "".join("#" if ch.isdigit() else ch for ch in kind)[:90]
+
+
+def _tail(path: Path, lines: int = 40) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no server log)"
