@@ -26,8 +26,10 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    ParameterConstraint,
     ParameterDescriptor,
     PlotDescriptor,
+    StopEffect,
 )
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import PosDiag, PosStatus, SdoObject, StartType, StmStatus
@@ -749,6 +751,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                     minimum=codec.INT32_MIN,
                     maximum=codec.INT32_MAX,
                     default=counts_per_rev,
+                    required=True,
                 ),
                 ArgumentDescriptor(
                     name="velocity",
@@ -839,4 +842,17 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             ),
             examples=["list", "0x9020:03", "0x9020:01", "0x8020:0E", "0x8020:02 = 5000"],
         ),
+        stop=StopEffect(
+            summary="EP7047: emergency ramp, then Enable off - no holding torque",
+            motor_powered=False,
+            sends="Emergency stop output on the next cycle, then Enable off",
+            gentler=["emergency_stop", "halt"],
+        ),
+        constraints=[
+            ParameterConstraint(
+                lower="velocity_min_bp",
+                upper="velocity_max_bp",
+                message="the creep velocity into the target must not exceed the maximum velocity",
+            ),
+        ],
     )
