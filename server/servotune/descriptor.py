@@ -34,6 +34,12 @@ class BitDescriptor(BaseModel):
     description: str
 
 
+class Choice(BaseModel):
+    value: int
+    label: str
+    description: str
+
+
 class ParameterDescriptor(BaseModel):
     """A settable device parameter.
 
@@ -66,6 +72,10 @@ class ParameterDescriptor(BaseModel):
     )
     slider_maximum: int | None = Field(
         default=None, description="upper end of the slider when the range is much larger"
+    )
+    choices: list[Choice] = Field(
+        default=[],
+        description="when given, the only values allowed (e.g. codes of an enumeration)",
     )
 
 
@@ -104,12 +114,6 @@ class PlotDescriptor(BaseModel):
     unit: str
     series: list[str]
     kind: Literal["line", "flags", "states"] = "line"
-
-
-class Choice(BaseModel):
-    value: int
-    label: str
-    description: str
 
 
 class ArgumentDescriptor(BaseModel):

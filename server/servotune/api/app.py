@@ -130,6 +130,9 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         headers = dict(exc.headers or {})
+        if exc.status_code == 400:
+            # A body that is not JSON (or not UTF-8): bad input like any other, 422.
+            return _error(422, f"body: {exc.detail}", "body")
         if exc.status_code == 405:
             headers["Allow"] = ", ".join(allowed_methods(app.router.routes, request.url.path))
         return JSONResponse(

@@ -66,13 +66,16 @@ def command_schema(device: str, command: CommandDescriptor) -> dict[str, Any]:
 
 def _parameter_schema(parameter: ParameterDescriptor) -> dict[str, Any]:
     unit = f" {parameter.unit}" if parameter.unit else ""
-    return {
+    schema: dict[str, Any] = {
         "type": "integer",
         "minimum": parameter.minimum,
         "maximum": parameter.maximum,
         "title": parameter.label,
         "description": f"{parameter.minimum}..{parameter.maximum}{unit}",
     }
+    if parameter.choices:
+        schema["enum"] = [c.value for c in parameter.choices]
+    return schema
 
 
 def params_schema(descriptors: Sequence[DeviceDescriptor]) -> dict[str, Any]:
@@ -85,6 +88,11 @@ def params_schema(descriptors: Sequence[DeviceDescriptor]) -> dict[str, Any]:
             if known is None:
                 properties[parameter.name] = schema
             elif known != schema:
+                # An enumeration stays one only if both devices enumerate the name.
+                both = "enum" in known and "enum" in schema
+                values = set(known.pop("enum", [])) | set(schema.get("enum", []))
+                if both:
+                    known["enum"] = sorted(values)
                 known["minimum"] = min(known["minimum"], parameter.minimum)
                 known["maximum"] = max(known["maximum"], parameter.maximum)
                 known["description"] = "range depends on the device (see its descriptor)"

@@ -374,6 +374,11 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             set_command=_sdo_set(codec.DEFAULT_START_TYPE),
             read_command=_sdo_read(codec.DEFAULT_START_TYPE),
             slider=False,
+            choices=[
+                Choice(value=int(s), label=s.name, description=START_TYPE_TEXTS[s])
+                for s in StartType
+                if s not in NOT_A_DEFAULT_START_TYPE
+            ],
         ),
         ParameterDescriptor(
             name="calibration_position_counts",
@@ -757,7 +762,9 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                     name="velocity",
                     label=f"Velocity (10000 = {speed_range_steps_s} steps/s)",
                     unit="bp",
-                    minimum=0,
+                    # 0 is an Error on the drive for every move; calibration and the
+                    # instant types ignore the value, so 1 costs them nothing.
+                    minimum=1,
                     maximum=VELOCITY_MAX_BP,
                     default=2000,
                 ),

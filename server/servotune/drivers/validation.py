@@ -13,6 +13,10 @@ from servotune.drivers.base import InvalidArgumentError
 
 
 def _integer_in(name: str, value: object, minimum: int, maximum: int, allowed: str) -> int:
+    # JSON does not tell 381 from 381.0 and JSON Schema's "integer" includes both: an
+    # integral float is that integer. 381.5, NaN and infinities are not.
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
     if isinstance(value, bool) or not isinstance(value, int):
         raise InvalidArgumentError(name, f"{name} must be an integer in {allowed}")
     if not minimum <= value <= maximum:
@@ -43,6 +47,9 @@ def validate_params(
         unit = f" {parameter.unit}" if parameter.unit else ""
         allowed = f"{parameter.minimum}..{parameter.maximum}{unit}"
         checked[name] = _integer_in(name, value, parameter.minimum, parameter.maximum, allowed)
+        if parameter.choices and checked[name] not in {c.value for c in parameter.choices}:
+            listed = ", ".join(f"{c.value} ({c.label})" for c in parameter.choices)
+            raise InvalidArgumentError(name, f"{name} = {checked[name]} is not one of {listed}")
     validate_constraints(descriptor, checked, current or {})
     return checked
 
