@@ -34,6 +34,12 @@ class BitDescriptor(BaseModel):
     description: str
 
 
+class Choice(BaseModel):
+    value: int
+    label: str
+    description: str
+
+
 class ParameterDescriptor(BaseModel):
     """A settable device parameter.
 
@@ -66,6 +72,10 @@ class ParameterDescriptor(BaseModel):
     )
     slider_maximum: int | None = Field(
         default=None, description="upper end of the slider when the range is much larger"
+    )
+    choices: list[Choice] = Field(
+        default=[],
+        description="when given, the only values allowed (e.g. codes of an enumeration)",
     )
 
 
@@ -106,19 +116,24 @@ class PlotDescriptor(BaseModel):
     kind: Literal["line", "flags", "states"] = "line"
 
 
-class Choice(BaseModel):
-    value: int
-    label: str
-    description: str
-
-
 class ArgumentDescriptor(BaseModel):
+    """An integer argument of a command.
+
+    ``required``: the API needs it in every request (a target, a distance: a script
+    that forgets one must not move the axis by the UI's suggestion). Otherwise it may
+    be omitted and ``default`` is used, the value the UI also starts with.
+    """
+
     name: str
     label: str
     unit: str = ""
     minimum: int
     maximum: int
     default: int = 0
+    required: bool = Field(
+        default=False,
+        description="must be given in the API; otherwise 'default' is used when omitted",
+    )
     choices: list[Choice] = []
 
 
@@ -144,6 +159,36 @@ class CommandDescriptor(BaseModel):
     )
 
 
+class StopEffect(BaseModel):
+    """What the device's STOP (the ``stop`` command, the top bar's STOP and Esc) does.
+
+    A motion engineer must know before pressing it whether the motor keeps its torque:
+    a vertical axis whose motor goes unpowered drops.
+    """
+
+    summary: str = Field(description="one line for next to the STOP button")
+    motor_powered: bool = Field(
+        description="the motor keeps holding torque after the stop (False: a vertical "
+        "or loaded axis can drop or be back-driven)"
+    )
+    sends: str = Field(description="what goes to the wire")
+    gentler: list[str] = Field(
+        default=[],
+        description="commands of this descriptor that stop more gently (e.g. stop and "
+        "hold), in the order the UI offers them",
+    )
+
+
+class ParameterConstraint(BaseModel):
+    """A check across parameters: ``lower <= upper``, enforced on every write against
+    the values written merged with the device's current values (422 naming the
+    parameter written)."""
+
+    lower: str = Field(description="parameter that must not exceed 'upper'")
+    upper: str
+    message: str = Field(description="why, in words a user can act on")
+
+
 class ConsoleDescriptor(BaseModel):
     help: str
     multiline_commands: list[str] = []
@@ -163,6 +208,8 @@ class DeviceDescriptor(BaseModel):
     plots: list[PlotDescriptor]
     commands: list[CommandDescriptor]
     console: ConsoleDescriptor
+    stop: StopEffect
+    constraints: list[ParameterConstraint] = []
 
     def parameter(self, name: str) -> ParameterDescriptor:
         """Return the parameter called ``name``; KeyError if the device has none."""

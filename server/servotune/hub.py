@@ -382,7 +382,8 @@ class Hub:
     async def write_params(self, axis_id: str, values: Mapping[str, object]) -> dict[str, int]:
         """Validate all values (422 before anything is sent), write, read back."""
         entry = self.entry(axis_id)
-        checked = validate_params(entry.driver.descriptor, values)
+        # Cross-field constraints are checked against the device's values as last seen.
+        checked = validate_params(entry.driver.descriptor, values, entry.device_values)
         self._operate(entry)
         return await entry.driver.write_params(checked)
 
@@ -409,7 +410,9 @@ class Hub:
         self._operate(entry)
         if name == "restore_parameters":
             return await self._restore(entry)
-        if name == "stop" and origin == "user":
+        # Every stop-group command of the user (STOP, stop and hold, halt) ends a
+        # running bench or auto-tune sequence, not only ``stop``.
+        if origin == "user" and entry.driver.descriptor.command(name).group == "stop":
             entry.stop_generation += 1
         try:
             outcome = await entry.driver.command(name, checked)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 LinkState = Literal["connecting", "connected", "reconnecting", "error", "disconnected"]
 AxisHealth = Literal["ok", "reset", "offline"]
@@ -154,9 +154,15 @@ class AxisState(BaseModel):
 
 
 class CommandRequest(BaseModel, extra="allow"):
-    """``POST /api/axes/{id}/commands``: ``{"command": name, <argument>: value, ...}``."""
+    """``POST /api/axes/{id}/commands``: ``{"command": name, <argument>: value, ...}``.
 
-    command: str
+    The arguments are the command's ``arguments`` in the axis' descriptor (integers in
+    their ranges; a ``required`` one must be given, others default). The live OpenAPI
+    replaces this schema by one variant per device and command (``servotune.api.openapi``).
+    Unknown arguments answer 422 naming them.
+    """
+
+    command: str = Field(min_length=1, max_length=64)
 
 
 class CommandResult(BaseModel):
@@ -165,8 +171,27 @@ class CommandResult(BaseModel):
     message: str
 
 
+# A console line is printable: a control character (CR, LF, Ctrl-X, Ctrl-K, ...) inside a
+# line would reach the wire and split or abort the device's command (Ctrl-X discards the
+# SLAP2's input; a CR ends the command early). The devices' control bytes have their own
+# descriptor commands (e.g. SLAP2 ``abort_calibration`` sends Ctrl-K). At least one
+# character that is not a space: the SLAP2 driver removes spaces.
+CONSOLE_LINE_PATTERN = r"^[^\x00-\x1f\x7f]*[^\x00-\x20\x7f][^\x00-\x1f\x7f]*$"
+
+
 class ConsoleRequest(BaseModel):
-    line: str = Field(max_length=64)
+    """``POST /api/axes/{id}/console``: one printable line, no control characters."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    line: str = Field(min_length=1, max_length=64, pattern=CONSOLE_LINE_PATTERN)
+
+
+class StopResult(BaseModel):
+    """``POST /api/stop``: the axes whose stop could not be sent (each also gets an
+    ``event`` saying why and what happens next)."""
+
+    failed: list[str]
 
 
 class ConsoleReply(BaseModel):

@@ -109,14 +109,27 @@ store.on("topology", () => {
   route(!still);
 });
 
-// Esc stops every axis from anywhere, inputs and dialogs included (capture phase).
+// Esc stops every axis from anywhere, inputs included (capture phase), except in an open
+// dialog: there Esc closes the dialog only (its own handler), so dismissing a
+// confirmation never fires a global STOP that unpowers the SLAP2 axes.
 window.addEventListener(
   "keydown",
   (event) => {
-    if (event.key === "Escape" && !event.repeat) void stopAll("Esc");
+    if (event.key !== "Escape" || event.repeat) return;
+    if (document.querySelector('[aria-modal="true"]')) return;
+    void stopAll("Esc");
   },
   true,
 );
+
+// What STOP does on each device family present (descriptor ``stop``), shown at the button.
+store.on("topology", () => {
+  const firstOfDevice = new Map<string, string>();
+  for (const a of store.axes) if (!firstOfDevice.has(a.device)) firstOfDevice.set(a.device, a.id);
+  void Promise.all(
+    [...firstOfDevice.values()].map((id) => store.descriptor(id, () => api.descriptor(id)).then((d) => d.stop.summary, () => null)),
+  ).then((summaries) => topbar.setStopEffects(summaries.filter((s): s is string => s !== null)));
+});
 
 // Frame loop: at most one redraw per animation frame, however many messages came.
 let waitingTick = 0;

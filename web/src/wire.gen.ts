@@ -37,6 +37,7 @@ export interface ParameterDescriptor {
   overwrites: string[];
   slider_minimum: number | null;
   slider_maximum: number | null;
+  choices: Choice[];
 }
 
 export interface ChannelDescriptor {
@@ -78,6 +79,7 @@ export interface ArgumentDescriptor {
   minimum: number;
   maximum: number;
   default: number;
+  required: boolean;
   choices: Choice[];
 }
 
@@ -99,6 +101,19 @@ export interface ConsoleDescriptor {
   examples: string[];
 }
 
+export interface StopEffect {
+  summary: string;
+  motor_powered: boolean;
+  sends: string;
+  gentler: string[];
+}
+
+export interface ParameterConstraint {
+  lower: string;
+  upper: string;
+  message: string;
+}
+
 export interface DeviceDescriptor {
   device: string;
   model: string;
@@ -110,6 +125,8 @@ export interface DeviceDescriptor {
   plots: PlotDescriptor[];
   commands: CommandDescriptor[];
   console: ConsoleDescriptor;
+  stop: StopEffect;
+  constraints: ParameterConstraint[];
 }
 
 export interface AxisInfo {
@@ -212,6 +229,10 @@ export interface CommandResult {
   command: string;
   sent: string[];
   message: string;
+}
+
+export interface StopResult {
+  failed: string[];
 }
 
 export interface ConsoleRequest {

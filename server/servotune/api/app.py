@@ -8,15 +8,19 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import BaseRoute, Mount, Route
 
 from servotune import __version__
 from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
+from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
 from servotune.autotune import AutoTuner
@@ -24,6 +28,7 @@ from servotune.config import LinkSpec
 from servotune.drivers.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
+    DriverError,
     InvalidArgumentError,
     LinkDownError,
     ProtocolError,
@@ -53,6 +58,20 @@ class AppConfig:
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
     return JSONResponse(status_code=status, content={"detail": detail, "field": field_name})
+
+
+def allowed_methods(routes: list[BaseRoute], path: str) -> list[str]:
+    """Every method any route answers at ``path`` (the ``Allow`` header of a 405).
+
+    Starlette's own 405 lists only the methods of the first route whose path matched,
+    but GET and PATCH of one path are two routes here."""
+    methods: set[str] = set()
+    for route in routes:
+        if isinstance(route, Route) and route.path_regex.match(path) and route.methods:
+            methods |= route.methods
+    if not methods and any(isinstance(r, Mount) and r.path_regex.match(path) for r in routes):
+        methods = {"GET", "HEAD"}  # the static web bundle
+    return sorted(methods)
 
 
 def create_app(config: AppConfig) -> FastAPI:
@@ -95,6 +114,33 @@ def create_app(config: AppConfig) -> FastAPI:
     app.include_router(autotune_router)
     app.include_router(param_set_router)
 
+    def openapi() -> dict[str, Any]:
+        """The live OpenAPI: once the hub runs, command and params bodies per device."""
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        hub: Hub | None = getattr(app.state, "hub", None)
+        axes = [(a.id, hub.descriptor(a.id)) for a in hub.axes_info()] if hub else []
+        schema = device_openapi(app, axes)
+        if hub is not None:
+            app.openapi_schema = schema  # the axes do not change while the app runs
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        headers = dict(exc.headers or {})
+        if exc.status_code == 400:
+            # A body that is not JSON (or not UTF-8): bad input like any other, 422.
+            return _error(422, f"body: {exc.detail}", "body")
+        if exc.status_code == 405:
+            headers["Allow"] = ", ".join(allowed_methods(app.router.routes, request.url.path))
+        return JSONResponse(
+            status_code=exc.status_code,
+            content={"detail": str(exc.detail), "field": None},
+            headers=headers,
+        )
+
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:
         return _error(422, str(exc), exc.field)
@@ -122,6 +168,11 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(ProtocolError)
     async def protocol(_: Request, exc: ProtocolError) -> JSONResponse:
         return _error(502, f"device protocol error: {exc}")
+
+    @app.exception_handler(DriverError)
+    async def driver_error(_: Request, exc: DriverError) -> JSONResponse:
+        # A driver error without a more specific class: the device path failed.
+        return _error(502, f"device error: {exc}")
 
     @app.exception_handler(NotFoundError)
     async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 
+from servotune.api.responses import NOT_FOUND, errors
 from servotune.api.routes import ERRORS
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
@@ -68,7 +69,11 @@ async def list_runs(axis_id: str, bench: BenchDep) -> list[dict[str, Any]]:
     return await bench.list_runs(axis_id)
 
 
-@router.post("/api/axes/{axis_id}/bench/runs/import", status_code=201, responses=ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/bench/runs/import",
+    status_code=201,
+    responses={**ERRORS, **errors(413)},
+)
 async def import_run(axis_id: str, body: ImportRequest, bench: BenchDep) -> dict[str, str]:
     """Import a run exported as JSON (``meta``) + CSV (``csv``)."""
     return {"id": await bench.import_run(axis_id, body.meta, body.csv)}
@@ -84,7 +89,9 @@ async def get_run(run_id: str, bench: BenchDep) -> dict[str, Any]:
         raise _missing(run_id) from None
 
 
-@router.delete("/api/bench/runs/{run_id}", status_code=204, response_model=None)
+@router.delete(
+    "/api/bench/runs/{run_id}", status_code=204, response_model=None, responses=NOT_FOUND
+)
 async def delete_run(run_id: str, bench: BenchDep) -> None:
     try:
         await bench.delete_run(run_id)
@@ -92,7 +99,9 @@ async def delete_run(run_id: str, bench: BenchDep) -> None:
         raise _missing(run_id) from None
 
 
-@router.post("/api/bench/runs/{run_id}/baseline", status_code=204, response_model=None)
+@router.post(
+    "/api/bench/runs/{run_id}/baseline", status_code=204, response_model=None, responses=NOT_FOUND
+)
 async def set_baseline(run_id: str, bench: BenchDep) -> None:
     """Mark this run as the baseline of its axis."""
     try:
@@ -101,7 +110,11 @@ async def set_baseline(run_id: str, bench: BenchDep) -> None:
         raise _missing(run_id) from None
 
 
-@router.get("/api/bench/runs/{run_id}/samples.csv", response_class=PlainTextResponse)
+@router.get(
+    "/api/bench/runs/{run_id}/samples.csv",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/csv": {}}}, **NOT_FOUND},
+)
 async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
     try:
         run = await bench.get_run(run_id)
@@ -114,7 +127,7 @@ async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
     )
 
 
-@router.get("/api/bench/runs/{run_id}/run.json", response_model=None)
+@router.get("/api/bench/runs/{run_id}/run.json", response_model=None, responses=NOT_FOUND)
 async def export_json(run_id: str, bench: BenchDep) -> JSONResponse:
     try:
         run = await bench.get_run(run_id)

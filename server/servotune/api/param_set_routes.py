@@ -11,10 +11,11 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request
-from pydantic import BaseModel, Field
+from fastapi import APIRouter, Depends, Path, Request
+from pydantic import BaseModel, ConfigDict, Field
 
 from servotune.api.deps import HubDep
+from servotune.api.responses import errors
 from servotune.api.routes import ERRORS
 from servotune.drivers.base import InvalidArgumentError
 from servotune.hub import NotFoundError
@@ -31,8 +32,30 @@ def get_storage(request: Request) -> Storage:
 StorageDep = Annotated[Storage, Depends(get_storage)]
 
 
+# A set's name is a path segment of its URL: no "/", no leading or trailing space, and
+# at least one character that is neither a dot nor a space, so "." and ".." (which a
+# browser folds away when it normalises the URL) and " " can never be saved. Letters,
+# digits, "_", spaces inside and . , + ( ) # - are allowed (a "#" must be sent as %23).
+SET_NAME_PATTERN = r"^(?:[\w.,+()#-][\w .,+()#-]*)?[\w,+()#-](?:[\w .,+()#-]*[\w.,+()#-])?$"
+SET_NAME_MAX = 60
+
+SetName = Annotated[
+    str,
+    Path(
+        min_length=1,
+        max_length=SET_NAME_MAX,
+        pattern=SET_NAME_PATTERN,
+        description="name of the set as saved (URL-encoded)",
+    ),
+]
+
+
 class SaveSetRequest(BaseModel):
-    name: str = Field(min_length=1, max_length=60, pattern=r"^[\w .,+()#-]+$")
+    """``POST .../param-sets``: the set's name (see ``SET_NAME_PATTERN``) and a note."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=SET_NAME_MAX, pattern=SET_NAME_PATTERN)
     note: str = Field(default="", max_length=200)
 
 
@@ -46,7 +69,7 @@ class ParamSetComparison(BaseModel):
     differing: list[str]
 
 
-@router.get("/api/axes/{axis_id}/param-sets", responses=ERRORS)
+@router.get("/api/axes/{axis_id}/param-sets", responses=errors(404, 422))
 async def list_sets(axis_id: str, hub: HubDep, storage: StorageDep) -> list[dict[str, Any]]:
     entry = hub.entry(axis_id)
     return await asyncio.to_thread(storage.list_param_sets, entry.storage_key)
@@ -76,7 +99,7 @@ async def _find(storage: Storage, key: str, name: str) -> dict[str, Any] | None:
     responses=ERRORS,
 )
 async def compare_set(
-    axis_id: str, name: str, hub: HubDep, storage: StorageDep
+    axis_id: str, name: SetName, hub: HubDep, storage: StorageDep
 ) -> ParamSetComparison:
     entry = hub.entry(axis_id)
     found = await _find(storage, entry.storage_key, name)
@@ -89,7 +112,9 @@ async def compare_set(
 
 
 @router.post("/api/axes/{axis_id}/param-sets/{name}/restore", responses=ERRORS)
-async def restore_set(axis_id: str, name: str, hub: HubDep, storage: StorageDep) -> dict[str, int]:
+async def restore_set(
+    axis_id: str, name: SetName, hub: HubDep, storage: StorageDep
+) -> dict[str, int]:
     """Write the set to the device through the normal path (validated, read back).
 
     Does not persist it in the device: that is the device's save command."""
@@ -104,8 +129,15 @@ async def restore_set(axis_id: str, name: str, hub: HubDep, storage: StorageDep)
     return await hub.write_params(axis_id, found["params"])
 
 
-@router.delete("/api/axes/{axis_id}/param-sets/{name}", status_code=204, response_model=None)
+@router.delete(
+    "/api/axes/{axis_id}/param-sets/{name}",
+    status_code=204,
+    response_model=None,
+    responses=errors(404, 422),
+)
 async def delete_set(axis_id: str, name: str, hub: HubDep, storage: StorageDep) -> None:
+    """Delete a set. Any name is accepted here (not only ``SET_NAME_PATTERN``), so a
+    set saved under an older, looser rule (e.g. with a leading space) can be removed."""
     entry = hub.entry(axis_id)
     if not await asyncio.to_thread(storage.delete_param_set, entry.storage_key, name):
         raise NotFoundError("name", f"no parameter set {name!r} for this axis")

@@ -1,4 +1,9 @@
-"""REST and websocket routes. Handlers only translate HTTP to hub calls."""
+"""REST and websocket routes. Handlers only translate HTTP to hub calls.
+
+Every route states the error codes it can answer (``responses=``, see
+``servotune.api.responses``); the command and params bodies are stated per device in
+the live OpenAPI (``servotune.api.openapi``).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from fastapi import APIRouter, Body, WebSocket, WebSocketDisconnect
 from pydantic import TypeAdapter, ValidationError
 
 from servotune.api.deps import HubDep, WsHubDep
+from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -17,6 +23,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     LinkDownError,
 )
+from servotune.hub import NotFoundError
 from servotune.wire import (
     AxisInfo,
     AxisState,
@@ -26,20 +33,15 @@ from servotune.wire import (
     CommandResult,
     ConsoleReply,
     ConsoleRequest,
-    ErrorBody,
     LinkInfo,
     LinkStatus,
+    StopResult,
 )
 
 router = APIRouter(prefix="")
 
-ERRORS: dict[int | str, dict[str, Any]] = {
-    404: {"model": ErrorBody, "description": "no such axis"},
-    409: {"model": ErrorBody, "description": "the device refused (reason in detail)"},
-    422: {"model": ErrorBody, "description": "bad input: detail names the field and range"},
-    503: {"model": ErrorBody, "description": "link down: nothing was sent"},
-    504: {"model": ErrorBody, "description": "the device did not answer"},
-}
+# Kept for the routers that import it: the answers of a route that talks to a device.
+ERRORS = DEVICE_ERRORS
 
 _client_message = TypeAdapter(ClientMessage)
 
@@ -55,32 +57,35 @@ async def list_links(hub: HubDep) -> list[LinkInfo]:
     return hub.links_info()
 
 
-@router.get("/api/links/{link_id}/status", response_model=LinkStatus, tags=["links"])
+@router.get(
+    "/api/links/{link_id}/status", response_model=LinkStatus, responses=NOT_FOUND, tags=["links"]
+)
 async def link_status(link_id: str, hub: HubDep) -> LinkStatus:
     try:
         return hub.link_status(link_id)
     except KeyError:
-        raise InvalidArgumentError("link", f"no link {link_id!r}") from None
+        raise NotFoundError("link", f"no link {link_id!r}") from None
 
 
 @router.get(
     "/api/axes/{axis_id}/descriptor",
     response_model=DeviceDescriptor,
-    responses=ERRORS,
+    responses=NOT_FOUND,
     tags=["axes"],
 )
 async def descriptor(axis_id: str, hub: HubDep) -> DeviceDescriptor:
-    """The device descriptor the UI renders (parameters, channels, flags, commands)."""
+    """The device descriptor the UI renders (parameters, channels, flags, commands,
+    the STOP's effect and the cross-field constraints)."""
     return hub.descriptor(axis_id)
 
 
-@router.get("/api/axes/{axis_id}/params", responses=ERRORS, tags=["params"])
+@router.get("/api/axes/{axis_id}/params", responses=DEVICE_ERRORS, tags=["params"])
 async def read_params(axis_id: str, hub: HubDep) -> dict[str, int]:
     """Read every parameter from the device now."""
     return await hub.read_params(axis_id)
 
 
-@router.patch("/api/axes/{axis_id}/params", responses=ERRORS, tags=["params"])
+@router.patch("/api/axes/{axis_id}/params", responses=DEVICE_ERRORS, tags=["params"])
 async def write_params(
     axis_id: str,
     hub: HubDep,
@@ -88,13 +93,20 @@ async def write_params(
 ) -> dict[str, int]:
     """Write parameters, read them back from the device and return the read-back values.
 
-    All values are checked against the descriptor first: one bad value answers 422
-    naming the field and its range, and then nothing is written.
+    All values are checked against the descriptor first: one bad value (unknown name,
+    not an integer, out of range, or breaking a descriptor ``constraint`` together with
+    the device's current values) answers 422 naming the field and its range, and then
+    nothing is written. The body's schema per device is in the live OpenAPI.
     """
     return await hub.write_params(axis_id, values)
 
 
-@router.get("/api/axes/{axis_id}/state", response_model=AxisState, responses=ERRORS, tags=["axes"])
+@router.get(
+    "/api/axes/{axis_id}/state",
+    response_model=AxisState,
+    responses=errors(404, 422, 503),
+    tags=["axes"],
+)
 async def axis_state(axis_id: str, hub: HubDep) -> AxisState:
     """The latest telemetry sample (503 until the first one arrived)."""
     state = hub.axis_state(axis_id)
@@ -106,34 +118,40 @@ async def axis_state(axis_id: str, hub: HubDep) -> AxisState:
 @router.post(
     "/api/axes/{axis_id}/commands",
     response_model=CommandResult,
-    responses=ERRORS,
+    responses=DEVICE_ERRORS,
     tags=["commands"],
 )
 async def command(axis_id: str, hub: HubDep, request: CommandRequest) -> CommandResult:
-    """Run a descriptor command: ``{"command": "move_absolute", "position": 1000}``."""
+    """Run a descriptor command: ``{"command": "move_absolute", "position": 1000}``.
+
+    Arguments are integers in the descriptor's ranges; one marked ``required`` must be
+    given, any other may be omitted and takes its ``default``. 422 names the argument.
+    """
     args = dict(request.model_extra or {})
     outcome = await hub.command(axis_id, request.command, args)
     return CommandResult(command=request.command, sent=outcome.sent, message=outcome.message)
 
 
-@router.post("/api/stop", tags=["commands"])
-async def stop_all(hub: HubDep) -> dict[str, list[str]]:
-    """STOP every axis now (the UI's STOP button and Esc key)."""
+@router.post("/api/stop", response_model=StopResult, tags=["commands"])
+async def stop_all(hub: HubDep) -> StopResult:
+    """STOP every axis now (the UI's STOP button and Esc key). What the stop does on
+    each device is the descriptor's ``stop`` (e.g. SLAP2: motor unpowered)."""
     failed = await hub.stop_all()
-    return {"failed": failed}
+    return StopResult(failed=failed)
 
 
 @router.post(
     "/api/axes/{axis_id}/console",
     response_model=ConsoleReply,
-    responses=ERRORS,
+    responses=errors(404, 409, 422, 503),
     tags=["console"],
 )
 async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> ConsoleReply:
     """Send one raw line to the axis' module; returns every reply line.
 
-    Errors of the exchange (no echo, refused) come back in ``error`` with status 200
-    so the console can show them next to the line.
+    The line must be printable (no CR, LF, Ctrl-X or other control characters: 422
+    naming ``line``). Errors of the exchange (no echo, refused by the protocol) come
+    back in ``error`` with status 200 so the console can show them next to the line.
     """
     try:
         sent, reply = await hub.console(axis_id, request.line)

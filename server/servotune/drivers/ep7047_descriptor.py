@@ -26,8 +26,10 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    ParameterConstraint,
     ParameterDescriptor,
     PlotDescriptor,
+    StopEffect,
 )
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import PosDiag, PosStatus, SdoObject, StartType, StmStatus
@@ -372,6 +374,11 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             set_command=_sdo_set(codec.DEFAULT_START_TYPE),
             read_command=_sdo_read(codec.DEFAULT_START_TYPE),
             slider=False,
+            choices=[
+                Choice(value=int(s), label=s.name, description=START_TYPE_TEXTS[s])
+                for s in StartType
+                if s not in NOT_A_DEFAULT_START_TYPE
+            ],
         ),
         ParameterDescriptor(
             name="calibration_position_counts",
@@ -749,12 +756,15 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                     minimum=codec.INT32_MIN,
                     maximum=codec.INT32_MAX,
                     default=counts_per_rev,
+                    required=True,
                 ),
                 ArgumentDescriptor(
                     name="velocity",
                     label=f"Velocity (10000 = {speed_range_steps_s} steps/s)",
                     unit="bp",
-                    minimum=0,
+                    # 0 is an Error on the drive for every move; calibration and the
+                    # instant types ignore the value, so 1 costs them nothing.
+                    minimum=1,
                     maximum=VELOCITY_MAX_BP,
                     default=2000,
                 ),
@@ -839,4 +849,17 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             ),
             examples=["list", "0x9020:03", "0x9020:01", "0x8020:0E", "0x8020:02 = 5000"],
         ),
+        stop=StopEffect(
+            summary="EP7047: emergency ramp, then Enable off - no holding torque",
+            motor_powered=False,
+            sends="Emergency stop output on the next cycle, then Enable off",
+            gentler=["emergency_stop", "halt"],
+        ),
+        constraints=[
+            ParameterConstraint(
+                lower="velocity_min_bp",
+                upper="velocity_max_bp",
+                message="the creep velocity into the target must not exceed the maximum velocity",
+            ),
+        ],
     )

@@ -920,9 +920,25 @@ class Slap2Axis(EngineAxis, AxisDriver):
                     f"pg is not allowed while {mode} is on (manual: 'nicht während pm oder "
                     "vm'): press STOP, then save"
                 )
+        if name == "hold":
+            return await self._hold()
         commands = self.make_command(name, args)
         sent = await self._link.op_execute(self._address, commands, urgent=name == "stop")
         return CommandOutcome(sent, "ok")
+
+    async def _hold(self) -> CommandOutcome:
+        """Descriptor ``hold`` (stop and hold, motor powered; see slap2_descriptor):
+        ``pm`` turns the controller on at the current position; in pm a running move
+        is replanned with ``ma`` to the last polled position (brakes with sa, returns
+        there), because a second ``pm`` in pm changes nothing. Urgent like STOP."""
+        module = self._link.module_state(self._address)
+        flags = codec.decode_rss(module.rss or 0)
+        if flags["pm"] and flags["move"] and module.position is not None:
+            commands = [codec.make_move_absolute(module.position)]
+        else:
+            commands = [codec.make_simple("pm")]
+        sent = await self._link.op_execute(self._address, commands, urgent=True)
+        return CommandOutcome(sent, "holding the position, motor powered")
 
     async def console(self, line: str) -> tuple[str, list[str]]:
         return await self._link.op_console(self._address, line)

@@ -20,6 +20,7 @@ from servotune.descriptor import (
     FlagDescriptor,
     ParameterDescriptor,
     PlotDescriptor,
+    StopEffect,
 )
 from servotune.protocols import slap2 as codec
 
@@ -395,12 +396,30 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
         unit="counts",
         minimum=-POSITION_LIMIT,
         maximum=POSITION_LIMIT,
+        required=True,
     )
     commands = [
         CommandDescriptor(
             name="stop",
             label="STOP",
-            description="st: controller off, motor unpowered; leaves pm, vm and spwm.",
+            description=(
+                "st: controller off, motor unpowered at once; leaves pm, vm and spwm. The "
+                "shaft coasts: a vertical or loaded axis drops. Use Stop and hold to keep "
+                "the position under power."
+            ),
+            group="stop",
+        ),
+        CommandDescriptor(
+            name="hold",
+            label="Stop and hold",
+            description=(
+                "Keep the motor powered and hold the position: without pm (after st, in "
+                "vm or spwm) it sends pm, which turns the controller on at the current "
+                "position (a firm stop, no ramp); in pm with a move running it sends ma "
+                "to the position at the press, so the profile brakes with sa and returns "
+                "there. Refused by the module while a calibration runs (use Abort "
+                "calibration or STOP)."
+            ),
             group="stop",
         ),
         CommandDescriptor(
@@ -437,6 +456,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                     minimum=-2 * POSITION_LIMIT,
                     maximum=2 * POSITION_LIMIT,
                     default=2000,
+                    required=True,
                 )
             ],
         ),
@@ -458,7 +478,13 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             group="motion",
             arguments=[
                 ArgumentDescriptor(
-                    name="pwm", label="PWM", unit="", minimum=-255, maximum=255, default=30
+                    name="pwm",
+                    label="PWM",
+                    unit="",
+                    minimum=-255,
+                    maximum=255,
+                    default=30,
+                    required=True,
                 )
             ],
             confirm=(
@@ -478,6 +504,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                     minimum=0,
                     maximum=5,
                     default=4,
+                    required=True,
                     choices=CALIBRATION_MODES,
                 )
             ],
@@ -529,5 +556,11 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             multiline_commands=list(codec.MULTILINE_COMMANDS),
             examples=["rp", "rss", "rrss", "rep", "id", "qp"],
+        ),
+        stop=StopEffect(
+            summary="SLAP2: controller off, motor unpowered - a vertical axis drops",
+            motor_powered=False,
+            sends="st (ahead of anything queued)",
+            gentler=["hold"],
         ),
     )

@@ -19,6 +19,7 @@ from servotune.descriptor import (
     FlagDescriptor,
     ParameterDescriptor,
     PlotDescriptor,
+    StopEffect,
 )
 from servotune.protocols import z1100 as codec
 
@@ -304,7 +305,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             name="stop",
             label="STOP",
             group="stop",
-            description="Estop for this motor: stops at once (a hard jolt), then holds.",
+            description=(
+                "Estop for this motor: stops at once (a hard jolt); the controller stays "
+                "on and holds the position. Stop (decelerate) is the gentle stop of the "
+                "constant-velocity job."
+            ),
         ),
         CommandDescriptor(
             name="decelerate",
@@ -325,6 +330,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                     minimum=codec.INT32_MIN,
                     maximum=codec.INT32_MAX,
                     default=4096,
+                    required=True,
                 )
             ],
         ),
@@ -400,5 +406,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                 "'SetKABH 40 10 20', 'GetStop'. The reply is decoded with its error bits."
             ),
             examples=["GetEncoder", "GetError", "GetKABH", "GetStart", "GetStop", "GetVmax"],
+        ),
+        stop=StopEffect(
+            summary="Z1100: Estop - stops at once (hard jolt), then holds under power",
+            motor_powered=True,
+            sends="Estop for this motor (ahead of anything queued)",
+            gentler=["decelerate"],
         ),
     )

@@ -324,7 +324,7 @@ export class Controls {
         widget = rc.el;
       } else if (cmd.name === "move_relative" && only && !only.choices.length) {
         widget = jogWidget(this.runner, cmd, only);
-      } else if (cmd.group === "stop") {
+      } else if (cmd.name === "stop") {
         widget = commandWidget(this.runner, cmd, "danger");
       } else {
         widget = commandWidget(this.runner, cmd, cmd.group === "mode" ? "mode" : "");
@@ -336,6 +336,16 @@ export class Controls {
     }
     // Short groups first so the wide motion group wraps as a whole.
     const order: CommandDescriptor["group"][] = ["stop", "mode", "calibration", "other", "motion"];
+    // What this device's STOP does (a SLAP2 axis goes unpowered and may drop), and the
+    // gentler stops it offers, at the stop group.
+    const gentler = descriptor.stop.gentler.map((n) => byName.get(n)?.label ?? n);
+    groups.get("stop")?.push(
+      h(
+        "div",
+        { class: "stop-effect", testid: "stop-effect" },
+        descriptor.stop.summary + (gentler.length ? `. Gentler: ${gentler.join(", ")}.` : "."),
+      ),
+    );
     const boxes = order
       .filter((g) => groups.has(g))
       .map((g) =>

@@ -67,7 +67,7 @@ export function showError(context: string, error: unknown): string {
   return text;
 }
 
-/** Ask before a command that needs it; resolves true on OK. Esc cancels (and STOPs). */
+/** Ask before a command that needs it; resolves true on OK. Esc cancels (the dialog only: main.ts does not STOP while a dialog is open). */
 export function confirmDialog(title: string, text: string, okLabel: string): Promise<boolean> {
   return new Promise((resolve) => {
     const previous = document.activeElement as HTMLElement | null;

@@ -38,6 +38,7 @@ export class TopBar {
   private readonly unread: HTMLElement;
   private readonly autopilot: HTMLElement;
   private readonly stopNote: HTMLElement;
+  private readonly stopEffect: HTMLElement;
   private readonly version: HTMLElement;
 
   constructor(handlers: { stop(): void; toggleEvents(): void; retry(): void; toggleTheme(): void }) {
@@ -64,6 +65,7 @@ export class TopBar {
     );
     this.autopilot = h("span", { class: "chip-autopilot", testid: "autopilot", hidden: true, title: "The demo moves each simulated axis until you operate it" }, "DEMO · autopilot");
     this.stopNote = h("span", { class: "stop-note", testid: "stop-note", "aria-live": "assertive" });
+    this.stopEffect = h("span", { class: "stop-effect", testid: "stop-effect-all" });
     this.version = h("span", { class: "version" });
     this.el = h(
       "header",
@@ -82,6 +84,7 @@ export class TopBar {
       this.eventsButton,
       h("button", { class: "btn ghost icon-btn", testid: "theme-toggle", title: "Light / dark", onclick: () => handlers.toggleTheme() }, "◐"),
       this.stopNote,
+      this.stopEffect,
       this.stopButton,
     );
     store.on("clientStats", () => {
@@ -100,6 +103,12 @@ export class TopBar {
     this.ws.dataset.state = state.kind;
     this.ws.title =
       state.kind === "waiting" ? `Connection lost (${state.reason}); click to retry now` : "Websocket to the servotune server";
+  }
+
+  /** The descriptors' stop effects of the devices present, next to the button. */
+  setStopEffects(summaries: string[]): void {
+    setText(this.stopEffect, summaries.join(" · "));
+    this.stopButton.title = ["Stop every axis now (Esc, from anywhere but a dialog).", ...summaries].join("\n");
   }
 
   setUnread(n: number, severe: boolean): void {

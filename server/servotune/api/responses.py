@@ -1,0 +1,36 @@
+"""The documented error answers of the REST routes (``responses=`` of every route).
+
+Every 4xx/5xx body is an ``ErrorBody``; which codes a route can answer follows from
+what it does: any route with a body or path parameters can answer 422; a route that
+talks to a device can answer 409 (refused), 502 (protocol error), 503 (link down,
+nothing sent) and 504 (no answer).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from servotune.wire import ErrorBody
+
+DESCRIPTIONS: dict[int, str] = {
+    404: "no such axis, link, run or parameter set (detail names it)",
+    409: "refused: by the device, or the axis/run is busy (reason in detail)",
+    413: "request body too large",
+    422: "bad input: detail names the field and the allowed range; nothing was sent",
+    423: "locked: another operation holds this resource",
+    502: "the device answered something its protocol does not allow",
+    503: "link down or storage unavailable: nothing was sent",
+    504: "the device did not answer in time",
+}
+
+# The device path: every route that sends something to a device or reads from one.
+DEVICE_CODES = (404, 409, 422, 502, 503, 504)
+
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` for these status codes, each with the ``ErrorBody`` model."""
+    return {code: {"model": ErrorBody, "description": DESCRIPTIONS[code]} for code in codes}
+
+
+DEVICE_ERRORS = errors(*DEVICE_CODES)
+NOT_FOUND = errors(404, 422)
