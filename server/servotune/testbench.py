@@ -16,18 +16,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
-import io
 import logging
 import math
 import time
 import uuid
-from collections.abc import Mapping
+from collections.abc import AsyncIterator, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import IO, Any
 
 from pydantic import BaseModel, Field
 
+from servotune import runio
 from servotune.drivers.base import (
     BenchKind,
     BenchPlan,
@@ -167,6 +166,10 @@ class TestBench:
         return limits
 
     # --- runs -------------------------------------------------------------------------
+
+    def check_axis(self, axis_id: str) -> None:
+        """UnknownAxisError (404) for an axis that does not exist."""
+        self._hub.entry(axis_id)
 
     def kinds(self, axis_id: str) -> list[str]:
         driver = self._hub.entry(axis_id).driver
@@ -444,16 +447,59 @@ class TestBench:
         )
 
     # --- stored runs ------------------------------------------------------------------
+    # Reading, exporting and importing go through worker threads in small pieces
+    # (servotune.runio): a run of tens of megabytes must never hold the event loop.
 
     async def list_runs(self, axis_id: str) -> list[dict[str, Any]]:
         entry = self._hub.entry(axis_id)
         return await asyncio.to_thread(self._storage.list_runs, entry.storage_key)
 
     async def get_run(self, run_id: str) -> dict[str, Any]:
+        """One run with all its samples as Python objects (for small runs: tests, tools)."""
         run = await asyncio.to_thread(self._storage.get_run, run_id)
         if run is None:
             raise KeyError(run_id)
         return run
+
+    async def get_run_meta(self, run_id: str) -> dict[str, Any]:
+        """One run without its samples (status, metrics, quality): cheap to poll."""
+        run = await asyncio.to_thread(self._storage.get_run_meta, run_id)
+        if run is None:
+            raise KeyError(run_id)
+        return run
+
+    async def iter_run_json(self, run_id: str) -> AsyncIterator[bytes]:
+        """The run with its samples as JSON text, chunk by chunk (KeyError if missing).
+
+        The stored chunks are valid JSON arrays already and are passed on verbatim:
+        no parse of the samples, no big response object."""
+        run = await self.get_run_meta(run_id)
+        seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
+
+        async def body() -> AsyncIterator[bytes]:
+            yield (await asyncio.to_thread(runio.run_json_head, run)).encode()
+            first = True
+            for seq in seqs:
+                rows = await asyncio.to_thread(runio.chunk_rows_text, self._storage, run_id, seq)
+                if rows:
+                    yield (rows if first else "," + rows).encode()
+                    first = False
+            yield b"]}"
+
+        return body()
+
+    async def iter_run_csv(self, run_id: str) -> AsyncIterator[bytes]:
+        """The samples as CSV, chunk by chunk (KeyError if missing)."""
+        run = await self.get_run_meta(run_id)
+        seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
+
+        async def body() -> AsyncIterator[bytes]:
+            yield runio.csv_header(run).encode()
+            for seq in seqs:
+                text = await asyncio.to_thread(runio.chunk_csv, self._storage, run_id, seq)
+                yield text.encode()
+
+        return body()
 
     async def delete_run(self, run_id: str) -> None:
         if not await asyncio.to_thread(self._storage.delete_run, run_id):
@@ -463,55 +509,27 @@ class TestBench:
         if not await asyncio.to_thread(self._storage.set_baseline, run_id):
             raise KeyError(run_id)
 
-    @staticmethod
-    def to_csv(run: Mapping[str, Any]) -> str:
-        """Samples as CSV: the run's columns, then one 0/1 column per flag."""
-        out = io.StringIO()
-        writer = csv.writer(out, lineterminator="\n")
-        writer.writerow([*run["columns"], *run["flags"]])
-        for row in run["samples"]:
-            values = ["" if v is None else repr(v) for v in row[:-1]]
-            writer.writerow([*values, *row[-1]])
-        return out.getvalue()
-
-    @staticmethod
-    def to_json(run: Mapping[str, Any]) -> dict[str, Any]:
-        """Everything but the samples (those go to CSV)."""
-        return {k: v for k, v in run.items() if k != "samples"}
-
-    async def import_run(self, axis_id: str, meta: Mapping[str, Any], csv_text: str) -> str:
-        """Store a run exported elsewhere (JSON + CSV) under ``axis_id``; new id."""
+    async def import_json(self, axis_id: str, body: bytes) -> str:
+        """Import ``{"meta": <run.json>, "csv": <samples.csv>}``; returns the new run id."""
         entry = self._hub.entry(axis_id)
-        try:
-            columns = list(meta["columns"])
-            flags = list(meta["flags"])
-        except (KeyError, TypeError):
-            raise InvalidArgumentError("meta", "meta must be the run's JSON export") from None
-        reader = csv.reader(io.StringIO(csv_text))
-        header = next(reader, None)
-        if header != [*columns, *flags]:
-            raise InvalidArgumentError("csv", "the CSV header does not match the JSON's columns")
-        samples: list[list[Any]] = []
-        for line_no, row in enumerate(reader, start=2):
-            try:
-                values: list[Any] = [float(v) if v != "" else None for v in row[: len(columns)]]
-                values.append([int(v) for v in row[len(columns) :]])
-            except ValueError:
-                raise InvalidArgumentError("csv", f"line {line_no}: not a number") from None
-            samples.append(values)
-        run_id = uuid.uuid4().hex[:12]
-        stored = {
-            k: v
-            for k, v in meta.items()
-            if k not in ("id", "axis_id", "status", "baseline", "created_s")
-        }
-        stored["imported_from"] = meta.get("id")
-        created_s = float(meta.get("created_s") or time.time())
-        await asyncio.to_thread(
-            self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, stored
+        return await asyncio.to_thread(
+            runio.import_json_body,
+            self._storage,
+            entry.storage_key,
+            axis_id,
+            entry.info.device,
+            body,
         )
-        await asyncio.to_thread(self._storage.append_samples, run_id, 0, samples)
-        await asyncio.to_thread(
-            self._storage.finish_run, run_id, str(meta.get("status", "complete")), stored
+
+    async def import_files(self, axis_id: str, meta: bytes, csv_file: IO[bytes]) -> str:
+        """Import the JSON export and the CSV file of a run; returns the new run id."""
+        entry = self._hub.entry(axis_id)
+        return await asyncio.to_thread(
+            runio.import_files,
+            self._storage,
+            entry.storage_key,
+            axis_id,
+            entry.info.device,
+            meta,
+            csv_file,
         )
-        return run_id

@@ -30,7 +30,7 @@ from servotune.drivers.base import (
 )
 from servotune.hub import Hub, NotFoundError, UnknownAxisError
 from servotune.links import build_link
-from servotune.storage import Storage, default_data_dir
+from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench
 
 logger = logging.getLogger(__name__)
@@ -122,6 +122,11 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(ProtocolError)
     async def protocol(_: Request, exc: ProtocolError) -> JSONResponse:
         return _error(502, f"device protocol error: {exc}")
+
+    @app.exception_handler(StorageError)
+    async def not_stored(_: Request, exc: StorageError) -> JSONResponse:
+        # 507 Insufficient Storage: the request was understood, nothing was saved.
+        return _error(507, str(exc))
 
     @app.exception_handler(NotFoundError)
     async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:

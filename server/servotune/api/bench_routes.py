@@ -2,16 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
+from starlette.datastructures import UploadFile
 
 from servotune.api.routes import ERRORS
+from servotune.drivers.base import InvalidArgumentError
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
+from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
+from servotune.storage import Storage, dumps_strict
 from servotune.testbench import BenchLimits, BenchTestRequest, TestBench
+from servotune.wire import ErrorBody, StorageStatus
+
+STORE_ERRORS: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    507: {"model": ErrorBody, "description": "the database cannot be written: nothing saved"},
+}
 
 router = APIRouter(tags=["bench"])
 
@@ -30,9 +41,51 @@ class BenchInfo(BaseModel):
     definitions: dict[str, str] = Field(description="how each metric is computed")
 
 
-class ImportRequest(BaseModel):
-    meta: dict[str, Any]
-    csv: str
+class _BodyTooLargeError(Exception):
+    pass
+
+
+def _too_large(limit: int) -> JSONResponse:
+    return JSONResponse(
+        status_code=413,
+        content={
+            "detail": f"the import is larger than {limit // (1024 * 1024)} MiB"
+            + (
+                f"; send it as multipart (meta + csv files, up to "
+                f"{MAX_IMPORT_BYTES // (1024 * 1024)} MiB)"
+                if limit < MAX_IMPORT_BYTES
+                else ""
+            ),
+            "field": "body",
+        },
+    )
+
+
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+
+
+def _limited(receive: Receive, limit: int) -> Receive:
+    """``receive`` that raises _BodyTooLargeError once more than ``limit`` bytes came in."""
+    total = 0
+
+    async def limited_receive() -> MutableMapping[str, Any]:
+        nonlocal total
+        message = await receive()
+        total += len(message.get("body", b""))
+        if total > limit:
+            raise _BodyTooLargeError
+        return message
+
+    return limited_receive
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    chunks = bytearray()
+    async for chunk in request.stream():
+        chunks += chunk
+        if len(chunks) > limit:
+            raise _BodyTooLargeError
+    return bytes(chunks)
 
 
 def _missing(run_id: str) -> NotFoundError:
@@ -49,13 +102,13 @@ async def bench_info(axis_id: str, bench: BenchDep) -> BenchInfo:
     )
 
 
-@router.put("/api/axes/{axis_id}/bench/limits", response_model=BenchLimits, responses=ERRORS)
+@router.put("/api/axes/{axis_id}/bench/limits", response_model=BenchLimits, responses=STORE_ERRORS)
 async def set_limits(axis_id: str, limits: BenchLimits, bench: BenchDep) -> BenchLimits:
     """Limits every test on this axis is checked against before anything moves."""
     return await bench.set_limits(axis_id, limits)
 
 
-@router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=ERRORS)
+@router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=STORE_ERRORS)
 async def start_run(axis_id: str, test: BenchTestRequest, bench: BenchDep) -> dict[str, Any]:
     """Start a test. 202 with the run (status 'recording'); progress comes over the
     websocket as ``run`` messages; the finished run (metrics) via GET."""
@@ -68,23 +121,118 @@ async def list_runs(axis_id: str, bench: BenchDep) -> list[dict[str, Any]]:
     return await bench.list_runs(axis_id)
 
 
-@router.post("/api/axes/{axis_id}/bench/runs/import", status_code=201, responses=ERRORS)
-async def import_run(axis_id: str, body: ImportRequest, bench: BenchDep) -> dict[str, str]:
-    """Import a run exported as JSON (``meta``) + CSV (``csv``)."""
-    return {"id": await bench.import_run(axis_id, body.meta, body.csv)}
+_IMPORT_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": (
+            f"Either JSON ``{{meta, csv}}`` (at most {MAX_IMPORT_JSON_BYTES // 2**20} MiB) or "
+            f"multipart/form-data with the parts ``meta`` (run.json, at most "
+            f"{MAX_META_BYTES // 2**20} MiB) and ``csv`` (samples.csv), at most "
+            f"{MAX_IMPORT_BYTES // 2**20} MiB in all. Larger: 413."
+        ),
+        "content": {
+            "application/json": {
+                "schema": {
+                    "type": "object",
+                    "required": ["meta", "csv"],
+                    "properties": {
+                        "meta": {"type": "object", "description": "the run.json export"},
+                        "csv": {"type": "string", "description": "the samples.csv export"},
+                    },
+                }
+            },
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["meta", "csv"],
+                    "properties": {
+                        "meta": {"type": "string", "format": "binary"},
+                        "csv": {"type": "string", "format": "binary"},
+                    },
+                }
+            },
+        },
+    }
+}
 
 
-@router.get("/api/bench/runs/{run_id}", responses=ERRORS)
-async def get_run(run_id: str, bench: BenchDep) -> dict[str, Any]:
-    """One run with its samples: ``columns`` name the values of each sample row, the
-    last element of a row is the list of flag values in ``flags`` order."""
+@router.post(
+    "/api/axes/{axis_id}/bench/runs/import",
+    status_code=201,
+    responses={
+        **STORE_ERRORS,
+        413: {"model": ErrorBody, "description": "body too large (limit in detail)"},
+        415: {"model": ErrorBody, "description": "neither JSON nor multipart"},
+    },
+    openapi_extra=_IMPORT_BODY,
+)
+async def import_run(axis_id: str, request: Request, bench: BenchDep) -> dict[str, str]:
+    """Import a run exported as JSON (``meta``) + CSV (``csv``), checked completely
+    (422 naming the field: strict, finite numbers, a finished run of this axis' device,
+    the CSV matching the JSON). Parsed and stored off the event loop, chunk by chunk."""
+    bench.check_axis(axis_id)
+    content_type = request.headers.get("content-type", "")
+    multipart = content_type.startswith("multipart/form-data")
+    limit = MAX_IMPORT_BYTES if multipart else MAX_IMPORT_JSON_BYTES
     try:
-        return await bench.get_run(run_id)
+        declared = int(request.headers.get("content-length", "0"))
+    except ValueError:
+        declared = 0
+    if declared > limit:
+        return _too_large(limit)  # type: ignore[return-value]
+    try:
+        if multipart:
+            limited = Request(request.scope, _limited(request.receive, limit))
+            async with limited.form(
+                max_files=2, max_fields=2, max_part_size=MAX_META_BYTES
+            ) as form:
+                meta, samples = form.get("meta"), form.get("csv")
+                if not isinstance(samples, UploadFile):
+                    raise InvalidArgumentError("csv", "csv: the samples.csv file is missing")
+                if isinstance(meta, UploadFile):
+                    meta_bytes = await meta.read(MAX_META_BYTES + 1)
+                elif isinstance(meta, str):
+                    meta_bytes = meta.encode()
+                else:
+                    raise InvalidArgumentError("meta", "meta: the run.json part is missing")
+                run_id = await bench.import_files(axis_id, meta_bytes, samples.file)
+        elif content_type.startswith("application/json"):
+            run_id = await bench.import_json(axis_id, await _read_body(request, limit))
+        else:
+            return JSONResponse(  # type: ignore[return-value]
+                status_code=415,
+                content={"detail": "send application/json or multipart/form-data", "field": None},
+            )
+    except _BodyTooLargeError:
+        return _too_large(limit)  # type: ignore[return-value]
+    return {"id": run_id}
+
+
+@router.get("/api/storage", response_model=StorageStatus, tags=["bench"])
+async def storage_status(request: Request) -> StorageStatus:
+    """Whether settings, sets and runs are being saved (``writable``), and why not."""
+    storage: Storage = request.app.state.storage
+    return StorageStatus(writable=storage.problem is None, message=storage.problem or "")
+
+
+@router.get(
+    "/api/bench/runs/{run_id}",
+    responses={**ERRORS, 200: {"content": {"application/json": {"schema": {"type": "object"}}}}},
+    response_class=StreamingResponse,
+)
+async def get_run(run_id: str, bench: BenchDep) -> StreamingResponse:
+    """One run with its samples: ``columns`` name the values of each sample row, the
+    last element of a row is the list of flag values in ``flags`` order. Streamed."""
+    try:
+        body = await bench.iter_run_json(run_id)
     except KeyError:
         raise _missing(run_id) from None
+    return StreamingResponse(body, media_type="application/json")
 
 
-@router.delete("/api/bench/runs/{run_id}", status_code=204, response_model=None)
+@router.delete(
+    "/api/bench/runs/{run_id}", status_code=204, response_model=None, responses=STORE_ERRORS
+)
 async def delete_run(run_id: str, bench: BenchDep) -> None:
     try:
         await bench.delete_run(run_id)
@@ -92,7 +240,12 @@ async def delete_run(run_id: str, bench: BenchDep) -> None:
         raise _missing(run_id) from None
 
 
-@router.post("/api/bench/runs/{run_id}/baseline", status_code=204, response_model=None)
+@router.post(
+    "/api/bench/runs/{run_id}/baseline",
+    status_code=204,
+    response_model=None,
+    responses=STORE_ERRORS,
+)
 async def set_baseline(run_id: str, bench: BenchDep) -> None:
     """Mark this run as the baseline of its axis."""
     try:
@@ -101,26 +254,33 @@ async def set_baseline(run_id: str, bench: BenchDep) -> None:
         raise _missing(run_id) from None
 
 
-@router.get("/api/bench/runs/{run_id}/samples.csv", response_class=PlainTextResponse)
-async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
+@router.get(
+    "/api/bench/runs/{run_id}/samples.csv",
+    response_class=StreamingResponse,
+    responses={**ERRORS, 200: {"content": {"text/csv": {}}}},
+)
+async def export_csv(run_id: str, bench: BenchDep) -> StreamingResponse:
+    """The samples as CSV (the run's columns, then one 0/1 column per flag), streamed."""
     try:
-        run = await bench.get_run(run_id)
+        body = await bench.iter_run_csv(run_id)
     except KeyError:
         raise _missing(run_id) from None
-    return PlainTextResponse(
-        TestBench.to_csv(run),
+    return StreamingResponse(
+        body,
         media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="run-{run_id}.csv"'},
     )
 
 
-@router.get("/api/bench/runs/{run_id}/run.json", response_model=None)
-async def export_json(run_id: str, bench: BenchDep) -> JSONResponse:
+@router.get("/api/bench/runs/{run_id}/run.json", response_model=None, responses=ERRORS)
+async def export_json(run_id: str, bench: BenchDep) -> Response:
+    """Everything but the samples (those go to CSV); what the import takes as ``meta``."""
     try:
-        run = await bench.get_run(run_id)
+        run = await bench.get_run_meta(run_id)
     except KeyError:
         raise _missing(run_id) from None
-    return JSONResponse(
-        TestBench.to_json(run),
+    return Response(
+        dumps_strict(run),
+        media_type="application/json",
         headers={"Content-Disposition": f'attachment; filename="run-{run_id}.json"'},
     )
