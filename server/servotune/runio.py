@@ -105,6 +105,13 @@ class ImportQuality(_Strict):
     untrusted: dict[str, str] = Field(default_factory=dict)
 
 
+class ImportReturn(_Strict):
+    ok: StrictBool
+    to: FiniteFloat
+    error: FiniteFloat | None
+    message: str = Field(max_length=500)
+
+
 class RunExport(_Strict):
     """The JSON export of a run (``GET /api/bench/runs/{id}/run.json``), as imported."""
 
@@ -130,6 +137,7 @@ class RunExport(_Strict):
     t0_s: FiniteFloat | None = None
     imported_from: str | None = None
     autotune: dict[str, Any] | None = None
+    return_: ImportReturn | None = Field(default=None, alias="return")
 
 
 def _field_error(exc: ValidationError, prefix: str) -> InvalidArgumentError:
@@ -262,10 +270,13 @@ def store_import(
 
     On any refusal nothing stays stored (a partly written run is deleted)."""
     meta = validate_meta(raw_meta, device)
-    stored = meta.model_dump(exclude={"id", "axis_id", "status", "baseline", "created_s"})
+    stored = meta.model_dump(
+        by_alias=True, exclude={"id", "axis_id", "status", "baseline", "created_s"}
+    )
     stored["imported_from"] = meta.id or meta.imported_from
-    if meta.quality is None:
-        stored.pop("quality")
+    for optional in ("quality", "return", "autotune"):
+        if stored.get(optional) is None:
+            stored.pop(optional, None)
     run_id = uuid.uuid4().hex[:12]
     storage.create_run(run_id, axis_key, axis_id, meta.created_s or time.time(), stored)
     try:

@@ -24,7 +24,7 @@ from collections.abc import AsyncIterator, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import IO, Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
 from servotune import runio
 from servotune.drivers.base import (
@@ -40,6 +40,7 @@ from servotune.drivers.base import (
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
+from servotune.runquality import POSITION_KINDS, assess
 from servotune.storage import Storage
 from servotune.wire import RunUpdate
 
@@ -48,6 +49,7 @@ logger = logging.getLogger(__name__)
 PRE_TRIGGER_S = 0.2
 FLUSH_PERIOD_S = 0.5
 SETTLED_HOLD_S = 0.3
+RETURN_TIMEOUT_S = 5.0  # after the return move's profile time
 
 
 class BenchLimits(BaseModel):
@@ -57,6 +59,29 @@ class BenchLimits(BaseModel):
     max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
     max_pwm: int = Field(default=80, ge=1, le=255)
     max_duration_s: float = Field(default=10.0, gt=0, le=60)
+    min_position_counts: int | None = Field(
+        default=None,
+        ge=-(1 << 31),
+        le=(1 << 31) - 1,
+        description="travel window: no test starts outside it, targets a position outside "
+        "it or travels out of it (counts, with max_position_counts; null: no window)",
+    )
+    max_position_counts: int | None = Field(default=None, ge=-(1 << 31), le=(1 << 31) - 1)
+
+    @model_validator(mode="after")
+    def _window(self) -> BenchLimits:
+        low, high = self.min_position_counts, self.max_position_counts
+        if low is not None and high is not None and low >= high:
+            raise ValueError(f"min_position_counts {low} must be below max_position_counts {high}")
+        return self
+
+    def outside(self, position: float) -> str | None:
+        """Why ``position`` is outside the travel window, or None."""
+        if self.min_position_counts is not None and position < self.min_position_counts:
+            return f"{position:.0f} is below your min_position_counts {self.min_position_counts}"
+        if self.max_position_counts is not None and position > self.max_position_counts:
+            return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
+        return None
 
 
 class BenchTestRequest(BaseModel):
@@ -83,6 +108,8 @@ class _Recording:
     samples: list[list[Any]] = field(default_factory=list)
     flushed: int = 0
     chunk_seq: int = 0
+    returned: dict[str, Any] | None = None  # how the return to the start went
+    ended: bool = False  # the record is over (the return move is not recorded)
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -216,6 +243,7 @@ class TestBench:
             duration_s=request.duration_s,
         )
         plan = driver.bench_plan(test, entry.latest, entry.device_values)
+        self._check_window(test, plan, entry.latest, limits)
         # The plan is checked like user input before anything moves (422 naming the
         # field): a test must not put a value on the wire the descriptor forbids.
         if plan.overrides:
@@ -246,6 +274,21 @@ class TestBench:
             **meta,
         }
 
+    @staticmethod
+    def _check_window(
+        test: BenchTest, plan: BenchPlan, latest: Sample, limits: BenchLimits
+    ) -> None:
+        """Refuse a test that starts or ends outside the user's travel window (422)."""
+        position = latest.channels.get("position")
+        if position is not None and (why := limits.outside(position)):
+            raise InvalidArgumentError(
+                "distance", f"the axis stands outside your travel window: {why}"
+            )
+        if test.kind in POSITION_KINDS and (why := limits.outside(plan.y_final)):
+            raise InvalidArgumentError(
+                "distance", f"distance {test.distance} would end at {why} (bench limits)"
+            )
+
     def _check_limits(self, request: BenchTestRequest, limits: BenchLimits) -> None:
         if abs(request.distance) > limits.max_distance_counts:
             raise InvalidArgumentError(
@@ -270,7 +313,7 @@ class TestBench:
 
     def _on_sample(self, axis_id: str, sample: Sample) -> None:
         recording = self._active.get(axis_id)
-        if recording is None:
+        if recording is None or recording.ended:
             return
         row: list[Any] = [round(sample.t, 6)]
         row += [_value(sample.channels.get(name)) for name in recording.columns[1:]]
@@ -311,8 +354,17 @@ class TestBench:
             recording.t0 = self._clock()
             await self._send(recording, plan.trigger)
             self._update(recording, "recording", "triggered")
-            await self._record(recording, test, await self.limits(entry.info.id))
+            limits = await self.limits(entry.info.id)
+            await self._record(recording, test, limits)
             await self._send(recording, plan.finish)
+            recording.ended = True
+            if test.kind in POSITION_KINDS:
+                # The profile of the test stays in force only for the test: the way
+                # back is an ordinary move with the axis' own profile.
+                if saved:
+                    await self._restore(entry, saved)
+                    saved = {}
+                recording.returned = await self._return_to_start(recording, limits)
         except DriverError as exc:
             status, message = "incomplete", f"test stopped: {exc}"
             try:
@@ -346,9 +398,15 @@ class TestBench:
                 await self._flush(recording)
             finally:
                 self._active.pop(entry.info.id, None)
+                if recording.returned is not None:
+                    meta["return"] = recording.returned
+                    if not recording.returned["ok"]:
+                        message = "; ".join(
+                            m for m in (message, recording.returned["message"]) if m
+                        )
                 meta["message"] = message
                 meta["t0_s"] = recording.t0
-                meta["metrics"] = self._metrics(recording)
+                meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")
 
@@ -387,6 +445,8 @@ class TestBench:
                 return
             latest = recording.entry.latest
             position = latest.channels.get("position") if latest is not None else None
+            if position is not None and (why := limits.outside(position)):
+                raise DriverError(f"left your travel window: {why}: axis stopped")
             if origin is not None and position is not None:
                 # Velocity and PWM tests have no end position of their own: the travel
                 # limit stops them. Moves are checked before they start.
@@ -405,33 +465,136 @@ class TestBench:
                 else:
                     settled_since = None
 
-    def _metrics(self, recording: _Recording) -> dict[str, Any] | None:
-        if recording.t0 is None or not recording.samples:
-            return None
+    def _metrics(
+        self, recording: _Recording, test: BenchTest, status: str, message: str
+    ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+        """The run's metrics (untrusted ones null) and its quality (``runquality``)."""
         plan = recording.plan
-        index = recording.columns.index(plan.response)
-        rows = [r for r in recording.samples if r[index] is not None]
-        if len(rows) < 3:
-            return None
-        error_index = (
-            recording.columns.index("following_error")
-            if "following_error" in recording.columns
-            else None
-        )
-        flag_series = {
-            name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
-        }
-        metrics = compute_metrics(
-            [r[0] for r in rows],
-            [r[index] for r in rows],
+        raw: dict[str, Any] | None = None
+        if recording.t0 is not None and recording.samples:
+            index = recording.columns.index(plan.response)
+            rows = [r for r in recording.samples if r[index] is not None]
+            if len(rows) >= 3:
+                error_index = (
+                    recording.columns.index("following_error")
+                    if "following_error" in recording.columns
+                    else None
+                )
+                flag_series = {
+                    name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
+                }
+                raw = asdict(
+                    compute_metrics(
+                        [r[0] for r in rows],
+                        [r[index] for r in rows],
+                        t0_s=recording.t0,
+                        y0=plan.y0,
+                        y_final=plan.y_final,
+                        band=plan.band,
+                        following_error=(
+                            [r[error_index] for r in rows] if error_index is not None else None
+                        ),
+                        flags=flag_series,
+                    )
+                )
+        return assess(
+            kind=test.kind,
+            columns=recording.columns,
+            flag_names=recording.flags,
+            rows=recording.samples,
             t0_s=recording.t0,
+            response=plan.response,
             y0=plan.y0,
             y_final=plan.y_final,
             band=plan.band,
-            following_error=[r[error_index] for r in rows] if error_index is not None else None,
-            flags=flag_series,
+            fault_flags=plan.fault_flags,
+            done_flag=plan.done_flag,
+            metrics=raw,
+            status=status,
+            message=message,
         )
-        return asdict(metrics)
+
+    async def _wait_settled(self, recording: _Recording, timeout_s: float) -> bool:
+        """Wait until the axis stands (done flag set, moving flag clear); False on timeout."""
+        plan, entry = recording.plan, recording.entry
+        deadline = self._clock() + timeout_s
+        since: float | None = None
+        while self._clock() < deadline:
+            latest = entry.latest
+            done = latest is not None and (
+                (plan.done_flag is None or bool(latest.flags.get(plan.done_flag)))
+                and not (plan.moving_flag and latest.flags.get(plan.moving_flag))
+            )
+            if done:
+                since = since or self._clock()
+                if self._clock() - since >= SETTLED_HOLD_S:
+                    return True
+            else:
+                since = None
+            generation = recording.stop_generation
+            if generation is not None and entry.stop_generation != generation:
+                raise DriverError("STOP was pressed during the test")
+            await asyncio.sleep(0.05)
+        return False
+
+    async def _return_to_start(self, recording: _Recording, limits: BenchLimits) -> dict[str, Any]:
+        """Move back to where the test started (a relative test must not walk the axis
+        towards an end switch run by run), with the axis' own profile. Returns what
+        happened: ``{"ok", "to", "error", "message"}``."""
+        entry, plan = recording.entry, recording.plan
+        driver = entry.driver
+        assert isinstance(driver, BenchPlanner)
+        if not await self._wait_settled(recording, RETURN_TIMEOUT_S):
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": "did not return to "
+                "the start: the axis did not come to rest after the test",
+            }
+        latest = entry.latest
+        assert latest is not None
+        reference = latest.channels.get("setpoint")
+        if reference is None:
+            reference = latest.channels.get("position") or 0.0
+        back = round(plan.y0 - reference)
+        if back == 0:
+            return {"ok": True, "to": plan.y0, "error": 0.0, "message": ""}
+        if abs(back) > limits.max_distance_counts * 1.05 + 100:
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": f"did not return to "
+                f"the start: {abs(back)} counts back exceed your max_distance_counts",
+            }
+        test = BenchTest(kind="move", distance=back, velocity=0, pwm=0, duration_s=0.0)
+        way_back = driver.bench_plan(test, latest, entry.device_values)
+        if why := limits.outside(way_back.y_final):
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": f"did not return to the start: {why}",
+            }
+        for name, args in (*way_back.setup, *way_back.trigger):
+            validate_command(entry.driver.descriptor, name, args)
+        self._update(recording, "recording", "returning to the start")
+        await self._send(recording, way_back.setup)
+        await self._send(recording, way_back.trigger)
+        await asyncio.sleep(0.2)  # the move's flags show in the next samples
+        settled = await self._wait_settled(recording, RETURN_TIMEOUT_S + 5.0)
+        position = (entry.latest.channels.get("position") if entry.latest else None) or 0.0
+        error = position - plan.y0
+        tolerance = max(plan.band or 0.0, 1.0) * 2
+        if not settled or abs(error) > tolerance:
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": round(error, 3),
+                "message": f"did not return to the start: {error:+.0f} counts from it",
+            }
+        return {"ok": True, "to": plan.y0, "error": round(error, 3), "message": ""}
 
     def _update(self, recording: _Recording, status: str, message: str) -> None:
         elapsed = self._clock() - recording.t0 if recording.t0 is not None else 0.0
