@@ -24,6 +24,7 @@ from servotune.config import LinkSpec
 from servotune.drivers.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
+    DriverError,
     InvalidArgumentError,
     LinkDownError,
     ProtocolError,
@@ -122,6 +123,12 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(ProtocolError)
     async def protocol(_: Request, exc: ProtocolError) -> JSONResponse:
         return _error(502, f"device protocol error: {exc}")
+
+    @app.exception_handler(DriverError)
+    async def driver_error(_: Request, exc: DriverError) -> JSONResponse:
+        # Any other device error (the subclasses above have their own codes): JSON,
+        # never a plain-text 500.
+        return _error(502, f"device error: {exc}")
 
     @app.exception_handler(StorageError)
     async def not_stored(_: Request, exc: StorageError) -> JSONResponse:
