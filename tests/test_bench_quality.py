@@ -7,6 +7,7 @@ simulator tests provoke each bad case on a simulated SLAP2 line."""
 from __future__ import annotations
 
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +42,6 @@ def _run(
         [t, p, [series[name][i] for name in FLAGS]]
         for i, (t, p) in enumerate(zip(times, positions, strict=True))
     ]
-    from dataclasses import asdict
-
     metrics = asdict(
         compute_metrics(
             times,
@@ -114,7 +113,7 @@ def test_a_run_that_did_not_move_is_bad() -> None:
     times = [i * 0.02 for i in range(50)]
     metrics, quality = _run(times, [0.0] * 50, flags={"inpos": [0] * 50})
     assert quality["status"] == "bad"
-    assert [r["code"] for r in quality["reasons"]][0] == "did_not_move"
+    assert quality["reasons"][0]["code"] == "did_not_move"
     assert metrics is not None and metrics["overshoot_pct"] is None
 
 
