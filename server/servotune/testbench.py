@@ -42,7 +42,7 @@ from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
 from servotune.runquality import POSITION_KINDS, assess
 from servotune.storage import Storage
-from servotune.wire import RunUpdate
+from servotune.wire import RunUpdate, StorageStatus
 
 logger = logging.getLogger(__name__)
 
@@ -160,6 +160,14 @@ class TestBench:
         hub.add_sample_listener(self._on_sample)
 
     async def start(self) -> None:
+        if self._storage.problem:
+            # Told at start-up (log, event, banner via storage_status / GET
+            # /api/storage): the server runs, but nothing it changes is saved.
+            self._hub.on_event(
+                "error", None, f"settings are not being saved: {self._storage.problem}"
+            )
+            self._hub.broadcast_model(StorageStatus(writable=False, message=self._storage.problem))
+            return
         interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
         if interrupted:
             self._hub.on_event(
