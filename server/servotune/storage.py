@@ -167,6 +167,8 @@ class Storage:
                 logger.error("cannot read %s either (%s): nothing stored is shown", path, exc)
         db = sqlite3.connect(":memory:", check_same_thread=False, isolation_level=None)
         db.executescript(SCHEMA)
+        # Writes must fail loudly, not vanish into memory.
+        db.execute("PRAGMA query_only=ON")
         return db
 
     def _write(self, sql: str, args: tuple[Any, ...] = ()) -> sqlite3.Cursor:
