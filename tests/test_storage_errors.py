@@ -28,9 +28,11 @@ from .test_api import free_port
 
 @contextlib.asynccontextmanager
 async def serve(
-    spec: LinkSpec, data_dir: Path
+    spec: LinkSpec | list[LinkSpec], data_dir: Path
 ) -> AsyncIterator[tuple[Any, httpx.AsyncClient, str]]:
-    app = create_app(AppConfig(links=[spec], data_dir=data_dir, web_dir=data_dir / "no-web"))
+    """A live server on ``spec`` (one link or several): (app, client, websocket url)."""
+    specs = spec if isinstance(spec, list) else [spec]
+    app = create_app(AppConfig(links=specs, data_dir=data_dir, web_dir=data_dir / "no-web"))
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
@@ -39,10 +41,11 @@ async def serve(
     try:
         await wait_for(lambda: server.started, 10, "the server to start")
         async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
-            for _ in range(250):
-                if (await client.get("/api/axes/line-0/state")).status_code == 200:
-                    break
-                await asyncio.sleep(0.02)
+            for axis in (await client.get("/api/axes")).json():
+                for _ in range(250):
+                    if (await client.get(f"/api/axes/{axis['id']}/state")).status_code == 200:
+                        break
+                    await asyncio.sleep(0.02)
             yield app, client, f"ws://127.0.0.1:{port}/ws"
     finally:
         server.should_exit = True
