@@ -16,13 +16,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
+import multiprocessing
 import time
 import uuid
 from collections.abc import AsyncIterator, Mapping
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
-from typing import IO, Any
+from pathlib import Path
+from typing import Any
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -41,7 +45,7 @@ from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
 from servotune.runquality import POSITION_KINDS, assess
-from servotune.storage import Storage
+from servotune.storage import Storage, StorageError
 from servotune.wire import RunUpdate, StorageStatus
 
 logger = logging.getLogger(__name__)
@@ -157,6 +161,7 @@ class TestBench:
         self._active: dict[str, _Recording] = {}
         self._claimed: set[str] = set()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._pool: ProcessPoolExecutor | None = None
         hub.add_sample_listener(self._on_sample)
 
     async def start(self) -> None:
@@ -177,6 +182,9 @@ class TestBench:
             )
 
     async def stop(self) -> None:
+        if self._pool is not None:
+            await asyncio.to_thread(self._pool.shutdown, wait=True, cancel_futures=True)
+            self._pool = None
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -680,27 +688,37 @@ class TestBench:
         if not await asyncio.to_thread(self._storage.set_baseline, run_id):
             raise KeyError(run_id)
 
-    async def import_json(self, axis_id: str, body: bytes) -> str:
-        """Import ``{"meta": <run.json>, "csv": <samples.csv>}``; returns the new run id."""
-        entry = self._hub.entry(axis_id)
-        return await asyncio.to_thread(
-            runio.import_json_body,
-            self._storage,
-            entry.storage_key,
-            axis_id,
-            entry.info.device,
-            body,
-        )
+    async def import_run(self, axis_id: str, body_path: Path, meta: bytes | None = None) -> str:
+        """Import a run in a separate process (see ``runio``); returns the new run id.
 
-    async def import_files(self, axis_id: str, meta: bytes, csv_file: IO[bytes]) -> str:
-        """Import the JSON export and the CSV file of a run; returns the new run id."""
+        ``body_path``: the JSON body ``{"meta", "csv"}``, or with ``meta`` (the
+        run.json of a multipart upload) the CSV file. 422 naming the field, 507 if the
+        database cannot be written."""
         entry = self._hub.entry(axis_id)
-        return await asyncio.to_thread(
-            runio.import_files,
-            self._storage,
-            entry.storage_key,
-            axis_id,
-            entry.info.device,
-            meta,
-            csv_file,
+        if self._storage.problem:
+            raise StorageError(f"not saved: {self._storage.problem}")
+        if self._pool is None:
+            # One import at a time, each in a fresh process (its memory goes with it).
+            self._pool = ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),
+                max_tasks_per_child=1,
+            )
+        outcome = await asyncio.get_running_loop().run_in_executor(
+            self._pool,
+            functools.partial(
+                runio.import_in_process,
+                str(self._storage.path),
+                entry.storage_key,
+                axis_id,
+                entry.info.device,
+                str(body_path),
+                meta,
+            ),
         )
+        kind, value, message = outcome
+        if kind == "invalid":
+            raise InvalidArgumentError(value, message)
+        if kind == "storage":
+            raise StorageError(message)
+        return value

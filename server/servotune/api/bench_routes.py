@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+import shutil
+import tempfile
 from collections.abc import Awaitable, Callable, MutableMapping
-from typing import Annotated, Any
+from pathlib import Path
+from typing import IO, Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
@@ -79,17 +83,26 @@ def _limited(receive: Receive, limit: int) -> Receive:
     return limited_receive
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    chunks = bytearray()
-    async for chunk in request.stream():
-        chunks += chunk
-        if len(chunks) > limit:
-            raise _BodyTooLargeError
-    return bytes(chunks)
-
-
 def _missing(run_id: str) -> NotFoundError:
     return NotFoundError("run", f"no run {run_id!r}")
+
+
+async def _body_to_file(request: Request, limit: int, path: Path) -> None:
+    """Stream the body into ``path`` (page cache writes of the ~64 KiB chunks the
+    server receives are short); _BodyTooLargeError beyond ``limit``."""
+    size = 0
+    with path.open("wb") as out:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise _BodyTooLargeError
+            out.write(chunk)
+
+
+def _copy_to(source: IO[bytes], path: Path) -> None:
+    source.seek(0)
+    with path.open("wb") as out:
+        shutil.copyfileobj(source, out, 1 << 20)
 
 
 @router.get("/api/axes/{axis_id}/bench", response_model=BenchInfo, responses=ERRORS)
@@ -180,31 +193,38 @@ async def import_run(axis_id: str, request: Request, bench: BenchDep) -> dict[st
         declared = 0
     if declared > limit:
         return _too_large(limit)  # type: ignore[return-value]
-    try:
-        if multipart:
-            limited = Request(request.scope, _limited(request.receive, limit))
-            async with limited.form(
-                max_files=2, max_fields=2, max_part_size=MAX_META_BYTES
-            ) as form:
-                meta, samples = form.get("meta"), form.get("csv")
-                if not isinstance(samples, UploadFile):
-                    raise InvalidArgumentError("csv", "csv: the samples.csv file is missing")
-                if isinstance(meta, UploadFile):
-                    meta_bytes = await meta.read(MAX_META_BYTES + 1)
-                elif isinstance(meta, str):
-                    meta_bytes = meta.encode()
-                else:
-                    raise InvalidArgumentError("meta", "meta: the run.json part is missing")
-                run_id = await bench.import_files(axis_id, meta_bytes, samples.file)
-        elif content_type.startswith("application/json"):
-            run_id = await bench.import_json(axis_id, await _read_body(request, limit))
-        else:
-            return JSONResponse(  # type: ignore[return-value]
-                status_code=415,
-                content={"detail": "send application/json or multipart/form-data", "field": None},
-            )
-    except _BodyTooLargeError:
-        return _too_large(limit)  # type: ignore[return-value]
+    with tempfile.TemporaryDirectory(prefix="servotune-import-") as scratch:
+        body_path = Path(scratch) / "body"
+        try:
+            if multipart:
+                limited = Request(request.scope, _limited(request.receive, limit))
+                async with limited.form(
+                    max_files=2, max_fields=2, max_part_size=MAX_META_BYTES
+                ) as form:
+                    meta, samples = form.get("meta"), form.get("csv")
+                    if not isinstance(samples, UploadFile):
+                        raise InvalidArgumentError("csv", "csv: the samples.csv file is missing")
+                    if isinstance(meta, UploadFile):
+                        meta_bytes = await meta.read(MAX_META_BYTES + 1)
+                    elif isinstance(meta, str):
+                        meta_bytes = meta.encode()
+                    else:
+                        raise InvalidArgumentError("meta", "meta: the run.json part is missing")
+                    await asyncio.to_thread(_copy_to, samples.file, body_path)
+                run_id = await bench.import_run(axis_id, body_path, meta_bytes)
+            elif content_type.startswith("application/json"):
+                await _body_to_file(request, limit, body_path)
+                run_id = await bench.import_run(axis_id, body_path)
+            else:
+                return JSONResponse(  # type: ignore[return-value]
+                    status_code=415,
+                    content={
+                        "detail": "send application/json or multipart/form-data",
+                        "field": None,
+                    },
+                )
+        except _BodyTooLargeError:
+            return _too_large(limit)  # type: ignore[return-value]
     return {"id": run_id}
 
 
