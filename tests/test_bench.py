@@ -115,11 +115,18 @@ async def test_link_loss_keeps_samples_marks_incomplete_and_stops(api: LiveServe
         if api.bus.module(0).rss & 0b0100:  # vm on
             break
         await asyncio.sleep(0.02)
-    await asyncio.sleep(0.5)
+    # Unplug once some samples are stored (chunks are flushed every 0.5 s): every one
+    # of them must still be there afterwards.
+    stored: list[Any] = []
+    for _ in range(200):
+        stored = (await api.client.get(f"/api/bench/runs/{run_id}")).json()["samples"]
+        if len(stored) >= 3:
+            break
+        await asyncio.sleep(0.05)
     api.simulator.unplug()
     run = await finished_run(api, "line-0", run_id)
     assert run["status"] == "incomplete"
-    assert len(run["samples"]) > 5
+    assert len(stored) >= 3 and run["samples"][: len(stored)] == stored
     api.simulator.replug()
     for _ in range(200):
         if not api.bus.module(0).rss & 0b1100:

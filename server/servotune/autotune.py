@@ -20,6 +20,7 @@ Units: positions in encoder counts, velocities in counts/s, PWM in the SLAP2's
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -33,8 +34,10 @@ from pydantic import BaseModel, Field
 from servotune.drivers.base import (
     BenchPlan,
     DeviceRefusedError,
+    DeviceTimeoutError,
     DriverError,
     InvalidArgumentError,
+    LinkDownError,
     Sample,
 )
 from servotune.hub import AxisEntry, Hub
@@ -1317,22 +1320,23 @@ class AutoTuner:
             session.proposal = session.proposal_dict = session.result = session.model = None
             session.identification_run_id = None
             self._set(session, "identifying", "identifying the plant (open-loop PWM staircase)")
+            start = self._position(entry.latest)
             try:
                 proposal = await self._identify(entry, session, request, distance, current)
             except asyncio.CancelledError:
                 await self._safe_stop(entry)
                 self._set(session, "failed", "cancelled: the axis was stopped")
                 raise
-            except InvalidArgumentError as exc:
-                await self._safe_stop(entry)
-                self._set(session, "failed", str(exc))
-                raise
             except (DriverError, ValueError) as exc:
                 await self._safe_stop(entry)
-                self._set(session, "failed", f"identification failed: {exc}; axis stopped")
-                if isinstance(exc, DriverError):
-                    raise
-                raise DeviceRefusedError(f"identification failed: {exc}") from exc
+                back = await self._return_after_failure(entry, start, request, self._move_back)
+                message = f"identification failed: {exc}; axis stopped{back}"
+                self._set(session, "failed", message)
+                if isinstance(exc, InvalidArgumentError):
+                    raise InvalidArgumentError(exc.field, message) from exc
+                if isinstance(exc, LinkDownError | DeviceTimeoutError):
+                    raise type(exc)(message) from exc
+                raise DeviceRefusedError(message) from exc
             return proposal
 
     async def _identify_z1100(self, entry: AxisEntry, request: IdentifyRequest) -> dict[str, Any]:
@@ -1342,6 +1346,7 @@ class AutoTuner:
         session.proposal = session.proposal_dict = session.result = session.model = None
         session.identification_run_id = None
         self._set(session, "identifying", "identifying the plant (closed-loop move, gains in use)")
+        start = self._position(entry.latest)
         try:
             body = await self._z1100.identify(entry, session, request, distance)
         except asyncio.CancelledError:
@@ -1350,10 +1355,16 @@ class AutoTuner:
             raise
         except (DriverError, ValueError) as exc:
             await self._safe_stop(entry)
-            self._set(session, "failed", f"identification failed: {exc}; axis stopped")
-            if isinstance(exc, DriverError):
-                raise
-            raise DeviceRefusedError(f"identification failed: {exc}") from exc
+            back = await self._return_after_failure(
+                entry, start, request, lambda e, target: self._z1100.return_to(e, round(target))
+            )
+            message = f"identification failed: {exc}; axis stopped{back}"
+            self._set(session, "failed", message)
+            if isinstance(exc, InvalidArgumentError):
+                raise InvalidArgumentError(exc.field, message) from exc
+            if isinstance(exc, LinkDownError | DeviceTimeoutError):
+                raise type(exc)(message) from exc
+            raise DeviceRefusedError(message) from exc
         g, c = body["gains"], body["current_gains"]
         self._set(
             session,
@@ -1587,6 +1598,46 @@ class AutoTuner:
                 return
         raise DriverError(f"the axis did not settle at {target} within {SETTLE_TIMEOUT_S} s")
 
+    async def _move_back(self, entry: AxisEntry, target: float) -> None:
+        """SLAP2: hold (pm) and move to ``target`` with the axis' own profile."""
+        distance = round(target - self._position(entry.latest)) or 1
+        spec = self._spec(entry, "move", distance, 0.0)
+        await self._move_and_wait(entry, round(target), spec.profile_time_s())
+
+    async def _return_after_failure(
+        self,
+        entry: AxisEntry,
+        start: float,
+        request: IdentifyRequest,
+        move_back: Callable[[AxisEntry, float], Coroutine[Any, Any, None]],
+    ) -> str:
+        """After a failed identification: move the axis back to ``start`` with the gains
+        in use (they held it there before), unless the user pressed STOP, the link is
+        down or the way back is longer than the user's limit. Returns what happened,
+        as the tail of the failure message."""
+        axis_id = entry.info.id
+        if self._generations.get(axis_id) != entry.stop_generation:
+            return " (STOP: it stays where it is)"
+        if self._hub.link_status(entry.link.id).state != "connected" or entry.latest is None:
+            return " (the link is down: it stays where it is)"
+        try:
+            away = abs(self._position(entry.latest) - start)
+        except DriverError:
+            return " (no position: it stays where it is)"
+        if away < 1:
+            return " at its start"
+        if away > request.max_distance_counts * 1.05 + 100:
+            return (
+                f" {away:.0f} counts from its start, more than your max_distance_counts: "
+                "it stays where it is"
+            )
+        try:
+            await move_back(entry, start)
+        except DriverError as exc:
+            await self._safe_stop(entry)
+            return f"; returning to its start failed ({exc}): it stays where it is"
+        return f", then returned to its start ({away:.0f} counts back)"
+
     async def _safe_stop(self, entry: AxisEntry) -> None:
         try:
             await entry.driver.stop()
@@ -1622,9 +1673,16 @@ class AutoTuner:
             )
         self._check_idle(entry)
         async with lock:
+            previous = proposal.current_gains.to_dict()
             result = await self._guarded_verify(
-                entry, session, self._verify(entry, session, proposal)
+                entry,
+                session,
+                self._verify(entry, session, proposal),
+                previous=previous,
+                restore=lambda: self._hub.write_params(axis_id, previous),
             )
+            if result.get("stopped"):
+                return result
             tuned_settle = result["measured"].get("settling_time_s")
             base_settle = (result["baseline_measured"] or {}).get("settling_time_s")
 
@@ -1644,19 +1702,61 @@ class AutoTuner:
         entry: AxisEntry,
         session: _Session,
         verification: Coroutine[Any, Any, dict[str, Any]],
+        *,
+        previous: dict[str, int],
+        restore: Callable[[], Coroutine[Any, Any, dict[str, int]]],
     ) -> dict[str, Any]:
-        """Run a device's verification; on any failure stop the axis and say so."""
+        """Run a device's verification; on any failure stop the axis, put the previous
+        gains back (the new ones were not verified) and say so.
+
+        A user's STOP is not an error of the server: the answer is a normal result
+        with ``stopped: true``, ``message`` and ``gains_in_force``. If the previous
+        gains cannot be written back, ``unverified: true`` and the message says
+        loudly that the new gains are in force unverified (``revert`` puts them
+        back). Other failures answer an error naming the same."""
+        axis_id = entry.info.id
         self._set(session, "verifying", "baseline and verification tests")
         try:
             result = await verification
         except asyncio.CancelledError:
             await self._safe_stop(entry)
+            with contextlib.suppress(DriverError):
+                await restore()
             self._set(session, "failed", "cancelled: the axis was stopped")
             raise
         except DriverError as exc:
+            stopped = self._generations.get(axis_id) != entry.stop_generation
             await self._safe_stop(entry)
-            self._set(session, "failed", f"verification failed: {exc}; axis stopped")
-            raise
+            unverified = False
+            restored_note = "the previous gains are in force again"
+            if any(entry.device_values.get(k) != v for k, v in previous.items()):
+                try:
+                    await restore()
+                except DriverError as restore_exc:
+                    unverified = True
+                    restored_note = (
+                        f"THE NEW GAINS ARE IN FORCE, UNVERIFIED: writing back the previous "
+                        f"gains failed ({restore_exc}); press Revert when the axis is back"
+                    )
+            cause = "STOP was pressed" if stopped else str(exc)
+            message = f"verification ended: {cause}; axis stopped; {restored_note}"
+            self._set(session, "failed", message)
+            body = {
+                "stopped": stopped,
+                "unverified": unverified,
+                "message": message,
+                "verdict": "stopped" if stopped else "failed",
+                "previous_gains": previous,
+                "gains_in_force": {k: entry.device_values.get(k) for k in previous},
+            }
+            session.result = body
+            if stopped:
+                return body
+            if isinstance(exc, LinkDownError):
+                raise LinkDownError(message) from exc
+            if isinstance(exc, DeviceTimeoutError):
+                raise DeviceTimeoutError(message) from exc
+            raise DeviceRefusedError(message) from exc
         session.result = result
         return result
 
@@ -1668,7 +1768,16 @@ class AutoTuner:
         self._z1100.check_unchanged(entry, session)
         self._check_idle(entry)
         async with lock:
-            result = await self._guarded_verify(entry, session, self._z1100.accept(entry, session))
+            previous = self._z1100.previous_gains(entry)
+            result = await self._guarded_verify(
+                entry,
+                session,
+                self._z1100.accept(entry, session),
+                previous=previous,
+                restore=lambda: self._z1100.revert(entry),
+            )
+            if result.get("stopped"):
+                return result
             self._set(session, "verified", f"verified: {result['verdict']}")
             return result
 
@@ -1685,7 +1794,7 @@ class AutoTuner:
         deadline = self._clock() + duration + 10.0
         while self._clock() < deadline:
             await asyncio.sleep(0.1)
-            run = await self._bench.get_run(run_id)
+            run = await self._bench.get_run_meta(run_id)  # status only: no samples
             if run["status"] != "recording":
                 if run["status"] != "complete":
                     raise DriverError(f"test {run_id} {run['status']}: {run.get('message')}")

@@ -627,6 +627,17 @@ class Z1100Tuner:
         }
         return body
 
+    def previous_gains(self, entry: AxisEntry) -> dict[str, int]:
+        """KABH/KABD in use before the proposal (what a failed accept writes back)."""
+        proposal = self._proposals.get(entry.info.id)
+        if proposal is None:
+            raise DeviceRefusedError("no proposal to accept: run identify first")
+        return _kab_dict(proposal.current, proposal.current_kabd)
+
+    async def return_to(self, entry: AxisEntry, target: int) -> None:
+        """Move back to ``target`` with the gains in use (after a failed identification)."""
+        await self._return(entry, target)
+
     async def _run_test(self, entry: AxisEntry, distance: int, note: str) -> dict[str, Any]:
         bench = self._t._bench
         limits = await bench.limits(entry.info.id)
@@ -640,11 +651,11 @@ class Z1100Tuner:
         deadline = self._t._clock() + duration + 10.0
         while self._t._clock() < deadline:
             await asyncio.sleep(0.1)
-            run = await bench.get_run(run_id)
+            run = await bench.get_run_meta(run_id)  # status only: no samples
             if run["status"] != "recording":
                 if run["status"] != "complete":
                     raise DriverError(f"test {run_id} {run['status']}: {run.get('message')}")
-                return run
+                return await bench.get_run(run_id)
         raise DriverError(f"test {run_id} did not finish")
 
     async def _return(self, entry: AxisEntry, target: int) -> None:

@@ -40,7 +40,7 @@ from servotune.drivers.base import (
     check_console_line,
 )
 from servotune.drivers.validation import validate_command, validate_params
-from servotune.storage import Storage
+from servotune.storage import Storage, StorageError
 from servotune.wire import (
     AxisHealth,
     AxisInfo,
@@ -54,6 +54,7 @@ from servotune.wire import (
     LinkState,
     LinkStatus,
     Params,
+    StorageStatus,
     Telemetry,
 )
 
@@ -649,12 +650,35 @@ class Hub:
             return
 
     def _save_soon(self, entry: AxisEntry, values: dict[str, int]) -> None:
+        """Save the last applied values in a worker thread; a failure is told, not lost.
+
+        If the database cannot be written, every client gets an error event and a
+        ``storage_status`` message (the "settings are not being saved" banner); the
+        values stay in ``Storage.unsaved`` and go with the next save that works, which
+        also clears the banner."""
         task = asyncio.get_running_loop().create_task(
-            asyncio.to_thread(self._storage.save_params, entry.storage_key, values),
-            name=f"saving settings of {entry.info.id}",
+            self._save_params(entry, values), name=f"saving settings of {entry.info.id}"
         )
         self._tasks.append(task)
         task.add_done_callback(self._forget_task)
+
+    async def _save_params(self, entry: AxisEntry, values: dict[str, int]) -> None:
+        was_failing = self._storage.problem is not None
+        try:
+            await asyncio.to_thread(self._storage.save_params, entry.storage_key, values)
+        except StorageError as exc:
+            unsaved = self._storage.unsaved.get(entry.storage_key, values)
+            names = ", ".join(sorted(unsaved)[:8]) + (" …" if len(unsaved) > 8 else "")
+            self.on_event(
+                "error",
+                entry.info.id,
+                f"settings are not being saved ({names} applied to the device only): {exc}",
+            )
+            self.broadcast_model(StorageStatus(writable=False, message=str(exc)))
+            return
+        if was_failing:
+            self.on_event("info", entry.info.id, "settings are saved again")
+            self.broadcast_model(StorageStatus(writable=True, message=""))
 
     def _forget_task(self, task: asyncio.Task[None]) -> None:
         with contextlib.suppress(ValueError):

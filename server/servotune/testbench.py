@@ -16,18 +16,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
-import io
+import functools
 import logging
 import math
+import multiprocessing
 import time
 import uuid
-from collections.abc import Mapping
+from collections.abc import AsyncIterator, Mapping
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
+from servotune import runio
 from servotune.drivers.base import (
     BenchKind,
     BenchPlan,
@@ -41,14 +44,16 @@ from servotune.drivers.base import (
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
-from servotune.storage import Storage
-from servotune.wire import RunUpdate
+from servotune.runquality import POSITION_KINDS, assess
+from servotune.storage import Storage, StorageError
+from servotune.wire import RunUpdate, StorageStatus
 
 logger = logging.getLogger(__name__)
 
 PRE_TRIGGER_S = 0.2
 FLUSH_PERIOD_S = 0.5
 SETTLED_HOLD_S = 0.3
+RETURN_TIMEOUT_S = 5.0  # after the return move's profile time
 
 
 class BenchLimits(BaseModel):
@@ -58,6 +63,29 @@ class BenchLimits(BaseModel):
     max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
     max_pwm: int = Field(default=80, ge=1, le=255)
     max_duration_s: float = Field(default=10.0, gt=0, le=60)
+    min_position_counts: int | None = Field(
+        default=None,
+        ge=-(1 << 31),
+        le=(1 << 31) - 1,
+        description="travel window: no test starts outside it, targets a position outside "
+        "it or travels out of it (counts, with max_position_counts; null: no window)",
+    )
+    max_position_counts: int | None = Field(default=None, ge=-(1 << 31), le=(1 << 31) - 1)
+
+    @model_validator(mode="after")
+    def _window(self) -> BenchLimits:
+        low, high = self.min_position_counts, self.max_position_counts
+        if low is not None and high is not None and low >= high:
+            raise ValueError(f"min_position_counts {low} must be below max_position_counts {high}")
+        return self
+
+    def outside(self, position: float) -> str | None:
+        """Why ``position`` is outside the travel window, or None."""
+        if self.min_position_counts is not None and position < self.min_position_counts:
+            return f"{position:.0f} is below your min_position_counts {self.min_position_counts}"
+        if self.max_position_counts is not None and position > self.max_position_counts:
+            return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
+        return None
 
 
 class BenchTestRequest(BaseModel):
@@ -84,6 +112,8 @@ class _Recording:
     samples: list[list[Any]] = field(default_factory=list)
     flushed: int = 0
     chunk_seq: int = 0
+    returned: dict[str, Any] | None = None  # how the return to the start went
+    ended: bool = False  # the record is over (the return move is not recorded)
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -131,9 +161,18 @@ class TestBench:
         self._active: dict[str, _Recording] = {}
         self._claimed: set[str] = set()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._pool: ProcessPoolExecutor | None = None
         hub.add_sample_listener(self._on_sample)
 
     async def start(self) -> None:
+        if self._storage.problem:
+            # Told at start-up (log, event, banner via storage_status / GET
+            # /api/storage): the server runs, but nothing it changes is saved.
+            self._hub.on_event(
+                "error", None, f"settings are not being saved: {self._storage.problem}"
+            )
+            self._hub.broadcast_model(StorageStatus(writable=False, message=self._storage.problem))
+            return
         interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
         if interrupted:
             self._hub.on_event(
@@ -143,6 +182,9 @@ class TestBench:
             )
 
     async def stop(self) -> None:
+        if self._pool is not None:
+            await asyncio.to_thread(self._pool.shutdown, wait=True, cancel_futures=True)
+            self._pool = None
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -167,6 +209,10 @@ class TestBench:
         return limits
 
     # --- runs -------------------------------------------------------------------------
+
+    def check_axis(self, axis_id: str) -> None:
+        """UnknownAxisError (404) for an axis that does not exist."""
+        self._hub.entry(axis_id)
 
     def kinds(self, axis_id: str) -> list[str]:
         driver = self._hub.entry(axis_id).driver
@@ -213,6 +259,7 @@ class TestBench:
             duration_s=request.duration_s,
         )
         plan = driver.bench_plan(test, entry.latest, entry.device_values)
+        self._check_window(test, plan, entry.latest, limits)
         # The plan is checked like user input before anything moves (422 naming the
         # field): a test must not put a value on the wire the descriptor forbids.
         if plan.overrides:
@@ -243,6 +290,21 @@ class TestBench:
             **meta,
         }
 
+    @staticmethod
+    def _check_window(
+        test: BenchTest, plan: BenchPlan, latest: Sample, limits: BenchLimits
+    ) -> None:
+        """Refuse a test that starts or ends outside the user's travel window (422)."""
+        position = latest.channels.get("position")
+        if position is not None and (why := limits.outside(position)):
+            raise InvalidArgumentError(
+                "distance", f"the axis stands outside your travel window: {why}"
+            )
+        if test.kind in POSITION_KINDS and (why := limits.outside(plan.y_final)):
+            raise InvalidArgumentError(
+                "distance", f"distance {test.distance} would end at {why} (bench limits)"
+            )
+
     def _check_limits(self, request: BenchTestRequest, limits: BenchLimits) -> None:
         if abs(request.distance) > limits.max_distance_counts:
             raise InvalidArgumentError(
@@ -267,7 +329,7 @@ class TestBench:
 
     def _on_sample(self, axis_id: str, sample: Sample) -> None:
         recording = self._active.get(axis_id)
-        if recording is None:
+        if recording is None or recording.ended:
             return
         row: list[Any] = [round(sample.t, 6)]
         row += [_value(sample.channels.get(name)) for name in recording.columns[1:]]
@@ -308,8 +370,17 @@ class TestBench:
             recording.t0 = self._clock()
             await self._send(recording, plan.trigger)
             self._update(recording, "recording", "triggered")
-            await self._record(recording, test, await self.limits(entry.info.id))
+            limits = await self.limits(entry.info.id)
+            await self._record(recording, test, limits)
             await self._send(recording, plan.finish)
+            recording.ended = True
+            if test.kind in POSITION_KINDS:
+                # The profile of the test stays in force only for the test: the way
+                # back is an ordinary move with the axis' own profile.
+                if saved:
+                    await self._restore(entry, saved)
+                    saved = {}
+                recording.returned = await self._return_to_start(recording, limits)
         except DriverError as exc:
             status, message = "incomplete", f"test stopped: {exc}"
             try:
@@ -343,9 +414,15 @@ class TestBench:
                 await self._flush(recording)
             finally:
                 self._active.pop(entry.info.id, None)
+                if recording.returned is not None:
+                    meta["return"] = recording.returned
+                    if not recording.returned["ok"]:
+                        message = "; ".join(
+                            m for m in (message, recording.returned["message"]) if m
+                        )
                 meta["message"] = message
                 meta["t0_s"] = recording.t0
-                meta["metrics"] = self._metrics(recording)
+                meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")
 
@@ -384,6 +461,8 @@ class TestBench:
                 return
             latest = recording.entry.latest
             position = latest.channels.get("position") if latest is not None else None
+            if position is not None and (why := limits.outside(position)):
+                raise DriverError(f"left your travel window: {why}: axis stopped")
             if origin is not None and position is not None:
                 # Velocity and PWM tests have no end position of their own: the travel
                 # limit stops them. Moves are checked before they start.
@@ -402,33 +481,136 @@ class TestBench:
                 else:
                     settled_since = None
 
-    def _metrics(self, recording: _Recording) -> dict[str, Any] | None:
-        if recording.t0 is None or not recording.samples:
-            return None
+    def _metrics(
+        self, recording: _Recording, test: BenchTest, status: str, message: str
+    ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+        """The run's metrics (untrusted ones null) and its quality (``runquality``)."""
         plan = recording.plan
-        index = recording.columns.index(plan.response)
-        rows = [r for r in recording.samples if r[index] is not None]
-        if len(rows) < 3:
-            return None
-        error_index = (
-            recording.columns.index("following_error")
-            if "following_error" in recording.columns
-            else None
-        )
-        flag_series = {
-            name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
-        }
-        metrics = compute_metrics(
-            [r[0] for r in rows],
-            [r[index] for r in rows],
+        raw: dict[str, Any] | None = None
+        if recording.t0 is not None and recording.samples:
+            index = recording.columns.index(plan.response)
+            rows = [r for r in recording.samples if r[index] is not None]
+            if len(rows) >= 3:
+                error_index = (
+                    recording.columns.index("following_error")
+                    if "following_error" in recording.columns
+                    else None
+                )
+                flag_series = {
+                    name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
+                }
+                raw = asdict(
+                    compute_metrics(
+                        [r[0] for r in rows],
+                        [r[index] for r in rows],
+                        t0_s=recording.t0,
+                        y0=plan.y0,
+                        y_final=plan.y_final,
+                        band=plan.band,
+                        following_error=(
+                            [r[error_index] for r in rows] if error_index is not None else None
+                        ),
+                        flags=flag_series,
+                    )
+                )
+        return assess(
+            kind=test.kind,
+            columns=recording.columns,
+            flag_names=recording.flags,
+            rows=recording.samples,
             t0_s=recording.t0,
+            response=plan.response,
             y0=plan.y0,
             y_final=plan.y_final,
             band=plan.band,
-            following_error=[r[error_index] for r in rows] if error_index is not None else None,
-            flags=flag_series,
+            fault_flags=plan.fault_flags,
+            done_flag=plan.done_flag,
+            metrics=raw,
+            status=status,
+            message=message,
         )
-        return asdict(metrics)
+
+    async def _wait_settled(self, recording: _Recording, timeout_s: float) -> bool:
+        """Wait until the axis stands (done flag set, moving flag clear); False on timeout."""
+        plan, entry = recording.plan, recording.entry
+        deadline = self._clock() + timeout_s
+        since: float | None = None
+        while self._clock() < deadline:
+            latest = entry.latest
+            done = latest is not None and (
+                (plan.done_flag is None or bool(latest.flags.get(plan.done_flag)))
+                and not (plan.moving_flag and latest.flags.get(plan.moving_flag))
+            )
+            if done:
+                since = since or self._clock()
+                if self._clock() - since >= SETTLED_HOLD_S:
+                    return True
+            else:
+                since = None
+            generation = recording.stop_generation
+            if generation is not None and entry.stop_generation != generation:
+                raise DriverError("STOP was pressed during the test")
+            await asyncio.sleep(0.05)
+        return False
+
+    async def _return_to_start(self, recording: _Recording, limits: BenchLimits) -> dict[str, Any]:
+        """Move back to where the test started (a relative test must not walk the axis
+        towards an end switch run by run), with the axis' own profile. Returns what
+        happened: ``{"ok", "to", "error", "message"}``."""
+        entry, plan = recording.entry, recording.plan
+        driver = entry.driver
+        assert isinstance(driver, BenchPlanner)
+        if not await self._wait_settled(recording, RETURN_TIMEOUT_S):
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": "did not return to "
+                "the start: the axis did not come to rest after the test",
+            }
+        latest = entry.latest
+        assert latest is not None
+        reference = latest.channels.get("setpoint")
+        if reference is None:
+            reference = latest.channels.get("position") or 0.0
+        back = round(plan.y0 - reference)
+        if back == 0:
+            return {"ok": True, "to": plan.y0, "error": 0.0, "message": ""}
+        if abs(back) > limits.max_distance_counts * 1.05 + 100:
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": f"did not return to "
+                f"the start: {abs(back)} counts back exceed your max_distance_counts",
+            }
+        test = BenchTest(kind="move", distance=back, velocity=0, pwm=0, duration_s=0.0)
+        way_back = driver.bench_plan(test, latest, entry.device_values)
+        if why := limits.outside(way_back.y_final):
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": None,
+                "message": f"did not return to the start: {why}",
+            }
+        for name, args in (*way_back.setup, *way_back.trigger):
+            validate_command(entry.driver.descriptor, name, args)
+        self._update(recording, "recording", "returning to the start")
+        await self._send(recording, way_back.setup)
+        await self._send(recording, way_back.trigger)
+        await asyncio.sleep(0.2)  # the move's flags show in the next samples
+        settled = await self._wait_settled(recording, RETURN_TIMEOUT_S + 5.0)
+        position = (entry.latest.channels.get("position") if entry.latest else None) or 0.0
+        error = position - plan.y0
+        tolerance = max(plan.band or 0.0, 1.0) * 2
+        if not settled or abs(error) > tolerance:
+            return {
+                "ok": False,
+                "to": plan.y0,
+                "error": round(error, 3),
+                "message": f"did not return to the start: {error:+.0f} counts from it",
+            }
+        return {"ok": True, "to": plan.y0, "error": round(error, 3), "message": ""}
 
     def _update(self, recording: _Recording, status: str, message: str) -> None:
         elapsed = self._clock() - recording.t0 if recording.t0 is not None else 0.0
@@ -444,16 +626,59 @@ class TestBench:
         )
 
     # --- stored runs ------------------------------------------------------------------
+    # Reading, exporting and importing go through worker threads in small pieces
+    # (servotune.runio): a run of tens of megabytes must never hold the event loop.
 
     async def list_runs(self, axis_id: str) -> list[dict[str, Any]]:
         entry = self._hub.entry(axis_id)
         return await asyncio.to_thread(self._storage.list_runs, entry.storage_key)
 
     async def get_run(self, run_id: str) -> dict[str, Any]:
+        """One run with all its samples as Python objects (for small runs: tests, tools)."""
         run = await asyncio.to_thread(self._storage.get_run, run_id)
         if run is None:
             raise KeyError(run_id)
         return run
+
+    async def get_run_meta(self, run_id: str) -> dict[str, Any]:
+        """One run without its samples (status, metrics, quality): cheap to poll."""
+        run = await asyncio.to_thread(self._storage.get_run_meta, run_id)
+        if run is None:
+            raise KeyError(run_id)
+        return run
+
+    async def iter_run_json(self, run_id: str) -> AsyncIterator[bytes]:
+        """The run with its samples as JSON text, chunk by chunk (KeyError if missing).
+
+        The stored chunks are valid JSON arrays already and are passed on verbatim:
+        no parse of the samples, no big response object."""
+        run = await self.get_run_meta(run_id)
+        seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
+
+        async def body() -> AsyncIterator[bytes]:
+            yield (await asyncio.to_thread(runio.run_json_head, run)).encode()
+            first = True
+            for seq in seqs:
+                rows = await asyncio.to_thread(runio.chunk_rows_text, self._storage, run_id, seq)
+                if rows:
+                    yield (rows if first else "," + rows).encode()
+                    first = False
+            yield b"]}"
+
+        return body()
+
+    async def iter_run_csv(self, run_id: str) -> AsyncIterator[bytes]:
+        """The samples as CSV, chunk by chunk (KeyError if missing)."""
+        run = await self.get_run_meta(run_id)
+        seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
+
+        async def body() -> AsyncIterator[bytes]:
+            yield runio.csv_header(run).encode()
+            for seq in seqs:
+                text = await asyncio.to_thread(runio.chunk_csv, self._storage, run_id, seq)
+                yield text.encode()
+
+        return body()
 
     async def delete_run(self, run_id: str) -> None:
         if not await asyncio.to_thread(self._storage.delete_run, run_id):
@@ -463,55 +688,37 @@ class TestBench:
         if not await asyncio.to_thread(self._storage.set_baseline, run_id):
             raise KeyError(run_id)
 
-    @staticmethod
-    def to_csv(run: Mapping[str, Any]) -> str:
-        """Samples as CSV: the run's columns, then one 0/1 column per flag."""
-        out = io.StringIO()
-        writer = csv.writer(out, lineterminator="\n")
-        writer.writerow([*run["columns"], *run["flags"]])
-        for row in run["samples"]:
-            values = ["" if v is None else repr(v) for v in row[:-1]]
-            writer.writerow([*values, *row[-1]])
-        return out.getvalue()
+    async def import_run(self, axis_id: str, body_path: Path, meta: bytes | None = None) -> str:
+        """Import a run in a separate process (see ``runio``); returns the new run id.
 
-    @staticmethod
-    def to_json(run: Mapping[str, Any]) -> dict[str, Any]:
-        """Everything but the samples (those go to CSV)."""
-        return {k: v for k, v in run.items() if k != "samples"}
-
-    async def import_run(self, axis_id: str, meta: Mapping[str, Any], csv_text: str) -> str:
-        """Store a run exported elsewhere (JSON + CSV) under ``axis_id``; new id."""
+        ``body_path``: the JSON body ``{"meta", "csv"}``, or with ``meta`` (the
+        run.json of a multipart upload) the CSV file. 422 naming the field, 507 if the
+        database cannot be written."""
         entry = self._hub.entry(axis_id)
-        try:
-            columns = list(meta["columns"])
-            flags = list(meta["flags"])
-        except (KeyError, TypeError):
-            raise InvalidArgumentError("meta", "meta must be the run's JSON export") from None
-        reader = csv.reader(io.StringIO(csv_text))
-        header = next(reader, None)
-        if header != [*columns, *flags]:
-            raise InvalidArgumentError("csv", "the CSV header does not match the JSON's columns")
-        samples: list[list[Any]] = []
-        for line_no, row in enumerate(reader, start=2):
-            try:
-                values: list[Any] = [float(v) if v != "" else None for v in row[: len(columns)]]
-                values.append([int(v) for v in row[len(columns) :]])
-            except ValueError:
-                raise InvalidArgumentError("csv", f"line {line_no}: not a number") from None
-            samples.append(values)
-        run_id = uuid.uuid4().hex[:12]
-        stored = {
-            k: v
-            for k, v in meta.items()
-            if k not in ("id", "axis_id", "status", "baseline", "created_s")
-        }
-        stored["imported_from"] = meta.get("id")
-        created_s = float(meta.get("created_s") or time.time())
-        await asyncio.to_thread(
-            self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, stored
+        if self._storage.problem:
+            raise StorageError(f"not saved: {self._storage.problem}")
+        if self._pool is None:
+            # One import at a time, each in a fresh process (its memory goes with it).
+            self._pool = ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),
+                max_tasks_per_child=1,
+            )
+        outcome = await asyncio.get_running_loop().run_in_executor(
+            self._pool,
+            functools.partial(
+                runio.import_in_process,
+                str(self._storage.path),
+                entry.storage_key,
+                axis_id,
+                entry.info.device,
+                str(body_path),
+                meta,
+            ),
         )
-        await asyncio.to_thread(self._storage.append_samples, run_id, 0, samples)
-        await asyncio.to_thread(
-            self._storage.finish_run, run_id, str(meta.get("status", "complete")), stored
-        )
-        return run_id
+        kind, value, message = outcome
+        if kind == "invalid":
+            raise InvalidArgumentError(value, message)
+        if kind == "storage":
+            raise StorageError(message)
+        return value

@@ -8,7 +8,8 @@ Websocket ``/ws`` (server -> client):
   ``hello`` once on connect, then ``telemetry`` batches (about 30 per second per
   axis), ``link_status`` and ``axis_status`` when they change (and every second),
   ``params`` after every read or write of device parameters, ``event`` for things a
-  user should see in the log (stops, refusals, resets), ``client_stats`` every second.
+  user should see in the log (stops, refusals, resets), ``storage_status`` when saving
+  fails or works again, ``client_stats`` every second.
 Client -> server: ``ping`` (answered by ``client_stats``). Commands go over REST.
 
 Times ``t`` are seconds on the server's monotonic clock since the server started.
@@ -118,6 +119,16 @@ class RunUpdate(BaseModel):
     message: str
 
 
+class StorageStatus(BaseModel):
+    """Whether the server can save (settings, sets, runs); sent when that changes.
+
+    ``writable`` false: "settings are not being saved" (``message`` says why)."""
+
+    type: Literal["storage_status"] = "storage_status"
+    writable: bool
+    message: str
+
+
 class ClientStats(BaseModel):
     type: Literal["client_stats"] = "client_stats"
     sent: int
@@ -125,7 +136,15 @@ class ClientStats(BaseModel):
 
 
 ServerMessage = Annotated[
-    Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | ClientStats,
+    Hello
+    | Telemetry
+    | LinkStatus
+    | AxisStatus
+    | Params
+    | Event
+    | RunUpdate
+    | StorageStatus
+    | ClientStats,
     Field(discriminator="type"),
 ]
 

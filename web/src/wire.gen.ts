@@ -251,5 +251,5 @@ export interface ErrorBody {
   field: string | null;
 }
 
-export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | ClientStats;
+export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats;
 export type ClientMessage = Ping;

@@ -35,7 +35,7 @@ from servotune.drivers.base import (
 )
 from servotune.hub import Hub, NotFoundError, UnknownAxisError
 from servotune.links import build_link
-from servotune.storage import Storage, default_data_dir
+from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench
 
 logger = logging.getLogger(__name__)
@@ -171,8 +171,14 @@ def create_app(config: AppConfig) -> FastAPI:
 
     @app.exception_handler(DriverError)
     async def driver_error(_: Request, exc: DriverError) -> JSONResponse:
-        # A driver error without a more specific class: the device path failed.
+        # Any other device error (the subclasses above have their own codes): JSON,
+        # never a plain-text 500.
         return _error(502, f"device error: {exc}")
+
+    @app.exception_handler(StorageError)
+    async def not_stored(_: Request, exc: StorageError) -> JSONResponse:
+        # 507 Insufficient Storage: the request was understood, nothing was saved.
+        return _error(507, str(exc))
 
     @app.exception_handler(NotFoundError)
     async def not_found(_: Request, exc: NotFoundError) -> JSONResponse:

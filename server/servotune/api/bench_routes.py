@@ -2,17 +2,31 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+import asyncio
+import shutil
+import tempfile
+from collections.abc import Awaitable, Callable, MutableMapping
+from pathlib import Path
+from typing import IO, Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
+from starlette.datastructures import UploadFile
 
-from servotune.api.responses import NOT_FOUND, errors
 from servotune.api.routes import ERRORS
+from servotune.drivers.base import InvalidArgumentError
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
+from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
+from servotune.storage import Storage, dumps_strict
 from servotune.testbench import BenchLimits, BenchTestRequest, TestBench
+from servotune.wire import ErrorBody, StorageStatus
+
+STORE_ERRORS: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    507: {"model": ErrorBody, "description": "the database cannot be written: nothing saved"},
+}
 
 router = APIRouter(tags=["bench"])
 
@@ -31,13 +45,64 @@ class BenchInfo(BaseModel):
     definitions: dict[str, str] = Field(description="how each metric is computed")
 
 
-class ImportRequest(BaseModel):
-    meta: dict[str, Any]
-    csv: str
+class _BodyTooLargeError(Exception):
+    pass
+
+
+def _too_large(limit: int) -> JSONResponse:
+    return JSONResponse(
+        status_code=413,
+        content={
+            "detail": f"the import is larger than {limit // (1024 * 1024)} MiB"
+            + (
+                f"; send it as multipart (meta + csv files, up to "
+                f"{MAX_IMPORT_BYTES // (1024 * 1024)} MiB)"
+                if limit < MAX_IMPORT_BYTES
+                else ""
+            ),
+            "field": "body",
+        },
+    )
+
+
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+
+
+def _limited(receive: Receive, limit: int) -> Receive:
+    """``receive`` that raises _BodyTooLargeError once more than ``limit`` bytes came in."""
+    total = 0
+
+    async def limited_receive() -> MutableMapping[str, Any]:
+        nonlocal total
+        message = await receive()
+        total += len(message.get("body", b""))
+        if total > limit:
+            raise _BodyTooLargeError
+        return message
+
+    return limited_receive
 
 
 def _missing(run_id: str) -> NotFoundError:
     return NotFoundError("run", f"no run {run_id!r}")
+
+
+async def _body_to_file(request: Request, limit: int, path: Path) -> None:
+    """Stream the body into ``path`` (page cache writes of the ~64 KiB chunks the
+    server receives are short); _BodyTooLargeError beyond ``limit``."""
+    size = 0
+    with path.open("wb") as out:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise _BodyTooLargeError
+            out.write(chunk)
+
+
+def _copy_to(source: IO[bytes], path: Path) -> None:
+    source.seek(0)
+    with path.open("wb") as out:
+        shutil.copyfileobj(source, out, 1 << 20)
 
 
 @router.get("/api/axes/{axis_id}/bench", response_model=BenchInfo, responses=ERRORS)
@@ -50,13 +115,13 @@ async def bench_info(axis_id: str, bench: BenchDep) -> BenchInfo:
     )
 
 
-@router.put("/api/axes/{axis_id}/bench/limits", response_model=BenchLimits, responses=ERRORS)
+@router.put("/api/axes/{axis_id}/bench/limits", response_model=BenchLimits, responses=STORE_ERRORS)
 async def set_limits(axis_id: str, limits: BenchLimits, bench: BenchDep) -> BenchLimits:
     """Limits every test on this axis is checked against before anything moves."""
     return await bench.set_limits(axis_id, limits)
 
 
-@router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=ERRORS)
+@router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=STORE_ERRORS)
 async def start_run(axis_id: str, test: BenchTestRequest, bench: BenchDep) -> dict[str, Any]:
     """Start a test. 202 with the run (status 'recording'); progress comes over the
     websocket as ``run`` messages; the finished run (metrics) via GET."""
@@ -69,28 +134,124 @@ async def list_runs(axis_id: str, bench: BenchDep) -> list[dict[str, Any]]:
     return await bench.list_runs(axis_id)
 
 
+_IMPORT_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": (
+            f"Either JSON ``{{meta, csv}}`` (at most {MAX_IMPORT_JSON_BYTES // 2**20} MiB) or "
+            f"multipart/form-data with the parts ``meta`` (run.json, at most "
+            f"{MAX_META_BYTES // 2**20} MiB) and ``csv`` (samples.csv), at most "
+            f"{MAX_IMPORT_BYTES // 2**20} MiB in all. Larger: 413."
+        ),
+        "content": {
+            "application/json": {
+                "schema": {
+                    "type": "object",
+                    "required": ["meta", "csv"],
+                    "properties": {
+                        "meta": {"type": "object", "description": "the run.json export"},
+                        "csv": {"type": "string", "description": "the samples.csv export"},
+                    },
+                }
+            },
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["meta", "csv"],
+                    "properties": {
+                        "meta": {"type": "string", "format": "binary"},
+                        "csv": {"type": "string", "format": "binary"},
+                    },
+                }
+            },
+        },
+    }
+}
+
+
 @router.post(
     "/api/axes/{axis_id}/bench/runs/import",
     status_code=201,
-    responses={**ERRORS, **errors(413)},
+    responses={
+        **STORE_ERRORS,
+        413: {"model": ErrorBody, "description": "body too large (limit in detail)"},
+        415: {"model": ErrorBody, "description": "neither JSON nor multipart"},
+    },
+    openapi_extra=_IMPORT_BODY,
 )
-async def import_run(axis_id: str, body: ImportRequest, bench: BenchDep) -> dict[str, str]:
-    """Import a run exported as JSON (``meta``) + CSV (``csv``)."""
-    return {"id": await bench.import_run(axis_id, body.meta, body.csv)}
-
-
-@router.get("/api/bench/runs/{run_id}", responses=ERRORS)
-async def get_run(run_id: str, bench: BenchDep) -> dict[str, Any]:
-    """One run with its samples: ``columns`` name the values of each sample row, the
-    last element of a row is the list of flag values in ``flags`` order."""
+async def import_run(axis_id: str, request: Request, bench: BenchDep) -> dict[str, str]:
+    """Import a run exported as JSON (``meta``) + CSV (``csv``), checked completely
+    (422 naming the field: strict, finite numbers, a finished run of this axis' device,
+    the CSV matching the JSON). Parsed and stored off the event loop, chunk by chunk."""
+    bench.check_axis(axis_id)
+    content_type = request.headers.get("content-type", "")
+    multipart = content_type.startswith("multipart/form-data")
+    limit = MAX_IMPORT_BYTES if multipart else MAX_IMPORT_JSON_BYTES
     try:
-        return await bench.get_run(run_id)
+        declared = int(request.headers.get("content-length", "0"))
+    except ValueError:
+        declared = 0
+    if declared > limit:
+        return _too_large(limit)  # type: ignore[return-value]
+    with tempfile.TemporaryDirectory(prefix="servotune-import-") as scratch:
+        body_path = Path(scratch) / "body"
+        try:
+            if multipart:
+                limited = Request(request.scope, _limited(request.receive, limit))
+                async with limited.form(
+                    max_files=2, max_fields=2, max_part_size=MAX_META_BYTES
+                ) as form:
+                    meta, samples = form.get("meta"), form.get("csv")
+                    if not isinstance(samples, UploadFile):
+                        raise InvalidArgumentError("csv", "csv: the samples.csv file is missing")
+                    if isinstance(meta, UploadFile):
+                        meta_bytes = await meta.read(MAX_META_BYTES + 1)
+                    elif isinstance(meta, str):
+                        meta_bytes = meta.encode()
+                    else:
+                        raise InvalidArgumentError("meta", "meta: the run.json part is missing")
+                    await asyncio.to_thread(_copy_to, samples.file, body_path)
+                run_id = await bench.import_run(axis_id, body_path, meta_bytes)
+            elif content_type.startswith("application/json"):
+                await _body_to_file(request, limit, body_path)
+                run_id = await bench.import_run(axis_id, body_path)
+            else:
+                return JSONResponse(  # type: ignore[return-value]
+                    status_code=415,
+                    content={
+                        "detail": "send application/json or multipart/form-data",
+                        "field": None,
+                    },
+                )
+        except _BodyTooLargeError:
+            return _too_large(limit)  # type: ignore[return-value]
+    return {"id": run_id}
+
+
+@router.get("/api/storage", response_model=StorageStatus, tags=["bench"])
+async def storage_status(request: Request) -> StorageStatus:
+    """Whether settings, sets and runs are being saved (``writable``), and why not."""
+    storage: Storage = request.app.state.storage
+    return StorageStatus(writable=storage.problem is None, message=storage.problem or "")
+
+
+@router.get(
+    "/api/bench/runs/{run_id}",
+    responses={**ERRORS, 200: {"content": {"application/json": {"schema": {"type": "object"}}}}},
+    response_class=StreamingResponse,
+)
+async def get_run(run_id: str, bench: BenchDep) -> StreamingResponse:
+    """One run with its samples: ``columns`` name the values of each sample row, the
+    last element of a row is the list of flag values in ``flags`` order. Streamed."""
+    try:
+        body = await bench.iter_run_json(run_id)
     except KeyError:
         raise _missing(run_id) from None
+    return StreamingResponse(body, media_type="application/json")
 
 
 @router.delete(
-    "/api/bench/runs/{run_id}", status_code=204, response_model=None, responses=NOT_FOUND
+    "/api/bench/runs/{run_id}", status_code=204, response_model=None, responses=STORE_ERRORS
 )
 async def delete_run(run_id: str, bench: BenchDep) -> None:
     try:
@@ -100,7 +261,10 @@ async def delete_run(run_id: str, bench: BenchDep) -> None:
 
 
 @router.post(
-    "/api/bench/runs/{run_id}/baseline", status_code=204, response_model=None, responses=NOT_FOUND
+    "/api/bench/runs/{run_id}/baseline",
+    status_code=204,
+    response_model=None,
+    responses=STORE_ERRORS,
 )
 async def set_baseline(run_id: str, bench: BenchDep) -> None:
     """Mark this run as the baseline of its axis."""
@@ -112,28 +276,31 @@ async def set_baseline(run_id: str, bench: BenchDep) -> None:
 
 @router.get(
     "/api/bench/runs/{run_id}/samples.csv",
-    response_class=PlainTextResponse,
-    responses={200: {"content": {"text/csv": {}}}, **NOT_FOUND},
+    response_class=StreamingResponse,
+    responses={**ERRORS, 200: {"content": {"text/csv": {}}}},
 )
-async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
+async def export_csv(run_id: str, bench: BenchDep) -> StreamingResponse:
+    """The samples as CSV (the run's columns, then one 0/1 column per flag), streamed."""
     try:
-        run = await bench.get_run(run_id)
+        body = await bench.iter_run_csv(run_id)
     except KeyError:
         raise _missing(run_id) from None
-    return PlainTextResponse(
-        TestBench.to_csv(run),
+    return StreamingResponse(
+        body,
         media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="run-{run_id}.csv"'},
     )
 
 
-@router.get("/api/bench/runs/{run_id}/run.json", response_model=None, responses=NOT_FOUND)
-async def export_json(run_id: str, bench: BenchDep) -> JSONResponse:
+@router.get("/api/bench/runs/{run_id}/run.json", response_model=None, responses=ERRORS)
+async def export_json(run_id: str, bench: BenchDep) -> Response:
+    """Everything but the samples (those go to CSV); what the import takes as ``meta``."""
     try:
-        run = await bench.get_run(run_id)
+        run = await bench.get_run_meta(run_id)
     except KeyError:
         raise _missing(run_id) from None
-    return JSONResponse(
-        TestBench.to_json(run),
+    return Response(
+        dumps_strict(run),
+        media_type="application/json",
         headers={"Content-Disposition": f'attachment; filename="run-{run_id}.json"'},
     )

@@ -1,0 +1,240 @@
+"""Bad bench runs are marked bad (``quality``), untrusted metrics are null with the reason,
+and relative moves return to their start (issue 8, point 5).
+
+The unit tests feed ``runquality.assess`` synthetic runs with known answers; the
+simulator tests provoke each bad case on a simulated SLAP2 line."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from servotune.metrics import compute_metrics
+from servotune.runquality import MIN_RISE_SAMPLES, assess
+
+from .conftest import running_simulator
+from .test_api import LiveServer, live_server
+from .test_bench import finished_run, start
+
+COLUMNS = ["t_s", "position"]
+FLAGS = ["limit1", "limit2", "oc", "inpos", "move"]
+
+
+def _run(
+    times: list[float],
+    positions: list[float],
+    *,
+    flags: dict[str, list[int]] | None = None,
+    target: float = 1000.0,
+    band: float = 5.0,
+    status: str = "complete",
+) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    flags = flags or {}
+    series = {name: flags.get(name, [0] * len(times)) for name in FLAGS}
+    if "inpos" not in flags:
+        series["inpos"] = [int(abs(p - target) <= band) for p in positions]
+        series["inpos"][0] = 0
+    rows = [
+        [t, p, [series[name][i] for name in FLAGS]]
+        for i, (t, p) in enumerate(zip(times, positions, strict=True))
+    ]
+    metrics = asdict(
+        compute_metrics(
+            times,
+            positions,
+            t0_s=0.0,
+            y0=0.0,
+            y_final=target,
+            band=band,
+            flags={name: [bool(v) for v in series[name]] for name in FLAGS},
+        )
+    )
+    return assess(
+        kind="move",
+        columns=COLUMNS,
+        flag_names=FLAGS,
+        rows=rows,
+        t0_s=0.0,
+        response="position",
+        y0=0.0,
+        y_final=target,
+        band=band,
+        fault_flags=["oc", "limit1", "limit2"],
+        done_flag="inpos",
+        metrics=metrics,
+        status=status,
+        message="",
+    )
+
+
+def _first_order(
+    n: int, dt: float, tau: float = 0.3, target: float = 1000.0
+) -> tuple[list[float], list[float]]:
+    times = [i * dt for i in range(n)]
+    return times, [round(target * -math.expm1(-t / tau)) if t > 0 else 0.0 for t in times]
+
+
+def test_a_well_sampled_settled_move_is_good_and_keeps_its_metrics() -> None:
+    times, positions = _first_order(200, 0.01)
+    metrics, quality = _run(times, positions)
+    assert quality == {"status": "good", "reasons": [], "untrusted": {}}
+    assert metrics is not None and metrics["rise_time_s"] == pytest.approx(0.3 * math.log(9), 0.05)
+    assert metrics["settling_time_s"] is not None
+
+
+@pytest.mark.parametrize(("flag", "code"), [("limit2", "limit_switch"), ("limit1", "limit_switch")])
+def test_a_limit_switch_makes_the_run_bad_and_nulls_the_response_metrics(
+    flag: str, code: str
+) -> None:
+    times, positions = _first_order(200, 0.01)
+    metrics, quality = _run(times, positions, flags={flag: [0] * 150 + [1] * 50})
+    assert quality["status"] == "bad"
+    assert quality["reasons"][0]["code"] == code and flag in quality["reasons"][0]["message"]
+    assert metrics is not None
+    for name in ("rise_time_s", "overshoot_pct", "settling_time_s", "steady_state_error"):
+        assert metrics[name] is None and flag in quality["untrusted"][name]
+    assert metrics["samples"] == 200  # facts stay
+
+
+def test_ending_in_current_limit_is_bad_passing_through_it_is_doubtful() -> None:
+    times, positions = _first_order(200, 0.01)
+    _, ended = _run(times, positions, flags={"oc": [0] * 190 + [1] * 10})
+    assert ended["status"] == "bad" and ended["reasons"][0]["code"] == "current_limit"
+    metrics, passed = _run(times, positions, flags={"oc": [0] * 5 + [1] * 20 + [0] * 175})
+    assert passed["status"] == "doubtful" and passed["reasons"][0]["code"] == "current_limit"
+    assert metrics is not None and metrics["settling_time_s"] is not None
+
+
+def test_a_run_that_did_not_move_is_bad() -> None:
+    times = [i * 0.02 for i in range(50)]
+    metrics, quality = _run(times, [0.0] * 50, flags={"inpos": [0] * 50})
+    assert quality["status"] == "bad"
+    assert quality["reasons"][0]["code"] == "did_not_move"
+    assert metrics is not None and metrics["overshoot_pct"] is None
+
+
+def test_ending_outside_the_window_is_bad() -> None:
+    times, positions = _first_order(40, 0.01)  # cut off at 0.4 s, at 74 % of the step
+    _, quality = _run(times, positions)
+    assert quality["status"] == "bad"
+    assert quality["reasons"][0]["code"] == "outside_window"
+    assert "±5" in quality["reasons"][0]["message"]
+
+
+def test_an_incomplete_run_is_bad() -> None:
+    times, positions = _first_order(200, 0.01)
+    _, quality = _run(times, positions, status="incomplete")
+    assert quality["status"] == "bad" and quality["reasons"][0]["code"] == "incomplete"
+
+
+def test_sparse_samples_null_the_rise_and_times_shorter_than_their_gaps() -> None:
+    # 120 ms polling of a 33 ms rise: no sample in the rise, and the first sample
+    # after the command is already settled.
+    times, positions = _first_order(20, 0.12, tau=0.015)
+    metrics, quality = _run(times, positions)
+    assert metrics is not None
+    assert metrics["rise_time_s"] is None
+    assert f"needs {MIN_RISE_SAMPLES}" in quality["untrusted"]["rise_time_s"]
+    # the settling crossing lies between the command and a sample 120 ms later
+    assert metrics["settling_time_s"] is None
+    assert "ms apart" in quality["untrusted"]["settling_time_s"]
+    assert quality["status"] == "good"  # the run is fine, the sampling is not enough
+    # Ten or more samples in the rise: trusted.
+    times, positions = _first_order(300, 0.01)
+    metrics, quality = _run(times, positions)
+    assert metrics is not None and metrics["rise_time_s"] is not None
+    assert "rise_time_s" not in quality["untrusted"]
+
+
+def test_fewer_than_ten_samples_is_doubtful() -> None:
+    times, positions = [0.0, 0.5, 1.0, 1.5, 2.0], [0.0, 900.0, 1000.0, 1000.0, 1000.0]
+    _, quality = _run(times, positions)
+    assert quality["status"] == "doubtful" and quality["reasons"][0]["code"] == "sparse"
+
+
+# --- on the simulated SLAP2 line -------------------------------------------------------
+
+
+@pytest.fixture
+async def api(tmp_path: Path) -> Any:
+    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            yield server
+
+
+async def test_sim_runs_hitting_the_switch_not_moving_or_cut_short_are_bad(
+    api: LiveServer,
+) -> None:
+    # E2 of the simulated motor is at +20000 counts: a move there ends in the switch.
+    run = await finished_run(api, "line-0", await start(api, "line-0", kind="move", distance=20000))
+    codes = [r["code"] for r in run["quality"]["reasons"]]
+    assert run["quality"]["status"] == "bad" and "limit_switch" in codes, run["quality"]
+    assert run["metrics"]["settling_time_s"] is None
+    assert "limit2" in run["quality"]["untrusted"]["steady_state_error"]
+
+    # PWM 1 does not overcome the motor's friction.
+    run = await finished_run(
+        api, "line-1", await start(api, "line-1", kind="pwm_step", pwm=1, duration_s=0.6)
+    )
+    assert run["quality"]["status"] == "bad", run["quality"]
+    assert run["quality"]["reasons"][0]["code"] == "did_not_move"
+
+    # A long move recorded for 0.3 s ends far from its target.
+    run = await finished_run(
+        api, "line-1", await start(api, "line-1", kind="move", distance=15000, duration_s=0.3)
+    )
+    assert run["quality"]["status"] == "bad", run["quality"]
+    assert "outside_window" in [r["code"] for r in run["quality"]["reasons"]]
+
+
+async def test_sim_position_step_rise_is_too_fast_for_the_telemetry(api: LiveServer) -> None:
+    # sv/sa at maximum: 1000 counts in a few tens of ms, polled at most ~50 Hz per axis
+    # at 19200 baud: fewer than 10 samples in the rise, whatever the host's speed.
+    run = await finished_run(
+        api, "line-0", await start(api, "line-0", kind="position_step", distance=1000)
+    )
+    assert run["metrics"]["rise_time_s"] is None
+    assert "samples between 10 % and 90 %" in run["quality"]["untrusted"]["rise_time_s"]
+
+
+async def test_relative_moves_return_to_their_start(api: LiveServer) -> None:
+    module = api.bus.module(0)
+    before = module.position
+    for distance in (3000, 3000, -2000):
+        run = await finished_run(
+            api, "line-0", await start(api, "line-0", kind="move", distance=distance)
+        )
+        assert run["status"] == "complete", run["message"]
+        assert run["return"]["ok"], run["return"]
+        assert abs(module.position - before) <= 2 * run["plan"]["band"]
+        # The way back is not part of the record: the run ends near its target.
+        last = run["samples"][-1][run["columns"].index("position")]
+        assert abs(last - run["plan"]["y_final"]) <= run["plan"]["band"]
+
+
+async def test_the_travel_window_refuses_targets_outside_before_anything_moves(
+    api: LiveServer,
+) -> None:
+    position = (await api.state("line-1"))["position"]
+    limits = {
+        "max_distance_counts": 20000,
+        "max_velocity": 20000,
+        "max_pwm": 80,
+        "max_duration_s": 10,
+        "min_position_counts": round(position) - 1000,
+        "max_position_counts": round(position) + 1000,
+    }
+    assert (await api.client.put("/api/axes/line-1/bench/limits", json=limits)).status_code == 200
+    response = await api.client.post(
+        "/api/axes/line-1/bench/runs", json={"kind": "move", "distance": 5000}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "distance"
+    assert "max_position_counts" in response.json()["detail"]
+    assert not api.bus.module(1).rss & 0b1100  # nothing moved
+    bad = {**limits, "min_position_counts": 10, "max_position_counts": 5}
+    response = await api.client.put("/api/axes/line-1/bench/limits", json=bad)
+    assert response.status_code == 422
