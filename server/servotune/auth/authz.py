@@ -22,10 +22,11 @@ from starlette.requests import HTTPConnection
 from servotune.auth.audit import AuditLog
 from servotune.auth.middleware import MUTATING, client_address, session_cookie
 from servotune.auth.permissions import DANGEROUS, LOCKED, REAUTH_AFTER_S, permissions_of
-from servotune.auth.principal import LOCAL_PRINCIPAL, PARAM_SETS, Principal
+from servotune.auth.principal import LOCAL_PRINCIPAL, MOVE, PARAM_SETS, Principal
 from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS, command_permission
 from servotune.auth.security import CLIENT_HEADER, SecurityState
 from servotune.auth.store import AuthStore, Session
+from servotune.hub import UnknownAxisError
 
 logger = logging.getLogger(__name__)
 
@@ -106,8 +107,11 @@ async def _permission_for(request: Request, permission: str) -> str:
         body = None
     name = body.get("command") if isinstance(body, dict) else None
     axis_id = request.path_params.get("axis_id", "")
-    hub = request.app.state.hub
-    return command_permission(hub.descriptor(axis_id), str(name or ""))
+    try:
+        descriptor = request.app.state.hub.descriptor(axis_id)
+    except UnknownAxisError:
+        return MOVE  # the strictest reading; the route answers 404 to those allowed
+    return command_permission(descriptor, str(name or ""))
 
 
 async def authorize(connection: HTTPConnection) -> None:

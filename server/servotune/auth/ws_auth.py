@@ -128,6 +128,13 @@ async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
         if principal is None:
             await refuse("unknown, used or expired ticket")
             return None
+        if principal.via == "session" and principal.session_id is not None:
+            # The session may have ended in the seconds since the ticket was issued.
+            store = security.require_store()
+            alive = await asyncio.to_thread(store.session_by_public_id, principal.session_id)
+            if alive is None:
+                await refuse("the ticket's session has ended", principal.user)
+                return None
     else:
         principal, _ = await asyncio.to_thread(resolve_principal, websocket, security)
     if principal is None:
