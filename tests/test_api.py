@@ -236,7 +236,10 @@ async def test_settings_survive_a_server_restart(tmp_path: Path) -> None:
 
 
 async def test_websocket_streams_and_second_client_sees_changes(api: LiveServer) -> None:
-    async with websockets.connect(api.ws_url, origin=api.base_url) as first, websockets.connect(api.ws_url, origin=api.base_url) as second:
+    async with (
+        websockets.connect(api.ws_url, origin=api.base_url) as first,
+        websockets.connect(api.ws_url, origin=api.base_url) as second,
+    ):
         hello = json.loads(await first.recv())
         assert hello["type"] == "hello"
         assert [a["id"] for a in hello["axes"]] == ["line-0", "line-1"]

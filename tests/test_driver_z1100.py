@@ -160,7 +160,9 @@ async def test_api_refuses_while_moving_before_sending(tmp_path: Path) -> None:
             hub = app.state.hub
             await wait_for(lambda: hub.link_status("chip").state == "connected", 5, "link")
             transport = httpx.ASGITransport(app=app)
-            async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as client:
+            async with httpx.AsyncClient(
+                transport=transport, base_url="http://localhost"
+            ) as client:
                 await use_csrf_token(client)
                 url = "/api/axes/chip-y"
                 response = await client.post(
