@@ -202,5 +202,14 @@ class AuditLog:
         writer.writerow(["time_utc", *COLUMNS])
         for row in self.query(filters):
             stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(row["t_s"]))
-            writer.writerow([stamp, *(row[c] if row[c] is not None else "" for c in COLUMNS)])
+            writer.writerow([stamp, *(_cell(row[c]) for c in COLUMNS)])
         return out.getvalue()
+
+
+def _cell(value: object) -> object:
+    """A CSV cell a spreadsheet shows as text: a leading = + - @ would start a formula."""
+    if value is None:
+        return ""
+    if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        return "'" + value
+    return value
