@@ -10,6 +10,7 @@ from collections import defaultdict
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -160,3 +161,14 @@ async def gather_in_order(*jobs: Awaitable[object]) -> list[int]:
 
     await asyncio.gather(*(run(i, j) for i, j in enumerate(jobs)))
     return order
+
+
+async def use_csrf_token(client: Any) -> None:
+    """Make an httpx client send the server's CSRF token on every request (local mode).
+
+    The token comes from ``GET /api/auth/session``, as the web client gets it; a page on
+    another site cannot read that answer.
+    """
+    response = await client.get("/api/auth/session")
+    assert response.status_code == 200, response.text
+    client.headers["X-CSRF-Token"] = response.json()["csrf_token"]

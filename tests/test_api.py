@@ -20,7 +20,7 @@ from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.sim.serial_sim import PtySimulator
 
-from .conftest import running_simulator, wait_for
+from .conftest import running_simulator, use_csrf_token, wait_for
 
 
 @dataclass
@@ -68,6 +68,7 @@ async def live_server(
         await wait_for(lambda: server.started, 10, "the server to start")
         base = f"http://127.0.0.1:{port}"
         async with httpx.AsyncClient(base_url=base, timeout=10) as client:
+            await use_csrf_token(client)
             live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus)
             for axis in (await client.get("/api/axes")).json():
                 axis_id = axis["id"]
@@ -235,7 +236,10 @@ async def test_settings_survive_a_server_restart(tmp_path: Path) -> None:
 
 
 async def test_websocket_streams_and_second_client_sees_changes(api: LiveServer) -> None:
-    async with websockets.connect(api.ws_url) as first, websockets.connect(api.ws_url) as second:
+    async with (
+        websockets.connect(api.ws_url, origin=api.base_url) as first,
+        websockets.connect(api.ws_url, origin=api.base_url) as second,
+    ):
         hello = json.loads(await first.recv())
         assert hello["type"] == "hello"
         assert [a["id"] for a in hello["axes"]] == ["line-0", "line-1"]
@@ -259,9 +263,9 @@ async def test_websocket_streams_and_second_client_sees_changes(api: LiveServer)
 
 
 async def test_a_stalled_client_does_not_slow_the_others(api: LiveServer) -> None:
-    async with websockets.connect(api.ws_url, max_queue=1) as stalled:
+    async with websockets.connect(api.ws_url, max_queue=1, origin=api.base_url) as stalled:
         await stalled.recv()  # hello, then never read again
-        async with websockets.connect(api.ws_url) as reader:
+        async with websockets.connect(api.ws_url, origin=api.base_url) as reader:
             count = 0
             loop = asyncio.get_running_loop()
             start = loop.time()

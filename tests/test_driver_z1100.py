@@ -16,7 +16,7 @@ from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
 
-from .conftest import RecordingSink, wait_for
+from .conftest import RecordingSink, use_csrf_token, wait_for
 
 BAUD = 38400  # the fastest jumper setting keeps the tests short
 
@@ -164,7 +164,10 @@ async def test_api_refuses_while_moving_before_sending(tmp_path: Path) -> None:
             hub = app.state.hub
             await wait_for(lambda: hub.link_status("chip").state == "connected", 5, "link")
             transport = httpx.ASGITransport(app=app)
-            async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            async with httpx.AsyncClient(
+                transport=transport, base_url="http://localhost"
+            ) as client:
+                await use_csrf_token(client)
                 url = "/api/axes/chip-y"
                 response = await client.post(
                     f"{url}/commands", json={"command": "go_to_target", "target": 80_000}

@@ -1,4 +1,4 @@
-"""The ``servotune`` command: demo, serve, sim, bench."""
+"""The ``servotune`` command: demo, serve, sim, bench, users, tokens."""
 
 from __future__ import annotations
 
@@ -8,6 +8,11 @@ import sys
 from pathlib import Path
 
 from servotune import __version__
+from servotune.auth.cli import (
+    add_account_commands,
+    add_security_arguments,
+    security_config_from_args,
+)
 from servotune.config import ConfigError, LinkSpec, load_config_file, parse_link_spec
 from servotune.storage import default_data_dir
 
@@ -26,14 +31,29 @@ def _run_server(app_config: object, host: str, port: int) -> None:
     import uvicorn
 
     from servotune.api.app import AppConfig, create_app
+    from servotune.auth.security import SecurityConfigError
 
     assert isinstance(app_config, AppConfig)
-    if host not in ("127.0.0.1", "localhost", "::1"):
-        logging.getLogger(__name__).warning(
-            "listening on %s: anyone who can reach this address can move the motors", host
-        )
-    print(f"servotune {__version__}: http://{host}:{port}  (API docs: /docs)", flush=True)
-    uvicorn.run(create_app(app_config), host=host, port=port, log_level="warning")
+    security = app_config.security
+    try:
+        app = create_app(app_config)
+    except SecurityConfigError as exc:
+        print(f"servotune: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    scheme = "https" if security.tls else "http"
+    mode = "exposed: login required" if security.exposed else "local"
+    print(f"servotune {__version__}: {scheme}://{host}:{port}  ({mode})", flush=True)
+    # proxy_headers off: forwarded headers are honoured by servotune.auth.middleware,
+    # from the --proxy address only (uvicorn would trust any loopback peer).
+    uvicorn.run(
+        app,
+        host=host,
+        port=port,
+        log_level="warning",
+        proxy_headers=False,
+        ssl_certfile=security.tls_cert,
+        ssl_keyfile=security.tls_key,
+    )
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -45,6 +65,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         data_dir=data_dir,
         autopilot=not args.no_autopilot,
         simulators=demo_simulators(data_dir),
+        security=security_config_from_args(args, args.host),
     )
     _run_server(config, args.host, args.port)
     return 0
@@ -72,7 +93,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    config = AppConfig(links=links, data_dir=args.data_dir or default_data_dir())
+    config = AppConfig(
+        links=links,
+        data_dir=args.data_dir or default_data_dir(),
+        security=security_config_from_args(args, host),
+    )
     _run_server(config, host, port)
     return 0
 
@@ -133,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--port", type=int, default=8000)
     demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
     demo.add_argument("--data-dir", type=Path, default=None)
+    add_security_arguments(demo)
     demo.set_defaults(func=cmd_demo)
 
     serve = sub.add_parser("serve", help="dashboard for real devices")
@@ -146,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--data-dir", type=Path, default=None)
+    add_security_arguments(serve)
     serve.set_defaults(func=cmd_serve)
 
     sim = sub.add_parser(
@@ -180,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--url", default=None, help="demo: measure this running server instead")
     bench.add_argument("--pid", type=int, default=None, help="demo: process id of --url's server")
     bench.set_defaults(func=cmd_bench)
+    add_account_commands(sub)
     return parser
 
 

@@ -34,12 +34,29 @@ function detailOf(body: unknown, status: number, statusText: string): { detail: 
   return { detail: `HTTP ${status} ${statusText}`.trim(), field: null };
 }
 
-async function request<T>(method: string, path: string, body?: unknown): Promise<T> {
+// CSRF token for every state-changing call (servotune/auth/middleware.py). It comes
+// from GET /api/auth/session and changes at login (ui/login.ts sets the new one).
+let csrfToken: string | null = null;
+export function setCsrfToken(token: string): void {
+  csrfToken = token;
+}
+async function csrf(): Promise<string> {
+  if (csrfToken === null) {
+    const response = await fetch("/api/auth/session", { credentials: "same-origin" });
+    csrfToken = ((await response.json()) as { csrf_token: string }).csrf_token;
+  }
+  return csrfToken;
+}
+
+export async function request<T>(method: string, path: string, body?: unknown, retried = false): Promise<T> {
   let response: Response;
   try {
+    const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
+    if (method !== "GET" && method !== "HEAD") headers["X-CSRF-Token"] = await csrf();
     response = await fetch(path, {
       method,
-      headers: body === undefined ? {} : { "Content-Type": "application/json" },
+      headers,
+      credentials: "same-origin",
       body: body === undefined ? null : JSON.stringify(body),
     });
   } catch (error) {
@@ -56,9 +73,18 @@ async function request<T>(method: string, path: string, body?: unknown): Promise
   }
   if (!response.ok) {
     const { detail, field } = detailOf(parsed, response.status, response.statusText);
+    // A dangerous admin action after 5 min asks for the password again (ui/login.ts).
+    if (response.status === 401 && detail.includes("password again") && reauthHandler && !retried) {
+      if (await reauthHandler()) return request<T>(method, path, body, true);
+    }
     throw new ApiError(response.status, detail, field);
   }
   return parsed as T;
+}
+
+let reauthHandler: (() => Promise<boolean>) | null = null;
+export function setReauthHandler(handler: () => Promise<boolean>): void {
+  reauthHandler = handler;
 }
 
 // --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---

@@ -5,6 +5,8 @@ import { h, replace, setText } from "./dom";
 import { store } from "./store";
 import { AxisView } from "./ui/axis";
 import { mountToast, showError } from "./ui/feedback";
+import { authGate } from "./ui/login";
+import { mountUserMenu } from "./ui/usermenu";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
 import { WsClient, wsUrl } from "./ws";
 
@@ -166,4 +168,9 @@ Promise.all([api.axes(), api.links()])
   .catch(() => {
     /* the websocket's hello will bring the topology */
   });
-ws.start();
+// Exposed mode: nothing streams before a login (ui/login.ts shows the login page).
+void authGate().then((session) => {
+  if (session === "login") return;
+  if (session) mountUserMenu(topbar.el, session);
+  ws.start();
+});

@@ -18,11 +18,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import BaseRoute, Mount, Route
 
 from servotune import __version__
+from servotune.api.auth_routes import router as auth_router
 from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
 from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.auth.install import install_security
+from servotune.auth.security import SecurityConfig
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
 from servotune.drivers.base import (
@@ -54,6 +57,8 @@ class AppConfig:
         default_factory=list
     )
     web_dir: Path = WEB_DIST
+    # Local or exposed mode, TLS, reverse proxy (servotune.auth.security).
+    security: SecurityConfig = field(default_factory=SecurityConfig)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -80,7 +85,7 @@ def create_app(config: AppConfig) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         storage = Storage(config.data_dir / "servotune.db")
-        with contextlib.ExitStack() as simulators:
+        with security.running(app), contextlib.ExitStack() as simulators:
             specs = list(config.links)
             for start_simulator in config.simulators:
                 specs.extend(simulators.enter_context(start_simulator()))
@@ -109,10 +114,13 @@ def create_app(config: AppConfig) -> FastAPI:
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
     )
+    # Before every include_router: the authorization dependency is app-wide.
+    security = install_security(app, config.security, config.data_dir)
     app.include_router(router)
     app.include_router(bench_router)
     app.include_router(autotune_router)
     app.include_router(param_set_router)
+    app.include_router(auth_router)
 
     def openapi() -> dict[str, Any]:
         """The live OpenAPI: once the hub runs, command and params bodies per device."""

@@ -16,6 +16,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from servotune.api.deps import HubDep, WsHubDep
 from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
+from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -165,7 +166,15 @@ async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> Console
 @router.websocket("/ws")
 async def websocket_endpoint(websocket: WebSocket, hub: WsHubDep) -> None:
     """Telemetry and state stream; message shapes in ``servotune.wire``."""
+    principal = await authenticate_websocket(websocket)  # Host/Origin/credentials
+    if principal is None:
+        return
     await websocket.accept()
+
+    async def close_on_revocation() -> None:
+        await websocket.close(code=1008, reason="session ended")
+
+    register_ws(principal, close_on_revocation)
     queue = hub.subscribe()
     try:
         await websocket.send_text(hub.hello().model_dump_json())
@@ -201,4 +210,5 @@ async def websocket_endpoint(websocket: WebSocket, hub: WsHubDep) -> None:
     except WebSocketDisconnect:
         pass
     finally:
+        unregister_ws(principal, close_on_revocation)
         hub.unsubscribe(queue)

@@ -1,0 +1,229 @@
+"""``servotune users ...`` and ``servotune tokens ...``, and the serve/demo security options.
+
+The first admin is made here, never by a first-come web form. Passwords are read
+with getpass (twice) or, for scripts and containers, one line from stdin
+(``--password-stdin``); never from the command line, where ``ps`` and the shell
+history would show them. A token is printed once, when it is made.
+
+Changes take effect at once for REST calls of a running server (it reads the same
+``auth.db``); the server also re-checks open websockets every few seconds and closes
+those whose session or token is gone (``servotune.auth.install``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import sys
+import time
+from pathlib import Path
+
+from servotune.auth.passwords import WeakPasswordError, check_password_rule, hash_password
+from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError
+from servotune.auth.security import AUTH_DB, SecurityConfig
+from servotune.auth.store import TOKEN_DEFAULT_DAYS, AccountError, AuthStore
+
+
+def add_security_arguments(parser: argparse.ArgumentParser) -> None:
+    """The exposed-mode options of ``serve`` and ``demo``."""
+    group = parser.add_argument_group("remote access (exposed mode)")
+    group.add_argument("--tls-cert", type=Path, default=None, help="PEM certificate (TLS)")
+    group.add_argument("--tls-key", type=Path, default=None, help="PEM private key (TLS)")
+    group.add_argument(
+        "--proxy",
+        action="append",
+        default=[],
+        metavar="ADDR",
+        help="address, network or name of the TLS reverse proxy in front; forwarded "
+        "headers are trusted from it only (repeatable)",
+    )
+    group.add_argument(
+        "--public-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="host name the dashboard is reached by (Host header allowlist; repeatable)",
+    )
+    group.add_argument(
+        "--exposed",
+        action="store_true",
+        help="exposed mode (login required) even on a loopback address",
+    )
+
+
+def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityConfig:
+    return SecurityConfig(
+        mode="exposed" if args.exposed else None,
+        host=host,
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        proxy=list(args.proxy),
+        public_hosts=list(args.public_host),
+    )
+
+
+def _read_password(args: argparse.Namespace) -> str:
+    if args.password_stdin:
+        password = sys.stdin.readline().rstrip("\r\n")
+    else:
+        password = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != password:
+            raise AccountError("the two passwords differ")
+    check_password_rule(password)
+    return password
+
+
+def _store(args: argparse.Namespace) -> AuthStore:
+    from servotune.storage import default_data_dir
+
+    data_dir: Path = args.data_dir or default_data_dir()
+    return AuthStore(data_dir / AUTH_DB)
+
+
+def _when(t_s: float | None) -> str:
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(t_s)) if t_s else "-"
+
+
+def cmd_users(args: argparse.Namespace) -> int:
+    from servotune.auth.audit import AuditLog
+
+    store = _store(args)
+    audit = AuditLog(store.path)
+    try:
+        action = args.users_command
+        if action == "list":
+            for user in store.list_users():
+                print(f"{user.name:24} {user.role:9} since {_when(user.created_s)}")
+            return 0
+        if action == "add":
+            password = _read_password(args)
+            store.add_user(args.name, args.role, hash_password(password))
+            detail = "first admin" if store.count_users() == 1 else ""
+            audit.record(
+                who="cli",
+                action="user add",
+                after={"name": args.name, "role": args.role},
+                detail=detail,
+            )
+            print(f"user {args.name} ({args.role}) added")
+            return 0
+        if action == "remove":
+            gone = store.get_user(args.name)
+            if gone is not None and gone.role == ADMIN and store.count_admins() <= 1:
+                raise AccountError("the last admin cannot be removed")
+            store.remove_user(args.name)
+            audit.record(who="cli", action="user remove", before={"name": args.name})
+            print(f"user {args.name} removed (sessions and tokens with it)")
+            return 0
+        if action == "passwd":
+            if store.get_user(args.name) is None:
+                raise AccountError(f"no user {args.name!r}")
+            store.set_password_hash(args.name, hash_password(_read_password(args)))
+            audit.record(who="cli", action="password change", detail=f"user {args.name}")
+            print(f"password of {args.name} changed; their sessions ended")
+            return 0
+        if action == "role":
+            changed = store.get_user(args.name)
+            if changed is None:
+                raise AccountError(f"no user {args.name!r}")
+            if changed.role == ADMIN and args.role != ADMIN and store.count_admins() <= 1:
+                raise AccountError("the last admin cannot lose the admin role")
+            store.set_role(args.name, args.role)
+            audit.record(
+                who="cli",
+                action="user change",
+                before={"name": args.name, "role": changed.role},
+                after={"name": args.name, "role": args.role},
+            )
+            print(f"{args.name} is now {args.role}; their sessions ended")
+            return 0
+        raise AssertionError(action)
+    except (AccountError, UnknownRoleError, WeakPasswordError) as exc:
+        print(f"servotune users {args.users_command}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        audit.close()
+        store.close()
+
+
+def cmd_tokens(args: argparse.Namespace) -> int:
+    from servotune.auth.audit import AuditLog
+
+    store = _store(args)
+    audit = AuditLog(store.path)
+    try:
+        action = args.tokens_command
+        if action == "list":
+            for token in store.list_tokens(args.user):
+                print(
+                    f"{token.id}  {token.user:16} {token.role:9} {token.name:24} "
+                    f"expires {_when(token.expires_s)}  last used {_when(token.last_used_s)}"
+                )
+            return 0
+        if action == "create":
+            user = store.get_user(args.user)
+            if user is None:
+                raise AccountError(f"no user {args.user!r}")
+            secret, token = store.create_token(
+                args.user, args.name, args.role or user.role, args.days
+            )
+            audit.record(
+                who="cli",
+                action="token create",
+                after={"id": token.id, "user": token.user, "name": token.name, "role": token.role},
+            )
+            print(
+                f"token {token.id} for {token.user} ({token.role}), "
+                f"expires {_when(token.expires_s)}"
+            )
+            print("It is shown this once; send it as 'Authorization: Bearer <token>':")
+            print(secret)
+            return 0
+        if action == "revoke":
+            token = store.revoke_token(args.id)
+            audit.record(
+                who="cli", action="token revoke", before={"id": token.id, "user": token.user}
+            )
+            print(f"token {token.id} ({token.name}) revoked")
+            return 0
+        raise AssertionError(action)
+    except (AccountError, UnknownRoleError) as exc:
+        print(f"servotune tokens {args.tokens_command}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        audit.close()
+        store.close()
+
+
+def add_account_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Register ``users`` and ``tokens`` on the main parser's subcommands."""
+    users = sub.add_parser("users", help="accounts for exposed mode (login)")
+    users.add_argument("--data-dir", type=Path, default=None)
+    users_sub = users.add_subparsers(dest="users_command", required=True)
+    users_sub.add_parser("list", help="list accounts")
+    for name, text in (("add", "create an account"), ("passwd", "set a new password")):
+        p = users_sub.add_parser(name, help=text)
+        p.add_argument("name")
+        if name == "add":
+            p.add_argument("--role", choices=ROLE_ORDER, required=True)
+        p.add_argument("--password-stdin", action="store_true", help="read one line from stdin")
+    remove = users_sub.add_parser("remove", help="delete an account, its sessions and tokens")
+    remove.add_argument("name")
+    role = users_sub.add_parser("role", help="change an account's role")
+    role.add_argument("name")
+    role.add_argument("role", choices=ROLE_ORDER)
+    users.set_defaults(func=cmd_users)
+
+    tokens = sub.add_parser("tokens", help="API tokens for scripts (Authorization: Bearer)")
+    tokens.add_argument("--data-dir", type=Path, default=None)
+    tokens_sub = tokens.add_subparsers(dest="tokens_command", required=True)
+    listing = tokens_sub.add_parser("list", help="list tokens (never their secrets)")
+    listing.add_argument("--user", default=None)
+    create = tokens_sub.add_parser("create", help="make a token; printed once")
+    create.add_argument("user")
+    create.add_argument("name", help="what the token is for, e.g. 'nightly-bench'")
+    create.add_argument("--role", choices=ROLE_ORDER, default=None, help="at most the user's")
+    create.add_argument("--days", type=int, default=TOKEN_DEFAULT_DAYS)
+    revoke = tokens_sub.add_parser("revoke", help="delete a token")
+    revoke.add_argument("id")
+    tokens.set_defaults(func=cmd_tokens)

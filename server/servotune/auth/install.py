@@ -1,0 +1,55 @@
+"""Wiring of the security layer into the app: ``install_security`` and its lifespan part."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
+from fastapi import Depends, FastAPI
+
+from servotune.auth.authz import authorize
+from servotune.auth.middleware import SecurityMiddleware
+from servotune.auth.security import SecurityConfig, SecurityState, check_exposed_startup
+from servotune.auth.store import AuthStore
+
+
+class InstalledSecurity:
+    """Returned by :func:`install_security`; the app's lifespan enters :meth:`running`."""
+
+    def __init__(self, state: SecurityState) -> None:
+        self.state = state
+
+    @contextlib.contextmanager
+    def running(self, app: FastAPI) -> Iterator[SecurityState]:
+        """Open the accounts database and the audit writer for the app's lifetime."""
+        self.state.open()
+        app.state.audit = self.state.audit
+        try:
+            yield self.state
+        finally:
+            self.state.close()
+
+
+def install_security(app: FastAPI, config: SecurityConfig, data_dir: Path) -> InstalledSecurity:
+    """Add the checks to ``app``. Call it BEFORE ``include_router``: the authorization
+    dependency is app-wide and FastAPI copies router dependencies when a router is
+    included. Raises SecurityConfigError when exposed mode would start unsafe."""
+    state = SecurityState(config, data_dir)
+    if config.exposed:
+        # Fail at creation (before uvicorn binds the port), not in the lifespan.
+        store = AuthStore(state.auth_path)
+        try:
+            check_exposed_startup(config, store)
+        finally:
+            store.close()
+        # The interactive docs are a local-mode convenience; exposed, only the API
+        # (behind a login) is served. The schema is in docs/ and at /openapi.json locally.
+        hidden = {app.openapi_url, app.docs_url, app.redoc_url, app.swagger_ui_oauth2_redirect_url}
+        app.router.routes[:] = [
+            r for r in app.router.routes if getattr(r, "path", None) not in hidden
+        ]
+    app.state.security = state
+    app.router.dependencies.append(Depends(authorize))
+    app.add_middleware(SecurityMiddleware, security=state)
+    return InstalledSecurity(state)

@@ -1,0 +1,171 @@
+"""Audit of commands and parameter writes, the audit API, and the hook to the control lock.
+
+Against simulated SLAP2 modules on a real pty, in local mode (the same code paths as
+exposed mode, with the local principal) and exposed mode for the per-user view.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from fastapi import FastAPI, HTTPException
+
+from servotune.api.app import AppConfig, create_app
+from servotune.auth.audit import AuditLog, AuditQuery, scrub
+from servotune.auth.principal import Principal
+from servotune.config import LinkSpec
+
+from .auth_helpers import client, exposed_config, login, make_accounts, running
+from .conftest import running_simulator, use_csrf_token, wait_for
+
+
+@dataclass
+class Rig:
+    app: FastAPI
+    http: httpx.AsyncClient
+    bus: Any
+
+
+@pytest.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    with running_simulator([0, 1], tmp_path) as (sim, bus):
+        spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0, 1], 512)
+        app = create_app(
+            AppConfig(links=[spec], data_dir=tmp_path / "data", web_dir=tmp_path / "no-web")
+        )
+        async with running(app), client(app, base="http://localhost") as http:
+            hub = app.state.hub
+            await wait_for(lambda: hub.axis_state("line-0") is not None, 10, "telemetry")
+            await use_csrf_token(http)
+            yield Rig(app, http, bus)
+
+
+def entries(app: FastAPI, **filters: Any) -> list[dict[str, Any]]:
+    audit: AuditLog = app.state.audit
+    audit.flush()
+    return audit.query(AuditQuery(**filters))
+
+
+async def test_parameter_write_is_audited_with_before_and_after(rig: Rig) -> None:
+    response = await rig.http.patch("/api/axes/line-0/params", json={"kp": 55})
+    assert response.status_code == 200, response.text
+    row = entries(rig.app, action="/params")[0]
+    assert (row["who"], row["axis"], row["result"]) == ("local", "line-0", "ok")
+    assert row["before"] == '{"kp": 40}'
+    assert '"kp": 55' in row["after"]
+    assert row["address"] == "127.0.0.1"
+    # A refused write is audited with its answer, and nothing reached the module.
+    response = await rig.http.patch("/api/axes/line-0/params", json={"kp": 99999})
+    assert response.status_code == 422
+    row = entries(rig.app, action="/params")[0]
+    assert row["result"].startswith("http 422") and "kp" in row["result"]
+    assert row["after"] is None
+    assert rig.bus.module(0).settings["kp"] == 55
+
+
+async def test_commands_are_audited_with_their_result(rig: Rig) -> None:
+    response = await rig.http.post("/api/axes/line-0/commands", json={"command": "position_mode"})
+    assert response.status_code == 200, response.text
+    response = await rig.http.post("/api/axes/line-0/commands", json={"command": "stop"})
+    assert response.status_code == 200
+    rows = entries(rig.app, action="/commands")
+    assert [r["detail"] for r in rows[:2]] == ["stop", "position_mode"]
+    assert all(r["result"] == "ok" and r["axis"] == "line-0" for r in rows[:2])
+    assert '"sent"' in rows[0]["after"]
+    assert (await rig.http.post("/api/stop")).status_code == 200
+    assert entries(rig.app, action="POST /api/stop")[0]["result"] == "ok"
+
+
+class FakeControl:
+    """Stands in for the control module's lock: records the calls, refuses axis 1."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, str | None, str]] = []
+
+    async def require(self, axis_id: str, client_id: str | None, principal: Principal) -> None:
+        self.calls.append((axis_id, client_id, principal.user))
+        if axis_id == "line-1":
+            raise HTTPException(423, "line-1 is controlled by olga")
+
+
+async def test_lock_is_asked_for_changes_never_for_stop(rig: Rig) -> None:
+    control = FakeControl()
+    rig.app.state.control = control
+    headers = {"X-Servotune-Client": "tab-7"}
+    http = rig.http
+    ok = await http.patch("/api/axes/line-0/params", json={"kd": 81}, headers=headers)
+    assert ok.status_code == 200
+    assert control.calls == [("line-0", "tab-7", "local")]
+    before = rig.bus.module(1).settings["kd"]
+    locked = await http.patch("/api/axes/line-1/params", json={"kd": 81}, headers=headers)
+    assert locked.status_code == 423 and "olga" in locked.json()["detail"]
+    await asyncio.sleep(0.2)
+    assert rig.bus.module(1).settings["kd"] == before  # nothing was sent
+    control.calls.clear()
+    # STOP (global and per axis) and reads never ask the lock.
+    assert (await http.post("/api/stop", headers=headers)).status_code == 200
+    stop = await http.post("/api/axes/line-1/commands", json={"command": "stop"}, headers=headers)
+    assert stop.status_code == 200
+    assert (await http.get("/api/axes/line-1/params")).status_code == 200
+    # Saving a parameter set does not change the axis; restoring one does.
+    saved = await http.post("/api/axes/line-1/param-sets", json={"name": "a"}, headers=headers)
+    assert saved.status_code == 201
+    assert control.calls == []
+    move = await http.post(
+        "/api/axes/line-1/commands", json={"command": "position_mode"}, headers=headers
+    )
+    assert move.status_code == 423
+    restore = await http.post("/api/axes/line-1/param-sets/a/restore", headers=headers)
+    assert restore.status_code == 423
+    assert [c[0] for c in control.calls] == ["line-1", "line-1"]
+    locked_rows = entries(rig.app, result="http 423")
+    assert locked_rows[0]["result"] == "http 423: line-1 is controlled by olga"
+    assert locked_rows[1]["detail"] == "position_mode"
+
+
+async def test_audit_page_api_filters_and_csv(tmp_path: Path) -> None:
+    make_accounts(tmp_path)
+    app = create_app(exposed_config(tmp_path))
+    async with running(app), client(app) as admin, client(app) as victor:
+        await login(admin, "alice")
+        await login(victor, "victor")
+        assert (await victor.post("/api/stop")).status_code == 200
+        assert (await victor.patch("/api/axes/x-0/params", json={"kp": 1})).status_code == 403
+        mine = (await victor.get("/api/audit")).json()
+        assert mine and {r["who"] for r in mine} == {"victor"}
+        # A viewer asking for someone else's entries still gets only their own.
+        assert {r["who"] for r in (await victor.get("/api/audit?who=alice")).json()} <= {"victor"}
+        everyone = (await admin.get("/api/audit")).json()
+        assert {"alice", "victor"} <= {r["who"] for r in everyone}
+        refused = (await admin.get("/api/audit?result=refused&who=victor")).json()
+        assert refused and all(r["result"] == "refused" for r in refused)
+        response = await admin.get("/api/audit.csv?who=victor")
+        assert response.headers["content-type"].startswith("text/csv")
+        assert "attachment" in response.headers["content-disposition"]
+        rows = list(csv.DictReader(io.StringIO(response.text)))
+        assert rows and {r["who"] for r in rows} == {"victor"}
+        assert rows[0]["time_utc"].endswith("Z")
+
+
+def test_scrub_and_csv_formula_cells(tmp_path: Path) -> None:
+    assert scrub({"password": "p", "nested": [{"api_token": "t", "kp": 1}]}) == {
+        "password": "<redacted>",
+        "nested": [{"api_token": "<redacted>", "kp": 1}],
+    }
+    audit = AuditLog(tmp_path / "a.db")
+    try:
+        audit.record(who="x", action="console", detail='=HYPERLINK("http://evil")')
+        audit.flush()
+        text = audit.csv(AuditQuery())
+    finally:
+        audit.close()
+    row = next(csv.DictReader(io.StringIO(text)))
+    assert row["detail"].startswith("'=")  # a spreadsheet shows it, never runs it
