@@ -33,7 +33,16 @@ def _run_server(app_config: object, host: str, port: int) -> None:
             "listening on %s: anyone who can reach this address can move the motors", host
         )
     print(f"servotune {__version__}: http://{host}:{port}  (API docs: /docs)", flush=True)
-    uvicorn.run(create_app(app_config), host=host, port=port, log_level="warning")
+    from servotune.api.ws import WS_MAX_MESSAGE_BYTES
+
+    # ws_max_size: uvicorn refuses bigger websocket frames (1009) before buffering them.
+    uvicorn.run(
+        create_app(app_config),
+        host=host,
+        port=port,
+        log_level="warning",
+        ws_max_size=WS_MAX_MESSAGE_BYTES,
+    )
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

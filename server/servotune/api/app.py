@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
@@ -17,10 +17,13 @@ from fastapi.staticfiles import StaticFiles
 from servotune import __version__
 from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
+from servotune.api.control_deps import require_axis_control
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.api.ws import router as ws_router
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
+from servotune.control import ControlManager, ControlSettings
 from servotune.drivers.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -49,6 +52,7 @@ class AppConfig:
         default_factory=list
     )
     web_dir: Path = WEB_DIST
+    control: ControlSettings = field(default_factory=ControlSettings)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -73,11 +77,19 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.bench = bench
             app.state.autotuner = AutoTuner(hub, bench)
             app.state.storage = storage
+            # The control lock and dead-man (servotune.control); it sends every axis a
+            # STOP first thing when its link is up, and again at shutdown.
+            control = ControlManager(
+                hub, config.control, audit=lambda: getattr(app.state, "audit", None)
+            )
+            app.state.control = control
             await hub.start()
+            await control.start()
             await bench.start()
             try:
                 yield
             finally:
+                await control.shutdown()
                 await bench.stop()
                 await hub.stop()
                 # Let pending storage writes finish before the database closes.
@@ -90,10 +102,14 @@ def create_app(config: AppConfig) -> FastAPI:
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
     )
-    app.include_router(router)
-    app.include_router(bench_router)
-    app.include_router(autotune_router)
-    app.include_router(param_set_router)
+    # MERGE NOTE: the auth branch's global dependency calls control.require itself;
+    # then these routers go back to plain include_router (see api.control_deps).
+    lock = [Depends(require_axis_control)]
+    app.include_router(router, dependencies=lock)
+    app.include_router(bench_router, dependencies=lock)
+    app.include_router(autotune_router, dependencies=lock)
+    app.include_router(param_set_router, dependencies=lock)
+    app.include_router(ws_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:

@@ -1,15 +1,12 @@
-"""REST and websocket routes. Handlers only translate HTTP to hub calls."""
+"""REST routes. Handlers only translate HTTP to hub calls (the websocket: ``api.ws``)."""
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, WebSocket, WebSocketDisconnect
-from pydantic import TypeAdapter, ValidationError
+from fastapi import APIRouter, Body
 
-from servotune.api.deps import HubDep, WsHubDep
+from servotune.api.deps import HubDep
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -20,8 +17,6 @@ from servotune.drivers.base import (
 from servotune.wire import (
     AxisInfo,
     AxisState,
-    ClientMessage,
-    ClientStats,
     CommandRequest,
     CommandResult,
     ConsoleReply,
@@ -40,8 +35,6 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     503: {"model": ErrorBody, "description": "link down: nothing was sent"},
     504: {"model": ErrorBody, "description": "the device did not answer"},
 }
-
-_client_message = TypeAdapter(ClientMessage)
 
 
 @router.get("/api/axes", response_model=list[AxisInfo], tags=["axes"])
@@ -142,45 +135,3 @@ async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> Console
     except DriverError as exc:
         return ConsoleReply(line=request.line, sent=request.line, reply=[], error=str(exc))
     return ConsoleReply(line=request.line, sent=sent, reply=reply, error=None)
-
-
-@router.websocket("/ws")
-async def websocket_endpoint(websocket: WebSocket, hub: WsHubDep) -> None:
-    """Telemetry and state stream; message shapes in ``servotune.wire``."""
-    await websocket.accept()
-    queue = hub.subscribe()
-    try:
-        await websocket.send_text(hub.hello().model_dump_json())
-        for text in hub.snapshot_messages():
-            await websocket.send_text(text)
-
-        async def sender() -> None:
-            while True:
-                await websocket.send_text(await queue.get())
-
-        async def receiver() -> None:
-            while True:
-                text = await websocket.receive_text()
-                with contextlib.suppress(ValidationError):
-                    _client_message.validate_json(text)
-                    stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
-                    queue.put(stats.model_dump_json(), droppable=False)
-
-        tasks = [asyncio.create_task(sender()), asyncio.create_task(receiver())]
-        try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-            for task in done:
-                if task.exception() is not None and not isinstance(
-                    task.exception(), WebSocketDisconnect
-                ):
-                    raise task.exception()  # type: ignore[misc]
-        finally:
-            for task in tasks:
-                task.cancel()
-            for task in tasks:
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
-    except WebSocketDisconnect:
-        pass
-    finally:
-        hub.unsubscribe(queue)
