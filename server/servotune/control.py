@@ -318,17 +318,11 @@ class ControlManager:
         if ax.client is client:
             self._reply(client, ax.axis_id, "take", True, "you hold this axis")
             return
-        if ax.kind == "user" or ax.handing_over:
-            self._reply(
-                client,
-                ax.axis_id,
-                "take",
-                False,
-                f"held by {self._holder_name(ax)}: press Request control",
-            )
-            return
         await self._wait_startup(ax)
-        await self._transfer(ax, client, "take")
+        if not await self._transfer(ax, client, "take", unless_held=True):
+            message = f"held by {self._holder_name(ax)}: press Request control"
+            self._reply(client, ax.axis_id, "take", False, message)
+            return
         self._reply(client, ax.axis_id, "take", True, "you hold this axis")
 
     async def _request(self, client: ControlClient, ax: _Axis) -> None:
@@ -486,9 +480,18 @@ class ControlManager:
 
     # --- transfers and the safe state -----------------------------------------------------
 
-    async def _transfer(self, ax: _Axis, client: ControlClient | None, action: str) -> None:
+    async def _transfer(
+        self, ax: _Axis, client: ControlClient | None, action: str, *, unless_held: bool = False
+    ) -> bool:
+        """Hand ``ax`` to ``client`` after its safe stop; waits for a transfer under way.
+
+        ``unless_held``: do nothing (False) if another user's client holds it by then.
+        """
         async with ax.mutex:
+            if unless_held and ax.kind == "user" and ax.client is not client:
+                return False
             await self._transfer_locked(ax, client, action)
+            return True
 
     async def _transfer_locked(self, ax: _Axis, client: ControlClient | None, action: str) -> None:
         """Safe state first, then the new holder (``None``: free). Caller holds the mutex."""
