@@ -34,12 +34,21 @@ function detailOf(body: unknown, status: number, statusText: string): { detail: 
   return { detail: `HTTP ${status} ${statusText}`.trim(), field: null };
 }
 
+/** This tab's websocket client id (``welcome``): the control lock knows the tab by it. */
+let clientId: string | null = null;
+
+export function setClientId(id: string | null): void {
+  clientId = id;
+}
+
 async function request<T>(method: string, path: string, body?: unknown): Promise<T> {
   let response: Response;
+  const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
+  if (clientId) headers["X-Servotune-Client"] = clientId;
   try {
     response = await fetch(path, {
       method,
-      headers: body === undefined ? {} : { "Content-Type": "application/json" },
+      headers,
       body: body === undefined ? null : JSON.stringify(body),
     });
   } catch (error) {

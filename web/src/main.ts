@@ -4,6 +4,7 @@ import { api } from "./api";
 import { h, replace, setText } from "./dom";
 import { store } from "./store";
 import { AxisView } from "./ui/axis";
+import { control } from "./ui/control";
 import { mountToast, showError } from "./ui/feedback";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
 import { WsClient, wsUrl } from "./ws";
@@ -42,8 +43,11 @@ async function stopAll(source: string): Promise<void> {
 }
 
 const ws = new WsClient(wsUrl(), {
-  message: (msg) => store.handle(msg),
+  message: (msg) => {
+    if (!control.handle(msg)) store.handle(msg);
+  },
   state: (state) => {
+    control.connection(state.kind === "open");
     store.ws = state;
     topbar.setWs(state);
     document.body.dataset.ws = state.kind;
@@ -76,6 +80,7 @@ const content = h("main", { class: "content" });
 const toastHost = h("div", { class: "toast-host" });
 replace(app, topbar.el, h("div", { class: "body" }, nav.el, h("div", { class: "main-col" }, connection, content, events.el)), toastHost);
 mountToast(toastHost);
+control.mountPrompts(document.body);
 
 function axisFromHash(): string | null {
   const match = /^#\/axis\/(.+)$/.exec(location.hash);
@@ -153,4 +158,5 @@ Promise.all([api.axes(), api.links()])
   .catch(() => {
     /* the websocket's hello will bring the topology */
   });
+control.attach(ws);
 ws.start();
