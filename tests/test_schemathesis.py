@@ -135,5 +135,3 @@ def test_live_openapi_contract(tmp_path: Path) -> None:
     # Every route of the demo is in the schema, the per-axis ones included.
     assert operations >= 30
     assert not failures, "\n\n".join(failures)
-
-

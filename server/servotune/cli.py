@@ -31,6 +31,7 @@ def _run_server(app_config: object, host: str, port: int) -> None:
     import uvicorn
 
     from servotune.api.app import AppConfig, create_app
+    from servotune.api.ws import WS_MAX_MESSAGE_BYTES
     from servotune.auth.security import SecurityConfigError
 
     assert isinstance(app_config, AppConfig)
@@ -53,6 +54,8 @@ def _run_server(app_config: object, host: str, port: int) -> None:
         proxy_headers=False,
         ssl_certfile=security.tls_cert,
         ssl_keyfile=security.tls_key,
+        # uvicorn refuses bigger websocket frames (1009) before buffering them.
+        ws_max_size=WS_MAX_MESSAGE_BYTES,
     )
 
 

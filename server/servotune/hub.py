@@ -21,6 +21,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from pydantic import BaseModel
 
@@ -156,6 +157,21 @@ class ClientQueue:
         return len(self._items)
 
 
+class AutopilotGate(Protocol):
+    """Who decides when the demo autopilot may drive an axis (``servotune.control``).
+
+    Without a gate the autopilot stops for good the first time a user operates an axis.
+    """
+
+    def autopilot_paused(self, axis_id: str) -> None:
+        """The autopilot stopped driving ``axis_id`` (someone operated it, or STOP)."""
+        ...
+
+    def autopilot_may_resume(self, axis_id: str) -> bool:
+        """May the autopilot drive ``axis_id`` again now? True means it holds the axis."""
+        ...
+
+
 class Hub:
     """Owns links and their tasks for the lifetime of the app (see ``api.app``)."""
 
@@ -178,6 +194,8 @@ class Hub:
         self._events: deque[Event] = deque(maxlen=200)
         self._tasks: list[asyncio.Task[None]] = []
         self._sample_listeners: list[Callable[[str, Sample], None]] = []
+        # Set by servotune.control: the autopilot yields to a holder and resumes later.
+        self.autopilot_gate: AutopilotGate | None = None
         for link in links:
             self.add_link(link)
 
@@ -760,8 +778,11 @@ class Hub:
     # --- demo autopilot ---------------------------------------------------------------
 
     async def _autopilot(self, entry: AxisEntry) -> None:
-        """Gentle repeating moves until someone operates the axis (demo only).
+        """Gentle repeating moves while nobody else operates the axis (demo only).
 
+        ``entry.operated`` means "the autopilot is not driving this axis now": a user
+        change sets it. With an ``autopilot_gate`` (the control lock) the autopilot
+        waits and resumes when the gate lets it; without one it stops for good.
         The moves come from the driver's ``autopilot_commands`` / ``autopilot_settled``
         (see ``drivers.base.Autopilot``); axes whose driver has none stay still.
         """
@@ -770,7 +791,21 @@ class Hub:
             return
         amplitude = driver.autopilot_amplitude()
         direction = 1
-        while not entry.operated:
+        paused = False
+        while True:
+            if entry.operated:
+                gate = self.autopilot_gate
+                if gate is None:
+                    return
+                if not paused:
+                    paused = True
+                    gate.autopilot_paused(entry.info.id)
+                await asyncio.sleep(0.5)
+                if entry.operated and gate.autopilot_may_resume(entry.info.id):
+                    paused = False
+                    entry.operated = False
+                    self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+                continue
             await asyncio.sleep(0.5)
             link_state = self._links[entry.link.id].status.state
             sample = entry.latest
@@ -779,7 +814,7 @@ class Hub:
             try:
                 for name, args in driver.autopilot_commands(sample, direction * amplitude):
                     if entry.operated:
-                        return
+                        break
                     await driver.command(name, args)
                     await asyncio.sleep(0.05)
                 direction = -direction

@@ -49,11 +49,26 @@ MODELS: list[type[BaseModel]] = [
     wire.ConsoleRequest,
     wire.ConsoleReply,
     wire.ErrorBody,
+    # control lock (one block, servotune.control)
+    wire.Welcome,
+    wire.ControlHolder,
+    wire.ControlPending,
+    wire.ControlStatus,
+    wire.ControlPrompt,
+    wire.ControlReply,
+    wire.TakeControl,
+    wire.RequestControl,
+    wire.ReleaseControl,
+    wire.AnswerControl,
+    wire.ForceControl,
+    wire.Heartbeat,
 ]
 ALIASES = {
     "LinkState": wire.LinkState,
     "AxisHealth": wire.AxisHealth,
     "EventLevel": wire.EventLevel,
+    "ControlHolderKind": wire.ControlHolderKind,
+    "ControlAction": wire.ControlAction,
 }
 
 
@@ -67,6 +82,8 @@ def _members(annotated: object) -> list[type[BaseModel]]:
 UNIONS: dict[str, list[type[BaseModel]]] = {
     "ServerMessage": _members(wire.ServerMessage),
     "ClientMessage": _members(wire.ClientMessage),
+    "ControlServerMessage": _members(wire.ControlServerMessage),
+    "ControlClientMessage": _members(wire.ControlClientMessage),
 }
 
 

@@ -48,10 +48,18 @@ async function csrf(): Promise<string> {
   return csrfToken;
 }
 
+/** This tab's websocket client id (``welcome``): the control lock knows the tab by it. */
+let clientId: string | null = null;
+
+export function setClientId(id: string | null): void {
+  clientId = id;
+}
+
 export async function request<T>(method: string, path: string, body?: unknown, retried = false): Promise<T> {
   let response: Response;
+  const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
+  if (clientId) headers["X-Servotune-Client"] = clientId;
   try {
-    const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
     if (method !== "GET" && method !== "HEAD") headers["X-CSRF-Token"] = await csrf();
     response = await fetch(path, {
       method,

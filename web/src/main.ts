@@ -4,6 +4,7 @@ import { api } from "./api";
 import { h, replace, setText } from "./dom";
 import { store } from "./store";
 import { AxisView } from "./ui/axis";
+import { control } from "./ui/control";
 import { mountToast, showError } from "./ui/feedback";
 import { authGate } from "./ui/login";
 import { mountUserMenu } from "./ui/usermenu";
@@ -44,8 +45,11 @@ async function stopAll(source: string): Promise<void> {
 }
 
 const ws = new WsClient(wsUrl(), {
-  message: (msg) => store.handle(msg),
+  message: (msg) => {
+    if (!control.handle(msg)) store.handle(msg);
+  },
   state: (state) => {
+    control.connection(state.kind === "open");
     store.ws = state;
     topbar.setWs(state);
     document.body.dataset.ws = state.kind;
@@ -78,6 +82,7 @@ const content = h("main", { class: "content" });
 const toastHost = h("div", { class: "toast-host" });
 replace(app, topbar.el, h("div", { class: "body" }, nav.el, h("div", { class: "main-col" }, connection, content, events.el)), toastHost);
 mountToast(toastHost);
+control.mountPrompts(document.body);
 
 function axisFromHash(): string | null {
   const match = /^#\/axis\/(.+)$/.exec(location.hash);
@@ -172,5 +177,6 @@ Promise.all([api.axes(), api.links()])
 void authGate().then((session) => {
   if (session === "login") return;
   if (session) mountUserMenu(topbar.el, session);
+  control.attach(ws);
   ws.start();
 });

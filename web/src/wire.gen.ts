@@ -4,6 +4,8 @@
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline";
 export type EventLevel = "info" | "warning" | "error";
+export type ControlHolderKind = "user" | "autopilot" | "server";
+export type ControlAction = "take" | "request" | "release" | "answer" | "force" | "lapse" | "grant" | "deny";
 
 export interface Conversion {
   unit: string;
@@ -251,5 +253,84 @@ export interface ErrorBody {
   field: string | null;
 }
 
+export interface Welcome {
+  type: "welcome";
+  client_id: string;
+  client_tag: string;
+  user: string;
+  permissions: string[];
+  heartbeat_period_s: number;
+  lease_s: number;
+}
+
+export interface ControlHolder {
+  kind: ControlHolderKind;
+  user: string;
+  client_tag: string | null;
+  since_s: number;
+}
+
+export interface ControlPending {
+  user: string;
+  client_tag: string;
+  expires_s: number;
+}
+
+export interface ControlStatus {
+  type: "control_status";
+  axis: string;
+  holder: ControlHolder | null;
+  pending: ControlPending | null;
+}
+
+export interface ControlPrompt {
+  type: "control_prompt";
+  axis: string;
+  requester: string;
+  requester_tag: string;
+  timeout_s: number;
+  idle_grant_s: number;
+}
+
+export interface ControlReply {
+  type: "control_reply";
+  axis: string | null;
+  action: ControlAction;
+  ok: boolean;
+  message: string;
+}
+
+export interface TakeControl {
+  type: "take_control";
+  axis: string;
+}
+
+export interface RequestControl {
+  type: "request_control";
+  axis: string;
+}
+
+export interface ReleaseControl {
+  type: "release_control";
+  axis: string;
+}
+
+export interface AnswerControl {
+  type: "answer_control";
+  axis: string;
+  allow: boolean;
+}
+
+export interface ForceControl {
+  type: "force_control";
+  axis: string;
+}
+
+export interface Heartbeat {
+  type: "heartbeat";
+}
+
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats;
 export type ClientMessage = Ping;
+export type ControlServerMessage = Welcome | ControlStatus | ControlPrompt | ControlReply;
+export type ControlClientMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl | Heartbeat;

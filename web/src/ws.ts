@@ -1,10 +1,12 @@
 // The websocket: reconnects with exponential backoff and reports its state.
-import type { ClientMessage, RunUpdate, ServerMessage } from "./wire.gen";
+import type { ClientMessage, ControlClientMessage, ControlServerMessage, RunUpdate, ServerMessage } from "./wire.gen";
 
 /** What the server sends. ``RunUpdate`` (bench progress) is listed on its own because the
  * generated ``ServerMessage`` union does not include it yet; once it does, this is the
  * same type (a repeated member of a union is harmless). */
 export type Incoming = ServerMessage | RunUpdate;
+/** Everything on the socket: the store's messages plus the control lock's (ui/control.ts). */
+export type WsMessage = Incoming | ControlServerMessage;
 
 export type WsState =
   | { kind: "connecting"; attempt: number }
@@ -12,7 +14,7 @@ export type WsState =
   | { kind: "waiting"; attempt: number; retryAt: number; reason: string };
 
 export interface WsHandlers {
-  message(msg: Incoming): void;
+  message(msg: WsMessage): void;
   state(state: WsState): void;
 }
 
@@ -44,7 +46,7 @@ export class WsClient {
     this.socket?.close();
   }
 
-  send(msg: ClientMessage): void {
+  send(msg: ClientMessage | ControlClientMessage): void {
     if (this.socket?.readyState === WebSocket.OPEN) this.socket.send(JSON.stringify(msg));
   }
 
@@ -83,9 +85,9 @@ export class WsClient {
     };
     socket.onmessage = (event: MessageEvent) => {
       if (typeof event.data !== "string") return;
-      let msg: Incoming;
+      let msg: WsMessage;
       try {
-        msg = JSON.parse(event.data) as Incoming;
+        msg = JSON.parse(event.data) as WsMessage;
       } catch {
         return;
       }

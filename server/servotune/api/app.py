@@ -24,10 +24,12 @@ from servotune.api.bench_routes import router as bench_router
 from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
+from servotune.control import ControlManager, ControlSettings
 from servotune.drivers.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -59,6 +61,7 @@ class AppConfig:
     web_dir: Path = WEB_DIST
     # Local or exposed mode, TLS, reverse proxy (servotune.auth.security).
     security: SecurityConfig = field(default_factory=SecurityConfig)
+    control: ControlSettings = field(default_factory=ControlSettings)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -97,11 +100,19 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.bench = bench
             app.state.autotuner = AutoTuner(hub, bench)
             app.state.storage = storage
+            # The control lock and dead-man (servotune.control); it sends every axis a
+            # STOP first thing when its link is up, and again at shutdown.
+            control = ControlManager(
+                hub, config.control, audit=lambda: getattr(app.state, "audit", None)
+            )
+            app.state.control = control
             await hub.start()
+            await control.start()
             await bench.start()
             try:
                 yield
             finally:
+                await control.shutdown()
                 await bench.stop()
                 await hub.stop()
                 # Let pending storage writes finish before the database closes.
@@ -121,6 +132,7 @@ def create_app(config: AppConfig) -> FastAPI:
     app.include_router(autotune_router)
     app.include_router(param_set_router)
     app.include_router(auth_router)
+    app.include_router(ws_router)
 
     def openapi() -> dict[str, Any]:
         """The live OpenAPI: once the hub runs, command and params bodies per device."""

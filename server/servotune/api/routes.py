@@ -1,4 +1,4 @@
-"""REST and websocket routes. Handlers only translate HTTP to hub calls.
+"""REST routes (the websocket: ``api.ws``). Handlers only translate HTTP to hub calls.
 
 Every route states the error codes it can answer (``responses=``, see
 ``servotune.api.responses``); the command and params bodies are stated per device in
@@ -7,16 +7,12 @@ the live OpenAPI (``servotune.api.openapi``).
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, WebSocket, WebSocketDisconnect
-from pydantic import TypeAdapter, ValidationError
+from fastapi import APIRouter, Body
 
-from servotune.api.deps import HubDep, WsHubDep
+from servotune.api.deps import HubDep
 from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
-from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -28,8 +24,6 @@ from servotune.hub import NotFoundError
 from servotune.wire import (
     AxisInfo,
     AxisState,
-    ClientMessage,
-    ClientStats,
     CommandRequest,
     CommandResult,
     ConsoleReply,
@@ -43,8 +37,6 @@ router = APIRouter(prefix="")
 
 # Kept for the routers that import it: the answers of a route that talks to a device.
 ERRORS = DEVICE_ERRORS
-
-_client_message = TypeAdapter(ClientMessage)
 
 
 @router.get("/api/axes", response_model=list[AxisInfo], tags=["axes"])
@@ -161,54 +153,3 @@ async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> Console
     except DriverError as exc:
         return ConsoleReply(line=request.line, sent=request.line, reply=[], error=str(exc))
     return ConsoleReply(line=request.line, sent=sent, reply=reply, error=None)
-
-
-@router.websocket("/ws")
-async def websocket_endpoint(websocket: WebSocket, hub: WsHubDep) -> None:
-    """Telemetry and state stream; message shapes in ``servotune.wire``."""
-    principal = await authenticate_websocket(websocket)  # Host/Origin/credentials
-    if principal is None:
-        return
-    await websocket.accept()
-
-    async def close_on_revocation() -> None:
-        await websocket.close(code=1008, reason="session ended")
-
-    register_ws(principal, close_on_revocation)
-    queue = hub.subscribe()
-    try:
-        await websocket.send_text(hub.hello().model_dump_json())
-        for text in hub.snapshot_messages():
-            await websocket.send_text(text)
-
-        async def sender() -> None:
-            while True:
-                await websocket.send_text(await queue.get())
-
-        async def receiver() -> None:
-            while True:
-                text = await websocket.receive_text()
-                with contextlib.suppress(ValidationError):
-                    _client_message.validate_json(text)
-                    stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
-                    queue.put(stats.model_dump_json(), droppable=False)
-
-        tasks = [asyncio.create_task(sender()), asyncio.create_task(receiver())]
-        try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-            for task in done:
-                if task.exception() is not None and not isinstance(
-                    task.exception(), WebSocketDisconnect
-                ):
-                    raise task.exception()  # type: ignore[misc]
-        finally:
-            for task in tasks:
-                task.cancel()
-            for task in tasks:
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
-    except WebSocketDisconnect:
-        pass
-    finally:
-        unregister_ws(principal, close_on_revocation)
-        hub.unsubscribe(queue)

@@ -7,6 +7,7 @@ import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
 import { BenchView } from "./bench";
 import { Controls, makeRunner } from "./commands";
 import { ConsolePanel } from "./console";
+import { controlStrip } from "./control";
 import { PlotStack } from "./plots";
 import { Readouts } from "./readouts";
 import { TuningPanel } from "./tuning";
@@ -129,6 +130,7 @@ export class AxisView {
         h("span", { class: "axis-meta mono" }, `${axis.id} · ${axis.link} · addr ${axis.address}`),
         h("span", { class: "tb-spacer" }),
         this.controls.status,
+        controlStrip(axis.id, d, this.el, signal),
         h("div", { class: "seg view-toggle", role: "group", "aria-label": "View" }, this.liveButton, this.benchButton),
       ),
       h("div", { class: "axis-summary", title: `${d.title} — ${d.summary}` }, h("b", null, d.title), " — ", d.summary),

@@ -1,0 +1,181 @@
+"""The websocket ``/ws``: telemetry out, control-lock messages in (``servotune.wire``).
+
+Each connection is one *client* of the control lock (``servotune.control``): it learns
+its client id in ``welcome`` and renews its lease with ``heartbeat`` messages.
+
+Robustness: the client only ever sends small JSON text messages. A text message over
+``WS_MAX_MESSAGE_BYTES`` closes the connection with 1009 (uvicorn refuses larger frames
+itself: ``ws_max_size`` in ``cli.py``); a binary frame with 1003; more than
+``WS_MAX_MESSAGES_PER_S`` messages a second with 1008. Malformed JSON is ignored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Annotated
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from pydantic import Field, TypeAdapter, ValidationError
+from starlette.websockets import WebSocketState
+
+from servotune.auth.principal import Principal
+from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
+from servotune.control import ControlClient, ControlManager
+from servotune.hub import ClientQueue, Hub
+from servotune.wire import ClientStats, Heartbeat, Ping
+
+# The same union as wire.ClientMessage | wire.ControlClientMessage, flattened so pydantic
+# can discriminate on ``type`` in one pass.
+from servotune.wire import (  # isort: skip
+    AnswerControl,
+    ForceControl,
+    ReleaseControl,
+    RequestControl,
+    TakeControl,
+)
+
+logger = logging.getLogger(__name__)
+
+WS_MAX_MESSAGE_BYTES = 64 * 1024
+WS_MAX_MESSAGES_PER_S = 200
+CLOSE_UNSUPPORTED_DATA = 1003
+CLOSE_POLICY_VIOLATION = 1008
+CLOSE_MESSAGE_TOO_BIG = 1009
+
+router = APIRouter()
+
+_incoming = TypeAdapter(
+    Annotated[
+        Ping
+        | Heartbeat
+        | TakeControl
+        | RequestControl
+        | ReleaseControl
+        | AnswerControl
+        | ForceControl,
+        Field(discriminator="type"),
+    ]
+)
+
+
+async def authenticate(websocket: WebSocket) -> Principal | None:
+    """Who is connecting (Host / Origin / cookie / ticket checks), or None: then the
+    socket is already closed with 1008."""
+    return await authenticate_websocket(websocket)
+
+
+def register(principal: Principal, close: Callable[[], Awaitable[None]]) -> object:
+    """Remember the socket so logout and revocation close it (its axes then lapse)."""
+    register_ws(principal, close)
+    return (principal, close)
+
+
+def unregister(handle: object) -> None:
+    principal, close = handle  # type: ignore[misc]
+    unregister_ws(principal, close)
+
+
+class _AbuseError(Exception):
+    def __init__(self, code: int, reason: str) -> None:
+        super().__init__(reason)
+        self.code = code
+        self.reason = reason
+
+
+@router.websocket("/ws")
+async def websocket_endpoint(websocket: WebSocket) -> None:
+    """Telemetry and state stream plus the control lock; shapes in ``servotune.wire``."""
+    principal = await authenticate(websocket)
+    if principal is None:
+        return
+    if websocket.client_state == WebSocketState.CONNECTING:
+        await websocket.accept()
+    hub: Hub = websocket.app.state.hub
+    control: ControlManager = websocket.app.state.control
+    queue = hub.subscribe()
+    address = websocket.client.host if websocket.client else "?"
+
+    async def close(code: int = CLOSE_POLICY_VIOLATION, reason: str = "session ended") -> None:
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await websocket.close(code=code, reason=reason)
+
+    handle = register(principal, close)
+    client: ControlClient | None = None
+    try:
+        await websocket.send_text(hub.hello().model_dump_json())
+        # welcome is queued before the snapshot: the client knows its tag first.
+        client = control.connect(principal, address, lambda t: queue.put(t, droppable=False))
+        for text in hub.snapshot_messages():
+            await websocket.send_text(text)
+        for text in control.snapshot():
+            await websocket.send_text(text)
+        await _serve(websocket, queue, control, client)
+    except _AbuseError as abuse:
+        logger.warning("websocket from %s closed: %s", address, abuse.reason)
+        await close(abuse.code, abuse.reason)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        hub.unsubscribe(queue)
+        if client is not None:
+            control.disconnect(client)
+        unregister(handle)
+
+
+async def _serve(
+    websocket: WebSocket, queue: ClientQueue, control: ControlManager, client: ControlClient
+) -> None:
+    async def sender() -> None:
+        while True:
+            await websocket.send_text(await queue.get())
+
+    async def receiver() -> None:
+        window_start, count = time.monotonic(), 0
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                raise WebSocketDisconnect(message.get("code", 1000))
+            text = message.get("text")
+            if text is None:
+                raise _AbuseError(CLOSE_UNSUPPORTED_DATA, "binary frames are not accepted")
+            if len(text) > WS_MAX_MESSAGE_BYTES // 4 and len(text.encode()) > WS_MAX_MESSAGE_BYTES:
+                too_big = f"message over {WS_MAX_MESSAGE_BYTES} bytes"
+                raise _AbuseError(CLOSE_MESSAGE_TOO_BIG, too_big)
+            now = time.monotonic()
+            if now - window_start >= 1.0:
+                window_start, count = now, 0
+            count += 1
+            if count > WS_MAX_MESSAGES_PER_S:
+                raise _AbuseError(CLOSE_POLICY_VIOLATION, "too many messages")
+            try:
+                parsed = _incoming.validate_json(text)
+            except ValidationError:
+                continue
+            if isinstance(parsed, Heartbeat):
+                control.heartbeat(client)
+            elif isinstance(parsed, Ping):
+                stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
+                queue.put(stats.model_dump_json(), droppable=False)
+            else:
+                # Not awaited here: a hand-over waits for a STOP, and heartbeats must keep
+                # being read meanwhile. The control manager owns the task (it finishes
+                # even if this socket closes).
+                control.submit(client, parsed)
+
+    tasks = [asyncio.create_task(sender()), asyncio.create_task(receiver())]
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for task in done:
+            error = task.exception()
+            if error is not None and not isinstance(error, WebSocketDisconnect):
+                raise error
+    finally:
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task

@@ -1,0 +1,266 @@
+"""The control lock per axis and the dead-man, as two colleagues and a closed laptop see it.
+
+Every assertion about the device is on the simulated line's own record of the wire
+(``WireRecorder``): a refused change sent nothing; a STOP reached the module in time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import websockets
+
+from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
+from servotune.control import ControlManager, ControlSettings
+from servotune.wire import ForceControl, TakeControl
+
+from .control_support import (
+    Operator,
+    Server,
+    control_server,
+    holder_of,
+    take_with_raw_client,
+)
+
+FAST = ControlSettings(request_timeout_s=0.5, idle_grant_s=60.0, autopilot_resume_s=1.0)
+VM = 1 << 2  # rss bits: velocity mode, position mode
+PM = 1 << 3
+
+
+@pytest.fixture
+async def server(tmp_path: Path) -> AsyncIterator[Server]:
+    async with control_server(tmp_path, FAST) as live:
+        yield live
+
+
+def control(server: Server) -> ControlManager:
+    manager: ControlManager = server.app.state.control
+    return manager
+
+
+async def status_of(op: Operator, axis: str, tag: str | None) -> dict[str, object]:
+    return await op.expect(
+        lambda m: m["type"] == "control_status" and m["axis"] == axis and holder_of(m) == tag,
+        f"control_status {axis} held by {tag}",
+    )
+
+
+async def test_start_up_stops_every_axis_before_anything_else(server: Server) -> None:
+    for address in (0, 1):
+        lines = [line for _, line in server.wire.since(0.0, address)]
+        assert "st" in lines, f"module {address} got no start-up STOP: {lines[:20]}"
+        first_motion = [i for i, line in enumerate(lines) if line in ("pm", "vm")]
+        assert not first_motion or lines.index("st") < first_motion[0]
+
+
+async def test_the_holder_changes_the_axis_the_other_tab_gets_423(server: Server) -> None:
+    async with Operator(server) as alice, Operator(server) as bob:
+        assert alice.client_id != bob.client_id  # same user (local), two tabs, two clients
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        await status_of(bob, "line-0", alice.tag)
+
+        assert (await alice.command("line-0", "position_mode")).status_code == 200
+        mark = time.monotonic()
+        refused = await bob.command("line-0", "move_absolute", position=3000)
+        assert refused.status_code == 423
+        assert "controlled by local in another tab" in refused.json()["detail"]
+        refused = await bob.patch("line-0", {"kp": 77})
+        assert refused.status_code == 423
+        # A script without a client id is refused as well while a tab holds the axis.
+        anonymous = await server.client.patch("/api/axes/line-0/params", json={"kp": 78})
+        assert anonymous.status_code == 423
+        await asyncio.sleep(0.2)
+        sent = [line for _, line in server.wire.since(mark, 0)]
+        assert not [line for line in sent if line.startswith(("ma", "skp", "kp"))], sent
+        assert server.bus.module(0).settings["kp"] == 40
+        # STOP stays live for everyone.
+        assert (await bob.command("line-0", "stop")).status_code == 200
+        assert not server.bus.module(0).rss & (PM | VM)
+        # The other axis is free: bob may change it (and thereby holds it).
+        assert (await bob.patch("line-1", {"kp": 66})).status_code == 200
+        await status_of(alice, "line-1", bob.tag)
+        assert (await alice.patch("line-0", {"kp": 55})).status_code == 200
+        assert server.bus.module(0).settings["kp"] == 55
+
+
+async def test_hand_over_allowed_stops_the_axis_first(server: Server) -> None:
+    async with Operator(server) as alice, Operator(server) as bob:
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        assert (await alice.command("line-0", "velocity_mode")).status_code == 200
+        assert server.bus.module(0).rss & VM
+        await bob.send("request_control", "line-0")
+        prompt = await alice.expect(lambda m: m["type"] == "control_prompt", "the prompt")
+        assert prompt["requester_tag"] == bob.tag and prompt["axis"] == "line-0"
+        mark = time.monotonic()
+        await alice.send("answer_control", "line-0", allow=True)
+        granted = await bob.reply("grant")
+        assert granted["ok"], granted
+        await status_of(alice, "line-0", bob.tag)
+        # Safe state before the transfer: st on the wire, nothing moving for the new holder.
+        stopped_at = server.wire.first("st", 0, mark)
+        assert stopped_at is not None, "no STOP before the hand-over"
+        assert not server.bus.module(0).rss & (PM | VM)
+        assert (await alice.command("line-0", "velocity_mode")).status_code == 423
+        assert (await bob.command("line-0", "position_mode")).status_code == 200
+
+
+async def test_hand_over_denied_keeps_the_holder(server: Server) -> None:
+    async with Operator(server) as alice, Operator(server) as bob:
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        await bob.send("request_control", "line-0")
+        await alice.expect(lambda m: m["type"] == "control_prompt", "the prompt")
+        await alice.send("answer_control", "line-0", allow=False)
+        denied = await bob.reply("deny")
+        assert not denied["ok"] and "denied by local" in denied["message"]
+        assert control(server).holder("line-0").client_tag == alice.tag  # type: ignore[union-attr]
+        assert (await bob.patch("line-0", {"kp": 70})).status_code == 423
+
+
+async def test_unanswered_request_denied_when_the_holder_is_active(server: Server) -> None:
+    async with Operator(server) as alice, Operator(server) as bob:
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        await bob.send("request_control", "line-0")
+        await alice.expect(lambda m: m["type"] == "control_prompt", "the prompt")
+        # No answer within request_timeout_s (0.5 s); alice acted just now (< idle_grant_s).
+        denied = await bob.reply("deny", timeout_s=3)
+        assert "no answer" in denied["message"]
+        assert control(server).holder("line-0").client_tag == alice.tag  # type: ignore[union-attr]
+
+
+async def test_unanswered_request_granted_when_the_holder_is_idle(server: Server) -> None:
+    manager = control(server)
+    manager.settings = dataclasses.replace(manager.settings, idle_grant_s=0.2)
+    async with Operator(server) as alice, Operator(server) as bob:
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        await asyncio.sleep(0.3)  # alice idle (heartbeats are not activity)
+        await bob.send("request_control", "line-0")
+        granted = await bob.reply("grant", timeout_s=3)
+        assert granted["ok"] and "idle" in granted["message"]
+        assert manager.holder("line-0").client_tag == bob.tag  # type: ignore[union-attr]
+
+
+async def test_admin_forces_a_hand_over_an_operator_cannot(server: Server) -> None:
+    manager = control(server)
+    async with Operator(server) as alice, Operator(server) as admin:
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        assert (await alice.command("line-0", "velocity_mode")).status_code == 200
+
+        # An operator (no force_control) is refused; a viewer may not even take.
+        sent: list[str] = []
+        operator = Principal("olga", "operator", frozenset({VIEW, STOP, CONTROL, MOVE}))
+        viewer = Principal("vic", "viewer", frozenset({VIEW, STOP}))
+        olga = manager.connect(operator, "test", sent.append)
+        vic = manager.connect(viewer, "test", sent.append)
+        try:
+            await manager.handle(olga, ForceControl(axis="line-0"))
+            await manager.handle(vic, TakeControl(axis="line-1"))
+        finally:
+            manager.disconnect(olga)
+            manager.disconnect(vic)
+        replies = [json.loads(s) for s in sent if '"control_reply"' in s]
+        assert [r["ok"] for r in replies] == [False, False]
+        assert "force_control" in replies[0]["message"] and "control" in replies[1]["message"]
+        assert manager.holder("line-0").client_tag == alice.tag  # type: ignore[union-attr]
+        assert server.bus.module(0).rss & VM
+
+        await admin.send("force_control", "line-0")
+        assert (await admin.reply("force"))["ok"]
+        lost = await alice.reply("force")
+        assert not lost["ok"] and "taken over by local" in lost["message"]
+        assert not server.bus.module(0).rss & (PM | VM), "forced hand-over without a STOP"
+        assert (await alice.patch("line-0", {"kp": 50})).status_code == 423
+
+
+@pytest.mark.parametrize("how", ["socket dropped (RST, no close frame)", "silent socket"])
+async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str) -> None:
+    for _trial in range(3):
+        raw, client_id, beat = await take_with_raw_client(server, "line-0")
+        headers = {"X-Servotune-Client": client_id}
+        response = await server.client.post(
+            "/api/axes/line-0/commands", json={"command": "velocity_mode"}, headers=headers
+        )
+        assert response.status_code == 200, response.text
+        await asyncio.sleep(0.3)
+        assert server.bus.module(0).rss & VM
+        beat.cancel()
+        gone = time.monotonic()  # the last heartbeat left at most 100 ms before this
+        if how.startswith("socket dropped"):
+            raw.drop()
+        stopped_at = None
+        while time.monotonic() - gone < 2.0 and stopped_at is None:
+            stopped_at = server.wire.first("st", 0, gone)
+            await asyncio.sleep(0.005)
+        assert stopped_at is not None, "the dead-man never stopped the axis"
+        assert stopped_at - gone <= 0.5, f"stop {1000 * (stopped_at - gone):.0f} ms after"
+        assert not server.bus.module(0).rss & VM
+        assert control(server).holder("line-0") is None
+        await raw.close_quietly()
+
+
+async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server) -> None:
+    async with websockets.connect(server.ws_url, max_size=None) as ws:
+        await ws.send("x" * (100 * 1024))
+        with pytest.raises(websockets.ConnectionClosed):
+            while True:
+                await asyncio.wait_for(ws.recv(), 5)
+        assert ws.close_code == 1009
+    async with websockets.connect(server.ws_url, max_size=None) as ws:
+        await ws.send(b"\x00\x01binary")
+        with pytest.raises(websockets.ConnectionClosed):
+            while True:
+                await asyncio.wait_for(ws.recv(), 5)
+        assert ws.close_code == 1003
+    # A well-behaved client is still served.
+    async with Operator(server) as op:
+        assert op.client_id
+
+
+async def test_uvicorn_refuses_frames_over_ws_max_size(tmp_path: Path) -> None:
+    async with (
+        control_server(tmp_path, FAST, ws_max_size=64 * 1024, addresses=[0]) as live,
+        websockets.connect(live.ws_url, max_size=None) as ws,
+    ):
+        await ws.send("y" * (1024 * 1024))
+        with pytest.raises(websockets.ConnectionClosed):
+            while True:
+                await asyncio.wait_for(ws.recv(), 5)
+        assert ws.close_code == 1009
+
+
+async def test_autopilot_yields_to_a_holder_and_resumes_when_free(tmp_path: Path) -> None:
+    async with (
+        control_server(tmp_path, FAST, autopilot=True, addresses=[0]) as live,
+        Operator(live) as alice,
+    ):
+        await status_of(alice, "line-0", "autopilot")
+        deadline = time.monotonic() + 8
+        while not live.bus.module(0).moving:
+            assert time.monotonic() < deadline, "the autopilot never moved the axis"
+            await asyncio.sleep(0.02)
+        await alice.send("take_control", "line-0")
+        assert (await alice.reply("take"))["ok"]
+        assert not live.bus.module(0).rss & (PM | VM)
+        mark = time.monotonic()
+        await asyncio.sleep(2.0)  # longer than autopilot_resume_s: held, so it stays away
+        sent = [line for _, line in live.wire.since(mark, 0)]
+        assert not [line for line in sent if line.startswith(("pm", "ma"))], sent
+        assert control(live).holder("line-0").client_tag == alice.tag  # type: ignore[union-attr]
+        await alice.send("release_control", "line-0")
+        assert (await alice.reply("release"))["ok"]
+        await status_of(alice, "line-0", "autopilot")
+        deadline = time.monotonic() + 8
+        while not live.bus.module(0).moving:
+            assert time.monotonic() < deadline, "the autopilot did not resume"
+            await asyncio.sleep(0.02)
