@@ -1,10 +1,12 @@
 // servotune web client: bootstrap, routing (#/axis/<id>), the frame loop and STOP.
 import "./style.css";
+import "./screens.css";
 import { api } from "./api";
 import { h, replace, setText } from "./dom";
 import { store } from "./store";
 import { AxisView } from "./ui/axis";
 import { mountToast, showError } from "./ui/feedback";
+import { OverviewView } from "./ui/overview";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
 import { WsClient, wsUrl } from "./ws";
 
@@ -20,11 +22,24 @@ declare global {
 }
 
 const THEME_KEY = "servotune.theme";
-document.documentElement.dataset.theme = localStorage.getItem(THEME_KEY) === "light" ? "light" : "dark";
+// The user's choice if they made one, else the OS preference (and follow it while unchosen).
+const prefersLight = window.matchMedia?.("(prefers-color-scheme: light)");
+function initialTheme(): "light" | "dark" {
+  const saved = localStorage.getItem(THEME_KEY);
+  if (saved === "light" || saved === "dark") return saved;
+  return prefersLight?.matches ? "light" : "dark";
+}
+document.documentElement.dataset.theme = initialTheme();
+prefersLight?.addEventListener("change", () => {
+  if (localStorage.getItem(THEME_KEY)) return;
+  document.documentElement.dataset.theme = initialTheme();
+  if (viewAxis || overview) route(true);
+});
 
 const app = document.getElementById("app") as HTMLElement;
 let view: AxisView | null = null;
 let viewAxis: string | null = null;
+let overview: OverviewView | null = null;
 
 async function stopAll(source: string): Promise<void> {
   topbar.stopFeedback("STOP sent …", true);
@@ -57,11 +72,12 @@ const topbar = new TopBar({
   stop: () => void stopAll("button"),
   toggleEvents: () => events.toggle(),
   retry: () => ws.retryNow(),
+  toggleNav: () => document.body.classList.toggle("nav-open"),
   toggleTheme: () => {
     const next = document.documentElement.dataset.theme === "light" ? "dark" : "light";
     document.documentElement.dataset.theme = next;
     localStorage.setItem(THEME_KEY, next);
-    if (viewAxis) route(true);
+    if (viewAxis || overview) route(true);
   },
 });
 const nav = new Nav();
@@ -70,6 +86,7 @@ const events = new EventLog(
   (id) => store.axis(id)?.name ?? id,
   (open) => topbar.eventsButton.classList.toggle("on", open),
 );
+nav.onOpenEvents = () => events.toggle(true);
 const connectionText = h("span");
 const connection = h("div", { class: "connection-banner", testid: "connection-banner", hidden: true }, h("span", { class: "dot" }), connectionText);
 const content = h("main", { class: "content" });
@@ -83,6 +100,21 @@ function axisFromHash(): string | null {
 }
 
 function route(force = false): void {
+  document.body.classList.remove("nav-open");
+  if (location.hash === "#/overview") {
+    view?.destroy();
+    view = null;
+    viewAxis = null;
+    nav.select("");
+    if (overview && !force) return;
+    overview?.destroy();
+    overview = new OverviewView();
+    replace(content, overview.el);
+    document.title = "Rig overview — servotune";
+    return;
+  }
+  overview?.destroy();
+  overview = null;
   const wanted = axisFromHash();
   const axis = store.axes.find((a) => a.id === wanted) ?? store.axes[0];
   if (!axis) {
@@ -122,6 +154,7 @@ window.addEventListener(
 let waitingTick = 0;
 function frame(now: number): void {
   view?.frame(now);
+  overview?.frame(now);
   if (store.ws.kind === "waiting" && now - waitingTick > 250) {
     waitingTick = now;
     topbar.setWs(store.ws);
