@@ -44,6 +44,7 @@ async def main(base: str, out: Path, theme: str) -> None:
                 viewport={"width": w, "height": hgt}, color_scheme=theme  # type: ignore[arg-type]
             )
             page = await ctx.new_page()
+            page.on("pageerror", lambda exc: print("PAGE ERROR", exc))
             for name, frag in PAGES.items():
                 await page.goto(f"{base}/{frag}")
                 await page.wait_for_timeout(2500)
