@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import sys
 
 from playwright.async_api import async_playwright
+
+PROFILE_PAGE = os.environ.get("PROFILE_PAGE", "ep7047")
 
 PAGES = {
     "slap2": "#/axis/demo-slap2-0",
@@ -56,12 +59,21 @@ async def main(base: str, seconds: float, profile: bool) -> None:
                 elif window_s != 10:
                     continue
                 await page.wait_for_timeout(500)
-                if profile and name == "ep7047":
+                if profile and name == PROFILE_PAGE:
                     cdp = await page.context.new_cdp_session(page)
                     await cdp.send("Profiler.enable")
                     await cdp.send("Profiler.start")
+                metrics = await page.context.new_cdp_session(page)
+                await metrics.send("Performance.enable")
+                before = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
                 result = await page.evaluate(MEASURE, seconds)
-                if profile and name == "ep7047":
+                after = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
+                # Main-thread busy time per second (ms/s): less sensitive to a loaded
+                # machine than fps, which also waits for the CPU.
+                for key in ("TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration"):
+                    result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
+                await metrics.detach()
+                if profile and name == PROFILE_PAGE:
                     prof = (await cdp.send("Profiler.stop"))["profile"]
                     self_time: dict[str, float] = {}
                     nodes = {n["id"]: n for n in prof["nodes"]}

@@ -7,6 +7,8 @@ import { store } from "./store";
 import { AxisView } from "./ui/axis";
 import { mountToast, showError } from "./ui/feedback";
 import { OverviewView } from "./ui/overview";
+import type { PlotStack } from "./ui/plots";
+import { benchDraw, type Lab, type LabOptions, mountLab } from "./ui/scopelab";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
 import { WsClient, wsUrl } from "./ws";
 
@@ -17,6 +19,9 @@ declare global {
       lastT(axisId: string): number;
       wsState(): string;
       currentAxis(): string | null;
+      scope(): PlotStack | null;
+      lab(opts: LabOptions): Lab;
+      benchDraw(runs?: number): Promise<{ p50: number; p95: number; max: number; points: number }>;
     };
   }
 }
@@ -172,6 +177,9 @@ window.__servotune = {
   },
   wsState: () => store.ws.kind,
   currentAxis: () => viewAxis,
+  scope: () => view?.scope ?? null,
+  lab: (opts) => mountLab(opts),
+  benchDraw: (runs) => benchDraw(runs),
 };
 
 // REST first (the page works even before the websocket is up), then the stream.

@@ -110,6 +110,7 @@ export interface DeviceDescriptor {
   plots: PlotDescriptor[];
   commands: CommandDescriptor[];
   console: ConsoleDescriptor;
+  write_groups: string[][];
 }
 
 export interface AxisInfo {

@@ -151,6 +151,9 @@ export class PlotStack {
   private readonly tabs: HTMLElement;
   readonly tools: ScopeTools;
   private drawnVersion = -1;
+  private skipUntil = 0;
+  /** Duration of the last redraw (ms). */
+  lastDrawMs = 0;
   private dirty = true;
   private width = 0;
   private hovering = false;
@@ -1079,9 +1082,20 @@ export class PlotStack {
     return { min: end - this.windowS, max: end, live: !this.paused };
   }
 
-  /** Called once per animation frame; redraws only if something changed. */
+  /** Redraw now, whatever changed (benchmark, tests). */
+  redraw(): void {
+    this.dirty = true;
+    this.skipUntil = 0;
+    this.update();
+  }
+
+  /** Called once per animation frame; redraws only if something changed. A redraw
+   * that took long makes the next one wait as long again (at most half of the main
+   * thread for the scope), so input and the STOP button never queue behind plots. */
   update(): void {
     if (!this.width || this.panels.some((p) => this.shows(p) && !p.u)) return;
+    const started = performance.now();
+    if (started < this.skipUntil) return;
     if (this.trigger.poll(this.buffer, this.windowS)) {
       this.dirty = true;
       if (this.trigger.config.mode === "single") this.tools.fired();
@@ -1153,6 +1167,9 @@ export class PlotStack {
     setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
     toggleClass(this.status, "live", live);
     this.tools.syncCursors();
+    const took = performance.now() - started;
+    this.lastDrawMs = took;
+    this.skipUntil = took > 8 ? started + 2 * took : 0;
   }
 
   destroy(): void {
