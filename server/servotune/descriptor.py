@@ -210,6 +210,11 @@ class DeviceDescriptor(BaseModel):
     console: ConsoleDescriptor
     stop: StopEffect
     constraints: list[ParameterConstraint] = []
+    write_groups: list[list[str]] = Field(
+        default=[],
+        description="parameters written together, in this order (e.g. Z1100 KABH then KABD: "
+        "writing KABH overwrites KABD, so the UI edits both sets and writes them as one group)",
+    )
 
     def parameter(self, name: str) -> ParameterDescriptor:
         """Return the parameter called ``name``; KeyError if the device has none."""

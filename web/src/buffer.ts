@@ -15,6 +15,8 @@ export class AxisBuffer {
   readonly flags = new Map<string, Uint8Array>();
   /** Latest non-null value per channel and latest state per flag. */
   readonly latest = new Map<string, number>();
+  /** Server time of the latest non-null value per channel (the age of a slow value). */
+  readonly latestT = new Map<string, number>();
   readonly latestFlags = new Map<string, number>();
   samplesReceived = 0;
   lastT = Number.NaN;
@@ -28,6 +30,7 @@ export class AxisBuffer {
   clear(): void {
     this.start = this.end = 0;
     this.latest.clear();
+    this.latestT.clear();
     this.latestFlags.clear();
     this.lastT = Number.NaN;
     this.version += 1;
@@ -45,15 +48,20 @@ export class AxisBuffer {
     for (const [name, values] of Object.entries(msg.channels)) {
       const column = this.channel(name);
       let latest: number | undefined;
+      let latestAt = 0;
       for (let i = 0; i < n; i++) {
         const v = values[i];
         if (v === null || v === undefined) column[at + i] = Number.NaN;
         else {
           column[at + i] = v;
           latest = v;
+          latestAt = i;
         }
       }
-      if (latest !== undefined) this.latest.set(name, latest);
+      if (latest !== undefined) {
+        this.latest.set(name, latest);
+        this.latestT.set(name, msg.t[latestAt] as number);
+      }
     }
     for (const [name, column] of this.channels) {
       if (!(name in msg.channels)) column.fill(Number.NaN, at, at + n);

@@ -1,5 +1,6 @@
 // servotune web client: bootstrap, routing (#/axis/<id>), the frame loop and STOP.
 import "./style.css";
+import "./screens.css";
 import { api } from "./api";
 import { h, replace, setText } from "./dom";
 import { store } from "./store";
@@ -8,6 +9,9 @@ import { control } from "./ui/control";
 import { mountToast, showError } from "./ui/feedback";
 import { authGate } from "./ui/login";
 import { mountUserMenu } from "./ui/usermenu";
+import { OverviewView } from "./ui/overview";
+import type { PlotStack } from "./ui/plots";
+import { benchDraw, type Lab, type LabOptions, mountLab } from "./ui/scopelab";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
 import { WsClient, wsUrl } from "./ws";
 
@@ -18,16 +22,32 @@ declare global {
       lastT(axisId: string): number;
       wsState(): string;
       currentAxis(): string | null;
+      scope(): PlotStack | null;
+      lab(opts: LabOptions): Lab;
+      benchDraw(runs?: number): Promise<{ p50: number; p95: number; max: number; points: number }>;
     };
   }
 }
 
 const THEME_KEY = "servotune.theme";
-document.documentElement.dataset.theme = localStorage.getItem(THEME_KEY) === "light" ? "light" : "dark";
+// The user's choice if they made one, else the OS preference (and follow it while unchosen).
+const prefersLight = window.matchMedia?.("(prefers-color-scheme: light)");
+function initialTheme(): "light" | "dark" {
+  const saved = localStorage.getItem(THEME_KEY);
+  if (saved === "light" || saved === "dark") return saved;
+  return prefersLight?.matches ? "light" : "dark";
+}
+document.documentElement.dataset.theme = initialTheme();
+prefersLight?.addEventListener("change", () => {
+  if (localStorage.getItem(THEME_KEY)) return;
+  document.documentElement.dataset.theme = initialTheme();
+  if (viewAxis || overview) route(true);
+});
 
 const app = document.getElementById("app") as HTMLElement;
 let view: AxisView | null = null;
 let viewAxis: string | null = null;
+let overview: OverviewView | null = null;
 
 async function stopAll(source: string): Promise<void> {
   topbar.stopFeedback("STOP sent …", true);
@@ -63,11 +83,12 @@ const topbar = new TopBar({
   stop: () => void stopAll("button"),
   toggleEvents: () => events.toggle(),
   retry: () => ws.retryNow(),
+  toggleNav: () => document.body.classList.toggle("nav-open"),
   toggleTheme: () => {
     const next = document.documentElement.dataset.theme === "light" ? "dark" : "light";
     document.documentElement.dataset.theme = next;
     localStorage.setItem(THEME_KEY, next);
-    if (viewAxis) route(true);
+    if (viewAxis || overview) route(true);
   },
 });
 const nav = new Nav();
@@ -76,6 +97,7 @@ const events = new EventLog(
   (id) => store.axis(id)?.name ?? id,
   (open) => topbar.eventsButton.classList.toggle("on", open),
 );
+nav.onOpenEvents = () => events.toggle(true);
 const connectionText = h("span");
 const connection = h("div", { class: "connection-banner", testid: "connection-banner", hidden: true }, h("span", { class: "dot" }), connectionText);
 const content = h("main", { class: "content" });
@@ -90,6 +112,21 @@ function axisFromHash(): string | null {
 }
 
 function route(force = false): void {
+  document.body.classList.remove("nav-open");
+  if (location.hash === "#/overview") {
+    view?.destroy();
+    view = null;
+    viewAxis = null;
+    nav.select("");
+    if (overview && !force) return;
+    overview?.destroy();
+    overview = new OverviewView();
+    replace(content, overview.el);
+    document.title = "Rig overview — servotune";
+    return;
+  }
+  overview?.destroy();
+  overview = null;
   const wanted = axisFromHash();
   const axis = store.axes.find((a) => a.id === wanted) ?? store.axes[0];
   if (!axis) {
@@ -142,6 +179,7 @@ store.on("topology", () => {
 let waitingTick = 0;
 function frame(now: number): void {
   view?.frame(now);
+  overview?.frame(now);
   if (store.ws.kind === "waiting" && now - waitingTick > 250) {
     waitingTick = now;
     topbar.setWs(store.ws);
@@ -159,6 +197,9 @@ window.__servotune = {
   },
   wsState: () => store.ws.kind,
   currentAxis: () => viewAxis,
+  scope: () => view?.scope ?? null,
+  lab: (opts) => mountLab(opts),
+  benchDraw: (runs) => benchDraw(runs),
 };
 
 // REST first (the page works even before the websocket is up), then the stream.

@@ -44,6 +44,10 @@ export class Store {
   /** The latest bench ``run`` message per axis (a recording one means "busy"). */
   readonly runs = new Map<string, RunUpdate>();
   stats = { sent: 0, dropped: 0 };
+  /** Wall clock (unix s) minus server clock (s), estimated from telemetry arrivals: the
+   * smallest difference seen is the one with the least transport delay. NaN until the
+   * first telemetry. Used for wall-clock times of events and of the scope's x axis. */
+  clockOffsetS = Number.NaN;
   ws: WsState = { kind: "connecting", attempt: 0 };
   private readonly listeners = new Map<keyof Topics, Set<Listener<never>>>();
 
@@ -127,14 +131,21 @@ export class Store {
 
   handle(msg: Incoming): void {
     switch (msg.type) {
-      case "telemetry":
+      case "telemetry": {
         this.buffer(msg.axis).push(msg);
+        const last = msg.t[msg.t.length - 1];
+        if (last !== undefined) {
+          const offset = Date.now() / 1000 - last;
+          if (!(offset >= this.clockOffsetS)) this.clockOffsetS = offset;
+        }
         break;
+      }
       case "hello":
         this.axes = msg.axes;
         this.links = msg.links;
         this.autopilot = msg.autopilot;
         this.serverVersion = msg.server_version;
+        this.clockOffsetS = Number.NaN; // a new server may have a new clock
         this.emit("topology", undefined);
         break;
       case "link_status":

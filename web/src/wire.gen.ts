@@ -129,6 +129,7 @@ export interface DeviceDescriptor {
   console: ConsoleDescriptor;
   stop: StopEffect;
   constraints: ParameterConstraint[];
+  write_groups: string[][];
 }
 
 export interface AxisInfo {

@@ -400,6 +400,8 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
         flags=flags,
         plots=plots,
         commands=commands,
+        # SetKABH also overwrites KABD on the chip: both sets are one group, KABH first.
+        write_groups=[[f"{prefix}_{g}" for prefix in ("kabh", "kabd") for g in GAINS]],
         console=ConsoleDescriptor(
             help=(
                 "A command by name with its data, e.g. 'GetKABH', 'SetVmax 20000', "

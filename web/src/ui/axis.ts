@@ -244,6 +244,11 @@ export class AxisView {
     this.controls?.stopped();
   }
 
+  /** The live scope (tests, benchmarks). */
+  get scope(): PlotStack | null {
+    return this.plots;
+  }
+
   destroy(): void {
     this.abort.abort();
     this.el.remove();

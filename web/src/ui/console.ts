@@ -2,6 +2,7 @@
 import { api } from "../api";
 import { h } from "../dom";
 import { formatClock } from "../format";
+import { store } from "../store";
 import type { DeviceDescriptor } from "../wire.gen";
 import { errorText, statusLabel } from "./feedback";
 
@@ -25,7 +26,7 @@ export class ConsolePanel {
   constructor(
     private readonly axisId: string,
     axisName: string,
-    descriptor: DeviceDescriptor,
+    private readonly descriptor: DeviceDescriptor,
   ) {
     this.history = histories.get(axisId) ?? [];
     histories.set(axisId, this.history);
@@ -146,18 +147,33 @@ export class ConsolePanel {
     const body = h("div", { class: "con-body" }, h("div", { class: "con-wait" }, "…"));
     const entry = h("div", { class: "con-entry pending" }, h("div", { class: "con-head" }, sentText, time), body);
     this.append(entry);
+    // The device's refusal shows in its status flags (e.g. SLAP2 `uc`, Z1100 error
+    // bits): warning/fault flags that come on after the line are reported with it.
+    const buffer = store.buffer(this.axisId);
+    const watched = this.descriptor.flags.filter((f) => f.severity !== "info");
+    const before = new Set(watched.filter((f) => buffer.latestFlags.get(f.name) === 1).map((f) => f.name));
+    const sentAt = buffer.lastT;
+    const refusal = (): void => {
+      if (!(buffer.lastT > sentAt)) return;
+      const raised = watched.filter((f) => !before.has(f.name) && buffer.latestFlags.get(f.name) === 1);
+      if (raised.length) body.appendChild(h("div", { class: "con-error", testid: "console-refusal" }, `device reports: ${raised.map((f) => `${f.label} (${f.name})`).join(", ")}`));
+    };
     void api
       .console(this.axisId, line)
       .then((reply) => {
         sentText.textContent = `> ${reply.sent}`;
         if (reply.sent !== line.trim()) sentText.title = `typed: ${line}`;
         const parts: HTMLElement[] = [];
-        if (reply.reply.length) parts.push(h("pre", { class: "con-reply" }, reply.reply.join("\n")));
-        else if (!reply.error) parts.push(h("div", { class: "con-empty" }, "(empty reply)"));
+        const text = reply.reply.join("\n");
+        if (text.trim()) parts.push(h("pre", { class: "con-reply" }, text));
+        else if (!reply.error) parts.push(h("div", { class: "con-empty", testid: "console-no-reply" }, "(no reply)"));
         if (reply.error) parts.push(h("div", { class: "con-error" }, reply.error));
         body.replaceChildren(...parts);
         entry.classList.remove("pending");
         entry.classList.toggle("error", !!reply.error);
+        // Flags arrive with the next telemetry samples: look twice.
+        window.setTimeout(refusal, 400);
+        window.setTimeout(() => body.querySelector("[data-testid=console-refusal]") || refusal(), 1200);
       })
       .catch((error: unknown) => {
         body.replaceChildren(h("div", { class: "con-error" }, `${statusLabel(error)}: ${errorText(error)}`));

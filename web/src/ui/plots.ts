@@ -1,14 +1,23 @@
 // The stacked, cursor-synced uPlot scopes of one axis, built from descriptor.plots.
 // Data is cut from the axis' ring buffer once per animation frame (never per
-// message) and min/max-decimated to about two points per pixel.
+// message): min/max per pixel column when dense, sample by sample with markers when
+// sparse, gaps as gaps, slow channels held as steps (see decimate.ts). Flags are drawn
+// as run bars straight from the buffer (cheap: a few rectangles, not a filled path).
+// Scope controls: legend toggles, units on the y axes, time under the cursor, two Δ
+// cursors, a trigger (trigger.ts), wheel and drag zoom, channel choice per plot (kept
+// per device in localStorage), x as wall clock or relative time, CSV export.
 import uPlot from "uplot";
 import "uplot/dist/uPlot.min.css";
 import type { AxisBuffer } from "../buffer";
 import { h, replace, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
 import { StateNames } from "../states";
+import { store } from "../store";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
+import { cut, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
+import { ScopeTools } from "./scopetools";
+import { Trigger } from "./trigger";
 
 export const WINDOWS_S = [5, 10, 30, 60] as const;
 const LANE = 1; // height of a flag trace
@@ -19,9 +28,13 @@ const lanePx = (lanes: number): number => (lanes <= 8 ? LANE_PX : Math.max(13, M
 const STATE_LANE_PX = 15; // one lane per state of a states plot
 const Y_AXIS_PX = 68; // at least; wider (up to Y_AXIS_MAX_PX) for long lane labels
 const Y_AXIS_MAX_PX = 116;
+const Y_LABEL_PX = 14; // the unit, written along the y axis
 const X_AXIS_PX = 26;
 const HEADER_PX = 24;
-const MIN_LINE_PX = 70;
+const MIN_LINE_PX = 90;
+/** Markers on the samples when they are at least this many pixels apart. */
+export const MARKER_PX = 4;
+const PHONE = "(max-width: 760px)";
 
 interface Theme {
   axis: string;
@@ -30,6 +43,7 @@ interface Theme {
   series: string[];
   severity: Record<FlagDescriptor["severity"], string>;
   font: string;
+  cursor: string;
 }
 
 function css(name: string, fallback: string): string {
@@ -49,14 +63,8 @@ function readTheme(): Theme {
       fault: css("--lamp-fault", "#ff4d4d"),
     },
     font: `11px ${css("--mono", "monospace")}`,
+    cursor: css("--amber", "#ffae1f"),
   };
-}
-
-/** One frame of data: shared x plus every channel and flag over the visible range. */
-interface Frame {
-  x: number[];
-  channels: Map<string, (number | null)[]>;
-  flags: Map<string, number[]>;
 }
 
 function decimals(incr: number): number {
@@ -71,91 +79,15 @@ function axisNumber(v: number, incr: number): string {
   return v.toFixed(decimals(incr));
 }
 
-/** Cut [lo, hi) out of the buffer, at most ``buckets`` min/max pairs. */
-function cut(
-  buffer: AxisBuffer,
-  lo: number,
-  hi: number,
-  buckets: number,
-  channels: Iterable<[string, number]>, // name, unit factor
-  flags: string[],
-): Frame {
-  const n = Math.max(0, hi - lo);
-  const frame: Frame = { x: [], channels: new Map(), flags: new Map() };
-  const t = buffer.t;
-  const channelList = [...channels];
-  if (n <= buckets * 2) {
-    frame.x = Array.from(t.subarray(lo, hi));
-    for (const [name, factor] of channelList) {
-      const col = buffer.channels.get(name);
-      const out: (number | null)[] = new Array(n);
-      for (let i = 0; i < n; i++) {
-        const v = col ? (col[lo + i] as number) : Number.NaN;
-        out[i] = Number.isNaN(v) ? null : v * factor;
-      }
-      frame.channels.set(name, out);
-    }
-    for (const name of flags) {
-      const col = buffer.flags.get(name);
-      frame.flags.set(name, col ? Array.from(col.subarray(lo, hi)) : new Array<number>(n).fill(0));
-    }
-    return frame;
-  }
-  const bounds: number[] = [];
-  for (let b = 0; b <= buckets; b++) bounds.push(lo + Math.floor((b * n) / buckets));
-  const x: number[] = [];
-  for (let b = 0; b < buckets; b++) {
-    const a = bounds[b] as number;
-    const z = (bounds[b + 1] as number) - 1;
-    if (z < a) continue;
-    x.push(t[a] as number, t[z] as number);
-  }
-  frame.x = x;
-  for (const [name, factor] of channelList) {
-    const col = buffer.channels.get(name);
-    const out: (number | null)[] = [];
-    for (let b = 0; b < buckets; b++) {
-      const a = bounds[b] as number;
-      const z = bounds[b + 1] as number;
-      if (z <= a) continue;
-      let min = Infinity;
-      let max = -Infinity;
-      let iMin = 0;
-      let iMax = 0;
-      if (col) {
-        for (let i = a; i < z; i++) {
-          const v = col[i] as number;
-          if (Number.isNaN(v)) continue;
-          if (v < min) {
-            min = v;
-            iMin = i;
-          }
-          if (v > max) {
-            max = v;
-            iMax = i;
-          }
-        }
-      }
-      if (min === Infinity) out.push(null, null);
-      else if (iMin <= iMax) out.push(min * factor, max * factor);
-      else out.push(max * factor, min * factor);
-    }
-    frame.channels.set(name, out);
-  }
-  for (const name of flags) {
-    const col = buffer.flags.get(name);
-    const out: number[] = [];
-    for (let b = 0; b < buckets; b++) {
-      const a = bounds[b] as number;
-      const z = bounds[b + 1] as number;
-      if (z <= a) continue;
-      let any = 0;
-      if (col) for (let i = a; i < z && !any; i++) any = col[i] as number;
-      out.push(any, any);
-    }
-    frame.flags.set(name, out);
-  }
-  return frame;
+/** Wall-clock "14:03:22.125" of a server time (with ``digits`` decimals of seconds). */
+export function clockText(serverT: number, digits: number): string {
+  const offset = store.clockOffsetS;
+  if (!Number.isFinite(offset)) return `${serverT.toFixed(digits)} s`;
+  const ms = (serverT + offset) * 1000;
+  const d = new Date(ms);
+  const p = (n: number): string => String(n).padStart(2, "0");
+  const frac = digits > 0 ? ((ms / 1000) % 1).toFixed(Math.min(3, digits)).slice(1) : "";
+  return `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}${frac}`;
 }
 
 /** A "states" plot: the channel as a timeline, one lane per state that occurred. */
@@ -173,13 +105,26 @@ interface StatesPanel {
 
 interface Panel {
   plot: PlotDescriptor;
+  /** The series drawn (the user's channel choice, else the descriptor's). */
+  series: string[];
   el: HTMLElement;
   host: HTMLElement;
   u: uPlot | null;
   legendValues: HTMLElement[];
+  legendItems: HTMLElement[];
   unitButtons: HTMLButtonElement[];
   height: number;
   states: StatesPanel | null;
+  /** Flag runs [t0, t1, …] per flag (flags plots). */
+  runs: number[][];
+  tab: HTMLButtonElement;
+}
+
+/** What the user chose per device: series per plot and hidden series. */
+interface ScopePrefs {
+  series: Record<string, string[]>;
+  hidden: Record<string, string[]>;
+  xMode: "clock" | "rel";
 }
 
 /** Lanes drawn for a states plot (two at least, so one state is not a full-height bar). */
@@ -190,6 +135,9 @@ export class PlotStack {
   readonly el: HTMLElement;
   paused = false;
   windowS = 10;
+  readonly trigger = new Trigger();
+  /** The two Δ cursors (server time), null while not placed. */
+  cursors: { a: number | null; b: number | null; next: "a" | "b"; on: boolean } = { a: null, b: null, next: "a", on: false };
   private zoom: [number, number] | null = null;
   private frozenEnd = Number.NaN;
   private readonly panels: Panel[] = [];
@@ -200,24 +148,39 @@ export class PlotStack {
   private readonly windowButtons = new Map<number, HTMLButtonElement>();
   private readonly status: HTMLElement;
   private readonly observer: ResizeObserver;
+  private readonly tabs: HTMLElement;
+  readonly tools: ScopeTools;
   private drawnVersion = -1;
+  private skipUntil = 0;
+  /** Duration of the last redraw (ms). */
+  lastDrawMs = 0;
   private dirty = true;
   private width = 0;
   private hovering = false;
   private dragSource: uPlot | null = null;
+  private downX = Number.NaN;
   private readonly syncKey: string;
   private readonly flagByName: Map<string, FlagDescriptor>;
   private readonly yAxisPx: number;
   private readonly light = document.documentElement.dataset.theme === "light";
+  /** The frame drawn last and the x range shown. */
+  frame: Frame | null = null;
+  shown: [number, number] = [0, 0];
+  private readonly prefsKey: string;
+  private prefs: ScopePrefs;
+  private readonly phone = window.matchMedia?.(PHONE);
+  private current = 0; // the plot shown on a phone
 
   constructor(
-    descriptor: DeviceDescriptor,
-    private readonly buffer: AxisBuffer,
-    private readonly units: UnitPrefs,
-    axisId: string,
+    readonly descriptor: DeviceDescriptor,
+    readonly buffer: AxisBuffer,
+    readonly units: UnitPrefs,
+    readonly axisId: string,
     signal: AbortSignal,
   ) {
     this.syncKey = `scope-${axisId}`;
+    this.prefsKey = `servotune.scope.${descriptor.device}`;
+    this.prefs = this.loadPrefs();
     this.flagByName = new Map(descriptor.flags.map((f) => [f.name, f]));
     this.yAxisPx = this.axisWidth(descriptor);
     this.pauseButton = h("button", { class: "btn", testid: "scope-pause", onclick: () => this.togglePause() });
@@ -230,16 +193,14 @@ export class PlotStack {
       "div",
       { class: "seg", role: "group", "aria-label": "Window length" },
       WINDOWS_S.map((s) => {
-        const b = h(
-          "button",
-          { class: "seg-btn", testid: `scope-window-${s}`, onclick: () => this.setWindow(s) },
-          `${s} s`,
-        );
+        const b = h("button", { class: "seg-btn", testid: `scope-window-${s}`, onclick: () => this.setWindow(s) }, `${s} s`);
         this.windowButtons.set(s, b);
         return b;
       }),
     );
     this.status = h("span", { class: "scope-status", testid: "scope-status" });
+    this.tabs = h("div", { class: "seg plot-tabs", role: "tablist", "aria-label": "Plot shown" });
+    this.tools = new ScopeTools(this);
     const toolbar = h(
       "div",
       { class: "scope-toolbar" },
@@ -247,62 +208,129 @@ export class PlotStack {
       h("span", { class: "tb-label" }, "Window"),
       windows,
       this.resetButton,
-      h("span", { class: "tb-hint" }, "drag to zoom · double-click to reset"),
+      this.tools.el,
       h("span", { class: "tb-spacer" }),
       this.status,
     );
     this.scroller = h("div", { class: "scope-plots" });
-    this.el = h("div", { class: "scope" }, toolbar, this.scroller);
-    for (const plot of descriptor.plots) this.panels.push(this.makePanel(plot));
+    this.el = h("div", { class: "scope", testid: "scope" }, toolbar, this.tools.readout, this.tabs, this.scroller);
+    descriptor.plots.forEach((plot, i) => this.panels.push(this.makePanel(plot, i)));
+    this.syncSingle();
     this.syncControls();
     units.onChange(() => {
       for (const panel of this.panels) this.syncUnitButtons(panel);
       this.rebuild();
     }, signal);
+    this.phone?.addEventListener("change", () => {
+      this.syncSingle();
+      this.rebuild();
+    });
     this.observer = new ResizeObserver(() => this.layout());
     this.observer.observe(this.scroller);
     signal.addEventListener("abort", () => this.destroy(), { once: true });
   }
 
-  private makePanel(plot: PlotDescriptor): Panel {
+  private loadPrefs(): ScopePrefs {
+    const prefs: ScopePrefs = { series: {}, hidden: {}, xMode: "clock" };
+    try {
+      const saved = JSON.parse(localStorage.getItem(this.prefsKey) ?? "{}") as Partial<ScopePrefs>;
+      if (saved.series && typeof saved.series === "object") prefs.series = saved.series;
+      if (saved.hidden && typeof saved.hidden === "object") prefs.hidden = saved.hidden;
+      if (saved.xMode === "rel") prefs.xMode = "rel";
+    } catch {
+      /* a broken entry: defaults */
+    }
+    return prefs;
+  }
+
+  savePrefs(): void {
+    try {
+      localStorage.setItem(this.prefsKey, JSON.stringify(this.prefs));
+    } catch {
+      /* private mode */
+    }
+  }
+
+  get xMode(): "clock" | "rel" {
+    return this.prefs.xMode;
+  }
+
+  setXMode(mode: "clock" | "rel"): void {
+    this.prefs.xMode = mode;
+    this.savePrefs();
+    this.dirty = true;
+    this.update();
+  }
+
+  /** Line plots a user may re-choose channels for, with their current series. */
+  linePlots(): { name: string; label: string; series: string[] }[] {
+    return this.panels.filter((p) => p.plot.kind === "line").map((p) => ({ name: p.plot.name, label: p.plot.label, series: p.series }));
+  }
+
+  /** Show ``series`` in the line plot ``plotName`` (kept per device). */
+  setSeries(plotName: string, series: string[]): void {
+    const i = this.panels.findIndex((p) => p.plot.name === plotName);
+    const old = this.panels[i];
+    if (!old || !series.length) return;
+    const descriptorSeries = old.plot.series;
+    if (series.length === descriptorSeries.length && series.every((s, k) => s === descriptorSeries[k])) delete this.prefs.series[plotName];
+    else this.prefs.series[plotName] = series;
+    this.savePrefs();
+    old.u?.destroy();
+    const fresh = this.makePanel(old.plot, i);
+    old.el.replaceWith(fresh.el);
+    old.tab.replaceWith(fresh.tab);
+    this.panels[i] = fresh;
+    this.syncSingle();
+    this.rebuild();
+  }
+
+  private makePanel(plot: PlotDescriptor, index: number): Panel {
     const host = h("div", { class: "plot-host", testid: `plot-${plot.name}` });
     const legendValues: HTMLElement[] = [];
+    const legendItems: HTMLElement[] = [];
     const unitButtons: HTMLButtonElement[] = [];
-    const header = h("div", { class: "plot-header" }, h("span", { class: "plot-title" }, plot.label));
+    const known = new Set(this.descriptor.channels.map((c) => c.name));
+    const chosen = plot.kind === "line" ? (this.prefs.series[plot.name] ?? []).filter((n) => known.has(n)) : [];
+    const series = chosen.length ? chosen : plot.series;
+    const header = h("div", { class: "plot-header" }, h("span", { class: "plot-title", title: plot.label }, plot.label));
     let states: StatesPanel | null = null;
+    const hidden = new Set(this.prefs.hidden[plot.name] ?? []);
     if (plot.kind === "line") {
       const legend = h("div", { class: "plot-legend" });
-      plot.series.forEach((name, i) => {
+      series.forEach((name, i) => {
         const channel = this.units.channel(name);
-        const value = h("span", { class: "legend-value" }, "—");
+        const value = h("span", { class: "legend-value", testid: `legend-${plot.name}-${name}` }, "—");
         legendValues.push(value);
-        legend.appendChild(
-          h(
-            "span",
-            { class: "legend-item", title: channel?.description ?? name },
-            h("span", { class: "swatch", style: `background:${this.color(i)}` }),
-            h("span", { class: "legend-label" }, channel?.label ?? name),
-            value,
-          ),
+        const item = h(
+          "button",
+          {
+            class: hidden.has(name) ? "legend-item off" : "legend-item",
+            testid: `legend-toggle-${plot.name}-${name}`,
+            title: `${channel?.description ?? name}\nClick to hide or show this trace`,
+            "aria-pressed": hidden.has(name) ? "false" : "true",
+            onclick: () => this.toggleSeries(plot.name, name),
+          },
+          h("span", { class: "swatch", style: `background:${this.color(i)}` }),
+          h("span", { class: "legend-label" }, channel?.label ?? name),
+          value,
         );
+        legendItems.push(item);
+        legend.appendChild(item);
       });
       header.appendChild(legend);
-      const choices = this.units.common(plot.series);
+      const choices = this.units.common(series);
       if (choices.length > 1) {
         const seg = h("div", { class: "seg small", title: "Display unit" });
         for (const unit of choices) {
-          const b = h(
-            "button",
-            { class: "seg-btn", testid: `unit-${plot.name}-${unit}`, onclick: () => this.units.set(plot.series, unit) },
-            unit,
-          );
+          const b = h("button", { class: "seg-btn", testid: `unit-${plot.name}-${unit}`, onclick: () => this.units.set(series, unit) }, unit);
           b.dataset.unit = unit;
           unitButtons.push(b);
           seg.appendChild(b);
         }
         header.appendChild(seg);
       } else {
-        header.appendChild(h("span", { class: "plot-unit" }, this.units.unit(plot.series[0] ?? "").unit || plot.unit));
+        header.appendChild(h("span", { class: "plot-unit" }, this.units.unit(series[0] ?? "").unit || plot.unit));
       }
     } else if (plot.kind === "states") {
       const name = plot.series[0] ?? "";
@@ -332,15 +360,66 @@ export class PlotStack {
       header.appendChild(h("span", { class: "plot-unit" }, "status flags"));
     }
     const el = h("div", { class: `plot-panel kind-${plot.kind}` }, header, host);
-    this.scroller.appendChild(el);
+    const tab = h("button", { class: "seg-btn", role: "tab", testid: `plot-tab-${plot.name}`, onclick: () => this.showPlot(index) }, plot.label);
+    if (index >= this.panels.length) {
+      this.scroller.appendChild(el);
+      this.tabs.appendChild(tab);
+    }
     if (states) this.scanStates(states);
-    const panel: Panel = { plot, el, host, u: null, legendValues, unitButtons, height: 0, states };
+    const panel: Panel = { plot, series, el, host, u: null, legendValues, legendItems, unitButtons, height: 0, states, runs: [], tab };
     this.syncUnitButtons(panel);
     return panel;
   }
 
+  private toggleSeries(plotName: string, name: string): void {
+    const hidden = new Set(this.prefs.hidden[plotName] ?? []);
+    if (hidden.has(name)) hidden.delete(name);
+    else hidden.add(name);
+    this.prefs.hidden[plotName] = [...hidden];
+    this.savePrefs();
+    const panel = this.panels.find((p) => p.plot.name === plotName);
+    if (!panel) return;
+    panel.series.forEach((n, i) => {
+      const item = panel.legendItems[i];
+      if (item) {
+        toggleClass(item, "off", hidden.has(n));
+        item.setAttribute("aria-pressed", hidden.has(n) ? "false" : "true");
+      }
+      panel.u?.setSeries(i + 1, { show: !hidden.has(n) });
+    });
+  }
+
+  private isHidden(plotName: string, name: string): boolean {
+    return (this.prefs.hidden[plotName] ?? []).includes(name);
+  }
+
+  /** Phones: one plot at a time, chosen with the tabs. */
+  private get single(): boolean {
+    return this.phone?.matches ?? false;
+  }
+
+  private syncSingle(): void {
+    toggleClass(this.el, "single", this.single);
+    this.current = Math.min(this.current, this.panels.length - 1);
+    this.panels.forEach((p, i) => {
+      toggleClass(p.el, "current", i === this.current);
+      toggleClass(p.tab, "on", i === this.current);
+      p.tab.setAttribute("aria-selected", i === this.current ? "true" : "false");
+    });
+  }
+
+  showPlot(index: number): void {
+    this.current = index;
+    this.syncSingle();
+    this.rebuild();
+  }
+
+  private shows(p: Panel): boolean {
+    return !this.single || this.panels[this.current] === p;
+  }
+
   private syncUnitButtons(panel: Panel): void {
-    const current = this.units.unit(panel.plot.series[0] ?? "").unit;
+    const current = this.units.unit(panel.series[0] ?? "").unit;
     for (const b of panel.unitButtons) toggleClass(b, "on", b.dataset.unit === current);
   }
 
@@ -353,26 +432,26 @@ export class PlotStack {
     const width = Math.floor(this.scroller.clientWidth);
     const height = Math.floor(this.scroller.clientHeight);
     if (width < 50 || height < 50) return;
-    const last = this.panels.length - 1;
+    const visible = this.panels.filter((p) => this.shows(p));
+    const last = visible[visible.length - 1];
     let fixed = 0;
     let lines = 0;
     const fixedPx = (p: Panel): number | null =>
-      p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : p.states ? statesPx(p.states) : null;
-    this.panels.forEach((p, i) => {
-      fixed += HEADER_PX + 6 + (i === last ? X_AXIS_PX : 4);
+      this.single ? null : p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : p.states ? statesPx(p.states) : null;
+    for (const p of visible) {
+      fixed += HEADER_PX + 6 + (p === last ? X_AXIS_PX : 4);
       const px = fixedPx(p);
       if (px !== null) fixed += px;
       else lines += 1;
-    });
+    }
     const each = lines ? Math.max(MIN_LINE_PX, Math.floor((height - fixed - 2) / lines)) : 0;
     let changed = width !== this.width;
-    this.panels.forEach((p, i) => {
-      const axisPx = i === last ? X_AXIS_PX : 4;
-      const plotPx = fixedPx(p) ?? each;
-      const total = plotPx + axisPx;
+    for (const p of this.panels) {
+      const axisPx = p === last ? X_AXIS_PX : 4;
+      const total = (fixedPx(p) ?? each) + axisPx;
       if (total !== p.height) changed = true;
       p.height = total;
-    });
+    }
     this.width = width;
     if (!changed) return;
     for (const p of this.panels) {
@@ -558,77 +637,76 @@ export class PlotStack {
       p.u = null;
       replace(p.host);
     }
-    if (this.width) for (const p of this.panels) this.create(p);
+    this.width = 0;
+    this.layout();
     this.dirty = true;
     this.update();
+  }
+
+  /** Whether markers are drawn: samples in the window at least MARKER_PX apart. */
+  private sparse(): boolean {
+    const f = this.frame;
+    if (!f || f.decimated) return false;
+    const [min, max] = this.shown;
+    const period = Number.isFinite(f.periodS) ? f.periodS : max - min;
+    const px = ((this.width - this.yAxisPx - Y_LABEL_PX) * period) / Math.max(1e-9, max - min);
+    return px >= MARKER_PX;
   }
 
   private create(panel: Panel): void {
     const { plot } = panel;
     const theme = this.theme;
-    const isLast = panel === this.panels[this.panels.length - 1];
+    const visible = this.panels.filter((p) => this.shows(p));
+    const isLast = panel === visible[visible.length - 1];
     const flags = plot.kind === "flags";
     const states = panel.states;
     const lanes = plot.series.length;
     const laneBase = (i: number): number => (lanes - 1 - i) * (LANE + LANE_GAP);
     const unitOf = (name: string) => this.units.unit(name);
     const series: uPlot.Series[] = [{ label: "t" }];
-    plot.series.forEach((name, i) => {
-      if (states) {
-        // Bars and the step connectors are drawn by drawStates; the series only
-        // carries the data (cursor sync).
-        if (i === 0) {
-          series.push({
-            label: this.units.channel(name)?.label ?? name,
-            stroke: "transparent",
-            width: 0,
-            paths: () => null,
-            points: { show: false },
-          });
-        }
-      } else if (flags) {
-        const severity = this.flagByName.get(name)?.severity ?? "info";
-        const color = theme.severity[severity];
-        // Off is a muted baseline; on is a block in the severity colour.
-        series.push({
-          label: this.flagByName.get(name)?.label ?? name,
-          stroke: theme.axis,
-          width: 1,
-          fill: `${color}b0`,
-          fillTo: laneBase(i),
-          paths: uPlot.paths.stepped?.({ align: 1 }),
-          points: { show: false },
-        });
-      } else {
+    const stepped = uPlot.paths.stepped?.({ align: 1 });
+    const linear = uPlot.paths.linear?.();
+    if (states || flags) {
+      // Bars (and the state step connectors) are drawn by drawStates / drawFlags from
+      // the buffer; the one series only carries x for the cursor sync.
+      series.push({ label: plot.label, stroke: "transparent", width: 0, paths: () => null, points: { show: false } });
+    } else {
+      panel.series.forEach((name, i) => {
         series.push({
           label: this.units.channel(name)?.label ?? name,
           stroke: this.color(i),
           width: i === 0 ? 1.5 : 1.25,
-          dash: i === 1 ? [5, 3] : undefined,
-          spanGaps: true,
-          points: { show: false },
+          show: !this.isHidden(plot.name, name),
+          spanGaps: false,
+          // Slow channels hold their value until the next real sample: a step, not a
+          // line that seems to lead the fast ones.
+          paths: (u, si, i0, i1) => (this.frame?.slow.has(name) ? stepped : linear)?.(u, si, i0, i1) ?? null,
+          points: {
+            size: 5,
+            fill: this.color(i),
+            show: () => !this.frame?.slow.has(name) && this.sparse(),
+            filter: () => this.slowMarkers(name),
+          },
           value: (_u, v) => formatValue(v, unitOf(name)),
         });
-      }
-    });
+      });
+    }
     const xAxis: uPlot.Axis = {
       stroke: theme.axis,
       font: theme.font,
       grid: { stroke: theme.grid, width: 1 },
       ticks: { stroke: theme.grid, width: 1, size: isLast ? 4 : 0 },
-      space: 70,
+      space: this.prefs.xMode === "clock" ? 96 : 70,
       size: isLast ? X_AXIS_PX : 4,
       gap: 2,
-      values: isLast
-        ? (_u, splits, _ai, _space, incr) => splits.map((v) => `${v.toFixed(decimals(incr))} s`)
-        : (_u, splits) => splits.map(() => ""),
+      values: isLast ? (_u, splits, _ai, _space, incr) => splits.map((v) => this.xText(v, incr)) : (_u, splits) => splits.map(() => ""),
     };
+    const label = !flags && !states ? this.units.unit(panel.series[0] ?? "").unit || plot.unit : "";
+    const yCommon = { font: theme.font, size: this.yAxisPx, gap: 4, label, labelSize: Y_LABEL_PX, labelGap: 0, labelFont: theme.font };
     const yAxis: uPlot.Axis = states
       ? {
+          ...yCommon,
           stroke: theme.text,
-          font: theme.font,
-          size: this.yAxisPx,
-          gap: 4,
           grid: { show: false },
           ticks: { show: false },
           splits: () => states.lanes.map((v) => this.lanePos(states, v)),
@@ -639,30 +717,26 @@ export class PlotStack {
             }),
         }
       : flags
-      ? {
-          stroke: theme.text,
-          font: theme.font,
-          size: this.yAxisPx,
-          gap: 4,
-          grid: { show: false },
-          ticks: { show: false },
-          splits: () => plot.series.map((_n, i) => laneBase(i) + LANE / 2),
-          values: (_u, splits) =>
-            splits.map((_v, i) => {
-              const name = plot.series[i] ?? "";
-              return this.fitLabel(this.flagByName.get(name)?.label ?? name);
-            }),
-        }
-      : {
-          stroke: theme.axis,
-          font: theme.font,
-          size: this.yAxisPx,
-          gap: 4,
-          space: 18,
-          grid: { stroke: theme.grid, width: 1 },
-          ticks: { stroke: theme.grid, width: 1, size: 3 },
-          values: (_u, splits, _ai, _space, incr) => splits.map((v) => axisNumber(v, incr)),
-        };
+        ? {
+            ...yCommon,
+            stroke: theme.text,
+            grid: { show: false },
+            ticks: { show: false },
+            splits: () => plot.series.map((_n, i) => laneBase(i) + LANE / 2),
+            values: (_u, splits) =>
+              splits.map((_v, i) => {
+                const name = plot.series[i] ?? "";
+                return this.fitLabel(this.flagByName.get(name)?.label ?? name);
+              }),
+          }
+        : {
+            ...yCommon,
+            stroke: theme.axis,
+            space: 18,
+            grid: { stroke: theme.grid, width: 1 },
+            ticks: { stroke: theme.grid, width: 1, size: 3 },
+            values: (_u, splits, _ai, _space, incr) => splits.map((v) => axisNumber(v, incr)),
+          };
     const opts: uPlot.Options = {
       width: this.width,
       height: panel.height,
@@ -671,7 +745,7 @@ export class PlotStack {
       cursor: {
         sync: { key: this.syncKey, setSeries: false },
         drag: { x: true, y: false, setScale: false },
-        points: states ? { show: false } : { size: 5, fill: (u, si) => (u.series[si]?.stroke as (u: uPlot, si: number) => string)?.(u, si) },
+        points: states || flags ? { show: false } : { size: 5, fill: (u, si) => (u.series[si]?.stroke as (u: uPlot, si: number) => string)?.(u, si) },
         focus: { prox: -1 },
       },
       scales: {
@@ -679,39 +753,199 @@ export class PlotStack {
         y: states
           ? { auto: true, range: () => [-0.5, laneCount(states) - 0.5] }
           : flags
-          ? { auto: false, range: [-0.35, laneBase(0) + LANE + 0.35] }
-          : {
-              auto: true,
-              range: (_u, min, max) => {
-                if (!Number.isFinite(min) || !Number.isFinite(max)) return [-1, 1];
-                if (max - min < 1e-9) {
-                  const pad = Math.max(Math.abs(max) * 0.05, 1);
+            ? { auto: false, range: [-0.35, laneBase(0) + LANE + 0.35] }
+            : {
+                auto: true,
+                range: (_u, min, max) => {
+                  if (!Number.isFinite(min) || !Number.isFinite(max)) return [-1, 1];
+                  if (max - min < 1e-9) {
+                    const pad = Math.max(Math.abs(max) * 0.05, 1);
+                    return [min - pad, max + pad];
+                  }
+                  const pad = (max - min) * 0.08;
                   return [min - pad, max + pad];
-                }
-                const pad = (max - min) * 0.08;
-                return [min - pad, max + pad];
+                },
               },
-            },
       },
       axes: [xAxis, yAxis],
       series,
       hooks: {
         setSelect: [(u) => this.onSelect(u)],
         setCursor: [(u) => this.onCursor(panel, u)],
-        drawAxes: states ? [(u) => this.drawStates(panel, u)] : [],
+        drawAxes: states ? [(u) => this.drawStates(panel, u)] : flags ? [(u) => this.drawFlags(panel, u)] : [],
+        draw: [(u) => this.drawCursors(u)],
       },
     };
-    const empty: uPlot.AlignedData = [[], ...(states ? [[] as number[]] : plot.series.map(() => [] as number[]))];
+    const empty: uPlot.AlignedData = [[], ...series.slice(1).map(() => [] as number[])];
     panel.u = new uPlot(opts, empty, panel.host);
     const u = panel.u;
     // Synced plots mirror the selection; only the plot that was dragged on zooms.
-    u.over.addEventListener("mousedown", () => (this.dragSource = u));
+    u.over.addEventListener("mousedown", (e) => {
+      this.dragSource = u;
+      this.downX = e.clientX;
+    });
+    u.over.addEventListener("click", (e) => {
+      if (Math.abs(e.clientX - this.downX) > 3) return;
+      if (this.cursors.on) this.placeCursor(u.posToVal(e.offsetX, "x"));
+    });
     u.over.addEventListener("dblclick", () => this.resetZoom());
-    panel.u.over.addEventListener("mouseenter", () => (this.hovering = true));
-    panel.u.over.addEventListener("mouseleave", () => {
+    u.over.addEventListener("wheel", (e) => this.onWheel(u, e), { passive: false });
+    u.over.addEventListener("mouseenter", () => (this.hovering = true));
+    u.over.addEventListener("mouseleave", () => {
       this.hovering = false;
+      this.tools.cursorTime(null);
       this.refreshLegend();
     });
+  }
+
+  /** Indices of the real samples of a slow channel, when they are far enough apart. */
+  private slowMarkers(name: string): number[] | null {
+    const f = this.frame;
+    const real = f?.real.get(name);
+    if (!f || !real || !f.slow.has(name)) return null;
+    const [min, max] = this.shown;
+    const px = ((this.width - this.yAxisPx) * (f.slow.get(name) as number)) / Math.max(1e-9, max - min);
+    return px >= MARKER_PX ? real : null;
+  }
+
+  /** x tick text: wall clock, or seconds relative to the trigger point or the right edge. */
+  private xText(v: number, incr: number): string {
+    if (this.prefs.xMode === "clock") return clockText(v, decimals(incr));
+    const ref = this.trigger.capturedT ?? this.shown[1];
+    const rel = v - ref;
+    return `${rel > 0 ? "+" : ""}${rel.toFixed(decimals(incr))} s`;
+  }
+
+  /** Cursor time as shown in the readouts. */
+  timeText(t: number): string {
+    if (this.prefs.xMode === "clock") return clockText(t, 3);
+    const ref = this.trigger.capturedT ?? this.shown[1];
+    return `${(t - ref).toFixed(3)} s`;
+  }
+
+  /** Run bars of the flags, one lane each, straight from the buffer. */
+  private drawFlags(panel: Panel, u: uPlot): void {
+    const ctx = u.ctx;
+    const { left, top, width, height } = u.bbox;
+    const px = devicePixelRatio || 1;
+    const lanes = panel.plot.series.length;
+    ctx.save();
+    ctx.beginPath();
+    ctx.rect(left, top, width, height);
+    ctx.clip();
+    panel.plot.series.forEach((name, i) => {
+      const base = (lanes - 1 - i) * (LANE + LANE_GAP);
+      const y0 = u.valToPos(base, "y", true);
+      const y1 = u.valToPos(base + LANE, "y", true);
+      ctx.fillStyle = this.theme.grid;
+      ctx.fillRect(left, Math.round(y0) - px, width, px);
+      const severity = this.flagByName.get(name)?.severity ?? "info";
+      ctx.fillStyle = this.theme.severity[severity];
+      const runs = panel.runs[i] ?? [];
+      for (let k = 0; k + 1 < runs.length; k += 2) {
+        const x0 = u.valToPos(runs[k] as number, "x", true);
+        const x1 = u.valToPos(runs[k + 1] as number, "x", true);
+        if (x1 < left || x0 > left + width) continue;
+        ctx.fillRect(x0, y1, Math.max(px, x1 - x0), y0 - y1);
+      }
+    });
+    ctx.restore();
+  }
+
+  /** The Δ cursors on every plot: vertical lines A and B. */
+  private drawCursors(u: uPlot): void {
+    const { a, b } = this.cursors;
+    if (a === null && b === null) return;
+    const ctx = u.ctx;
+    const { left, top, width, height } = u.bbox;
+    const px = devicePixelRatio || 1;
+    ctx.save();
+    ctx.strokeStyle = this.theme.cursor;
+    ctx.fillStyle = this.theme.cursor;
+    ctx.lineWidth = px;
+    ctx.font = `bold ${10 * px}px ${css("--mono", "monospace")}`;
+    for (const [name, t] of [["A", a], ["B", b]] as const) {
+      if (t === null) continue;
+      const x = Math.round(u.valToPos(t, "x", true)) + 0.5;
+      if (x < left || x > left + width) continue;
+      ctx.setLineDash(name === "A" ? [] : [4 * px, 3 * px]);
+      ctx.beginPath();
+      ctx.moveTo(x, top);
+      ctx.lineTo(x, top + height);
+      ctx.stroke();
+      ctx.fillText(name, x + 3 * px, top + 10 * px);
+    }
+    ctx.restore();
+  }
+
+  /** Put the next Δ cursor on the sample nearest to ``t``. */
+  placeCursor(t: number): void {
+    const snapped = this.nearestSampleT(t);
+    if (snapped === null) return;
+    this.cursors[this.cursors.next] = snapped;
+    this.cursors.next = this.cursors.next === "a" ? "b" : "a";
+    this.redrawOverlays();
+  }
+
+  setCursors(a: number | null, b: number | null): void {
+    this.cursors.a = a;
+    this.cursors.b = b;
+    this.cursors.next = "a";
+    this.redrawOverlays();
+  }
+
+  redrawOverlays(): void {
+    for (const p of this.panels) if (this.shows(p)) p.u?.redraw(false, false);
+    this.tools.syncCursors();
+  }
+
+  nearestSampleT(t: number): number | null {
+    const b = this.buffer;
+    if (!b.length) return null;
+    const i = Math.min(b.end - 1, Math.max(b.start, b.indexAt(t)));
+    const j = Math.max(b.start, i - 1);
+    const ti = b.t[i] as number;
+    const tj = b.t[j] as number;
+    return Math.abs(ti - t) <= Math.abs(tj - t) ? ti : tj;
+  }
+
+  /** The latest real value of ``name`` at or before ``t`` (device units), or null. */
+  valueAt(name: string, t: number): number | null {
+    const b = this.buffer;
+    const col = b.channels.get(name);
+    if (!col || !b.length) return null;
+    let i = Math.min(b.end - 1, b.indexAt(t + 1e-9) - 1);
+    for (let k = 0; i >= b.start && k < 4096; i--, k++) {
+      const v = col[i] as number;
+      if (!Number.isNaN(v)) return v;
+    }
+    return null;
+  }
+
+  /** Channels drawn now (visible line series), with their plot. */
+  drawnChannels(): { name: string; label: string }[] {
+    const out: { name: string; label: string }[] = [];
+    for (const p of this.panels) {
+      if (p.plot.kind !== "line") continue;
+      for (const name of p.series) if (!this.isHidden(p.plot.name, name)) out.push({ name, label: this.units.channel(name)?.label ?? name });
+    }
+    return out;
+  }
+
+  private onWheel(u: uPlot, e: WheelEvent): void {
+    e.preventDefault();
+    const [min, max] = this.shown;
+    if (!(max > min)) return;
+    const c = u.posToVal(e.offsetX, "x");
+    const f = e.deltaY > 0 ? 1.25 : 0.8;
+    const lo = c - (c - min) * f;
+    const hi = c + (max - c) * f;
+    if (hi - lo < 1e-3) return;
+    if (!this.paused) this.pause();
+    this.zoom = [lo, hi];
+    this.dirty = true;
+    this.syncControls();
+    this.update();
   }
 
   private onSelect(u: uPlot): void {
@@ -733,34 +967,49 @@ export class PlotStack {
   }
 
   private onCursor(panel: Panel, u: uPlot): void {
+    const left = u.cursor.left;
+    if (left !== undefined && left >= 0 && u.over.matches(":hover")) this.tools.cursorTime(u.posToVal(left, "x"));
     const idx = u.cursor.idx;
     if (panel.states) {
-      const left = u.cursor.left;
       if (left !== undefined && left >= 0) this.showState(panel, this.stateAt(panel.states, u.posToVal(left, "x")));
       return;
     }
     if (idx === null || idx === undefined || panel.plot.kind !== "line") return;
-    panel.plot.series.forEach((name, i) => {
+    panel.series.forEach((name, i) => {
       const column = u.data[i + 1];
-      // Slow channels have gaps: show their latest sample at or before the cursor.
-      let value = column?.[idx];
-      for (let j = idx - 1; (value === null || value === undefined) && j >= 0 && j > idx - 64; j--) value = column?.[j];
+      // Slow channels are held: the value shown is their latest real sample.
+      const value = column?.[idx];
       const el = panel.legendValues[i];
       if (el) setText(el, formatValue(value ?? null, this.units.unit(name)));
     });
   }
 
-  /** Latest values in the legends while the cursor is not over a plot. */
+  /** Latest values in the legends while the cursor is not over a plot; a slow value with its age. */
   refreshLegend(): void {
+    const stale = store.ws.kind !== "open";
+    toggleClass(this.el, "stale", stale);
+    if (stale) {
+      setText(this.status, "stale · disconnected");
+      this.status.dataset.stale = "1";
+    } else if (this.status.dataset.stale) {
+      delete this.status.dataset.stale;
+      this.dirty = true;
+    }
     if (this.hovering) return;
     for (const p of this.panels) {
       if (p.states) this.showState(p, this.buffer.latest.get(p.states.channel));
       if (p.plot.kind !== "line") continue;
-      p.plot.series.forEach((name, i) => {
+      p.series.forEach((name, i) => {
         const el = p.legendValues[i];
+        if (!el) return;
         const unit = this.units.unit(name);
         const raw = this.buffer.latest.get(name);
-        if (el) setText(el, formatValue(raw === undefined ? null : raw * unit.factor, unit));
+        const at = this.buffer.latestT.get(name);
+        const age = at === undefined ? 0 : this.buffer.lastT - at;
+        const text = formatValue(raw === undefined ? null : raw * unit.factor, unit);
+        // A value older than a few base periods says how old it is.
+        const period = this.frame?.periodS ?? 0.1;
+        setText(el, age > GAP_PERIODS * period ? `${text} · ${age.toFixed(1)} s old` : text);
       });
     }
   }
@@ -772,7 +1021,7 @@ export class PlotStack {
 
   pause(): void {
     this.paused = true;
-    this.frozenEnd = this.buffer.lastT;
+    this.frozenEnd = this.shown[1] || this.buffer.lastT;
     this.syncControls();
   }
 
@@ -799,52 +1048,84 @@ export class PlotStack {
     this.update();
   }
 
+  /** Trigger settings changed: (re)arm, and show the live trace until it fires. */
+  rearm(): void {
+    this.trigger.capturedT = null;
+    this.trigger.arm(this.buffer);
+    if (this.paused) {
+      this.paused = false;
+      this.zoom = null;
+    }
+    this.dirty = true;
+    this.syncControls();
+    this.update();
+  }
+
   private syncControls(): void {
-    replace(
-      this.pauseButton,
-      h("span", { class: "icon" }, this.paused ? "▶" : "❚❚"),
-      this.paused ? " Resume" : " Pause",
-    );
+    replace(this.pauseButton, h("span", { class: "icon" }, this.paused ? "▶" : "❚❚"), this.paused ? " Resume" : " Pause");
     toggleClass(this.pauseButton, "active", this.paused);
     this.resetButton.disabled = this.zoom === null;
     for (const [s, b] of this.windowButtons) toggleClass(b, "on", s === this.windowS);
     this.el.dataset.paused = this.paused ? "1" : "0";
+    this.tools.syncTrigger();
   }
 
-  /** Called once per animation frame; redraws only if something changed. */
+  /** The x range to show now, and whether it follows the live data. */
+  private range(): { min: number; max: number; live: boolean } {
+    if (this.zoom) return { min: this.zoom[0], max: this.zoom[1], live: false };
+    const captured = this.trigger.active ? this.trigger.window(this.windowS) : null;
+    if (captured) return { min: captured[0], max: captured[1], live: false };
+    const end = this.paused ? this.frozenEnd : this.buffer.lastT;
+    // Before the server's clock has run a whole window, sweep from 0 like a scope.
+    if (!Number.isFinite(end)) return { min: 0, max: this.windowS, live: !this.paused };
+    if (end < this.windowS) return { min: 0, max: this.windowS, live: !this.paused };
+    return { min: end - this.windowS, max: end, live: !this.paused };
+  }
+
+  /** Redraw now, whatever changed (benchmark, tests). */
+  redraw(): void {
+    this.dirty = true;
+    this.skipUntil = 0;
+    this.update();
+  }
+
+  /** Called once per animation frame; redraws only if something changed. A redraw
+   * that took long makes the next one wait as long again (at most half of the main
+   * thread for the scope), so input and the STOP button never queue behind plots. */
   update(): void {
-    if (!this.width || this.panels.some((p) => !p.u)) return;
-    const live = !this.paused;
+    if (!this.width || this.panels.some((p) => this.shows(p) && !p.u)) return;
+    const started = performance.now();
+    if (started < this.skipUntil) return;
+    if (this.trigger.poll(this.buffer, this.windowS)) {
+      this.dirty = true;
+      if (this.trigger.config.mode === "single") this.tools.fired();
+      this.syncControls();
+    }
+    const { min, max, live } = this.range();
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
     if (!live && !this.dirty) return;
     this.dirty = false;
     this.drawnVersion = this.buffer.version;
-    const end = live ? this.buffer.lastT : this.frozenEnd;
-    let min: number;
-    let max: number;
-    if (this.zoom) [min, max] = this.zoom;
-    // Before the server's clock has run a whole window, sweep from 0 like a scope.
-    else if (Number.isFinite(end)) [min, max] = end < this.windowS ? [0, this.windowS] : [end - this.windowS, end];
-    else [min, max] = [0, this.windowS];
+    this.shown = [min, max];
     const buffer = this.buffer;
     // One sample either side so lines run to the plot edges.
     const lo = Math.max(buffer.start, buffer.indexAt(min) - 1);
     const hi = Math.min(buffer.end, buffer.indexAt(max) + 1);
     const channels = new Map<string, number>();
-    const flags: string[] = [];
     for (const p of this.panels) {
-      if (p.states) continue;
-      for (const name of p.plot.series) {
-        if (p.plot.kind === "flags") flags.push(name);
-        else channels.set(name, this.units.unit(name).factor);
-      }
+      if (p.plot.kind !== "line" || !this.shows(p)) continue;
+      for (const name of p.series) channels.set(name, this.units.unit(name).factor);
     }
-    const buckets = Math.max(50, Math.floor(this.width - this.yAxisPx));
-    const frame = cut(buffer, lo, hi, buckets, channels, flags);
+    const columns = Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
+    const frame = cut(buffer, lo, hi, min, max, columns, channels);
+    this.frame = frame;
+    const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
     for (const p of this.panels) if (p.states && this.scanStates(p.states)) newLanes = true;
     if (newLanes) this.layout(false);
+    const flat = [min, max];
     for (const p of this.panels) {
+      if (!this.shows(p)) continue;
       const u = p.u as uPlot;
       const s = p.states;
       if (s) {
@@ -856,22 +1137,39 @@ export class PlotStack {
         });
         continue;
       }
-      const lanes = p.plot.series.length;
-      const ys = p.plot.series.map((name, i) => {
-        if (p.plot.kind === "flags") {
-          const base = (lanes - 1 - i) * (LANE + LANE_GAP);
-          return (frame.flags.get(name) ?? []).map((v) => base + v * LANE);
-        }
-        return frame.channels.get(name) ?? [];
-      });
+      if (p.plot.kind === "flags") {
+        p.runs = p.plot.series.map((name) => flagRuns(buffer, name, lo, hi, gapS));
+        u.batch(() => {
+          u.setData([flat, [null, null]] as uPlot.AlignedData, false);
+          u.setScale("x", { min, max });
+        });
+        continue;
+      }
+      const ys = p.series.map((name) => frame.channels.get(name) ?? []);
       u.batch(() => {
         u.setData([frame.x, ...ys] as uPlot.AlignedData, false);
         u.setScale("x", { min, max });
       });
     }
-    const state = this.paused ? (this.zoom ? "paused · zoomed" : "paused") : "live";
-    setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples`);
-    toggleClass(this.status, "live", !this.paused);
+    if (this.status.dataset.stale) return;
+    const t = this.trigger;
+    const state = t.capturedT !== null && t.active
+      ? `triggered ${clockText(t.capturedT, 3)}`
+      : this.paused
+        ? this.zoom
+          ? "paused · zoomed"
+          : "paused"
+        : t.armed
+          ? t.pendingT !== null
+            ? "trigger · recording"
+            : "trigger armed"
+          : "live";
+    setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
+    toggleClass(this.status, "live", live);
+    this.tools.syncCursors();
+    const took = performance.now() - started;
+    this.lastDrawMs = took;
+    this.skipUntil = took > 8 ? started + 2 * took : 0;
   }
 
   destroy(): void {

@@ -11,6 +11,8 @@ export class Readouts {
   private readonly values = new Map<string, HTMLElement>();
   private readonly unitLabels = new Map<string, HTMLElement>();
   private readonly lamps = new Map<string, HTMLElement>();
+  /** "0.6 s old" beside a value that did not come with the latest sample (slow channel). */
+  private readonly ages = new Map<string, HTMLElement>();
   /** Enumerated channels: the value shows as its name, the id small beside it. */
   private readonly states = new Map<string, { names: StateNames; box: HTMLElement }>();
 
@@ -36,11 +38,13 @@ export class Readouts {
         "",
       );
       this.values.set(channel.name, value);
+      const age = h("span", { class: "readout-age", testid: `readout-age-${channel.name}`, title: "Age of this value: the channel is read less often than the others" }, "");
+      this.ages.set(channel.name, age);
       this.unitLabels.set(channel.name, unit);
       const box = h(
         "div",
         { class: names ? "readout enum" : "readout", title: `${channel.label}: ${channel.description}` },
-        h("div", { class: "readout-label" }, channel.label),
+        h("div", { class: "readout-label" }, channel.label, age),
         h("div", { class: "readout-line" }, value, unit),
       );
       if (names) {
@@ -92,6 +96,9 @@ export class Readouts {
       }
       setText(el, formatValue(raw === undefined ? null : raw * unit.factor, unit));
       el.dataset.unit = unit.unit;
+      const at = this.buffer.latestT.get(channel.name);
+      const age = at === undefined ? 0 : this.buffer.lastT - at;
+      setText(this.ages.get(channel.name) as HTMLElement, age > 0.05 ? ` · ${age.toFixed(1)} s old` : "");
       setText(this.unitLabels.get(channel.name) as HTMLElement, unit.unit);
     }
     const stale = !Number.isFinite(this.buffer.lastT);

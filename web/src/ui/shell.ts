@@ -41,7 +41,15 @@ export class TopBar {
   private readonly stopEffect: HTMLElement;
   private readonly version: HTMLElement;
 
-  constructor(handlers: { stop(): void; toggleEvents(): void; retry(): void; toggleTheme(): void }) {
+  readonly navButton: HTMLButtonElement;
+
+  constructor(handlers: { stop(): void; toggleEvents(): void; retry(): void; toggleTheme(): void; toggleNav?(): void }) {
+    // Phones: the axis list is a drawer behind this button (hidden on wider screens).
+    this.navButton = h(
+      "button",
+      { class: "btn ghost nav-toggle", testid: "nav-toggle", title: "Links & axes", "aria-label": "Show the links and axes", onclick: () => handlers.toggleNav?.() },
+      "☰",
+    );
     this.stopButton = h(
       "button",
       { class: "stop-all", testid: "stop-all", title: "Stop every axis now (Esc, from anywhere)", onclick: () => handlers.stop() },
@@ -59,8 +67,9 @@ export class TopBar {
     this.unread = h("span", { class: "count", testid: "events-unread", hidden: true });
     this.eventsButton = h(
       "button",
-      { class: "btn ghost events-toggle", testid: "events-toggle", title: "Show or hide the event log", onclick: () => handlers.toggleEvents() },
-      "Event log",
+      { class: "btn ghost events-toggle", testid: "events-toggle", title: "Show or hide the event log (the count: new warnings and errors)", onclick: () => handlers.toggleEvents() },
+      h("span", { class: "events-label" }, "Event log"),
+      h("span", { class: "events-short", "aria-hidden": "true" }, "Log"),
       this.unread,
     );
     this.autopilot = h("span", { class: "chip-autopilot", testid: "autopilot", hidden: true, title: "The demo moves each simulated axis until you operate it" }, "DEMO · autopilot");
@@ -70,6 +79,7 @@ export class TopBar {
     this.el = h(
       "header",
       { class: "topbar" },
+      this.navButton,
       h(
         "div",
         { class: "brand" },
@@ -130,10 +140,13 @@ export class Nav {
   readonly el: HTMLElement;
   private readonly list: HTMLElement;
   private current = "";
+  /** Opens the event log (a link's error count leads there). */
+  onOpenEvents: (() => void) | null = null;
 
   constructor() {
     this.list = h("div", { class: "nav-list" });
-    this.el = h("nav", { class: "nav", "aria-label": "Links and axes" }, h("div", { class: "nav-title" }, "Links & axes"), this.list);
+    const overview = h("a", { class: "nav-overview", href: "#/overview", testid: "nav-overview", title: "Every axis of the rig on one page" }, "▦ Rig overview");
+    this.el = h("nav", { class: "nav", "aria-label": "Links and axes" }, overview, h("div", { class: "nav-title" }, "Links & axes"), this.list);
     store.on("topology", () => this.render());
     store.on("link", () => this.refresh());
     store.on("axisStatus", () => this.refresh());
@@ -142,6 +155,7 @@ export class Nav {
 
   select(axisId: string): void {
     this.current = axisId;
+    toggleClass(this.el.querySelector(".nav-overview") as HTMLElement, "on", axisId === "" && location.hash === "#/overview");
     for (const a of this.list.querySelectorAll<HTMLElement>(".nav-axis")) toggleClass(a, "on", a.dataset.axis === axisId);
   }
 
@@ -163,7 +177,17 @@ export class Nav {
           ),
           h("div", { class: "link-meta mono", title: `${link.device} on ${link.path}` }, `${link.device} · ${link.path}${link.baud ? ` · ${link.baud}` : ""}`),
           h("div", { class: "link-rate mono", testid: `link-rate-${link.id}` }, "—"),
-          h("div", { class: "link-message" }),
+          h("div", {
+            class: "link-message",
+            testid: `link-message-${link.id}`,
+            title: "Open the event log",
+            role: "button",
+            tabIndex: 0,
+            onclick: () => this.onOpenEvents?.(),
+            onkeydown: (e: KeyboardEvent) => {
+              if (e.key === "Enter" || e.key === " ") this.onOpenEvents?.();
+            },
+          }),
           h(
             "div",
             { class: "nav-axes" },
@@ -224,13 +248,27 @@ export class Nav {
   }
 }
 
+const LEVELS = ["info", "warning", "error"] as const;
+
+/** Wall-clock time of a server-clock time, "14:03:22.1" (server seconds if unknown yet). */
+export function wallClock(t: number): { text: string; full: string } {
+  const offset = store.clockOffsetS;
+  if (!Number.isFinite(offset)) return { text: formatSeconds(t), full: `${formatSeconds(t)} after the server started` };
+  const d = new Date((t + offset) * 1000);
+  const p = (n: number): string => String(n).padStart(2, "0");
+  return { text: `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}.${Math.floor(d.getMilliseconds() / 100)}`, full: d.toLocaleString() };
+}
+
 export class EventLog {
   readonly el: HTMLElement;
   private readonly list: HTMLElement;
   private open = false;
+  /** Unread warnings and errors only: info (moves, writes) would make the badge noise. */
   private unread = 0;
   private severe = false;
-  private onlyProblems = false;
+  private readonly shown = new Set<string>(LEVELS);
+  /** Rows whose time was written before the wall clock was known. */
+  private readonly pending: { el: HTMLElement; t: number }[] = [];
 
   constructor(
     private readonly onUnread: (n: number, severe: boolean) => void,
@@ -238,11 +276,33 @@ export class EventLog {
     private readonly onToggle: (open: boolean) => void,
   ) {
     this.list = h("div", { class: "event-list", role: "log" });
-    const filter = h("button", { class: "btn ghost small", testid: "events-filter" }, "Warnings only");
+    const filters = h(
+      "div",
+      { class: "seg small event-levels", role: "group", "aria-label": "Levels shown" },
+      LEVELS.map((level) => {
+        const b = h("button", { class: "seg-btn on", testid: `events-level-${level}`, "aria-pressed": "true", title: `Show ${level} events` }, level);
+        b.addEventListener("click", () => {
+          if (this.shown.has(level)) this.shown.delete(level);
+          else this.shown.add(level);
+          const on = this.shown.has(level);
+          toggleClass(b, "on", on);
+          b.setAttribute("aria-pressed", on ? "true" : "false");
+          toggleClass(this.list, `hide-${level}`, !on);
+        });
+        return b;
+      }),
+    );
+    // Kept for scripts and tests written against the old single filter.
+    const filter = h("button", { class: "btn ghost small", testid: "events-filter", title: "Hide info events" }, "Warnings only");
     filter.addEventListener("click", () => {
-      this.onlyProblems = !this.onlyProblems;
-      toggleClass(filter, "on", this.onlyProblems);
-      toggleClass(this.list, "only-problems", this.onlyProblems);
+      const only = !this.list.classList.contains("hide-info");
+      toggleClass(filter, "on", only);
+      toggleClass(this.list, "hide-info", only);
+      toggleClass(this.list, "only-problems", only);
+      const info = filters.querySelector<HTMLElement>("[data-testid=events-level-info]");
+      if (info) toggleClass(info, "on", !only);
+      if (only) this.shown.delete("info");
+      else this.shown.add("info");
     });
     this.el = h(
       "section",
@@ -251,21 +311,24 @@ export class EventLog {
         "div",
         { class: "event-head" },
         h("span", { class: "event-title" }, "Event log"),
+        filters,
         h("span", { class: "tb-spacer" }),
         filter,
         h("button", { class: "btn ghost small", onclick: () => this.clear() }, "Clear"),
-        h("button", { class: "btn ghost small", title: "Close", onclick: () => this.toggle(false) }, "×"),
+        h("button", { class: "btn ghost small", title: "Close", "aria-label": "Close the event log", onclick: () => this.toggle(false) }, "×"),
       ),
       this.list,
     );
     for (const e of store.events) this.add(e, false);
     store.on("event", (e) => this.add(e, true));
+    store.on("topology", () => this.retime());
   }
 
   toggle(force?: boolean): void {
     this.open = force ?? !this.open;
     this.el.hidden = !this.open;
     this.onToggle(this.open);
+    this.retime();
     if (this.open) {
       this.unread = 0;
       this.severe = false;
@@ -276,25 +339,43 @@ export class EventLog {
 
   private clear(): void {
     this.list.replaceChildren();
+    this.pending.length = 0;
+  }
+
+  /** Rewrite server-clock times as wall clock once the offset is known. */
+  private retime(): void {
+    if (!Number.isFinite(store.clockOffsetS)) return;
+    for (const { el, t } of this.pending.splice(0)) {
+      const w = wallClock(t);
+      setText(el, w.text);
+      el.title = w.full;
+    }
   }
 
   private add(e: WireEvent, live: boolean): void {
+    this.retime();
     const stick = this.list.scrollHeight - this.list.scrollTop - this.list.clientHeight < 30;
+    const w = wallClock(e.t);
+    const time = h("span", { class: "ev-time mono", title: w.full }, w.text);
+    if (!Number.isFinite(store.clockOffsetS)) this.pending.push({ el: time, t: e.t });
+    const axis = e.axis
+      ? h("a", { class: "ev-axis", href: `#/axis/${encodeURIComponent(e.axis)}`, title: `Open ${this.axisName(e.axis)}` }, this.axisName(e.axis))
+      : h("span", { class: "ev-axis" }, "all");
     this.list.appendChild(
       h(
         "div",
         { class: `event level-${e.level}`, "data-level": e.level },
-        h("span", { class: "ev-time mono" }, formatSeconds(e.t)),
+        time,
         h("span", { class: "ev-level" }, e.level),
-        h("span", { class: "ev-axis" }, e.axis ? this.axisName(e.axis) : "all"),
+        axis,
         h("span", { class: "ev-message" }, e.message),
       ),
     );
     while (this.list.childElementCount > 500) this.list.firstElementChild?.remove();
     if (stick || !live) this.list.scrollTop = this.list.scrollHeight;
-    if (!this.open && live) {
+    if (!this.open && live && e.level !== "info") {
       this.unread += 1;
-      this.severe ||= e.level !== "info";
+      this.severe ||= e.level === "error";
       this.onUnread(this.unread, this.severe);
     }
   }

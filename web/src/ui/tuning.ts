@@ -66,12 +66,20 @@ class ParamRow {
     private readonly axisId: string,
     readonly p: ParameterDescriptor,
     private readonly byName: Map<string, ParameterDescriptor>,
+    /** The write group this parameter belongs to: edits are staged, the group bar writes. */
+    private readonly group: string[] | null = null,
   ) {
     // The slider covers the useful range (slider_minimum..slider_maximum, e.g. a signed
     // velocity of ±20000 out of ±65535); the field takes the whole range, and the
     // slider stretches to a value beyond its range (marked "extended").
     this.sliderMin = Math.max(p.minimum, p.slider_minimum ?? p.minimum);
     this.sliderMax = Math.min(p.maximum, p.slider_maximum ?? p.maximum);
+    // Gains: a track of 4× the factory value (at least 0..100), so the factory value
+    // sits at a quarter of it and a drag is a tuning step, not a jump across decades;
+    // the field takes the full range and the track extends to a larger value.
+    if (/gain/i.test(p.group) && p.default !== null && p.default > 0 && p.minimum >= 0) {
+      this.sliderMax = Math.min(this.sliderMax, Math.max(100, 4 * p.default));
+    }
     const tip = `${p.description}\n\n${p.name} · range ${rangeText(p)}${p.default !== null ? ` · default ${p.default}` : ""}${p.persisted ? " · stored by the device's save command" : ""}`;
     this.input = h("input", {
       class: "input num param-input",
@@ -138,7 +146,32 @@ class ParamRow {
         });
         const slider = this.slider;
         slider.addEventListener("input", () => this.setUi(Number(slider.value)));
-        slider.addEventListener("change", () => void this.commit(Number(slider.value)));
+        // A pointer release writes; arrow/page keys only move the value, which is written
+        // when the keys rest (700 ms), on Enter or when the slider loses focus: never
+        // one motor write per key step.
+        let keyed = false;
+        let timer = 0;
+        const flush = (): void => {
+          window.clearTimeout(timer);
+          timer = 0;
+          if (keyed) {
+            keyed = false;
+            void this.commit(Number(slider.value));
+          }
+        };
+        slider.addEventListener("keydown", (event) => {
+          if (event.key === "Enter") flush();
+          else if (/^(Arrow|Page|Home|End)/.test(event.key)) keyed = true;
+        });
+        slider.addEventListener("keyup", () => {
+          if (!keyed) return;
+          window.clearTimeout(timer);
+          timer = window.setTimeout(flush, 700);
+        });
+        slider.addEventListener("blur", flush);
+        slider.addEventListener("change", () => {
+          if (!keyed) void this.commit(Number(slider.value));
+        });
       }
       control = h(
         "div",
@@ -190,6 +223,12 @@ class ParamRow {
 
   async commit(value: number): Promise<void> {
     const name = this.p.name;
+    if (this.group) {
+      // Staged: the group bar writes the whole group in its order.
+      if (Number.isInteger(value)) this.setUi(value);
+      else toggleClass(this.input, "invalid", true);
+      return;
+    }
     // What the user has for the parameters this write also changes on the device: the
     // values typed and not applied, else the device's (what the fields show).
     const ui = store.uiValues(this.axisId);
@@ -421,10 +460,19 @@ export class TuningPanel {
       list.push(p);
       groups.set(p.group, list);
     }
+    const writeGroups = (descriptor.write_groups ?? []).filter((g) => g.length > 1 && g.every((n) => byName.has(n)));
+    const groupOf = new Map<string, string[]>();
+    for (const g of writeGroups) for (const n of g) groupOf.set(n, g);
+    const barsPlaced = new Set<string[]>();
     for (const [group, params] of groups) {
       const section = h("section", { class: "param-group", "data-group": group }, h("div", { class: "param-group-title" }, group));
+      const wg = params.map((p) => groupOf.get(p.name)).find((g) => g !== undefined);
+      if (wg && !barsPlaced.has(wg)) {
+        barsPlaced.add(wg);
+        body.appendChild(new WriteGroupBar(axisId, wg, byName, writeGroups.indexOf(wg), signal).el);
+      }
       for (const p of params) {
-        const row = new ParamRow(axisId, p, byName);
+        const row = new ParamRow(axisId, p, byName, groupOf.get(p.name) ?? null);
         this.rows.set(p.name, row);
         section.appendChild(row.el);
       }
@@ -472,4 +520,129 @@ export class TuningPanel {
       this.readButton.classList.remove("busy");
     }
   }
+}
+
+/** Parameters the descriptor says are written together (``write_groups``, e.g. Z1100
+ * KABH then KABD, because SetKABH overwrites KABD on the chip). Their rows stage edits;
+ * this bar writes the whole group, sub-group by sub-group in the descriptor's order,
+ * with the user's values for every member (edited or as read), so nothing the user has
+ * is silently replaced. If a later part fails, it offers one restore of that part. */
+class WriteGroupBar {
+  readonly el: HTMLElement;
+  private readonly text: HTMLElement;
+  private readonly writeButton: HTMLButtonElement;
+  private readonly discardButton: HTMLButtonElement;
+  private readonly status: HTMLElement;
+  private readonly offerHost: HTMLElement;
+  /** Consecutive members of one parameter group (e.g. the three KABH gains). */
+  private readonly parts: { group: string; names: string[] }[] = [];
+
+  constructor(
+    private readonly axisId: string,
+    private readonly names: string[],
+    private readonly byName: Map<string, ParameterDescriptor>,
+    index: number,
+    signal: AbortSignal,
+  ) {
+    for (const n of names) {
+      const group = byName.get(n)?.group ?? n;
+      const last = this.parts[this.parts.length - 1];
+      if (last && last.group === group) last.names.push(n);
+      else this.parts.push({ group, names: [n] });
+    }
+    const order = this.parts.map((p) => p.group).join(", then ");
+    this.text = h("span", { class: "wg-pending", testid: `write-group-${index}-pending` });
+    this.writeButton = h("button", { class: "btn warn", testid: `write-group-${index}`, title: `Writes ${order}`, onclick: () => void this.write() }, "Write both sets");
+    this.discardButton = h("button", { class: "btn ghost small", testid: `write-group-${index}-discard`, onclick: () => this.discard() }, "Discard edits");
+    this.status = h("div", { class: "cmd-status", testid: `write-group-${index}-status`, role: "status" });
+    this.offerHost = h("div", { class: "overwrite-slot" });
+    this.el = h(
+      "div",
+      { class: "write-group", testid: `write-group-bar-${index}`, role: "group", "aria-label": "Parameters written together" },
+      h(
+        "div",
+        { class: "wg-warn" },
+        h("span", { class: "overwrite-icon", "aria-hidden": "true" }, "⚠"),
+        h("span", null, `Written together: the device overwrites the later set when the first is written, so servotune writes ${order} with your values for both. Edit either set, then write.`),
+      ),
+      h("div", { class: "wg-actions" }, this.writeButton, this.discardButton, this.text),
+      this.status,
+      this.offerHost,
+    );
+    this.sync();
+    store.on("uiParams", (id) => id === axisId && this.sync(), signal);
+    store.on("params", ({ axis }) => axis === axisId && this.sync(), signal);
+  }
+
+  private value(n: string): number | undefined {
+    return store.uiValues(this.axisId).get(n) ?? store.deviceValues(this.axisId).get(n);
+  }
+
+  private pending(): string[] {
+    const ui = store.uiValues(this.axisId);
+    const device = store.deviceValues(this.axisId);
+    return this.names.filter((n) => ui.has(n) && ui.get(n) !== device.get(n));
+  }
+
+  private sync(): void {
+    const pending = this.pending();
+    setText(this.text, pending.length ? `${pending.length} edited: ${pending.map((n) => `${this.byName.get(n)?.label ?? n} = ${this.value(n)}`).join(", ")}` : "no edits");
+    this.writeButton.disabled = pending.length === 0;
+    this.discardButton.disabled = pending.length === 0;
+  }
+
+  private discard(): void {
+    const ui = store.uiValues(this.axisId);
+    for (const n of this.names) ui.delete(n);
+    store.emit("params", { axis: this.axisId, names: this.names });
+    store.emit("uiParams", this.axisId);
+  }
+
+  async write(): Promise<void> {
+    const values = new Map<string, number>();
+    for (const n of this.names) {
+      const v = this.value(n);
+      if (v === undefined) {
+        setStatus(this.status, "error", `✗ ${n} is not known yet: read from the device first`);
+        return;
+      }
+      values.set(n, v);
+    }
+    replace(this.offerHost);
+    this.writeButton.classList.add("busy");
+    let done = 0;
+    try {
+      for (const part of this.parts) {
+        setStatus(this.status, "pending", `Writing ${part.group} …`);
+        const body = Object.fromEntries(part.names.map((n) => [n, values.get(n) as number]));
+        const readback = await api.writeParams(this.axisId, body);
+        store.setDeviceParams(this.axisId, readback, true);
+        done += 1;
+      }
+      setStatus(this.status, "ok", `✓ Wrote ${this.parts.map((p) => `${p.group} ${joined(p.names, (n) => store.deviceValues(this.axisId).get(n))}`).join(", then ")}`);
+    } catch (error) {
+      const text = showError("Write group", error);
+      const failed = this.parts[done];
+      setStatus(this.status, "error", `✗ ${failed?.group ?? "write"}: ${statusLabel(error)} — ${text}`);
+      // One restore at most: the part that did not get the user's values.
+      if (failed && done > 0) {
+        const mine = joined(failed.names, (n) => values.get(n));
+        const restore = h("button", { class: "btn small warn", testid: "write-group-restore" }, `Write ${failed.group} ${mine} again`);
+        restore.addEventListener("click", () => {
+          for (const n of failed.names) store.uiValues(this.axisId).set(n, values.get(n) as number);
+          void this.write();
+        });
+        replace(this.offerHost, h("div", { class: "overwrite-offer", role: "alert" }, h("span", { class: "overwrite-icon" }, "↺"), h("span", { class: "overwrite-text" }, `${failed.group} on the device may now hold what ${this.parts[0]?.group} wrote.`), restore));
+      }
+    } finally {
+      this.writeButton.classList.remove("busy");
+      this.sync();
+    }
+  }
+}
+
+function setStatus(el: HTMLElement, kind: "ok" | "error" | "pending", text: string): void {
+  el.dataset.kind = kind;
+  setText(el, text);
+  el.title = text;
 }

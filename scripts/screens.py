@@ -1,0 +1,60 @@
+"""Screenshots of the dashboard at phone, laptop and desktop sizes (headless Chromium).
+
+Usage: python scripts/screens.py http://127.0.0.1:8106 OUT_DIR [theme]
+Takes the SLAP2, Z1100 and EP7047 axis pages and the rig overview at 390x844,
+1280x800 and 1600x1000, and reports horizontal overflow and off-screen buttons.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+from playwright.async_api import async_playwright
+
+SIZES = {"phone": (390, 844), "laptop": (1280, 800), "desktop": (1600, 1000)}
+PAGES = {
+    "slap2": "#/axis/demo-slap2-0",
+    "z1100": "#/axis/demo-z1100-x",
+    "ep7047": "#/axis/demo-ep7047-1",
+    "overview": "#/overview",
+}
+
+CHECK = """() => {
+  const vw = document.documentElement.clientWidth, vh = innerHeight;
+  const out = [];
+  for (const b of document.querySelectorAll('.controls button, .stop-all')) {
+    const r = b.getBoundingClientRect();
+    if (!r.width) continue;
+    if (r.left < 0 || r.right > vw + 0.5) out.push((b.textContent||'').trim().slice(0,30) + ' @' + Math.round(r.left) + '..' + Math.round(r.right));
+  }
+  return {scrollW: document.documentElement.scrollWidth, vw, offscreen: out};
+}"""
+
+
+async def main(base: str, out: Path, theme: str) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    async with async_playwright() as p:
+        browser = await p.chromium.launch(
+            executable_path="/usr/bin/chromium", args=["--no-sandbox", "--disable-gpu"]
+        )
+        for size, (w, hgt) in SIZES.items():
+            ctx = await browser.new_context(
+                viewport={"width": w, "height": hgt}, color_scheme=theme  # type: ignore[arg-type]
+            )
+            page = await ctx.new_page()
+            page.on("pageerror", lambda exc: print("PAGE ERROR", exc))
+            for name, frag in PAGES.items():
+                await page.goto(f"{base}/{frag}")
+                await page.wait_for_timeout(2500)
+                await page.screenshot(path=str(out / f"{name}-{size}.png"))
+                print(size, name, await page.evaluate(CHECK))
+            await ctx.close()
+        await browser.close()
+
+
+if __name__ == "__main__":
+    asyncio.run(
+        main(sys.argv[1], Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "dark")
+    )

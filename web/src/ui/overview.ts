@@ -1,0 +1,113 @@
+// Rig overview: one tile per axis (position, motion state, link rate, health), each
+// opening its axis page. Built from the descriptors, so it knows nothing per device
+// except which flag means "moving" / "in position" (by name, see STATE_FLAGS).
+import { api } from "../api";
+import { h, replace, setText } from "../dom";
+import { formatValue, nativeUnit } from "../format";
+import { store } from "../store";
+import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
+import { HEALTH_TEXT } from "./axis";
+
+/** Flag names that mean "moving" and "in position" across the supported devices. */
+const MOVING = /^(move|running|busy|moving_positive|moving_negative)$/;
+const IN_POSITION = /^(inpos|in_target)$/;
+
+interface Tile {
+  axis: AxisInfo;
+  el: HTMLElement;
+  position: HTMLElement;
+  unit: HTMLElement;
+  state: HTMLElement;
+  rate: HTMLElement;
+  health: HTMLElement;
+  descriptor: DeviceDescriptor | null;
+}
+
+export class OverviewView {
+  readonly el: HTMLElement;
+  private readonly tiles: Tile[] = [];
+  private readonly abort = new AbortController();
+  private last = 0;
+
+  constructor() {
+    const grid = h("div", { class: "overview-grid" });
+    this.el = h(
+      "div",
+      { class: "overview", testid: "overview" },
+      h("div", { class: "overview-head" }, h("h1", null, "Rig overview"), h("span", { class: "axis-meta" }, `${store.axes.length} axes · click a tile to open the axis`)),
+      grid,
+    );
+    for (const axis of store.axes) {
+      const tile: Tile = {
+        axis,
+        position: h("span", { class: "tile-value mono", testid: `tile-position-${axis.id}` }, "—"),
+        unit: h("span", { class: "readout-unit" }, ""),
+        state: h("span", { class: "tile-state", testid: `tile-state-${axis.id}` }, "—"),
+        rate: h("span", { class: "tile-rate mono" }, "— Hz"),
+        health: h("span", { class: "badge health" }, "ok"),
+        descriptor: null,
+        el: h("a"),
+      };
+      tile.el = h(
+        "a",
+        { class: "tile", href: `#/axis/${encodeURIComponent(axis.id)}`, testid: `tile-${axis.id}`, title: `Open ${axis.name}` },
+        h("div", { class: "tile-head" }, h("span", { class: "tile-name" }, axis.name), tile.health),
+        h("div", { class: "tile-meta mono" }, `${axis.device} · ${axis.link} · #${axis.address}`),
+        h("div", { class: "tile-line" }, tile.position, tile.unit),
+        h("div", { class: "tile-line" }, tile.state, tile.rate),
+      );
+      grid.appendChild(tile.el);
+      this.tiles.push(tile);
+      store
+        .descriptor(axis.id, () => api.descriptor(axis.id))
+        .then((d) => {
+          tile.descriptor = d;
+          setText(tile.unit, d.channels.find((c) => c.name === this.positionChannel(d))?.unit ?? "");
+        })
+        .catch(() => setText(tile.state, "no descriptor"));
+    }
+    if (!this.tiles.length) replace(grid, h("div", { class: "empty-state" }, "No axes yet."));
+    store.on("topology", () => undefined, this.abort.signal);
+  }
+
+  private positionChannel(d: DeviceDescriptor): string {
+    return d.channels.find((c) => c.name === "position")?.name ?? d.plots[0]?.series[0] ?? d.channels[0]?.name ?? "";
+  }
+
+  /** Tiles refresh at about 5 Hz: numbers a person reads, not a plot. */
+  frame(now: number): void {
+    if (now - this.last < 200) return;
+    this.last = now;
+    for (const tile of this.tiles) this.refresh(tile);
+  }
+
+  private refresh(tile: Tile): void {
+    const d = tile.descriptor;
+    const buffer = store.buffers.get(tile.axis.id);
+    const status = store.axisStatus.get(tile.axis.id);
+    const health = status?.health ?? "ok";
+    setText(tile.health, HEALTH_TEXT[health] ?? health);
+    tile.health.dataset.health = health;
+    const link = store.linkStatus.get(tile.axis.link);
+    setText(tile.rate, link ? `${link.rate_hz.toFixed(1)} Hz · ${link.state}` : "— Hz");
+    if (!d || !buffer) return;
+    const raw = buffer.latest.get(this.positionChannel(d));
+    setText(tile.position, formatValue(raw ?? null, nativeUnit("")));
+    const on = (re: RegExp): boolean => d.flags.some((f) => re.test(f.name) && buffer.latestFlags.get(f.name) === 1);
+    const faults = d.flags.filter((f) => f.severity === "fault" && buffer.latestFlags.get(f.name) === 1).map((f) => f.label);
+    let state: string;
+    if (health === "offline") state = "offline";
+    else if (faults.length) state = `fault: ${faults.join(", ")}`;
+    else if (on(MOVING)) state = "moving";
+    else if (on(IN_POSITION)) state = "in position";
+    else state = "standstill";
+    setText(tile.state, state);
+    tile.state.dataset.state = state.startsWith("fault") ? "fault" : state.replace(" ", "-");
+    tile.el.dataset.state = tile.state.dataset.state;
+  }
+
+  destroy(): void {
+    this.abort.abort();
+    this.el.remove();
+  }
+}
