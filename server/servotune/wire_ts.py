@@ -29,6 +29,7 @@ MODELS: list[type[BaseModel]] = [
     descriptor.ArgumentDescriptor,
     descriptor.CommandDescriptor,
     descriptor.ConsoleDescriptor,
+    descriptor.TwinDescriptor,
     descriptor.DeviceDescriptor,
     wire.AxisInfo,
     wire.LinkInfo,

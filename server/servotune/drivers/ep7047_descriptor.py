@@ -28,6 +28,7 @@ from servotune.descriptor import (
     FlagDescriptor,
     ParameterDescriptor,
     PlotDescriptor,
+    TwinDescriptor,
 )
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import PosDiag, PosStatus, SdoObject, StartType, StmStatus
@@ -838,5 +839,12 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 "but not the data type."
             ),
             examples=["list", "0x9020:03", "0x9020:01", "0x8020:0E", "0x8020:02 = 5000"],
+        ),
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            target_channel="target",
+            moving_flag="busy",
+            in_position_flag="in_target",
+            switch_flags=["digital_input_1"],
         ),
     )

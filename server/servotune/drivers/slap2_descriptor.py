@@ -20,6 +20,7 @@ from servotune.descriptor import (
     FlagDescriptor,
     ParameterDescriptor,
     PlotDescriptor,
+    TwinDescriptor,
 )
 from servotune.protocols import slap2 as codec
 
@@ -529,5 +530,12 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             multiline_commands=list(codec.MULTILINE_COMMANDS),
             examples=["rp", "rss", "rrss", "rep", "id", "qp"],
+        ),
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            setpoint_channel="setpoint",
+            moving_flag="move",
+            in_position_flag="inpos",
+            switch_flags=["limit1", "limit2"],
         ),
     )

@@ -19,6 +19,7 @@ from servotune.descriptor import (
     FlagDescriptor,
     ParameterDescriptor,
     PlotDescriptor,
+    TwinDescriptor,
 )
 from servotune.protocols import z1100 as codec
 
@@ -400,5 +401,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                 "'SetKABH 40 10 20', 'GetStop'. The reply is decoded with its error bits."
             ),
             examples=["GetEncoder", "GetError", "GetKABH", "GetStart", "GetStop", "GetVmax"],
+        ),
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            setpoint_channel="setpoint",
+            target_channel="target",
+            moving_flag="running",
         ),
     )
