@@ -19,6 +19,7 @@ from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.api.twin_routes import router as twin_router
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
 from servotune.drivers.base import (
@@ -32,6 +33,7 @@ from servotune.hub import Hub, NotFoundError, UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, default_data_dir
 from servotune.testbench import TestBench
+from servotune.twin import Twin
 
 logger = logging.getLogger(__name__)
 
@@ -49,6 +51,7 @@ class AppConfig:
         default_factory=list
     )
     web_dir: Path = WEB_DIST
+    twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -75,9 +78,12 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.storage = storage
             await hub.start()
             await bench.start()
+            app.state.twin = await Twin.start(hub) if config.twin else None
             try:
                 yield
             finally:
+                if app.state.twin is not None:
+                    await app.state.twin.stop()
                 await bench.stop()
                 await hub.stop()
                 # Let pending storage writes finish before the database closes.
@@ -94,6 +100,7 @@ def create_app(config: AppConfig) -> FastAPI:
     app.include_router(bench_router)
     app.include_router(autotune_router)
     app.include_router(param_set_router)
+    app.include_router(twin_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:

@@ -31,7 +31,7 @@ COLOURS: dict[StateKind, Rgb] = {
     "fault": (214, 48, 49),
     "moving": (41, 121, 255),
     "in_position": (39, 174, 96),
-    "idle": (176, 190, 197),
+    "idle": (240, 222, 150),
 }
 SWITCH_ON: Rgb = (230, 30, 30)
 SWITCH_OFF: Rgb = (70, 80, 90)

@@ -34,7 +34,7 @@ from servotune.twin.model import (
 
 DISC_RADIUS = 0.32
 DISC_THICKNESS = 0.06
-AXIS_PITCH = 1.0  # distance between neighbouring axes
+AXIS_PITCH = 1.1  # distance between neighbouring axes
 LINK_GAP = 0.4  # extra distance between the axes of two links
 RAIL_LENGTH = 0.8
 RAIL_Z = -0.62
@@ -84,9 +84,10 @@ def camera_for_span(x_min: float, x_max: float, has_stage: bool) -> CameraView:
     """A front view, slightly from above, that fits the x range (and the rails)."""
     centre_x = (x_min + x_max) / 2
     centre_z = -0.2 if has_stage else 0.0
-    # 75° field of view (the client's default): the half-width must fit at distance d.
+    # The client's vertical field of view is 75°; in a frame at least 4:3 wide the
+    # horizontal half-angle is 45° or more, so the half-width fits at that distance.
     half_width = (x_max - x_min) / 2 + 0.6
-    distance = max(1.9, half_width / math.tan(math.radians(32)))
+    distance = max(2.0, half_width)
     return CameraView(
         position=(centre_x, -distance, centre_z + 0.35 * distance),
         look_at=(centre_x, 0.0, centre_z),
@@ -135,32 +136,39 @@ class AxisScene:
             position=(0.0, -0.05, 0.0),
             radial_segments=48,
         )
+        # The index mark runs from near the centre to the rim; the ghosts are pointers
+        # outside the rim, so they never hide the mark and their angle to it reads as
+        # following error (setpoint) and remaining travel (target).
         self._mark = scene.add_box(
             f"{root}/rotor/mark",
             color=MARK,
-            dimensions=(0.035, 0.012, DISC_RADIUS * 0.55),
-            position=(0.0, -0.085, DISC_RADIUS * 0.68),
+            dimensions=(0.04, 0.012, DISC_RADIUS * 0.78),
+            position=(0.0, -0.085, DISC_RADIUS * 0.59),
         )
-        self._setpoint = self._ghost(scene, f"{root}/setpoint", SETPOINT_GHOST, 0.5, 0.10)
-        self._target = self._ghost(scene, f"{root}/target", TARGET_GHOST, 0.35, 0.115)
+        self._setpoint = self._ghost(
+            scene, f"{root}/setpoint", SETPOINT_GHOST, 0.6, (0.9, 1.3), 0.05
+        )
+        self._target = self._ghost(scene, f"{root}/target", TARGET_GHOST, 0.45, (1.0, 1.5), 0.035)
         self._label = scene.add_label(
             f"{root}/label",
             name,
-            position=(0.0, 0.0, DISC_RADIUS + 0.2),
+            position=(0.0, 0.0, DISC_RADIUS + 0.16),
             anchor="bottom-center",
+            font_screen_scale=0.9,
         )
         self._state_label = scene.add_label(
             f"{root}/state",
             "STALE — connecting",
-            position=(0.0, 0.0, DISC_RADIUS + 0.08),
+            position=(0.0, 0.0, DISC_RADIUS + 0.05),
             anchor="bottom-center",
+            font_screen_scale=0.8,
         )
         self._readout = scene.add_label(
             f"{root}/readout",
             "",
-            position=(0.0, 0.0, -DISC_RADIUS - 0.06),
+            position=(0.0, -0.1, -DISC_RADIUS - 0.04),
             anchor="top-center",
-            font_screen_scale=0.8,
+            font_screen_scale=0.75,
         )
         self._angle: dict[str, float | None] = {"rotor": None, "setpoint": None, "target": None}
         self._visible: dict[str, bool | None] = {"setpoint": True, "target": True}
@@ -174,15 +182,22 @@ class AxisScene:
 
     @staticmethod
     def _ghost(
-        scene: viser.SceneApi, name: str, colour: tuple[int, int, int], opacity: float, y: float
+        scene: viser.SceneApi,
+        name: str,
+        colour: tuple[int, int, int],
+        opacity: float,
+        radii: tuple[float, float],
+        width: float,
     ) -> viser.FrameHandle:
+        """A translucent pointer from ``radii[0]`` to ``radii[1]`` disc radii."""
         frame = scene.add_frame(name, show_axes=False)
+        inner, outer = radii[0] * DISC_RADIUS, radii[1] * DISC_RADIUS
         scene.add_box(
-            f"{name}/mark",
+            f"{name}/pointer",
             color=colour,
             opacity=opacity,
-            dimensions=(0.05, 0.01, DISC_RADIUS * 0.95),
-            position=(0.0, -y, DISC_RADIUS * 0.55),
+            dimensions=(width, 0.01, outer - inner),
+            position=(0.0, -0.09, (inner + outer) / 2),
         )
         return frame
 
@@ -318,7 +333,7 @@ class _Stage:
                     self._switch_text(labels.get(flag, flag), index),
                     position=(0.0, 0.0, -0.07),
                     anchor="top-center",
-                    font_screen_scale=0.7,
+                    font_screen_scale=0.6,
                 )
             )
         self._labels = [labels.get(f, f) for f in self._flags]
@@ -338,7 +353,7 @@ class _Stage:
         self._force_switches = True
 
     def _switch_text(self, label: str, index: int) -> str:
-        return label if self._rail.switch_known(index) else f"{label} (position unknown)"
+        return label if self._rail.switch_known(index) else f"{label} (pos. unknown)"
 
     @staticmethod
     def _x(place: float) -> float:

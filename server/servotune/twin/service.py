@@ -102,6 +102,8 @@ class Twin:
         self.version = viser.__version__
         self.client_page = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
         server.gui.configure_theme(show_logo=False, show_share_button=False)
+        # The panel (connection, scene tree) starts folded: the picture is the point.
+        server.gui.main_panel.minimize()
         server.scene.set_up_direction("+z")
         server.scene.world_axes.visible = False
         x = 0.0
