@@ -6,6 +6,7 @@ import { store } from "./store";
 import { AxisView } from "./ui/axis";
 import { mountToast, showError } from "./ui/feedback";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
+import { rigNavLink, rigView } from "./ui/twin";
 import { WsClient, wsUrl } from "./ws";
 
 declare global {
@@ -76,6 +77,8 @@ const content = h("main", { class: "content" });
 const toastHost = h("div", { class: "toast-host" });
 replace(app, topbar.el, h("div", { class: "body" }, nav.el, h("div", { class: "main-col" }, connection, content, events.el)), toastHost);
 mountToast(toastHost);
+const rigLink = rigNavLink();
+nav.el.append(rigLink);
 
 function axisFromHash(): string | null {
   const match = /^#\/axis\/(.+)$/.exec(location.hash);
@@ -83,6 +86,17 @@ function axisFromHash(): string | null {
 }
 
 function route(force = false): void {
+  rigLink.classList.toggle("on", location.hash === "#/rig");
+  if (location.hash === "#/rig") {
+    if (content.querySelector("[data-testid=twin-rig]")) return; // keep the live iframe
+    view?.destroy();
+    view = null;
+    viewAxis = null;
+    nav.select("");
+    replace(content, rigView());
+    document.title = "Rig 3D — servotune";
+    return;
+  }
   const wanted = axisFromHash();
   const axis = store.axes.find((a) => a.id === wanted) ?? store.axes[0];
   if (!axis) {

@@ -99,6 +99,16 @@ export interface ConsoleDescriptor {
   examples: string[];
 }
 
+export interface TwinDescriptor {
+  counts_per_rev: number;
+  setpoint_channel: string | null;
+  target_channel: string | null;
+  moving_flag: string | null;
+  in_position_flag: string | null;
+  switch_flags: string[];
+  switch_positions_counts: (number | null)[];
+}
+
 export interface DeviceDescriptor {
   device: string;
   model: string;
@@ -110,6 +120,7 @@ export interface DeviceDescriptor {
   plots: PlotDescriptor[];
   commands: CommandDescriptor[];
   console: ConsoleDescriptor;
+  twin: TwinDescriptor | null;
 }
 
 export interface AxisInfo {

@@ -10,6 +10,7 @@ import { ConsolePanel } from "./console";
 import { PlotStack } from "./plots";
 import { Readouts } from "./readouts";
 import { TuningPanel } from "./tuning";
+import { TwinPanel } from "./twin";
 
 export const HEALTH_TEXT: Record<string, string> = {
   ok: "ok",
@@ -115,6 +116,9 @@ export class AxisView {
     const tuning = new TuningPanel(axis.id, d, signal);
     const consolePanel = new ConsolePanel(axis.id, axis.name, d);
     this.benchArea = h("section", { class: "bench-area" });
+    const twin = new TwinPanel(axis.id, axis.name);
+    const scopeArea = h("section", { class: "scope-area" }, this.plots.el);
+    twin.mount(scopeArea);
 
     const header = h(
       "div",
@@ -130,6 +134,7 @@ export class AxisView {
         h("span", { class: "tb-spacer" }),
         this.controls.status,
         h("div", { class: "seg view-toggle", role: "group", "aria-label": "View" }, this.liveButton, this.benchButton),
+        twin.toggle,
       ),
       h("div", { class: "axis-summary", title: `${d.title} — ${d.summary}` }, h("b", null, d.title), " — ", d.summary),
     );
@@ -167,7 +172,7 @@ export class AxisView {
       this.banner,
       this.readouts.el,
       this.controls.el,
-      h("div", { class: "work" }, h("section", { class: "scope-area" }, this.plots.el), this.benchArea, side),
+      h("div", { class: "work" }, scopeArea, this.benchArea, side),
     );
     this.el.classList.remove("loading");
     this.syncView();
