@@ -80,13 +80,13 @@ class Demo:
 
 
 @contextlib.asynccontextmanager
-async def demo_server(tmp_path: Path) -> AsyncIterator[Demo]:
+async def demo_server(tmp_path: Path, web_dir: Path | None = None) -> AsyncIterator[Demo]:
     """The demo app (2 SLAP2, 3 Z1100 axes, 1 EP7047), without the autopilot."""
     data_dir = tmp_path / "data"
     config = AppConfig(
         data_dir=data_dir,
         simulators=demo_simulators(data_dir),
-        web_dir=tmp_path / "no-web",
+        web_dir=web_dir or tmp_path / "no-web",
     )
     app = create_app(config)
     port = free_port()
