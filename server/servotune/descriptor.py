@@ -195,6 +195,39 @@ class ConsoleDescriptor(BaseModel):
     examples: list[str] = []
 
 
+class TwinDescriptor(BaseModel):
+    """How the 3D twin (``servotune.twin``) draws one axis: data, not device code.
+
+    Every name refers to a channel or flag of the same descriptor. A channel that is
+    ``None`` (or absent from a sample) draws no ghost; a flag that is ``None`` is never
+    shown. Fault-severity flags colour the axis red with their label, whatever the device.
+    """
+
+    counts_per_rev: int = Field(gt=0, description="encoder counts per shaft revolution")
+    setpoint_channel: str | None = Field(
+        default=None, description="profile setpoint (counts): drawn as a translucent ghost"
+    )
+    target_channel: str | None = Field(
+        default=None, description="target of the move (counts): a second, fainter ghost"
+    )
+    moving_flag: str | None = Field(
+        default=None, description="on while a move or velocity job runs"
+    )
+    in_position_flag: str | None = Field(
+        default=None, description="on when the axis has settled at its target"
+    )
+    switch_flags: list[str] = Field(
+        default=[],
+        description="limit / cam / home switch inputs, negative end first: an axis with "
+        "switches also gets a linear stage view (rail, carriage, switches lit red when on)",
+    )
+    switch_positions_counts: list[int | None] = Field(
+        default=[],
+        description="where each switch sits, when the device knows it (same order as "
+        "switch_flags); unknown switches are drawn at the ends of the rail",
+    )
+
+
 class DeviceDescriptor(BaseModel):
     """Everything the UI needs to render one axis of a device family."""
 
@@ -214,6 +247,9 @@ class DeviceDescriptor(BaseModel):
         default=[],
         description="parameters written together, in this order (e.g. Z1100 KABH then KABD: "
         "writing KABH overwrites KABD, so the UI edits both sets and writes them as one group)",
+    )
+    twin: TwinDescriptor | None = Field(
+        default=None, description="how the 3D twin draws the axis (None: not drawn)"
     )
 
     def parameter(self, name: str) -> ParameterDescriptor:

@@ -31,6 +31,7 @@ MODELS: list[type[BaseModel]] = [
     descriptor.ConsoleDescriptor,
     descriptor.StopEffect,
     descriptor.ParameterConstraint,
+    descriptor.TwinDescriptor,
     descriptor.DeviceDescriptor,
     wire.AxisInfo,
     wire.LinkInfo,

@@ -13,6 +13,7 @@ import { OverviewView } from "./ui/overview";
 import type { PlotStack } from "./ui/plots";
 import { benchDraw, type Lab, type LabOptions, mountLab } from "./ui/scopelab";
 import { EventLog, Nav, TopBar, wsText } from "./ui/shell";
+import { rigNavLink, rigView } from "./ui/twin";
 import { WsClient, wsUrl } from "./ws";
 
 declare global {
@@ -105,6 +106,8 @@ const toastHost = h("div", { class: "toast-host" });
 replace(app, topbar.el, h("div", { class: "body" }, nav.el, h("div", { class: "main-col" }, connection, content, events.el)), toastHost);
 mountToast(toastHost);
 control.mountPrompts(document.body);
+const rigLink = rigNavLink();
+nav.el.append(rigLink);
 
 function axisFromHash(): string | null {
   const match = /^#\/axis\/(.+)$/.exec(location.hash);
@@ -113,6 +116,19 @@ function axisFromHash(): string | null {
 
 function route(force = false): void {
   document.body.classList.remove("nav-open");
+  rigLink.classList.toggle("on", location.hash === "#/rig");
+  if (location.hash === "#/rig") {
+    overview?.destroy();
+    overview = null;
+    if (content.querySelector("[data-testid=twin-rig]")) return; // keep the live iframe
+    view?.destroy();
+    view = null;
+    viewAxis = null;
+    nav.select("");
+    replace(content, rigView());
+    document.title = "Rig 3D — servotune";
+    return;
+  }
   if (location.hash === "#/overview") {
     view?.destroy();
     view = null;

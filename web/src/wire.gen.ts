@@ -116,6 +116,16 @@ export interface ParameterConstraint {
   message: string;
 }
 
+export interface TwinDescriptor {
+  counts_per_rev: number;
+  setpoint_channel: string | null;
+  target_channel: string | null;
+  moving_flag: string | null;
+  in_position_flag: string | null;
+  switch_flags: string[];
+  switch_positions_counts: (number | null)[];
+}
+
 export interface DeviceDescriptor {
   device: string;
   model: string;
@@ -130,6 +140,7 @@ export interface DeviceDescriptor {
   stop: StopEffect;
   constraints: ParameterConstraint[];
   write_groups: string[][];
+  twin: TwinDescriptor | null;
 }
 
 export interface AxisInfo {

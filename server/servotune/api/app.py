@@ -27,6 +27,7 @@ from servotune.api.routes import router
 from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
+from servotune.api.twin_routes import router as twin_router
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
 from servotune.control import ControlManager, ControlSettings
@@ -42,6 +43,7 @@ from servotune.hub import Hub, NotFoundError, UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench
+from servotune.twin import Twin
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +64,7 @@ class AppConfig:
     # Local or exposed mode, TLS, reverse proxy (servotune.auth.security).
     security: SecurityConfig = field(default_factory=SecurityConfig)
     control: ControlSettings = field(default_factory=ControlSettings)
+    twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -109,10 +112,13 @@ def create_app(config: AppConfig) -> FastAPI:
             await hub.start()
             await control.start()
             await bench.start()
+            app.state.twin = await Twin.start(hub) if config.twin else None
             try:
                 yield
             finally:
                 await control.shutdown()
+                if app.state.twin is not None:
+                    await app.state.twin.stop()
                 await bench.stop()
                 await hub.stop()
                 # Let pending storage writes finish before the database closes.
@@ -160,6 +166,7 @@ def create_app(config: AppConfig) -> FastAPI:
             content={"detail": str(exc.detail), "field": None},
             headers=headers,
         )
+    app.include_router(twin_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:

@@ -68,15 +68,17 @@ async def authenticate(websocket: WebSocket) -> Principal | None:
     return await authenticate_websocket(websocket)
 
 
-def register(principal: Principal, close: Callable[[], Awaitable[None]]) -> object:
+_Registration = tuple[Principal, Callable[[], Awaitable[None]]]
+
+
+def register(principal: Principal, close: Callable[[], Awaitable[None]]) -> _Registration:
     """Remember the socket so logout and revocation close it (its axes then lapse)."""
     register_ws(principal, close)
     return (principal, close)
 
 
-def unregister(handle: object) -> None:
-    principal, close = handle  # type: ignore[misc]
-    unregister_ws(principal, close)
+def unregister(handle: _Registration) -> None:
+    unregister_ws(*handle)
 
 
 class _AbuseError(Exception):

@@ -30,6 +30,7 @@ from servotune.descriptor import (
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
+    TwinDescriptor,
 )
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import PosDiag, PosStatus, SdoObject, StartType, StmStatus
@@ -862,4 +863,11 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 message="the creep velocity into the target must not exceed the maximum velocity",
             ),
         ],
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            target_channel="target",
+            moving_flag="busy",
+            in_position_flag="in_target",
+            switch_flags=["digital_input_1"],
+        ),
     )

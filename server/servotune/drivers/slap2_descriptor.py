@@ -21,6 +21,7 @@ from servotune.descriptor import (
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
+    TwinDescriptor,
 )
 from servotune.protocols import slap2 as codec
 
@@ -562,5 +563,12 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             motor_powered=False,
             sends="st (ahead of anything queued)",
             gentler=["hold"],
+        ),
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            setpoint_channel="setpoint",
+            moving_flag="move",
+            in_position_flag="inpos",
+            switch_flags=["limit1", "limit2"],
         ),
     )

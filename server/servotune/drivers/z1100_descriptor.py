@@ -20,6 +20,7 @@ from servotune.descriptor import (
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
+    TwinDescriptor,
 )
 from servotune.protocols import z1100 as codec
 
@@ -414,5 +415,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             motor_powered=True,
             sends="Estop for this motor (ahead of anything queued)",
             gentler=["decelerate"],
+        ),
+        twin=TwinDescriptor(
+            counts_per_rev=counts_per_rev,
+            setpoint_channel="setpoint",
+            target_channel="target",
+            moving_flag="running",
         ),
     )

@@ -11,6 +11,7 @@ import { controlStrip } from "./control";
 import { PlotStack } from "./plots";
 import { Readouts } from "./readouts";
 import { TuningPanel } from "./tuning";
+import { TwinPanel } from "./twin";
 
 export const HEALTH_TEXT: Record<string, string> = {
   ok: "ok",
@@ -116,6 +117,9 @@ export class AxisView {
     const tuning = new TuningPanel(axis.id, d, signal);
     const consolePanel = new ConsolePanel(axis.id, axis.name, d);
     this.benchArea = h("section", { class: "bench-area" });
+    const twin = new TwinPanel(axis.id, axis.name);
+    const scopeArea = h("section", { class: "scope-area" }, this.plots.el);
+    twin.mount(scopeArea);
 
     const header = h(
       "div",
@@ -132,6 +136,7 @@ export class AxisView {
         this.controls.status,
         controlStrip(axis.id, d, this.el, signal),
         h("div", { class: "seg view-toggle", role: "group", "aria-label": "View" }, this.liveButton, this.benchButton),
+        twin.toggle,
       ),
       h("div", { class: "axis-summary", title: `${d.title} — ${d.summary}` }, h("b", null, d.title), " — ", d.summary),
     );
@@ -169,7 +174,7 @@ export class AxisView {
       this.banner,
       this.readouts.el,
       this.controls.el,
-      h("div", { class: "work" }, h("section", { class: "scope-area" }, this.plots.el), this.benchArea, side),
+      h("div", { class: "work" }, scopeArea, this.benchArea, side),
     );
     this.el.classList.remove("loading");
     this.syncView();

@@ -1,0 +1,221 @@
+"""The 3D twin: state rules, and viser's protocol through the dashboard's proxy."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+import viser
+import websockets
+
+from servotune.api.app import AppConfig, create_app
+from servotune.demo import demo_simulators
+from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.drivers.z1100_descriptor import z1100_descriptor
+from servotune.twin.model import Rail, angle_rad, classify, disc_wxyz, node_slot
+from servotune.twin.scene import MIN_TURN_RAD
+
+from .conftest import wait_for
+from .test_api import free_port
+from .twin_client import angle_of, same_angle, until, viser_session
+
+SLAP2 = slap2_descriptor(512)
+Z1100 = z1100_descriptor(2048)
+
+
+def test_state_priority_stale_then_fault_then_motion() -> None:
+    assert SLAP2.twin is not None and Z1100.twin is not None
+    live = {"link_state": "connected", "health": "ok", "sample_age_s": 0.1}
+    moving_in_oc = {"move": True, "inpos": False, "oc": True}
+    state = classify(SLAP2, SLAP2.twin, moving_in_oc, **live)  # type: ignore[arg-type]
+    assert (state.kind, state.text) == ("fault", "oc")
+    state = classify(SLAP2, SLAP2.twin, {"move": True, "inpos": True}, **live)  # type: ignore[arg-type]
+    assert state.kind == "moving"
+    state = classify(SLAP2, SLAP2.twin, {"inpos": True}, **live)  # type: ignore[arg-type]
+    assert state.kind == "in_position"
+    assert classify(Z1100, Z1100.twin, {"stall": True}, **live).text == "stall"  # type: ignore[arg-type]
+    # A fault on a link that is down is not shown as live: stale wins, in grey.
+    down = classify(
+        SLAP2, SLAP2.twin, moving_in_oc, link_state="reconnecting", health="ok", sample_age_s=0.1
+    )
+    assert (down.kind, down.text) == ("stale", "STALE — link reconnecting")
+    old = classify(
+        SLAP2, SLAP2.twin, {"inpos": True}, link_state="connected", health="ok", sample_age_s=3.0
+    )
+    assert old.kind == "stale" and "3 s" in old.text
+    assert down.colour != state.colour
+
+
+def test_angle_convention_and_rail() -> None:
+    assert angle_rad(512, 2048) == pytest.approx(math.pi / 2)
+    # A quarter turn positive: the mark (at +z) goes to -x, counter-clockwise seen from -y.
+    w, x, y, z = disc_wxyz(math.pi / 2)
+    mark = (0.0, 0.0, 1.0)
+    # Rotate the mark by the quaternion (v' = q v q*), written out for a y-axis turn.
+    rotated_x = (w * w - y * y) * mark[0] + 2 * w * y * mark[2]
+    assert rotated_x == pytest.approx(-1.0) and x == z == 0.0
+    assert angle_of(disc_wxyz(1.0)) == pytest.approx(1.0)
+
+    rail = Rail(2048, [None, None])
+    rail.observe(0, [False, False])
+    assert rail.switch_place(0, 2) == 0.0 and rail.switch_place(1, 2) == 1.0
+    assert not rail.switch_known(0)
+    rail.observe(-3000, [True, False])  # E1 seen on at -3000 counts: learned
+    assert rail.switch_known(0) and rail.place(-3000) == rail.switch_place(0, 2)
+    assert 0.0 < rail.place(-3000) < rail.place(0) < 1.0
+
+
+@dataclass
+class Demo:
+    base_url: str
+    ws_url: str
+    client: httpx.AsyncClient
+
+
+@contextlib.asynccontextmanager
+async def demo_server(tmp_path: Path, web_dir: Path | None = None) -> AsyncIterator[Demo]:
+    """The demo app (2 SLAP2, 3 Z1100 axes, 1 EP7047), without the autopilot."""
+    data_dir = tmp_path / "data"
+    config = AppConfig(
+        data_dir=data_dir,
+        simulators=demo_simulators(data_dir),
+        web_dir=web_dir or tmp_path / "no-web",
+    )
+    app = create_app(config)
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        await wait_for(lambda: server.started, 30, "the server to start")
+        base = f"http://127.0.0.1:{port}"
+        async with httpx.AsyncClient(base_url=base, timeout=20) as client:
+            yield Demo(base, f"ws://127.0.0.1:{port}/twin", client)
+    finally:
+        server.should_exit = True
+        await task
+
+
+async def raw_handshake(port: int, host: str, origin: str | None) -> str:
+    """Open a websocket to /twin by hand (any Host header) and return the status line."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    lines = [
+        "GET /twin HTTP/1.1",
+        f"Host: {host}",
+        "Upgrade: websocket",
+        "Connection: Upgrade",
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+        "Sec-WebSocket-Version: 13",
+        f"Sec-WebSocket-Protocol: viser-v{viser.__version__}",
+    ]
+    if origin is not None:
+        lines.append(f"Origin: {origin}")
+    writer.write(("\r\n".join(lines) + "\r\n\r\n").encode())
+    await writer.drain()
+    status = (await asyncio.wait_for(reader.readline(), 10)).decode().strip()
+    writer.close()
+    with contextlib.suppress(ConnectionError):
+        await writer.wait_closed()
+    return status
+
+
+@pytest.mark.slow
+async def test_proxy_shows_every_demo_axis_and_the_disc_follows_a_move(tmp_path: Path) -> None:
+    async with demo_server(tmp_path) as demo:
+        axes = [a["id"] for a in (await demo.client.get("/api/axes")).json()]
+        assert len(axes) == 6
+        page = await demo.client.get("/twin/")
+        assert page.status_code == 200 and "Viser" in page.text
+        redirect = await demo.client.get("/twin/axis/demo-slap2-0")
+        assert redirect.status_code == 307
+        assert redirect.headers["location"].startswith("/twin/?initialCameraPosition=")
+        assert (await demo.client.get("/twin/axis/nope")).status_code == 404
+
+        async with viser_session(demo.ws_url, viser.__version__, demo.base_url) as (scene, conn):
+            assert conn.subprotocol == f"viser-v{viser.__version__}"
+            await until(lambda: scene.replay_done, 20, "viser's scene replay")
+            for axis_id in axes:
+                root = f"/axes/{node_slot(axis_id)}"
+                assert scene.nodes[f"{root}/rotor/disc"].kind == "Cylinder", axis_id
+                assert scene.nodes[f"{root}/label"].kind == "Label", axis_id
+            for axis_id in ("demo-slap2-0", "demo-slap2-1", "demo-ep7047-1"):
+                assert f"/axes/{axis_id}/stage/carriage" in scene.nodes, "switches: a stage"
+            assert "/axes/demo-z1100-x/stage/carriage" not in scene.nodes
+            assert scene.nodes["/axes/demo-slap2-0/label"].props["text"] == "SLAP2 #0 unloaded"
+
+            # A slow move of 0.375 rev (768 of 2048 counts) on SLAP2 #0.
+            axis = "/api/axes/demo-slap2-0"
+            rotor = scene.nodes["/axes/demo-slap2-0/rotor"]
+
+            def rotor_angle() -> float:
+                # No orientation message yet: the node is at its initial pose (angle 0).
+                return angle_of(rotor.wxyz) if rotor.wxyz is not None else 0.0
+
+            async def first_state() -> float:
+                while True:
+                    response = await demo.client.get(f"{axis}/state")
+                    if response.status_code == 200:
+                        return float(response.json()["position"])
+                    await asyncio.sleep(0.1)
+
+            start = await asyncio.wait_for(first_state(), 30)
+            assert (await demo.client.patch(f"{axis}/params", json={"velocity": 30})).is_success
+            for command in (
+                {"command": "position_mode"},
+                {"command": "move_relative", "distance": 768},
+            ):
+                response = await demo.client.post(f"{axis}/commands", json=command)
+                assert response.status_code == 200, response.text
+            seen_from = len(rotor.orientations)
+
+            async def settled() -> float:
+                while True:
+                    state = (await demo.client.get(f"{axis}/state")).json()
+                    if state["flags"]["inpos"] and not state["flags"]["move"]:
+                        return float(state["position"])
+                    await asyncio.sleep(0.1)
+
+            end = await asyncio.wait_for(settled(), 60)
+            assert end - start == pytest.approx(768, abs=20)
+            final = angle_rad(end, 2048)
+            await until(
+                lambda: same_angle(rotor_angle(), final, MIN_TURN_RAD + 0.01),
+                5,
+                "the disc at the final position",
+            )
+            during = [angle_of(q) for _, q in rotor.orientations[seen_from:]]
+            first, last = angle_rad(start, 2048), final
+            between = [
+                a
+                for a in during
+                if not same_angle(a, first, 0.05) and not same_angle(a, last, 0.05)
+            ]
+            # The move lasts about 2.7 s (velocity 30 sv = 281 counts/s): the disc
+            # shows it on the way, not only at the end.
+            assert len(between) >= 3, during
+
+
+@pytest.mark.slow
+async def test_proxy_refuses_foreign_origin_and_host(tmp_path: Path) -> None:
+    async with demo_server(tmp_path) as demo:
+        port = int(demo.base_url.rsplit(":", 1)[1])
+        own = f"127.0.0.1:{port}"
+        assert " 101 " in await raw_handshake(port, own, f"http://{own}")
+        assert " 403 " in await raw_handshake(port, own, "http://evil.example")
+        assert " 403 " in await raw_handshake(port, own, None)
+        assert " 403 " in await raw_handshake(
+            port, f"evil.example:{port}", f"http://evil.example:{port}"
+        )
+        page = await demo.client.get("/twin/", headers={"Host": "evil.example"})
+        assert page.status_code == 403
+        with pytest.raises(websockets.InvalidStatus):
+            async with viser_session(demo.ws_url, viser.__version__, "http://evil.example"):
+                pass
