@@ -1,0 +1,211 @@
+"""The devices' exact discrete controller laws around a linear DC-motor plant.
+
+A ``LoopModel`` holds the plant discretised with a zero-order hold at the
+controller's period (python-control ``c2d``) and the controller as the transfer
+function the firmware computes, so the same object answers "what does the loop do
+with these gains": the open-loop response and its gain and phase margins and
+crossover, the closed-loop response, its -3 dB bandwidth and resonance peak, a
+Nyquist curve and a predicted step response.
+
+Plant (position in encoder counts per controller output unit)::
+
+    P(s) = g kt / (s ((L s + R)(J s + b) + kt ke)),   g = (V_supply / 255) * counts/rad
+
+i.e. the DC motor of ``servotune.sim.physics`` without its two nonlinear parts,
+Coulomb friction and the PWM/current limits; predictions hold for moves small enough
+that the controller does not saturate (the bench checks the PWM it saw).
+
+Controller laws (the simulators implement the same arithmetic; see
+docs/simulator.md and docs/z1100-simulator.md):
+
+* SLAP2, every 841.5 us: ``u = (16 kp e + ki S + 32 kd (e - e_prev)) / 4096`` with
+  ``S`` the running sum of ``e`` including this tick, so
+  ``C(z) = (16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096``; ``e = setpoint - count``.
+* Z1100, every Stm x 32 us: ``u = (K (16 e + A (e - e[-32])) - B (y - y[-32])) / 64``:
+  a forward path ``Cf(z) = K (16 + A (1 - z^-32)) / 64`` on the error and velocity
+  feedback ``Cb(z) = B (1 - z^-32) / 64`` on the position. The loop seen at the
+  plant input is ``L = (Cf + Cb) P``; the closed loop from setpoint to position is
+  ``T = Cf P / (1 + L)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import control
+import numpy as np
+import numpy.typing as npt
+
+from servotune.tuning.frf import FloatArray, FrequencyResponse
+
+SLAP2_TICK_S = 841.5e-6
+Z1100_TICK_S = 32e-6
+PWM_FULL_SCALE = 255
+
+
+@dataclass(frozen=True, slots=True)
+class MotorModel:
+    """Linear DC motor: electrical and mechanical constants, supply, encoder."""
+
+    resistance_ohm: float
+    inductance_h: float
+    torque_constant_nm_per_a: float
+    inertia_kg_m2: float
+    viscous_friction_nm_s_per_rad: float
+    supply_v: float
+    counts_per_rev: int
+
+    def plant(self) -> control.TransferFunction:
+        """Counts per controller output unit (full scale 255), continuous time."""
+        r, ind = self.resistance_ohm, self.inductance_h
+        kt, j, b = (
+            self.torque_constant_nm_per_a,
+            self.inertia_kg_m2,
+            self.viscous_friction_nm_s_per_rad,
+        )
+        gain = (self.supply_v / PWM_FULL_SCALE) * self.counts_per_rev / (2.0 * math.pi)
+        # s ((L s + R)(J s + b) + kt^2) = L J s^3 + (L b + R J) s^2 + (R b + kt^2) s
+        den = [ind * j, ind * b + r * j, r * b + kt * kt, 0.0]
+        return control.tf([gain * kt], den)
+
+
+@dataclass(frozen=True, slots=True)
+class Margins:
+    """Stability margins of an open loop (inf where a crossover does not exist)."""
+
+    gain_margin_db: float
+    phase_margin_deg: float
+    gain_crossover_hz: float
+    phase_crossover_hz: float
+    stable: bool
+
+
+@dataclass(frozen=True, slots=True)
+class LoopModel:
+    """A plant under a device's controller; see the module docstring."""
+
+    forward: control.TransferFunction  # Cf: acts on the error
+    feedback: control.TransferFunction  # Cb: acts on the position (0 for the SLAP2)
+    plant_d: control.TransferFunction
+    period_s: float
+
+    @property
+    def open_loop(self) -> control.TransferFunction:
+        return (self.forward + self.feedback) * self.plant_d
+
+    def closed_loop_response(self, frequency_hz: npt.ArrayLike) -> FrequencyResponse:
+        """Setpoint -> position, as a model-based ``FrequencyResponse``."""
+        f = np.asarray(frequency_hz, dtype=np.float64)
+        z = np.exp(2j * np.pi * f * self.period_s)
+        cf, cb, p = (_at(tf, z) for tf in (self.forward, self.feedback, self.plant_d))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = cf * p / (1.0 + (cf + cb) * p)
+        return _model_response(f, t, self.period_s)
+
+    def open_loop_response(self, frequency_hz: npt.ArrayLike) -> FrequencyResponse:
+        f = np.asarray(frequency_hz, dtype=np.float64)
+        z = np.exp(2j * np.pi * f * self.period_s)
+        cf, cb, p = (_at(tf, z) for tf in (self.forward, self.feedback, self.plant_d))
+        return _model_response(f, (cf + cb) * p, self.period_s)
+
+    def margins(self) -> Margins:
+        """Gain and phase margins of the open loop (python-control ``stability_margins``
+        on its frequency response) and whether the closed loop is stable (its
+        characteristic polynomial's roots inside the unit circle)."""
+        nyquist_hz = 0.5 / self.period_s
+        # A dense frequency response rather than the polynomials: the Z1100's z^32
+        # derivative window makes root finding on them ill-conditioned (and slow).
+        f = np.logspace(-1, math.log10(nyquist_hz * 0.9999), 8000)
+        values = self.open_loop_response(f).response
+        data = control.frd(values, 2 * np.pi * f, dt=self.period_s)
+        gm, pm, _sm, wpc, wgc, _wms = control.stability_margins(data)
+        return Margins(
+            gain_margin_db=float(20 * math.log10(gm)) if np.isfinite(gm) and gm > 0 else math.inf,
+            phase_margin_deg=float(pm) if np.isfinite(pm) else math.inf,
+            gain_crossover_hz=float(wgc) / (2 * math.pi) if np.isfinite(wgc) else math.nan,
+            phase_crossover_hz=float(wpc) / (2 * math.pi) if np.isfinite(wpc) else math.nan,
+            stable=bool(np.all(np.abs(np.roots(self._characteristic())) < 1.0)),
+        )
+
+    def _characteristic(self) -> FloatArray:
+        """1 + L = 0 as a polynomial in z: den(L) + num(L)."""
+        num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(self.open_loop))
+        return np.asarray(np.polyadd(den, num), dtype=np.float64)
+
+    def bandwidth_hz(self, frequency_hz: npt.ArrayLike | None = None) -> tuple[float, float]:
+        """(-3 dB bandwidth, resonance peak in dB) of the closed loop, from its response
+        on a dense logarithmic grid up to Nyquist (bandwidth nan if it never drops)."""
+        nyquist = 0.5 / self.period_s
+        f = (
+            np.asarray(frequency_hz, dtype=np.float64)
+            if frequency_hz is not None
+            else np.logspace(-1, math.log10(nyquist * 0.999), 4000)
+        )
+        mag = np.abs(self.closed_loop_response(f).response)
+        dc = mag[0]
+        below = np.nonzero(mag < dc * 10 ** (-3 / 20))[0]
+        bw = float(f[below[0]]) if below.size else math.nan
+        return bw, float(20 * math.log10(np.max(mag) / dc))
+
+    def step(self, duration_s: float, amplitude: float = 1.0) -> tuple[FloatArray, FloatArray]:
+        """Predicted response of the position to a setpoint step (linear, no limits)."""
+        n = max(2, round(duration_s / self.period_s))
+        t = np.arange(n, dtype=np.float64) * self.period_s
+        response = control.forced_response(self._closed_loop_tf(), T=t, U=np.full(n, amplitude))
+        return t, np.asarray(response.outputs, dtype=np.float64)
+
+    def nyquist(self, frequency_hz: npt.ArrayLike) -> npt.NDArray[np.complex128]:
+        """Open-loop L(e^{jwT}) at the given frequencies (a Nyquist curve)."""
+        return self.open_loop_response(frequency_hz).response
+
+    def _closed_loop_tf(self) -> control.TransferFunction:
+        # T = Cf P / (1 + (Cf + Cb) P), built from polynomials so no cancellation of
+        # Cf is needed when Cb is zero.
+        num = self.forward * self.plant_d
+        return control.minreal(num / (1 + self.open_loop), verbose=False)
+
+
+def _at(tf: control.TransferFunction, z: npt.NDArray[np.complex128]) -> npt.NDArray[np.complex128]:
+    num, den = control.tfdata(tf)
+    # z = 1 (0 Hz) is a pole of an integrating controller: inf there, not a warning.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(np.polyval(num[0][0], z) / np.polyval(den[0][0], z), dtype=np.complex128)
+
+
+def _model_response(
+    f: FloatArray, h: npt.NDArray[np.complex128], period_s: float
+) -> FrequencyResponse:
+    return FrequencyResponse(
+        frequency_hz=f,
+        response=np.asarray(h, dtype=np.complex128),
+        coherence=np.ones_like(f),
+        sample_rate_hz=1.0 / period_s,
+        model_based=True,
+    )
+
+
+def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID (firmware arithmetic, see the module docstring) around ``motor``."""
+    ts = SLAP2_TICK_S
+    # (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096 over the common denominator z (z-1)
+    num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
+    den = [4096.0, -4096.0, 0.0]
+    forward = control.tf(num, den, ts)
+    zero = control.tf([0.0], [1.0], ts)
+    return LoopModel(forward, zero, control.c2d(motor.plant(), ts, "zoh"), ts)
+
+
+def z1100_loop(
+    motor: MotorModel, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 K/A/B law (see the module docstring) sampled every ``stm`` x 32 us."""
+    ts = max(1, stm) * Z1100_TICK_S
+    shift = np.zeros(window + 1)
+    shift[0] = 1.0  # z^window
+    delta = shift.copy()
+    delta[-1] = -1.0  # z^window - 1: (1 - z^-window) over z^window
+    den = shift * 64.0
+    forward = control.tf(k * (16 * shift + a * delta), den, ts)
+    feedback = control.tf(b * delta, den, ts)
+    return LoopModel(forward, feedback, control.c2d(motor.plant(), ts, "zoh"), ts)
