@@ -160,8 +160,13 @@ async def test_blind_select_when_nobody_is_selected(tmp_path: Path) -> None:
     with running_simulator([2, 3], tmp_path) as (simulator, bus):
         async with run_link(simulator, bus, [2, 3]) as line:
             await line.connected()
+            # (on a slow host a first probe may time out; the re-probe must succeed)
+            await line.until(
+                lambda: all(line.sink.health.get(f"line-{a}", ("",))[0] == "ok" for a in (2, 3)),
+                "both modules online",
+                timeout_s=15,
+            )
             assert line.sink.params["line-3"]["kp"] == 40
-            assert line.sink.health["line-2"][0] == "ok"
 
 
 async def test_absent_module_is_offline_and_others_work(tmp_path: Path) -> None:
