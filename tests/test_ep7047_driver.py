@@ -611,3 +611,48 @@ async def test_fake_master_behind_the_hub_validates_and_runs_the_demo_autopilot(
     finally:
         await hub.stop()
         storage.close()
+
+
+async def test_fake_master_cycle_thread_crash_is_reported_and_restarted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Supervision: a bug in the cycle thread shows ``error`` with the message, the
+    thread is restarted on a new master, the axis comes back with Enable off."""
+    async with running() as run:
+        await run.axis.command("enable", {})
+        original = run.link._cyclic
+        crashed: list[bool] = []
+
+        def crashing(master: object, slave: object) -> None:
+            if not crashed:
+                crashed.append(True)
+                raise RuntimeError("injected bug in the cycle")
+            original(master, slave)  # type: ignore[arg-type]
+
+        index = len(run.sink.states)
+        monkeypatch.setattr(run.link, "_cyclic", crashing)
+        run.master.drop_out_of_op()  # the drop-out makes the thread enter _cyclic again
+        await wait_for(
+            lambda: any(s == "reconnecting" for s, _ in run.sink.states[index:]), 5, "drop-out"
+        )
+        run.master.return_to_op()
+        await wait_for(lambda: bool(crashed), 5, "the injected crash")
+        await wait_for(
+            lambda: run.link.state == "connected" and run.link.counters["restarts"] == 1,
+            10,
+            "the restart",
+        )
+        states = [s for s, _ in run.sink.states[index:]]
+        assert "error" in states
+        error_at = states.index("error")
+        assert "connected" in states[error_at:]
+        assert any("injected bug" in m for s, m in run.sink.states[index:] if s == "error")
+        count = len(run.samples)
+        await wait_for(lambda: len(run.samples) > count + 20, 5, "samples again")
+        assert not run.latest_flag("enable_out"), "Enable must not come back by itself"
+        await run.axis.command("enable", {})
+        await run.axis.stop()
+        await wait_for(lambda: not run.latest_flag("enable_out"), 5, "the STOP on the wire")
+        assert any(f.outputs.emergency_stop for f in list(run.master.history)[-2000:]), (
+            "the STOP never reached the slave"
+        )

@@ -79,6 +79,9 @@ logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
+# Commands that may run twice with the same effect: sent again after a failure that
+# came after their CR (for any other command that failure is final: it may have run).
+IDEMPOTENT_COMMANDS = frozenset({"st"})
 SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -519,6 +522,7 @@ class Slap2Link(LinkEngine):
         A retry re-selects first: a missing echo may mean the module lost its
         selection (reset), which a plain resend could not fix.
         """
+        idempotent = _mnemonic(command.text) in IDEMPOTENT_COMMANDS
         for attempt in range(2):
             if attempt:
                 self._count("retries")
@@ -530,6 +534,39 @@ class Slap2Link(LinkEngine):
                     self._selected = None
                 if attempt == 1:
                     raise abandoned.error from None
+            except (DeviceTimeoutError, ProtocolError):
+                # After CR: it may have run. Only a command that may run twice (st)
+                # is sent again - a STOP whose CR echo came late must still go out.
+                if not idempotent or attempt == 1:
+                    raise
+        raise AssertionError("unreachable")
+
+    async def _read_rss_after(self, command_text: str) -> int:
+        """``rss`` right after a command, on the same selection.
+
+        Its ``uc`` bit tells whether the command was refused; a re-selection would
+        spoil that (``se`` is a command too), so a failed read is repeated without
+        one. If it still fails, the outcome is unknown and the error says so.
+        """
+        for attempt in range(3):
+            try:
+                lines = await self._exchange_once(codec.make_read("rss"))
+            except _AbandonedError as abandoned:
+                if attempt < 2:
+                    self._count("retries")
+                    continue
+                error = abandoned.error
+            except (DeviceTimeoutError, ProtocolError) as exc:
+                error = exc
+            else:
+                reply = codec.parse_reply(lines[0] if lines else "")
+                if reply.kind is codec.ReplyKind.NUMBER and reply.value is not None:
+                    return reply.value
+                error = ProtocolError(f"rss answered {reply.text!r}, expected a number")
+            raise ProtocolError(
+                f"{command_text}: sent, but whether the module accepted it is unknown "
+                f"(the status read after it failed: {error})"
+            )
         raise AssertionError("unreachable")
 
     async def _read_int(self, address: int, mnemonic: str) -> int:
@@ -548,7 +585,7 @@ class Slap2Link(LinkEngine):
         if reply.kind is codec.ReplyKind.REFUSED:
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
         if command.changes_device and not module.ucon:
-            rss = await self._read_int(module.address, "rss")
+            rss = await self._read_rss_after(command.text)
             module.rss = rss
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
@@ -808,7 +845,7 @@ class Slap2Link(LinkEngine):
                 raise DeviceRefusedError(f"{text}: refused by the module (-1UC)")
             if not module.ucon and mnemonic not in ("rss", "ss", "rrss"):
                 # Without ucon a refusal is a bare CR: the uc flag tells (rss leaves it).
-                rss = await self._read_int(address, "rss")
+                rss = await self._read_rss_after(text)
                 if codec.decode_rss(rss)["uc"]:
                     raise DeviceRefusedError(
                         f"{text}: refused by the module (uc flag set: unknown command, "
