@@ -353,7 +353,7 @@ class _Stage:
         self._force_switches = True
 
     def _switch_text(self, label: str, index: int) -> str:
-        return label if self._rail.switch_known(index) else f"{label} (pos. unknown)"
+        return label if self._rail.switch_known(index) else f"{label} ?"
 
     @staticmethod
     def _x(place: float) -> float:
