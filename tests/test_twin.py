@@ -219,3 +219,34 @@ async def test_proxy_refuses_foreign_origin_and_host(tmp_path: Path) -> None:
         with pytest.raises(websockets.InvalidStatus):
             async with viser_session(demo.ws_url, viser.__version__, "http://evil.example"):
                 pass
+
+
+async def test_scene_lights_a_switch_and_greys_out_when_stale() -> None:
+    """AxisScene on a real viser server, watched by a protocol client on viser's port."""
+    from servotune.drivers.base import Sample
+    from servotune.twin.model import COLOURS, SWITCH_OFF, SWITCH_ON
+    from servotune.twin.scene import AxisInput, AxisScene
+
+    assert SLAP2.twin is not None
+    server = await asyncio.to_thread(viser.ViserServer, "127.0.0.1", 0, verbose=False)
+    try:
+        axis = AxisScene(server, "/axes/a", 0.0, "A", SLAP2, SLAP2.twin)
+        url = f"ws://127.0.0.1:{server.get_port()}"
+        async with viser_session(url, viser.__version__, "http://127.0.0.1") as (scene, _):
+            await until(lambda: scene.replay_done, 20, "the replay")
+            switch = scene.nodes["/axes/a/stage/switch0"]
+            disc = scene.nodes["/axes/a/rotor/disc"]
+            on_e1 = Sample(0.0, {"position": -100.0, "setpoint": -90.0}, {"limit1": True})
+            with server.atomic():
+                axis.apply(AxisInput(on_e1, 0.1, "connected", "ok", 1), 0.0)
+            await until(lambda: switch.props["color"] == list(SWITCH_ON), 10, "E1 lit")
+            assert disc.props["color"] == list(COLOURS["idle"])
+            # The link drops: same sample, but stale — grey, switch unlit, no ghost.
+            with server.atomic():
+                axis.apply(AxisInput(on_e1, 0.1, "reconnecting", "ok", 1), 0.1)
+            await until(lambda: disc.props["color"] == list(COLOURS["stale"]), 10, "grey")
+            await until(lambda: switch.props["color"] == list(SWITCH_OFF), 10, "E1 unlit")
+            assert scene.nodes["/axes/a/state"].props["text"] == "STALE — link reconnecting"
+            assert scene.nodes["/axes/a/setpoint"].visible is False
+    finally:
+        await asyncio.to_thread(server.stop)

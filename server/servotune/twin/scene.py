@@ -236,6 +236,8 @@ class AxisScene:
             self._state = state
         stale = state.kind == "stale"
         if sample is None or data.serial == self._serial:
+            if stale and self._stage is not None:
+                self._stage.dim()
             self._show_ghosts(
                 setpoint=not stale and self._angle["setpoint"] is not None,
                 target=not stale and self._angle["target"] is not None,
@@ -345,6 +347,16 @@ class _Stage:
         self._ghost_shown: bool | None = False
         self._force_switches = False
 
+    def dim(self) -> None:
+        """Stale: no switch lit, no setpoint ghost (the carriage stays where it was)."""
+        for index, lit in enumerate(self._lit):
+            if lit is not False:
+                self._switches[index].color = SWITCH_OFF
+                self._lit[index] = False
+        if self._ghost_shown is not False:
+            self._ghost.visible = False
+            self._ghost_shown = False
+
     def invalidate(self) -> None:
         self._lit = [None] * len(self._lit)
         self._carriage_at = None
@@ -353,7 +365,7 @@ class _Stage:
         self._force_switches = True
 
     def _switch_text(self, label: str, index: int) -> str:
-        return label if self._rail.switch_known(index) else f"{label} (pos. unknown)"
+        return label if self._rail.switch_known(index) else f"{label} ?"
 
     @staticmethod
     def _x(place: float) -> float:

@@ -46,7 +46,9 @@ class TwinStats:
     """Work done on viser's thread, for the measurements in docs/twin.md."""
 
     applied: int = 0
-    apply_cpu_s: float = 0.0
+    apply_cpu_s: float = 0.0  # applying snapshots to the scene (viser's thread)
+    snapshot_cpu_s: float = 0.0  # building snapshots (the app's loop)
+    viser_thread_cpu_s: float = 0.0  # all CPU of viser's loop thread, at the last apply
 
 
 class Twin:
@@ -189,6 +191,7 @@ class Twin:
             if self._viewers == 0:
                 # Nobody looks: build nothing. The next viewer gets a full refresh.
                 continue
+            started = time.thread_time()
             now = time.monotonic()
             snapshot: dict[str, AxisInput] = {}
             for axis_id in self._scenes:
@@ -206,6 +209,7 @@ class Twin:
                     serial=serial,
                 )
             self._hand_over(snapshot)
+            self.stats.snapshot_cpu_s += time.thread_time() - started
 
     def _hand_over(self, snapshot: dict[str, AxisInput]) -> None:
         server = self._server
@@ -245,4 +249,6 @@ class Twin:
             # A scene bug must be visible in the log, and must not stop the feed.
             logger.exception("twin update failed")
         self.stats.applied += 1
-        self.stats.apply_cpu_s += time.thread_time() - started
+        finished = time.thread_time()
+        self.stats.apply_cpu_s += finished - started
+        self.stats.viser_thread_cpu_s = finished
