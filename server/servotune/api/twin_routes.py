@@ -13,11 +13,10 @@ the browser never talks to it directly:
   page URL with the query and the trailing slash removed: ``/twin/?...`` →
   ``ws(s)://<host>/twin``, hence this exact path.
 
-Access: every route calls ``_authorize`` first. TODO(lead, on merge): switch it to
-``servotune.auth.ws_auth.authenticate_websocket`` and list these routes as "view" in
-``auth.routes_table.ROUTE_PERMISSIONS``; until then it allows same-origin requests to
-a local Host name only (what a browser on this machine sends; refuses DNS rebinding and
-cross-site pages).
+Access: the same rules as the rest of the dashboard. The Host check and (exposed mode)
+the login apply to every route through ``servotune.auth`` (middleware and the app-wide
+permission table, where these routes need "view"); the websocket goes through
+``servotune.auth.ws_auth.authenticate_websocket`` (Host, Origin, cookie or ticket).
 """
 
 from __future__ import annotations
@@ -26,58 +25,24 @@ import asyncio
 import contextlib
 import gzip
 import logging
-from typing import Annotated
-from urllib.parse import urlsplit
 
 import websockets
-from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
+from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 from starlette.requests import HTTPConnection
 from starlette.websockets import WebSocketDisconnect
 from websockets.asyncio.client import ClientConnection
 from websockets.typing import Subprotocol
 
+from servotune.auth.ws_auth import authenticate_websocket
 from servotune.twin import Twin
 
 logger = logging.getLogger(__name__)
 
 router = APIRouter(prefix="", include_in_schema=False)
 
-LOCAL_HOSTNAMES = frozenset({"127.0.0.1", "localhost", "::1"})
-# Close codes: 1008 policy violation (refused), 1011 the twin is not available.
-REFUSED = 1008
+# Close code 1011: the twin is not available (a refusal is 1008, sent by the auth check).
 UNAVAILABLE = 1011
-
-
-def _host_refusal(connection: HTTPConnection) -> str | None:
-    host = connection.headers.get("host", "")
-    hostname = urlsplit(f"//{host}").hostname
-    if hostname not in LOCAL_HOSTNAMES:
-        return f"foreign Host {host!r}"
-    return None
-
-
-def _authorize(websocket: WebSocket) -> str | None:
-    """Why this websocket is refused, or None. Stand-in for the dashboard's auth
-    (see the module docstring): the Origin must be this very host (same origin),
-    and the Host a local name."""
-    refusal = _host_refusal(websocket)
-    if refusal is not None:
-        return refusal
-    origin = websocket.headers.get("origin")
-    if origin is None:
-        return "no Origin header"
-    parts = urlsplit(origin)
-    if parts.scheme not in ("http", "https") or parts.netloc != websocket.headers.get("host"):
-        return f"foreign Origin {origin!r}"
-    return None
-
-
-def _page_access(request: Request) -> None:
-    """HTTP side of ``_authorize`` (a page load sends no Origin): local Host only."""
-    refusal = _host_refusal(request)
-    if refusal is not None:
-        raise HTTPException(status_code=403, detail=refusal)
 
 
 def _twin(connection: HTTPConnection) -> Twin:
@@ -85,9 +50,6 @@ def _twin(connection: HTTPConnection) -> Twin:
     if twin is None:
         raise HTTPException(status_code=503, detail="the 3D twin is not running")
     return twin
-
-
-PageAccess = Annotated[None, Depends(_page_access)]
 
 
 class _ClientPage:
@@ -119,13 +81,13 @@ def _client_page(connection: HTTPConnection) -> _ClientPage:
 
 
 @router.get("/twin")
-async def twin_no_slash(_: PageAccess) -> RedirectResponse:
+async def twin_no_slash() -> RedirectResponse:
     # The page must live under /twin/ so that its websocket goes to /twin.
     return RedirectResponse("/twin/", status_code=307)
 
 
 @router.get("/twin/")
-async def twin_page(request: Request, _: PageAccess) -> Response:
+async def twin_page(request: Request) -> Response:
     """viser's client (rig view of every axis; camera parameters in the query)."""
     twin = _twin(request)
     body, gzipped = await _client_page(request).get(
@@ -138,7 +100,7 @@ async def twin_page(request: Request, _: PageAccess) -> Response:
 
 
 @router.get("/twin/axis/{axis_id}")
-async def twin_axis(axis_id: str, request: Request, _: PageAccess) -> RedirectResponse:
+async def twin_axis(axis_id: str, request: Request) -> RedirectResponse:
     """The 3D view of one axis: viser's page with a camera that frames it."""
     twin = _twin(request)
     try:
@@ -151,11 +113,8 @@ async def twin_axis(axis_id: str, request: Request, _: PageAccess) -> RedirectRe
 @router.websocket("/twin")
 async def twin_socket(websocket: WebSocket) -> None:
     """Frames both ways between the browser and viser; the subprotocol is echoed."""
-    refusal = _authorize(websocket)
-    if refusal is not None:
-        logger.warning("twin websocket refused: %s", refusal)
-        await websocket.close(code=REFUSED, reason=refusal)
-        return
+    if await authenticate_websocket(websocket) is None:
+        return  # closed with 1008 by the check
     twin: Twin | None = getattr(websocket.app.state, "twin", None)
     if twin is None:
         await websocket.close(code=UNAVAILABLE, reason="the 3D twin is not running")

@@ -87,6 +87,13 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("DELETE", "/api/users/{name}"): USERS,
     ("GET", "/api/audit"): VIEW,
     ("GET", "/api/audit.csv"): VIEW,
+    # --- storage health (servotune/api/bench_routes.py)
+    ("GET", "/api/storage"): VIEW,
+    # --- the 3D twin (servotune/api/twin_routes.py)
+    ("GET", "/twin"): VIEW,
+    ("GET", "/twin/"): VIEW,
+    ("GET", "/twin/axis/{axis_id}"): VIEW,
+    ("WS", "/twin"): VIEW,
 }
 
 # Routes whose mutating call does not need the CSRF token: logging in creates the
