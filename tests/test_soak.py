@@ -42,7 +42,7 @@ from servotune.bench_demo import (
 
 pytestmark = pytest.mark.slow
 
-SOAK_S = 100.0
+SOAK_S = 90.0
 POLL_S = 1.0
 STALE_S = 5.0  # a connected link goes no longer than this without a sample
 RECOVER_S = 30.0
