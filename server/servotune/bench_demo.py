@@ -82,9 +82,13 @@ def process_tree(pid: int) -> list[int]:
 
 
 def process_name(pid: int) -> str:
-    """The process' name (``comm``): the simulators name themselves ``sim-<device>``."""
+    """The process' name (``comm``): the simulators name themselves ``sim-<device>``;
+    multiprocessing's resource tracker (a child of every spawning process) is named."""
     try:
-        return Path(f"/proc/{pid}/comm").read_text().strip()
+        name = Path(f"/proc/{pid}/comm").read_text().strip()
+        if b"resource_tracker" in Path(f"/proc/{pid}/cmdline").read_bytes():
+            return "mp-resource-tracker"
+        return name
     except OSError:
         return "?"
 

@@ -156,6 +156,7 @@ class SimulatedEp7047Slave:
         self._lost = False
         self._frames_in_safeop = 0
         self._latched = SAFE_OUTPUTS
+        self._latched_bytes: bytes | None = None  # what _latched was decoded from
         self._t0: float | None = None
         self._cycle_no = 0
         self._wd_cycle = 0  # the watchdog expires after this cycle
@@ -279,6 +280,7 @@ class SimulatedEp7047Slave:
         self._mapped = None
         self._out_buf = self._in_buf = b""
         self._latched = SAFE_OUTPUTS
+        self._latched_bytes = None
 
     # --- faults ---------------------------------------------------------------------------
 
@@ -291,6 +293,7 @@ class SimulatedEp7047Slave:
             self._al_error = True
             self._al_status = al_status
             self._latched = SAFE_OUTPUTS
+            self._latched_bytes = None
 
     def return_to_op(self) -> None:
         """The fault is gone: OP is accepted again (a master brings the slave back to OP;
@@ -464,8 +467,11 @@ class SimulatedEp7047Slave:
             if self._al_state == SAFEOP_STATE:
                 self._frames_in_safeop += 1
                 return 1  # inputs only: the outputs are not taken in SAFE-OP
-            if self.positioning_interface:
+            if self.positioning_interface and sent != self._latched_bytes:
+                # Unchanged outputs keep the same object: decoding is skipped and the
+                # engine sees "same outputs as the cycle before" at a glance.
                 self._latched = codec.decode_outputs(sent)
+                self._latched_bytes = sent
             self._wd_cycle = self._cycle_no + round(self.watchdog_s / CYCLE_S)
             self.watchdog_tripped = False
             self.history.append(Exchange(now, self._latched, self._last_inputs, self._al_state))

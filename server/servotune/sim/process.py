@@ -126,10 +126,12 @@ class SimProcess:
                 raise SimProcessError(f"simulator {self.name} did not start within {timeout_s} s")
             message = parent_conn.recv()
         except (EOFError, OSError) as exc:
+            process.join(STOP_TIMEOUT_S)
+            exit_code = process.exitcode
             self._reap()
             raise SimProcessError(
-                f"simulator {self.name} ended while starting (exit code "
-                f"{process.exitcode}); see its log above"
+                f"simulator {self.name} ended while starting (exit code {exit_code}); "
+                "see its log above"
             ) from exc
         except SimProcessError:
             self._reap()
