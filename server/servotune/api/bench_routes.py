@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, PlainTextResponse
 from pydantic import BaseModel, Field
 
-from servotune.api.responses import NOT_FOUND, errors
+from servotune.api.responses import NOT_FOUND, errors, json_errors
 from servotune.api.routes import ERRORS
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
@@ -113,7 +113,7 @@ async def set_baseline(run_id: str, bench: BenchDep) -> None:
 @router.get(
     "/api/bench/runs/{run_id}/samples.csv",
     response_class=PlainTextResponse,
-    responses={200: {"content": {"text/csv": {}}}, **NOT_FOUND},
+    responses={200: {"content": {"text/csv": {}}}, **json_errors(404, 422)},
 )
 async def export_csv(run_id: str, bench: BenchDep) -> PlainTextResponse:
     try:
