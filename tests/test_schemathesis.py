@@ -6,8 +6,8 @@ states each axis' command and parameter bodies from its descriptor. For every
 operation hypothesis generates a bounded number of requests, schema-valid ones and
 schema-invalid ones, and every response must be:
 
-- no server error (no 5xx: a device that misbehaves answers 502/503/504, which are
-  documented, never 500);
+- no server error: no 500 ever; a device or line that misbehaves answers 502, 503 or
+  504, which are documented (the simulated lines of a loaded machine do misbehave);
 - a documented status code, with a body that conforms to the documented schema and
   content type;
 - for a schema-valid request: accepted, or refused for a reason the schema cannot
@@ -36,14 +36,13 @@ schemathesis = pytest.importorskip("schemathesis")
 
 import uvicorn  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
-from schemathesis.checks import not_a_server_error  # noqa: E402
 from schemathesis.specs.openapi import checks as openapi_checks  # noqa: E402
 
 from servotune.api.app import AppConfig, create_app  # noqa: E402
 from servotune.config import LinkSpec  # noqa: E402
 from servotune.demo import ep7047_demo_slave, slap2_demo_line, z1100_demo_line  # noqa: E402
 
-MAX_EXAMPLES = 3
+MAX_EXAMPLES = 2
 
 # Operations not generated at all, each with its reason.
 EXCLUDED: dict[str, str] = {
@@ -72,8 +71,18 @@ VALID_MAY_BE_422: dict[str, str] = {
     "POST /api/axes/{axis_id}/bench/runs/import": "meta must be a run export",
 }
 
+
+def no_internal_error(ctx: Any, response: Any, case: Any) -> None:
+    """No 5xx but the documented device answers: 502 (the device broke its protocol),
+    503 (link down), 504 (no answer) say the device or its line failed, and the
+    simulated lines of a loaded test machine do produce them. A 500 (or any other 5xx)
+    is a bug of the server."""
+    status = response.status_code
+    assert status < 500 or status in (502, 503, 504), f"server error {status}: {response.text}"
+
+
 CHECKS = [
-    not_a_server_error,
+    no_internal_error,
     openapi_checks.status_code_conformance,
     openapi_checks.content_type_conformance,
     openapi_checks.response_schema_conformance,
@@ -169,7 +178,7 @@ def test_live_openapi_contract(tmp_path: Path) -> None:
                 started = time.monotonic()
                 try:
                     _run(operation, mode, checks, base_url)
-                except Exception as exc:  # collect every operation's failure, then fail
+                except (Exception, BaseExceptionGroup) as exc:  # collect all, then fail
                     failures.append(f"{label} ({mode.value}): {exc}")
                 timings.append((time.monotonic() - started, f"{label} {mode.value}"))
     timings.sort(reverse=True)
