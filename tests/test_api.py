@@ -277,3 +277,58 @@ async def test_a_stalled_client_does_not_slow_the_others(api: LiveServer) -> Non
     # Both axes keep streaming at the link's rate to the client that reads.
     assert count >= 0.6 * 2 * 2.0 * status["rate_hz"], (count, status)
     assert status["rate_hz"] > 10
+
+
+async def test_stop_says_what_it_does_and_hold_keeps_the_motor_powered(api: LiveServer) -> None:
+    descriptor = (await api.client.get("/api/axes/line-0/descriptor")).json()
+    assert descriptor["stop"]["motor_powered"] is False
+    assert descriptor["stop"]["gentler"] == ["hold"]
+    url = "/api/axes/line-0/commands"
+    pm = 1 << 3
+    # After st (motor unpowered) hold turns the controller on where the shaft is.
+    assert (await api.client.post(url, json={"command": "stop"})).status_code == 200
+    assert not api.bus.module(0).rss & pm
+    response = await api.client.post(url, json={"command": "hold"})
+    assert response.status_code == 200, response.text
+    assert response.json()["sent"] == ["pm"]
+    assert api.bus.module(0).rss & pm
+    # In pm with a move running, hold replans the move to the position at the press.
+    await api.client.patch("/api/axes/line-0/params", json={"velocity": 500})
+    response = await api.client.post(url, json={"command": "move_relative", "distance": 200000})
+    assert response.status_code == 200, response.text
+    for _ in range(200):
+        state = await api.state("line-0")
+        if state["flags"]["move"] and state["position"] > 50:
+            break
+        await asyncio.sleep(0.02)
+    else:
+        pytest.fail(f"the move did not start: {state}")
+    response = await api.client.post(url, json={"command": "hold"})
+    assert response.status_code == 200, response.text
+    (sent,) = response.json()["sent"]
+    assert sent.startswith("ma")
+    held = int(sent[2:])
+    for _ in range(300):
+        state = await api.state("line-0")
+        if not state["flags"]["move"] and state["flags"]["inpos"]:
+            break
+        await asyncio.sleep(0.05)
+    else:
+        pytest.fail(f"the axis did not come to rest: {state}")
+    assert api.bus.module(0).rss & pm, "hold must leave the controller on"
+    assert abs(state["position"] - held) <= 5
+    assert held < 200000
+
+
+async def test_omitted_argument_takes_its_default_and_console_refuses_control_chars(
+    api: LiveServer,
+) -> None:
+    url = "/api/axes/line-0/commands"
+    await api.client.post(url, json={"command": "stop"})
+    response = await api.client.post(url, json={"command": "open_loop_pwm"})
+    assert (response.status_code, response.json()["field"]) == (422, "pwm")
+    for line in ("rp\rsv0", "se\x18", "\x0b"):
+        response = await api.client.post("/api/axes/line-0/console", json={"line": line})
+        assert (response.status_code, response.json()["field"]) == (422, "line"), line
+    # Nothing of those reached the module: its settings are the factory ones.
+    assert api.bus.module(0).settings["sv"] == 2000

@@ -12,10 +12,12 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.routing import BaseRoute, Mount, Route
+from starlette.routing import BaseRoute, Match, Mount
+from starlette.types import Scope
 
 from servotune import __version__
 from servotune.api.auth_routes import router as auth_router
@@ -71,18 +73,29 @@ def _error(status: int, detail: str, field_name: str | None = None) -> JSONRespo
     return JSONResponse(status_code=status, content={"detail": detail, "field": field_name})
 
 
-def allowed_methods(routes: list[BaseRoute], path: str) -> list[str]:
-    """Every method any route answers at ``path`` (the ``Allow`` header of a 405).
+HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(routes: list[BaseRoute], scope: Scope) -> list[str]:
+    """Every method some route answers at the request's path (the ``Allow`` of a 405).
 
     Starlette's own 405 lists only the methods of the first route whose path matched,
-    but GET and PATCH of one path are two routes here."""
-    methods: set[str] = set()
-    for route in routes:
-        if isinstance(route, Route) and route.path_regex.match(path) and route.methods:
-            methods |= route.methods
-    if not methods and any(isinstance(r, Mount) and r.path_regex.match(path) for r in routes):
-        methods = {"GET", "HEAD"}  # the static web bundle
-    return sorted(methods)
+    but GET and PATCH of one path are two routes here. Each method is probed through
+    the routes' own matching, so included routers and path converters count as they
+    do for real requests; the static bundle's mount (which takes any path) counts only
+    where no API route matches: GET and HEAD."""
+    allowed = []
+    for method in HTTP_METHODS:
+        probe = {**scope, "method": method}
+        for route in routes:
+            if not isinstance(route, Mount) and route.matches(probe)[0] is Match.FULL:
+                allowed.append(method)
+                break
+    if not allowed and any(
+        isinstance(r, Mount) and r.matches(scope)[0] is not Match.NONE for r in routes
+    ):
+        allowed = ["GET", "HEAD"]
+    return allowed
 
 
 def create_app(config: AppConfig) -> FastAPI:
@@ -130,6 +143,10 @@ def create_app(config: AppConfig) -> FastAPI:
         version=__version__,
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
+        # Served below: the schema is built in a worker thread, not on the event loop.
+        openapi_url=None,
+        docs_url=None,
+        redoc_url=None,
     )
     # Before every include_router: the authorization dependency is app-wide.
     security = install_security(app, config.security, config.data_dir)
@@ -153,6 +170,16 @@ def create_app(config: AppConfig) -> FastAPI:
 
     app.openapi = openapi  # type: ignore[method-assign]
 
+    @app.get("/openapi.json", include_in_schema=False)
+    async def openapi_json() -> JSONResponse:
+        # Building the schema takes hundreds of milliseconds (seconds on a loaded
+        # machine): in a worker thread, so it never holds a STOP back on the loop.
+        return JSONResponse(await asyncio.to_thread(openapi))
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title="servotune API")
+
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         headers = dict(exc.headers or {})
@@ -160,7 +187,7 @@ def create_app(config: AppConfig) -> FastAPI:
             # A body that is not JSON (or not UTF-8): bad input like any other, 422.
             return _error(422, f"body: {exc.detail}", "body")
         if exc.status_code == 405:
-            headers["Allow"] = ", ".join(allowed_methods(app.router.routes, request.url.path))
+            headers["Allow"] = ", ".join(allowed_methods(app.router.routes, request.scope))
         return JSONResponse(
             status_code=exc.status_code,
             content={"detail": str(exc.detail), "field": None},

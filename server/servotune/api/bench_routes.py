@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 
+from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
 from servotune.drivers.base import InvalidArgumentError
 from servotune.hub import NotFoundError
@@ -277,7 +278,7 @@ async def set_baseline(run_id: str, bench: BenchDep) -> None:
 @router.get(
     "/api/bench/runs/{run_id}/samples.csv",
     response_class=StreamingResponse,
-    responses={**ERRORS, 200: {"content": {"text/csv": {}}}},
+    responses={200: {"content": {"text/csv": {}}}, **json_errors(404, 422)},
 )
 async def export_csv(run_id: str, bench: BenchDep) -> StreamingResponse:
     """The samples as CSV (the run's columns, then one 0/1 column per flag), streamed."""

@@ -34,3 +34,13 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 DEVICE_ERRORS = errors(*DEVICE_CODES)
 NOT_FOUND = errors(404, 422)
+
+
+def json_errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """Like ``errors`` for a route whose success is not JSON (a CSV download): the
+    error bodies are still JSON ``ErrorBody``."""
+    ref = {"$ref": "#/components/schemas/ErrorBody"}
+    return {
+        code: {"description": DESCRIPTIONS[code], "content": {"application/json": {"schema": ref}}}
+        for code in codes
+    }

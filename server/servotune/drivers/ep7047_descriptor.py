@@ -851,7 +851,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             examples=["list", "0x9020:03", "0x9020:01", "0x8020:0E", "0x8020:02 = 5000"],
         ),
         stop=StopEffect(
-            summary="EP7047: emergency ramp, then Enable off - no holding torque",
+            summary="EP7047: emergency ramp, then no holding torque",
             motor_powered=False,
             sends="Emergency stop output on the next cycle, then Enable off",
             gentler=["emergency_stop", "halt"],

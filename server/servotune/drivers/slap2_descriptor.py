@@ -559,7 +559,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             examples=["rp", "rss", "rrss", "rep", "id", "qp"],
         ),
         stop=StopEffect(
-            summary="SLAP2: controller off, motor unpowered - a vertical axis drops",
+            summary="SLAP2: motor unpowered at once - a vertical axis drops",
             motor_powered=False,
             sends="st (ahead of anything queued)",
             gentler=["hold"],

@@ -411,7 +411,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             examples=["GetEncoder", "GetError", "GetKABH", "GetStart", "GetStop", "GetVmax"],
         ),
         stop=StopEffect(
-            summary="Z1100: Estop - stops at once (hard jolt), then holds under power",
+            summary="Z1100: hard stop at once, then holds under power",
             motor_powered=True,
             sends="Estop for this motor (ahead of anything queued)",
             gentler=["decelerate"],

@@ -324,8 +324,9 @@ export class Controls {
         widget = rc.el;
       } else if (cmd.name === "move_relative" && only && !only.choices.length) {
         widget = jogWidget(this.runner, cmd, only);
-      } else if (cmd.name === "stop") {
-        widget = commandWidget(this.runner, cmd, "danger");
+      } else if (cmd.group === "stop") {
+        // The device's gentler stops (e.g. SLAP2 stop and hold) do not look like STOP.
+        widget = commandWidget(this.runner, cmd, descriptor.stop.gentler.includes(cmd.name) ? "" : "danger");
       } else {
         widget = commandWidget(this.runner, cmd, cmd.group === "mode" ? "mode" : "");
         if (cmd.active_flag) this.engaged.push([cmd.active_flag, widget]);
