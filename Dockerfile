@@ -19,5 +19,6 @@ USER servotune
 VOLUME ["/data"]
 EXPOSE 8000
 # Inside the container the server must listen on all interfaces; the compose file
-# publishes it on the host's loopback only.
-CMD ["servotune", "demo", "--host", "0.0.0.0", "--port", "8000"]
+# publishes it on the host's loopback only, hence local mode (no login) on 0.0.0.0.
+# The lab profile (docker-compose.yml) runs exposed mode behind Caddy instead.
+CMD ["servotune", "demo", "--host", "0.0.0.0", "--port", "8000", "--mode", "local"]

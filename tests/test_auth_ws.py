@@ -250,3 +250,21 @@ async def test_local_mode_existing_clients_keep_working(tmp_path: Path) -> None:
         assert (await http.post("/api/stop")).status_code == 403
         await use_csrf_token(http)
         assert (await http.post("/api/stop")).status_code == 200
+
+
+async def test_cli_role_change_closes_websockets_of_a_running_server(tmp_path: Path) -> None:
+    """``servotune users role`` runs in another process: the server notices within ~2 s."""
+    from servotune.cli import main
+
+    async with live(tmp_path, exposed=True) as server:
+        victor = await session_client(server, "victor")
+        headers = {"Cookie": cookie_header(victor)}
+        async with websockets.connect(
+            server.ws_url, origin=server.origin, additional_headers=headers
+        ) as ws:
+            await ws.recv()
+            argv = ["users", "--data-dir", str(server.data_dir), "role", "victor", "operator"]
+            assert await asyncio.to_thread(main, argv) == 0
+            assert await _closed_with(ws, 15) == 1008
+        assert (await victor.get("/api/axes")).status_code == 401
+        await victor.aclose()

@@ -41,6 +41,11 @@ def _run_server(app_config: object, host: str, port: int) -> None:
     except SecurityConfigError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+    if not security.exposed and host not in ("127.0.0.1", "localhost", "::1"):
+        logging.getLogger(__name__).warning(
+            "local mode on %s: no login; anyone who can reach this address can move the motors",
+            host,
+        )
     scheme = "https" if security.tls else "http"
     mode = "exposed: login required" if security.exposed else "local"
     print(f"servotune {__version__}: {scheme}://{host}:{port}  ({mode})", flush=True)

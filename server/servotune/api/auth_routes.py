@@ -25,9 +25,9 @@ from servotune.auth.passwords import (
     hash_password,
     verify_password,
 )
-from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError, role_at_most
-from servotune.auth.principal import AUDIT_ALL, USERS, Principal
-from servotune.auth.security import SESSION_COOKIE, SecurityState
+from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError, permissions_of
+from servotune.auth.principal import AUDIT_ALL, Principal
+from servotune.auth.security import SESSION_COOKIE, TICKET_TTL_S, SecurityState
 from servotune.auth.store import (
     SESSION_LIFETIME_S,
     TOKEN_DEFAULT_DAYS,
@@ -178,8 +178,6 @@ async def login(body: LoginRequest, request: Request, response: Response) -> Ses
 
 
 def _session_principal(session: Session) -> Principal:
-    from servotune.auth.permissions import permissions_of
-
     return Principal(
         user=session.user,
         role=session.role,
@@ -259,8 +257,6 @@ async def ws_ticket(request: Request) -> TicketReply:
     """A single-use websocket ticket (``/ws?ticket=...``), valid 10 s from this address."""
     principal = _principal(request)
     security = _security(request)
-    from servotune.auth.security import TICKET_TTL_S
-
     ticket = security.issue_ticket(principal, client_address(request.scope))
     return TicketReply(ticket=ticket, expires_in_s=TICKET_TTL_S)
 
@@ -483,6 +479,3 @@ async def audit_csv(
         media_type="text/csv",
         headers={"Content-Disposition": f'attachment; filename="servotune-audit-{stamp}.csv"'},
     )
-
-
-__all__ = ["USERS", "role_at_most", "router"]

@@ -45,15 +45,18 @@ def add_security_arguments(parser: argparse.ArgumentParser) -> None:
         help="host name the dashboard is reached by (Host header allowlist; repeatable)",
     )
     group.add_argument(
-        "--exposed",
-        action="store_true",
-        help="exposed mode (login required) even on a loopback address",
+        "--mode",
+        choices=("auto", "local", "exposed"),
+        default="auto",
+        help="auto (default): exposed when bound to a non-loopback address or given "
+        "TLS or a proxy; local: no login even on 0.0.0.0 (only for a container whose "
+        "port is published on the host's loopback); exposed: login even on 127.0.0.1",
     )
 
 
 def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityConfig:
     return SecurityConfig(
-        mode="exposed" if args.exposed else None,
+        mode=None if args.mode == "auto" else args.mode,
         host=host,
         tls_cert=args.tls_cert,
         tls_key=args.tls_key,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,6 +13,7 @@ from servotune.auth.authz import authorize
 from servotune.auth.middleware import SecurityMiddleware
 from servotune.auth.security import SecurityConfig, SecurityState, check_exposed_startup
 from servotune.auth.store import AuthStore
+from servotune.auth.ws_auth import recheck_websockets
 
 
 class InstalledSecurity:
@@ -22,12 +24,15 @@ class InstalledSecurity:
 
     @contextlib.contextmanager
     def running(self, app: FastAPI) -> Iterator[SecurityState]:
-        """Open the accounts database and the audit writer for the app's lifetime."""
+        """Open the accounts database and the audit writer for the app's lifetime, and
+        re-check open websockets against it (entered inside the running event loop)."""
         self.state.open()
         app.state.audit = self.state.audit
+        recheck = asyncio.get_running_loop().create_task(recheck_websockets(self.state))
         try:
             yield self.state
         finally:
+            recheck.cancel()
             self.state.close()
 
 

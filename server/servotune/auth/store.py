@@ -340,6 +340,18 @@ class AuthStore:
             self._db.execute("DELETE FROM tokens WHERE id=?", (token_id,))
         return tokens[0]
 
+    def token_alive(self, token_id: str) -> bool:
+        """The token exists, has not expired and is within its user's role."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT t.role, t.expires_s, u.role FROM tokens t JOIN users u "
+                "ON u.name = t.user WHERE t.id=?",
+                (token_id,),
+            ).fetchone()
+        if row is None:
+            return False
+        return float(row[1]) > time.time() and role_at_most(str(row[0]), str(row[2]))
+
     def lookup_token(self, presented: str) -> Token | None:
         """The live token for a presented ``stk_<id>_<secret>``, compared in constant time."""
         prefix, _, rest = presented.partition("_")

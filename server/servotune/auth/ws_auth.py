@@ -47,12 +47,20 @@ class WsRegistry:
 
     def __init__(self) -> None:
         self._entries: dict[int, tuple[Principal, CloseCallback]] = {}
+        # Which app's accounts a principal came from (set by authenticate_websocket), so
+        # an app re-checks only its own sockets.
+        self.owners: dict[Principal, SecurityState] = {}
 
     def add(self, principal: Principal, callback: CloseCallback) -> None:
         self._entries[id(callback)] = (principal, callback)
 
     def remove(self, callback: CloseCallback) -> None:
-        self._entries.pop(id(callback), None)
+        entry = self._entries.pop(id(callback), None)
+        if entry is not None and not any(p == entry[0] for p, _ in self._entries.values()):
+            self.owners.pop(entry[0], None)
+
+    def owned_by(self, security: SecurityState) -> list[tuple[Principal, CloseCallback]]:
+        return [e for e in self._entries.values() if self.owners.get(e[0]) is security]
 
     def matching(self, user: str, session_id: str | None) -> list[CloseCallback]:
         return [
@@ -95,6 +103,38 @@ async def close_websockets(user: str, session_id: str | None = None) -> int:
         except Exception:  # one broken socket must not keep the others open
             logger.warning("closing a websocket of %s failed", user, exc_info=True)
     return len(callbacks)
+
+
+RECHECK_PERIOD_S = 2.0
+
+
+async def recheck_websockets(security: SecurityState) -> None:
+    """Forever: close sockets whose session or token has gone (CLI changes, expiry).
+
+    Changes through the API close sockets at once; ``servotune users``/``tokens`` run in
+    another process and only change ``auth.db``, which this loop notices within
+    RECHECK_PERIOD_S.
+    """
+    while True:
+        await asyncio.sleep(RECHECK_PERIOD_S)
+        store = security.store
+        if store is None:
+            continue
+        for principal, callback in _REGISTRY.owned_by(security):
+            session_id = principal.session_id or ""
+            if principal.via == "session":
+                alive = await asyncio.to_thread(store.session_by_public_id, session_id) is not None
+            elif principal.via == "token":
+                token_id = session_id.removeprefix("token:")
+                alive = await asyncio.to_thread(store.token_alive, token_id)
+            else:
+                continue
+            if not alive:
+                _REGISTRY.remove(callback)
+                with contextlib.suppress(Exception):
+                    result = callback()
+                    if inspect.isawaitable(result):
+                        await result
 
 
 async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
@@ -143,4 +183,5 @@ async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
     if VIEW not in principal.permissions:
         await refuse("needs permission 'view'", principal.user)
         return None
+    _REGISTRY.owners[principal] = security
     return principal

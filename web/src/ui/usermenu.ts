@@ -34,9 +34,9 @@ function applyReadOnly(root: ParentNode, allowed: Set<string>): void {
   for (const el of Array.from(root.querySelectorAll<HTMLElement>("[data-testid]"))) {
     const needed = neededPermission(el.dataset.testid ?? "");
     if (needed === null || allowed.has(needed)) continue;
-    if (el instanceof HTMLButtonElement || el instanceof HTMLInputElement || el instanceof HTMLSelectElement || el instanceof HTMLTextAreaElement) {
-      el.disabled = true;
-    }
+    const control = el instanceof HTMLButtonElement || el instanceof HTMLInputElement || el instanceof HTMLSelectElement || el instanceof HTMLTextAreaElement;
+    // Only when it changes: every write is a mutation record the observer would see.
+    if (control && !el.disabled) el.disabled = true;
     if (!el.hasAttribute("data-readonly-control")) {
       el.setAttribute("data-readonly-control", needed);
       el.title = `Your role may not do this (needs “${needed}”)`;
@@ -53,10 +53,12 @@ export function enforceReadOnly(session: SessionInfo): void {
   const observer = new MutationObserver(() => {
     if (pending) return;
     pending = true;
-    queueMicrotask(() => {
+    // A task, not a microtask: the page's own updates finish first and a burst of
+    // mutations costs one pass.
+    setTimeout(() => {
       pending = false;
       applyReadOnly(document, allowed);
-    });
+    }, 0);
   });
   observer.observe(document.body, { childList: true, subtree: true, attributes: true, attributeFilter: ["disabled"] });
   applyReadOnly(document, allowed);
