@@ -163,6 +163,16 @@ async def gather_in_order(*jobs: Awaitable[object]) -> list[int]:
     return order
 
 
+def local_client(app: Any, **kwargs: Any) -> Any:
+    """An httpx client of ``app`` as a browser on this machine reaches it: a local Host
+    name (the DNS-rebinding check refuses others). Call ``use_csrf_token`` on it before
+    any state-changing request."""
+    import httpx
+
+    transport = httpx.ASGITransport(app=app)
+    return httpx.AsyncClient(transport=transport, base_url="http://127.0.0.1", **kwargs)
+
+
 async def use_csrf_token(client: Any) -> None:
     """Make an httpx client send the server's CSRF token on every request (local mode).
 

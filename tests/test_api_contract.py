@@ -22,6 +22,8 @@ from servotune.drivers.z1100_descriptor import z1100_descriptor
 from servotune.hub import UnknownAxisError
 from servotune.wire import AxisInfo
 
+from .conftest import local_client, use_csrf_token
+
 EP7047 = ep7047_descriptor(speed_range_steps_s=2000, counts_per_rev=4096)
 SLAP2 = slap2_descriptor(512)
 Z1100 = z1100_descriptor(2048)
@@ -131,9 +133,15 @@ async def client(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
     app = create_app(AppConfig(data_dir=tmp_path, web_dir=tmp_path / "no-web"))
     app.state.hub = StubHub({"s": SLAP2, "e": EP7047})
     app.state.storage = None  # resolved as a dependency, never used by these requests
-    transport = httpx.ASGITransport(app=app)
-    async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-        yield client
+    # The accounts database and the CSRF secret are opened by the lifespan, which this
+    # app does not run: open them here.
+    app.state.security.open()
+    try:
+        async with local_client(app) as client:
+            await use_csrf_token(client)
+            yield client
+    finally:
+        app.state.security.close()
 
 
 async def test_live_openapi_states_each_axis_body(client: httpx.AsyncClient) -> None:

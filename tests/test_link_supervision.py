@@ -29,7 +29,7 @@ from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
 
-from .conftest import RecordingSink, wait_for
+from .conftest import RecordingSink, local_client, use_csrf_token, wait_for
 
 Z_BAUD = 38400
 CTRL_X = 0x18
@@ -507,7 +507,6 @@ async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) ->
 async def test_api_console_refuses_control_characters_and_logs_lines(tmp_path: Path) -> None:
     """Through the API: 422 naming ``line`` and nothing sent; a refusal is a 409 with
     the module's reason; every line sent is an event."""
-    import httpx
 
     from servotune.api.app import AppConfig, create_app
     from servotune.config import LinkSpec
@@ -520,8 +519,8 @@ async def test_api_console_refuses_control_characters_and_logs_lines(tmp_path: P
         async with app.router.lifespan_context(app):
             hub = app.state.hub
             await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
-            transport = httpx.ASGITransport(app=app)
-            async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            async with local_client(app) as client:
+                await use_csrf_token(client)
                 url = "/api/axes/line-0/console"
                 mark = tap.mark()
                 for bad in ("rp\rsv0", "se0\x18", "kp 1\n"):

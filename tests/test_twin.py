@@ -22,7 +22,7 @@ from servotune.drivers.z1100_descriptor import z1100_descriptor
 from servotune.twin.model import Rail, angle_rad, classify, disc_wxyz, node_slot
 from servotune.twin.scene import MIN_TURN_RAD
 
-from .conftest import wait_for
+from .conftest import use_csrf_token, wait_for
 from .test_api import free_port
 from .twin_client import angle_of, same_angle, until, viser_session
 
@@ -98,6 +98,7 @@ async def demo_server(tmp_path: Path, web_dir: Path | None = None) -> AsyncItera
         await wait_for(lambda: server.started, 30, "the server to start")
         base = f"http://127.0.0.1:{port}"
         async with httpx.AsyncClient(base_url=base, timeout=20) as client:
+            await use_csrf_token(client)
             yield Demo(base, f"ws://127.0.0.1:{port}/twin", client)
     finally:
         server.should_exit = True

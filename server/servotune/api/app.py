@@ -156,6 +156,7 @@ def create_app(config: AppConfig) -> FastAPI:
     app.include_router(param_set_router)
     app.include_router(auth_router)
     app.include_router(ws_router)
+    app.include_router(twin_router)
 
     def openapi() -> dict[str, Any]:
         """The live OpenAPI: once the hub runs, command and params bodies per device."""
@@ -193,7 +194,6 @@ def create_app(config: AppConfig) -> FastAPI:
             content={"detail": str(exc.detail), "field": None},
             headers=headers,
         )
-    app.include_router(twin_router)
 
     @app.exception_handler(InvalidArgumentError)
     async def invalid(_: Request, exc: InvalidArgumentError) -> JSONResponse:

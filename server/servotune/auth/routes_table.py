@@ -87,6 +87,10 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("DELETE", "/api/users/{name}"): USERS,
     ("GET", "/api/audit"): VIEW,
     ("GET", "/api/audit.csv"): VIEW,
+    # --- the live OpenAPI and its interactive page (servotune/api/app.py); behind the
+    # login in exposed mode like everything else
+    ("GET", "/openapi.json"): VIEW,
+    ("GET", "/docs"): VIEW,
     # --- storage health (servotune/api/bench_routes.py)
     ("GET", "/api/storage"): VIEW,
     # --- the 3D twin (servotune/api/twin_routes.py)
