@@ -328,14 +328,16 @@ class RawWebsocket:
 
 
 async def take_with_raw_client(
-    server: Server, axis: str, heartbeat_s: float = 0.1
+    server: Server, axis: str, heartbeat_s: float = 0.1, *, take: bool = True
 ) -> tuple[RawWebsocket, str, asyncio.Task[None]]:
-    """A raw client that takes ``axis`` and heartbeats; returns it, its id, its beat task."""
+    """A raw client that takes ``axis`` (unless not ``take``: it will only move it) and
+    heartbeats; returns it, its client id and its heartbeat task."""
     raw = await RawWebsocket.connect(server.port)
     welcome = await raw.welcome()
-    raw.send_text(json.dumps({"type": "take_control", "axis": axis}))
-    reply = await raw.wait_for(lambda m: m["type"] == "control_reply")
-    assert reply["ok"], reply
+    if take:
+        raw.send_text(json.dumps({"type": "take_control", "axis": axis}))
+        reply = await raw.wait_for(lambda m: m["type"] == "control_reply")
+        assert reply["ok"], reply
 
     async def beat() -> None:
         while True:

@@ -15,10 +15,12 @@ Rules (docs/control.md has the reasoning):
   ``X-Servotune-Client``) by the same user; everyone else gets 423 with the holder's
   name, and nothing is sent.
 * An axis that nobody holds (or that the autopilot holds) may be changed by anyone with
-  the permission. A change that carries the id of a connected client implicitly takes
-  the axis for that client (so the dead-man covers what a tab sets in motion); a change
-  without a client id (scripts, the test suite) leaves the axis free. The autopilot
-  yields to either.
+  the permission: exclusivity is the operator's explicit choice (Take control), not a
+  side effect of nudging a gain. A change that carries the id of a connected client
+  makes that client the axis' *mover*: the axis stays free, but the dead-man covers
+  what the tab set in motion (its lapse stops the axis) until another client changes or
+  takes the axis. A change without a client id (scripts, the test suite) changes
+  nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
   safe state (``ControlManager._safe_stop``: the device's STOP); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
@@ -142,6 +144,8 @@ class _Axis:
     # The last change or release by anyone; the autopilot resumes only after a quiet while.
     quiet_since_s: float = -math.inf
     pending: _Pending | None = None
+    # The client that last changed the free axis: its lapse stops the axis too.
+    mover: ControlClient | None = None
     handing_over: bool = False
     mutex: asyncio.Lock = field(default_factory=asyncio.Lock)
     ready: asyncio.Event = field(default_factory=asyncio.Event)
@@ -262,7 +266,7 @@ class ControlManager:
             if ax.pending is not None and ax.pending.requester is client:
                 self._drop_pending(ax)
                 self._broadcast_status(ax)
-        if self._held_by(client):
+        if self._responsible(client):
             self._spawn(self._lapse(client, "the connection closed"), f"lapse of {client.tag}")
 
     def snapshot(self) -> list[str]:
@@ -457,19 +461,16 @@ class ControlManager:
             )
             self._record_principal(principal, "change refused", axis_id, "locked", detail)
             raise HTTPException(423, detail=detail)
-        if client is not None and _can_control(principal):
-            async with ax.mutex:
-                if ax.kind in (None, "autopilot", "server") and not ax.handing_over:
-                    await self._transfer_locked(ax, client, "take")
-            if ax.client is not client:
-                raise HTTPException(423, detail=f"axis {axis_id} was taken meanwhile")
-            ax.activity_s = self._clock()
-            return
         if ax.kind == "autopilot":
             # The autopilot yields to any change; its bounded demo move may finish.
             self._hub.mark_operated(self._hub.entry(axis_id))
             ax.kind = None
             self._broadcast_status(ax)
+        if client is not None:
+            # Not a take (see the module doc): this tab answers for what it sets in
+            # motion. Its change proves it alive, so its lease starts afresh.
+            ax.mover = client
+            client.silence_s = 0.0
         ax.quiet_since_s = self._clock()
 
     async def _wait_startup(self, ax: _Axis) -> None:
@@ -500,6 +501,7 @@ class ControlManager:
             # The autopilot loop stops issuing before the STOP (which fails what it queued).
             self._hub.mark_operated(self._hub.entry(ax.axis_id))
         ax.handing_over = True
+        ax.mover = None
         self._broadcast_status(ax)
         try:
             target = client.user if client is not None else "nobody"
@@ -538,24 +540,28 @@ class ControlManager:
         try:
             await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
         except (DriverError, TimeoutError) as exc:
-            if isinstance(exc, LinkDownError | TimeoutError):
-                entry.stop_on_reconnect = True
-            self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {exc or 'timeout'}")
+            if isinstance(exc, LinkDownError):
+                entry.stop_on_reconnect = True  # the hub sends it when the axis is back
+            detail = str(exc) or type(exc).__name__
+            self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}")
             return False
         self._hub.on_event("warning", axis_id, f"STOP ({reason})")
         return True
 
     async def _lapse(self, client: ControlClient, reason: str) -> None:
-        """The dead-man: every axis of ``client`` to its safe state at once, then free."""
-        axes = self._held_by(client)
+        """The dead-man: every axis ``client`` holds or moved to its safe state at once."""
+        axes = self._responsible(client)
         self.lapses += 1
         await asyncio.gather(*(self._lapse_axis(ax, client, reason) for ax in axes))
 
     async def _lapse_axis(self, ax: _Axis, client: ControlClient, reason: str) -> None:
-        if ax.client is not client:
+        held = ax.client is client
+        if not held and ax.mover is not client:
             return
         # Free the axis before the STOP so the lapsed client cannot change it meanwhile.
-        ax.kind, ax.client = None, None
+        if held:
+            ax.kind, ax.client = None, None
+        ax.mover = None
         ax.handing_over = True
         if ax.pending is not None:
             pending = ax.pending
@@ -567,7 +573,8 @@ class ControlManager:
         finally:
             ax.handing_over = False
         ax.quiet_since_s = self._clock()
-        self._reply(client, ax.axis_id, "lapse", False, f"control lost: {reason} (axis stopped)")
+        lost = "control lost" if held else "dead-man"
+        self._reply(client, ax.axis_id, "lapse", False, f"{lost}: {reason} (axis stopped)")
         self._record(client, "control lapsed", ax.axis_id, "stopped", reason)
         self._broadcast_status(ax)
 
@@ -588,7 +595,7 @@ class ControlManager:
             last = now
             for client in list(self._clients.values()):
                 client.silence_s += credit
-                if client.silence_s > lease and self._held_by(client):
+                if client.silence_s > lease and self._responsible(client):
                     client.silence_s = -math.inf  # lapse once; a heartbeat resets it
                     silence_ms = round(lease * 1000)
                     self._spawn(
@@ -613,7 +620,7 @@ class ControlManager:
             return False
         if self._clock() - ax.quiet_since_s < self.settings.autopilot_resume_s:
             return False
-        ax.kind, ax.client, ax.since_s = "autopilot", None, self._clock()
+        ax.kind, ax.client, ax.since_s, ax.mover = "autopilot", None, self._clock(), None
         self._broadcast_status(ax)
         return True
 
@@ -626,8 +633,13 @@ class ControlManager:
             raise UnknownAxisError(axis_id) from None
         return self._status(ax).holder
 
-    def _held_by(self, client: ControlClient) -> list[_Axis]:
-        return [ax for ax in self._axes.values() if ax.client is client]
+    def _responsible(self, client: ControlClient) -> list[_Axis]:
+        """Axes ``client`` holds, or moved while they were free."""
+        return [
+            ax
+            for ax in self._axes.values()
+            if ax.client is client or (ax.kind is None and ax.mover is client)
+        ]
 
     def _holder_name(self, ax: _Axis) -> str:
         if ax.kind == "user" and ax.client is not None:
