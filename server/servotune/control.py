@@ -274,8 +274,12 @@ class ControlManager:
         return [self._status(ax).model_dump_json() for ax in self._axes.values()]
 
     def heartbeat(self, client: ControlClient) -> None:
-        """Renew the client's lease (cheap: called a few times a second per tab)."""
-        client.silence_s = 0.0
+        """Renew the client's lease (cheap: called a few times a second per tab).
+
+        Ignored from a principal that may not control: it can hold and move nothing.
+        """
+        if _can_control(client.principal):
+            client.silence_s = 0.0
 
     # --- control messages -------------------------------------------------------------
 
