@@ -37,7 +37,7 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from tests.control_support import (  # noqa: E402
+from tests.control_support import (
     RawWebsocket,
     free_port,
     recorded_line,
@@ -55,19 +55,11 @@ def cpu_s(pid: int) -> float:
 @contextlib.asynccontextmanager
 async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None):  # type: ignore[no-untyped-def]
     link = f"slap2:{tty}?addresses=0,1&baud=19200&lines=512"
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "servotune.cli",
-            "serve",
-            "--link",
-            link,
-            "--port",
-            str(port),
-            "--data-dir",
-            str(tmp / "data"),
-        ],
+    args = ["-m", "servotune.cli", "serve", "--link", link, "--port", str(port)]
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        *args,
+        *("--data-dir", str(tmp / "data")),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         env={**os.environ, "PYTHONPATH": pythonpath or os.environ.get("PYTHONPATH", "")},
@@ -84,7 +76,7 @@ async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None)
             yield process, client
     finally:
         process.terminate()
-        process.wait(10)
+        await asyncio.wait_for(process.wait(), 10)
 
 
 async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> None:  # type: ignore[no-untyped-def]
