@@ -325,6 +325,9 @@ class RawWebsocket:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
         self.writer.transport.abort()
+        self.writer.close()
+        with contextlib.suppress(ConnectionError):
+            await self.writer.wait_closed()
 
 
 async def take_with_raw_client(

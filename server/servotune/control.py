@@ -45,7 +45,7 @@ from fastapi import HTTPException
 from pydantic import BaseModel
 
 from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
-from servotune.drivers.base import DriverError, LinkDownError
+from servotune.drivers.base import DeviceRefusedError, DriverError, LinkDownError
 from servotune.hub import Hub, UnknownAxisError
 from servotune.wire import (
     AnswerControl,
@@ -66,6 +66,11 @@ from servotune.wire import (
 logger = logging.getLogger(__name__)
 
 CLIENT_HEADER = "X-Servotune-Client"
+# Event-loop turns the watchdog yields before it confirms a lapse: enough for a frame
+# already in the socket to reach ``heartbeat`` (transport -> websocket -> endpoint).
+_READ_TURNS = 10
+# A STOP garbled on the wire (echo mismatch, no answer) is sent again, at once.
+_STOP_ATTEMPTS = 3
 
 ControlMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl
 
@@ -117,8 +122,9 @@ class ControlClient:
     principal: Principal
     address: str
     send: Callable[[str], None]
-    # Time the server has been listening without a heartbeat (see _watchdog).
-    silence_s: float = 0.0
+    # When the server last heard from the client (heartbeat, or a change / hold).
+    heard_s: float = 0.0
+    lapsing: bool = False
     connected: bool = True
 
     @property
@@ -279,7 +285,7 @@ class ControlManager:
         Ignored from a principal that may not control: it can hold and move nothing.
         """
         if _can_control(client.principal):
-            client.silence_s = 0.0
+            self._heard(client)
 
     # --- control messages -------------------------------------------------------------
 
@@ -451,7 +457,12 @@ class ControlManager:
             client = None  # someone else's connection id authorises nothing
         if ax.kind == "server":
             await self._wait_startup(ax)
-        if ax.handing_over:
+        for _ in range(3):
+            if not ax.handing_over:
+                break
+            async with ax.mutex:  # a hand-over's STOP is under way: wait for its outcome
+                pass
+        else:
             raise HTTPException(423, detail=f"axis {axis_id} is being handed over (stopping)")
         if ax.kind == "user" and ax.client is not None:
             if ax.client is client:
@@ -474,7 +485,7 @@ class ControlManager:
             # Not a take (see the module doc): this tab answers for what it sets in
             # motion. Its change proves it alive, so its lease starts afresh.
             ax.mover = client
-            client.silence_s = 0.0
+            self._heard(client)
         ax.quiet_since_s = self._clock()
 
     async def _wait_startup(self, ax: _Axis) -> None:
@@ -515,7 +526,7 @@ class ControlManager:
         now = self._clock()
         if client is not None and client.connected:
             ax.kind, ax.client, ax.since_s, ax.activity_s = "user", client, now, now
-            client.silence_s = 0.0
+            self._heard(client)
             self._hub.mark_operated(self._hub.entry(ax.axis_id))
         else:
             ax.kind, ax.client, ax.since_s = None, None, now
@@ -541,16 +552,24 @@ class ControlManager:
         """
         entry = self._hub.entry(axis_id)
         entry.stop_generation += 1
-        try:
-            await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
-        except (DriverError, TimeoutError) as exc:
-            if isinstance(exc, LinkDownError):
-                entry.stop_on_reconnect = True  # the hub sends it when the axis is back
-            detail = str(exc) or type(exc).__name__
-            self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}")
-            return False
-        self._hub.on_event("warning", axis_id, f"STOP ({reason})")
-        return True
+        for attempt in range(1, _STOP_ATTEMPTS + 1):
+            try:
+                await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
+            except (DriverError, TimeoutError) as exc:
+                detail = str(exc) or type(exc).__name__
+                retry = attempt < _STOP_ATTEMPTS and not isinstance(
+                    exc, LinkDownError | DeviceRefusedError
+                )
+                if isinstance(exc, LinkDownError):
+                    entry.stop_on_reconnect = True  # the hub sends it when the axis is back
+                again = f" (attempt {attempt}, sending again)" if retry else ""
+                self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}{again}")
+                if retry:
+                    continue
+                return False
+            self._hub.on_event("warning", axis_id, f"STOP ({reason})")
+            return True
+        return False
 
     async def _lapse(self, client: ControlClient, reason: str) -> None:
         """The dead-man: every axis ``client`` holds or moved to its safe state at once."""
@@ -583,29 +602,39 @@ class ControlManager:
         self._broadcast_status(ax)
 
     async def _watchdog(self) -> None:
-        """Lapse the lease of every holder that has been silent for ``lease_s``.
+        """Lapse the lease of every holder or mover silent for more than ``lease_s``.
 
-        Silence is counted in watchdog ticks, each credited with at most two periods: a
-        stall of the server's own event loop (a heavy request) is not the client's
-        silence, because heartbeats that arrived meanwhile have not been read yet.
+        A suspect is confirmed only after the event loop has had a few turns to read
+        what already arrived: after a stall of the server's own loop (a heavy request,
+        a starved process) the client's heartbeats sit unread in the socket, and that is
+        not the client's silence. Real time is used otherwise, so a starved server is
+        not slower to stop than it has to be.
         """
         period = self.settings.watchdog_period_s
-        lease = self.settings.lease_s
-        last = self._clock()
         while True:
             await asyncio.sleep(period)
-            now = self._clock()
-            credit = min(now - last, 2 * period)
-            last = now
-            for client in list(self._clients.values()):
-                client.silence_s += credit
-                if client.silence_s > lease and self._responsible(client):
-                    client.silence_s = -math.inf  # lapse once; a heartbeat resets it
-                    silence_ms = round(lease * 1000)
+            suspects = self._silent_clients()
+            if not suspects:
+                continue
+            for _ in range(_READ_TURNS):
+                await asyncio.sleep(0)
+            confirmed = set(self._silent_clients())
+            for client in suspects:
+                if client in confirmed:
+                    client.lapsing = True  # once; a heartbeat or a new hold resets it
+                    silent_ms = round(1000 * (self._clock() - client.heard_s))
                     self._spawn(
-                        self._lapse(client, f"no heartbeat for {silence_ms} ms"),
+                        self._lapse(client, f"no heartbeat for {silent_ms} ms"),
                         f"lapse of {client.tag}",
                     )
+
+    def _silent_clients(self) -> list[ControlClient]:
+        deadline = self._clock() - self.settings.lease_s
+        return [
+            c
+            for c in list(self._clients.values())
+            if c.heard_s < deadline and not c.lapsing and self._responsible(c)
+        ]
 
     # --- demo autopilot (hub.AutopilotGate) ---------------------------------------------
 
@@ -636,6 +665,10 @@ class ControlManager:
         except KeyError:
             raise UnknownAxisError(axis_id) from None
         return self._status(ax).holder
+
+    def _heard(self, client: ControlClient) -> None:
+        client.heard_s = self._clock()
+        client.lapsing = False
 
     def _responsible(self, client: ControlClient) -> list[_Axis]:
         """Axes ``client`` holds, or moved while they were free."""
