@@ -61,7 +61,7 @@ async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None)
         *args,
         *("--data-dir", str(tmp / "data")),
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stderr=open(os.environ.get("BENCH_SERVER_LOG", os.devnull), "ab"),  # noqa: SIM115
         env={**os.environ, "PYTHONPATH": pythonpath or os.environ.get("PYTHONPATH", "")},
     )
     try:
@@ -108,9 +108,13 @@ async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> No
                 await asyncio.sleep(0.002)
             await raw.close_quietly()
             if stopped is None:
-                print(f"  {mode}: NO STOP within 3 s")
+                lines = [line for _, line in wire.since(gone, 0)][:30]
+                print(f"  {mode}: NO STOP within 3 s; module 0 got {lines}")
                 continue
             delays.append(stopped - gone)
+            if stopped - gone > 0.5:
+                lines = [line for _, line in wire.since(gone, 0)][:30]
+                print(f"  {mode}: {1000 * (stopped - gone):.0f} ms; module 0 got {lines}")
             await asyncio.sleep(0.3)
         ms = sorted(1000 * d for d in delays)
         print(

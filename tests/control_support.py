@@ -34,6 +34,7 @@ from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 
 CR = 0x0D
+CTRL_X = 0x18
 
 
 class WireRecorder:
@@ -57,6 +58,8 @@ class WireRecorder:
                 self._selected = int(line[2:])
             with self._lock:
                 self.lines.append((time.monotonic(), self._selected, line))
+        elif byte == CTRL_X:
+            self._buffer.clear()  # the module discards the line typed so far, so do we
         elif byte >= 0x20:
             self._buffer.append(byte)
         return self.bus.receive(byte)
