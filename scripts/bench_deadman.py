@@ -61,7 +61,7 @@ async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None)
         *args,
         *("--data-dir", str(tmp / "data")),
         stdout=subprocess.DEVNULL,
-        stderr=open(os.environ.get("BENCH_SERVER_LOG", os.devnull), "ab"),  # noqa: SIM115
+        stderr=open(os.environ.get("BENCH_SERVER_LOG", os.devnull), "ab"),  # noqa: SIM115, ASYNC230
         env={**os.environ, "PYTHONPATH": pythonpath or os.environ.get("PYTHONPATH", "")},
     )
     try:
