@@ -37,7 +37,7 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from tests.control_support import (  # noqa: E402
+from tests.control_support import (
     RawWebsocket,
     free_port,
     recorded_line,
@@ -55,21 +55,13 @@ def cpu_s(pid: int) -> float:
 @contextlib.asynccontextmanager
 async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None):  # type: ignore[no-untyped-def]
     link = f"slap2:{tty}?addresses=0,1&baud=19200&lines=512"
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "servotune.cli",
-            "serve",
-            "--link",
-            link,
-            "--port",
-            str(port),
-            "--data-dir",
-            str(tmp / "data"),
-        ],
+    args = ["-m", "servotune.cli", "serve", "--link", link, "--port", str(port)]
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        *args,
+        *("--data-dir", str(tmp / "data")),
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stderr=open(os.environ.get("BENCH_SERVER_LOG", os.devnull), "ab"),  # noqa: SIM115, ASYNC230
         env={**os.environ, "PYTHONPATH": pythonpath or os.environ.get("PYTHONPATH", "")},
     )
     try:
@@ -84,7 +76,7 @@ async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None)
             yield process, client
     finally:
         process.terminate()
-        process.wait(10)
+        await asyncio.wait_for(process.wait(), 10)
 
 
 async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> None:  # type: ignore[no-untyped-def]
@@ -116,9 +108,13 @@ async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> No
                 await asyncio.sleep(0.002)
             await raw.close_quietly()
             if stopped is None:
-                print(f"  {mode}: NO STOP within 3 s")
+                lines = [line for _, line in wire.since(gone, 0)][:30]
+                print(f"  {mode}: NO STOP within 3 s; module 0 got {lines}")
                 continue
             delays.append(stopped - gone)
+            if stopped - gone > 0.5:
+                lines = [line for _, line in wire.since(gone, 0)][:30]
+                print(f"  {mode}: {1000 * (stopped - gone):.0f} ms; module 0 got {lines}")
             await asyncio.sleep(0.3)
         ms = sorted(1000 * d for d in delays)
         print(

@@ -34,6 +34,7 @@ from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 
 CR = 0x0D
+CTRL_X = 0x18
 
 
 class WireRecorder:
@@ -57,6 +58,8 @@ class WireRecorder:
                 self._selected = int(line[2:])
             with self._lock:
                 self.lines.append((time.monotonic(), self._selected, line))
+        elif byte == CTRL_X:
+            self._buffer.clear()  # the module discards the line typed so far, so do we
         elif byte >= 0x20:
             self._buffer.append(byte)
         return self.bus.receive(byte)
@@ -325,17 +328,22 @@ class RawWebsocket:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
         self.writer.transport.abort()
+        self.writer.close()
+        with contextlib.suppress(ConnectionError):
+            await self.writer.wait_closed()
 
 
 async def take_with_raw_client(
-    server: Server, axis: str, heartbeat_s: float = 0.1
+    server: Server, axis: str, heartbeat_s: float = 0.1, *, take: bool = True
 ) -> tuple[RawWebsocket, str, asyncio.Task[None]]:
-    """A raw client that takes ``axis`` and heartbeats; returns it, its id, its beat task."""
+    """A raw client that takes ``axis`` (unless not ``take``: it will only move it) and
+    heartbeats; returns it, its client id and its heartbeat task."""
     raw = await RawWebsocket.connect(server.port)
     welcome = await raw.welcome()
-    raw.send_text(json.dumps({"type": "take_control", "axis": axis}))
-    reply = await raw.wait_for(lambda m: m["type"] == "control_reply")
-    assert reply["ok"], reply
+    if take:
+        raw.send_text(json.dumps({"type": "take_control", "axis": axis}))
+        reply = await raw.wait_for(lambda m: m["type"] == "control_reply")
+        assert reply["ok"], reply
 
     async def beat() -> None:
         while True:

@@ -18,6 +18,7 @@ import websockets
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
+from servotune.control import ControlSettings
 from servotune.sim.serial_sim import PtySimulator
 
 from .conftest import running_simulator, use_csrf_token, wait_for
@@ -57,7 +58,15 @@ async def live_server(
     if spec is None:
         assert simulator is not None
         spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
-    config = AppConfig(links=[spec], data_dir=data_dir, web_dir=web_dir or data_dir / "no-web")
+    # A page that changes an axis takes it and must heartbeat; a browser starved of CPU on
+    # a loaded machine sends heartbeats seconds apart, which would stop these tests' moves
+    # (correctly). The dead-man's timing is tested in test_control.py.
+    config = AppConfig(
+        links=[spec],
+        data_dir=data_dir,
+        web_dir=web_dir or data_dir / "no-web",
+        control=ControlSettings(lease_s=10.0),
+    )
     app = create_app(config)
     port = free_port()
     server = uvicorn.Server(

@@ -83,9 +83,10 @@ async def test_the_holder_changes_the_axis_the_other_tab_gets_423(server: Server
         # STOP stays live for everyone.
         assert (await bob.command("line-0", "stop")).status_code == 200
         assert not server.bus.module(0).rss & (PM | VM)
-        # The other axis is free: bob may change it (and thereby holds it).
+        # The other axis is free: bob may change it, and so may alice (no implicit lock).
         assert (await bob.patch("line-1", {"kp": 66})).status_code == 200
-        await status_of(alice, "line-1", bob.tag)
+        assert (await alice.patch("line-1", {"kp": 67})).status_code == 200
+        assert control(server).holder("line-1") is None
         assert (await alice.patch("line-0", {"kp": 55})).status_code == 200
         assert server.bus.module(0).settings["kp"] == 55
 
@@ -183,10 +184,11 @@ async def test_admin_forces_a_hand_over_an_operator_cannot(server: Server) -> No
         assert (await alice.patch("line-0", {"kp": 50})).status_code == 423
 
 
+@pytest.mark.parametrize("take", [True, False], ids=["holder", "mover of a free axis"])
 @pytest.mark.parametrize("how", ["socket dropped (RST, no close frame)", "silent socket"])
-async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str) -> None:
+async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, take: bool) -> None:
     for _trial in range(3):
-        raw, client_id, beat = await take_with_raw_client(server, "line-0")
+        raw, client_id, beat = await take_with_raw_client(server, "line-0", take=take)
         headers = {"X-Servotune-Client": client_id}
         response = await server.client.post(
             "/api/axes/line-0/commands", json={"command": "velocity_mode"}, headers=headers

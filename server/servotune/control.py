@@ -15,10 +15,12 @@ Rules (docs/control.md has the reasoning):
   ``X-Servotune-Client``) by the same user; everyone else gets 423 with the holder's
   name, and nothing is sent.
 * An axis that nobody holds (or that the autopilot holds) may be changed by anyone with
-  the permission. A change that carries the id of a connected client implicitly takes
-  the axis for that client (so the dead-man covers what a tab sets in motion); a change
-  without a client id (scripts, the test suite) leaves the axis free. The autopilot
-  yields to either.
+  the permission: exclusivity is the operator's explicit choice (Take control), not a
+  side effect of nudging a gain. A change that carries the id of a connected client
+  makes that client the axis' *mover*: the axis stays free, but the dead-man covers
+  what the tab set in motion (its lapse stops the axis) until another client changes or
+  takes the axis. A change without a client id (scripts, the test suite) changes
+  nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
   safe state (``ControlManager._safe_stop``: the device's STOP); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
@@ -43,7 +45,7 @@ from fastapi import HTTPException
 from pydantic import BaseModel
 
 from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
-from servotune.drivers.base import DriverError, LinkDownError
+from servotune.drivers.base import DeviceRefusedError, DriverError, LinkDownError
 from servotune.hub import Hub, UnknownAxisError
 from servotune.wire import (
     AnswerControl,
@@ -64,6 +66,11 @@ from servotune.wire import (
 logger = logging.getLogger(__name__)
 
 CLIENT_HEADER = "X-Servotune-Client"
+# Event-loop turns the watchdog yields before it confirms a lapse: enough for a frame
+# already in the socket to reach ``heartbeat`` (transport -> websocket -> endpoint).
+_READ_TURNS = 10
+# A STOP garbled on the wire (echo mismatch, no answer) is sent again, at once.
+_STOP_ATTEMPTS = 3
 
 ControlMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl
 
@@ -115,8 +122,9 @@ class ControlClient:
     principal: Principal
     address: str
     send: Callable[[str], None]
-    # Time the server has been listening without a heartbeat (see _watchdog).
-    silence_s: float = 0.0
+    # When the server last heard from the client (heartbeat, or a change / hold).
+    heard_s: float = 0.0
+    lapsing: bool = False
     connected: bool = True
 
     @property
@@ -142,6 +150,8 @@ class _Axis:
     # The last change or release by anyone; the autopilot resumes only after a quiet while.
     quiet_since_s: float = -math.inf
     pending: _Pending | None = None
+    # The client that last changed the free axis: its lapse stops the axis too.
+    mover: ControlClient | None = None
     handing_over: bool = False
     mutex: asyncio.Lock = field(default_factory=asyncio.Lock)
     ready: asyncio.Event = field(default_factory=asyncio.Event)
@@ -262,7 +272,7 @@ class ControlManager:
             if ax.pending is not None and ax.pending.requester is client:
                 self._drop_pending(ax)
                 self._broadcast_status(ax)
-        if self._held_by(client):
+        if self._responsible(client):
             self._spawn(self._lapse(client, "the connection closed"), f"lapse of {client.tag}")
 
     def snapshot(self) -> list[str]:
@@ -270,8 +280,12 @@ class ControlManager:
         return [self._status(ax).model_dump_json() for ax in self._axes.values()]
 
     def heartbeat(self, client: ControlClient) -> None:
-        """Renew the client's lease (cheap: called a few times a second per tab)."""
-        client.silence_s = 0.0
+        """Renew the client's lease (cheap: called a few times a second per tab).
+
+        Ignored from a principal that may not control: it can hold and move nothing.
+        """
+        if _can_control(client.principal):
+            self._heard(client)
 
     # --- control messages -------------------------------------------------------------
 
@@ -443,7 +457,12 @@ class ControlManager:
             client = None  # someone else's connection id authorises nothing
         if ax.kind == "server":
             await self._wait_startup(ax)
-        if ax.handing_over:
+        for _ in range(3):
+            if not ax.handing_over:
+                break
+            async with ax.mutex:  # a hand-over's STOP is under way: wait for its outcome
+                pass
+        else:
             raise HTTPException(423, detail=f"axis {axis_id} is being handed over (stopping)")
         if ax.kind == "user" and ax.client is not None:
             if ax.client is client:
@@ -457,19 +476,16 @@ class ControlManager:
             )
             self._record_principal(principal, "change refused", axis_id, "locked", detail)
             raise HTTPException(423, detail=detail)
-        if client is not None and _can_control(principal):
-            async with ax.mutex:
-                if ax.kind in (None, "autopilot", "server") and not ax.handing_over:
-                    await self._transfer_locked(ax, client, "take")
-            if ax.client is not client:
-                raise HTTPException(423, detail=f"axis {axis_id} was taken meanwhile")
-            ax.activity_s = self._clock()
-            return
         if ax.kind == "autopilot":
             # The autopilot yields to any change; its bounded demo move may finish.
             self._hub.mark_operated(self._hub.entry(axis_id))
             ax.kind = None
             self._broadcast_status(ax)
+        if client is not None:
+            # Not a take (see the module doc): this tab answers for what it sets in
+            # motion. Its change proves it alive, so its lease starts afresh.
+            ax.mover = client
+            self._heard(client)
         ax.quiet_since_s = self._clock()
 
     async def _wait_startup(self, ax: _Axis) -> None:
@@ -500,6 +516,7 @@ class ControlManager:
             # The autopilot loop stops issuing before the STOP (which fails what it queued).
             self._hub.mark_operated(self._hub.entry(ax.axis_id))
         ax.handing_over = True
+        ax.mover = None
         self._broadcast_status(ax)
         try:
             target = client.user if client is not None else "nobody"
@@ -509,7 +526,7 @@ class ControlManager:
         now = self._clock()
         if client is not None and client.connected:
             ax.kind, ax.client, ax.since_s, ax.activity_s = "user", client, now, now
-            client.silence_s = 0.0
+            self._heard(client)
             self._hub.mark_operated(self._hub.entry(ax.axis_id))
         else:
             ax.kind, ax.client, ax.since_s = None, None, now
@@ -535,27 +552,39 @@ class ControlManager:
         """
         entry = self._hub.entry(axis_id)
         entry.stop_generation += 1
-        try:
-            await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
-        except (DriverError, TimeoutError) as exc:
-            if isinstance(exc, LinkDownError | TimeoutError):
-                entry.stop_on_reconnect = True
-            self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {exc or 'timeout'}")
-            return False
-        self._hub.on_event("warning", axis_id, f"STOP ({reason})")
-        return True
+        for attempt in range(1, _STOP_ATTEMPTS + 1):
+            try:
+                await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
+            except (DriverError, TimeoutError) as exc:
+                detail = str(exc) or type(exc).__name__
+                retry = attempt < _STOP_ATTEMPTS and not isinstance(
+                    exc, LinkDownError | DeviceRefusedError
+                )
+                if isinstance(exc, LinkDownError):
+                    entry.stop_on_reconnect = True  # the hub sends it when the axis is back
+                again = f" (attempt {attempt}, sending again)" if retry else ""
+                self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}{again}")
+                if retry:
+                    continue
+                return False
+            self._hub.on_event("warning", axis_id, f"STOP ({reason})")
+            return True
+        return False
 
     async def _lapse(self, client: ControlClient, reason: str) -> None:
-        """The dead-man: every axis of ``client`` to its safe state at once, then free."""
-        axes = self._held_by(client)
+        """The dead-man: every axis ``client`` holds or moved to its safe state at once."""
+        axes = self._responsible(client)
         self.lapses += 1
         await asyncio.gather(*(self._lapse_axis(ax, client, reason) for ax in axes))
 
     async def _lapse_axis(self, ax: _Axis, client: ControlClient, reason: str) -> None:
-        if ax.client is not client:
+        held = ax.client is client
+        if not held and ax.mover is not client:
             return
         # Free the axis before the STOP so the lapsed client cannot change it meanwhile.
-        ax.kind, ax.client = None, None
+        if held:
+            ax.kind, ax.client = None, None
+        ax.mover = None
         ax.handing_over = True
         if ax.pending is not None:
             pending = ax.pending
@@ -567,34 +596,45 @@ class ControlManager:
         finally:
             ax.handing_over = False
         ax.quiet_since_s = self._clock()
-        self._reply(client, ax.axis_id, "lapse", False, f"control lost: {reason} (axis stopped)")
+        lost = "control lost" if held else "dead-man"
+        self._reply(client, ax.axis_id, "lapse", False, f"{lost}: {reason} (axis stopped)")
         self._record(client, "control lapsed", ax.axis_id, "stopped", reason)
         self._broadcast_status(ax)
 
     async def _watchdog(self) -> None:
-        """Lapse the lease of every holder that has been silent for ``lease_s``.
+        """Lapse the lease of every holder or mover silent for more than ``lease_s``.
 
-        Silence is counted in watchdog ticks, each credited with at most two periods: a
-        stall of the server's own event loop (a heavy request) is not the client's
-        silence, because heartbeats that arrived meanwhile have not been read yet.
+        A suspect is confirmed only after the event loop has had a few turns to read
+        what already arrived: after a stall of the server's own loop (a heavy request,
+        a starved process) the client's heartbeats sit unread in the socket, and that is
+        not the client's silence. Real time is used otherwise, so a starved server is
+        not slower to stop than it has to be.
         """
         period = self.settings.watchdog_period_s
-        lease = self.settings.lease_s
-        last = self._clock()
         while True:
             await asyncio.sleep(period)
-            now = self._clock()
-            credit = min(now - last, 2 * period)
-            last = now
-            for client in list(self._clients.values()):
-                client.silence_s += credit
-                if client.silence_s > lease and self._held_by(client):
-                    client.silence_s = -math.inf  # lapse once; a heartbeat resets it
-                    silence_ms = round(lease * 1000)
+            suspects = self._silent_clients()
+            if not suspects:
+                continue
+            for _ in range(_READ_TURNS):
+                await asyncio.sleep(0)
+            confirmed = set(self._silent_clients())
+            for client in suspects:
+                if client in confirmed:
+                    client.lapsing = True  # once; a heartbeat or a new hold resets it
+                    silent_ms = round(1000 * (self._clock() - client.heard_s))
                     self._spawn(
-                        self._lapse(client, f"no heartbeat for {silence_ms} ms"),
+                        self._lapse(client, f"no heartbeat for {silent_ms} ms"),
                         f"lapse of {client.tag}",
                     )
+
+    def _silent_clients(self) -> list[ControlClient]:
+        deadline = self._clock() - self.settings.lease_s
+        return [
+            c
+            for c in list(self._clients.values())
+            if c.heard_s < deadline and not c.lapsing and self._responsible(c)
+        ]
 
     # --- demo autopilot (hub.AutopilotGate) ---------------------------------------------
 
@@ -613,7 +653,7 @@ class ControlManager:
             return False
         if self._clock() - ax.quiet_since_s < self.settings.autopilot_resume_s:
             return False
-        ax.kind, ax.client, ax.since_s = "autopilot", None, self._clock()
+        ax.kind, ax.client, ax.since_s, ax.mover = "autopilot", None, self._clock(), None
         self._broadcast_status(ax)
         return True
 
@@ -626,8 +666,17 @@ class ControlManager:
             raise UnknownAxisError(axis_id) from None
         return self._status(ax).holder
 
-    def _held_by(self, client: ControlClient) -> list[_Axis]:
-        return [ax for ax in self._axes.values() if ax.client is client]
+    def _heard(self, client: ControlClient) -> None:
+        client.heard_s = self._clock()
+        client.lapsing = False
+
+    def _responsible(self, client: ControlClient) -> list[_Axis]:
+        """Axes ``client`` holds, or moved while they were free."""
+        return [
+            ax
+            for ax in self._axes.values()
+            if ax.client is client or (ax.kind is None and ax.mover is client)
+        ]
 
     def _holder_name(self, ax: _Axis) -> str:
         if ax.kind == "user" and ax.client is not None:
