@@ -166,7 +166,13 @@ def demo_server(data_dir: Path) -> Iterator[str]:
         thread.join(120)
 
 
-def _run(operation: Any, mode: Any, checks: list[Callable[..., Any]], base_url: str) -> None:
+def _run(
+    operation: Any,
+    mode: Any,
+    checks: list[Callable[..., Any]],
+    base_url: str,
+    headers: dict[str, str],
+) -> None:
     strategy = operation.as_strategy(generation_mode=mode)
 
     @given(case=strategy)
@@ -181,7 +187,7 @@ def _run(operation: Any, mode: Any, checks: list[Callable[..., Any]], base_url: 
         suppress_health_check=list(HealthCheck),
     )
     def check(case: Any) -> None:
-        case.call_and_validate(base_url=base_url, checks=checks, timeout=30)
+        case.call_and_validate(base_url=base_url, headers=headers, checks=checks, timeout=30)
 
     check()
 
@@ -195,6 +201,9 @@ def test_live_openapi_contract(tmp_path: Path) -> None:
     timings: list[tuple[float, str]] = []
     with demo_server(tmp_path) as base_url:
         raw = requests.get(f"{base_url}/openapi.json", timeout=60).json()
+        # As the web client does: the CSRF token from the session probe on every call.
+        session = requests.get(f"{base_url}/api/auth/session", timeout=60).json()
+        headers = {"X-CSRF-Token": session["csrf_token"]}
         schema = schemathesis.openapi.from_dict(raw)
         for result in schema.get_all_operations():
             operation = result.ok()
@@ -212,7 +221,7 @@ def test_live_openapi_contract(tmp_path: Path) -> None:
             for mode, checks in modes:
                 started = time.monotonic()
                 try:
-                    _run(operation, mode, checks, base_url)
+                    _run(operation, mode, checks, base_url, headers)
                 except Unsatisfiable:
                     pass  # no request of this mode exists for the operation
                 except (Exception, BaseExceptionGroup) as exc:  # collect all, then fail
