@@ -181,7 +181,6 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
 
             assert lines == IMPORT_ROWS + 1 and size > 20 * IMPORT_ROWS
             assert proposal.status_code == 200, proposal.text
-            window = [latency for sent, latency in stops if sent >= began]
             gaps = [(b, b - a) for a, b in itertools.pairwise(telemetry) if b >= began]
             for name, t_from, t_to in phases:
                 in_phase = [lat for sent, lat in stops if t_from <= sent < t_to] or [0.0]

@@ -186,6 +186,12 @@ export interface RunUpdate {
   message: string;
 }
 
+export interface StorageStatus {
+  type: "storage_status";
+  writable: boolean;
+  message: string;
+}
+
 export interface ClientStats {
   type: "client_stats";
   sent: number;
@@ -229,5 +235,5 @@ export interface ErrorBody {
   field: string | null;
 }
 
-export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | ClientStats;
+export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats;
 export type ClientMessage = Ping;
