@@ -173,7 +173,11 @@ class TestBench:
             )
             self._hub.broadcast_model(StorageStatus(writable=False, message=self._storage.problem))
             return
-        interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
+        try:
+            interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
+        except StorageError as exc:
+            self._hub.on_event("error", None, f"settings are not being saved: {exc}")
+            return
         if interrupted:
             self._hub.on_event(
                 "warning",
