@@ -364,10 +364,14 @@ def _summary(metrics: dict[str, Any] | None) -> str:
     if metrics is None:
         return "-"
     settle = metrics["settling_time_s"]
+
+    def one(value: float | None) -> str:  # the bench nulls what it cannot trust
+        return "-" if value is None else f"{value:.1f}"
+
     return (
         f"settling {'never' if settle is None else f'{settle * 1000:.0f} ms'}, "
-        f"overshoot {metrics['overshoot_pct']:.1f} %, oscillations {metrics['oscillations']}, "
-        f"sse {metrics['steady_state_error']:.1f}"
+        f"overshoot {one(metrics['overshoot_pct'])} %, oscillations {metrics['oscillations']}, "
+        f"sse {one(metrics['steady_state_error'])}"
     )
 
 

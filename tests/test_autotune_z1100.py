@@ -221,6 +221,6 @@ def _summary(m: dict[str, Any] | None) -> str:
     s = m["settling_time_s"]
     return (
         f"settling {'never' if s is None else f'{s * 1000:.0f} ms'}, "
-        f"overshoot {m['overshoot_pct']:.2f} %, peak FE {m['peak_following_error']}, "
+        f"overshoot {m['overshoot_pct']} %, peak FE {m['peak_following_error']}, "
         f"oscillations {m['oscillations']}, sse {m['steady_state_error']}"
     )

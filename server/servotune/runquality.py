@@ -10,8 +10,11 @@
   on the way, a drive warning, fewer than ``MIN_SAMPLES`` samples); else ``good``.
   ``quality.reasons`` lists why, each with a ``code`` and a sentence.
 * ``quality.untrusted``: metric name -> reason for every metric that is set to null
-  because it cannot be trusted. A bad run nulls every metric derived from the response
-  (rise, overshoot, peak, settling, steady-state error, oscillations). Sampling nulls
+  because it cannot be trusted. A fault (limit switch, stall, current limit at the end,
+  drive error, no movement, cut off) nulls every metric derived from the response
+  (rise, overshoot, peak, settling, steady-state error, oscillations); a run that only
+  ended outside the window keeps its rise, overshoot and oscillations (true
+  measurements, e.g. of a limit cycle) and loses the steady-state error. Sampling nulls
   a metric the samples are too sparse for: the rise time needs ``MIN_RISE_SAMPLES``
   samples between 10 % and 90 % of the step; a time (settling, peak, time to a flag)
   is null when the gap between the samples that locate it is longer than the time
@@ -160,13 +163,17 @@ def assess(
         return None, _quality(bad, doubts, untrusted)
     out = dict(metrics)
     out["time_to_flag_s"] = dict(metrics.get("time_to_flag_s") or {})
-    if bad:
-        why = bad[0]["message"]
-        for name in RESPONSE_METRICS:
-            if out.get(name) is not None:
-                untrusted[name] = why
-                out[name] = None
-    else:
+    # A fault distorts the whole response: every response metric goes. A run that
+    # merely ended outside the window still shows a true rise and overshoot (e.g. the
+    # limit cycle of poor gains): only what assumes a settled end goes.
+    distorting = [r for r in bad if r["code"] != "outside_window"]
+    nulled = RESPONSE_METRICS if distorting else ("steady_state_error",)
+    why = (distorting or bad)[0]["message"] if bad else ""
+    for name in nulled if bad else ():
+        if out.get(name) is not None:
+            untrusted[name] = why
+            out[name] = None
+    if not distorting:
         _sampling_trust(out, points, after, flag_names, t0_s, y0, step, band, untrusted)
     return out, _quality(bad, doubts, untrusted)
 

@@ -173,7 +173,11 @@ class TestBench:
             )
             self._hub.broadcast_model(StorageStatus(writable=False, message=self._storage.problem))
             return
-        interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
+        try:
+            interrupted = await asyncio.to_thread(self._storage.mark_interrupted_runs)
+        except StorageError as exc:
+            self._hub.on_event("error", None, f"settings are not being saved: {exc}")
+            return
         if interrupted:
             self._hub.on_event(
                 "warning",
@@ -530,16 +534,30 @@ class TestBench:
             message=message,
         )
 
-    async def _wait_settled(self, recording: _Recording, timeout_s: float) -> bool:
-        """Wait until the axis stands (done flag set, moving flag clear); False on timeout."""
+    async def _wait_settled(
+        self,
+        recording: _Recording,
+        timeout_s: float,
+        target: float | None = None,
+        tolerance: float = 0.0,
+    ) -> bool:
+        """Wait until the axis stands (done flag set, moving flag clear, and within
+        ``tolerance`` of ``target`` if given) for SETTLED_HOLD_S; False on timeout.
+
+        The target matters after a command: the next samples may still be the old ones
+        (a polled line shows a move start only a poll later), which stand still too."""
         plan, entry = recording.plan, recording.entry
         deadline = self._clock() + timeout_s
         since: float | None = None
         while self._clock() < deadline:
             latest = entry.latest
+            position = latest.channels.get("position") if latest is not None else None
             done = latest is not None and (
                 (plan.done_flag is None or bool(latest.flags.get(plan.done_flag)))
                 and not (plan.moving_flag and latest.flags.get(plan.moving_flag))
+                and (
+                    target is None or (position is not None and abs(position - target) <= tolerance)
+                )
             )
             if done:
                 since = since or self._clock()
@@ -598,11 +616,12 @@ class TestBench:
         self._update(recording, "recording", "returning to the start")
         await self._send(recording, way_back.setup)
         await self._send(recording, way_back.trigger)
-        await asyncio.sleep(0.2)  # the move's flags show in the next samples
-        settled = await self._wait_settled(recording, RETURN_TIMEOUT_S + 5.0)
+        tolerance = max(plan.band or 0.0, 1.0) * 2
+        settled = await self._wait_settled(
+            recording, RETURN_TIMEOUT_S + 5.0, target=plan.y0, tolerance=tolerance
+        )
         position = (entry.latest.channels.get("position") if entry.latest else None) or 0.0
         error = position - plan.y0
-        tolerance = max(plan.band or 0.0, 1.0) * 2
         if not settled or abs(error) > tolerance:
             return {
                 "ok": False,

@@ -42,6 +42,7 @@ MODELS: list[type[BaseModel]] = [
     wire.Params,
     wire.Event,
     wire.RunUpdate,
+    wire.StorageStatus,
     wire.ClientStats,
     wire.Ping,
     wire.AxisState,

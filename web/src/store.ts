@@ -8,6 +8,7 @@ import type {
   LinkInfo,
   LinkStatus,
   RunUpdate,
+  StorageStatus,
 } from "./wire.gen";
 import type { Incoming, WsState } from "./ws";
 
@@ -19,6 +20,7 @@ export interface Topics {
   uiParams: string; // axis id: the user changed a value in the tuning fields
   event: WireEvent;
   run: RunUpdate; // bench run progress (every browser gets it)
+  storage: StorageStatus; // saving failed / works again
   clientStats: void;
   ws: WsState;
   error: string;
@@ -43,6 +45,8 @@ export class Store {
   readonly events: WireEvent[] = [];
   /** The latest bench ``run`` message per axis (a recording one means "busy"). */
   readonly runs = new Map<string, RunUpdate>();
+  /** The last storage_status (null: none received, the server saves normally). */
+  storage: StorageStatus | null = null;
   stats = { sent: 0, dropped: 0 };
   /** Wall clock (unix s) minus server clock (s), estimated from telemetry arrivals: the
    * smallest difference seen is the one with the least transport delay. NaN until the
@@ -169,6 +173,10 @@ export class Store {
       case "run":
         this.runs.set(msg.axis, msg);
         this.emit("run", msg);
+        break;
+      case "storage_status":
+        this.storage = msg;
+        this.emit("storage", msg);
         break;
       case "client_stats":
         this.stats = { sent: msg.sent, dropped: msg.dropped };

@@ -218,6 +218,12 @@ export interface RunUpdate {
   message: string;
 }
 
+export interface StorageStatus {
+  type: "storage_status";
+  writable: boolean;
+  message: string;
+}
+
 export interface ClientStats {
   type: "client_stats";
   sent: number;

@@ -15,6 +15,13 @@ from fastapi import APIRouter, Depends, Request
 
 from servotune.api.routes import ERRORS
 from servotune.autotune import AutoTuner, IdentifyRequest
+from servotune.wire import ErrorBody
+
+TUNE_ERRORS: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    502: {"model": ErrorBody, "description": "the device answered something unexpected"},
+    507: {"model": ErrorBody, "description": "the database cannot be written"},
+}
 
 router = APIRouter(tags=["autotune"])
 
@@ -27,14 +34,14 @@ def get_autotuner(request: Request) -> AutoTuner:
 AutoTunerDep = Annotated[AutoTuner, Depends(get_autotuner)]
 
 
-@router.get("/api/axes/{axis_id}/autotune", responses=ERRORS)
+@router.get("/api/axes/{axis_id}/autotune", responses=TUNE_ERRORS)
 async def autotune_session(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
     """The axis' auto-tune session: state (idle, identifying, proposed, verifying,
     verified, failed), message, the last request, proposal and verification result."""
     return autotuner.session(axis_id)
 
 
-@router.post("/api/axes/{axis_id}/autotune/identify", responses=ERRORS)
+@router.post("/api/axes/{axis_id}/autotune/identify", responses=TUNE_ERRORS)
 async def autotune_identify(
     axis_id: str, body: IdentifyRequest, autotuner: AutoTunerDep
 ) -> dict[str, Any]:
@@ -46,15 +53,20 @@ async def autotune_identify(
     return await autotuner.identify(axis_id, body)
 
 
-@router.post("/api/axes/{axis_id}/autotune/accept", responses=ERRORS)
+@router.post("/api/axes/{axis_id}/autotune/accept", responses=TUNE_ERRORS)
 async def autotune_accept(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
     """Baseline test with the previous gains, write the proposed gains (validated
     path), verification test: ``{predicted, measured, predicted_default,
-    baseline_measured, verification_run_id, baseline_run_id, verdict, ...}``."""
+    baseline_measured, verification_run_id, baseline_run_id, verdict, ...}``.
+
+    A user's STOP meanwhile answers 200 with ``{stopped: true, message,
+    previous_gains, gains_in_force, unverified}``: the axis is stopped and the
+    previous gains are written back (``unverified`` true if that failed: revert).
+    Other failures put the previous gains back too and answer an error."""
     return await autotuner.accept(axis_id)
 
 
-@router.post("/api/axes/{axis_id}/autotune/revert", responses=ERRORS)
+@router.post("/api/axes/{axis_id}/autotune/revert", responses=TUNE_ERRORS)
 async def autotune_revert(axis_id: str, autotuner: AutoTunerDep) -> dict[str, int]:
     """Write back the gains in use before the accepted proposal; returns the read-back."""
     return await autotuner.revert(axis_id)

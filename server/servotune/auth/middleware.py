@@ -13,7 +13,8 @@ Order of the checks on each HTTP request or websocket handshake:
      says the request comes from another site);
    - an ``Origin`` other than our own (``null`` included) is refused;
    - a body must be ``application/json`` (a cross-site HTML form can only send
-     ``text/plain``, urlencoded or multipart without a preflight);
+     ``text/plain``, urlencoded or multipart without a preflight), except multipart
+     uploads to the run import, which the CSRF token alone protects;
    - the ``X-CSRF-Token`` header must match the session's token, unless the request
      carries ``Authorization: Bearer`` (a browser never attaches that on its own).
 4. No CORS: no ``Access-Control-*`` header is ever sent, so a page on another origin
@@ -30,6 +31,7 @@ audit context the authorization dependency prepared (``scope["state"]["audit"]``
 from __future__ import annotations
 
 import json
+import re
 from http.cookies import SimpleCookie
 from typing import Any
 
@@ -40,6 +42,10 @@ from servotune.auth.security import CSRF_HEADER, SESSION_COOKIE, SecurityState
 MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 CSRF_EXEMPT_PATHS = frozenset({"/api/auth/login"})
 _MAX_CAPTURE = 64 * 1024
+# The one route that takes file uploads (a run's run.json + samples.csv). A cross-site
+# form can post multipart without a preflight, so there the CSRF token below is what
+# refuses it; everywhere else a non-JSON body is refused before that.
+_UPLOAD_PATH = re.compile(r"^/api/axes/[^/]+/bench/runs/import$")
 
 
 def header(scope: Scope, name: str) -> str | None:
@@ -149,7 +155,8 @@ class SecurityMiddleware:
             return 403, "request from another origin refused"
         if _has_body(scope):
             media = (header(scope, "content-type") or "").split(";")[0].strip().lower()
-            if media != "application/json":
+            uploads = media == "multipart/form-data" and _UPLOAD_PATH.match(scope["path"])
+            if media != "application/json" and not uploads:
                 return 415, "the body must be application/json"
         authorization = header(scope, "authorization") or ""
         if authorization[:7].lower() == "bearer ":

@@ -156,7 +156,9 @@ export class AutoTunePanel {
       "Identify",
     );
     this.progress = h("span", { class: "at-progress", testid: "at-progress", "aria-live": "polite" });
-    this.error = h("div", { class: "at-error", testid: "at-error", role: "alert", hidden: true });
+    // The whole message, wrapped: a failed identification says what failed, that the
+    // axis was stopped and whether it returned to its start.
+    this.error = h("div", { class: "at-error", testid: "at-error", role: "alert", hidden: true, style: "white-space: normal; overflow-wrap: anywhere; max-height: none" });
     this.details = h("div", { class: "at-details" });
     this.toggle = h(
       "button",
@@ -346,6 +348,25 @@ export class AutoTunePanel {
     }
     const took = this.elapsed();
     this.stop();
+    const ended = result as unknown as { stopped?: boolean; unverified?: boolean; message?: string };
+    if (ended.stopped) {
+      // STOP during the verification: the server stopped the axis and put the previous
+      // gains back, or says loudly that it could not (then: one click to revert).
+      this.result = null;
+      this.el.dataset.state = "failed";
+      const message = ended.message ?? "verification stopped";
+      this.setProgress("error", `■ ${message}`);
+      replace(
+        this.error,
+        h("span", null, message),
+        ended.unverified
+          ? h("button", { class: "btn small warn", testid: "at-revert-unverified", onclick: () => void this.revert() }, "Revert to the previous gains")
+          : null,
+      );
+      this.error.hidden = false;
+      this.render();
+      return;
+    }
     this.result = result;
     this.el.dataset.state = "verified";
     this.setProgress("ok", `✓ verified: ${result.verdict ?? "done"} (${took})`);

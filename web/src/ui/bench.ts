@@ -20,7 +20,7 @@ import type { Conversion, DeviceDescriptor, RunUpdate } from "../wire.gen";
 import { AutoTunePanel } from "./autotune";
 import { type Target, type Trace, Overlay, plotTheme, valueAt } from "./benchplot";
 import { confirmDialog, errorText, statusLabel } from "./feedback";
-import { type MetricColumn, metricCell, metricColumns, ms, num } from "./metriccols";
+import { type MetricColumn, metricCell, metricColumns, ms, num, qualityOf } from "./metriccols";
 
 /** The recorder arms this long before the trigger (servotune/testbench.py PRE_TRIGGER_S). */
 const PRE_TRIGGER_S = 0.2;
@@ -161,7 +161,8 @@ export class BenchView {
   private readonly diff: HTMLElement;
   private readonly importInput: HTMLInputElement;
   private readonly importStatus: HTMLElement;
-  private pendingImport: { json?: unknown; jsonName?: string; csv?: string; csvName?: string } = {};
+  private pendingImport: { json?: File; csv?: File } = {};
+  private readonly storageBanner: HTMLElement;
   private traces: { trace: Trace; run: BenchRun; label: string; legendValue: HTMLElement }[] = [];
   private starting = false;
   private refreshing: Promise<void> | null = null;
@@ -284,7 +285,13 @@ export class BenchView {
       },
       signal,
     );
-    this.el = h("div", { class: "bench", "data-axis": axisId }, this.formHost, this.autotune.el, plots, runsPane);
+    this.storageBanner = h("div", { class: "banner-slot", testid: "storage-banner-slot" });
+    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, this.autotune.el, plots, runsPane);
+    store.on("storage", (msg) => this.showStorage(msg.writable, msg.message), signal);
+    void fetch("/api/storage", { signal })
+      .then((r) => (r.ok ? (r.json() as Promise<{ writable: boolean; message: string }>) : null))
+      .then((st) => st && this.showStorage(st.writable, st.message))
+      .catch(() => undefined);
 
     store.on("run", (msg) => msg.axis === axisId && this.onRun(msg), signal);
     // Runs may have started or finished while the websocket was down.
@@ -753,7 +760,8 @@ export class BenchView {
     const stats = `${msg.elapsed_s.toFixed(1)} s · ${msg.samples} samples`;
     let text: string;
     if (msg.status === "recording") text = `● REC ${id} · ${stats}${msg.message && !/^\d/.test(msg.message) ? ` · ${msg.message}` : ""}`;
-    else if (msg.status === "complete") text = `✓ ${id} complete · ${stats}`;
+    // No ✓ here: whether the run is good is the table's verdict (quality), not "complete".
+    else if (msg.status === "complete") text = `■ ${id} finished · ${stats}`;
     else text = `✗ ${id} incomplete · ${stats}${msg.message ? ` — ${msg.message}` : ""}`;
     setText(this.progress, text);
     this.progress.title = msg.message;
@@ -779,7 +787,7 @@ export class BenchView {
         h("th", { class: "c-star", title: "Baseline: the reference run — metric colours and the parameter diff compare with it" }, "★"),
         h("th", { class: "c-run" }, h("span", null, "run"), h("span", { class: "th-unit" }, "time")),
         h("th", { class: "c-test" }, h("span", null, "test"), h("span", { class: "th-unit" }, "changed vs ★")),
-        h("th", { class: "c-status", title: "✓ complete · ● recording · ✗ incomplete (its message under the test)" }, "st"),
+        h("th", { class: "c-status", title: "✓ complete and good · ⚠ doubtful · ✗ bad or incomplete (the reasons under the test) · ● recording" }, "st"),
         cols.map((c) =>
           h(
             "th",
@@ -834,6 +842,7 @@ export class BenchView {
       run.baseline ? "★" : "☆",
     );
     const when = clock(run.created_s);
+    const quality = qualityOf(run);
     const spec = KINDS[run.test.kind];
     const changed = baseline && baseline.id !== run.id ? diffParams([baseline, run]) : [];
     const changedText = changed.map((p) => `${p}=${run.params[p]}`).join(" ");
@@ -843,7 +852,13 @@ export class BenchView {
       h("div", { class: "test-line" }, h("b", null, spec?.short ?? run.test.kind), " ", h("span", { class: "mono" }, testSize(run, this.units, false))),
       run.status === "incomplete"
         ? h("div", { class: "run-message", title: run.message }, `incomplete${run.message ? `: ${run.message}` : ""}`)
-        : h(
+        : quality && quality.status !== "good" && quality.reasons.length
+          ? h(
+              "div",
+              { class: "run-message", testid: `bench-run-reasons-${run.id}`, title: quality.reasons.map((r) => r.message).join("\n") },
+              `${quality.status}: ${quality.reasons.map((r) => r.message).join("; ")}`,
+            )
+          : h(
             "div",
             { class: "test-sub" },
             changedText ? h("span", { class: "changed mono", title: `not as in the ★ baseline: ${changedText}` }, changedText) : null,
@@ -851,13 +866,25 @@ export class BenchView {
             run.imported_from ? h("span", { class: "note" }, "imported") : null,
           ),
     );
+    // ✓ only for a complete run the server judged good: a bad run (limit switch, stall,
+    // did not move, ended outside the window) is ✗ even when it ran to its end.
     let status: HTMLElement;
-    if (run.status === "complete") status = h("span", { class: "run-status ok" }, "✓");
-    else if (run.status === "recording") status = h("span", { class: "run-status rec", "data-status-of": run.id }, "● rec");
+    const verdict = run.status === "complete" ? (quality?.status ?? "good") : run.status;
+    if (verdict === "good") status = h("span", { class: "run-status ok" }, "✓");
+    else if (verdict === "recording") status = h("span", { class: "run-status rec", "data-status-of": run.id }, "● rec");
+    else if (verdict === "doubtful") status = h("span", { class: "run-status warn", style: "color: var(--warn, #e0a030)" }, "⚠");
     else status = h("span", { class: "run-status bad" }, "✗");
-    const statusCell = h("td", { class: "c-status", title: `${run.status}${run.message ? `: ${run.message}` : ""}` }, status);
-    const reference = baseline && baseline.id !== run.id && baseline.test.kind === run.test.kind && baseline.metrics ? baseline.metrics : null;
-    const metricCells = cols.map((c) => metricCell(c, run.metrics, reference, `bench-metric-${run.id}-${c.key}`, run.baseline ? "baseline" : null));
+    status.dataset.quality = verdict;
+    status.setAttribute("data-testid", `bench-run-status-${run.id}`);
+    const reasons = quality?.reasons.map((r) => `\n• ${r.message}`).join("") ?? "";
+    const statusCell = h("td", { class: "c-status", title: `${run.status}${quality ? ` · ${quality.status}` : ""}${run.message ? `: ${run.message}` : ""}${reasons}` }, status);
+    // Neither a bad run nor a bad baseline is coloured "better" or "worse".
+    const comparable = verdict !== "bad" && qualityOf(baseline)?.status !== "bad";
+    const reference =
+      comparable && baseline && baseline.id !== run.id && baseline.test.kind === run.test.kind && baseline.metrics ? baseline.metrics : null;
+    const metricCells = cols.map((c) =>
+      metricCell(c, run.metrics, reference, `bench-metric-${run.id}-${c.key}`, run.baseline ? "baseline" : null, "the baseline", quality?.untrusted ?? {}),
+    );
     const actions = h(
       "td",
       { class: "c-actions" },
@@ -961,6 +988,28 @@ export class BenchView {
     await this.refresh();
   }
 
+  /** The "settings are not being saved" banner (GET /api/storage, storage_status). */
+  private showStorage(writable: boolean, message: string): void {
+    if (writable) {
+      replace(this.storageBanner);
+      return;
+    }
+    replace(
+      this.storageBanner,
+      h(
+        "div",
+        { class: "banner reset", testid: "storage-banner", role: "alert" },
+        h("span", { class: "banner-icon" }, "⚠"),
+        h(
+          "div",
+          { class: "banner-text" },
+          h("b", null, "Settings are not being saved"),
+          h("span", { class: "banner-detail" }, `${message} — runs, limits and sets cannot be stored; settings applied to the device are kept in memory and saved once the database works again.`),
+        ),
+      ),
+    );
+  }
+
   // --- import -------------------------------------------------------------------------
 
   private async importFiles(): Promise<void> {
@@ -968,14 +1017,11 @@ export class BenchView {
     this.importInput.value = "";
     try {
       for (const file of files) {
-        const text = await file.text();
-        if (/\.json$/i.test(file.name) || text.trimStart().startsWith("{")) {
-          this.pendingImport.json = JSON.parse(text) as unknown;
-          this.pendingImport.jsonName = file.name;
-        } else {
-          this.pendingImport.csv = text;
-          this.pendingImport.csvName = file.name;
-        }
+        // Only the start of a file is read to tell JSON from CSV: a run can be tens of
+        // megabytes, and the server parses it (sent as multipart, up to 64 MiB).
+        const head = await file.slice(0, 64).text();
+        if (/\.json$/i.test(file.name) || head.trimStart().startsWith("{")) this.pendingImport.json = file;
+        else this.pendingImport.csv = file;
       }
     } catch (error) {
       this.pendingImport = {};
@@ -984,13 +1030,13 @@ export class BenchView {
     }
     const { json, csv } = this.pendingImport;
     if (json === undefined || csv === undefined) {
-      this.setImportStatus("pending", json === undefined ? `${this.pendingImport.csvName}: now pick the run's .json` : `${this.pendingImport.jsonName}: now pick the run's .csv`);
+      this.setImportStatus("pending", json === undefined ? `${csv?.name}: now pick the run's .json` : `${json.name}: now pick the run's .csv`);
       return;
     }
     this.pendingImport = {};
     this.setImportStatus("pending", "importing …");
     try {
-      const { id } = await api.importRun(this.axisId, json, csv);
+      const { id } = await importRunFiles(this.axisId, json, csv);
       this.finished.add(id);
       this.setImportStatus("ok", `✓ imported as ${shortId(id)}`);
       await this.refresh();
@@ -1184,8 +1230,9 @@ function diffParams(runs: BenchRun[]): string[] {
 }
 
 /**
- * The trigger time t0 of a run, in the samples' clock. The server does not store t0:
- * the recorder arms PRE_TRIGGER_S (0.2 s) before it sends the trigger, so t0 ≈ the
+ * The trigger time t0 of a run, in the samples' clock: ``t0_s`` as the server stored
+ * it. Runs stored before the server kept t0 (or imported without it) fall back to an
+ * estimate, which can be off by up to a sample gap or more: the recorder arms PRE_TRIGGER_S (0.2 s) before it sends the trigger, so t0 ≈ the
  * first sample's time + 0.2 s. The parameter writes and setup commands before that
  * pause, and the wait for the first sample after arming, shift it by up to a sample
  * gap, so when the metrics are there t0 is recovered exactly from them instead:
@@ -1196,6 +1243,9 @@ function diffParams(runs: BenchRun[]): string[] {
  * not more than 1.5 s after the estimate.
  */
 export function triggerTime(run: BenchRunDetail): number {
+  // The server stores the trigger time (t0_s) with every run it records: use it.
+  const stored = (run as { t0_s?: unknown }).t0_s;
+  if (typeof stored === "number" && Number.isFinite(stored)) return stored;
   const first = run.samples[0]?.[0] ?? 0;
   const estimate = first + PRE_TRIGGER_S;
   const m = run.metrics;
@@ -1226,4 +1276,29 @@ function column(run: BenchRunDetail, name: string, t0: number, offset: number): 
     } else y.push(null);
   }
   return any ? { x, y } : null;
+}
+
+/** ``POST /api/axes/{id}/bench/runs/import`` as multipart (run.json + samples.csv). */
+async function importRunFiles(axisId: string, json: File, csv: File): Promise<{ id: string }> {
+  const form = new FormData();
+  form.append("meta", json, json.name);
+  form.append("csv", csv, csv.name);
+  let response: Response;
+  try {
+    response = await fetch(`/api/axes/${encodeURIComponent(axisId)}/bench/runs/import`, { method: "POST", body: form });
+  } catch (error) {
+    throw new ApiError(0, `server unreachable: ${(error as Error).message}`, null);
+  }
+  let body: unknown = null;
+  try {
+    body = await response.json();
+  } catch {
+    body = null;
+  }
+  if (!response.ok) {
+    const b = (body ?? {}) as { detail?: unknown; field?: unknown };
+    const detail = typeof b.detail === "string" ? b.detail : `HTTP ${response.status} ${response.statusText}`;
+    throw new ApiError(response.status, detail, typeof b.field === "string" ? b.field : null);
+  }
+  return body as { id: string };
 }

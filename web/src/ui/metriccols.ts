@@ -16,6 +16,23 @@ export interface MetricColumn {
   slack: number;
 }
 
+/** What the server says of a finished run (servotune/runquality.py): ``bad`` runs are
+ * not comparable (limit switch, stall, did not move, ended outside the window, cut
+ * off); ``untrusted`` names the metrics set to null and why. */
+export interface RunQuality {
+  status: "good" | "doubtful" | "bad";
+  reasons: { code: string; message: string }[];
+  untrusted: Record<string, string>;
+}
+
+/** The quality of a run, if the server stored one (older runs have none). */
+export function qualityOf(run: object | null | undefined): RunQuality | null {
+  const q = (run as { quality?: unknown } | null | undefined)?.quality;
+  if (!q || typeof q !== "object") return null;
+  const r = q as Partial<RunQuality>;
+  return { status: r.status ?? "good", reasons: r.reasons ?? [], untrusted: r.untrusted ?? {} };
+}
+
 /** Relative change that colours a cell against its reference (the baseline). */
 export const DELTA = 0.1;
 
@@ -99,6 +116,8 @@ export function metricHeads(cols: MetricColumn[]): HTMLElement[] {
  * One metric cell: the value (``data-value`` holds the server's number, empty when
  * none), green/red when at least DELTA better/worse than ``reference`` (named
  * ``refName`` in the hover text), ``selfName`` as hover text when it is the reference.
+ * A null metric listed in ``untrusted`` shows "?" with the server's reason. Pass no
+ * ``reference`` for a bad run (or a bad reference): it must not look "better".
  */
 export function metricCell(
   c: MetricColumn,
@@ -107,12 +126,20 @@ export function metricCell(
   testid: string | undefined,
   selfName: string | null,
   refName = "the baseline",
+  untrusted: Record<string, string> = {},
 ): HTMLTableCellElement {
   const value = metrics ? c.get(metrics) : null;
   const cell = h("td", { class: "c-metric num", testid });
   if (value === null || value === undefined || !Number.isFinite(value)) {
-    setText(cell, "—");
+    const why = untrusted[c.key];
+    // A metric the server could not trust: "?" with the reason, never a number.
+    setText(cell, why ? "?" : "—");
     cell.classList.add("none");
+    if (why) {
+      cell.classList.add("untrusted");
+      cell.dataset.untrusted = why;
+      cell.title = `not trusted: ${why}`;
+    }
     cell.dataset.value = "";
     return cell;
   }
