@@ -26,10 +26,10 @@ from servotune.api.bench_routes import router as bench_router
 from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.routes import router
+from servotune.api.twin_routes import router as twin_router
 from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
-from servotune.api.twin_routes import router as twin_router
 from servotune.autotune import AutoTuner
 from servotune.config import LinkSpec
 from servotune.control import ControlManager, ControlSettings
