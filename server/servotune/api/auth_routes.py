@@ -195,7 +195,7 @@ async def logout(request: Request, response: Response) -> None:
     session: Session | None = getattr(request.state, "session", None)
     if session is not None:
         await asyncio.to_thread(security.require_store().end_session, session.digest)
-        await close_websockets(principal.user, principal.session_id)
+        await close_websockets(security, principal.user, principal.session_id)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     security.require_audit().record(
         who=principal.user, action="logout", address=client_address(request.scope)
@@ -247,7 +247,7 @@ async def change_own_password(body: PasswordChange, request: Request, response: 
         raise HTTPException(422, str(exc)) from None
     new_hash = await asyncio.to_thread(hash_password, body.new_password)
     await asyncio.to_thread(store.set_password_hash, principal.user, new_hash)
-    await close_websockets(principal.user)
+    await close_websockets(security, principal.user)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     security.require_audit().record(who=principal.user, action="password change", address=address)
 
@@ -318,7 +318,7 @@ async def revoke_token(token_id: str, request: Request) -> None:
         token = await asyncio.to_thread(security.require_store().revoke_token, token_id)
     except AccountError as exc:
         raise HTTPException(404, str(exc)) from None
-    await close_websockets(token.user, f"token:{token.id}")
+    await close_websockets(security, token.user, f"token:{token.id}")
     security.require_audit().record(
         who=principal.user,
         action="token revoke",
@@ -382,7 +382,7 @@ async def change_user(name: str, body: UserChange, request: Request) -> dict[str
             await asyncio.to_thread(store.set_role, name, body.role)
     except (AccountError, WeakPasswordError) as exc:
         raise HTTPException(422, str(exc)) from None
-    closed = await close_websockets(name)
+    closed = await close_websockets(security, name)
     changes = [c for c, v in (("role", body.role), ("password", body.password)) if v is not None]
     security.require_audit().record(
         who=principal.user,
@@ -407,7 +407,7 @@ async def remove_user(name: str, request: Request) -> None:
     if user.role == ADMIN and await asyncio.to_thread(store.count_admins) <= 1:
         raise HTTPException(409, "the last admin cannot be removed")
     await asyncio.to_thread(store.remove_user, name)
-    await close_websockets(name)
+    await close_websockets(security, name)
     security.require_audit().record(
         who=principal.user,
         action="user remove",

@@ -23,6 +23,7 @@ from pydantic import Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketState
 
 from servotune.auth.principal import Principal
+from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
 from servotune.control import ControlClient, ControlManager
 from servotune.hub import ClientQueue, Hub
@@ -68,13 +69,16 @@ async def authenticate(websocket: WebSocket) -> Principal | None:
     return await authenticate_websocket(websocket)
 
 
-_Registration = tuple[Principal, Callable[[], Awaitable[None]]]
+_Registration = tuple[SecurityState, Principal, Callable[[], Awaitable[None]]]
 
 
-def register(principal: Principal, close: Callable[[], Awaitable[None]]) -> _Registration:
+def register(
+    websocket: WebSocket, principal: Principal, close: Callable[[], Awaitable[None]]
+) -> _Registration:
     """Remember the socket so logout and revocation close it (its axes then lapse)."""
-    register_ws(principal, close)
-    return (principal, close)
+    security: SecurityState = websocket.app.state.security
+    register_ws(security, principal, close)
+    return (security, principal, close)
 
 
 def unregister(handle: _Registration) -> None:
@@ -105,7 +109,7 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):
             await websocket.close(code=code, reason=reason)
 
-    handle = register(principal, close)
+    handle = register(websocket, principal, close)
     client: ControlClient | None = None
     try:
         await websocket.send_text(hub.hello().model_dump_json())

@@ -19,6 +19,7 @@ import ipaddress
 import secrets
 import socket
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -118,6 +119,36 @@ class _Ticket:
     expires: float
 
 
+CloseCallback = Callable[[], Awaitable[None] | None]
+
+
+class WsRegistry:
+    """The app's open websockets by user, each with the session (or token) it was opened
+    under, so logout, revocation and the periodic re-check can close them."""
+
+    def __init__(self) -> None:
+        self._entries: dict[int, tuple[Principal, CloseCallback]] = {}
+
+    def add(self, principal: Principal, callback: CloseCallback) -> None:
+        self._entries[id(callback)] = (principal, callback)
+
+    def remove(self, callback: CloseCallback) -> None:
+        self._entries.pop(id(callback), None)
+
+    def entries(self) -> list[tuple[Principal, CloseCallback]]:
+        return list(self._entries.values())
+
+    def matching(self, user: str, session_id: str | None) -> list[CloseCallback]:
+        return [
+            callback
+            for principal, callback in self._entries.values()
+            if principal.user == user and (session_id is None or principal.session_id == session_id)
+        ]
+
+    def count(self, user: str) -> int:
+        return len(self.matching(user, None))
+
+
 class SecurityState:
     """Everything the checks share; lives on ``app.state.security``."""
 
@@ -133,6 +164,7 @@ class SecurityState:
         # session cookie for the rebound name, and every call needs a login anyway).
         self.allowed_hosts: frozenset[str] | None = frozenset(hosts) if hosts else None
         self.throttle = LoginThrottle()
+        self.websockets = WsRegistry()
         self._tickets: dict[str, _Ticket] = {}
         self.store: AuthStore | None = None
         self.audit: AuditLog | None = None

@@ -28,74 +28,45 @@ import asyncio
 import contextlib
 import inspect
 import logging
-from collections.abc import Awaitable, Callable
 
 from fastapi import WebSocket
 
 from servotune.auth.authz import resolve_principal
 from servotune.auth.middleware import client_address, own_origin
 from servotune.auth.principal import VIEW, Principal
-from servotune.auth.security import SecurityState
+from servotune.auth.security import CloseCallback, SecurityState
 
 logger = logging.getLogger(__name__)
 
-CloseCallback = Callable[[], Awaitable[None] | None]
+
+def register_ws(
+    security: SecurityState, principal: Principal, close_callback: CloseCallback
+) -> None:
+    """Remember an open websocket of this app; ``close_callback()`` closes it (sync or
+    async)."""
+    security.websockets.add(principal, close_callback)
 
 
-class WsRegistry:
-    """Open websockets by user, each with the session (or token) it was opened under."""
-
-    def __init__(self) -> None:
-        self._entries: dict[int, tuple[Principal, CloseCallback]] = {}
-        # Which app's accounts a principal came from (set by authenticate_websocket), so
-        # an app re-checks only its own sockets.
-        self.owners: dict[Principal, SecurityState] = {}
-
-    def add(self, principal: Principal, callback: CloseCallback) -> None:
-        self._entries[id(callback)] = (principal, callback)
-
-    def remove(self, callback: CloseCallback) -> None:
-        entry = self._entries.pop(id(callback), None)
-        if entry is not None and not any(p == entry[0] for p, _ in self._entries.values()):
-            self.owners.pop(entry[0], None)
-
-    def owned_by(self, security: SecurityState) -> list[tuple[Principal, CloseCallback]]:
-        return [e for e in self._entries.values() if self.owners.get(e[0]) is security]
-
-    def matching(self, user: str, session_id: str | None) -> list[CloseCallback]:
-        return [
-            callback
-            for principal, callback in self._entries.values()
-            if principal.user == user and (session_id is None or principal.session_id == session_id)
-        ]
-
-    def count(self, user: str) -> int:
-        return len(self.matching(user, None))
-
-
-_REGISTRY = WsRegistry()
-
-
-def register_ws(principal: Principal, close_callback: CloseCallback) -> None:
-    """Remember an open websocket; ``close_callback()`` closes it (sync or async)."""
-    _REGISTRY.add(principal, close_callback)
-
-
-def unregister_ws(principal: Principal, close_callback: CloseCallback) -> None:
+def unregister_ws(
+    security: SecurityState, principal: Principal, close_callback: CloseCallback
+) -> None:
     """Forget a websocket that has ended (call it in the endpoint's ``finally``)."""
     del principal  # the callback identifies the entry; the principal keeps the API symmetric
-    _REGISTRY.remove(close_callback)
+    security.websockets.remove(close_callback)
 
 
-def open_websockets(user: str) -> int:
-    return _REGISTRY.count(user)
+def open_websockets(security: SecurityState, user: str) -> int:
+    return security.websockets.count(user)
 
 
-async def close_websockets(user: str, session_id: str | None = None) -> int:
+async def close_websockets(
+    security: SecurityState, user: str, session_id: str | None = None
+) -> int:
     """Close the user's websockets (only those of ``session_id`` when given); returns how many."""
-    callbacks = _REGISTRY.matching(user, session_id)
+    registry = security.websockets
+    callbacks = registry.matching(user, session_id)
     for callback in callbacks:
-        _REGISTRY.remove(callback)
+        registry.remove(callback)
         try:
             result = callback()
             if inspect.isawaitable(result):
@@ -120,7 +91,7 @@ async def recheck_websockets(security: SecurityState) -> None:
         store = security.store
         if store is None:
             continue
-        for principal, callback in _REGISTRY.owned_by(security):
+        for principal, callback in security.websockets.entries():
             session_id = principal.session_id or ""
             if principal.via == "session":
                 alive = await asyncio.to_thread(store.session_by_public_id, session_id) is not None
@@ -130,7 +101,7 @@ async def recheck_websockets(security: SecurityState) -> None:
             else:
                 continue
             if not alive:
-                _REGISTRY.remove(callback)
+                security.websockets.remove(callback)
                 with contextlib.suppress(Exception):
                     result = callback()
                     if inspect.isawaitable(result):
@@ -183,5 +154,4 @@ async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
     if VIEW not in principal.permissions:
         await refuse("needs permission 'view'", principal.user)
         return None
-    _REGISTRY.owners[principal] = security
     return principal
