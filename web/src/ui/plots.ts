@@ -35,6 +35,8 @@ const MIN_LINE_PX = 90;
 /** Markers on the samples when they are at least this many pixels apart. */
 export const MARKER_PX = 4;
 const PHONE = "(max-width: 760px)";
+/** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
+const LIVE_REDRAW_MS = 32;
 
 interface Theme {
   axis: string;
@@ -152,6 +154,7 @@ export class PlotStack {
   readonly tools: ScopeTools;
   private drawnVersion = -1;
   private skipUntil = 0;
+  private lastLiveDraw = 0;
   /** Duration of the last redraw (ms). */
   lastDrawMs = 0;
   private dirty = true;
@@ -1103,6 +1106,10 @@ export class PlotStack {
     }
     const { min, max, live } = this.range();
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
+    // A rolling trace redraws at most every LIVE_REDRAW_MS: smooth to the eye, and with
+    // software canvases (no GPU) the raster of every redraw is most of a frame's cost.
+    if (live && !this.dirty && started - this.lastLiveDraw < LIVE_REDRAW_MS) return;
+    if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
     this.dirty = false;
     this.drawnVersion = this.buffer.version;
