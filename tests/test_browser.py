@@ -147,15 +147,19 @@ async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Brow
             await page.goto(server.base_url)
             await page.get_by_test_id("axis-link-chip-y").click()
             await expect(page.get_by_test_id("plot-position")).to_be_visible()
+            await expect(page.get_by_test_id("param-kabd_k-device")).not_to_have_text("—")
+            kabd_k = chip.parameters(1).kabd.k
             field = page.get_by_test_id("param-kabh_k-input")
             await field.fill("100")
             await field.press("Enter")
+            # KABH and KABD are one write group (KABH overwrites KABD on the chip).
+            await page.get_by_test_id("write-group-0").click()
             await expect(page.get_by_test_id("param-kabh_k-device")).to_have_text(
                 "100", timeout=5000
             )
             assert chip.parameters(1).kabh.k == 100
-            # KABH overwrote KABD on the chip: the UI shows the device's new KABD.
-            await expect(page.get_by_test_id("param-kabd_k-device")).to_have_text("100")
+            # KABD was written after KABH with the user's values: not lost.
+            await expect(page.get_by_test_id("param-kabd_k-device")).to_have_text(str(kabd_k))
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             await page.screenshot(path=str(ARTIFACTS / "dashboard-z1100.png"))
             await page.close()

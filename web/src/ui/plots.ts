@@ -17,6 +17,7 @@ import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
 import { cut, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
 import { ScopeTools } from "./scopetools";
+import { drawStates, laneCount, lanePos, scanStates, stateAt, type StatesPanel, statesPx, statesRuns } from "./statesplot";
 import { Trigger } from "./trigger";
 
 export const WINDOWS_S = [5, 10, 30, 60] as const;
@@ -25,7 +26,6 @@ const LANE_GAP = 0.55; // space between lanes
 const LANE_PX = 17;
 /** Lanes get thinner when a device has many flags, so line plots keep their room. */
 const lanePx = (lanes: number): number => (lanes <= 8 ? LANE_PX : Math.max(13, Math.floor(150 / lanes)));
-const STATE_LANE_PX = 15; // one lane per state of a states plot
 const Y_AXIS_PX = 68; // at least; wider (up to Y_AXIS_MAX_PX) for long lane labels
 const Y_AXIS_MAX_PX = 116;
 const Y_LABEL_PX = 14; // the unit, written along the y axis
@@ -35,6 +35,8 @@ const MIN_LINE_PX = 90;
 /** Markers on the samples when they are at least this many pixels apart. */
 export const MARKER_PX = 4;
 const PHONE = "(max-width: 760px)";
+/** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
+const LIVE_REDRAW_MS = 32;
 
 interface Theme {
   axis: string;
@@ -90,19 +92,6 @@ export function clockText(serverT: number, digits: number): string {
   return `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}${frac}`;
 }
 
-/** A "states" plot: the channel as a timeline, one lane per state that occurred. */
-interface StatesPanel {
-  channel: string;
-  names: StateNames;
-  seen: Set<number>;
-  lanes: number[]; // state values, ascending; the first lane is drawn at the top
-  scannedT: number; // the buffer is scanned for new states up to here
-  x: number[]; // the drawn run starts (and the last sample's time)
-  values: number[]; // the state from each x on
-  swatch: HTMLElement;
-  id: HTMLElement;
-}
-
 interface Panel {
   plot: PlotDescriptor;
   /** The series drawn (the user's channel choice, else the descriptor's). */
@@ -127,9 +116,6 @@ interface ScopePrefs {
   xMode: "clock" | "rel";
 }
 
-/** Lanes drawn for a states plot (two at least, so one state is not a full-height bar). */
-const laneCount = (s: StatesPanel): number => Math.max(2, s.lanes.length);
-const statesPx = (s: StatesPanel): number => laneCount(s) * STATE_LANE_PX + 8;
 
 export class PlotStack {
   readonly el: HTMLElement;
@@ -152,6 +138,7 @@ export class PlotStack {
   readonly tools: ScopeTools;
   private drawnVersion = -1;
   private skipUntil = 0;
+  private lastLiveDraw = 0;
   /** Duration of the last redraw (ms). */
   lastDrawMs = 0;
   private dirty = true;
@@ -365,7 +352,7 @@ export class PlotStack {
       this.scroller.appendChild(el);
       this.tabs.appendChild(tab);
     }
-    if (states) this.scanStates(states);
+    if (states) scanStates(this.buffer, states);
     const panel: Panel = { plot, series, el, host, u: null, legendValues, legendItems, unitButtons, height: 0, states, runs: [], tab };
     this.syncUnitButtons(panel);
     return panel;
@@ -494,74 +481,6 @@ export class PlotStack {
     return `${cut}…`;
   }
 
-  /** Add the states that occurred in the buffer since the last scan; true if any is new. */
-  private scanStates(s: StatesPanel): boolean {
-    const buffer = this.buffer;
-    const col = buffer.channels.get(s.channel);
-    if (!col) return false;
-    const from = Math.max(buffer.start, buffer.indexAt(s.scannedT));
-    let added = false;
-    for (let i = from; i < buffer.end; i++) {
-      const v = col[i] as number;
-      if (Number.isNaN(v) || s.seen.has(v)) continue;
-      s.seen.add(v);
-      added = true;
-    }
-    if (buffer.end > buffer.start) s.scannedT = (buffer.t[buffer.end - 1] as number) + 1e-9;
-    if (added) s.lanes = [...s.seen].sort((a, b) => a - b);
-    return added;
-  }
-
-  /** y of a state's lane: the first lane (lowest value) at the top. */
-  private lanePos(s: StatesPanel, value: number): number {
-    return laneCount(s) - 1 - s.lanes.indexOf(value);
-  }
-
-  /** The run-length form of [lo, hi): a point where the state changes, and the end.
-   * A missing sample (slow or skipped read) holds the state before it. */
-  private statesRuns(s: StatesPanel, lo: number, hi: number): void {
-    const buffer = this.buffer;
-    const col = buffer.channels.get(s.channel);
-    s.x = [];
-    s.values = [];
-    if (!col || hi <= lo) return;
-    let current = Number.NaN;
-    for (let i = lo - 1; i >= Math.max(buffer.start, lo - 4096) && Number.isNaN(current); i--) current = col[i] as number;
-    if (!Number.isNaN(current)) {
-      s.x.push(buffer.t[lo] as number);
-      s.values.push(current);
-    }
-    for (let i = lo; i < hi; i++) {
-      const v = col[i] as number;
-      if (Number.isNaN(v) || v === current) continue;
-      const t = buffer.t[i] as number;
-      if (s.x.length && (s.x[s.x.length - 1] as number) >= t) s.values[s.values.length - 1] = v;
-      else {
-        s.x.push(t);
-        s.values.push(v);
-      }
-      current = v;
-    }
-    const end = buffer.t[hi - 1] as number;
-    if (s.x.length && end > (s.x[s.x.length - 1] as number)) {
-      s.x.push(end);
-      s.values.push(current);
-    }
-  }
-
-  /** The state at time ``x`` of what is drawn (null before the first run). */
-  private stateAt(s: StatesPanel, x: number): number | null {
-    let lo = 0;
-    let hi = s.x.length - 1;
-    if (hi < 0 || x < (s.x[0] as number)) return null;
-    while (lo < hi) {
-      const mid = (lo + hi + 1) >> 1;
-      if ((s.x[mid] as number) <= x) lo = mid;
-      else hi = mid - 1;
-    }
-    return s.values[lo] ?? null;
-  }
-
   private showState(panel: Panel, value: number | null | undefined): void {
     const s = panel.states;
     const el = panel.legendValues[0];
@@ -571,64 +490,6 @@ export class PlotStack {
     setText(s.id, known && s.names.has(value) ? s.names.id(value) : "");
     s.swatch.style.background = known ? s.names.color(value, this.light) : "transparent";
     el.title = known ? s.names.describe(value) : "";
-  }
-
-  /** Coloured bars, one per run of a state, in its lane, joined by a step trace. */
-  private drawStates(panel: Panel, u: uPlot): void {
-    const s = panel.states;
-    if (!s) return;
-    const ctx = u.ctx;
-    const { left, top, width, height } = u.bbox;
-    const px = devicePixelRatio || 1;
-    const lane = height / laneCount(s);
-    const bar = Math.max(3 * px, lane * 0.64);
-    ctx.save();
-    ctx.beginPath();
-    ctx.rect(left, top, width, height);
-    ctx.clip();
-    // Faint lane guides.
-    ctx.fillStyle = this.theme.grid;
-    for (let i = 0; i < laneCount(s); i++) ctx.fillRect(left, Math.round(top + (i + 0.5) * lane), width, px);
-    ctx.font = `${10 * px}px ${css("--mono", "monospace")}`;
-    ctx.textBaseline = "middle";
-    ctx.textAlign = "left";
-    // The step trace: a vertical connector at each change, bar edge to bar edge.
-    ctx.strokeStyle = this.theme.axis;
-    ctx.lineWidth = px;
-    ctx.beginPath();
-    for (let i = 1; i + 1 < s.x.length; i++) {
-      const from = s.values[i - 1] as number;
-      const to = s.values[i] as number;
-      const x = Math.round(u.valToPos(s.x[i] as number, "x", true)) + 0.5;
-      if (x < left || x > left + width) continue;
-      const y0 = u.valToPos(this.lanePos(s, from), "y", true);
-      const y1 = u.valToPos(this.lanePos(s, to), "y", true);
-      const dir = y1 > y0 ? 1 : -1;
-      ctx.moveTo(x, y0 + (dir * bar) / 2);
-      ctx.lineTo(x, y1 - (dir * bar) / 2);
-    }
-    ctx.stroke();
-    for (let i = 0; i + 1 < s.x.length; i++) {
-      const value = s.values[i] as number;
-      const x0 = u.valToPos(s.x[i] as number, "x", true);
-      const x1 = u.valToPos(s.x[i + 1] as number, "x", true);
-      if (x1 < left || x0 > left + width) continue;
-      const y = u.valToPos(this.lanePos(s, value), "y", true);
-      const w = Math.max(2 * px, x1 - x0);
-      ctx.fillStyle = s.names.color(value, this.light);
-      ctx.globalAlpha = 0.85;
-      ctx.fillRect(x0, y - bar / 2, w, bar);
-      ctx.globalAlpha = 1;
-      // The name inside a bar wide enough for it (the lane label is on the axis too).
-      const name = s.names.name(value);
-      const visible0 = Math.max(x0, left);
-      const visibleW = Math.min(x1, left + width) - visible0;
-      if (bar >= 9 * px && visibleW > ctx.measureText(name).width + 8 * px) {
-        ctx.fillStyle = this.light ? "#ffffff" : "#0b0f14";
-        ctx.fillText(name, visible0 + 4 * px, y + 0.5 * px);
-      }
-    }
-    ctx.restore();
   }
 
   private rebuild(): void {
@@ -709,7 +570,7 @@ export class PlotStack {
           stroke: theme.text,
           grid: { show: false },
           ticks: { show: false },
-          splits: () => states.lanes.map((v) => this.lanePos(states, v)),
+          splits: () => states.lanes.map((v) => lanePos(states, v)),
           values: (_u, splits) =>
             splits.map((pos) => {
               const value = states.lanes[laneCount(states) - 1 - pos];
@@ -772,7 +633,7 @@ export class PlotStack {
       hooks: {
         setSelect: [(u) => this.onSelect(u)],
         setCursor: [(u) => this.onCursor(panel, u)],
-        drawAxes: states ? [(u) => this.drawStates(panel, u)] : flags ? [(u) => this.drawFlags(panel, u)] : [],
+        drawAxes: states ? [(u) => drawStates(u, states, this.theme, this.light, css("--mono", "monospace"))] : flags ? [(u) => this.drawFlags(panel, u)] : [],
         draw: [(u) => this.drawCursors(u)],
       },
     };
@@ -971,7 +832,7 @@ export class PlotStack {
     if (left !== undefined && left >= 0 && u.over.matches(":hover")) this.tools.cursorTime(u.posToVal(left, "x"));
     const idx = u.cursor.idx;
     if (panel.states) {
-      if (left !== undefined && left >= 0) this.showState(panel, this.stateAt(panel.states, u.posToVal(left, "x")));
+      if (left !== undefined && left >= 0) this.showState(panel, stateAt(panel.states, u.posToVal(left, "x")));
       return;
     }
     if (idx === null || idx === undefined || panel.plot.kind !== "line") return;
@@ -1103,6 +964,10 @@ export class PlotStack {
     }
     const { min, max, live } = this.range();
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
+    // A rolling trace redraws at most every LIVE_REDRAW_MS: smooth to the eye, and with
+    // software canvases (no GPU) the raster of every redraw is most of a frame's cost.
+    if (live && !this.dirty && started - this.lastLiveDraw < LIVE_REDRAW_MS) return;
+    if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
     this.dirty = false;
     this.drawnVersion = this.buffer.version;
@@ -1121,7 +986,7 @@ export class PlotStack {
     this.frame = frame;
     const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
-    for (const p of this.panels) if (p.states && this.scanStates(p.states)) newLanes = true;
+    for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
     if (newLanes) this.layout(false);
     const flat = [min, max];
     for (const p of this.panels) {
@@ -1129,8 +994,8 @@ export class PlotStack {
       const u = p.u as uPlot;
       const s = p.states;
       if (s) {
-        this.statesRuns(s, lo, hi);
-        const ys = s.values.map((v) => this.lanePos(s, v));
+        statesRuns(this.buffer, s, lo, hi);
+        const ys = s.values.map((v) => lanePos(s, v));
         u.batch(() => {
           u.setData([s.x, ys] as uPlot.AlignedData, false);
           u.setScale("x", { min, max });

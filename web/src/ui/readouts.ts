@@ -13,6 +13,8 @@ export class Readouts {
   private readonly lamps = new Map<string, HTMLElement>();
   /** "0.6 s old" beside a value that did not come with the latest sample (slow channel). */
   private readonly ages = new Map<string, HTMLElement>();
+  /** Buffer index up to which the flags were shown. */
+  private scannedTo = 0;
   /** Enumerated channels: the value shows as its name, the id small beside it. */
   private readonly states = new Map<string, { names: StateNames; box: HTMLElement }>();
 
@@ -102,11 +104,19 @@ export class Readouts {
       setText(this.unitLabels.get(channel.name) as HTMLElement, unit.unit);
     }
     const stale = !Number.isFinite(this.buffer.lastT);
+    // A lamp is on if the flag was on in any sample since the last refresh (10 Hz), so
+    // a pulse shorter than the refresh period (a short move's `busy`) is not missed.
+    const b = this.buffer;
+    const from = Math.max(b.start, Math.min(this.scannedTo, b.end - 1));
+    if (b.end < this.scannedTo) this.scannedTo = b.start; // the buffer was cleared
     for (const [name, lamp] of this.lamps) {
-      const on = this.buffer.latestFlags.get(name) === 1;
+      let on = b.latestFlags.get(name) === 1;
+      const col = b.flags.get(name);
+      if (col && !on) for (let i = from; i < b.end && !on; i++) on = col[i] === 1;
       if (lamp.dataset.on !== (on ? "1" : "0")) lamp.dataset.on = on ? "1" : "0";
       toggleClass(lamp, "on", on);
       toggleClass(lamp, "stale", stale);
     }
+    this.scannedTo = b.end;
   }
 }

@@ -59,8 +59,9 @@ export function mountLab(opts: LabOptions): Lab {
   const abort = new AbortController();
   const stack = new PlotStack(d, buffer, new UnitPrefs(d), "lab", abort.signal);
   stack.setWindow(n * opts.periodS);
-  const el = h("div", { class: "scope-lab", testid: "scope-lab", style: `position:fixed;left:0;top:0;z-index:100;width:${opts.width ?? 1200}px;height:${opts.height ?? 800}px;display:flex;background:var(--plot-bg)` }, stack.el);
+  const el = h("div", { class: "scope-lab", testid: "scope-lab", style: `position:fixed;left:0;top:0;z-index:100;width:${opts.width ?? 1200}px;height:${opts.height ?? 800}px;display:flex;overflow:hidden;background:var(--plot-bg)` }, stack.el);
   stack.el.style.flex = "1";
+  stack.el.style.minWidth = "0";
   document.body.appendChild(el);
   return {
     stack,
