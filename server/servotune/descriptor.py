@@ -251,6 +251,11 @@ class DeviceDescriptor(BaseModel):
     twin: TwinDescriptor | None = Field(
         default=None, description="how the 3D twin draws the axis (None: not drawn)"
     )
+    autotune: bool = Field(
+        default=False,
+        description="the auto-tune assistant supports this device (the UI shows its panel "
+        "only then)",
+    )
 
     def parameter(self, name: str) -> ParameterDescriptor:
         """Return the parameter called ``name``; KeyError if the device has none."""

@@ -141,6 +141,7 @@ export interface DeviceDescriptor {
   constraints: ParameterConstraint[];
   write_groups: string[][];
   twin: TwinDescriptor | null;
+  autotune: boolean;
 }
 
 export interface AxisInfo {

@@ -564,6 +564,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             sends="st (ahead of anything queued)",
             gentler=["hold"],
         ),
+        autotune=True,
         twin=TwinDescriptor(
             counts_per_rev=counts_per_rev,
             setpoint_channel="setpoint",

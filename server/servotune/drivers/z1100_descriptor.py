@@ -416,6 +416,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             sends="Estop for this motor (ahead of anything queued)",
             gentler=["decelerate"],
         ),
+        autotune=True,
         twin=TwinDescriptor(
             counts_per_rev=counts_per_rev,
             setpoint_channel="setpoint",

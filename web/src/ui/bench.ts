@@ -148,7 +148,8 @@ export class BenchView {
   private readonly limitInputs = new Map<keyof BenchLimits, HTMLInputElement>();
   private limitsSave: HTMLButtonElement | null = null;
   private readonly limitsStatus: HTMLElement;
-  private readonly autotune: AutoTunePanel;
+  // Only for devices the auto-tune assistant supports (descriptor.autotune).
+  private readonly autotune: AutoTunePanel | null;
   private readonly response: Overlay;
   private readonly following: Overlay;
   private readonly responseTitle: HTMLElement;
@@ -276,17 +277,19 @@ export class BenchView {
       h("div", { class: "bench-diff-pane" }, this.diff),
     );
 
-    this.autotune = new AutoTunePanel(
-      axisId,
-      descriptor,
-      {
-        columns: (metrics) => metricColumns(this.descriptor, [...this.runs.map((r) => r.metrics), ...metrics]),
-        showRuns: (ids) => this.showRuns(ids),
-      },
-      signal,
-    );
+    this.autotune = descriptor.autotune
+      ? new AutoTunePanel(
+          axisId,
+          descriptor,
+          {
+            columns: (metrics) => metricColumns(this.descriptor, [...this.runs.map((r) => r.metrics), ...metrics]),
+            showRuns: (ids) => this.showRuns(ids),
+          },
+          signal,
+        )
+      : null;
     this.storageBanner = h("div", { class: "banner-slot", testid: "storage-banner-slot" });
-    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, this.autotune.el, plots, runsPane);
+    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, runsPane);
     store.on("storage", (msg) => this.showStorage(msg.writable, msg.message), signal);
     void fetch("/api/storage", { signal })
       .then((r) => (r.ok ? (r.json() as Promise<{ writable: boolean; message: string }>) : null))
@@ -326,7 +329,7 @@ export class BenchView {
     }
     if (this.signal.aborted) return;
     this.renderForm();
-    this.autotune.setLimits(this.info.limits);
+    this.autotune?.setLimits(this.info.limits);
     await this.refresh();
   }
 
@@ -619,7 +622,7 @@ export class BenchView {
       const saved = await api.setBenchLimits(this.axisId, this.readLimits());
       this.info.limits = saved;
       this.fillLimits(saved);
-      this.autotune.setLimits(saved);
+      this.autotune?.setLimits(saved);
       setText(this.limitsStatus, "✓ saved");
     } catch (error) {
       this.showError(error, "max_distance_counts");
