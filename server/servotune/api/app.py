@@ -171,15 +171,18 @@ def create_app(config: AppConfig) -> FastAPI:
 
     app.openapi = openapi  # type: ignore[method-assign]
 
-    @app.get("/openapi.json", include_in_schema=False)
-    async def openapi_json() -> JSONResponse:
-        # Building the schema takes hundreds of milliseconds (seconds on a loaded
-        # machine): in a worker thread, so it never holds a STOP back on the loop.
-        return JSONResponse(await asyncio.to_thread(openapi))
+    if not config.security.exposed:
+        # The schema and its interactive page are a local-mode convenience; exposed,
+        # only the API behind the login is served (docs/remote-lab.md).
+        @app.get("/openapi.json", include_in_schema=False)
+        async def openapi_json() -> JSONResponse:
+            # Building the schema takes hundreds of milliseconds (seconds on a loaded
+            # machine): in a worker thread, so it never holds a STOP back on the loop.
+            return JSONResponse(await asyncio.to_thread(openapi))
 
-    @app.get("/docs", include_in_schema=False)
-    async def docs() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url="/openapi.json", title="servotune API")
+        @app.get("/docs", include_in_schema=False)
+        async def docs() -> HTMLResponse:
+            return get_swagger_ui_html(openapi_url="/openapi.json", title="servotune API")
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -87,8 +87,8 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("DELETE", "/api/users/{name}"): USERS,
     ("GET", "/api/audit"): VIEW,
     ("GET", "/api/audit.csv"): VIEW,
-    # --- the live OpenAPI and its interactive page (servotune/api/app.py); behind the
-    # login in exposed mode like everything else
+    # --- the live OpenAPI and its interactive page (servotune/api/app.py; local mode
+    # only: an exposed server does not serve them)
     ("GET", "/openapi.json"): VIEW,
     ("GET", "/docs"): VIEW,
     # --- storage health (servotune/api/bench_routes.py)
