@@ -26,12 +26,15 @@ from typing import Any
 import httpx
 import uvicorn
 import websockets
+from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.control import CLIENT_HEADER, ControlSettings
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
+
+from .conftest import use_csrf_token
 
 CR = 0x0D
 CTRL_X = 0x18
@@ -150,6 +153,7 @@ async def control_server(
                 await asyncio.sleep(0.02)
             base = f"http://127.0.0.1:{port}"
             async with httpx.AsyncClient(base_url=base, timeout=10) as client:
+                await use_csrf_token(client)
                 for address in addresses:
                     for _ in range(250):
                         response = await client.get(f"/api/axes/line-{address}/state")
@@ -175,7 +179,9 @@ class Operator:
     _tasks: list[asyncio.Task[None]] = field(default_factory=list)
 
     async def __aenter__(self) -> Operator:
-        self.socket = await websockets.connect(self.server.ws_url, max_size=None)
+        self.socket = await websockets.connect(
+            self.server.ws_url, max_size=None, origin=Origin(self.server.base_url)
+        )
         while not self.client_id:
             message = json.loads(await asyncio.wait_for(self.socket.recv(), 5))
             if message["type"] == "welcome":

@@ -61,9 +61,15 @@ async def test_two_tabs_hand_an_axis_over(two_tabs: tuple[Page, Page, Server]) -
     while not server.bus.module(0).rss & VM:
         assert time.monotonic() < deadline, "velocity mode did not start"
         await asyncio.sleep(0.02)
+    # (with the CSRF token, as the page's own client sends it: the lock must refuse it)
     refused = await bob.evaluate(
-        """async () => (await fetch('/api/axes/line-0/params', {method: 'PATCH',
-            headers: {'Content-Type': 'application/json'}, body: '{"kp": 70}'})).status"""
+        """async () => {
+            const session = await (await fetch('/api/auth/session')).json();
+            return (await fetch('/api/axes/line-0/params', {method: 'PATCH',
+                headers: {'Content-Type': 'application/json',
+                          'X-CSRF-Token': session.csrf_token},
+                body: '{"kp": 70}'})).status;
+        }"""
     )
     assert refused == 423
     assert server.bus.module(0).settings["kp"] == 40

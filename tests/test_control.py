@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import websockets
+from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
 from servotune.control import ControlManager, ControlSettings
@@ -212,13 +213,17 @@ async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, t
 
 
 async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server) -> None:
-    async with websockets.connect(server.ws_url, max_size=None) as ws:
+    async with websockets.connect(
+        server.ws_url, max_size=None, origin=Origin(server.base_url)
+    ) as ws:
         await ws.send("x" * (100 * 1024))
         with pytest.raises(websockets.ConnectionClosed):
             while True:
                 await asyncio.wait_for(ws.recv(), 5)
         assert ws.close_code == 1009
-    async with websockets.connect(server.ws_url, max_size=None) as ws:
+    async with websockets.connect(
+        server.ws_url, max_size=None, origin=Origin(server.base_url)
+    ) as ws:
         await ws.send(b"\x00\x01binary")
         with pytest.raises(websockets.ConnectionClosed):
             while True:
@@ -232,7 +237,7 @@ async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server)
 async def test_uvicorn_refuses_frames_over_ws_max_size(tmp_path: Path) -> None:
     async with (
         control_server(tmp_path, FAST, ws_max_size=64 * 1024, addresses=[0]) as live,
-        websockets.connect(live.ws_url, max_size=None) as ws,
+        websockets.connect(live.ws_url, max_size=None, origin=Origin(live.base_url)) as ws,
     ):
         await ws.send("y" * (1024 * 1024))
         with pytest.raises(websockets.ConnectionClosed):
