@@ -137,6 +137,7 @@ async def test_bodies_beyond_the_limits_answer_413(api: LiveServer) -> None:
         (
             "POST /api/axes/line-1/bench/runs/import HTTP/1.1\r\n"
             f"Host: {host}\r\nContent-Type: multipart/form-data; boundary=x\r\n"
+            f"X-CSRF-Token: {api.client.headers['X-CSRF-Token']}\r\n"
             f"Content-Length: {MAX_IMPORT_BYTES + 1}\r\n\r\n"
         ).encode()
     )

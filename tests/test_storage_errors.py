@@ -17,13 +17,19 @@ import httpx
 import pytest
 import uvicorn
 import websockets
+from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.storage import Storage
 
-from .conftest import running_simulator, wait_for
+from .conftest import running_simulator, use_csrf_token, wait_for
 from .test_api import free_port
+
+
+def _origin(ws_url: str) -> Origin:
+    """The dashboard's own origin (the websocket refuses any other)."""
+    return Origin(ws_url.replace("ws://", "http://").removesuffix("/ws"))
 
 
 @contextlib.asynccontextmanager
@@ -41,6 +47,7 @@ async def serve(
     try:
         await wait_for(lambda: server.started, 10, "the server to start")
         async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
+            await use_csrf_token(client)
             for axis in (await client.get("/api/axes")).json():
                 for _ in range(250):
                     if (await client.get(f"/api/axes/{axis['id']}/state")).status_code == 200:
@@ -72,7 +79,9 @@ async def test_an_unwritable_database_at_start_is_told_and_every_write_answers_5
             async with serve(spec, blocker / "data") as (_, client, ws_url):
                 status = (await client.get("/api/storage")).json()
                 assert status["writable"] is False and "cannot be written" in status["message"]
-                async with websockets.connect(ws_url) as ws:
+                async with websockets.connect(
+                    ws_url, origin=Origin(ws_url.replace("ws://", "http://").removesuffix("/ws"))
+                ) as ws:
                     messages = [json.loads(await ws.recv()) for _ in range(12)]
                 assert any(
                     m["type"] == "event" and "settings are not being saved" in m["message"]
@@ -103,7 +112,9 @@ async def test_settings_not_saved_are_reported_kept_and_saved_when_it_works_agai
         spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0, 1], 512)
         async with serve(spec, tmp_path / "data") as (app, client, ws_url):
             storage: Storage = app.state.storage
-            async with websockets.connect(ws_url) as ws:
+            async with websockets.connect(
+                ws_url, origin=Origin(ws_url.replace("ws://", "http://").removesuffix("/ws"))
+            ) as ws:
                 writable = _break(storage)
                 response = await client.patch("/api/axes/line-0/params", json={"kp": 61})
                 assert response.status_code == 200

@@ -43,6 +43,13 @@ _KEEP_AFTER = frozenset(
     }
 )
 # These routes write their own audit entries (and their bodies may hold secrets).
+_BODY_AUDITED = frozenset(
+    {
+        ("POST", "/api/axes/{axis_id}/commands"),
+        ("PATCH", "/api/axes/{axis_id}/params"),
+        ("POST", "/api/axes/{axis_id}/console"),
+    }
+)
 _SELF_AUDITED_PREFIXES = ("/api/auth/", "/api/users")
 
 
@@ -203,7 +210,10 @@ async def _audit_context(
         "before": None,
     }
     body: object = None
-    if request.headers.get("content-length", "0") not in ("", "0"):
+    # Only the small bodies the audit describes are read here (a command, a parameter
+    # write, a console line); a run import's body (up to 64 MiB) is left to its route,
+    # which streams it off the event loop.
+    if key in _BODY_AUDITED and request.headers.get("content-length", "0") not in ("", "0"):
         try:
             body = await request.json()
         except ValueError:

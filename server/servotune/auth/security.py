@@ -16,8 +16,11 @@ from __future__ import annotations
 import hashlib
 import hmac
 import ipaddress
+import logging
 import secrets
 import socket
+import sqlite3
+import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -28,6 +31,8 @@ from servotune.auth.audit import AuditLog
 from servotune.auth.principal import Principal
 from servotune.auth.store import AuthStore
 from servotune.auth.throttle import LoginThrottle
+
+logger = logging.getLogger(__name__)
 
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 AUTH_DB = "auth.db"
@@ -167,13 +172,37 @@ class SecurityState:
         self.websockets = WsRegistry()
         self._tickets: dict[str, _Ticket] = {}
         self.store: AuthStore | None = None
+        self._scratch: tempfile.TemporaryDirectory[str] | None = None
         self.audit: AuditLog | None = None
         self._secret = b""
 
     # --- lifetime (the app's lifespan) ----------------------------------------------
 
     def open(self) -> None:
-        self.store = AuthStore(self.auth_path)
+        """Open the accounts database and the audit log.
+
+        Local mode on a data directory that cannot be written (a read-only volume, a
+        full disk) still starts, as the rest of the server does: the audit log and the
+        CSRF secret then live in a temporary directory for this run, and the log says
+        so. Exposed mode refuses to start: without its accounts nobody could log in,
+        and a lab must not run without its audit log.
+        """
+        try:
+            self.store = AuthStore(self.auth_path)
+        except (OSError, sqlite3.Error) as exc:
+            if self.exposed:
+                raise SecurityConfigError(
+                    f"the accounts database {self.auth_path} cannot be opened: {exc}"
+                ) from exc
+            self._scratch = tempfile.TemporaryDirectory(prefix="servotune-auth-")
+            logger.error(
+                "the accounts database %s cannot be written (%s): the audit log of this "
+                "run is kept in a temporary directory only",
+                self.auth_path,
+                exc,
+            )
+            self.auth_path = Path(self._scratch.name) / AUTH_DB
+            self.store = AuthStore(self.auth_path)
         check_exposed_startup(self.config, self.store)
         self.audit = AuditLog(self.auth_path)
         self._secret = self.store.server_secret()
@@ -183,6 +212,9 @@ class SecurityState:
             self.audit.close()
         if self.store is not None:
             self.store.close()
+        if self._scratch is not None:
+            self._scratch.cleanup()
+            self._scratch = None
 
     def require_store(self) -> AuthStore:
         if self.store is None:
