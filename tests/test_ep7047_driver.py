@@ -446,7 +446,7 @@ async def test_fake_master_bad_input_is_refused_before_the_outputs() -> None:
         history = run.master.history
         first = len(history)
         bad: list[tuple[dict[str, int], str, str]] = [
-            (move_args(StartType.ABSOLUTE, 7001, velocity=20000), "velocity", "0..10000"),
+            (move_args(StartType.ABSOLUTE, 7001, velocity=20000), "velocity", "1..10000"),
             (move_args(StartType.ABSOLUTE, 7002, velocity=0), "velocity", "1..10000"),
             ({**move_args(StartType.ABSOLUTE, 7003), "start_type": 0x1234}, "start_type", ""),
             ({"start_type": 1, "target": 7004, "velocity": 100}, "acceleration_ms", "0..65535"),

@@ -32,7 +32,7 @@ import websockets
 from servotune.config import LinkSpec
 
 from .test_bench import finished_run, start
-from .test_storage_errors import serve
+from .test_storage_errors import _origin, serve
 
 IMPORT_ROWS = 250_000  # about 25 MB of CSV
 
@@ -108,7 +108,7 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
             done = asyncio.Event()
 
             async def watch_telemetry() -> None:
-                async with websockets.connect(ws_url, max_size=None) as ws:
+                async with websockets.connect(ws_url, max_size=None, origin=_origin(ws_url)) as ws:
                     while not done.is_set():
                         try:
                             text = await asyncio.wait_for(ws.recv(), 0.5)

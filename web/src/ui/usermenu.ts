@@ -89,8 +89,11 @@ export function mountUserMenu(host: HTMLElement, session: SessionInfo): HTMLElem
       }, "Log out"),
     );
   }
-  const menu = h("div", { class: "user-menu" }, toggle, panel);
-  host.appendChild(menu);
+  const menu = h("div", { class: session.mode === "local" ? "user-menu local" : "user-menu" }, toggle, panel);
+  // Before the STOP button: STOP stays the right-most, always-visible element.
+  const stop = host.querySelector(".stop-all");
+  if (stop) host.insertBefore(menu, stop);
+  else host.appendChild(menu);
   document.addEventListener("click", (event) => {
     if (!menu.contains(event.target as Node)) panel.hidden = true;
   });
