@@ -449,7 +449,12 @@ async def test_fake_master_bad_input_is_refused_before_the_outputs() -> None:
             (move_args(StartType.ABSOLUTE, 7001, velocity=20000), "velocity", "1..10000"),
             (move_args(StartType.ABSOLUTE, 7002, velocity=0), "velocity", "1..10000"),
             ({**move_args(StartType.ABSOLUTE, 7003), "start_type": 0x1234}, "start_type", ""),
-            ({"start_type": 1, "target": 7004, "velocity": 100}, "acceleration_ms", "0..65535"),
+            # (an omitted acceleration takes the descriptor's default: not a refusal)
+            (
+                {**move_args(StartType.ABSOLUTE, 7004), "acceleration_ms": 70000},
+                "acceleration_ms",
+                "0..65535",
+            ),
             ({**move_args(StartType.ABSOLUTE, 7005), "speed": 1}, "speed", ""),
         ]
         for args, field, text in bad:
