@@ -130,14 +130,15 @@ def _first_axis(
 
 @contextlib.contextmanager
 def demo_server(data_dir: Path) -> Iterator[str]:
-    """A demo-like app (a SLAP2 module and a Z1100 motor on ptys, the EP7047 slave) in
-    this process, served by uvicorn on a free port in a thread; yields its base URL."""
+    """A demo-like app (a SLAP2 module and a Z1100 motor on ptys, the EP7047 slave; the
+    simulators in their own processes as in the demo), served by uvicorn on a free port
+    in a thread; yields its base URL."""
     config = AppConfig(
         data_dir=data_dir,
         simulators=[
             _first_axis(lambda: slap2_demo_line(data_dir / "sim")),
             _first_axis(lambda: z1100_demo_line(data_dir / "sim")),
-            ep7047_demo_slave,
+            lambda: ep7047_demo_slave(data_dir / "sim"),
         ],
         web_dir=data_dir / "no-web",
     )

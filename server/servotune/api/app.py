@@ -25,6 +25,7 @@ from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
 from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
+from servotune.api.responses import errors
 from servotune.api.routes import router
 from servotune.api.twin_routes import router as twin_router
 from servotune.api.ws import router as ws_router
@@ -143,6 +144,9 @@ def create_app(config: AppConfig) -> FastAPI:
         version=__version__,
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
+        # Any route: not logged in (exposed mode), or refused by a permission or by the
+        # Host / Origin / CSRF checks (servotune.auth).
+        responses=errors(401, 403),
         # Served below: the schema is built in a worker thread, not on the event loop.
         openapi_url=None,
         docs_url=None,

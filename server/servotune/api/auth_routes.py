@@ -16,10 +16,12 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from pydantic import BaseModel, Field
 
+from servotune.api.responses import errors
 from servotune.auth.audit import AuditQuery
 from servotune.auth.middleware import client_address, session_cookie
 from servotune.auth.passwords import (
     MAX_PASSWORD_LENGTH,
+    MIN_PASSWORD_LENGTH,
     WeakPasswordError,
     check_password_rule,
     hash_password,
@@ -32,12 +34,14 @@ from servotune.auth.store import (
     SESSION_LIFETIME_S,
     TOKEN_DEFAULT_DAYS,
     TOKEN_MAX_DAYS,
+    USER_NAME,
     AccountError,
     Session,
 )
 from servotune.auth.ws_auth import close_websockets
 
-router = APIRouter(tags=["auth"])
+# What the account routes can answer besides their success (bodies are ``ErrorBody``).
+router = APIRouter(tags=["auth"], responses=errors(404, 409, 422, 429))
 
 Role = Literal["viewer", "operator", "admin"]
 
@@ -63,7 +67,7 @@ class PasswordRequest(BaseModel):
 
 class PasswordChange(BaseModel):
     current_password: str = Field(min_length=1, max_length=MAX_PASSWORD_LENGTH)
-    new_password: str = Field(min_length=1, max_length=MAX_PASSWORD_LENGTH)
+    new_password: str = Field(min_length=MIN_PASSWORD_LENGTH, max_length=MAX_PASSWORD_LENGTH)
 
 
 class TicketReply(BaseModel):
@@ -79,14 +83,16 @@ class TokenCreate(BaseModel):
 
 
 class UserCreate(BaseModel):
-    name: str = Field(min_length=1, max_length=64)
+    name: str = Field(pattern=f"^{USER_NAME.pattern}$", description="letters, digits or . _ @ -")
     role: Role
-    password: str = Field(min_length=1, max_length=MAX_PASSWORD_LENGTH)
+    password: str = Field(min_length=MIN_PASSWORD_LENGTH, max_length=MAX_PASSWORD_LENGTH)
 
 
 class UserChange(BaseModel):
     role: Role | None = None
-    password: str | None = Field(default=None, min_length=1, max_length=MAX_PASSWORD_LENGTH)
+    password: str | None = Field(
+        default=None, min_length=MIN_PASSWORD_LENGTH, max_length=MAX_PASSWORD_LENGTH
+    )
 
 
 def _security(request: Request) -> SecurityState:
@@ -456,7 +462,11 @@ async def audit_entries(
     return await asyncio.to_thread(audit.query, query)
 
 
-@router.get("/api/audit.csv", response_class=PlainTextResponse)
+@router.get(
+    "/api/audit.csv",
+    response_class=PlainTextResponse,
+    responses={200: {"content": {"text/csv": {}}}},
+)
 async def audit_csv(
     request: Request,
     who: str | None = None,

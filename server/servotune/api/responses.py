@@ -13,18 +13,21 @@ from typing import Any
 from servotune.wire import ErrorBody
 
 DESCRIPTIONS: dict[int, str] = {
+    401: "not logged in (exposed mode): log in or send a bearer token",
+    403: "refused: the role lacks the permission, or a Host / Origin / CSRF check failed",
     404: "no such axis, link, run or parameter set (detail names it)",
     409: "refused: by the device, or the axis/run is busy (reason in detail)",
     413: "request body too large",
     422: "bad input: detail names the field and the allowed range; nothing was sent",
-    423: "locked: another operation holds this resource",
+    423: "locked: another browser tab controls this axis (detail names the holder)",
+    429: "too many failed logins: wait (Retry-After) and try again",
     502: "the device answered something its protocol does not allow",
     503: "link down or storage unavailable: nothing was sent",
     504: "the device did not answer in time",
 }
 
 # The device path: every route that sends something to a device or reads from one.
-DEVICE_CODES = (404, 409, 422, 502, 503, 504)
+DEVICE_CODES = (404, 409, 422, 423, 502, 503, 504)
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
