@@ -31,6 +31,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.parse
 import urllib.request
 from collections import Counter
 from collections.abc import Iterator
@@ -135,9 +136,15 @@ def get_json(url: str, timeout_s: float = 5.0) -> Any:
 
 
 def post_json(url: str, body: Any = None, timeout_s: float = 10.0) -> Any:
+    """POST as the web client does: JSON with the server's CSRF token (local mode)."""
+    parts = urllib.parse.urlsplit(url)
+    session = get_json(f"{parts.scheme}://{parts.netloc}/api/auth/session", timeout_s)
     data = json.dumps(body if body is not None else {}).encode()
     request = urllib.request.Request(
-        url, data=data, headers={"Content-Type": "application/json"}, method="POST"
+        url,
+        data=data,
+        headers={"Content-Type": "application/json", "X-CSRF-Token": session["csrf_token"]},
+        method="POST",
     )
     with urllib.request.urlopen(request, timeout=timeout_s) as response:
         return json.loads(response.read())
@@ -275,9 +282,12 @@ class StreamWatcher:
     def _run(self) -> None:
         from websockets.exceptions import WebSocketException
         from websockets.sync.client import connect
+        from websockets.typing import Origin
 
         try:
-            with connect(self.url, max_size=None, open_timeout=10) as ws:
+            # The dashboard's own origin: the server refuses any other.
+            origin = Origin(self.url.replace("ws://", "http://", 1).removesuffix("/ws"))
+            with connect(self.url, max_size=None, open_timeout=10, origin=origin) as ws:
                 while not self._stop.is_set():
                     try:
                         text = ws.recv(timeout=0.2)
