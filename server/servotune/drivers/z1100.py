@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 
 from servotune.drivers.base import (
@@ -377,7 +377,9 @@ class Z1100Link(LinkEngine):
             # Parameters stored with SetFlash come back after a reset, so the 0-reads
             # miss it; the job does not survive a reset (it powers up as 0, free shaft).
             job = await self._get(codec.Command.GET_JOB, motor.axis)
-            if job == codec.Job.FREE and await self._get(codec.Command.GET_JOB, motor.axis) == 0:
+            if job == codec.Job.FREE and await self._confirm_zero(
+                lambda: self._get_int(codec.Command.GET_JOB, motor.axis)
+            ):
                 motor.job = codec.Job.FREE
                 for each in self._motors:
                     each.job = codec.Job.FREE
@@ -397,8 +399,10 @@ class Z1100Link(LinkEngine):
             return
         if await self._read_witness(motor.axis, witness) != 0:
             return
-        # Confirm with a second reading of all three witnesses: one late or misframed
-        # reply (the protocol has no header) must not wipe the axis' state.
+        # Confirm with a second reading of all three witnesses after the line has gone
+        # quiet: one late or misframed reply (the protocol has no header; on a stalled
+        # host a reply can land after its request timed out) must not wipe the state.
+        await self._drain_quiet(self._require_channel())
         zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
         if len(zeros) >= 2:
             for each in self._motors:
@@ -411,6 +415,13 @@ class Z1100Link(LinkEngine):
                 )
             self._sink.on_event("warning", None, f"{self.id}: chip reset detected")
             await self._probe_params_only()
+
+    async def _confirm_zero(self, read: Callable[[], Awaitable[int]]) -> bool:
+        """A zero read once is confirmed only by reading zero again after the line has
+        gone quiet (a late reply to an earlier request is drained first): the reset
+        cue must survive a slow host (issue 8: no false alarms)."""
+        await self._drain_quiet(self._require_channel())
+        return await read() == 0
 
     async def _read_witness(self, axis: int, witness: str) -> int:
         if witness == "kabh_k":
