@@ -153,6 +153,11 @@ async def test_audit_page_api_filters_and_csv(tmp_path: Path) -> None:
         rows = list(csv.DictReader(io.StringIO(response.text)))
         assert rows and {r["who"] for r in rows} == {"victor"}
         assert rows[0]["time_utc"].endswith("Z")
+        # The limit names its range; one entry is what limit=1 gives.
+        assert len((await admin.get("/api/audit?limit=1")).json()) == 1
+        for bad in ("0", "10001"):
+            response = await admin.get(f"/api/audit.csv?limit={bad}")
+            assert response.status_code == 422 and "limit" in response.text
 
 
 def test_scrub_and_csv_formula_cells(tmp_path: Path) -> None:

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from pydantic import BaseModel, Field
 
@@ -425,39 +426,39 @@ async def remove_user(name: str, request: Request) -> None:
 # --- audit ----------------------------------------------------------------------------
 
 
-def _audit_query(
-    principal: Principal,
-    who: str | None,
-    action: str | None,
-    axis: str | None,
-    result: str | None,
-    since_s: float | None,
-    until_s: float | None,
-    limit: int,
-) -> AuditQuery:
-    if AUDIT_ALL not in principal.permissions:
-        who = principal.user  # everyone sees their own actions; admins see everything
-    return AuditQuery(who, action, axis, result, since_s, until_s, limit)
-
-
 AuditLimit = Annotated[int, Query(ge=1, le=10_000)]
+
+
+def _audit_filter(default_limit: int) -> Callable[..., AuditQuery]:
+    """A dependency reading the audit filters from the query string.
+
+    Everyone sees their own actions; a role with ``audit:all`` sees everything, so the
+    ``who`` filter of anyone else is replaced by their own name.
+    """
+
+    def dependency(
+        request: Request,
+        who: str | None = None,
+        action: str | None = None,
+        axis: str | None = None,
+        result: str | None = None,
+        since_s: float | None = None,
+        until_s: float | None = None,
+        limit: AuditLimit = default_limit,
+    ) -> AuditQuery:
+        if AUDIT_ALL not in _principal(request).permissions:
+            who = _principal(request).user
+        return AuditQuery(who, action, axis, result, since_s, until_s, limit)
+
+    return dependency
 
 
 @router.get("/api/audit")
 async def audit_entries(
-    request: Request,
-    who: str | None = None,
-    action: str | None = None,
-    axis: str | None = None,
-    result: str | None = None,
-    since_s: float | None = None,
-    until_s: float | None = None,
-    limit: AuditLimit = 500,
+    request: Request, query: Annotated[AuditQuery, Depends(_audit_filter(500))]
 ) -> list[dict[str, Any]]:
     """Audit entries, newest first (your own unless your role may read all)."""
-    principal = _principal(request)
     audit = _security(request).require_audit()
-    query = _audit_query(principal, who, action, axis, result, since_s, until_s, limit)
     await asyncio.to_thread(audit.flush)
     return await asyncio.to_thread(audit.query, query)
 
@@ -468,19 +469,10 @@ async def audit_entries(
     responses={200: {"content": {"text/csv": {}}}},
 )
 async def audit_csv(
-    request: Request,
-    who: str | None = None,
-    action: str | None = None,
-    axis: str | None = None,
-    result: str | None = None,
-    since_s: float | None = None,
-    until_s: float | None = None,
-    limit: AuditLimit = 10_000,
+    request: Request, query: Annotated[AuditQuery, Depends(_audit_filter(10_000))]
 ) -> PlainTextResponse:
     """The same entries as a CSV download."""
-    principal = _principal(request)
     audit = _security(request).require_audit()
-    query = _audit_query(principal, who, action, axis, result, since_s, until_s, limit)
     await asyncio.to_thread(audit.flush)
     text = await asyncio.to_thread(audit.csv, query)
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
