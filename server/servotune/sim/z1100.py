@@ -269,6 +269,8 @@ class _Axis:
         self.y_last = 0
         self.frozen: tuple[int, float, float, object] | None = None
         self.next_tick = 0
+        self._per_sample_key: tuple[int, int, int] | None = None
+        self._per_sample_value = (0.0, 0.0)
         self.update_signs()
         self.motor.current_a = 0.0  # the bridge is off
 
@@ -330,8 +332,16 @@ class _Axis:
     # --- profile -----------------------------------------------------------------------
 
     def _per_sample(self, speed_counts_s: int, acc_counts_s2: int) -> tuple[float, float]:
-        ts = self.sample_s
-        return _positive(speed_counts_s) * ts, _positive(acc_counts_s2) * ts * ts
+        # Cached: called every sample (31250 a second at Stm 1) with the same inputs.
+        key = (speed_counts_s, acc_counts_s2, self.p.stm)
+        if key != self._per_sample_key:
+            ts = self.sample_s
+            self._per_sample_key = key
+            self._per_sample_value = (
+                _positive(speed_counts_s) * ts,
+                _positive(acc_counts_s2) * ts * ts,
+            )
+        return self._per_sample_value
 
     def _ramp(self, v_goal: float, acc: float) -> None:
         v = self.ref_v
@@ -422,7 +432,8 @@ class _Axis:
         over the sampling period with the PWM just computed held (zero-order hold)."""
         self.samples += 1
         motor = self.motor
-        ts = self.sample_s
+        stm = self.p.stm
+        ts = (stm if stm > 1 else 1) * STM_TICK_S  # sample_s, inlined: this runs 31 kHz
         phys = motor.count
         delta = phys - self.last_phys
         if delta:
