@@ -152,9 +152,7 @@ def wait_run(client: Client, run_id: str, timeout_s: float = 60.0) -> None:
     raise SystemExit(f"run {run_id} did not finish")
 
 
-def report(
-    phases: list[tuple[str, float, float]], stopper: Stopper, watch: TelemetryWatch
-) -> None:
+def report(phases: list[tuple[str, float, float]], stopper: Stopper, watch: TelemetryWatch) -> None:
     gaps = [(b, b - a) for a, b in zip(watch.times, watch.times[1:], strict=False)]
     print(f"{'phase':<14} {'s':>6} {'STOPs':>6} {'median':>8} {'p95':>8} {'max':>8} {'gap max':>8}")
     for name, t_from, t_to in phases:

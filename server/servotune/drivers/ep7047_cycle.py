@@ -351,7 +351,15 @@ class _CycleThread(_CommandCycle):
                 deadline = time.monotonic()
 
     def _exchange(self, master: EthercatMaster, slave: EthercatSlave) -> bool:
-        slave.output = codec.encode_outputs(self._cs.outputs())
+        cs = self._cs
+        key = (
+            cs.enable, cs.reset, cs.emergency, cs.execute, cs.target, cs.velocity_bp,
+            cs.start_type, cs.acceleration_ms, cs.deceleration_ms,
+        )  # fmt: skip
+        if key != self._outputs_key:  # the fields _CycleState.outputs() encodes
+            self._outputs_key = key
+            self._outputs_bytes = codec.encode_outputs(cs.outputs())
+        slave.output = self._outputs_bytes
         master.send_processdata()
         wkc = master.receive_processdata(self._receive_timeout_us())
         if wkc == master.expected_wkc:
@@ -398,7 +406,11 @@ class _CycleThread(_CommandCycle):
             return  # stale inputs: no sample, nothing decided on them
         now = self._clock()
         previous = cs.inputs
-        cs.inputs = inputs = codec.decode_inputs(slave.input)
+        raw = slave.input
+        if raw != self._inputs_raw:  # Inputs is immutable: the same bytes, the same object
+            self._inputs_decoded = codec.decode_inputs(raw)  # may raise: then not cached
+            self._inputs_raw = raw
+        cs.inputs = inputs = self._inputs_decoded
         for request in cs.after_exchange:
             self._resolve(request, "sent")
         cs.after_exchange.clear()

@@ -303,6 +303,12 @@ class _LinkCore:
         self._last_good = time.monotonic()
         # samples not yet posted to the loop (cycle thread only, see SAMPLE_BATCH_S)
         self._sample_batch: list[Sample] = []
+        # the last outputs encoded and inputs decoded (cycle thread only): most cycles
+        # send the same outputs, and at rest receive the same inputs, as the one before
+        self._outputs_key: tuple[object, ...] | None = None
+        self._outputs_bytes = b""
+        self._inputs_raw = b""
+        self._inputs_decoded = Inputs()
         self._batch_due = 0.0
 
     # --- Link protocol ------------------------------------------------------------------
