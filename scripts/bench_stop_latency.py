@@ -180,9 +180,13 @@ def main() -> int:
     args = parser.parse_args()
     with demo_server(port=args.port, autopilot=False) as server, contextlib.ExitStack() as stack:
         client = Client(server.base_url)
-        status, started = client.post_json(
-            f"/api/axes/{RUN_AXIS}/bench/runs", {"kind": "move", "distance": 500}
-        )
+        for _ in range(60):  # a loaded host: the axis may not have telemetry yet
+            status, started = client.post_json(
+                f"/api/axes/{RUN_AXIS}/bench/runs", {"kind": "move", "distance": 500}
+            )
+            if status != 409:
+                break
+            time.sleep(0.5)
         if status != 202:
             print(f"could not start the bench run: {status} {started}", file=sys.stderr)
             return 1
