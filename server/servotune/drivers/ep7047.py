@@ -142,13 +142,7 @@ from servotune.drivers.ep7047_master import (
 )
 from servotune.drivers.validation import validate_command
 from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import (
-    CodecError,
-    PosDiag,
-    PosSettings,
-    SdoObject,
-    StartType,
-)
+from servotune.protocols.ep7047 import CodecError, PosDiag, PosSettings, SdoObject, StartType
 
 logger = logging.getLogger(__name__)
 

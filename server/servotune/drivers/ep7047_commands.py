@@ -10,9 +10,7 @@ import math
 import time
 from collections import deque
 
-from servotune.drivers.base import (
-    DeviceRefusedError,
-)
+from servotune.drivers.base import DeviceRefusedError
 from servotune.drivers.ep7047_jobs import (
     _CALIBRATION_MOVES,
     _ENDLESS_TYPES,
@@ -25,10 +23,7 @@ from servotune.drivers.ep7047_jobs import (
     _StopPhase,
     diag_text,
 )
-from servotune.drivers.ep7047_master import (
-    EthercatError,
-    EthercatSlave,
-)
+from servotune.drivers.ep7047_master import EthercatError, EthercatSlave
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     CHANGE_START_TYPES,

@@ -20,11 +20,7 @@ from servotune.drivers.base import (
     Sample,
 )
 from servotune.drivers.ep7047_commands import _CommandCycle
-from servotune.drivers.ep7047_descriptor import (
-    INVERSION_BITS,
-    INVERSION_PARAMETER,
-    PARAMETER_SDO,
-)
+from servotune.drivers.ep7047_descriptor import INVERSION_BITS, INVERSION_PARAMETER, PARAMETER_SDO
 from servotune.drivers.ep7047_jobs import (
     _DIAG_BITS,
     _POS_BITS,
@@ -54,10 +50,7 @@ from servotune.drivers.ep7047_master import (
     state_name,
 )
 from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import (
-    CodecError,
-    Inputs,
-)
+from servotune.protocols.ep7047 import CodecError, Inputs
 from servotune.wire import LinkState
 
 # The name of the module this came from: log filters and readers keep working.

@@ -19,20 +19,10 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import (
-    DriverSink,
-    Sample,
-)
+from servotune.drivers.base import DriverSink, Sample
 from servotune.drivers.engine import recent_rate_hz
-from servotune.drivers.ep7047_descriptor import (
-    DIAG_FLAGS,
-    POS_FLAGS,
-    STM_FLAGS,
-    ep7047_descriptor,
-)
-from servotune.drivers.ep7047_master import (
-    EthercatMaster,
-)
+from servotune.drivers.ep7047_descriptor import DIAG_FLAGS, POS_FLAGS, STM_FLAGS, ep7047_descriptor
+from servotune.drivers.ep7047_master import EthercatMaster
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     DriveState,
