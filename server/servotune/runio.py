@@ -29,6 +29,7 @@ import io
 import json
 import math
 import os
+import re
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -405,8 +406,40 @@ def csv_rows(rows: Iterable[list[Any]]) -> str:
     return out.getvalue()
 
 
+# Stored chunks are compact JSON written by ``json.dumps`` (``storage.dumps_strict``):
+# numbers in ``repr`` form, ``null``, rows ``[v, ..., [flags]]``. Text made of these
+# characters only is turned into CSV by a few ``str.replace`` calls (C speed, the same
+# text as ``csv_rows``); anything else takes the general path.
+_PLAIN_CHUNK = re.compile(r"[^0-9.,+\-e\[\]nul]")
+
+
 def chunk_csv(storage: Storage, run_id: str, seq: int) -> str:
-    return csv_rows(json.loads(storage.chunk_text(run_id, seq)))
+    """The rows of one stored chunk as CSV lines (see ``csv_rows``).
+
+    Runs in a worker thread of the server, where every millisecond of Python holds
+    the interpreter the event loop needs: so the common case is text work, not a
+    parse and a ``repr`` per value (measured: several times faster)."""
+    text = storage.chunk_text(run_id, seq)
+    fast = plain_chunk_csv(text)
+    return fast if fast is not None else csv_rows(json.loads(text))
+
+
+def plain_chunk_csv(text: str) -> str | None:
+    """``csv_rows(json.loads(text))`` for a compact chunk of numbers and nulls whose
+    rows end in their flag list, or None when ``text`` is anything else."""
+    if not text.startswith("[[") or not text.endswith("]]]") or _PLAIN_CHUNK.search(text):
+        return None
+    if ",[]]" in text:
+        return None  # rows without flags: a lone empty field is written "" by csv
+    body = (
+        text[1:-1]
+        .replace("]],[", "\n")  # row boundaries
+        .replace(",[", ",")  # the flags follow the values
+        .replace("null", "")
+    )
+    if "[" in body[1:] or "]" in body[:-2]:
+        return None  # nested otherwise than [values..., [flags]]
+    return body[1:-2] + "\n"
 
 
 def run_json_head(run: dict[str, Any]) -> str:
