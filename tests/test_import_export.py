@@ -190,3 +190,42 @@ async def test_non_finite_numbers_stored_earlier_never_make_a_run_unreadable(
             ]
             csv_text = (await server.client.get("/api/bench/runs/legacy/samples.csv")).text
             assert csv_text.splitlines()[1:] == ["0.0,,0", "0.1,,1", "0.2,3.5,0"]
+
+
+def test_the_text_path_of_the_csv_export_writes_what_the_csv_writer_writes() -> None:
+    import json
+    import random
+
+    from servotune.runio import csv_rows, plain_chunk_csv
+    from servotune.storage import dumps_strict
+
+    rng = random.Random(3)
+
+    def value() -> float | int | None:
+        r = rng.random()
+        if r < 0.1:
+            return None
+        if r < 0.3:
+            return rng.randint(-(10**6), 10**6)
+        if r < 0.5:
+            return rng.choice([0.0, -0.0, 1e-5, 1e16, 123.456, -2.5e-300, 1.7976931348623157e308])
+        return rng.uniform(-1e6, 1e6)
+
+    taken = 0
+    for _ in range(2000):
+        columns, flags = rng.randint(1, 6), rng.randint(0, 4)
+        rows = [
+            [*(value() for _ in range(columns)), [rng.randint(0, 1) for _ in range(flags)]]
+            for _ in range(rng.randint(1, 20))
+        ]
+        text = dumps_strict(rows)
+        fast = plain_chunk_csv(text)
+        if fast is not None:
+            taken += 1
+            assert fast == csv_rows(json.loads(text)), text
+    assert taken > 1000
+    # anything but numbers, nulls and flag lists takes the general path
+    assert plain_chunk_csv('[[1.0,"a",[0]]]') is None
+    assert plain_chunk_csv("[[1.0,true,[0]]]") is None
+    assert plain_chunk_csv("[[1.0,[2.0,[0]]]]") is None
+    assert plain_chunk_csv("[]") is None

@@ -726,3 +726,38 @@ def test_same_inputs_same_outputs() -> None:
         return bytes(out)
 
     assert session() == session()
+
+
+def test_the_idle_fast_path_gives_the_same_state_bit_for_bit() -> None:
+    """``run_ticks`` (ticks at a fixed point skipped) against ``tick`` one by one."""
+    import random
+
+    def send(module: Slap2Module, line: str) -> bytes:
+        return b"".join(module.receive(byte) for byte in (line + "\r").encode())
+
+    def state(module: Slap2Module) -> tuple[object, ...]:
+        fields = {
+            k: repr(v)
+            for k, v in vars(module).items()
+            if k not in ("_commands", "motor", "_frozen", "_last_fingerprint")
+        }
+        motor = module.motor
+        return (sorted(fields.items()), motor.count, motor.angle_rad, motor.speed_rad_s)
+
+    fast, slow = Slap2Module(0), Slap2Module(0)
+    rng = random.Random(1)
+    lines = ["pm", "ma2000", "mr-500", "sv3000", "ma0", "vm", "sv-1000", "st", "pm", "ma100"]
+    skipped = 0
+    for line in [*lines, "spwm40", "st", "pm", "ma-3000"]:
+        assert send(fast, line) == send(slow, line)
+        for _ in range(30):
+            n = rng.choice([1, 3, 50, 400, 1200])
+            fast.run_ticks(n)
+            for _ in range(n):
+                slow.tick()
+            skipped += fast._frozen is not None
+            assert state(fast) == state(slow), line
+        if rng.random() < 0.5:
+            torque = rng.uniform(-0.01, 0.01)
+            fast.motor.external_torque_nm = slow.motor.external_torque_nm = torque
+    assert skipped > 0  # the fast path was taken

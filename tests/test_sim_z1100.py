@@ -750,3 +750,73 @@ def test_through_a_pty_with_pyserial_at_9600_baud() -> None:
             assert transact(codec.Request(0x03)).code == ReplyCode.UNKNOWN_COMMAND
     finally:
         simulator.stop()
+
+
+def _move_scenario(chip: Z1100Chip) -> list[tuple[object, ...]]:
+    """Random moves (gains, speeds, Stm, stall limits, load torques) on every axis; the
+    complete state of every axis after each advance."""
+    import random
+    from dataclasses import replace
+
+    import servotune.sim.z1100 as sim
+
+    rng = random.Random(7)
+    states: list[tuple[object, ...]] = []
+    t_s = 0.0
+    for _ in range(25):
+        for axis in chip._axes:
+            if rng.random() < 0.5:
+                k = rng.choice([20, 40, 80, 200])
+                axis.p = replace(
+                    axis.p,
+                    kabh=Gains(k, rng.choice([4, 8, 16]), rng.choice([5, 20, 60])),
+                    kabd=Gains(k, 8, 20),
+                    vmax_counts_s=rng.choice([5000, 20000, 80000]),
+                    acc_counts_s2=rng.choice([50000, 200000, 2000000]),
+                    limit_counts=rng.choice([300, 5000, 100000]),
+                    stm=rng.choice([1, 1, 2, 5]),
+                )
+                if not axis.powered:
+                    axis.engage()
+                axis.mode = sim._MOVE
+                axis.running = True
+                axis.target_counts = rng.randint(-20000, 20000)
+            if rng.random() < 0.2:
+                axis.motor.external_torque_nm = rng.uniform(-0.02, 0.02)
+                axis.wake()
+        for _ in range(12):
+            t_s += rng.choice([0.0001, 0.001, 0.005, 0.02])
+            chip.advance_to(t_s)
+            for axis in chip._axes:
+                motor = axis.motor
+                fields = {
+                    k: v
+                    for k, v in vars(axis).items()
+                    if not k.startswith("_per_sample") and k not in ("motor", "hardware")
+                }
+                states.append(
+                    (
+                        repr(sorted(fields.items())),
+                        motor.count,
+                        motor.angle_rad,
+                        motor.speed_rad_s,
+                        motor.current_a,
+                        motor.index_crossed,
+                    )
+                )
+    return states
+
+
+def test_the_move_fast_path_gives_the_same_samples_bit_for_bit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    fast_chip = Z1100Chip()
+    fast = _move_scenario(fast_chip)
+    import servotune.sim.z1100 as sim
+
+    monkeypatch.setattr(sim._Axis, "_move_samples", lambda self, n: 0)
+    slow_chip = Z1100Chip()
+    slow = _move_scenario(slow_chip)
+    assert sum(a.samples for a in fast_chip._axes) == sum(a.samples for a in slow_chip._axes)
+    assert sum(a.samples for a in fast_chip._axes) > 50_000  # the moves really ran
+    assert fast == slow

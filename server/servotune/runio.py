@@ -28,6 +28,8 @@ import csv
 import io
 import json
 import math
+import os
+import re
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -340,6 +342,18 @@ ImportOutcome = tuple[str, str, str]
 """("ok", run id, "") or ("invalid", field, message) or ("storage", "", message)."""
 
 
+IMPORT_NICE = 10
+"""Niceness of the import process (see ``import_in_process``): 10 gives it ~1/10 of the
+CPU weight of a nice-0 process competing for the same core."""
+
+
+def _lower_priority() -> None:
+    # Absolute, not os.nice(): a pool process that ran an import before stays at 10.
+    with contextlib.suppress(OSError, AttributeError):  # not on this OS: run as is
+        current = os.getpriority(os.PRIO_PROCESS, 0)
+        os.setpriority(os.PRIO_PROCESS, 0, max(current, IMPORT_NICE))
+
+
 def import_in_process(
     db_path: str,
     axis_key: str,
@@ -350,7 +364,14 @@ def import_in_process(
 ) -> ImportOutcome:
     """Entry point of the import process: ``body_path`` holds the JSON body, or the
     CSV file when ``meta_bytes`` (multipart) is given. Errors come back as values
-    (exceptions with extra fields do not survive pickling)."""
+    (exceptions with extra fields do not survive pickling).
+
+    The process first lowers its own priority (``IMPORT_NICE``): on a 2-core host it
+    otherwise takes a whole core from the server while the server's event loop and
+    the EtherCAT cycle thread have work to do (measured: STOPs answered after a median
+    0.2-0.4 s, 1.8 s at worst, under load ~22). At nice 10 the kernel gives the server
+    the CPU whenever it is runnable; the import only takes longer."""
+    _lower_priority()
     storage = Storage(Path(db_path))
     try:
         if storage.problem:
@@ -385,8 +406,40 @@ def csv_rows(rows: Iterable[list[Any]]) -> str:
     return out.getvalue()
 
 
+# Stored chunks are compact JSON written by ``json.dumps`` (``storage.dumps_strict``):
+# numbers in ``repr`` form, ``null``, rows ``[v, ..., [flags]]``. Text made of these
+# characters only is turned into CSV by a few ``str.replace`` calls (C speed, the same
+# text as ``csv_rows``); anything else takes the general path.
+_PLAIN_CHUNK = re.compile(r"[^0-9.,+\-e\[\]nul]")
+
+
 def chunk_csv(storage: Storage, run_id: str, seq: int) -> str:
-    return csv_rows(json.loads(storage.chunk_text(run_id, seq)))
+    """The rows of one stored chunk as CSV lines (see ``csv_rows``).
+
+    Runs in a worker thread of the server, where every millisecond of Python holds
+    the interpreter the event loop needs: so the common case is text work, not a
+    parse and a ``repr`` per value (measured: several times faster)."""
+    text = storage.chunk_text(run_id, seq)
+    fast = plain_chunk_csv(text)
+    return fast if fast is not None else csv_rows(json.loads(text))
+
+
+def plain_chunk_csv(text: str) -> str | None:
+    """``csv_rows(json.loads(text))`` for a compact chunk of numbers and nulls whose
+    rows end in their flag list, or None when ``text`` is anything else."""
+    if not text.startswith("[[") or not text.endswith("]]]") or _PLAIN_CHUNK.search(text):
+        return None
+    if ",[]]" in text:
+        return None  # rows without flags: a lone empty field is written "" by csv
+    body = (
+        text[1:-1]
+        .replace("]],[", "\n")  # row boundaries
+        .replace(",[", ",")  # the flags follow the values
+        .replace("null", "")
+    )
+    if "[" in body[1:] or "]" in body[:-2]:
+        return None  # nested otherwise than [values..., [flags]]
+    return body[1:-2] + "\n"
 
 
 def run_json_head(run: dict[str, Any]) -> str:

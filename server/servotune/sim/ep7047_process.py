@@ -51,7 +51,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Final
 
-from servotune.drivers.ep7047 import (
+from servotune.drivers.ep7047_master import (
     INIT_STATE,
     EthercatMailboxError,
     EthercatSdoError,

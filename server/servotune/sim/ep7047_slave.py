@@ -1,7 +1,7 @@
 """A SIMULATED EtherCAT master with simulated EP7047-1032 slaves behind it (a fake).
 
 ``SimulatedEthercatMaster`` implements the driver's library seam
-(``servotune.drivers.ep7047.EthercatMaster``, pysoem's names) without a network: it is
+(``servotune.drivers.ep7047_master.EthercatMaster``, pysoem's names) without a network: it is
 the test fake of the EP7047 driver and what the demo runs in-process. Nothing here
 touches a NIC or raw sockets.
 
@@ -50,7 +50,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final
 
-from servotune.drivers.ep7047 import (
+from servotune.drivers.ep7047_master import (
     INIT_STATE,
     OP_STATE,
     PREOP_STATE,

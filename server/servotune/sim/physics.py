@@ -216,13 +216,25 @@ class DcMotor:
         ``duty=None`` opens the bridge (no current). ``current_limit_a`` (>= 0) makes
         the driver chop at that current. Returns ``current_limited``.
         """
-        f = self._factors(dt_s)
+        f = self._decay_cache.get(dt_s) or self._factors(dt_s)
         if duty is not None:
             duty = 1.0 if duty > 1.0 else -1.0 if duty < -1.0 else duty
             v_cmd: float | None = duty * self.params.supply_v
         else:
             v_cmd = None
         cpr_rad = self._counts_per_rad
+        if f.n == 1 and current_limit_a is None:
+            # The common case of the servo-loop simulators (one piece, no chopper): the
+            # loop below without its bookkeeping, the same arithmetic.
+            limited = self._advance(f, v_cmd, None)
+            count = self.count
+            new_count = math.floor(self.angle_rad * cpr_rad)
+            self.index_crossed = (
+                self._index_between(count, new_count, None) if new_count != count else None
+            )
+            self.count = new_count
+            self.current_limited = limited
+            return limited
         kt = self.params.torque_constant_nm_per_a
         r = self.params.resistance_ohm
         count = self.count

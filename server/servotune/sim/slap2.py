@@ -230,6 +230,9 @@ class Slap2Module:
         self._level2 = False
         self._last_count = 0
         self._vel_filt = 0.0
+        # the idle fast path (run_ticks): the state fingerprint of a fixed point
+        self._frozen: tuple[object, ...] | None = None
+        self._last_fingerprint: tuple[object, ...] | None = None
         # derived from settings by _apply_settings()
         self._kp = self._ki = self._kd = 0
         self._integral_limit = 0
@@ -361,6 +364,7 @@ class Slap2Module:
         self._vel_filt = 0.0
         self.motor.current_a = 0.0  # the bridge was off
         self._update_levels()
+        self._wake()
 
     def _read_eeprom(self) -> dict[str, int]:
         stored: object = None
@@ -433,6 +437,7 @@ class Slap2Module:
 
     def receive(self, byte: int) -> bytes:
         """One host byte arrived; returns this module's transmission (see class doc)."""
+        self._wake()  # a command may change anything the controller reads
         out = bytearray(self._pending)
         self._pending.clear()
         if self._transmitting:
@@ -857,6 +862,84 @@ class Slap2Module:
                     self._inpos = False
         self._oc = motor.step(TICK_S, duty, self._current_limit_a)
 
+    # --- idle fast path ------------------------------------------------------------------
+    # A module at rest whose controller state did not change over a whole tick is at a
+    # fixed point of ``tick``: every later tick is identical until a command or an
+    # outside change (load torque, shaft moved, settings) - except two quantities that
+    # nothing else reads back into the controller: the in-position timer (it counts
+    # ticks, so it is advanced by the number skipped) and the velocity filter (it
+    # decays towards 0; iterated exactly, a float multiply per tick, until it stops
+    # changing). So ``run_ticks`` skips such ticks with the same results, bit for bit,
+    # as running them. This is most of a demo axis's time between moves.
+
+    def _fingerprint(self) -> tuple[object, ...]:
+        """Everything ``tick`` reads or writes, except the timer and the filter."""
+        motor = self.motor
+        settings = self._settings
+        return (
+            self._mode, self._pwm, self._pwm_out, self._sp, self._sp_vel, self._target,
+            self._moving, self._decel, self._cal_phase, self._integral, self._e_prev,
+            self._inpos, self._oc, self._level1, self._level2, self._last_count,
+            self._kp, self._ki, self._kd, self._integral_limit, self._current_limit_a,
+            self._vm_vel, self._vm_acc, self._inv1, self._inv2, self._l1on, self._l2on,
+            settings["sipw"], settings["sipt"],
+            motor.count, motor.angle_rad, motor.speed_rad_s, motor.current_a,
+            motor.external_torque_nm, motor.params, motor.current_limited, motor.index_crossed,
+        )  # fmt: skip
+
+    def _wake(self) -> None:
+        self._frozen = None
+        self._last_fingerprint = None
+
+    def run_ticks(self, n: int) -> None:
+        """Run ``n`` controller ticks: the same as ``n`` calls of ``tick``, with the
+        ticks of a fixed point skipped (see above)."""
+        frozen = self._frozen
+        if frozen is not None:
+            if n > 0 and self._fingerprint() == frozen:
+                self._skip_ticks(n)
+                return
+            self._wake()
+        while n > 0:
+            self.tick()
+            n -= 1
+            if (
+                self._moving
+                or self._cal_phase != _CAL_NONE
+                or self.motor.speed_rad_s != 0.0
+                or self.motor.index_crossed is not None
+            ):
+                self._last_fingerprint = None
+                continue
+            fingerprint = self._fingerprint()
+            if fingerprint == self._last_fingerprint:
+                self._frozen = fingerprint
+                if n > 0:
+                    self._skip_ticks(n)
+                return
+            self._last_fingerprint = fingerprint
+
+    def _skip_ticks(self, n: int) -> None:
+        """What ``n`` ticks at the frozen fixed point would change."""
+        v = self._vel_filt
+        for _ in range(n):  # the count does not change: count - last_count is 0
+            v_next = v + (0 - v) * _VEL_FILTER
+            if v_next == v:
+                break
+            v = v_next
+        self._vel_filt = v
+        if self._mode == _MODE_OFF or self._mode == _MODE_PWM:
+            return
+        if self._mode == _MODE_PM and not self._moving:
+            sipw = self._settings["sipw"]
+            e = math.floor(self._sp + 0.5) - self.motor.count
+            if -sipw <= e <= sipw:
+                self._inpos_timer += n
+                self._inpos = self._inpos_timer >= self._settings["sipt"]
+            else:
+                self._inpos_timer = 0
+                self._inpos = False
+
     def _stop_here(self, count: int) -> None:
         """Abrupt stop: the setpoint jumps to the actual position."""
         self._sp = float(count)
@@ -1033,13 +1116,12 @@ class Slap2Bus:
         if t_s > self._time_s:
             self._time_s = t_s
             due = math.floor(t_s / TICK_S + 1e-9)
-            modules = self._modules
-            ticks = self._ticks
-            while ticks < due:
-                for module in modules:
-                    module.tick()
-                ticks += 1
-            self._ticks = ticks
+            if due > self._ticks:
+                # The modules do not interact between two host bytes (each has its own
+                # motor), so each runs its ticks in one go: the same as lock-step.
+                for module in self._modules:
+                    module.run_ticks(due - self._ticks)
+                self._ticks = due
         return b"".join(module.take_output() for module in self._modules)
 
     def receive(self, byte: int) -> bytes:

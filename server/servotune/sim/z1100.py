@@ -269,6 +269,8 @@ class _Axis:
         self.y_last = 0
         self.frozen: tuple[int, float, float, object] | None = None
         self.next_tick = 0
+        self._per_sample_key: tuple[int, int, int] | None = None
+        self._per_sample_value = (0.0, 0.0)
         self.update_signs()
         self.motor.current_a = 0.0  # the bridge is off
 
@@ -330,8 +332,16 @@ class _Axis:
     # --- profile -----------------------------------------------------------------------
 
     def _per_sample(self, speed_counts_s: int, acc_counts_s2: int) -> tuple[float, float]:
-        ts = self.sample_s
-        return _positive(speed_counts_s) * ts, _positive(acc_counts_s2) * ts * ts
+        # Cached: called every sample (31250 a second at Stm 1) with the same inputs.
+        key = (speed_counts_s, acc_counts_s2, self.p.stm)
+        if key != self._per_sample_key:
+            ts = self.sample_s
+            self._per_sample_key = key
+            self._per_sample_value = (
+                _positive(speed_counts_s) * ts,
+                _positive(acc_counts_s2) * ts * ts,
+            )
+        return self._per_sample_value
 
     def _ramp(self, v_goal: float, acc: float) -> None:
         v = self.ref_v
@@ -422,7 +432,8 @@ class _Axis:
         over the sampling period with the PWM just computed held (zero-order hold)."""
         self.samples += 1
         motor = self.motor
-        ts = self.sample_s
+        stm = self.p.stm
+        ts = (stm if stm > 1 else 1) * STM_TICK_S  # sample_s, inlined: this runs 31 kHz
         phys = motor.count
         delta = phys - self.last_phys
         if delta:
@@ -512,8 +523,132 @@ class _Axis:
                 skipped = (due_tick - self.next_tick) // stm + 1
                 self.next_tick += skipped * stm
                 break
+            if self.running and self.powered and self.mode == _MOVE:
+                done = self._move_samples((due_tick - self.next_tick) // stm + 1)
+                if done:
+                    self.next_tick += done * stm
+                    continue
             self.sample()
             self.next_tick += stm
+
+    # --- the move fast path ----------------------------------------------------------------
+    # Most samples of a busy axis are samples of a positioning move with the shaft
+    # turning. ``_move_samples`` runs them with the state in local variables and the
+    # motor's step inlined (the "bridge on, shaft turning" case of DcMotor._advance,
+    # one piece, no chopper): the same operations in the same order as ``sample`` ->
+    # ``profile_step`` -> ``_approach`` -> ``DcMotor.step``, so the results are the same
+    # bit for bit (tests/test_sim_z1100.py compares the two). It hands over to
+    # ``sample`` - before changing anything - for every sample that may take another
+    # branch: the shaft at rest, the move ending, the stall limit exceeded.
+
+    def _move_samples(self, n: int) -> int:
+        """Run up to ``n`` samples of a running move on the fast path; returns how many."""
+        motor = self.motor
+        params = motor.params
+        stm = self.p.stm
+        ts = (stm if stm > 1 else 1) * STM_TICK_S
+        f = motor._decay_cache.get(ts) or motor._factors(ts)
+        if f.n != 1:
+            return 0
+        p = self.p
+        vmax, acc = self._per_sample(p.vmax_counts_s, p.acc_counts_s2)
+        goal = float(self.target_counts)
+        limit = p.limit_counts
+        gains = p.kabh
+        gk, ga, gb = gains.k, gains.a, gains.b
+        out_sign = self.out_sign
+        enc_sign = self.enc_sign
+        supply = params.supply_v
+        tc = params.coulomb_friction_nm
+        ext = motor.external_torque_nm
+        cpr_rad = motor._counts_per_rad
+        on_ii, on_iw, on_iv, on_it = f.on_ii, f.on_iw, f.on_iv, f.on_it
+        on_wi, on_ww, on_wv, on_wt = f.on_wi, f.on_ww, f.on_wv, f.on_wt
+        on_ai, on_aw, on_av, on_at = f.on_ai, f.on_aw, f.on_av, f.on_at
+        e_hist, y_hist = self.e_hist, self.y_hist
+        hist_i = self.hist_i
+        counter, last_phys = self.counter, self.last_phys
+        ref, ref_v = self.ref, self.ref_v
+        count = motor.count
+        i, w, angle = motor.current_a, motor.speed_rad_s, motor.angle_rad
+        crossed = motor.index_crossed
+        duty = self.duty
+        e = self.error
+        y = self.y_last
+        floor, sqrt = math.floor, math.sqrt
+        done = 0
+        while done < n:
+            if w == 0.0:
+                break  # at rest: stiction decides (DcMotor._advance's other branch)
+            # encoder
+            delta = count - last_phys
+            y_new = counter
+            if delta:
+                y_new = counter + delta * enc_sign
+            # profile (_approach towards the target)
+            remaining = goal - ref
+            distance = abs(remaining)
+            speed = min(abs(ref_v) + acc, vmax, sqrt(2.0 * acc * distance))
+            if speed >= distance:
+                break  # the move ends in this sample: ``sample`` does it (finish)
+            step = speed if remaining > 0 else -speed
+            ref_new = ref + step
+            e_new = floor(ref_new + 0.5) - y_new
+            if e_new > limit or e_new < -limit:
+                break  # stall protection: ``sample`` does it
+            # committed from here on
+            if delta:
+                last_phys = count
+                counter = y_new
+            ref, ref_v = ref_new, step
+            e, y = e_new, y_new
+            de = e - e_hist[hist_i]
+            dy = y - y_hist[hist_i]
+            e_hist[hist_i] = e
+            y_hist[hist_i] = y
+            hist_i = hist_i + 1 if hist_i + 1 < DERIVATIVE_WINDOW else 0
+            u = gk * (ERROR_WEIGHT * e + ga * de) - gb * dy
+            pwm = int(u / OUTPUT_SHIFT_DIVISOR)
+            if pwm > PWM_FULL_SCALE:
+                pwm = PWM_FULL_SCALE
+            elif pwm < -PWM_FULL_SCALE:
+                pwm = -PWM_FULL_SCALE
+            duty = out_sign * pwm / PWM_FULL_SCALE
+            # DcMotor.step(ts, duty): one piece, bridge on, shaft turning
+            d = 1.0 if duty > 1.0 else -1.0 if duty < -1.0 else duty
+            v = d * supply
+            direction = 1.0 if w > 0.0 else -1.0
+            torque = ext - direction * tc
+            free = on_ii * i + on_iw * w + on_it * torque
+            i_end = free + on_iv * v
+            w_new = on_wi * i + on_ww * w + on_wv * v + on_wt * torque
+            d_angle = on_ai * i + on_aw * w + on_av * v + on_at * torque
+            i = i_end
+            if w_new != 0.0 and (w_new > 0.0) != (direction > 0.0):
+                w_new = 0.0
+            angle += d_angle
+            w = w_new
+            new_count = floor(angle * cpr_rad)
+            if new_count != count:
+                crossed = motor._index_between(count, new_count, None)
+                count = new_count
+            else:
+                crossed = None
+            done += 1
+        if done:
+            self.samples += done
+            self.hist_i = hist_i
+            self.counter, self.last_phys = counter, last_phys
+            self.ref, self.ref_v = ref, ref_v
+            self.error = e
+            self.duty = duty
+            self.still = 0  # running: as in ``sample``
+            self.e_last, self.y_last = e, y
+            motor.count = count
+            motor.current_a, motor.speed_rad_s, motor.angle_rad = i, w, angle
+            motor.index_crossed = crossed
+            motor.current_limited = False
+        return done
 
     def state(self) -> AxisState:
         """A snapshot for observers."""

@@ -1,0 +1,108 @@
+"""Server-side CPU of one EP7047 link per sample, the simulator in its own process.
+
+Starts the simulated EP7047-1032 as ``servotune sim`` does (its own process, behind the
+master seam), runs the driver's link in this process for ``--seconds`` with the axis
+enabled and an endless move running (so the inputs change every cycle), and prints
+this process's CPU time (user + system, ``os.times``; the simulator's is not counted)
+per second and per 1000 samples delivered to the event loop. The figure covers the
+cycle thread (exchange, handshakes, sample) and the delivery to the loop; a
+counting sink stands in for the hub.
+
+Run: ``PYTHONPATH=server python scripts/bench_ep7047_link.py [--seconds 10]``. Compare
+two versions on the same machine state (alternate them; a loaded host lowers the rate
+but the CPU per sample much less).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+from servotune.drivers.base import Sample
+from servotune.drivers.ep7047 import build_ep7047_link
+from servotune.sim.ep7047_process import ProcessMaster, ep7047_sim_process
+from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+
+
+class CountingSink:
+    """A DriverSink that only counts samples."""
+
+    def __init__(self) -> None:
+        self.samples = 0
+        self.state = ""
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        self.samples += 1
+
+    def on_link_status(self, link_id: str, state: str, message: str, *_: object) -> None:
+        self.state = state
+
+    def on_axis_health(self, axis_id: str, health: str, message: str) -> None:
+        pass
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None:
+        pass
+
+    def on_event(self, level: str, axis_id: str | None, message: str) -> None:
+        pass
+
+
+async def measure(seconds: float) -> None:
+    with tempfile.TemporaryDirectory(prefix="bench-ep7047-") as scratch:
+        simulator = ep7047_sim_process(Path(scratch) / "record.json")
+        await asyncio.to_thread(simulator.start)
+        try:
+            sink = CountingSink()
+            link = build_ep7047_link(
+                "ec",
+                simulator.ready["path"],
+                1,
+                sink,  # type: ignore[arg-type]
+                master=ProcessMaster(simulator.ready["path"].removeprefix("sim:")),
+                speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+                counts_per_rev=DEMO_COUNTS_PER_REV,
+            )
+            task = asyncio.create_task(link.run())
+            for _ in range(300):
+                if link.state == "connected":
+                    break
+                await asyncio.sleep(0.05)
+            axis = link.axes[0]
+            await axis.command("enable", {})
+            await axis.command(
+                "execute_move",
+                {"start_type": 0x0003, "target": 0, "velocity": 1000},  # ENDLESS_PLUS
+            )
+            await asyncio.sleep(0.5)
+            before, samples_before, t0 = os.times(), sink.samples, time.monotonic()
+            await asyncio.sleep(seconds)
+            after, samples, wall = os.times(), sink.samples - samples_before, time.monotonic() - t0
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        finally:
+            await asyncio.to_thread(simulator.stop)
+    cpu = (after.user - before.user) + (after.system - before.system)
+    print(
+        f"{wall:.1f} s: {samples / wall:.0f} samples/s; this process {cpu / wall:.3f} CPU s/s, "
+        f"{cpu / max(samples, 1) * 1e6:.0f} us CPU per sample; load {os.getloadavg()[0]:.2f}"
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    args = parser.parse_args()
+    asyncio.run(measure(args.seconds))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
