@@ -32,6 +32,8 @@ from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune import AutoTuner
+from servotune.bus.connection import BusSettings
+from servotune.bus.lifecycle import BusLifecycle
 from servotune.config import LinkSpec
 from servotune.control import ControlManager, ControlSettings
 from servotune.drivers.base import (
@@ -68,6 +70,7 @@ class AppConfig:
     security: SecurityConfig = field(default_factory=SecurityConfig)
     control: ControlSettings = field(default_factory=ControlSettings)
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
+    bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -112,6 +115,11 @@ def create_app(config: AppConfig) -> FastAPI:
             hub = Hub([], storage, autopilot=config.autopilot)
             for spec in specs:
                 hub.add_link(build_link(spec, hub))
+            # bus: the hub registers the rigs' links before it starts (servotune.bus).
+            bus = BusLifecycle(config.bus) if config.bus is not None else None
+            app.state.bus = bus
+            if bus is not None:
+                await bus.prepare(hub, storage)
             bench = TestBench(hub, storage)
             app.state.hub = hub
             app.state.bench = bench
@@ -127,9 +135,13 @@ def create_app(config: AppConfig) -> FastAPI:
             await control.start()
             await bench.start()
             app.state.twin = await Twin.start(hub) if config.twin else None
+            if bus is not None:
+                await bus.start(hub, control, storage)
             try:
                 yield
             finally:
+                if bus is not None:
+                    await bus.stop()
                 await control.shutdown()
                 if app.state.twin is not None:
                     await app.state.twin.stop()
