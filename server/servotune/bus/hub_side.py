@@ -1,13 +1,13 @@
 """The central hub on the bus (``servotune hub --bus URL``): finds the lab's rigs, feeds
 their ``RemoteLink``s, keeps its session alive on every rig, and collects their runs.
 
-* Rigs come from the ``servotune_rigs`` bucket at start-up (a rig that was ever on the
+* Rigs come from the rigs stream (last manifest per rig) at start-up (a rig that was ever on the
   bus is listed, offline until its presence says otherwise). A rig that registers
   later is announced with an event; the hub lists it after a restart (the control
   lock and the websocket's ``hello`` are built once, at start-up).
-* Presence: the hub listens to the puts of ``servotune_presence`` (every 0.5 s per
-  rig); ``offline_after_s`` (1.5 s) of silence shows the rig offline, and its deleted
-  key (a rig stopping cleanly) at once.
+* Presence: the hub listens to the rigs' presence messages (every 0.5 s per rig);
+  ``offline_after_s`` (1.5 s) of silence shows the rig offline, and a "gone" presence
+  (a rig stopping cleanly) at once.
 * Keep-alive: every ``keepalive_period_s`` (100 ms) on the STOP connection, to every
   rig, with this hub's session id; the rig's dead-man stops what this session moved
   when they stop coming (hub killed, lab network or leaf link cut).
@@ -31,8 +31,8 @@ from nats.aio.client import Client
 from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import TimeoutError as NatsTimeoutError
-from nats.js.api import ConsumerConfig, KeyValueConfig, StorageType, StreamConfig
-from nats.js.errors import BucketNotFoundError, NotFoundError
+from nats.js.api import ConsumerConfig, StorageType, StreamConfig
+from nats.js.errors import NotFoundError
 from nats.js.errors import Error as JetStreamError
 from pydantic import ValidationError
 
@@ -49,32 +49,47 @@ RUNS_DUPLICATE_WINDOW_S = 24 * 3600.0
 
 
 async def ensure_bus_state(nc: Client) -> None:
-    """Create the buckets and the runs stream if they are missing (the hub's job)."""
+    """Create the rigs, presence and runs streams if they are missing (the hub's job)."""
     js = nc.jetstream()
     for config in (
-        KeyValueConfig(bucket=subjects.RIGS_BUCKET, history=1, storage=StorageType.FILE),
-        KeyValueConfig(
-            bucket=subjects.PRESENCE_BUCKET,
-            history=1,
-            ttl=subjects.PRESENCE_TTL_S,
+        StreamConfig(
+            name=subjects.RIGS_STREAM,
+            subjects=[subjects.RIGS_SUBJECTS],
+            max_msgs_per_subject=1,
+            storage=StorageType.FILE,
+        ),
+        StreamConfig(
+            name=subjects.PRESENCE_STREAM,
+            subjects=[subjects.PRESENCE_SUBJECTS],
+            max_msgs_per_subject=1,
+            max_age=subjects.PRESENCE_TTL_S,
             storage=StorageType.MEMORY,
         ),
+        StreamConfig(
+            name=subjects.RUNS_STREAM,
+            subjects=[subjects.RUNS_SUBJECTS],
+            storage=StorageType.FILE,
+            duplicate_window=RUNS_DUPLICATE_WINDOW_S,
+        ),
     ):
+        assert config.name is not None
         try:
-            await js.key_value(config.bucket)
-        except BucketNotFoundError:
-            await js.create_key_value(config=config)
-    try:
-        await js.stream_info(subjects.RUNS_STREAM)
-    except NotFoundError:
-        await js.add_stream(
-            config=StreamConfig(
-                name=subjects.RUNS_STREAM,
-                subjects=[subjects.RUNS_SUBJECTS],
-                storage=StorageType.FILE,
-                duplicate_window=RUNS_DUPLICATE_WINDOW_S,
-            )
-        )
+            await js.stream_info(config.name)
+        except NotFoundError:
+            await js.add_stream(config=config)
+
+
+async def last_values(nc: Client, stream: str) -> dict[str, bytes]:
+    """The last message of every subject of a one-message-per-subject stream."""
+    js = nc.jetstream()
+    info = await js.stream_info(stream, subjects_filter=">")
+    found = {}
+    for subject in sorted((info.state.subjects or {}).keys()):
+        with contextlib.suppress(NotFoundError):
+            msg = await js.get_last_msg(stream, subject)
+            if msg.data is not None:
+                found[subject.split(".")[2]] = msg.data
+    return found
 
 
 class HubBus:
@@ -110,17 +125,9 @@ class HubBus:
             self._settings.request_timeout_s,
             self._settings.stop_timeout_s,
         )
-        kv = await self._nc.jetstream().key_value(subjects.RIGS_BUCKET)
-        try:
-            rigs = await kv.keys()
-        except NotFoundError:
-            rigs = []
-        for rig in sorted(rigs):
-            entry = await kv.get(rig)
-            if entry.value is None:
-                continue
+        for rig, data in (await last_values(self._nc, subjects.RIGS_STREAM)).items():
             try:
-                manifest = RigManifest.model_validate_json(entry.value)
+                manifest = RigManifest.model_validate_json(data)
             except ValidationError as exc:
                 logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
                 continue
@@ -144,17 +151,15 @@ class HubBus:
         prefix = subjects.PREFIX
         await self._nc.subscribe(f"{prefix}.*.*.*.telemetry", cb=self._on_telemetry)
         await self._nc.subscribe(f"{prefix}.*.events", cb=self._on_events)
-        await self._nc.subscribe(f"$KV.{subjects.PRESENCE_BUCKET}.*", cb=self._on_presence)
-        await self._nc.subscribe(f"$KV.{subjects.RIGS_BUCKET}.*", cb=self._on_manifest)
+        await self._nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
+        await self._nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
         await self._nc.flush()
-        # Rigs already present: their last presence (within its TTL) counts.
-        kv = await self._nc.jetstream().key_value(subjects.PRESENCE_BUCKET)
+        # Rigs already present: their last presence (younger than its age limit) counts.
+        present = await last_values(self._nc, subjects.PRESENCE_STREAM)
         for rig, links in self._rigs.items():
-            with contextlib.suppress(NotFoundError, JetStreamError):
-                entry = await kv.get(rig)
-                if entry.value:
-                    for link in links:
-                        link.on_presence()
+            if rig in present and present[rig] != b"{}":
+                for link in links:
+                    link.on_presence()
         self._spawn(self._keepalive(), "bus: keep-alive")
         self._spawn(self._collect_runs(), "bus: runs")
 
@@ -172,7 +177,13 @@ class HubBus:
     def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
         task = asyncio.create_task(job, name=name)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            # A bug must be visible, not silently end the bus side.
+            logger.error("%s failed", task.get_name(), exc_info=task.exception())
 
     # --- what the rigs publish --------------------------------------------------------
 
@@ -217,16 +228,16 @@ class HubBus:
                 return
 
     async def _on_presence(self, msg: Msg) -> None:
-        rig = msg.subject.rsplit(".", 1)[-1]
-        operation = msg.headers.get("KV-Operation") if msg.headers else None
+        rig = msg.subject.split(".")[2]
+        gone = bool(msg.headers and msg.headers.get(subjects.GONE_HEADER))
         for link in self._rigs.get(rig, []):
-            if operation in ("DEL", "PURGE"):
+            if gone:
                 link.on_gone()
             else:
                 link.on_presence()
 
     async def _on_manifest(self, msg: Msg) -> None:
-        rig = msg.subject.rsplit(".", 1)[-1]
+        rig = msg.subject.split(".")[2]
         if rig not in self._rigs and self._hub is not None:
             self._hub.on_event(
                 "warning",

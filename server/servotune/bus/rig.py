@@ -2,8 +2,9 @@
 
 What it does, beside everything the rig's server does anyway:
 
-* publishes its manifest (links, axes, descriptors) in the ``servotune_rigs`` bucket and
-  its presence in ``servotune_presence`` every ``presence_period_s``;
+* publishes its manifest (links, axes, descriptors) on ``servotune.v1.<rig>.manifest``
+  and its presence on ``servotune.v1.<rig>.presence`` every ``presence_period_s`` (both
+  kept as last values by the lab's JetStream, see ``subjects``);
 * forwards the hub's fan-out, exactly as a websocket client gets it: telemetry batches
   (about 30 a second per axis, never one message per sample) on
   ``servotune.v1.<rig>.<link>.<axis>.telemetry``, status, parameters and events on
@@ -158,7 +159,6 @@ class RigAgent:
         await self._nc.flush()
         published = await asyncio.to_thread(self._storage.get_meta, _PUBLISHED_META)
         self._published = set(published) if isinstance(published, list) else set()
-        await self._put_manifest()
         self._queue = self._hub.subscribe()
         self._spawn(self._forward(self._queue), "bus: forward fan-out")
         self._spawn(self._presence(), "bus: presence")
@@ -175,9 +175,11 @@ class RigAgent:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         if graceful and self._nc is not None and self._nc.is_connected:
-            with contextlib.suppress(NatsError, JetStreamError, TimeoutError):
-                kv = await self._nc.jetstream().key_value(subjects.PRESENCE_BUCKET)
-                await kv.delete(self.rig)
+            with contextlib.suppress(NatsError, TimeoutError):
+                await self._nc.publish(
+                    subjects.presence(self.rig), b"{}", headers={subjects.GONE_HEADER: "1"}
+                )
+                await self._nc.flush(timeout=1)
         for client, _ in self._sessions.values():
             self._control.disconnect(client)
         self._sessions.clear()
@@ -189,7 +191,13 @@ class RigAgent:
     def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
         task = asyncio.create_task(job, name=name)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            # A bug must be visible, not silently end the bus side.
+            logger.error("%s failed", task.get_name(), exc_info=task.exception())
 
     # --- what the rig offers ----------------------------------------------------------
 
@@ -205,20 +213,28 @@ class RigAgent:
         return RigManifest(rig=self.rig, server_version=__version__, links=links)
 
     async def _put_manifest(self) -> None:
+        """The manifest on the rigs stream (the hub lists the rig from it), acknowledged."""
         assert self._nc is not None
-        kv = await self._nc.jetstream().key_value(subjects.RIGS_BUCKET)
-        await kv.put(self.rig, self.manifest().model_dump_json().encode())
+        await self._nc.jetstream().publish(
+            subjects.manifest(self.rig),
+            self.manifest().model_dump_json().encode(),
+            timeout=self._settings.request_timeout_s,
+        )
 
     async def _presence(self) -> None:
         assert self._nc is not None
         period = self._settings.presence_period_s
-        kv = None
+        manifest_put = False
         while True:
             try:
-                if kv is None:
-                    kv = await self._nc.jetstream().key_value(subjects.PRESENCE_BUCKET)
+                if not manifest_put:
+                    # Until the lab's server has the bucket (the hub creates it) and the
+                    # leaf link is up: the rig works meanwhile, it is just not listed.
+                    await self._put_manifest()
+                    manifest_put = True
                 body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
-                await kv.put(self.rig, body.model_dump_json().encode())
+                # Not acknowledged: the next one follows in ``period``.
+                await self._nc.publish(subjects.presence(self.rig), body.model_dump_json().encode())
             except (NatsError, JetStreamError, TimeoutError) as exc:
                 # Lab network down: the rig keeps working; presence resumes with it.
                 logger.debug("presence not published: %s", exc)

@@ -11,16 +11,23 @@ from __future__ import annotations
 import re
 
 PREFIX = "servotune.v1"
-# Last-value state (JetStream key-value): a rig's manifest (links, axes, descriptors:
-# kept, so the hub lists a rig that is offline), and its presence (a TTL: an entry
-# older than that is gone, so a hub starting later never sees a dead rig as present).
-RIGS_BUCKET = "servotune_rigs"
-PRESENCE_BUCKET = "servotune_presence"
-STATUS_BUCKET = "servotune_status"
+# Last-value state: a rig's manifest (links, axes, descriptors: kept, so the hub lists
+# a rig that is offline) and its presence (an age limit: older than that it is gone, so
+# a hub starting later never sees a dead rig as present). Each is a stream with one
+# message per subject and an age limit: exactly what a JetStream key-value bucket is
+# underneath, on subjects inside the rig's own subtree. Why not the KV API: a KV bucket
+# lives on ``$KV.<bucket>.*``, and nats-server 2.9 denies ``$KV.>`` and ``$JS.API.>``
+# across a leaf node unless the system account is shared with the rig (docs/lab.md).
+RIGS_STREAM = "SERVOTUNE_RIGS"
+RIGS_SUBJECTS = f"{PREFIX}.*.manifest"
+PRESENCE_STREAM = "SERVOTUNE_PRESENCE"
+PRESENCE_SUBJECTS = f"{PREFIX}.*.presence"
 PRESENCE_TTL_S = 2.0
 # Recorded runs: one JetStream stream, one subject per rig, kept by the bus server.
 RUNS_STREAM = "SERVOTUNE_RUNS"
 RUNS_SUBJECTS = f"{PREFIX}.*.runs"
+# Header of a presence message that says the rig left (a clean stop).
+GONE_HEADER = "St-Gone"
 
 _TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 # Verbs that are not descriptor commands (a descriptor command name is a verb too).
@@ -55,6 +62,14 @@ def axis_cmd(rig: str, link: str, axis: str, verb: str) -> str:
 def rig_cmd(rig: str, verb: str) -> str:
     """Rig-wide requests: ``stop_all``, ``keepalive`` (hub session lease)."""
     return f"{PREFIX}.{rig}.cmd.{verb}"
+
+
+def manifest(rig: str) -> str:
+    return f"{PREFIX}.{rig}.manifest"
+
+
+def presence(rig: str) -> str:
+    return f"{PREFIX}.{rig}.presence"
 
 
 def events(rig: str) -> str:
