@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from nats.js.errors import NotFoundError
 from servotune.api.app import AppConfig, create_app
 from servotune.bus.connection import BusSettings
 from servotune.bus.hub_side import ensure_bus_state
-from servotune.bus.subjects import RIGS_STREAM, manifest
+from servotune.bus.subjects import RIGS_STREAM, axis_cmd, manifest, rig_cmd
 from servotune.config import LinkSpec
 from servotune.control import ControlSettings
 
@@ -35,6 +36,7 @@ from .control_support import WireRecorder, recorded_line
 from .nats_support import Lab, nats_lab
 
 RIGS = ["rig-a", "rig-b"]
+VM = 1 << 2  # SLAP2 rss bit: velocity mode
 
 
 @dataclass
@@ -175,3 +177,188 @@ async def test_the_hub_lists_every_axis_of_both_rigs(lab: LabRun) -> None:
     assert ids == {f"{rig}.line-{a}" for rig in RIGS for a in (0, 1)}
     links = (await lab.hub_client.get("/api/links")).json()
     assert {link["id"] for link in links} == {"rig-a.line", "rig-b.line"}
+
+
+def rig_app(lab: LabRun, name: str) -> App:
+    app = lab.rigs[name].app
+    assert app is not None
+    return app
+
+
+async def hub_nats(lab: LabRun, user: str = "hub", **options: Any) -> Any:
+    credentials = lab.lab.users[user]
+    return await nats.connect(
+        lab.lab.url, user=credentials.name, password=credentials.password, **options
+    )
+
+
+async def test_a_gain_written_at_the_hub_reaches_that_rig_and_reads_back(lab: LabRun) -> None:
+    before_a = (await rig_app(lab, "rig-a").client.get("/api/axes/line-1/params")).json()
+    t0 = time.monotonic()
+    response = await lab.hub_client.patch("/api/axes/rig-b.line-1/params", json={"kp": 123})
+    assert response.status_code == 200, response.text
+    assert response.json()["kp"] == 123  # the rig's read-back of the device
+    # The device itself: rig-b's module 1 got it on its wire and reads it back ...
+    assert any(line.startswith("kp") for _, line in lab.rigs["rig-b"].wire.since(t0, 1))
+    device = (await rig_app(lab, "rig-b").client.get("/api/axes/line-1/params")).json()
+    assert device["kp"] == 123
+    # ... and nothing reached rig-a or the other module of rig-b.
+    assert not [line for _, line in lab.rigs["rig-a"].wire.since(t0) if line.startswith("kp")]
+    assert not [line for _, line in lab.rigs["rig-b"].wire.since(t0, 0) if line.startswith("kp")]
+    after_a = (await rig_app(lab, "rig-a").client.get("/api/axes/line-1/params")).json()
+    assert after_a["kp"] == before_a["kp"]
+    # The hub's view follows the rig's read-back.
+    await wait_for(
+        lambda: run_hub_values(lab, "rig-b.line-1").get("kp") == 123, 2, "hub shows kp 123"
+    )
+
+
+def run_hub_values(lab: LabRun, axis_id: str) -> dict[str, int]:
+    assert lab.hub is not None
+    values: dict[str, int] = lab.hub.app.state.hub.entry(axis_id).device_values
+    return values
+
+
+async def test_a_bad_value_is_refused_by_the_rig_itself_and_nothing_is_sent(
+    lab: LabRun,
+) -> None:
+    # Through the hub: 422 naming the field (the hub checks too, before the bus).
+    t0 = time.monotonic()
+    response = await lab.hub_client.patch("/api/axes/rig-a.line-0/params", json={"kp": 40000})
+    assert response.status_code == 422 and response.json()["field"] == "kp"
+    # Past the hub, straight onto the bus with the hub's credentials: the rig refuses
+    # it on its own with the same answer; the hub is not trusted for safety.
+    nc = await hub_nats(lab)
+    try:
+        body = json.dumps({"session": "x" * 16, "hub": "handmade", "values": {"kp": 40000}})
+        msg = await nc.request(
+            axis_cmd("rig-a", "line", "line-0", "write_params"), body.encode(), timeout=5
+        )
+    finally:
+        await nc.close()
+    reply = json.loads(msg.data)
+    assert reply["ok"] is False and reply["kind"] == "invalid" and reply["field"] == "kp"
+    assert "32767" in reply["detail"]
+    await asyncio.sleep(0.2)
+    assert not [line for _, line in lab.rigs["rig-a"].wire.since(t0) if line.startswith("kp")]
+
+
+async def test_a_viewers_handmade_command_is_rejected_by_nats_server(lab: LabRun) -> None:
+    errors: list[Exception] = []
+
+    async def on_error(exc: Exception) -> None:
+        errors.append(exc)
+
+    agent = rig_app(lab, "rig-a").app.state.bus.rig
+    handled = len(agent.verbs_handled)
+    t0 = time.monotonic()
+    nc = await hub_nats(lab, "viewer", error_cb=on_error)
+    try:
+        body = json.dumps({"session": "x" * 16, "hub": "viewer", "args": {}}).encode()
+        await nc.publish(axis_cmd("rig-a", "line", "line-0", "velocity_mode"), body)
+        await nc.publish(rig_cmd("rig-a", "stop_all"), body)
+        await nc.flush(timeout=2)
+        await wait_for(lambda: len(errors) >= 2, 3, "two permission violations")
+    finally:
+        await nc.close()
+    assert all("permissions violation" in str(e).lower() for e in errors), errors
+    await asyncio.sleep(0.3)
+    handled_since = agent.verbs_handled[handled:]
+    assert "velocity_mode" not in handled_since and "stop_all" not in handled_since
+    assert not [line for _, line in lab.rigs["rig-a"].wire.since(t0) if line == "vm"]
+    assert not lab.rigs["rig-a"].wire.bus.module(0).rss & VM
+
+
+async def test_a_rig_cut_off_is_offline_within_2_s_and_refused_at_once(lab: LabRun) -> None:
+    assert lab.hub is not None
+    hub = lab.hub.app.state.hub
+    await lab.lab.proxies["rig-b"].cut()
+    cut = time.monotonic()
+    await wait_for(lambda: hub.entry("rig-b.line-0").health == "offline", 2.5, "rig-b offline")
+    offline_after_s = time.monotonic() - cut
+    assert offline_after_s <= 2.0, f"shown offline only after {offline_after_s:.2f} s"
+    assert hub.link_status("rig-b.line").state != "connected"
+    started = time.monotonic()
+    response = await lab.hub_client.patch("/api/axes/rig-b.line-0/params", json={"kp": 50})
+    refused_s = time.monotonic() - started
+    assert response.status_code == 503 and "offline" in response.json()["detail"]
+    # Refused before anything is sent, not after a request timeout (5 s).
+    assert refused_s < 1.0
+    # rig-a is not affected.
+    assert hub.entry("rig-a.line-0").health != "offline"
+    response = await lab.hub_client.patch("/api/axes/rig-a.line-0/params", json={"kp": 50})
+    assert response.status_code == 200, response.text
+
+
+async def test_a_rig_stopping_cleanly_is_offline_at_once(lab: LabRun) -> None:
+    assert lab.hub is not None
+    hub = lab.hub.app.state.hub
+    rig = lab.rigs["rig-b"]
+    await stop_app(rig.app)
+    rig.app = None
+    await wait_for(lambda: hub.entry("rig-b.line-1").health == "offline", 2.0, "rig-b offline")
+    response = await lab.hub_client.post(
+        "/api/axes/rig-b.line-1/commands", json={"command": "position_mode"}
+    )
+    assert response.status_code == 503, response.text
+
+
+async def test_motion_started_from_the_hub_stops_when_the_rigs_network_is_cut(
+    lab: LabRun,
+) -> None:
+    """The dead-man lives on the rig: the hub session's keep-alives stop coming, the
+    rig's own watchdog stops what that session set in motion."""
+    wire = lab.rigs["rig-a"].wire
+    response = await lab.hub_client.post(
+        "/api/axes/rig-a.line-0/commands", json={"command": "velocity_mode"}
+    )
+    assert response.status_code == 200, response.text
+    await wait_for(lambda: bool(wire.bus.module(0).rss & VM), 2, "velocity mode on rig-a")
+    await lab.lab.proxies["rig-a"].cut()
+    cut = time.monotonic()
+    await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
+    stopped_at = wire.first("st", 0, cut)
+    assert stopped_at is not None
+    assert not wire.bus.module(0).rss & VM
+    rig = rig_app(lab, "rig-a").app
+    lease_s = rig.state.control.settings.lease_s
+    # After the last keep-alive: the lease, the watchdog period, the STOP on the wire.
+    assert stopped_at - cut < lease_s + 1.0, f"st after {stopped_at - cut:.3f} s"
+
+
+async def test_hub_down_rigs_keep_working_and_runs_arrive_when_it_is_back(lab: LabRun) -> None:
+    await stop_app(lab.hub)
+    lab.hub = None
+    rig = rig_app(lab, "rig-a")
+    # The rig polls on, its local STOP works, it records a run.
+    state = (await rig.client.get("/api/axes/line-0/state")).json()
+    await asyncio.sleep(0.3)
+    later = (await rig.client.get("/api/axes/line-0/state")).json()
+    assert later["t"] > state["t"] and later["link_state"] == "connected"
+    response = await rig.client.post("/api/stop")
+    assert response.status_code == 200 and response.json()["failed"] == []
+    response = await rig.client.post(
+        "/api/axes/line-0/bench/runs", json={"kind": "move", "distance": 1000}
+    )
+    assert response.status_code == 202, response.text
+    run_id = response.json()["id"]
+    for _ in range(400):
+        runs = (await rig.client.get("/api/axes/line-0/bench/runs")).json()
+        if next(r for r in runs if r["id"] == run_id)["status"] != "recording":
+            break
+        await asyncio.sleep(0.05)
+    else:
+        pytest.fail("the run never finished")
+    await start_hub(lab)
+    client = lab.hub_client
+    for _ in range(200):
+        runs = (await client.get("/api/axes/rig-a.line-0/bench/runs")).json()
+        if any(r["id"] == run_id for r in runs):
+            break
+        await asyncio.sleep(0.05)
+    else:
+        pytest.fail("the run recorded while the hub was down never reached it")
+    stored = next(r for r in runs if r["id"] == run_id)
+    assert stored["rig"] == "rig-a" and stored["status"] != "recording"
+    full = (await client.get(f"/api/bench/runs/{run_id}")).json()
+    assert full["samples"], "the run arrived without its samples"

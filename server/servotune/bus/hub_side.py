@@ -32,8 +32,8 @@ from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import TimeoutError as NatsTimeoutError
 from nats.js.api import ConsumerConfig, StorageType, StreamConfig
-from nats.js.errors import NotFoundError
 from nats.js.errors import Error as JetStreamError
+from nats.js.errors import NotFoundError
 from pydantic import ValidationError
 
 from servotune.bus import subjects
@@ -171,7 +171,8 @@ class HubBus:
                 await task
         for nc in (self._nc, self._stop_nc):
             if nc is not None:
-                with contextlib.suppress(NatsError, TimeoutError):
+                # A connection already cut (network down) fails its last flush.
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
                     await nc.close()
 
     def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:

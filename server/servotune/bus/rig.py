@@ -139,6 +139,7 @@ class RigAgent:
         # Counters a test or benchmark reads.
         self.telemetry_sent = 0
         self.commands_handled = 0
+        self.verbs_handled: list[str] = []
 
     # --- lifespan ---------------------------------------------------------------------
 
@@ -185,7 +186,8 @@ class RigAgent:
         self._sessions.clear()
         for nc in (self._nc, self._stop_nc):
             if nc is not None:
-                with contextlib.suppress(NatsError, TimeoutError):
+                # A connection already cut (network down) fails its last flush.
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
                     await nc.close()
 
     def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
@@ -279,6 +281,7 @@ class RigAgent:
     async def _on_stop(self, msg: Msg) -> None:
         tokens = msg.subject.split(".")
         if tokens[-1] == "stop_all":
+            self.verbs_handled.append("stop_all")
             failed = await self._hub.stop_all()
             await msg.respond(_reply(ok=not failed, result={"failed": failed}, kind=None))
             return
@@ -321,6 +324,7 @@ class RigAgent:
         except StorageError as exc:
             body = _reply(ok=False, kind="device", detail=str(exc))
         self.commands_handled += 1
+        self.verbs_handled.append(verb)
         if msg.reply:
             with contextlib.suppress(NatsError):
                 await msg.respond(body)
@@ -412,5 +416,3 @@ class RigAgent:
             "",
         )
         return RunRecord(rig=self.rig, run=run, axis_key=axis_key, samples=samples)
-
-
