@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import secrets
 import shutil
 import socket
 import subprocess
@@ -24,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+
+from servotune.bus.accounts import lab_accounts, write_lab_accounts
 
 NATS_SERVER = shutil.which("nats-server") or "/usr/sbin/nats-server"
 
@@ -45,38 +46,6 @@ class User:
     name: str
     password: str
     credentials: Path
-
-
-def _quote(items: list[str]) -> str:
-    return "[" + ", ".join(f'"{item}"' for item in items) + "]"
-
-
-def rig_permissions(rig: str) -> str:
-    """A rig publishes only its own subtree, subscribes only to its
-    commands and its own inbox; it may answer requests (``allow_responses``)."""
-    publish = [f"servotune.v1.{rig}.>"]
-    subscribe = [f"servotune.v1.{rig}.*.*.cmd.*", f"servotune.v1.{rig}.cmd.*", f"_INBOX_{rig}.>"]
-    return (
-        f"{{ publish: {{ allow: {_quote(publish)} }}, "
-        f"subscribe: {{ allow: {_quote(subscribe)} }}, allow_responses: true }}"
-    )
-
-
-HUB_PERMISSIONS = (
-    "{ publish: { allow: "
-    + _quote(["servotune.v1.*.*.*.cmd.*", "servotune.v1.*.cmd.*", "$JS.API.>", "$JS.ACK.>"])
-    + " }, subscribe: { allow: "
-    + _quote(["servotune.v1.>", "_INBOX.>"])
-    + " } }"
-)
-# A viewer watches telemetry; it publishes nothing at all.
-VIEWER_PERMISSIONS = (
-    "{ publish: { deny: "
-    + _quote([">"])
-    + " }, subscribe: { allow: "
-    + _quote(["servotune.v1.*.*.*.telemetry", "servotune.v1.*.events"])
-    + " } }"
-)
 
 
 class ServerProcess:
@@ -179,39 +148,22 @@ class Lab:
         return f"nats://127.0.0.1:{self.proxies[rig].port}"
 
 
-def _user(directory: Path, name: str) -> User:
-    password = secrets.token_urlsafe(24)
-    path = directory / f"{name}.cred"
-    path.write_text(f"{name}\n{password}\n")
-    path.chmod(0o600)
-    return User(name, password, path)
-
-
 @contextlib.asynccontextmanager
 async def nats_lab(directory: Path, rigs: list[str]) -> AsyncIterator[Lab]:
     """The lab's server (JetStream, an account with users) and a proxy per rig."""
     require_nats_server()
     directory.mkdir(parents=True, exist_ok=True)
-    users = {name: _user(directory, name) for name in ["hub", "viewer", *rigs]}
+    # The shipped generator (``servotune bus-accounts``): the tests check its permissions.
+    accounts = lab_accounts("hub", rigs, ["viewer"])
+    write_lab_accounts(directory, accounts)
+    users = {a.user: User(a.user, a.password, directory / f"{a.user}.cred") for a in accounts}
     port = free_port()
-    entries = [
-        f'{{ user: "hub", password: "{users["hub"].password}", permissions: {HUB_PERMISSIONS} }}',
-        f'{{ user: "viewer", password: "{users["viewer"].password}", '
-        f"permissions: {VIEWER_PERMISSIONS} }}",
-    ]
-    for rig in rigs:
-        entries.append(
-            f'{{ user: "{rig}", password: "{users[rig].password}", '
-            f"permissions: {rig_permissions(rig)} }}"
-        )
     config = f"""
 server_name: lab
 listen: 127.0.0.1:{port}
 max_payload: 8MB
 jetstream {{ store_dir: "{directory / "js"}", max_memory_store: 64MB, max_file_store: 256MB }}
-accounts {{ LAB {{ jetstream: enabled, users = [
-  {(chr(10) + "  ").join(entries)}
-] }} }}
+include "accounts.conf"
 """
     server = ServerProcess("lab", config, directory, port)
     server.start()

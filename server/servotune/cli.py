@@ -122,6 +122,20 @@ def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
         group.add_argument("--rig", default=None, metavar="NAME", help="this rig's name")
 
 
+def cmd_bus_accounts(args: argparse.Namespace) -> int:
+    """Write the lab's nats-server accounts and a credentials file per user."""
+    from servotune.bus.accounts import lab_accounts, write_lab_accounts
+
+    try:
+        accounts = lab_accounts(args.hub, args.rig, args.viewer)
+    except ValueError as exc:
+        print(f"servotune bus-accounts: {exc}", file=sys.stderr)
+        return 2
+    for path in write_lab_accounts(args.out, accounts):
+        print(f"wrote {path}")  # names only: the passwords stay in the files
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
     from servotune.demo import demo_simulators
@@ -267,6 +281,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_security_arguments(hub)
     _add_bus_arguments(hub, hub=True)
     hub.set_defaults(func=cmd_hub)
+
+    accounts = sub.add_parser(
+        "bus-accounts",
+        help="write the lab nats-server's users and permissions and their credential files",
+    )
+    accounts.add_argument("--hub", default="hub", help="the hub's user name")
+    accounts.add_argument("--rig", action="append", default=[], help="a rig (repeatable)")
+    accounts.add_argument("--viewer", action="append", default=[], help="a read-only user")
+    accounts.add_argument("--out", type=Path, required=True, help="directory to write to")
+    accounts.set_defaults(func=cmd_bus_accounts)
 
     sim = sub.add_parser(
         "sim",
