@@ -164,6 +164,8 @@ class HubBus:
         self._spawn(self._collect_runs(), "bus: runs")
 
     async def stop(self) -> None:
+        if self._port is not None:
+            self._port.closing = True
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):

@@ -89,6 +89,9 @@ class BusPort:
     request_timeout_s: float
     stop_timeout_s: float
     clock: Callable[[], float] = time.monotonic
+    # Set when the hub shuts down: nothing more goes to the rigs (their own dead-man
+    # stops what this hub set in motion once its keep-alives end).
+    closing: bool = False
 
 
 class RemoteAxis:
@@ -223,6 +226,11 @@ class RemoteLink:
 
     async def request(self, subject: str, body: CommandRequest, *, stop: bool) -> dict[str, object]:
         """A request to the rig; refused at once (LinkDownError) when the rig is offline."""
+        if self.port.closing:
+            raise LinkDownError(
+                f"the hub is shutting down: nothing sent to {self.rig} (the rig's own "
+                "dead-man stops what this hub set in motion)"
+            )
         if not self.present():
             raise LinkDownError(f"rig {self.rig} is offline: nothing was sent")
         nc = self.port.stop_nc if stop else self.port.nc
