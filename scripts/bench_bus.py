@@ -35,6 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from tests.control_support import recorded_line  # noqa: E402
+from tests.nats_support import nats_lab  # noqa: E402
 from tests.test_bus import (  # noqa: E402  (the tests' own fixtures, as a script)
     RIGS,
     LabRun,
@@ -45,9 +47,6 @@ from tests.test_bus import (  # noqa: E402  (the tests' own fixtures, as a scrip
     stop_app,
     wait_for_manifest,
 )
-
-from tests.control_support import recorded_line  # noqa: E402
-from tests.nats_support import nats_lab  # noqa: E402
 
 
 def percentiles(values: list[float]) -> str:
