@@ -275,8 +275,8 @@ class HubBus:
         while True:
             try:
                 messages = await subscription.fetch(8, timeout=1.0)
-            except NatsTimeoutError:
-                continue
+            except (NatsTimeoutError, TimeoutError):
+                continue  # nothing new (nats-py raises asyncio's TimeoutError here)
             except (NatsError, JetStreamError) as exc:
                 logger.info("runs not fetched (%s): retrying", exc)
                 await asyncio.sleep(1.0)
