@@ -33,8 +33,8 @@ from servotune.config import LinkSpec
 from servotune.control import ControlSettings
 
 from .conftest import local_client, use_csrf_token, wait_for
-from .control_support import WireRecorder, recorded_line
-from .nats_support import Lab, nats_lab
+from .control_support import WireRecorder, recorded_line, take_with_raw_client
+from .nats_support import Lab, free_port, nats_lab
 
 RIGS = ["rig-a", "rig-b"]
 VM = 1 << 2  # SLAP2 rss bit: velocity mode
@@ -366,6 +366,21 @@ async def test_hub_down_rigs_keep_working_and_runs_arrive_when_it_is_back(lab: L
     assert stored["rig"] == "rig-a" and stored["status"] != "recording"
     full = (await client.get(f"/api/bench/runs/{run_id}")).json()
     assert full["samples"], "the run arrived without its samples"
+    # With the hub up (and its consumer idle for more than one fetch), a run arrives live.
+    await asyncio.sleep(1.5)
+    rig_b = rig_app(lab, "rig-b")
+    response = await rig_b.client.post(
+        "/api/axes/line-1/bench/runs", json={"kind": "move", "distance": -1000}
+    )
+    assert response.status_code == 202, response.text
+    live_id = response.json()["id"]
+    for _ in range(600):
+        runs = (await client.get("/api/axes/rig-b.line-1/bench/runs")).json()
+        if any(r["id"] == live_id and r["status"] != "recording" for r in runs):
+            break
+        await asyncio.sleep(0.05)
+    else:
+        pytest.fail("a run recorded while the hub was up never reached it")
 
 
 async def test_a_rig_may_not_publish_into_another_rigs_subtree(lab: LabRun) -> None:
@@ -407,3 +422,71 @@ async def test_no_bus_password_reaches_a_log(lab: LabRun, caplog: pytest.LogCapt
 
 async def _ignore(_: Exception) -> None:
     return None
+
+
+@dataclass
+class ServedHub:
+    """The hub on a real port (uvicorn): a browser tab's websocket needs one."""
+
+    port: int
+    client: httpx.AsyncClient
+
+
+@contextlib.asynccontextmanager
+async def served_hub(run: LabRun) -> AsyncIterator[ServedHub]:
+    import uvicorn
+
+    await stop_app(run.hub)
+    run.hub = None
+    config = AppConfig(
+        data_dir=run.tmp / "hub-data",
+        web_dir=run.tmp / "no-web",
+        twin=False,
+        bus=BusSettings(url=run.lab.url, hub="lab", credentials=run.lab.users["hub"].credentials),
+    )
+    app = create_app(config)
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        deadline = time.monotonic() + 15
+        while not server.started:
+            assert time.monotonic() < deadline, "the hub did not start"
+            await asyncio.sleep(0.02)
+        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
+            await use_csrf_token(client)
+            for _ in range(250):
+                state = await client.get("/api/axes/rig-a.line-0/state")
+                if state.status_code == 200 and state.json()["health"] != "offline":
+                    break
+                await asyncio.sleep(0.02)
+            yield ServedHub(port, client)
+    finally:
+        server.should_exit = True
+        await task
+
+
+async def test_the_hub_tab_vanishing_stops_the_rigs_axis(lab: LabRun) -> None:
+    """A browser tab of the hub holds a rig's axis and moves it, then vanishes without
+    a close frame: the hub's lease lapses and its STOP reaches the rig's device."""
+    wire = lab.rigs["rig-a"].wire
+    async with served_hub(lab) as hub:
+        raw, client_id, beat = await take_with_raw_client(hub, "rig-a.line-0")  # type: ignore[arg-type]
+        response = await hub.client.post(
+            "/api/axes/rig-a.line-0/commands",
+            json={"command": "velocity_mode"},
+            headers={"X-Servotune-Client": client_id},
+        )
+        assert response.status_code == 200, response.text
+        await wait_for(lambda: bool(wire.bus.module(0).rss & VM), 2, "velocity mode on rig-a")
+        beat.cancel()
+        gone = time.monotonic()  # the last heartbeat left at most 100 ms before this
+        raw.drop()
+        await wait_for(lambda: wire.first("st", 0, gone) is not None, 3, "st on rig-a's wire")
+        stopped_at = wire.first("st", 0, gone)
+        assert stopped_at is not None and not wire.bus.module(0).rss & VM
+        # The hub's lease (350 ms) + its watchdog + one bus request + the STOP on the wire.
+        assert stopped_at - gone < 1.5, f"st {1000 * (stopped_at - gone):.0f} ms after"
+        await raw.close_quietly()
