@@ -126,6 +126,11 @@ class TcpProxy:
             writer.transport.abort()
         self._writers.clear()
 
+    async def resume(self) -> None:
+        """The cable is back: accept connections on the same port again."""
+        if self._server is None:
+            self._server = await asyncio.start_server(self._relay, "127.0.0.1", self.port)
+
     async def stop(self) -> None:
         await self.cut()
 

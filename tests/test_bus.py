@@ -490,3 +490,23 @@ async def test_the_hub_tab_vanishing_stops_the_rigs_axis(lab: LabRun) -> None:
         # The hub's lease (350 ms) + its watchdog + one bus request + the STOP on the wire.
         assert stopped_at - gone < 1.5, f"st {1000 * (stopped_at - gone):.0f} ms after"
         await raw.close_quietly()
+
+
+async def test_a_rig_starts_without_the_lab_network_and_joins_when_it_is_back(
+    lab: LabRun,
+) -> None:
+    assert lab.hub is not None
+    hub = lab.hub.app.state.hub
+    rig = lab.rigs["rig-b"]
+    await stop_app(rig.app)
+    rig.app = None
+    proxy = lab.lab.proxies["rig-b"]
+    await proxy.cut()
+    await start_rig(lab, rig)  # starts, polls, answers its own dashboard
+    response = await rig_app(lab, "rig-b").client.get("/api/axes/line-0/params")
+    assert response.status_code == 200, response.text
+    await wait_for(lambda: hub.entry("rig-b.line-0").health == "offline", 2.5, "rig-b offline")
+    await proxy.resume()
+    await wait_for(lambda: hub.entry("rig-b.line-0").health != "offline", 15, "rig-b back")
+    response = await lab.hub_client.patch("/api/axes/rig-b.line-0/params", json={"kp": 77})
+    assert response.status_code == 200 and response.json()["kp"] == 77

@@ -8,7 +8,7 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -32,8 +32,6 @@ from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune import AutoTuner
-from servotune.bus.connection import BusSettings
-from servotune.bus.lifecycle import BusLifecycle
 from servotune.config import LinkSpec
 from servotune.control import ControlManager, ControlSettings
 from servotune.drivers.base import (
@@ -49,6 +47,9 @@ from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench
 from servotune.twin import Twin
+
+if TYPE_CHECKING:
+    from servotune.bus.connection import BusSettings
 
 logger = logging.getLogger(__name__)
 
@@ -116,7 +117,11 @@ def create_app(config: AppConfig) -> FastAPI:
             for spec in specs:
                 hub.add_link(build_link(spec, hub))
             # bus: the hub registers the rigs' links before it starts (servotune.bus).
-            bus = BusLifecycle(config.bus) if config.bus is not None else None
+            bus = None
+            if config.bus is not None:
+                from servotune.bus.lifecycle import BusLifecycle  # nats-py only when used
+
+                bus = BusLifecycle(config.bus)
             app.state.bus = bus
             if bus is not None:
                 await bus.prepare(hub, storage)

@@ -144,7 +144,31 @@ class RigAgent:
     # --- lifespan ---------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Connect (both connections), publish the manifest, start forwarding."""
+        """Join the bus in the background: a rig whose lab network is down at start-up
+        starts anyway (local dashboard, STOP, recording) and joins when it can."""
+        self._spawn(self._join(), "bus: joining")
+
+    async def _join(self) -> None:
+        backoff_s = 0.5
+        while True:
+            try:
+                await self._connect()
+            except (NatsError, OSError, TimeoutError) as exc:
+                logger.warning("bus %s not reachable (%s): trying again", self._settings.url, exc)
+                await self._close_connections()
+                await asyncio.sleep(backoff_s)
+                backoff_s = min(2 * backoff_s, 5.0)
+                continue
+            break
+        published = await asyncio.to_thread(self._storage.get_meta, _PUBLISHED_META)
+        self._published = set(published) if isinstance(published, list) else set()
+        self._queue = self._hub.subscribe()
+        self._spawn(self._forward(self._queue), "bus: forward fan-out")
+        self._spawn(self._presence(), "bus: presence")
+        self._spawn(self._publish_runs(), "bus: runs")
+
+    async def _connect(self) -> None:
+        """Both connections and their subscriptions (once connected, nats-py reconnects)."""
         inbox = subjects.inbox_prefix(self.rig)
         self._nc = await connect_bus(self._settings, name=f"rig-{self.rig}", inbox_prefix=inbox)
         self._stop_nc = await connect_bus(
@@ -158,12 +182,14 @@ class RigAgent:
         await self._nc.subscribe(subjects.rig_cmd(self.rig, "snapshot"), cb=self._on_snapshot)
         await self._stop_nc.flush()
         await self._nc.flush()
-        published = await asyncio.to_thread(self._storage.get_meta, _PUBLISHED_META)
-        self._published = set(published) if isinstance(published, list) else set()
-        self._queue = self._hub.subscribe()
-        self._spawn(self._forward(self._queue), "bus: forward fan-out")
-        self._spawn(self._presence(), "bus: presence")
-        self._spawn(self._publish_runs(), "bus: runs")
+
+    async def _close_connections(self) -> None:
+        for nc in (self._nc, self._stop_nc):
+            if nc is not None:
+                # A connection already cut (network down) fails its last flush.
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
+                    await nc.close()
+        self._nc = self._stop_nc = None
 
     async def stop(self, *, graceful: bool = True) -> None:
         """Leave the bus. ``graceful``: delete the presence key so the hub shows the rig
@@ -184,11 +210,7 @@ class RigAgent:
         for client, _ in self._sessions.values():
             self._control.disconnect(client)
         self._sessions.clear()
-        for nc in (self._nc, self._stop_nc):
-            if nc is not None:
-                # A connection already cut (network down) fails its last flush.
-                with contextlib.suppress(NatsError, TimeoutError, OSError):
-                    await nc.close()
+        await self._close_connections()
 
     def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
         task = asyncio.create_task(job, name=name)
