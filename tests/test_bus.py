@@ -178,6 +178,9 @@ async def test_the_hub_lists_every_axis_of_both_rigs(lab: LabRun) -> None:
     assert ids == {f"{rig}.line-{a}" for rig in RIGS for a in (0, 1)}
     links = (await lab.hub_client.get("/api/links")).json()
     assert {link["id"] for link in links} == {"rig-a.line", "rig-b.line"}
+    # The hub's start-up stops nothing on the rigs (a rig's local user may be moving).
+    for name in RIGS:
+        assert "stop" not in rig_app(lab, name).app.state.bus.rig.verbs_handled
 
 
 def rig_app(lab: LabRun, name: str) -> App:

@@ -132,7 +132,12 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.storage = storage
             # The control lock and dead-man (servotune.control); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
-            control = ControlManager(
+            control_cls = ControlManager
+            if config.bus is not None:
+                from servotune.bus.lifecycle import control_class  # bus: no start-up STOP
+
+                control_cls = control_class(config.bus)
+            control = control_cls(
                 hub, config.control, audit=lambda: getattr(app.state, "audit", None)
             )
             app.state.control = control

@@ -37,3 +37,29 @@ class BusLifecycle:
             await self.rig.stop()
         if self.hub is not None:
             await self.hub.stop()
+
+
+class HubControlManager(ControlManager):
+    """The hub's control lock: as for local axes, except the start-up STOP.
+
+    A rig's server sent its own axes their start-up STOP when it started; the hub
+    starting (or restarting) must not stop an axis a rig's local user is driving: the
+    hub is not on the rigs' control path for their local users (docs/lab.md). Every
+    other rule holds at the hub: its tabs' locks, leases and lapses, whose STOPs go to
+    the rig. (Overrides ``ControlManager._startup_stop``; see control.py.)
+    """
+
+    async def _startup_stop(self, link_id: str, axis_ids: list[str]) -> None:
+        for axis_id in axis_ids:
+            ax = self._axes[axis_id]
+            if ax.kind == "server":
+                ax.kind, ax.client = None, None
+            ax.ready.set()
+            self._broadcast_status(ax)
+
+
+def control_class(settings: BusSettings | None) -> type[ControlManager]:
+    """The control lock the app runs: the hub's for ``servotune hub``, else the usual."""
+    if settings is not None and settings.hub is not None:
+        return HubControlManager
+    return ControlManager
