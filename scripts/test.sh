@@ -6,6 +6,7 @@ source "$(dirname "${BASH_SOURCE[0]}")/_env.sh"
 ensure_venv "[dev]"
 ensure_web
 ensure_chromium
+ensure_nats
 cd "$ROOT"
 echo "==> ruff"
 "$VENV/bin/ruff" check server tests

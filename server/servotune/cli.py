@@ -1,4 +1,4 @@
-"""The ``servotune`` command: demo, serve, sim, bench, users, tokens."""
+"""The ``servotune`` command: demo, serve, hub, sim, bench, users, tokens."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from servotune import __version__
 from servotune.auth.cli import (
@@ -15,6 +16,9 @@ from servotune.auth.cli import (
 )
 from servotune.config import ConfigError, LinkSpec, load_config_file, parse_link_spec
 from servotune.storage import default_data_dir
+
+if TYPE_CHECKING:
+    from servotune.bus.connection import BusSettings
 
 
 def _addresses(text: str) -> list[int]:
@@ -64,6 +68,74 @@ def _run_server(app_config: object, host: str, port: int) -> None:
     )
 
 
+def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
+    """The bus options as ``BusSettings`` (None without ``--bus``); SystemExit(2) on bad
+    ones. The credentials are a file name here: the file is read when connecting."""
+    from servotune.bus.connection import BusSettings
+    from servotune.bus.subjects import check_token
+
+    if not args.bus:
+        if not hub and args.rig:
+            print("servotune serve: --rig needs --bus URL", file=sys.stderr)
+            raise SystemExit(2)
+        return None
+    credentials = args.bus_credentials
+    if credentials is not None and not credentials.is_file():
+        print(f"servotune: --bus-credentials: no file {credentials}", file=sys.stderr)
+        raise SystemExit(2)
+    try:
+        if hub:
+            return BusSettings(
+                url=args.bus, hub=check_token("--name", args.name), credentials=credentials
+            )
+        if not args.rig:
+            print("servotune serve: --bus needs --rig NAME (this rig's name)", file=sys.stderr)
+            raise SystemExit(2)
+        return BusSettings(
+            url=args.bus, rig=check_token("--rig", args.rig), credentials=credentials
+        )
+    except ValueError as exc:
+        print(f"servotune: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
+    group = parser.add_argument_group("lab bus (NATS, docs/lab.md)")
+    group.add_argument(
+        "--bus",
+        default=None,
+        required=hub,
+        metavar="URL",
+        help="nats-server of the lab, e.g. nats://lab-nats:4222",
+    )
+    group.add_argument(
+        "--bus-credentials",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="a .creds file, or a file with the user name on line 1 and the password on "
+        "line 2 (never on the command line)",
+    )
+    if hub:
+        group.add_argument("--name", default="lab", help="this hub's name on the bus")
+    else:
+        group.add_argument("--rig", default=None, metavar="NAME", help="this rig's name")
+
+
+def cmd_bus_accounts(args: argparse.Namespace) -> int:
+    """Write the lab's nats-server accounts and a credentials file per user."""
+    from servotune.bus.accounts import lab_accounts, write_lab_accounts
+
+    try:
+        accounts = lab_accounts(args.hub, args.rig, args.viewer)
+    except ValueError as exc:
+        print(f"servotune bus-accounts: {exc}", file=sys.stderr)
+        return 2
+    for path in write_lab_accounts(args.out, accounts):
+        print(f"wrote {path}")  # names only: the passwords stay in the files
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
     from servotune.demo import demo_simulators
@@ -101,12 +173,30 @@ def cmd_serve(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    bus = _bus_settings(args, hub=False)
     config = AppConfig(
         links=links,
         data_dir=args.data_dir or default_data_dir(),
         security=security_config_from_args(args, host),
+        bus=bus,
     )
     _run_server(config, host, port)
+    return 0
+
+
+def cmd_hub(args: argparse.Namespace) -> int:
+    """The lab's central dashboard: every axis of every rig on the bus."""
+    from servotune.api.app import AppConfig
+
+    bus = _bus_settings(args, hub=True)
+    config = AppConfig(
+        links=[],
+        data_dir=args.data_dir or default_data_dir() / "hub",
+        security=security_config_from_args(args, args.host),
+        bus=bus,
+        twin=False,
+    )
+    _run_server(config, args.host, args.port)
     return 0
 
 
@@ -181,7 +271,26 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(serve)
+    _add_bus_arguments(serve, hub=False)
     serve.set_defaults(func=cmd_serve)
+
+    hub = sub.add_parser("hub", help="the lab's dashboard: every rig on the NATS bus")
+    hub.add_argument("--host", default="127.0.0.1")
+    hub.add_argument("--port", type=int, default=8000)
+    hub.add_argument("--data-dir", type=Path, default=None)
+    add_security_arguments(hub)
+    _add_bus_arguments(hub, hub=True)
+    hub.set_defaults(func=cmd_hub)
+
+    accounts = sub.add_parser(
+        "bus-accounts",
+        help="write the lab nats-server's users and permissions and their credential files",
+    )
+    accounts.add_argument("--hub", default="hub", help="the hub's user name")
+    accounts.add_argument("--rig", action="append", default=[], help="a rig (repeatable)")
+    accounts.add_argument("--viewer", action="append", default=[], help="a read-only user")
+    accounts.add_argument("--out", type=Path, required=True, help="directory to write to")
+    accounts.set_defaults(func=cmd_bus_accounts)
 
     sim = sub.add_parser(
         "sim",

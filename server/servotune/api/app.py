@@ -8,7 +8,7 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -48,6 +48,9 @@ from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench
 from servotune.twin import Twin
 
+if TYPE_CHECKING:
+    from servotune.bus.connection import BusSettings
+
 logger = logging.getLogger(__name__)
 
 WEB_DIST = Path(__file__).resolve().parent.parent / "web_dist"
@@ -68,6 +71,7 @@ class AppConfig:
     security: SecurityConfig = field(default_factory=SecurityConfig)
     control: ControlSettings = field(default_factory=ControlSettings)
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
+    bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
 
 
 def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
@@ -112,6 +116,15 @@ def create_app(config: AppConfig) -> FastAPI:
             hub = Hub([], storage, autopilot=config.autopilot)
             for spec in specs:
                 hub.add_link(build_link(spec, hub))
+            # bus: the hub registers the rigs' links before it starts (servotune.bus).
+            bus = None
+            if config.bus is not None:
+                from servotune.bus.lifecycle import BusLifecycle  # nats-py only when used
+
+                bus = BusLifecycle(config.bus)
+            app.state.bus = bus
+            if bus is not None:
+                await bus.prepare(hub, storage)
             bench = TestBench(hub, storage)
             app.state.hub = hub
             app.state.bench = bench
@@ -119,7 +132,12 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.storage = storage
             # The control lock and dead-man (servotune.control); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
-            control = ControlManager(
+            control_cls = ControlManager
+            if config.bus is not None:
+                from servotune.bus.lifecycle import control_class  # bus: no start-up STOP
+
+                control_cls = control_class(config.bus)
+            control = control_cls(
                 hub, config.control, audit=lambda: getattr(app.state, "audit", None)
             )
             app.state.control = control
@@ -127,9 +145,13 @@ def create_app(config: AppConfig) -> FastAPI:
             await control.start()
             await bench.start()
             app.state.twin = await Twin.start(hub) if config.twin else None
+            if bus is not None:
+                await bus.start(hub, control, storage)
             try:
                 yield
             finally:
+                if bus is not None:
+                    await bus.stop()
                 await control.shutdown()
                 if app.state.twin is not None:
                     await app.state.twin.stop()

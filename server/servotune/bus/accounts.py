@@ -1,0 +1,133 @@
+"""The lab's nats-server accounts: who may publish and subscribe what (NATS does the
+enforcing; servotune writes the configuration from the subjects it uses).
+
+``servotune bus-accounts --rig rig-1 --rig rig-2 --viewer guest --out DIR`` writes
+``DIR/accounts.conf`` (include it in nats-server's configuration) and one credentials
+file per user, ``DIR/<user>.cred`` (user name, password; mode 0600), for
+``--bus-credentials``. Passwords are random, written to those files only, never printed.
+
+* a rig publishes only its own subtree ``servotune.v1.<rig>.>`` (telemetry, events,
+  manifest, presence, runs; the JetStream streams capture those subjects, so a rig
+  needs no JetStream API at all) and may answer requests; it subscribes only to its
+  commands and to its own reply inbox (``_INBOX_<rig>``);
+* the hub may send commands to every rig, use the JetStream API (it creates the
+  streams and its durable consumer), and read everything under ``servotune.v1``;
+* a viewer (a script that watches, a wall display) publishes nothing at all and
+  subscribes to telemetry and events: a handmade command is refused by nats-server.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+from servotune.bus import subjects
+
+ACCOUNT = "LAB"
+
+
+@dataclass(frozen=True, slots=True)
+class Permissions:
+    publish_allow: tuple[str, ...] = ()
+    publish_deny: tuple[str, ...] = ()
+    subscribe_allow: tuple[str, ...] = ()
+    allow_responses: bool = False
+
+    def to_conf(self) -> str:
+        """nats-server configuration syntax of these permissions."""
+        publish = []
+        if self.publish_allow:
+            publish.append(f"allow: {_list(self.publish_allow)}")
+        if self.publish_deny:
+            publish.append(f"deny: {_list(self.publish_deny)}")
+        parts = [f"publish: {{ {', '.join(publish)} }}"]
+        parts.append(f"subscribe: {{ allow: {_list(self.subscribe_allow)} }}")
+        if self.allow_responses:
+            parts.append("allow_responses: true")
+        return "{ " + ", ".join(parts) + " }"
+
+
+def _list(items: tuple[str, ...]) -> str:
+    return "[" + ", ".join(f'"{item}"' for item in items) + "]"
+
+
+def rig_permissions(rig: str) -> Permissions:
+    subjects.check_token("rig", rig)
+    root = f"{subjects.PREFIX}.{rig}"
+    return Permissions(
+        publish_allow=(f"{root}.>",),
+        subscribe_allow=(f"{root}.*.*.cmd.*", f"{root}.cmd.*", f"{subjects.inbox_prefix(rig)}.>"),
+        allow_responses=True,
+    )
+
+
+def hub_permissions() -> Permissions:
+    prefix = subjects.PREFIX
+    return Permissions(
+        publish_allow=(f"{prefix}.*.*.*.cmd.*", f"{prefix}.*.cmd.*", "$JS.API.>", "$JS.ACK.>"),
+        subscribe_allow=(f"{prefix}.>", "_INBOX.>"),
+    )
+
+
+def viewer_permissions() -> Permissions:
+    prefix = subjects.PREFIX
+    return Permissions(
+        publish_deny=(">",),
+        subscribe_allow=(f"{prefix}.*.*.*.telemetry", f"{prefix}.*.events"),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Account:
+    user: str
+    password: str
+    permissions: Permissions
+
+
+def lab_accounts(hub: str, rigs: list[str], viewers: list[str]) -> list[Account]:
+    """A random password for every user (``secrets``), with its permissions."""
+    accounts = [Account(hub, secrets.token_urlsafe(24), hub_permissions())]
+    accounts += [Account(rig, secrets.token_urlsafe(24), rig_permissions(rig)) for rig in rigs]
+    accounts += [
+        Account(subjects.check_token("viewer", v), secrets.token_urlsafe(24), viewer_permissions())
+        for v in viewers
+    ]
+    names = [a.user for a in accounts]
+    if len(set(names)) != len(names):
+        raise ValueError("user names must be distinct (hub, rigs and viewers)")
+    return accounts
+
+
+def accounts_conf(accounts: list[Account]) -> str:
+    """The ``accounts`` block: one account with JetStream, every user in it."""
+    users = ",\n".join(
+        f'    {{ user: "{a.user}", password: "{a.password}", '
+        f"permissions: {a.permissions.to_conf()} }}"
+        for a in accounts
+    )
+    return (
+        "# Written by `servotune bus-accounts`: users and permissions of the lab's bus.\n"
+        f"accounts {{\n  {ACCOUNT} {{\n    jetstream: enabled\n    users = [\n{users}\n    ]\n"
+        "  }\n}\n"
+    )
+
+
+def _write_private(path: Path, text: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(text)
+    path.chmod(0o600)
+
+
+def write_lab_accounts(directory: Path, accounts: list[Account]) -> list[Path]:
+    """``accounts.conf`` and ``<user>.cred`` per user in ``directory`` (all 0600)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    written = [directory / "accounts.conf"]
+    _write_private(written[0], accounts_conf(accounts))
+    for account in accounts:
+        path = directory / f"{account.user}.cred"
+        _write_private(path, f"{account.user}\n{account.password}\n")
+        written.append(path)
+    return written

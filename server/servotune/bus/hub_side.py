@@ -1,0 +1,320 @@
+"""The central hub on the bus (``servotune hub --bus URL``): finds the lab's rigs, feeds
+their ``RemoteLink``s, keeps its session alive on every rig, and collects their runs.
+
+* Rigs come from the rigs stream (last manifest per rig) at start-up (a rig that was ever on the
+  bus is listed, offline until its presence says otherwise). A rig that registers
+  later is announced with an event; the hub lists it after a restart (the control
+  lock and the websocket's ``hello`` are built once, at start-up).
+* Presence: the hub listens to the rigs' presence messages (every 0.5 s per rig);
+  ``offline_after_s`` (1.5 s) of silence shows the rig offline, and a "gone" presence
+  (a rig stopping cleanly) at once.
+* Keep-alive: every ``keepalive_period_s`` (100 ms) on the STOP connection, to every
+  rig, with this hub's session id; the rig's dead-man stops what this session moved
+  when they stop coming (hub killed, lab network or leaf link cut).
+* Runs: a durable pull consumer on ``SERVOTUNE_RUNS`` writes every run into the hub's
+  SQLite store with the rig's name; acknowledged after the write, so a run published
+  while the hub was down is delivered when it is back (JetStream replay). A run
+  already stored (redelivery) is acknowledged and skipped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import secrets
+from collections.abc import Coroutine
+from typing import Any
+
+from nats.aio.client import Client
+from nats.aio.msg import Msg
+from nats.errors import Error as NatsError
+from nats.errors import TimeoutError as NatsTimeoutError
+from nats.js.api import ConsumerConfig, StorageType, StreamConfig
+from nats.js.errors import Error as JetStreamError
+from nats.js.errors import NotFoundError
+from pydantic import ValidationError
+
+from servotune.bus import subjects
+from servotune.bus.connection import BusSettings, connect_bus
+from servotune.bus.messages import KeepAlive, RigManifest, RunRecord
+from servotune.bus.remote import BusPort, RemoteLink, hub_id
+from servotune.hub import Hub
+from servotune.storage import Storage, StorageError
+
+logger = logging.getLogger(__name__)
+
+RUNS_DUPLICATE_WINDOW_S = 24 * 3600.0
+
+
+async def ensure_bus_state(nc: Client) -> None:
+    """Create the rigs, presence and runs streams if they are missing (the hub's job)."""
+    js = nc.jetstream()
+    for config in (
+        StreamConfig(
+            name=subjects.RIGS_STREAM,
+            subjects=[subjects.RIGS_SUBJECTS],
+            max_msgs_per_subject=1,
+            storage=StorageType.FILE,
+        ),
+        StreamConfig(
+            name=subjects.PRESENCE_STREAM,
+            subjects=[subjects.PRESENCE_SUBJECTS],
+            max_msgs_per_subject=1,
+            max_age=subjects.PRESENCE_TTL_S,
+            storage=StorageType.MEMORY,
+        ),
+        StreamConfig(
+            name=subjects.RUNS_STREAM,
+            subjects=[subjects.RUNS_SUBJECTS],
+            storage=StorageType.FILE,
+            duplicate_window=RUNS_DUPLICATE_WINDOW_S,
+        ),
+    ):
+        assert config.name is not None
+        try:
+            await js.stream_info(config.name)
+        except NotFoundError:
+            await js.add_stream(config=config)
+
+
+async def last_values(nc: Client, stream: str) -> dict[str, bytes]:
+    """The last message of every subject of a one-message-per-subject stream."""
+    js = nc.jetstream()
+    info = await js.stream_info(stream, subjects_filter=">")
+    found = {}
+    for subject in sorted((info.state.subjects or {}).keys()):
+        with contextlib.suppress(NotFoundError):
+            msg = await js.get_last_msg(stream, subject)
+            if msg.data is not None:
+                found[subject.split(".")[2]] = msg.data
+    return found
+
+
+class HubBus:
+    """The hub's side of the bus; lives for the app's lifespan."""
+
+    def __init__(self, settings: BusSettings) -> None:
+        if settings.hub is None:
+            raise ValueError("a hub needs a name on the bus")
+        self.name = subjects.check_token("--hub-name", settings.hub)
+        self._settings = settings
+        self._session = secrets.token_hex(16)
+        self._nc: Client | None = None
+        self._stop_nc: Client | None = None
+        self._port: BusPort | None = None
+        self._hub: Hub | None = None
+        self._storage: Storage | None = None
+        self.links: dict[tuple[str, str], RemoteLink] = {}
+        self._rigs: dict[str, list[RemoteLink]] = {}
+        self._tasks: set[asyncio.Task[None]] = set()
+        self.runs_stored = 0
+
+    async def prepare(self, hub: Hub, storage: Storage) -> None:
+        """Connect, create what is missing, and register every known rig's links."""
+        self._hub, self._storage = hub, storage
+        self._nc = await connect_bus(self._settings, name=f"hub-{self.name}")
+        self._stop_nc = await connect_bus(self._settings, name=f"hub-{self.name}-stop")
+        await ensure_bus_state(self._nc)
+        self._port = BusPort(
+            self._nc,
+            self._stop_nc,
+            self._session,
+            self.name,
+            self._settings.request_timeout_s,
+            self._settings.stop_timeout_s,
+        )
+        for rig, data in (await last_values(self._nc, subjects.RIGS_STREAM)).items():
+            try:
+                manifest = RigManifest.model_validate_json(data)
+            except ValidationError as exc:
+                logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
+                continue
+            self._add_rig(manifest)
+
+    def _add_rig(self, manifest: RigManifest) -> None:
+        assert self._hub is not None and self._port is not None
+        links = []
+        for info in manifest.links:
+            link = RemoteLink(
+                manifest.rig, info, self._port, self._hub, self._settings.offline_after_s
+            )
+            self._hub.add_link(link)
+            self.links[(manifest.rig, info.info.id)] = link
+            links.append(link)
+        self._rigs[manifest.rig] = links
+
+    async def start(self) -> None:
+        """Listen to the rigs, keep the session alive, collect the runs."""
+        assert self._nc is not None and self._stop_nc is not None
+        prefix = subjects.PREFIX
+        await self._nc.subscribe(f"{prefix}.*.*.*.telemetry", cb=self._on_telemetry)
+        await self._nc.subscribe(f"{prefix}.*.events", cb=self._on_events)
+        await self._nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
+        await self._nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
+        await self._nc.flush()
+        # Rigs already present: their last presence (younger than its age limit) counts.
+        present = await last_values(self._nc, subjects.PRESENCE_STREAM)
+        for rig, links in self._rigs.items():
+            if rig in present and present[rig] != b"{}":
+                for link in links:
+                    link.on_presence()
+        self._spawn(self._keepalive(), "bus: keep-alive")
+        self._spawn(self._collect_runs(), "bus: runs")
+
+    async def stop(self) -> None:
+        if self._port is not None:
+            self._port.closing = True
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        for nc in (self._nc, self._stop_nc):
+            if nc is not None:
+                # A connection already cut (network down) fails its last flush.
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
+                    await nc.close()
+
+    def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
+        task = asyncio.create_task(job, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            # A bug must be visible, not silently end the bus side.
+            logger.error("%s failed", task.get_name(), exc_info=task.exception())
+
+    # --- what the rigs publish --------------------------------------------------------
+
+    async def _on_telemetry(self, msg: Msg) -> None:
+        tokens = msg.subject.split(".")
+        link = self.links.get((tokens[2], tokens[3]))
+        if link is None:
+            return
+        rig_now = None
+        if msg.headers and "St-Rig-Now" in msg.headers:
+            with contextlib.suppress(ValueError):
+                rig_now = float(msg.headers["St-Rig-Now"])
+        try:
+            link.on_telemetry(msg.data, rig_now)
+        except ValidationError as exc:
+            logger.warning("telemetry of %s not understood: %s", msg.subject, exc)
+
+    async def _on_events(self, msg: Msg) -> None:
+        rig = msg.subject.split(".")[2]
+        links = self._rigs.get(rig)
+        if not links:
+            return
+        try:
+            message = json.loads(msg.data)
+        except ValueError:
+            return
+        if not isinstance(message, dict):
+            return
+        if message.get("type") == "link_status":
+            target = self.links.get((rig, str(message.get("link"))))
+            if target is not None and target.present():
+                target.on_message(message)
+            return
+        for link in links:
+            if not link.present():
+                continue
+            if message.get("axis") is None:
+                link.on_message(message)  # a rig-wide event: shown once
+                return
+            if any(a.local_id == message.get("axis") for a in link.remote_axes):
+                link.on_message(message)
+                return
+
+    async def _on_presence(self, msg: Msg) -> None:
+        rig = msg.subject.split(".")[2]
+        gone = bool(msg.headers and msg.headers.get(subjects.GONE_HEADER))
+        for link in self._rigs.get(rig, []):
+            if gone:
+                link.on_gone()
+            else:
+                link.on_presence()
+
+    async def _on_manifest(self, msg: Msg) -> None:
+        rig = msg.subject.split(".")[2]
+        if rig not in self._rigs and self._hub is not None:
+            self._hub.on_event(
+                "warning",
+                None,
+                f"rig {rig} joined the bus: restart the hub to list its axes",
+            )
+
+    # --- the session's keep-alive -----------------------------------------------------
+
+    async def _keepalive(self) -> None:
+        assert self._stop_nc is not None
+        body = KeepAlive(session=self._session, hub=self.name).model_dump_json().encode()
+        while True:
+            for rig, links in self._rigs.items():
+                if any(link.present() for link in links):
+                    with contextlib.suppress(NatsError):
+                        await self._stop_nc.publish(subjects.rig_cmd(rig, "keepalive"), body)
+            await asyncio.sleep(self._settings.keepalive_period_s)
+
+    # --- runs -------------------------------------------------------------------------
+
+    async def _collect_runs(self) -> None:
+        assert self._nc is not None
+        js = self._nc.jetstream()
+        durable = f"hub-{self.name}-runs"
+        subscription = await js.pull_subscribe(
+            subjects.RUNS_SUBJECTS,
+            durable=durable,
+            stream=subjects.RUNS_STREAM,
+            config=ConsumerConfig(ack_wait=30.0, max_ack_pending=64),
+        )
+        while True:
+            try:
+                messages = await subscription.fetch(8, timeout=1.0)
+            except (NatsTimeoutError, TimeoutError):
+                continue  # nothing new (nats-py raises asyncio's TimeoutError here)
+            except (NatsError, JetStreamError) as exc:
+                logger.info("runs not fetched (%s): retrying", exc)
+                await asyncio.sleep(1.0)
+                continue
+            for msg in messages:
+                try:
+                    record = RunRecord.model_validate_json(msg.data)
+                except ValidationError as exc:
+                    logger.error("a run on the bus is not understood (%s): dropped", exc)
+                    await msg.term()
+                    continue
+                try:
+                    await asyncio.to_thread(self._store_run, record)
+                except StorageError as exc:
+                    logger.error("run %s not stored (%s): redelivered later", record.run, exc)
+                    await msg.nak(delay=5.0)
+                    continue
+                await msg.ack()
+
+    def _store_run(self, record: RunRecord) -> None:
+        """Write one rig's run into the hub's store, under the hub's id of its axis
+        (worker thread). A run already there (a redelivery) is left as it is."""
+        assert self._storage is not None and self._hub is not None
+        run = dict(record.run)
+        run_id = str(run.pop("id"))
+        if self._storage.get_run_meta(run_id) is not None:
+            return
+        axis_id = hub_id(record.rig, str(run.pop("axis_id", "")))
+        try:
+            axis_key = self._hub.entry(axis_id).storage_key
+        except KeyError:
+            axis_key = f"{record.rig}/{record.axis_key}"
+        created_s = float(run.pop("created_s", 0.0) or 0.0)  # type: ignore[arg-type]
+        status = str(run.pop("status", "complete"))
+        run.pop("baseline", None)
+        meta = {**run, "rig": record.rig, "rig_axis_key": record.axis_key}
+        self._storage.create_run(run_id, axis_key, axis_id, created_s, meta)
+        if record.samples:
+            self._storage.append_samples(run_id, 0, record.samples)
+        self._storage.finish_run(run_id, status, meta)
+        self.runs_stored += 1

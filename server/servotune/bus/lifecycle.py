@@ -1,0 +1,65 @@
+"""The app's one hook into the bus (``api.app`` lifespan): a rig agent or the hub side."""
+
+from __future__ import annotations
+
+from servotune.bus.connection import BusSettings
+from servotune.bus.hub_side import HubBus
+from servotune.bus.rig import RigAgent
+from servotune.control import ControlManager
+from servotune.hub import Hub
+from servotune.storage import Storage
+
+
+class BusLifecycle:
+    """``prepare`` before the hub starts (the hub registers the rigs' links), ``start``
+    once the hub and the control lock run, ``stop`` first thing at shutdown."""
+
+    def __init__(self, settings: BusSettings) -> None:
+        if (settings.rig is None) == (settings.hub is None):
+            raise ValueError("the bus needs either a rig name or a hub name")
+        self.settings = settings
+        self.rig: RigAgent | None = None
+        self.hub: HubBus | None = HubBus(settings) if settings.hub is not None else None
+
+    async def prepare(self, hub: Hub, storage: Storage) -> None:
+        if self.hub is not None:
+            await self.hub.prepare(hub, storage)
+
+    async def start(self, hub: Hub, control: ControlManager, storage: Storage) -> None:
+        if self.hub is not None:
+            await self.hub.start()
+        else:
+            self.rig = RigAgent(self.settings, hub, control, storage)
+            await self.rig.start()
+
+    async def stop(self) -> None:
+        if self.rig is not None:
+            await self.rig.stop()
+        if self.hub is not None:
+            await self.hub.stop()
+
+
+class HubControlManager(ControlManager):
+    """The hub's control lock: as for local axes, except the start-up STOP.
+
+    A rig's server sent its own axes their start-up STOP when it started; the hub
+    starting (or restarting) must not stop an axis a rig's local user is driving: the
+    hub is not on the rigs' control path for their local users (docs/lab.md). Every
+    other rule holds at the hub: its tabs' locks, leases and lapses, whose STOPs go to
+    the rig. (Overrides ``ControlManager._startup_stop``; see control.py.)
+    """
+
+    async def _startup_stop(self, link_id: str, axis_ids: list[str]) -> None:
+        for axis_id in axis_ids:
+            ax = self._axes[axis_id]
+            if ax.kind == "server":
+                ax.kind, ax.client = None, None
+            ax.ready.set()
+            self._broadcast_status(ax)
+
+
+def control_class(settings: BusSettings | None) -> type[ControlManager]:
+    """The control lock the app runs: the hub's for ``servotune hub``, else the usual."""
+    if settings is not None and settings.hub is not None:
+        return HubControlManager
+    return ControlManager

@@ -1,0 +1,440 @@
+"""The rig agent: a rig's own server on the bus (``servotune serve --bus URL --rig NAME``).
+
+What it does, beside everything the rig's server does anyway:
+
+* publishes its manifest (links, axes, descriptors) on ``servotune.v1.<rig>.manifest``
+  and its presence on ``servotune.v1.<rig>.presence`` every ``presence_period_s`` (both
+  kept as last values by the lab's JetStream, see ``subjects``);
+* forwards the hub's fan-out, exactly as a websocket client gets it: telemetry batches
+  (about 30 a second per axis, never one message per sample) on
+  ``servotune.v1.<rig>.<link>.<axis>.telemetry``, status, parameters and events on
+  ``servotune.v1.<rig>.events``; a slow bus loses old telemetry batches, never status;
+* answers ``...<axis>.cmd.<verb>`` requests through the SAME path as a local REST
+  request: the permission of the verb (``auth.routes_table.command_permission``), the
+  rig's control lock (``ControlManager.require``), the hub's validation against the
+  descriptor (422-equivalent reply naming the field, nothing sent);
+* answers STOP (``cmd.stop``, ``cmd.stop_all``) and the hub sessions' keep-alives on a
+  connection of their own: NATS has no priorities, and a STOP must not queue behind
+  telemetry;
+* keeps the dead-man on the rig: each hub session is a ``ControlClient`` of the rig's
+  own ``ControlManager`` whose heartbeats are the session's keep-alives over the bus;
+  when they stop (hub dead, leaf link cut) for the rig's lease, the axes that session
+  moved or held are stopped by the rig;
+* publishes every finished run to the ``SERVOTUNE_RUNS`` stream (deduplicated by
+  ``Nats-Msg-Id``), retrying those the bus did not acknowledge (leaf link down).
+
+The hub is not trusted for safety: it may be anyone holding the hub's credentials.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Coroutine
+from typing import Any
+
+from fastapi import HTTPException
+from nats.aio.client import Client
+from nats.aio.msg import Msg
+from nats.errors import Error as NatsError
+from nats.js.errors import Error as JetStreamError
+from pydantic import ValidationError
+
+from servotune import __version__
+from servotune.auth.permissions import permissions_of
+from servotune.auth.principal import STOP, TUNE, VIEW, Principal
+from servotune.auth.routes_table import command_permission
+from servotune.bus import subjects
+from servotune.bus.connection import BusSettings, connect_bus
+from servotune.bus.messages import (
+    CommandReply,
+    CommandRequest,
+    KeepAlive,
+    Presence,
+    RemoteAxisInfo,
+    RemoteLinkInfo,
+    RigManifest,
+    RunRecord,
+)
+from servotune.control import ControlClient, ControlManager
+from servotune.drivers.base import (
+    DeviceRefusedError,
+    DeviceTimeoutError,
+    DriverError,
+    InvalidArgumentError,
+    LinkDownError,
+    ProtocolError,
+)
+from servotune.hub import ClientQueue, Hub, UnknownAxisError
+from servotune.storage import Storage, StorageError
+
+logger = logging.getLogger(__name__)
+
+# What a hub session may do on this rig at most: an operator's permissions. Admin
+# actions (limits, EEPROM/flash, forced hand-over) stay with the rig's own dashboard.
+BUS_ROLE = "operator"
+# A hub session silent this long is forgotten (its lapse stopped its axes long before).
+SESSION_FORGET_S = 60.0
+RUN_RETRY_S = 2.0
+_PUBLISHED_META = "bus.published_runs"
+
+
+def _reply(**fields: Any) -> bytes:
+    return CommandReply(**fields).model_dump_json().encode()
+
+
+def _error_reply(exc: Exception) -> bytes:
+    """The rig's REST error for ``exc``, as a reply (``kind`` ~ status code)."""
+    if isinstance(exc, InvalidArgumentError):
+        return _reply(ok=False, kind="invalid", field=exc.field, detail=str(exc))
+    if isinstance(exc, HTTPException):
+        kind = "locked" if exc.status_code == 423 else "forbidden"
+        return _reply(ok=False, kind=kind, detail=str(exc.detail))
+    if isinstance(exc, UnknownAxisError):
+        return _reply(ok=False, kind="invalid", field="axis", detail=f"no axis {exc.args[0]!r}")
+    if isinstance(exc, DeviceRefusedError):
+        return _reply(ok=False, kind="refused", detail=str(exc))
+    if isinstance(exc, LinkDownError):
+        return _reply(ok=False, kind="link_down", detail=str(exc))
+    if isinstance(exc, DeviceTimeoutError):
+        return _reply(ok=False, kind="timeout", detail=str(exc))
+    if isinstance(exc, ProtocolError):
+        return _reply(ok=False, kind="protocol", detail=str(exc))
+    return _reply(ok=False, kind="device", detail=str(exc))
+
+
+class RigAgent:
+    """One rig on the bus; lives for the app's lifespan (``start`` .. ``stop``)."""
+
+    def __init__(
+        self, settings: BusSettings, hub: Hub, control: ControlManager, storage: Storage
+    ) -> None:
+        if settings.rig is None:
+            raise ValueError("a rig agent needs the rig's name")
+        self.rig = subjects.check_token("--rig", settings.rig)
+        self._settings = settings
+        self._hub = hub
+        self._control = control
+        self._storage = storage
+        # (link id, axis id) of the subject -> the rig's axis id; checked to be tokens.
+        self._axes: dict[tuple[str, str], str] = {}
+        for info in hub.axes_info():
+            subjects.check_token("link id", info.link)
+            subjects.check_token("axis id", info.id)
+            self._axes[(info.link, info.id)] = info.id
+        self._link_of = {info.id: info.link for info in hub.axes_info()}
+        self._nc: Client | None = None
+        self._stop_nc: Client | None = None
+        self._queue: ClientQueue | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._sessions: dict[str, tuple[ControlClient, float]] = {}
+        self._unpublished: set[str] = set()
+        self._published: set[str] = set()
+        self._principal = Principal(
+            user="hub", role=BUS_ROLE, permissions=permissions_of(BUS_ROLE), via="bus"
+        )
+        # Counters a test or benchmark reads.
+        self.telemetry_sent = 0
+        self.commands_handled = 0
+        self.verbs_handled: list[str] = []
+
+    # --- lifespan ---------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Join the bus in the background: a rig whose lab network is down at start-up
+        starts anyway (local dashboard, STOP, recording) and joins when it can."""
+        self._spawn(self._join(), "bus: joining")
+
+    async def _join(self) -> None:
+        backoff_s = 0.5
+        while True:
+            try:
+                await self._connect()
+            except (NatsError, OSError, TimeoutError) as exc:
+                logger.warning("bus %s not reachable (%s): trying again", self._settings.url, exc)
+                await self._close_connections()
+                await asyncio.sleep(backoff_s)
+                backoff_s = min(2 * backoff_s, 5.0)
+                continue
+            break
+        published = await asyncio.to_thread(self._storage.get_meta, _PUBLISHED_META)
+        self._published = set(published) if isinstance(published, list) else set()
+        self._queue = self._hub.subscribe()
+        self._spawn(self._forward(self._queue), "bus: forward fan-out")
+        self._spawn(self._presence(), "bus: presence")
+        self._spawn(self._publish_runs(), "bus: runs")
+
+    async def _connect(self) -> None:
+        """Both connections and their subscriptions (once connected, nats-py reconnects)."""
+        inbox = subjects.inbox_prefix(self.rig)
+        self._nc = await connect_bus(self._settings, name=f"rig-{self.rig}", inbox_prefix=inbox)
+        self._stop_nc = await connect_bus(
+            self._settings, name=f"rig-{self.rig}-stop", inbox_prefix=inbox
+        )
+        root = f"{subjects.PREFIX}.{self.rig}"
+        await self._stop_nc.subscribe(f"{root}.*.*.cmd.{subjects.STOP}", cb=self._on_stop)
+        await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "stop_all"), cb=self._on_stop)
+        await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "keepalive"), cb=self._on_alive)
+        await self._nc.subscribe(f"{root}.*.*.cmd.*", cb=self._on_command)
+        await self._nc.subscribe(subjects.rig_cmd(self.rig, "snapshot"), cb=self._on_snapshot)
+        await self._stop_nc.flush()
+        await self._nc.flush()
+
+    async def _close_connections(self) -> None:
+        for nc in (self._nc, self._stop_nc):
+            if nc is not None:
+                # A connection already cut (network down) fails its last flush.
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
+                    await nc.close()
+        self._nc = self._stop_nc = None
+
+    async def stop(self, *, graceful: bool = True) -> None:
+        """Leave the bus. ``graceful``: delete the presence key so the hub shows the rig
+        offline at once (a killed rig is found by the presence's silence instead)."""
+        if self._queue is not None:
+            self._hub.unsubscribe(self._queue)
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        if graceful and self._nc is not None and self._nc.is_connected:
+            with contextlib.suppress(NatsError, TimeoutError):
+                await self._nc.publish(
+                    subjects.presence(self.rig), b"{}", headers={subjects.GONE_HEADER: "1"}
+                )
+                await self._nc.flush(timeout=1)
+        for client, _ in self._sessions.values():
+            self._control.disconnect(client)
+        self._sessions.clear()
+        await self._close_connections()
+
+    def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
+        task = asyncio.create_task(job, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            # A bug must be visible, not silently end the bus side.
+            logger.error("%s failed", task.get_name(), exc_info=task.exception())
+
+    # --- what the rig offers ----------------------------------------------------------
+
+    def manifest(self) -> RigManifest:
+        links = []
+        for link in self._hub.links_info():
+            axes = [
+                RemoteAxisInfo(info=info, descriptor=self._hub.descriptor(info.id))
+                for info in self._hub.axes_info()
+                if info.link == link.id
+            ]
+            links.append(RemoteLinkInfo(info=link, axes=axes))
+        return RigManifest(rig=self.rig, server_version=__version__, links=links)
+
+    async def _put_manifest(self) -> None:
+        """The manifest on the rigs stream (the hub lists the rig from it), acknowledged."""
+        assert self._nc is not None
+        await self._nc.jetstream().publish(
+            subjects.manifest(self.rig),
+            self.manifest().model_dump_json().encode(),
+            timeout=self._settings.request_timeout_s,
+        )
+
+    async def _presence(self) -> None:
+        assert self._nc is not None
+        period = self._settings.presence_period_s
+        manifest_put = False
+        while True:
+            try:
+                if not manifest_put:
+                    # Until the lab's server has the bucket (the hub creates it) and the
+                    # leaf link is up: the rig works meanwhile, it is just not listed.
+                    await self._put_manifest()
+                    manifest_put = True
+                body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
+                # Not acknowledged: the next one follows in ``period``.
+                await self._nc.publish(subjects.presence(self.rig), body.model_dump_json().encode())
+            except (NatsError, JetStreamError, TimeoutError) as exc:
+                # Lab network down: the rig keeps working; presence resumes with it.
+                logger.debug("presence not published: %s", exc)
+            self._forget_silent_sessions()
+            await asyncio.sleep(period)
+
+    async def _forward(self, queue: ClientQueue) -> None:
+        """The hub's fan-out, as it would go to a websocket client, onto the bus."""
+        assert self._nc is not None
+        nc = self._nc
+        events = subjects.events(self.rig)
+        while True:
+            text = await queue.get()
+            message = json.loads(text)
+            kind = message.get("type")
+            headers = {"St-Rig-Now": f"{self._hub.now():.6f}", "St-Wall": f"{time.time():.6f}"}
+            try:
+                if kind == "telemetry":
+                    axis_id = message["axis"]
+                    subject = subjects.telemetry(self.rig, self._link_of[axis_id], axis_id)
+                    await nc.publish(subject, text.encode(), headers=headers)
+                    self.telemetry_sent += 1
+                elif kind in ("link_status", "axis_status", "params", "event", "control_status"):
+                    await nc.publish(events, text.encode(), headers=headers)
+                elif kind == "run" and message.get("status") in ("complete", "incomplete"):
+                    self._unpublished.add(str(message["run_id"]))
+            except NatsError as exc:
+                # Disconnected: nats-py buffers while reconnecting, then refuses; the
+                # rig's own clients are not affected.
+                logger.debug("bus publish failed: %s", exc)
+
+    # --- requests ---------------------------------------------------------------------
+
+    async def _on_command(self, msg: Msg) -> None:
+        tokens = msg.subject.split(".")
+        if len(tokens) != 7 or tokens[6] == subjects.STOP:
+            return  # STOP is answered on the STOP connection
+        # Each request in a task of its own: a parameter write waiting for its read-back
+        # must not hold the next request back.
+        self._spawn(self._answer(msg, tokens[3], tokens[4], tokens[6]), f"bus: {msg.subject}")
+
+    async def _on_stop(self, msg: Msg) -> None:
+        tokens = msg.subject.split(".")
+        if tokens[-1] == "stop_all":
+            self.verbs_handled.append("stop_all")
+            failed = await self._hub.stop_all()
+            await msg.respond(_reply(ok=not failed, result={"failed": failed}, kind=None))
+            return
+        await self._answer(msg, tokens[3], tokens[4], subjects.STOP)
+
+    async def _on_alive(self, msg: Msg) -> None:
+        try:
+            alive = KeepAlive.model_validate_json(msg.data)
+        except ValidationError:
+            return
+        client = self._session(alive.session)
+        self._control.heartbeat(client)
+
+    async def _on_snapshot(self, msg: Msg) -> None:
+        """What a hub needs when it (re)finds the rig: statuses and parameters."""
+        messages = [m for m in self._hub.snapshot_messages() if '"type":"event"' not in m[:30]]
+        await msg.respond(json.dumps(messages).encode())
+
+    def _session(self, session: str) -> ControlClient:
+        known = self._sessions.get(session)
+        if known is not None:
+            self._sessions[session] = (known[0], time.monotonic())
+            return known[0]
+        client = self._control.connect(self._principal, f"bus:{session[:8]}", lambda _: None)
+        self._sessions[session] = (client, time.monotonic())
+        return client
+
+    def _forget_silent_sessions(self) -> None:
+        now = time.monotonic()
+        for session, (client, seen) in list(self._sessions.items()):
+            if now - seen > SESSION_FORGET_S:
+                del self._sessions[session]
+                self._control.disconnect(client)
+
+    async def _answer(self, msg: Msg, link: str, axis: str, verb: str) -> None:
+        try:
+            body = await self._execute(link, axis, verb, msg.data)
+        except (DriverError, HTTPException, UnknownAxisError) as exc:
+            body = _error_reply(exc)
+        except StorageError as exc:
+            body = _reply(ok=False, kind="device", detail=str(exc))
+        self.commands_handled += 1
+        self.verbs_handled.append(verb)
+        if msg.reply:
+            with contextlib.suppress(NatsError):
+                await msg.respond(body)
+
+    async def _execute(self, link: str, axis: str, verb: str, data: bytes) -> bytes:
+        """One request, exactly as the rig's REST route would run it."""
+        axis_id = self._axes.get((link, axis))
+        if axis_id is None:
+            raise InvalidArgumentError("axis", f"no axis {axis!r} on link {link!r} of {self.rig}")
+        try:
+            request = CommandRequest.model_validate_json(data)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            field = ".".join(str(p) for p in first.get("loc", ())) or "body"
+            raise InvalidArgumentError(field, f"{field}: {first.get('msg')}") from None
+        principal = self._principal
+        if verb == subjects.READ_PARAMS:
+            self._need(principal, VIEW)
+            return _reply(ok=True, result={"values": await self._hub.read_params(axis_id)})
+        client = self._session(request.session)
+        if verb == subjects.WRITE_PARAMS:
+            self._need(principal, TUNE)
+            await self._control.require(axis_id, client.client_id, principal)
+            values = await self._hub.write_params(axis_id, request.values)
+            return _reply(ok=True, result={"values": values})
+        permission = command_permission(self._hub.descriptor(axis_id), verb)
+        self._need(principal, permission)
+        if permission != STOP:
+            # STOP is never locked (docs/control.md); every other command is.
+            await self._control.require(axis_id, client.client_id, principal)
+        outcome = await self._hub.command(axis_id, verb, request.args)
+        return _reply(ok=True, result={"sent": outcome.sent, "message": outcome.message})
+
+    @staticmethod
+    def _need(principal: Principal, permission: str) -> None:
+        if permission not in principal.permissions:
+            raise HTTPException(403, detail=f"not permitted over the bus: needs '{permission}'")
+
+    # --- runs -------------------------------------------------------------------------
+
+    async def _publish_runs(self) -> None:
+        """Every finished run onto the runs stream, until the bus has acknowledged it."""
+        assert self._nc is not None
+        js = self._nc.jetstream()
+        self._unpublished.update(await asyncio.to_thread(self._finished_runs))
+        while True:
+            for run_id in sorted(self._unpublished):
+                record = await asyncio.to_thread(self._run_record, run_id)
+                if record is None:
+                    self._unpublished.discard(run_id)
+                    continue
+                try:
+                    await js.publish(
+                        subjects.runs(self.rig),
+                        record.model_dump_json().encode(),
+                        headers={"Nats-Msg-Id": f"{self.rig}/{run_id}"},
+                        timeout=self._settings.request_timeout_s,
+                    )
+                except (NatsError, JetStreamError, TimeoutError) as exc:
+                    logger.info("run %s not published yet (%s): retrying", run_id, exc)
+                    break
+                self._unpublished.discard(run_id)
+                self._published.add(run_id)
+                await asyncio.to_thread(
+                    self._storage.set_meta, _PUBLISHED_META, sorted(self._published)
+                )
+            await asyncio.sleep(RUN_RETRY_S)
+
+    def _finished_runs(self) -> list[str]:
+        """Runs of this rig's axes not yet on the bus (worker thread)."""
+        found = []
+        for info in self._hub.axes_info():
+            for run in self._storage.list_runs(self._hub.entry(info.id).storage_key):
+                if run["status"] != "recording" and run["id"] not in self._published:
+                    found.append(str(run["id"]))
+        return found
+
+    def _run_record(self, run_id: str) -> RunRecord | None:
+        run = self._storage.get_run(run_id)
+        if run is None or run["status"] == "recording":
+            return None
+        samples = run.pop("samples")
+        axis_key = next(
+            (
+                self._hub.entry(i.id).storage_key
+                for i in self._hub.axes_info()
+                if i.id == run.get("axis_id")
+            ),
+            "",
+        )
+        return RunRecord(rig=self.rig, run=run, axis_key=axis_key, samples=samples)
