@@ -97,7 +97,7 @@ def test_fit_recovers_the_model_from_irregular_samples(name: str, seed: int) -> 
 
 def test_fit_on_the_firmware_simulator_with_wire_timestamps() -> None:
     """Data from the sans-IO firmware (its own motor model, not ours), stamped as the
-    SLAP2 driver stamps it, aligned with ``align_identification``."""
+    SLAP2 driver stamps it (at the latch moment), aligned with ``align_identification``."""
     char_s = 10 / 19200
     rnd = random.Random(7)
     for params in PLANTS.values():
@@ -122,7 +122,7 @@ def test_fit_on_the_firmware_simulator_with_wire_timestamps() -> None:
             while (ticks + 1) * TICK_S <= t:
                 module.tick()
                 ticks += 1
-            stamps.append(t + (len(str(module.position)) + 1) * char_s)
+            stamps.append(t)  # the driver stamps the latch moment (docs/capture.md)
             positions.append(module.position)
             t += rnd.uniform(0.015, 0.06)
         times, values, effective = align_identification(stamps, positions, returns, baud=19200)
@@ -252,7 +252,7 @@ def test_alignment_moves_stamps_to_the_device_moments() -> None:
     times, values, schedule = align_identification(
         [1.0], [-1234], [(2.0, 5)], baud=19200, rss_check=True, slowdown=1.0
     )
-    assert times == [pytest.approx(1.0 - 6 * char_s)]  # "-1234" + CR
+    assert times == [pytest.approx(1.0)]  # already the latch moment (the driver's stamp)
     assert values == [-1234.0]
     assert schedule == [(pytest.approx(2.0 - 13 * char_s + TICK_S), 5.0)]
 

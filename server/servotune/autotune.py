@@ -39,6 +39,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     LinkDownError,
     Sample,
+    capture_of,
 )
 from servotune.hub import AxisEntry, Hub
 from servotune.metrics import Metrics, compute_metrics
@@ -393,7 +394,6 @@ def model_doubt(model: PlantModel, travel: float) -> str | None:
 
 
 # Timing of the SLAP2 driver's exchanges, in characters on the wire (docs/autotune.md).
-_READ_REPLY_EXTRA_CHARS: Final = 1  # a reading is latched at its CR; the reply + CR follow
 # After a command executes: the echo of its CR and the bare CR reply, then (unless the
 # module replies -1UC itself) the driver's "rss" check: 4 characters echoed one by one
 # (2 character times each) and a reply of about 2 digits + CR.
@@ -412,8 +412,9 @@ def align_identification(
 ) -> tuple[list[float], list[float], list[tuple[float, float]]]:
     """Move the host's timestamps to the device's moments (SLAP2 driver timing).
 
-    A position sample is stamped when its reply has arrived: it was latched
-    ``digits + 1`` characters earlier. A command returns after its CR's echo, the bare
+    A position sample already carries the driver's estimate of when the module latched
+    it (the end of its CR echo less one character, docs/capture.md): kept as it is.
+    A command returns after its CR's echo, the bare
     CR reply and the driver's ``rss`` check: it took effect ``_COMMAND_TAIL_CHARS +
     _RSS_CHECK_CHARS`` character times (stretched by ``slowdown``, the ratio of the
     wire's sample rate to the achieved one: host latency per echoed character)
@@ -424,7 +425,7 @@ def align_identification(
     times: list[float] = []
     values: list[float] = []
     for t, p in zip(sample_times, positions, strict=True):
-        times.append(t - (len(str(round(p))) + _READ_REPLY_EXTRA_CHARS) * char_s)
+        times.append(t)
         values.append(float(p))
     tail = (_COMMAND_TAIL_CHARS + (_RSS_CHECK_CHARS if rss_check else 0)) * char_s * slowdown
     schedule = [(t - tail + TICK_S, float(u)) for t, u in command_returns]
@@ -1065,6 +1066,8 @@ class _IdentificationRun:
         self.recording = _Recording(
             self.run_id, entry, plan, self.meta["columns"], self.meta["flags"]
         )
+        # The link polls this axis only while the run records (docs/capture.md).
+        self._capture = contextlib.AsyncExitStack()
 
     @property
     def samples(self) -> list[list[Any]]:
@@ -1091,6 +1094,9 @@ class _IdentificationRun:
         except BaseException:
             self.bench._active.pop(axis_id, None)
             raise
+        await self._capture.enter_async_context(
+            capture_of(self.entry.driver, reason="auto-tune identification")
+        )
         self.recording.t0 = clock()
         self.bench._update(self.recording, "recording", "auto-tune identification")
 
@@ -1099,6 +1105,7 @@ class _IdentificationRun:
 
     async def close(self, status: str, message: str, extra: dict[str, Any]) -> None:
         try:
+            await self._capture.aclose()
             await self.bench._flush(self.recording)
         finally:
             self.bench._active.pop(self.entry.info.id, None)

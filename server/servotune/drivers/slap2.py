@@ -48,6 +48,7 @@ where the manual is silent (also in docs/slap2.md):
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections import deque
@@ -70,8 +71,16 @@ from servotune.drivers.base import (
     Sample,
     check_console_line,
 )
+from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
+from servotune.drivers.slap2_capture import (
+    MOVE_MNEMONICS,
+    PROFILE_BREAKERS,
+    ModuleCapture,
+    ProfileState,
+)
 from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.profiles import ProfileTrack
 from servotune.protocols import slap2 as codec
 from servotune.transports.base import ByteChannel, Connector, EchoResult
 
@@ -137,6 +146,13 @@ class _ModuleState:
     # the cal flag was seen set since the last calibration servotune started.
     suspect: str = ""
     cal_seen: bool = False
+    # Capture (drivers/slap2_capture.py): the reconstructed profile of the last move
+    # servotune sent, the state of a capture of this module, and whether it is paused
+    # for another module's capture.
+    profile: ProfileState = field(default_factory=ProfileState)
+    capture: ModuleCapture | None = None
+    last_capture: CaptureStats | None = None
+    paused: bool = False
 
 
 class Slap2Link(LinkEngine):
@@ -175,6 +191,12 @@ class Slap2Link(LinkEngine):
         self._last_verify_t = 0.0
         self._reply_chars: dict[str, int] = {}
         self._consecutive_failures = 0
+        # Best estimate of when the module latched the last exchange's value (see
+        # ``_exchange_once``), and the character times all exchanges took on the wire.
+        self._last_latch_t = 0.0
+        self._wire_chars = 0
+        self._captures = CaptureRegistry(self._capture_changed)
+        self._capture_index = 0
 
     def axis_id(self, address: int) -> str:
         return f"{self.config.link_id}-{address}"
@@ -187,6 +209,7 @@ class Slap2Link(LinkEngine):
 
     def _on_link_down(self) -> None:
         for module in self._modules.values():
+            module.profile.clear()
             if module.online:
                 module.online = False
                 self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
@@ -216,6 +239,16 @@ class Slap2Link(LinkEngine):
                 if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
+                continue
+            captured = [m for m in online if m.capture is not None]
+            if captured:
+                # The line is devoted to the captured module(s): no verify reads, no
+                # probes, the others pause (drivers/slap2_capture.py).
+                suspect = next((m for m in captured if m.suspect), None)
+                if suspect is not None:
+                    await self._confirm_suspect(suspect)
+                    continue
+                await self._capture_step(captured)
                 continue
             suspect = next((m for m in online if m.suspect), None)
             if suspect is not None:
@@ -293,6 +326,7 @@ class Slap2Link(LinkEngine):
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
         module.expected_mode = "unknown"
         module.suspect = ""
+        module.profile.clear()
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
         self._sink.on_event("warning", self.axis_id(module.address), message)
 
@@ -447,7 +481,9 @@ class Slap2Link(LinkEngine):
             self._note_unsolicited(stray)
         try:
             await self._send_echoed(channel, command.text)
+            t_echo = self._clock()
             lines = await self._read_reply(channel, command)
+            t_reply = self._clock()
         except _AbandonedError:
             self._errors += 1
             raise
@@ -465,7 +501,17 @@ class Slap2Link(LinkEngine):
             # instead (a reset). The reply, if any, is lost.
             self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
             raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
-        self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
+        reply_chars = sum(len(x) + 1 for x in lines)
+        self._reply_chars[_mnemonic(command.text)] = reply_chars
+        # When the module latched the value: it acts on the CR, whose echo ends one
+        # character later, and (sent back to back) the reply ends reply_chars after
+        # that. Both clock readings can only be late (a busy host resumes this task
+        # late), so each gives an upper bound; the smaller one is the best estimate.
+        # The time the reply was parsed would bias rise and settling times by the
+        # reply length and by the host's load.
+        char_s = 10 / self.config.baud
+        self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
+        self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
 
     async def _select(self, address: int) -> None:
@@ -578,9 +624,16 @@ class Slap2Link(LinkEngine):
 
     async def _execute(self, module: _ModuleState, command: codec.Command) -> list[str]:
         """Run a state-changing command and raise DeviceRefusedError if refused."""
-        lines = await self._transact(module.address, command)
-        reply = codec.parse_reply(lines[0] if lines else "")
         mnemonic = _mnemonic(command.text)
+        previous: ProfileTrack | None = None
+        if mnemonic in MOVE_MNEMONICS or mnemonic in PROFILE_BREAKERS:
+            # Whatever happens next, the old reconstruction no longer holds, except as
+            # the start of a move replanned on top of it (kept aside for that).
+            previous = module.profile.track
+            module.profile.clear()
+        lines = await self._transact(module.address, command)
+        latched = self._last_latch_t
+        reply = codec.parse_reply(lines[0] if lines else "")
         hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
         if reply.kind is codec.ReplyKind.REFUSED:
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
@@ -589,7 +642,43 @@ class Slap2Link(LinkEngine):
             module.rss = rss
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
+        if mnemonic in MOVE_MNEMONICS:
+            self._start_profile(module, command.text, latched, previous)
         return lines
+
+    def _start_profile(
+        self,
+        module: _ModuleState,
+        text: str,
+        latched_s: float,
+        previous: ProfileTrack | None,
+    ) -> None:
+        """Reconstruct the profile of a move the module accepted (slap2_capture)."""
+        mnemonic = _mnemonic(text)
+        try:
+            value = codec.parse_int(text[len(mnemonic) :])
+        except codec.CodecError:
+            return
+        resting: float | None = None
+        flags = codec.decode_rss(module.rss or 0)
+        if (
+            previous is None
+            and flags["pm"]
+            and not flags["move"]
+            and module.position is not None
+            and module.following_error is not None
+        ):
+            # At rest in pm the setpoint is the held target: rp + pe of the last poll.
+            resting = float(module.position + module.following_error)
+        module.profile.track = previous
+        module.profile.start(
+            mnemonic,
+            value,
+            latched_s,
+            module.known.get("velocity"),
+            module.known.get("acceleration"),
+            resting,
+        )
 
     # --- parameters -------------------------------------------------------------------
 
@@ -666,18 +755,21 @@ class Slap2Link(LinkEngine):
             await self._poll_module(module)
             self._consecutive_failures = 0
         except DriverError as exc:
-            # An odd reply to a poll is a desynchronisation, never the end of the
-            # session: counted, the next poll resynchronises (select, echo check).
-            self._count("desyncs")
-            self._consecutive_failures += 1
-            if self._consecutive_failures >= 3:
-                if self._state != "error":
-                    self._sink.on_event("error", None, f"{self.id}: {exc}")
-                self._set_state("error", str(exc))
-                if self._consecutive_failures >= 3 * len(self._modules):
-                    for m in self._modules.values():
-                        m.online = False
-                        self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
+            self._poll_failed(exc)
+
+    def _poll_failed(self, exc: DriverError) -> None:
+        # An odd reply to a poll is a desynchronisation, never the end of the
+        # session: counted, the next poll resynchronises (select, echo check).
+        self._count("desyncs")
+        self._consecutive_failures += 1
+        if self._consecutive_failures >= 3:
+            if self._state != "error":
+                self._sink.on_event("error", None, f"{self.id}: {exc}")
+            self._set_state("error", str(exc))
+            if self._consecutive_failures >= 3 * len(self._modules):
+                for m in self._modules.values():
+                    m.online = False
+                    self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
 
     async def _poll_module(self, module: _ModuleState) -> None:
         address = module.address
@@ -691,7 +783,7 @@ class Slap2Link(LinkEngine):
                 return
             value = await self._read_int(address, mnemonic)
             if mnemonic == "rp":
-                position, t_position = value, self._clock()
+                position, t_position = value, self._last_latch_t
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
@@ -747,15 +839,140 @@ class Slap2Link(LinkEngine):
         elif codec.decode_rss(rss)["cal"]:
             module.cal_seen = True
 
+    # --- capture (drivers.base.Capturer; decisions in drivers/slap2_capture.py) ---------
+
+    def capture(self, address: int, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+        """Devote the line to module ``address`` while the context is open."""
+        if address not in self._modules:
+            raise InvalidArgumentError("address", f"no module {address} on {self.id}")
+        return self._captures.hold(address, reason)
+
+    def capture_stats(self, address: int) -> CaptureStats | None:
+        """The running capture's statistics of a module, else its last capture's."""
+        module = self._modules[address]
+        return module.capture.stats if module.capture is not None else module.last_capture
+
+    def _capture_changed(self) -> None:
+        captured = set(self._captures.addresses)
+        now = self._clock()
+        for module in self._modules.values():
+            if module.address in captured and module.capture is None:
+                module.capture = ModuleCapture(CaptureStats(started_s=now))
+            elif module.address not in captured and module.capture is not None:
+                stats = module.capture.stats
+                stats.ended_s = now
+                module.last_capture, module.capture = stats, None
+                logger.info(
+                    "%s: capture of module %d ended: %d samples in %.2f s, %d setpoint "
+                    "checks (%d off, max residual %.1f counts)",
+                    self.id,
+                    module.address,
+                    stats.samples,
+                    now - stats.started_s,
+                    stats.setpoint_checks,
+                    stats.setpoint_mismatches,
+                    stats.max_setpoint_residual,
+                )
+            paused = bool(captured) and module.address not in captured
+            if paused != module.paused:
+                module.paused = paused
+                if module.online:
+                    on = ", ".join(f"#{a}" for a in sorted(captured))
+                    self._sink.on_axis_health(
+                        self.axis_id(module.address),
+                        "paused" if paused else "ok",
+                        f"paused: capture on {on}" if paused else "",
+                    )
+        self._wakeup.set()
+
+    async def _capture_step(self, captured: list[_ModuleState]) -> None:
+        """One sample of a captured module: ``rp``, and ``pe``/``rss`` when due."""
+        module = captured[self._capture_index % len(captured)]
+        self._capture_index += 1
+        capture = module.capture
+        assert capture is not None
+        address = module.address
+        chars_before = self._wire_chars
+        fresh_pe: int | None = None
+        try:
+            position = await self._read_int(address, "rp")
+            t = self._last_latch_t
+            why = capture.resolve(module.profile, t, position)
+            if why:
+                self._count("setpoint_mismatches")
+                logger.info("%s: module %d: %s", self.id, address, why)
+            flags = codec.decode_rss(module.rss or 0)
+            if not self.urgent_pending and capture.wants_pe(module.profile, flags, t):
+                fresh_pe = await self._read_int(address, "pe")
+                capture.pending = (self._last_latch_t, fresh_pe)
+                capture.last_pe_s = self._last_latch_t
+                capture.samples_since_pe = 0
+                module.following_error = fresh_pe
+            else:
+                capture.samples_since_pe += 1
+            if not self.urgent_pending and capture.wants_rss(t):
+                rss = await self._read_int(address, "rss")
+                capture.last_rss_s = self._last_latch_t
+                self._check_rss(module, rss)
+                module.rss = rss
+            self._consecutive_failures = 0
+        except DriverError as exc:
+            capture.stats.wire_chars += self._wire_chars - chars_before
+            self._poll_failed(exc)
+            return
+        capture.stats.wire_chars += self._wire_chars - chars_before
+        capture.stats.samples += 1
+        capture.previous = (t, position)
+        if self._state == "error":
+            self._set_state("connected", self._connector.description)
+        self._emit_captured(module, t, position, fresh_pe)
+
+    def _emit_captured(
+        self, module: _ModuleState, t: float, position: int, fresh_pe: int | None
+    ) -> None:
+        if module.position is not None and module.position_t is not None and t > module.position_t:
+            module.velocity = (position - module.position) / (t - module.position_t)
+        module.position, module.position_t = position, t
+        flags = codec.decode_rss(module.rss or 0)
+        setpoint = module.profile.setpoint_at(t) if flags["pm"] else None
+        following_error: float | None
+        if setpoint is not None:
+            setpoint = round(setpoint, 2)
+            following_error = round(setpoint - position, 2)
+        elif fresh_pe is not None:
+            # No profile to trust: pe as read (a slow channel between its reads).
+            following_error = fresh_pe
+            setpoint = position + fresh_pe
+        else:
+            following_error = None
+        channels: dict[str, float | None] = {
+            "position": position,
+            "setpoint": setpoint,
+            "following_error": following_error,
+            "velocity": module.velocity,
+            "velocity_measured": None,
+        }
+        module.samples.append(t)
+        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+
     # --- status -----------------------------------------------------------------------
 
     def wire_limit_hz(self) -> float:
         """Samples/s per axis the wire allows for the poll set, from actual reply lengths.
 
         Per transaction: every command char and CR is sent and echoed (2 chars each),
-        then the reply and its CR: all at 10 bit times per character.
+        then the reply and its CR: all at 10 bit times per character. During a
+        capture: the limit of the captured modules' actual poll mix (rp, and pe, rss
+        and se as often as they were read), from the characters they took.
         """
         char_s = 10 / self.config.baud
+        captures = [m.capture for m in self._modules.values() if m.capture is not None]
+        if captures:
+            samples = sum(c.stats.samples for c in captures)
+            chars = sum(c.stats.wire_chars for c in captures)
+            if samples and chars:
+                return samples / len(captures) / (chars * char_s)
+            return 1 / ((2 * 3 + self._reply_chars.get("rp", 2)) * char_s * len(captures))
         online = [m for m in self._modules.values() if m.online] or list(self._modules.values())
         per_module = 0.0
         for mnemonic in self.config.poll_commands:
@@ -771,7 +988,8 @@ class Slap2Link(LinkEngine):
     def achieved_rate_hz(self) -> float:
         """Mean telemetry samples per second per online axis over the last 2 s."""
         now = self._clock()
-        rates = [recent_rate_hz(m.samples, now) for m in self._modules.values() if m.online]
+        polled = [m for m in self._modules.values() if m.online and not m.paused]
+        rates = [recent_rate_hz(m.samples, now) for m in polled]
         return sum(rates) / len(rates) if rates else 0.0
 
     # --- operations used by Slap2Axis -------------------------------------------------
@@ -840,6 +1058,8 @@ class Slap2Link(LinkEngine):
         command = codec.Command(text, multiline=True)
 
         async def job() -> list[str]:
+            if mnemonic in MOVE_MNEMONICS:
+                module.profile.clear()  # a console move is not reconstructed
             lines = await self._transact(address, command)
             if lines and codec.parse_reply(lines[0]).kind is codec.ReplyKind.REFUSED:
                 raise DeviceRefusedError(f"{text}: refused by the module (-1UC)")
@@ -862,6 +1082,8 @@ class Slap2Link(LinkEngine):
 
     def _track_mode(self, module: _ModuleState, text: str) -> None:
         mnemonic = _mnemonic(text)
+        if mnemonic in PROFILE_BREAKERS:
+            module.profile.clear()
         if mnemonic == "st":
             module.expected_mode = "off"
         elif mnemonic in ("pm", "vm"):
@@ -982,6 +1204,10 @@ class Slap2Axis(EngineAxis, AxisDriver):
 
     async def stop(self) -> None:
         await self._link.op_execute(self._address, [codec.make_simple("st")], urgent=True)
+
+    def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+        """``drivers.base.Capturer``: the line polls this module only while open."""
+        return self._link.capture(self._address, reason)
 
     # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
 
