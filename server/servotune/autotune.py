@@ -33,6 +33,7 @@ from pydantic import BaseModel, Field
 
 from servotune.drivers.base import (
     BenchPlan,
+    CommandClock,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -409,6 +410,7 @@ def align_identification(
     baud: int,
     rss_check: bool = True,
     slowdown: float = 1.0,
+    commands_latched: bool = False,
 ) -> tuple[list[float], list[float], list[tuple[float, float]]]:
     """Move the host's timestamps to the device's moments (SLAP2 driver timing).
 
@@ -419,7 +421,9 @@ def align_identification(
     _RSS_CHECK_CHARS`` character times (stretched by ``slowdown``, the ratio of the
     wire's sample rate to the achieved one: host latency per echoed character)
     before it returned, at the next 841.5 us tick, while a position reply reports the
-    last tick: one tick between the two on average.
+    last tick: one tick between the two on average. With ``commands_latched`` the
+    command times are already the driver's latch estimates (``CommandClock``): only
+    the tick is added.
     """
     char_s = 10.0 / baud
     times: list[float] = []
@@ -428,6 +432,8 @@ def align_identification(
         times.append(t)
         values.append(float(p))
     tail = (_COMMAND_TAIL_CHARS + (_RSS_CHECK_CHARS if rss_check else 0)) * char_s * slowdown
+    if commands_latched:
+        tail = 0.0
     schedule = [(t - tail + TICK_S, float(u)) for t, u in command_returns]
     return times, values, schedule
 
@@ -1476,6 +1482,7 @@ class AutoTuner:
             baud=baud,
             rss_check=rss_check,
             slowdown=slowdown,
+            commands_latched=isinstance(getattr(entry, "driver", None), CommandClock),
         )
         try:
             # the model is symmetric: a negative staircase is fitted mirrored
@@ -1510,6 +1517,14 @@ class AutoTuner:
         )
         return self._clock() - sent
 
+    def _command_moment(self, entry: AxisEntry) -> float:
+        """When the last command took effect: the driver's latch estimate where it
+        has one (``CommandClock``), else now (``align_identification`` corrects it)."""
+        driver = getattr(entry, "driver", None)
+        if isinstance(driver, CommandClock) and driver.last_command_latch_s is not None:
+            return driver.last_command_latch_s
+        return self._clock()
+
     async def _staircase(
         self, entry: AxisEntry, request: IdentifyRequest, start: float, run: _IdentificationRun
     ) -> tuple[list[tuple[float, int]], list[float], int]:
@@ -1530,7 +1545,7 @@ class AutoTuner:
         while True:
             signed = request.direction * u
             round_trips.append(await self._command(entry, "open_loop_pwm", {"pwm": signed}))
-            schedule.append((self._clock(), signed))
+            schedule.append((self._command_moment(entry), signed))
             run.progress(f"PWM {u}, travel {round(travel)} counts")
             level_end = self._clock() + IDENT_DWELL_S
             brake = False
@@ -1555,7 +1570,7 @@ class AutoTuner:
                 break
             u = min(request.max_pwm, max(u + 1, round(u * IDENT_STEP_FACTOR)))
         round_trips.append(await self._command(entry, "open_loop_pwm", {"pwm": 0}))
-        schedule.append((self._clock(), 0))
+        schedule.append((self._command_moment(entry), 0))
         still_since: float | None = None
         previous = self._position(entry.latest)
         deadline = self._clock() + 1.0

@@ -135,6 +135,7 @@ class ProfileTrack:
         self._generator = generator
         self._setpoints: list[float] = [generator.setpoint]
         self.done_tick: int | None = None if generator.moving else 0
+        self.moved = generator.moving  # a move, not a held position
 
     @property
     def target(self) -> float:

@@ -260,6 +260,19 @@ class Capturer(Protocol):
     def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]: ...
 
 
+@runtime_checkable
+class CommandClock(Protocol):
+    """Optional for an axis: when the device executed the last command sent to it.
+
+    The best estimate on the driver's clock (SLAP2: the end of the command's CR echo
+    less one character), None before the first command. Identification uses it to
+    place its input steps instead of guessing from round trips.
+    """
+
+    @property
+    def last_command_latch_s(self) -> float | None: ...
+
+
 def capture_of(axis: object, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
     """``axis.capture(reason)`` for a ``Capturer``, else a context that does nothing
     (the device is polled as usual, e.g. the EP7047 whose cycle is already dense)."""

@@ -150,6 +150,7 @@ class _ModuleState:
     # servotune sent, the state of a capture of this module, and whether it is paused
     # for another module's capture.
     profile: ProfileState = field(default_factory=ProfileState)
+    last_command_latch_s: float | None = None
     capture: ModuleCapture | None = None
     last_capture: CaptureStats | None = None
     paused: bool = False
@@ -626,13 +627,14 @@ class Slap2Link(LinkEngine):
         """Run a state-changing command and raise DeviceRefusedError if refused."""
         mnemonic = _mnemonic(command.text)
         previous: ProfileTrack | None = None
+        resting = self._resting_setpoint(module)
         if mnemonic in MOVE_MNEMONICS or mnemonic in PROFILE_BREAKERS:
             # Whatever happens next, the old reconstruction no longer holds, except as
             # the start of a move replanned on top of it (kept aside for that).
             previous = module.profile.track
             module.profile.clear()
         lines = await self._transact(module.address, command)
-        latched = self._last_latch_t
+        latched = module.last_command_latch_s = self._last_latch_t
         reply = codec.parse_reply(lines[0] if lines else "")
         hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
         if reply.kind is codec.ReplyKind.REFUSED:
@@ -643,8 +645,21 @@ class Slap2Link(LinkEngine):
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
         if mnemonic in MOVE_MNEMONICS:
-            self._start_profile(module, command.text, latched, previous)
+            self._start_profile(module, command.text, latched, previous, resting)
         return lines
+
+    @staticmethod
+    def _resting_setpoint(module: _ModuleState) -> float | None:
+        """At rest in pm the setpoint is the held target: rp + pe of the last poll."""
+        flags = codec.decode_rss(module.rss or 0)
+        if (
+            flags["pm"]
+            and not flags["move"]
+            and module.position is not None
+            and module.following_error is not None
+        ):
+            return float(module.position + module.following_error)
+        return None
 
     def _start_profile(
         self,
@@ -652,24 +667,15 @@ class Slap2Link(LinkEngine):
         text: str,
         latched_s: float,
         previous: ProfileTrack | None,
+        resting: float | None,
     ) -> None:
-        """Reconstruct the profile of a move the module accepted (slap2_capture)."""
+        """Reconstruct the profile of a move the module accepted (slap2_capture);
+        ``resting``: the setpoint before it if the module was at rest in pm."""
         mnemonic = _mnemonic(text)
         try:
             value = codec.parse_int(text[len(mnemonic) :])
         except codec.CodecError:
             return
-        resting: float | None = None
-        flags = codec.decode_rss(module.rss or 0)
-        if (
-            previous is None
-            and flags["pm"]
-            and not flags["move"]
-            and module.position is not None
-            and module.following_error is not None
-        ):
-            # At rest in pm the setpoint is the held target: rp + pe of the last poll.
-            resting = float(module.position + module.following_error)
         module.profile.track = previous
         module.profile.start(
             mnemonic,
@@ -908,9 +914,10 @@ class Slap2Link(LinkEngine):
                 capture.last_pe_s = self._last_latch_t
                 capture.samples_since_pe = 0
                 module.following_error = fresh_pe
+                capture.note_rest(module.profile, flags, t, position + fresh_pe)
             else:
                 capture.samples_since_pe += 1
-            if not self.urgent_pending and capture.wants_rss(t):
+            if not self.urgent_pending and capture.wants_rss(module.profile, t):
                 rss = await self._read_int(address, "rss")
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)
@@ -1208,6 +1215,11 @@ class Slap2Axis(EngineAxis, AxisDriver):
     def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
         """``drivers.base.Capturer``: the line polls this module only while open."""
         return self._link.capture(self._address, reason)
+
+    @property
+    def last_command_latch_s(self) -> float | None:
+        """``drivers.base.CommandClock``: when the module executed the last command."""
+        return self._link.module_state(self._address).last_command_latch_s
 
     # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
 
