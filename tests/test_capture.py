@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.base import Capturer, capture_of
 from servotune.demo import build_slap2_bus
+from servotune.drivers.base import Capturer, capture_of
 from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.metrics import compute_metrics
 from servotune.profiles import (
@@ -82,7 +82,7 @@ def test_profile_track_maps_host_time_to_ticks() -> None:
     assert track.setpoint_at(9.0) == 0.0  # before the command: the start
     assert not track.finished_by(10.1)
     acc = 1000 * COUNTS_TICK2_PER_SA
-    assert 2000 * COUNTS_TICK_PER_SV > (3000 * acc) ** 0.5  # sv is not reached: a triangle
+    assert (3000 * acc) ** 0.5 < 2000 * COUNTS_TICK_PER_SV  # sv is not reached: a triangle
     expected_ticks = 2 * (3000 / acc) ** 0.5  # accelerate half way, brake the other half
     end_s = 10.0 + expected_ticks * 841.5e-6
     assert not track.finished_by(end_s - 0.01)
@@ -219,7 +219,8 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
             await drive.write_params({"velocity": 65535, "acceleration": 65535})
             await drive.command("position_mode", {})
             results = []
-            for _ in range(5):
+            disturbed = 0
+            while len(results) < 5 and disturbed < 15:
                 await asyncio.sleep(0.3)
                 async with drive.capture("repeatability"):
                     await asyncio.sleep(0.1)
@@ -233,9 +234,16 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 samples = sink.samples["line-0"][start:]
                 times = [s.t for s in samples]
                 positions = [float(s.channels["position"] or 0) for s in samples]
-                m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000, band=5)
                 period = statistics.median(b - a for a, b in itertools.pairwise(times))
-                results.append((m.overshoot_pct, m.settling_time_s, period, m.max_sample_gap_s))
+                # A host that stalls the driver (a loaded machine) leaves gaps in the
+                # record, visible in the data: such a run measures the host, not the
+                # axis, and is taken again (at most 15 times).
+                transient = [t for t in [t0, *times] if t - t0 <= 0.3]
+                if max(b - a for a, b in itertools.pairwise(transient)) > 3 * period:
+                    disturbed += 1
+                    continue
+                m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000, band=5)
+                results.append((m.overshoot_pct, m.settling_time_s, period, disturbed))
         finally:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -243,10 +251,11 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
     print(
         "\n"
         + "\n".join(
-            f"overshoot {o} %, settling {s} s, period {p} s, max gap {g} s"
+            f"overshoot {o} %, settling {s} s, period {p} s, disturbed runs so far {g}"
             for o, s, p, g in results
         )
     )
+    assert len(results) == 5, f"the host disturbed {disturbed} runs: too loaded to measure"
     overshoots = [r[0] for r in results]
     settlings = [r[1] for r in results]
     assert None not in overshoots and None not in settlings
