@@ -183,7 +183,7 @@ async def test_captured_move_carries_the_reconstructed_setpoint(tmp_path: Path) 
             assert setpoints[-1] == pytest.approx(bus.module(0).setpoint)
             # monotone towards the target (a trapezoid), each sample its own value
             values = [float(sp) for sp in setpoints if sp is not None]
-            assert all(b >= a for a, b in zip(values, values[1:], strict=False))
+            assert all(b >= a for a, b in itertools.pairwise(values))
             assert len(set(values)) > 10
             for s in samples:
                 fe = s.channels["following_error"]
