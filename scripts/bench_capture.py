@@ -145,9 +145,7 @@ async def bench_slap2(state: Path, seconds: float) -> None:
 
 
 async def bench_z1100(state: Path, seconds: float) -> None:
-    spec = SerialSimSpec(
-        "z1100", functools.partial(build_z1100_38400, state / "z1100"), Z1100_BAUD
-    )
+    spec = SerialSimSpec("z1100", functools.partial(build_z1100_38400, state / "z1100"), Z1100_BAUD)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
         sink = Sink()

@@ -37,7 +37,7 @@ from servotune.autotune import (
 )
 from servotune.demo import SLAP2_LOADED
 from servotune.drivers.base import DeviceRefusedError
-from servotune.metrics import compute_metrics
+from servotune.metrics import compute_metrics, unmeasured
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
@@ -245,6 +245,13 @@ def test_verdict_definition() -> None:
     assert verdict(run(0.08, 0.5), run(0.1, 0)) == "not better"
     assert verdict(run(0.08, 20), run(None, 0)) == "not better"
     assert verdict(None, run(0.1, 0)) == "unknown"
+    # A settling time the bench could not measure is no evidence either way.
+    sparse = "the samples that locate the settling are 90 ms apart"
+    assert verdict(run(0.08, 20), run(None, 0), tuned_unmeasured=sparse) == "unknown"
+    assert verdict(run(None, 20), run(0.08, 0), baseline_unmeasured=sparse) == "unknown"
+    quality = {"quality": {"untrusted": {"settling_time_s": sparse}}}
+    assert unmeasured(quality) == sparse
+    assert unmeasured({"quality": {"untrusted": {}}}) is None and unmeasured(None) is None
 
 
 def test_alignment_moves_stamps_to_the_device_moments() -> None:

@@ -43,7 +43,7 @@ from servotune.drivers.base import (
     capture_of,
 )
 from servotune.hub import AxisEntry, Hub
-from servotune.metrics import Metrics, compute_metrics
+from servotune.metrics import Metrics, compute_metrics, unmeasured
 from servotune.protocols.slap2 import (
     ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
@@ -1129,15 +1129,29 @@ def _metrics_dict(metrics: Metrics) -> dict[str, Any]:
     return asdict(metrics)
 
 
-def verdict(baseline: dict[str, Any] | None, tuned: dict[str, Any] | None) -> str:
-    """``better``, ``not better`` or ``unknown`` (no baseline): docs/autotune.md.
+def verdict(
+    baseline: dict[str, Any] | None,
+    tuned: dict[str, Any] | None,
+    *,
+    baseline_unmeasured: str | None = None,
+    tuned_unmeasured: str | None = None,
+) -> str:
+    """``better``, ``not better`` or ``unknown``: docs/autotune.md.
 
     The tuned run is better when it settles and the baseline does not, or settles
     sooner; or when it settles no later than one sample spacing after the baseline
     (the time resolution of polled telemetry) with at most half of the baseline's
     overshoot, the baseline's being at least 1 %.
+
+    ``unknown`` without a baseline, and when a settling time is null because the
+    bench could not *measure* it (``*_unmeasured``: the run quality's reason, e.g. the
+    samples that would locate it are too far apart): a measurement failure is no
+    evidence that either run is worse. A null settling time that was measured (the
+    record ends outside the window) stays a real "did not settle".
     """
     if tuned is None or baseline is None:
+        return "unknown"
+    if tuned_unmeasured or baseline_unmeasured:
         return "unknown"
     tuned_settle = tuned.get("settling_time_s")
     base_settle = baseline.get("settling_time_s")
@@ -1866,7 +1880,13 @@ class AutoTuner:
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,
             "baseline_note": baseline_note,
-            "verdict": verdict(baseline_measured, measured),
+            "verdict": verdict(
+                baseline_measured,
+                measured,
+                baseline_unmeasured=unmeasured(baseline),
+                tuned_unmeasured=unmeasured(verification),
+            ),
+            "verdict_reason": unmeasured(verification) or unmeasured(baseline),
         }
 
     async def revert(self, axis_id: str) -> dict[str, int]:

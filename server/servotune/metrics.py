@@ -31,7 +31,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import ClassVar, Final
+from typing import Any, ClassVar, Final
 
 ARRIVAL_FLAGS: Final = frozenset({"inpos", "in_target"})
 """Flags that drop at move start and rise on arrival: timed by ``time_to_flag_s``.
@@ -245,6 +245,16 @@ def compute_metrics(
         time_to_flag_s=time_to,
         time_in_flag_s=time_in,
     )
+
+
+def unmeasured(run: Mapping[str, Any] | None, metric: str = "settling_time_s") -> str | None:
+    """Why the bench could not measure ``metric`` of ``run`` (its quality's
+    ``untrusted`` reason, e.g. samples too sparse to locate it), None if it could."""
+    if not run:
+        return None
+    untrusted = (run.get("quality") or {}).get("untrusted") or {}
+    reason = untrusted.get(metric)
+    return str(reason) if reason else None
 
 
 def predict_first_order(
