@@ -1623,15 +1623,18 @@ class AutoTuner:
 
     async def _move_and_wait(self, entry: AxisEntry, target: int, profile_s: float) -> None:
         latest = entry.latest
-        if latest is None or not latest.flags.get("pm"):
-            await self._command(entry, "position_mode", {})
-        await self._command(entry, "move_absolute", {"position": target})
-        deadline = self._clock() + profile_s + SETTLE_TIMEOUT_S
-        await asyncio.sleep(0.1)
-        while self._clock() < deadline:
-            sample = await self._next_sample(entry)
-            if sample.flags.get("inpos") and not sample.flags.get("move"):
-                return
+        # The line is devoted to the axis for the move too (docs/capture.md): its end is
+        # seen at once, and a host slow to poll two modules cannot starve the wait.
+        async with capture_of(entry.driver, reason="auto-tune move"):
+            if latest is None or not latest.flags.get("pm"):
+                await self._command(entry, "position_mode", {})
+            await self._command(entry, "move_absolute", {"position": target})
+            deadline = self._clock() + profile_s + SETTLE_TIMEOUT_S
+            await asyncio.sleep(0.1)
+            while self._clock() < deadline:
+                sample = await self._next_sample(entry)
+                if sample.flags.get("inpos") and not sample.flags.get("move"):
+                    return
         raise DriverError(f"the axis did not settle at {target} within {SETTLE_TIMEOUT_S} s")
 
     async def _move_back(self, entry: AxisEntry, target: float) -> None:
