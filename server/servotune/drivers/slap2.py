@@ -917,7 +917,9 @@ class Slap2Link(LinkEngine):
                 capture.note_rest(module.profile, flags, t, position + fresh_pe)
             else:
                 capture.samples_since_pe += 1
-            if not self.urgent_pending and capture.wants_rss(module.profile, t):
+            if not self.urgent_pending and capture.wants_rss(
+                module.profile, t, flags_fresh=not module.ucon
+            ):
                 rss = await self._read_int(address, "rss")
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)

@@ -143,8 +143,10 @@ class ModuleCapture:
         else:
             self.resting = setpoint
 
-    def wants_rss(self, profile: ProfileState, now_s: float) -> bool:
-        if _quiet(profile, now_s):
+    def wants_rss(self, profile: ProfileState, now_s: float, *, flags_fresh: bool) -> bool:
+        """``flags_fresh``: the driver read rss right after the move command (ucon
+        off), so the flags are current; with ucon on nothing read them since."""
+        if flags_fresh and _quiet(profile, now_s):
             return False
         return now_s - self.last_rss_s >= RSS_PERIOD_S
 
