@@ -347,8 +347,14 @@ class Z1100Link(LinkEngine):
                 self._sink.on_axis_health(self.axis_id(motor.axis), "offline", str(exc))
             return
         self._online = True
+        on = ", ".join(f"motor {a + 1}" for a in sorted(self._captures.addresses))
         for motor in self._motors:
-            self._sink.on_axis_health(self.axis_id(motor.axis), "ok", "")
+            if motor.paused:
+                self._sink.on_axis_health(
+                    self.axis_id(motor.axis), "paused", f"paused: capture on {on}"
+                )
+            else:
+                self._sink.on_axis_health(self.axis_id(motor.axis), "ok", "")
 
     async def _poll_cycle(self) -> None:
         self._cycle += 1
