@@ -971,7 +971,9 @@ IDENT_MIN_DISTANCE: Final = 400
 IDENT_ATTEMPTS: Final = 2  # a doubtful fit is repeated once
 MAX_SLOWDOWN: Final = 1.3  # cap of the per-character stretch of the command tail
 UCON_BIT: Final = 1 << 5  # syscon: the module replies -1UC itself (no rss check)
-SAMPLE_TIMEOUT_S: Final = 0.5
+# "No telemetry" means the link is down, not that a loaded host polled late: a link
+# that delivers nothing for this long is also shown down by its status.
+SAMPLE_TIMEOUT_S: Final = 2.0
 SETTLE_TIMEOUT_S: Final = 3.0
 RETURN_HORIZON_S: Final = 2.0  # a return move must settle this soon on the model
 TEST_RECORD_S: Final = 1.5  # recorded after the profile's end (ends earlier once settled)
