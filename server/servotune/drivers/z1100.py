@@ -29,7 +29,7 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
 * STOP is Estop for the motor (stops at once); ``decelerate`` is the chip's Stop.
 * Capture (``drivers.base.Capturer``, docs/capture.md): while a measurement records a
   motor, the line polls GetEncoder of that motor (one sample each), GetError every
-  ``CAPTURE_ERROR_EVERY``-th sample (the following error is a slow channel then, None
+  3rd sample while it runs, every 6th at rest (the following error is a slow channel, None
   between its reads), GetStart every ``CAPTURE_STATUS_PERIOD_S`` (the running bits of
   all motors in one transaction), GetStop only after a stall bit, no GetSwitch and no
   verify reads; the other motors pause ("paused: capture on ...").
@@ -78,6 +78,9 @@ logger = logging.getLogger(__name__)
 RETRYABLE = codec.ReplyCode.CHECKSUM | codec.ReplyCode.TIMEOUT | codec.ReplyCode.COMMUNICATION
 MOVING_BITS = codec.ReplyCode.MOVING_1 | codec.ReplyCode.MOVING_2 | codec.ReplyCode.MOVING_3
 RESET_WITNESSES = ("kabh_k", "vmax", "acc")
+# GetError in a capture: every 3rd sample while the motor runs (the following error is
+# what the Z1100 identification fits, and the verdict's peak), every 6th at rest.
+CAPTURE_ERROR_EVERY_RUNNING = 3
 CAPTURE_ERROR_EVERY = 6
 CAPTURE_STATUS_PERIOD_S = 0.1
 TRANSACTION_CHARS = codec.REQUEST_SIZE + codec.REPLY_SIZE
@@ -443,7 +446,8 @@ class Z1100Link(LinkEngine):
             t = self._last_latch_t
             error: int | None = None
             motor.since_error += 1
-            if not self.urgent_pending and motor.since_error >= CAPTURE_ERROR_EVERY:
+            every = CAPTURE_ERROR_EVERY_RUNNING if motor.running else CAPTURE_ERROR_EVERY
+            if not self.urgent_pending and motor.since_error >= every:
                 error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
                 motor.since_error = 0
             if not self.urgent_pending and (
