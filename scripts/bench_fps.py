@@ -65,23 +65,12 @@ async def main(base: str, seconds: float, profile: bool) -> None:
                     await cdp.send("Profiler.start")
                 metrics = await page.context.new_cdp_session(page)
                 await metrics.send("Performance.enable")
-                before = {
-                    m["name"]: m["value"]
-                    for m in (await metrics.send("Performance.getMetrics"))["metrics"]
-                }
+                before = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
                 result = await page.evaluate(MEASURE, seconds)
-                after = {
-                    m["name"]: m["value"]
-                    for m in (await metrics.send("Performance.getMetrics"))["metrics"]
-                }
+                after = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
                 # Main-thread busy time per second (ms/s): less sensitive to a loaded
                 # machine than fps, which also waits for the CPU.
-                for key in (
-                    "TaskDuration",
-                    "ScriptDuration",
-                    "LayoutDuration",
-                    "RecalcStyleDuration",
-                ):
+                for key in ("TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration"):
                     result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
                 await metrics.detach()
                 if profile and name == PROFILE_PAGE:
@@ -91,7 +80,7 @@ async def main(base: str, seconds: float, profile: bool) -> None:
                     dt = prof["timeDeltas"]
                     for sid, d in zip(prof["samples"], dt, strict=False):
                         cf = nodes[sid]["callFrame"]
-                        key = f"{cf['functionName'] or '(anon)'} {cf['url'].rsplit('/', 1)[-1]}:{cf['lineNumber']}"
+                        key = f'{cf["functionName"] or "(anon)"} {cf["url"].rsplit("/", 1)[-1]}:{cf["lineNumber"]}'
                         self_time[key] = self_time.get(key, 0) + d / 1000
                     top = sorted(self_time.items(), key=lambda kv: -kv[1])[:25]
                     print(json.dumps(top, indent=0))

@@ -41,8 +41,7 @@ async def main(base: str, out: Path, theme: str) -> None:
         )
         for size, (w, hgt) in SIZES.items():
             ctx = await browser.new_context(
-                viewport={"width": w, "height": hgt},
-                color_scheme=theme,  # type: ignore[arg-type]
+                viewport={"width": w, "height": hgt}, color_scheme=theme  # type: ignore[arg-type]
             )
             page = await ctx.new_page()
             page.on("pageerror", lambda exc: print("PAGE ERROR", exc))
@@ -56,4 +55,6 @@ async def main(base: str, out: Path, theme: str) -> None:
 
 
 if __name__ == "__main__":
-    asyncio.run(main(sys.argv[1], Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "dark"))
+    asyncio.run(
+        main(sys.argv[1], Path(sys.argv[2]), sys.argv[3] if len(sys.argv) > 3 else "dark")
+    )
