@@ -226,7 +226,13 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                     await asyncio.sleep(0.1)
                     latest = sink.samples["line-0"][-1]
                     y0 = float(latest.channels["setpoint"] or 0)
-                    await drive.command("move_relative", {"distance": 2000})
+                    try:
+                        await drive.command("move_relative", {"distance": 2000})
+                    except DriverError:
+                        # a stalled host desynchronised the line (the driver says so
+                        # and resynchronises): not a measurement of the axis
+                        disturbed += 1
+                        continue
                     start = len(sink.samples["line-0"])
                     t0 = drive.last_command_latch_s
                     assert t0 is not None
