@@ -220,10 +220,16 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
             await drive.command("position_mode", {})
             results = []
             disturbed = 0
+            warm_up = True
             while len(results) < 5 and disturbed < 60:
                 await asyncio.sleep(0.3)
                 async with drive.capture("repeatability"):
                     await asyncio.sleep(0.1)
+                    for _ in range(100):  # at rest before each step (at most 2 s)
+                        flags = sink.samples["line-0"][-1].flags
+                        if flags["inpos"] and not flags["move"]:
+                            break
+                        await asyncio.sleep(0.02)
                     latest = sink.samples["line-0"][-1]
                     y0 = float(latest.channels["setpoint"] or 0)
                     try:
@@ -255,13 +261,20 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 # axis, and is taken again (at most 60 times).
                 # (Only rp for 0.2 s after the command; later rss and pe add up to two
                 # transactions to a sample: up to 3 rp periods.)
-                gaps = [(b, b - a) for a, b in itertools.pairwise([t0, *times])]
+                # (From t0 to the first sample the command's own rss check is on the
+                # wire: that interval is the protocol's, not the host's.)
+                gaps = [(b, b - a) for a, b in itertools.pairwise(times)]
                 if any(gap > (2.0 if t - t0 < 0.2 else 4.0) * period for t, gap in gaps):
                     disturbed += 1
                     continue
                 # settling into 2 % of the step (the usual definition): the +-5 counts of the
                 # in-position window are grazed by a late ringing lobe, run by run
                 m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000)
+                if warm_up:
+                    # The first step after pm is switched on starts from another state
+                    # of the controller (its integrator): a different experiment.
+                    warm_up = False
+                    continue
                 results.append((m.overshoot_pct, m.settling_time_s, period, disturbed))
         finally:
             task.cancel()
