@@ -148,8 +148,11 @@ def test_second_order_polled(zeta: float, seed: int) -> None:
     mp = overshoot_2nd(zeta)
     wd = wn * math.sqrt(1 - zeta * zeta)
     tol_pct = 100 * 0.5 * wn**2 * (1 + mp) * (gap / 2) ** 2
+    # The parabola through the peak sample and its neighbours is off the curve by at
+    # most |y'''| |x (x - a) (x - b)| / 6 <= |y'''| 0.385 gap^3 / 6, |y'''| <= wn^3 (1 + Mp).
+    over_pct = 100 * wn**3 * (1 + mp) * 0.385 * gap**3 / 6
     assert m.overshoot_pct is not None
-    assert mp * 100 - tol_pct <= m.overshoot_pct <= mp * 100 + 1e-9
+    assert mp * 100 - tol_pct <= m.overshoot_pct <= mp * 100 + over_pct
     assert m.peak_time_s == pytest.approx(math.pi / wd, abs=gap)
     bound = envelope_settling_2nd(wn, zeta, 0.02)
     assert m.settling_time_s is not None

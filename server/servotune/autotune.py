@@ -33,15 +33,17 @@ from pydantic import BaseModel, Field
 
 from servotune.drivers.base import (
     BenchPlan,
+    CommandClock,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
     InvalidArgumentError,
     LinkDownError,
     Sample,
+    capture_of,
 )
 from servotune.hub import AxisEntry, Hub
-from servotune.metrics import Metrics, compute_metrics
+from servotune.metrics import Metrics, compute_metrics, unmeasured
 from servotune.protocols.slap2 import (
     ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
@@ -393,7 +395,6 @@ def model_doubt(model: PlantModel, travel: float) -> str | None:
 
 
 # Timing of the SLAP2 driver's exchanges, in characters on the wire (docs/autotune.md).
-_READ_REPLY_EXTRA_CHARS: Final = 1  # a reading is latched at its CR; the reply + CR follow
 # After a command executes: the echo of its CR and the bare CR reply, then (unless the
 # module replies -1UC itself) the driver's "rss" check: 4 characters echoed one by one
 # (2 character times each) and a reply of about 2 digits + CR.
@@ -409,24 +410,30 @@ def align_identification(
     baud: int,
     rss_check: bool = True,
     slowdown: float = 1.0,
+    commands_latched: bool = False,
 ) -> tuple[list[float], list[float], list[tuple[float, float]]]:
     """Move the host's timestamps to the device's moments (SLAP2 driver timing).
 
-    A position sample is stamped when its reply has arrived: it was latched
-    ``digits + 1`` characters earlier. A command returns after its CR's echo, the bare
+    A position sample already carries the driver's estimate of when the module latched
+    it (the end of its CR echo less one character, docs/capture.md): kept as it is.
+    A command returns after its CR's echo, the bare
     CR reply and the driver's ``rss`` check: it took effect ``_COMMAND_TAIL_CHARS +
     _RSS_CHECK_CHARS`` character times (stretched by ``slowdown``, the ratio of the
     wire's sample rate to the achieved one: host latency per echoed character)
     before it returned, at the next 841.5 us tick, while a position reply reports the
-    last tick: one tick between the two on average.
+    last tick: one tick between the two on average. With ``commands_latched`` the
+    command times are already the driver's latch estimates (``CommandClock``): only
+    the tick is added.
     """
     char_s = 10.0 / baud
     times: list[float] = []
     values: list[float] = []
     for t, p in zip(sample_times, positions, strict=True):
-        times.append(t - (len(str(round(p))) + _READ_REPLY_EXTRA_CHARS) * char_s)
+        times.append(t)
         values.append(float(p))
     tail = (_COMMAND_TAIL_CHARS + (_RSS_CHECK_CHARS if rss_check else 0)) * char_s * slowdown
+    if commands_latched:
+        tail = 0.0
     schedule = [(t - tail + TICK_S, float(u)) for t, u in command_returns]
     return times, values, schedule
 
@@ -964,7 +971,9 @@ IDENT_MIN_DISTANCE: Final = 400
 IDENT_ATTEMPTS: Final = 2  # a doubtful fit is repeated once
 MAX_SLOWDOWN: Final = 1.3  # cap of the per-character stretch of the command tail
 UCON_BIT: Final = 1 << 5  # syscon: the module replies -1UC itself (no rss check)
-SAMPLE_TIMEOUT_S: Final = 0.5
+# "No telemetry" means the link is down, not that a loaded host polled late: a link
+# that delivers nothing for this long is also shown down by its status.
+SAMPLE_TIMEOUT_S: Final = 2.0
 SETTLE_TIMEOUT_S: Final = 3.0
 RETURN_HORIZON_S: Final = 2.0  # a return move must settle this soon on the model
 TEST_RECORD_S: Final = 1.5  # recorded after the profile's end (ends earlier once settled)
@@ -1065,6 +1074,8 @@ class _IdentificationRun:
         self.recording = _Recording(
             self.run_id, entry, plan, self.meta["columns"], self.meta["flags"]
         )
+        # The link polls this axis only while the run records (docs/capture.md).
+        self._capture = contextlib.AsyncExitStack()
 
     @property
     def samples(self) -> list[list[Any]]:
@@ -1091,6 +1102,9 @@ class _IdentificationRun:
         except BaseException:
             self.bench._active.pop(axis_id, None)
             raise
+        await self._capture.enter_async_context(
+            capture_of(self.entry.driver, reason="auto-tune identification")
+        )
         self.recording.t0 = clock()
         self.bench._update(self.recording, "recording", "auto-tune identification")
 
@@ -1099,6 +1113,7 @@ class _IdentificationRun:
 
     async def close(self, status: str, message: str, extra: dict[str, Any]) -> None:
         try:
+            await self._capture.aclose()
             await self.bench._flush(self.recording)
         finally:
             self.bench._active.pop(self.entry.info.id, None)
@@ -1116,15 +1131,29 @@ def _metrics_dict(metrics: Metrics) -> dict[str, Any]:
     return asdict(metrics)
 
 
-def verdict(baseline: dict[str, Any] | None, tuned: dict[str, Any] | None) -> str:
-    """``better``, ``not better`` or ``unknown`` (no baseline): docs/autotune.md.
+def verdict(
+    baseline: dict[str, Any] | None,
+    tuned: dict[str, Any] | None,
+    *,
+    baseline_unmeasured: str | None = None,
+    tuned_unmeasured: str | None = None,
+) -> str:
+    """``better``, ``not better`` or ``unknown``: docs/autotune.md.
 
     The tuned run is better when it settles and the baseline does not, or settles
     sooner; or when it settles no later than one sample spacing after the baseline
     (the time resolution of polled telemetry) with at most half of the baseline's
     overshoot, the baseline's being at least 1 %.
+
+    ``unknown`` without a baseline, and when a settling time is null because the
+    bench could not *measure* it (``*_unmeasured``: the run quality's reason, e.g. the
+    samples that would locate it are too far apart): a measurement failure is no
+    evidence that either run is worse. A null settling time that was measured (the
+    record ends outside the window) stays a real "did not settle".
     """
     if tuned is None or baseline is None:
+        return "unknown"
+    if tuned_unmeasured or baseline_unmeasured:
         return "unknown"
     tuned_settle = tuned.get("settling_time_s")
     base_settle = baseline.get("settling_time_s")
@@ -1469,6 +1498,7 @@ class AutoTuner:
             baud=baud,
             rss_check=rss_check,
             slowdown=slowdown,
+            commands_latched=isinstance(getattr(entry, "driver", None), CommandClock),
         )
         try:
             # the model is symmetric: a negative staircase is fitted mirrored
@@ -1503,6 +1533,14 @@ class AutoTuner:
         )
         return self._clock() - sent
 
+    def _command_moment(self, entry: AxisEntry) -> float:
+        """When the last command took effect: the driver's latch estimate where it
+        has one (``CommandClock``), else now (``align_identification`` corrects it)."""
+        driver = getattr(entry, "driver", None)
+        if isinstance(driver, CommandClock) and driver.last_command_latch_s is not None:
+            return driver.last_command_latch_s
+        return self._clock()
+
     async def _staircase(
         self, entry: AxisEntry, request: IdentifyRequest, start: float, run: _IdentificationRun
     ) -> tuple[list[tuple[float, int]], list[float], int]:
@@ -1523,7 +1561,7 @@ class AutoTuner:
         while True:
             signed = request.direction * u
             round_trips.append(await self._command(entry, "open_loop_pwm", {"pwm": signed}))
-            schedule.append((self._clock(), signed))
+            schedule.append((self._command_moment(entry), signed))
             run.progress(f"PWM {u}, travel {round(travel)} counts")
             level_end = self._clock() + IDENT_DWELL_S
             brake = False
@@ -1548,7 +1586,7 @@ class AutoTuner:
                 break
             u = min(request.max_pwm, max(u + 1, round(u * IDENT_STEP_FACTOR)))
         round_trips.append(await self._command(entry, "open_loop_pwm", {"pwm": 0}))
-        schedule.append((self._clock(), 0))
+        schedule.append((self._command_moment(entry), 0))
         still_since: float | None = None
         previous = self._position(entry.latest)
         deadline = self._clock() + 1.0
@@ -1587,15 +1625,18 @@ class AutoTuner:
 
     async def _move_and_wait(self, entry: AxisEntry, target: int, profile_s: float) -> None:
         latest = entry.latest
-        if latest is None or not latest.flags.get("pm"):
-            await self._command(entry, "position_mode", {})
-        await self._command(entry, "move_absolute", {"position": target})
-        deadline = self._clock() + profile_s + SETTLE_TIMEOUT_S
-        await asyncio.sleep(0.1)
-        while self._clock() < deadline:
-            sample = await self._next_sample(entry)
-            if sample.flags.get("inpos") and not sample.flags.get("move"):
-                return
+        # The line is devoted to the axis for the move too (docs/capture.md): its end is
+        # seen at once, and a host slow to poll two modules cannot starve the wait.
+        async with capture_of(entry.driver, reason="auto-tune move"):
+            if latest is None or not latest.flags.get("pm"):
+                await self._command(entry, "position_mode", {})
+            await self._command(entry, "move_absolute", {"position": target})
+            deadline = self._clock() + profile_s + SETTLE_TIMEOUT_S
+            await asyncio.sleep(0.1)
+            while self._clock() < deadline:
+                sample = await self._next_sample(entry)
+                if sample.flags.get("inpos") and not sample.flags.get("move"):
+                    return
         raise DriverError(f"the axis did not settle at {target} within {SETTLE_TIMEOUT_S} s")
 
     async def _move_back(self, entry: AxisEntry, target: float) -> None:
@@ -1844,7 +1885,13 @@ class AutoTuner:
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,
             "baseline_note": baseline_note,
-            "verdict": verdict(baseline_measured, measured),
+            "verdict": verdict(
+                baseline_measured,
+                measured,
+                baseline_unmeasured=unmeasured(baseline),
+                tuned_unmeasured=unmeasured(verification),
+            ),
+            "verdict_reason": unmeasured(verification) or unmeasured(baseline),
         }
 
     async def revert(self, axis_id: str) -> dict[str, int]:

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, Final
 
 from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
-from servotune.metrics import Metrics, compute_metrics
+from servotune.metrics import Metrics, compute_metrics, unmeasured
 from servotune.testbench import BenchTestRequest
 
 if TYPE_CHECKING:
@@ -492,11 +492,20 @@ def propose_kab(
     )
 
 
-def verdict_z1100(baseline: dict[str, Any] | None, tuned: dict[str, Any] | None) -> str:
+def verdict_z1100(
+    baseline: dict[str, Any] | None,
+    tuned: dict[str, Any] | None,
+    *,
+    baseline_unmeasured: str | None = None,
+    tuned_unmeasured: str | None = None,
+) -> str:
     """``better`` when the tuned run settles and the baseline does not or settles later,
     or settles no later than one sample spacing after it with a peak following error at
-    most 3/4 of the baseline's; ``not better``; ``unknown`` without a baseline."""
+    most 3/4 of the baseline's; ``not better``; ``unknown`` without a baseline or when
+    a settling time could not be measured (see ``autotune.verdict``)."""
     if tuned is None or baseline is None:
+        return "unknown"
+    if tuned_unmeasured or baseline_unmeasured:
         return "unknown"
     ts, bs = tuned.get("settling_time_s"), baseline.get("settling_time_s")
     if ts is None:
@@ -722,7 +731,13 @@ class Z1100Tuner:
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,
             "baseline_note": baseline_note,
-            "verdict": verdict_z1100(baseline_measured, measured),
+            "verdict": verdict_z1100(
+                baseline_measured,
+                measured,
+                baseline_unmeasured=unmeasured(baseline),
+                tuned_unmeasured=unmeasured(verification),
+            ),
+            "verdict_reason": unmeasured(verification) or unmeasured(baseline),
         }
 
     async def revert(self, entry: AxisEntry) -> dict[str, int]:

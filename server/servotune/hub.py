@@ -554,7 +554,7 @@ class Hub:
         entry = self._axes[axis_id]
         if health != "offline" and entry.stop_on_reconnect:
             self._ensure_stop_task(entry)
-        if entry.health == "reset" and health == "ok":
+        if entry.health == "reset" and health in ("ok", "paused"):
             # A reset stays flagged until the user re-applies the settings (_restore).
             return
         if health == "offline":

@@ -31,7 +31,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import ClassVar, Final
+from typing import Any, ClassVar, Final
 
 ARRIVAL_FLAGS: Final = frozenset({"inpos", "in_target"})
 """Flags that drop at move start and rise on arrival: timed by ``time_to_flag_s``.
@@ -89,7 +89,12 @@ class Metrics:
         ),
         "overshoot_pct": (
             "Largest excursion of y beyond y_final in the step direction as a percentage "
-            "of |step|, 0 when y never passes y_final (None for a zero step)."
+            "of |step|, 0 when y never passes y_final (None for a zero step). The peak "
+            "is the vertex of the parabola through the highest sample and its two "
+            "neighbours when both are lower and the vertex lies between them, raised "
+            "above that sample by no more than the smaller drop to a neighbour (a "
+            "sampled peak is low by up to |y''| (gap/2)^2 / 2; the vertex is off by a "
+            "gap^3 term), else the highest sample."
         ),
         "peak_time_s": (
             "Time after t0 of the first sample furthest in the step direction (for a "
@@ -205,7 +210,7 @@ def compute_metrics(
             # |step| (no division by the step: a tiny step cannot overflow).
             rise = _rise_time(curve_t, [(v - y0) * direction for v in curve_y], abs(step))
             beyond = [(v - y_final) * direction for v in ys]
-            overshoot = max(0.0, max(beyond)) / abs(step) * 100.0
+            overshoot = max(0.0, _refined_peak(ts, beyond)) / abs(step) * 100.0
             if not math.isfinite(overshoot):  # a step too small to be a reference
                 overshoot = None
             i_peak = _argmax([(v - y0) * direction for v in ys])
@@ -240,6 +245,16 @@ def compute_metrics(
         time_to_flag_s=time_to,
         time_in_flag_s=time_in,
     )
+
+
+def unmeasured(run: Mapping[str, Any] | None, metric: str = "settling_time_s") -> str | None:
+    """Why the bench could not measure ``metric`` of ``run`` (its quality's
+    ``untrusted`` reason, e.g. samples too sparse to locate it), None if it could."""
+    if not run:
+        return None
+    untrusted = (run.get("quality") or {}).get("untrusted") or {}
+    reason = untrusted.get(metric)
+    return str(reason) if reason else None
 
 
 def predict_first_order(
@@ -374,6 +389,31 @@ def _oscillations(beyond: list[float], band: float) -> int:
         elif e < -band and side > 0:
             side, count = -1, count + 1
     return count
+
+
+def _refined_peak(t: list[float], values: list[float]) -> float:
+    """The largest of ``values``, refined by the parabola through it and its two
+    neighbours (see ``overshoot_pct``); the sample itself where that is not a concave
+    vertex between the neighbours."""
+    i = _argmax(values)
+    best = values[i]
+    if not 0 < i < len(values) - 1:
+        return best
+    ta, tb = t[i - 1] - t[i], t[i + 1] - t[i]  # relative to the peak sample: no cancellation
+    ya, yb = values[i - 1] - best, values[i + 1] - best
+    if ta >= 0 or tb <= 0 or not (ya < 0 and yb < 0):
+        return best  # a plateau or a record edge: nothing to refine
+    # y = a x^2 + b x through (ta, ya), (0, 0), (tb, yb)
+    a = (ya / ta - yb / tb) / (ta - tb)
+    b = ya / ta - a * ta
+    if not a < 0:
+        return best
+    x = -b / (2 * a)
+    if not ta < x < tb:
+        return best
+    # Never more above the sample than the smaller drop to a neighbour: sparse or
+    # noisy samples must not make a peak up.
+    return best + min(max(0.0, -b * b / (4 * a)), -ya, -yb)
 
 
 def _argmax(values: list[float]) -> int:

@@ -40,6 +40,7 @@ from servotune.drivers.base import (
     DriverError,
     InvalidArgumentError,
     Sample,
+    capture_of,
 )
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub import AxisEntry, Hub
@@ -369,13 +370,16 @@ class TestBench:
                     k: entry.device_values[k] for k in plan.overrides if k in entry.device_values
                 }
                 await entry.driver.write_params(plan.overrides)
-            await self._send(recording, plan.setup)
-            await asyncio.sleep(PRE_TRIGGER_S)
-            recording.t0 = self._clock()
-            await self._send(recording, plan.trigger)
-            self._update(recording, "recording", "triggered")
-            limits = await self.limits(entry.info.id)
-            await self._record(recording, test, limits)
+            # capture: the line is devoted to this axis from before the trigger to the
+            # end of the recording (docs/capture.md); _record holds one too (nested).
+            async with capture_of(entry.driver, reason=f"bench test ({test.kind})"):
+                await self._send(recording, plan.setup)
+                await asyncio.sleep(PRE_TRIGGER_S)
+                recording.t0 = self._clock()
+                await self._send(recording, plan.trigger)
+                self._update(recording, "recording", "triggered")
+                limits = await self.limits(entry.info.id)
+                await self._record(recording, test, limits)
             await self._send(recording, plan.finish)
             recording.ended = True
             if test.kind in POSITION_KINDS:
@@ -442,6 +446,13 @@ class TestBench:
                 await asyncio.sleep(0.25)
 
     async def _record(self, recording: _Recording, test: BenchTest, limits: BenchLimits) -> None:
+        # capture: whatever records an axis has its link devoted to it (docs/capture.md)
+        async with capture_of(recording.entry.driver, reason="bench recording"):
+            await self._record_samples(recording, test, limits)
+
+    async def _record_samples(
+        self, recording: _Recording, test: BenchTest, limits: BenchLimits
+    ) -> None:
         plan = recording.plan
         assert recording.t0 is not None
         start = recording.t0

@@ -22,7 +22,8 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 LinkState = Literal["connecting", "connected", "reconnecting", "error", "disconnected"]
-AxisHealth = Literal["ok", "reset", "offline"]
+# capture: "paused" while another axis of the link is captured (docs/capture.md)
+AxisHealth = Literal["ok", "reset", "offline", "paused"]
 EventLevel = Literal["info", "warning", "error"]
 
 

@@ -2,7 +2,7 @@
 // descriptor.py. Do not edit: change the Python models and regenerate.
 
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
-export type AxisHealth = "ok" | "reset" | "offline";
+export type AxisHealth = "ok" | "reset" | "offline" | "paused";
 export type EventLevel = "info" | "warning" | "error";
 export type ControlHolderKind = "user" | "autopilot" | "server";
 export type ControlAction = "take" | "request" | "release" | "answer" | "force" | "lapse" | "grant" | "deny";

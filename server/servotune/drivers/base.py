@@ -8,6 +8,7 @@ implements, so drivers never import the hub (one-way layering).
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal, Protocol, runtime_checkable
@@ -240,3 +241,41 @@ class Link(Protocol):
     async def run(self) -> None:
         """Connect, poll and reconnect until cancelled; never raises for link faults."""
         ...
+
+
+@runtime_checkable
+class Capturer(Protocol):
+    """Optional for an axis: devote its link to it while a measurement records it.
+
+    ``async with axis.capture(reason="bench test"):`` polls only what the
+    measurement needs of this axis, as fast as the wire allows (SLAP2: ``rp``, with
+    ``rss`` and ``pe`` interleaved at low rates; Z1100: GetEncoder with GetError
+    interleaved); the other axes of the link pause (health ``paused``, message
+    "paused: capture on ...") and resume when the last capture of the link ends.
+    Captures nest and several axes of one link may be captured at once (they share
+    the line). A STOP still goes to the wire first. Entering never waits for the
+    wire and never raises for a link fault; docs/capture.md.
+    """
+
+    def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]: ...
+
+
+@runtime_checkable
+class CommandClock(Protocol):
+    """Optional for an axis: when the device executed the last command sent to it.
+
+    The best estimate on the driver's clock (SLAP2: the end of the command's CR echo
+    less one character), None before the first command. Identification uses it to
+    place its input steps instead of guessing from round trips.
+    """
+
+    @property
+    def last_command_latch_s(self) -> float | None: ...
+
+
+def capture_of(axis: object, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+    """``axis.capture(reason)`` for a ``Capturer``, else a context that does nothing
+    (the device is polled as usual, e.g. the EP7047 whose cycle is already dense)."""
+    if isinstance(axis, Capturer):
+        return axis.capture(reason)
+    return contextlib.nullcontext()

@@ -48,6 +48,7 @@ where the manual is silent (also in docs/slap2.md):
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections import deque
@@ -56,11 +57,6 @@ from dataclasses import dataclass, field
 from typing import TypeVar
 
 from servotune.drivers.base import (
-    AxisDriver,
-    BenchKind,
-    BenchPlan,
-    BenchTest,
-    CommandOutcome,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -70,10 +66,20 @@ from servotune.drivers.base import (
     Sample,
     check_console_line,
 )
-from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
+from servotune.drivers.capture import CaptureRegistry, CaptureStats
+from servotune.drivers.engine import LinkEngine, recent_rate_hz
+from servotune.drivers.slap2_axis import Slap2Axis
+from servotune.drivers.slap2_capture import (
+    MOVE_MNEMONICS,
+    PROFILE_BREAKERS,
+    ModuleCapture,
+    ProfileState,
+)
 from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.profiles import ProfileTrack
 from servotune.protocols import slap2 as codec
 from servotune.transports.base import ByteChannel, Connector, EchoResult
+from servotune.wire import AxisHealth
 
 logger = logging.getLogger(__name__)
 
@@ -137,6 +143,14 @@ class _ModuleState:
     # the cal flag was seen set since the last calibration servotune started.
     suspect: str = ""
     cal_seen: bool = False
+    # Capture (drivers/slap2_capture.py): the reconstructed profile of the last move
+    # servotune sent, the state of a capture of this module, and whether it is paused
+    # for another module's capture.
+    profile: ProfileState = field(default_factory=ProfileState)
+    last_command_latch_s: float | None = None
+    capture: ModuleCapture | None = None
+    last_capture: CaptureStats | None = None
+    paused: bool = False
 
 
 class Slap2Link(LinkEngine):
@@ -175,6 +189,12 @@ class Slap2Link(LinkEngine):
         self._last_verify_t = 0.0
         self._reply_chars: dict[str, int] = {}
         self._consecutive_failures = 0
+        # Best estimate of when the module latched the last exchange's value (see
+        # ``_exchange_once``), and the character times all exchanges took on the wire.
+        self._last_latch_t = 0.0
+        self._wire_chars = 0
+        self._captures = CaptureRegistry(self._capture_changed)
+        self._capture_index = 0
 
     def axis_id(self, address: int) -> str:
         return f"{self.config.link_id}-{address}"
@@ -187,6 +207,7 @@ class Slap2Link(LinkEngine):
 
     def _on_link_down(self) -> None:
         for module in self._modules.values():
+            module.profile.clear()
             if module.online:
                 module.online = False
                 self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
@@ -216,6 +237,16 @@ class Slap2Link(LinkEngine):
                 if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
+                continue
+            captured = [m for m in online if m.capture is not None]
+            if captured:
+                # The line is devoted to the captured module(s): no verify reads, no
+                # probes, the others pause (drivers/slap2_capture.py).
+                suspect = next((m for m in captured if m.suspect), None)
+                if suspect is not None:
+                    await self._confirm_suspect(suspect)
+                    continue
+                await self._capture_step(captured)
                 continue
             suspect = next((m for m in online if m.suspect), None)
             if suspect is not None:
@@ -258,7 +289,7 @@ class Slap2Link(LinkEngine):
         module.online = True
         module.probe_interval_s = 0.0
         self._sink.on_params(axis_id, values, "read")
-        self._sink.on_axis_health(axis_id, "ok", "")
+        self._sink.on_axis_health(axis_id, *self._resumed_health(module))
 
     # --- the wire exchange ------------------------------------------------------------
 
@@ -293,6 +324,7 @@ class Slap2Link(LinkEngine):
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
         module.expected_mode = "unknown"
         module.suspect = ""
+        module.profile.clear()
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
         self._sink.on_event("warning", self.axis_id(module.address), message)
 
@@ -447,7 +479,9 @@ class Slap2Link(LinkEngine):
             self._note_unsolicited(stray)
         try:
             await self._send_echoed(channel, command.text)
+            t_echo = self._clock()
             lines = await self._read_reply(channel, command)
+            t_reply = self._clock()
         except _AbandonedError:
             self._errors += 1
             raise
@@ -465,7 +499,17 @@ class Slap2Link(LinkEngine):
             # instead (a reset). The reply, if any, is lost.
             self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
             raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
-        self._reply_chars[_mnemonic(command.text)] = sum(len(x) + 1 for x in lines)
+        reply_chars = sum(len(x) + 1 for x in lines)
+        self._reply_chars[_mnemonic(command.text)] = reply_chars
+        # When the module latched the value: it acts on the CR, whose echo ends one
+        # character later, and (sent back to back) the reply ends reply_chars after
+        # that. Both clock readings can only be late (a busy host resumes this task
+        # late), so each gives an upper bound; the smaller one is the best estimate.
+        # The time the reply was parsed would bias rise and settling times by the
+        # reply length and by the host's load.
+        char_s = 10 / self.config.baud
+        self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
+        self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
 
     async def _select(self, address: int) -> None:
@@ -578,9 +622,17 @@ class Slap2Link(LinkEngine):
 
     async def _execute(self, module: _ModuleState, command: codec.Command) -> list[str]:
         """Run a state-changing command and raise DeviceRefusedError if refused."""
-        lines = await self._transact(module.address, command)
-        reply = codec.parse_reply(lines[0] if lines else "")
         mnemonic = _mnemonic(command.text)
+        previous: ProfileTrack | None = None
+        resting = self._resting_setpoint(module)
+        if mnemonic in MOVE_MNEMONICS or mnemonic in PROFILE_BREAKERS:
+            # Whatever happens next, the old reconstruction no longer holds, except as
+            # the start of a move replanned on top of it (kept aside for that).
+            previous = module.profile.track
+            module.profile.clear()
+        lines = await self._transact(module.address, command)
+        latched = module.last_command_latch_s = self._last_latch_t
+        reply = codec.parse_reply(lines[0] if lines else "")
         hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
         if reply.kind is codec.ReplyKind.REFUSED:
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
@@ -589,7 +641,47 @@ class Slap2Link(LinkEngine):
             module.rss = rss
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
+        if mnemonic in MOVE_MNEMONICS:
+            self._start_profile(module, command.text, latched, previous, resting)
         return lines
+
+    @staticmethod
+    def _resting_setpoint(module: _ModuleState) -> float | None:
+        """At rest in pm the setpoint is the held target: rp + pe of the last poll."""
+        flags = codec.decode_rss(module.rss or 0)
+        if (
+            flags["pm"]
+            and not flags["move"]
+            and module.position is not None
+            and module.following_error is not None
+        ):
+            return float(module.position + module.following_error)
+        return None
+
+    def _start_profile(
+        self,
+        module: _ModuleState,
+        text: str,
+        latched_s: float,
+        previous: ProfileTrack | None,
+        resting: float | None,
+    ) -> None:
+        """Reconstruct the profile of a move the module accepted (slap2_capture);
+        ``resting``: the setpoint before it if the module was at rest in pm."""
+        mnemonic = _mnemonic(text)
+        try:
+            value = codec.parse_int(text[len(mnemonic) :])
+        except codec.CodecError:
+            return
+        module.profile.track = previous
+        module.profile.start(
+            mnemonic,
+            value,
+            latched_s,
+            module.known.get("velocity"),
+            module.known.get("acceleration"),
+            resting,
+        )
 
     # --- parameters -------------------------------------------------------------------
 
@@ -666,18 +758,21 @@ class Slap2Link(LinkEngine):
             await self._poll_module(module)
             self._consecutive_failures = 0
         except DriverError as exc:
-            # An odd reply to a poll is a desynchronisation, never the end of the
-            # session: counted, the next poll resynchronises (select, echo check).
-            self._count("desyncs")
-            self._consecutive_failures += 1
-            if self._consecutive_failures >= 3:
-                if self._state != "error":
-                    self._sink.on_event("error", None, f"{self.id}: {exc}")
-                self._set_state("error", str(exc))
-                if self._consecutive_failures >= 3 * len(self._modules):
-                    for m in self._modules.values():
-                        m.online = False
-                        self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
+            self._poll_failed(exc)
+
+    def _poll_failed(self, exc: DriverError) -> None:
+        # An odd reply to a poll is a desynchronisation, never the end of the
+        # session: counted, the next poll resynchronises (select, echo check).
+        self._count("desyncs")
+        self._consecutive_failures += 1
+        if self._consecutive_failures >= 3:
+            if self._state != "error":
+                self._sink.on_event("error", None, f"{self.id}: {exc}")
+            self._set_state("error", str(exc))
+            if self._consecutive_failures >= 3 * len(self._modules):
+                for m in self._modules.values():
+                    m.online = False
+                    self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
 
     async def _poll_module(self, module: _ModuleState) -> None:
         address = module.address
@@ -691,7 +786,7 @@ class Slap2Link(LinkEngine):
                 return
             value = await self._read_int(address, mnemonic)
             if mnemonic == "rp":
-                position, t_position = value, self._clock()
+                position, t_position = value, self._last_latch_t
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
@@ -747,15 +842,150 @@ class Slap2Link(LinkEngine):
         elif codec.decode_rss(rss)["cal"]:
             module.cal_seen = True
 
+    # --- capture (drivers.base.Capturer; decisions in drivers/slap2_capture.py) ---------
+
+    def capture(self, address: int, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+        """Devote the line to module ``address`` while the context is open."""
+        if address not in self._modules:
+            raise InvalidArgumentError("address", f"no module {address} on {self.id}")
+        return self._captures.hold(address, reason)
+
+    def _resumed_health(self, module: _ModuleState) -> tuple[AxisHealth, str]:
+        """The health of a module found online again: paused if another is captured."""
+        if module.paused:
+            on = ", ".join(f"#{a}" for a in sorted(self._captures.addresses))
+            return "paused", f"paused: capture on {on}"
+        return "ok", ""
+
+    def capture_stats(self, address: int) -> CaptureStats | None:
+        """The running capture's statistics of a module, else its last capture's."""
+        module = self._modules[address]
+        return module.capture.stats if module.capture is not None else module.last_capture
+
+    def _capture_changed(self) -> None:
+        captured = set(self._captures.addresses)
+        now = self._clock()
+        for module in self._modules.values():
+            if module.address in captured and module.capture is None:
+                module.capture = ModuleCapture(CaptureStats(started_s=now))
+            elif module.address not in captured and module.capture is not None:
+                stats = module.capture.stats
+                stats.ended_s = now
+                module.last_capture, module.capture = stats, None
+                logger.info(
+                    "%s: capture of module %d ended: %d samples in %.2f s, %d setpoint "
+                    "checks (%d off, max residual %.1f counts)",
+                    self.id,
+                    module.address,
+                    stats.samples,
+                    now - stats.started_s,
+                    stats.setpoint_checks,
+                    stats.setpoint_mismatches,
+                    stats.max_setpoint_residual,
+                )
+            paused = bool(captured) and module.address not in captured
+            if paused != module.paused:
+                module.paused = paused
+                if module.online:
+                    on = ", ".join(f"#{a}" for a in sorted(captured))
+                    self._sink.on_axis_health(
+                        self.axis_id(module.address),
+                        "paused" if paused else "ok",
+                        f"paused: capture on {on}" if paused else "",
+                    )
+        self._wakeup.set()
+
+    async def _capture_step(self, captured: list[_ModuleState]) -> None:
+        """One sample of a captured module: ``rp``, and ``pe``/``rss`` when due."""
+        module = captured[self._capture_index % len(captured)]
+        self._capture_index += 1
+        capture = module.capture
+        assert capture is not None
+        address = module.address
+        chars_before = self._wire_chars
+        fresh_pe: int | None = None
+        try:
+            position = await self._read_int(address, "rp")
+            t = self._last_latch_t
+            why = capture.resolve(module.profile, t, position)
+            if why:
+                self._count("setpoint_mismatches")
+                logger.info("%s: module %d: %s", self.id, address, why)
+            flags = codec.decode_rss(module.rss or 0)
+            if not self.urgent_pending and capture.wants_pe(module.profile, flags, t):
+                fresh_pe = await self._read_int(address, "pe")
+                capture.pending = (self._last_latch_t, fresh_pe)
+                capture.last_pe_s = self._last_latch_t
+                capture.samples_since_pe = 0
+                module.following_error = fresh_pe
+                capture.note_rest(module.profile, flags, t, position + fresh_pe)
+            else:
+                capture.samples_since_pe += 1
+            if not self.urgent_pending and capture.wants_rss(
+                module.profile, t, flags_fresh=not module.ucon
+            ):
+                rss = await self._read_int(address, "rss")
+                capture.last_rss_s = self._last_latch_t
+                self._check_rss(module, rss)
+                module.rss = rss
+            self._consecutive_failures = 0
+        except DriverError as exc:
+            capture.stats.wire_chars += self._wire_chars - chars_before
+            self._poll_failed(exc)
+            return
+        capture.stats.wire_chars += self._wire_chars - chars_before
+        capture.stats.samples += 1
+        capture.previous = (t, position)
+        if self._state == "error":
+            self._set_state("connected", self._connector.description)
+        self._emit_captured(module, t, position, fresh_pe)
+
+    def _emit_captured(
+        self, module: _ModuleState, t: float, position: int, fresh_pe: int | None
+    ) -> None:
+        if module.position is not None and module.position_t is not None and t > module.position_t:
+            module.velocity = (position - module.position) / (t - module.position_t)
+        module.position, module.position_t = position, t
+        flags = codec.decode_rss(module.rss or 0)
+        setpoint = module.profile.setpoint_at(t) if flags["pm"] else None
+        following_error: float | None
+        if setpoint is not None:
+            setpoint = round(setpoint, 2)
+            following_error = round(setpoint - position, 2)
+        elif fresh_pe is not None:
+            # No profile to trust: pe as read (a slow channel between its reads).
+            following_error = fresh_pe
+            setpoint = position + fresh_pe
+        else:
+            following_error = None
+        channels: dict[str, float | None] = {
+            "position": position,
+            "setpoint": setpoint,
+            "following_error": following_error,
+            "velocity": module.velocity,
+            "velocity_measured": None,
+        }
+        module.samples.append(t)
+        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+
     # --- status -----------------------------------------------------------------------
 
     def wire_limit_hz(self) -> float:
         """Samples/s per axis the wire allows for the poll set, from actual reply lengths.
 
         Per transaction: every command char and CR is sent and echoed (2 chars each),
-        then the reply and its CR: all at 10 bit times per character.
+        then the reply and its CR: all at 10 bit times per character. During a
+        capture: the limit of the captured modules' actual poll mix (rp, and pe, rss
+        and se as often as they were read), from the characters they took.
         """
         char_s = 10 / self.config.baud
+        captures = [m.capture for m in self._modules.values() if m.capture is not None]
+        if captures:
+            samples = sum(c.stats.samples for c in captures)
+            chars = sum(c.stats.wire_chars for c in captures)
+            if samples and chars:
+                return samples / len(captures) / (chars * char_s)
+            return 1 / ((2 * 3 + self._reply_chars.get("rp", 2)) * char_s * len(captures))
         online = [m for m in self._modules.values() if m.online] or list(self._modules.values())
         per_module = 0.0
         for mnemonic in self.config.poll_commands:
@@ -771,7 +1001,8 @@ class Slap2Link(LinkEngine):
     def achieved_rate_hz(self) -> float:
         """Mean telemetry samples per second per online axis over the last 2 s."""
         now = self._clock()
-        rates = [recent_rate_hz(m.samples, now) for m in self._modules.values() if m.online]
+        polled = [m for m in self._modules.values() if m.online and not m.paused]
+        rates = [recent_rate_hz(m.samples, now) for m in polled]
         return sum(rates) / len(rates) if rates else 0.0
 
     # --- operations used by Slap2Axis -------------------------------------------------
@@ -840,6 +1071,8 @@ class Slap2Link(LinkEngine):
         command = codec.Command(text, multiline=True)
 
         async def job() -> list[str]:
+            if mnemonic in MOVE_MNEMONICS:
+                module.profile.clear()  # a console move is not reconstructed
             lines = await self._transact(address, command)
             if lines and codec.parse_reply(lines[0]).kind is codec.ReplyKind.REFUSED:
                 raise DeviceRefusedError(f"{text}: refused by the module (-1UC)")
@@ -862,6 +1095,8 @@ class Slap2Link(LinkEngine):
 
     def _track_mode(self, module: _ModuleState, text: str) -> None:
         mnemonic = _mnemonic(text)
+        if mnemonic in PROFILE_BREAKERS:
+            module.profile.clear()
         if mnemonic == "st":
             module.expected_mode = "off"
         elif mnemonic in ("pm", "vm"):
@@ -917,154 +1152,4 @@ _PARAM_SETTERS = {
 }
 
 
-class Slap2Axis(EngineAxis, AxisDriver):
-    """One SLAP2 module: the axis the user tunes. All I/O goes through its link."""
-
-    _link: Slap2Link
-
-    def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:
-        """Build the wire commands for a descriptor command (pure; no I/O)."""
-        if name == "stop":
-            return [codec.make_simple("st")]
-        if name == "position_mode":
-            return [codec.make_simple("pm")]
-        if name == "velocity_mode":
-            return [codec.make_simple("vm")]
-        if name == "move_absolute":
-            return [codec.make_move_absolute(args["position"])]
-        if name == "move_relative":
-            return [codec.make_move_relative(args["distance"])]
-        if name == "set_position":
-            return [codec.make_set_position(args["position"])]
-        if name == "open_loop_pwm":
-            return [codec.make_pwm(args["pwm"])]
-        if name == "calibrate":
-            return [codec.make_calibrate(args["mode"])]
-        if name == "save_eeprom":
-            return [codec.make_simple("pg")]
-        raise InvalidArgumentError("command", f"unknown command {name!r}")
-
-    async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
-        if name == "abort_calibration":
-            await self._link.op_raw_byte(self._address, codec.CTRL_K, urgent=True)
-            return CommandOutcome(["<Ctrl-K>"], "calibration aborted")
-        if name == "save_eeprom":
-            rss = self._link.module_state(self._address).rss
-            flags = codec.decode_rss(rss or 0)
-            if flags["pm"] or flags["vm"]:
-                mode = "position mode" if flags["pm"] else "velocity mode"
-                raise DeviceRefusedError(
-                    f"pg is not allowed while {mode} is on (manual: 'nicht während pm oder "
-                    "vm'): press STOP, then save"
-                )
-        if name == "hold":
-            return await self._hold()
-        commands = self.make_command(name, args)
-        sent = await self._link.op_execute(self._address, commands, urgent=name == "stop")
-        return CommandOutcome(sent, "ok")
-
-    async def _hold(self) -> CommandOutcome:
-        """Descriptor ``hold`` (stop and hold, motor powered; see slap2_descriptor):
-        ``pm`` turns the controller on at the current position; in pm a running move
-        is replanned with ``ma`` to the last polled position (brakes with sa, returns
-        there), because a second ``pm`` in pm changes nothing. Urgent like STOP."""
-        module = self._link.module_state(self._address)
-        flags = codec.decode_rss(module.rss or 0)
-        if flags["pm"] and flags["move"] and module.position is not None:
-            commands = [codec.make_move_absolute(module.position)]
-        else:
-            commands = [codec.make_simple("pm")]
-        sent = await self._link.op_execute(self._address, commands, urgent=True)
-        return CommandOutcome(sent, "holding the position, motor powered")
-
-    async def console(self, line: str) -> tuple[str, list[str]]:
-        return await self._link.op_console(self._address, line)
-
-    async def stop(self) -> None:
-        await self._link.op_execute(self._address, [codec.make_simple("st")], urgent=True)
-
-    # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
-
-    def autopilot_amplitude(self) -> int:
-        return 1500 + 700 * (self._address % 3)
-
-    def autopilot_commands(self, latest: Sample, target: int) -> list[tuple[str, dict[str, int]]]:
-        steps: list[tuple[str, dict[str, int]]] = []
-        if not latest.flags.get("pm"):
-            steps.append(("position_mode", {}))
-        steps.append(("move_absolute", {"position": target}))
-        return steps
-
-    def autopilot_settled(self, latest: Sample) -> bool:
-        return bool(latest.flags.get("inpos")) and not latest.flags.get("move")
-
-    # --- test bench (drivers.base.BenchPlanner) ----------------------------------------
-
-    def bench_kinds(self) -> list[BenchKind]:
-        return ["move", "position_step", "velocity_step", "pwm_step"]
-
-    def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
-        """SLAP2 tests: a move is ``mr`` with the profile as set; a position step is
-        the same move with sv and sa at their maximum for the test (the SLAP2 has no
-        way to bypass its profile generator, so this is the closest to a step); a
-        velocity step is ``vm`` at the given sv; a PWM step is ``spwm``. Position
-        tests end with the controller holding (pm), velocity and PWM tests with st.
-        """
-        if latest.flags.get("move") or latest.flags.get("vm"):
-            raise DeviceRefusedError(
-                "the axis is moving: a test must start from rest (wait, or press STOP)"
-            )
-        position = latest.channels.get("position") or 0.0
-        if latest.flags.get("pm") and latest.channels.get("setpoint") is not None:
-            # mr is relative to the target the controller holds, not to where the shaft
-            # happens to stand within its hold error.
-            position = float(latest.channels["setpoint"] or position)
-        band = float(params.get("inpos_window", 5))
-        faults = ["oc", "limit1", "limit2"]
-        if test.kind in ("move", "position_step"):
-            if test.distance == 0:
-                raise InvalidArgumentError("distance", "distance must not be 0")
-            overrides = (
-                {"velocity": codec.VELOCITY_MAX, "acceleration": codec.ACCELERATION_MAX}
-                if test.kind == "position_step"
-                else {}
-            )
-            return BenchPlan(
-                setup=[] if latest.flags.get("pm") else [("position_mode", {})],
-                trigger=[("move_relative", {"distance": test.distance})],
-                finish=[],
-                response="position",
-                y0=position,
-                y_final=position + test.distance,
-                band=band,
-                overrides=overrides,
-                done_flag="inpos",
-                moving_flag="move",
-                fault_flags=faults,
-            )
-        if test.kind == "velocity_step":
-            if test.velocity == 0:
-                raise InvalidArgumentError("velocity", "velocity must not be 0")
-            return BenchPlan(
-                setup=[("stop", {})] if latest.flags.get("pm") else [],
-                overrides={"velocity": test.velocity},
-                trigger=[("velocity_mode", {})],
-                finish=[("stop", {})],
-                response="velocity",
-                y0=latest.channels.get("velocity") or 0.0,
-                y_final=test.velocity * codec.COUNTS_S_PER_SV,
-                band=None,
-                fault_flags=faults,
-            )
-        if test.pwm == 0:
-            raise InvalidArgumentError("pwm", "pwm must not be 0")
-        return BenchPlan(
-            setup=[],
-            trigger=[("open_loop_pwm", {"pwm": test.pwm})],
-            finish=[("stop", {})],
-            response="velocity",
-            y0=latest.channels.get("velocity") or 0.0,
-            y_final=latest.channels.get("velocity") or 0.0,
-            band=None,
-            fault_flags=faults,
-        )
+__all__ = ["Slap2Axis", "Slap2Link", "Slap2LinkConfig", "is_banner"]

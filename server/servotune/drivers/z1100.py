@@ -27,10 +27,21 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
 * Chip reset (the manual's hint): GetKABH, GetVmax or GetAcc reading 0 after they
   were loaded. One of them is read back every ``verify_period_s``.
 * STOP is Estop for the motor (stops at once); ``decelerate`` is the chip's Stop.
+* Capture (``drivers.base.Capturer``, docs/capture.md): while a measurement records a
+  motor, the line polls GetEncoder of that motor (one sample each), GetError every
+  3rd sample while it runs, every 6th at rest (the following error is a slow channel, None
+  between its reads), GetStart every ``CAPTURE_STATUS_PERIOD_S`` (the running bits of
+  all motors in one transaction), GetStop only after a stall bit, no GetSwitch and no
+  verify reads; the other motors pause ("paused: capture on ...").
+* Every sample is stamped with the moment the chip latched it: it answers a request
+  once the request is complete, so the latch is the write time plus the request's 7
+  characters on the wire (bounded by the reply's arrival less its 6 characters), not
+  the time the reply was parsed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import deque
@@ -52,6 +63,7 @@ from servotune.drivers.base import (
     Sample,
     check_console_line,
 )
+from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import EngineAxis, LinkEngine, recent_rate_hz
 from servotune.drivers.z1100_descriptor import (
     FORBIDDEN_WHILE_MOVING,
@@ -66,6 +78,12 @@ logger = logging.getLogger(__name__)
 RETRYABLE = codec.ReplyCode.CHECKSUM | codec.ReplyCode.TIMEOUT | codec.ReplyCode.COMMUNICATION
 MOVING_BITS = codec.ReplyCode.MOVING_1 | codec.ReplyCode.MOVING_2 | codec.ReplyCode.MOVING_3
 RESET_WITNESSES = ("kabh_k", "vmax", "acc")
+# GetError in a capture: every 3rd sample while the motor runs (the following error is
+# what the Z1100 identification fits, and the verdict's peak), every 6th at rest.
+CAPTURE_ERROR_EVERY_RUNNING = 3
+CAPTURE_ERROR_EVERY = 6
+CAPTURE_STATUS_PERIOD_S = 0.1
+TRANSACTION_CHARS = codec.REQUEST_SIZE + codec.REPLY_SIZE
 _SCALAR_PARAMS: dict[str, tuple[codec.Command, codec.Command]] = {
     "vmax": (codec.Command.SET_VMAX, codec.Command.GET_VMAX),
     "acc": (codec.Command.SET_ACC, codec.Command.GET_ACC),
@@ -110,7 +128,11 @@ class _MotorState:
     switch: bool = False
     job: int = codec.Job.FREE  # the job servotune last set (a reset makes it 0)
     known: dict[str, int] = field(default_factory=dict)
-    samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
+    samples: deque[float] = field(default_factory=lambda: deque(maxlen=1024))
+    capture: CaptureStats | None = None
+    last_capture: CaptureStats | None = None
+    paused: bool = False
+    since_error: int = 0
 
 
 class Z1100Link(LinkEngine):
@@ -145,6 +167,11 @@ class Z1100Link(LinkEngine):
         self._last_verify_t = 0.0
         self._stall_noted = False
         self._failed_cycles = 0
+        self._captures = CaptureRegistry(self._capture_changed)
+        self._capture_index = 0
+        self._last_status_t = 0.0
+        self._last_latch_t = 0.0
+        self._transactions = 0
 
     # --- identity ---------------------------------------------------------------------
 
@@ -186,8 +213,16 @@ class Z1100Link(LinkEngine):
                 # in the link's counters, not an event each time.
                 self._errors += 1
                 self._count("dropped_bytes", len(stray))
+            written = self._clock()
             await channel.write(packet)
             reply = await self._read_reply(channel)
+            self._transactions += 1
+            if reply is not None:
+                char_s = 10 / self.config.baud
+                self._last_latch_t = min(
+                    written + codec.REQUEST_SIZE * char_s,
+                    self._clock() - codec.REPLY_SIZE * char_s,
+                )
             if reply is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
@@ -270,6 +305,10 @@ class Z1100Link(LinkEngine):
                     await self._probe()
                 continue
             try:
+                captured = [m for m in self._motors if m.capture is not None]
+                if captured:
+                    await self._capture_step(captured)
+                    continue
                 if now - self._last_verify_t >= self.config.verify_period_s:
                     self._last_verify_t = now
                     await self._verify_step()
@@ -311,8 +350,14 @@ class Z1100Link(LinkEngine):
                 self._sink.on_axis_health(self.axis_id(motor.axis), "offline", str(exc))
             return
         self._online = True
+        on = ", ".join(f"motor {a + 1}" for a in sorted(self._captures.addresses))
         for motor in self._motors:
-            self._sink.on_axis_health(self.axis_id(motor.axis), "ok", "")
+            if motor.paused:
+                self._sink.on_axis_health(
+                    self.axis_id(motor.axis), "paused", f"paused: capture on {on}"
+                )
+            else:
+                self._sink.on_axis_health(self.axis_id(motor.axis), "ok", "")
 
     async def _poll_cycle(self) -> None:
         self._cycle += 1
@@ -322,7 +367,7 @@ class Z1100Link(LinkEngine):
             position = codec.unpack_int32(
                 (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
             )
-            t = self._clock()
+            t = self._last_latch_t
             error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
             if motor.position is not None and motor.position_t is not None and t > motor.position_t:
                 motor.velocity = (position - motor.position) / (t - motor.position_t)
@@ -352,9 +397,105 @@ class Z1100Link(LinkEngine):
                     "stall: the error limit was exceeded and the chip cut motor power",
                 )
 
-    def _emit(self, motor: _MotorState, t: float) -> None:
+    # --- capture (drivers.base.Capturer; see the module docstring) -------------------
+
+    def capture(self, axis: int, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+        """Devote the line to motor ``axis`` while the context is open."""
+        if not 0 <= axis < codec.AXES:
+            raise InvalidArgumentError("axis", f"the Z1100 has motors 0..{codec.AXES - 1}")
+        return self._captures.hold(axis, reason)
+
+    def capture_stats(self, axis: int) -> CaptureStats | None:
+        """The running capture's statistics of a motor, else its last capture's."""
+        motor = self._motors[axis]
+        return motor.capture if motor.capture is not None else motor.last_capture
+
+    def _capture_changed(self) -> None:
+        captured = set(self._captures.addresses)
+        now = self._clock()
+        for motor in self._motors:
+            if motor.axis in captured and motor.capture is None:
+                motor.capture = CaptureStats(started_s=now)
+                motor.since_error = CAPTURE_ERROR_EVERY  # the first sample reads it
+            elif motor.axis not in captured and motor.capture is not None:
+                motor.capture.ended_s = now
+                motor.last_capture, motor.capture = motor.capture, None
+            paused = bool(captured) and motor.axis not in captured
+            if paused != motor.paused:
+                motor.paused = paused
+                if self._online:
+                    on = ", ".join(f"motor {a + 1}" for a in sorted(captured))
+                    self._sink.on_axis_health(
+                        self.axis_id(motor.axis),
+                        "paused" if paused else "ok",
+                        f"paused: capture on {on}" if paused else "",
+                    )
+        self._wakeup.set()
+
+    async def _capture_step(self, captured: list[_MotorState]) -> None:
+        """One sample of a captured motor: GetEncoder, GetError/GetStart when due."""
+        motor = captured[self._capture_index % len(captured)]
+        self._capture_index += 1
+        stats = motor.capture
+        assert stats is not None
+        before = self._transactions
+        try:
+            position = codec.unpack_int32(
+                (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
+            )
+            t = self._last_latch_t
+            error: int | None = None
+            motor.since_error += 1
+            every = CAPTURE_ERROR_EVERY_RUNNING if motor.running else CAPTURE_ERROR_EVERY
+            if not self.urgent_pending and motor.since_error >= every:
+                error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
+                motor.since_error = 0
+            if not self.urgent_pending and (
+                self._stall_noted or t - self._last_status_t >= CAPTURE_STATUS_PERIOD_S
+            ):
+                self._last_status_t = t
+                await self._read_capture_status()
+        finally:
+            stats.wire_chars += (self._transactions - before) * TRANSACTION_CHARS
+        self._failed_cycles = 0
+        if self._state == "error":
+            self._set_state("connected", self._connector.description)
+        stats.samples += 1
+        if motor.position is not None and motor.position_t is not None and t > motor.position_t:
+            motor.velocity = (position - motor.position) / (t - motor.position_t)
+        motor.position, motor.position_t = position, t
+        if error is not None:
+            motor.following_error = error
+        self._emit(motor, t, fresh_error=error is not None)
+
+    async def _read_capture_status(self) -> None:
+        """GetStart (running bits of all motors); GetStop only after a stall bit."""
+        start = await self._get(codec.Command.GET_START)
+        assert isinstance(start, codec.StartStatus)
+        for motor in self._motors:
+            motor.running = motor.axis in start.running
+            motor.positive = motor.axis in start.positive
+        if self._stall_noted:
+            self._stall_noted = False
+            stop = await self._get(codec.Command.GET_STOP)
+            assert isinstance(stop, codec.StopStatus)
+            for motor in self._motors:
+                was_stalled = motor.stall
+                motor.stopped = motor.axis in stop.by_command
+                motor.stall = motor.axis in stop.stalled
+                if motor.stall and not was_stalled:
+                    self._sink.on_event(
+                        "error",
+                        self.axis_id(motor.axis),
+                        "stall: the error limit was exceeded and the chip cut motor power",
+                    )
+
+    def _emit(self, motor: _MotorState, t: float, *, fresh_error: bool = True) -> None:
         motor.samples.append(t)
-        position, error = motor.position, motor.following_error
+        position = motor.position
+        # In a capture the following error is read every few samples only: None in
+        # between (a slow channel), never a stale value next to a fresh position.
+        error = motor.following_error if fresh_error else None
         channels: dict[str, float | None] = {
             "position": position,
             "target": motor.target,
@@ -548,17 +689,25 @@ class Z1100Link(LinkEngine):
         """Samples/s per axis the wire allows: 13 bytes per transaction at 10 bits.
 
         Per cycle: GetEncoder + GetError for three motors, plus GetStart, GetStop and
-        one GetSwitch every ``status_every`` cycles.
+        one GetSwitch every ``status_every`` cycles. During a capture: the limit of the
+        captured motors' actual poll mix, from the transactions it took.
         """
         char_s = 10 / self.config.baud
+        captures = [m.capture for m in self._motors if m.capture is not None]
+        if captures:
+            samples = sum(c.samples for c in captures)
+            chars = sum(c.wire_chars for c in captures)
+            if samples and chars:
+                return samples / len(captures) / (chars * char_s)
+            return 1 / (TRANSACTION_CHARS * char_s * len(captures))
         per_cycle = 2 * codec.AXES + 3 / self.config.status_every
         return 1 / (per_cycle * (codec.REQUEST_SIZE + codec.REPLY_SIZE) * char_s)
 
     def achieved_rate_hz(self) -> float:
         """Mean samples/s per motor over the last 2 s (falls to 0 when polling stops)."""
         now = self._clock()
-        rates = [recent_rate_hz(motor.samples, now) for motor in self._motors]
-        return sum(rates) / len(rates) if self._online else 0.0
+        rates = [recent_rate_hz(m.samples, now) for m in self._motors if not m.paused]
+        return sum(rates) / len(rates) if self._online and rates else 0.0
 
 
 def _request_name(request: codec.Request) -> str:
@@ -687,6 +836,10 @@ class Z1100Axis(EngineAxis, AxisDriver):
 
     async def stop(self) -> None:
         await self._link.op_requests(self._axis, [codec.make_estop([self._axis])], urgent=True)
+
+    def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
+        """``drivers.base.Capturer``: the line polls this motor only while open."""
+        return self._link.capture(self._axis, reason)
 
     # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
 

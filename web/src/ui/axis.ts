@@ -17,6 +17,7 @@ export const HEALTH_TEXT: Record<string, string> = {
   ok: "ok",
   reset: "reset — settings may be lost",
   offline: "offline",
+  paused: "paused",
 };
 
 /** Whether the console pane is unfolded, kept across axis switches. */
@@ -184,7 +185,8 @@ export class AxisView {
     const syncStatus = (): void => {
       const status = store.axisStatus.get(axis.id);
       const health = status?.health ?? "ok";
-      setText(this.health, HEALTH_TEXT[health] ?? health);
+      // "paused: capture on #n" names the axis the line is devoted to (docs/capture.md).
+      setText(this.health, health === "paused" ? status?.message || "paused" : HEALTH_TEXT[health] ?? health);
       this.health.dataset.health = health;
       this.health.title = status?.message || `health: ${health}`;
       const autopilot = store.autopilot && status && !status.operated;

@@ -1,0 +1,331 @@
+"""Capture at the wire limit (docs/capture.md): the profile law, the focused poll on
+the simulated SLAP2 line and Z1100 chip (real pseudo-terminals), the pause of the
+other axes, STOP first, and the repeatability of a measured step."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import itertools
+import statistics
+from pathlib import Path
+
+import pytest
+
+from servotune.demo import build_slap2_bus
+from servotune.drivers.base import Capturer, DriverError, capture_of
+from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.metrics import compute_metrics
+from servotune.profiles import (
+    COUNTS_TICK2_PER_SA,
+    COUNTS_TICK_PER_SV,
+    ProfileTrack,
+    TrapezoidGenerator,
+    firmware_setpoint,
+)
+from servotune.sim.process import SerialSimSpec, serial_sim_process
+from servotune.sim.slap2 import Slap2Module
+from servotune.transports.serial import SerialConnector
+
+from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for
+from .test_driver_z1100 import chip_line
+
+
+def _send(module: Slap2Module, line: str) -> None:
+    for byte in line.encode() + b"\r":
+        module.receive(byte)
+
+
+# --- the profile law against the simulated firmware -----------------------------------
+
+
+@pytest.mark.parametrize(
+    ("sv", "sa", "moves"),
+    [
+        (2000, 1000, [("mr", 3000)]),  # a trapezoid: accelerate, cruise, brake
+        (500, 50, [("mr", 400)]),  # a triangle: never reaches sv
+        (65535, 65535, [("mr", -2000)]),  # the bench's position step: almost a jump
+        (2000, 300, [("mr", 5000), ("ma", 1000)]),  # replanned during the move
+    ],
+)
+def test_profile_law_matches_the_firmware_tick_for_tick(
+    sv: int, sa: int, moves: list[tuple[str, int]]
+) -> None:
+    module = Slap2Module(0)
+    module.take_output()
+    _send(module, f"sv{sv}")
+    _send(module, f"sa{sa}")
+    _send(module, "pm")
+    start = module.setpoint
+    generator = TrapezoidGenerator.from_wire(start, start, sv, sa)
+    for index, (mnemonic, value) in enumerate(moves):
+        _send(module, f"{mnemonic}{value}")
+        target = value if mnemonic == "ma" else generator.target + value
+        generator.replan(target, sv, sa)
+        ticks = 300 if index + 1 < len(moves) else 20000
+        for _ in range(ticks):
+            module.tick()
+            generator.step()
+            # the firmware reports the rounded setpoint (pe, rp + pe)
+            assert firmware_setpoint(generator.setpoint) == module.setpoint
+            if not generator.moving and index + 1 == len(moves):
+                break
+    assert not generator.moving and generator.setpoint == generator.target
+    assert module.setpoint == generator.target
+
+
+def test_profile_track_maps_host_time_to_ticks() -> None:
+    generator = TrapezoidGenerator.from_wire(0, 0, 2000, 1000)
+    generator.replan(3000, 2000, 1000)
+    track = ProfileTrack(10.0, generator)
+    assert track.setpoint_at(9.0) == 0.0  # before the command: the start
+    assert not track.finished_by(10.1)
+    acc = 1000 * COUNTS_TICK2_PER_SA
+    assert (3000 * acc) ** 0.5 < 2000 * COUNTS_TICK_PER_SV  # sv is not reached: a triangle
+    expected_ticks = 2 * (3000 / acc) ** 0.5  # accelerate half way, brake the other half
+    end_s = 10.0 + expected_ticks * 841.5e-6
+    assert not track.finished_by(end_s - 0.01)
+    assert track.finished_by(end_s + 0.01)
+    assert track.setpoint_at(end_s + 1.0) == 3000.0
+    mid = track.setpoint_at(10.0 + 0.5 * expected_ticks * 841.5e-6)
+    assert 1400 < mid < 1600  # symmetric: half way at half time
+
+
+# --- SLAP2: the focused poll on a two-module line --------------------------------------
+
+
+def _axis(line: RunningLink, address: int) -> Slap2Axis:
+    found = next(a for a in line.link.axes if a.address == address)
+    assert isinstance(found, Slap2Axis)
+    return found
+
+
+async def _rate(line: RunningLink, axis_id: str, seconds: float) -> float:
+    before = len(line.sink.samples[axis_id])
+    await asyncio.sleep(seconds)
+    return (len(line.sink.samples[axis_id]) - before) / seconds
+
+
+async def test_capture_devotes_the_line_and_pauses_the_other_module(tmp_path: Path) -> None:
+    with running_simulator([0, 1], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 1)
+            assert isinstance(drive, Capturer)
+            await line.until(lambda: len(line.sink.samples["line-1"]) > 3, "samples")
+            normal = await _rate(line, "line-1", 1.5)
+            async with capture_of(drive, "test"):
+                assert line.sink.health["line-0"] == ("paused", "paused: capture on #1")
+                await asyncio.sleep(0.3)  # the poll in flight ends
+                paused_from = len(line.sink.samples["line-0"])
+                captured = await _rate(line, "line-1", 1.5)
+                # only rp (and rss at its low rate: the module is not in pm, no pe)
+                stats = line.link.capture_stats(1)
+                assert stats is not None and stats.samples > 0
+                assert len(line.sink.samples["line-0"]) == paused_from
+                sample = line.sink.samples["line-1"][-1]
+                assert sample.channels["following_error"] is None  # not in pm: no pe
+            assert line.sink.health["line-0"] == ("ok", "")
+            await line.until(
+                lambda: len(line.sink.samples["line-0"]) > paused_from + 2, "module 0 resumes"
+            )
+            print(f"\nline-1: {normal:.1f} samples/s polled, {captured:.1f} captured")
+            # one rp per sample instead of rp, pe, rss and se for both modules
+            assert captured >= 3 * normal
+            assert line.link.capture_stats(1) is stats and stats.ended_s is not None
+
+
+async def test_stop_during_capture_goes_first(tmp_path: Path) -> None:
+    with running_simulator([0, 1], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 1)
+            await drive.command("position_mode", {})
+            async with drive.capture("test"):
+                queued = [
+                    asyncio.ensure_future(drive.write_params({"kd": 80 + i})) for i in range(6)
+                ]
+                await asyncio.sleep(0)
+                stop = asyncio.ensure_future(drive.stop())
+                await stop
+                # at most the transaction on the wire (and the write it belongs to) before it
+                done = sum(1 for job in queued if job.done())
+                assert done <= 1
+                await asyncio.gather(*queued)
+                assert not bus.module(1).rss & (1 << 3)  # pm off: the stop reached it
+
+
+async def test_captured_move_carries_the_reconstructed_setpoint(tmp_path: Path) -> None:
+    with running_simulator([0, 1], tmp_path) as (simulator, bus):
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 0)
+            await drive.command("position_mode", {})
+            await asyncio.sleep(0.3)
+            async with drive.capture("test"):
+                await drive.command("move_relative", {"distance": 3000})
+                start = len(line.sink.samples["line-0"])
+                await line.until(
+                    lambda: (
+                        len(line.sink.samples["line-0"]) > start
+                        and bool(line.sink.samples["line-0"][-1].flags["inpos"])
+                    ),
+                    "in position",
+                    timeout_s=10,
+                )
+                await asyncio.sleep(0.3)
+                stats = line.link.capture_stats(0)
+            assert stats is not None
+            samples = line.sink.samples["line-0"][start:]
+            setpoints = [s.channels["setpoint"] for s in samples]
+            assert all(sp is not None for sp in setpoints)  # every sample: reconstructed
+            assert setpoints[-1] == pytest.approx(bus.module(0).setpoint)
+            # monotone towards the target (a trapezoid), each sample its own value
+            values = [float(sp) for sp in setpoints if sp is not None]
+            assert all(b >= a for a, b in itertools.pairwise(values))
+            assert len(set(values)) > 10
+            for s in samples:
+                fe = s.channels["following_error"]
+                assert fe == pytest.approx(
+                    (s.channels["setpoint"] or 0) - (s.channels["position"] or 0)
+                )
+            # checked against the measured pe, and it held
+            assert stats.setpoint_checks >= 3
+            assert stats.setpoint_mismatches == 0, stats
+
+
+# --- repeatability: a property of the measurement ---------------------------------------
+
+
+async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
+    """Five position steps with the same gains on the demo's unloaded plant (about 30 %
+    overshoot with the factory gains): overshoot within 1 percentage point, settling
+    within 2 sample periods. The samples of a captured axis are dense and stamped at
+    their latch moment, so the metrics no longer depend on which sample caught the
+    peak. The simulator runs in a process of its own, as in the demo (in this process
+    it would share the interpreter with the driver: host stalls, not the measurement)."""
+    spec = SerialSimSpec("slap2", functools.partial(build_slap2_bus, tmp_path), 19200)
+    with serial_sim_process(spec) as simulator:
+        path = simulator.ready["path"]
+        sink = RecordingSink()
+        config = Slap2LinkConfig(link_id="line", path=path, addresses=[0, 1])
+        link = Slap2Link(config, SerialConnector(path, 19200), sink)
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.state == "connected", 30, "the link")
+            drive = next(a for a in link.axes if a.address == 0)
+            assert isinstance(drive, Slap2Axis)
+            await drive.write_params({"velocity": 65535, "acceleration": 65535})
+            await drive.command("position_mode", {})
+            results = []
+            disturbed = 0
+            warm_up = True
+            while len(results) < 5 and disturbed < 60:
+                await asyncio.sleep(0.3)
+                async with drive.capture("repeatability"):
+                    await asyncio.sleep(0.1)
+                    for _ in range(100):  # at rest before each step (at most 2 s)
+                        flags = sink.samples["line-0"][-1].flags
+                        if flags["inpos"] and not flags["move"]:
+                            break
+                        await asyncio.sleep(0.02)
+                    latest = sink.samples["line-0"][-1]
+                    y0 = float(latest.channels["setpoint"] or 0)
+                    try:
+                        await drive.command("move_relative", {"distance": 2000})
+                    except DriverError:
+                        # a stalled host desynchronised the line (the driver says so
+                        # and resynchronises): not a measurement of the axis
+                        disturbed += 1
+                        continue
+                    start = len(sink.samples["line-0"])
+                    t0 = drive.last_command_latch_s
+                    assert t0 is not None
+                    await asyncio.sleep(0.6)
+                samples = sink.samples["line-0"][start:]
+                # back to the start (not recorded): the steps never walk into E2
+                try:
+                    await drive.command("move_absolute", {"position": round(y0)})
+                except DriverError:
+                    # a host stalled past the echo timeout: the driver says it cannot
+                    # tell whether the module took the move; the next run starts from
+                    # wherever the axis is
+                    disturbed += 1
+                    continue
+                times = [s.t for s in samples]
+                positions = [float(s.channels["position"] or 0) for s in samples]
+                period = statistics.median(b - a for a, b in itertools.pairwise(times))
+                # A host that stalls the driver (a loaded machine) leaves gaps in the
+                # record, visible in the data: such a run measures the host, not the
+                # axis, and is taken again (at most 60 times).
+                # (Only rp for 0.2 s after the command; later rss and pe add up to two
+                # transactions to a sample: up to 3 rp periods.)
+                # (From t0 to the first sample the command's own rss check is on the
+                # wire: that interval is the protocol's, not the host's.)
+                gaps = [(b, b - a) for a, b in itertools.pairwise(times)]
+                if any(gap > (2.0 if t - t0 < 0.2 else 4.0) * period for t, gap in gaps):
+                    disturbed += 1
+                    continue
+                # settling into 2 % of the step (the usual definition): the +-5 counts of the
+                # in-position window are grazed by a late ringing lobe, run by run
+                m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000)
+                if warm_up:
+                    # The first step after pm is switched on starts from another state
+                    # of the controller (its integrator): a different experiment.
+                    warm_up = False
+                    continue
+                results.append((m.overshoot_pct, m.settling_time_s, period, disturbed))
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+    print(
+        "\n"
+        + "\n".join(
+            f"overshoot {o} %, settling {s} s, period {p} s, disturbed runs so far {g}"
+            for o, s, p, g in results
+        )
+    )
+    assert len(results) == 5, f"the host disturbed {disturbed} runs: too loaded to measure"
+    overshoots = [r[0] for r in results]
+    settlings = [r[1] for r in results]
+    assert None not in overshoots and None not in settlings
+    period = max(r[2] for r in results)
+    assert max(overshoots) - min(overshoots) <= 1.0  # type: ignore[type-var,operator]
+    assert max(settlings) - min(settlings) <= 2 * period  # type: ignore[type-var,operator]
+
+
+# --- Z1100 ------------------------------------------------------------------------------
+
+
+async def test_z1100_capture_polls_one_motor(tmp_path: Path) -> None:
+    async with chip_line(tmp_path) as running:
+        link = running.link
+        motor = running.axis(1)
+        await wait_for(lambda: len(running.sink.samples[link.axis_id(1)]) > 5, 10, "samples")
+        normal = await _rate_z(running, 1, 1.5)
+        async with capture_of(motor, "test"):
+            assert running.sink.health[link.axis_id(0)][0] == "paused"
+            assert running.sink.health[link.axis_id(2)] == ("paused", "paused: capture on motor 2")
+            await asyncio.sleep(0.2)
+            others = [len(running.sink.samples[link.axis_id(i)]) for i in (0, 2)]
+            captured = await _rate_z(running, 1, 1.5)
+            assert [len(running.sink.samples[link.axis_id(i)]) for i in (0, 2)] == others
+            recent = running.sink.samples[link.axis_id(1)][-30:]
+            errors = [s.channels["following_error"] for s in recent]
+            fresh = [e for e in errors if e is not None]
+            # GetError every few samples: a slow channel, never stale next to fresh rp
+            assert 0 < len(fresh) < len(errors)
+        assert running.sink.health[link.axis_id(0)] == ("ok", "")
+        print(f"\nmotor 2: {normal:.1f} samples/s polled, {captured:.1f} captured")
+        # GetEncoder (+ GetError every 6th at rest) instead of both for three motors
+        assert captured >= 3 * normal
+
+
+async def _rate_z(running: object, index: int, seconds: float) -> float:
+    link = running.link  # type: ignore[attr-defined]
+    samples = running.sink.samples[link.axis_id(index)]  # type: ignore[attr-defined]
+    before = len(samples)
+    await asyncio.sleep(seconds)
+    return (len(samples) - before) / seconds
