@@ -495,10 +495,13 @@ def test_samples_before_the_command_are_ignored() -> None:
 
 def test_peak_is_the_first_of_equal_samples() -> None:
     t = [0.1, 0.2, 0.3, 0.4]
+    # The overshoot is refined between the tied samples: the parabola symmetric about
+    # t = 0.25 through (0.2, 120), (0.3, 120) and (0.4, 100) peaks at 122.5 (the one
+    # through (0.1, 50) would rise further: the smaller rise is taken).
     m = compute_metrics(t, [50.0, 120.0, 120.0, 100.0], t0_s=0.0, y0=0.0, y_final=100.0)
-    assert (m.peak_time_s, m.peak_value, m.overshoot_pct) == (0.2, 120.0, pytest.approx(20.0))
+    assert (m.peak_time_s, m.peak_value, m.overshoot_pct) == (0.2, 120.0, pytest.approx(22.5))
     m = compute_metrics(t, [-50.0, -120.0, -120.0, -100.0], t0_s=0.0, y0=0.0, y_final=-100.0)
-    assert (m.peak_time_s, m.peak_value, m.overshoot_pct) == (0.2, -120.0, pytest.approx(20.0))
+    assert (m.peak_time_s, m.peak_value, m.overshoot_pct) == (0.2, -120.0, pytest.approx(22.5))
 
 
 def test_unsorted_time_raises() -> None:
@@ -581,3 +584,17 @@ def test_every_field_has_a_definition_repeated_in_the_docs() -> None:
     for name, sentence in Metrics.definitions.items():
         assert sentence.endswith("."), name
         assert " ".join(sentence.split()) in docs, f"docs/metrics.md lacks the definition of {name}"
+
+
+def test_two_tied_peak_samples_are_refined_between_them() -> None:
+    """Integer counts tie where the true peak falls between two samples: the peak of
+    y = 1100 - 4 (t - 2.5)^2 (step 0 -> 1000, counts floored) is 10 % overshoot,
+    found between the tied samples, not read as the tie's 9.9 %."""
+    t = [0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0]
+    y = [600.0, 1091.0, 1099.0, 1099.0, 1091.0, 1000.0, 1000.0]
+    m = compute_metrics(t, y, t0_s=0.0, y0=0.0, y_final=1000.0)
+    assert m.overshoot_pct == pytest.approx(10.0, abs=1e-6)
+    # a longer plateau is not refined (nothing says where in it the peak is)
+    y3 = [600.0, 1091.0, 1099.0, 1099.0, 1099.0, 1000.0, 1000.0]
+    m3 = compute_metrics(t, y3, t0_s=0.0, y0=0.0, y_final=1000.0)
+    assert m3.overshoot_pct == pytest.approx(9.9)

@@ -91,7 +91,9 @@ class Metrics:
             "Largest excursion of y beyond y_final in the step direction as a percentage "
             "of |step|, 0 when y never passes y_final (None for a zero step). The peak "
             "is the vertex of the parabola through the highest sample and its two "
-            "neighbours when both are lower and the vertex lies between them, raised "
+            "neighbours when both are lower and the vertex lies between them (for two "
+            "equal highest samples: the parabola symmetric about their midpoint through "
+            "the outer neighbour giving the smaller rise), raised "
             "above that sample by no more than the smaller drop to a neighbour (a "
             "sampled peak is low by up to |y''| (gap/2)^2 / 2; the vertex is off by a "
             "gap^3 term), else the highest sample."
@@ -399,10 +401,12 @@ def _refined_peak(t: list[float], values: list[float]) -> float:
     best = values[i]
     if not 0 < i < len(values) - 1:
         return best
+    if values[i + 1] == best and i + 2 < len(values):
+        return _refined_plateau(t[i - 1 : i + 3], values[i - 1 : i + 3])
     ta, tb = t[i - 1] - t[i], t[i + 1] - t[i]  # relative to the peak sample: no cancellation
     ya, yb = values[i - 1] - best, values[i + 1] - best
     if ta >= 0 or tb <= 0 or not (ya < 0 and yb < 0):
-        return best  # a plateau or a record edge: nothing to refine
+        return best  # a record edge or a longer plateau: nothing to refine
     # y = a x^2 + b x through (ta, ya), (0, 0), (tb, yb)
     a = (ya / ta - yb / tb) / (ta - tb)
     b = ya / ta - a * ta
@@ -414,6 +418,25 @@ def _refined_peak(t: list[float], values: list[float]) -> float:
     # Never more above the sample than the smaller drop to a neighbour: sparse or
     # noisy samples must not make a peak up.
     return best + min(max(0.0, -b * b / (4 * a)), -ya, -yb)
+
+
+def _refined_plateau(t: list[float], values: list[float]) -> float:
+    """Two equal highest samples between two lower ones (integer counts tie where the
+    true peak falls between two samples): the vertex of a parabola symmetric about the
+    midpoint of the tied samples, through them and through an outer neighbour — the
+    one that gives the smaller rise (conservative: a coarse record must not make a
+    peak up)."""
+    best = values[1]
+    if not (values[0] < best and values[3] < best and t[0] < t[1] < t[2] < t[3]):
+        return best
+    mid, half = (t[1] + t[2]) / 2, (t[2] - t[1]) / 2
+    # y = best + r - k (x - mid)^2 through (mid +- half, best) gives r = k half^2; the
+    # outer neighbour at distance D with drop d gives k = d / (D^2 - half^2).
+    rises = [
+        (best - v) * half**2 / ((x - mid) ** 2 - half**2)
+        for x, v in ((t[0], values[0]), (t[3], values[3]))
+    ]
+    return best + min(rises)
 
 
 def _argmax(values: list[float]) -> int:
