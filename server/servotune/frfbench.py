@@ -157,7 +157,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
             out["measured_problem"] = str(exc)
     elif device in MEASURED_DEVICES:
         out["measured_problem"] = "the run recorded no excitation"
-    model = run.get("model") or identified
+    model = run.get("plant_model") or identified
     try:
         plant = plant_from_identification(device, model)
         loop = loop_for(device, plant, run.get("params") or {})

@@ -370,8 +370,8 @@ class TestBench:
         identified: Mapping[str, Any] | None,
     ) -> dict[str, Any]:
         """A model-based frequency response: stored at once, nothing sent to the device
-        (the response is computed from ``meta["model"]`` when it is read)."""
-        meta["model"] = dict(identified or {})
+        (the response is computed from ``meta["plant_model"]`` when it is read)."""
+        meta["plant_model"] = dict(identified or {})
         meta["message"] = "model-based: the identified plant under the device's law"
         meta["quality"] = {"status": "good", "reasons": [], "untrusted": {}}
         await asyncio.to_thread(

@@ -149,18 +149,22 @@ def analyse(
     rate = per_period / excitation.period_s
     grid = start + np.arange(periods * per_period) / rate
     grid = grid[grid <= t[-1]]
-    y_u = np.interp(grid, t, y)
+    # The input is taken at the same sample instants as the output and both are
+    # interpolated the same way: the interpolation's smoothing (large when the poll is
+    # sparse) then acts on both alike and cancels in Puy / Puu.
     if dense_setpoint:
         ok = np.isfinite(sp)
-        u_u = np.interp(grid, t[ok], sp[ok])
+        u_at = np.interp(t, t[ok], sp[ok])
         source = "setpoint"
     else:
         sent_t = [row[0] - t0_s for row in sent]
         sent_v = [row[1] for row in sent]
         if not sent_t:
             raise ValueError("no excitation was sent")
-        u_u = _held(sent_t, sent_v, grid)
+        u_at = _held(sent_t, sent_v, t)
         source = "targets"
+    y_u = np.interp(grid, t, y)
+    u_u = np.interp(grid, t, u_at)
     measured = estimate_frf(
         u_u, y_u, rate, segment_samples=per_period, detrend="constant", window="boxcar"
     ).at_tones(excitation.tones_hz)
