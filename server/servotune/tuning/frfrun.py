@@ -39,7 +39,7 @@ from servotune.tuning.whatif import bode_dict, margins_dict
 
 MAX_TONES = 24
 MIN_COHERENCE = 0.9
-MIN_PERIODS = 2  # analysed, after the settling period
+MIN_PERIODS = 3  # analysed, after the settling period (coherence needs averages)
 
 
 @dataclass(frozen=True, slots=True)

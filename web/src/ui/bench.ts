@@ -1112,7 +1112,7 @@ export class BenchView {
     const stepRuns = runs.filter((r) => r.test.kind !== "frequency_response");
     const response = stepRuns.find((r) => r.id === lastId)?.plan.response ?? stepRuns[0]?.plan.response;
     const drawn = stepRuns.filter((r) => r.plan.response === response);
-    const skipped = runs.length - drawn.length;
+    const skipped = stepRuns.length - drawn.length;
     let loaded: BenchRunDetail[];
     try {
       loaded = await Promise.all(drawn.map((r) => detail(r)));
@@ -1156,7 +1156,9 @@ export class BenchView {
       ? "No runs yet."
       : !runs.length
         ? "Select runs in the table to overlay them."
-        : "The selected runs have no samples.";
+        : !stepRuns.length
+          ? "Frequency-response runs are drawn in the Frequency response panel below."
+          : "The selected runs have no samples.";
     // Start zoomed on the response when every run settled early in a long record
     // (double-click shows the whole run).
     const ends = this.traces.map(({ trace, run }) => {

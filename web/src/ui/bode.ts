@@ -5,6 +5,7 @@
 // and a Nyquist plot of the open loop. Data: GET /api/bench/runs/{id}/frf
 // (server/servotune/api/frf_routes.py), computed on the server in a worker thread.
 import uPlot from "uplot";
+import "./frf.css";
 import { api, request } from "../api";
 import { h, replace, setText } from "../dom";
 import { errorText } from "./feedback";
@@ -169,7 +170,7 @@ export class FrfPanel {
       amplitude: input("amplitude", "200", "Peak of the multisine around the held position (counts)"),
       low_hz: input("low_hz", "1", "Lowest tone (Hz); also the frequency resolution"),
       high_hz: input("high_hz", "40", "Highest tone (Hz)"),
-      duration_s: input("duration_s", "4", "Record length (s): one settling period plus at least two analysed"),
+      duration_s: input("duration_s", "5", "Record length (s): one settling period plus at least two analysed"),
     };
     this.runButton = h(
       "button",
