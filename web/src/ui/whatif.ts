@@ -235,6 +235,27 @@ export function predictMargins(model: WhatIfModel, gains: Record<string, number>
   return out;
 }
 
+/** RMS of measured - predicted at the measured samples (the prediction interpolated
+ * linearly; samples after its horizon are left out). */
+export function rmsAgainst(p: Prediction, m: Measured): number | null {
+  let sum = 0;
+  let n = 0;
+  let j = 0;
+  m.t.forEach((t, i) => {
+    const y = m.y[i];
+    if (y === null || y === undefined || t < 0 || t > (p.t[p.t.length - 1] ?? 0)) return;
+    while (j + 1 < p.t.length && (p.t[j + 1] as number) < t) j++;
+    const t0 = p.t[j] as number;
+    const t1 = (p.t[j + 1] ?? t0) as number;
+    const y0 = p.y[j] as number;
+    const y1 = (p.y[j + 1] ?? y0) as number;
+    const pred = t1 > t0 ? y0 + ((t - t0) / (t1 - t0)) * (y1 - y0) : y0;
+    sum += (y - pred) ** 2;
+    n++;
+  });
+  return n ? Math.sqrt(sum / n) : null;
+}
+
 function fmt(v: number | null, digits: number, unit: string): string {
   return v === null || !Number.isFinite(v) ? "—" : `${v.toFixed(digits)} ${unit}`;
 }
@@ -340,6 +361,7 @@ export class WhatIfPanel {
     const prediction = predictStep(info.model, gains, distance, info.verify, horizon, 5);
     const margins = predictMargins(info.model, gains);
     const computeMs = performance.now() - start;
+    const versus = this.measured ? rmsAgainst(prediction, this.measured) : null;
     this.draw(prediction);
     const totalMs = performance.now() - start;
     this.lastUpdateMs.push(totalMs);
@@ -347,6 +369,7 @@ export class WhatIfPanel {
     this.el.dataset.computeMs = computeMs.toFixed(3);
     this.el.dataset.overshoot = prediction.overshootPct.toFixed(3);
     this.el.dataset.settling = prediction.settlingS === null ? "" : prediction.settlingS.toFixed(4);
+    this.el.dataset.rmsVsMeasured = versus === null ? "" : versus.toFixed(3);
     replace(
       this.readout,
       h("span", { testid: "whatif-pm" }, `phase margin ${fmt(margins.phaseMarginDeg, 1, "°")}`),
@@ -356,6 +379,7 @@ export class WhatIfPanel {
       `crossover ${fmt(margins.crossoverHz, 1, "Hz")}`,
       " · ",
       `predicted overshoot ${prediction.overshootPct.toFixed(1)} %, settling (±5) ${fmt(prediction.settlingS === null ? null : prediction.settlingS * 1000, 0, "ms")}, peak PWM ${prediction.peakPwm.toFixed(0)}`,
+      versus === null ? "" : h("span", { testid: "whatif-vs-measured" }, ` · vs ${this.measured?.label ?? "measured"}: rms ${versus.toFixed(1)} counts`),
       h("span", { class: "tb-hint" }, ` · update ${computeMs.toFixed(2)} ms compute, ${totalMs.toFixed(2)} ms with the plot`),
     );
   }
