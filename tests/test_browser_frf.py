@@ -74,11 +74,17 @@ async def test_frequency_response_bode_margins_and_what_if(
         if (await server.state("line-0")).get("position") is not None:
             break
         await asyncio.sleep(0.05)
-    response = await server.client.post(
-        "/api/axes/line-0/autotune/identify",
-        json={"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"},
-        timeout=60,
-    )
+    # The identification is this test's precondition, not its subject (test_autotune.py
+    # has that): a second attempt when a starved host lost the line during the first.
+    for _attempt in range(2):
+        response = await server.client.post(
+            "/api/axes/line-0/autotune/identify",
+            json={"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"},
+            timeout=60,
+        )
+        if response.status_code == 200:
+            break
+        await asyncio.sleep(1.0)
     assert response.status_code == 200, response.text
     await page.goto(server.base_url)
     await page.get_by_test_id("axis-link-line-0").click()
@@ -89,6 +95,13 @@ async def test_frequency_response_bode_margins_and_what_if(
     await page.get_by_test_id("frf-high_hz").fill("40")
     await page.get_by_test_id("frf-duration_s").fill("5")
     await page.get_by_test_id("frf-run").click()
+    for _ in range(600):
+        runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+        if runs and runs[-1]["status"] != "recording":
+            break
+        await asyncio.sleep(0.05)
+    assert runs[-1]["test"]["kind"] == "frequency_response"
+    assert runs[-1]["status"] == "complete", runs[-1]["message"]
     readouts = page.get_by_test_id("frf-readouts")
     await expect(readouts.locator("tr[data-source='measured']")).to_have_count(1, timeout=30_000)
     await expect(readouts.locator("tr[data-source='model']")).to_have_count(1)
@@ -124,10 +137,11 @@ async def test_frequency_response_bode_margins_and_what_if(
     await page.get_by_test_id("whatif-apply").click()
     await expect(whatif).not_to_have_attribute("data-rms-vs-measured", "", timeout=30_000)
     rms = float(await whatif.get_attribute("data-rms-vs-measured") or "nan")
-    assert rms <= RMS_TOLERANCE * 2000, rms
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     await panel.scroll_into_view_if_needed()
     await page.screenshot(path=str(ARTIFACTS / "bench-frequency-response.png"), full_page=True)
+    await whatif.screenshot(path=str(ARTIFACTS / "bench-whatif.png"))
+    assert rms <= RMS_TOLERANCE * 2000, rms
     (ARTIFACTS / "frf-whatif-timing.json").write_text(
         json.dumps(
             {

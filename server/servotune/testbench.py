@@ -126,6 +126,7 @@ class _Recording:
     ended: bool = False  # the record is over (the return move is not recorded)
     excitation: Excitation | None = None  # frequency_response: the targets to stream
     sent: list[list[float]] = field(default_factory=list)  # [t, target] as acknowledged
+    trigger_acked: float | None = None  # when the device acknowledged the trigger
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -501,6 +502,8 @@ class TestBench:
             await asyncio.sleep(PRE_TRIGGER_S)
             recording.t0 = self._clock()
             await self._send(recording, plan.trigger)
+            if plan.trigger:
+                recording.trigger_acked = self._clock()
             self._update(recording, "recording", "triggered")
             limits = await self.limits(entry.info.id)
             exciter = (
@@ -568,6 +571,10 @@ class TestBench:
                         )
                 meta["message"] = message
                 meta["t0_s"] = recording.t0
+                if recording.trigger_acked is not None and recording.t0 is not None:
+                    # t0 is stamped before the trigger is sent; the device latched it
+                    # before its reply came: the bound a prediction is aligned at.
+                    meta["trigger_latency_s"] = round(recording.trigger_acked - recording.t0, 6)
                 if recording.excitation is not None:
                     meta["excitation"] = recording.excitation.to_dict() | {"sent": recording.sent}
                 meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)

@@ -1108,7 +1108,7 @@ export class BenchView {
     const sel = this.selected();
     const lastId = [...sel].reverse().find((id) => runs.some((r) => r.id === id));
     const frfRuns = runs.filter((r) => r.test.kind === "frequency_response");
-    this.frf?.show(frfRuns.map((r) => ({ id: r.id, color: this.color(r.id), label: shortId(r.id) })));
+    this.frf?.show(frfRuns.map((r) => ({ id: r.id, color: this.color(r.id), label: shortId(r.id), recording: r.status === "recording" })));
     const stepRuns = runs.filter((r) => r.test.kind !== "frequency_response");
     const response = stepRuns.find((r) => r.id === lastId)?.plan.response ?? stepRuns[0]?.plan.response;
     const drawn = stepRuns.filter((r) => r.plan.response === response);
@@ -1174,7 +1174,8 @@ export class BenchView {
     const lastStep = [...loaded].reverse().find((r) => r.test.kind === "position_step" || r.test.kind === "move");
     if (this.whatif) {
       const col = lastStep ? column(lastStep, "position", triggerTime(lastStep), lastStep.plan.y0) : null;
-      this.whatif.setMeasured(lastStep && col ? { label: `${shortId(lastStep.id)} measured`, t: col.x, y: col.y } : null);
+      const delayS = (lastStep as { trigger_latency_s?: number } | undefined)?.trigger_latency_s ?? 0;
+      this.whatif.setMeasured(lastStep && col ? { label: `${shortId(lastStep.id)} measured`, delayS, t: col.x, y: col.y } : null);
     }
     this.renderLegend(differing);
   }

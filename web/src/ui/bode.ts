@@ -62,6 +62,7 @@ export interface FrfRun {
   id: string;
   color: string;
   label: string;
+  recording: boolean;
 }
 
 const MIN_COHERENCE = 0.9;
@@ -254,7 +255,9 @@ export class FrfPanel {
 
   /** Draw these frequency-response runs (the bench's selection of that kind). */
   show(runs: FrfRun[]): void {
-    this.runs = runs;
+    // A run still recording has no response yet: drawn once it has finished.
+    this.runs = runs.filter((r) => !r.recording);
+    if (runs.some((r) => r.recording)) setText(this.note, "recording the frequency response …");
     void this.draw();
   }
 
@@ -265,6 +268,7 @@ export class FrfPanel {
   private async draw(): Promise<void> {
     const token = ++this.token;
     if (!this.runs.length) {
+      if (this.note.textContent?.startsWith("recording")) return;
       this.mag.clear();
       this.phase.clear();
       replace(this.readouts);

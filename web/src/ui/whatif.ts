@@ -262,6 +262,9 @@ function fmt(v: number | null, digits: number, unit: string): string {
 
 export interface Measured {
   label: string;
+  /** When the device acknowledged the step's command, after t0 (s): the prediction
+   * starts there (the samples' t0 is stamped before the command is sent). */
+  delayS: number;
   t: number[];
   y: (number | null)[];
 }
@@ -358,7 +361,9 @@ export class WhatIfPanel {
     const distance = Number(this.distance.value) || 0;
     if (!distance) return;
     const horizon = this.measured?.t.length ? Math.max(0.3, this.measured.t[this.measured.t.length - 1] as number) : 0.6;
-    const prediction = predictStep(info.model, gains, distance, info.verify, horizon, 5);
+    const delay = this.measured?.delayS ?? 0;
+    const raw = predictStep(info.model, gains, distance, info.verify, Math.max(0.05, horizon - delay), 5);
+    const prediction = delay ? { ...raw, t: raw.t.map((t) => t + delay), settlingS: raw.settlingS === null ? null : raw.settlingS + delay } : raw;
     const margins = predictMargins(info.model, gains);
     const computeMs = performance.now() - start;
     const versus = this.measured ? rmsAgainst(prediction, this.measured) : null;
@@ -379,7 +384,7 @@ export class WhatIfPanel {
       `crossover ${fmt(margins.crossoverHz, 1, "Hz")}`,
       " · ",
       `predicted overshoot ${prediction.overshootPct.toFixed(1)} %, settling (±5) ${fmt(prediction.settlingS === null ? null : prediction.settlingS * 1000, 0, "ms")}, peak PWM ${prediction.peakPwm.toFixed(0)}`,
-      versus === null ? "" : h("span", { testid: "whatif-vs-measured" }, ` · vs ${this.measured?.label ?? "measured"}: rms ${versus.toFixed(1)} counts`),
+      versus === null ? "" : h("span", { testid: "whatif-vs-measured" }, ` · vs ${this.measured?.label ?? "measured"} (aligned at its command's acknowledgement, +${(delay * 1000).toFixed(0)} ms): rms ${versus.toFixed(1)} counts`),
       h("span", { class: "tb-hint" }, ` · update ${computeMs.toFixed(2)} ms compute, ${totalMs.toFixed(2)} ms with the plot`),
     );
   }
