@@ -322,3 +322,38 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     _check_against_simulator(frf, run, up_to_hz=30.0)
     assert frf["measured"]["margins"]["phase_margin_deg"] is not None
     assert not math.isnan(frf["measured"]["margins"]["gain_crossover_hz"])
+
+
+async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_path: Path) -> None:
+    from .test_autotune_z1100 import BAUD, chip_line
+
+    with chip_line(tmp_path) as simulator:
+        spec = LinkSpec("z1100", simulator.path, "line", BAUD, [0, 1, 2], 512)
+        async with live_server(simulator, None, tmp_path / "data", spec=spec) as server:
+            client = server.client
+            body = {"kind": "frequency_response", "low_hz": 1.0, "high_hz": 100.0}
+            response = await client.post("/api/axes/line-x/bench/runs", json=body)
+            assert response.status_code == 409 and "identify" in response.json()["detail"]
+            limits = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_overshoot"}
+            response = await client.post(
+                "/api/axes/line-x/autotune/identify", json=limits, timeout=120
+            )
+            assert response.status_code == 200, response.text
+            identified = response.json()["model"]
+            before = (await server.state("line-x"))["position"]
+            response = await client.post("/api/axes/line-x/bench/runs", json=body)
+            assert response.status_code == 202, response.text
+            run = response.json()
+            assert run["status"] == "complete" and run["test"]["model_based"] is True
+            frf = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
+            assert frf["model_based"] and frf["measured"] is None
+            params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
+            plant = plant_from_identification("z1100", identified)
+            truth = loop_for("z1100", plant, params).margins()
+            margins = frf["model"]["margins"]
+            assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-6)
+            assert margins["stable"] is truth.stable
+            whatif = (await client.get("/api/axes/line-x/whatif")).json()
+            assert whatif["model"]["law"] == "z1100_kab"
+            assert whatif["model"]["period_s"] == pytest.approx(32e-6 * params.get("stm", 1))
+            assert abs((await server.state("line-x"))["position"] - before) <= 2
