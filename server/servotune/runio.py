@@ -71,6 +71,11 @@ class ImportTest(_Strict):
     pwm: StrictInt = 0
     duration_s: FiniteFloat = Field(default=0.0, ge=0)
     note: str = Field(default="", max_length=200)
+    # frequency_response (servotune/frfbench.py)
+    amplitude: StrictInt | None = None
+    low_hz: FiniteFloat | None = None
+    high_hz: FiniteFloat | None = None
+    model_based: StrictBool | None = None
 
 
 class ImportPlan(_Strict):
@@ -144,6 +149,11 @@ class RunExport(_Strict):
     t0_s: FiniteFloat | None = None
     imported_from: str | None = None
     autotune: dict[str, Any] | None = None
+    # frequency_response: the multisine and the targets sent; the model of a
+    # model-based run; any run: when the device acknowledged the trigger.
+    excitation: dict[str, Any] | None = None
+    plant_model: dict[str, Any] | None = None
+    trigger_latency_s: FiniteFloat | None = None
     return_: ImportReturn | None = Field(default=None, alias="return")
 
 
@@ -177,8 +187,9 @@ def validate_meta(raw: Any, device: str) -> RunExport:
         meta = RunExport.model_validate(raw)
     except ValidationError as exc:
         raise _field_error(exc, "meta") from None
-    if meta.autotune is not None:
-        _check_finite(meta.autotune, "meta.autotune")
+    for name in ("autotune", "excitation", "plant_model"):
+        if (value := getattr(meta, name)) is not None:
+            _check_finite(value, f"meta.{name}")
     if meta.device != device:
         raise InvalidArgumentError(
             "meta.device", f"meta.device: this is a {meta.device} run, the axis is a {device}"
@@ -282,7 +293,17 @@ def store_import(
         by_alias=True, exclude={"id", "axis_id", "status", "baseline", "created_s"}
     )
     stored["imported_from"] = meta.id or meta.imported_from
-    for optional in ("quality", "return", "autotune"):
+    for name in ("amplitude", "low_hz", "high_hz", "model_based"):
+        if stored["test"].get(name) is None:
+            stored["test"].pop(name, None)  # only frequency-response runs have them
+    for optional in (
+        "quality",
+        "return",
+        "autotune",
+        "excitation",
+        "plant_model",
+        "trigger_latency_s",
+    ):
         if stored.get(optional) is None:
             stored.pop(optional, None)
     run_id = uuid.uuid4().hex[:12]

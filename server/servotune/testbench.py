@@ -30,7 +30,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field, model_validator
 
-from servotune import runio
+from servotune import frfbench, runio
 from servotune.drivers.base import (
     BenchKind,
     BenchPlan,
@@ -47,6 +47,7 @@ from servotune.hub import AxisEntry, Hub
 from servotune.metrics import compute_metrics
 from servotune.runquality import POSITION_KINDS, assess
 from servotune.storage import Storage, StorageError
+from servotune.tuning.frfrun import Excitation
 from servotune.wire import RunUpdate, StorageStatus
 
 logger = logging.getLogger(__name__)
@@ -92,11 +93,20 @@ class BenchLimits(BaseModel):
 class BenchTestRequest(BaseModel):
     """``POST /api/axes/{id}/bench/runs``: what to run (units are the device's)."""
 
-    kind: BenchKind = Field(description="move | position_step | velocity_step | pwm_step")
+    kind: BenchKind = Field(
+        description="move | position_step | velocity_step | pwm_step | frequency_response"
+    )
     distance: int = 0
     velocity: int = 0
     pwm: int = 0
     duration_s: float = Field(default=2.0, gt=0)
+    amplitude: int = Field(
+        default=0,
+        description="frequency_response: peak of the multisine around the held "
+        "position, counts (1..max_distance_counts)",
+    )
+    low_hz: float = Field(default=1.0, description="frequency_response: lowest tone, Hz")
+    high_hz: float = Field(default=40.0, description="frequency_response: highest tone, Hz")
     note: str = Field(default="", max_length=200)
 
 
@@ -115,6 +125,9 @@ class _Recording:
     chunk_seq: int = 0
     returned: dict[str, Any] | None = None  # how the return to the start went
     ended: bool = False  # the record is over (the return move is not recorded)
+    excitation: Excitation | None = None  # frequency_response: the targets to stream
+    sent: list[list[float]] = field(default_factory=list)  # [t, target] as acknowledged
+    trigger_acked: float | None = None  # when the device acknowledged the trigger
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -223,8 +236,16 @@ class TestBench:
         driver = self._hub.entry(axis_id).driver
         return list(driver.bench_kinds()) if isinstance(driver, BenchPlanner) else []
 
-    async def start_run(self, axis_id: str, request: BenchTestRequest) -> dict[str, Any]:
-        """Check, plan and start a test; returns the run summary (status 'recording')."""
+    async def start_run(
+        self,
+        axis_id: str,
+        request: BenchTestRequest,
+        identified: Mapping[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """Check, plan and start a test; returns the run summary (status 'recording').
+
+        ``identified``: the auto-tune's plant model of the axis, which a model-based
+        frequency response (a device the bench cannot inject into) is computed from."""
         entry = self._hub.entry(axis_id)
         driver = entry.driver
         if not isinstance(driver, BenchPlanner):
@@ -236,12 +257,26 @@ class TestBench:
             )
         limits = await self.limits(axis_id)
         self._check_limits(request, limits)
+        if request.kind == frfbench.KIND:
+            frfbench.check_request(
+                entry.info.device,
+                request.amplitude,
+                request.low_hz,
+                request.high_hz,
+                request.duration_s,
+                limits.max_distance_counts,
+            )
+            if entry.info.device not in frfbench.MEASURED_DEVICES and not identified:
+                raise DeviceRefusedError(
+                    f"a {entry.info.device} frequency response is model-based: identify the "
+                    "plant first (auto-tune, Identify)"
+                )
         if axis_id in self._active or axis_id in self._claimed:
             raise DeviceRefusedError("a test is already running on this axis")
         # Claimed before the first await, so a second request cannot slip in.
         self._claimed.add(axis_id)
         try:
-            return await self._start_claimed(axis_id, entry, driver, request, limits)
+            return await self._start_claimed(axis_id, entry, driver, request, limits, identified)
         finally:
             self._claimed.discard(axis_id)
 
@@ -252,6 +287,7 @@ class TestBench:
         driver: BenchPlanner,
         request: BenchTestRequest,
         limits: BenchLimits,
+        identified: Mapping[str, Any] | None = None,
     ) -> dict[str, Any]:
         await self._hub.take_over(entry)
         if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
@@ -263,7 +299,22 @@ class TestBench:
             pwm=request.pwm,
             duration_s=request.duration_s,
         )
-        plan = driver.bench_plan(test, entry.latest, entry.device_values)
+        excitation: Excitation | None = None
+        model_based = False
+        if test.kind == frfbench.KIND:
+            if entry.info.device in frfbench.MEASURED_DEVICES:
+                plan, excitation = frfbench.plan_slap2(
+                    entry.latest,
+                    entry.device_values,
+                    request.amplitude,
+                    request.low_hz,
+                    request.high_hz,
+                )
+                self._check_excursion(plan.y0, request.amplitude, limits)
+            else:
+                plan, model_based = frfbench.model_plan(entry.latest), True
+        else:
+            plan = driver.bench_plan(test, entry.latest, entry.device_values)
         self._check_window(test, plan, entry.latest, limits)
         # The plan is checked like user input before anything moves (422 naming the
         # field): a test must not put a value on the wire the descriptor forbids.
@@ -273,14 +324,30 @@ class TestBench:
             validate_command(entry.driver.descriptor, name, args)
         self._hub.mark_operated(entry)
         run_id = uuid.uuid4().hex[:12]
-        meta = run_meta(entry, asdict(test) | {"note": request.note}, plan)
+        test_dict = asdict(test) | {"note": request.note}
+        if test.kind == frfbench.KIND:
+            test_dict |= {
+                "amplitude": request.amplitude,
+                "low_hz": request.low_hz,
+                "high_hz": request.high_hz,
+                "model_based": model_based,
+            }
+        meta = run_meta(entry, test_dict, plan)
         columns, flags = meta["columns"], meta["flags"]
         created_s = time.time()
+        if model_based:
+            return await self._model_run(run_id, entry, axis_id, created_s, meta, identified)
         await asyncio.to_thread(
             self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
         )
         recording = _Recording(
-            run_id, entry, plan, columns, flags, stop_generation=entry.stop_generation
+            run_id,
+            entry,
+            plan,
+            columns,
+            flags,
+            stop_generation=entry.stop_generation,
+            excitation=excitation,
         )
         self._active[axis_id] = recording
         task = asyncio.create_task(self._run(recording, test, meta))
@@ -294,6 +361,68 @@ class TestBench:
             "status": "recording",
             **meta,
         }
+
+    async def _model_run(
+        self,
+        run_id: str,
+        entry: AxisEntry,
+        axis_id: str,
+        created_s: float,
+        meta: dict[str, Any],
+        identified: Mapping[str, Any] | None,
+    ) -> dict[str, Any]:
+        """A model-based frequency response: stored at once, nothing sent to the device
+        (the response is computed from ``meta["plant_model"]`` when it is read)."""
+        meta["plant_model"] = dict(identified or {})
+        meta["message"] = "model-based: the identified plant under the device's law"
+        meta["quality"] = {"status": "good", "reasons": [], "untrusted": {}}
+        await asyncio.to_thread(
+            self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
+        )
+        await asyncio.to_thread(self._storage.finish_run, run_id, "complete", meta)
+        return {
+            "id": run_id,
+            "axis_id": axis_id,
+            "created_s": created_s,
+            "status": "complete",
+            **meta,
+        }
+
+    @staticmethod
+    def _check_excursion(y0: float, amplitude: int, limits: BenchLimits) -> None:
+        """A multisine must stay inside the travel window at its peaks (422)."""
+        for edge in (y0 - amplitude, y0 + amplitude):
+            if why := limits.outside(edge):
+                raise InvalidArgumentError(
+                    "amplitude",
+                    f"amplitude {amplitude} around {y0:.0f} would reach {why} (bench limits)",
+                )
+
+    async def _excite(self, recording: _Recording) -> None:
+        """Stream the multisine as position targets for the whole record.
+
+        One ``ma`` per changed target, as fast as the wire takes them (each command
+        waits for its reply); each send is stamped when the device acknowledged it,
+        which is what the analysis holds the target from. STOP still goes first: the
+        hub's STOP bumps the stop generation and every later command is refused."""
+        excitation, t0 = recording.excitation, recording.t0
+        assert excitation is not None and t0 is not None
+        last: int | None = None
+        axis = recording.entry.info.id
+        while not recording.ended:
+            target = excitation.target(self._clock() - t0)
+            if target == last:
+                await asyncio.sleep(0.001)
+                continue
+            await self._hub.command(
+                axis,
+                "move_absolute",
+                {"position": target},
+                origin="bench",
+                stop_generation=recording.stop_generation,
+            )
+            recording.sent.append([round(self._clock(), 6), float(target)])
+            last = target
 
     @staticmethod
     def _check_window(
@@ -377,9 +506,25 @@ class TestBench:
                 await asyncio.sleep(PRE_TRIGGER_S)
                 recording.t0 = self._clock()
                 await self._send(recording, plan.trigger)
+                if plan.trigger:
+                    recording.trigger_acked = self._clock()
                 self._update(recording, "recording", "triggered")
                 limits = await self.limits(entry.info.id)
-                await self._record(recording, test, limits)
+                exciter = (
+                    asyncio.create_task(self._excite(recording))
+                    if recording.excitation is not None
+                    else None
+                )
+                try:
+                    await self._record(recording, test, limits)
+                    if exciter is not None and exciter.done():
+                        exciter.result()  # a refused target ends the test (DriverError)
+                finally:
+                    if exciter is not None:
+                        recording.ended = True
+                        exciter.cancel()
+                        with contextlib.suppress(asyncio.CancelledError, DriverError):
+                            await exciter
             await self._send(recording, plan.finish)
             recording.ended = True
             if test.kind in POSITION_KINDS:
@@ -430,6 +575,12 @@ class TestBench:
                         )
                 meta["message"] = message
                 meta["t0_s"] = recording.t0
+                if recording.trigger_acked is not None and recording.t0 is not None:
+                    # t0 is stamped before the trigger is sent; the device latched it
+                    # before its reply came: the bound a prediction is aligned at.
+                    meta["trigger_latency_s"] = round(recording.trigger_acked - recording.t0, 6)
+                if recording.excitation is not None:
+                    meta["excitation"] = recording.excitation.to_dict() | {"sent": recording.sent}
                 meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")
@@ -502,7 +653,7 @@ class TestBench:
         """The run's metrics (untrusted ones null) and its quality (``runquality``)."""
         plan = recording.plan
         raw: dict[str, Any] | None = None
-        if recording.t0 is not None and recording.samples:
+        if test.kind != frfbench.KIND and recording.t0 is not None and recording.samples:
             index = recording.columns.index(plan.response)
             rows = [r for r in recording.samples if r[index] is not None]
             if len(rows) >= 3:

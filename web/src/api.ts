@@ -97,7 +97,7 @@ export function setReauthHandler(handler: () => Promise<boolean>): void {
 
 // --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---
 
-export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step";
+export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
 
 export interface BenchLimits {
   max_distance_counts: number;
@@ -118,6 +118,10 @@ export interface BenchTestRequest {
   pwm: number;
   duration_s: number;
   note: string;
+  // frequency_response only (ui/bode.ts)
+  amplitude?: number;
+  low_hz?: number;
+  high_hz?: number;
 }
 
 /** servotune/metrics.py ``Metrics`` (times in s after the trigger t0). */

@@ -23,6 +23,7 @@ from servotune import __version__
 from servotune.api.auth_routes import router as auth_router
 from servotune.api.autotune_routes import router as autotune_router
 from servotune.api.bench_routes import router as bench_router
+from servotune.api.frf_routes import router as frf_router
 from servotune.api.openapi import device_openapi
 from servotune.api.param_set_routes import router as param_set_router
 from servotune.api.responses import errors
@@ -178,6 +179,7 @@ def create_app(config: AppConfig) -> FastAPI:
     security = install_security(app, config.security, config.data_dir)
     app.include_router(router)
     app.include_router(bench_router)
+    app.include_router(frf_router)
     app.include_router(autotune_router)
     app.include_router(param_set_router)
     app.include_router(auth_router)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import shutil
 import tempfile
 from collections.abc import Awaitable, Callable, MutableMapping
@@ -16,7 +17,7 @@ from starlette.datastructures import UploadFile
 
 from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
-from servotune.drivers.base import InvalidArgumentError
+from servotune.drivers.base import DriverError, InvalidArgumentError
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
 from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
@@ -123,10 +124,19 @@ async def set_limits(axis_id: str, limits: BenchLimits, bench: BenchDep) -> Benc
 
 
 @router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=STORE_ERRORS)
-async def start_run(axis_id: str, test: BenchTestRequest, bench: BenchDep) -> dict[str, Any]:
+async def start_run(
+    axis_id: str, test: BenchTestRequest, bench: BenchDep, request: Request
+) -> dict[str, Any]:
     """Start a test. 202 with the run (status 'recording'); progress comes over the
-    websocket as ``run`` messages; the finished run (metrics) via GET."""
-    return await bench.start_run(axis_id, test)
+    websocket as ``run`` messages; the finished run (metrics) via GET. A model-based
+    ``frequency_response`` (a device the bench cannot inject into) is complete at once;
+    its Bode data: ``GET /api/bench/runs/{id}/frf``."""
+    autotuner = getattr(request.app.state, "autotuner", None)
+    identified = None
+    if test.kind == "frequency_response" and autotuner is not None:
+        with contextlib.suppress(DriverError):
+            identified = autotuner.session(axis_id).get("model")
+    return await bench.start_run(axis_id, test, identified)
 
 
 @router.get("/api/axes/{axis_id}/bench/runs", responses=ERRORS)

@@ -66,6 +66,9 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("POST", "/api/bench/runs/{run_id}/baseline"): BENCH,
     ("GET", "/api/bench/runs/{run_id}/samples.csv"): VIEW,
     ("GET", "/api/bench/runs/{run_id}/run.json"): VIEW,
+    # --- frequency response and what-if (servotune/api/frf_routes.py)
+    ("GET", "/api/bench/runs/{run_id}/frf"): VIEW,
+    ("GET", "/api/axes/{axis_id}/whatif"): VIEW,
     # --- auto-tune
     ("GET", "/api/axes/{axis_id}/autotune"): VIEW,
     ("POST", "/api/axes/{axis_id}/autotune/identify"): AUTOTUNE,

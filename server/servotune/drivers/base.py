@@ -160,7 +160,7 @@ class Autopilot(Protocol):
         ...
 
 
-BenchKind = Literal["move", "position_step", "velocity_step", "pwm_step"]
+BenchKind = Literal["move", "position_step", "velocity_step", "pwm_step", "frequency_response"]
 
 
 @dataclass(frozen=True, slots=True)

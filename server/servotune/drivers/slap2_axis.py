@@ -121,7 +121,7 @@ class Slap2Axis(EngineAxis, AxisDriver):
     # --- test bench (drivers.base.BenchPlanner) ----------------------------------------
 
     def bench_kinds(self) -> list[BenchKind]:
-        return ["move", "position_step", "velocity_step", "pwm_step"]
+        return ["move", "position_step", "velocity_step", "pwm_step", "frequency_response"]
 
     def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
         """SLAP2 tests: a move is ``mr`` with the profile as set; a position step is

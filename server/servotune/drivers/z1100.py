@@ -852,7 +852,7 @@ class Z1100Axis(EngineAxis, AxisDriver):
     # --- test bench (drivers.base.BenchPlanner) ----------------------------------------
 
     def bench_kinds(self) -> list[BenchKind]:
-        return ["move", "velocity_step"]
+        return ["move", "velocity_step", "frequency_response"]
 
     def bench_plan(self, test: BenchTest, latest: Sample, params: Mapping[str, int]) -> BenchPlan:
         """Z1100 tests: a move is go-to-target by ``distance`` with Vmax/Acc as set;

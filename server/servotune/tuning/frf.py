@@ -102,13 +102,16 @@ def estimate_frf(
     *,
     segment_samples: int | None = None,
     detrend: str = "linear",
+    window: str = "hann",
 ) -> FrequencyResponse:
     """H1 estimate of y/u with Welch averaging and its coherence.
 
     ``segment_samples`` is the Welch segment length (default: an eighth of the record,
     at least 64 samples, so about 15 averages with 50 % overlap); the frequency
     resolution is ``sample_rate_hz / segment_samples``. Linear trends (a drift of the
-    held position) are removed per segment.
+    held position) are removed per segment. ``window="boxcar"`` with segments of whole
+    periods of a periodic excitation (tones on the bins) has no leakage at all; a Hann
+    window would smear each tone into its neighbours' bins.
     """
     u_arr = np.asarray(u, dtype=np.float64)
     y_arr = np.asarray(y, dtype=np.float64)
@@ -117,7 +120,7 @@ def estimate_frf(
     n = u_arr.size
     nperseg = segment_samples or max(64, n // 8)
     nperseg = min(nperseg, n)
-    kwargs = {"fs": sample_rate_hz, "nperseg": nperseg, "window": "hann", "detrend": detrend}
+    kwargs = {"fs": sample_rate_hz, "nperseg": nperseg, "window": window, "detrend": detrend}
     f, p_uy = signal.csd(u_arr, y_arr, **kwargs)
     _, p_uu = signal.csd(u_arr, u_arr, **kwargs)
     _, p_yy = signal.csd(y_arr, y_arr, **kwargs)

@@ -187,19 +187,31 @@ def _model_response(
 
 def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
     """The SLAP2 PID (firmware arithmetic, see the module docstring) around ``motor``."""
+    return slap2_loop_for(motor.plant(), kp, ki, kd)
+
+
+def slap2_loop_for(plant: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID around a continuous plant (counts per controller output unit)."""
     ts = SLAP2_TICK_S
     # (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096 over the common denominator z (z-1)
     num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
     den = [4096.0, -4096.0, 0.0]
     forward = control.tf(num, den, ts)
     zero = control.tf([0.0], [1.0], ts)
-    return LoopModel(forward, zero, control.c2d(motor.plant(), ts, "zoh"), ts)
+    return LoopModel(forward, zero, control.c2d(plant, ts, "zoh"), ts)
 
 
 def z1100_loop(
     motor: MotorModel, k: int, a: int, b: int, stm: int = 1, window: int = 32
 ) -> LoopModel:
     """The Z1100 K/A/B law (see the module docstring) sampled every ``stm`` x 32 us."""
+    return z1100_loop_for(motor.plant(), k, a, b, stm, window)
+
+
+def z1100_loop_for(
+    plant: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 K/A/B law around a continuous plant (counts per PWM unit)."""
     ts = max(1, stm) * Z1100_TICK_S
     shift = np.zeros(window + 1)
     shift[0] = 1.0  # z^window
@@ -208,4 +220,4 @@ def z1100_loop(
     den = shift * 64.0
     forward = control.tf(k * (16 * shift + a * delta), den, ts)
     feedback = control.tf(b * delta, den, ts)
-    return LoopModel(forward, feedback, control.c2d(motor.plant(), ts, "zoh"), ts)
+    return LoopModel(forward, feedback, control.c2d(plant, ts, "zoh"), ts)

@@ -21,6 +21,8 @@ import { AutoTunePanel } from "./autotune";
 import { type Target, type Trace, Overlay, plotTheme, valueAt } from "./benchplot";
 import { confirmDialog, errorText, statusLabel } from "./feedback";
 import { type MetricColumn, metricCell, metricColumns, ms, num, qualityOf } from "./metriccols";
+import { FrfPanel } from "./bode";
+import { WhatIfPanel } from "./whatif";
 
 /** The recorder arms this long before the trigger (servotune/testbench.py PRE_TRIGGER_S). */
 const PRE_TRIGGER_S = 0.2;
@@ -46,6 +48,12 @@ const KINDS: Record<BenchKind, { label: string; short: string; field: FieldName;
     short: "vel step",
     field: "velocity",
     help: "Constant-velocity run at the velocity, then stop — the response is the velocity against the commanded one.",
+  },
+  frequency_response: {
+    label: "Frequency response",
+    short: "FRF",
+    field: "distance",
+    help: "A multisine around the held position (SLAP2), or the identified model (others): see the Frequency response panel.",
   },
   pwm_step: {
     label: "PWM step",
@@ -170,6 +178,10 @@ export class BenchView {
   private refreshAgain = false;
   private finished = new Set<string>(); // runs that finished while we watched: select them
   private drawToken = 0;
+  // Issue 9: the frequency-response and what-if panels (ui/bode.ts, ui/whatif.ts).
+  private frf: FrfPanel | null = null;
+  private readonly whatif: WhatIfPanel | null;
+  private readonly extras: HTMLElement;
 
   constructor(
     private readonly axisId: string,
@@ -289,7 +301,15 @@ export class BenchView {
         )
       : null;
     this.storageBanner = h("div", { class: "banner-slot", testid: "storage-banner-slot" });
-    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, runsPane);
+    this.whatif = ["slap2", "z1100"].includes(descriptor.device)
+      ? new WhatIfPanel(axisId, async (distance, kind) => {
+          const run = await api.startRun(axisId, { kind, distance, velocity: 0, pwm: 0, duration_s: 2, note: "what-if verification" });
+          this.finished.add(run.id);
+          await this.refresh();
+        })
+      : null;
+    this.extras = h("div", { class: "bench-extras" }, ...(this.whatif ? [this.whatif.el] : []));
+    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, this.extras, runsPane);
     store.on("storage", (msg) => this.showStorage(msg.writable, msg.message), signal);
     void fetch("/api/storage", { signal })
       .then((r) => (r.ok ? (r.json() as Promise<{ writable: boolean; message: string }>) : null))
@@ -330,6 +350,14 @@ export class BenchView {
     if (this.signal.aborted) return;
     this.renderForm();
     this.autotune?.setLimits(this.info.limits);
+    if (this.info.kinds.includes("frequency_response") && !this.frf) {
+      this.frf = new FrfPanel(this.axisId, this.descriptor.device === "slap2", (id) => {
+        this.finished.add(id);
+        void this.refresh();
+      });
+      this.extras.prepend(this.frf.el);
+    }
+    void this.whatif?.load();
     await this.refresh();
   }
 
@@ -431,11 +459,13 @@ export class BenchView {
       );
       return;
     }
-    if (!this.form.kind || !info.kinds.includes(this.form.kind)) this.form.kind = info.kinds[0] as BenchKind;
+    // The frequency response has its own form (ui/bode.ts).
+    const formKinds: BenchKind[] = info.kinds.filter((k) => k !== "frequency_response");
+    if (!this.form.kind || !formKinds.includes(this.form.kind)) this.form.kind = formKinds[0] as BenchKind;
     const kind = h(
       "select",
       { class: "input", testid: "bench-kind", "aria-label": "Test kind" },
-      info.kinds.map((k) => h("option", { value: k, title: KINDS[k]?.help ?? k }, KINDS[k]?.label ?? k)),
+      formKinds.map((k) => h("option", { value: k, title: KINDS[k]?.help ?? k }, KINDS[k]?.label ?? k)),
     );
     kind.value = this.form.kind;
     kind.addEventListener("change", () => {
@@ -1077,9 +1107,12 @@ export class BenchView {
     // Runs of one response only (position or velocity): that of the last selected run.
     const sel = this.selected();
     const lastId = [...sel].reverse().find((id) => runs.some((r) => r.id === id));
-    const response = runs.find((r) => r.id === lastId)?.plan.response ?? runs[0]?.plan.response;
-    const drawn = runs.filter((r) => r.plan.response === response);
-    const skipped = runs.length - drawn.length;
+    const frfRuns = runs.filter((r) => r.test.kind === "frequency_response");
+    this.frf?.show(frfRuns.map((r) => ({ id: r.id, color: this.color(r.id), label: shortId(r.id), recording: r.status === "recording" })));
+    const stepRuns = runs.filter((r) => r.test.kind !== "frequency_response");
+    const response = stepRuns.find((r) => r.id === lastId)?.plan.response ?? stepRuns[0]?.plan.response;
+    const drawn = stepRuns.filter((r) => r.plan.response === response);
+    const skipped = stepRuns.length - drawn.length;
     let loaded: BenchRunDetail[];
     try {
       loaded = await Promise.all(drawn.map((r) => detail(r)));
@@ -1123,7 +1156,9 @@ export class BenchView {
       ? "No runs yet."
       : !runs.length
         ? "Select runs in the table to overlay them."
-        : "The selected runs have no samples.";
+        : !stepRuns.length
+          ? "Frequency-response runs are drawn in the Frequency response panel below."
+          : "The selected runs have no samples.";
     // Start zoomed on the response when every run settled early in a long record
     // (double-click shows the whole run).
     const ends = this.traces.map(({ trace, run }) => {
@@ -1135,6 +1170,13 @@ export class BenchView {
     this.response.set(this.traces.map((t) => t.trace), shownTargets, message, focus);
     this.fePanel.hidden = fe.length === 0;
     this.following.set(fe, [], "", focus);
+    // The what-if view shows its prediction next to the newest selected position run.
+    const lastStep = [...loaded].reverse().find((r) => r.test.kind === "position_step" || r.test.kind === "move");
+    if (this.whatif) {
+      const col = lastStep ? column(lastStep, "position", triggerTime(lastStep), lastStep.plan.y0) : null;
+      const delayS = (lastStep as { trigger_latency_s?: number } | undefined)?.trigger_latency_s ?? 0;
+      this.whatif.setMeasured(lastStep && col ? { label: `${shortId(lastStep.id)} measured`, delayS, t: col.x, y: col.y } : null);
+    }
     this.renderLegend(differing);
   }
 

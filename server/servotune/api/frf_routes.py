@@ -1,0 +1,123 @@
+"""REST resources of the frequency response and the what-if view (issue 9, parts 2-3).
+
+* ``GET /api/bench/runs/{run_id}/frf``: the Bode/Nyquist data of a frequency-response
+  run (measured FRF with coherence and the open loop's margins; the identified model
+  under the device's exact law beside it). Computed in a worker thread: spectra and
+  margins are milliseconds to tens of milliseconds, never on the event loop.
+* ``GET /api/axes/{axis_id}/whatif``: the identified plant, discretised at the
+  controller period, and the law, for the browser's what-if view, which predicts the
+  step and the margins at every slider move without a request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request
+
+from servotune import frfbench
+from servotune.api.bench_routes import BenchDep
+from servotune.api.responses import errors
+from servotune.autotune import AutoTuner
+from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
+from servotune.hub import Hub, NotFoundError
+from servotune.protocols.slap2 import (
+    ACCELERATION_MAX,
+    COUNTS_S2_PER_SA,
+    COUNTS_S_PER_SV,
+    VELOCITY_MAX,
+)
+from servotune.tuning.whatif import browser_model, plant_from_identification
+
+router = APIRouter(tags=["bench"])
+
+GAINS: dict[str, tuple[str, ...]] = {
+    "slap2": ("kp", "ki", "kd"),
+    "z1100": ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b"),
+}
+
+
+def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
+    """The auto-tune's identified plant of the axis in this server's session, if any."""
+    autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
+    if autotuner is None:
+        return None
+    try:
+        model: dict[str, Any] | None = autotuner.session(axis_id).get("model")
+    except DriverError:
+        return None  # a device the auto-tune does not handle
+    return model
+
+
+def get_hub(request: Request) -> Hub:
+    hub: Hub = request.app.state.hub
+    return hub
+
+
+HubDep = Annotated[Hub, Depends(get_hub)]
+
+
+@router.get("/api/bench/runs/{run_id}/frf", responses=errors(404, 422))
+async def run_frf(run_id: str, request: Request, bench: BenchDep) -> dict[str, Any]:
+    """Bode and Nyquist data of a frequency-response run.
+
+    ``measured`` (SLAP2): the closed loop at the tones with coherence, the open loop
+    ``T / (1 - T)``, margins, crossover, -3 dB bandwidth and resonance over the tones
+    with coherence >= 0.9, ``usable_until_hz``; ``model``: the identified plant under
+    the exact law with the run's gains (dense curves, margins). Either is null with a
+    ``measured_problem`` / ``model_problem`` sentence. 404 for an unknown run, 422 for
+    a run of another kind."""
+    try:
+        run = await bench.get_run(run_id)
+    except KeyError:
+        raise NotFoundError("run", f"no run {run_id!r}") from None
+    if (run.get("test") or {}).get("kind") != frfbench.KIND:
+        raise InvalidArgumentError("run_id", f"run {run_id} is not a frequency_response run")
+    identified = identified_model(request, str(run.get("axis_id", "")))
+    return await asyncio.to_thread(frfbench.analyse_run, run, identified)
+
+
+@router.get("/api/axes/{axis_id}/whatif", responses=errors(404, 409, 422))
+async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str, Any]:
+    """The what-if view's model: the identified plant discretised at the controller
+    period (difference-equation coefficients in z^-1), the law, the gains now and
+    their ranges, and the verification step's profile (counts/s, counts/s^2).
+    ``model`` is null with ``problem`` when the plant is not identified yet."""
+    entry = hub.entry(axis_id)
+    device = entry.info.device
+    if device not in GAINS:
+        raise DeviceRefusedError(f"no what-if view for {device} yet (no identification)")
+    values = entry.device_values
+    descriptor = entry.driver.descriptor
+    ranges = {
+        name: [descriptor.parameter(name).minimum, descriptor.parameter(name).maximum]
+        for name in GAINS[device]
+    }
+    out: dict[str, Any] = {
+        "axis_id": axis_id,
+        "device": device,
+        "gains": {name: values.get(name) for name in GAINS[device]},
+        "ranges": ranges,
+        "model": None,
+        "problem": None,
+    }
+    if device == "slap2":
+        out["verify"] = {
+            "kind": "position_step",
+            "velocity_counts_s": VELOCITY_MAX * COUNTS_S_PER_SV,
+            "acceleration_counts_s2": ACCELERATION_MAX * COUNTS_S2_PER_SA,
+        }
+    else:
+        out["verify"] = {
+            "kind": "move",
+            "velocity_counts_s": float(values.get("vmax", 0)),
+            "acceleration_counts_s2": float(values.get("acc", 0)),
+        }
+    try:
+        plant = plant_from_identification(device, identified_model(request, axis_id))
+    except ValueError as exc:
+        out["problem"] = str(exc)
+        return out
+    out["model"] = await asyncio.to_thread(browser_model, device, plant, values)
+    return out

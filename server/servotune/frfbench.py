@@ -1,0 +1,189 @@
+"""The bench's "frequency_response" kind: checks, plans and analysis per device.
+
+* SLAP2 (closed loop, measured): the controller holds the position; the server streams
+  a multisine around it as absolute position targets (``ma``, the only way the SLAP2
+  takes a position target; it has no streaming or buffered-target command, so every
+  target is one command on the wire, and the profile generator runs between them at
+  the maximum ``sv``/``sa``, set for the test and restored after it). The targets stay
+  inside ``y0 +- amplitude`` and inside the user's travel window.
+* Z1100 and others (no way to inject on the wire without leaving the device's own
+  profile): the frequency response of the identified plant under the device's exact
+  law (``tuning.whatif``), stored as a run like any other and labelled model-based.
+
+The planning logic lives here so that the drivers only list the kind.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from servotune.drivers.base import BenchPlan, DeviceRefusedError, InvalidArgumentError, Sample
+from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.tuning import frfrun
+from servotune.tuning.frfrun import Excitation
+from servotune.tuning.whatif import loop_for, model_summary, plant_from_identification
+
+KIND = "frequency_response"
+MEASURED_DEVICES = frozenset({"slap2"})
+LOW_HZ_RANGE = (0.2, 20.0)
+HIGH_HZ_MAX = 200.0
+
+
+def check_request(
+    device: str,
+    amplitude: int,
+    low_hz: float,
+    high_hz: float,
+    duration_s: float,
+    max_distance_counts: int,
+) -> None:
+    """422 (InvalidArgumentError naming the field and the range) before anything moves."""
+    if device not in MEASURED_DEVICES:
+        if not (0 < low_hz < high_hz <= HIGH_HZ_MAX):
+            raise InvalidArgumentError(
+                "high_hz", f"need 0 < low_hz < high_hz <= {HIGH_HZ_MAX:g} Hz"
+            )
+        return
+    if not (1 <= amplitude <= max_distance_counts):
+        raise InvalidArgumentError(
+            "amplitude",
+            f"amplitude {amplitude} must be 1..{max_distance_counts} counts "
+            "(peak, bench limit max_distance_counts)",
+        )
+    low, high = LOW_HZ_RANGE
+    if not (low <= low_hz <= high):
+        raise InvalidArgumentError("low_hz", f"low_hz {low_hz:g} must be {low:g}..{high:g} Hz")
+    if not (low_hz < high_hz <= HIGH_HZ_MAX):
+        raise InvalidArgumentError(
+            "high_hz",
+            f"high_hz {high_hz:g} must be above low_hz {low_hz:g} and <= {HIGH_HZ_MAX:g} Hz",
+        )
+    needed = (1 + frfrun.MIN_PERIODS) / low_hz
+    if duration_s + 1e-9 < needed:
+        raise InvalidArgumentError(
+            "duration_s",
+            f"duration {duration_s:g} s is too short for low_hz {low_hz:g}: at least "
+            f"{needed:g} s (one settling period and {frfrun.MIN_PERIODS} analysed)",
+        )
+
+
+def plan_slap2(
+    latest: Sample, params: Mapping[str, int], amplitude: int, low_hz: float, high_hz: float
+) -> tuple[BenchPlan, Excitation]:
+    """The plan (hold, max profile for the test, back to y0 at the end) and the signal."""
+    if latest.flags.get("move") or latest.flags.get("vm"):
+        raise DeviceRefusedError(
+            "the axis is moving: a test must start from rest (wait, or press STOP)"
+        )
+    position = latest.channels.get("position") or 0.0
+    if latest.flags.get("pm") and latest.channels.get("setpoint") is not None:
+        position = float(latest.channels["setpoint"] or position)
+    y0 = float(round(position))
+    excitation = frfrun.design(y0, amplitude, low_hz, high_hz)
+    plan = BenchPlan(
+        setup=[] if latest.flags.get("pm") else [("position_mode", {})],
+        trigger=[],
+        finish=[("move_absolute", {"position": round(y0)})],
+        response="position",
+        y0=y0,
+        y_final=y0,
+        band=float(params.get("inpos_window", 5)),
+        overrides={"velocity": VELOCITY_MAX, "acceleration": ACCELERATION_MAX},
+        fault_flags=["oc", "limit1", "limit2"],
+    )
+    return plan, excitation
+
+
+def model_plan(latest: Sample) -> BenchPlan:
+    """A model-based run moves nothing: an empty plan around where the axis stands."""
+    position = float(latest.channels.get("position") or 0.0)
+    return BenchPlan(
+        setup=[],
+        trigger=[],
+        finish=[],
+        response="position",
+        y0=position,
+        y_final=position,
+        band=None,
+    )
+
+
+def tone_grid_hz(low_hz: float, high_hz: float, count: int = 200) -> np.ndarray[Any, Any]:
+    return np.geomspace(low_hz, high_hz, count)
+
+
+def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Everything the Bode view shows for one stored run (runs in a worker thread).
+
+    ``measured``: from the samples (SLAP2 runs); ``model``: the identified plant under
+    the exact law with the run's gains (``identified`` is the auto-tune's model, or the
+    one stored with a model-based run); either may be null with a ``*_problem`` reason.
+    """
+    test = run.get("test") or {}
+    device = str(run.get("device", ""))
+    low = float(test.get("low_hz") or 1.0)
+    high = float(test.get("high_hz") or 40.0)
+    out: dict[str, Any] = {
+        "run_id": run.get("id"),
+        "device": device,
+        "model_based": device not in MEASURED_DEVICES,
+        "low_hz": low,
+        "high_hz": high,
+        "measured": None,
+        "measured_problem": None,
+        "model": None,
+        "model_problem": None,
+    }
+    excitation = run.get("excitation")
+    if excitation and run.get("samples"):
+        columns: list[str] = list(run["columns"])
+        rows = [r for r in run["samples"] if r[columns.index("position")] is not None]
+        ip = columns.index("position")
+        isp = columns.index("setpoint") if "setpoint" in columns else None
+        try:
+            out["measured"] = frfrun.analyse(
+                [r[0] for r in rows],
+                [r[ip] for r in rows],
+                [r[isp] for r in rows] if isp is not None else None,
+                excitation.get("sent", []),
+                float(run.get("t0_s") or 0.0),
+                Excitation.from_dict(excitation),
+            )
+        except ValueError as exc:
+            out["measured_problem"] = str(exc)
+    elif device in MEASURED_DEVICES:
+        out["measured_problem"] = "the run recorded no excitation"
+    model = run.get("plant_model") or identified
+    try:
+        plant = plant_from_identification(device, model)
+        loop = loop_for(device, plant, run.get("params") or {})
+        summary = model_summary(loop, tone_grid_hz(min(low, 1.0), max(high, 10.0) * 1.5))
+        out["model"] = summary | {
+            "plant": {
+                "gain_counts_s_per_unit": plant.gain_counts_s_per_unit,
+                "tau_s": plant.tau_s,
+                "source": plant.source,
+            },
+            "law": "KABD (hold) gains" if device == "z1100" else "PID at 841.5 us",
+        }
+    except (ValueError, KeyError) as exc:
+        out["model_problem"] = (
+            f"gains not recorded: {exc}" if isinstance(exc, KeyError) else str(exc)
+        )
+    safe: dict[str, Any] = _json_safe(out)
+    return safe
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN and infinities as null (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value

@@ -1,0 +1,156 @@
+"""The frequency response and the what-if view in headless Chromium (issue 9).
+
+A SLAP2 on the pty simulator: identify the plant (auto-tune), run a frequency response
+from the bench page and see its Bode plot, Nyquist plot and margins; the what-if view's
+margins (computed in the browser) agree with the server's (python-control); "Apply and
+verify" runs the verification step and the prediction is compared with it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import statistics
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from playwright.async_api import Browser, Page, expect
+
+from servotune.api.app import WEB_DIST
+from servotune.config import LinkSpec
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.slap2 import Slap2Bus, Slap2Module
+
+from .test_api import LiveServer, live_server
+from .test_browser import browser  # noqa: F401  (the fixture)
+
+pytestmark = pytest.mark.browser
+
+ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
+# What-if prediction against the measured verification step: RMS over the record of
+# measured - predicted, as a fraction of the step. The prediction is linear (no
+# friction) and today's samples carry the time they were parsed, not latched (tens of
+# ms late during the rise: issue 9 part 1): 10 % of the step is what both allow.
+RMS_TOLERANCE = 0.10
+
+
+@pytest.fixture
+async def page_and_server(
+    tmp_path: Path,
+    browser: Browser,  # noqa: F811
+) -> AsyncIterator[tuple[Page, LiveServer]]:
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
+    simulator.start()
+    try:
+        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0], 512)
+        async with live_server(
+            simulator, bus, tmp_path / "data", web_dir=WEB_DIST, spec=spec
+        ) as server:
+            page = await browser.new_page(viewport={"width": 1400, "height": 1200})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            yield page, server
+            assert not errors, f"JavaScript errors: {errors}"
+            await page.close()
+    finally:
+        simulator.stop()
+
+
+async def slide(page: Page, testid: str, value: int) -> None:
+    """Move a range slider as a user's drag does: value, then an input event."""
+    await page.get_by_test_id(testid).evaluate(
+        "(el, v) => { el.value = String(v); el.dispatchEvent(new Event('input')); }", value
+    )
+
+
+async def test_frequency_response_bode_margins_and_what_if(
+    page_and_server: tuple[Page, LiveServer],
+) -> None:
+    page, server = page_and_server
+    for _ in range(200):
+        if (await server.state("line-0")).get("position") is not None:
+            break
+        await asyncio.sleep(0.05)
+    # The identification is this test's precondition, not its subject (test_autotune.py
+    # has that): a second attempt when a starved host lost the line during the first.
+    for _attempt in range(2):
+        response = await server.client.post(
+            "/api/axes/line-0/autotune/identify",
+            json={"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"},
+            timeout=60,
+        )
+        if response.status_code == 200:
+            break
+        await asyncio.sleep(1.0)
+    assert response.status_code == 200, response.text
+    await page.goto(server.base_url)
+    await page.get_by_test_id("axis-link-line-0").click()
+    await page.get_by_test_id("bench-toggle").click()
+    panel = page.get_by_test_id("frf-panel")
+    await expect(panel).to_be_visible(timeout=10_000)
+    await page.get_by_test_id("frf-low_hz").fill("1")
+    await page.get_by_test_id("frf-high_hz").fill("40")
+    await page.get_by_test_id("frf-duration_s").fill("5")
+    await page.get_by_test_id("frf-run").click()
+    for _ in range(600):
+        runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+        if runs and runs[-1]["status"] != "recording":
+            break
+        await asyncio.sleep(0.05)
+    assert runs[-1]["test"]["kind"] == "frequency_response"
+    assert runs[-1]["status"] == "complete", runs[-1]["message"]
+    readouts = page.get_by_test_id("frf-readouts")
+    await expect(readouts.locator("tr[data-source='measured']")).to_have_count(1, timeout=30_000)
+    await expect(readouts.locator("tr[data-source='model']")).to_have_count(1)
+    # The Bode plot is drawn (uPlot canvases) and the Nyquist plot has one run.
+    await expect(page.get_by_test_id("bode-magnitude").locator("canvas")).to_have_count(1)
+    await expect(page.get_by_test_id("bode-phase").locator("canvas")).to_have_count(1)
+    await expect(page.get_by_test_id("nyquist")).to_have_attribute("data-curves", "1")
+    model_pm = readouts.locator("tr[data-source='model'] [data-testid='frf-pm']")
+    await expect(model_pm).to_contain_text("°")
+    runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+    run_id = next(r["id"] for r in runs if r["test"]["kind"] == "frequency_response")
+    frf = (await server.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+    server_pm = frf["model"]["margins"]["phase_margin_deg"]
+    assert f"{server_pm:.1f}" in await model_pm.inner_text()
+
+    # What-if: the browser's margins agree with python-control's for the same gains.
+    whatif = page.get_by_test_id("whatif-panel")
+    await expect(page.get_by_test_id("whatif-pm")).to_contain_text("°")
+    text = await page.get_by_test_id("whatif-pm").inner_text()
+    browser_pm = float(text.split("margin")[1].split("°")[0])
+    assert browser_pm == pytest.approx(server_pm, abs=0.5)
+
+    # Update time: 30 slider moves, each redraws prediction, margins and plot.
+    times: list[float] = []
+    for kp in range(41, 71):
+        await slide(page, "whatif-kp", kp)
+        times.append(float(await whatif.get_attribute("data-update-ms") or "nan"))
+    compute = float(await whatif.get_attribute("data-compute-ms") or "nan")
+    await slide(page, "whatif-kp", 40)
+
+    # Apply (the gains in use) and verify: a position step of 2000 counts.
+    await page.get_by_test_id("whatif-distance").fill("2000")
+    await page.get_by_test_id("whatif-apply").click()
+    await expect(whatif).not_to_have_attribute("data-rms-vs-measured", "", timeout=30_000)
+    rms = float(await whatif.get_attribute("data-rms-vs-measured") or "nan")
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    await panel.scroll_into_view_if_needed()
+    await page.screenshot(path=str(ARTIFACTS / "bench-frequency-response.png"), full_page=True)
+    await whatif.screenshot(path=str(ARTIFACTS / "bench-whatif.png"))
+    assert rms <= RMS_TOLERANCE * 2000, rms
+    (ARTIFACTS / "frf-whatif-timing.json").write_text(
+        json.dumps(
+            {
+                "whatif_update_ms_median": statistics.median(times),
+                "whatif_update_ms_max": max(times),
+                "whatif_compute_ms_last": compute,
+                "rms_vs_measured_counts": rms,
+                "server_pm_deg": server_pm,
+                "browser_pm_deg": browser_pm,
+            }
+        )
+    )

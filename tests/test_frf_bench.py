@@ -1,0 +1,359 @@
+"""The bench's frequency response and the what-if model (issue 9 parts 2 and 3).
+
+* The estimator path of a bench run (``tuning.frfrun``) on a known loop sampled
+  irregularly: closed loop within 1 dB / 10 deg, margins of ``L = T / (1 - T)`` against
+  ``tuning.loops``.
+* The model-based response and the what-if model against ``tuning.loops``.
+* The ``frequency_response`` kind on the pty simulator: bad input refused with 422
+  before anything moves; a measurement checked against the simulator's own plant
+  under the firmware's PID (where today's sparse poll reaches: see the strict xfail
+  below for the 1-40 Hz band that needs the capture branch).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import control
+import numpy as np
+import pytest
+
+from servotune import frfbench
+from servotune.config import LinkSpec
+from servotune.sim.physics import DcMotorParams
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.tuning import frfrun
+from servotune.tuning.loops import MotorModel, slap2_loop, z1100_loop_for
+from servotune.tuning.whatif import (
+    IdentifiedPlant,
+    browser_model,
+    loop_for,
+    plant_from_identification,
+)
+
+from .test_api import LiveServer, live_server
+from .test_bench import finished_run, start
+
+NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
+
+
+def _motor_model(p: DcMotorParams) -> MotorModel:
+    return MotorModel(
+        resistance_ohm=p.resistance_ohm,
+        inductance_h=p.inductance_h,
+        torque_constant_nm_per_a=p.torque_constant_nm_per_a,
+        inertia_kg_m2=p.inertia_kg_m2,
+        viscous_friction_nm_s_per_rad=p.viscous_friction_nm_s_per_rad,
+        supply_v=p.supply_v,
+        counts_per_rev=p.counts_per_rev,
+    )
+
+
+# --- sans-IO ---------------------------------------------------------------------------
+
+
+def test_bench_analysis_recovers_a_known_loop_from_irregular_samples() -> None:
+    """A SLAP2 loop (model) driven by the run's multisine, sampled with jitter at about
+    300 samples/s as a polled line would: T within 1 dB / 10 deg at the tones with
+    coherence >= 0.9, and the margins of the measured L = T/(1-T) close to the model's."""
+    loop = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    excitation = frfrun.design(0.0, 200.0, 1.0, 40.0)
+    duration = 6.0
+    fine_t = np.arange(0.0, duration, loop.period_s)
+    # The targets as the bench sends them: one every ~4 ms, held in between.
+    rng = np.random.default_rng(3)
+    sent_t = np.cumsum(rng.uniform(0.003, 0.005, 2000))
+    sent_t = sent_t[sent_t < duration]
+    sent = [[float(t), float(excitation.target(float(t)))] for t in sent_t]
+    u = np.asarray(sent)[np.clip(np.searchsorted(sent_t, fine_t, "right") - 1, 0, None), 1]
+    y = control.forced_response(loop._closed_loop_tf(), T=fine_t, U=u).outputs
+    sample_t = np.cumsum(rng.uniform(0.002, 0.0047, 4000))
+    sample_t = sample_t[sample_t < duration - 0.01]
+    sample_y = np.interp(sample_t, fine_t, y) + rng.normal(0, 0.5, sample_t.size)
+    result = frfrun.analyse(sample_t, sample_y, None, sent, 0.0, excitation)
+    assert result["input"] == "targets"
+    closed = result["closed_loop"]
+    f = np.asarray(closed["frequency_hz"])
+    model = loop.closed_loop_response(f)
+    good = (np.asarray(closed["coherence"]) >= 0.9) & (f <= result["nyquist_hz"])
+    assert good.sum() >= 15 and result["usable_until_hz"] >= 30
+    mag_err = np.abs(np.asarray(closed["magnitude_db"])[good] - model.magnitude_db[good])
+    measured_phase = np.asarray(closed["phase_deg"])[good]
+    phase_err = np.abs((measured_phase - model.phase_deg[good] + 180) % 360 - 180)
+    assert mag_err.max() < 1.0, mag_err.max()
+    assert phase_err.max() < 10.0, phase_err.max()
+    truth = loop.margins()
+    margins = result["margins"]
+    assert margins["gain_crossover_hz"] == pytest.approx(truth.gain_crossover_hz, rel=0.05)
+    assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=3.0)
+
+
+def test_a_record_without_whole_periods_is_refused_with_a_reason() -> None:
+    excitation = frfrun.design(0.0, 100.0, 1.0, 10.0)
+    t = np.linspace(0.0, 1.5, 50)
+    with pytest.raises(ValueError, match="whole period"):
+        frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation)
+
+
+def test_the_multisine_stays_within_its_amplitude() -> None:
+    excitation = frfrun.design(1000.0, 250.0, 1.0, 40.0)
+    targets = [excitation.target(t) for t in np.arange(0.0, 2.0, 0.0005)]
+    assert max(targets) <= 1250 and min(targets) >= 750
+    assert max(targets) - min(targets) > 400  # and uses the window
+    assert excitation.tones_hz[0] == 1.0 and excitation.tones_hz[-1] == 40.0
+
+
+def test_model_margins_are_those_of_tuning_loops() -> None:
+    identified = {"gain_counts_s_per_duty": 90_000.0, "tau_s": 0.02}
+    gains = {"kabd_k": 24, "kabd_a": 32, "kabd_b": 8, "stm": 1}
+    run = {
+        "id": "r1",
+        "device": "z1100",
+        "test": {"kind": "frequency_response", "low_hz": 1.0, "high_hz": 100.0},
+        "params": gains,
+        "plant_model": identified,
+    }
+    out = frfbench.analyse_run(run, None)
+    assert out["model_based"] and out["measured"] is None and out["model"] is not None
+    plant = control.tf([90_000.0 / 255], [0.02, 1.0, 0.0])
+    truth = z1100_loop_for(plant, 24, 32, 8).margins()
+    margins = out["model"]["margins"]
+    assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-6)
+    assert margins["gain_crossover_hz"] == pytest.approx(truth.gain_crossover_hz, rel=1e-9)
+    assert margins["stable"] is truth.stable
+    # without a model: a reason, not an error
+    out = frfbench.analyse_run(run | {"plant_model": None}, None)
+    assert out["model"] is None and "Identify" in out["model_problem"]
+
+
+def test_the_browser_model_reproduces_the_loop_step() -> None:
+    """The coefficients the what-if view gets, run through the SLAP2 law as
+    ``whatif.ts`` runs them (here linear: no rounding, no PWM limit), give the step
+    of ``tuning.loops``."""
+    plant = IdentifiedPlant(1000.0, 0.012, "test")
+    gains = {"kp": 60, "ki": 20, "kd": 200}
+    model = browser_model("slap2", plant, gains)
+    num, den = np.asarray(model["plant_num"]), np.asarray(model["plant_den"])
+    assert den[0] == 1.0 and num[0] == 0.0
+    n = 600
+    order = den.size - 1
+    u_hist, y_hist = np.zeros(order), np.zeros(order)
+    total, e_prev = 0.0, 0.0
+    y_out = np.empty(n)
+    for k in range(n):
+        y = float(num[1:] @ u_hist - den[1:] @ y_hist)
+        e = 100.0 - y
+        total += e
+        u = (16 * gains["kp"] * e + gains["ki"] * total + 32 * gains["kd"] * (e - e_prev)) / 4096
+        e_prev = e
+        u_hist = np.roll(u_hist, 1)
+        y_hist = np.roll(y_hist, 1)
+        u_hist[0], y_hist[0] = u, y
+        y_out[k] = y
+    _, expected = loop_for("slap2", plant, gains).step(n * model["period_s"], 100.0)
+    # loops' step goes through control.minreal (pole-zero cancellation within a
+    # tolerance): agreement to 1e-4 of the step, not to rounding.
+    assert np.max(np.abs(y_out - expected[:n])) < 1e-4 * 100
+
+
+def test_identified_models_are_read_per_device() -> None:
+    slap2 = plant_from_identification("slap2", {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012})
+    assert slap2.gain_counts_s_per_unit == 998.0
+    z1100 = plant_from_identification("z1100", {"gain_counts_s_per_duty": 255e3, "tau_s": 0.02})
+    assert z1100.gain_counts_s_per_unit == pytest.approx(1000.0)
+    with pytest.raises(ValueError, match="Identify"):
+        plant_from_identification("slap2", None)
+    with pytest.raises(ValueError, match="does not describe"):
+        plant_from_identification("slap2", {"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
+
+
+# --- on the pty simulator ------------------------------------------------------------
+
+
+@pytest.fixture
+def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=NO_FRICTION)])
+    simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
+    simulator.start()
+    try:
+        yield simulator, bus
+    finally:
+        simulator.stop()
+
+
+@pytest.fixture
+async def api(tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]) -> AsyncIterator[Any]:
+    sim, bus = one_module
+    spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0], 512)
+    async with live_server(sim, bus, tmp_path / "data", spec=spec) as server:
+        for _ in range(200):
+            if (await server.client.get("/api/axes/line-0/state")).json().get(
+                "position"
+            ) is not None:
+                break
+            await asyncio.sleep(0.05)
+        yield server
+
+
+async def test_bad_frequency_response_requests_are_refused_before_anything_moves(
+    api: LiveServer,
+) -> None:
+    base = {"kind": "frequency_response", "amplitude": 200, "low_hz": 1.0, "high_hz": 40.0}
+    cases = [
+        ({"amplitude": 0}, "amplitude", "1..20000"),
+        ({"amplitude": 30_000}, "amplitude", "20000"),
+        ({"low_hz": 0.01}, "low_hz", "0.2..20"),
+        ({"high_hz": 0.5}, "high_hz", "above low_hz"),
+        ({"high_hz": 500}, "high_hz", "200"),
+        ({"duration_s": 2.0}, "duration_s", "at least 4 s"),
+    ]
+    for change, field, text in cases:
+        response = await api.client.post(
+            "/api/axes/line-0/bench/runs", json={"duration_s": 5.0, **base, **change}
+        )
+        assert response.status_code == 422, (change, response.text)
+        assert response.json()["field"] == field, response.json()
+        assert text in response.json()["detail"], response.json()
+    position = api.bus.module(0).position
+    limits = {"min_position_counts": position - 100, "max_position_counts": position + 1000}
+    assert (await api.client.put("/api/axes/line-0/bench/limits", json=limits)).status_code == 200
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json={"duration_s": 5.0, **base}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "amplitude"
+    assert "travel window" in response.json()["detail"] or "below" in response.json()["detail"]
+    assert not api.bus.module(0).rss & 0b1100  # neither pm nor vm: nothing moved
+    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
+
+
+def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any], up_to_hz: float) -> None:
+    """Measured T against the simulator's plant under the firmware PID with the run's
+    gains: within 1 dB and 10 deg at every tone up to ``up_to_hz`` (all of which must
+    have coherence >= 0.9 and lie below the capture's Nyquist frequency)."""
+    measured = frf["measured"]
+    assert measured is not None, frf["measured_problem"]
+    closed = measured["closed_loop"]
+    f = np.asarray(closed["frequency_hz"])
+    p = run["params"]
+    model = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
+    truth = model.closed_loop_response(f)
+    wanted = f <= up_to_hz
+    assert wanted.sum() >= 4
+    coherence = np.asarray(closed["coherence"])
+    assert np.all(coherence[wanted] >= 0.9), (f[wanted], coherence[wanted], measured)
+    assert measured["nyquist_hz"] >= up_to_hz, measured
+    mag_err = np.abs(np.asarray(closed["magnitude_db"])[wanted] - truth.magnitude_db[wanted])
+    phase = np.asarray(closed["phase_deg"])[wanted]
+    phase_err = np.abs((phase - truth.phase_deg[wanted] + 180) % 360 - 180)
+    assert mag_err.max() < 1.0, (
+        f[wanted],
+        mag_err,
+        coherence[wanted],
+        measured["sample_rate_hz"],
+        measured["periods"],
+        measured["input"],
+    )
+    assert phase_err.max() < 10.0, (f[wanted], phase_err)
+
+
+async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveServer) -> None:
+    """0.5-3 Hz: the band today's poll rate (about 10-20 samples/s of one module)
+    resolves; tones up to 2 Hz are checked (Nyquist stays above 2 Hz at 4 samples/s)."""
+    amplitude = 300
+    run_id = await start(
+        api,
+        "line-0",
+        kind="frequency_response",
+        amplitude=amplitude,
+        low_hz=0.5,
+        high_hz=3.0,
+        duration_s=10.0,
+    )
+    run = await finished_run(api, "line-0", run_id)
+    assert run["status"] == "complete", run["message"]
+    y0 = run["plan"]["y0"]
+    sent = run["excitation"]["sent"]
+    assert sent and all(abs(v - y0) <= amplitude for _, v in sent)
+    assert run["params"]["velocity"] != 65535  # the test's max profile was restored
+    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+    _check_against_simulator(frf, run, up_to_hz=2.0)
+    assert abs(api.bus.module(0).position - y0) <= 2 * run["plan"]["band"] + 1
+    # Stored like a step run: listed, exported as CSV and JSON (with the excitation).
+    meta = (await api.client.get(f"/api/bench/runs/{run_id}/run.json")).json()
+    assert meta["excitation"]["sent"] == sent
+    csv_text = (await api.client.get(f"/api/bench/runs/{run_id}/samples.csv")).text
+    assert csv_text.count("\n") >= len(run["samples"])
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs/import", json={"meta": meta, "csv": csv_text}
+    )
+    assert response.status_code == 201, response.text
+    imported_id = response.json()["id"]
+    imported = (await api.client.get(f"/api/bench/runs/{imported_id}")).json()
+    for key in ("test", "excitation", "params", "plan", "samples"):
+        assert imported[key] == run[key], key
+    again = (await api.client.get(f"/api/bench/runs/{imported_id}/frf")).json()
+    assert again["measured"] == frf["measured"]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="needs capture at the wire limit (issue 9 part 1, branch h-capture): today a "
+    "bench run of one SLAP2 gets ~10-20 samples/s and ~10 targets/s; when this passes, "
+    "remove the mark",
+)
+async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServer) -> None:
+    run_id = await start(
+        api,
+        "line-0",
+        kind="frequency_response",
+        amplitude=200,
+        low_hz=1.0,
+        high_hz=40.0,
+        duration_s=5.0,
+    )
+    run = await finished_run(api, "line-0", run_id)
+    assert run["status"] == "complete", run["message"]
+    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+    _check_against_simulator(frf, run, up_to_hz=30.0)
+    assert frf["measured"]["margins"]["phase_margin_deg"] is not None
+    assert not math.isnan(frf["measured"]["margins"]["gain_crossover_hz"])
+
+
+async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_path: Path) -> None:
+    from .test_autotune_z1100 import BAUD, chip_line
+
+    with chip_line(tmp_path) as simulator:
+        spec = LinkSpec("z1100", simulator.path, "line", BAUD, [0, 1, 2], 512)
+        async with live_server(simulator, None, tmp_path / "data", spec=spec) as server:
+            client = server.client
+            body = {"kind": "frequency_response", "low_hz": 1.0, "high_hz": 100.0}
+            response = await client.post("/api/axes/line-x/bench/runs", json=body)
+            assert response.status_code == 409 and "identify" in response.json()["detail"]
+            limits = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_overshoot"}
+            response = await client.post(
+                "/api/axes/line-x/autotune/identify", json=limits, timeout=120
+            )
+            assert response.status_code == 200, response.text
+            identified = response.json()["model"]
+            before = (await server.state("line-x"))["position"]
+            response = await client.post("/api/axes/line-x/bench/runs", json=body)
+            assert response.status_code == 202, response.text
+            run = response.json()
+            assert run["status"] == "complete" and run["test"]["model_based"] is True
+            frf = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
+            assert frf["model_based"] and frf["measured"] is None
+            params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
+            plant = plant_from_identification("z1100", identified)
+            truth = loop_for("z1100", plant, params).margins()
+            margins = frf["model"]["margins"]
+            assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-6)
+            assert margins["stable"] is truth.stable
+            whatif = (await client.get("/api/axes/line-x/whatif")).json()
+            assert whatif["model"]["law"] == "z1100_kab"
+            assert whatif["model"]["period_s"] == pytest.approx(32e-6 * params.get("stm", 1))
+            assert abs((await server.state("line-x"))["position"] - before) <= 2

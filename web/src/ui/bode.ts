@@ -1,0 +1,449 @@
+// The bench's frequency response (issue 9): a form that starts a "frequency_response"
+// run, and for the selected runs of that kind a Bode plot (magnitude dB and phase deg
+// over log frequency; measured points shaded by coherence, the band beyond the usable
+// one greyed; the identified model as a dashed line), the margins/bandwidth readouts
+// and a Nyquist plot of the open loop. Data: GET /api/bench/runs/{id}/frf
+// (server/servotune/api/frf_routes.py), computed on the server in a worker thread.
+import uPlot from "uplot";
+import "./frf.css";
+import { api, request } from "../api";
+import { h, replace, setText } from "../dom";
+import { errorText } from "./feedback";
+import { plotTheme, type PlotTheme } from "./benchplot";
+
+export interface Bode {
+  frequency_hz: (number | null)[];
+  magnitude_db: (number | null)[];
+  phase_deg: (number | null)[];
+  coherence?: number[];
+}
+
+export interface Margins {
+  gain_margin_db: number | null;
+  phase_margin_deg: number | null;
+  gain_crossover_hz: number | null;
+  phase_crossover_hz: number | null;
+  stable: boolean | null;
+}
+
+interface Nyquist {
+  frequency_hz: (number | null)[];
+  re: (number | null)[];
+  im: (number | null)[];
+}
+
+interface Part {
+  closed_loop: Bode;
+  open_loop: Bode;
+  nyquist: Nyquist;
+  margins: Margins;
+  bandwidth_hz: number | null;
+  resonance_db: number | null;
+  usable_until_hz?: number;
+  sample_rate_hz?: number;
+  nyquist_hz?: number;
+  input?: string;
+  law?: string;
+}
+
+export interface FrfData {
+  run_id: string;
+  device: string;
+  model_based: boolean;
+  low_hz: number;
+  high_hz: number;
+  measured: Part | null;
+  measured_problem: string | null;
+  model: Part | null;
+  model_problem: string | null;
+}
+
+export interface FrfRun {
+  id: string;
+  color: string;
+  label: string;
+  recording: boolean;
+}
+
+const MIN_COHERENCE = 0.9;
+
+export const frfApi = {
+  get: (runId: string) => request<FrfData>("GET", `/api/bench/runs/${encodeURIComponent(runId)}/frf`),
+};
+
+const cache = new Map<string, FrfData>();
+
+function fmt(v: number | null | undefined, digits: number, unit: string): string {
+  return v === null || v === undefined || !Number.isFinite(v) ? "—" : `${v.toFixed(digits)} ${unit}`;
+}
+
+/** One Bode half (magnitude or phase) on a log-frequency uPlot. */
+class BodeAxis {
+  readonly el: HTMLElement;
+  private u: uPlot | null = null;
+  private readonly observer: ResizeObserver;
+  private build: (() => void) | null = null;
+
+  constructor(testid: string) {
+    this.el = h("div", { class: "bode-host", testid });
+    this.observer = new ResizeObserver(() => this.build?.());
+    this.observer.observe(this.el);
+  }
+
+  set(data: uPlot.AlignedData, series: uPlot.Series[], unit: string, usable: number | null, theme: PlotTheme): void {
+    this.build = () => {
+      const width = Math.floor(this.el.clientWidth);
+      const height = Math.floor(this.el.clientHeight) || 180;
+      if (width < 50) return;
+      this.u?.destroy();
+      const shade = (u: uPlot): void => {
+        if (usable === null) return;
+        const x0 = u.valToPos(usable, "x", true);
+        const ctx = u.ctx;
+        ctx.save();
+        ctx.fillStyle = "rgba(128,128,128,0.14)";
+        ctx.fillRect(x0, u.bbox.top, u.bbox.left + u.bbox.width - x0, u.bbox.height);
+        ctx.restore();
+      };
+      this.u = new uPlot(
+        {
+          width,
+          height,
+          legend: { show: false },
+          cursor: { drag: { x: true, y: false } },
+          scales: { x: { time: false, distr: 3 } },
+          axes: [
+            { stroke: theme.axis, grid: { stroke: theme.grid }, font: theme.font, label: "Hz", labelFont: theme.font, size: 36 },
+            { stroke: theme.axis, grid: { stroke: theme.grid }, font: theme.font, label: unit, labelFont: theme.font, size: 50 },
+          ],
+          series: [{}, ...series],
+          hooks: { drawClear: [shade] },
+        },
+        data,
+        this.el,
+      );
+    };
+    this.build();
+  }
+
+  clear(): void {
+    this.u?.destroy();
+    this.u = null;
+    this.build = null;
+    replace(this.el);
+  }
+}
+
+/** Coherence bins: a point is drawn in the bin of its coherence (opaque when >= 0.9). */
+const BINS: { min: number; max: number; alpha: string; label: string }[] = [
+  { min: MIN_COHERENCE, max: 1.01, alpha: "ff", label: "coherence ≥ 0.9" },
+  { min: 0.5, max: MIN_COHERENCE, alpha: "80", label: "0.5–0.9" },
+  { min: -1, max: 0.5, alpha: "30", label: "< 0.5" },
+];
+
+function hex(color: string): string {
+  // Palette colours are #rrggbb; anything else is drawn without alpha shading.
+  return /^#[0-9a-f]{6}$/i.test(color) ? color : "";
+}
+
+export class FrfPanel {
+  readonly el: HTMLElement;
+  private readonly mag = new BodeAxis("bode-magnitude");
+  private readonly phase = new BodeAxis("bode-phase");
+  private readonly nyquist: HTMLCanvasElement;
+  private readonly readouts: HTMLElement;
+  private readonly note: HTMLElement;
+  private readonly error: HTMLElement;
+  private readonly inputs: Record<"amplitude" | "low_hz" | "high_hz" | "duration_s", HTMLInputElement>;
+  private readonly runButton: HTMLButtonElement;
+  private readonly loopSelect: HTMLSelectElement;
+  private runs: FrfRun[] = [];
+  private token = 0;
+
+  constructor(
+    private readonly axisId: string,
+    private readonly measured: boolean,
+    private readonly onStarted: (id: string) => void,
+  ) {
+    const input = (name: string, value: string, title: string): HTMLInputElement =>
+      h("input", { class: "input num", type: "number", value, testid: `frf-${name}`, "aria-label": title, title, step: "any" });
+    this.inputs = {
+      amplitude: input("amplitude", "200", "Peak of the multisine around the held position (counts)"),
+      low_hz: input("low_hz", "1", "Lowest tone (Hz); also the frequency resolution"),
+      high_hz: input("high_hz", "40", "Highest tone (Hz)"),
+      duration_s: input("duration_s", "5", "Record length (s): one settling period plus at least two analysed"),
+    };
+    this.runButton = h(
+      "button",
+      { class: "btn primary", testid: "frf-run", onclick: () => void this.start() },
+      this.measured ? "Measure frequency response" : "Model frequency response",
+    );
+    this.loopSelect = h(
+      "select",
+      { class: "input", testid: "frf-loop", "aria-label": "Which response" },
+      h("option", { value: "closed" }, "closed loop T (setpoint → position)"),
+      h("option", { value: "open" }, "open loop L"),
+    );
+    this.loopSelect.addEventListener("change", () => void this.draw());
+    const field = (label: string, el: HTMLElement): HTMLElement => h("label", { class: "bf" }, h("span", { class: "bf-label" }, label), h("span", { class: "bf-control" }, el));
+    this.error = h("div", { class: "bench-error", testid: "frf-error", role: "alert", hidden: true });
+    this.note = h("div", { class: "frf-note", testid: "frf-note" });
+    this.readouts = h("div", { class: "frf-readouts", testid: "frf-readouts" });
+    this.nyquist = h("canvas", { class: "nyquist", testid: "nyquist", width: 260, height: 260 });
+    this.el = h(
+      "section",
+      { class: "frf-panel", testid: "frf-panel" },
+      h(
+        "div",
+        { class: "pane-header" },
+        h("span", { class: "pane-title" }, "Frequency response"),
+        h(
+          "span",
+          { class: "pane-sub" },
+          this.measured
+            ? "multisine around the held position, streamed as position targets (ma)"
+            : "model-based: the identified plant under the device's exact law (nothing moves)",
+        ),
+      ),
+      h(
+        "div",
+        { class: "bench-form-row" },
+        this.measured ? field("amplitude ±", this.inputs.amplitude) : null,
+        field("from Hz", this.inputs.low_hz),
+        field("to Hz", this.inputs.high_hz),
+        this.measured ? field("duration s", this.inputs.duration_s) : null,
+        this.runButton,
+        h("span", { class: "tb-spacer" }),
+        this.loopSelect,
+      ),
+      this.error,
+      this.note,
+      h(
+        "div",
+        { class: "frf-plots" },
+        h("div", { class: "bode" }, h("div", { class: "plot-title" }, "Magnitude"), this.mag.el, h("div", { class: "plot-title" }, "Phase"), this.phase.el),
+        h("div", { class: "nyquist-wrap" }, h("div", { class: "plot-title" }, "Nyquist (open loop)"), this.nyquist),
+      ),
+      this.readouts,
+    );
+  }
+
+  private async start(): Promise<void> {
+    this.error.hidden = true;
+    const n = (k: keyof typeof this.inputs): number => Number(this.inputs[k].value);
+    this.runButton.disabled = true;
+    try {
+      const run = await api.startRun(this.axisId, {
+        kind: "frequency_response",
+        distance: 0,
+        velocity: 0,
+        pwm: 0,
+        note: "",
+        duration_s: this.measured ? n("duration_s") : 1,
+        amplitude: this.measured ? Math.round(n("amplitude")) : 0,
+        low_hz: n("low_hz"),
+        high_hz: n("high_hz"),
+      });
+      this.onStarted(run.id);
+    } catch (error) {
+      this.error.hidden = false;
+      setText(this.error, errorText(error));
+    } finally {
+      this.runButton.disabled = false;
+    }
+  }
+
+  /** Draw these frequency-response runs (the bench's selection of that kind). */
+  show(runs: FrfRun[]): void {
+    // A run still recording has no response yet: drawn once it has finished.
+    this.runs = runs.filter((r) => !r.recording);
+    if (runs.some((r) => r.recording)) setText(this.note, "recording the frequency response …");
+    void this.draw();
+  }
+
+  forget(runId: string): void {
+    cache.delete(runId);
+  }
+
+  private async draw(): Promise<void> {
+    const token = ++this.token;
+    if (!this.runs.length) {
+      if (this.note.textContent?.startsWith("recording")) return;
+      this.mag.clear();
+      this.phase.clear();
+      replace(this.readouts);
+      setText(this.note, "Select frequency-response runs in the table to see their Bode plot.");
+      this.drawNyquist([]);
+      return;
+    }
+    let loaded: FrfData[];
+    try {
+      loaded = await Promise.all(
+        this.runs.map(async (r) => {
+          const hit = cache.get(r.id);
+          if (hit) return hit;
+          const data = await frfApi.get(r.id);
+          cache.set(r.id, data);
+          return data;
+        }),
+      );
+    } catch (error) {
+      if (token === this.token) setText(this.note, `cannot load the frequency response: ${errorText(error)}`);
+      return;
+    }
+    if (token !== this.token) return;
+    const open = this.loopSelect.value === "open";
+    const theme = plotTheme();
+    const xs: number[][] = [];
+    const mags: (number | null)[][] = [];
+    const phases: (number | null)[][] = [];
+    const magSeries: uPlot.Series[] = [];
+    const phaseSeries: uPlot.Series[] = [];
+    let usable: number | null = null;
+    const notes: string[] = [];
+    loaded.forEach((d, i) => {
+      const run = this.runs[i] as FrfRun;
+      const base = hex(run.color) || run.color;
+      if (d.model) {
+        const b = open ? d.model.open_loop : d.model.closed_loop;
+        xs.push(b.frequency_hz as number[]);
+        mags.push(b.magnitude_db);
+        phases.push(b.phase_deg);
+        const s = { label: `${run.label} model`, stroke: base, width: 1.5, dash: [6, 4], points: { show: false } };
+        magSeries.push(s);
+        phaseSeries.push({ ...s });
+      } else if (d.model_problem) notes.push(`${run.label}: no model — ${d.model_problem}`);
+      if (d.measured) {
+        const b = open ? d.measured.open_loop : d.measured.closed_loop;
+        const coherence = d.measured.closed_loop.coherence ?? [];
+        usable = usable === null ? d.measured.usable_until_hz ?? null : Math.min(usable, d.measured.usable_until_hz ?? usable);
+        for (const bin of BINS) {
+          const keep = (j: number): boolean => (coherence[j] ?? 0) >= bin.min && (coherence[j] ?? 0) < bin.max;
+          xs.push(b.frequency_hz as number[]);
+          mags.push(b.magnitude_db.map((v, j) => (keep(j) ? v : null)));
+          phases.push(b.phase_deg.map((v, j) => (keep(j) ? v : null)));
+          const color = hex(run.color) ? `${run.color}${bin.alpha}` : run.color;
+          const s: uPlot.Series = { label: `${run.label} ${bin.label}`, stroke: color, paths: () => null, points: { show: true, size: 7, stroke: color, fill: color } };
+          magSeries.push(s);
+          phaseSeries.push({ ...s });
+        }
+        notes.push(
+          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable to ${fmt(d.measured.usable_until_hz, 1, "Hz")}, input: ${d.measured.input === "setpoint" ? "profile setpoint" : "targets sent"}`,
+        );
+      } else if (d.measured_problem) notes.push(`${run.label}: ${d.measured_problem}`);
+      if (d.model_based) notes.push(`${run.label}: MODEL-BASED (${d.model?.law ?? "device law"}), not a measurement`);
+    });
+    setText(this.note, notes.join(" · "));
+    if (!xs.length) {
+      this.mag.clear();
+      this.phase.clear();
+    } else {
+      const join = (ys: (number | null)[][]): uPlot.AlignedData => uPlot.join(xs.map((x, i) => [x, ys[i] as (number | null)[]] as uPlot.AlignedData));
+      this.mag.set(join(mags), magSeries, "dB", usable, theme);
+      this.phase.set(join(phases), phaseSeries, "deg", usable, theme);
+    }
+    this.renderReadouts(loaded);
+    this.drawNyquist(loaded);
+  }
+
+  private renderReadouts(loaded: FrfData[]): void {
+    const row = (label: string, color: string, source: string, p: Part): HTMLElement =>
+      h(
+        "tr",
+        { "data-source": source },
+        h("td", null, h("span", { class: "swatch", style: `background:${color}` }), ` ${label}`),
+        h("td", null, source),
+        h("td", { class: "mono", testid: "frf-gm" }, fmt(p.margins.gain_margin_db, 1, "dB")),
+        h("td", { class: "mono", testid: "frf-pm" }, fmt(p.margins.phase_margin_deg, 1, "°")),
+        h("td", { class: "mono" }, fmt(p.margins.gain_crossover_hz, 1, "Hz")),
+        h("td", { class: "mono" }, fmt(p.margins.phase_crossover_hz, 1, "Hz")),
+        h("td", { class: "mono", testid: "frf-bw" }, fmt(p.bandwidth_hz, 1, "Hz")),
+        h("td", { class: "mono" }, fmt(p.resonance_db, 1, "dB")),
+        h("td", null, p.margins.stable === null ? "—" : p.margins.stable ? "stable" : "UNSTABLE"),
+      );
+    const rows: HTMLElement[] = [];
+    loaded.forEach((d, i) => {
+      const run = this.runs[i] as FrfRun;
+      if (d.measured) rows.push(row(run.label, run.color, "measured", d.measured));
+      if (d.model) rows.push(row(run.label, run.color, d.model_based ? "model (model-based run)" : "model", d.model));
+    });
+    replace(
+      this.readouts,
+      h(
+        "table",
+        { class: "bench-table frf-table" },
+        h(
+          "tr",
+          null,
+          ...["run", "from", "gain margin", "phase margin", "crossover", "phase crossover", "−3 dB bandwidth", "resonance", "closed loop"].map((t) => h("th", null, t)),
+        ),
+        ...rows,
+      ),
+    );
+  }
+
+  private drawNyquist(loaded: FrfData[]): void {
+    const c = this.nyquist;
+    const ctx = c.getContext("2d");
+    if (!ctx) return;
+    const w = c.width;
+    const hgt = c.height;
+    ctx.clearRect(0, 0, w, hgt);
+    const theme = plotTheme();
+    const range = 2.5; // |L| up to 2.5 around the critical point is what margins are about
+    const sx = (re: number): number => w / 2 + (re / range) * (w / 2) * 0.95;
+    const sy = (im: number): number => hgt / 2 - (im / range) * (hgt / 2) * 0.95;
+    ctx.strokeStyle = theme.grid;
+    ctx.beginPath();
+    ctx.moveTo(0, hgt / 2);
+    ctx.lineTo(w, hgt / 2);
+    ctx.moveTo(w / 2, 0);
+    ctx.lineTo(w / 2, hgt);
+    ctx.stroke();
+    ctx.beginPath();
+    ctx.arc(sx(0), sy(0), (w / 2) * 0.95 / range, 0, 2 * Math.PI);
+    ctx.stroke();
+    ctx.fillStyle = "#e5484d";
+    ctx.beginPath();
+    ctx.arc(sx(-1), sy(0), 4, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.fillStyle = theme.text;
+    ctx.font = theme.font;
+    ctx.fillText("−1", sx(-1) - 8, sy(0) + 14);
+    loaded.forEach((d, i) => {
+      const run = this.runs[i] as FrfRun;
+      ctx.strokeStyle = run.color;
+      ctx.fillStyle = run.color;
+      if (d.model) {
+        ctx.setLineDash([5, 3]);
+        ctx.beginPath();
+        let started = false;
+        d.model.nyquist.re.forEach((re, j) => {
+          const im = d.model?.nyquist.im[j];
+          if (re === null || im === null || im === undefined || Math.abs(re) > 50 || Math.abs(im) > 50) {
+            started = false;
+            return;
+          }
+          if (started) ctx.lineTo(sx(re), sy(im));
+          else ctx.moveTo(sx(re), sy(im));
+          started = true;
+        });
+        ctx.stroke();
+        ctx.setLineDash([]);
+      }
+      if (d.measured) {
+        const coh = d.measured.closed_loop.coherence ?? [];
+        d.measured.nyquist.re.forEach((re, j) => {
+          const im = d.measured?.nyquist.im[j];
+          if (re === null || im === null || im === undefined) return;
+          ctx.globalAlpha = (coh[j] ?? 0) >= MIN_COHERENCE ? 1 : 0.3;
+          ctx.beginPath();
+          ctx.arc(sx(re), sy(im), 3, 0, 2 * Math.PI);
+          ctx.fill();
+        });
+        ctx.globalAlpha = 1;
+      }
+    });
+    c.dataset.curves = String(loaded.length);
+  }
+}
