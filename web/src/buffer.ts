@@ -22,6 +22,11 @@ export class AxisBuffer {
   lastT = Number.NaN;
   /** Bumped on every push, so views can tell whether to redraw. */
   version = 0;
+  /** Absolute sample number of index 0 (compaction moves data, not sample numbers):
+   * index i holds sample ``base + i``, so a cache can tell which samples are new. */
+  base = 0;
+  /** Bumped by clear(): sample numbers start over, caches must too. */
+  epoch = 0;
 
   get length(): number {
     return this.end - this.start;
@@ -33,6 +38,8 @@ export class AxisBuffer {
     this.latestT.clear();
     this.latestFlags.clear();
     this.lastT = Number.NaN;
+    this.base = 0;
+    this.epoch += 1;
     this.version += 1;
   }
 
@@ -141,6 +148,7 @@ export class AxisBuffer {
     }
     for (const [name, col] of this.flags) this.flags.set(name, move(col, (s) => new Uint8Array(s)));
     this.end -= this.start;
+    this.base += this.start;
     this.start = 0;
     this.capacity = capacity;
   }

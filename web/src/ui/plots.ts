@@ -15,7 +15,7 @@ import { StateNames } from "../states";
 import { store } from "../store";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
-import { cut, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
+import { Cutter, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
 import { ScopeTools } from "./scopetools";
 import { drawStates, laneCount, lanePos, scanStates, stateAt, type StatesPanel, statesPx, statesRuns } from "./statesplot";
 import { Trigger } from "./trigger";
@@ -137,6 +137,11 @@ export class PlotStack {
   private readonly tabs: HTMLElement;
   readonly tools: ScopeTools;
   private drawnVersion = -1;
+  private readonly cutter = new Cutter();
+  private readonly channelFactors = new Map<string, number>();
+  private readonly flat = [0, 0];
+  private statusState = "";
+  private statusAt = 0;
   private skipUntil = 0;
   private lastLiveDraw = 0;
   /** Duration of the last redraw (ms). */
@@ -488,8 +493,13 @@ export class PlotStack {
     const known = value !== null && value !== undefined;
     setText(el, known ? s.names.name(value) : "—");
     setText(s.id, known && s.names.has(value) ? s.names.id(value) : "");
-    s.swatch.style.background = known ? s.names.color(value, this.light) : "transparent";
-    el.title = known ? s.names.describe(value) : "";
+    const color = known ? s.names.color(value, this.light) : "transparent";
+    if (s.swatch.dataset.color !== color) {
+      s.swatch.dataset.color = color;
+      s.swatch.style.background = color;
+    }
+    const title = known ? s.names.describe(value) : "";
+    if (el.title !== title) el.title = title;
   }
 
   private rebuild(): void {
@@ -536,7 +546,9 @@ export class PlotStack {
         series.push({
           label: this.units.channel(name)?.label ?? name,
           stroke: this.color(i),
-          width: i === 0 ? 1.5 : 1.25,
+          // 1 px: software rasterisers (no GPU) draw a 1 px line as a hairline, several
+          // times cheaper than a wider stroke, which must be outlined and filled.
+          width: 1,
           show: !this.isHidden(plot.name, name),
           spanGaps: false,
           // Slow channels hold their value until the next real sample: a step, not a
@@ -943,6 +955,11 @@ export class PlotStack {
     return { min: end - this.windowS, max: end, live: !this.paused };
   }
 
+  /** Pixel columns of the plot area (one min/max pair each when dense). */
+  private columns(): number {
+    return Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
+  }
+
   /** Redraw now, whatever changed (benchmark, tests). */
   redraw(): void {
     this.dirty = true;
@@ -962,11 +979,26 @@ export class PlotStack {
       if (this.trigger.config.mode === "single") this.tools.fired();
       this.syncControls();
     }
-    const { min, max, live } = this.range();
+    const columns = this.columns();
+    const range = this.range();
+    const { live } = range;
+    let { min, max } = range;
+    let origin = min;
+    const colS = (max - min) / columns;
+    if (live && min > 0) {
+      // A rolling trace sits on pixel columns fixed in time (origin 0): each redraw
+      // scrolls by whole columns and the column cache (decimate.ts) only folds in what
+      // is new. The newest sample is at most one column from the right edge.
+      max = Math.ceil(max / colS - 1e-9) * colS;
+      min = max - this.windowS;
+      origin = 0;
+    }
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
-    // A rolling trace redraws at most every LIVE_REDRAW_MS: smooth to the eye, and with
-    // software canvases (no GPU) the raster of every redraw is most of a frame's cost.
-    if (live && !this.dirty && started - this.lastLiveDraw < LIVE_REDRAW_MS) return;
+    // A rolling trace redraws at most every LIVE_REDRAW_MS and at most once per pixel
+    // column of time (a 60 s window moves 1 px per ~55 ms: redrawing faster shows
+    // nothing new). With software canvases (no GPU) the raster of every redraw is most
+    // of a frame's cost.
+    if (live && !this.dirty && started - this.lastLiveDraw < Math.max(LIVE_REDRAW_MS, 1000 * colS)) return;
     if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
     this.dirty = false;
@@ -976,19 +1008,21 @@ export class PlotStack {
     // One sample either side so lines run to the plot edges.
     const lo = Math.max(buffer.start, buffer.indexAt(min) - 1);
     const hi = Math.min(buffer.end, buffer.indexAt(max) + 1);
-    const channels = new Map<string, number>();
+    const channels = this.channelFactors;
+    channels.clear();
     for (const p of this.panels) {
       if (p.plot.kind !== "line" || !this.shows(p)) continue;
       for (const name of p.series) channels.set(name, this.units.unit(name).factor);
     }
-    const columns = Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
-    const frame = cut(buffer, lo, hi, min, max, columns, channels);
+    const frame = this.cutter.cut(buffer, lo, hi, min, max, columns, channels, origin);
     this.frame = frame;
     const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
     for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
     if (newLanes) this.layout(false);
-    const flat = [min, max];
+    const flat = this.flat;
+    flat[0] = min;
+    flat[1] = max;
     for (const p of this.panels) {
       if (!this.shows(p)) continue;
       const u = p.u as uPlot;
@@ -1029,7 +1063,13 @@ export class PlotStack {
             ? "trigger · recording"
             : "trigger armed"
           : "live";
-    setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
+    // The status (with its sample count) is text in the DOM: a layout each time it
+    // changes, so it is written at most 4 times a second unless the state changed.
+    if (state !== this.statusState || started - this.statusAt > 250) {
+      this.statusState = state;
+      this.statusAt = started;
+      setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
+    }
     toggleClass(this.status, "live", live);
     this.tools.syncCursors();
     const took = performance.now() - started;
