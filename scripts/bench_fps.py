@@ -99,9 +99,12 @@ async def measure_page(
         result: dict[str, Any] = await page.evaluate(MEASURE, seconds)
         cpu_after = await process_cpu(browser)
         after = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
-        for kind in ("renderer", "gpu"):
+        for kind in ("renderer", "GPU"):
             used = cpu_after.get(kind, 0.0) - cpu_before.get(kind, 0.0)
-            result[f"cpu_{kind}_ms_per_s"] = round(1000 * used / seconds)
+            result[f"cpu_{kind.lower()}_ms_per_s"] = round(1000 * used / seconds)
+        # Renderer CPU per frame shown: the cost of a frame, whatever the load let through.
+        frames = max(1.0, result["fps"] * seconds)
+        result["cpu_renderer_ms_per_frame"] = round(result["cpu_renderer_ms_per_s"] * seconds / frames, 2)
         # Main-thread busy time per second (ms/s, wall time: inflated by a loaded machine).
         for key in ("TaskDuration", "ScriptDuration", "LayoutDuration"):
             result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
@@ -158,7 +161,7 @@ async def main(
         await browser.close()
     if rounds > 1 or len(bases) > 1:
         print("\nmedians over the rounds:")
-        keys = ("fps", "long_tasks", "long_ms", "worst_ms", "cpu_renderer_ms_per_s", "cpu_gpu_ms_per_s")
+        keys = ("fps", "long_tasks", "long_ms", "worst_ms", "cpu_renderer_ms_per_s", "cpu_gpu_ms_per_s", "cpu_renderer_ms_per_frame")
         for (label, name, window_s), rs in results.items():
             med = {k: round(statistics.median(x[k] for x in rs), 1) for k in keys}
             print(f"  {label} {name} window {window_s} s  {json.dumps(med)}")
