@@ -2,10 +2,11 @@
 
 Usage:
     python scripts/bench_fps.py BASE [seconds] [--pages ep7047,slap2] [--windows 10,60]
-                                [--ab OTHER_BASE] [--rounds N] [--no-draw] [--profile]
+                                [--ab OTHER_BASE] [--rounds N] [--warm S] [--no-draw] [--profile]
 
 For each page (SLAP2, Z1100, EP7047, overview) at 1600x1000 and a 10 s and a 60 s window,
-over ``seconds``: frames per second (requestAnimationFrame count), long tasks
+over ``seconds`` after ``--warm`` seconds on the page (default 2; the buffer fills
+from the page's start, so a 60 s window is full only with --warm 60): frames per second (requestAnimationFrame count), long tasks
 (PerformanceObserver 'longtask', > 50 ms: count, total and worst), the CPU time of the
 renderer and GPU processes per second (CDP SystemInfo.getProcessInfo: CPU time, which a
 loaded machine inflates far less than wall time) and the main thread's busy time.
@@ -32,6 +33,7 @@ from typing import Any
 from playwright.async_api import Browser, async_playwright
 
 PROFILE_PAGE = os.environ.get("PROFILE_PAGE", "ep7047")
+WARM_S = 2.0
 
 PAGES = {
     "slap2": "#/axis/demo-slap2-0",
@@ -78,7 +80,8 @@ async def measure_page(
     page = await browser.new_page(viewport={"width": 1600, "height": 1000})
     try:
         await page.goto(f"{base}/{PAGES[name]}")
-        await page.wait_for_timeout(2000)
+        # The buffer fills from the page's start: --warm seconds of data before measuring.
+        await page.wait_for_timeout(1000 * WARM_S)
         button = page.get_by_test_id(f"scope-window-{window_s}")
         if await button.count():
             await button.click()
@@ -183,7 +186,8 @@ def option(name: str, default: str) -> str:
 
 
 if __name__ == "__main__":
-    values = {option(n, "") for n in ("--pages", "--windows", "--ab", "--rounds")}
+    values = {option(n, "") for n in ("--pages", "--windows", "--ab", "--rounds", "--warm")}
+    WARM_S = float(option("--warm", "2"))
     args = [a for a in sys.argv[1:] if not a.startswith("--") and a not in values]
     bases = [("B", args[0])]
     if "--ab" in sys.argv:

@@ -80,6 +80,8 @@ export class PlotStack implements PlotHost {
   private readonly flat = [0, 0];
   private statusState = "";
   private statusAt = 0;
+  private boxW = 0;
+  private boxH = 0;
   private skipUntil = 0;
   private lastLiveDraw = 0;
   /** Duration of the last redraw (ms). */
@@ -297,9 +299,16 @@ export class PlotStack implements PlotHost {
   }
 
   /** Heights: flag and states plots get their lanes, line plots share the rest. */
-  private layout(redraw = true): void {
-    const width = Math.floor(this.scroller.clientWidth);
-    const height = Math.floor(this.scroller.clientHeight);
+  private layout(redraw = true, measure = true): void {
+    // The size is read where layout is fresh (the ResizeObserver callback, a rebuild);
+    // from a redraw (new state lanes) the last size is reused: reading it there would
+    // force a synchronous layout in the middle of the frame.
+    if (measure || !this.boxW) {
+      this.boxW = this.scroller.clientWidth;
+      this.boxH = this.scroller.clientHeight;
+    }
+    const width = Math.floor(this.boxW);
+    const height = Math.floor(this.boxH);
     if (width < 50 || height < 50) return;
     const visible = this.panels.filter((p) => this.shows(p));
     const last = visible[visible.length - 1];
@@ -720,7 +729,7 @@ export class PlotStack implements PlotHost {
     const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
     for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
-    if (newLanes) this.layout(false);
+    if (newLanes) this.layout(false, false);
     const flat = this.flat;
     flat[0] = min;
     flat[1] = max;
