@@ -43,6 +43,9 @@ export function medianPeriod(t: Float64Array, lo: number, hi: number): number {
   return d[m >> 1] as number;
 }
 
+/** Ring slot of column ``k`` (columns before the origin are negative). */
+const ring = (k: number, cap: number): number => ((k % cap) + cap) % cap;
+
 /** Per-column min/max of the samples, folded in incrementally.
  *
  * Columns are fixed in time: column k spans [origin + k·colS, origin + (k+1)·colS). A
@@ -91,7 +94,7 @@ class ColumnCache {
   }
 
   private open(k: number): void {
-    const slot = k % this.cap;
+    const slot = ring(k, this.cap);
     this.n[slot] = 0;
     for (let c = 0; c < this.names.length; c++) {
       (this.count[c] as Uint32Array)[slot] = 0;
@@ -122,7 +125,7 @@ class ColumnCache {
         this.k1 += 1;
         if (this.k1 - this.k0 > this.cap) this.k0 = this.k1 - this.cap;
       }
-      const slot = k % this.cap;
+      const slot = ring(k, this.cap);
       if (this.n[slot] === 0) this.tFirst[slot] = ti;
       this.tLast[slot] = ti;
       this.n[slot] += 1;
@@ -235,7 +238,7 @@ export class Cutter {
     let tA = Number.NaN;
     let tZ = Number.NaN;
     for (let k = from; k < to; k++) {
-      const s = k % cap;
+      const s = ring(k, cap);
       const m = cache.n[s] as number;
       if (!m) continue;
       total += m;
@@ -245,7 +248,7 @@ export class Cutter {
     const counts = names.map((_n, c) => {
       let count = 0;
       const cc = cache.count[c] as Uint32Array;
-      for (let k = from; k < to; k++) count += cc[k % cap] as number;
+      for (let k = from; k < to; k++) count += cc[ring(k, cap)] as number;
       return count;
     });
     names.forEach((name, c) => {
@@ -258,7 +261,7 @@ export class Cutter {
     let nx = 0;
     let prevT = Number.NaN;
     for (let k = from; k < to; k++) {
-      const s = k % cap;
+      const s = ring(k, cap);
       if (!cache.n[s]) continue;
       const a = cache.tFirst[s] as number;
       if (!Number.isNaN(prevT) && a - prevT > gapS) x[nx++] = (prevT + a) / 2;
@@ -283,7 +286,7 @@ export class Cutter {
       let prev = Number.NaN;
       const present = buffer.channels.has(name);
       for (let k = from; k < to; k++) {
-        const s = k % cap;
+        const s = ring(k, cap);
         if (!cache.n[s]) continue;
         const a = cache.tFirst[s] as number;
         if (!Number.isNaN(prev) && a - prev > gapS) out[j++] = null;
