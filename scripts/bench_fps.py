@@ -6,7 +6,8 @@ Usage:
 
 For each page (SLAP2, Z1100, EP7047, overview) at 1600x1000 and a 10 s and a 60 s window,
 over ``seconds`` after ``--warm`` seconds on the page (default 2; the buffer fills
-from the page's start, so a 60 s window is full only with --warm 60): frames per second (requestAnimationFrame count), long tasks
+from the page's start, so a 60 s window is full only with --warm 60): frames per
+second (requestAnimationFrame count), long tasks
 (PerformanceObserver 'longtask', > 50 ms: count, total and worst), the CPU time of the
 renderer and GPU processes per second (CDP SystemInfo.getProcessInfo: CPU time, which a
 loaded machine inflates far less than wall time) and the main thread's busy time.
@@ -44,7 +45,9 @@ PAGES = {
 
 MEASURE = """async (seconds) => {
   const longs = [];
-  const po = new PerformanceObserver((l) => { for (const e of l.getEntries()) longs.push(e.duration); });
+  const po = new PerformanceObserver((l) => {
+    for (const e of l.getEntries()) longs.push(e.duration);
+  });
   po.observe({ type: 'longtask', buffered: false });
   let frames = 0;
   let run = true;
@@ -97,17 +100,23 @@ async def measure_page(
             await cdp.send("Profiler.start")
         metrics = await page.context.new_cdp_session(page)
         await metrics.send("Performance.enable")
-        before = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
+        before = {
+            m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]
+        }
         cpu_before = await process_cpu(browser)
         result: dict[str, Any] = await page.evaluate(MEASURE, seconds)
         cpu_after = await process_cpu(browser)
-        after = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
+        after = {
+            m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]
+        }
         for kind in ("renderer", "GPU"):
             used = cpu_after.get(kind, 0.0) - cpu_before.get(kind, 0.0)
             result[f"cpu_{kind.lower()}_ms_per_s"] = round(1000 * used / seconds)
         # Renderer CPU per frame shown: the cost of a frame, whatever the load let through.
         frames = max(1.0, result["fps"] * seconds)
-        result["cpu_renderer_ms_per_frame"] = round(result["cpu_renderer_ms_per_s"] * seconds / frames, 2)
+        result["cpu_renderer_ms_per_frame"] = round(
+            result["cpu_renderer_ms_per_s"] * seconds / frames, 2
+        )
         # Main-thread busy time per second (ms/s, wall time: inflated by a loaded machine).
         for key in ("TaskDuration", "ScriptDuration", "LayoutDuration"):
             result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
@@ -118,7 +127,8 @@ async def measure_page(
             nodes = {n["id"]: n for n in prof["nodes"]}
             for sid, d in zip(prof["samples"], prof["timeDeltas"], strict=False):
                 cf = nodes[sid]["callFrame"]
-                key = f"{cf['functionName'] or '(anon)'} {cf['url'].rsplit('/', 1)[-1]}:{cf['lineNumber']}"
+                where = f"{cf['url'].rsplit('/', 1)[-1]}:{cf['lineNumber']}"
+                key = f"{cf['functionName'] or '(anon)'} {where}"
                 self_time[key] = self_time.get(key, 0) + d / 1000
             print(json.dumps(sorted(self_time.items(), key=lambda kv: -kv[1])[:25], indent=0))
         return result
@@ -132,14 +142,21 @@ async def draw_bench(browser: Browser, base: str) -> Any:
         # The overview: no live scope of its own competing with the benchmark's.
         await page.goto(f"{base}/{PAGES['overview']}")
         await page.wait_for_timeout(1500)
-        return await page.evaluate("() => window.__servotune.benchDraw ? window.__servotune.benchDraw() : null")
+        return await page.evaluate(
+            "() => window.__servotune.benchDraw ? window.__servotune.benchDraw() : null"
+        )
     finally:
         await page.close()
 
 
 async def main(
-    bases: list[tuple[str, str]], seconds: float, pages: list[str], windows: list[int],
-    rounds: int, draw: bool, profile: bool,
+    bases: list[tuple[str, str]],
+    seconds: float,
+    pages: list[str],
+    windows: list[int],
+    rounds: int,
+    draw: bool,
+    profile: bool,
 ) -> None:
     results: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
     draws: dict[str, list[Any]] = {}
@@ -155,16 +172,26 @@ async def main(
                         if res is None:
                             continue
                         results.setdefault((label, name, window_s), []).append(res)
-                        print(f"[{r + 1}] {label} {name} window {window_s} s  load {load()}  {json.dumps(res)}")
+                        head = f"[{r + 1}] {label} {name} window {window_s} s"
+                        print(f"{head}  load {load()}  {json.dumps(res)}")
             if draw:
                 for label, base in bases:
                     d = await draw_bench(browser, base)
                     draws.setdefault(label, []).append(d)
-                    print(f"[{r + 1}] {label} draw 4 plots x 50k points  load {load()}  {json.dumps(d)}")
+                    head = f"[{r + 1}] {label} draw 4 plots x 50k points"
+                    print(f"{head}  load {load()}  {json.dumps(d)}")
         await browser.close()
     if rounds > 1 or len(bases) > 1:
         print("\nmedians over the rounds:")
-        keys = ("fps", "long_tasks", "long_ms", "worst_ms", "cpu_renderer_ms_per_s", "cpu_gpu_ms_per_s", "cpu_renderer_ms_per_frame")
+        keys = (
+            "fps",
+            "long_tasks",
+            "long_ms",
+            "worst_ms",
+            "cpu_renderer_ms_per_s",
+            "cpu_gpu_ms_per_s",
+            "cpu_renderer_ms_per_frame",
+        )
         for (label, name, window_s), rs in results.items():
             med = {k: round(statistics.median(x[k] for x in rs), 1) for k in keys}
             print(f"  {label} {name} window {window_s} s  {json.dumps(med)}")
