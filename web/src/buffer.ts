@@ -99,6 +99,28 @@ export class AxisBuffer {
     return lo;
   }
 
+  /** Time of the sample nearest to ``time``, or null when empty. */
+  nearestT(time: number): number | null {
+    if (!this.length) return null;
+    const i = Math.min(this.end - 1, Math.max(this.start, this.indexAt(time)));
+    const j = Math.max(this.start, i - 1);
+    const ti = this.t[i] as number;
+    const tj = this.t[j] as number;
+    return Math.abs(ti - time) <= Math.abs(tj - time) ? ti : tj;
+  }
+
+  /** The latest real (non-null) value of ``name`` at or before ``time``, or null. */
+  valueAt(name: string, time: number): number | null {
+    const col = this.channels.get(name);
+    if (!col || !this.length) return null;
+    let i = Math.min(this.end - 1, this.indexAt(time + 1e-9) - 1);
+    for (let k = 0; i >= this.start && k < 4096; i--, k++) {
+      const v = col[i] as number;
+      if (!Number.isNaN(v)) return v;
+    }
+    return null;
+  }
+
   get firstT(): number {
     return this.length ? (this.t[this.start] as number) : Number.NaN;
   }

@@ -35,6 +35,8 @@ export interface Theme {
   series: string[];
   severity: Record<FlagDescriptor["severity"], string>;
   font: string;
+  /** The monospace family (read once: getComputedStyle in a draw hook costs a style pass). */
+  mono: string;
   cursor: string;
 }
 
@@ -55,6 +57,7 @@ export function readTheme(): Theme {
       fault: css("--lamp-fault", "#ff4d4d"),
     },
     font: `11px ${css("--mono", "monospace")}`,
+    mono: css("--mono", "monospace"),
     cursor: css("--amber", "#ffae1f"),
   };
 }
@@ -162,7 +165,7 @@ export function drawCursors(host: PlotHost, u: uPlot): void {
   ctx.strokeStyle = host.theme.cursor;
   ctx.fillStyle = host.theme.cursor;
   ctx.lineWidth = px;
-  ctx.font = `bold ${10 * px}px ${css("--mono", "monospace")}`;
+  ctx.font = `bold ${10 * px}px ${host.theme.mono}`;
   for (const [name, t] of [["A", a], ["B", b]] as const) {
     if (t === null) continue;
     const x = Math.round(u.valToPos(t, "x", true)) + 0.5;
@@ -297,7 +300,7 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
     hooks: {
       setSelect: [(u) => host.onSelect(u)],
       setCursor: [(u) => host.onCursor(panel, u)],
-      drawAxes: states ? [(u) => drawStates(u, states, host.theme, host.light, css("--mono", "monospace"))] : flags ? [(u) => drawFlags(host, panel, u)] : [],
+      drawAxes: states ? [(u) => drawStates(u, states, host.theme, host.light, host.theme.mono)] : flags ? [(u) => drawFlags(host, panel, u)] : [],
       draw: [(u) => drawCursors(host, u)],
     },
   };

@@ -364,12 +364,21 @@ export class PlotStack implements PlotHost {
   }
 
   /** A lane label cut to the axis width ("NOT_CALIBRA…"). */
+  private readonly fitted = new Map<string, string>();
+
+  /** (Cached: the lane labels are drawn on every redraw, measuring them is not free.) */
   fitLabel(text: string): string {
+    const known = this.fitted.get(text);
+    if (known !== undefined) return known;
     const room = this.yAxisPx - 8;
-    if (this.textWidth(text) <= room) return text;
-    let cut = text;
-    while (cut.length > 1 && this.textWidth(`${cut}…`) > room) cut = cut.slice(0, -1);
-    return `${cut}…`;
+    let fit = text;
+    if (this.textWidth(text) > room) {
+      let cut = text;
+      while (cut.length > 1 && this.textWidth(`${cut}…`) > room) cut = cut.slice(0, -1);
+      fit = `${cut}…`;
+    }
+    this.fitted.set(text, fit);
+    return fit;
   }
 
   private showState(panel: Panel, value: number | null | undefined): void {
@@ -483,26 +492,12 @@ export class PlotStack implements PlotHost {
   }
 
   nearestSampleT(t: number): number | null {
-    const b = this.buffer;
-    if (!b.length) return null;
-    const i = Math.min(b.end - 1, Math.max(b.start, b.indexAt(t)));
-    const j = Math.max(b.start, i - 1);
-    const ti = b.t[i] as number;
-    const tj = b.t[j] as number;
-    return Math.abs(ti - t) <= Math.abs(tj - t) ? ti : tj;
+    return this.buffer.nearestT(t);
   }
 
   /** The latest real value of ``name`` at or before ``t`` (device units), or null. */
   valueAt(name: string, t: number): number | null {
-    const b = this.buffer;
-    const col = b.channels.get(name);
-    if (!col || !b.length) return null;
-    let i = Math.min(b.end - 1, b.indexAt(t + 1e-9) - 1);
-    for (let k = 0; i >= b.start && k < 4096; i--, k++) {
-      const v = col[i] as number;
-      if (!Number.isNaN(v)) return v;
-    }
-    return null;
+    return this.buffer.valueAt(name, t);
   }
 
   /** Channels drawn now (visible line series), with their plot. */
