@@ -1,10 +1,24 @@
-"""Frame rate and long tasks of the live dashboard pages (headless Chromium).
+"""Frame rate, long tasks and CPU of the live dashboard pages (headless Chromium).
 
-Usage: python scripts/bench_fps.py http://127.0.0.1:8106 [seconds] [--profile]
-For each demo page (SLAP2, Z1100, EP7047, overview) at 1600x1000 and a 10 s and
-60 s window: frames per second (requestAnimationFrame count) and long tasks
-(PerformanceObserver 'longtask', > 50 ms) over ``seconds``. Then the draw time of
-4 plots x 50k points (window.__servotune.benchDraw, p95 over 60 draws).
+Usage:
+    python scripts/bench_fps.py BASE [seconds] [--pages ep7047,slap2] [--windows 10,60]
+                                [--ab OTHER_BASE] [--rounds N] [--warm S] [--no-draw] [--profile]
+
+For each page (SLAP2, Z1100, EP7047, overview) at 1600x1000 and a 10 s and a 60 s window,
+over ``seconds`` after ``--warm`` seconds on the page (default 2; the buffer fills
+from the page's start, so a 60 s window is full only with --warm 60): frames per
+second (requestAnimationFrame count), long tasks
+(PerformanceObserver 'longtask', > 50 ms: count, total and worst), the CPU time of the
+renderer and GPU processes per second (CDP SystemInfo.getProcessInfo: CPU time, which a
+loaded machine inflates far less than wall time) and the main thread's busy time.
+
+Then the draw time of 4 plots x 50k points (window.__servotune.benchDraw: a rolling
+redraw with new samples each frame, a static full redraw, and a cold redraw that
+re-decimates the whole window; p50/p95/max of the script time of the redraw).
+
+``--ab OTHER_BASE`` measures OTHER_BASE (A) and BASE (B) alternately, ``--rounds`` times
+each, so both see the same machine load; the medians are printed per page at the end.
+The machine's load average is printed with every run.
 Machine-dependent by nature: a benchmark, not a test.
 """
 
@@ -13,11 +27,14 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import statistics
 import sys
+from typing import Any
 
-from playwright.async_api import async_playwright
+from playwright.async_api import Browser, async_playwright
 
 PROFILE_PAGE = os.environ.get("PROFILE_PAGE", "ep7047")
+WARM_S = 2.0
 
 PAGES = {
     "slap2": "#/axis/demo-slap2-0",
@@ -28,7 +45,9 @@ PAGES = {
 
 MEASURE = """async (seconds) => {
   const longs = [];
-  const po = new PerformanceObserver((l) => { for (const e of l.getEntries()) longs.push(e.duration); });
+  const po = new PerformanceObserver((l) => {
+    for (const e of l.getEntries()) longs.push(e.duration);
+  });
   po.observe({ type: 'longtask', buffered: false });
   let frames = 0;
   let run = true;
@@ -43,55 +62,171 @@ MEASURE = """async (seconds) => {
 }"""
 
 
-async def main(base: str, seconds: float, profile: bool) -> None:
+def load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+async def process_cpu(browser: Browser) -> dict[str, float]:
+    """Cumulative CPU seconds per process type (renderer, gpu, browser)."""
+    cdp = await browser.new_browser_cdp_session()
+    info = await cdp.send("SystemInfo.getProcessInfo")
+    await cdp.detach()
+    out: dict[str, float] = {}
+    for proc in info["processInfo"]:
+        out[proc["type"]] = out.get(proc["type"], 0.0) + float(proc["cpuTime"])
+    return out
+
+
+async def measure_page(
+    browser: Browser, base: str, name: str, window_s: int, seconds: float, profile: bool
+) -> dict[str, Any] | None:
+    page = await browser.new_page(viewport={"width": 1600, "height": 1000})
+    try:
+        await page.goto(f"{base}/{PAGES[name]}")
+        # The buffer fills from the page's start: --warm seconds of data before measuring.
+        await page.wait_for_timeout(1000 * WARM_S)
+        button = page.get_by_test_id(f"scope-window-{window_s}")
+        if await button.count():
+            await button.click()
+        elif window_s != 10:
+            return None
+        # The pointer off the plots (a hover would draw the cursor and the legend values).
+        await page.mouse.move(2, 998)
+        await page.wait_for_timeout(500)
+        cdp = None
+        if profile and name == PROFILE_PAGE:
+            cdp = await page.context.new_cdp_session(page)
+            await cdp.send("Profiler.enable")
+            await cdp.send("Profiler.start")
+        metrics = await page.context.new_cdp_session(page)
+        await metrics.send("Performance.enable")
+        before = {
+            m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]
+        }
+        cpu_before = await process_cpu(browser)
+        result: dict[str, Any] = await page.evaluate(MEASURE, seconds)
+        cpu_after = await process_cpu(browser)
+        after = {
+            m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]
+        }
+        for kind in ("renderer", "GPU"):
+            used = cpu_after.get(kind, 0.0) - cpu_before.get(kind, 0.0)
+            result[f"cpu_{kind.lower()}_ms_per_s"] = round(1000 * used / seconds)
+        # Renderer CPU per frame shown: the cost of a frame, whatever the load let through.
+        frames = max(1.0, result["fps"] * seconds)
+        result["cpu_renderer_ms_per_frame"] = round(
+            result["cpu_renderer_ms_per_s"] * seconds / frames, 2
+        )
+        # Main-thread busy time per second (ms/s, wall time: inflated by a loaded machine).
+        for key in ("TaskDuration", "ScriptDuration", "LayoutDuration"):
+            result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
+        await metrics.detach()
+        if cdp is not None:
+            prof = (await cdp.send("Profiler.stop"))["profile"]
+            self_time: dict[str, float] = {}
+            nodes = {n["id"]: n for n in prof["nodes"]}
+            for sid, d in zip(prof["samples"], prof["timeDeltas"], strict=False):
+                cf = nodes[sid]["callFrame"]
+                where = f"{cf['url'].rsplit('/', 1)[-1]}:{cf['lineNumber']}"
+                key = f"{cf['functionName'] or '(anon)'} {where}"
+                self_time[key] = self_time.get(key, 0) + d / 1000
+            print(json.dumps(sorted(self_time.items(), key=lambda kv: -kv[1])[:25], indent=0))
+        return result
+    finally:
+        await page.close()
+
+
+async def draw_bench(browser: Browser, base: str) -> Any:
+    page = await browser.new_page(viewport={"width": 1600, "height": 1000})
+    try:
+        # The overview: no live scope of its own competing with the benchmark's.
+        await page.goto(f"{base}/{PAGES['overview']}")
+        await page.wait_for_timeout(1500)
+        return await page.evaluate(
+            "() => window.__servotune.benchDraw ? window.__servotune.benchDraw() : null"
+        )
+    finally:
+        await page.close()
+
+
+async def main(
+    bases: list[tuple[str, str]],
+    seconds: float,
+    pages: list[str],
+    windows: list[int],
+    rounds: int,
+    draw: bool,
+    profile: bool,
+) -> None:
+    results: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    draws: dict[str, list[Any]] = {}
     async with async_playwright() as p:
         browser = await p.chromium.launch(
             executable_path="/usr/bin/chromium", args=["--no-sandbox", "--disable-gpu"]
         )
-        page = await browser.new_page(viewport={"width": 1600, "height": 1000})
-        for name, frag in PAGES.items():
-            for window_s in (10, 60):
-                await page.goto(f"{base}/{frag}")
-                await page.wait_for_timeout(2000)
-                button = page.get_by_test_id(f"scope-window-{window_s}")
-                if await button.count():
-                    await button.click()
-                elif window_s != 10:
-                    continue
-                await page.wait_for_timeout(500)
-                if profile and name == PROFILE_PAGE:
-                    cdp = await page.context.new_cdp_session(page)
-                    await cdp.send("Profiler.enable")
-                    await cdp.send("Profiler.start")
-                metrics = await page.context.new_cdp_session(page)
-                await metrics.send("Performance.enable")
-                before = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
-                result = await page.evaluate(MEASURE, seconds)
-                after = {m["name"]: m["value"] for m in (await metrics.send("Performance.getMetrics"))["metrics"]}
-                # Main-thread busy time per second (ms/s): less sensitive to a loaded
-                # machine than fps, which also waits for the CPU.
-                for key in ("TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration"):
-                    result[key + "_ms_per_s"] = round(1000 * (after[key] - before[key]) / seconds)
-                await metrics.detach()
-                if profile and name == PROFILE_PAGE:
-                    prof = (await cdp.send("Profiler.stop"))["profile"]
-                    self_time: dict[str, float] = {}
-                    nodes = {n["id"]: n for n in prof["nodes"]}
-                    dt = prof["timeDeltas"]
-                    for sid, d in zip(prof["samples"], dt, strict=False):
-                        cf = nodes[sid]["callFrame"]
-                        key = f'{cf["functionName"] or "(anon)"} {cf["url"].rsplit("/", 1)[-1]}:{cf["lineNumber"]}'
-                        self_time[key] = self_time.get(key, 0) + d / 1000
-                    top = sorted(self_time.items(), key=lambda kv: -kv[1])[:25]
-                    print(json.dumps(top, indent=0))
-                print(name, f"window {window_s} s", json.dumps(result))
-        draw = await page.evaluate(
-            "() => window.__servotune.benchDraw ? window.__servotune.benchDraw() : null"
-        )
-        print("draw 4 plots x 50k points", json.dumps(draw))
+        for r in range(rounds):
+            for name in pages:
+                for window_s in windows:
+                    for label, base in bases:
+                        res = await measure_page(browser, base, name, window_s, seconds, profile)
+                        if res is None:
+                            continue
+                        results.setdefault((label, name, window_s), []).append(res)
+                        head = f"[{r + 1}] {label} {name} window {window_s} s"
+                        print(f"{head}  load {load()}  {json.dumps(res)}")
+            if draw:
+                for label, base in bases:
+                    d = await draw_bench(browser, base)
+                    draws.setdefault(label, []).append(d)
+                    head = f"[{r + 1}] {label} draw 4 plots x 50k points"
+                    print(f"{head}  load {load()}  {json.dumps(d)}")
         await browser.close()
+    if rounds > 1 or len(bases) > 1:
+        print("\nmedians over the rounds:")
+        keys = (
+            "fps",
+            "long_tasks",
+            "long_ms",
+            "worst_ms",
+            "cpu_renderer_ms_per_s",
+            "cpu_gpu_ms_per_s",
+            "cpu_renderer_ms_per_frame",
+        )
+        for (label, name, window_s), rs in results.items():
+            med = {k: round(statistics.median(x[k] for x in rs), 1) for k in keys}
+            print(f"  {label} {name} window {window_s} s  {json.dumps(med)}")
+        for label, ds in draws.items():
+            flat: dict[str, float] = {}
+            for key in ds[0] or {}:
+                if isinstance(ds[0][key], dict):
+                    for q in ds[0][key]:
+                        flat[f"{key}.{q}"] = round(statistics.median(d[key][q] for d in ds), 2)
+                else:  # an older client: one set of figures
+                    flat[key] = round(statistics.median(d[key] for d in ds), 2)
+            print(f"  {label} draw  {json.dumps(flat)}")
+
+
+def option(name: str, default: str) -> str:
+    if name in sys.argv:
+        return sys.argv[sys.argv.index(name) + 1]
+    return default
 
 
 if __name__ == "__main__":
-    args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    asyncio.run(main(args[0], float(args[1]) if len(args) > 1 else 5.0, "--profile" in sys.argv))
+    values = {option(n, "") for n in ("--pages", "--windows", "--ab", "--rounds", "--warm")}
+    WARM_S = float(option("--warm", "2"))
+    args = [a for a in sys.argv[1:] if not a.startswith("--") and a not in values]
+    bases = [("B", args[0])]
+    if "--ab" in sys.argv:
+        bases = [("A", option("--ab", "")), ("B", args[0])]
+    asyncio.run(
+        main(
+            bases,
+            float(args[1]) if len(args) > 1 else 5.0,
+            option("--pages", ",".join(PAGES)).split(","),
+            [int(w) for w in option("--windows", "10,60").split(",")],
+            int(option("--rounds", "1")),
+            "--no-draw" not in sys.argv,
+            "--profile" in sys.argv,
+        )
+    )

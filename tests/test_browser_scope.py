@@ -296,3 +296,21 @@ async def test_z1100_gains_written_as_one_group(tmp_path: Path, browser: Browser
             assert await page.locator(".overwrite-offer").count() == 0
             assert await page.get_by_test_id("write-group-restore").count() <= 1
             assert not errors
+
+
+async def test_overview_tiles_show_the_control_holder(browser: Browser, slap2: LiveServer) -> None:
+    page, errors = await open_page(browser, slap2, 1280, 800)
+    await page.goto(f"{slap2.base_url}/#/overview")
+    holder = page.get_by_test_id("tile-control-line-0")
+    await expect(holder).to_have_text("control: free")
+    await page.goto(f"{slap2.base_url}/#/axis/line-0")
+    await page.get_by_test_id("control-take").click()
+    await expect(page.get_by_test_id("control-badge")).to_have_text("yours")
+    await page.goto(f"{slap2.base_url}/#/overview")
+    await expect(holder).to_have_text("control: this tab")
+    await expect(page.get_by_test_id("tile-control-line-1")).to_have_text("control: free")
+    # Another tab sees who holds it.
+    other, other_errors = await open_page(browser, slap2, 1280, 800)
+    await other.goto(f"{slap2.base_url}/#/overview")
+    await expect(other.get_by_test_id("tile-control-line-0")).to_contain_text("(another tab)")
+    assert not errors and not other_errors

@@ -22,6 +22,11 @@ export class AxisBuffer {
   lastT = Number.NaN;
   /** Bumped on every push, so views can tell whether to redraw. */
   version = 0;
+  /** Absolute sample number of index 0 (compaction moves data, not sample numbers):
+   * index i holds sample ``base + i``, so a cache can tell which samples are new. */
+  base = 0;
+  /** Bumped by clear(): sample numbers start over, caches must too. */
+  epoch = 0;
 
   get length(): number {
     return this.end - this.start;
@@ -33,6 +38,8 @@ export class AxisBuffer {
     this.latestT.clear();
     this.latestFlags.clear();
     this.lastT = Number.NaN;
+    this.base = 0;
+    this.epoch += 1;
     this.version += 1;
   }
 
@@ -92,6 +99,28 @@ export class AxisBuffer {
     return lo;
   }
 
+  /** Time of the sample nearest to ``time``, or null when empty. */
+  nearestT(time: number): number | null {
+    if (!this.length) return null;
+    const i = Math.min(this.end - 1, Math.max(this.start, this.indexAt(time)));
+    const j = Math.max(this.start, i - 1);
+    const ti = this.t[i] as number;
+    const tj = this.t[j] as number;
+    return Math.abs(ti - time) <= Math.abs(tj - time) ? ti : tj;
+  }
+
+  /** The latest real (non-null) value of ``name`` at or before ``time``, or null. */
+  valueAt(name: string, time: number): number | null {
+    const col = this.channels.get(name);
+    if (!col || !this.length) return null;
+    let i = Math.min(this.end - 1, this.indexAt(time + 1e-9) - 1);
+    for (let k = 0; i >= this.start && k < 4096; i--, k++) {
+      const v = col[i] as number;
+      if (!Number.isNaN(v)) return v;
+    }
+    return null;
+  }
+
   get firstT(): number {
     return this.length ? (this.t[this.start] as number) : Number.NaN;
   }
@@ -141,6 +170,7 @@ export class AxisBuffer {
     }
     for (const [name, col] of this.flags) this.flags.set(name, move(col, (s) => new Uint8Array(s)));
     this.end -= this.start;
+    this.base += this.start;
     this.start = 0;
     this.capacity = capacity;
   }

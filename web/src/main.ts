@@ -25,7 +25,7 @@ declare global {
       currentAxis(): string | null;
       scope(): PlotStack | null;
       lab(opts: LabOptions): Lab;
-      benchDraw(runs?: number): Promise<{ p50: number; p95: number; max: number; points: number }>;
+      benchDraw(runs?: number): ReturnType<typeof benchDraw>;
     };
   }
 }

@@ -30,70 +30,331 @@ export interface Frame {
   periodS: number;
 }
 
-/** The median of up to 257 evenly spread intervals of t[lo..hi). */
+const periods = new Float64Array(257);
+
+/** The median of up to 257 evenly spread intervals of t[lo..hi) (no allocation). */
 export function medianPeriod(t: Float64Array, lo: number, hi: number): number {
   const n = hi - lo;
   if (n < 2) return Number.NaN;
   const step = Math.max(1, Math.floor((n - 1) / 256));
-  const d: number[] = [];
-  for (let i = lo + 1; i < hi; i += step) d.push((t[i] as number) - (t[i - 1] as number));
-  d.sort((a, b) => a - b);
-  return d[d.length >> 1] as number;
+  let m = 0;
+  for (let i = lo + 1; i < hi && m < periods.length; i += step) periods[m++] = (t[i] as number) - (t[i - 1] as number);
+  const d = periods.subarray(0, m).sort();
+  return d[m >> 1] as number;
+}
+
+/** Ring slot of column ``k`` (columns before the origin are negative). */
+const ring = (k: number, cap: number): number => ((k % cap) + cap) % cap;
+
+/** Per-column min/max of the samples, folded in incrementally.
+ *
+ * Columns are fixed in time: column k spans [origin + k·colS, origin + (k+1)·colS). A
+ * rolling window keeps origin and colS, so every column it already folded stays valid
+ * and only the samples that arrived since the last frame are folded in (a few per frame
+ * instead of the whole window). The columns live in a ring of typed arrays allocated
+ * once per (columns, channels); nothing is allocated per frame. */
+class ColumnCache {
+  origin = Number.NaN;
+  colS = Number.NaN;
+  names: string[] = [];
+  cap = 0;
+  /** Columns k0 .. k1-1 are held (absolute column numbers). */
+  k0 = 0;
+  k1 = 0;
+  /** The next sample to fold (absolute sample number, AxisBuffer.base + index). */
+  next = 0;
+  epoch = -1;
+  tFirst = new Float64Array(0);
+  tLast = new Float64Array(0);
+  n = new Uint32Array(0);
+  min: Float64Array[] = [];
+  max: Float64Array[] = [];
+  tMin: Float64Array[] = [];
+  tMax: Float64Array[] = [];
+  count: Uint32Array[] = [];
+
+  private reset(buffer: AxisBuffer, origin: number, colS: number, names: string[], cap: number, kStart: number): void {
+    if (cap !== this.cap || names.length !== this.names.length) {
+      this.cap = cap;
+      this.tFirst = new Float64Array(cap);
+      this.tLast = new Float64Array(cap);
+      this.n = new Uint32Array(cap);
+      this.min = names.map(() => new Float64Array(cap));
+      this.max = names.map(() => new Float64Array(cap));
+      this.tMin = names.map(() => new Float64Array(cap));
+      this.tMax = names.map(() => new Float64Array(cap));
+      this.count = names.map(() => new Uint32Array(cap));
+    }
+    this.origin = origin;
+    this.colS = colS;
+    this.names = names;
+    this.epoch = buffer.epoch;
+    this.k0 = this.k1 = kStart;
+    this.next = buffer.base + Math.max(buffer.start, buffer.indexAt(origin + kStart * colS));
+  }
+
+  private open(k: number): void {
+    const slot = ring(k, this.cap);
+    this.n[slot] = 0;
+    for (let c = 0; c < this.names.length; c++) {
+      (this.count[c] as Uint32Array)[slot] = 0;
+      (this.min[c] as Float64Array)[slot] = Infinity;
+      (this.max[c] as Float64Array)[slot] = -Infinity;
+    }
+  }
+
+  /** Hold columns kStart..kStop (inclusive) of ``names``, folding only what is new. */
+  update(buffer: AxisBuffer, origin: number, colS: number, names: string[], kStart: number, kStop: number): void {
+    const cap = Math.max(64, kStop - kStart + 16);
+    const same = origin === this.origin && colS === this.colS && buffer.epoch === this.epoch && names.length === this.names.length && names.every((n, i) => n === this.names[i]);
+    // A different grid or channel set, a window that grew to the left, a ring too small,
+    // or samples the buffer has dropped since: fold the window from scratch, once.
+    if (!same || kStart < this.k0 || cap > this.cap || this.next < buffer.base + buffer.start) this.reset(buffer, origin, colS, names, cap, kStart);
+    const t = buffer.t;
+    const cols = names.map((n) => buffer.channels.get(n));
+    const limit = origin + (kStop + 1) * colS;
+    let i = this.next - buffer.base;
+    const end = buffer.end;
+    for (; i < end; i++) {
+      const ti = t[i] as number;
+      if (ti >= limit) break;
+      const k = Math.floor((ti - origin) / colS);
+      if (k < this.k0) continue;
+      while (this.k1 <= k) {
+        this.open(this.k1);
+        this.k1 += 1;
+        if (this.k1 - this.k0 > this.cap) this.k0 = this.k1 - this.cap;
+      }
+      const slot = ring(k, this.cap);
+      if (this.n[slot] === 0) this.tFirst[slot] = ti;
+      this.tLast[slot] = ti;
+      this.n[slot] += 1;
+      for (let c = 0; c < cols.length; c++) {
+        const col = cols[c];
+        if (!col) continue;
+        const v = col[i] as number;
+        if (Number.isNaN(v)) continue;
+        (this.count[c] as Uint32Array)[slot] += 1;
+        const mn = this.min[c] as Float64Array;
+        const mx = this.max[c] as Float64Array;
+        if (v < (mn[slot] as number)) {
+          mn[slot] = v;
+          (this.tMin[c] as Float64Array)[slot] = ti;
+        }
+        if (v > (mx[slot] as number)) {
+          mx[slot] = v;
+          (this.tMax[c] as Float64Array)[slot] = ti;
+        }
+      }
+    }
+    this.next = buffer.base + i;
+    // Columns older than the window are let go (the ring reuses their slots).
+    if (kStart > this.k0) this.k0 = Math.min(kStart, this.k1);
+  }
+}
+
+/** Put ``n`` items in a reused array (no allocation once it has grown). */
+function sized<T>(a: T[], n: number): T[] {
+  a.length = n;
+  return a;
 }
 
 /**
- * Cut [lo, hi) of ``buffer`` for an x range [xmin, xmax] drawn ``columns`` pixels wide.
- * ``channels``: name and display factor (unit conversion).
+ * Cuts time windows out of an axis buffer for drawing, reusing its arrays frame after
+ * frame (the returned Frame and its arrays are the same objects each call: draw them
+ * before the next call).
  */
-export function cut(
-  buffer: AxisBuffer,
-  lo: number,
-  hi: number,
-  xmin: number,
-  xmax: number,
-  columns: number,
-  channels: Iterable<[string, number]>,
-): Frame {
-  const t = buffer.t;
-  const n = Math.max(0, hi - lo);
-  const periodS = medianPeriod(t, lo, hi);
-  const gapS = Number.isFinite(periodS) ? GAP_PERIODS * periodS : Number.POSITIVE_INFINITY;
-  const frame: Frame = { x: [], channels: new Map(), real: new Map(), slow: new Map(), decimated: false, samples: n, periodS };
-  const list = [...channels];
-  // Which channels are slow, and their own period.
-  for (const [name] of list) {
-    const col = buffer.channels.get(name);
-    if (!col || n < 4) continue;
-    let count = 0;
-    for (let i = lo; i < hi; i++) if (!Number.isNaN(col[i] as number)) count++;
-    if (count > 0 && count < SLOW_FILL * n) frame.slow.set(name, ((t[hi - 1] as number) - (t[lo] as number)) / Math.max(1, count - 1));
+export class Cutter {
+  private readonly cache = new ColumnCache();
+  private readonly frame: Frame = { x: [], channels: new Map(), real: new Map(), slow: new Map(), decimated: false, samples: 0, periodS: Number.NaN };
+  private at: number[] = [];
+  private readonly columnsOf = new Map<string, (number | null)[]>();
+  private readonly realOf = new Map<string, number[]>();
+
+  private out(name: string): (number | null)[] {
+    let a = this.columnsOf.get(name);
+    if (!a) {
+      a = [];
+      this.columnsOf.set(name, a);
+    }
+    return a;
   }
-  if (n <= columns * 2) {
-    // Sample by sample; a null point marks every gap in time.
-    const x: number[] = [];
-    const at: number[] = []; // buffer index per x, -1 for a gap marker
+
+  private realIdx(name: string): number[] {
+    let a = this.realOf.get(name);
+    if (!a) {
+      a = [];
+      this.realOf.set(name, a);
+    }
+    a.length = 0;
+    return a;
+  }
+
+  /**
+   * Cut [lo, hi) of ``buffer`` for an x range [xmin, xmax] drawn ``columns`` pixels wide.
+   * ``channels``: name and display factor (unit conversion). ``origin``: where the pixel
+   * columns start in time (a rolling window passes a fixed origin and a range aligned to
+   * whole columns, so the columns already folded stay valid); default ``xmin``.
+   */
+  cut(
+    buffer: AxisBuffer,
+    lo: number,
+    hi: number,
+    xmin: number,
+    xmax: number,
+    columns: number,
+    channels: Iterable<[string, number]>,
+    origin = xmin,
+  ): Frame {
+    const t = buffer.t;
+    const n = Math.max(0, hi - lo);
+    const periodS = medianPeriod(t, lo, hi);
+    const gapS = Number.isFinite(periodS) ? GAP_PERIODS * periodS : Number.POSITIVE_INFINITY;
+    const frame = this.frame;
+    frame.channels.clear();
+    frame.real.clear();
+    frame.slow.clear();
+    frame.decimated = false;
+    frame.samples = n;
+    frame.periodS = periodS;
+    const list = [...channels];
+    if (n <= columns * 2) {
+      this.sparse(buffer, lo, hi, gapS, list);
+      return frame;
+    }
+    // Min/max per pixel column, from the column cache.
+    frame.decimated = true;
+    const colS = (xmax - xmin) / columns;
+    const kLo = Math.floor((xmin - origin) / colS + 1e-9) - 1; // one column either side, so
+    const kHi = Math.floor((xmax - origin) / colS + 1e-9) + 1; // lines run to the plot edges
+    const names = list.map(([name]) => name);
+    const cache = this.cache;
+    cache.update(buffer, origin, colS, names, kLo, kHi);
+    const cap = cache.cap;
+    const from = Math.max(kLo, cache.k0);
+    const to = Math.min(kHi + 1, cache.k1);
+    // Which channels are slow in this window, and their own period.
+    let total = 0;
+    let tA = Number.NaN;
+    let tZ = Number.NaN;
+    for (let k = from; k < to; k++) {
+      const s = ring(k, cap);
+      const m = cache.n[s] as number;
+      if (!m) continue;
+      total += m;
+      if (Number.isNaN(tA)) tA = cache.tFirst[s] as number;
+      tZ = cache.tLast[s] as number;
+    }
+    const counts = names.map((_n, c) => {
+      let count = 0;
+      const cc = cache.count[c] as Uint32Array;
+      for (let k = from; k < to; k++) count += cc[ring(k, cap)] as number;
+      return count;
+    });
+    names.forEach((name, c) => {
+      const count = counts[c] as number;
+      if (buffer.channels.has(name) && total >= 4 && count > 0 && count < SLOW_FILL * total) frame.slow.set(name, (tZ - tA) / Math.max(1, count - 1));
+    });
+    // x: the first and the last sample time of every non-empty column; a null point
+    // (x between the two) where the time between columns is a gap.
+    const x = frame.x;
+    let nx = 0;
+    let prevT = Number.NaN;
+    for (let k = from; k < to; k++) {
+      const s = ring(k, cap);
+      if (!cache.n[s]) continue;
+      const a = cache.tFirst[s] as number;
+      if (!Number.isNaN(prevT) && a - prevT > gapS) x[nx++] = (prevT + a) / 2;
+      x[nx++] = a;
+      x[nx++] = cache.tLast[s] as number;
+      prevT = cache.tLast[s] as number;
+    }
+    x.length = nx;
+    list.forEach(([name, factor], c) => {
+      const out = sized(this.out(name), nx);
+      const slowPeriod = frame.slow.get(name);
+      const real = slowPeriod === undefined ? null : this.realIdx(name);
+      const holdS = slowPeriod === undefined ? 0 : Math.max(gapS, SLOW_HOLD * slowPeriod);
+      const mn = cache.min[c] as Float64Array;
+      const mx = cache.max[c] as Float64Array;
+      const tmn = cache.tMin[c] as Float64Array;
+      const tmx = cache.tMax[c] as Float64Array;
+      const cc = cache.count[c] as Uint32Array;
+      let held = Number.NaN;
+      let heldT = Number.NEGATIVE_INFINITY;
+      let j = 0;
+      let prev = Number.NaN;
+      const present = buffer.channels.has(name);
+      for (let k = from; k < to; k++) {
+        const s = ring(k, cap);
+        if (!cache.n[s]) continue;
+        const a = cache.tFirst[s] as number;
+        if (!Number.isNaN(prev) && a - prev > gapS) out[j++] = null;
+        prev = cache.tLast[s] as number;
+        if (present && (cc[s] as number) > 0) {
+          const lo_ = mn[s] as number;
+          const hi_ = mx[s] as number;
+          const minFirst = (tmn[s] as number) <= (tmx[s] as number);
+          if (real) {
+            real.push(j);
+            held = minFirst ? hi_ : lo_;
+            heldT = Math.max(tmn[s] as number, tmx[s] as number);
+          }
+          out[j++] = (minFirst ? lo_ : hi_) * factor;
+          out[j++] = (minFirst ? hi_ : lo_) * factor;
+        } else if (real && !Number.isNaN(held) && a - heldT <= holdS) {
+          out[j++] = held * factor;
+          out[j++] = held * factor;
+        } else {
+          out[j++] = null;
+          out[j++] = null;
+        }
+      }
+      if (real) frame.real.set(name, real);
+      frame.channels.set(name, out);
+    });
+    return frame;
+  }
+
+  /** Sample by sample (sparse data); a null point marks every gap in time. */
+  private sparse(buffer: AxisBuffer, lo: number, hi: number, gapS: number, list: [string, number][]): void {
+    const frame = this.frame;
+    const t = buffer.t;
+    const n = hi - lo;
+    for (const [name] of list) {
+      const col = buffer.channels.get(name);
+      if (!col || n < 4) continue;
+      let count = 0;
+      for (let i = lo; i < hi; i++) if (!Number.isNaN(col[i] as number)) count++;
+      if (count > 0 && count < SLOW_FILL * n) frame.slow.set(name, ((t[hi - 1] as number) - (t[lo] as number)) / Math.max(1, count - 1));
+    }
+    const x = frame.x;
+    const at = this.at; // buffer index per x, -1 for a gap marker
+    let nx = 0;
     for (let i = lo; i < hi; i++) {
       const ti = t[i] as number;
       if (i > lo && ti - (t[i - 1] as number) > gapS) {
-        x.push(((t[i - 1] as number) + ti) / 2);
-        at.push(-1);
+        x[nx] = ((t[i - 1] as number) + ti) / 2;
+        at[nx++] = -1;
       }
-      x.push(ti);
-      at.push(i);
+      x[nx] = ti;
+      at[nx++] = i;
     }
-    frame.x = x;
+    x.length = nx;
+    at.length = nx;
     for (const [name, factor] of list) {
       const col = buffer.channels.get(name);
-      const out: (number | null)[] = new Array(x.length).fill(null);
+      const out = sized(this.out(name), nx);
       const slowPeriod = frame.slow.get(name);
-      if (col && slowPeriod === undefined) {
-        for (let k = 0; k < x.length; k++) {
+      if (!col) out.fill(null);
+      else if (slowPeriod === undefined) {
+        for (let k = 0; k < nx; k++) {
           const i = at[k] as number;
           const v = i < 0 ? Number.NaN : (col[i] as number);
           out[k] = Number.isNaN(v) ? null : v * factor;
         }
-      } else if (col && slowPeriod !== undefined) {
-        const real: number[] = [];
+      } else {
+        const real = this.realIdx(name);
         const holdS = Math.max(gapS, SLOW_HOLD * slowPeriod);
         let held = Number.NaN;
         let heldT = Number.NEGATIVE_INFINITY;
@@ -106,9 +367,10 @@ export function cut(
             break;
           }
         }
-        for (let k = 0; k < x.length; k++) {
+        for (let k = 0; k < nx; k++) {
           const i = at[k] as number;
           const v = i < 0 ? Number.NaN : (col[i] as number);
+          out[k] = null;
           if (!Number.isNaN(v)) {
             held = v;
             heldT = x[k] as number;
@@ -120,78 +382,20 @@ export function cut(
       }
       frame.channels.set(name, out);
     }
-    return frame;
   }
-  // Min/max per pixel column.
-  frame.decimated = true;
-  const colS = (xmax - xmin) / columns;
-  const starts: number[] = []; // first buffer index of each non-empty column
-  let last = -1;
-  for (let i = lo; i < hi; i++) {
-    const c = Math.min(columns - 1, Math.max(0, Math.floor(((t[i] as number) - xmin) / colS)));
-    if (c !== last) {
-      starts.push(i);
-      last = c;
-    }
-  }
-  starts.push(hi);
-  const x: number[] = [];
-  const gapBefore: boolean[] = [];
-  for (let b = 0; b + 1 < starts.length; b++) {
-    const a = starts[b] as number;
-    const z = (starts[b + 1] as number) - 1;
-    const gap = b > 0 && (t[a] as number) - (t[a - 1] as number) > gapS;
-    if (gap) x.push(((t[a - 1] as number) + (t[a] as number)) / 2);
-    gapBefore.push(gap);
-    x.push(t[a] as number, t[z] as number);
-  }
-  frame.x = x;
-  for (const [name, factor] of list) {
-    const col = buffer.channels.get(name);
-    const out: (number | null)[] = [];
-    const real: number[] = [];
-    const slowPeriod = frame.slow.get(name);
-    const holdS = slowPeriod === undefined ? 0 : Math.max(gapS, SLOW_HOLD * slowPeriod);
-    let held = Number.NaN;
-    let heldT = Number.NEGATIVE_INFINITY;
-    for (let b = 0; b + 1 < starts.length; b++) {
-      const a = starts[b] as number;
-      const z = starts[b + 1] as number;
-      if (gapBefore[b]) out.push(null);
-      let min = Infinity;
-      let max = -Infinity;
-      let iMin = 0;
-      let iMax = 0;
-      if (col) {
-        for (let i = a; i < z; i++) {
-          const v = col[i] as number;
-          if (Number.isNaN(v)) continue;
-          if (v < min) {
-            min = v;
-            iMin = i;
-          }
-          if (v > max) {
-            max = v;
-            iMax = i;
-          }
-        }
-      }
-      if (min !== Infinity) {
-        if (slowPeriod !== undefined) {
-          real.push(out.length);
-          held = iMin <= iMax ? max : min;
-          heldT = t[Math.max(iMin, iMax)] as number;
-        }
-        if (iMin <= iMax) out.push(min * factor, max * factor);
-        else out.push(max * factor, min * factor);
-      } else if (slowPeriod !== undefined && !Number.isNaN(held) && (t[a] as number) - heldT <= holdS) {
-        out.push(held * factor, held * factor);
-      } else out.push(null, null);
-    }
-    if (slowPeriod !== undefined) frame.real.set(name, real);
-    frame.channels.set(name, out);
-  }
-  return frame;
+}
+
+/** One-off cut (tests, CSV): a fresh Cutter, see Cutter.cut. */
+export function cut(
+  buffer: AxisBuffer,
+  lo: number,
+  hi: number,
+  xmin: number,
+  xmax: number,
+  columns: number,
+  channels: Iterable<[string, number]>,
+): Frame {
+  return new Cutter().cut(buffer, lo, hi, xmin, xmax, columns, channels);
 }
 
 /** Intervals [t0, t1, t0, t1, …] where ``flag`` is on in [lo, hi); a gap in time ends a run. */

@@ -1,5 +1,5 @@
-// Rig overview: one tile per axis (position, motion state, link rate, health), each
-// opening its axis page. Built from the descriptors, so it knows nothing per device
+// Rig overview: one tile per axis (position, motion state, link rate, health, who holds
+// its control lock), each opening its axis page. Built from the descriptors, so it knows nothing per device
 // except which flag means "moving" / "in position" (by name, see STATE_FLAGS).
 import { api } from "../api";
 import { h, replace, setText } from "../dom";
@@ -7,6 +7,22 @@ import { formatValue, nativeUnit } from "../format";
 import { store } from "../store";
 import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
 import { HEALTH_TEXT } from "./axis";
+import { control } from "./control";
+
+/** Who holds the control lock of ``axisId`` (from the server's control_status messages). */
+export function holderText(axisId: string): { text: string; state: "mine" | "held" | "autopilot" | "free" | "unknown" } {
+  const status = control.status.get(axisId);
+  if (!status) return { text: "control: —", state: "unknown" };
+  const holder = status.holder;
+  if (control.mine(axisId)) return { text: "control: this tab", state: "mine" };
+  if (holder?.kind === "user") {
+    const other = holder.user === control.welcome?.user ? " (another tab)" : "";
+    return { text: `control: ${holder.user}${other}`, state: "held" };
+  }
+  if (holder?.kind === "autopilot") return { text: "control: autopilot", state: "autopilot" };
+  if (holder?.kind === "server") return { text: "control: server (stopping)", state: "held" };
+  return { text: "control: free", state: "free" };
+}
 
 /** Flag names that mean "moving" and "in position" across the supported devices. */
 const MOVING = /^(move|running|busy|moving_positive|moving_negative)$/;
@@ -20,6 +36,7 @@ interface Tile {
   state: HTMLElement;
   rate: HTMLElement;
   health: HTMLElement;
+  holder: HTMLElement;
   descriptor: DeviceDescriptor | null;
 }
 
@@ -45,6 +62,7 @@ export class OverviewView {
         state: h("span", { class: "tile-state", testid: `tile-state-${axis.id}` }, "—"),
         rate: h("span", { class: "tile-rate mono" }, "— Hz"),
         health: h("span", { class: "badge health" }, "ok"),
+        holder: h("span", { class: "tile-holder", testid: `tile-control-${axis.id}`, title: "Who holds the control lock of this axis (STOP works for everyone)" }, "control: —"),
         descriptor: null,
         el: h("a"),
       };
@@ -55,6 +73,7 @@ export class OverviewView {
         h("div", { class: "tile-meta mono" }, `${axis.device} · ${axis.link} · #${axis.address}`),
         h("div", { class: "tile-line" }, tile.position, tile.unit),
         h("div", { class: "tile-line" }, tile.state, tile.rate),
+        h("div", { class: "tile-line" }, tile.holder),
       );
       grid.appendChild(tile.el);
       this.tiles.push(tile);
@@ -68,6 +87,17 @@ export class OverviewView {
     }
     if (!this.tiles.length) replace(grid, h("div", { class: "empty-state" }, "No axes yet."));
     store.on("topology", () => undefined, this.abort.signal);
+    const syncHolders = (axis: string | null): void => {
+      for (const tile of this.tiles) if (axis === null || axis === tile.axis.id) this.syncHolder(tile);
+    };
+    syncHolders(null);
+    control.on(syncHolders, this.abort.signal);
+  }
+
+  private syncHolder(tile: Tile): void {
+    const { text, state } = holderText(tile.axis.id);
+    setText(tile.holder, text);
+    if (tile.holder.dataset.state !== state) tile.holder.dataset.state = state;
   }
 
   private positionChannel(d: DeviceDescriptor): string {

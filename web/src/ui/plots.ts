@@ -6,108 +6,42 @@
 // Scope controls: legend toggles, units on the y axes, time under the cursor, two Δ
 // cursors, a trigger (trigger.ts), wheel and drag zoom, channel choice per plot (kept
 // per device in localStorage), x as wall clock or relative time, CSV export.
+// plotkit.ts holds what does not depend on the stack's state (theme, axis text, the
+// uPlot options and header of a panel, the flag-bar and cursor hooks).
 import uPlot from "uplot";
 import "uplot/dist/uPlot.min.css";
 import type { AxisBuffer } from "../buffer";
 import { h, replace, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
-import { StateNames } from "../states";
 import { store } from "../store";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
-import { cut, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
+import { Cutter, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
 import { ScopeTools } from "./scopetools";
-import { drawStates, laneCount, lanePos, scanStates, stateAt, type StatesPanel, statesPx, statesRuns } from "./statesplot";
+import {
+  clockText,
+  decimals,
+  HEADER_PX,
+  lanePx,
+  MARKER_PX,
+  MIN_LINE_PX,
+  type Panel,
+  panelHeader,
+  PHONE,
+  type PlotHost,
+  plotOptions,
+  readTheme,
+  WINDOWS_S,
+  X_AXIS_PX,
+  Y_AXIS_MAX_PX,
+  Y_AXIS_PX,
+  Y_LABEL_PX,
+} from "./plotkit";
+import { lanePos, scanStates, stateAt, statesPx, statesRuns } from "./statesplot";
 import { Trigger } from "./trigger";
 
-export const WINDOWS_S = [5, 10, 30, 60] as const;
-const LANE = 1; // height of a flag trace
-const LANE_GAP = 0.55; // space between lanes
-const LANE_PX = 17;
-/** Lanes get thinner when a device has many flags, so line plots keep their room. */
-const lanePx = (lanes: number): number => (lanes <= 8 ? LANE_PX : Math.max(13, Math.floor(150 / lanes)));
-const Y_AXIS_PX = 68; // at least; wider (up to Y_AXIS_MAX_PX) for long lane labels
-const Y_AXIS_MAX_PX = 116;
-const Y_LABEL_PX = 14; // the unit, written along the y axis
-const X_AXIS_PX = 26;
-const HEADER_PX = 24;
-const MIN_LINE_PX = 90;
-/** Markers on the samples when they are at least this many pixels apart. */
-export const MARKER_PX = 4;
-const PHONE = "(max-width: 760px)";
 /** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
 const LIVE_REDRAW_MS = 32;
-
-interface Theme {
-  axis: string;
-  grid: string;
-  text: string;
-  series: string[];
-  severity: Record<FlagDescriptor["severity"], string>;
-  font: string;
-  cursor: string;
-}
-
-function css(name: string, fallback: string): string {
-  const value = getComputedStyle(document.documentElement).getPropertyValue(name).trim();
-  return value || fallback;
-}
-
-function readTheme(): Theme {
-  return {
-    axis: css("--plot-axis", "#8a96a3"),
-    grid: css("--plot-grid", "#243040"),
-    text: css("--text-dim", "#8a96a3"),
-    series: [1, 2, 3, 4, 5, 6].map((i) => css(`--series-${i}`, "#4cc2ff")),
-    severity: {
-      info: css("--lamp-info", "#3fcf75"),
-      warning: css("--lamp-warning", "#ffb020"),
-      fault: css("--lamp-fault", "#ff4d4d"),
-    },
-    font: `11px ${css("--mono", "monospace")}`,
-    cursor: css("--amber", "#ffae1f"),
-  };
-}
-
-function decimals(incr: number): number {
-  if (!Number.isFinite(incr) || incr <= 0) return 0;
-  return Math.max(0, Math.min(6, -Math.floor(Math.log10(incr) + 1e-9)));
-}
-
-function axisNumber(v: number, incr: number): string {
-  const abs = Math.abs(v);
-  if (abs >= 1e6 && incr >= 1e5) return `${+(v / 1e6).toFixed(Math.max(0, decimals(incr / 1e6)))}M`;
-  if (abs >= 1e4 && incr >= 1e3) return `${+(v / 1e3).toFixed(Math.max(0, decimals(incr / 1e3)))}k`;
-  return v.toFixed(decimals(incr));
-}
-
-/** Wall-clock "14:03:22.125" of a server time (with ``digits`` decimals of seconds). */
-export function clockText(serverT: number, digits: number): string {
-  const offset = store.clockOffsetS;
-  if (!Number.isFinite(offset)) return `${serverT.toFixed(digits)} s`;
-  const ms = (serverT + offset) * 1000;
-  const d = new Date(ms);
-  const p = (n: number): string => String(n).padStart(2, "0");
-  const frac = digits > 0 ? ((ms / 1000) % 1).toFixed(Math.min(3, digits)).slice(1) : "";
-  return `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}${frac}`;
-}
-
-interface Panel {
-  plot: PlotDescriptor;
-  /** The series drawn (the user's channel choice, else the descriptor's). */
-  series: string[];
-  el: HTMLElement;
-  host: HTMLElement;
-  u: uPlot | null;
-  legendValues: HTMLElement[];
-  legendItems: HTMLElement[];
-  unitButtons: HTMLButtonElement[];
-  height: number;
-  states: StatesPanel | null;
-  /** Flag runs [t0, t1, …] per flag (flags plots). */
-  runs: number[][];
-  tab: HTMLButtonElement;
-}
 
 /** What the user chose per device: series per plot and hidden series. */
 interface ScopePrefs {
@@ -117,7 +51,11 @@ interface ScopePrefs {
 }
 
 
-export class PlotStack {
+export { clockText, MARKER_PX, WINDOWS_S };
+
+/** The scope of one axis. Members that the panel options and hooks (plotkit.ts) use are
+ * public: they are the PlotHost interface, not an API for other views. */
+export class PlotStack implements PlotHost {
   readonly el: HTMLElement;
   paused = false;
   windowS = 10;
@@ -127,7 +65,7 @@ export class PlotStack {
   private zoom: [number, number] | null = null;
   private frozenEnd = Number.NaN;
   private readonly panels: Panel[] = [];
-  private readonly theme = readTheme();
+  readonly theme = readTheme();
   private readonly scroller: HTMLElement;
   private readonly pauseButton: HTMLButtonElement;
   private readonly resetButton: HTMLButtonElement;
@@ -137,6 +75,13 @@ export class PlotStack {
   private readonly tabs: HTMLElement;
   readonly tools: ScopeTools;
   private drawnVersion = -1;
+  private readonly cutter = new Cutter();
+  private readonly channelFactors = new Map<string, number>();
+  private readonly flat = [0, 0];
+  private statusState = "";
+  private statusAt = 0;
+  private boxW = 0;
+  private boxH = 0;
   private skipUntil = 0;
   private lastLiveDraw = 0;
   /** Duration of the last redraw (ms). */
@@ -146,10 +91,10 @@ export class PlotStack {
   private hovering = false;
   private dragSource: uPlot | null = null;
   private downX = Number.NaN;
-  private readonly syncKey: string;
-  private readonly flagByName: Map<string, FlagDescriptor>;
-  private readonly yAxisPx: number;
-  private readonly light = document.documentElement.dataset.theme === "light";
+  readonly syncKey: string;
+  readonly flagByName: Map<string, FlagDescriptor>;
+  readonly yAxisPx: number;
+  readonly light = document.documentElement.dataset.theme === "light";
   /** The frame drawn last and the x range shown. */
   frame: Frame | null = null;
   shown: [number, number] = [0, 0];
@@ -280,72 +225,7 @@ export class PlotStack {
     const known = new Set(this.descriptor.channels.map((c) => c.name));
     const chosen = plot.kind === "line" ? (this.prefs.series[plot.name] ?? []).filter((n) => known.has(n)) : [];
     const series = chosen.length ? chosen : plot.series;
-    const header = h("div", { class: "plot-header" }, h("span", { class: "plot-title", title: plot.label }, plot.label));
-    let states: StatesPanel | null = null;
-    const hidden = new Set(this.prefs.hidden[plot.name] ?? []);
-    if (plot.kind === "line") {
-      const legend = h("div", { class: "plot-legend" });
-      series.forEach((name, i) => {
-        const channel = this.units.channel(name);
-        const value = h("span", { class: "legend-value", testid: `legend-${plot.name}-${name}` }, "—");
-        legendValues.push(value);
-        const item = h(
-          "button",
-          {
-            class: hidden.has(name) ? "legend-item off" : "legend-item",
-            testid: `legend-toggle-${plot.name}-${name}`,
-            title: `${channel?.description ?? name}\nClick to hide or show this trace`,
-            "aria-pressed": hidden.has(name) ? "false" : "true",
-            onclick: () => this.toggleSeries(plot.name, name),
-          },
-          h("span", { class: "swatch", style: `background:${this.color(i)}` }),
-          h("span", { class: "legend-label" }, channel?.label ?? name),
-          value,
-        );
-        legendItems.push(item);
-        legend.appendChild(item);
-      });
-      header.appendChild(legend);
-      const choices = this.units.common(series);
-      if (choices.length > 1) {
-        const seg = h("div", { class: "seg small", title: "Display unit" });
-        for (const unit of choices) {
-          const b = h("button", { class: "seg-btn", testid: `unit-${plot.name}-${unit}`, onclick: () => this.units.set(series, unit) }, unit);
-          b.dataset.unit = unit;
-          unitButtons.push(b);
-          seg.appendChild(b);
-        }
-        header.appendChild(seg);
-      } else {
-        header.appendChild(h("span", { class: "plot-unit" }, this.units.unit(series[0] ?? "").unit || plot.unit));
-      }
-    } else if (plot.kind === "states") {
-      const name = plot.series[0] ?? "";
-      const channel = this.units.channel(name);
-      // A states plot of a channel without value_names still gets lanes (named by id).
-      const names = new StateNames(channel ?? { name, label: name, unit: "", description: "", conversions: [], value_names: {} });
-      const swatch = h("span", { class: "swatch state-swatch" });
-      const value = h("span", { class: "legend-value state-value", testid: `plot-${plot.name}-state` }, "—");
-      const id = h("span", { class: "state-id" }, "");
-      legendValues.push(value);
-      header.appendChild(
-        h(
-          "div",
-          { class: "plot-legend" },
-          h("span", { class: "legend-item", title: channel?.description ?? name }, swatch, h("span", { class: "legend-label" }, channel?.label ?? name), value, id),
-        ),
-      );
-      header.appendChild(
-        h(
-          "span",
-          { class: "plot-unit", title: `One lane per state seen since this page opened (sampled values: short states may be missed). All named states:\n${names.values.map((v) => `${names.id(v)} ${names.name(v)}`).join("\n")}` },
-          "states",
-        ),
-      );
-      states = { channel: name, names, seen: new Set(), lanes: [], scannedT: Number.NEGATIVE_INFINITY, x: [], values: [], swatch, id };
-    } else {
-      header.appendChild(h("span", { class: "plot-unit" }, "status flags"));
-    }
+    const { header, states } = panelHeader(this, plot, series, legendValues, legendItems, unitButtons);
     const el = h("div", { class: `plot-panel kind-${plot.kind}` }, header, host);
     const tab = h("button", { class: "seg-btn", role: "tab", testid: `plot-tab-${plot.name}`, onclick: () => this.showPlot(index) }, plot.label);
     if (index >= this.panels.length) {
@@ -358,7 +238,7 @@ export class PlotStack {
     return panel;
   }
 
-  private toggleSeries(plotName: string, name: string): void {
+  toggleSeries(plotName: string, name: string): void {
     const hidden = new Set(this.prefs.hidden[plotName] ?? []);
     if (hidden.has(name)) hidden.delete(name);
     else hidden.add(name);
@@ -376,7 +256,11 @@ export class PlotStack {
     });
   }
 
-  private isHidden(plotName: string, name: string): boolean {
+  hiddenOf(plotName: string): string[] {
+    return this.prefs.hidden[plotName] ?? [];
+  }
+
+  isHidden(plotName: string, name: string): boolean {
     return (this.prefs.hidden[plotName] ?? []).includes(name);
   }
 
@@ -410,14 +294,21 @@ export class PlotStack {
     for (const b of panel.unitButtons) toggleClass(b, "on", b.dataset.unit === current);
   }
 
-  private color(i: number): string {
+  color(i: number): string {
     return this.theme.series[i % this.theme.series.length] as string;
   }
 
   /** Heights: flag and states plots get their lanes, line plots share the rest. */
-  private layout(redraw = true): void {
-    const width = Math.floor(this.scroller.clientWidth);
-    const height = Math.floor(this.scroller.clientHeight);
+  private layout(redraw = true, measure = true): void {
+    // The size is read where layout is fresh (the ResizeObserver callback, a rebuild);
+    // from a redraw (new state lanes) the last size is reused: reading it there would
+    // force a synchronous layout in the middle of the frame.
+    if (measure || !this.boxW) {
+      this.boxW = this.scroller.clientWidth;
+      this.boxH = this.scroller.clientHeight;
+    }
+    const width = Math.floor(this.boxW);
+    const height = Math.floor(this.boxH);
     if (width < 50 || height < 50) return;
     const visible = this.panels.filter((p) => this.shows(p));
     const last = visible[visible.length - 1];
@@ -473,12 +364,21 @@ export class PlotStack {
   }
 
   /** A lane label cut to the axis width ("NOT_CALIBRA…"). */
-  private fitLabel(text: string): string {
+  private readonly fitted = new Map<string, string>();
+
+  /** (Cached: the lane labels are drawn on every redraw, measuring them is not free.) */
+  fitLabel(text: string): string {
+    const known = this.fitted.get(text);
+    if (known !== undefined) return known;
     const room = this.yAxisPx - 8;
-    if (this.textWidth(text) <= room) return text;
-    let cut = text;
-    while (cut.length > 1 && this.textWidth(`${cut}…`) > room) cut = cut.slice(0, -1);
-    return `${cut}…`;
+    let fit = text;
+    if (this.textWidth(text) > room) {
+      let cut = text;
+      while (cut.length > 1 && this.textWidth(`${cut}…`) > room) cut = cut.slice(0, -1);
+      fit = `${cut}…`;
+    }
+    this.fitted.set(text, fit);
+    return fit;
   }
 
   private showState(panel: Panel, value: number | null | undefined): void {
@@ -488,8 +388,13 @@ export class PlotStack {
     const known = value !== null && value !== undefined;
     setText(el, known ? s.names.name(value) : "—");
     setText(s.id, known && s.names.has(value) ? s.names.id(value) : "");
-    s.swatch.style.background = known ? s.names.color(value, this.light) : "transparent";
-    el.title = known ? s.names.describe(value) : "";
+    const color = known ? s.names.color(value, this.light) : "transparent";
+    if (s.swatch.dataset.color !== color) {
+      s.swatch.dataset.color = color;
+      s.swatch.style.background = color;
+    }
+    const title = known ? s.names.describe(value) : "";
+    if (el.title !== title) el.title = title;
   }
 
   private rebuild(): void {
@@ -505,7 +410,7 @@ export class PlotStack {
   }
 
   /** Whether markers are drawn: samples in the window at least MARKER_PX apart. */
-  private sparse(): boolean {
+  sparse(): boolean {
     const f = this.frame;
     if (!f || f.decimated) return false;
     const [min, max] = this.shown;
@@ -515,128 +420,9 @@ export class PlotStack {
   }
 
   private create(panel: Panel): void {
-    const { plot } = panel;
-    const theme = this.theme;
     const visible = this.panels.filter((p) => this.shows(p));
-    const isLast = panel === visible[visible.length - 1];
-    const flags = plot.kind === "flags";
-    const states = panel.states;
-    const lanes = plot.series.length;
-    const laneBase = (i: number): number => (lanes - 1 - i) * (LANE + LANE_GAP);
-    const unitOf = (name: string) => this.units.unit(name);
-    const series: uPlot.Series[] = [{ label: "t" }];
-    const stepped = uPlot.paths.stepped?.({ align: 1 });
-    const linear = uPlot.paths.linear?.();
-    if (states || flags) {
-      // Bars (and the state step connectors) are drawn by drawStates / drawFlags from
-      // the buffer; the one series only carries x for the cursor sync.
-      series.push({ label: plot.label, stroke: "transparent", width: 0, paths: () => null, points: { show: false } });
-    } else {
-      panel.series.forEach((name, i) => {
-        series.push({
-          label: this.units.channel(name)?.label ?? name,
-          stroke: this.color(i),
-          width: i === 0 ? 1.5 : 1.25,
-          show: !this.isHidden(plot.name, name),
-          spanGaps: false,
-          // Slow channels hold their value until the next real sample: a step, not a
-          // line that seems to lead the fast ones.
-          paths: (u, si, i0, i1) => (this.frame?.slow.has(name) ? stepped : linear)?.(u, si, i0, i1) ?? null,
-          points: {
-            size: 5,
-            fill: this.color(i),
-            show: () => !this.frame?.slow.has(name) && this.sparse(),
-            filter: () => this.slowMarkers(name),
-          },
-          value: (_u, v) => formatValue(v, unitOf(name)),
-        });
-      });
-    }
-    const xAxis: uPlot.Axis = {
-      stroke: theme.axis,
-      font: theme.font,
-      grid: { stroke: theme.grid, width: 1 },
-      ticks: { stroke: theme.grid, width: 1, size: isLast ? 4 : 0 },
-      space: this.prefs.xMode === "clock" ? 96 : 70,
-      size: isLast ? X_AXIS_PX : 4,
-      gap: 2,
-      values: isLast ? (_u, splits, _ai, _space, incr) => splits.map((v) => this.xText(v, incr)) : (_u, splits) => splits.map(() => ""),
-    };
-    const label = !flags && !states ? this.units.unit(panel.series[0] ?? "").unit || plot.unit : "";
-    const yCommon = { font: theme.font, size: this.yAxisPx, gap: 4, label, labelSize: Y_LABEL_PX, labelGap: 0, labelFont: theme.font };
-    const yAxis: uPlot.Axis = states
-      ? {
-          ...yCommon,
-          stroke: theme.text,
-          grid: { show: false },
-          ticks: { show: false },
-          splits: () => states.lanes.map((v) => lanePos(states, v)),
-          values: (_u, splits) =>
-            splits.map((pos) => {
-              const value = states.lanes[laneCount(states) - 1 - pos];
-              return value === undefined ? "" : this.fitLabel(states.names.name(value));
-            }),
-        }
-      : flags
-        ? {
-            ...yCommon,
-            stroke: theme.text,
-            grid: { show: false },
-            ticks: { show: false },
-            splits: () => plot.series.map((_n, i) => laneBase(i) + LANE / 2),
-            values: (_u, splits) =>
-              splits.map((_v, i) => {
-                const name = plot.series[i] ?? "";
-                return this.fitLabel(this.flagByName.get(name)?.label ?? name);
-              }),
-          }
-        : {
-            ...yCommon,
-            stroke: theme.axis,
-            space: 18,
-            grid: { stroke: theme.grid, width: 1 },
-            ticks: { stroke: theme.grid, width: 1, size: 3 },
-            values: (_u, splits, _ai, _space, incr) => splits.map((v) => axisNumber(v, incr)),
-          };
-    const opts: uPlot.Options = {
-      width: this.width,
-      height: panel.height,
-      legend: { show: false },
-      padding: [flags || states ? 4 : 9, 10, 0, 0],
-      cursor: {
-        sync: { key: this.syncKey, setSeries: false },
-        drag: { x: true, y: false, setScale: false },
-        points: states || flags ? { show: false } : { size: 5, fill: (u, si) => (u.series[si]?.stroke as (u: uPlot, si: number) => string)?.(u, si) },
-        focus: { prox: -1 },
-      },
-      scales: {
-        x: { time: false },
-        y: states
-          ? { auto: true, range: () => [-0.5, laneCount(states) - 0.5] }
-          : flags
-            ? { auto: false, range: [-0.35, laneBase(0) + LANE + 0.35] }
-            : {
-                auto: true,
-                range: (_u, min, max) => {
-                  if (!Number.isFinite(min) || !Number.isFinite(max)) return [-1, 1];
-                  if (max - min < 1e-9) {
-                    const pad = Math.max(Math.abs(max) * 0.05, 1);
-                    return [min - pad, max + pad];
-                  }
-                  const pad = (max - min) * 0.08;
-                  return [min - pad, max + pad];
-                },
-              },
-      },
-      axes: [xAxis, yAxis],
-      series,
-      hooks: {
-        setSelect: [(u) => this.onSelect(u)],
-        setCursor: [(u) => this.onCursor(panel, u)],
-        drawAxes: states ? [(u) => drawStates(u, states, this.theme, this.light, css("--mono", "monospace"))] : flags ? [(u) => this.drawFlags(panel, u)] : [],
-        draw: [(u) => this.drawCursors(u)],
-      },
-    };
+    const opts = plotOptions(this, panel, this.width, panel === visible[visible.length - 1]);
+    const series = opts.series;
     const empty: uPlot.AlignedData = [[], ...series.slice(1).map(() => [] as number[])];
     panel.u = new uPlot(opts, empty, panel.host);
     const u = panel.u;
@@ -660,7 +446,7 @@ export class PlotStack {
   }
 
   /** Indices of the real samples of a slow channel, when they are far enough apart. */
-  private slowMarkers(name: string): number[] | null {
+  slowMarkers(name: string): number[] | null {
     const f = this.frame;
     const real = f?.real.get(name);
     if (!f || !real || !f.slow.has(name)) return null;
@@ -670,7 +456,7 @@ export class PlotStack {
   }
 
   /** x tick text: wall clock, or seconds relative to the trigger point or the right edge. */
-  private xText(v: number, incr: number): string {
+  xText(v: number, incr: number): string {
     if (this.prefs.xMode === "clock") return clockText(v, decimals(incr));
     const ref = this.trigger.capturedT ?? this.shown[1];
     const rel = v - ref;
@@ -682,61 +468,6 @@ export class PlotStack {
     if (this.prefs.xMode === "clock") return clockText(t, 3);
     const ref = this.trigger.capturedT ?? this.shown[1];
     return `${(t - ref).toFixed(3)} s`;
-  }
-
-  /** Run bars of the flags, one lane each, straight from the buffer. */
-  private drawFlags(panel: Panel, u: uPlot): void {
-    const ctx = u.ctx;
-    const { left, top, width, height } = u.bbox;
-    const px = devicePixelRatio || 1;
-    const lanes = panel.plot.series.length;
-    ctx.save();
-    ctx.beginPath();
-    ctx.rect(left, top, width, height);
-    ctx.clip();
-    panel.plot.series.forEach((name, i) => {
-      const base = (lanes - 1 - i) * (LANE + LANE_GAP);
-      const y0 = u.valToPos(base, "y", true);
-      const y1 = u.valToPos(base + LANE, "y", true);
-      ctx.fillStyle = this.theme.grid;
-      ctx.fillRect(left, Math.round(y0) - px, width, px);
-      const severity = this.flagByName.get(name)?.severity ?? "info";
-      ctx.fillStyle = this.theme.severity[severity];
-      const runs = panel.runs[i] ?? [];
-      for (let k = 0; k + 1 < runs.length; k += 2) {
-        const x0 = u.valToPos(runs[k] as number, "x", true);
-        const x1 = u.valToPos(runs[k + 1] as number, "x", true);
-        if (x1 < left || x0 > left + width) continue;
-        ctx.fillRect(x0, y1, Math.max(px, x1 - x0), y0 - y1);
-      }
-    });
-    ctx.restore();
-  }
-
-  /** The Δ cursors on every plot: vertical lines A and B. */
-  private drawCursors(u: uPlot): void {
-    const { a, b } = this.cursors;
-    if (a === null && b === null) return;
-    const ctx = u.ctx;
-    const { left, top, width, height } = u.bbox;
-    const px = devicePixelRatio || 1;
-    ctx.save();
-    ctx.strokeStyle = this.theme.cursor;
-    ctx.fillStyle = this.theme.cursor;
-    ctx.lineWidth = px;
-    ctx.font = `bold ${10 * px}px ${css("--mono", "monospace")}`;
-    for (const [name, t] of [["A", a], ["B", b]] as const) {
-      if (t === null) continue;
-      const x = Math.round(u.valToPos(t, "x", true)) + 0.5;
-      if (x < left || x > left + width) continue;
-      ctx.setLineDash(name === "A" ? [] : [4 * px, 3 * px]);
-      ctx.beginPath();
-      ctx.moveTo(x, top);
-      ctx.lineTo(x, top + height);
-      ctx.stroke();
-      ctx.fillText(name, x + 3 * px, top + 10 * px);
-    }
-    ctx.restore();
   }
 
   /** Put the next Δ cursor on the sample nearest to ``t``. */
@@ -761,26 +492,12 @@ export class PlotStack {
   }
 
   nearestSampleT(t: number): number | null {
-    const b = this.buffer;
-    if (!b.length) return null;
-    const i = Math.min(b.end - 1, Math.max(b.start, b.indexAt(t)));
-    const j = Math.max(b.start, i - 1);
-    const ti = b.t[i] as number;
-    const tj = b.t[j] as number;
-    return Math.abs(ti - t) <= Math.abs(tj - t) ? ti : tj;
+    return this.buffer.nearestT(t);
   }
 
   /** The latest real value of ``name`` at or before ``t`` (device units), or null. */
   valueAt(name: string, t: number): number | null {
-    const b = this.buffer;
-    const col = b.channels.get(name);
-    if (!col || !b.length) return null;
-    let i = Math.min(b.end - 1, b.indexAt(t + 1e-9) - 1);
-    for (let k = 0; i >= b.start && k < 4096; i--, k++) {
-      const v = col[i] as number;
-      if (!Number.isNaN(v)) return v;
-    }
-    return null;
+    return this.buffer.valueAt(name, t);
   }
 
   /** Channels drawn now (visible line series), with their plot. */
@@ -809,7 +526,7 @@ export class PlotStack {
     this.update();
   }
 
-  private onSelect(u: uPlot): void {
+  onSelect(u: uPlot): void {
     const { left, width } = u.select;
     if (width < 4 || u !== this.dragSource) return;
     this.dragSource = null;
@@ -827,7 +544,7 @@ export class PlotStack {
     this.update();
   }
 
-  private onCursor(panel: Panel, u: uPlot): void {
+  onCursor(panel: Panel, u: uPlot): void {
     const left = u.cursor.left;
     if (left !== undefined && left >= 0 && u.over.matches(":hover")) this.tools.cursorTime(u.posToVal(left, "x"));
     const idx = u.cursor.idx;
@@ -943,6 +660,11 @@ export class PlotStack {
     return { min: end - this.windowS, max: end, live: !this.paused };
   }
 
+  /** Pixel columns of the plot area (one min/max pair each when dense). */
+  private columns(): number {
+    return Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
+  }
+
   /** Redraw now, whatever changed (benchmark, tests). */
   redraw(): void {
     this.dirty = true;
@@ -962,11 +684,26 @@ export class PlotStack {
       if (this.trigger.config.mode === "single") this.tools.fired();
       this.syncControls();
     }
-    const { min, max, live } = this.range();
+    const columns = this.columns();
+    const range = this.range();
+    const { live } = range;
+    let { min, max } = range;
+    let origin = min;
+    const colS = (max - min) / columns;
+    if (live && min > 0) {
+      // A rolling trace sits on pixel columns fixed in time (origin 0): each redraw
+      // scrolls by whole columns and the column cache (decimate.ts) only folds in what
+      // is new. The newest sample is at most one column from the right edge.
+      max = Math.ceil(max / colS - 1e-9) * colS;
+      min = max - this.windowS;
+      origin = 0;
+    }
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
-    // A rolling trace redraws at most every LIVE_REDRAW_MS: smooth to the eye, and with
-    // software canvases (no GPU) the raster of every redraw is most of a frame's cost.
-    if (live && !this.dirty && started - this.lastLiveDraw < LIVE_REDRAW_MS) return;
+    // A rolling trace redraws at most every LIVE_REDRAW_MS and at most once per pixel
+    // column of time (a 60 s window moves 1 px per ~55 ms: redrawing faster shows
+    // nothing new). With software canvases (no GPU) the raster of every redraw is most
+    // of a frame's cost.
+    if (live && !this.dirty && started - this.lastLiveDraw < Math.max(LIVE_REDRAW_MS, 1000 * colS)) return;
     if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
     this.dirty = false;
@@ -976,19 +713,21 @@ export class PlotStack {
     // One sample either side so lines run to the plot edges.
     const lo = Math.max(buffer.start, buffer.indexAt(min) - 1);
     const hi = Math.min(buffer.end, buffer.indexAt(max) + 1);
-    const channels = new Map<string, number>();
+    const channels = this.channelFactors;
+    channels.clear();
     for (const p of this.panels) {
       if (p.plot.kind !== "line" || !this.shows(p)) continue;
       for (const name of p.series) channels.set(name, this.units.unit(name).factor);
     }
-    const columns = Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
-    const frame = cut(buffer, lo, hi, min, max, columns, channels);
+    const frame = this.cutter.cut(buffer, lo, hi, min, max, columns, channels, origin);
     this.frame = frame;
     const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
     for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
-    if (newLanes) this.layout(false);
-    const flat = [min, max];
+    if (newLanes) this.layout(false, false);
+    const flat = this.flat;
+    flat[0] = min;
+    flat[1] = max;
     for (const p of this.panels) {
       if (!this.shows(p)) continue;
       const u = p.u as uPlot;
@@ -1029,7 +768,13 @@ export class PlotStack {
             ? "trigger · recording"
             : "trigger armed"
           : "live";
-    setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
+    // The status (with its sample count) is text in the DOM: a layout each time it
+    // changes, so it is written at most 4 times a second unless the state changed.
+    if (state !== this.statusState || started - this.statusAt > 250) {
+      this.statusState = state;
+      this.statusAt = started;
+      setText(this.status, `${state} · ${(max - min).toFixed(max - min < 10 ? 2 : 1)} s · ${Math.max(0, hi - lo)} samples${frame.decimated ? "" : this.sparse() ? " · markers" : ""}`);
+    }
     toggleClass(this.status, "live", live);
     this.tools.syncCursors();
     const took = performance.now() - started;

@@ -89,7 +89,8 @@ export class Readouts {
         const known = raw !== undefined && state.names.has(raw);
         setText(el, raw === undefined ? "—" : state.names.name(raw));
         toggleClass(el, "unnamed", raw !== undefined && !known);
-        el.dataset.value = raw === undefined ? "" : String(raw);
+        const value = raw === undefined ? "" : String(raw);
+        if (el.dataset.value !== value) el.dataset.value = value;
         // The id beside a name; an unnamed value already shows as its id.
         setText(this.unitLabels.get(channel.name) as HTMLElement, known ? state.names.id(raw) : channel.unit);
         const title = raw === undefined ? `${channel.label}: ${channel.description}` : state.names.describe(raw);
@@ -97,7 +98,8 @@ export class Readouts {
         continue;
       }
       setText(el, formatValue(raw === undefined ? null : raw * unit.factor, unit));
-      el.dataset.unit = unit.unit;
+      // Attributes only when they change: a same-value write still invalidates style.
+      if (el.dataset.unit !== unit.unit) el.dataset.unit = unit.unit;
       const at = this.buffer.latestT.get(channel.name);
       const age = at === undefined ? 0 : this.buffer.lastT - at;
       setText(this.ages.get(channel.name) as HTMLElement, age > 0.05 ? ` · ${age.toFixed(1)} s old` : "");

@@ -14,6 +14,7 @@ export class ScopeTools {
   private readonly cursorButton: HTMLButtonElement;
   private readonly triggerButton: HTMLButtonElement;
   private readonly cursorRow: HTMLElement;
+  private cursorKey = "";
   private readonly triggerRow: HTMLElement;
   private readonly channelsRow: HTMLElement;
   private readonly channelsButton: HTMLButtonElement;
@@ -119,25 +120,30 @@ export class ScopeTools {
   syncCursors(): void {
     const { a, b, on } = this.stack.cursors;
     if (!on) return;
-    const parts: HTMLElement[] = [
-      h("span", { class: "cur-item", testid: "cursor-a" }, h("b", null, "A "), a === null ? "click a plot" : this.stack.timeText(a)),
-      h("span", { class: "cur-item", testid: "cursor-b" }, h("b", null, "B "), b === null ? (a === null ? "—" : "click again") : this.stack.timeText(b)),
+    // [testid, label, text, title]: the DOM is rebuilt only when a text changed (this
+    // runs on every redraw of the scope).
+    const items: [string, string, string, string][] = [
+      ["cursor-a", "A ", a === null ? "click a plot" : this.stack.timeText(a), ""],
+      ["cursor-b", "B ", b === null ? (a === null ? "—" : "click again") : this.stack.timeText(b), ""],
     ];
     if (a !== null && b !== null) {
       const dt = b - a;
-      parts.push(
-        h("span", { class: "cur-item", testid: "cursor-dt" }, h("b", null, "Δt "), `${dt.toFixed(4)} s`),
-        h("span", { class: "cur-item", testid: "cursor-freq" }, h("b", null, "1/Δt "), dt === 0 ? "—" : `${(1 / Math.abs(dt)).toFixed(3)} Hz`),
-      );
+      items.push(["cursor-dt", "Δt ", `${dt.toFixed(4)} s`, ""], ["cursor-freq", "1/Δt ", dt === 0 ? "—" : `${(1 / Math.abs(dt)).toFixed(3)} Hz`, ""]);
       for (const { name, label } of this.stack.drawnChannels()) {
         const unit = this.stack.units.unit(name);
         const va = this.stack.valueAt(name, a);
         const vb = this.stack.valueAt(name, b);
         const dy = va === null || vb === null ? null : (vb - va) * unit.factor;
-        parts.push(h("span", { class: "cur-item", testid: `cursor-dy-${name}`, title: `${label} at A and B` }, h("b", null, `Δ${label} `), `${formatValue(dy, unit)} ${unit.unit}`));
+        items.push([`cursor-dy-${name}`, `Δ${label} `, `${formatValue(dy, unit)} ${unit.unit}`, `${label} at A and B`]);
       }
     }
-    replace(this.cursorRow, parts);
+    const key = items.map((i) => i.join("\u0001")).join("\u0002");
+    if (key === this.cursorKey) return;
+    this.cursorKey = key;
+    replace(
+      this.cursorRow,
+      items.map(([testid, label, text, title]) => h("span", { class: "cur-item", testid, title: title || undefined }, h("b", null, label), text)),
+    );
   }
 
   private apply(): void {
