@@ -246,6 +246,8 @@ export interface AutoTuneResult {
   baseline_run_id: string | null;
   baseline_note?: string;
   verdict?: "better" | "not better" | "unknown" | string;
+  /** Why the verdict is what it is (e.g. a settling time the bench could not measure). */
+  verdict_reason?: string | null;
 }
 
 export interface AutoTuneSession {

@@ -666,6 +666,7 @@ export class AutoTunePanel {
         { class: "at-result-head" },
         h("span", { class: "at-card-title" }, "Verification"),
         h("span", { class: `at-verdict v-${verdict.replace(/\s+/g, "-")}`, testid: "at-verdict", title: "Measured settling (and overshoot) of the verification run against the baseline run" }, verdict),
+        r.verdict_reason ? h("span", { class: "at-hint", testid: "at-verdict-reason" }, r.verdict_reason) : null,
         r.baseline_note ? h("span", { class: "at-hint warn" }, r.baseline_note) : null,
         h("span", { class: "tb-spacer" }),
         h("button", { class: "btn small", testid: "at-show-runs", title: "Select the baseline and verification runs in the overlay", onclick: () => void this.host.showRuns(ids) }, "Show both runs"),
