@@ -371,3 +371,14 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             assert whatif["model"]["law"] == "z1100_kab"
             assert whatif["model"]["period_s"] == pytest.approx(32e-6 * params.get("stm", 1))
             assert abs((await server.state("line-x"))["position"] - before) <= 2
+
+
+def test_usable_band_is_the_longest_coherent_run_below_nyquist() -> None:
+    """One poor tone at the bottom does not hide the good band above it; a tone above
+    Nyquist never counts; no coherent tone gives (0, 0)."""
+    f = np.asarray([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0])
+    coherence = np.asarray([0.88, 0.95, 0.97, 0.93, 0.5, 0.96, 0.99, 0.98, 0.97])
+    assert frfrun._usable_band(f, coherence, nyquist_hz=100.0) == (6.0, 12.0)
+    assert frfrun._usable_band(f, coherence, nyquist_hz=9.0) == (2.0, 4.0)
+    assert frfrun._usable_band(f, np.full(f.size, 0.5), nyquist_hz=100.0) == (0.0, 0.0)
+    assert frfrun._usable_band(f, np.full(f.size, 0.95), nyquist_hz=100.0) == (1.0, 12.0)

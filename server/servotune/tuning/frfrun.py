@@ -171,7 +171,7 @@ def analyse(
     nyquist = rate_measured / 2.0
     in_band = measured.frequency_hz <= nyquist
     coherence = measured.coherence
-    usable = _usable_until(measured.frequency_hz, coherence, nyquist)
+    usable_from, usable = _usable_band(measured.frequency_hz, coherence, nyquist)
     t_resp = measured.response
     with np.errstate(divide="ignore", invalid="ignore"):
         loop = t_resp / (1.0 - t_resp)
@@ -189,6 +189,7 @@ def analyse(
             "re": [round(float(v), 5) for v in np.real(loop)],
             "im": [round(float(v), 5) for v in np.imag(loop)],
         },
+        "usable_from_hz": usable_from,
         "usable_until_hz": usable,
         "sample_rate_hz": round(rate_measured, 2),
         "nyquist_hz": round(nyquist, 2),
@@ -199,15 +200,24 @@ def analyse(
     }
 
 
-def _usable_until(f: FloatArray, coherence: FloatArray, nyquist_hz: float) -> float:
-    """From the lowest tone up to the last one before coherence first falls below
-    MIN_COHERENCE, never above Nyquist (0 when the first tone is already below)."""
-    end = 0.0
-    for freq, coh in zip(f, coherence, strict=True):
-        if coh < MIN_COHERENCE or freq > nyquist_hz:
-            break
-        end = float(freq)
-    return end
+def _usable_band(f: FloatArray, coherence: FloatArray, nyquist_hz: float) -> tuple[float, float]:
+    """The longest run of consecutive tones with coherence >= MIN_COHERENCE below
+    Nyquist, as (first, last) tone frequency; the lowest such run on a tie; (0, 0)
+    when no tone qualifies. A run, not "from the lowest tone on": one poor tone at
+    the bottom (drift, friction at the slowest tone) must not hide a good band above."""
+    good = (np.asarray(coherence) >= MIN_COHERENCE) & (np.asarray(f) <= nyquist_hz)
+    best: tuple[int, int] | None = None
+    start: int | None = None
+    for i, ok in enumerate([*good.tolist(), False]):
+        if ok and start is None:
+            start = i
+        elif not ok and start is not None:
+            if best is None or i - start > best[1] - best[0] + 1:
+                best = (start, i - 1)
+            start = None
+    if best is None:
+        return 0.0, 0.0
+    return float(f[best[0]]), float(f[best[1]])
 
 
 def _margins(f: FloatArray, loop: np.ndarray[Any, np.dtype[np.complex128]]) -> dict[str, Any]:

@@ -39,6 +39,7 @@ interface Part {
   margins: Margins;
   bandwidth_hz: number | null;
   resonance_db: number | null;
+  usable_from_hz?: number;
   usable_until_hz?: number;
   sample_rate_hz?: number;
   nyquist_hz?: number;
@@ -90,7 +91,7 @@ class BodeAxis {
     this.observer.observe(this.el);
   }
 
-  set(data: uPlot.AlignedData, series: uPlot.Series[], unit: string, usable: number | null, theme: PlotTheme): void {
+  set(data: uPlot.AlignedData, series: uPlot.Series[], unit: string, usable: Band | null, theme: PlotTheme): void {
     this.build = () => {
       const width = Math.floor(this.el.clientWidth);
       const height = Math.floor(this.el.clientHeight) || 180;
@@ -98,11 +99,17 @@ class BodeAxis {
       this.u?.destroy();
       const shade = (u: uPlot): void => {
         if (usable === null) return;
-        const x0 = u.valToPos(usable, "x", true);
+        // grey outside the usable band: below its first tone and above its last
+        const left = u.bbox.left;
+        const right = u.bbox.left + u.bbox.width;
+        const clamp = (x: number): number => Math.min(right, Math.max(left, x));
+        const x0 = usable.until > 0 ? clamp(u.valToPos(usable.until, "x", true)) : left;
+        const x1 = usable.from > 0 ? clamp(u.valToPos(usable.from, "x", true)) : left;
         const ctx = u.ctx;
         ctx.save();
         ctx.fillStyle = "rgba(128,128,128,0.14)";
-        ctx.fillRect(x0, u.bbox.top, u.bbox.left + u.bbox.width - x0, u.bbox.height);
+        ctx.fillRect(x0, u.bbox.top, right - x0, u.bbox.height);
+        if (usable.until > 0 && x1 > left) ctx.fillRect(left, u.bbox.top, x1 - left, u.bbox.height);
         ctx.restore();
       };
       this.u = new uPlot(
@@ -135,6 +142,12 @@ class BodeAxis {
 }
 
 /** Coherence bins: a point is drawn in the bin of its coherence (opaque when >= 0.9). */
+/** The usable band of a measurement (Hz; until = 0: none). */
+interface Band {
+  from: number;
+  until: number;
+}
+
 const BINS: { min: number; max: number; alpha: string; label: string }[] = [
   { min: MIN_COHERENCE, max: 1.01, alpha: "ff", label: "coherence ≥ 0.9" },
   { min: 0.5, max: MIN_COHERENCE, alpha: "80", label: "0.5–0.9" },
@@ -299,7 +312,7 @@ export class FrfPanel {
     const phases: (number | null)[][] = [];
     const magSeries: uPlot.Series[] = [];
     const phaseSeries: uPlot.Series[] = [];
-    let usable: number | null = null;
+    let usable: Band | null = null;
     const notes: string[] = [];
     loaded.forEach((d, i) => {
       const run = this.runs[i] as FrfRun;
@@ -316,7 +329,8 @@ export class FrfPanel {
       if (d.measured) {
         const b = open ? d.measured.open_loop : d.measured.closed_loop;
         const coherence = d.measured.closed_loop.coherence ?? [];
-        usable = usable === null ? d.measured.usable_until_hz ?? null : Math.min(usable, d.measured.usable_until_hz ?? usable);
+        const band: Band = { from: d.measured.usable_from_hz ?? 0, until: d.measured.usable_until_hz ?? 0 };
+        usable = usable === null ? band : { from: Math.max(usable.from, band.from), until: Math.min(usable.until, band.until) };
         for (const bin of BINS) {
           const keep = (j: number): boolean => (coherence[j] ?? 0) >= bin.min && (coherence[j] ?? 0) < bin.max;
           xs.push(b.frequency_hz as number[]);
@@ -328,7 +342,7 @@ export class FrfPanel {
           phaseSeries.push({ ...s });
         }
         notes.push(
-          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable to ${fmt(d.measured.usable_until_hz, 1, "Hz")}, input: ${d.measured.input === "setpoint" ? "profile setpoint" : "targets sent"}`,
+          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable ${d.measured.usable_until_hz ? `${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")}` : "nowhere (coherence < 0.9)"}, input: ${d.measured.input === "setpoint" ? "profile setpoint" : "targets sent"}`,
         );
       } else if (d.measured_problem) notes.push(`${run.label}: ${d.measured_problem}`);
       if (d.model_based) notes.push(`${run.label}: MODEL-BASED (${d.model?.law ?? "device law"}), not a measurement`);
