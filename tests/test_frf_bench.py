@@ -28,7 +28,7 @@ from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.tuning import frfrun
-from servotune.tuning.loops import MotorModel, slap2_loop, z1100_loop_for
+from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
     browser_model,
@@ -38,20 +38,9 @@ from servotune.tuning.whatif import (
 
 from .test_api import LiveServer, live_server
 from .test_bench import finished_run, start
+from .test_frf import _motor_model
 
 NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
-
-
-def _motor_model(p: DcMotorParams) -> MotorModel:
-    return MotorModel(
-        resistance_ohm=p.resistance_ohm,
-        inductance_h=p.inductance_h,
-        torque_constant_nm_per_a=p.torque_constant_nm_per_a,
-        inertia_kg_m2=p.inertia_kg_m2,
-        viscous_friction_nm_s_per_rad=p.viscous_friction_nm_s_per_rad,
-        supply_v=p.supply_v,
-        counts_per_rev=p.counts_per_rev,
-    )
 
 
 # --- sans-IO ---------------------------------------------------------------------------

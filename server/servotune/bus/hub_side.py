@@ -24,8 +24,6 @@ import contextlib
 import json
 import logging
 import secrets
-from collections.abc import Coroutine
-from typing import Any
 
 from nats.aio.client import Client
 from nats.aio.msg import Msg
@@ -40,6 +38,7 @@ from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
 from servotune.bus.messages import KeepAlive, RigManifest, RunRecord
 from servotune.bus.remote import BusPort, RemoteLink, hub_id
+from servotune.bus.tasks import BackgroundTasks
 from servotune.hub import Hub
 from servotune.storage import Storage, StorageError
 
@@ -108,7 +107,7 @@ class HubBus:
         self._storage: Storage | None = None
         self.links: dict[tuple[str, str], RemoteLink] = {}
         self._rigs: dict[str, list[RemoteLink]] = {}
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = BackgroundTasks(logger)
         self.runs_stored = 0
 
     async def prepare(self, hub: Hub, storage: Storage) -> None:
@@ -160,33 +159,18 @@ class HubBus:
             if rig in present and present[rig] != b"{}":
                 for link in links:
                     link.on_presence()
-        self._spawn(self._keepalive(), "bus: keep-alive")
-        self._spawn(self._collect_runs(), "bus: runs")
+        self._tasks.spawn(self._keepalive(), "bus: keep-alive")
+        self._tasks.spawn(self._collect_runs(), "bus: runs")
 
     async def stop(self) -> None:
         if self._port is not None:
             self._port.closing = True
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+        await self._tasks.cancel_all()
         for nc in (self._nc, self._stop_nc):
             if nc is not None:
                 # A connection already cut (network down) fails its last flush.
                 with contextlib.suppress(NatsError, TimeoutError, OSError):
                     await nc.close()
-
-    def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
-        task = asyncio.create_task(job, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._done)
-
-    def _done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            # A bug must be visible, not silently end the bus side.
-            logger.error("%s failed", task.get_name(), exc_info=task.exception())
 
     # --- what the rigs publish --------------------------------------------------------
 

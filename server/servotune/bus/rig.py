@@ -33,7 +33,6 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Coroutine
 from typing import Any
 
 from fastapi import HTTPException
@@ -59,6 +58,7 @@ from servotune.bus.messages import (
     RigManifest,
     RunRecord,
 )
+from servotune.bus.tasks import BackgroundTasks
 from servotune.control import ControlClient, ControlManager
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -129,7 +129,7 @@ class RigAgent:
         self._nc: Client | None = None
         self._stop_nc: Client | None = None
         self._queue: ClientQueue | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = BackgroundTasks(logger)
         self._sessions: dict[str, tuple[ControlClient, float]] = {}
         self._unpublished: set[str] = set()
         self._published: set[str] = set()
@@ -146,7 +146,7 @@ class RigAgent:
     async def start(self) -> None:
         """Join the bus in the background: a rig whose lab network is down at start-up
         starts anyway (local dashboard, STOP, recording) and joins when it can."""
-        self._spawn(self._join(), "bus: joining")
+        self._tasks.spawn(self._join(), "bus: joining")
 
     async def _join(self) -> None:
         backoff_s = 0.5
@@ -163,9 +163,9 @@ class RigAgent:
         published = await asyncio.to_thread(self._storage.get_meta, _PUBLISHED_META)
         self._published = set(published) if isinstance(published, list) else set()
         self._queue = self._hub.subscribe()
-        self._spawn(self._forward(self._queue), "bus: forward fan-out")
-        self._spawn(self._presence(), "bus: presence")
-        self._spawn(self._publish_runs(), "bus: runs")
+        self._tasks.spawn(self._forward(self._queue), "bus: forward fan-out")
+        self._tasks.spawn(self._presence(), "bus: presence")
+        self._tasks.spawn(self._publish_runs(), "bus: runs")
 
     async def _connect(self) -> None:
         """Both connections and their subscriptions (once connected, nats-py reconnects)."""
@@ -196,11 +196,7 @@ class RigAgent:
         offline at once (a killed rig is found by the presence's silence instead)."""
         if self._queue is not None:
             self._hub.unsubscribe(self._queue)
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+        await self._tasks.cancel_all()
         if graceful and self._nc is not None and self._nc.is_connected:
             with contextlib.suppress(NatsError, TimeoutError):
                 await self._nc.publish(
@@ -211,17 +207,6 @@ class RigAgent:
             self._control.disconnect(client)
         self._sessions.clear()
         await self._close_connections()
-
-    def _spawn(self, job: Coroutine[Any, Any, None], name: str) -> None:
-        task = asyncio.create_task(job, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._done)
-
-    def _done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and task.exception() is not None:
-            # A bug must be visible, not silently end the bus side.
-            logger.error("%s failed", task.get_name(), exc_info=task.exception())
 
     # --- what the rig offers ----------------------------------------------------------
 
@@ -298,7 +283,7 @@ class RigAgent:
             return  # STOP is answered on the STOP connection
         # Each request in a task of its own: a parameter write waiting for its read-back
         # must not hold the next request back.
-        self._spawn(self._answer(msg, tokens[3], tokens[4], tokens[6]), f"bus: {msg.subject}")
+        self._tasks.spawn(self._answer(msg, tokens[3], tokens[4], tokens[6]), f"bus: {msg.subject}")
 
     async def _on_stop(self, msg: Msg) -> None:
         tokens = msg.subject.split(".")
