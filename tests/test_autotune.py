@@ -3,7 +3,7 @@
 The end-to-end tests run the assistant through the API on simulated SLAP2 modules on a
 real pty (the demo's line: module 0 unloaded, module 1 with SLAP2_LOADED) and compare
 the verification test with the baseline test the assistant runs right before with the
-manual's default gains. "Better" is ``autotune.verdict`` (docs/autotune.md): the tuned
+manual's default gains. "Better" is ``autotune.verdict.verdict`` (docs/autotune.md): the tuned
 run settles into the in-position window and the baseline does not, or settles later.
 """
 
@@ -20,21 +20,9 @@ from typing import Any
 
 import pytest
 
-from servotune.autotune import (
-    MAX_PWM_PER_COUNT,
-    OVERSHOOT_LIMIT_PCT,
-    AutoTuner,
-    Gains,
-    MoveSpec,
-    PlantModel,
-    align_identification,
-    fit_plant,
-    model_positions,
-    propose_gains,
-    pwm_per_count,
-    simulate_response,
-    verdict,
-)
+from servotune.autotune import AutoTuner
+from servotune.autotune.slap2_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
+from servotune.autotune.verdict import verdict
 from servotune.demo import SLAP2_LOADED
 from servotune.drivers.base import DeviceRefusedError
 from servotune.metrics import compute_metrics, unmeasured
@@ -42,6 +30,15 @@ from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import TICK_S, Slap2Bus, Slap2Module
+from servotune.tuning.devices.slap2 import (
+    Gains,
+    MoveSpec,
+    align_identification,
+    pwm_per_count,
+    simulate_response,
+)
+from servotune.tuning.identify import fit_plant
+from servotune.tuning.plants import PlantModel, model_positions
 
 from .test_api import live_server
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from servotune import autotune
+from servotune.autotune import slap2 as slap2_tuner
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 
@@ -60,7 +60,7 @@ async def test_a_failed_identification_returns_the_axis_and_says_everything(
     def failing_fit(*args: object, **kwargs: object) -> object:
         raise ValueError("injected: the fit did not converge")
 
-    monkeypatch.setattr(autotune, "fit_plant", failing_fit)
+    monkeypatch.setattr(slap2_tuner, "fit_plant", failing_fit)
     bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
     module = bus.module(0)
     with PtySimulator(bus, baud=19200) as sim:

@@ -2,7 +2,7 @@
 demo plants (loads 0, 5x and 20x the rotor inertia) on a real pty at 38400 baud.
 
 Every axis starts from deliberately mediocre gains (KABH = KABD = K 8, A 16, B 8).
-"Better" is ``autotune_z1100.verdict_z1100`` (docs/autotune.md, Z1100).
+"Better" is ``autotune.verdict.verdict_z1100`` (docs/autotune.md, Z1100).
 """
 
 from __future__ import annotations
@@ -16,17 +16,8 @@ from typing import Any
 
 import pytest
 
-from servotune.autotune_z1100 import (
-    Kab,
-    MoveProfile,
-    Z1100Plant,
-    fit_plant_closed_loop,
-    interpolate,
-    move_metrics,
-    propose_kab,
-    simulate_move,
-    verdict_z1100,
-)
+from servotune.autotune.verdict import verdict_z1100
+from servotune.autotune.z1100_rule import propose_kab
 from servotune.config import LinkSpec
 from servotune.demo import Z1100_LOADS_KG_M2
 from servotune.protocols import z1100 as codec
@@ -34,6 +25,15 @@ from servotune.protocols.z1100 import Gains
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.tuning.devices.z1100 import (
+    Kab,
+    MoveProfile,
+    fit_plant_closed_loop,
+    move_metrics,
+    simulate_move,
+)
+from servotune.tuning.identify import interpolate
+from servotune.tuning.plants import Z1100Plant
 
 from .test_api import live_server
 

@@ -1,8 +1,8 @@
 """Identified plant models as loop models, and what the bench's what-if view needs.
 
-The auto-tune's identification (``autotune.fit_plant`` for the SLAP2,
-``autotune_z1100.fit_plant_closed_loop`` for the Z1100) fits a first-order velocity
-model, ``tau dv/dt = gain u - v``, position integrating velocity. As a transfer
+The auto-tune's identification (``tuning.identify.fit_plant`` for the SLAP2,
+``tuning.devices.z1100.fit_plant_closed_loop`` for the Z1100) fits a first-order
+velocity model, ``tau dv/dt = gain u - v``, position integrating velocity. As a transfer
 function in counts per controller output unit (PWM units, full scale 255)::
 
     P(s) = g / (s (tau s + 1))
@@ -24,35 +24,27 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import control
 import numpy as np
 
+from servotune.tuning.devices import Law, law_for
 from servotune.tuning.frf import FloatArray
-from servotune.tuning.loops import (
-    PWM_FULL_SCALE,
-    SLAP2_TICK_S,
-    Z1100_TICK_S,
-    LoopModel,
-    slap2_loop_for,
-    z1100_loop_for,
-)
+from servotune.tuning.loops import LoopModel
+from servotune.tuning.plants import IdentifiedPlant
 
-Law = Literal["slap2_pid", "z1100_kab"]
-
-
-@dataclass(frozen=True, slots=True)
-class IdentifiedPlant:
-    """First-order velocity plant: counts/s per controller output unit, time constant."""
-
-    gain_counts_s_per_unit: float
-    tau_s: float
-    source: str  # where the numbers come from, shown to the user
-
-    def transfer_function(self) -> control.TransferFunction:
-        return control.tf([self.gain_counts_s_per_unit], [self.tau_s, 1.0, 0.0])
+__all__ = [
+    "IdentifiedPlant",
+    "Law",
+    "bode_dict",
+    "browser_model",
+    "law_of",
+    "loop_for",
+    "margins_dict",
+    "model_summary",
+    "plant_from_identification",
+]
 
 
 def plant_from_identification(device: str, model: Mapping[str, Any] | None) -> IdentifiedPlant:
@@ -60,38 +52,24 @@ def plant_from_identification(device: str, model: Mapping[str, Any] | None) -> I
     there is none or it lacks the fields of ``device``'s fit."""
     if not model:
         raise ValueError("no identified plant model: run the auto-tune's Identify first")
-    tau = float(model.get("tau_s", 0.0))
-    if device == "slap2" and "gain_counts_s_per_pwm" in model:
-        gain = float(model["gain_counts_s_per_pwm"])
-    elif device == "z1100" and "gain_counts_s_per_duty" in model:
-        gain = float(model["gain_counts_s_per_duty"]) / PWM_FULL_SCALE
-    else:
-        raise ValueError(f"the identified model does not describe a {device} plant")
+    try:
+        plant = law_for(device).linear_plant(model)
+    except ValueError:
+        raise ValueError(f"the identified model does not describe a {device} plant") from None
+    gain, tau = plant.gain_counts_s_per_unit, plant.tau_s
     if not (gain > 0 and tau > 0 and math.isfinite(gain) and math.isfinite(tau)):
         raise ValueError(f"implausible identified model: gain {gain}, tau {tau} s")
-    return IdentifiedPlant(gain, tau, "auto-tune identification")
+    return plant
 
 
 def loop_for(device: str, plant: IdentifiedPlant, gains: Mapping[str, int]) -> LoopModel:
     """The device's exact discrete law with ``gains`` (device parameter names) around
-    ``plant``. The Z1100 is modelled with its hold gains (KABD): the set in force when
-    the axis stands, which is where a frequency response around a held position is."""
-    tf = plant.transfer_function()
-    if device == "slap2":
-        return slap2_loop_for(tf, gains["kp"], gains["ki"], gains["kd"])
-    if device == "z1100":
-        return z1100_loop_for(
-            tf, gains["kabd_k"], gains["kabd_a"], gains["kabd_b"], max(1, gains.get("stm", 1))
-        )
-    raise ValueError(f"no controller law for {device}")
+    ``plant`` (``DeviceLaw.loop``: the Z1100 with its hold gains, KABD)."""
+    return law_for(device).loop(plant, gains)
 
 
 def law_of(device: str) -> Law:
-    if device == "slap2":
-        return "slap2_pid"
-    if device == "z1100":
-        return "z1100_kab"
-    raise ValueError(f"no controller law for {device}")
+    return law_for(device).law
 
 
 def browser_model(device: str, plant: IdentifiedPlant, params: Mapping[str, int]) -> dict[str, Any]:
@@ -99,8 +77,8 @@ def browser_model(device: str, plant: IdentifiedPlant, params: Mapping[str, int]
 
     ``plant_num``/``plant_den``: ``y[n] = sum(num[i] u[n-i]) - sum(den[i] y[n-i], i>=1)``
     with ``den[0] == 1``."""
-    stm = max(1, params.get("stm", 1))
-    period = SLAP2_TICK_S if device == "slap2" else stm * Z1100_TICK_S
+    law = law_for(device)
+    period = law.period_s(params)
     pd = control.c2d(plant.transfer_function(), period, "zoh")
     num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(pd))
     # tf coefficients are in descending powers of z; pad num to den's length so both
@@ -109,11 +87,11 @@ def browser_model(device: str, plant: IdentifiedPlant, params: Mapping[str, int]
     scale = den[0]
     return {
         "device": device,
-        "law": law_of(device),
+        "law": law.law,
         "period_s": period,
         "plant_num": (num / scale).tolist(),
         "plant_den": (den / scale).tolist(),
-        "pwm_limit": PWM_FULL_SCALE,
+        "pwm_limit": law.output_limit,
         "plant": {
             "gain_counts_s_per_unit": plant.gain_counts_s_per_unit,
             "tau_s": plant.tau_s,

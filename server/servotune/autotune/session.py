@@ -1,0 +1,84 @@
+"""The auto-tune's API-facing state: the identify request and the per-axis session."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Final, Literal
+
+from pydantic import BaseModel, Field
+
+from servotune.autotune.slap2_rule import Proposal, Response
+from servotune.protocols.slap2 import PWM_MAX
+
+TestKind = Literal["position_step", "move"]
+SessionState = Literal["idle", "identifying", "proposed", "verifying", "verified", "failed"]
+DEFAULT_TEST_DISTANCE: Final = 1000
+
+
+class IdentifyRequest(BaseModel):
+    """``POST /api/axes/{id}/autotune/identify``: the user's limits and the goal."""
+
+    max_pwm: int = Field(ge=1, le=PWM_MAX, description="largest open-loop PWM (-255..255)")
+    max_distance_counts: int = Field(
+        ge=1,
+        le=1 << 24,
+        description="no test travels further than this from where it starts (counts)",
+    )
+    response: Response = Field(
+        default="no_overshoot", description="no_overshoot (<= 1 %) or fast (<= 10 %)"
+    )
+    test: TestKind = Field(
+        default="position_step",
+        description="the test the gains are tuned for: position_step (sv/sa at maximum) "
+        "or move (the axis' own sv/sa)",
+    )
+    direction: Literal[1, -1] = Field(
+        default=1, description="1: identify and test towards positive counts, -1: negative"
+    )
+    distance: int | None = Field(
+        default=None,
+        ge=1,
+        le=1 << 24,
+        description="distance of the baseline and verification tests, counts "
+        f"(default: {DEFAULT_TEST_DISTANCE} or half of max_distance_counts if smaller)",
+    )
+
+
+@dataclass(slots=True)
+class Session:
+    axis_id: str
+    state: SessionState = "idle"
+    message: str = ""
+    request: IdentifyRequest | None = None
+    identification_run_id: str | None = None
+    proposal: Proposal | None = None
+    proposal_dict: dict[str, Any] | None = None
+    model: dict[str, Any] | None = None
+    device_settings: dict[str, int] = field(default_factory=dict)
+    result: dict[str, Any] | None = None
+    updated_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "axis": self.axis_id,
+            "state": self.state,
+            "message": self.message,
+            "request": self.request.model_dump() if self.request else None,
+            "identification_run_id": self.identification_run_id,
+            "model": self.model,
+            "proposal": self.proposal_dict,
+            "result": self.result,
+            "updated_s": self.updated_s,
+        }
+
+    def reset(self, request: IdentifyRequest) -> None:
+        """A new identification starts: forget the last proposal and result."""
+        self.request = request
+        self.proposal = self.proposal_dict = self.result = self.model = None
+        self.identification_run_id = None
+
+    def set(self, state: SessionState, message: str) -> None:
+        self.state = state
+        self.message = message
+        self.updated_s = time.time()

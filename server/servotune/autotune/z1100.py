@@ -1,0 +1,308 @@
+"""The Z1100 half of the auto-tune: closed-loop identification with the gains in use,
+fit, proposal, verification (docs/autotune.md, "Z1100"; same API and shapes as the
+SLAP2's).
+
+The science is in the shared core: the K/A/B law, its simulation and the closed-loop
+fit in ``tuning.devices.z1100``, the rule in ``autotune.z1100_rule``; this module
+sequences it on a live axis through ``TuningContext``. The fit and the gain search
+run in worker threads.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import asdict
+from typing import Any, Final
+
+from servotune.autotune.context import TuningContext
+from servotune.autotune.session import IdentifyRequest, Session
+from servotune.autotune.verdict import verdict_z1100
+from servotune.autotune.z1100_rule import Z1100Proposal, propose_kab
+from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
+from servotune.hub import AxisEntry
+from servotune.metrics import unmeasured
+from servotune.tuning.devices.z1100 import (
+    BAND_COUNTS,
+    IDENT_MIN_DISTANCE,
+    MAX_FIT_RMS_COUNTS,
+    Kab,
+    MoveProfile,
+    fit_plant_closed_loop,
+    kab_dict,
+)
+
+DEFAULT_DISTANCE: Final = 10_000
+SETTLE_TIMEOUT_S: Final = 3.0
+TEST_RECORD_S: Final = 1.0  # recorded after the profile's end
+
+
+def _gains_of(values: dict[str, int], prefix: str) -> Kab:
+    try:
+        return Kab(values[f"{prefix}_k"], values[f"{prefix}_a"], values[f"{prefix}_b"])
+    except KeyError:
+        raise DeviceRefusedError("the axis' gains are not read yet") from None
+
+
+class Z1100Tuner:
+    """identify -> propose -> accept -> verify on Z1100 motors (``autotune.DeviceTuner``)."""
+
+    identifying_message: Final = "identifying the plant (closed-loop move, gains in use)"
+
+    def __init__(self, ctx: TuningContext) -> None:
+        self._ctx = ctx
+        self._proposals: dict[str, Z1100Proposal] = {}
+
+    @staticmethod
+    def _profile(entry: AxisEntry, distance: int) -> MoveProfile:
+        values = entry.device_values
+        vmax, acc = values.get("vmax", 0), values.get("acc", 0)
+        if not vmax or not acc:
+            raise DeviceRefusedError("the axis' Vmax or Acc is 0: no move")
+        return MoveProfile(distance, float(vmax), float(acc), max(1, values.get("stm", 1)))
+
+    async def check_request(self, entry: AxisEntry, request: IdentifyRequest) -> int:
+        ctx = self._ctx
+        limits = await ctx.bench.limits(entry.info.id)
+        if request.max_distance_counts > limits.max_distance_counts:
+            raise InvalidArgumentError(
+                "max_distance_counts",
+                f"max_distance_counts {request.max_distance_counts} exceeds your bench limit "
+                f"of ±{limits.max_distance_counts} counts",
+            )
+        if request.max_distance_counts < IDENT_MIN_DISTANCE:
+            raise InvalidArgumentError(
+                "max_distance_counts",
+                f"max_distance_counts {request.max_distance_counts} is too small: at least "
+                f"{IDENT_MIN_DISTANCE}",
+            )
+        distance = request.distance or min(DEFAULT_DISTANCE, request.max_distance_counts // 2)
+        if distance > request.max_distance_counts:
+            raise InvalidArgumentError(
+                "distance",
+                f"distance {distance} exceeds your limit max_distance_counts of "
+                f"±{request.max_distance_counts}",
+            )
+        if ctx.test_running(entry):
+            raise DeviceRefusedError("a test is already running on this axis")
+        if not ctx.connected(entry):
+            raise DeviceRefusedError("the axis is not connected: no telemetry")
+        assert entry.latest is not None
+        if entry.latest.flags.get("running"):
+            raise DeviceRefusedError("the axis is moving: wait until it stands still")
+        return distance
+
+    async def identify(
+        self, entry: AxisEntry, session: Session, request: IdentifyRequest, distance: int
+    ) -> dict[str, Any]:
+        ctx = self._ctx
+        values = entry.device_values
+        current, current_kabd = _gains_of(values, "kabh"), _gains_of(values, "kabd")
+        signed = request.direction * distance
+        profile = self._profile(entry, signed)
+        start = round(ctx.position(entry.latest))
+        run = await self._run_test(entry, signed, "auto-tune identification (gains in use)")
+        await self._return(entry, start)
+        times, errors = _trace(run, request.direction)
+        plant = await asyncio.to_thread(
+            fit_plant_closed_loop, times, errors, current, current_kabd, profile.positive()
+        )
+        session.model = plant.to_dict()
+        ctx.hub.on_event(
+            "info",
+            entry.info.id,
+            f"auto-tune: model {plant.gain:.0f} counts/s per duty, tau "
+            f"{plant.tau_s * 1000:.1f} ms (rms {plant.rms_error_counts:.1f} counts)",
+        )
+        proposal = await asyncio.to_thread(
+            propose_kab,
+            plant,
+            profile.positive(),
+            request.response,
+            current,
+            current_kabd,
+            BAND_COUNTS,
+            request.max_distance_counts,
+        )
+        self._proposals[entry.info.id] = proposal
+        body = proposal.to_dict()
+        body["identification_run_id"] = run["id"]
+        body["identification_run_ids"] = [run["id"]]
+        body["travel_counts"] = _travel(run, start)
+        peak_error = max((abs(e) for e in errors), default=0.0)
+        body["warnings"] = (
+            [
+                f"the model fits the recorded following error poorly (rms "
+                f"{plant.rms_error_counts:.1f} counts of a peak {peak_error:.0f}): check "
+                "the proposal's prediction against the verification"
+            ]
+            if plant.rms_error_counts > max(MAX_FIT_RMS_COUNTS, 0.15 * peak_error)
+            else []
+        )
+        body["baseline_possible"] = proposal.default_excursion <= request.max_distance_counts
+        session.identification_run_id = run["id"]
+        session.proposal_dict = body
+        session.device_settings = {
+            k: v
+            for k, v in values.items()
+            if k.startswith("kabh") or k.startswith("kabd") or k in ("vmax", "acc", "stm")
+        }
+        return body
+
+    @staticmethod
+    def proposed_message(body: dict[str, Any]) -> str:
+        g, c = body["gains"], body["current_gains"]
+        return (
+            f"proposed KABH {g['kabh_k']}/{g['kabh_a']}/{g['kabh_b']} KABD "
+            f"{g['kabd_k']}/{g['kabd_a']}/{g['kabd_b']} (now KABH "
+            f"{c['kabh_k']}/{c['kabh_a']}/{c['kabh_b']})"
+        )
+
+    async def move_back(self, entry: AxisEntry, target: float) -> None:
+        """Move back to ``target`` with the gains in use (after a failed identification)."""
+        await self._return(entry, round(target))
+
+    async def _run_test(self, entry: AxisEntry, distance: int, note: str) -> dict[str, Any]:
+        profile = self._profile(entry, distance)
+        return await self._ctx.run_test(
+            entry, "move", distance, profile.time_s() + TEST_RECORD_S, note, samples=True
+        )
+
+    async def _return(self, entry: AxisEntry, target: int) -> None:
+        ctx = self._ctx
+        position = round(ctx.position(entry.latest))
+        if position == target:
+            return
+        await ctx.hub.command(entry.info.id, "go_to_target", {"target": target})
+        await asyncio.sleep(0.1)
+        deadline = ctx.clock() + SETTLE_TIMEOUT_S + 2.0
+        while ctx.clock() < deadline:
+            sample = await ctx.next_sample(entry)
+            error = sample.channels.get("following_error")
+            if not sample.flags.get("running") and error is not None and abs(error) <= BAND_COUNTS:
+                return
+        raise DriverError(f"the axis did not settle at {target}")
+
+    # --- accept, verify, revert -------------------------------------------------------
+
+    @staticmethod
+    def check_accept(entry: AxisEntry, session: Session) -> None:
+        """409 without a proposal, or with gains or profile changed since it."""
+        if session.state != "proposed":
+            raise DeviceRefusedError("no proposal to accept: run identify first")
+        changed = [k for k, v in session.device_settings.items() if entry.device_values.get(k) != v]
+        if changed:
+            raise DeviceRefusedError(
+                f"settings changed since the proposal ({', '.join(changed)}): identify again"
+            )
+
+    def previous_gains(self, entry: AxisEntry, session: Session) -> dict[str, int]:
+        """KABH/KABD in use before the proposal (what a failed accept writes back)."""
+        proposal = self._proposals.get(entry.info.id)
+        if proposal is None:
+            raise DeviceRefusedError("no proposal to accept: run identify first")
+        return kab_dict(proposal.current, proposal.current_kabd)
+
+    async def restore(self, entry: AxisEntry, previous: dict[str, int]) -> dict[str, int]:
+        return await self._write_previous(entry)
+
+    async def verify(self, entry: AxisEntry, session: Session) -> dict[str, Any]:
+        proposal = self._proposals.get(entry.info.id)
+        if proposal is None or session.request is None:
+            raise DeviceRefusedError("no proposal to accept: run identify first")
+        ctx = self._ctx
+        hub = ctx.hub
+        axis_id = entry.info.id
+        distance = proposal.profile.distance * session.request.direction
+        start = round(ctx.position(entry.latest))
+        baseline: dict[str, Any] | None = None
+        baseline_note = ""
+        if proposal.default_excursion <= session.request.max_distance_counts:
+            hub.on_event("info", axis_id, "auto-tune: baseline test with the previous gains")
+            baseline = await self._run_test(entry, distance, "auto-tune baseline (previous gains)")
+            await self._return(entry, start)
+        else:
+            baseline_note = (
+                f"baseline skipped: the previous gains are predicted to travel "
+                f"{proposal.default_excursion} counts, beyond your max_distance_counts"
+            )
+            hub.on_event("warning", axis_id, f"auto-tune: {baseline_note}")
+        gains = proposal.gains
+        # KABH first: the chip copies KABH into KABD, so KABD must follow it.
+        await hub.write_params(axis_id, {"kabh_k": gains.k, "kabh_a": gains.a, "kabh_b": gains.b})
+        kabd = gains.kabd()
+        await hub.write_params(axis_id, {"kabd_k": kabd.k, "kabd_a": kabd.a, "kabd_b": kabd.b})
+        hub.on_event("info", axis_id, "auto-tune: verification test with the new gains")
+        verification = await self._run_test(
+            entry, distance, "auto-tune verification (proposed gains)"
+        )
+        await self._return(entry, start)
+        measured = verification.get("metrics") or {}
+        baseline_measured = baseline.get("metrics") if baseline else None
+        return {
+            "gains": proposal.gains_dict(),
+            "previous_gains": kab_dict(proposal.current, proposal.current_kabd),
+            "predicted": asdict(proposal.predicted),
+            "measured": measured,
+            "predicted_default": asdict(proposal.predicted_default),
+            "baseline_measured": baseline_measured,
+            "verification_run_id": verification["id"],
+            "baseline_run_id": baseline["id"] if baseline else None,
+            "baseline_note": baseline_note,
+            "verdict": verdict_z1100(
+                baseline_measured,
+                measured,
+                baseline_unmeasured=unmeasured(baseline),
+                tuned_unmeasured=unmeasured(verification),
+            ),
+            "verdict_reason": unmeasured(verification) or unmeasured(baseline),
+        }
+
+    @staticmethod
+    def verified_message(result: dict[str, Any]) -> str:
+        return f"verified: {result['verdict']}"
+
+    @staticmethod
+    def check_revert(session: Session) -> None:
+        if session.state not in ("verified", "failed"):
+            raise DeviceRefusedError("nothing to revert: no accepted proposal")
+
+    async def revert(self, entry: AxisEntry, session: Session) -> tuple[dict[str, int], str]:
+        return await self._write_previous(entry), "reverted to the previous KABH/KABD"
+
+    async def _write_previous(self, entry: AxisEntry) -> dict[str, int]:
+        """The previous KABH, then KABD (SetKABH overwrites KABD on the chip)."""
+        proposal = self._proposals.get(entry.info.id)
+        if proposal is None:
+            raise DeviceRefusedError("nothing to revert: no accepted proposal")
+        hub = self._ctx.hub
+        c, d = proposal.current, proposal.current_kabd
+        written = await hub.write_params(
+            entry.info.id, {"kabh_k": c.k, "kabh_a": c.a, "kabh_b": c.b}
+        )
+        written |= await hub.write_params(
+            entry.info.id, {"kabd_k": d.k, "kabd_a": d.a, "kabd_b": d.b}
+        )
+        return written
+
+
+def _travel(run: dict[str, Any], start: float) -> int:
+    """The largest distance from ``start`` the run recorded."""
+    index = run["columns"].index("position")
+    positions = [row[index] for row in run["samples"] if row[index] is not None]
+    return round(max((abs(p - start) for p in positions), default=0.0))
+
+
+def _trace(run: dict[str, Any], direction: int) -> tuple[list[float], list[float]]:
+    """Times after the trigger and following errors (in the move's sense) of a run."""
+    columns: list[str] = run["columns"]
+    index = columns.index("following_error")
+    t0 = float(run.get("t0_s") or run["samples"][0][0])
+    times: list[float] = []
+    errors: list[float] = []
+    for row in run["samples"]:
+        value = row[index]
+        if value is None or row[0] < t0:
+            continue
+        times.append(row[0] - t0)
+        errors.append(direction * float(value))
+    return times, errors
