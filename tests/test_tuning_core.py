@@ -20,8 +20,8 @@ from scipy import signal
 
 from servotune.demo import Z1100_LOADS_KG_M2
 from servotune.protocols import z1100 as codec
-from servotune.protocols.z1100 import Gains as ChipGains
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.protocols.z1100 import Gains as ChipGains
 from servotune.sim.slap2 import TICK_S, Slap2Module
 from servotune.sim.z1100 import AxisParameters, Z1100Chip
 from servotune.tuning.devices import law_for
@@ -221,10 +221,14 @@ def _imports(path: Path) -> set[str]:
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name.startswith("servotune"))
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module.startswith("servotune"):
-                found.add(node.module)
-                found.update(f"{node.module}.{a.name}" for a in node.names)
+        elif (
+            isinstance(node, ast.ImportFrom)
+            and node.module
+            and node.level == 0
+            and node.module.startswith("servotune")
+        ):
+            found.add(node.module)
+            found.update(f"{node.module}.{a.name}" for a in node.names)
     return found
 
 
