@@ -172,7 +172,9 @@ class Z1100Tuner:
         position = round(ctx.position(entry.latest))
         if position == target:
             return
-        await ctx.hub.command(entry.info.id, "go_to_target", {"target": target})
+        # With the sequence's stop generation: a STOP pressed after the failure ends
+        # the way back too, instead of being overtaken by it.
+        await ctx.command(entry, "go_to_target", {"target": target})
         await asyncio.sleep(0.1)
         deadline = ctx.clock() + SETTLE_TIMEOUT_S + 2.0
         while ctx.clock() < deadline:
