@@ -152,6 +152,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                 excitation.get("sent", []),
                 float(run.get("t0_s") or 0.0),
                 Excitation.from_dict(excitation),
+                profile=_test_profile(run),
             )
         except ValueError as exc:
             out["measured_problem"] = str(exc)
@@ -176,6 +177,18 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         )
     safe: dict[str, Any] = _json_safe(out)
     return safe
+
+
+def _test_profile(run: Mapping[str, Any]) -> tuple[int, int] | None:
+    """The sv/sa the SLAP2 ran the test with (the plan's overrides; runs from before
+    they were recorded: the maximum the plan always sets)."""
+    if str(run.get("device", "")) != "slap2":
+        return None
+    overrides = (run.get("plan") or {}).get("overrides") or {}
+    return (
+        int(overrides.get("velocity", VELOCITY_MAX)),
+        int(overrides.get("acceleration", ACCELERATION_MAX)),
+    )
 
 
 def _json_safe(value: Any) -> Any:

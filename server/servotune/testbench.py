@@ -36,6 +36,7 @@ from servotune.drivers.base import (
     BenchPlan,
     BenchPlanner,
     BenchTest,
+    CommandClock,
     DeviceRefusedError,
     DriverError,
     InvalidArgumentError,
@@ -403,7 +404,8 @@ class TestBench:
 
         One ``ma`` per changed target, as fast as the wire takes them (each command
         waits for its reply); each send is stamped when the device acknowledged it,
-        which is what the analysis holds the target from. STOP still goes first: the
+        with the device's latch time when the driver knows it (``CommandClock``),
+        which is what the analysis replays the profile from. STOP still goes first: the
         hub's STOP bumps the stop generation and every later command is refused."""
         excitation, t0 = recording.excitation, recording.t0
         assert excitation is not None and t0 is not None
@@ -421,7 +423,14 @@ class TestBench:
                 origin="bench",
                 stop_generation=recording.stop_generation,
             )
-            recording.sent.append([round(self._clock(), 6), float(target)])
+            # [acknowledged, target, latched]: the analysis replays the profile from
+            # the latch (the ack comes a status read later, 10-15 ms and jittery).
+            driver = recording.entry.driver
+            latch = driver.last_command_latch_s if isinstance(driver, CommandClock) else None
+            recording.sent.append(
+                [round(self._clock(), 6), float(target)]
+                + ([round(latch, 6)] if latch is not None else [])
+            )
             last = target
 
     @staticmethod
