@@ -275,7 +275,8 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     assert run["status"] == "complete", run["message"]
     y0 = run["plan"]["y0"]
     sent = run["excitation"]["sent"]
-    assert sent and all(abs(v - y0) <= amplitude for _, v in sent)
+    assert sent and all(abs(row[1] - y0) <= amplitude for row in sent)
+    assert all(len(row) == 3 and row[2] <= row[0] for row in sent)  # latched, then acked
     assert run["params"]["velocity"] != 65535  # the test's max profile was restored
     frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
     _check_against_simulator(frf, run, up_to_hz=2.0)
@@ -319,6 +320,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     run = await finished_run(api, "line-0", run_id)
     assert run["status"] == "complete", run["message"]
     frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+    assert frf["measured"] is not None, frf["measured_problem"]
     up_to_hz = min(40.0, frf["measured"]["nyquist_hz"])
     _check_against_simulator(frf, run, up_to_hz=up_to_hz, coherent_only=True)
     margins = frf["measured"]["margins"]

@@ -72,6 +72,10 @@ class Excitation:
     scale: float  # 1 / peak of the raw sum, so |x| <= 1
     period_s: float
     settle_periods: int = 1
+    # What each value is sent as: a position target (closed loop, ``ma``) or an
+    # open-loop PWM (``spwm``, the plant alone; see ``analyse_open``).
+    command: str = "move_absolute"
+    argument: str = "position"
 
     def target(self, t_s: float) -> int:
         f = np.asarray(self.tones_hz)
@@ -87,6 +91,8 @@ class Excitation:
             "scale": self.scale,
             "period_s": self.period_s,
             "settle_periods": self.settle_periods,
+            "command": self.command,
+            "argument": self.argument,
         }
 
     @classmethod
@@ -99,10 +105,19 @@ class Excitation:
             float(d["scale"]),
             float(d["period_s"]),
             int(d.get("settle_periods", 1)),
+            str(d.get("command", "move_absolute")),
+            str(d.get("argument", "position")),
         )
 
 
-def design(y0: float, amplitude: float, low_hz: float, high_hz: float) -> Excitation:
+def design(
+    y0: float,
+    amplitude: float,
+    low_hz: float,
+    high_hz: float,
+    command: str = "move_absolute",
+    argument: str = "position",
+) -> Excitation:
     """The multisine for a band (callers check the ranges; see the module docstring)."""
     df = low_hz
     # At most MAX_TONES log-spaced tones on multiples of df (duplicates merged).
@@ -122,6 +137,8 @@ def design(y0: float, amplitude: float, low_hz: float, high_hz: float) -> Excita
         phases_rad=tuple(float(x) for x in phases),
         scale=1.0 / (peak * 1.02),  # margin: the sampled peak may miss the true one
         period_s=period,
+        command=command,
+        argument=argument,
     )
 
 
@@ -155,7 +172,7 @@ def rebuild_input(
         raise ValueError("no excitation was sent")
     start = min(rows[0][0], 0.0)
     n = int((t_end_s - start) / TICK_S) + 2
-    t = start + np.arange(n) * TICK_S
+    t = np.asarray(start + np.arange(n) * TICK_S, dtype=np.float64)
     out = np.empty(n)
     generator = TrapezoidGenerator.from_wire(y0, y0, *profile) if profile else None
     value, j = y0, 0
@@ -169,30 +186,32 @@ def rebuild_input(
     return t, out
 
 
-def analyse(
+@dataclass(frozen=True, slots=True)
+class _Measured:
+    """Output per input at the tones, from one record (see ``_measure``)."""
+
+    tones_hz: FloatArray
+    response: ComplexArray
+    relative_error: FloatArray
+    coherence: FloatArray
+    periods: int
+    samples: int
+    rate_hz: float
+    input_check_counts: float | None
+
+
+def _measure(
     t_s: Sequence[float],
-    position: Sequence[float],
+    output: Sequence[float],
     setpoint: Sequence[float | None] | None,
     sent: Sequence[Sequence[float]],
     t0_s: float,
     excitation: Excitation,
-    profile: tuple[int, int] | None = None,
-) -> dict[str, Any]:
-    """The measured closed loop at the tones with its error and coherence, the usable
-    band, and (Cb = 0) the open loop with margins where it is measurable; ValueError
-    when the record cannot give a response.
-
-    Estimator (docs/frequency-response.md): the input is rebuilt from the sent targets
-    on the tick grid (``rebuild_input``), the output is the position samples at their
-    latch times; over the analysed whole periods both are fitted with all tones at
-    once by least squares (``tuning.frf.tone_fit``: no interpolation of irregular
-    samples), ``T = Y / U``. Its relative error combines the fits' standard errors
-    with the host's timing uncertainty; ``coherence`` is the equivalent coherence of
-    that error (``coherence_from_error``, as many averages as periods), so the 0.9
-    threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
-    per-sample reconstruction), when recorded, checks the rebuilt input."""
+    profile: tuple[int, int] | None,
+) -> _Measured:
+    """The estimator shared by the closed-loop and the open-loop runs (``analyse``)."""
     t = np.asarray(t_s, dtype=np.float64) - t0_s
-    y = np.asarray(position, dtype=np.float64)
+    y = np.asarray(output, dtype=np.float64)
     start = excitation.settle_periods * excitation.period_s
     after = t >= start
     if int(after.sum()) < 8:
@@ -220,38 +239,147 @@ def analyse(
         )
     timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
     relative_error = np.hypot(np.nan_to_num(fit_error, nan=np.inf), timing_error)
-    coherence = coherence_from_error(relative_error, periods)
     check: float | None = None
     if setpoint is not None:
         sp = np.asarray([math.nan if v is None else v for v in setpoint], dtype=np.float64)
         ok = keep & np.isfinite(sp)
         if ok.any():
             check = float(np.max(np.abs(np.interp(t[ok], tick_t, u_ticks) - sp[ok])))
-    nyquist = rate_measured / 2.0
-    usable_from, usable = usable_band(tones, coherence, nyquist, MIN_COHERENCE)
-    good = (coherence >= MIN_COHERENCE) & (tones <= nyquist)
-    magnitude_db = 20 * np.log10(np.maximum(np.abs(response), 1e-300))
-    phase_deg = np.degrees(np.unwrap(np.angle(response)))
-    open_loop = open_loop_from_closed(tones, response, relative_error, good)
+    return _Measured(
+        tones,
+        np.asarray(response, dtype=np.complex128),
+        np.asarray(relative_error, dtype=np.float64),
+        coherence_from_error(relative_error, periods),
+        periods,
+        int(t_k.size),
+        rate_measured,
+        check,
+    )
+
+
+def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
+    return bode_dict(
+        f,
+        20 * np.log10(np.maximum(np.abs(response), 1e-300)),
+        np.degrees(np.unwrap(np.angle(response))),
+    )
+
+
+def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
+    nyquist = m.rate_hz / 2.0
+    usable_from, usable = usable_band(m.tones_hz, m.coherence, nyquist, MIN_COHERENCE)
+    good = (m.coherence >= MIN_COHERENCE) & (m.tones_hz <= nyquist)
     return {
-        "closed_loop": bode_dict(tones, magnitude_db, phase_deg)
+        "usable_from_hz": usable_from,
+        "usable_until_hz": usable,
+        "sample_rate_hz": round(m.rate_hz, 2),
+        "nyquist_hz": round(nyquist, 2),
+        "periods": m.periods,
+        "samples": m.samples,
+        "input_check_counts": None
+        if m.input_check_counts is None
+        else round(m.input_check_counts, 2),
+        "estimator": "least squares at the sample times",
+    }, good
+
+
+def analyse(
+    t_s: Sequence[float],
+    position: Sequence[float],
+    setpoint: Sequence[float | None] | None,
+    sent: Sequence[Sequence[float]],
+    t0_s: float,
+    excitation: Excitation,
+    profile: tuple[int, int] | None = None,
+) -> dict[str, Any]:
+    """The measured closed loop at the tones with its error and coherence, the usable
+    band, and (Cb = 0) the open loop with margins where it is measurable; ValueError
+    when the record cannot give a response.
+
+    Estimator (docs/frequency-response.md): the input is rebuilt from the sent targets
+    on the tick grid (``rebuild_input``), the output is the position samples at their
+    latch times; over the analysed whole periods both are fitted with all tones at
+    once by least squares (``tuning.frf.tone_fit``: no interpolation of irregular
+    samples), ``T = Y / U``. Its relative error combines the fits' standard errors
+    with the host's timing uncertainty; ``coherence`` is the equivalent coherence of
+    that error (``coherence_from_error``, as many averages as periods), so the 0.9
+    threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
+    per-sample reconstruction), when recorded, checks the rebuilt input."""
+    m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile)
+    common, good = _common(m)
+    open_loop = open_loop_from_closed(m.tones_hz, m.response, m.relative_error, good)
+    return {
+        "loop": "closed",
+        "closed_loop": _bode(m.tones_hz, m.response)
         | {
-            "coherence": [round(float(c), 4) for c in coherence],
-            "relative_error": [round(float(e), 4) for e in relative_error],
+            "coherence": [round(float(c), 4) for c in m.coherence],
+            "relative_error": [round(float(e), 4) for e in m.relative_error],
         },
         "open_loop": open_loop["bode"],
         "nyquist": open_loop["nyquist"],
         "margins": open_loop["margins"],
-        "usable_from_hz": usable_from,
-        "usable_until_hz": usable,
-        "sample_rate_hz": round(rate_measured, 2),
-        "nyquist_hz": round(nyquist, 2),
-        "periods": periods,
-        "samples": int(t_k.size),
         "input": "profile" if profile else "targets",
-        "input_check_counts": None if check is None else round(check, 2),
-        "estimator": "least squares at the sample times",
-        **_bandwidth(tones[good], np.abs(response[good])),
+        **common,
+        **_bandwidth(m.tones_hz[good], np.abs(m.response[good])),
+    }
+
+
+def slap2_controller(frequency_hz: FloatArray, kp: int, ki: int, kd: int) -> ComplexArray:
+    """The SLAP2 PID at ``z = e^{jwT}`` (T = 841.5 us), error counts -> PWM: the
+    firmware arithmetic ``(16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096`` that
+    ``tuning.loops.slap2_loop_for`` models (and the simulator runs)."""
+    z = np.exp(2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) * TICK_S)
+    c = (16 * kp + ki * z / (z - 1) + 32 * kd * (1 - 1 / z)) / 4096
+    return np.asarray(c, dtype=np.complex128)
+
+
+def analyse_open(
+    t_s: Sequence[float],
+    position: Sequence[float],
+    sent: Sequence[Sequence[float]],
+    t0_s: float,
+    excitation: Excitation,
+    gains: tuple[int, int, int] | None,
+) -> dict[str, Any]:
+    """An open-loop run (PWM through ``spwm``, no controller): the plant ``P`` =
+    position / PWM at the tones, measured; with the run's gains the loop the PID would
+    close, ``L = C P`` (C the firmware law, exact) and ``T = L / (1 + L)``, margins
+    from the tones where P is coherent. Here L's relative error is P's (C is exact),
+    so no tone is lost near T = 1; T's error is ``e_P / |1 + L|``. ValueError
+    without gains (a run that did not record them)."""
+    m = _measure(t_s, position, None, sent, t0_s, excitation, None)
+    common, good = _common(m)
+    plant = _bode(m.tones_hz, m.response) | {
+        "coherence": [round(float(c), 4) for c in m.coherence],
+        "relative_error": [round(float(e), 4) for e in m.relative_error],
+    }
+    out: dict[str, Any] = {"loop": "open", "plant": plant, "input": "pwm", **common}
+    if gains is None:
+        raise ValueError("the run's PID gains are not recorded: no loop to close around the plant")
+    loop = slap2_controller(m.tones_hz, *gains) * m.response
+    closed = loop / (1.0 + loop)
+    measurable = good & (ERROR_COVERAGE * m.relative_error <= MAX_LOOP_ERROR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        closed_error = m.relative_error / np.abs(1.0 + loop)
+    return out | {
+        "closed_loop": _bode(m.tones_hz, closed)
+        | {
+            "coherence": plant["coherence"],
+            "relative_error": [round(float(e), 4) for e in closed_error],
+        },
+        "open_loop": _bode(m.tones_hz, loop)
+        | {
+            "relative_error": plant["relative_error"],
+            "measurable": [bool(v) for v in measurable],
+        },
+        "nyquist": {
+            "frequency_hz": [round(float(v), 5) for v in m.tones_hz],
+            "re": [round(float(v), 5) for v in np.real(loop)],
+            "im": [round(float(v), 5) for v in np.imag(loop)],
+            "measurable": [bool(v) for v in measurable],
+        },
+        "margins": measured_margins(m.tones_hz, loop, m.relative_error, good, measurable),
+        **_bandwidth(m.tones_hz[good], np.abs(closed[good])),
     }
 
 
@@ -267,11 +395,7 @@ def open_loop_from_closed(
         loop = closed / (1.0 - closed)
         loop_error = relative_error * np.abs(closed) / np.abs(1.0 - closed)
     measurable = good & (ERROR_COVERAGE * np.nan_to_num(loop_error, nan=np.inf) <= MAX_LOOP_ERROR)
-    bode = bode_dict(
-        f,
-        20 * np.log10(np.maximum(np.abs(loop), 1e-300)),
-        np.degrees(np.unwrap(np.angle(loop))),
-    ) | {
+    bode = _bode(f, loop) | {
         "relative_error": [round(float(e), 4) if np.isfinite(e) else None for e in loop_error],
         "measurable": [bool(m) for m in measurable],
     }
