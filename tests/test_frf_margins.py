@@ -180,3 +180,63 @@ def test_measured_frf_and_margins_on_the_scripted_simulator() -> None:
     )
     assert margins["gain_margin_db"] is None  # the model's phase crossover: ~256 Hz
     assert "not measurable from this run" in margins["gain_margin_problem"]
+
+
+def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
+    """Open loop through ``spwm`` on the firmware simulator (scripted wire as above,
+    1-30 Hz, PWM peak 120, 7 analysed periods): the plant P = position / PWM within
+    1 dB / 10 deg of the simulator's motor (the ZOH plant of ``tuning.loops``) wherever
+    coherence >= 0.9 up to 22 Hz, and ``L = C P`` with the firmware PID gives the
+    model's phase margin and crossover (~19 Hz). Above 22 Hz (towards the ~35 Hz
+    Nyquist frequency) the simulated module lags the ZOH model by up to a tick (its
+    rp answers the last tick's position; the PWM takes effect at the next tick, whose
+    phase the host cannot know): 5-9 deg at 26-30 Hz, about twice the half-tick
+    timing term in the error; see docs/frequency-response.md."""
+    rng = np.random.default_rng(5)
+    module = Slap2Module(0, params=NO_FRICTION)
+    ticks = 0
+
+    def run_until(t_s: float) -> None:
+        nonlocal ticks
+        due = math.floor(t_s / TICK_S)
+        module.run_ticks(due - ticks)
+        ticks = due
+
+    excitation = frfrun.design(0.0, 120.0, 1.0, 30.0, "open_loop_pwm", "pwm")
+    t0 = t = 0.1
+    sent: list[list[float]] = []
+    samples: list[tuple[float, float]] = []
+    last: int | None = None
+    while t < t0 + 8.0:
+        value = excitation.target(t - t0)
+        if value != last:
+            run_until(t)
+            _send(module, f"spwm{value}")
+            sent.append([t + 0.012, float(value), t])
+            last = value
+            t += rng.uniform(0.005, 0.009)
+        run_until(t)
+        samples.append((t, float(module.position)))
+        module.take_output()
+        t += rng.uniform(0.005, 0.009)
+    ts, ys = zip(*samples, strict=True)
+    result = frfrun.analyse_open(ts, ys, sent, t0, excitation, (40, 40, 80))
+    plant = result["plant"]
+    f = np.asarray(plant["frequency_hz"])
+    model = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    z = np.exp(2j * np.pi * f * model.period_s)
+    expected = np.asarray([complex(model.plant_d(zk)) for zk in z])
+    coherence = np.asarray(plant["coherence"])
+    wanted = (coherence >= 0.9) & (f <= min(22.0, result["nyquist_hz"]))
+    assert wanted.sum() >= 12, (f, coherence)
+    db = np.asarray(plant["magnitude_db"]) - 20 * np.log10(np.abs(expected))
+    deg = (np.asarray(plant["phase_deg"]) - np.degrees(np.angle(expected)) + 180) % 360 - 180
+    assert np.abs(db[wanted]).max() < 1.0, (f[wanted], db[wanted])
+    assert np.abs(deg[wanted]).max() < 10.0, (f[wanted], deg[wanted])
+    margins = result["margins"]
+    truth_margins = model.margins()
+    assert margins["gain_crossover_hz"] == pytest.approx(truth_margins.gain_crossover_hz, rel=0.03)
+    assert abs(margins["phase_margin_deg"] - truth_margins.phase_margin_deg) <= max(
+        2.0, margins["phase_margin_error_deg"]
+    )
+    assert all(result["open_loop"]["measurable"][i] for i in np.nonzero(wanted)[0])

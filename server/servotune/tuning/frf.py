@@ -211,7 +211,12 @@ class ToneFit:
 
 
 def tone_fit(
-    t_s: npt.ArrayLike, x: npt.ArrayLike, tones_hz: npt.ArrayLike, t_ref_s: float
+    t_s: npt.ArrayLike,
+    x: npt.ArrayLike,
+    tones_hz: npt.ArrayLike,
+    t_ref_s: float,
+    *,
+    differenced: bool = False,
 ) -> ToneFit:
     """Least-squares fit of all ``tones_hz`` at once (with an offset and a linear trend)
     to samples taken at the times ``t_s`` — any times, uniform or not.
@@ -223,7 +228,13 @@ def tone_fit(
     The standard errors are the usual ones, ``s^2 (A^T A)^-1`` with ``s^2`` the
     residual variance: whatever the tones do not explain (noise, quantisation, the
     response to a non-periodic part of the input) counts as error. Raises ValueError
-    when there are fewer samples than unknowns."""
+    when there are fewer samples than unknowns.
+
+    ``differenced``: fit the increments between consecutive samples instead (the same
+    unknowns; the offset drops out). For an integrating plant driven open loop the
+    position wanders like a random walk (it integrates whatever in the input is not
+    periodic), which no tone explains: its increments are white, so the fit and its
+    standard errors stay honest."""
     t = np.asarray(t_s, dtype=np.float64) - t_ref_s
     xs = np.asarray(x, dtype=np.float64)
     w = 2.0 * np.pi * np.asarray(tones_hz, dtype=np.float64)
@@ -239,13 +250,18 @@ def tone_fit(
     design[:, 1] = t
     design[:, 2::2] = np.cos(phase)
     design[:, 3::2] = np.sin(phase)
+    first = 2
+    if differenced:
+        design = np.diff(design, axis=0)[:, 1:]
+        xs = np.diff(xs)
+        first = 1
     coef, *_ = np.linalg.lstsq(design, xs, rcond=None)
     residual = xs - design @ coef
-    variance = float(residual @ residual) / (t.size - columns)
+    variance = float(residual @ residual) / (xs.size - design.shape[1])
     cov_diag = variance * np.diag(np.linalg.pinv(design.T @ design))
     # x = a cos + b sin = Re((a - j b) e^{j w t})
-    amplitude = coef[2::2] - 1j * coef[3::2]
-    error = np.sqrt(0.5 * (cov_diag[2::2] + cov_diag[3::2]))
+    amplitude = coef[first::2] - 1j * coef[first + 1 :: 2]
+    error = np.sqrt(0.5 * (cov_diag[first::2] + cov_diag[first + 1 :: 2]))
     return ToneFit(
         amplitude=np.asarray(amplitude, dtype=np.complex128),
         standard_error=np.asarray(error, dtype=np.float64),

@@ -208,8 +208,11 @@ def _measure(
     t0_s: float,
     excitation: Excitation,
     profile: tuple[int, int] | None,
+    *,
+    differenced: bool = False,
 ) -> _Measured:
-    """The estimator shared by the closed-loop and the open-loop runs (``analyse``)."""
+    """The estimator shared by the closed-loop and the open-loop runs (``analyse``);
+    ``differenced`` for an integrating output (``tone_fit``)."""
     t = np.asarray(t_s, dtype=np.float64) - t0_s
     y = np.asarray(output, dtype=np.float64)
     start = excitation.settle_periods * excitation.period_s
@@ -230,7 +233,7 @@ def _measure(
     on_ticks = (tick_t >= start) & (tick_t < end)
     t_mid = 0.5 * (start + end)
     fit_u = tone_fit(tick_t[on_ticks], u_ticks[on_ticks], tones, t_mid)
-    fit_y = tone_fit(t_k, y_k, tones, t_mid)
+    fit_y = tone_fit(t_k, y_k, tones, t_mid, differenced=differenced)
     response = fit_y.amplitude / fit_u.amplitude
     with np.errstate(divide="ignore", invalid="ignore"):
         fit_error = np.hypot(
@@ -347,7 +350,8 @@ def analyse_open(
     from the tones where P is coherent. Here L's relative error is P's (C is exact),
     so no tone is lost near T = 1; T's error is ``e_P / |1 + L|``. ValueError
     without gains (a run that did not record them)."""
-    m = _measure(t_s, position, None, sent, t0_s, excitation, None)
+    # the position integrates the PWM: fitted on its increments (tone_fit)
+    m = _measure(t_s, position, None, sent, t0_s, excitation, None, differenced=True)
     common, good = _common(m)
     plant = _bode(m.tones_hz, m.response) | {
         "coherence": [round(float(c), 4) for c in m.coherence],
