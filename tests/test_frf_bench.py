@@ -385,3 +385,52 @@ def test_usable_band_is_one_definition_the_longest_coherent_run_below_nyquist() 
     response = FrequencyResponse(f, np.ones(f.size, complex), coherence, sample_rate_hz=18.0)
     assert response.usable_band(0.9) == (2.0, 4.0)  # Nyquist 9 Hz
     assert frfrun.usable_band is usable_band
+
+
+async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_the_window(
+    api: LiveServer,
+) -> None:
+    """Open loop through spwm: 422 naming the field without a travel window on both
+    sides, without confirmation, or with a PWM above the bench's max_pwm — nothing
+    sent. Confirmed, inside a narrow window, the PWM multisine drives the axis out of
+    it and the run ends "left your travel window" with the axis stopped (st: no PWM,
+    neither pm nor vm), every PWM sent within the peak."""
+    base = {
+        "kind": "frequency_response",
+        "loop": "open",
+        "pwm": 60,
+        "low_hz": 1.0,
+        "high_hz": 10.0,
+        "duration_s": 6.0,
+    }
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json=base | {"confirm_open_loop": True}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "loop", response.text
+    assert "travel window" in response.json()["detail"]
+    position = api.bus.module(0).position
+    limits = {
+        "min_position_counts": position - 300,
+        "max_position_counts": position + 300,
+        "max_pwm": 80,
+    }
+    assert (await api.client.put("/api/axes/line-0/bench/limits", json=limits)).status_code == 200
+    response = await api.client.post("/api/axes/line-0/bench/runs", json=base)
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == "confirm_open_loop"
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json=base | {"pwm": 120, "confirm_open_loop": True}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "pwm", response.text
+    assert api.bus.module(0).pwm == 0
+    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
+    run_id = await start(api, "line-0", **base, confirm_open_loop=True)
+    run = await finished_run(api, "line-0", run_id)
+    assert run["status"] == "incomplete", run
+    assert "left your travel window" in run["message"], run["message"]
+    module = api.bus.module(0)
+    assert module.pwm == 0 and not module.rss & 0b1100  # stopped: no PWM, not pm/vm
+    sent = run["excitation"]["sent"]
+    assert sent and all(abs(row[1]) <= 60 for row in sent)
+    assert run["excitation"]["command"] == "open_loop_pwm"
+    assert run["test"]["loop"] == "open"
