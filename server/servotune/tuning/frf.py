@@ -276,7 +276,8 @@ def coherence_from_error(relative_error: npt.ArrayLike, averages: int) -> FloatA
     (Bendat & Piersol) ``e = sqrt(1 - g^2) / (|g| sqrt(2 n))`` solved for ``g^2``.
     ``frf_relative_error`` is its inverse."""
     e = np.asarray(relative_error, dtype=np.float64)
-    return np.asarray(1.0 / (1.0 + 2.0 * averages * e * e), dtype=np.float64)
+    with np.errstate(over="ignore"):  # an infinite error: coherence 0
+        return np.asarray(1.0 / (1.0 + 2.0 * averages * e * e), dtype=np.float64)
 
 
 def frf_relative_error(coherence: npt.ArrayLike, averages: int) -> FloatArray:

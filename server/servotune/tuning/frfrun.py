@@ -147,6 +147,12 @@ def periods_in(duration_s: float, excitation: Excitation) -> int:
     return int(duration_s / excitation.period_s + 1e-9) - excitation.settle_periods
 
 
+def _nan_inf(x: npt.ArrayLike) -> FloatArray:
+    """NaN (an estimate that could not be made) as an infinite error."""
+    a = np.asarray(x, dtype=np.float64)
+    return np.asarray(np.where(np.isnan(a), np.inf, a), dtype=np.float64)
+
+
 def rebuild_input(
     sent: Sequence[Sequence[float]],
     t0_s: float,
@@ -240,8 +246,31 @@ def _measure(
             fit_y.standard_error / np.abs(fit_y.amplitude),
             fit_u.standard_error / np.abs(fit_u.amplitude),
         )
+    # The fit's standard errors assume white residuals; gaps (a host that stalled the
+    # driver) and the response to the non-periodic part of the input are not. The
+    # jackknife over periods (leave one whole period out, refit) measures the spread
+    # as Welch averaging would; the larger of the two is used.
+    if periods >= 2:
+        period_of_sample = np.floor((t_k - start) / excitation.period_s)
+        period_of_tick = np.floor((tick_t[on_ticks] - start) / excitation.period_s)
+        partial = np.empty((periods, tones.size), dtype=np.complex128)
+        for i in range(periods):
+            ys, us = period_of_sample != i, period_of_tick != i
+            try:
+                fy = tone_fit(t_k[ys], y_k[ys], tones, t_mid, differenced=differenced)
+                fu = tone_fit(tick_t[on_ticks][us], u_ticks[on_ticks][us], tones, t_mid)
+            except ValueError:
+                partial[i] = np.nan
+                continue
+            partial[i] = fy.amplitude / fu.amplitude
+        spread = np.sqrt(
+            (periods - 1) / periods * np.sum(np.abs(partial - partial.mean(axis=0)) ** 2, axis=0)
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jackknife = spread / (np.sqrt(2.0) * np.abs(response))
+        fit_error = np.fmax(fit_error, _nan_inf(jackknife))
     timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
-    relative_error = np.hypot(np.nan_to_num(fit_error, nan=np.inf), timing_error)
+    relative_error = np.hypot(_nan_inf(fit_error), timing_error)
     check: float | None = None
     if setpoint is not None:
         sp = np.asarray([math.nan if v is None else v for v in setpoint], dtype=np.float64)
@@ -398,7 +427,7 @@ def open_loop_from_closed(
     with np.errstate(divide="ignore", invalid="ignore"):
         loop = closed / (1.0 - closed)
         loop_error = relative_error * np.abs(closed) / np.abs(1.0 - closed)
-    measurable = good & (ERROR_COVERAGE * np.nan_to_num(loop_error, nan=np.inf) <= MAX_LOOP_ERROR)
+    measurable = good & (ERROR_COVERAGE * _nan_inf(loop_error) <= MAX_LOOP_ERROR)
     bode = _bode(f, loop) | {
         "relative_error": [round(float(e), 4) if np.isfinite(e) else None for e in loop_error],
         "measurable": [bool(m) for m in measurable],
