@@ -107,6 +107,8 @@ async def test_frequency_response_bode_margins_and_what_if(
     assert runs[-1]["test"]["kind"] == "frequency_response"
     assert runs[-1]["status"] == "complete", runs[-1]["message"]
     frf_run_s = time.monotonic() - clicked
+    first = (await server.client.get(f"/api/bench/runs/{runs[-1]['id']}/frf")).json()
+    assert first["measured"] is not None, first["measured_problem"]
     readouts = page.get_by_test_id("frf-readouts")
     await expect(readouts.locator("tr[data-source='measured']")).to_have_count(1, timeout=30_000)
     await expect(readouts.locator("tr[data-source='model']")).to_have_count(1)

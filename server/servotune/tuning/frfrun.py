@@ -290,11 +290,13 @@ def _measure(
 
 
 def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
-    return bode_dict(
-        f,
-        20 * np.log10(np.maximum(np.abs(response), 1e-300)),
-        np.degrees(np.unwrap(np.angle(response))),
-    )
+    """Magnitude (dB) and phase (deg, unwrapped, then shifted by whole turns so that
+    the first tone lies in (-270, 90]: T near 0 deg, L near -180 deg, a plant with an
+    integrator near -90 deg, as the model curves beside them are drawn)."""
+    phase = np.degrees(np.unwrap(np.angle(response)))
+    if phase.size:
+        phase = phase - 360.0 * np.ceil((phase[0] - 90.0) / 360.0)
+    return bode_dict(f, 20 * np.log10(np.maximum(np.abs(response), 1e-300)), phase)
 
 
 def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:

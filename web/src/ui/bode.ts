@@ -196,7 +196,7 @@ export class FrfPanel {
       pwm: input("pwm", "40", "Open loop: peak of the multisine PWM (within the bench's max PWM)"),
       low_hz: input("low_hz", "1", "Lowest tone (Hz); also the frequency resolution"),
       high_hz: input("high_hz", "40", "Highest tone (Hz)"),
-      duration_s: input("duration_s", "5", "Record length (s): one settling period plus at least two analysed"),
+      duration_s: input("duration_s", "9", "Record length (s): one settling period plus at least three analysed (8 halve the error of 4 at the same coherence)"),
     };
     this.runButton = h(
       "button",
