@@ -15,6 +15,7 @@ import statistics
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from playwright.async_api import Browser, Page, expect
@@ -97,6 +98,27 @@ async def test_frequency_response_bode_margins_and_what_if(
     await page.get_by_test_id("frf-duration_s").fill("5")
     await expect(page.get_by_test_id("frf-inject")).to_have_value("closed")
     await expect(page.get_by_test_id("frf-pwm")).to_be_hidden()  # open loop only
+    # Open loop asks first; dismissed, nothing is started.
+    await page.get_by_test_id("frf-inject").select_option("open")
+    await expect(page.get_by_test_id("frf-pwm")).to_be_visible()
+    await expect(page.get_by_test_id("frf-amplitude")).to_be_hidden()
+    dialogs: list[str] = []
+    before = len((await server.client.get("/api/axes/line-0/bench/runs")).json())
+
+    async def dismiss(dialog: Any) -> None:
+        dialogs.append(dialog.message)
+        await dialog.dismiss()
+
+    page.once("dialog", dismiss)
+    await page.get_by_test_id("frf-run").click()
+    for _ in range(100):
+        if dialogs:
+            break
+        await asyncio.sleep(0.05)
+    assert dialogs and "position controller is OFF" in dialogs[0], dialogs
+    await asyncio.sleep(0.3)
+    assert len((await server.client.get("/api/axes/line-0/bench/runs")).json()) == before
+    await page.get_by_test_id("frf-inject").select_option("closed")
     clicked = time.monotonic()
     await page.get_by_test_id("frf-run").click()
     for _ in range(600):

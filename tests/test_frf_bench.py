@@ -235,15 +235,58 @@ def _check_against_simulator(
     model = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
     truth = model.closed_loop_response(f)
     coherence = np.asarray(closed["coherence"])
-    if coherent_only:
-        # The issue's criterion: wherever coherence is >= 0.9 (how far up that reaches
-        # depends on the samples the host delivered, which the test does not judge)
-        wanted = (f <= up_to_hz) & (coherence >= 0.9)
-    else:
-        wanted = f <= up_to_hz
-        assert np.all(coherence[wanted] >= 0.9), (f[wanted], coherence[wanted], measured)
-    assert wanted.sum() >= 4, (f, coherence)
-    assert measured["nyquist_hz"] >= up_to_hz, measured
+    # Accuracy first, at every coherent tone of every run (the issue's criterion) ...
+    wanted = (f <= up_to_hz) & (coherence >= 0.9) & (f <= measured["nyquist_hz"])
+    _check_accuracy(f, closed, truth, wanted, measured)
+    # ... then coverage, which depends on the samples the host delivered.
+    covered = f <= up_to_hz
+    if not coherent_only and not (
+        np.all(coherence[covered] >= 0.9) and measured["nyquist_hz"] >= up_to_hz
+    ):
+        raise _HostLimitedError(f"coherence {coherence[covered]}, Nyquist {measured['nyquist_hz']}")
+    if wanted.sum() < 4:
+        raise _HostLimitedError(f"{wanted.sum()} coherent tones at {measured['sample_rate_hz']}/s")
+
+
+class _HostLimitedError(Exception):
+    """A run the host starved of samples (or of the wire: a transaction timed out):
+    it measures the host, not the axis; the test takes it again (at most 3 times; the
+    accuracy at its coherent tones is still checked). Seen at load average 10-15 on
+    the 2-core VM: 15-35 samples/s, gaps up to 0.5 s, no tone coherent."""
+
+
+async def _run_until_covered(
+    api: LiveServer, up_to_hz: float, coherent_only: bool, **request: Any
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    reasons: list[str] = []
+    for _ in range(3):
+        run_id = await start(api, "line-0", kind="frequency_response", **request)
+        run = await finished_run(api, "line-0", run_id)
+        message = run["message"] or ""
+        if run["status"] != "complete" and ("no echo" in message or "no reply" in message):
+            reasons.append(message)
+            continue
+        assert run["status"] == "complete", message
+        frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+        try:
+            _check_against_simulator(frf, run, up_to_hz=up_to_hz, coherent_only=coherent_only)
+        except _HostLimitedError as exc:
+            reasons.append(str(exc))
+            continue
+        return run, frf
+    raise AssertionError(f"every run was starved by the host: {reasons}")
+
+
+def _check_accuracy(
+    f: np.ndarray,
+    closed: dict[str, Any],
+    truth: Any,
+    wanted: np.ndarray,
+    measured: dict[str, Any],
+) -> None:
+    if not wanted.any():
+        return
+    coherence = np.asarray(closed["coherence"])
     mag_err = np.abs(np.asarray(closed["magnitude_db"])[wanted] - truth.magnitude_db[wanted])
     phase = np.asarray(closed["phase_deg"])[wanted]
     phase_err = np.abs((phase - truth.phase_deg[wanted] + 180) % 360 - 180)
@@ -262,24 +305,15 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     """0.5-3 Hz: the band today's poll rate (about 10-20 samples/s of one module)
     resolves; tones up to 2 Hz are checked (Nyquist stays above 2 Hz at 4 samples/s)."""
     amplitude = 300
-    run_id = await start(
-        api,
-        "line-0",
-        kind="frequency_response",
-        amplitude=amplitude,
-        low_hz=0.5,
-        high_hz=3.0,
-        duration_s=10.0,
+    run, frf = await _run_until_covered(
+        api, 2.0, False, amplitude=amplitude, low_hz=0.5, high_hz=3.0, duration_s=10.0
     )
-    run = await finished_run(api, "line-0", run_id)
-    assert run["status"] == "complete", run["message"]
+    run_id = run["id"]
     y0 = run["plan"]["y0"]
     sent = run["excitation"]["sent"]
     assert sent and all(abs(row[1] - y0) <= amplitude for row in sent)
     assert all(len(row) == 3 and row[2] <= row[0] for row in sent)  # latched, then acked
     assert run["params"]["velocity"] != 65535  # the test's max profile was restored
-    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
-    _check_against_simulator(frf, run, up_to_hz=2.0)
     assert abs(api.bus.module(0).position - y0) <= 2 * run["plan"]["band"] + 1
     # Stored like a step run: listed, exported as CSV and JSON (with the excitation).
     meta = (await api.client.get(f"/api/bench/runs/{run_id}/run.json")).json()
@@ -308,21 +342,10 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     0.7 dB (4 periods: 1 dB, the tolerance itself); the estimator is least squares at
     the sample times against the input replayed from the latched targets
     (docs/frequency-response.md, "Why the first estimator was off")."""
-    run_id = await start(
-        api,
-        "line-0",
-        kind="frequency_response",
-        amplitude=200,
-        low_hz=1.0,
-        high_hz=40.0,
-        duration_s=9.0,
+    run, frf = await _run_until_covered(
+        api, 40.0, True, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0
     )
-    run = await finished_run(api, "line-0", run_id)
-    assert run["status"] == "complete", run["message"]
-    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
-    assert frf["measured"] is not None, frf["measured_problem"]
     up_to_hz = min(40.0, frf["measured"]["nyquist_hz"])
-    _check_against_simulator(frf, run, up_to_hz=up_to_hz, coherent_only=True)
     margins = frf["measured"]["margins"]
     # a margin is a number or null with the reason, never both
     for key in ("gain_margin", "phase_margin"):
