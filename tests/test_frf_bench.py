@@ -263,7 +263,8 @@ async def _run_until_covered(
         run_id = await start(api, "line-0", kind="frequency_response", **request)
         run = await finished_run(api, "line-0", run_id)
         message = run["message"] or ""
-        if run["status"] != "complete" and ("no echo" in message or "no reply" in message):
+        wire = ("no echo", "no reply", "echo mismatch")  # the pty under host load
+        if run["status"] != "complete" and any(w in message for w in wire):
             reasons.append(message)
             continue
         assert run["status"] == "complete", message
