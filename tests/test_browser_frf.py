@@ -12,8 +12,10 @@ import asyncio
 import json
 import os
 import statistics
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from playwright.async_api import Browser, Page, expect
@@ -94,6 +96,30 @@ async def test_frequency_response_bode_margins_and_what_if(
     await page.get_by_test_id("frf-low_hz").fill("1")
     await page.get_by_test_id("frf-high_hz").fill("40")
     await page.get_by_test_id("frf-duration_s").fill("5")
+    await expect(page.get_by_test_id("frf-inject")).to_have_value("closed")
+    await expect(page.get_by_test_id("frf-pwm")).to_be_hidden()  # open loop only
+    # Open loop asks first; dismissed, nothing is started.
+    await page.get_by_test_id("frf-inject").select_option("open")
+    await expect(page.get_by_test_id("frf-pwm")).to_be_visible()
+    await expect(page.get_by_test_id("frf-amplitude")).to_be_hidden()
+    dialogs: list[str] = []
+    before = len((await server.client.get("/api/axes/line-0/bench/runs")).json())
+
+    async def dismiss(dialog: Any) -> None:
+        dialogs.append(dialog.message)
+        await dialog.dismiss()
+
+    page.once("dialog", dismiss)
+    await page.get_by_test_id("frf-run").click()
+    for _ in range(100):
+        if dialogs:
+            break
+        await asyncio.sleep(0.05)
+    assert dialogs and "position controller is OFF" in dialogs[0], dialogs
+    await asyncio.sleep(0.3)
+    assert len((await server.client.get("/api/axes/line-0/bench/runs")).json()) == before
+    await page.get_by_test_id("frf-inject").select_option("closed")
+    clicked = time.monotonic()
     await page.get_by_test_id("frf-run").click()
     for _ in range(600):
         runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
@@ -102,6 +128,9 @@ async def test_frequency_response_bode_margins_and_what_if(
         await asyncio.sleep(0.05)
     assert runs[-1]["test"]["kind"] == "frequency_response"
     assert runs[-1]["status"] == "complete", runs[-1]["message"]
+    frf_run_s = time.monotonic() - clicked
+    first = (await server.client.get(f"/api/bench/runs/{runs[-1]['id']}/frf")).json()
+    assert first["measured"] is not None, first["measured_problem"]
     readouts = page.get_by_test_id("frf-readouts")
     await expect(readouts.locator("tr[data-source='measured']")).to_have_count(1, timeout=30_000)
     await expect(readouts.locator("tr[data-source='model']")).to_have_count(1)
@@ -116,6 +145,26 @@ async def test_frequency_response_bode_margins_and_what_if(
     frf = (await server.client.get(f"/api/bench/runs/{run_id}/frf")).json()
     server_pm = frf["model"]["margins"]["phase_margin_deg"]
     assert f"{server_pm:.1f}" in await model_pm.inner_text()
+    # A measured margin is a number or "not measurable" with the API's reason.
+    measured = frf["measured"]["margins"]
+    gm_cell = readouts.locator("tr[data-source='measured'] [data-testid='frf-gm']")
+    if measured["gain_margin_db"] is None:
+        await expect(gm_cell).to_have_text("not measurable")
+        assert await gm_cell.get_attribute("title") == measured["gain_margin_problem"]
+        reasons = page.get_by_test_id("frf-margin-reason")
+        await expect(reasons.first).to_contain_text("not measurable from this run")
+    else:
+        await expect(gm_cell).to_contain_text(f"{measured['gain_margin_db']:.1f}")
+    await page.get_by_test_id("frf-loop").select_option("open")
+    await expect(page.get_by_test_id("bode-magnitude").locator("canvas")).to_have_count(1)
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    await panel.scroll_into_view_if_needed()
+    await panel.screenshot(path=str(ARTIFACTS / "bode-open-loop-laptop.png"))
+    await page.set_viewport_size({"width": 390, "height": 844})
+    await page.wait_for_timeout(300)  # the plots rebuild on resize (ResizeObserver)
+    await panel.screenshot(path=str(ARTIFACTS / "bode-open-loop-phone.png"))
+    await page.set_viewport_size({"width": 1400, "height": 1200})
+    await page.get_by_test_id("frf-loop").select_option("closed")
 
     # What-if: the browser's margins agree with python-control's for the same gains.
     whatif = page.get_by_test_id("whatif-panel")
@@ -145,6 +194,8 @@ async def test_frequency_response_bode_margins_and_what_if(
     (ARTIFACTS / "frf-whatif-timing.json").write_text(
         json.dumps(
             {
+                "frf_1_to_40_hz_run_s": frf_run_s,
+                "frf_duration_s": 5.0,
                 "whatif_update_ms_median": statistics.median(times),
                 "whatif_update_ms_max": max(times),
                 "whatif_compute_ms_last": compute,

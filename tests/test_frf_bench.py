@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import asyncio
-import math
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.tuning import frfrun
+from servotune.tuning.frf import FrequencyResponse, usable_band
 from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
@@ -235,15 +235,59 @@ def _check_against_simulator(
     model = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
     truth = model.closed_loop_response(f)
     coherence = np.asarray(closed["coherence"])
-    if coherent_only:
-        # The issue's criterion: wherever coherence is >= 0.9 (how far up that reaches
-        # depends on the samples the host delivered, which the test does not judge)
-        wanted = (f <= up_to_hz) & (coherence >= 0.9)
-    else:
-        wanted = f <= up_to_hz
-        assert np.all(coherence[wanted] >= 0.9), (f[wanted], coherence[wanted], measured)
-    assert wanted.sum() >= 4, (f, coherence)
-    assert measured["nyquist_hz"] >= up_to_hz, measured
+    # Accuracy first, at every coherent tone of every run (the issue's criterion) ...
+    wanted = (f <= up_to_hz) & (coherence >= 0.9) & (f <= measured["nyquist_hz"])
+    _check_accuracy(f, closed, truth, wanted, measured)
+    # ... then coverage, which depends on the samples the host delivered.
+    covered = f <= up_to_hz
+    if not coherent_only and not (
+        np.all(coherence[covered] >= 0.9) and measured["nyquist_hz"] >= up_to_hz
+    ):
+        raise _HostLimitedError(f"coherence {coherence[covered]}, Nyquist {measured['nyquist_hz']}")
+    if wanted.sum() < 4:
+        raise _HostLimitedError(f"{wanted.sum()} coherent tones at {measured['sample_rate_hz']}/s")
+
+
+class _HostLimitedError(Exception):
+    """A run the host starved of samples (or of the wire: a transaction timed out):
+    it measures the host, not the axis; the test takes it again (at most 3 times; the
+    accuracy at its coherent tones is still checked). Seen at load average 10-15 on
+    the 2-core VM: 15-35 samples/s, gaps up to 0.5 s, no tone coherent."""
+
+
+async def _run_until_covered(
+    api: LiveServer, up_to_hz: float, coherent_only: bool, **request: Any
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    reasons: list[str] = []
+    for _ in range(3):
+        run_id = await start(api, "line-0", kind="frequency_response", **request)
+        run = await finished_run(api, "line-0", run_id)
+        message = run["message"] or ""
+        wire = ("no echo", "no reply", "echo mismatch")  # the pty under host load
+        if run["status"] != "complete" and any(w in message for w in wire):
+            reasons.append(message)
+            continue
+        assert run["status"] == "complete", message
+        frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
+        try:
+            _check_against_simulator(frf, run, up_to_hz=up_to_hz, coherent_only=coherent_only)
+        except _HostLimitedError as exc:
+            reasons.append(str(exc))
+            continue
+        return run, frf
+    raise AssertionError(f"every run was starved by the host: {reasons}")
+
+
+def _check_accuracy(
+    f: np.ndarray,
+    closed: dict[str, Any],
+    truth: Any,
+    wanted: np.ndarray,
+    measured: dict[str, Any],
+) -> None:
+    if not wanted.any():
+        return
+    coherence = np.asarray(closed["coherence"])
     mag_err = np.abs(np.asarray(closed["magnitude_db"])[wanted] - truth.magnitude_db[wanted])
     phase = np.asarray(closed["phase_deg"])[wanted]
     phase_err = np.abs((phase - truth.phase_deg[wanted] + 180) % 360 - 180)
@@ -262,23 +306,15 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     """0.5-3 Hz: the band today's poll rate (about 10-20 samples/s of one module)
     resolves; tones up to 2 Hz are checked (Nyquist stays above 2 Hz at 4 samples/s)."""
     amplitude = 300
-    run_id = await start(
-        api,
-        "line-0",
-        kind="frequency_response",
-        amplitude=amplitude,
-        low_hz=0.5,
-        high_hz=3.0,
-        duration_s=10.0,
+    run, frf = await _run_until_covered(
+        api, 2.0, False, amplitude=amplitude, low_hz=0.5, high_hz=3.0, duration_s=10.0
     )
-    run = await finished_run(api, "line-0", run_id)
-    assert run["status"] == "complete", run["message"]
+    run_id = run["id"]
     y0 = run["plan"]["y0"]
     sent = run["excitation"]["sent"]
-    assert sent and all(abs(v - y0) <= amplitude for _, v in sent)
+    assert sent and all(abs(row[1] - y0) <= amplitude for row in sent)
+    assert all(len(row) == 3 and row[2] <= row[0] for row in sent)  # latched, then acked
     assert run["params"]["velocity"] != 65535  # the test's max profile was restored
-    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
-    _check_against_simulator(frf, run, up_to_hz=2.0)
     assert abs(api.bus.module(0).position - y0) <= 2 * run["plan"]["band"] + 1
     # Stored like a step run: listed, exported as CSV and JSON (with the excitation).
     meta = (await api.client.get(f"/api/bench/runs/{run_id}/run.json")).json()
@@ -297,34 +333,32 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     assert again["measured"] == frf["measured"]
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="issue 9 not met yet: with the capture the coherence is >= 0.9 up to ~15 Hz, "
-    "but at those tones the magnitude is off by 1.1-1.7 dB (4 periods; input = the "
-    "setpoint rebuilt from ma targets whose latch times jitter with the host)",
-)
 async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServer) -> None:
     """1-40 Hz with the line devoted to the axis (docs/capture.md): within 1 dB and 10 deg
     of the simulator's own plant + PID at every tone with coherence >= 0.9 below the
     capture's Nyquist frequency. At 19200 baud one ``ma`` target and one ``rp`` poll
     share the wire (~25 characters, ~13 ms): about 75 of each per second, so tones
-    near 40 Hz lie beyond what the line can carry and show low coherence — honestly."""
-    run_id = await start(
-        api,
-        "line-0",
-        kind="frequency_response",
-        amplitude=200,
-        low_hz=1.0,
-        high_hz=40.0,
-        duration_s=5.0,
+    near 40 Hz lie beyond what the line can carry and show low coherence — honestly.
+    8 analysed periods (9 s): at coherence 0.9 the estimate's 1-sigma error is then
+    0.7 dB (4 periods: 1 dB, the tolerance itself); the estimator is least squares at
+    the sample times against the input replayed from the latched targets
+    (docs/frequency-response.md, "Why the first estimator was off")."""
+    run, frf = await _run_until_covered(
+        api, 40.0, True, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0
     )
-    run = await finished_run(api, "line-0", run_id)
-    assert run["status"] == "complete", run["message"]
-    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf")).json()
     up_to_hz = min(40.0, frf["measured"]["nyquist_hz"])
-    _check_against_simulator(frf, run, up_to_hz=up_to_hz, coherent_only=True)
-    assert frf["measured"]["margins"]["phase_margin_deg"] is not None
-    assert not math.isnan(frf["measured"]["margins"]["gain_crossover_hz"])
+    margins = frf["measured"]["margins"]
+    # a margin is a number or null with the reason, never both
+    for key in ("gain_margin", "phase_margin"):
+        value = margins[f"{key}_db" if key == "gain_margin" else f"{key}_deg"]
+        assert (value is None) != (margins[f"{key}_problem"] is None), margins
+    if margins["gain_margin_db"] is not None:  # the model's phase crossover is ~256 Hz
+        assert margins["phase_crossover_hz"] <= up_to_hz
+    p = run["params"]
+    expected = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).margins()
+    if margins["phase_margin_deg"] is not None:
+        error = max(3.0, margins["phase_margin_error_deg"])
+        assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= error, margins
 
 
 async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_path: Path) -> None:
@@ -362,12 +396,65 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             assert abs((await server.state("line-x"))["position"] - before) <= 2
 
 
-def test_usable_band_is_the_longest_coherent_run_below_nyquist() -> None:
+def test_usable_band_is_one_definition_the_longest_coherent_run_below_nyquist() -> None:
     """One poor tone at the bottom does not hide the good band above it; a tone above
-    Nyquist never counts; no coherent tone gives (0, 0)."""
+    Nyquist never counts; no coherent tone gives (0, 0). The bench's analysis and
+    ``FrequencyResponse.usable_band`` are the same function (``tuning.frf.usable_band``)."""
     f = np.asarray([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0])
     coherence = np.asarray([0.88, 0.95, 0.97, 0.93, 0.5, 0.96, 0.99, 0.98, 0.97])
-    assert frfrun._usable_band(f, coherence, nyquist_hz=100.0) == (6.0, 12.0)
-    assert frfrun._usable_band(f, coherence, nyquist_hz=9.0) == (2.0, 4.0)
-    assert frfrun._usable_band(f, np.full(f.size, 0.5), nyquist_hz=100.0) == (0.0, 0.0)
-    assert frfrun._usable_band(f, np.full(f.size, 0.95), nyquist_hz=100.0) == (1.0, 12.0)
+    assert usable_band(f, coherence, nyquist_hz=100.0) == (6.0, 12.0)
+    assert usable_band(f, coherence, nyquist_hz=9.0) == (2.0, 4.0)
+    assert usable_band(f, np.full(f.size, 0.5), nyquist_hz=100.0) == (0.0, 0.0)
+    assert usable_band(f, np.full(f.size, 0.95), nyquist_hz=100.0) == (1.0, 12.0)
+    response = FrequencyResponse(f, np.ones(f.size, complex), coherence, sample_rate_hz=18.0)
+    assert response.usable_band(0.9) == (2.0, 4.0)  # Nyquist 9 Hz
+    assert frfrun.usable_band is usable_band
+
+
+async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_the_window(
+    api: LiveServer,
+) -> None:
+    """Open loop through spwm: 422 naming the field without a travel window on both
+    sides, without confirmation, or with a PWM above the bench's max_pwm — nothing
+    sent. Confirmed, inside a narrow window, the PWM multisine drives the axis out of
+    it and the run ends "left your travel window" with the axis stopped (st: no PWM,
+    neither pm nor vm), every PWM sent within the peak."""
+    base = {
+        "kind": "frequency_response",
+        "loop": "open",
+        "pwm": 60,
+        "low_hz": 1.0,
+        "high_hz": 10.0,
+        "duration_s": 6.0,
+    }
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json=base | {"confirm_open_loop": True}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "loop", response.text
+    assert "travel window" in response.json()["detail"]
+    position = api.bus.module(0).position
+    limits = {
+        "min_position_counts": position - 300,
+        "max_position_counts": position + 300,
+        "max_pwm": 80,
+    }
+    assert (await api.client.put("/api/axes/line-0/bench/limits", json=limits)).status_code == 200
+    response = await api.client.post("/api/axes/line-0/bench/runs", json=base)
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == "confirm_open_loop"
+    response = await api.client.post(
+        "/api/axes/line-0/bench/runs", json=base | {"pwm": 120, "confirm_open_loop": True}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "pwm", response.text
+    assert api.bus.module(0).pwm == 0
+    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
+    run_id = await start(api, "line-0", **base, confirm_open_loop=True)
+    run = await finished_run(api, "line-0", run_id)
+    assert run["status"] == "incomplete", run
+    assert "left your travel window" in run["message"], run["message"]
+    module = api.bus.module(0)
+    assert module.pwm == 0 and not module.rss & 0b1100  # stopped: no PWM, not pm/vm
+    sent = run["excitation"]["sent"]
+    assert sent and all(abs(row[1]) <= 60 for row in sent)
+    assert run["excitation"]["command"] == "open_loop_pwm"
+    assert run["test"]["loop"] == "open"

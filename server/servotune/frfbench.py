@@ -6,6 +6,12 @@
   target is one command on the wire, and the profile generator runs between them at
   the maximum ``sv``/``sa``, set for the test and restored after it). The targets stay
   inside ``y0 +- amplitude`` and inside the user's travel window.
+* SLAP2 open loop (``loop = "open"``, only with ``confirm_open_loop``): the same
+  multisine as open-loop PWM (``spwm``, peak ``pwm`` within the bench's ``max_pwm``),
+  the controller off; only inside a travel window the user set on both sides, which
+  stops it (checked at every PWM sent and every recorded sample); the axis is left
+  stopped (``st``, unpowered) where it ends. Gives the plant itself, and with the
+  run's gains the loop the PID would close around it.
 * Z1100 and others (no way to inject on the wire without leaving the device's own
   profile): the frequency response of the identified plant under the device's exact
   law (``tuning.whatif``), stored as a run like any other and labelled model-based.
@@ -40,15 +46,50 @@ def check_request(
     high_hz: float,
     duration_s: float,
     max_distance_counts: int,
+    *,
+    loop: str = "closed",
+    pwm: int = 0,
+    max_pwm: int = 255,
+    confirm_open_loop: bool = False,
+    window: tuple[int | None, int | None] = (None, None),
 ) -> None:
-    """422 (InvalidArgumentError naming the field and the range) before anything moves."""
+    """422 (InvalidArgumentError naming the field and the range) before anything moves.
+
+    Open loop (SLAP2 only): ``pwm`` 1..``max_pwm`` (the bench limit), a travel window
+    set on both sides (``window``: the bench's min/max_position_counts) and
+    ``confirm_open_loop`` true — the motor runs without position control."""
     if device not in MEASURED_DEVICES:
+        if loop != "closed":
+            raise InvalidArgumentError(
+                "loop", f"a {device} frequency response is model-based: loop must be 'closed'"
+            )
         if not (0 < low_hz < high_hz <= HIGH_HZ_MAX):
             raise InvalidArgumentError(
                 "high_hz", f"need 0 < low_hz < high_hz <= {HIGH_HZ_MAX:g} Hz"
             )
         return
-    if not (1 <= amplitude <= max_distance_counts):
+    if loop == "open":
+        if not (1 <= pwm <= max_pwm):
+            raise InvalidArgumentError(
+                "pwm",
+                f"pwm {pwm} must be 1..{max_pwm} (peak of the open-loop PWM, bench limit max_pwm)",
+            )
+        if window[0] is None or window[1] is None:
+            raise InvalidArgumentError(
+                "loop",
+                "an open-loop frequency response needs a travel window on both sides "
+                "(bench limits min_position_counts and max_position_counts): it is what "
+                "stops the motor",
+            )
+        if not confirm_open_loop:
+            raise InvalidArgumentError(
+                "confirm_open_loop",
+                "open loop drives the motor through spwm with the position controller off, "
+                "stopped only by the travel window: confirm it (confirm_open_loop: true)",
+            )
+    elif loop != "closed":
+        raise InvalidArgumentError("loop", f"loop {loop!r} must be 'closed' or 'open'")
+    elif not (1 <= amplitude <= max_distance_counts):
         raise InvalidArgumentError(
             "amplitude",
             f"amplitude {amplitude} must be 1..{max_distance_counts} counts "
@@ -98,6 +139,31 @@ def plan_slap2(
     return plan, excitation
 
 
+def plan_slap2_open(
+    latest: Sample, pwm: int, low_hz: float, high_hz: float
+) -> tuple[BenchPlan, Excitation]:
+    """Open loop: the multisine as PWM (``spwm``) around 0, from rest; ``st`` at the
+    end (the axis is left unpowered where it stands: no return move without the
+    controller). The first ``spwm`` leaves position mode."""
+    if latest.flags.get("move") or latest.flags.get("vm"):
+        raise DeviceRefusedError(
+            "the axis is moving: a test must start from rest (wait, or press STOP)"
+        )
+    position = float(latest.channels.get("position") or 0.0)
+    excitation = frfrun.design(0.0, pwm, low_hz, high_hz, "open_loop_pwm", "pwm")
+    plan = BenchPlan(
+        setup=[],
+        trigger=[],
+        finish=[("stop", {})],
+        response="position",
+        y0=position,
+        y_final=position,
+        band=None,
+        fault_flags=["oc", "limit1", "limit2"],
+    )
+    return plan, excitation
+
+
 def model_plan(latest: Sample) -> BenchPlan:
     """A model-based run moves nothing: an empty plan around where the axis stands."""
     position = float(latest.channels.get("position") or 0.0)
@@ -131,6 +197,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         "run_id": run.get("id"),
         "device": device,
         "model_based": device not in MEASURED_DEVICES,
+        "loop": str(test.get("loop") or "closed"),
         "low_hz": low,
         "high_hz": high,
         "measured": None,
@@ -145,14 +212,25 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         ip = columns.index("position")
         isp = columns.index("setpoint") if "setpoint" in columns else None
         try:
-            out["measured"] = frfrun.analyse(
-                [r[0] for r in rows],
-                [r[ip] for r in rows],
-                [r[isp] for r in rows] if isp is not None else None,
-                excitation.get("sent", []),
-                float(run.get("t0_s") or 0.0),
-                Excitation.from_dict(excitation),
-            )
+            if test.get("loop") == "open":
+                out["measured"] = frfrun.analyse_open(
+                    [r[0] for r in rows],
+                    [r[ip] for r in rows],
+                    excitation.get("sent", []),
+                    float(run.get("t0_s") or 0.0),
+                    Excitation.from_dict(excitation),
+                    _gains(run),
+                )
+            else:
+                out["measured"] = frfrun.analyse(
+                    [r[0] for r in rows],
+                    [r[ip] for r in rows],
+                    [r[isp] for r in rows] if isp is not None else None,
+                    excitation.get("sent", []),
+                    float(run.get("t0_s") or 0.0),
+                    Excitation.from_dict(excitation),
+                    profile=_test_profile(run),
+                )
         except ValueError as exc:
             out["measured_problem"] = str(exc)
     elif device in MEASURED_DEVICES:
@@ -176,6 +254,26 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         )
     safe: dict[str, Any] = _json_safe(out)
     return safe
+
+
+def _gains(run: Mapping[str, Any]) -> tuple[int, int, int] | None:
+    params = run.get("params") or {}
+    try:
+        return int(params["kp"]), int(params["ki"]), int(params["kd"])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _test_profile(run: Mapping[str, Any]) -> tuple[int, int] | None:
+    """The sv/sa the SLAP2 ran the test with (the plan's overrides; runs from before
+    they were recorded: the maximum the plan always sets)."""
+    if str(run.get("device", "")) != "slap2":
+        return None
+    overrides = (run.get("plan") or {}).get("overrides") or {}
+    return (
+        int(overrides.get("velocity", VELOCITY_MAX)),
+        int(overrides.get("acceleration", ACCELERATION_MAX)),
+    )
 
 
 def _json_safe(value: Any) -> Any:

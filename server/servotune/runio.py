@@ -76,6 +76,7 @@ class ImportTest(_Strict):
     low_hz: FiniteFloat | None = None
     high_hz: FiniteFloat | None = None
     model_based: StrictBool | None = None
+    loop: Literal["closed", "open"] | None = None  # closed: ma targets; open: spwm
 
 
 class ImportPlan(_Strict):
@@ -293,7 +294,7 @@ def store_import(
         by_alias=True, exclude={"id", "axis_id", "status", "baseline", "created_s"}
     )
     stored["imported_from"] = meta.id or meta.imported_from
-    for name in ("amplitude", "low_hz", "high_hz", "model_based"):
+    for name in ("amplitude", "low_hz", "high_hz", "model_based", "loop"):
         if stored["test"].get(name) is None:
             stored["test"].pop(name, None)  # only frequency-response runs have them
     for optional in (

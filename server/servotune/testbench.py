@@ -26,7 +26,7 @@ from collections.abc import AsyncIterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -36,6 +36,7 @@ from servotune.drivers.base import (
     BenchPlan,
     BenchPlanner,
     BenchTest,
+    CommandClock,
     DeviceRefusedError,
     DriverError,
     InvalidArgumentError,
@@ -107,6 +108,14 @@ class BenchTestRequest(BaseModel):
     )
     low_hz: float = Field(default=1.0, description="frequency_response: lowest tone, Hz")
     high_hz: float = Field(default=40.0, description="frequency_response: highest tone, Hz")
+    loop: Literal["closed", "open"] = Field(
+        default="closed",
+        description="frequency_response: closed (position targets, ma) or open (PWM "
+        "through spwm, peak `pwm`; SLAP2 only, needs a travel window and confirmation)",
+    )
+    confirm_open_loop: bool = Field(
+        default=False, description="frequency_response, loop open: the user confirmed"
+    )
     note: str = Field(default="", max_length=200)
 
 
@@ -128,6 +137,7 @@ class _Recording:
     excitation: Excitation | None = None  # frequency_response: the targets to stream
     sent: list[list[float]] = field(default_factory=list)  # [t, target] as acknowledged
     trigger_acked: float | None = None  # when the device acknowledged the trigger
+    abort: str | None = None  # why the exciter stopped the axis (ends the record)
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -265,6 +275,11 @@ class TestBench:
                 request.high_hz,
                 request.duration_s,
                 limits.max_distance_counts,
+                loop=request.loop,
+                pwm=request.pwm,
+                max_pwm=limits.max_pwm,
+                confirm_open_loop=request.confirm_open_loop,
+                window=(limits.min_position_counts, limits.max_position_counts),
             )
             if entry.info.device not in frfbench.MEASURED_DEVICES and not identified:
                 raise DeviceRefusedError(
@@ -302,7 +317,11 @@ class TestBench:
         excitation: Excitation | None = None
         model_based = False
         if test.kind == frfbench.KIND:
-            if entry.info.device in frfbench.MEASURED_DEVICES:
+            if entry.info.device in frfbench.MEASURED_DEVICES and request.loop == "open":
+                plan, excitation = frfbench.plan_slap2_open(
+                    entry.latest, request.pwm, request.low_hz, request.high_hz
+                )
+            elif entry.info.device in frfbench.MEASURED_DEVICES:
                 plan, excitation = frfbench.plan_slap2(
                     entry.latest,
                     entry.device_values,
@@ -331,6 +350,7 @@ class TestBench:
                 "low_hz": request.low_hz,
                 "high_hz": request.high_hz,
                 "model_based": model_based,
+                "loop": request.loop,
             }
         meta = run_meta(entry, test_dict, plan)
         columns, flags = meta["columns"], meta["flags"]
@@ -403,25 +423,43 @@ class TestBench:
 
         One ``ma`` per changed target, as fast as the wire takes them (each command
         waits for its reply); each send is stamped when the device acknowledged it,
-        which is what the analysis holds the target from. STOP still goes first: the
+        with the device's latch time when the driver knows it (``CommandClock``),
+        which is what the analysis replays the profile from. STOP still goes first: the
         hub's STOP bumps the stop generation and every later command is refused."""
         excitation, t0 = recording.excitation, recording.t0
         assert excitation is not None and t0 is not None
         last: int | None = None
         axis = recording.entry.info.id
+        limits = await self.limits(axis)
+        open_loop = excitation.command != "move_absolute"
         while not recording.ended:
             target = excitation.target(self._clock() - t0)
             if target == last:
                 await asyncio.sleep(0.001)
                 continue
+            # Open loop: nothing holds the axis but this check, at every PWM sent
+            # (the record loop checks only every 50 ms).
+            latest = recording.entry.latest
+            position = latest.channels.get("position") if latest is not None else None
+            if open_loop and position is not None and (why := limits.outside(position)):
+                recording.abort = f"left your travel window: {why}: axis stopped"
+                await recording.entry.driver.stop()
+                return
             await self._hub.command(
                 axis,
-                "move_absolute",
-                {"position": target},
+                excitation.command,
+                {excitation.argument: target},
                 origin="bench",
                 stop_generation=recording.stop_generation,
             )
-            recording.sent.append([round(self._clock(), 6), float(target)])
+            # [acknowledged, target, latched]: the analysis replays the profile from
+            # the latch (the ack comes a status read later, 10-15 ms and jittery).
+            driver = recording.entry.driver
+            latch = driver.last_command_latch_s if isinstance(driver, CommandClock) else None
+            recording.sent.append(
+                [round(self._clock(), 6), float(target)]
+                + ([round(latch, 6)] if latch is not None else [])
+            )
             last = target
 
     @staticmethod
@@ -620,6 +658,8 @@ class TestBench:
                 self._update(recording, "recording", f"{now - start:.1f} s")
             if self._hub.link_status(recording.entry.link.id).state != "connected":
                 raise DriverError("the link went down during the test")
+            if recording.abort is not None:
+                raise DriverError(recording.abort)
             generation = recording.stop_generation
             if generation is not None and recording.entry.stop_generation != generation:
                 raise DriverError("STOP was pressed during the test")

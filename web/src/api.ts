@@ -122,6 +122,8 @@ export interface BenchTestRequest {
   amplitude?: number;
   low_hz?: number;
   high_hz?: number;
+  loop?: "closed" | "open"; // open: PWM through spwm (peak `pwm`), SLAP2 only
+  confirm_open_loop?: boolean;
 }
 
 /** servotune/metrics.py ``Metrics`` (times in s after the trigger t0). */

@@ -10,9 +10,10 @@ is exact.
 
 Captured samples are not equally spaced (a serial poll loop latches them when the
 wire allows): ``resample_uniform`` puts them on a uniform grid at their median rate by
-linear interpolation before the spectra. The usable band ends where the coherence
-falls below a threshold or at the Nyquist frequency of the capture rate, whichever
-comes first (``FrequencyResponse.usable_until_hz``).
+linear interpolation before the spectra (the bench's frequency response does better:
+``tone_fit``, least squares at the actual sample times). The usable band is the
+longest run of coherent points below the capture's Nyquist frequency
+(``usable_band``, the one definition used everywhere).
 """
 
 from __future__ import annotations
@@ -64,16 +65,44 @@ class FrequencyResponse:
             self.model_based,
         )
 
-    def usable_until_hz(self, min_coherence: float = 0.9) -> float:
-        """Upper end of the band from the lowest frequency on where every point has at
-        least ``min_coherence`` (0 when even the first point does not), never above the
-        capture's Nyquist frequency."""
-        nyquist = self.sample_rate_hz / 2.0
-        bad = np.nonzero(self.coherence[1:] < min_coherence)[0]
-        if self.coherence.size < 2 or self.coherence[1] < min_coherence:
-            return 0.0
-        end = self.frequency_hz[bad[0]] if bad.size else self.frequency_hz[-1]
-        return float(min(end, nyquist))
+    def usable_band(self, min_coherence: float = 0.9) -> tuple[float, float]:
+        """The usable band of this response (``usable_band`` below, with the capture's
+        Nyquist frequency ``sample_rate_hz / 2``)."""
+        return usable_band(
+            self.frequency_hz, self.coherence, self.sample_rate_hz / 2.0, min_coherence
+        )
+
+
+def usable_band(
+    frequency_hz: npt.ArrayLike,
+    coherence: npt.ArrayLike,
+    nyquist_hz: float,
+    min_coherence: float = 0.9,
+) -> tuple[float, float]:
+    """The one definition of a measurement's usable band, used by the bench's analysis
+    and the Bode view alike: the longest run of consecutive points with coherence >=
+    ``min_coherence`` at or below ``nyquist_hz``, as (first, last) frequency; the
+    lowest such run on a tie; (0, 0) when no point qualifies.
+
+    A run, not "from the lowest point on": one poor point at the bottom (drift over
+    few periods, friction at the slowest tone) must not hide a good band above it,
+    and a run, not "every good point": the band is where the curve can be read as a
+    curve (interpolated between neighbours), so a lone good point between poor ones
+    does not extend it."""
+    f = np.asarray(frequency_hz, dtype=np.float64)
+    good = (np.asarray(coherence, dtype=np.float64) >= min_coherence) & (f <= nyquist_hz)
+    best: tuple[int, int] | None = None
+    start: int | None = None
+    for i, ok in enumerate([*good.tolist(), False]):
+        if ok and start is None:
+            start = i
+        elif not ok and start is not None:
+            if best is None or i - start > best[1] - best[0] + 1:
+                best = (start, i - 1)
+            start = None
+    if best is None:
+        return 0.0, 0.0
+    return float(f[best[0]]), float(f[best[1]])
 
 
 def resample_uniform(
@@ -167,3 +196,98 @@ def tone_grid(
     resolution = sample_rate_hz / segment
     bins = np.unique(np.round(np.geomspace(low_hz, high_hz, count) / resolution)).astype(int)
     return np.asarray(bins[bins > 0] * resolution, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class ToneFit:
+    """Complex amplitudes of a sum of tones fitted to samples: ``x(t) ~ c0 + c1 (t -
+    t_ref) + sum_k Re(amplitude_k e^{j w_k (t - t_ref)})``, and each amplitude's
+    standard error (per real component, from the residual and the design matrix)."""
+
+    amplitude: ComplexArray
+    standard_error: FloatArray
+    residual_rms: float
+    samples: int
+
+
+def tone_fit(
+    t_s: npt.ArrayLike,
+    x: npt.ArrayLike,
+    tones_hz: npt.ArrayLike,
+    t_ref_s: float,
+    *,
+    differenced: bool = False,
+) -> ToneFit:
+    """Least-squares fit of all ``tones_hz`` at once (with an offset and a linear trend)
+    to samples taken at the times ``t_s`` — any times, uniform or not.
+
+    This is the honest estimator for irregular samples: no interpolation onto a grid
+    (which low-passes the samples by an amount that depends on their spacing, and
+    folds what lies above the grid's Nyquist frequency into the tones), and the tones
+    are fitted jointly, so with uneven spacing one tone does not leak into another.
+    The standard errors are the usual ones, ``s^2 (A^T A)^-1`` with ``s^2`` the
+    residual variance: whatever the tones do not explain (noise, quantisation, the
+    response to a non-periodic part of the input) counts as error. Raises ValueError
+    when there are fewer samples than unknowns.
+
+    ``differenced``: fit the increments between consecutive samples instead (the same
+    unknowns; the offset drops out). For an integrating plant driven open loop the
+    position wanders like a random walk (it integrates whatever in the input is not
+    periodic), which no tone explains: its increments are white, so the fit and its
+    standard errors stay honest."""
+    t = np.asarray(t_s, dtype=np.float64) - t_ref_s
+    xs = np.asarray(x, dtype=np.float64)
+    w = 2.0 * np.pi * np.asarray(tones_hz, dtype=np.float64)
+    columns = 2 + 2 * w.size
+    if t.size <= columns:
+        raise ValueError(
+            f"{t.size} samples cannot fit {w.size} tones ({columns} unknowns): "
+            "record longer or fewer tones"
+        )
+    phase = np.outer(t, w)
+    design = np.empty((t.size, columns))
+    design[:, 0] = 1.0
+    design[:, 1] = t
+    design[:, 2::2] = np.cos(phase)
+    design[:, 3::2] = np.sin(phase)
+    first = 2
+    if differenced:
+        design = np.diff(design, axis=0)[:, 1:]
+        xs = np.diff(xs)
+        first = 1
+    coef, *_ = np.linalg.lstsq(design, xs, rcond=None)
+    residual = xs - design @ coef
+    variance = float(residual @ residual) / (xs.size - design.shape[1])
+    cov_diag = variance * np.diag(np.linalg.pinv(design.T @ design))
+    # x = a cos + b sin = Re((a - j b) e^{j w t})
+    amplitude = coef[first::2] - 1j * coef[first + 1 :: 2]
+    error = np.sqrt(0.5 * (cov_diag[first::2] + cov_diag[first + 1 :: 2]))
+    return ToneFit(
+        amplitude=np.asarray(amplitude, dtype=np.complex128),
+        standard_error=np.asarray(error, dtype=np.float64),
+        residual_rms=float(np.sqrt(np.mean(residual**2))),
+        samples=int(t.size),
+    )
+
+
+def coherence_from_error(relative_error: npt.ArrayLike, averages: int) -> FloatArray:
+    """The coherence an H1 estimate with ``averages`` averages has when the normalised
+    random error of its magnitude is ``relative_error``: the standard error bound
+    (Bendat & Piersol) ``e = sqrt(1 - g^2) / (|g| sqrt(2 n))`` solved for ``g^2``.
+    ``frf_relative_error`` is its inverse."""
+    e = np.asarray(relative_error, dtype=np.float64)
+    with np.errstate(over="ignore"):  # an infinite error: coherence 0
+        return np.asarray(1.0 / (1.0 + 2.0 * averages * e * e), dtype=np.float64)
+
+
+def frf_relative_error(coherence: npt.ArrayLike, averages: int) -> FloatArray:
+    """Normalised random error of an H1 estimate's magnitude (and its phase's standard
+    deviation in radians) from its coherence and number of averages (Bendat &
+    Piersol, Random Data, 9.3): ``sqrt(1 - g^2) / (|g| sqrt(2 n))``; infinite at zero
+    coherence."""
+    g2 = np.clip(np.asarray(coherence, dtype=np.float64), 0.0, 1.0)
+    with np.errstate(divide="ignore"):
+        return np.asarray(
+            np.where(g2 > 0, np.sqrt(1.0 - g2) / np.sqrt(g2 * 2.0 * max(averages, 1)), np.inf),
+            dtype=np.float64,
+        )

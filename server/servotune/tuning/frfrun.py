@@ -10,18 +10,21 @@ period long, the spectra use a rectangular window: no leakage between tones (a H
 window would mix neighbouring tones' bins, which a periodic excitation does not
 average out).
 
-Analysis: the samples (irregular: a serial poll) are interpolated onto a uniform grid
-with a whole number of points per period, then H1 with Welch averaging
-(``tuning.frf.estimate_frf``) at the tones gives the closed loop T (setpoint ->
-position) and its coherence. The input is the profile setpoint when the run recorded
-it densely (the capture branch reconstructs it sample by sample), else the targets
-the server sent, held between sends (zero-order hold at the times the device
-acknowledged them): then the measured response includes the SLAP2's profile generator
-at its maximum velocity and acceleration.
+Analysis: the loop's input is rebuilt on the controller's tick grid from the targets
+sent, at the times the device latched them, through the firmware's profile law at the
+test's sv/sa (``rebuild_input``); the output is the position samples at their latch
+times, irregular as the wire delivered them. Over the analysed whole periods both are
+fitted with all tones at once by least squares (``tuning.frf.tone_fit``), and the
+closed loop is ``T = Y / U`` at each tone, with a relative error from the fits'
+standard errors and the host's timing uncertainty, and the coherence equivalent to
+that error. (The first version interpolated the samples onto a uniform grid and took
+Welch spectra against the targets stamped when acknowledged: 1.1-1.7 dB off the
+simulator's plant at coherence >= 0.9; docs/frequency-response.md says why.)
 
 Open loop from the measurement: for a loop whose controller acts on the error only
 (the SLAP2, ``Cb = 0``), ``L = T / (1 - T)`` exactly, so margins and crossover come
-from the measured T without any plant model, inside the usable band.
+from the measured T without any plant model — but only at tones where L is
+measurable: near T = 1 the division amplifies T's error (``measured_margins``).
 """
 
 from __future__ import annotations
@@ -31,15 +34,31 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import control
 import numpy as np
+import numpy.typing as npt
 
-from servotune.tuning.frf import FloatArray, estimate_frf
+from servotune.profiles import TICK_S, TrapezoidGenerator
+from servotune.tuning.frf import (
+    ComplexArray,
+    FloatArray,
+    coherence_from_error,
+    tone_fit,
+    usable_band,
+)
 from servotune.tuning.whatif import bode_dict, margins_dict
 
 MAX_TONES = 24
 MIN_COHERENCE = 0.9
 MIN_PERIODS = 3  # analysed, after the settling period (coherence needs averages)
+# What the host cannot know about when things happened: the phase of the controller's
+# tick against the latch estimates (half a tick either way). A phase error of w * dt,
+# counted in T's relative error so that the coherence (and L's error) include it.
+TIMING_UNCERTAINTY_S = TICK_S / 2
+# L = T / (1 - T) is used for margins at a tone only where its relative error, at
+# ERROR_COVERAGE standard errors (about 95 %), is at most MAX_LOOP_ERROR: |L| within
+# about +-2 dB and its phase within about +-14 deg.
+ERROR_COVERAGE = 2.0
+MAX_LOOP_ERROR = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,6 +72,10 @@ class Excitation:
     scale: float  # 1 / peak of the raw sum, so |x| <= 1
     period_s: float
     settle_periods: int = 1
+    # What each value is sent as: a position target (closed loop, ``ma``) or an
+    # open-loop PWM (``spwm``, the plant alone; see ``analyse_open``).
+    command: str = "move_absolute"
+    argument: str = "position"
 
     def target(self, t_s: float) -> int:
         f = np.asarray(self.tones_hz)
@@ -68,6 +91,8 @@ class Excitation:
             "scale": self.scale,
             "period_s": self.period_s,
             "settle_periods": self.settle_periods,
+            "command": self.command,
+            "argument": self.argument,
         }
 
     @classmethod
@@ -80,10 +105,19 @@ class Excitation:
             float(d["scale"]),
             float(d["period_s"]),
             int(d.get("settle_periods", 1)),
+            str(d.get("command", "move_absolute")),
+            str(d.get("argument", "position")),
         )
 
 
-def design(y0: float, amplitude: float, low_hz: float, high_hz: float) -> Excitation:
+def design(
+    y0: float,
+    amplitude: float,
+    low_hz: float,
+    high_hz: float,
+    command: str = "move_absolute",
+    argument: str = "position",
+) -> Excitation:
     """The multisine for a band (callers check the ranges; see the module docstring)."""
     df = low_hz
     # At most MAX_TONES log-spaced tones on multiples of df (duplicates merged).
@@ -103,6 +137,8 @@ def design(y0: float, amplitude: float, low_hz: float, high_hz: float) -> Excita
         phases_rad=tuple(float(x) for x in phases),
         scale=1.0 / (peak * 1.02),  # margin: the sampled peak may miss the true one
         period_s=period,
+        command=command,
+        argument=argument,
     )
 
 
@@ -111,13 +147,174 @@ def periods_in(duration_s: float, excitation: Excitation) -> int:
     return int(duration_s / excitation.period_s + 1e-9) - excitation.settle_periods
 
 
-def _held(times: Sequence[float], values: Sequence[float], at: FloatArray) -> FloatArray:
-    """Zero-order hold of (times, values) at ``at`` (the value before the first time:
-    the first value)."""
-    tt = np.asarray(times, dtype=np.float64)
-    vv = np.asarray(values, dtype=np.float64)
-    index = np.searchsorted(tt, at, side="right") - 1
-    return np.asarray(vv[np.clip(index, 0, vv.size - 1)], dtype=np.float64)
+def _nan_inf(x: npt.ArrayLike) -> FloatArray:
+    """NaN (an estimate that could not be made) as an infinite error."""
+    a = np.asarray(x, dtype=np.float64)
+    return np.asarray(np.where(np.isnan(a), np.inf, a), dtype=np.float64)
+
+
+def rebuild_input(
+    sent: Sequence[Sequence[float]],
+    t0_s: float,
+    y0: float,
+    profile: tuple[int, int] | None,
+    t_end_s: float,
+) -> tuple[FloatArray, FloatArray]:
+    """The loop's input (the position setpoint) on the controller's tick grid, from
+    the targets sent: ``(t_s, setpoint)`` with t from ``t0_s``.
+
+    Each row of ``sent`` is ``[acknowledged, target]`` or ``[acknowledged, target,
+    latched]``; a target takes effect at the first tick after its latch time (the
+    acknowledgement when the latch is unknown). With ``profile = (sv, sa)`` (wire
+    units, the test's overrides) the setpoint follows the firmware's trapezoid law
+    (``servotune.profiles``): at the SLAP2's maximum sv/sa a 50-count jump still takes
+    about 10 ticks (8 ms), a delay the response must not be blamed for. Without it
+    the targets are held (a device whose setpoint jumps)."""
+    rows = sorted(
+        ((float(r[2] if len(r) > 2 else r[0]) - t0_s, float(r[1])) for r in sent),
+        key=lambda row: row[0],
+    )
+    if not rows:
+        raise ValueError("no excitation was sent")
+    start = min(rows[0][0], 0.0)
+    n = int((t_end_s - start) / TICK_S) + 2
+    t = np.asarray(start + np.arange(n) * TICK_S, dtype=np.float64)
+    out = np.empty(n)
+    generator = TrapezoidGenerator.from_wire(y0, y0, *profile) if profile else None
+    value, j = y0, 0
+    for i in range(n):
+        while j < len(rows) and rows[j][0] <= t[i]:
+            value = rows[j][1]
+            if generator is not None and profile is not None:
+                generator.replan(value, *profile)
+            j += 1
+        out[i] = generator.step() if generator is not None else value
+    return t, out
+
+
+@dataclass(frozen=True, slots=True)
+class _Measured:
+    """Output per input at the tones, from one record (see ``_measure``)."""
+
+    tones_hz: FloatArray
+    response: ComplexArray
+    relative_error: FloatArray
+    coherence: FloatArray
+    periods: int
+    samples: int
+    rate_hz: float
+    input_check_counts: float | None
+
+
+def _measure(
+    t_s: Sequence[float],
+    output: Sequence[float],
+    setpoint: Sequence[float | None] | None,
+    sent: Sequence[Sequence[float]],
+    t0_s: float,
+    excitation: Excitation,
+    profile: tuple[int, int] | None,
+    *,
+    differenced: bool = False,
+) -> _Measured:
+    """The estimator shared by the closed-loop and the open-loop runs (``analyse``);
+    ``differenced`` for an integrating output (``tone_fit``)."""
+    t = np.asarray(t_s, dtype=np.float64) - t0_s
+    y = np.asarray(output, dtype=np.float64)
+    start = excitation.settle_periods * excitation.period_s
+    after = t >= start
+    if int(after.sum()) < 8:
+        raise ValueError(
+            f"{int(after.sum())} samples after the settling period: too few for a response"
+        )
+    periods = int((t[after][-1] - start) / excitation.period_s + 1e-9)
+    if periods < 1:
+        raise ValueError("the record does not hold one whole period after the settling one")
+    end = start + periods * excitation.period_s
+    keep = after & (t < end)
+    t_k, y_k = t[keep], y[keep]
+    rate_measured = float(1.0 / np.median(np.diff(t_k))) if t_k.size > 1 else 0.0
+    tones = np.asarray(excitation.tones_hz, dtype=np.float64)
+    tick_t, u_ticks = rebuild_input(sent, t0_s, excitation.y0, profile, end + TICK_S)
+    on_ticks = (tick_t >= start) & (tick_t < end)
+    t_mid = 0.5 * (start + end)
+    fit_u = tone_fit(tick_t[on_ticks], u_ticks[on_ticks], tones, t_mid)
+    fit_y = tone_fit(t_k, y_k, tones, t_mid, differenced=differenced)
+    response = fit_y.amplitude / fit_u.amplitude
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit_error = np.hypot(
+            fit_y.standard_error / np.abs(fit_y.amplitude),
+            fit_u.standard_error / np.abs(fit_u.amplitude),
+        )
+    # The fit's standard errors assume white residuals; gaps (a host that stalled the
+    # driver) and the response to the non-periodic part of the input are not. The
+    # jackknife over periods (leave one whole period out, refit) measures the spread
+    # as Welch averaging would; the larger of the two is used.
+    if periods >= 2:
+        period_of_sample = np.floor((t_k - start) / excitation.period_s)
+        period_of_tick = np.floor((tick_t[on_ticks] - start) / excitation.period_s)
+        partial = np.empty((periods, tones.size), dtype=np.complex128)
+        for i in range(periods):
+            ys, us = period_of_sample != i, period_of_tick != i
+            try:
+                fy = tone_fit(t_k[ys], y_k[ys], tones, t_mid, differenced=differenced)
+                fu = tone_fit(tick_t[on_ticks][us], u_ticks[on_ticks][us], tones, t_mid)
+            except ValueError:
+                partial[i] = np.nan
+                continue
+            partial[i] = fy.amplitude / fu.amplitude
+        spread = np.sqrt(
+            (periods - 1) / periods * np.sum(np.abs(partial - partial.mean(axis=0)) ** 2, axis=0)
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jackknife = spread / (np.sqrt(2.0) * np.abs(response))
+        fit_error = np.fmax(fit_error, _nan_inf(jackknife))
+    timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
+    relative_error = np.hypot(_nan_inf(fit_error), timing_error)
+    check: float | None = None
+    if setpoint is not None:
+        sp = np.asarray([math.nan if v is None else v for v in setpoint], dtype=np.float64)
+        ok = keep & np.isfinite(sp)
+        if ok.any():
+            check = float(np.max(np.abs(np.interp(t[ok], tick_t, u_ticks) - sp[ok])))
+    return _Measured(
+        tones,
+        np.asarray(response, dtype=np.complex128),
+        np.asarray(relative_error, dtype=np.float64),
+        coherence_from_error(relative_error, periods),
+        periods,
+        int(t_k.size),
+        rate_measured,
+        check,
+    )
+
+
+def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
+    """Magnitude (dB) and phase (deg, unwrapped, then shifted by whole turns so that
+    the first tone lies in (-270, 90]: T near 0 deg, L near -180 deg, a plant with an
+    integrator near -90 deg, as the model curves beside them are drawn)."""
+    phase = np.degrees(np.unwrap(np.angle(response)))
+    if phase.size:
+        phase = phase - 360.0 * np.ceil((phase[0] - 90.0) / 360.0)
+    return bode_dict(f, 20 * np.log10(np.maximum(np.abs(response), 1e-300)), phase)
+
+
+def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
+    nyquist = m.rate_hz / 2.0
+    usable_from, usable = usable_band(m.tones_hz, m.coherence, nyquist, MIN_COHERENCE)
+    good = (m.coherence >= MIN_COHERENCE) & (m.tones_hz <= nyquist)
+    return {
+        "usable_from_hz": usable_from,
+        "usable_until_hz": usable,
+        "sample_rate_hz": round(m.rate_hz, 2),
+        "nyquist_hz": round(nyquist, 2),
+        "periods": m.periods,
+        "samples": m.samples,
+        "input_check_counts": None
+        if m.input_check_counts is None
+        else round(m.input_check_counts, 2),
+        "estimator": "least squares at the sample times",
+    }, good
 
 
 def analyse(
@@ -127,113 +324,222 @@ def analyse(
     sent: Sequence[Sequence[float]],
     t0_s: float,
     excitation: Excitation,
+    profile: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
-    """The measured closed loop at the tones, coherence, usable band and (Cb = 0)
-    the open loop's margins; ValueError when the record cannot give a spectrum."""
-    t = np.asarray(t_s, dtype=np.float64) - t0_s
-    y = np.asarray(position, dtype=np.float64)
-    start = excitation.settle_periods * excitation.period_s
-    keep = t >= start
-    t, y = t[keep], y[keep]
-    if t.size < 8:
-        raise ValueError(f"{t.size} samples after the settling period: too few for a spectrum")
-    dense_setpoint = False
-    if setpoint is not None:
-        sp = np.asarray([math.nan if v is None else v for v in setpoint], dtype=np.float64)[keep]
-        dense_setpoint = bool(np.mean(np.isfinite(sp)) >= 0.9)
-    rate_measured = float(1.0 / np.median(np.diff(t))) if t.size > 1 else 0.0
-    periods = int((t[-1] - start) / excitation.period_s + 1e-9)
-    if periods < 1:
-        raise ValueError("the record does not hold one whole period after the settling one")
-    per_period = max(8, round(excitation.period_s * rate_measured))
-    rate = per_period / excitation.period_s
-    grid = start + np.arange(periods * per_period) / rate
-    grid = grid[grid <= t[-1]]
-    # The input is taken at the same sample instants as the output and both are
-    # interpolated the same way: the interpolation's smoothing (large when the poll is
-    # sparse) then acts on both alike and cancels in Puy / Puu.
-    if dense_setpoint:
-        ok = np.isfinite(sp)
-        u_at = np.interp(t, t[ok], sp[ok])
-        source = "setpoint"
-    else:
-        sent_t = [row[0] - t0_s for row in sent]
-        sent_v = [row[1] for row in sent]
-        if not sent_t:
-            raise ValueError("no excitation was sent")
-        u_at = _held(sent_t, sent_v, t)
-        source = "targets"
-    y_u = np.interp(grid, t, y)
-    u_u = np.interp(grid, t, u_at)
-    measured = estimate_frf(
-        u_u, y_u, rate, segment_samples=per_period, detrend="constant", window="boxcar"
-    ).at_tones(excitation.tones_hz)
-    nyquist = rate_measured / 2.0
-    in_band = measured.frequency_hz <= nyquist
-    coherence = measured.coherence
-    usable_from, usable = _usable_band(measured.frequency_hz, coherence, nyquist)
-    t_resp = measured.response
-    with np.errstate(divide="ignore", invalid="ignore"):
-        loop = t_resp / (1.0 - t_resp)
-    good = (coherence >= MIN_COHERENCE) & in_band
+    """The measured closed loop at the tones with its error and coherence, the usable
+    band, and (Cb = 0) the open loop with margins where it is measurable; ValueError
+    when the record cannot give a response.
+
+    Estimator (docs/frequency-response.md): the input is rebuilt from the sent targets
+    on the tick grid (``rebuild_input``), the output is the position samples at their
+    latch times; over the analysed whole periods both are fitted with all tones at
+    once by least squares (``tuning.frf.tone_fit``: no interpolation of irregular
+    samples), ``T = Y / U``. Its relative error combines the fits' standard errors
+    with the host's timing uncertainty; ``coherence`` is the equivalent coherence of
+    that error (``coherence_from_error``, as many averages as periods), so the 0.9
+    threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
+    per-sample reconstruction), when recorded, checks the rebuilt input."""
+    m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile)
+    common, good = _common(m)
+    open_loop = open_loop_from_closed(m.tones_hz, m.response, m.relative_error, good)
     return {
-        "closed_loop": bode_dict(measured.frequency_hz, measured.magnitude_db, measured.phase_deg)
-        | {"coherence": [round(float(c), 4) for c in coherence]},
-        "open_loop": bode_dict(
-            measured.frequency_hz,
-            20 * np.log10(np.maximum(np.abs(loop), 1e-300)),
-            np.degrees(np.unwrap(np.angle(loop))),
-        ),
-        "nyquist": {
-            "frequency_hz": [round(float(f), 5) for f in measured.frequency_hz],
-            "re": [round(float(v), 5) for v in np.real(loop)],
-            "im": [round(float(v), 5) for v in np.imag(loop)],
+        "loop": "closed",
+        "closed_loop": _bode(m.tones_hz, m.response)
+        | {
+            "coherence": [round(float(c), 4) for c in m.coherence],
+            "relative_error": [round(float(e), 4) for e in m.relative_error],
         },
-        "usable_from_hz": usable_from,
-        "usable_until_hz": usable,
-        "sample_rate_hz": round(rate_measured, 2),
-        "nyquist_hz": round(nyquist, 2),
-        "periods": periods,
-        "input": source,
-        "margins": _margins(measured.frequency_hz[good], loop[good]),
-        **_bandwidth(measured.frequency_hz[good], np.abs(t_resp[good])),
+        "open_loop": open_loop["bode"],
+        "nyquist": open_loop["nyquist"],
+        "margins": open_loop["margins"],
+        "input": "profile" if profile else "targets",
+        **common,
+        **_bandwidth(m.tones_hz[good], np.abs(m.response[good])),
     }
 
 
-def _usable_band(f: FloatArray, coherence: FloatArray, nyquist_hz: float) -> tuple[float, float]:
-    """The longest run of consecutive tones with coherence >= MIN_COHERENCE below
-    Nyquist, as (first, last) tone frequency; the lowest such run on a tie; (0, 0)
-    when no tone qualifies. A run, not "from the lowest tone on": one poor tone at
-    the bottom (drift, friction at the slowest tone) must not hide a good band above."""
-    good = (np.asarray(coherence) >= MIN_COHERENCE) & (np.asarray(f) <= nyquist_hz)
-    best: tuple[int, int] | None = None
-    start: int | None = None
-    for i, ok in enumerate([*good.tolist(), False]):
-        if ok and start is None:
-            start = i
-        elif not ok and start is not None:
-            if best is None or i - start > best[1] - best[0] + 1:
-                best = (start, i - 1)
-            start = None
-    if best is None:
-        return 0.0, 0.0
-    return float(f[best[0]]), float(f[best[1]])
+def slap2_controller(frequency_hz: FloatArray, kp: int, ki: int, kd: int) -> ComplexArray:
+    """The SLAP2 PID at ``z = e^{jwT}`` (T = 841.5 us), error counts -> PWM: the
+    firmware arithmetic ``(16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096`` that
+    ``tuning.loops.slap2_loop_for`` models (and the simulator runs)."""
+    z = np.exp(2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) * TICK_S)
+    c = (16 * kp + ki * z / (z - 1) + 32 * kd * (1 - 1 / z)) / 4096
+    return np.asarray(c, dtype=np.complex128)
 
 
-def _margins(f: FloatArray, loop: np.ndarray[Any, np.dtype[np.complex128]]) -> dict[str, Any]:
-    """Margins of the measured open loop over the tones with good coherence (null
-    where a crossover lies outside them)."""
-    if f.size < 2:
-        return margins_dict(math.nan, math.nan, math.nan, math.nan, None)
-    data = control.frd(loop, 2 * np.pi * f)
-    gm, pm, _sm, wpc, wgc, _wms = control.stability_margins(data)
-    return margins_dict(
-        20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else math.nan,
-        float(pm),
-        float(wgc) / (2 * math.pi),
-        float(wpc) / (2 * math.pi),
-        None,
+def analyse_open(
+    t_s: Sequence[float],
+    position: Sequence[float],
+    sent: Sequence[Sequence[float]],
+    t0_s: float,
+    excitation: Excitation,
+    gains: tuple[int, int, int] | None,
+) -> dict[str, Any]:
+    """An open-loop run (PWM through ``spwm``, no controller): the plant ``P`` =
+    position / PWM at the tones, measured; with the run's gains the loop the PID would
+    close, ``L = C P`` (C the firmware law, exact) and ``T = L / (1 + L)``, margins
+    from the tones where P is coherent. Here L's relative error is P's (C is exact),
+    so no tone is lost near T = 1; T's error is ``e_P / |1 + L|``. ValueError
+    without gains (a run that did not record them)."""
+    # the position integrates the PWM: fitted on its increments (tone_fit)
+    m = _measure(t_s, position, None, sent, t0_s, excitation, None, differenced=True)
+    common, good = _common(m)
+    plant = _bode(m.tones_hz, m.response) | {
+        "coherence": [round(float(c), 4) for c in m.coherence],
+        "relative_error": [round(float(e), 4) for e in m.relative_error],
+    }
+    out: dict[str, Any] = {"loop": "open", "plant": plant, "input": "pwm", **common}
+    if gains is None:
+        raise ValueError("the run's PID gains are not recorded: no loop to close around the plant")
+    loop = slap2_controller(m.tones_hz, *gains) * m.response
+    closed = loop / (1.0 + loop)
+    measurable = good & (ERROR_COVERAGE * m.relative_error <= MAX_LOOP_ERROR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        closed_error = m.relative_error / np.abs(1.0 + loop)
+    return out | {
+        "closed_loop": _bode(m.tones_hz, closed)
+        | {
+            "coherence": plant["coherence"],
+            "relative_error": [round(float(e), 4) for e in closed_error],
+        },
+        "open_loop": _bode(m.tones_hz, loop)
+        | {
+            "relative_error": plant["relative_error"],
+            "measurable": [bool(v) for v in measurable],
+        },
+        "nyquist": {
+            "frequency_hz": [round(float(v), 5) for v in m.tones_hz],
+            "re": [round(float(v), 5) for v in np.real(loop)],
+            "im": [round(float(v), 5) for v in np.imag(loop)],
+            "measurable": [bool(v) for v in measurable],
+        },
+        "margins": measured_margins(m.tones_hz, loop, m.relative_error, good, measurable),
+        **_bandwidth(m.tones_hz[good], np.abs(closed[good])),
+    }
+
+
+def open_loop_from_closed(
+    f: FloatArray,
+    closed: ComplexArray,
+    relative_error: FloatArray,
+    good: npt.NDArray[np.bool_],
+) -> dict[str, Any]:
+    """``L = T / (1 - T)`` at the tones, its relative error, which tones measure it,
+    and the margins read from those only (see ``measurable_loop``)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loop = closed / (1.0 - closed)
+        loop_error = relative_error * np.abs(closed) / np.abs(1.0 - closed)
+    measurable = good & (ERROR_COVERAGE * _nan_inf(loop_error) <= MAX_LOOP_ERROR)
+    bode = _bode(f, loop) | {
+        "relative_error": [round(float(e), 4) if np.isfinite(e) else None for e in loop_error],
+        "measurable": [bool(m) for m in measurable],
+    }
+    nyquist = {
+        "frequency_hz": [round(float(v), 5) for v in f],
+        "re": [round(float(v), 5) for v in np.real(loop)],
+        "im": [round(float(v), 5) for v in np.imag(loop)],
+        "measurable": [bool(m) for m in measurable],
+    }
+    return {
+        "bode": bode,
+        "nyquist": nyquist,
+        "margins": measured_margins(f, loop, loop_error, good, measurable),
+    }
+
+
+def _crossings(
+    f: FloatArray, values: FloatArray, level: float, pairs: npt.NDArray[np.bool_]
+) -> list[tuple[float, int, float]]:
+    """Where ``values`` crosses ``level`` between neighbouring tones i, i+1 with
+    ``pairs[i]``: (frequency interpolated linearly in log f, i, fraction)."""
+    out: list[tuple[float, int, float]] = []
+    for i in np.nonzero(pairs)[0]:
+        a, b = values[i] - level, values[i + 1] - level
+        if a == 0 or a * b < 0:
+            frac = a / (a - b) if a != b else 0.0
+            hz = math.exp(math.log(f[i]) + frac * (math.log(f[i + 1]) - math.log(f[i])))
+            out.append((hz, int(i), float(frac)))
+    return out
+
+
+def measured_margins(
+    f: FloatArray,
+    loop: ComplexArray,
+    loop_error: FloatArray,
+    good: npt.NDArray[np.bool_],
+    measurable: npt.NDArray[np.bool_],
+) -> dict[str, Any]:
+    """Gain and phase margins of a measured open loop, read only between neighbouring
+    tones that both measure L; each margin null with a reason when the run does not
+    measure it, never a number from tones where L is unknown.
+
+    Why: near T = 1 (below the crossover, where a PID's integrator makes |L| large and
+    its phase close to -180 deg) ``L = T / (1 - T)`` divides by a small difference, so
+    a 1-2 dB error of T swings L's phase across -180 deg by chance (a measured GM of
+    -8.9 dB at 5.7 Hz was seen against the model's +28.6 dB at 288 Hz). A first-order
+    propagation gives L's relative error ``e_L = e_T |T| / |1 - T|``; L is measurable
+    at a tone with good coherence where ``ERROR_COVERAGE * e_L <= MAX_LOOP_ERROR``.
+    Crossings are interpolated linearly in log f (dB for |L|, degrees for its phase);
+    the smallest margin wins when there are several. ``*_error_*`` are the margins'
+    uncertainties at the same coverage."""
+    out: dict[str, Any] = margins_dict(math.nan, math.nan, math.nan, math.nan, None)
+    pairs = measurable[:-1] & measurable[1:]
+    band = f[measurable]
+    where = (
+        f"L is measurable at {band.size} tones between {band[0]:g} and {band[-1]:g} Hz"
+        if band.size
+        else "L is measurable at no tone"
     )
+    uncertain = f[good & ~measurable]
+    why_not = (
+        f"; at {', '.join(f'{v:g}' for v in uncertain[:6])}{' ...' if uncertain.size > 6 else ''}"
+        " Hz |1 - T| is too small against T's error"
+        if uncertain.size
+        else ""
+    )
+    db = 20 * np.log10(np.maximum(np.abs(loop), 1e-300))
+    # phase unwrapped over the measurable tones only, then shifted so that -180 deg
+    # (mod 360) is the level to cross
+    phase = np.full(f.size, np.nan)
+    if band.size:
+        phase[measurable] = np.degrees(np.unwrap(np.angle(loop[measurable])))
+    out["gain_margin_problem"] = out["phase_margin_problem"] = None
+    out["gain_margin_error_db"] = out["phase_margin_error_deg"] = None
+    phase_hits: list[tuple[float, float, float]] = []  # (hz, gm_db, error)
+    if band.size:
+        lo = math.floor((np.nanmin(phase) + 180.0) / 360.0)
+        hi = math.ceil((np.nanmax(phase) + 180.0) / 360.0)
+        for k in range(lo, hi + 1):
+            for hz, i, frac in _crossings(f, phase, -180.0 + 360.0 * k, pairs):
+                gm = -(db[i] + frac * (db[i + 1] - db[i]))
+                e = ERROR_COVERAGE * max(loop_error[i], loop_error[i + 1])
+                phase_hits.append((hz, gm, 20 * math.log10(1.0 + e)))
+    if phase_hits:
+        hz, gm, err = min(phase_hits, key=lambda hit: abs(hit[1]))
+        out["gain_margin_db"], out["phase_crossover_hz"] = gm, hz
+        out["gain_margin_error_db"] = round(err, 2)
+    else:
+        out["gain_margin_problem"] = (
+            "not measurable from this run: the phase of L does not cross -180 deg between "
+            f"tones where L is measurable ({where}{why_not})"
+        )
+    gain_hits: list[tuple[float, float, float]] = []  # (hz, pm_deg, error)
+    for hz, i, frac in _crossings(f, db, 0.0, pairs):
+        ph = phase[i] + frac * (phase[i + 1] - phase[i])
+        pm = (ph + 180.0) % 360.0
+        pm = pm - 360.0 if pm > 180.0 else pm
+        e = ERROR_COVERAGE * max(loop_error[i], loop_error[i + 1])
+        gain_hits.append((hz, pm, math.degrees(e)))
+    if gain_hits:
+        hz, pm, err = min(gain_hits, key=lambda hit: hit[1])
+        out["phase_margin_deg"], out["gain_crossover_hz"] = pm, hz
+        out["phase_margin_error_deg"] = round(err, 2)
+    else:
+        out["phase_margin_problem"] = (
+            "not measurable from this run: |L| does not cross 1 (0 dB) between tones "
+            f"where L is measurable ({where}{why_not})"
+        )
+    return out
 
 
 def _bandwidth(f: FloatArray, magnitude: FloatArray) -> dict[str, Any]:

@@ -16,6 +16,8 @@ export interface Bode {
   magnitude_db: (number | null)[];
   phase_deg: (number | null)[];
   coherence?: number[];
+  /** Measured open loop: whether L = T/(1-T) is known at the tone (T's error propagated). */
+  measurable?: boolean[];
 }
 
 export interface Margins {
@@ -24,12 +26,19 @@ export interface Margins {
   gain_crossover_hz: number | null;
   phase_crossover_hz: number | null;
   stable: boolean | null;
+  /** Measured runs: why a margin is null ("not measurable from this run: ..."). */
+  gain_margin_problem?: string | null;
+  phase_margin_problem?: string | null;
+  /** Measured runs: the margin's uncertainty (about 95 %). */
+  gain_margin_error_db?: number | null;
+  phase_margin_error_deg?: number | null;
 }
 
 interface Nyquist {
   frequency_hz: (number | null)[];
   re: (number | null)[];
   im: (number | null)[];
+  measurable?: boolean[];
 }
 
 interface Part {
@@ -45,6 +54,7 @@ interface Part {
   nyquist_hz?: number;
   input?: string;
   law?: string;
+  loop?: "closed" | "open";
 }
 
 export interface FrfData {
@@ -167,7 +177,8 @@ export class FrfPanel {
   private readonly readouts: HTMLElement;
   private readonly note: HTMLElement;
   private readonly error: HTMLElement;
-  private readonly inputs: Record<"amplitude" | "low_hz" | "high_hz" | "duration_s", HTMLInputElement>;
+  private readonly inputs: Record<"amplitude" | "pwm" | "low_hz" | "high_hz" | "duration_s", HTMLInputElement>;
+  private readonly injectSelect: HTMLSelectElement;
   private readonly runButton: HTMLButtonElement;
   private readonly loopSelect: HTMLSelectElement;
   private runs: FrfRun[] = [];
@@ -182,9 +193,10 @@ export class FrfPanel {
       h("input", { class: "input num", type: "number", value, testid: `frf-${name}`, "aria-label": title, title, step: "any" });
     this.inputs = {
       amplitude: input("amplitude", "200", "Peak of the multisine around the held position (counts)"),
+      pwm: input("pwm", "40", "Open loop: peak of the multisine PWM (within the bench's max PWM)"),
       low_hz: input("low_hz", "1", "Lowest tone (Hz); also the frequency resolution"),
       high_hz: input("high_hz", "40", "Highest tone (Hz)"),
-      duration_s: input("duration_s", "5", "Record length (s): one settling period plus at least two analysed"),
+      duration_s: input("duration_s", "9", "Record length (s): one settling period plus at least three analysed (8 halve the error of 4 at the same coherence)"),
     };
     this.runButton = h(
       "button",
@@ -198,6 +210,20 @@ export class FrfPanel {
       h("option", { value: "open" }, "open loop L"),
     );
     this.loopSelect.addEventListener("change", () => void this.draw());
+    // Closed loop: position targets (ma) with the controller on. Open loop: the PWM
+    // itself (spwm), controller off, only inside a travel window and after a confirm.
+    this.injectSelect = h(
+      "select",
+      { class: "input", testid: "frf-inject", "aria-label": "How to inject" },
+      h("option", { value: "closed" }, "closed loop (position targets, ma)"),
+      h("option", { value: "open" }, "open loop (PWM, spwm) …"),
+    );
+    const syncInject = (): void => {
+      const open = this.injectSelect.value === "open";
+      (this.inputs.amplitude.closest("label") as HTMLElement | null)?.toggleAttribute("hidden", open);
+      (this.inputs.pwm.closest("label") as HTMLElement | null)?.toggleAttribute("hidden", !open);
+    };
+    this.injectSelect.addEventListener("change", syncInject);
     const field = (label: string, el: HTMLElement): HTMLElement => h("label", { class: "bf" }, h("span", { class: "bf-label" }, label), h("span", { class: "bf-control" }, el));
     this.error = h("div", { class: "bench-error", testid: "frf-error", role: "alert", hidden: true });
     this.note = h("div", { class: "frf-note", testid: "frf-note" });
@@ -221,7 +247,9 @@ export class FrfPanel {
       h(
         "div",
         { class: "bench-form-row" },
+        this.measured ? field("inject", this.injectSelect) : null,
         this.measured ? field("amplitude ±", this.inputs.amplitude) : null,
+        this.measured ? field("PWM ±", this.inputs.pwm) : null,
         field("from Hz", this.inputs.low_hz),
         field("to Hz", this.inputs.high_hz),
         this.measured ? field("duration s", this.inputs.duration_s) : null,
@@ -239,21 +267,33 @@ export class FrfPanel {
       ),
       this.readouts,
     );
+    syncInject();
   }
 
   private async start(): Promise<void> {
     this.error.hidden = true;
     const n = (k: keyof typeof this.inputs): number => Number(this.inputs[k].value);
+    const open = this.measured && this.injectSelect.value === "open";
+    if (
+      open &&
+      !window.confirm(
+        `Open loop: the position controller is OFF and the motor is driven by PWM up to ±${Math.round(n("pwm"))} (spwm). ` +
+          "Only your travel window stops it (the server stops the axis when it leaves the window); the axis is left unpowered where it ends. Continue?",
+      )
+    )
+      return;
     this.runButton.disabled = true;
     try {
       const run = await api.startRun(this.axisId, {
         kind: "frequency_response",
         distance: 0,
         velocity: 0,
-        pwm: 0,
         note: "",
         duration_s: this.measured ? n("duration_s") : 1,
-        amplitude: this.measured ? Math.round(n("amplitude")) : 0,
+        amplitude: this.measured && !open ? Math.round(n("amplitude")) : 0,
+        pwm: open ? Math.round(n("pwm")) : 0,
+        loop: open ? "open" : "closed",
+        confirm_open_loop: open,
         low_hz: n("low_hz"),
         high_hz: n("high_hz"),
       });
@@ -331,8 +371,19 @@ export class FrfPanel {
         const coherence = d.measured.closed_loop.coherence ?? [];
         const band: Band = { from: d.measured.usable_from_hz ?? 0, until: d.measured.usable_until_hz ?? 0 };
         usable = usable === null ? band : { from: Math.max(usable.from, band.from), until: Math.min(usable.until, band.until) };
+        // Open loop: a tone where L is not measurable (|1 - T| small against T's
+        // error) is drawn hollow and grey whatever its coherence.
+        const known = (j: number): boolean => !open || (b.measurable?.[j] ?? true);
+        if (open && b.measurable?.some((m) => !m)) {
+          xs.push(b.frequency_hz as number[]);
+          mags.push(b.magnitude_db.map((v, j) => (known(j) ? null : v)));
+          phases.push(b.phase_deg.map((v, j) => (known(j) ? null : v)));
+          const s: uPlot.Series = { label: `${run.label} L not measurable`, stroke: "#888888", paths: () => null, points: { show: true, size: 7, stroke: "#888888", fill: "transparent" } };
+          magSeries.push(s);
+          phaseSeries.push({ ...s });
+        }
         for (const bin of BINS) {
-          const keep = (j: number): boolean => (coherence[j] ?? 0) >= bin.min && (coherence[j] ?? 0) < bin.max;
+          const keep = (j: number): boolean => known(j) && (coherence[j] ?? 0) >= bin.min && (coherence[j] ?? 0) < bin.max;
           xs.push(b.frequency_hz as number[]);
           mags.push(b.magnitude_db.map((v, j) => (keep(j) ? v : null)));
           phases.push(b.phase_deg.map((v, j) => (keep(j) ? v : null)));
@@ -342,7 +393,7 @@ export class FrfPanel {
           phaseSeries.push({ ...s });
         }
         notes.push(
-          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable ${d.measured.usable_until_hz ? `${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")}` : "nowhere (coherence < 0.9)"}, input: ${d.measured.input === "setpoint" ? "profile setpoint" : "targets sent"}`,
+          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable ${d.measured.usable_until_hz ? `${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")}` : "nowhere (coherence < 0.9)"}, input: ${d.measured.input === "pwm" ? "open-loop PWM (spwm): the plant measured, L = C·P with the run's PID" : d.measured.input === "profile" ? "targets through the profile law" : "targets sent"}`,
         );
       } else if (d.measured_problem) notes.push(`${run.label}: ${d.measured_problem}`);
       if (d.model_based) notes.push(`${run.label}: MODEL-BASED (${d.model?.law ?? "device law"}), not a measurement`);
@@ -361,14 +412,20 @@ export class FrfPanel {
   }
 
   private renderReadouts(loaded: FrfData[]): void {
+    // A measured margin is a number (± its uncertainty) or "not measurable" with the
+    // reason, never a number read from tones where L is unknown.
+    const margin = (testid: string, v: number | null, err: number | null | undefined, unit: string, problem: string | null | undefined): HTMLElement =>
+      problem
+        ? h("td", { class: "frf-unmeasurable", testid, title: problem }, "not measurable")
+        : h("td", { class: "mono", testid }, err !== null && err !== undefined && v !== null ? `${v.toFixed(1)} ± ${err.toFixed(1)} ${unit}` : fmt(v, 1, unit));
     const row = (label: string, color: string, source: string, p: Part): HTMLElement =>
       h(
         "tr",
         { "data-source": source },
         h("td", null, h("span", { class: "swatch", style: `background:${color}` }), ` ${label}`),
         h("td", null, source),
-        h("td", { class: "mono", testid: "frf-gm" }, fmt(p.margins.gain_margin_db, 1, "dB")),
-        h("td", { class: "mono", testid: "frf-pm" }, fmt(p.margins.phase_margin_deg, 1, "°")),
+        margin("frf-gm", p.margins.gain_margin_db, p.margins.gain_margin_error_db, "dB", p.margins.gain_margin_problem),
+        margin("frf-pm", p.margins.phase_margin_deg, p.margins.phase_margin_error_deg, "°", p.margins.phase_margin_problem),
         h("td", { class: "mono" }, fmt(p.margins.gain_crossover_hz, 1, "Hz")),
         h("td", { class: "mono" }, fmt(p.margins.phase_crossover_hz, 1, "Hz")),
         h("td", { class: "mono", testid: "frf-bw" }, fmt(p.bandwidth_hz, 1, "Hz")),
@@ -376,9 +433,16 @@ export class FrfPanel {
         h("td", null, p.margins.stable === null ? "—" : p.margins.stable ? "stable" : "UNSTABLE"),
       );
     const rows: HTMLElement[] = [];
+    const reasons: HTMLElement[] = [];
     loaded.forEach((d, i) => {
       const run = this.runs[i] as FrfRun;
-      if (d.measured) rows.push(row(run.label, run.color, "measured", d.measured));
+      if (d.measured) {
+        rows.push(row(run.label, run.color, "measured", d.measured));
+        const m = d.measured.margins;
+        for (const [name, why] of [["gain margin", m.gain_margin_problem], ["phase margin", m.phase_margin_problem]] as const) {
+          if (why) reasons.push(h("li", { testid: "frf-margin-reason" }, `${run.label}, ${name}: ${why}`));
+        }
+      }
       if (d.model) rows.push(row(run.label, run.color, d.model_based ? "model (model-based run)" : "model", d.model));
     });
     replace(
@@ -393,6 +457,7 @@ export class FrfPanel {
         ),
         ...rows,
       ),
+      reasons.length ? h("ul", { class: "frf-reasons" }, ...reasons) : null,
     );
   }
 
@@ -450,10 +515,12 @@ export class FrfPanel {
         d.measured.nyquist.re.forEach((re, j) => {
           const im = d.measured?.nyquist.im[j];
           if (re === null || im === null || im === undefined) return;
-          ctx.globalAlpha = (coh[j] ?? 0) >= MIN_COHERENCE ? 1 : 0.3;
+          const known = d.measured?.nyquist.measurable?.[j] ?? true;
+          ctx.globalAlpha = known && (coh[j] ?? 0) >= MIN_COHERENCE ? 1 : 0.3;
           ctx.beginPath();
           ctx.arc(sx(re), sy(im), 3, 0, 2 * Math.PI);
-          ctx.fill();
+          if (known) ctx.fill();
+          else ctx.stroke(); // hollow: L not measurable at this tone
         });
         ctx.globalAlpha = 1;
       }
