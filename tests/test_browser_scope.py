@@ -314,3 +314,74 @@ async def test_overview_tiles_show_the_control_holder(browser: Browser, slap2: L
     await other.goto(f"{slap2.base_url}/#/overview")
     await expect(other.get_by_test_id("tile-control-line-0")).to_contain_text("(another tab)")
     assert not errors and not other_errors
+
+
+# A lab scope rolled on by strip redraws, then drawn whole: the pixels of every canvas.
+STRIP_JS = """async () => {
+  const periodS = 0.001, samples = 4000;
+  const lab = window.__servotune.lab({ samples, periodS, plots: 2, width: 1200, height: 700 });
+  const st = lab.stack;
+  st.fullRedrawMs = 1e9;  // strips only (a whole redraw is otherwise due once a second)
+  const frame = () => new Promise((r) => requestAnimationFrame(() => r()));
+  while (!st.frame) await frame();  // laid out and drawn once
+  st.redraw();
+  const canvases = [...lab.el.querySelectorAll('canvas')];
+  const snap = () => canvases.map((c) => c.getContext('2d').getImageData(0, 0, c.width, c.height).data);
+  let at = samples;
+  let t0 = samples * periodS;
+  let before = { ...st.draws };
+  for (let i = 0; i < 26; i++) {
+    // (the first step starts the rolling columns: a whole redraw)
+    if (i === 1) before = { ...st.draws };
+    if (i === 10) t0 += 0.4;  // a gap in time: 400 sample periods without data
+    const t = Array.from({ length: 100 }, (_v, k) => t0 + k * periodS);
+    const ch0 = t.map((x) => Math.round(1000 * Math.sin(2 * Math.PI * 0.5 * x)));
+    // ch1: a slow channel (every 8th sample), held as steps
+    const ch1 = t.map((x, k) => ((at + k) % 8 === 0 ? Math.round(500 * Math.cos(2 * Math.PI * 0.3 * x)) : null));
+    const move = t.map((x) => (Math.floor(x) % 3 === 0 ? 1 : 0));
+    lab.buffer.push({ type: 'telemetry', axis: 'lab', t, channels: { ch0, ch1 }, flags: { move } });
+    at += 100;
+    t0 += 100 * periodS;
+    st.redrawLive();
+    await frame();
+  }
+  const strips = st.draws.strip - before.strip;
+  const slow = st.frame.slow.has('ch1');
+  const gaps = st.frame.channels.get('ch0').filter((v) => v === null).length;
+  const a = snap();
+  st.redraw();
+  const b = snap();
+  // The left edge (samples leaving the window, redrawn whole once a second) is skipped.
+  const edge = st.panels[0].u.bbox.left + 40;
+  const differ = a.map((x, c) => {
+    let n = 0;
+    const pos = [];
+    const w = canvases[c].width;
+    const y = b[c];
+    for (let i = 0; i < x.length; i += 4) {
+      if ((i / 4) % w < edge) continue;
+      if (Math.abs(x[i] - y[i]) + Math.abs(x[i + 1] - y[i + 1]) + Math.abs(x[i + 2] - y[i + 2]) + Math.abs(x[i + 3] - y[i + 3]) > 24) {
+        n++;
+        if (pos.length < 8) pos.push([(i / 4) % w, Math.floor(i / 4 / w)]);
+      }
+    }
+    return [n, x.length / 4, pos];
+  });
+  lab.destroy();
+  return { strips, slow, gaps, differ };
+}"""
+
+
+async def test_strip_redraws_draw_what_a_whole_redraw_draws(
+    browser: Browser, slap2: LiveServer
+) -> None:
+    page, errors = await open_page(browser, slap2, 1300, 800)
+    result = await page.evaluate(STRIP_JS)
+    # Every live redraw was a strip redraw (shift + new columns), the data had a gap in
+    # time and a slow channel; the canvases then equal a whole redraw of the same data.
+    # (all but a whole redraw when ch1 turns slow: held steps are not drawn next to lines)
+    assert result["strips"] >= 20
+    assert result["slow"] and result["gaps"] >= 1
+    for differing, pixels, _where in result["differ"]:
+        assert differing <= pixels // 4000, result["differ"]
+    assert not errors

@@ -43,6 +43,8 @@ import { Trigger } from "./trigger";
 
 /** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
 const LIVE_REDRAW_MS = 32;
+/** Where a rolling trace's pixel columns start, in columns (see update()). */
+const COLUMN_ORIGIN = 0.1234567;
 /** A rolling trace is redrawn whole at least this often (strip redraws in between). */
 const FULL_REDRAW_MS = 1000;
 
@@ -95,6 +97,8 @@ export class PlotStack implements PlotHost {
   lastDrawMs = 0;
   /** Redraws so far: whole, and strip redraws (scopestrip.ts; benchmark, tests). */
   readonly draws = { full: 0, strip: 0 };
+  /** A rolling trace is drawn whole at least this often (ms); tests set it longer. */
+  fullRedrawMs = FULL_REDRAW_MS;
   private dirty = true;
   private width = 0;
   private hovering = false;
@@ -723,12 +727,15 @@ export class PlotStack implements PlotHost {
     let origin = min;
     const colS = (max - min) / columns;
     if (live && min > 0) {
-      // A rolling trace sits on pixel columns fixed in time (origin 0): each redraw
-      // scrolls by whole columns and the column cache (decimate.ts) only folds in what
-      // is new. The newest sample is at most one column from the right edge.
-      max = Math.ceil(max / colS - 1e-9) * colS;
+      // A rolling trace sits on pixel columns fixed in time (origin + k·colS): each
+      // redraw scrolls by whole columns and the column cache (decimate.ts) only folds in
+      // what is new. The newest sample is at most one column from the right edge. The
+      // origin is an odd fraction of a column so that x ticks (round multiples of
+      // seconds) never fall on a half pixel, where the rounding of two frames could
+      // differ and a strip redraw (scopestrip.ts) would shift a grid line by a pixel.
+      origin = COLUMN_ORIGIN * colS;
+      max = origin + Math.ceil((max - origin) / colS - 1e-9) * colS;
       min = max - this.windowS;
-      origin = 0;
     }
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
     // A rolling trace redraws at most every LIVE_REDRAW_MS and at most once per pixel
@@ -759,11 +766,13 @@ export class PlotStack implements PlotHost {
     for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
     if (newLanes) this.layout(false, false);
     // A strip redraw (only the new columns; scopestrip.ts) when nothing but time moved on.
+    let form = frame.decimated ? "columns" : "samples";
+    for (const name of frame.slow.keys()) form += ` ${name}`;
     const strip: Strip | null =
-      live && min > 0 && !wasDirty && !newLanes && !this.hovering && this.prefs.xMode === "clock" && frame.decimated && !this.anyMarkers()
-        ? this.strips.next(min, max, colS, columns, started - FULL_REDRAW_MS)
+      live && min > 0 && !wasDirty && !newLanes && !this.hovering && this.prefs.xMode === "clock" && !this.anyMarkers()
+        ? this.strips.next(min, max, colS, columns, form, started - this.fullRedrawMs)
         : null;
-    if (!strip) this.strips.full(min, max, colS, columns, started);
+    if (!strip) this.strips.full(max, colS, columns, form, started);
     this.draws[strip ? "strip" : "full"] += 1;
     this.pathsFrom = strip ? Math.max(0, firstIndexAtOrAfter(frame.x, strip.fromT) - 1) : 0;
     const flat = this.flat;

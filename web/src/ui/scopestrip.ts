@@ -12,6 +12,8 @@
 //
 // What a strip redraw would get wrong is drawn whole instead: a new y range (then the
 // shifted pixels are in the old scale), markers (sparse data, slow-channel samples), a
+// switch between min/max columns and sample-by-sample data or of a channel to or from
+// slow (held steps), a
 // cursor over a plot (the values under it), x as relative time (every label changes),
 // any other change (window, zoom, size, units, channels, theme: PlotStack.dirty), a
 // shift of more than half the plot, and at least once per FULL_REDRAW_MS regardless,
@@ -41,10 +43,14 @@ export class StripState {
   private columns = 0;
   private fullAt = Number.NEGATIVE_INFINITY;
   private dpr = 0;
+  private form = "";
 
-  /** A whole redraw of ``min..max`` at ``now`` (ms). */
-  full(_min: number, max: number, colS: number, columns: number, now: number): void {
+  /** A whole redraw up to ``max`` at ``now`` (ms). ``form``: how the data is drawn
+   * (min/max columns or samples, which channels are slow: held steps); a strip of one
+   * form is not drawn next to pixels of another. */
+  full(max: number, colS: number, columns: number, form: string, now: number): void {
     this.max = max;
+    this.form = form;
     this.colS = colS;
     this.columns = columns;
     this.fullAt = now;
@@ -53,8 +59,8 @@ export class StripState {
 
   /** The strip to redraw for ``min..max``, or null when the whole plot must be drawn
    * (``dueBefore``: a whole redraw older than this is due). */
-  next(min: number, max: number, colS: number, columns: number, dueBefore: number): Strip | null {
-    if (this.fullAt < dueBefore || columns !== this.columns || (devicePixelRatio || 1) !== this.dpr) return null;
+  next(min: number, max: number, colS: number, columns: number, form: string, dueBefore: number): Strip | null {
+    if (this.fullAt < dueBefore || columns !== this.columns || form !== this.form || (devicePixelRatio || 1) !== this.dpr) return null;
     if (!(Math.abs(colS - this.colS) <= 1e-12 * Math.max(1, colS))) return null;
     const cols = (max - this.max) / colS;
     const shift = Math.round(cols);
