@@ -27,8 +27,6 @@ export const MIN_LINE_PX = 90;
 /** Markers on the samples when they are at least this many pixels apart. */
 export const MARKER_PX = 4;
 export const PHONE = "(max-width: 760px)";
-/** A line plot's y range is kept while the data spans at least this share of it. */
-export const STICKY_FILL = 0.6;
 
 export interface Theme {
   axis: string;
@@ -101,8 +99,6 @@ export interface Panel {
   states: StatesPanel | null;
   /** Flag runs [t0, t1, …] per flag (flags plots). */
   runs: number[][];
-  /** The y range shown (line plots), kept while the data fills most of it. */
-  yRange: [number, number] | null;
   tab: HTMLButtonElement;
 }
 
@@ -117,8 +113,6 @@ export interface PlotHost {
   readonly xMode: "clock" | "rel";
   readonly frame: Frame | null;
   readonly cursors: { a: number | null; b: number | null };
-  /** Series paths start at this index of the data (a strip redraw, scopestrip.ts). */
-  readonly pathsFrom: number;
   color(i: number): string;
   isHidden(plotName: string, name: string): boolean;
   hiddenOf(plotName: string): string[];
@@ -186,26 +180,6 @@ export function drawCursors(host: PlotHost, u: uPlot): void {
   ctx.restore();
 }
 
-/** The y range of a line plot: the data's range plus 8 % each side, kept as long as it
- * holds all the data and the data spans at least STICKY_FILL of it. Every sample stays
- * inside; the axis does not twitch with every new extreme, and a rolling trace can be
- * redrawn strip by strip (scopestrip.ts) instead of whole on each small change. */
-export function stickyRange(panel: Panel, min: number, max: number): [number, number] {
-  if (!Number.isFinite(min) || !Number.isFinite(max)) return [-1, 1];
-  const kept = panel.yRange;
-  if (kept && kept[0] <= min && kept[1] >= max && max - min >= STICKY_FILL * (kept[1] - kept[0])) return kept;
-  let range: [number, number];
-  if (max - min < 1e-9) {
-    const pad = Math.max(Math.abs(max) * 0.05, 1);
-    range = [min - pad, max + pad];
-  } else {
-    const pad = (max - min) * 0.08;
-    range = [min - pad, max + pad];
-  }
-  panel.yRange = range;
-  return range;
-}
-
 /** The uPlot options of ``panel`` (``isLast``: the bottom plot, which carries the x axis). */
 export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast: boolean): uPlot.Options {
   const { plot } = panel;
@@ -234,7 +208,7 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
         spanGaps: false,
         // Slow channels hold their value until the next real sample: a step, not a
         // line that seems to lead the fast ones.
-        paths: (u, si, i0, i1) => (host.frame?.slow.has(name) ? stepped : linear)?.(u, si, Math.max(i0, Math.min(i1, host.pathsFrom)), i1) ?? null,
+        paths: (u, si, i0, i1) => (host.frame?.slow.has(name) ? stepped : linear)?.(u, si, i0, i1) ?? null,
         points: {
           size: 5,
           fill: host.color(i),
@@ -308,7 +282,18 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
         ? { auto: true, range: () => [-0.5, laneCount(states) - 0.5] }
         : flags
           ? { auto: false, range: [-0.35, laneBase(0) + LANE + 0.35] }
-          : { auto: true, range: (_u, min, max) => stickyRange(panel, min, max) },
+          : {
+              auto: true,
+              range: (_u, min, max) => {
+                if (!Number.isFinite(min) || !Number.isFinite(max)) return [-1, 1];
+                if (max - min < 1e-9) {
+                  const pad = Math.max(Math.abs(max) * 0.05, 1);
+                  return [min - pad, max + pad];
+                }
+                const pad = (max - min) * 0.08;
+                return [min - pad, max + pad];
+              },
+            },
     },
     axes: [xAxis, yAxis],
     series,

@@ -37,16 +37,11 @@ import {
   Y_AXIS_PX,
   Y_LABEL_PX,
 } from "./plotkit";
-import { commitStrip, firstIndexAtOrAfter, StripState, type Strip } from "./scopestrip";
 import { lanePos, scanStates, stateAt, statesPx, statesRuns } from "./statesplot";
 import { Trigger } from "./trigger";
 
 /** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
 const LIVE_REDRAW_MS = 32;
-/** Where a rolling trace's pixel columns start, in columns (see update()). */
-const COLUMN_ORIGIN = 0.1234567;
-/** A rolling trace is redrawn whole at least this often (strip redraws in between). */
-const FULL_REDRAW_MS = 1000;
 
 /** What the user chose per device: series per plot and hidden series. */
 interface ScopePrefs {
@@ -89,16 +84,8 @@ export class PlotStack implements PlotHost {
   private boxH = 0;
   private skipUntil = 0;
   private lastLiveDraw = 0;
-  /** What the canvases show (strip redraws, scopestrip.ts). */
-  private readonly strips = new StripState();
-  /** Series paths are built from this index of ``frame.x`` (0: all; > 0 in a strip redraw). */
-  pathsFrom = 0;
   /** Duration of the last redraw (ms). */
   lastDrawMs = 0;
-  /** Redraws so far: whole, and strip redraws (scopestrip.ts; benchmark, tests). */
-  readonly draws = { full: 0, strip: 0 };
-  /** A rolling trace is drawn whole at least this often (ms); tests set it longer. */
-  fullRedrawMs = FULL_REDRAW_MS;
   private dirty = true;
   private width = 0;
   private hovering = false;
@@ -246,7 +233,7 @@ export class PlotStack implements PlotHost {
       this.tabs.appendChild(tab);
     }
     if (states) scanStates(this.buffer, states);
-    const panel: Panel = { plot, series, el, host, u: null, legendValues, legendItems, unitButtons, height: 0, states, runs: [], tab, yRange: null };
+    const panel: Panel = { plot, series, el, host, u: null, legendValues, legendItems, unitButtons, height: 0, states, runs: [], tab };
     this.syncUnitButtons(panel);
     return panel;
   }
@@ -414,23 +401,12 @@ export class PlotStack implements PlotHost {
     for (const p of this.panels) {
       p.u?.destroy();
       p.u = null;
-      p.yRange = null;
       replace(p.host);
     }
     this.width = 0;
     this.layout();
     this.dirty = true;
     this.update();
-  }
-
-  /** Whether any marker is drawn (sparse samples, or the real samples of a slow channel). */
-  private anyMarkers(): boolean {
-    if (this.sparse()) return true;
-    for (const p of this.panels) {
-      if (p.plot.kind !== "line" || !this.shows(p)) continue;
-      for (const name of p.series) if (!this.isHidden(p.plot.name, name) && this.slowMarkers(name)) return true;
-    }
-    return false;
   }
 
   /** Whether markers are drawn: samples in the window at least MARKER_PX apart. */
@@ -686,19 +662,7 @@ export class PlotStack implements PlotHost {
 
   /** Pixel columns of the plot area (one min/max pair each when dense). */
   private columns(): number {
-    // One column per device pixel of the plot area (uPlot's bbox, whole pixels): a
-    // rolling trace then moves by whole pixels and a strip redraw can shift the canvas.
-    const u = this.panels.find((p) => this.shows(p) && p.u)?.u;
-    const plotPx = u && u.bbox.width > 0 ? u.bbox.width : Math.floor(this.width - this.yAxisPx - Y_LABEL_PX);
-    return Math.max(50, Math.round(plotPx));
-  }
-
-  /** The live redraw of a frame without its rate limit: a strip redraw when only time
-   * moved on (benchmark, tests). */
-  redrawLive(): void {
-    this.skipUntil = 0;
-    this.lastLiveDraw = Number.NEGATIVE_INFINITY;
-    this.update();
+    return Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
   }
 
   /** Redraw now, whatever changed (benchmark, tests). */
@@ -727,15 +691,12 @@ export class PlotStack implements PlotHost {
     let origin = min;
     const colS = (max - min) / columns;
     if (live && min > 0) {
-      // A rolling trace sits on pixel columns fixed in time (origin + k·colS): each
-      // redraw scrolls by whole columns and the column cache (decimate.ts) only folds in
-      // what is new. The newest sample is at most one column from the right edge. The
-      // origin is an odd fraction of a column so that x ticks (round multiples of
-      // seconds) never fall on a half pixel, where the rounding of two frames could
-      // differ and a strip redraw (scopestrip.ts) would shift a grid line by a pixel.
-      origin = COLUMN_ORIGIN * colS;
-      max = origin + Math.ceil((max - origin) / colS - 1e-9) * colS;
+      // A rolling trace sits on pixel columns fixed in time (origin 0): each redraw
+      // scrolls by whole columns and the column cache (decimate.ts) only folds in what
+      // is new. The newest sample is at most one column from the right edge.
+      max = Math.ceil(max / colS - 1e-9) * colS;
       min = max - this.windowS;
+      origin = 0;
     }
     if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
     // A rolling trace redraws at most every LIVE_REDRAW_MS and at most once per pixel
@@ -745,7 +706,6 @@ export class PlotStack implements PlotHost {
     if (live && !this.dirty && started - this.lastLiveDraw < Math.max(LIVE_REDRAW_MS, 1000 * colS)) return;
     if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
-    const wasDirty = this.dirty;
     this.dirty = false;
     this.drawnVersion = this.buffer.version;
     this.shown = [min, max];
@@ -765,18 +725,7 @@ export class PlotStack implements PlotHost {
     let newLanes = false;
     for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
     if (newLanes) this.layout(false, false);
-    // A strip redraw (only the new columns; scopestrip.ts) when nothing but time moved on.
-    let form = frame.decimated ? "columns" : "samples";
-    for (const name of frame.slow.keys()) form += ` ${name}`;
-    const strip: Strip | null =
-      live && min > 0 && !wasDirty && !newLanes && !this.hovering && this.prefs.xMode === "clock" && !this.anyMarkers()
-        ? this.strips.next(min, max, colS, columns, form, started - this.fullRedrawMs)
-        : null;
-    if (!strip) this.strips.full(max, colS, columns, form, started);
-    this.draws[strip ? "strip" : "full"] += 1;
-    this.pathsFrom = strip ? Math.max(0, firstIndexAtOrAfter(frame.x, strip.fromT) - 1) : 0;
     const flat = this.flat;
-    const lastShown = this.panels.filter((p) => this.shows(p)).pop();
     flat[0] = min;
     flat[1] = max;
     for (const p of this.panels) {
@@ -794,25 +743,18 @@ export class PlotStack implements PlotHost {
       }
       if (p.plot.kind === "flags") {
         p.runs = p.plot.series.map((name) => flagRuns(buffer, name, lo, hi, gapS));
-        commitStrip(u, strip, p === lastShown, () => {
+        u.batch(() => {
           u.setData([flat, [null, null]] as uPlot.AlignedData, false);
           u.setScale("x", { min, max });
         });
         continue;
       }
       const ys = p.series.map((name) => frame.channels.get(name) ?? []);
-      const changed = commitStrip(u, strip, p === lastShown, () => {
+      u.batch(() => {
         u.setData([frame.x, ...ys] as uPlot.AlignedData, false);
         u.setScale("x", { min, max });
       });
-      if (changed) {
-        // The y range moved: the shifted pixels are in the old scale; draw it whole.
-        this.pathsFrom = 0;
-        u.batch(() => u.redraw(true, false));
-        this.pathsFrom = strip ? Math.max(0, firstIndexAtOrAfter(frame.x, (strip as Strip).fromT) - 1) : 0;
-      }
     }
-    this.pathsFrom = 0;
     if (this.status.dataset.stale) return;
     const t = this.trigger;
     const state = t.capturedT !== null && t.active

@@ -94,13 +94,11 @@ function more(at: number, m: number, periodS: number, plots: number, n: number):
 /**
  * Draw time of 4 plots × 50k points in the window (script time of a redraw, ms):
  * - rolling: 100 new samples (0.1 s) before each redraw, the window following them,
- *   as on a live page: the column cache folds in only the new samples, and the
- *   canvas is shifted and only the new columns drawn (scopestrip.ts), with a whole
- *   redraw at least once a second, as on the page;
+ *   as on a live page (the column cache folds in only the new samples);
  * - static: a full redraw of unchanged data (decimated columns reused);
  * - cold: a redraw after the window changed, which decimates all 4 × 50k again.
  */
-export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static: Quantiles; cold: Quantiles; points: number; rollingStrips: number; runs: number }> {
+export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static: Quantiles; cold: Quantiles; points: number }> {
   const n = 50_000;
   const periodS = 0.001;
   const plots = 4;
@@ -112,16 +110,14 @@ export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static
   const still: number[] = [];
   const cold: number[] = [];
   let at = n;
-  const before = { ...lab.stack.draws };
   for (let i = 0; i < runs; i++) {
     lab.buffer.push(more(at, 100, periodS, plots, n));
     at += 100;
     const t0 = performance.now();
-    lab.stack.redrawLive();
+    lab.stack.redraw();
     rolling.push(performance.now() - t0);
     await frame();
   }
-  const strips = lab.stack.draws.strip - before.strip;
   for (let i = 0; i < runs; i++) {
     const t0 = performance.now();
     lab.stack.redraw();
@@ -137,5 +133,5 @@ export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static
     await frame();
   }
   lab.destroy();
-  return { rolling: quantiles(rolling), static: quantiles(still), cold: quantiles(cold), points: n, rollingStrips: strips, runs };
+  return { rolling: quantiles(rolling), static: quantiles(still), cold: quantiles(cold), points: n };
 }
