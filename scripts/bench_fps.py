@@ -4,8 +4,9 @@ Usage:
     python scripts/bench_fps.py BASE [seconds] [--pages ep7047,slap2] [--windows 10,60]
                                 [--ab OTHER_BASE] [--rounds N] [--warm S] [--no-draw] [--profile]
 
-For each page (SLAP2, Z1100, EP7047 live pages, the rig overview, the EP7047 bench) at 1600x1000 and a 10 s and a 60 s window,
-over ``seconds`` after ``--warm`` seconds on the page (default 2; the buffer fills
+For each page (SLAP2, Z1100, EP7047 live pages, the rig overview, the EP7047 bench) at
+1600x1000 and a 10 s and a 60 s window (pages without a scope: once), over
+``seconds`` after ``--warm`` seconds on the page (default 2; the buffer fills
 from the page's start, so a 60 s window is full only with --warm 60): frames per
 second (requestAnimationFrame count), long tasks
 (PerformanceObserver 'longtask', > 50 ms: count, total and worst), the CPU time of the
