@@ -45,7 +45,7 @@ class _Exchange:
         self.loop = asyncio.get_running_loop()
         self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
         self.deadline = self.loop.time() + first_timeout_s
-        self.timer = self.loop.call_at(self.deadline, self.on_timer)
+        protocol.arm_timer(self.deadline)
 
     def restart_timer(self) -> None:
         # Only move the deadline; the armed timer re-arms itself when it fires early.
@@ -53,15 +53,9 @@ class _Exchange:
         # the rest of the per-character work.
         self.deadline = self.loop.time() + self.char_timeout_s
 
-    def on_timer(self) -> None:
-        if self.loop.time() < self.deadline:
-            self.timer = self.loop.call_at(self.deadline, self.on_timer)
-        else:
-            self.on_timeout()
-
     def finish(self, result: EchoResult | bytes | None) -> None:
-        self.timer.cancel()
-        self.protocol.exchange = None
+        if self.protocol.exchange is self:
+            self.protocol.exchange = None
         if not self.future.done():
             self.future.set_result(result)
 
@@ -132,8 +126,34 @@ class _SerialProtocol:
         self.is_closed = False
         self.exchange: _Exchange | None = None
         self._pending = bytearray()  # written but not yet accepted by the kernel
+        # One timer for all exchanges, armed at the earliest deadline it must catch.
+        # Exchanges end long before their timeouts almost always; a loop timer created
+        # and cancelled for each of them was the single hottest line of the serial
+        # path in the demo's profile (two per SLAP2 transaction). When it fires it
+        # checks the exchange running then and re-arms for its deadline.
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = 0.0
         os.set_blocking(self.fd, False)
         loop.add_reader(self.fd, self._on_readable)
+
+    def arm_timer(self, deadline: float) -> None:
+        """Make sure the timer fires no later than ``deadline`` (loop time)."""
+        if self._timer is not None:
+            if self._timer_at <= deadline:
+                return
+            self._timer.cancel()
+        self._timer_at = deadline
+        self._timer = self.loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        exchange = self.exchange
+        if exchange is None:
+            return
+        if self.loop.time() < exchange.deadline:
+            self.arm_timer(exchange.deadline)
+        else:
+            exchange.on_timeout()
 
     def send(self, data: bytes) -> None:
         if self.is_closed:
@@ -190,6 +210,9 @@ class _SerialProtocol:
             return
         self.is_closed = True
         self.lost = exc
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
         self.loop.remove_reader(self.fd)
         if self._pending:
             self._pending.clear()
@@ -252,8 +275,8 @@ class SerialChannel(ByteChannel):
             exchange.step()  # an echo may already sit in the buffer (it would be stale)
             result = await exchange.future
         finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+            if self._protocol.exchange is exchange:
+                self._protocol.exchange = None
         if result is None:  # the port closed meanwhile
             self._check_open()
         assert isinstance(result, EchoResult)
@@ -274,8 +297,8 @@ class SerialChannel(ByteChannel):
             exchange.step()
             result = await exchange.future
         finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+            if self._protocol.exchange is exchange:
+                self._protocol.exchange = None
         if result is None:
             self._check_open()
             return None
@@ -294,8 +317,8 @@ class SerialChannel(ByteChannel):
             exchange.step()
             result = await exchange.future
         finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+            if self._protocol.exchange is exchange:
+                self._protocol.exchange = None
         if result is None:  # the port closed meanwhile
             self._check_open()
             return b""
