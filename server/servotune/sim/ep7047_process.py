@@ -494,7 +494,7 @@ class _SlaveServer:
         def read() -> bytes:
             if not 1 <= position <= len(found):
                 raise KeyError(f"no slave at position {position}")
-            return found[position - 1].sdo_read(index, subindex, size)
+            return bytes(found[position - 1].sdo_read(index, subindex, size))
 
         answer = self._answer("sdo_read", read)
         if "error" in answer:
