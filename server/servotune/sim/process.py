@@ -60,7 +60,6 @@ START_TIMEOUT_S = 60.0  # a cold spawn imports the package: seconds on a loaded 
 STOP_TIMEOUT_S = 5.0
 REQUEST_TIMEOUT_S = 10.0
 _PR_SET_NAME = 15  # linux/prctl.h
-SIM_NICE = -10  # see _raise_priority
 
 Handler = Callable[..., Any]
 
@@ -214,7 +213,6 @@ def _child_main(
     name: str, target: Callable[[Any, Connection], None], spec: Any, conn: Connection
 ) -> None:
     _set_process_name(f"sim-{name}")
-    _raise_priority()
     # Ctrl-C goes to the whole process group; the server stops its children itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(
@@ -229,23 +227,6 @@ def _child_main(
         with contextlib.suppress(OSError, EOFError):
             conn.send({"failed": repr(exc)})
         sys.exit(1)
-
-
-def _raise_priority() -> None:
-    """Best effort: schedule the simulator ahead of ordinary work (nice ``SIM_NICE``).
-
-    A real device has a processor of its own; a simulated one shares the host's. With
-    a CPU hog on every core, a simulator at the default priority waited for its turn
-    after every character it received, and the links showed the host's load as a slow
-    device. A lower nice value gives the simulator its share at once when it wakes
-    (it needs little CPU and sleeps between characters), much as the far end of a real
-    cable would answer. Without the privilege (not root, no CAP_SYS_NICE) the default
-    priority stays and the figures under load are worse; nothing else changes.
-    """
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, SIM_NICE)
-    except (PermissionError, OSError, AttributeError):
-        logger.debug("could not raise the simulator's priority", exc_info=True)
 
 
 def _set_process_name(name: str) -> None:
