@@ -80,10 +80,12 @@ async def test_stop_overtakes_queued_jobs(line: RunningLink) -> None:
 
 async def test_motion_queued_before_stop_is_never_sent(line: RunningLink) -> None:
     drive = axis(line, 0)
-    busy = [drive.console("rp") for _ in range(6)]
+    # Created together, with no await between them: the move is queued and the STOP
+    # right behind it in the same loop iteration, before the owner task can take the
+    # move (an await between them let it take the move first now and then).
     velocity = asyncio.ensure_future(drive.command("velocity_mode", {}))
-    await asyncio.sleep(0)  # queued behind the reads
     stop = asyncio.ensure_future(drive.stop())
+    busy = [drive.console("rp") for _ in range(6)]  # queued after the STOP: they run
     await asyncio.gather(*busy, stop)
     with pytest.raises(DeviceRefusedError, match="STOP"):
         await velocity

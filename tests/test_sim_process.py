@@ -237,3 +237,37 @@ def test_process_master_without_a_simulator_says_what_is_missing(tmp_path: Path)
     master = ProcessMaster(str(tmp_path / "nothing.sock"))
     with pytest.raises(EthercatUnavailableError, match="does not answer"):
         master.open("sim")
+
+
+def test_binary_sdo_read_gives_what_the_json_request_gives(tmp_path: Path) -> None:
+    """The cyclic SDO read is binary (``R``); it must answer exactly as the JSON request
+    did: the same bytes, the same abort, and each slave's state updated."""
+    from servotune.drivers.ep7047_master import EthercatSdoError
+    from servotune.protocols import ep7047 as codec
+
+    with ep7047_sim_process(tmp_path / "record.json") as simulator:
+        master = ProcessMaster(simulator.ready["path"].removeprefix("sim:"))
+        master.open("sim")
+        try:
+            assert master.config_init() == 1
+            slave = master.slaves[0]
+            obj = codec.DRIVE_STATE
+            binary = slave.sdo_read(obj.index, obj.subindex, obj.data_type.size)
+            as_json = bytes.fromhex(
+                str(master._call("sdo_read", 1, obj.index, obj.subindex, obj.data_type.size))
+            )
+            assert binary == as_json and len(binary) == obj.data_type.size
+            # Both replies carry each slave's state: it is set again from them.
+            slave._state = -1
+            slave.sdo_read(obj.index, obj.subindex, obj.data_type.size)
+            state_binary = slave.state
+            slave._state = -1
+            master._call("sdo_read", 1, obj.index, obj.subindex, obj.data_type.size)
+            assert state_binary == slave.state != -1
+            with pytest.raises(EthercatSdoError) as binary_abort:
+                slave.sdo_read(0x7FFF, 0x01, 2)
+            with pytest.raises(EthercatSdoError) as json_abort:
+                master._call("sdo_read", 1, 0x7FFF, 0x01, 2)
+            assert binary_abort.value.abort_code == json_abort.value.abort_code != 0
+        finally:
+            master.close()

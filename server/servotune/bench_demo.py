@@ -351,6 +351,18 @@ class BenchReport:
                 f"of {figures.wire_limit_hz:7.1f} Hz  errors +{errors}  ({states})"
             )
         if self.stream is not None:
+            # The work done, to compare CPU figures between runs on a loaded host: a
+            # starved link does less work, so less CPU there is no saving.
+            delivered = sum(self.stream.samples.values()) / self.seconds
+            if delivered:
+                server_ms = self.cpu.get("server", 0.0) / delivered * 1e6
+                out.append(
+                    f"work: {delivered:.0f} telemetry samples/s delivered (all axes); CPU "
+                    f"per 1000 samples: server {server_ms:.1f} ms, "
+                    f"simulators {sims / delivered * 1e6:.1f} ms"
+                )
+            else:
+                out.append("work: no telemetry received")
             levels = ", ".join(f"{k} {v}" for k, v in sorted(self.stream.events.items()))
             resets = sum(self.stream.resets.values())
             out.append(f"events: {levels or 'none'}; reset banners: {resets}")

@@ -468,15 +468,18 @@ class _CycleThread(_CommandCycle):
             "drive_state": float(drive_state) if drive_state is not None else None,
         }
         pos, stm, diag = int(inputs.pos_status), int(inputs.stm_status), int(cs.diag)
-        flags = {name: pos & bit != 0 for name, bit in _POS_BITS}
-        for name, bit in _STM_BITS:
-            flags[name] = stm & bit != 0
-        for name, bit in _DIAG_BITS:
-            flags[name] = diag & bit != 0
-        flags["enable_out"] = cs.enable
-        flags["execute_out"] = cs.execute
-        flags["emergency_stop_out"] = cs.emergency
-        self._post_sample(Sample(now, channels, flags))
+        key = (pos, stm, diag, cs.enable, cs.execute, cs.emergency)
+        if key != self._flags_key:  # rare: most cycles repeat the last flags
+            flags = {name: pos & bit != 0 for name, bit in _POS_BITS}
+            for name, bit in _STM_BITS:
+                flags[name] = stm & bit != 0
+            for name, bit in _DIAG_BITS:
+                flags[name] = diag & bit != 0
+            flags["enable_out"] = cs.enable
+            flags["execute_out"] = cs.execute
+            flags["emergency_stop_out"] = cs.emergency
+            self._flags_key, self._flags = key, flags
+        self._post_sample(Sample(now, channels, self._flags))
 
     # --- shutdown -------------------------------------------------------------------------
 

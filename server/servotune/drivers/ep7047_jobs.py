@@ -299,6 +299,10 @@ class _LinkCore:
         self._outputs_bytes = b""
         self._inputs_raw = b""
         self._inputs_decoded = Inputs()
+        # the flags of the last sample and what they were built from (cycle thread only):
+        # they change rarely, so consecutive samples share one (never mutated) dict
+        self._flags_key: tuple[int, int, int, bool, bool, bool] | None = None
+        self._flags: dict[str, bool] = {}
         self._batch_due = 0.0
 
     # --- Link protocol ------------------------------------------------------------------
