@@ -267,8 +267,7 @@ class Z1100Link(LinkEngine):
             # Past the deadline, still take what is already buffered (once): on a host
             # that was stalled the reply may have arrived while nobody looked.
             remaining = max(deadline - self._clock(), 0.0)
-            # Wake once for the whole reply, not once per byte (it comes byte by byte).
-            data = await channel.read_at_least(codec.REPLY_SIZE - decoder.pending, remaining)
+            data = await channel.read_available(remaining)
             if not data:
                 return None
             replies = decoder.feed(data)

@@ -59,15 +59,6 @@ class ByteChannel(Protocol):
 
     async def read_available(self, timeout_s: float) -> bytes: ...
 
-    async def read_at_least(self, count: int, timeout_s: float) -> bytes:
-        """Everything received once at least ``count`` bytes are buffered, or whatever
-        arrived within ``timeout_s`` (from the call; ``b""`` if nothing).
-
-        One wake-up of the reading task for a whole reply, instead of one per byte
-        (a simulator, like a real UART, delivers a reply byte by byte).
-        """
-        ...
-
     def discard_input(self) -> bytes:
         """Drop and return everything received but not yet read."""
         ...
