@@ -10,8 +10,12 @@ file per user, ``DIR/<user>.cred`` (user name, password; mode 0600), for
   manifest, presence, runs; the JetStream streams capture those subjects, so a rig
   needs no JetStream API at all) and may answer requests; it subscribes only to its
   commands and to its own reply inbox (``_INBOX_<rig>``);
-* the hub may send commands to every rig, use the JetStream API (it creates the
-  streams and its durable consumer), and read everything under ``servotune.v1``;
+* the hub is three users, one per connection (``connection.role_settings``):
+  ``<hub>`` sends commands to every rig and uses the JetStream API (it creates the
+  streams and its durable consumer); ``<hub>-view`` reads everything under
+  ``servotune.v1`` and may request only reads (parameters, snapshots, last values),
+  so a hub viewer's path cannot command a rig even with a bug in the hub;
+  ``<hub>-stop`` sends STOP and the session's keep-alives, nothing else;
 * a viewer (a script that watches, a wall display) publishes nothing at all and
   subscribes to telemetry and events: a handmade command is refused by nats-server.
 """
@@ -64,10 +68,46 @@ def rig_permissions(rig: str) -> Permissions:
 
 
 def hub_permissions() -> Permissions:
+    """The hub's operating user: commands to every rig (STOP aside), the JetStream API
+    (it creates the streams, reads them, and runs its durable consumer of the runs)."""
     prefix = subjects.PREFIX
     return Permissions(
         publish_allow=(f"{prefix}.*.*.*.cmd.*", f"{prefix}.*.cmd.*", "$JS.API.>", "$JS.ACK.>"),
+        publish_deny=(f"{prefix}.*.*.*.cmd.{subjects.STOP}",),
+        subscribe_allow=("_INBOX.>",),
+    )
+
+
+def hub_view_permissions() -> Permissions:
+    """The hub's viewing user (its ``view`` connection): every rig's telemetry, events,
+    presence and manifest; the only requests it may send are reads (parameters, a
+    rig's snapshot, the last values of the rigs and presence streams). Not a single
+    command: what a hub viewer does goes through this connection or nowhere."""
+    prefix = subjects.PREFIX
+    return Permissions(
+        publish_allow=(
+            f"{prefix}.*.*.*.cmd.{subjects.READ_PARAMS}",
+            f"{prefix}.*.cmd.snapshot",
+            f"$JS.API.STREAM.INFO.{subjects.RIGS_STREAM}",
+            f"$JS.API.STREAM.INFO.{subjects.PRESENCE_STREAM}",
+            f"$JS.API.STREAM.MSG.GET.{subjects.RIGS_STREAM}",
+            f"$JS.API.STREAM.MSG.GET.{subjects.PRESENCE_STREAM}",
+        ),
         subscribe_allow=(f"{prefix}.>", "_INBOX.>"),
+    )
+
+
+def hub_stop_permissions() -> Permissions:
+    """The hub's STOP user (its ``stop`` connection): STOP one axis, STOP a rig, and
+    the session's keep-alives; nothing else."""
+    prefix = subjects.PREFIX
+    return Permissions(
+        publish_allow=(
+            f"{prefix}.*.*.*.cmd.{subjects.STOP}",
+            f"{prefix}.*.cmd.stop_all",
+            f"{prefix}.*.cmd.keepalive",
+        ),
+        subscribe_allow=("_INBOX.>",),
     )
 
 
@@ -88,7 +128,12 @@ class Account:
 
 def lab_accounts(hub: str, rigs: list[str], viewers: list[str]) -> list[Account]:
     """A random password for every user (``secrets``), with its permissions."""
-    accounts = [Account(hub, secrets.token_urlsafe(24), hub_permissions())]
+    subjects.check_token("hub", hub)
+    accounts = [
+        Account(hub, secrets.token_urlsafe(24), hub_permissions()),
+        Account(f"{hub}-view", secrets.token_urlsafe(24), hub_view_permissions()),
+        Account(f"{hub}-stop", secrets.token_urlsafe(24), hub_stop_permissions()),
+    ]
     accounts += [Account(rig, secrets.token_urlsafe(24), rig_permissions(rig)) for rig in rigs]
     accounts += [
         Account(subjects.check_token("viewer", v), secrets.token_urlsafe(24), viewer_permissions())

@@ -80,7 +80,13 @@ def raise_for_reply(rig: str, reply: CommandReply) -> None:
 
 @dataclass(slots=True)
 class BusPort:
-    """What the remote drivers share: the two connections, the session, liveness."""
+    """What the remote drivers share: the connections, the session, liveness.
+
+    ``nc`` operates (commands, parameter writes, console), ``view_nc`` reads (parameter
+    reads, snapshots; it may not publish a command: nats-server refuses it), ``stop_nc``
+    stops. Each is its own NATS user (``accounts``); which one a request takes follows
+    from the permission its verb needs at the hub (``connection_for``), the same table
+    the hub's REST checks its user against first."""
 
     nc: Client
     stop_nc: Client
@@ -92,6 +98,14 @@ class BusPort:
     # Set when the hub shuts down: nothing more goes to the rigs (their own dead-man
     # stops what this hub set in motion once its keep-alives end).
     closing: bool = False
+    view_nc: Client | None = None
+
+    def connection_for(self, verb: str) -> Client:
+        if verb == subjects.STOP:
+            return self.stop_nc
+        if verb == subjects.READ_PARAMS:
+            return self.view_nc or self.nc
+        return self.nc
 
 
 class RemoteAxis:
@@ -125,7 +139,7 @@ class RemoteAxis:
         return await self._link.request(
             subjects.axis_cmd(self._link.rig, self._link.local_id, self.local_id, verb),
             body,
-            stop=verb == subjects.STOP,
+            verb=verb,
         )
 
     def _body(self, **fields: object) -> CommandRequest:
@@ -149,9 +163,16 @@ class RemoteAxis:
         )
 
     async def console(self, line: str) -> tuple[str, list[str]]:
-        raise DeviceRefusedError(
-            f"the console of {self._link.rig} is on the rig's own dashboard, not over the bus"
-        )
+        """The line goes to the rig, which checks and sends it as its own console does;
+        an exchange error the rig answered (no echo, ...) is raised as a DriverError,
+        so the hub's console route shows it next to the line as the rig's would."""
+        result = await self._request(subjects.CONSOLE, self._body(args={"line": line}))
+        error = result.get("error")
+        if error:
+            raise DriverError(f"rig {self._link.rig}: {error}")
+        reply = result.get("reply")
+        lines = [str(r) for r in reply] if isinstance(reply, list) else []
+        return str(result.get("sent", line)), lines
 
     async def stop(self) -> None:
         await self._request(subjects.STOP, self._body())
@@ -224,7 +245,7 @@ class RemoteLink:
     def present(self) -> bool:
         return self.online and self.port.clock() - self.seen_at <= self._offline_after_s
 
-    async def request(self, subject: str, body: CommandRequest, *, stop: bool) -> dict[str, object]:
+    async def request(self, subject: str, body: CommandRequest, *, verb: str) -> dict[str, object]:
         """A request to the rig; refused at once (LinkDownError) when the rig is offline."""
         if self.port.closing:
             raise LinkDownError(
@@ -233,7 +254,8 @@ class RemoteLink:
             )
         if not self.present():
             raise LinkDownError(f"rig {self.rig} is offline: nothing was sent")
-        nc = self.port.stop_nc if stop else self.port.nc
+        nc = self.port.connection_for(verb)
+        stop = verb == subjects.STOP
         timeout = self.port.stop_timeout_s if stop else self.port.request_timeout_s
         try:
             msg = await nc.request(subject, body.model_dump_json().encode(), timeout=timeout)
@@ -341,7 +363,8 @@ class RemoteLink:
     async def _snapshot(self) -> None:
         subject = subjects.rig_cmd(self.rig, "snapshot")
         try:
-            msg = await self.port.nc.request(subject, b"{}", timeout=self.port.request_timeout_s)
+            nc = self.port.view_nc or self.port.nc
+            msg = await nc.request(subject, b"{}", timeout=self.port.request_timeout_s)
             messages = json.loads(msg.data)
         except (NatsError, ValueError):
             self.snapshot_wanted.set()  # try again on the next turn

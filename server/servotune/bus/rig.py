@@ -9,9 +9,10 @@ What it does, beside everything the rig's server does anyway:
   (about 30 a second per axis, never one message per sample) on
   ``servotune.v1.<rig>.<link>.<axis>.telemetry``, status, parameters and events on
   ``servotune.v1.<rig>.events``; a slow bus loses old telemetry batches, never status;
-* answers ``...<axis>.cmd.<verb>`` requests through the SAME path as a local REST
-  request: the permission of the verb (``auth.routes_table.command_permission``), the
-  rig's control lock (``ControlManager.require``), the hub's validation against the
+* answers ``...<axis>.cmd.<verb>`` requests (``write_params``, ``read_params``,
+  ``console``, a descriptor command) through the SAME path as a local REST request:
+  the permission of the verb (``auth.routes_table.command_permission``), the rig's
+  control lock (``ControlManager.require``), the hub's validation against the
   descriptor (422-equivalent reply naming the field, nothing sent);
 * answers STOP (``cmd.stop``, ``cmd.stop_all``) and the hub sessions' keep-alives on a
   connection of their own: NATS has no priorities, and a STOP must not queue behind
@@ -44,7 +45,7 @@ from pydantic import ValidationError
 
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
-from servotune.auth.principal import STOP, TUNE, VIEW, Principal
+from servotune.auth.principal import CONSOLE, STOP, TUNE, VIEW, Principal
 from servotune.auth.routes_table import command_permission
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
@@ -357,6 +358,22 @@ class RigAgent:
             await self._control.require(axis_id, client.client_id, principal)
             values = await self._hub.write_params(axis_id, request.values)
             return _reply(ok=True, result={"values": values})
+        if verb == subjects.CONSOLE:
+            # The rig's console route: its permission, the lock, the hub's line check
+            # (control characters refused naming ``line``) and the driver's own refusals.
+            self._need(principal, CONSOLE)
+            await self._control.require(axis_id, client.client_id, principal)
+            line = request.args.get("line")
+            if not isinstance(line, str):
+                raise InvalidArgumentError("line", "line must be a string")
+            try:
+                sent, reply = await self._hub.console(axis_id, line)
+            except (DeviceRefusedError, InvalidArgumentError, LinkDownError):
+                raise
+            except DriverError as exc:
+                # As the rig's REST: an exchange error is an answer, shown with the line.
+                return _reply(ok=True, result={"sent": line, "reply": [], "error": str(exc)})
+            return _reply(ok=True, result={"sent": sent, "reply": reply, "error": None})
         permission = command_permission(self._hub.descriptor(axis_id), verb)
         self._need(principal, permission)
         if permission != STOP:

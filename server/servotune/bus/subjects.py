@@ -33,8 +33,9 @@ _TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 # Verbs that are not descriptor commands (a descriptor command name is a verb too).
 WRITE_PARAMS = "write_params"
 READ_PARAMS = "read_params"
+CONSOLE = "console"
 STOP = "stop"
-RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS)
+RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE)
 
 
 def check_token(field: str, value: str) -> str:
