@@ -333,3 +333,63 @@ async def test_the_console_through_the_hub_is_the_rigs_console(half_lab: LabRun)
         response = await hub.client.post("/api/axes/rig-a.line-1/console", json={"line": "se 0"})
         assert response.status_code == 422, response.text
         assert not [line for _, line in rig.wire.since(t1, 1) if line.startswith("se")]
+
+
+async def test_a_bench_test_from_the_hub_runs_on_the_rig_within_the_rigs_limits(
+    half_lab: LabRun,
+) -> None:
+    run = half_lab
+    rig = run.rigs["rig-a"]
+    assert rig.app is not None
+    rig_client = rig.app.client
+    async with serve(hub_config(run)) as hub:
+        await wait_for(lambda: online(hub.hub, "rig-a.line-0"), 10, "rig-a online at the hub")
+        info = (await hub.client.get("/api/axes/rig-a.line-0/bench")).json()
+        assert "move" in info["kinds"]  # the rig's kinds, from its manifest
+        # The rig's own limits hold for a test the hub asks for: 422 naming the field.
+        response = await rig_client.put(
+            "/api/axes/line-0/bench/limits", json={"max_distance_counts": 500}
+        )
+        assert response.status_code == 200, response.text
+        response = await hub.client.post(
+            "/api/axes/rig-a.line-0/bench/runs", json={"kind": "move", "distance": 1000}
+        )
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == "distance" and "500" in response.json()["detail"]
+        assert (await rig_client.get("/api/axes/line-0/bench/runs")).json() == []
+        # Within them: the rig runs and records it; the hub lists it at once and
+        # its tabs see it progress.
+        queue = hub.hub.subscribe()
+        try:
+            response = await hub.client.post(
+                "/api/axes/rig-a.line-0/bench/runs", json={"kind": "move", "distance": 400}
+            )
+            assert response.status_code == 202, response.text
+            run_id = response.json()["id"]
+            assert response.json()["axis_id"] == "rig-a.line-0"
+            on_rig = (await rig_client.get("/api/axes/line-0/bench/runs")).json()
+            assert [r["id"] for r in on_rig] == [run_id]
+            listed = (await hub.client.get("/api/axes/rig-a.line-0/bench/runs")).json()
+            assert run_id in [r["id"] for r in listed]
+            progress: list[dict[str, Any]] = []
+            deadline = time.monotonic() + 30
+            while not any(m.get("status") != "recording" for m in progress):
+                assert time.monotonic() < deadline, f"no finished run at the hub: {progress}"
+                with contextlib.suppress(TimeoutError):
+                    message = json.loads(await asyncio.wait_for(queue.get(), 1.0))
+                    if message.get("type") == "run" and message.get("run_id") == run_id:
+                        progress.append(message)
+            assert {m["axis"] for m in progress} == {"rig-a.line-0"}
+        finally:
+            hub.hub.unsubscribe(queue)
+        # The finished run reaches the hub's store (runs stream), samples and all.
+        for _ in range(300):
+            meta = await hub.client.get(f"/api/bench/runs/{run_id}")
+            # (Written in two steps: the row, then its samples and final status.)
+            body = meta.json() if meta.status_code == 200 else {}
+            if body.get("rig") == "rig-a" and body.get("status") != "recording":
+                break
+            await asyncio.sleep(0.1)
+        else:
+            pytest.fail("the run never reached the hub's store")
+        assert body["samples"]

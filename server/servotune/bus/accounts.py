@@ -86,7 +86,7 @@ def hub_view_permissions() -> Permissions:
     prefix = subjects.PREFIX
     return Permissions(
         publish_allow=(
-            f"{prefix}.*.*.*.cmd.{subjects.READ_PARAMS}",
+            *(f"{prefix}.*.*.*.cmd.{verb}" for verb in subjects.READ_VERBS),
             f"{prefix}.*.cmd.snapshot",
             f"$JS.API.STREAM.INFO.{subjects.RIGS_STREAM}",
             f"$JS.API.STREAM.INFO.{subjects.PRESENCE_STREAM}",

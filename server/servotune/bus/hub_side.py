@@ -171,7 +171,12 @@ class HubBus:
                     )
                 continue
             link = RemoteLink(
-                manifest.rig, info, self._port, self._hub, self._settings.offline_after_s
+                manifest.rig,
+                info,
+                self._port,
+                self._hub,
+                self._settings.offline_after_s,
+                self._hub.broadcast_model,
             )
             self.links[key] = link
             self._rigs.setdefault(manifest.rig, []).append(link)

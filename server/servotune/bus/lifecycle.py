@@ -8,6 +8,7 @@ from servotune.bus.rig import RigAgent
 from servotune.control import ControlManager
 from servotune.hub import Hub
 from servotune.storage import Storage
+from servotune.testbench import TestBench
 
 
 class BusLifecycle:
@@ -25,11 +26,18 @@ class BusLifecycle:
         if self.hub is not None:
             await self.hub.prepare(hub, storage)
 
-    async def start(self, hub: Hub, control: ControlManager, storage: Storage) -> None:
+    async def start(
+        self,
+        hub: Hub,
+        control: ControlManager,
+        storage: Storage,
+        bench: TestBench | None = None,
+    ) -> None:
+        """``bench``: the rig's test bench, which runs the tests a hub asks for."""
         if self.hub is not None:
             await self.hub.start(control)
         else:
-            self.rig = RigAgent(self.settings, hub, control, storage)
+            self.rig = RigAgent(self.settings, hub, control, storage, bench)
             await self.rig.start()
 
     async def stop(self) -> None:

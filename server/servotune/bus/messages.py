@@ -19,6 +19,8 @@ SCHEMA = 1
 class RemoteAxisInfo(BaseModel):
     info: AxisInfo
     descriptor: DeviceDescriptor
+    # The bench tests the rig runs on this axis (``testbench.TestBench.kinds``).
+    bench_kinds: list[str] = Field(default_factory=list)
 
 
 class RemoteLinkInfo(BaseModel):

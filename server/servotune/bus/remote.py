@@ -15,6 +15,7 @@ refused before it is sent. Telemetry of a rig is never replayed as if it were li
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from collections.abc import Callable, Mapping
@@ -24,6 +25,7 @@ from nats.aio.client import Client
 from nats.errors import Error as NatsError
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeoutError
+from pydantic import BaseModel
 
 from servotune.bus import subjects
 from servotune.bus.messages import CommandReply, CommandRequest, RemoteAxisInfo, RemoteLinkInfo
@@ -40,7 +42,7 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
-from servotune.wire import LinkState, Telemetry
+from servotune.wire import LinkState, RunUpdate, Telemetry
 
 
 def hub_id(rig: str, local_id: str) -> str:
@@ -103,7 +105,7 @@ class BusPort:
     def connection_for(self, verb: str) -> Client:
         if verb == subjects.STOP:
             return self.stop_nc
-        if verb == subjects.READ_PARAMS:
+        if verb in subjects.READ_VERBS:
             return self.view_nc or self.nc
         return self.nc
 
@@ -118,6 +120,7 @@ class RemoteAxis:
         self._name = f"{link.rig}: {info.info.name}"
         self._address = info.info.address
         self._descriptor = info.descriptor
+        self._bench_kinds = list(info.bench_kinds)
 
     @property
     def id(self) -> str:
@@ -177,6 +180,31 @@ class RemoteAxis:
     async def stop(self) -> None:
         await self._request(subjects.STOP, self._body())
 
+    # --- bench tests run on the rig (``testbench.BenchDelegate``) ----------------------
+
+    def bench_kinds(self) -> list[str]:
+        return list(self._bench_kinds)
+
+    async def bench_start(self, request: Mapping[str, object]) -> dict[str, object]:
+        """Start a test on the rig: it plans, checks (its limits, its lock) and records
+        it; the run arrives in the hub's store through the runs stream when done."""
+        result = await self._request(subjects.BENCH_START, self._body(args=dict(request)))
+        run = result.get("run")
+        if not isinstance(run, dict):
+            raise ProtocolError(f"rig {self._link.rig} answered a bench start without its run")
+        return self._as_hub_run(run)
+
+    async def bench_runs(self) -> list[dict[str, object]]:
+        """The rig's runs of this axis (the hub lists those not collected yet)."""
+        result = await self._request(subjects.BENCH_RUNS, self._body())
+        runs = result.get("runs")
+        if not isinstance(runs, list):
+            raise ProtocolError(f"rig {self._link.rig} answered a run list without runs")
+        return [self._as_hub_run(run) for run in runs if isinstance(run, dict)]
+
+    def _as_hub_run(self, run: dict[str, object]) -> dict[str, object]:
+        return {**run, "axis_id": self._id, "rig": self._link.rig}
+
 
 def _int_values(values: object) -> dict[str, int]:
     if not isinstance(values, dict):
@@ -194,8 +222,11 @@ class RemoteLink:
         port: BusPort,
         sink: DriverSink,
         offline_after_s: float,
+        broadcast: Callable[[BaseModel], None] | None = None,
     ) -> None:
         self.rig = rig
+        # To every hub tab: what the sink has no callback for (a bench run's progress).
+        self._broadcast = broadcast
         self.local_id = info.info.id
         self.port = port
         self._sink = sink
@@ -328,6 +359,9 @@ class RemoteLink:
             if isinstance(values, dict):
                 source = str(message.get("source", "read"))
                 self._sink.on_params(axis.id, {str(k): int(v) for k, v in values.items()}, source)
+        elif kind == "run" and axis is not None and self._broadcast is not None:
+            with contextlib.suppress(ValueError):
+                self._broadcast(RunUpdate.model_validate({**message, "axis": axis.id}))
         elif kind == "event" and (axis is not None or axis_local is None):
             level = str(message.get("level", "info"))
             text = f"[{self.rig}] {message.get('message', '')}"

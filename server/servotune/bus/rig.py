@@ -45,7 +45,7 @@ from pydantic import ValidationError
 
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
-from servotune.auth.principal import CONSOLE, STOP, TUNE, VIEW, Principal
+from servotune.auth.principal import BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
 from servotune.auth.routes_table import command_permission
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
@@ -71,6 +71,7 @@ from servotune.drivers.base import (
 )
 from servotune.hub import ClientQueue, Hub, UnknownAxisError
 from servotune.storage import Storage, StorageError
+from servotune.testbench import BenchTestRequest, TestBench
 
 logger = logging.getLogger(__name__)
 
@@ -107,11 +108,23 @@ def _error_reply(exc: Exception) -> bytes:
     return _reply(ok=False, kind="device", detail=str(exc))
 
 
+def _invalid(exc: ValidationError) -> InvalidArgumentError:
+    """A request body the rig cannot use, as its REST's 422 naming the field."""
+    first = exc.errors()[0]
+    field = ".".join(str(p) for p in first.get("loc", ())) or "body"
+    return InvalidArgumentError(field, f"{field}: {first.get('msg')}")
+
+
 class RigAgent:
     """One rig on the bus; lives for the app's lifespan (``start`` .. ``stop``)."""
 
     def __init__(
-        self, settings: BusSettings, hub: Hub, control: ControlManager, storage: Storage
+        self,
+        settings: BusSettings,
+        hub: Hub,
+        control: ControlManager,
+        storage: Storage,
+        bench: TestBench | None = None,
     ) -> None:
         if settings.rig is None:
             raise ValueError("a rig agent needs the rig's name")
@@ -120,6 +133,7 @@ class RigAgent:
         self._hub = hub
         self._control = control
         self._storage = storage
+        self._bench = bench
         # (link id, axis id) of the subject -> the rig's axis id; checked to be tokens.
         self._axes: dict[tuple[str, str], str] = {}
         for info in hub.axes_info():
@@ -215,7 +229,11 @@ class RigAgent:
         links = []
         for link in self._hub.links_info():
             axes = [
-                RemoteAxisInfo(info=info, descriptor=self._hub.descriptor(info.id))
+                RemoteAxisInfo(
+                    info=info,
+                    descriptor=self._hub.descriptor(info.id),
+                    bench_kinds=self._bench.kinds(info.id) if self._bench else [],
+                )
                 for info in self._hub.axes_info()
                 if info.link == link.id
             ]
@@ -269,8 +287,11 @@ class RigAgent:
                     self.telemetry_sent += 1
                 elif kind in ("link_status", "axis_status", "params", "event", "control_status"):
                     await nc.publish(events, text.encode(), headers=headers)
-                elif kind == "run" and message.get("status") in ("complete", "incomplete"):
-                    self._unpublished.add(str(message["run_id"]))
+                elif kind == "run":
+                    # Progress for the hub's tabs; the finished run goes to the stream.
+                    await nc.publish(events, text.encode(), headers=headers)
+                    if message.get("status") in ("complete", "incomplete"):
+                        self._unpublished.add(str(message["run_id"]))
             except NatsError as exc:
                 # Disconnected: nats-py buffers while reconnecting, then refuses; the
                 # rig's own clients are not affected.
@@ -345,14 +366,28 @@ class RigAgent:
         try:
             request = CommandRequest.model_validate_json(data)
         except ValidationError as exc:
-            first = exc.errors()[0]
-            field = ".".join(str(p) for p in first.get("loc", ())) or "body"
-            raise InvalidArgumentError(field, f"{field}: {first.get('msg')}") from None
+            raise _invalid(exc) from None
         principal = self._principal
         if verb == subjects.READ_PARAMS:
             self._need(principal, VIEW)
             return _reply(ok=True, result={"values": await self._hub.read_params(axis_id)})
+        if verb == subjects.BENCH_RUNS:
+            self._need(principal, VIEW)
+            return _reply(ok=True, result={"runs": await self._rig_bench().list_runs(axis_id)})
         client = self._session(request.session)
+        if verb == subjects.BENCH_START:
+            # The rig's bench route: its permission, the lock, then the bench's own
+            # checks (the rig's limits, the plan against the descriptor) before anything
+            # moves; the hub session becomes the axis' mover (its dead-man applies).
+            self._need(principal, BENCH)
+            bench = self._rig_bench()
+            try:
+                test = BenchTestRequest.model_validate(request.args)
+            except ValidationError as exc:
+                raise _invalid(exc) from None
+            await self._control.require(axis_id, client.client_id, principal)
+            run = await bench.start_run(axis_id, test)
+            return _reply(ok=True, result={"run": run})
         if verb == subjects.WRITE_PARAMS:
             self._need(principal, TUNE)
             await self._control.require(axis_id, client.client_id, principal)
@@ -381,6 +416,11 @@ class RigAgent:
             await self._control.require(axis_id, client.client_id, principal)
         outcome = await self._hub.command(axis_id, verb, request.args)
         return _reply(ok=True, result={"sent": outcome.sent, "message": outcome.message})
+
+    def _rig_bench(self) -> TestBench:
+        if self._bench is None:
+            raise DeviceRefusedError(f"rig {self.rig} runs no test bench")
+        return self._bench
 
     @staticmethod
     def _need(principal: Principal, permission: str) -> None:

@@ -34,8 +34,12 @@ _TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 WRITE_PARAMS = "write_params"
 READ_PARAMS = "read_params"
 CONSOLE = "console"
+BENCH_START = "bench_start"
+BENCH_RUNS = "bench_runs"
 STOP = "stop"
-RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE)
+RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE, BENCH_START, BENCH_RUNS)
+# Verbs that only read: the hub sends them on its view connection (``accounts``).
+READ_VERBS = (READ_PARAMS, BENCH_RUNS)
 
 
 def check_token(field: str, value: str) -> str:
