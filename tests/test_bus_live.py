@@ -317,7 +317,9 @@ async def test_a_hub_viewer_cannot_command_a_rig_and_the_view_user_is_refused_by
     assert not [line for _, line in rig.wire.since(t1) if line.startswith(("kp", "vm"))]
 
 
-async def test_the_console_through_the_hub_is_the_rigs_console(half_lab: LabRun) -> None:
+async def test_the_console_and_parameter_sets_through_the_hub_reach_the_rig(
+    half_lab: LabRun,
+) -> None:
     run = half_lab
     rig = run.rigs["rig-a"]
     async with serve(hub_config(run)) as hub:
@@ -333,6 +335,22 @@ async def test_the_console_through_the_hub_is_the_rigs_console(half_lab: LabRun)
         response = await hub.client.post("/api/axes/rig-a.line-1/console", json={"line": "se 0"})
         assert response.status_code == 422, response.text
         assert not [line for _, line in rig.wire.since(t1, 1) if line.startswith("se")]
+        # A parameter set kept at the hub (read from the rig's device), restored: the
+        # values go to the rig as a parameter write, validated there, read back.
+        assert rig.app is not None
+        response = await hub.client.post(
+            "/api/axes/rig-a.line-1/param-sets", json={"name": "lab-default"}
+        )
+        assert response.status_code == 201, response.text
+        saved_kp = response.json()["params"]["kp"]
+        response = await hub.client.patch("/api/axes/rig-a.line-1/params", json={"kp": 7})
+        assert response.status_code == 200, response.text
+        t2 = time.monotonic()
+        response = await hub.client.post("/api/axes/rig-a.line-1/param-sets/lab-default/restore")
+        assert response.status_code == 200 and response.json()["kp"] == saved_kp, response.text
+        assert any(line.startswith("kp") for _, line in rig.wire.since(t2, 1))
+        device = (await rig.app.client.get("/api/axes/line-1/params")).json()
+        assert device["kp"] == saved_kp
 
 
 async def test_a_bench_test_from_the_hub_runs_on_the_rig_within_the_rigs_limits(
