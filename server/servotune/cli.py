@@ -127,7 +127,7 @@ def cmd_bus_accounts(args: argparse.Namespace) -> int:
     from servotune.bus.accounts import lab_accounts, write_lab_accounts
 
     try:
-        accounts = lab_accounts(args.hub, args.rig, args.viewer)
+        accounts = lab_accounts(args.hub, args.rig, args.viewer, leaf=args.leaf)
     except ValueError as exc:
         print(f"servotune bus-accounts: {exc}", file=sys.stderr)
         return 2
@@ -290,6 +290,11 @@ def build_parser() -> argparse.ArgumentParser:
     accounts.add_argument("--rig", action="append", default=[], help="a rig (repeatable)")
     accounts.add_argument("--viewer", action="append", default=[], help="a read-only user")
     accounts.add_argument("--out", type=Path, required=True, help="directory to write to")
+    accounts.add_argument(
+        "--leaf",
+        action="store_true",
+        help="the rigs run their own nats-server as leaf nodes (docs/lab.md)",
+    )
     accounts.set_defaults(func=cmd_bus_accounts)
 
     sim = sub.add_parser(

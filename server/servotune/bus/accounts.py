@@ -57,14 +57,22 @@ def _list(items: tuple[str, ...]) -> str:
     return "[" + ", ".join(f'"{item}"' for item in items) + "]"
 
 
-def rig_permissions(rig: str) -> Permissions:
+def rig_permissions(rig: str, *, leaf: bool = False) -> Permissions:
+    """``leaf``: the rig's nats-server is a leaf node in JetStream domain ``<rig>``; the
+    lab's stream sources the rig's runs through it (``bus.leaf``), which needs the
+    lab's domain-API requests into the leaf and the leaf's answers and deliveries."""
     subjects.check_token("rig", rig)
     root = f"{subjects.PREFIX}.{rig}"
-    return Permissions(
-        publish_allow=(f"{root}.>",),
-        subscribe_allow=(f"{root}.*.*.cmd.*", f"{root}.cmd.*", f"{subjects.inbox_prefix(rig)}.>"),
-        allow_responses=True,
+    publish: tuple[str, ...] = (f"{root}.>",)
+    subscribe: tuple[str, ...] = (
+        f"{root}.*.*.cmd.*",
+        f"{root}.cmd.*",
+        f"{subjects.inbox_prefix(rig)}.>",
     )
+    if leaf:
+        publish += ("$JSC.>", "$JS.S.>")
+        subscribe += (f"$JS.{rig}.API.>", "$JS.FC.>")
+    return Permissions(publish_allow=publish, subscribe_allow=subscribe, allow_responses=True)
 
 
 def hub_permissions() -> Permissions:
@@ -126,7 +134,9 @@ class Account:
     permissions: Permissions
 
 
-def lab_accounts(hub: str, rigs: list[str], viewers: list[str]) -> list[Account]:
+def lab_accounts(
+    hub: str, rigs: list[str], viewers: list[str], *, leaf: bool = False
+) -> list[Account]:
     """A random password for every user (``secrets``), with its permissions."""
     subjects.check_token("hub", hub)
     accounts = [
@@ -134,7 +144,9 @@ def lab_accounts(hub: str, rigs: list[str], viewers: list[str]) -> list[Account]
         Account(f"{hub}-view", secrets.token_urlsafe(24), hub_view_permissions()),
         Account(f"{hub}-stop", secrets.token_urlsafe(24), hub_stop_permissions()),
     ]
-    accounts += [Account(rig, secrets.token_urlsafe(24), rig_permissions(rig)) for rig in rigs]
+    accounts += [
+        Account(rig, secrets.token_urlsafe(24), rig_permissions(rig, leaf=leaf)) for rig in rigs
+    ]
     accounts += [
         Account(subjects.check_token("viewer", v), secrets.token_urlsafe(24), viewer_permissions())
         for v in viewers

@@ -1,0 +1,124 @@
+"""A rig's own nats-server as a leaf node of the lab's (nats-server 2.9): the rig's runs
+in a stream of its own JetStream domain, the lab's runs stream sourcing it.
+
+Two real nats-server processes: the lab's (domain ``lab``, a leaf node listener) and
+rig-a's (domain ``rig-a``, its configuration from ``servotune.bus.leaf``), linked
+through a TCP proxy the test cuts (the lab network). The rig's leaf user has the
+permissions ``servotune bus-accounts --leaf`` writes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+
+import nats
+from nats.js.api import StreamInfo
+
+from servotune.bus import subjects
+from servotune.bus.accounts import lab_accounts, write_lab_accounts
+from servotune.bus.leaf import lab_runs_config, leaf_node_conf, rig_runs_config
+
+from .nats_support import ServerProcess, TcpProxy, free_port, require_nats_server
+
+RIG = "rig-a"
+
+
+async def _messages(js: object, stream: str) -> int:
+    info: StreamInfo = await js.stream_info(stream)  # type: ignore[attr-defined]
+    return int(info.state.messages)
+
+
+async def _wait_messages(js: object, stream: str, count: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while (found := await _messages(js, stream)) < count:
+        assert time.monotonic() < deadline, f"{stream}: {found} of {count} messages"
+        await asyncio.sleep(0.1)
+
+
+async def test_a_rigs_runs_reach_the_lab_through_its_leaf_node_also_after_a_cut(
+    tmp_path: Path,
+) -> None:
+    require_nats_server()
+    accounts = lab_accounts("hub", [RIG], [], leaf=True)
+    write_lab_accounts(tmp_path, accounts)
+    users = {a.user: a for a in accounts}
+    lab_port, leaf_port, rig_port = free_port(), free_port(), free_port()
+    lab = ServerProcess(
+        "lab",
+        f"""
+server_name: lab
+listen: 127.0.0.1:{lab_port}
+jetstream {{ store_dir: "{tmp_path / "js-lab"}", domain: lab }}
+leafnodes {{ listen: 127.0.0.1:{leaf_port} }}
+include "accounts.conf"
+""",
+        tmp_path,
+        lab_port,
+    )
+    lab.start()
+    proxy = TcpProxy(leaf_port)
+    await proxy.start()
+    rig_conf = leaf_node_conf(
+        RIG,
+        port=rig_port,
+        store_dir=tmp_path / "js-rig",
+        lab_leaf_url=f"nats-leaf://127.0.0.1:{proxy.port}",
+        credentials_file=tmp_path / f"{RIG}.cred",
+    )
+    rig_server = ServerProcess("rig", rig_conf, tmp_path, rig_port)
+    rig_server.start()
+    rig_nc = hub_nc = None
+    try:
+        rig_user, hub_user = users[RIG], users["hub"]
+        rig_nc = await nats.connect(rig_server.url, user=RIG, password=rig_user.password)
+        hub_nc = await nats.connect(lab.url, user="hub", password=hub_user.password)
+        rig_js, hub_js = rig_nc.jetstream(), hub_nc.jetstream()
+        await rig_js.add_stream(config=rig_runs_config(RIG))
+        await hub_js.add_stream(config=lab_runs_config([RIG]))
+
+        async def record(run_id: str) -> None:
+            """As the rig agent publishes a finished run; acknowledged by the rig's own
+            server (its domain), whatever the lab network does."""
+            ack = await rig_js.publish(
+                subjects.runs(RIG),
+                json.dumps({"run": run_id}).encode(),
+                headers={"Nats-Msg-Id": f"{RIG}/{run_id}"},
+                timeout=2,
+            )
+            assert ack.domain == RIG and ack.stream == rig_runs_config(RIG).name
+
+        await record("r1")
+        await _wait_messages(hub_js, subjects.RUNS_STREAM, 1, 10)
+        got = await hub_js.get_msg(subjects.RUNS_STREAM, 1)
+        assert got.subject == subjects.runs(RIG) and json.loads(got.data or b"") == {"run": "r1"}
+
+        # The lab network cut: the rig records on; the run waits in the rig's stream.
+        await proxy.cut()
+        await record("r2")
+        await record("r3")
+        assert await _messages(rig_js, rig_runs_config(RIG).name) == 3
+        await proxy.resume()
+        await _wait_messages(hub_js, subjects.RUNS_STREAM, 3, 20)
+        # A run published twice (a rig retrying after a lost ack) is kept once.
+        await record("r3")
+        await asyncio.sleep(0.5)
+        assert await _messages(rig_js, rig_runs_config(RIG).name) == 3
+        assert await _messages(hub_js, subjects.RUNS_STREAM) == 3
+        runs = [
+            json.loads((await hub_js.get_msg(subjects.RUNS_STREAM, seq)).data or b"")["run"]
+            for seq in (1, 2, 3)
+        ]
+        assert runs == ["r1", "r2", "r3"]
+        # What nats-server 2.9 says about the leaf: the lab's JetStream is not extended
+        # to it (hence the rig's own domain and the sourcing).
+        assert "JetStream Not Extended" in lab.log_path.read_text()
+    finally:
+        for nc in (rig_nc, hub_nc):
+            if nc is not None:
+                await nc.close()
+        await proxy.stop()
+        rig_server.stop()
+        lab.stop()
