@@ -92,7 +92,10 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
             print("servotune serve: --bus needs --rig NAME (this rig's name)", file=sys.stderr)
             raise SystemExit(2)
         return BusSettings(
-            url=args.bus, rig=check_token("--rig", args.rig), credentials=credentials
+            url=args.bus,
+            rig=check_token("--rig", args.rig),
+            credentials=credentials,
+            leaf=args.bus_leaf,
         )
     except ValueError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
@@ -120,6 +123,12 @@ def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
         group.add_argument("--name", default="lab", help="this hub's name on the bus")
     else:
         group.add_argument("--rig", default=None, metavar="NAME", help="this rig's name")
+        group.add_argument(
+            "--bus-leaf",
+            action="store_true",
+            help="--bus is this rig's own nats-server, a leaf node of the lab's with "
+            "JetStream in domain NAME (its runs are kept there; docs/lab.md)",
+        )
 
 
 def cmd_bus_accounts(args: argparse.Namespace) -> int:

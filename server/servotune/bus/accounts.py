@@ -96,6 +96,7 @@ def hub_view_permissions() -> Permissions:
         publish_allow=(
             *(f"{prefix}.*.*.*.cmd.{verb}" for verb in subjects.READ_VERBS),
             f"{prefix}.*.cmd.snapshot",
+            f"{prefix}.*.cmd.manifest",
             f"$JS.API.STREAM.INFO.{subjects.RIGS_STREAM}",
             f"$JS.API.STREAM.INFO.{subjects.PRESENCE_STREAM}",
             f"$JS.API.STREAM.MSG.GET.{subjects.RIGS_STREAM}",

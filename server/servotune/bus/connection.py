@@ -33,6 +33,10 @@ class BusSettings:
     rig: str | None = None
     hub: str | None = None
     credentials: Path | None = None
+    # A rig only: ``url`` is the rig's own nats-server, a leaf node of the lab's, with
+    # JetStream in domain ``<rig>`` (``bus.leaf``): the rig's manifest and runs are kept
+    # in streams there, and the lab's streams source them.
+    leaf: bool = False
     # How often presence and keep-alives go out, and when silence means offline.
     presence_period_s: float = 0.5
     offline_after_s: float = 1.5

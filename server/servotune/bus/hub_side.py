@@ -41,6 +41,7 @@ from pydantic import ValidationError
 
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus, role_settings
+from servotune.bus.leaf import ensure_sources
 from servotune.bus.messages import KeepAlive, RigManifest, RunRecord
 from servotune.bus.remote import BusPort, RemoteLink, hub_id
 from servotune.bus.tasks import BackgroundTasks
@@ -115,6 +116,10 @@ class HubBus:
         self._storage: Storage | None = None
         # Rigs are added by the manifest callback and at start: one at a time.
         self._adding = asyncio.Lock()
+        # Rigs heard (presence) but not known: their manifest is being asked for.
+        self._asking: set[str] = set()
+        # Leaf rigs (their own JetStream domain) whose streams the lab's source.
+        self._sourced: set[str] = set()
         self.links: dict[tuple[str, str], RemoteLink] = {}
         self._rigs: dict[str, list[RemoteLink]] = {}
         self._tasks = BackgroundTasks(logger)
@@ -194,6 +199,7 @@ class HubBus:
         """While the hub runs: a rig that joined (or a known rig's new link) is listed
         at once, locked by the hub's control lock like the others, and announced."""
         assert self._hub is not None and self._control is not None
+        await self._source_leaf(manifest)
         async with self._adding:
             added = self._new_links(manifest)
             for link in added:
@@ -206,6 +212,34 @@ class HubBus:
                     "info", None, f"rig {manifest.rig} joined the lab: {axes} axes listed"
                 )
 
+    async def _source_leaf(self, manifest: RigManifest) -> None:
+        """A rig on its own leaf node: the lab's streams source its manifest and runs
+        from its JetStream domain (``bus.leaf``); retried on the next presence."""
+        if manifest.domain is None or manifest.rig in self._sourced or self._nc is None:
+            return
+        try:
+            if await ensure_sources(self._nc, manifest.rig, manifest.domain):
+                logger.info("rig %s: its streams sourced from its domain", manifest.rig)
+            self._sourced.add(manifest.rig)
+        except (NatsError, JetStreamError) as exc:
+            logger.warning("rig %s: its streams not sourced yet (%s)", manifest.rig, exc)
+
+    async def _ask_manifest(self, rig: str) -> None:
+        """A rig heard but not known (a leaf rig whose manifest the lab's stream has not
+        got, or one that joined unseen): ask it for its manifest."""
+        assert self._view_nc is not None
+        try:
+            msg = await self._view_nc.request(
+                subjects.rig_cmd(rig, "manifest"), b"{}", timeout=self._settings.request_timeout_s
+            )
+            manifest = RigManifest.model_validate_json(msg.data)
+            if manifest.rig == rig:
+                await self._add_rig_live(manifest)
+        except (NatsError, ValidationError) as exc:
+            logger.info("rig %s: manifest not got (%s); asked again on its next presence", rig, exc)
+        finally:
+            self._asking.discard(rig)
+
     async def start(self, control: ControlManager) -> None:
         """Listen to the rigs, keep the session alive, collect the runs."""
         assert self._view_nc is not None
@@ -217,7 +251,8 @@ class HubBus:
         await nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
         await nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
         await nc.flush()
-        # A rig that registered between ``prepare`` and the subscription above.
+        # A rig that registered between ``prepare`` and the subscription above (and
+        # the leaf rigs' sources, which a lab's server keeps but a new hub checks).
         for manifest in await self._manifests():
             await self._add_rig_live(manifest)
         # Rigs already present: their last presence (younger than its age limit) counts.
@@ -284,6 +319,10 @@ class HubBus:
     async def _on_presence(self, msg: Msg) -> None:
         rig = msg.subject.split(".")[2]
         gone = bool(msg.headers and msg.headers.get(subjects.GONE_HEADER))
+        unknown = rig not in self._rigs and rig not in self._asking
+        if unknown and not gone and self._control is not None and subjects.check_token_ok(rig):
+            self._asking.add(rig)
+            self._tasks.spawn(self._ask_manifest(rig), f"bus: manifest of {rig}")
         for link in self._rigs.get(rig, []):
             if gone:
                 link.on_gone()

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nats.aio.client import Client
 from nats.js.api import ExternalStream, StorageType, StreamConfig, StreamSource
+from nats.js.errors import NotFoundError
 
 from servotune.bus import subjects
 
@@ -44,6 +46,57 @@ def rig_runs_config(rig: str) -> StreamConfig:
         storage=StorageType.FILE,
         duplicate_window=24 * 3600.0,
     )
+
+
+def rig_manifest_stream(rig: str) -> str:
+    return f"{subjects.RIGS_STREAM}_{subjects.check_token('rig', rig)}"
+
+
+def rig_stream_configs(rig: str) -> list[StreamConfig]:
+    """The rig's streams on its own server: its manifest (last value) and its runs."""
+    return [
+        StreamConfig(
+            name=rig_manifest_stream(rig),
+            subjects=[subjects.manifest(rig)],
+            max_msgs_per_subject=1,
+            storage=StorageType.FILE,
+        ),
+        rig_runs_config(rig),
+    ]
+
+
+async def ensure_rig_streams(nc: Client, rig: str) -> None:
+    """The rig agent, on its leaf node: create its streams if they are missing."""
+    js = nc.jetstream()
+    for config in rig_stream_configs(rig):
+        assert config.name is not None
+        try:
+            await js.stream_info(config.name)
+        except NotFoundError:
+            await js.add_stream(config=config)
+
+
+async def ensure_sources(nc: Client, rig: str, domain: str) -> bool:
+    """The hub: the lab's rigs and runs streams source the leaf rig's (idempotent);
+    True if a source was added."""
+    js = nc.jetstream()
+    added = False
+    for lab_stream, rig_stream in (
+        (subjects.RIGS_STREAM, rig_manifest_stream(rig)),
+        (subjects.RUNS_STREAM, rig_runs_stream(rig)),
+    ):
+        info = await js.stream_info(lab_stream)
+        config = info.config
+        sources = list(config.sources or [])
+        if any(s.name == rig_stream for s in sources):
+            continue
+        sources.append(
+            StreamSource(name=rig_stream, external=ExternalStream(api=f"$JS.{domain}.API"))
+        )
+        config.sources = sources
+        await js.update_stream(config=config)
+        added = True
+    return added
 
 
 def runs_source(rig: str) -> StreamSource:

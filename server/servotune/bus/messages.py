@@ -35,6 +35,8 @@ class RigManifest(BaseModel):
     rig: str
     server_version: str
     links: list[RemoteLinkInfo]
+    # The JetStream domain of the rig's own nats-server (a leaf node), None: the lab's.
+    domain: str | None = None
 
 
 class Presence(BaseModel):

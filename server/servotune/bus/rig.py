@@ -49,6 +49,7 @@ from servotune.auth.principal import BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
 from servotune.auth.routes_table import command_permission
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
+from servotune.bus.leaf import ensure_rig_streams
 from servotune.bus.messages import (
     CommandReply,
     CommandRequest,
@@ -195,6 +196,7 @@ class RigAgent:
         await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "keepalive"), cb=self._on_alive)
         await self._nc.subscribe(f"{root}.*.*.cmd.*", cb=self._on_command)
         await self._nc.subscribe(subjects.rig_cmd(self.rig, "snapshot"), cb=self._on_snapshot)
+        await self._nc.subscribe(subjects.rig_cmd(self.rig, "manifest"), cb=self._on_manifest)
         await self._stop_nc.flush()
         await self._nc.flush()
 
@@ -238,7 +240,12 @@ class RigAgent:
                 if info.link == link.id
             ]
             links.append(RemoteLinkInfo(info=link, axes=axes))
-        return RigManifest(rig=self.rig, server_version=__version__, links=links)
+        return RigManifest(
+            rig=self.rig,
+            server_version=__version__,
+            links=links,
+            domain=self.rig if self._settings.leaf else None,
+        )
 
     async def _put_manifest(self) -> None:
         """The manifest on the rigs stream (the hub lists the rig from it), acknowledged."""
@@ -258,6 +265,9 @@ class RigAgent:
                 if not manifest_put:
                     # Until the lab's server has the bucket (the hub creates it) and the
                     # leaf link is up: the rig works meanwhile, it is just not listed.
+                    # On a leaf node: the rig's own streams, in its own domain.
+                    if self._settings.leaf:
+                        await ensure_rig_streams(self._nc, self.rig)
                     await self._put_manifest()
                     manifest_put = True
                 body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
@@ -323,6 +333,11 @@ class RigAgent:
             return
         client = self._session(alive.session)
         self._control.heartbeat(client)
+
+    async def _on_manifest(self, msg: Msg) -> None:
+        """A hub that hears this rig's presence but does not know it yet asks this."""
+        with contextlib.suppress(NatsError):
+            await msg.respond(self.manifest().model_dump_json().encode())
 
     async def _on_snapshot(self, msg: Msg) -> None:
         """What a hub needs when it (re)finds the rig: statuses and parameters."""

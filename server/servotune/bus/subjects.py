@@ -52,6 +52,10 @@ def check_token(field: str, value: str) -> str:
     return value
 
 
+def check_token_ok(value: str) -> bool:
+    return _TOKEN.fullmatch(value) is not None
+
+
 def axis_root(rig: str, link: str, axis: str) -> str:
     return f"{PREFIX}.{rig}.{link}.{axis}"
 
