@@ -70,7 +70,9 @@ def rig_permissions(rig: str, *, leaf: bool = False) -> Permissions:
         f"{subjects.inbox_prefix(rig)}.>",
     )
     if leaf:
-        publish += ("$JSC.>", "$JS.S.>")
+        # ``allow_responses`` does not cover replies across a leaf link (nats-server
+        # 2.9: the hub's requests time out), so the leaf may publish to reply inboxes.
+        publish += ("$JSC.>", "$JS.S.>", "_INBOX.>")
         subscribe += (f"$JS.{rig}.API.>", "$JS.FC.>")
     return Permissions(publish_allow=publish, subscribe_allow=subscribe, allow_responses=True)
 

@@ -245,11 +245,11 @@ class HubBus:
         assert self._view_nc is not None
         self._control = control
         nc = self._view_nc
-        prefix = subjects.PREFIX
-        await nc.subscribe(f"{prefix}.*.*.*.telemetry", cb=self._on_telemetry)
-        await nc.subscribe(f"{prefix}.*.events", cb=self._on_events)
-        await nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
-        await nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
+        # One subscription to everything, dispatched here: nats-server 2.9 does not
+        # carry a subscription with a wildcard in the rig's token (``...v1.*.presence``)
+        # across a leaf link whose user may publish only ``servotune.v1.<rig>.>``
+        # (checked: such a subscription hears nothing from a leaf rig; ``v1.>`` does).
+        await nc.subscribe(f"{subjects.PREFIX}.>", cb=self._on_bus)
         await nc.flush()
         # A rig that registered between ``prepare`` and the subscription above (and
         # the leaf rigs' sources, which a lab's server keeps but a new hub checks).
@@ -275,6 +275,19 @@ class HubBus:
                     await nc.close()
 
     # --- what the rigs publish --------------------------------------------------------
+
+    async def _on_bus(self, msg: Msg) -> None:
+        tokens = msg.subject.split(".")
+        last = tokens[-1]
+        if len(tokens) == 6 and last == "telemetry":
+            await self._on_telemetry(msg)
+        elif len(tokens) == 4 and last == "events":
+            await self._on_events(msg)
+        elif len(tokens) == 4 and last == "presence":
+            await self._on_presence(msg)
+        elif len(tokens) == 4 and last == "manifest":
+            await self._on_manifest(msg)
+        # Anything else (commands, keep-alives, runs) is not for the hub's view.
 
     async def _on_telemetry(self, msg: Msg) -> None:
         tokens = msg.subject.split(".")
