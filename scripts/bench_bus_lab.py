@@ -279,13 +279,15 @@ async def run(args: argparse.Namespace) -> None:
             tasks: list[asyncio.Task[None]] = []
             try:
                 async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{args.port}") as http:
-                    for _ in range(300):
+                    axes: list[Any] = []
+                    for _ in range(1200):  # a loaded machine: up to 2 minutes
                         with contextlib.suppress(httpx.HTTPError):
                             axes = (await http.get("/api/axes")).json()
                             if len(axes) == args.rigs * args.axes:
                                 break
                         await asyncio.sleep(0.1)
                     else:
+                        print(f"the hub lists {len(axes)} axes")
                         log = (tmp / "hub.log").read_text()[-2000:]
                         raise SystemExit(f"the hub did not list every axis: {log}")
                 for rig in rigs:

@@ -142,6 +142,21 @@ def cmd_bus_accounts(args: argparse.Namespace) -> int:
         return 2
     for path in write_lab_accounts(args.out, accounts):
         print(f"wrote {path}")  # names only: the passwords stay in the files
+    if args.leaf:
+        from servotune.bus.accounts import write_private
+        from servotune.bus.leaf import leaf_node_conf
+
+        for rig in args.rig:
+            path = args.out / f"{rig}.leaf.conf"
+            text = leaf_node_conf(
+                rig,
+                port=4222,
+                store_dir=args.leaf_store,
+                lab_leaf_url=args.leaf_url,
+                credentials_file=args.out / f"{rig}.cred",
+            )
+            write_private(path, text)
+            print(f"wrote {path}")
     return 0
 
 
@@ -302,7 +317,19 @@ def build_parser() -> argparse.ArgumentParser:
     accounts.add_argument(
         "--leaf",
         action="store_true",
-        help="the rigs run their own nats-server as leaf nodes (docs/lab.md)",
+        help="the rigs run their own nats-server as leaf nodes (docs/lab.md): also write "
+        "<rig>.leaf.conf, the configuration of each rig's nats-server",
+    )
+    accounts.add_argument(
+        "--leaf-url",
+        default="nats-leaf://nats:7422",
+        help="--leaf: the lab server's leaf node listener as the rigs reach it",
+    )
+    accounts.add_argument(
+        "--leaf-store",
+        type=Path,
+        default=Path("/data/nats"),
+        help="--leaf: JetStream directory on the rig PC",
     )
     accounts.set_defaults(func=cmd_bus_accounts)
 

@@ -174,7 +174,7 @@ def accounts_conf(accounts: list[Account]) -> str:
     )
 
 
-def _write_private(path: Path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as handle:
         handle.write(text)
@@ -185,9 +185,9 @@ def write_lab_accounts(directory: Path, accounts: list[Account]) -> list[Path]:
     """``accounts.conf`` and ``<user>.cred`` per user in ``directory`` (all 0600)."""
     directory.mkdir(parents=True, exist_ok=True)
     written = [directory / "accounts.conf"]
-    _write_private(written[0], accounts_conf(accounts))
+    write_private(written[0], accounts_conf(accounts))
     for account in accounts:
         path = directory / f"{account.user}.cred"
-        _write_private(path, f"{account.user}\n{account.password}\n")
+        write_private(path, f"{account.user}\n{account.password}\n")
         written.append(path)
     return written

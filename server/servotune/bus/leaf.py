@@ -115,7 +115,13 @@ def lab_runs_config(rigs: list[str]) -> StreamConfig:
 
 
 def leaf_node_conf(
-    rig: str, *, port: int, store_dir: Path, lab_leaf_url: str, credentials_file: Path
+    rig: str,
+    *,
+    port: int,
+    store_dir: Path,
+    lab_leaf_url: str,
+    credentials_file: Path,
+    host: str = "127.0.0.1",
 ) -> str:
     """The rig PC's nats-server configuration: JetStream in the rig's own domain, one
     local account for the rig's servotune, a leaf link to the lab with the rig's user.
@@ -128,7 +134,9 @@ def leaf_node_conf(
     host_part = lab_leaf_url.split("://", 1)[-1]
     return f"""# Written for rig {rig}: its own nats-server, a leaf node of the lab's (docs/lab.md).
 server_name: {rig}
-listen: 127.0.0.1:{port}
+listen: {host}:{port}
+# A run with its samples is one message (as on the lab's server).
+max_payload: 8MB
 jetstream {{ store_dir: "{store_dir}", domain: {rig} }}
 accounts {{
   RIG {{ jetstream: enabled, users: [ {{ user: "{rig}", password: "{password}" }} ] }}
