@@ -15,7 +15,8 @@ and the bus throughput.
   Each batch carries ``--samples`` samples; a sample's ``position`` channel is the wall
   clock when it was made and its ``velocity`` channel a per-axis sequence number, so a
   viewer measures latency (same machine, one clock) and counts missing samples.
-* viewers: ``--viewers`` websocket clients of the hub that read everything (healthy).
+* viewers: ``--viewers`` websocket clients of the hub that read everything (healthy),
+  each in a process of its own, measuring over the same wall-clock window.
 
     PYTHONPATH=server .venv/bin/python scripts/bench_bus_lab.py --rigs 20 --axes 6 --seconds 20
 """
@@ -26,6 +27,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -137,6 +139,7 @@ class FakeRig:
         root = f"{subjects.PREFIX}.{self.name}"
         await self.nc.subscribe(subjects.rig_cmd(self.name, "snapshot"), cb=snapshot)
         await self.nc.subscribe(f"{root}.*.*.cmd.*", cb=answer)
+
         async def ignore(msg: Any) -> None:
             return None
 
@@ -168,6 +171,8 @@ class FakeRig:
         spacing = BATCH_PERIOD_S / self.samples
         while True:
             next_at += BATCH_PERIOD_S
+            if next_at < time.monotonic() - BATCH_PERIOD_S:
+                next_at = time.monotonic()  # fell behind (a loaded machine): no burst
             await asyncio.sleep(max(0.0, next_at - time.monotonic()))
             now_m, now_w = time.monotonic(), time.time()
             for axis in self.axes:
@@ -199,13 +204,15 @@ class FakeRig:
 class Viewer:
     """A healthy websocket client of the hub: reads everything, measures."""
 
-    def __init__(self) -> None:
+    def __init__(self, window: Any, ready: Any) -> None:
         self.latency: list[float] = []
         self.samples = 0
         self.gaps = 0
         self.dropped = 0
         self._last: dict[str, float] = {}
-        self.measuring = False
+        # Shared with the parent: (from, until) wall clock, 0 until the parent sets it.
+        self.window = window
+        self.ready = ready
 
     async def run(self, port: int) -> None:
         import websockets
@@ -221,9 +228,14 @@ class Viewer:
                     await asyncio.sleep(1.0)
 
             task = asyncio.create_task(beat())
+            self.ready.set()
             try:
                 async for text in socket:
                     arrived = time.time()
+                    from_wall, until_wall = self.window[0], self.window[1]
+                    if from_wall and arrived > until_wall:
+                        return
+                    measuring = bool(from_wall) and arrived >= from_wall
                     message = json.loads(text)
                     kind = message.get("type")
                     if kind == "client_stats":
@@ -237,7 +249,7 @@ class Viewer:
                         if position is None or seq is None:
                             continue
                         last = self._last.get(axis)
-                        if self.measuring:
+                        if measuring:
                             self.latency.append(arrived - position)
                             self.samples += 1
                             if last is not None and seq > last + 1:
@@ -245,6 +257,23 @@ class Viewer:
                         self._last[axis] = seq
             finally:
                 task.cancel()
+
+
+def viewer_process(port: int, window: Any, ready: Any, results: Any) -> None:
+    """A viewer in a process of its own (the bench's rigs must not slow it down)."""
+    viewer = Viewer(window, ready)
+    try:
+        asyncio.run(viewer.run(port))
+    except Exception as exc:  # reported, the others' results still count
+        print(f"viewer: {type(exc).__name__}: {exc}", file=sys.stderr)
+    results.put(
+        {
+            "latency": viewer.latency,
+            "samples": viewer.samples,
+            "gaps": viewer.gaps,
+            "dropped": viewer.dropped,
+        }
+    )
 
 
 async def run(args: argparse.Namespace) -> None:
@@ -293,22 +322,31 @@ async def run(args: argparse.Namespace) -> None:
                 for rig in rigs:
                     tasks.append(asyncio.create_task(rig.presence()))
                     tasks.append(asyncio.create_task(rig.telemetry()))
-                viewers = [Viewer() for _ in range(args.viewers)]
-                tasks += [asyncio.create_task(v.run(args.port)) for v in viewers]
-                await asyncio.sleep(3.0)  # settle: every rig online, the viewers caught up
+                context = multiprocessing.get_context("spawn")
+                results = context.Queue()
+                window = context.Array("d", 2)
+                readies = [context.Event() for _ in range(args.viewers)]
+                viewers = [
+                    context.Process(target=viewer_process, args=(args.port, window, ready, results))
+                    for ready in readies
+                ]
                 for viewer in viewers:
-                    viewer.measuring = True
+                    viewer.start()
+                for ready in readies:
+                    if not await asyncio.to_thread(ready.wait, 120):
+                        raise SystemExit("a viewer did not connect in 2 minutes")
+                await asyncio.sleep(3.0)  # settle: every rig online, the viewers caught up
+                window[0], window[1] = time.time(), time.time() + args.seconds
                 published0 = sum(r.published for r in rigs)
                 bytes0 = sum(r.bytes for r in rigs)
                 cpu0, wall0 = cpu_s(hub.pid), time.monotonic()
                 load0 = os.getloadavg()[0]
                 await asyncio.sleep(args.seconds)
                 cpu1, wall1 = cpu_s(hub.pid), time.monotonic()
-                for viewer in viewers:
-                    viewer.measuring = False
-                elapsed = wall1 - wall0
                 published = sum(r.published for r in rigs) - published0
                 sent_bytes = sum(r.bytes for r in rigs) - bytes0
+                got = [await asyncio.to_thread(results.get, True, 120) for _ in viewers]
+                elapsed = wall1 - wall0
                 expected = args.rigs * args.axes * args.samples * elapsed / BATCH_PERIOD_S
                 print(
                     f"lab: {args.rigs} rigs x {args.axes} axes, {args.samples} samples/batch, "
@@ -325,12 +363,14 @@ async def run(args: argparse.Namespace) -> None:
                     f"hub CPU: {100 * (cpu1 - cpu0) / elapsed:.0f} % of one core "
                     f"(servotune hub, pid {hub.pid}, user + system)"
                 )
-                for index, viewer in enumerate(viewers):
+                for index, result in enumerate(got):
                     print(
-                        f"viewer {index}: {viewer.samples} samples (~{expected:.0f} made), "
-                        f"{viewer.gaps} missing, hub dropped {viewer.dropped} messages for it"
+                        f"viewer {index}: {result['samples']} samples (~{expected:.0f} made), "
+                        f"{result['gaps']} missing, hub dropped {result['dropped']} for it"
                     )
-                    print(f"  sample -> viewer: {percentiles(viewer.latency)}")
+                    print(f"  sample -> viewer: {percentiles(result['latency'])}")
+                for viewer in viewers:
+                    viewer.join(10)
             finally:
                 for task in tasks:
                     task.cancel()
