@@ -1,10 +1,11 @@
 """servotune on NATS: two simulated rigs and a hub on one machine.
 
 The rigs are in-process (each a whole servotune app with its own hub, control lock and
-store, on its own simulated SLAP2 line, a client of its own leaf nats-server); the
-lab's nats-server, the leaf nodes and the proxy between them (the lab network) are
-real processes and sockets. Assertions about a device are on the simulated line's own
-record of the wire (``WireRecorder``): a refused change sent nothing.
+store, on its own simulated SLAP2 line, a client of the lab's nats-server through a
+proxy: its network cable); the nats-server and the proxy are real processes and
+sockets (leaf nodes: tests/test_bus_leaf.py). Assertions about a device are on the
+simulated line's own record of the wire (``WireRecorder``): a refused change sent
+nothing.
 """
 
 from __future__ import annotations
