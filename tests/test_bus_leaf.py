@@ -57,21 +57,23 @@ async def test_a_rigs_runs_reach_the_lab_through_its_leaf_node_also_after_a_cut(
     write_lab_accounts(tmp_path, accounts)
     users = {a.user: a for a in accounts}
     lab_port, leaf_port, rig_port = free_port(), free_port(), free_port()
+    proxy = TcpProxy(leaf_port)  # its port is chosen now, started below
     lab = ServerProcess(
         "lab",
         f"""
 server_name: lab
 listen: 127.0.0.1:{lab_port}
 jetstream {{ store_dir: "{tmp_path / "js-lab"}", domain: lab }}
-# no_advertise: the leaf reconnects through the proxy only (the cable the test cuts)
-leafnodes {{ listen: 127.0.0.1:{leaf_port}, no_advertise: true }}
+# advertise: the proxy (the cable the test cuts). The rig's server learns the address a
+# lab server advertises and reconnects there; with no_advertise it still came back
+# on the listener's own address, past the cut proxy (nats-server 2.9.10).
+leafnodes {{ listen: 127.0.0.1:{leaf_port}, advertise: "127.0.0.1:{proxy.port}" }}
 include "accounts.conf"
 """,
         tmp_path,
         lab_port,
     )
     lab.start()
-    proxy = TcpProxy(leaf_port)
     await proxy.start()
     rig_conf = leaf_node_conf(
         RIG,
@@ -145,21 +147,23 @@ async def test_a_leaf_rig_is_listed_commanded_and_its_runs_arrive_after_a_cut(
     accounts = lab_accounts("hub", [RIG], [], leaf=True)
     write_lab_accounts(tmp_path, accounts)
     lab_port, leaf_port, rig_port = free_port(), free_port(), free_port()
+    proxy = TcpProxy(leaf_port)  # its port is chosen now, started below
     lab = ServerProcess(
         "lab",
         f"""
 server_name: lab
 listen: 127.0.0.1:{lab_port}
 jetstream {{ store_dir: "{tmp_path / "js-lab"}", domain: lab }}
-# no_advertise: the leaf reconnects through the proxy only (the cable the test cuts)
-leafnodes {{ listen: 127.0.0.1:{leaf_port}, no_advertise: true }}
+# advertise: the proxy (the cable the test cuts). The rig's server learns the address a
+# lab server advertises and reconnects there; with no_advertise it still came back
+# on the listener's own address, past the cut proxy (nats-server 2.9.10).
+leafnodes {{ listen: 127.0.0.1:{leaf_port}, advertise: "127.0.0.1:{proxy.port}" }}
 include "accounts.conf"
 """,
         tmp_path,
         lab_port,
     )
     lab.start()
-    proxy = TcpProxy(leaf_port)
     await proxy.start()
     rig_server = ServerProcess(
         "rig",
