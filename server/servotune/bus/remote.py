@@ -195,12 +195,13 @@ class RemoteAxis:
         return self._as_hub_run(run)
 
     async def bench_runs(self) -> list[dict[str, object]]:
-        """The rig's runs of this axis (the hub lists those not collected yet)."""
+        """The rig's runs of this axis (the hub lists those not collected yet), each
+        marked ``on_rig``: not in the hub's store yet (its samples are on the rig)."""
         result = await self._request(subjects.BENCH_RUNS, self._body())
         runs = result.get("runs")
         if not isinstance(runs, list):
             raise ProtocolError(f"rig {self._link.rig} answered a run list without runs")
-        return [self._as_hub_run(run) for run in runs if isinstance(run, dict)]
+        return [self._as_hub_run(run) | {"on_rig": True} for run in runs if isinstance(run, dict)]
 
     def _as_hub_run(self, run: dict[str, object]) -> dict[str, object]:
         return {**run, "axis_id": self._id, "rig": self._link.rig}
