@@ -4,9 +4,8 @@ a TCP proxy per rig the test can cut (the rig's network cable to the lab).
 
 The rigs in these tests are in-process: each is a whole servotune app (its own hub,
 control lock, storage) on its own simulated SLAP2 line, connected to the lab's server
-with its own credentials. Not a leaf node per rig: see docs/lab.md (nats-server 2.9
-does not extend the lab's JetStream to a leaf's clients without sharing the system
-account).
+with its own credentials. A rig behind its own leaf node (JetStream domain per rig):
+tests/test_bus_leaf.py, docs/lab.md.
 """
 
 from __future__ import annotations

@@ -92,7 +92,10 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
             print("servotune serve: --bus needs --rig NAME (this rig's name)", file=sys.stderr)
             raise SystemExit(2)
         return BusSettings(
-            url=args.bus, rig=check_token("--rig", args.rig), credentials=credentials
+            url=args.bus,
+            rig=check_token("--rig", args.rig),
+            credentials=credentials,
+            leaf=args.bus_leaf,
         )
     except ValueError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
@@ -120,6 +123,12 @@ def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
         group.add_argument("--name", default="lab", help="this hub's name on the bus")
     else:
         group.add_argument("--rig", default=None, metavar="NAME", help="this rig's name")
+        group.add_argument(
+            "--bus-leaf",
+            action="store_true",
+            help="--bus is this rig's own nats-server, a leaf node of the lab's with "
+            "JetStream in domain NAME (its runs are kept there; docs/lab.md)",
+        )
 
 
 def cmd_bus_accounts(args: argparse.Namespace) -> int:
@@ -127,12 +136,27 @@ def cmd_bus_accounts(args: argparse.Namespace) -> int:
     from servotune.bus.accounts import lab_accounts, write_lab_accounts
 
     try:
-        accounts = lab_accounts(args.hub, args.rig, args.viewer)
+        accounts = lab_accounts(args.hub, args.rig, args.viewer, leaf=args.leaf)
     except ValueError as exc:
         print(f"servotune bus-accounts: {exc}", file=sys.stderr)
         return 2
     for path in write_lab_accounts(args.out, accounts):
         print(f"wrote {path}")  # names only: the passwords stay in the files
+    if args.leaf:
+        from servotune.bus.accounts import write_private
+        from servotune.bus.leaf import leaf_node_conf
+
+        for rig in args.rig:
+            path = args.out / f"{rig}.leaf.conf"
+            text = leaf_node_conf(
+                rig,
+                port=4222,
+                store_dir=args.leaf_store,
+                lab_leaf_url=args.leaf_url,
+                credentials_file=args.out / f"{rig}.cred",
+            )
+            write_private(path, text)
+            print(f"wrote {path}")
     return 0
 
 
@@ -290,6 +314,23 @@ def build_parser() -> argparse.ArgumentParser:
     accounts.add_argument("--rig", action="append", default=[], help="a rig (repeatable)")
     accounts.add_argument("--viewer", action="append", default=[], help="a read-only user")
     accounts.add_argument("--out", type=Path, required=True, help="directory to write to")
+    accounts.add_argument(
+        "--leaf",
+        action="store_true",
+        help="the rigs run their own nats-server as leaf nodes (docs/lab.md): also write "
+        "<rig>.leaf.conf, the configuration of each rig's nats-server",
+    )
+    accounts.add_argument(
+        "--leaf-url",
+        default="nats-leaf://nats:7422",
+        help="--leaf: the lab server's leaf node listener as the rigs reach it",
+    )
+    accounts.add_argument(
+        "--leaf-store",
+        type=Path,
+        default=Path("/data/nats"),
+        help="--leaf: JetStream directory on the rig PC",
+    )
     accounts.set_defaults(func=cmd_bus_accounts)
 
     sim = sub.add_parser(

@@ -164,6 +164,11 @@ def _can_control(principal: Principal) -> bool:
 class ControlManager:
     """The lock of every axis of ``hub``; lives for the app's lifespan (``app.state.control``)."""
 
+    # Send every axis the start-up STOP (``start``, ``add_link``)? False only for a
+    # server whose axes are another server's (the lab's hub, ``servotune.bus``): that
+    # server sent its own; the axes are free at once and nothing is sent.
+    startup_stop: bool = True
+
     def __init__(
         self,
         hub: Hub,
@@ -196,7 +201,28 @@ class ControlManager:
         for info in self._hub.axes_info():
             links.setdefault(info.link, []).append(info.id)
         for link_id, axis_ids in links.items():
+            self._begin(link_id, axis_ids)
+
+    def add_link(self, link_id: str) -> None:
+        """Lock the axes of ``link_id``, a link the hub registered after ``start`` (a
+        rig that joined the lab's bus): from now on they are locked like the others,
+        and they get the start-up STOP unless ``startup_stop`` is False."""
+        axis_ids = [
+            info.id
+            for info in self._hub.axes_info()
+            if info.link == link_id and info.id not in self._axes
+        ]
+        for axis_id in axis_ids:
+            self._axes[axis_id] = _Axis(axis_id)
+            self._hub.mark_operated(self._hub.entry(axis_id))
+        self._begin(link_id, axis_ids)
+
+    def _begin(self, link_id: str, axis_ids: list[str]) -> None:
+        if self.startup_stop:
             self._spawn(self._startup_stop(link_id, axis_ids), f"start-up stop of {link_id}")
+            return
+        for axis_id in axis_ids:
+            self._release_startup(self._axes[axis_id])
 
     async def shutdown(self) -> None:
         """Stop every axis (before the links close), then end the lock's tasks."""
@@ -233,11 +259,13 @@ class ControlManager:
             await asyncio.sleep(0.02)
         await asyncio.gather(*(self._safe_stop(a, "server start-up") for a in axis_ids))
         for axis_id in axis_ids:
-            ax = self._axes[axis_id]
-            if ax.kind == "server":
-                ax.kind, ax.client = None, None
-            ax.ready.set()
-            self._broadcast_status(ax)
+            self._release_startup(self._axes[axis_id])
+
+    def _release_startup(self, ax: _Axis) -> None:
+        if ax.kind == "server":
+            ax.kind, ax.client = None, None
+        ax.ready.set()
+        self._broadcast_status(ax)
 
     # --- connections ------------------------------------------------------------------
 

@@ -829,3 +829,20 @@ class Hub:
             except DriverError as exc:
                 logger.info("autopilot on %s: %s", entry.info.id, exc)
                 await asyncio.sleep(1.0)
+
+    # --- links registered while the hub runs (servotune.bus) ---------------------------
+
+    async def add_running_link(self, link: Link) -> None:
+        """Register ``link`` while the hub runs (a rig that joined the lab's bus after
+        the hub started, ``servotune.bus``): its stored settings are loaded, its task
+        is started, and every client gets a new ``hello`` (the web client rebuilds its
+        navigation from it, as after a reconnect). ValueError for a duplicate id."""
+        self.add_link(link)
+        for axis in link.axes:
+            entry = self._axes[axis.id]
+            entry.last_known = await asyncio.to_thread(self._storage.last_params, entry.storage_key)
+        if self._tasks:  # started: the link needs its owner task (else ``start`` does it)
+            link_entry = self._links[link.id]
+            link_entry.updated_at = self._clock()
+            self._tasks.append(asyncio.create_task(self._run_link(link_entry)))
+        self._broadcast(self.hello().model_dump_json(), droppable=False)

@@ -26,7 +26,7 @@ from collections.abc import AsyncIterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol, runtime_checkable
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -89,6 +89,19 @@ class BenchLimits(BaseModel):
         if self.max_position_counts is not None and position > self.max_position_counts:
             return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
         return None
+
+
+@runtime_checkable
+class BenchDelegate(Protocol):
+    """Optional for a driver: an axis whose tests run where the axis is (a rig's axis
+    seen from the lab's hub, ``servotune.bus.remote``): that server plans, checks
+    (limits, control lock) and records them; its runs reach this store later."""
+
+    def bench_kinds(self) -> list[str]: ...
+
+    async def bench_start(self, request: Mapping[str, Any]) -> dict[str, Any]: ...
+
+    async def bench_runs(self) -> list[dict[str, Any]]: ...
 
 
 class BenchTestRequest(BaseModel):
@@ -244,6 +257,8 @@ class TestBench:
 
     def kinds(self, axis_id: str) -> list[str]:
         driver = self._hub.entry(axis_id).driver
+        if isinstance(driver, BenchDelegate):
+            return driver.bench_kinds()
         return list(driver.bench_kinds()) if isinstance(driver, BenchPlanner) else []
 
     async def start_run(
@@ -258,6 +273,8 @@ class TestBench:
         frequency response (a device the bench cannot inject into) is computed from."""
         entry = self._hub.entry(axis_id)
         driver = entry.driver
+        if isinstance(driver, BenchDelegate):
+            return await driver.bench_start(request.model_dump(mode="json"))
         if not isinstance(driver, BenchPlanner):
             raise DeviceRefusedError(f"{entry.info.device} has no bench tests yet")
         kinds = driver.bench_kinds()
@@ -852,7 +869,13 @@ class TestBench:
 
     async def list_runs(self, axis_id: str) -> list[dict[str, Any]]:
         entry = self._hub.entry(axis_id)
-        return await asyncio.to_thread(self._storage.list_runs, entry.storage_key)
+        stored = await asyncio.to_thread(self._storage.list_runs, entry.storage_key)
+        if isinstance(entry.driver, BenchDelegate):
+            # The runs still on their way here (recording, or not yet collected).
+            ids = {run["id"] for run in stored}
+            with contextlib.suppress(DriverError):
+                stored += [r for r in await entry.driver.bench_runs() if r.get("id") not in ids]
+        return stored
 
     async def get_run(self, run_id: str) -> dict[str, Any]:
         """One run with all its samples as Python objects (for small runs: tests, tools)."""

@@ -147,7 +147,7 @@ def create_app(config: AppConfig) -> FastAPI:
             await bench.start()
             app.state.twin = await Twin.start(hub) if config.twin else None
             if bus is not None:
-                await bus.start(hub, control, storage)
+                await bus.start(hub, control, storage, bench)
             try:
                 yield
             finally:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import nats
 from nats.aio.client import Client
@@ -33,12 +33,49 @@ class BusSettings:
     rig: str | None = None
     hub: str | None = None
     credentials: Path | None = None
+    # A rig only: ``url`` is the rig's own nats-server, a leaf node of the lab's, with
+    # JetStream in domain ``<rig>`` (``bus.leaf``): the rig's manifest and runs are kept
+    # in streams there, and the lab's streams source them.
+    leaf: bool = False
     # How often presence and keep-alives go out, and when silence means offline.
     presence_period_s: float = 0.5
     offline_after_s: float = 1.5
     keepalive_period_s: float = 0.1
     request_timeout_s: float = 5.0
     stop_timeout_s: float = 2.0
+
+
+HubRole = Literal["operate", "view", "stop"]
+# The hub's NATS users besides its operating one (``accounts.hub_users``): the file of
+# each sits next to the hub's own, named after it (``hub.cred`` -> ``hub-view.cred``).
+ROLE_SUFFIX: dict[HubRole, str] = {"operate": "", "view": "-view", "stop": "-stop"}
+
+
+def role_credentials(path: Path, role: HubRole) -> Path:
+    """The credential file of the hub's ``role`` user, next to the hub's ``path``."""
+    return path.with_name(f"{path.stem}{ROLE_SUFFIX[role]}{path.suffix}")
+
+
+def role_settings(settings: BusSettings, role: HubRole) -> BusSettings:
+    """``settings`` with the credentials of the hub's ``role`` connection.
+
+    Each of the hub's connections is its own NATS user, so nats-server itself limits
+    what each may send (a ``view`` connection cannot publish a command). A lab without
+    those users (no file next to the hub's) runs every connection as the hub's user,
+    with a warning: then only the hub's own checks separate them.
+    """
+    if settings.credentials is None or role == "operate":
+        return settings
+    path = role_credentials(settings.credentials, role)
+    if not path.exists():
+        logger.warning(
+            "bus: no %s next to %s: the hub's %s connection uses the hub's own user",
+            path.name,
+            settings.credentials.name,
+            role,
+        )
+        return settings
+    return replace(settings, credentials=path)
 
 
 def _credential_options(path: Path | None) -> dict[str, Any]:

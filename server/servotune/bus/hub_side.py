@@ -1,10 +1,15 @@
 """The central hub on the bus (``servotune hub --bus URL``): finds the lab's rigs, feeds
 their ``RemoteLink``s, keeps its session alive on every rig, and collects their runs.
 
-* Rigs come from the rigs stream (last manifest per rig) at start-up (a rig that was ever on the
-  bus is listed, offline until its presence says otherwise). A rig that registers
-  later is announced with an event; the hub lists it after a restart (the control
-  lock and the websocket's ``hello`` are built once, at start-up).
+* Rigs come from the rigs stream (last manifest per rig) at start-up (a rig that was
+  ever on the bus is listed, offline until its presence says otherwise), and at run
+  time from the manifests rigs publish when they join: a new rig's links are
+  registered live (``Hub.add_running_link``, ``ControlManager.add_link``) and every
+  web client gets a new ``hello``, so its navigation lists the rig at once.
+* Connections, one per kind of request (``BusPort``), each its own NATS user with
+  its own permissions (``accounts``): ``view`` (subscriptions, snapshots, parameter
+  reads: may not publish any command), ``operate`` (commands, parameter writes,
+  console, the JetStream API) and ``stop`` (STOP, STOP all, keep-alives).
 * Presence: the hub listens to the rigs' presence messages (every 0.5 s per rig);
   ``offline_after_s`` (1.5 s) of silence shows the rig offline, and a "gone" presence
   (a rig stopping cleanly) at once.
@@ -35,10 +40,12 @@ from nats.js.errors import NotFoundError
 from pydantic import ValidationError
 
 from servotune.bus import subjects
-from servotune.bus.connection import BusSettings, connect_bus
+from servotune.bus.connection import BusSettings, connect_bus, role_settings
+from servotune.bus.leaf import ensure_sources
 from servotune.bus.messages import KeepAlive, RigManifest, RunRecord
 from servotune.bus.remote import BusPort, RemoteLink, hub_id
 from servotune.bus.tasks import BackgroundTasks
+from servotune.control import ControlManager
 from servotune.hub import Hub
 from servotune.storage import Storage, StorageError
 
@@ -101,10 +108,18 @@ class HubBus:
         self._settings = settings
         self._session = secrets.token_hex(16)
         self._nc: Client | None = None
+        self._view_nc: Client | None = None
         self._stop_nc: Client | None = None
         self._port: BusPort | None = None
         self._hub: Hub | None = None
+        self._control: ControlManager | None = None
         self._storage: Storage | None = None
+        # Rigs are added by the manifest callback and at start: one at a time.
+        self._adding = asyncio.Lock()
+        # Rigs heard (presence) but not known: their manifest is being asked for.
+        self._asking: set[str] = set()
+        # Leaf rigs (their own JetStream domain) whose streams the lab's source.
+        self._sourced: set[str] = set()
         self.links: dict[tuple[str, str], RemoteLink] = {}
         self._rigs: dict[str, list[RemoteLink]] = {}
         self._tasks = BackgroundTasks(logger)
@@ -113,8 +128,14 @@ class HubBus:
     async def prepare(self, hub: Hub, storage: Storage) -> None:
         """Connect, create what is missing, and register every known rig's links."""
         self._hub, self._storage = hub, storage
-        self._nc = await connect_bus(self._settings, name=f"hub-{self.name}")
-        self._stop_nc = await connect_bus(self._settings, name=f"hub-{self.name}-stop")
+        base = f"hub-{self.name}"
+        self._nc = await connect_bus(role_settings(self._settings, "operate"), name=base)
+        self._view_nc = await connect_bus(
+            role_settings(self._settings, "view"), name=f"{base}-view"
+        )
+        self._stop_nc = await connect_bus(
+            role_settings(self._settings, "stop"), name=f"{base}-stop"
+        )
         await ensure_bus_state(self._nc)
         self._port = BusPort(
             self._nc,
@@ -123,38 +144,119 @@ class HubBus:
             self.name,
             self._settings.request_timeout_s,
             self._settings.stop_timeout_s,
+            view_nc=self._view_nc,
         )
-        for rig, data in (await last_values(self._nc, subjects.RIGS_STREAM)).items():
-            try:
-                manifest = RigManifest.model_validate_json(data)
-            except ValidationError as exc:
-                logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
-                continue
+        for manifest in await self._manifests():
             self._add_rig(manifest)
 
-    def _add_rig(self, manifest: RigManifest) -> None:
+    async def _manifests(self) -> list[RigManifest]:
+        assert self._view_nc is not None
+        found = []
+        for rig, data in (await last_values(self._view_nc, subjects.RIGS_STREAM)).items():
+            try:
+                found.append(RigManifest.model_validate_json(data))
+            except ValidationError as exc:
+                logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
+        return found
+
+    def _new_links(self, manifest: RigManifest) -> list[RemoteLink]:
+        """RemoteLinks for the links of ``manifest`` the hub does not have yet."""
         assert self._hub is not None and self._port is not None
         links = []
         for info in manifest.links:
+            key = (manifest.rig, info.info.id)
+            known = self.links.get(key)
+            if known is not None:
+                if {a.local_id for a in known.remote_axes} != {a.info.id for a in info.axes}:
+                    self._hub.on_event(
+                        "warning",
+                        None,
+                        f"rig {manifest.rig}: the axes of link {info.info.id} changed; "
+                        "restart the hub to list them",
+                    )
+                continue
             link = RemoteLink(
-                manifest.rig, info, self._port, self._hub, self._settings.offline_after_s
+                manifest.rig,
+                info,
+                self._port,
+                self._hub,
+                self._settings.offline_after_s,
+                self._hub.broadcast_model,
             )
-            self._hub.add_link(link)
-            self.links[(manifest.rig, info.info.id)] = link
+            self.links[key] = link
+            self._rigs.setdefault(manifest.rig, []).append(link)
             links.append(link)
-        self._rigs[manifest.rig] = links
+        return links
 
-    async def start(self) -> None:
+    def _add_rig(self, manifest: RigManifest) -> None:
+        """Before the hub starts: its links are registered with the others."""
+        assert self._hub is not None
+        self._rigs.setdefault(manifest.rig, [])
+        for link in self._new_links(manifest):
+            self._hub.add_link(link)
+
+    async def _add_rig_live(self, manifest: RigManifest) -> None:
+        """While the hub runs: a rig that joined (or a known rig's new link) is listed
+        at once, locked by the hub's control lock like the others, and announced."""
+        assert self._hub is not None and self._control is not None
+        await self._source_leaf(manifest)
+        async with self._adding:
+            added = self._new_links(manifest)
+            for link in added:
+                await self._hub.add_running_link(link)
+                self._control.add_link(link.id)
+            if added:
+                axes = sum(len(link.remote_axes) for link in added)
+                logger.info("rig %s joined: %d link(s), %d axes", manifest.rig, len(added), axes)
+                self._hub.on_event(
+                    "info", None, f"rig {manifest.rig} joined the lab: {axes} axes listed"
+                )
+
+    async def _source_leaf(self, manifest: RigManifest) -> None:
+        """A rig on its own leaf node: the lab's streams source its manifest and runs
+        from its JetStream domain (``bus.leaf``); retried on the next presence."""
+        if manifest.domain is None or manifest.rig in self._sourced or self._nc is None:
+            return
+        try:
+            if await ensure_sources(self._nc, manifest.rig, manifest.domain):
+                logger.info("rig %s: its streams sourced from its domain", manifest.rig)
+            self._sourced.add(manifest.rig)
+        except (NatsError, JetStreamError) as exc:
+            logger.warning("rig %s: its streams not sourced yet (%s)", manifest.rig, exc)
+
+    async def _ask_manifest(self, rig: str) -> None:
+        """A rig heard but not known (a leaf rig whose manifest the lab's stream has not
+        got, or one that joined unseen): ask it for its manifest."""
+        assert self._view_nc is not None
+        try:
+            msg = await self._view_nc.request(
+                subjects.rig_cmd(rig, "manifest"), b"{}", timeout=self._settings.request_timeout_s
+            )
+            manifest = RigManifest.model_validate_json(msg.data)
+            if manifest.rig == rig:
+                await self._add_rig_live(manifest)
+        except (NatsError, ValidationError) as exc:
+            logger.info("rig %s: manifest not got (%s); asked again on its next presence", rig, exc)
+        finally:
+            self._asking.discard(rig)
+
+    async def start(self, control: ControlManager) -> None:
         """Listen to the rigs, keep the session alive, collect the runs."""
-        assert self._nc is not None and self._stop_nc is not None
-        prefix = subjects.PREFIX
-        await self._nc.subscribe(f"{prefix}.*.*.*.telemetry", cb=self._on_telemetry)
-        await self._nc.subscribe(f"{prefix}.*.events", cb=self._on_events)
-        await self._nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
-        await self._nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
-        await self._nc.flush()
+        assert self._view_nc is not None
+        self._control = control
+        nc = self._view_nc
+        # One subscription to everything, dispatched here: nats-server 2.9 does not
+        # carry a subscription with a wildcard in the rig's token (``...v1.*.presence``)
+        # across a leaf link whose user may publish only ``servotune.v1.<rig>.>``
+        # (checked: such a subscription hears nothing from a leaf rig; ``v1.>`` does).
+        await nc.subscribe(f"{subjects.PREFIX}.>", cb=self._on_bus)
+        await nc.flush()
+        # A rig that registered between ``prepare`` and the subscription above (and
+        # the leaf rigs' sources, which a lab's server keeps but a new hub checks).
+        for manifest in await self._manifests():
+            await self._add_rig_live(manifest)
         # Rigs already present: their last presence (younger than its age limit) counts.
-        present = await last_values(self._nc, subjects.PRESENCE_STREAM)
+        present = await last_values(nc, subjects.PRESENCE_STREAM)
         for rig, links in self._rigs.items():
             if rig in present and present[rig] != b"{}":
                 for link in links:
@@ -166,13 +268,26 @@ class HubBus:
         if self._port is not None:
             self._port.closing = True
         await self._tasks.cancel_all()
-        for nc in (self._nc, self._stop_nc):
+        for nc in (self._nc, self._view_nc, self._stop_nc):
             if nc is not None:
                 # A connection already cut (network down) fails its last flush.
                 with contextlib.suppress(NatsError, TimeoutError, OSError):
                     await nc.close()
 
     # --- what the rigs publish --------------------------------------------------------
+
+    async def _on_bus(self, msg: Msg) -> None:
+        tokens = msg.subject.split(".")
+        last = tokens[-1]
+        if len(tokens) == 6 and last == "telemetry":
+            await self._on_telemetry(msg)
+        elif len(tokens) == 4 and last == "events":
+            await self._on_events(msg)
+        elif len(tokens) == 4 and last == "presence":
+            await self._on_presence(msg)
+        elif len(tokens) == 4 and last == "manifest":
+            await self._on_manifest(msg)
+        # Anything else (commands, keep-alives, runs) is not for the hub's view.
 
     async def _on_telemetry(self, msg: Msg) -> None:
         tokens = msg.subject.split(".")
@@ -217,6 +332,10 @@ class HubBus:
     async def _on_presence(self, msg: Msg) -> None:
         rig = msg.subject.split(".")[2]
         gone = bool(msg.headers and msg.headers.get(subjects.GONE_HEADER))
+        unknown = rig not in self._rigs and rig not in self._asking
+        if unknown and not gone and self._control is not None and subjects.check_token_ok(rig):
+            self._asking.add(rig)
+            self._tasks.spawn(self._ask_manifest(rig), f"bus: manifest of {rig}")
         for link in self._rigs.get(rig, []):
             if gone:
                 link.on_gone()
@@ -225,12 +344,15 @@ class HubBus:
 
     async def _on_manifest(self, msg: Msg) -> None:
         rig = msg.subject.split(".")[2]
-        if rig not in self._rigs and self._hub is not None:
-            self._hub.on_event(
-                "warning",
-                None,
-                f"rig {rig} joined the bus: restart the hub to list its axes",
-            )
+        try:
+            manifest = RigManifest.model_validate_json(msg.data)
+        except ValidationError as exc:
+            logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
+            return
+        if manifest.rig != rig:
+            logger.error("a manifest of rig %s on %s's subject: ignored", manifest.rig, rig)
+            return
+        await self._add_rig_live(manifest)
 
     # --- the session's keep-alive -----------------------------------------------------
 
@@ -238,7 +360,7 @@ class HubBus:
         assert self._stop_nc is not None
         body = KeepAlive(session=self._session, hub=self.name).model_dump_json().encode()
         while True:
-            for rig, links in self._rigs.items():
+            for rig, links in list(self._rigs.items()):
                 if any(link.present() for link in links):
                     with contextlib.suppress(NatsError):
                         await self._stop_nc.publish(subjects.rig_cmd(rig, "keepalive"), body)

@@ -8,6 +8,7 @@ from servotune.bus.rig import RigAgent
 from servotune.control import ControlManager
 from servotune.hub import Hub
 from servotune.storage import Storage
+from servotune.testbench import TestBench
 
 
 class BusLifecycle:
@@ -25,11 +26,18 @@ class BusLifecycle:
         if self.hub is not None:
             await self.hub.prepare(hub, storage)
 
-    async def start(self, hub: Hub, control: ControlManager, storage: Storage) -> None:
+    async def start(
+        self,
+        hub: Hub,
+        control: ControlManager,
+        storage: Storage,
+        bench: TestBench | None = None,
+    ) -> None:
+        """``bench``: the rig's test bench, which runs the tests a hub asks for."""
         if self.hub is not None:
-            await self.hub.start()
+            await self.hub.start(control)
         else:
-            self.rig = RigAgent(self.settings, hub, control, storage)
+            self.rig = RigAgent(self.settings, hub, control, storage, bench)
             await self.rig.start()
 
     async def stop(self) -> None:
@@ -43,19 +51,13 @@ class HubControlManager(ControlManager):
     """The hub's control lock: as for local axes, except the start-up STOP.
 
     A rig's server sent its own axes their start-up STOP when it started; the hub
-    starting (or restarting) must not stop an axis a rig's local user is driving: the
-    hub is not on the rigs' control path for their local users (docs/lab.md). Every
-    other rule holds at the hub: its tabs' locks, leases and lapses, whose STOPs go to
-    the rig. (Overrides ``ControlManager._startup_stop``; see control.py.)
+    starting (or restarting, or finding a rig that joined later) must not stop an axis
+    a rig's local user is driving: the hub is not on the rigs' control path for their
+    local users (docs/lab.md). Every other rule holds at the hub: its tabs' locks,
+    leases and lapses, whose STOPs go to the rig.
     """
 
-    async def _startup_stop(self, link_id: str, axis_ids: list[str]) -> None:
-        for axis_id in axis_ids:
-            ax = self._axes[axis_id]
-            if ax.kind == "server":
-                ax.kind, ax.client = None, None
-            ax.ready.set()
-            self._broadcast_status(ax)
+    startup_stop = False
 
 
 def control_class(settings: BusSettings | None) -> type[ControlManager]:

@@ -19,6 +19,8 @@ SCHEMA = 1
 class RemoteAxisInfo(BaseModel):
     info: AxisInfo
     descriptor: DeviceDescriptor
+    # The bench tests the rig runs on this axis (``testbench.TestBench.kinds``).
+    bench_kinds: list[str] = Field(default_factory=list)
 
 
 class RemoteLinkInfo(BaseModel):
@@ -33,6 +35,8 @@ class RigManifest(BaseModel):
     rig: str
     server_version: str
     links: list[RemoteLinkInfo]
+    # The JetStream domain of the rig's own nats-server (a leaf node), None: the lab's.
+    domain: str | None = None
 
 
 class Presence(BaseModel):

@@ -15,6 +15,7 @@ refused before it is sent. Telemetry of a rig is never replayed as if it were li
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from collections.abc import Callable, Mapping
@@ -24,6 +25,7 @@ from nats.aio.client import Client
 from nats.errors import Error as NatsError
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeoutError
+from pydantic import BaseModel
 
 from servotune.bus import subjects
 from servotune.bus.messages import CommandReply, CommandRequest, RemoteAxisInfo, RemoteLinkInfo
@@ -40,7 +42,7 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
-from servotune.wire import LinkState, Telemetry
+from servotune.wire import LinkState, RunUpdate, Telemetry
 
 
 def hub_id(rig: str, local_id: str) -> str:
@@ -80,7 +82,13 @@ def raise_for_reply(rig: str, reply: CommandReply) -> None:
 
 @dataclass(slots=True)
 class BusPort:
-    """What the remote drivers share: the two connections, the session, liveness."""
+    """What the remote drivers share: the connections, the session, liveness.
+
+    ``nc`` operates (commands, parameter writes, console), ``view_nc`` reads (parameter
+    reads, snapshots; it may not publish a command: nats-server refuses it), ``stop_nc``
+    stops. Each is its own NATS user (``accounts``); which one a request takes follows
+    from the permission its verb needs at the hub (``connection_for``), the same table
+    the hub's REST checks its user against first."""
 
     nc: Client
     stop_nc: Client
@@ -92,6 +100,14 @@ class BusPort:
     # Set when the hub shuts down: nothing more goes to the rigs (their own dead-man
     # stops what this hub set in motion once its keep-alives end).
     closing: bool = False
+    view_nc: Client | None = None
+
+    def connection_for(self, verb: str) -> Client:
+        if verb == subjects.STOP:
+            return self.stop_nc
+        if verb in subjects.READ_VERBS:
+            return self.view_nc or self.nc
+        return self.nc
 
 
 class RemoteAxis:
@@ -104,6 +120,7 @@ class RemoteAxis:
         self._name = f"{link.rig}: {info.info.name}"
         self._address = info.info.address
         self._descriptor = info.descriptor
+        self._bench_kinds = list(info.bench_kinds)
 
     @property
     def id(self) -> str:
@@ -125,7 +142,7 @@ class RemoteAxis:
         return await self._link.request(
             subjects.axis_cmd(self._link.rig, self._link.local_id, self.local_id, verb),
             body,
-            stop=verb == subjects.STOP,
+            verb=verb,
         )
 
     def _body(self, **fields: object) -> CommandRequest:
@@ -149,12 +166,45 @@ class RemoteAxis:
         )
 
     async def console(self, line: str) -> tuple[str, list[str]]:
-        raise DeviceRefusedError(
-            f"the console of {self._link.rig} is on the rig's own dashboard, not over the bus"
-        )
+        """The line goes to the rig, which checks and sends it as its own console does;
+        an exchange error the rig answered (no echo, ...) is raised as a DriverError,
+        so the hub's console route shows it next to the line as the rig's would."""
+        result = await self._request(subjects.CONSOLE, self._body(args={"line": line}))
+        error = result.get("error")
+        if error:
+            raise DriverError(f"rig {self._link.rig}: {error}")
+        reply = result.get("reply")
+        lines = [str(r) for r in reply] if isinstance(reply, list) else []
+        return str(result.get("sent", line)), lines
 
     async def stop(self) -> None:
         await self._request(subjects.STOP, self._body())
+
+    # --- bench tests run on the rig (``testbench.BenchDelegate``) ----------------------
+
+    def bench_kinds(self) -> list[str]:
+        return list(self._bench_kinds)
+
+    async def bench_start(self, request: Mapping[str, object]) -> dict[str, object]:
+        """Start a test on the rig: it plans, checks (its limits, its lock) and records
+        it; the run arrives in the hub's store through the runs stream when done."""
+        result = await self._request(subjects.BENCH_START, self._body(args=dict(request)))
+        run = result.get("run")
+        if not isinstance(run, dict):
+            raise ProtocolError(f"rig {self._link.rig} answered a bench start without its run")
+        return self._as_hub_run(run)
+
+    async def bench_runs(self) -> list[dict[str, object]]:
+        """The rig's runs of this axis (the hub lists those not collected yet), each
+        marked ``on_rig``: not in the hub's store yet (its samples are on the rig)."""
+        result = await self._request(subjects.BENCH_RUNS, self._body())
+        runs = result.get("runs")
+        if not isinstance(runs, list):
+            raise ProtocolError(f"rig {self._link.rig} answered a run list without runs")
+        return [self._as_hub_run(run) | {"on_rig": True} for run in runs if isinstance(run, dict)]
+
+    def _as_hub_run(self, run: dict[str, object]) -> dict[str, object]:
+        return {**run, "axis_id": self._id, "rig": self._link.rig}
 
 
 def _int_values(values: object) -> dict[str, int]:
@@ -173,8 +223,11 @@ class RemoteLink:
         port: BusPort,
         sink: DriverSink,
         offline_after_s: float,
+        broadcast: Callable[[BaseModel], None] | None = None,
     ) -> None:
         self.rig = rig
+        # To every hub tab: what the sink has no callback for (a bench run's progress).
+        self._broadcast = broadcast
         self.local_id = info.info.id
         self.port = port
         self._sink = sink
@@ -224,7 +277,7 @@ class RemoteLink:
     def present(self) -> bool:
         return self.online and self.port.clock() - self.seen_at <= self._offline_after_s
 
-    async def request(self, subject: str, body: CommandRequest, *, stop: bool) -> dict[str, object]:
+    async def request(self, subject: str, body: CommandRequest, *, verb: str) -> dict[str, object]:
         """A request to the rig; refused at once (LinkDownError) when the rig is offline."""
         if self.port.closing:
             raise LinkDownError(
@@ -233,7 +286,8 @@ class RemoteLink:
             )
         if not self.present():
             raise LinkDownError(f"rig {self.rig} is offline: nothing was sent")
-        nc = self.port.stop_nc if stop else self.port.nc
+        nc = self.port.connection_for(verb)
+        stop = verb == subjects.STOP
         timeout = self.port.stop_timeout_s if stop else self.port.request_timeout_s
         try:
             msg = await nc.request(subject, body.model_dump_json().encode(), timeout=timeout)
@@ -306,6 +360,9 @@ class RemoteLink:
             if isinstance(values, dict):
                 source = str(message.get("source", "read"))
                 self._sink.on_params(axis.id, {str(k): int(v) for k, v in values.items()}, source)
+        elif kind == "run" and axis is not None and self._broadcast is not None:
+            with contextlib.suppress(ValueError):
+                self._broadcast(RunUpdate.model_validate({**message, "axis": axis.id}))
         elif kind == "event" and (axis is not None or axis_local is None):
             level = str(message.get("level", "info"))
             text = f"[{self.rig}] {message.get('message', '')}"
@@ -341,7 +398,8 @@ class RemoteLink:
     async def _snapshot(self) -> None:
         subject = subjects.rig_cmd(self.rig, "snapshot")
         try:
-            msg = await self.port.nc.request(subject, b"{}", timeout=self.port.request_timeout_s)
+            nc = self.port.view_nc or self.port.nc
+            msg = await nc.request(subject, b"{}", timeout=self.port.request_timeout_s)
             messages = json.loads(msg.data)
         except (NatsError, ValueError):
             self.snapshot_wanted.set()  # try again on the next turn

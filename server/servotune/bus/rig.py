@@ -9,9 +9,10 @@ What it does, beside everything the rig's server does anyway:
   (about 30 a second per axis, never one message per sample) on
   ``servotune.v1.<rig>.<link>.<axis>.telemetry``, status, parameters and events on
   ``servotune.v1.<rig>.events``; a slow bus loses old telemetry batches, never status;
-* answers ``...<axis>.cmd.<verb>`` requests through the SAME path as a local REST
-  request: the permission of the verb (``auth.routes_table.command_permission``), the
-  rig's control lock (``ControlManager.require``), the hub's validation against the
+* answers ``...<axis>.cmd.<verb>`` requests (``write_params``, ``read_params``,
+  ``console``, a descriptor command) through the SAME path as a local REST request:
+  the permission of the verb (``auth.routes_table.command_permission``), the rig's
+  control lock (``ControlManager.require``), the hub's validation against the
   descriptor (422-equivalent reply naming the field, nothing sent);
 * answers STOP (``cmd.stop``, ``cmd.stop_all``) and the hub sessions' keep-alives on a
   connection of their own: NATS has no priorities, and a STOP must not queue behind
@@ -44,10 +45,11 @@ from pydantic import ValidationError
 
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
-from servotune.auth.principal import STOP, TUNE, VIEW, Principal
+from servotune.auth.principal import BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
 from servotune.auth.routes_table import command_permission
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
+from servotune.bus.leaf import ensure_rig_streams
 from servotune.bus.messages import (
     CommandReply,
     CommandRequest,
@@ -70,6 +72,7 @@ from servotune.drivers.base import (
 )
 from servotune.hub import ClientQueue, Hub, UnknownAxisError
 from servotune.storage import Storage, StorageError
+from servotune.testbench import BenchTestRequest, TestBench
 
 logger = logging.getLogger(__name__)
 
@@ -106,11 +109,23 @@ def _error_reply(exc: Exception) -> bytes:
     return _reply(ok=False, kind="device", detail=str(exc))
 
 
+def _invalid(exc: ValidationError) -> InvalidArgumentError:
+    """A request body the rig cannot use, as its REST's 422 naming the field."""
+    first = exc.errors()[0]
+    field = ".".join(str(p) for p in first.get("loc", ())) or "body"
+    return InvalidArgumentError(field, f"{field}: {first.get('msg')}")
+
+
 class RigAgent:
     """One rig on the bus; lives for the app's lifespan (``start`` .. ``stop``)."""
 
     def __init__(
-        self, settings: BusSettings, hub: Hub, control: ControlManager, storage: Storage
+        self,
+        settings: BusSettings,
+        hub: Hub,
+        control: ControlManager,
+        storage: Storage,
+        bench: TestBench | None = None,
     ) -> None:
         if settings.rig is None:
             raise ValueError("a rig agent needs the rig's name")
@@ -119,6 +134,7 @@ class RigAgent:
         self._hub = hub
         self._control = control
         self._storage = storage
+        self._bench = bench
         # (link id, axis id) of the subject -> the rig's axis id; checked to be tokens.
         self._axes: dict[tuple[str, str], str] = {}
         for info in hub.axes_info():
@@ -180,6 +196,7 @@ class RigAgent:
         await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "keepalive"), cb=self._on_alive)
         await self._nc.subscribe(f"{root}.*.*.cmd.*", cb=self._on_command)
         await self._nc.subscribe(subjects.rig_cmd(self.rig, "snapshot"), cb=self._on_snapshot)
+        await self._nc.subscribe(subjects.rig_cmd(self.rig, "manifest"), cb=self._on_manifest)
         await self._stop_nc.flush()
         await self._nc.flush()
 
@@ -214,12 +231,21 @@ class RigAgent:
         links = []
         for link in self._hub.links_info():
             axes = [
-                RemoteAxisInfo(info=info, descriptor=self._hub.descriptor(info.id))
+                RemoteAxisInfo(
+                    info=info,
+                    descriptor=self._hub.descriptor(info.id),
+                    bench_kinds=self._bench.kinds(info.id) if self._bench else [],
+                )
                 for info in self._hub.axes_info()
                 if info.link == link.id
             ]
             links.append(RemoteLinkInfo(info=link, axes=axes))
-        return RigManifest(rig=self.rig, server_version=__version__, links=links)
+        return RigManifest(
+            rig=self.rig,
+            server_version=__version__,
+            links=links,
+            domain=self.rig if self._settings.leaf else None,
+        )
 
     async def _put_manifest(self) -> None:
         """The manifest on the rigs stream (the hub lists the rig from it), acknowledged."""
@@ -239,6 +265,9 @@ class RigAgent:
                 if not manifest_put:
                     # Until the lab's server has the bucket (the hub creates it) and the
                     # leaf link is up: the rig works meanwhile, it is just not listed.
+                    # On a leaf node: the rig's own streams, in its own domain.
+                    if self._settings.leaf:
+                        await ensure_rig_streams(self._nc, self.rig)
                     await self._put_manifest()
                     manifest_put = True
                 body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
@@ -268,8 +297,11 @@ class RigAgent:
                     self.telemetry_sent += 1
                 elif kind in ("link_status", "axis_status", "params", "event", "control_status"):
                     await nc.publish(events, text.encode(), headers=headers)
-                elif kind == "run" and message.get("status") in ("complete", "incomplete"):
-                    self._unpublished.add(str(message["run_id"]))
+                elif kind == "run":
+                    # Progress for the hub's tabs; the finished run goes to the stream.
+                    await nc.publish(events, text.encode(), headers=headers)
+                    if message.get("status") in ("complete", "incomplete"):
+                        self._unpublished.add(str(message["run_id"]))
             except NatsError as exc:
                 # Disconnected: nats-py buffers while reconnecting, then refuses; the
                 # rig's own clients are not affected.
@@ -301,6 +333,11 @@ class RigAgent:
             return
         client = self._session(alive.session)
         self._control.heartbeat(client)
+
+    async def _on_manifest(self, msg: Msg) -> None:
+        """A hub that hears this rig's presence but does not know it yet asks this."""
+        with contextlib.suppress(NatsError):
+            await msg.respond(self.manifest().model_dump_json().encode())
 
     async def _on_snapshot(self, msg: Msg) -> None:
         """What a hub needs when it (re)finds the rig: statuses and parameters."""
@@ -344,19 +381,49 @@ class RigAgent:
         try:
             request = CommandRequest.model_validate_json(data)
         except ValidationError as exc:
-            first = exc.errors()[0]
-            field = ".".join(str(p) for p in first.get("loc", ())) or "body"
-            raise InvalidArgumentError(field, f"{field}: {first.get('msg')}") from None
+            raise _invalid(exc) from None
         principal = self._principal
         if verb == subjects.READ_PARAMS:
             self._need(principal, VIEW)
             return _reply(ok=True, result={"values": await self._hub.read_params(axis_id)})
+        if verb == subjects.BENCH_RUNS:
+            self._need(principal, VIEW)
+            return _reply(ok=True, result={"runs": await self._rig_bench().list_runs(axis_id)})
         client = self._session(request.session)
+        if verb == subjects.BENCH_START:
+            # The rig's bench route: its permission, the lock, then the bench's own
+            # checks (the rig's limits, the plan against the descriptor) before anything
+            # moves; the hub session becomes the axis' mover (its dead-man applies).
+            self._need(principal, BENCH)
+            bench = self._rig_bench()
+            try:
+                test = BenchTestRequest.model_validate(request.args)
+            except ValidationError as exc:
+                raise _invalid(exc) from None
+            await self._control.require(axis_id, client.client_id, principal)
+            run = await bench.start_run(axis_id, test)
+            return _reply(ok=True, result={"run": run})
         if verb == subjects.WRITE_PARAMS:
             self._need(principal, TUNE)
             await self._control.require(axis_id, client.client_id, principal)
             values = await self._hub.write_params(axis_id, request.values)
             return _reply(ok=True, result={"values": values})
+        if verb == subjects.CONSOLE:
+            # The rig's console route: its permission, the lock, the hub's line check
+            # (control characters refused naming ``line``) and the driver's own refusals.
+            self._need(principal, CONSOLE)
+            await self._control.require(axis_id, client.client_id, principal)
+            line = request.args.get("line")
+            if not isinstance(line, str):
+                raise InvalidArgumentError("line", "line must be a string")
+            try:
+                sent, reply = await self._hub.console(axis_id, line)
+            except (DeviceRefusedError, InvalidArgumentError, LinkDownError):
+                raise
+            except DriverError as exc:
+                # As the rig's REST: an exchange error is an answer, shown with the line.
+                return _reply(ok=True, result={"sent": line, "reply": [], "error": str(exc)})
+            return _reply(ok=True, result={"sent": sent, "reply": reply, "error": None})
         permission = command_permission(self._hub.descriptor(axis_id), verb)
         self._need(principal, permission)
         if permission != STOP:
@@ -364,6 +431,11 @@ class RigAgent:
             await self._control.require(axis_id, client.client_id, principal)
         outcome = await self._hub.command(axis_id, verb, request.args)
         return _reply(ok=True, result={"sent": outcome.sent, "message": outcome.message})
+
+    def _rig_bench(self) -> TestBench:
+        if self._bench is None:
+            raise DeviceRefusedError(f"rig {self.rig} runs no test bench")
+        return self._bench
 
     @staticmethod
     def _need(principal: Principal, permission: str) -> None:

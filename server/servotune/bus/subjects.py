@@ -33,8 +33,13 @@ _TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 # Verbs that are not descriptor commands (a descriptor command name is a verb too).
 WRITE_PARAMS = "write_params"
 READ_PARAMS = "read_params"
+CONSOLE = "console"
+BENCH_START = "bench_start"
+BENCH_RUNS = "bench_runs"
 STOP = "stop"
-RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS)
+RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE, BENCH_START, BENCH_RUNS)
+# Verbs that only read: the hub sends them on its view connection (``accounts``).
+READ_VERBS = (READ_PARAMS, BENCH_RUNS)
 
 
 def check_token(field: str, value: str) -> str:
@@ -45,6 +50,10 @@ def check_token(field: str, value: str) -> str:
             f"token, got {value!r}"
         )
     return value
+
+
+def check_token_ok(value: str) -> bool:
+    return _TOKEN.fullmatch(value) is not None
 
 
 def axis_root(rig: str, link: str, axis: str) -> str:
