@@ -225,6 +225,12 @@ class RigAgent:
         self._sessions.clear()
         await self._close_connections()
 
+    @property
+    def connected(self) -> bool:
+        """Both connections to the rig's nats-server (commands and STOP) are up; says
+        nothing about the lab network behind a leaf node."""
+        return all(nc is not None and nc.is_connected for nc in (self._nc, self._stop_nc))
+
     # --- what the rig offers ----------------------------------------------------------
 
     def manifest(self) -> RigManifest:
