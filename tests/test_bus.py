@@ -520,3 +520,62 @@ async def test_a_rig_starts_without_the_lab_network_and_joins_when_it_is_back(
     await wait_for(lambda: hub.entry("rig-b.line-0").health != "offline", 15, "rig-b back")
     response = await lab.hub_client.patch("/api/axes/rig-b.line-0/params", json={"kp": 77})
     assert response.status_code == 200 and response.json()["kp"] == 77
+
+
+TUNE_LIMITS = {"max_pwm": 80, "max_distance_counts": 8000, "response": "no_overshoot"}
+
+
+async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
+    """identify, accept and revert from the hub: run by the rig's AutoTuner, checked
+    by the rig (its bench limits), the gains on the rig's simulated device."""
+    module = lab.rigs["rig-a"].wire.bus.module(0)
+    other = lab.rigs["rig-b"].wire.bus.module(0)
+    client = lab.hub_client
+    base = "/api/axes/rig-a.line-0/autotune"
+    # Refused by the rig (its bench limit: the hub's model allows 200) before anything
+    # moves; nothing to accept yet.
+    position = module.position
+    response = await client.post(f"{base}/identify", json={**TUNE_LIMITS, "max_pwm": 200})
+    assert response.status_code == 422 and response.json()["field"] == "max_pwm", response.text
+    assert "80" in response.json()["detail"]  # the rig's bench limit it exceeds
+    assert (await client.post(f"{base}/accept")).status_code == 409
+    assert module.position == position and not module.rss & 0b1100  # no pm, no vm
+    assert (await client.get(base)).json()["state"] == "idle"
+
+    response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+    assert response.status_code == 200, response.text
+    proposal = response.json()
+    assert proposal["gains"] and proposal["identification_run_id"]
+    session = (await client.get(base)).json()
+    assert session["state"] == "proposed" and session["axis"] == "rig-a.line-0"
+    previous = dict(module.settings)
+
+    response = await client.post(f"{base}/accept", timeout=120)
+    assert response.status_code == 200, response.text
+    assert module.settings["kp"] == proposal["gains"]["kp"]
+    assert module.settings["kd"] == proposal["gains"]["kd"]
+    assert (await client.get(base)).json()["state"] == "verified"
+
+    response = await client.post(f"{base}/revert", timeout=120)
+    assert response.status_code == 200, response.text
+    assert response.json()["kp"] == previous["kp"] == module.settings["kp"]
+    assert module.settings["kd"] == previous["kd"]
+    # The other rig was never touched; the rig's agent ran the three steps.
+    assert not other.rss & 0b1100
+    agent = rig_app(lab, "rig-a").app.state.bus.rig
+    assert [v for v in agent.verbs_handled if v.startswith("autotune")] == [
+        "autotune_identify",  # refused (max_pwm)
+        "autotune_accept",  # refused (nothing proposed)
+        "autotune_identify",
+        "autotune_accept",
+        "autotune_revert",
+    ]
+    # The identification run, recorded on the rig, reaches the hub's store.
+    run_id = proposal["identification_run_id"]
+    for _ in range(300):
+        response = await client.get(f"/api/bench/runs/{run_id}")
+        if response.status_code == 200 and response.json().get("rig") == "rig-a":
+            break
+        await asyncio.sleep(0.1)
+    else:
+        pytest.fail("the identification run never reached the hub's store")
