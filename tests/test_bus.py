@@ -26,12 +26,14 @@ from nats.errors import Error as NatsError
 from nats.js.errors import NotFoundError
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.principal import LOCAL_PRINCIPAL
 from servotune.bus.connection import BusSettings
 from servotune.bus.hub_side import ensure_bus_state
 from servotune.bus.subjects import RIGS_STREAM, axis_cmd, manifest, rig_cmd
 from servotune.bus.subjects import telemetry as telemetry_subject
 from servotune.config import LinkSpec
 from servotune.control import ControlSettings
+from servotune.wire import ReleaseControl, TakeControl
 
 from .conftest import local_client, use_csrf_token, wait_for
 from .control_support import WireRecorder, recorded_line, take_with_raw_client
@@ -541,6 +543,27 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
     assert (await client.post(f"{base}/accept")).status_code == 409
     assert module.position == position and not module.rss & 0b1100  # no pm, no vm
     assert (await client.get(base)).json()["state"] == "idle"
+    # The rig's local user holds the axis: the rig's lock refuses the hub (409 at the
+    # hub, as for every change a rig refuses; the rig's REST would answer 423).
+    control = rig_app(lab, "rig-a").app.state.control
+    local = control.connect(LOCAL_PRINCIPAL, "rig-a's bench", lambda _: None)
+    await control.handle(local, TakeControl(axis="line-0"))
+
+    async def beat() -> None:
+        while True:
+            control.heartbeat(local)
+            await asyncio.sleep(0.1)
+
+    beating = asyncio.create_task(beat())
+    try:
+        response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+        assert response.status_code == 409, response.text
+        assert "controlled by local" in response.json()["detail"]
+        assert module.position == position and not module.rss & 0b1100
+    finally:
+        beating.cancel()
+        await control.handle(local, ReleaseControl(axis="line-0"))
+        control.disconnect(local)
 
     response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
     assert response.status_code == 200, response.text
@@ -566,6 +589,7 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
     assert [v for v in agent.verbs_handled if v.startswith("autotune")] == [
         "autotune_identify",  # refused (max_pwm)
         "autotune_accept",  # refused (nothing proposed)
+        "autotune_identify",  # refused (the rig's local user holds the axis)
         "autotune_identify",
         "autotune_accept",
         "autotune_revert",
