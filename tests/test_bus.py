@@ -603,3 +603,46 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
         await asyncio.sleep(0.1)
     else:
         pytest.fail("the identification run never reached the hub's store")
+
+
+async def test_a_hubs_auto_tune_stops_on_the_rig_when_the_rigs_network_is_cut(
+    lab: LabRun,
+) -> None:
+    """The hub session is the axis' mover on the rig while the rig runs its tests: the
+    keep-alives missing for the lease, the rig's dead-man stops the verification, and
+    the rig's AutoTuner puts the previous gains back (as after a local STOP)."""
+    module = lab.rigs["rig-a"].wire.bus.module(0)
+    wire = lab.rigs["rig-a"].wire
+    client = lab.hub_client
+    base = "/api/axes/rig-a.line-0/autotune"
+    response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+    assert response.status_code == 200, response.text
+    proposal = response.json()
+    previous = proposal["current_gains"]
+    assert proposal["gains"] != previous
+    accept = asyncio.ensure_future(client.post(f"{base}/accept", timeout=120))
+    try:
+        # Cut once the proposed gains are on the device (the verification runs).
+        await wait_for(
+            lambda: module.settings["kp"] == proposal["gains"]["kp"], 60, "the gains written"
+        )
+        await lab.lab.proxies["rig-a"].cut()
+        cut = time.monotonic()
+        await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
+        stopped_at = wire.first("st", 0, cut)
+        assert stopped_at is not None
+        rig = rig_app(lab, "rig-a").app
+        assert stopped_at - cut < rig.state.control.settings.lease_s + 1.0
+        tuner = rig.state.autotuner
+        await wait_for(
+            lambda: tuner.session("line-0")["state"] not in ("verifying", "identifying"),
+            60,
+            "the rig's auto-tune ends",
+        )
+        session = tuner.session("line-0")
+        assert session["state"] == "failed" and "STOP" in session["message"], session
+        assert {k: module.settings[k] for k in ("kp", "ki", "kd")} == previous
+    finally:
+        accept.cancel()
+        with contextlib.suppress(asyncio.CancelledError, httpx.HTTPError):
+            await accept
