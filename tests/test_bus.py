@@ -26,12 +26,14 @@ from nats.errors import Error as NatsError
 from nats.js.errors import NotFoundError
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.principal import LOCAL_PRINCIPAL
 from servotune.bus.connection import BusSettings
 from servotune.bus.hub_side import ensure_bus_state
 from servotune.bus.subjects import RIGS_STREAM, axis_cmd, manifest, rig_cmd
 from servotune.bus.subjects import telemetry as telemetry_subject
 from servotune.config import LinkSpec
 from servotune.control import ControlSettings
+from servotune.wire import ReleaseControl, TakeControl
 
 from .conftest import local_client, use_csrf_token, wait_for
 from .control_support import WireRecorder, recorded_line, take_with_raw_client
@@ -520,3 +522,127 @@ async def test_a_rig_starts_without_the_lab_network_and_joins_when_it_is_back(
     await wait_for(lambda: hub.entry("rig-b.line-0").health != "offline", 15, "rig-b back")
     response = await lab.hub_client.patch("/api/axes/rig-b.line-0/params", json={"kp": 77})
     assert response.status_code == 200 and response.json()["kp"] == 77
+
+
+TUNE_LIMITS = {"max_pwm": 80, "max_distance_counts": 8000, "response": "no_overshoot"}
+
+
+async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
+    """identify, accept and revert from the hub: run by the rig's AutoTuner, checked
+    by the rig (its bench limits), the gains on the rig's simulated device."""
+    module = lab.rigs["rig-a"].wire.bus.module(0)
+    other = lab.rigs["rig-b"].wire.bus.module(0)
+    client = lab.hub_client
+    base = "/api/axes/rig-a.line-0/autotune"
+    # Refused by the rig (its bench limit: the hub's model allows 200) before anything
+    # moves; nothing to accept yet.
+    position = module.position
+    response = await client.post(f"{base}/identify", json={**TUNE_LIMITS, "max_pwm": 200})
+    assert response.status_code == 422 and response.json()["field"] == "max_pwm", response.text
+    assert "80" in response.json()["detail"]  # the rig's bench limit it exceeds
+    assert (await client.post(f"{base}/accept")).status_code == 409
+    assert module.position == position and not module.rss & 0b1100  # no pm, no vm
+    assert (await client.get(base)).json()["state"] == "idle"
+    # The rig's local user holds the axis: the rig's lock refuses the hub (409 at the
+    # hub, as for every change a rig refuses; the rig's REST would answer 423).
+    control = rig_app(lab, "rig-a").app.state.control
+    local = control.connect(LOCAL_PRINCIPAL, "rig-a's bench", lambda _: None)
+    await control.handle(local, TakeControl(axis="line-0"))
+
+    async def beat() -> None:
+        while True:
+            control.heartbeat(local)
+            await asyncio.sleep(0.1)
+
+    beating = asyncio.create_task(beat())
+    try:
+        response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+        assert response.status_code == 409, response.text
+        assert "controlled by local" in response.json()["detail"]
+        assert module.position == position and not module.rss & 0b1100
+    finally:
+        beating.cancel()
+        await control.handle(local, ReleaseControl(axis="line-0"))
+        control.disconnect(local)
+
+    response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+    assert response.status_code == 200, response.text
+    proposal = response.json()
+    assert proposal["gains"] and proposal["identification_run_id"]
+    session = (await client.get(base)).json()
+    assert session["state"] == "proposed" and session["axis"] == "rig-a.line-0"
+    previous = dict(module.settings)
+
+    response = await client.post(f"{base}/accept", timeout=120)
+    assert response.status_code == 200, response.text
+    assert module.settings["kp"] == proposal["gains"]["kp"]
+    assert module.settings["kd"] == proposal["gains"]["kd"]
+    assert (await client.get(base)).json()["state"] == "verified"
+
+    response = await client.post(f"{base}/revert", timeout=120)
+    assert response.status_code == 200, response.text
+    assert response.json()["kp"] == previous["kp"] == module.settings["kp"]
+    assert module.settings["kd"] == previous["kd"]
+    # The other rig was never touched; the rig's agent ran the three steps.
+    assert not other.rss & 0b1100
+    agent = rig_app(lab, "rig-a").app.state.bus.rig
+    assert [v for v in agent.verbs_handled if v.startswith("autotune")] == [
+        "autotune_identify",  # refused (max_pwm)
+        "autotune_accept",  # refused (nothing proposed)
+        "autotune_identify",  # refused (the rig's local user holds the axis)
+        "autotune_identify",
+        "autotune_accept",
+        "autotune_revert",
+    ]
+    # The identification run, recorded on the rig, reaches the hub's store.
+    run_id = proposal["identification_run_id"]
+    for _ in range(300):
+        response = await client.get(f"/api/bench/runs/{run_id}")
+        if response.status_code == 200 and response.json().get("rig") == "rig-a":
+            break
+        await asyncio.sleep(0.1)
+    else:
+        pytest.fail("the identification run never reached the hub's store")
+
+
+async def test_a_hubs_auto_tune_stops_on_the_rig_when_the_rigs_network_is_cut(
+    lab: LabRun,
+) -> None:
+    """The hub session is the axis' mover on the rig while the rig runs its tests: the
+    keep-alives missing for the lease, the rig's dead-man stops the verification, and
+    the rig's AutoTuner puts the previous gains back (as after a local STOP)."""
+    module = lab.rigs["rig-a"].wire.bus.module(0)
+    wire = lab.rigs["rig-a"].wire
+    client = lab.hub_client
+    base = "/api/axes/rig-a.line-0/autotune"
+    response = await client.post(f"{base}/identify", json=TUNE_LIMITS, timeout=120)
+    assert response.status_code == 200, response.text
+    proposal = response.json()
+    previous = proposal["current_gains"]
+    assert proposal["gains"] != previous
+    accept = asyncio.ensure_future(client.post(f"{base}/accept", timeout=120))
+    try:
+        # Cut once the proposed gains are on the device (the verification runs).
+        await wait_for(
+            lambda: module.settings["kp"] == proposal["gains"]["kp"], 60, "the gains written"
+        )
+        await lab.lab.proxies["rig-a"].cut()
+        cut = time.monotonic()
+        await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
+        stopped_at = wire.first("st", 0, cut)
+        assert stopped_at is not None
+        rig = rig_app(lab, "rig-a").app
+        assert stopped_at - cut < rig.state.control.settings.lease_s + 1.0
+        tuner = rig.state.autotuner
+        await wait_for(
+            lambda: tuner.session("line-0")["state"] not in ("verifying", "identifying"),
+            60,
+            "the rig's auto-tune ends",
+        )
+        session = tuner.session("line-0")
+        assert session["state"] == "failed" and "STOP" in session["message"], session
+        assert {k: module.settings[k] for k in ("kp", "ki", "kd")} == previous
+    finally:
+        accept.cancel()
+        with contextlib.suppress(asyncio.CancelledError, httpx.HTTPError):
+            await accept

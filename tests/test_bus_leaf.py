@@ -13,6 +13,8 @@ import asyncio
 import contextlib
 import json
 import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +34,7 @@ from servotune.control import ControlSettings
 from .conftest import wait_for
 from .control_support import recorded_line
 from .nats_support import ServerProcess, TcpProxy, free_port, require_nats_server
-from .test_bus import Rig, start_app, stop_app
+from .test_bus import VM, App, Rig, start_app, stop_app
 
 RIG = "rig-a"
 
@@ -138,11 +140,20 @@ include "accounts.conf"
         lab.stop()
 
 
-async def test_a_leaf_rig_is_listed_commanded_and_its_runs_arrive_after_a_cut(
-    tmp_path: Path,
-) -> None:
-    """The whole path with the rig behind its own leaf node: servotune's rig agent on
-    rig-a's nats-server (``--bus-leaf``), the hub on the lab's."""
+@dataclass
+class LeafLab:
+    """The lab's nats-server, rig-a's own behind the cuttable leaf link, both apps."""
+
+    proxy: TcpProxy
+    rig: Rig
+    rig_app: App
+    hub_app: App
+
+
+@contextlib.asynccontextmanager
+async def leaf_lab(tmp_path: Path) -> AsyncIterator[LeafLab]:
+    """servotune's rig agent on rig-a's nats-server (``--bus-leaf``), the hub on the
+    lab's, the leaf link through ``proxy``; rig-a's axis listed and online at the hub."""
     require_nats_server()
     accounts = lab_accounts("hub", [RIG], [], leaf=True)
     write_lab_accounts(tmp_path, accounts)
@@ -183,9 +194,9 @@ include "accounts.conf"
         directory.mkdir()
         simulator, wire = lines.enter_context(recorded_line(directory, [0, 1]))
         rig = Rig(RIG, wire, simulator.path, directory / "data")
-        hub_app = None
+        rig_app = hub_app = None
         try:
-            rig.app = await start_app(
+            rig_app = await start_app(
                 AppConfig(
                     links=[LinkSpec("slap2", rig.path, "line", 19200, [0, 1], 512)],
                     data_dir=rig.data_dir,
@@ -197,6 +208,7 @@ include "accounts.conf"
                     ),
                 )
             )
+            rig.app = rig_app
             hub_app = await start_app(
                 AppConfig(
                     data_dir=tmp_path / "hub-data",
@@ -207,48 +219,86 @@ include "accounts.conf"
             )
             hub = hub_app.app.state.hub
             await wait_for(lambda: _online(hub, f"{RIG}.line-0"), 20, "rig-a listed and online")
-            # A gain from the hub reaches the rig's device across the leaf link.
-            t0 = time.monotonic()
-            response = await hub_app.client.patch(
-                f"/api/axes/{RIG}.line-0/params", json={"kp": 222}
-            )
-            assert response.status_code == 200 and response.json()["kp"] == 222, response.text
-            assert any(line.startswith("kp") for _, line in wire.since(t0, 0))
-            # The lab network cut: offline at the hub within 2 s; the rig records a run.
-            await proxy.cut()
-            cut = time.monotonic()
-            await wait_for(lambda: hub.entry(f"{RIG}.line-0").health == "offline", 2.5, "offline")
-            assert time.monotonic() - cut <= 2.0
-            response = await rig.app.client.post(
-                "/api/axes/line-0/bench/runs", json={"kind": "move", "distance": 1000}
-            )
-            assert response.status_code == 202, response.text
-            run_id = response.json()["id"]
-            for _ in range(400):
-                runs = (await rig.app.client.get("/api/axes/line-0/bench/runs")).json()
-                if next(r for r in runs if r["id"] == run_id)["status"] != "recording":
-                    break
-                await asyncio.sleep(0.05)
-            await asyncio.sleep(RUN_RETRY_S + 0.5)  # the agent has put it in its stream
-            await proxy.resume()
-            # Back: online again, and the run recorded meanwhile reaches the hub's store
-            # (the lab's stream sources it from the rig's domain).
-            await wait_for(lambda: _online(hub, f"{RIG}.line-0"), 20, "rig-a back")
-            for _ in range(300):
-                response = await hub_app.client.get(f"/api/bench/runs/{run_id}")
-                body = response.json() if response.status_code == 200 else {}
-                if body.get("rig") == RIG and body.get("status") != "recording":
-                    break
-                await asyncio.sleep(0.1)
-            else:
-                pytest.fail("the run recorded during the cut never reached the hub")
-            assert body["samples"]
+            yield LeafLab(proxy, rig, rig_app, hub_app)
         finally:
             await stop_app(hub_app)
-            await stop_app(rig.app)
+            await stop_app(rig_app)
             await proxy.stop()
             rig_server.stop()
             lab.stop()
+
+
+async def test_a_leaf_rig_is_listed_commanded_and_its_runs_arrive_after_a_cut(
+    tmp_path: Path,
+) -> None:
+    """The whole path with the rig behind its own leaf node."""
+    async with leaf_lab(tmp_path) as leaf:
+        proxy, rig, wire = leaf.proxy, leaf.rig_app, leaf.rig.wire
+        hub_app = leaf.hub_app
+        hub = hub_app.app.state.hub
+        # A gain from the hub reaches the rig's device across the leaf link.
+        t0 = time.monotonic()
+        response = await hub_app.client.patch(f"/api/axes/{RIG}.line-0/params", json={"kp": 222})
+        assert response.status_code == 200 and response.json()["kp"] == 222, response.text
+        assert any(line.startswith("kp") for _, line in wire.since(t0, 0))
+        # The lab network cut: offline at the hub within 2 s; the rig records a run.
+        await proxy.cut()
+        cut = time.monotonic()
+        await wait_for(lambda: hub.entry(f"{RIG}.line-0").health == "offline", 2.5, "offline")
+        assert time.monotonic() - cut <= 2.0
+        response = await rig.client.post(
+            "/api/axes/line-0/bench/runs", json={"kind": "move", "distance": 1000}
+        )
+        assert response.status_code == 202, response.text
+        run_id = response.json()["id"]
+        for _ in range(400):
+            runs = (await rig.client.get("/api/axes/line-0/bench/runs")).json()
+            if next(r for r in runs if r["id"] == run_id)["status"] != "recording":
+                break
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(RUN_RETRY_S + 0.5)  # the agent has put it in its stream
+        await proxy.resume()
+        # Back: online again, and the run recorded meanwhile reaches the hub's store
+        # (the lab's stream sources it from the rig's domain).
+        await wait_for(lambda: _online(hub, f"{RIG}.line-0"), 20, "rig-a back")
+        for _ in range(300):
+            response = await hub_app.client.get(f"/api/bench/runs/{run_id}")
+            body = response.json() if response.status_code == 200 else {}
+            if body.get("rig") == RIG and body.get("status") != "recording":
+                break
+            await asyncio.sleep(0.1)
+        else:
+            pytest.fail("the run recorded during the cut never reached the hub")
+        assert body["samples"]
+
+
+async def test_motion_started_from_the_hub_stops_when_the_leaf_link_is_cut(
+    tmp_path: Path,
+) -> None:
+    """The leaf link cut, the rig's own nats-server up: the rig's bus connection is
+    fine, but the hub session's keep-alives stop arriving, and the rig's dead-man stops
+    what that session set in motion (a STOP on the rig's wire) within its lease."""
+    async with leaf_lab(tmp_path) as leaf:
+        wire, rig = leaf.rig.wire, leaf.rig_app
+        response = await leaf.hub_app.client.post(
+            f"/api/axes/{RIG}.line-0/commands", json={"command": "velocity_mode"}
+        )
+        assert response.status_code == 200, response.text
+        await wait_for(lambda: bool(wire.bus.module(0).rss & VM), 2, "velocity mode on rig-a")
+        agent = rig.app.state.bus.rig
+        assert agent.connected
+        await leaf.proxy.cut()
+        cut = time.monotonic()
+        await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
+        stopped_at = wire.first("st", 0, cut)
+        assert stopped_at is not None
+        assert not wire.bus.module(0).rss & VM
+        # The rig's connection to its own nats-server never went down: the keep-alives
+        # stopped, not the rig's bus.
+        assert agent.connected
+        lease_s = rig.app.state.control.settings.lease_s
+        # After the last keep-alive: the lease, the watchdog period, the STOP on the wire.
+        assert stopped_at - cut < lease_s + 1.0, f"st after {stopped_at - cut:.3f} s"
 
 
 def _online(hub: Any, axis_id: str) -> bool:

@@ -129,7 +129,12 @@ def create_app(config: AppConfig) -> FastAPI:
             bench = TestBench(hub, storage)
             app.state.hub = hub
             app.state.bench = bench
-            app.state.autotuner = AutoTuner(hub, bench)
+            autotuner_cls = AutoTuner
+            if config.bus is not None:
+                from servotune.bus.lifecycle import autotuner_class  # the hub forwards
+
+                autotuner_cls = autotuner_class(config.bus)
+            app.state.autotuner = autotuner_cls(hub, bench)
             app.state.storage = storage
             # The control lock and dead-man (servotune.control); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
@@ -147,7 +152,7 @@ def create_app(config: AppConfig) -> FastAPI:
             await bench.start()
             app.state.twin = await Twin.start(hub) if config.twin else None
             if bus is not None:
-                await bus.start(hub, control, storage, bench)
+                await bus.start(hub, control, storage, bench, app.state.autotuner)
             try:
                 yield
             finally:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from servotune.autotune import AutoTuner
+from servotune.bus.autotune import HubAutoTuner
 from servotune.bus.connection import BusSettings
 from servotune.bus.hub_side import HubBus
 from servotune.bus.rig import RigAgent
@@ -32,12 +34,14 @@ class BusLifecycle:
         control: ControlManager,
         storage: Storage,
         bench: TestBench | None = None,
+        autotuner: AutoTuner | None = None,
     ) -> None:
-        """``bench``: the rig's test bench, which runs the tests a hub asks for."""
+        """``bench``: the rig's test bench, which runs the tests a hub asks for;
+        ``autotuner``: the rig's auto-tune assistant, which runs a hub's auto-tune."""
         if self.hub is not None:
             await self.hub.start(control)
         else:
-            self.rig = RigAgent(self.settings, hub, control, storage, bench)
+            self.rig = RigAgent(self.settings, hub, control, storage, bench, autotuner)
             await self.rig.start()
 
     async def stop(self) -> None:
@@ -65,3 +69,10 @@ def control_class(settings: BusSettings | None) -> type[ControlManager]:
     if settings is not None and settings.hub is not None:
         return HubControlManager
     return ControlManager
+
+
+def autotuner_class(settings: BusSettings | None) -> type[AutoTuner]:
+    """The hub forwards a rig's auto-tune to the rig (``bus.autotune``)."""
+    if settings is not None and settings.hub is not None:
+        return HubAutoTuner
+    return AutoTuner

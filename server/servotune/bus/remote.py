@@ -138,12 +138,22 @@ class RemoteAxis:
     def descriptor(self) -> DeviceDescriptor:
         return self._descriptor
 
-    async def _request(self, verb: str, body: CommandRequest) -> dict[str, object]:
+    async def _request(
+        self, verb: str, body: CommandRequest, timeout_s: float | None = None
+    ) -> dict[str, object]:
         return await self._link.request(
             subjects.axis_cmd(self._link.rig, self._link.local_id, self.local_id, verb),
             body,
             verb=verb,
+            timeout_s=timeout_s,
         )
+
+    async def autotune(
+        self, verb: str, args: Mapping[str, object], timeout_s: float
+    ) -> dict[str, object]:
+        """An auto-tune step run by the rig's own AutoTuner (``bus.autotune``): the
+        rig's answer ``{result, session}``, or the rig's refusal raised."""
+        return await self._request(verb, self._body(args=dict(args)), timeout_s)
 
     def _body(self, **fields: object) -> CommandRequest:
         port = self._link.port
@@ -277,8 +287,11 @@ class RemoteLink:
     def present(self) -> bool:
         return self.online and self.port.clock() - self.seen_at <= self._offline_after_s
 
-    async def request(self, subject: str, body: CommandRequest, *, verb: str) -> dict[str, object]:
-        """A request to the rig; refused at once (LinkDownError) when the rig is offline."""
+    async def request(
+        self, subject: str, body: CommandRequest, *, verb: str, timeout_s: float | None = None
+    ) -> dict[str, object]:
+        """A request to the rig; refused at once (LinkDownError) when the rig is offline.
+        ``timeout_s``: for the long requests (auto-tune), else the port's."""
         if self.port.closing:
             raise LinkDownError(
                 f"the hub is shutting down: nothing sent to {self.rig} (the rig's own "
@@ -289,6 +302,8 @@ class RemoteLink:
         nc = self.port.connection_for(verb)
         stop = verb == subjects.STOP
         timeout = self.port.stop_timeout_s if stop else self.port.request_timeout_s
+        if timeout_s is not None:
+            timeout = timeout_s
         try:
             msg = await nc.request(subject, body.model_dump_json().encode(), timeout=timeout)
         except NoRespondersError:

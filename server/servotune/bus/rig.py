@@ -34,7 +34,7 @@ import contextlib
 import json
 import logging
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import HTTPException
 from nats.aio.client import Client
@@ -45,7 +45,7 @@ from pydantic import ValidationError
 
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
-from servotune.auth.principal import BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
+from servotune.auth.principal import AUTOTUNE, BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
 from servotune.auth.routes_table import command_permission
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
@@ -73,6 +73,9 @@ from servotune.drivers.base import (
 from servotune.hub import ClientQueue, Hub, UnknownAxisError
 from servotune.storage import Storage, StorageError
 from servotune.testbench import BenchTestRequest, TestBench
+
+if TYPE_CHECKING:
+    from servotune.autotune import AutoTuner
 
 logger = logging.getLogger(__name__)
 
@@ -126,6 +129,7 @@ class RigAgent:
         control: ControlManager,
         storage: Storage,
         bench: TestBench | None = None,
+        autotuner: AutoTuner | None = None,
     ) -> None:
         if settings.rig is None:
             raise ValueError("a rig agent needs the rig's name")
@@ -135,6 +139,7 @@ class RigAgent:
         self._control = control
         self._storage = storage
         self._bench = bench
+        self._autotuner = autotuner
         # (link id, axis id) of the subject -> the rig's axis id; checked to be tokens.
         self._axes: dict[tuple[str, str], str] = {}
         for info in hub.axes_info():
@@ -224,6 +229,12 @@ class RigAgent:
             self._control.disconnect(client)
         self._sessions.clear()
         await self._close_connections()
+
+    @property
+    def connected(self) -> bool:
+        """Both connections to the rig's nats-server (commands and STOP) are up; says
+        nothing about the lab network behind a leaf node."""
+        return all(nc is not None and nc.is_connected for nc in (self._nc, self._stop_nc))
 
     # --- what the rig offers ----------------------------------------------------------
 
@@ -390,6 +401,8 @@ class RigAgent:
             self._need(principal, VIEW)
             return _reply(ok=True, result={"runs": await self._rig_bench().list_runs(axis_id)})
         client = self._session(request.session)
+        if verb in subjects.AUTOTUNE_VERBS:
+            return await self._autotune(axis_id, verb, request, client, principal)
         if verb == subjects.BENCH_START:
             # The rig's bench route: its permission, the lock, then the bench's own
             # checks (the rig's limits, the plan against the descriptor) before anything
@@ -431,6 +444,40 @@ class RigAgent:
             await self._control.require(axis_id, client.client_id, principal)
         outcome = await self._hub.command(axis_id, verb, request.args)
         return _reply(ok=True, result={"sent": outcome.sent, "message": outcome.message})
+
+    async def _autotune(
+        self,
+        axis_id: str,
+        verb: str,
+        request: CommandRequest,
+        client: ControlClient,
+        principal: Principal,
+    ) -> bytes:
+        """The rig's auto-tune routes: their permission, the lock (the hub session
+        becomes the axis' mover: its dead-man applies while the tests run), then the
+        rig's own AutoTuner, which checks the limits against the rig's bench limits
+        and the device before anything moves. The reply carries the rig's session so
+        the hub can show it."""
+        from servotune.autotune.session import IdentifyRequest  # the rig's own model
+
+        tuner = self._autotuner
+        if tuner is None:
+            raise DeviceRefusedError(f"rig {self.rig} runs no auto-tune")
+        self._need(principal, AUTOTUNE)
+        if verb == subjects.AUTOTUNE_IDENTIFY:
+            try:
+                limits = IdentifyRequest.model_validate(request.args)
+            except ValidationError as exc:
+                raise _invalid(exc) from None
+        await self._control.require(axis_id, client.client_id, principal)
+        result: dict[str, Any]
+        if verb == subjects.AUTOTUNE_IDENTIFY:
+            result = await tuner.identify(axis_id, limits)
+        elif verb == subjects.AUTOTUNE_ACCEPT:
+            result = await tuner.accept(axis_id)
+        else:
+            result = dict(await tuner.revert(axis_id))
+        return _reply(ok=True, result={"result": result, "session": tuner.session(axis_id)})
 
     def _rig_bench(self) -> TestBench:
         if self._bench is None:

@@ -37,7 +37,12 @@ CONSOLE = "console"
 BENCH_START = "bench_start"
 BENCH_RUNS = "bench_runs"
 STOP = "stop"
-RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE, BENCH_START, BENCH_RUNS)
+# Auto-tune from the hub (``bus.autotune``): long requests, run by the rig's AutoTuner.
+AUTOTUNE_IDENTIFY = "autotune_identify"
+AUTOTUNE_ACCEPT = "autotune_accept"
+AUTOTUNE_REVERT = "autotune_revert"
+AUTOTUNE_VERBS = (AUTOTUNE_IDENTIFY, AUTOTUNE_ACCEPT, AUTOTUNE_REVERT)
+RESERVED_VERBS = (WRITE_PARAMS, READ_PARAMS, CONSOLE, BENCH_START, BENCH_RUNS, *AUTOTUNE_VERBS)
 # Verbs that only read: the hub sends them on its view connection (``accounts``).
 READ_VERBS = (READ_PARAMS, BENCH_RUNS)
 
