@@ -186,6 +186,11 @@ class Operator:
             message = json.loads(await asyncio.wait_for(self.socket.recv(), 5))
             if message["type"] == "welcome":
                 self.client_id, self.tag = message["client_id"], message["client_tag"]
+            elif message["type"] != "telemetry":
+                # The snapshot (hello, axis and control status) arrives before welcome.
+                # Kept: an axis the autopilot took before this tab connected is in it,
+                # and nowhere else (dropping it made a test wait 30 s for nothing).
+                self.messages.append(message)
         self._tasks = [asyncio.create_task(self._read()), asyncio.create_task(self._beat())]
         return self
 

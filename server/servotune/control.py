@@ -168,6 +168,10 @@ class ControlManager:
     # server whose axes are another server's (the lab's hub, ``servotune.bus``): that
     # server sent its own; the axes are free at once and nothing is sent.
     startup_stop: bool = True
+    # STOP every axis when the server stops (``shutdown``)? False likewise for the lab's
+    # hub: a rig's local user may be driving its axes, and what the hub's own sessions
+    # set in motion is stopped by the rig's dead-man when their keep-alives end.
+    shutdown_stop: bool = True
 
     def __init__(
         self,
@@ -233,13 +237,19 @@ class ControlManager:
         for ax in self._axes.values():
             if ax.pending is not None and ax.pending.task is not None:
                 ax.pending.task.cancel()
-        try:
-            failed = await asyncio.wait_for(self._hub.stop_all(), self.settings.stop_timeout_s)
-        except TimeoutError:
-            logger.error("shutdown: the STOP of every axis did not finish in time")
+        if not self.shutdown_stop:
+            logger.info(
+                "shutdown: no STOP sent to the axes (another server's); what this "
+                "server's sessions set in motion is stopped by their dead-man on the rig"
+            )
         else:
-            if failed:
-                logger.error("shutdown: STOP failed on %s", ", ".join(failed))
+            try:
+                failed = await asyncio.wait_for(self._hub.stop_all(), self.settings.stop_timeout_s)
+            except TimeoutError:
+                logger.error("shutdown: the STOP of every axis did not finish in time")
+            else:
+                if failed:
+                    logger.error("shutdown: STOP failed on %s", ", ".join(failed))
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):

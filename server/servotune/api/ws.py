@@ -113,7 +113,9 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
     client: ControlClient | None = None
     try:
         await websocket.send_text(hub.hello().model_dump_json())
-        # welcome is queued before the snapshot: the client knows its tag first.
+        # welcome goes through the queue, so on the wire it follows the snapshot sent
+        # below: a client reads the snapshot's control_status lines as "held by
+        # someone" until welcome tells it its own tag (a new tab holds nothing yet).
         client = control.connect(principal, address, lambda t: queue.put(t, droppable=False))
         for text in hub.snapshot_messages():
             await websocket.send_text(text)

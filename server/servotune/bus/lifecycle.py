@@ -52,7 +52,7 @@ class BusLifecycle:
 
 
 class HubControlManager(ControlManager):
-    """The hub's control lock: as for local axes, except the start-up STOP.
+    """The hub's control lock: as for local axes, except the start-up and shutdown STOPs.
 
     A rig's server sent its own axes their start-up STOP when it started; the hub
     starting (or restarting, or finding a rig that joined later) must not stop an axis
@@ -62,6 +62,7 @@ class HubControlManager(ControlManager):
     """
 
     startup_stop = False
+    shutdown_stop = False
 
 
 def control_class(settings: BusSettings | None) -> type[ControlManager]:
