@@ -9,6 +9,7 @@ from typing import Any, Final, Literal
 from pydantic import BaseModel, Field
 
 from servotune.autotune.slap2_rule import Proposal, Response
+from servotune.drivers.base import InvalidArgumentError
 from servotune.protocols.slap2 import PWM_MAX
 
 TestKind = Literal["position_step", "move"]
@@ -43,6 +44,33 @@ class IdentifyRequest(BaseModel):
         description="distance of the baseline and verification tests, counts "
         f"(default: {DEFAULT_TEST_DISTANCE} or half of max_distance_counts if smaller)",
     )
+
+    def checked_distance(
+        self, bench_max_distance_counts: int, min_distance: int, default_distance: int
+    ) -> int:
+        """The test distance, after the travel checks every device shares: within the
+        user's bench limit, long enough to identify (``min_distance``), and no further
+        than ``max_distance_counts``. Raises InvalidArgumentError naming the field."""
+        if self.max_distance_counts > bench_max_distance_counts:
+            raise InvalidArgumentError(
+                "max_distance_counts",
+                f"max_distance_counts {self.max_distance_counts} exceeds your bench limit "
+                f"of ±{bench_max_distance_counts} counts",
+            )
+        if self.max_distance_counts < min_distance:
+            raise InvalidArgumentError(
+                "max_distance_counts",
+                f"max_distance_counts {self.max_distance_counts} is too small to identify "
+                f"the axis: at least {min_distance} counts",
+            )
+        distance = self.distance or min(default_distance, self.max_distance_counts // 2)
+        if distance > self.max_distance_counts:
+            raise InvalidArgumentError(
+                "distance",
+                f"distance {distance} exceeds your limit max_distance_counts of "
+                f"±{self.max_distance_counts}",
+            )
+        return distance
 
 
 @dataclass(slots=True)

@@ -68,25 +68,9 @@ class Slap2Tuner:
                 "max_pwm",
                 f"max_pwm {request.max_pwm} exceeds your bench limit of ±{limits.max_pwm}",
             )
-        if request.max_distance_counts > limits.max_distance_counts:
-            raise InvalidArgumentError(
-                "max_distance_counts",
-                f"max_distance_counts {request.max_distance_counts} exceeds your bench limit "
-                f"of ±{limits.max_distance_counts} counts",
-            )
-        if request.max_distance_counts < IDENT_MIN_DISTANCE:
-            raise InvalidArgumentError(
-                "max_distance_counts",
-                f"max_distance_counts {request.max_distance_counts} is too small to identify "
-                f"the axis: at least {IDENT_MIN_DISTANCE} counts",
-            )
-        distance = request.distance or min(DEFAULT_TEST_DISTANCE, request.max_distance_counts // 2)
-        if distance > request.max_distance_counts:
-            raise InvalidArgumentError(
-                "distance",
-                f"distance {distance} exceeds your limit max_distance_counts of "
-                f"±{request.max_distance_counts}",
-            )
+        distance = request.checked_distance(
+            limits.max_distance_counts, IDENT_MIN_DISTANCE, DEFAULT_TEST_DISTANCE
+        )
         self._ctx.check_idle(entry)
         self._current_gains(entry)  # read before anything moves
         return distance

@@ -18,7 +18,7 @@ from servotune.autotune.context import TuningContext
 from servotune.autotune.session import IdentifyRequest, Session
 from servotune.autotune.verdict import verdict_z1100
 from servotune.autotune.z1100_rule import Z1100Proposal, propose_kab
-from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
+from servotune.drivers.base import DeviceRefusedError, DriverError
 from servotune.hub import AxisEntry
 from servotune.metrics import unmeasured
 from servotune.tuning.devices.z1100 import (
@@ -63,25 +63,9 @@ class Z1100Tuner:
     async def check_request(self, entry: AxisEntry, request: IdentifyRequest) -> int:
         ctx = self._ctx
         limits = await ctx.bench.limits(entry.info.id)
-        if request.max_distance_counts > limits.max_distance_counts:
-            raise InvalidArgumentError(
-                "max_distance_counts",
-                f"max_distance_counts {request.max_distance_counts} exceeds your bench limit "
-                f"of ±{limits.max_distance_counts} counts",
-            )
-        if request.max_distance_counts < IDENT_MIN_DISTANCE:
-            raise InvalidArgumentError(
-                "max_distance_counts",
-                f"max_distance_counts {request.max_distance_counts} is too small: at least "
-                f"{IDENT_MIN_DISTANCE}",
-            )
-        distance = request.distance or min(DEFAULT_DISTANCE, request.max_distance_counts // 2)
-        if distance > request.max_distance_counts:
-            raise InvalidArgumentError(
-                "distance",
-                f"distance {distance} exceeds your limit max_distance_counts of "
-                f"±{request.max_distance_counts}",
-            )
+        distance = request.checked_distance(
+            limits.max_distance_counts, IDENT_MIN_DISTANCE, DEFAULT_DISTANCE
+        )
         if ctx.test_running(entry):
             raise DeviceRefusedError("a test is already running on this axis")
         if not ctx.connected(entry):
