@@ -456,3 +456,43 @@ def test_a_stray_header_byte_swallows_part_of_the_next_packet() -> None:
     events = decoder.feed(b"\x5a" + codec.make_get_kab(0).encode())
     assert len(events) == 1 and isinstance(events[0], codec.BadRequest)
     assert decoder.pending == 0
+
+
+# --- the driver's resynchronising fence ------------------------------------------------
+
+
+def test_the_fence_is_a_command_the_chip_does_not_know() -> None:
+    """Every byte the manual's table defines resolves; the fence's does not, so the
+    chip answers it with bit 1 and nothing else happens (drivers/z1100.py)."""
+    fence = codec.make_fence()
+    assert fence.command is None and fence.axis is None
+    assert fence.encode() == bytes((0x5A, 0x7C, 0, 0, 0, 0, checksum_by_hand(0x7C)))
+    assert all(codec.resolve(int(c)) is not None for c in Command)
+
+
+def test_the_simulated_chip_answers_the_fence_in_order_and_it_is_recognised() -> None:
+    from servotune.sim.z1100 import Z1100Chip
+
+    chip = Z1100Chip()
+    out = b"".join(chip.receive(b) for b in codec.make_get(Command.GET_VMAX, 0).encode())
+    out += b"".join(chip.receive(b) for b in codec.make_fence().encode())
+    vmax, fence = codec.ReplyDecoder().feed(out)
+    assert not codec.is_fence_reply(vmax)
+    assert codec.is_fence_reply(fence)
+
+
+@pytest.mark.parametrize(
+    ("code", "data", "expected"),
+    [
+        (0x02, 0, True),  # bit 1: unknown command
+        (0x82, 0, True),  # ... with the stall flag riding on it
+        (0x02, 1, False),  # data: a rotated or other reply
+        (0x00, 0, False),  # a Get of 0 (GetError at rest): the reply the fence guards against
+        (0x03, 0, False),  # bit 1 with the checksum bit
+        (0x12, 0, False),  # bit 1 with "forbidden while motor 1 moves"
+    ],
+)
+def test_only_the_unknown_command_answer_is_a_fence_reply(
+    code: int, data: int, expected: bool
+) -> None:
+    assert codec.is_fence_reply(codec.Reply(ReplyCode(code), data)) is expected
