@@ -45,7 +45,10 @@ from servotune.protocols.ep7047 import (
     StartType,
     StmControl,
     StmStatus,
+    enc_status_of,
     encode_sdo,
+    pos_status_of,
+    stm_status_of,
     wrap_int32,
 )
 
@@ -1021,11 +1024,11 @@ class Ep7047Engine:
         scale = SPEED_RANGE_FULL_SCALE_BP / self.config.full_scale_counts_s
         velocity_bp = max(INT16_MIN, min(INT16_MAX, round(self._velocity * scale)))
         return Inputs(
-            enc_status=EncStatus(enc),
+            enc_status=enc_status_of(enc),  # memoised: the plain call costs microseconds
             counter_counts=position,
             latch_counts=wrap_int32(round(self._latch)) if self._latch is not None else 0,
-            stm_status=StmStatus(stm),
-            pos_status=PosStatus(pos),
+            stm_status=stm_status_of(stm),
+            pos_status=pos_status_of(pos),
             actual_position_counts=position,
             actual_velocity_bp=velocity_bp,
             actual_drive_time_ms=self._drive_time_ms,
