@@ -322,3 +322,110 @@ def test_state_ids_are_the_manuals() -> None:
     assert DriveState.CALI_LEAVE_CAM == 0x0121
     assert DriveState.UNDEFINED == 0xFFFF
     assert DataType.BIT2.maximum == 3
+
+
+# --- fast paths (issue 8: the cycle thread and the simulator call these every frame) ------
+
+_MEMOISED = [
+    (codec.enc_control_of, EncControl),
+    (codec.stm_control_of, StmControl),
+    (codec.pos_control_of, PosControl),
+    (codec.enc_status_of, EncStatus),
+    (codec.stm_status_of, StmStatus),
+    (codec.pos_status_of, PosStatus),
+]
+
+
+@pytest.mark.parametrize(("memoised", "flag"), _MEMOISED, ids=[f.__name__ for _, f in _MEMOISED])
+def test_memoised_flag_words_are_the_plain_members(
+    memoised: object, flag: type[EncControl]
+) -> None:
+    """Every combination of the low 10 bits, every single bit and all 16 (the exhaustive
+    run over 65536 values takes seconds per type)."""
+    of = memoised
+    assert callable(of)
+    values = [*range(1 << 10), *(1 << bit for bit in range(16)), codec.UINT16_MAX]
+    for value in values:
+        member = of(value)
+        plain = flag(value)
+        assert type(member) is flag
+        assert member == plain == value
+        assert member.name == plain.name
+        assert of(value) is member  # the second call is the cached member
+
+
+def test_memoised_start_type_is_the_plain_lookup_for_every_code() -> None:
+    for code in [*range(codec.UINT16_MAX + 1), codec.UINT16_MAX + 1]:
+        try:
+            expected: StartType | int = StartType(code)
+        except ValueError:
+            expected = code
+        found = codec.start_type_of(code)
+        assert found == expected
+        assert type(found) is type(expected)
+
+
+@given(uint16)
+def test_status_and_control_properties_are_the_flag_tests(value: int) -> None:
+    inputs = Inputs(pos_status=PosStatus(value))
+    assert inputs.busy is bool(PosStatus(value) & PosStatus.BUSY)
+    assert inputs.in_target is bool(PosStatus(value) & PosStatus.IN_TARGET)
+    assert inputs.warning is bool(PosStatus(value) & PosStatus.WARNING)
+    assert inputs.error is bool(PosStatus(value) & PosStatus.ERROR)
+    outputs = Outputs(stm_control=StmControl(value), pos_control=PosControl(value))
+    assert outputs.enable is bool(StmControl(value) & StmControl.ENABLE)
+    assert outputs.execute is bool(PosControl(value) & PosControl.EXECUTE)
+    assert outputs.emergency_stop is bool(PosControl(value) & PosControl.EMERGENCY_STOP)
+
+
+_OUTPUT_RANGES = {
+    "enc_control": (0, codec.UINT16_MAX),
+    "set_counter_counts": (codec.INT32_MIN, codec.INT32_MAX),
+    "stm_control": (0, codec.UINT16_MAX),
+    "pos_control": (0, codec.UINT16_MAX),
+    "target_position_counts": (codec.INT32_MIN, codec.INT32_MAX),
+    "velocity_bp": (codec.INT16_MIN, codec.INT16_MAX),
+    "start_type": (0, codec.UINT16_MAX),
+    "acceleration_ms": (0, codec.UINT16_MAX),
+    "deceleration_ms": (0, codec.UINT16_MAX),
+}
+_INPUT_RANGES = {
+    "enc_status": (0, codec.UINT16_MAX),
+    "counter_counts": (codec.INT32_MIN, codec.INT32_MAX),
+    "latch_counts": (codec.INT32_MIN, codec.INT32_MAX),
+    "stm_status": (0, codec.UINT16_MAX),
+    "pos_status": (0, codec.UINT16_MAX),
+    "actual_position_counts": (codec.INT32_MIN, codec.INT32_MAX),
+    "actual_velocity_bp": (codec.INT16_MIN, codec.INT16_MAX),
+    "actual_drive_time_ms": (0, codec.UINT32_MAX),
+}
+
+
+@given(st.sampled_from(sorted(_OUTPUT_RANGES)), st.integers(-(1 << 33), 1 << 33))
+def test_encode_outputs_packs_exactly_the_values_in_range(field: str, value: int) -> None:
+    """Packing first must accept and refuse exactly what the field checks do."""
+    minimum, maximum = _OUTPUT_RANGES[field]
+    outputs = Outputs(**{field: value})
+    if minimum <= value <= maximum:
+        assert codec.decode_outputs(codec.encode_outputs(outputs)) == outputs
+    else:
+        with pytest.raises(CodecError, match="must be between"):
+            codec.encode_outputs(outputs)
+
+
+@given(st.sampled_from(sorted(_INPUT_RANGES)), st.integers(-(1 << 33), 1 << 33))
+def test_encode_inputs_packs_exactly_the_values_in_range(field: str, value: int) -> None:
+    minimum, maximum = _INPUT_RANGES[field]
+    inputs = Inputs(**{field: value})
+    if minimum <= value <= maximum:
+        assert codec.decode_inputs(codec.encode_inputs(inputs)) == inputs
+    else:
+        with pytest.raises(CodecError, match="must be between"):
+            codec.encode_inputs(inputs)
+
+
+def test_a_field_that_is_not_an_integer_is_a_codec_error() -> None:
+    with pytest.raises(CodecError, match="do not fit"):
+        codec.encode_outputs(Outputs(target_position_counts=1.5))  # type: ignore[arg-type]
+    with pytest.raises(CodecError, match="do not fit"):
+        codec.encode_inputs(Inputs(actual_velocity_bp=2.5))  # type: ignore[arg-type]

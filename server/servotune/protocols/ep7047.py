@@ -24,8 +24,9 @@ and relative moves reach negative positions (the manual's own table ends at -990
 from __future__ import annotations
 
 import enum
+import functools
 import struct
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Final
 
@@ -235,6 +236,35 @@ class PosStatus(enum.IntFlag):
     READY_TO_EXECUTE = 1 << 7
 
 
+# The process image's flag words as enum members, memoised: ``PosStatus(value)`` runs
+# the enum machinery in Python (about a microsecond per call, several per frame on the
+# cycle thread and in the simulator), while a drive repeats a handful of values. The
+# words are 16 bits, so a cache holds at most 65536 members per type. Same members as
+# the plain call (tests compare every value).
+_FLAG_CACHE_SIZE: Final = 1 << 16
+enc_control_of: Final[Callable[[int], EncControl]] = functools.lru_cache(_FLAG_CACHE_SIZE)(
+    EncControl
+)
+stm_control_of: Final[Callable[[int], StmControl]] = functools.lru_cache(_FLAG_CACHE_SIZE)(
+    StmControl
+)
+pos_control_of: Final[Callable[[int], PosControl]] = functools.lru_cache(_FLAG_CACHE_SIZE)(
+    PosControl
+)
+enc_status_of: Final[Callable[[int], EncStatus]] = functools.lru_cache(_FLAG_CACHE_SIZE)(EncStatus)
+stm_status_of: Final[Callable[[int], StmStatus]] = functools.lru_cache(_FLAG_CACHE_SIZE)(StmStatus)
+pos_status_of: Final[Callable[[int], PosStatus]] = functools.lru_cache(_FLAG_CACHE_SIZE)(PosStatus)
+
+# Plain ints for the bit tests of the hot properties: an IntFlag ``&`` is a Python-level
+# call that builds a member (microseconds); ``int(flag) & bit`` stays in C.
+_POS_BUSY: Final = int(PosStatus.BUSY)
+_POS_IN_TARGET: Final = int(PosStatus.IN_TARGET)
+_POS_WARNING: Final = int(PosStatus.WARNING)
+_POS_ERROR: Final = int(PosStatus.ERROR)
+_POS_EXECUTE: Final = int(PosControl.EXECUTE)
+_POS_EMERGENCY_STOP: Final = int(PosControl.EMERGENCY_STOP)
+_STM_ENABLE: Final = int(StmControl.ENABLE)
+
 # --- process image ----------------------------------------------------------------------
 
 # Little-endian, no padding: ENC control word, set counter value, STM control word,
@@ -285,15 +315,15 @@ class Outputs:
 
     @property
     def execute(self) -> bool:
-        return bool(self.pos_control & PosControl.EXECUTE)
+        return int(self.pos_control) & _POS_EXECUTE != 0
 
     @property
     def emergency_stop(self) -> bool:
-        return bool(self.pos_control & PosControl.EMERGENCY_STOP)
+        return int(self.pos_control) & _POS_EMERGENCY_STOP != 0
 
     @property
     def enable(self) -> bool:
-        return bool(self.stm_control & StmControl.ENABLE)
+        return int(self.stm_control) & _STM_ENABLE != 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -326,19 +356,19 @@ class Inputs:
 
     @property
     def busy(self) -> bool:
-        return bool(self.pos_status & PosStatus.BUSY)
+        return int(self.pos_status) & _POS_BUSY != 0
 
     @property
     def in_target(self) -> bool:
-        return bool(self.pos_status & PosStatus.IN_TARGET)
+        return int(self.pos_status) & _POS_IN_TARGET != 0
 
     @property
     def warning(self) -> bool:
-        return bool(self.pos_status & PosStatus.WARNING)
+        return int(self.pos_status) & _POS_WARNING != 0
 
     @property
     def error(self) -> bool:
-        return bool(self.pos_status & PosStatus.ERROR)
+        return int(self.pos_status) & _POS_ERROR != 0
 
 
 def _check(name: str, value: int, minimum: int, maximum: int) -> None:
@@ -351,6 +381,7 @@ def _check_length(name: str, data: bytes, size: int) -> None:
         raise CodecError(f"{name} are {size} bytes, got {len(data)}")
 
 
+@functools.lru_cache(maxsize=_FLAG_CACHE_SIZE)  # memoised like the flag words: 16-bit codes
 def start_type_of(code: int) -> StartType | int:
     """The :class:`StartType` for ``code``, or ``code`` itself when it is not one."""
     try:
@@ -362,29 +393,35 @@ def start_type_of(code: int) -> StartType | int:
 def encode_outputs(outputs: Outputs) -> bytes:
     """The 22 output bytes for ``outputs``; raises :class:`CodecError` if a field is out of
     its PDO range (nothing is clipped: a wrong value must never reach the drive)."""
-    for name, value, minimum, maximum in (
-        ("ENC control", outputs.enc_control, 0, UINT16_MAX),
-        ("set counter value", outputs.set_counter_counts, INT32_MIN, INT32_MAX),
-        ("STM control", outputs.stm_control, 0, UINT16_MAX),
-        ("POS control", outputs.pos_control, 0, UINT16_MAX),
-        ("target position", outputs.target_position_counts, INT32_MIN, INT32_MAX),
-        ("velocity", outputs.velocity_bp, INT16_MIN, INT16_MAX),
-        ("start type", outputs.start_type, 0, UINT16_MAX),
-        ("acceleration", outputs.acceleration_ms, 0, UINT16_MAX),
-        ("deceleration", outputs.deceleration_ms, 0, UINT16_MAX),
-    ):
-        _check(name, int(value), minimum, maximum)
-    return _OUTPUTS.pack(
-        outputs.enc_control,
-        outputs.set_counter_counts,
-        outputs.stm_control,
-        outputs.pos_control,
-        outputs.target_position_counts,
-        outputs.velocity_bp,
-        outputs.start_type,
-        outputs.acceleration_ms,
-        outputs.deceleration_ms,
-    )
+    # Pack first: each struct code range-checks exactly the PDO field's range (H: UINT16,
+    # i: INT32, h: INT16) and never clips, so a frame that packs is valid; the field
+    # checks run only to name what does not fit.
+    try:
+        return _OUTPUTS.pack(
+            outputs.enc_control,
+            outputs.set_counter_counts,
+            outputs.stm_control,
+            outputs.pos_control,
+            outputs.target_position_counts,
+            outputs.velocity_bp,
+            outputs.start_type,
+            outputs.acceleration_ms,
+            outputs.deceleration_ms,
+        )
+    except struct.error as exc:
+        for name, value, minimum, maximum in (
+            ("ENC control", outputs.enc_control, 0, UINT16_MAX),
+            ("set counter value", outputs.set_counter_counts, INT32_MIN, INT32_MAX),
+            ("STM control", outputs.stm_control, 0, UINT16_MAX),
+            ("POS control", outputs.pos_control, 0, UINT16_MAX),
+            ("target position", outputs.target_position_counts, INT32_MIN, INT32_MAX),
+            ("velocity", outputs.velocity_bp, INT16_MIN, INT16_MAX),
+            ("start type", outputs.start_type, 0, UINT16_MAX),
+            ("acceleration", outputs.acceleration_ms, 0, UINT16_MAX),
+            ("deceleration", outputs.deceleration_ms, 0, UINT16_MAX),
+        ):
+            _check(name, int(value), minimum, maximum)
+        raise CodecError(f"outputs do not fit the process image: {exc}") from exc
 
 
 def decode_outputs(data: bytes) -> Outputs:
@@ -392,10 +429,10 @@ def decode_outputs(data: bytes) -> Outputs:
     _check_length("outputs", data, OUTPUTS_SIZE)
     enc, set_counter, stm, pos, target, velocity, start, acc, dec = _OUTPUTS.unpack(data)
     return Outputs(
-        enc_control=EncControl(enc),
+        enc_control=enc_control_of(enc),
         set_counter_counts=set_counter,
-        stm_control=StmControl(stm),
-        pos_control=PosControl(pos),
+        stm_control=stm_control_of(stm),
+        pos_control=pos_control_of(pos),
         target_position_counts=target,
         velocity_bp=velocity,
         start_type=start_type_of(start),
@@ -406,27 +443,31 @@ def decode_outputs(data: bytes) -> Outputs:
 
 def encode_inputs(inputs: Inputs) -> bytes:
     """The 24 input bytes for ``inputs``; raises :class:`CodecError` on out-of-range fields."""
-    for name, value, minimum, maximum in (
-        ("ENC status", inputs.enc_status, 0, UINT16_MAX),
-        ("counter value", inputs.counter_counts, INT32_MIN, INT32_MAX),
-        ("latch value", inputs.latch_counts, INT32_MIN, INT32_MAX),
-        ("STM status", inputs.stm_status, 0, UINT16_MAX),
-        ("POS status", inputs.pos_status, 0, UINT16_MAX),
-        ("actual position", inputs.actual_position_counts, INT32_MIN, INT32_MAX),
-        ("actual velocity", inputs.actual_velocity_bp, INT16_MIN, INT16_MAX),
-        ("actual drive time", inputs.actual_drive_time_ms, 0, UINT32_MAX),
-    ):
-        _check(name, int(value), minimum, maximum)
-    return _INPUTS.pack(
-        inputs.enc_status,
-        inputs.counter_counts,
-        inputs.latch_counts,
-        inputs.stm_status,
-        inputs.pos_status,
-        inputs.actual_position_counts,
-        inputs.actual_velocity_bp,
-        inputs.actual_drive_time_ms,
-    )
+    # Pack first, as in encode_outputs (I: UINT32 as well).
+    try:
+        return _INPUTS.pack(
+            inputs.enc_status,
+            inputs.counter_counts,
+            inputs.latch_counts,
+            inputs.stm_status,
+            inputs.pos_status,
+            inputs.actual_position_counts,
+            inputs.actual_velocity_bp,
+            inputs.actual_drive_time_ms,
+        )
+    except struct.error as exc:
+        for name, value, minimum, maximum in (
+            ("ENC status", inputs.enc_status, 0, UINT16_MAX),
+            ("counter value", inputs.counter_counts, INT32_MIN, INT32_MAX),
+            ("latch value", inputs.latch_counts, INT32_MIN, INT32_MAX),
+            ("STM status", inputs.stm_status, 0, UINT16_MAX),
+            ("POS status", inputs.pos_status, 0, UINT16_MAX),
+            ("actual position", inputs.actual_position_counts, INT32_MIN, INT32_MAX),
+            ("actual velocity", inputs.actual_velocity_bp, INT16_MIN, INT16_MAX),
+            ("actual drive time", inputs.actual_drive_time_ms, 0, UINT32_MAX),
+        ):
+            _check(name, int(value), minimum, maximum)
+        raise CodecError(f"inputs do not fit the process image: {exc}") from exc
 
 
 def decode_inputs(data: bytes) -> Inputs:
@@ -434,11 +475,11 @@ def decode_inputs(data: bytes) -> Inputs:
     _check_length("inputs", data, INPUTS_SIZE)
     enc, counter, latch, stm, pos, position, velocity, drive_time = _INPUTS.unpack(data)
     return Inputs(
-        enc_status=EncStatus(enc),
+        enc_status=enc_status_of(enc),
         counter_counts=counter,
         latch_counts=latch,
-        stm_status=StmStatus(stm),
-        pos_status=PosStatus(pos),
+        stm_status=stm_status_of(stm),
+        pos_status=pos_status_of(pos),
         actual_position_counts=position,
         actual_velocity_bp=velocity,
         actual_drive_time_ms=drive_time,

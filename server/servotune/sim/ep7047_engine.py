@@ -45,7 +45,10 @@ from servotune.protocols.ep7047 import (
     StartType,
     StmControl,
     StmStatus,
+    enc_status_of,
     encode_sdo,
+    pos_status_of,
+    stm_status_of,
     wrap_int32,
 )
 
@@ -243,17 +246,18 @@ class _Mode(enum.Enum):
     CALI_STOP = enum.auto()
 
 
-_NOT_BUSY = frozenset({_Mode.IDLE, _Mode.INIT, _Mode.END})
-_DRIVING = frozenset(
-    {
-        _Mode.MOVE,
-        _Mode.ENDLESS,
-        _Mode.HALT,
-        _Mode.CALI_GO_CAM,
-        _Mode.CALI_LEAVE_CAM,
-        _Mode.CALI_GO_SYNC,
-    }
+# Tuples, not sets: ``in`` a tuple compares by identity first, ``in`` a set hashes the
+# member with Enum.__hash__, a Python-level call (several per 250 us cycle).
+_NOT_BUSY = (_Mode.IDLE, _Mode.INIT, _Mode.END)
+_DRIVING = (
+    _Mode.MOVE,
+    _Mode.ENDLESS,
+    _Mode.HALT,
+    _Mode.CALI_GO_CAM,
+    _Mode.CALI_LEAVE_CAM,
+    _Mode.CALI_GO_SYNC,
 )
+_CALIBRATION_SEARCH = (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC)
 _MODE_STATE = {
     _Mode.IDLE: DriveState.IDLE,
     _Mode.INIT: DriveState.INIT,
@@ -550,7 +554,8 @@ class Ep7047Engine:
             self._pulse_seen = True
             if latch_enabled and self._latch is None:
                 self._latch = pulse
-        self._watch_calibration_sensors(pulse)
+        if self._mode in _CALIBRATION_SEARCH:  # the only modes it acts in
+            self._watch_calibration_sensors(pulse)
 
         if self.busy:
             self._drive_time_ms = int((self.cycles - self._start_cycle) * CYCLE_S * 1000)
@@ -784,7 +789,7 @@ class Ep7047Engine:
             self._ramp_to_standstill(self._rate(self.settings.emergency_deceleration_ms))
         elif mode is _Mode.PRE_TARGET:
             self._settle()
-        elif mode in (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC):
+        elif mode in _CALIBRATION_SEARCH:
             self._advance_calibration()
         elif mode is _Mode.CALI_STOP:
             self._finish_calibration()
@@ -1021,11 +1026,11 @@ class Ep7047Engine:
         scale = SPEED_RANGE_FULL_SCALE_BP / self.config.full_scale_counts_s
         velocity_bp = max(INT16_MIN, min(INT16_MAX, round(self._velocity * scale)))
         return Inputs(
-            enc_status=EncStatus(enc),
+            enc_status=enc_status_of(enc),  # memoised: the plain call costs microseconds
             counter_counts=position,
             latch_counts=wrap_int32(round(self._latch)) if self._latch is not None else 0,
-            stm_status=StmStatus(stm),
-            pos_status=PosStatus(pos),
+            stm_status=stm_status_of(stm),
+            pos_status=pos_status_of(pos),
             actual_position_counts=position,
             actual_velocity_bp=velocity_bp,
             actual_drive_time_ms=self._drive_time_ms,
