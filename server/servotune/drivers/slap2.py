@@ -407,16 +407,23 @@ class Slap2Link(LinkEngine):
         if stray.strip(b"\r\n"):
             self._note_unsolicited(stray)
 
-    async def _send_echoed(self, channel: ByteChannel, text: str) -> None:
+    async def _send_echoed(
+        self, channel: ByteChannel, text: str, first: EchoResult | None = None
+    ) -> None:
         """Send ``text`` + CR one char at a time, each after the previous echo.
 
+        ``first``: the outcome of an echoed write of the whole line already made (by
+        ``channel.transact``) that stopped early; the rest is sent from there.
         Raises ``_AbandonedError`` for failures before CR was sent (the command was
         abandoned with Ctrl-X and did not execute, so it may be retried).
         """
         payload = text.encode("ascii") + b"\r"
         done = 0
         while True:
-            result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
+            if first is not None:
+                result, first = first, None
+            else:
+                result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
             done += result.echoed
             if done == len(payload):
                 return
@@ -447,12 +454,20 @@ class Slap2Link(LinkEngine):
         await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
         raise _AbandonedError(error)
 
-    async def _read_reply(self, channel: ByteChannel, command: codec.Command) -> list[str]:
-        decoder = codec.LineDecoder()
-        first_timeout_s = max(
+    def _first_reply_timeout_s(self, command: codec.Command) -> float:
+        return max(
             self.config.char_timeout_s, SLOW_COMMANDS_REPLY_S.get(_mnemonic(command.text), 0.0)
         )
-        raw = await channel.read_until(codec.CR, first_timeout_s, self.config.char_timeout_s)
+
+    async def _read_reply(
+        self, channel: ByteChannel, command: codec.Command, raw: bytes | None = None
+    ) -> list[str]:
+        """The reply's lines; ``raw``: its first line if already read (by ``transact``)."""
+        decoder = codec.LineDecoder()
+        if raw is None:
+            raw = await channel.read_until(
+                codec.CR, self._first_reply_timeout_s(command), self.config.char_timeout_s
+            )
         if raw is None:
             raise DeviceTimeoutError(f"no reply to {command.text!r}")
         lines = decoder.feed(raw)
@@ -477,11 +492,26 @@ class Slap2Link(LinkEngine):
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
+        payload = command.text.encode("ascii") + b"\r"
         try:
-            await self._send_echoed(channel, command.text)
-            t_echo = self._clock()
-            lines = await self._read_reply(channel, command)
-            t_reply = self._clock()
+            # The usual case in one channel call: the echo checked and the reply read
+            # in the receive callback, both arrival times stamped there.
+            done = await channel.transact(
+                payload, codec.CR, self.config.char_timeout_s, self._first_reply_timeout_s(command)
+            )
+            t_echo, t_reply = done.t_echo_s, done.t_reply_s
+            if done.echo.echoed < len(payload):
+                # A stray or missing echo: resynchronise the slow way.
+                await self._send_echoed(channel, command.text, done.echo)
+                t_echo = self._clock()
+                raw = None
+            else:
+                raw = done.reply
+                if raw is None:
+                    raise DeviceTimeoutError(f"no reply to {command.text!r}")
+            lines = await self._read_reply(channel, command, raw)
+            if t_reply is None or raw is None or command.multiline:
+                t_reply = self._clock()
         except _AbandonedError:
             self._errors += 1
             raise
@@ -508,6 +538,8 @@ class Slap2Link(LinkEngine):
         # The time the reply was parsed would bias rise and settling times by the
         # reply length and by the host's load.
         char_s = 10 / self.config.baud
+        if t_echo is None:
+            t_echo = t_reply
         self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
         self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
