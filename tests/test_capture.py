@@ -248,7 +248,7 @@ async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) ->
                 await asyncio.sleep(0.8)
                 samples = line.sink.samples["line-0"][start:]
         # simulation time 0 is the simulator's epoch on the host's monotonic clock
-        epoch = simulator._epoch  # noqa: SLF001 - the test's only window into sim time
+        epoch = simulator._epoch  # the test's only window into simulation time
     finally:
         simulator.stop()
     char_s = 10 / 19200
