@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from servotune.demo import build_slap2_bus
-from servotune.drivers.base import Capturer, DriverError, capture_of
+from servotune.drivers.base import Capturer, DeviceRefusedError, DriverError, capture_of
 from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.metrics import compute_metrics
 from servotune.profiles import (
@@ -270,6 +270,47 @@ async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) ->
     assert len(after) > 20
     assert min(errors) >= -char_s / 4 - 1e-4
     assert abs(statistics.median(errors)) <= char_s
+
+
+async def test_capture_switches_ucon_on_and_restores_it(tmp_path: Path) -> None:
+    """During a capture the module answers a refused command with -1UC (syscon ucon
+    on), so a move is followed by rp, not by the rss that tells a refusal otherwise;
+    the module's own setting (off) is back when the capture ends, and after a reset
+    during the capture (syscon back from the EEPROM) ucon is switched on again."""
+    ucon = 1 << 5
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 0)
+            module = bus.module(0)
+            assert not module.settings["syscon"] & ucon
+            async with drive.capture("test"):
+                await line.until(lambda: bool(module.settings["syscon"] & ucon), "ucon on")
+                with pytest.raises(DeviceRefusedError, match="-1UC"):
+                    await drive.command("move_relative", {"distance": 500})  # not in pm
+                await drive.command("position_mode", {})
+                await asyncio.sleep(0.1)
+                sent = len(clock.lines)
+                await drive.command("move_relative", {"distance": 500})
+                await asyncio.sleep(0.1)
+                after_move = [text for _, text in clock.lines[sent:]]
+                # the banner: a reset, syscon from the EEPROM
+                simulator.call(lambda: bus.power_cycle(0))
+                await line.until(lambda: line.sink.health["line-0"][0] == "reset", "reset")
+                await line.until(lambda: bool(module.settings["syscon"] & ucon), "ucon again")
+            await line.until(lambda: not module.settings["syscon"] & ucon, "ucon restored")
+            await line.until(lambda: not line.link.module_state(0).ucon, "ucon off known")
+            await asyncio.sleep(0.3)
+            assert not module.settings["syscon"] & ucon
+            assert line.link.module_state(0).known["syscon"] == module.settings["syscon"]
+    finally:
+        simulator.stop()
+    i = after_move.index("mr500")  # (an rp may have been on the wire before it)
+    assert after_move[i + 1] == "rp", after_move[: i + 4]
 
 
 # --- repeatability: a property of the measurement ---------------------------------------

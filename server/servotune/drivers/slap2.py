@@ -70,6 +70,7 @@ from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import LinkEngine, recent_rate_hz
 from servotune.drivers.slap2_axis import Slap2Axis
 from servotune.drivers.slap2_capture import (
+    CAPTURE_UCON,
     MOVE_MNEMONICS,
     PROFILE_BREAKERS,
     ModuleCapture,
@@ -88,6 +89,8 @@ T = TypeVar("T")
 # Commands that may run twice with the same effect: sent again after a failure that
 # came after their CR (for any other command that failure is final: it may have run).
 IDEMPOTENT_COMMANDS = frozenset({"st"})
+# Tries of switching syscon ucon for a capture (or back) before doing without.
+UCON_ATTEMPTS = 3
 SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -151,6 +154,10 @@ class _ModuleState:
     capture: ModuleCapture | None = None
     last_capture: CaptureStats | None = None
     paused: bool = False
+    # servotune switched syscon ucon on for a capture and owes the rsb5 that restores
+    # the module's own setting (slap2_capture.CAPTURE_UCON).
+    ucon_restore: bool = False
+    ucon_failures: int = 0
 
 
 class Slap2Link(LinkEngine):
@@ -208,6 +215,7 @@ class Slap2Link(LinkEngine):
     def _on_link_down(self) -> None:
         for module in self._modules.values():
             module.profile.clear()
+            module.ucon_failures = 0
             if module.online:
                 module.online = False
                 self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
@@ -237,6 +245,10 @@ class Slap2Link(LinkEngine):
                 if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
+                continue
+            restore = next((m for m in online if m.ucon_restore and m.capture is None), None)
+            if restore is not None:
+                await self._switch_ucon(restore, on=False)
                 continue
             captured = [m for m in online if m.capture is not None]
             if captured:
@@ -323,6 +335,10 @@ class Slap2Link(LinkEngine):
 
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
         module.expected_mode = "unknown"
+        # syscon is back at its EEPROM value: assume ucon off (the safe side, rss after
+        # every command); a capture reads it again before relying on it.
+        module.ucon = False
+        module.ucon_failures = 0
         module.suspect = ""
         module.profile.clear()
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
@@ -381,6 +397,8 @@ class Slap2Link(LinkEngine):
             value = await self._read_int(module.address, parameter.read_command)
             if value != expected:
                 module.known[parameter.name] = value
+                if parameter.name == "syscon":
+                    self._learn_syscon(module, value)
                 self._sink.on_params(self.axis_id(module.address), {parameter.name: value}, "read")
                 return f"{parameter.name} reads {value}, last known {expected}"
         return ""
@@ -747,6 +765,7 @@ class Slap2Link(LinkEngine):
             module.known[name] = readback[name]
             if name == "syscon":
                 self._learn_syscon(module, readback[name])
+                module.ucon_restore = False  # the user's setting now: nothing to restore
         return readback
 
     async def _verify_step(self, online: list[_ModuleState]) -> None:
@@ -771,6 +790,8 @@ class Slap2Link(LinkEngine):
         expected = module.known[name]
         if value != expected:
             module.known[name] = value
+            if name == "syscon":
+                self._learn_syscon(module, value)
             default = parameter.default
             why = "back at its default" if value == default else "changed outside servotune"
             self._mark_reset(
@@ -900,6 +921,7 @@ class Slap2Link(LinkEngine):
         for module in self._modules.values():
             if module.address in captured and module.capture is None:
                 module.capture = ModuleCapture(CaptureStats(started_s=now))
+                module.ucon_failures = 0
             elif module.address not in captured and module.capture is not None:
                 stats = module.capture.stats
                 stats.ended_s = now
@@ -934,6 +956,10 @@ class Slap2Link(LinkEngine):
         capture = module.capture
         assert capture is not None
         address = module.address
+        if CAPTURE_UCON and not module.ucon and module.ucon_failures < UCON_ATTEMPTS:
+            # (A module that keeps failing it is captured without: rss after moves.)
+            await self._switch_ucon(module, on=True)
+            return
         chars_before = self._wire_chars
         fresh_pe: int | None = None
         try:
@@ -971,6 +997,49 @@ class Slap2Link(LinkEngine):
         if self._state == "error":
             self._set_state("connected", self._connector.description)
         self._emit_captured(module, t, position, fresh_pe)
+
+    async def _switch_ucon(self, module: _ModuleState, *, on: bool) -> None:
+        """Switch syscon ``ucon`` on for a capture (``ssb5``) or restore it (``rsb5``).
+
+        With ucon on a refused command answers ``-1UC``, so a move (an injection sends
+        one every few samples) needs no ``rss`` after it. Switching on reads syscon
+        first (after a reset the driver no longer knows it) and leaves a module that
+        has ucon on by itself alone. Failures count like a failed poll; the owner loop
+        tries again on its next turn.
+        """
+        bit = codec.SysconBit.ucon.value
+        try:
+            syscon = await self._read_int(module.address, "rsyscon")
+            if codec.decode_syscon(syscon)["ucon"] != on:
+                await self._execute(module, codec.make_set("ssb" if on else "rsb", bit))
+                syscon = await self._read_int(module.address, "rsyscon")
+                module.ucon_restore = on
+        except DriverError as exc:
+            self._poll_failed(exc)
+            module.ucon_failures += 1
+            if not on and module.ucon_failures >= UCON_ATTEMPTS:
+                # Not worth starving the line for: say so and leave it on.
+                module.ucon_restore = False
+                self._sink.on_event(
+                    "warning",
+                    self.axis_id(module.address),
+                    f"module {module.address}: syscon ucon, switched on for a capture, "
+                    f"could not be switched off again: {exc}",
+                )
+            return
+        module.ucon_failures = 0
+        self._learn_syscon(module, syscon)
+        # The device's value now (a reset check must not take it for a change); the
+        # restore puts the module's own setting back.
+        module.known["syscon"] = syscon
+        if not on:
+            module.ucon_restore = module.ucon  # still on: the rsb5 did not take
+        logger.info(
+            "%s: module %d: syscon ucon %s (capture)",
+            self.id,
+            module.address,
+            "on" if module.ucon else "off",
+        )
 
     def _emit_captured(
         self, module: _ModuleState, t: float, position: int, fresh_pe: int | None
@@ -1119,6 +1188,7 @@ class Slap2Link(LinkEngine):
             self._track_mode(module, text)
             if mnemonic == "ssyscon" or mnemonic in ("ssb", "rsb"):
                 module.known.pop("syscon", None)
+                module.ucon_restore = False  # the user's setting now: nothing to restore
                 self._learn_syscon(module, await self._read_int(address, "rsyscon"))
             return lines
 
