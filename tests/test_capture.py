@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from servotune.demo import build_slap2_bus
-from servotune.drivers.base import Capturer, DriverError, capture_of
+from servotune.drivers.base import Capturer, DeviceRefusedError, DriverError, capture_of
 from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.metrics import compute_metrics
 from servotune.profiles import (
@@ -25,7 +25,8 @@ from servotune.profiles import (
     firmware_setpoint,
 )
 from servotune.sim.process import SerialSimSpec, serial_sim_process
-from servotune.sim.slap2 import Slap2Module
+from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for
@@ -193,6 +194,123 @@ async def test_captured_move_carries_the_reconstructed_setpoint(tmp_path: Path) 
             # checked against the measured pe, and it held
             assert stats.setpoint_checks >= 3
             assert stats.setpoint_mismatches == 0, stats
+
+
+# --- when a sample was taken ----------------------------------------------------------
+
+
+class _LineClock:
+    """A ``SimDevice`` in front of the simulated bus that records, for every line the
+    host sends, the simulation time its CR reached the modules: when they act on it
+    (the simulator delivers each byte at its arrival time)."""
+
+    def __init__(self, device: Slap2Bus) -> None:
+        self.device = device
+        self.t_s = 0.0
+        self.pending = bytearray()
+        self.lines: list[tuple[float, str]] = []
+
+    def advance_to(self, t_s: float) -> bytes:
+        self.t_s = max(self.t_s, t_s)
+        return self.device.advance_to(t_s)
+
+    def receive(self, byte: int) -> bytes:
+        if byte == 13:
+            self.lines.append((self.t_s, self.pending.decode("ascii", "replace")))
+            self.pending.clear()
+        elif byte >= 32:
+            self.pending.append(byte)
+        return self.device.receive(byte)
+
+
+async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) -> None:
+    """Every captured sample's time and the move's ``last_command_latch_s`` against the
+    moment the simulated module received the command's CR. The estimate is built
+    from upper bounds (clock readings after the bytes arrived), so it is never early
+    by more than the simulator's write margin (a quarter character); on the median it
+    is within one character (the time the reply was parsed would be late by the
+    reply's length, three characters and more for rp)."""
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 0)
+            await drive.command("position_mode", {})
+            await asyncio.sleep(0.2)
+            async with drive.capture("test"):
+                await asyncio.sleep(0.1)
+                start = len(line.sink.samples["line-0"])
+                await drive.command("move_relative", {"distance": 1500})
+                t_move = drive.last_command_latch_s
+                await asyncio.sleep(0.8)
+                samples = line.sink.samples["line-0"][start:]
+        # simulation time 0 is the simulator's epoch on the host's monotonic clock
+        epoch = simulator._epoch  # the test's only window into simulation time
+    finally:
+        simulator.stop()
+    char_s = 10 / 19200
+    # Only module 0 is polled during the capture: after the move, its k-th rp is the
+    # k-th sample (paired in order, so a late estimate cannot pass for a nearer read).
+    (i_mr,) = [i for i, (_, text) in enumerate(clock.lines) if text == "mr1500"]
+    t_mr = epoch + clock.lines[i_mr][0]
+    rp_times = [epoch + t for t, text in clock.lines[i_mr:] if text == "rp"]
+    assert t_move is not None
+    after = [s for s in samples if s.t > t_move]
+    errors = [s.t - t for s, t in zip(after, rp_times, strict=False)]
+    errors.append(t_move - t_mr)
+    print(
+        f"\nlatch estimate - CR reached the module over {len(errors)} reads: median "
+        f"{statistics.median(errors) * 1e3:.2f} ms, min {min(errors) * 1e3:.2f} ms, "
+        f"p95 {statistics.quantiles(errors, n=20)[-1] * 1e3:.2f} ms, "
+        f"max {max(errors) * 1e3:.2f} ms"
+    )
+    assert len(after) > 20
+    assert min(errors) >= -char_s / 4 - 1e-4
+    assert abs(statistics.median(errors)) <= char_s
+
+
+async def test_capture_switches_ucon_on_and_restores_it(tmp_path: Path) -> None:
+    """During a capture the module answers a refused command with -1UC (syscon ucon
+    on), so a move is followed by rp, not by the rss that tells a refusal otherwise;
+    the module's own setting (off) is back when the capture ends, and after a reset
+    during the capture (syscon back from the EEPROM) ucon is switched on again."""
+    ucon = 1 << 5
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 0)
+            module = bus.module(0)
+            assert not module.settings["syscon"] & ucon
+            async with drive.capture("test"):
+                await line.until(lambda: bool(module.settings["syscon"] & ucon), "ucon on")
+                with pytest.raises(DeviceRefusedError, match="-1UC"):
+                    await drive.command("move_relative", {"distance": 500})  # not in pm
+                await drive.command("position_mode", {})
+                await asyncio.sleep(0.1)
+                sent = len(clock.lines)
+                await drive.command("move_relative", {"distance": 500})
+                await asyncio.sleep(0.1)
+                after_move = [text for _, text in clock.lines[sent:]]
+                # the banner: a reset, syscon from the EEPROM
+                simulator.call(lambda: bus.power_cycle(0))
+                await line.until(lambda: line.sink.health["line-0"][0] == "reset", "reset")
+                await line.until(lambda: bool(module.settings["syscon"] & ucon), "ucon again")
+            await line.until(lambda: not module.settings["syscon"] & ucon, "ucon restored")
+            await line.until(lambda: not line.link.module_state(0).ucon, "ucon off known")
+            await asyncio.sleep(0.3)
+            assert not module.settings["syscon"] & ucon
+            assert line.link.module_state(0).known["syscon"] == module.settings["syscon"]
+    finally:
+        simulator.stop()
+    i = after_move.index("mr500")  # (an rp may have been on the wire before it)
+    assert after_move[i + 1] == "rp", after_move[: i + 4]
 
 
 # --- repeatability: a property of the measurement ---------------------------------------

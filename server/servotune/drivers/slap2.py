@@ -70,6 +70,7 @@ from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import LinkEngine, recent_rate_hz
 from servotune.drivers.slap2_axis import Slap2Axis
 from servotune.drivers.slap2_capture import (
+    CAPTURE_UCON,
     MOVE_MNEMONICS,
     PROFILE_BREAKERS,
     ModuleCapture,
@@ -88,6 +89,8 @@ T = TypeVar("T")
 # Commands that may run twice with the same effect: sent again after a failure that
 # came after their CR (for any other command that failure is final: it may have run).
 IDEMPOTENT_COMMANDS = frozenset({"st"})
+# Tries of switching syscon ucon for a capture (or back) before doing without.
+UCON_ATTEMPTS = 3
 SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -151,6 +154,10 @@ class _ModuleState:
     capture: ModuleCapture | None = None
     last_capture: CaptureStats | None = None
     paused: bool = False
+    # servotune switched syscon ucon on for a capture and owes the rsb5 that restores
+    # the module's own setting (slap2_capture.CAPTURE_UCON).
+    ucon_restore: bool = False
+    ucon_failures: int = 0
 
 
 class Slap2Link(LinkEngine):
@@ -208,6 +215,7 @@ class Slap2Link(LinkEngine):
     def _on_link_down(self) -> None:
         for module in self._modules.values():
             module.profile.clear()
+            module.ucon_failures = 0
             if module.online:
                 module.online = False
                 self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
@@ -237,6 +245,10 @@ class Slap2Link(LinkEngine):
                 if not self.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
+                continue
+            restore = next((m for m in online if m.ucon_restore and m.capture is None), None)
+            if restore is not None:
+                await self._switch_ucon(restore, on=False)
                 continue
             captured = [m for m in online if m.capture is not None]
             if captured:
@@ -323,6 +335,10 @@ class Slap2Link(LinkEngine):
 
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
         module.expected_mode = "unknown"
+        # syscon is back at its EEPROM value: assume ucon off (the safe side, rss after
+        # every command); a capture reads it again before relying on it.
+        module.ucon = False
+        module.ucon_failures = 0
         module.suspect = ""
         module.profile.clear()
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
@@ -381,6 +397,8 @@ class Slap2Link(LinkEngine):
             value = await self._read_int(module.address, parameter.read_command)
             if value != expected:
                 module.known[parameter.name] = value
+                if parameter.name == "syscon":
+                    self._learn_syscon(module, value)
                 self._sink.on_params(self.axis_id(module.address), {parameter.name: value}, "read")
                 return f"{parameter.name} reads {value}, last known {expected}"
         return ""
@@ -407,16 +425,23 @@ class Slap2Link(LinkEngine):
         if stray.strip(b"\r\n"):
             self._note_unsolicited(stray)
 
-    async def _send_echoed(self, channel: ByteChannel, text: str) -> None:
+    async def _send_echoed(
+        self, channel: ByteChannel, text: str, first: EchoResult | None = None
+    ) -> None:
         """Send ``text`` + CR one char at a time, each after the previous echo.
 
+        ``first``: the outcome of an echoed write of the whole line already made (by
+        ``channel.transact``) that stopped early; the rest is sent from there.
         Raises ``_AbandonedError`` for failures before CR was sent (the command was
         abandoned with Ctrl-X and did not execute, so it may be retried).
         """
         payload = text.encode("ascii") + b"\r"
         done = 0
         while True:
-            result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
+            if first is not None:
+                result, first = first, None
+            else:
+                result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
             done += result.echoed
             if done == len(payload):
                 return
@@ -447,12 +472,20 @@ class Slap2Link(LinkEngine):
         await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
         raise _AbandonedError(error)
 
-    async def _read_reply(self, channel: ByteChannel, command: codec.Command) -> list[str]:
-        decoder = codec.LineDecoder()
-        first_timeout_s = max(
+    def _first_reply_timeout_s(self, command: codec.Command) -> float:
+        return max(
             self.config.char_timeout_s, SLOW_COMMANDS_REPLY_S.get(_mnemonic(command.text), 0.0)
         )
-        raw = await channel.read_until(codec.CR, first_timeout_s, self.config.char_timeout_s)
+
+    async def _read_reply(
+        self, channel: ByteChannel, command: codec.Command, raw: bytes | None = None
+    ) -> list[str]:
+        """The reply's lines; ``raw``: its first line if already read (by ``transact``)."""
+        decoder = codec.LineDecoder()
+        if raw is None:
+            raw = await channel.read_until(
+                codec.CR, self._first_reply_timeout_s(command), self.config.char_timeout_s
+            )
         if raw is None:
             raise DeviceTimeoutError(f"no reply to {command.text!r}")
         lines = decoder.feed(raw)
@@ -477,11 +510,26 @@ class Slap2Link(LinkEngine):
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
+        payload = command.text.encode("ascii") + b"\r"
         try:
-            await self._send_echoed(channel, command.text)
-            t_echo = self._clock()
-            lines = await self._read_reply(channel, command)
-            t_reply = self._clock()
+            # The usual case in one channel call: the echo checked and the reply read
+            # in the receive callback, both arrival times stamped there.
+            done = await channel.transact(
+                payload, codec.CR, self.config.char_timeout_s, self._first_reply_timeout_s(command)
+            )
+            t_echo, t_reply = done.t_echo_s, done.t_reply_s
+            if done.echo.echoed < len(payload):
+                # A stray or missing echo: resynchronise the slow way.
+                await self._send_echoed(channel, command.text, done.echo)
+                t_echo = self._clock()
+                raw = None
+            else:
+                raw = done.reply
+                if raw is None:
+                    raise DeviceTimeoutError(f"no reply to {command.text!r}")
+            lines = await self._read_reply(channel, command, raw)
+            if t_reply is None or raw is None or command.multiline:
+                t_reply = self._clock()
         except _AbandonedError:
             self._errors += 1
             raise
@@ -508,6 +556,8 @@ class Slap2Link(LinkEngine):
         # The time the reply was parsed would bias rise and settling times by the
         # reply length and by the host's load.
         char_s = 10 / self.config.baud
+        if t_echo is None:
+            t_echo = t_reply
         self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
         self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
@@ -715,6 +765,7 @@ class Slap2Link(LinkEngine):
             module.known[name] = readback[name]
             if name == "syscon":
                 self._learn_syscon(module, readback[name])
+                module.ucon_restore = False  # the user's setting now: nothing to restore
         return readback
 
     async def _verify_step(self, online: list[_ModuleState]) -> None:
@@ -739,6 +790,8 @@ class Slap2Link(LinkEngine):
         expected = module.known[name]
         if value != expected:
             module.known[name] = value
+            if name == "syscon":
+                self._learn_syscon(module, value)
             default = parameter.default
             why = "back at its default" if value == default else "changed outside servotune"
             self._mark_reset(
@@ -868,6 +921,7 @@ class Slap2Link(LinkEngine):
         for module in self._modules.values():
             if module.address in captured and module.capture is None:
                 module.capture = ModuleCapture(CaptureStats(started_s=now))
+                module.ucon_failures = 0
             elif module.address not in captured and module.capture is not None:
                 stats = module.capture.stats
                 stats.ended_s = now
@@ -902,6 +956,10 @@ class Slap2Link(LinkEngine):
         capture = module.capture
         assert capture is not None
         address = module.address
+        if CAPTURE_UCON and not module.ucon and module.ucon_failures < UCON_ATTEMPTS:
+            # (A module that keeps failing it is captured without: rss after moves.)
+            await self._switch_ucon(module, on=True)
+            return
         chars_before = self._wire_chars
         fresh_pe: int | None = None
         try:
@@ -939,6 +997,49 @@ class Slap2Link(LinkEngine):
         if self._state == "error":
             self._set_state("connected", self._connector.description)
         self._emit_captured(module, t, position, fresh_pe)
+
+    async def _switch_ucon(self, module: _ModuleState, *, on: bool) -> None:
+        """Switch syscon ``ucon`` on for a capture (``ssb5``) or restore it (``rsb5``).
+
+        With ucon on a refused command answers ``-1UC``, so a move (an injection sends
+        one every few samples) needs no ``rss`` after it. Switching on reads syscon
+        first (after a reset the driver no longer knows it) and leaves a module that
+        has ucon on by itself alone. Failures count like a failed poll; the owner loop
+        tries again on its next turn.
+        """
+        bit = codec.SysconBit.ucon.value
+        try:
+            syscon = await self._read_int(module.address, "rsyscon")
+            if codec.decode_syscon(syscon)["ucon"] != on:
+                await self._execute(module, codec.make_set("ssb" if on else "rsb", bit))
+                syscon = await self._read_int(module.address, "rsyscon")
+                module.ucon_restore = on
+        except DriverError as exc:
+            self._poll_failed(exc)
+            module.ucon_failures += 1
+            if not on and module.ucon_failures >= UCON_ATTEMPTS:
+                # Not worth starving the line for: say so and leave it on.
+                module.ucon_restore = False
+                self._sink.on_event(
+                    "warning",
+                    self.axis_id(module.address),
+                    f"module {module.address}: syscon ucon, switched on for a capture, "
+                    f"could not be switched off again: {exc}",
+                )
+            return
+        module.ucon_failures = 0
+        self._learn_syscon(module, syscon)
+        # The device's value now (a reset check must not take it for a change); the
+        # restore puts the module's own setting back.
+        module.known["syscon"] = syscon
+        if not on:
+            module.ucon_restore = module.ucon  # still on: the rsb5 did not take
+        logger.info(
+            "%s: module %d: syscon ucon %s (capture)",
+            self.id,
+            module.address,
+            "on" if module.ucon else "off",
+        )
 
     def _emit_captured(
         self, module: _ModuleState, t: float, position: int, fresh_pe: int | None
@@ -1087,6 +1188,7 @@ class Slap2Link(LinkEngine):
             self._track_mode(module, text)
             if mnemonic == "ssyscon" or mnemonic in ("ssb", "rsb"):
                 module.known.pop("syscon", None)
+                module.ucon_restore = False  # the user's setting now: nothing to restore
                 self._learn_syscon(module, await self._read_int(address, "rsyscon"))
             return lines
 

@@ -38,7 +38,14 @@ from servotune.profiles import TICK_S, ProfileTrack, TrapezoidGenerator, firmwar
 
 logger = logging.getLogger(__name__)
 
-RSS_PERIOD_S = 0.05
+# While a module is captured its syscon ucon is on (ssb5; rsb5 after, if it was off):
+# a refused command then answers -1UC, so a move (an injection sends one every few
+# samples) needs no rss after it to tell whether it was taken.
+CAPTURE_UCON = True
+# rss (the flags) every RSS_PERIOD_S; right after a move once sooner (at most every
+# RSS_AFTER_MOVE_S), so the flags show the move (not in position, moving) at once.
+RSS_PERIOD_S = 0.2
+RSS_AFTER_MOVE_S = 0.05
 # After a move command only rp for this long: the rise and the first peak of a step
 # are what the metrics need densest, and any other read there is a gap of one more
 # transaction right where the response is fastest (a 20 % overshoot measured 18-21 %
@@ -145,10 +152,16 @@ class ModuleCapture:
 
     def wants_rss(self, profile: ProfileState, now_s: float, *, flags_fresh: bool) -> bool:
         """``flags_fresh``: the driver read rss right after the move command (ucon
-        off), so the flags are current; with ucon on nothing read them since."""
-        if flags_fresh and _quiet(profile, now_s):
-            return False
-        return now_s - self.last_rss_s >= RSS_PERIOD_S
+        off), so the flags are current; with ucon on nothing read them since: one
+        rss after the move's first sample (no sooner than ``RSS_AFTER_MOVE_S`` after
+        the last), then nothing in the quiet time."""
+        since = now_s - self.last_rss_s
+        if _quiet(profile, now_s):
+            track = profile.track
+            assert track is not None
+            stale = not flags_fresh and self.last_rss_s < track.t_command_s
+            return stale and since >= RSS_AFTER_MOVE_S
+        return since >= RSS_PERIOD_S
 
     def wants_pe(self, profile: ProfileState, flags: dict[str, bool], now_s: float) -> bool:
         if _quiet(profile, now_s) or not (flags.get("pm") or flags.get("vm")):

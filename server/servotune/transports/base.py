@@ -27,6 +27,24 @@ class EchoResult:
     got: int | None
 
 
+@dataclass(frozen=True, slots=True)
+class Transaction:
+    """Outcome of ``transact``: the echo, the reply, and when their last bytes came.
+
+    ``reply`` is the reply up to and including the terminator, ``None`` if the echo
+    failed (see ``echo``) or a reply gap exceeded its timeout (the bytes received so
+    far stay buffered). ``t_echo_s`` / ``t_reply_s`` are ``time.monotonic()`` read in
+    the channel's receive callback when the last echo byte / the terminator arrived,
+    not when the awaiting task resumed: a busy event loop delays the task's resumption
+    by far more than it delays the callback (``None`` where that byte never came).
+    """
+
+    echo: EchoResult
+    reply: bytes | None
+    t_echo_s: float | None
+    t_reply_s: float | None
+
+
 class ByteChannel(Protocol):
     """An open, full-duplex byte stream.
 
@@ -54,6 +72,18 @@ class ByteChannel(Protocol):
 
         ``first_timeout_s`` applies to the first byte, ``char_timeout_s`` between bytes.
         On a timeout the bytes received so far stay buffered.
+        """
+        ...
+
+    async def transact(
+        self, data: bytes, terminator: int, char_timeout_s: float, first_reply_timeout_s: float
+    ) -> Transaction:
+        """``write_echoed(data)`` then ``read_until(terminator)`` as one exchange.
+
+        The reply is collected from the same receive callback that checks the last
+        echo (no task wake-up in between), and both arrival times are stamped there
+        (see ``Transaction``). ``first_reply_timeout_s`` applies from the last echo to
+        the reply's first byte, ``char_timeout_s`` to every other gap.
         """
         ...
 

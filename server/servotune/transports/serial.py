@@ -5,18 +5,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import time
 
 import serial_asyncio_fast
 
-from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError
+from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError, Transaction
 
 
 class _Exchange:
-    """An echoed write or a read-until in progress, advanced from ``data_received``.
+    """An echoed write, a read-until, or both in a row, advanced from ``data_received``.
 
     Running the per-character steps in the protocol callback, instead of waking the
     waiting task for every echo, takes one task switch per character out of the
-    round trip (the SLAP2 protocol is nothing but round trips).
+    round trip (the SLAP2 protocol is nothing but round trips). With both a payload
+    and a terminator (``transact``) the reply is read on from the callback that took
+    the last echo: one task wake-up per transaction, and the arrival times stamped
+    where the bytes come in.
     """
 
     def __init__(
@@ -27,22 +31,27 @@ class _Exchange:
         terminator: int | None = None,
         first_timeout_s: float,
         char_timeout_s: float,
+        first_reply_timeout_s: float | None = None,
     ) -> None:
         self.protocol = protocol
         self.payload = payload
         self.terminator = terminator
         self.char_timeout_s = char_timeout_s
+        self.first_reply_timeout_s = first_reply_timeout_s
         self.index = 0
+        self.echo: EchoResult | None = None if payload else EchoResult(0, None)
+        self.t_echo_s: float | None = None
+        self.t_reply_s: float | None = None
         self.loop = asyncio.get_running_loop()
         self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
         self.deadline = self.loop.time() + first_timeout_s
         self.timer = self.loop.call_at(self.deadline, self.on_timer)
 
-    def restart_timer(self) -> None:
+    def restart_timer(self, timeout_s: float | None = None) -> None:
         # Only move the deadline; the armed timer re-arms itself when it fires early.
         # Cancelling and re-arming a timer for every character would cost more than
         # the rest of the per-character work.
-        self.deadline = self.loop.time() + self.char_timeout_s
+        self.deadline = self.loop.time() + (self.char_timeout_s if timeout_s is None else timeout_s)
 
     def on_timer(self) -> None:
         if self.loop.time() < self.deadline:
@@ -57,37 +66,48 @@ class _Exchange:
             self.future.set_result(result)
 
     def on_timeout(self) -> None:
-        if self.terminator is None:
-            self.finish(EchoResult(self.index, None))
+        if self.echo is None:
+            self.echo = EchoResult(self.index, None)
+            self.finish(self.echo)
         else:
             self.finish(None)
 
-    def step(self) -> None:
-        """Consume what the buffer holds; called after every ``data_received``."""
+    def step(self, now_s: float) -> None:
+        """Consume what the buffer holds; called after every ``data_received`` with
+        the time it was called."""
         buffer = self.protocol.buffer
+        if self.echo is None:
+            while buffer:
+                expected = self.payload[self.index]
+                got = buffer[0]
+                del buffer[0]
+                if got != expected:
+                    self.echo = EchoResult(self.index, got)
+                    self.finish(self.echo)
+                    return
+                self.index += 1
+                if self.index == len(self.payload):
+                    self.echo = EchoResult(self.index, None)
+                    self.t_echo_s = now_s
+                    if self.terminator is None:
+                        self.finish(self.echo)
+                        return
+                    self.restart_timer(self.first_reply_timeout_s)
+                    break
+                self.protocol.send(self.payload[self.index : self.index + 1])
+                self.restart_timer()
+            else:
+                return
         if self.terminator is not None:
             end = buffer.find(self.terminator)
             if end < 0:
-                if buffer:
+                if buffer:  # the reply has begun: the gap between characters applies
                     self.restart_timer()
                 return
             line = bytes(buffer[: end + 1])
             del buffer[: end + 1]
+            self.t_reply_s = now_s
             self.finish(line)
-            return
-        while buffer:
-            expected = self.payload[self.index]
-            got = buffer[0]
-            del buffer[0]
-            if got != expected:
-                self.finish(EchoResult(self.index, got))
-                return
-            self.index += 1
-            if self.index == len(self.payload):
-                self.finish(EchoResult(self.index, None))
-                return
-            self.protocol.send(self.payload[self.index : self.index + 1])
-            self.restart_timer()
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -112,7 +132,7 @@ class _SerialProtocol(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         self.buffer += data
         if self.exchange is not None:
-            self.exchange.step()
+            self.exchange.step(time.monotonic())
         self.data_event.set()
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -172,7 +192,7 @@ class SerialChannel(ByteChannel):
         self._protocol.exchange = exchange
         try:
             self._protocol.send(data[:1])
-            exchange.step()  # an echo may already sit in the buffer (it would be stale)
+            exchange.step(time.monotonic())  # an echo may already sit in the buffer (stale)
             result = await exchange.future
         finally:
             exchange.timer.cancel()
@@ -194,7 +214,7 @@ class SerialChannel(ByteChannel):
         )
         self._protocol.exchange = exchange
         try:
-            exchange.step()
+            exchange.step(time.monotonic())
             result = await exchange.future
         finally:
             exchange.timer.cancel()
@@ -204,6 +224,36 @@ class SerialChannel(ByteChannel):
             return None
         assert isinstance(result, bytes)
         return result
+
+    async def transact(
+        self, data: bytes, terminator: int, char_timeout_s: float, first_reply_timeout_s: float
+    ) -> Transaction:
+        self._check_open()
+        exchange = _Exchange(
+            self._protocol,
+            payload=data,
+            terminator=terminator,
+            first_timeout_s=char_timeout_s,
+            char_timeout_s=char_timeout_s,
+            first_reply_timeout_s=first_reply_timeout_s,
+        )
+        self._protocol.exchange = exchange
+        try:
+            if data:
+                self._protocol.send(data[:1])
+            exchange.step(time.monotonic())  # an echo may already sit in the buffer (stale)
+            result = await exchange.future
+        finally:
+            exchange.timer.cancel()
+            self._protocol.exchange = None
+        echo = exchange.echo
+        if echo is None:  # the port closed during the echo
+            self._check_open()
+            echo = EchoResult(exchange.index, None)
+        reply = result if isinstance(result, bytes) else None
+        if reply is None and echo.echoed == len(data):
+            self._check_open()
+        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
 
     async def read_available(self, timeout_s: float) -> bytes:
         await self._wait_data(timeout_s)
