@@ -35,7 +35,7 @@ measurable: near T = 1 the division amplifies T's error (``measured_margins``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,6 +92,11 @@ class Excitation:
     # open-loop PWM (``spwm``, the plant alone; see ``analyse_open``).
     command: str = "move_absolute"
     argument: str = "position"
+    # Tones of the requested band left out because the wire cannot resolve them
+    # (``tuning.injection.WirePlan``), why, and the wire plan itself.
+    not_measured_hz: tuple[float, ...] = ()
+    not_measured_reason: str | None = None
+    wire: Mapping[str, Any] | None = None
 
     def target(self, t_s: float) -> int:
         f = np.asarray(self.tones_hz)
@@ -109,6 +114,9 @@ class Excitation:
             "settle_periods": self.settle_periods,
             "command": self.command,
             "argument": self.argument,
+            "not_measured_hz": list(self.not_measured_hz),
+            "not_measured_reason": self.not_measured_reason,
+            "wire": None if self.wire is None else dict(self.wire),
         }
 
     @classmethod
@@ -123,6 +131,9 @@ class Excitation:
             int(d.get("settle_periods", 1)),
             str(d.get("command", "move_absolute")),
             str(d.get("argument", "position")),
+            tuple(float(x) for x in d.get("not_measured_hz") or ()),
+            d.get("not_measured_reason"),
+            d.get("wire"),
         )
 
 
@@ -405,7 +416,7 @@ def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
     return bode_dict(f, 20 * np.log10(np.maximum(np.abs(response), 1e-300)), phase)
 
 
-def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
+def _common(m: _Measured, excitation: Excitation) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
     nyquist = m.rate_hz / 2.0
     usable_from, usable = usable_band(m.tones_hz, m.coherence, nyquist, MIN_COHERENCE)
     good = (m.coherence >= MIN_COHERENCE) & (m.tones_hz <= nyquist)
@@ -420,6 +431,10 @@ def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
         if m.input_check_counts is None
         else round(m.input_check_counts, 2),
         "estimator": ESTIMATORS[m.estimator],
+        # the requested tones the wire could not resolve: not sent, not measured
+        "not_measured_hz": list(excitation.not_measured_hz),
+        "not_measured_reason": excitation.not_measured_reason,
+        "wire": None if excitation.wire is None else dict(excitation.wire),
     }, good
 
 
@@ -448,7 +463,7 @@ def analyse(
     threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
     per-sample reconstruction), when recorded, checks the rebuilt input."""
     m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile, estimator=estimator)
-    common, good = _common(m)
+    common, good = _common(m, excitation)
     open_loop = open_loop_from_closed(m.tones_hz, m.response, m.relative_error, good)
     return {
         "loop": "closed",
@@ -491,7 +506,7 @@ def analyse_open(
     without gains (a run that did not record them)."""
     # the position integrates the PWM: fitted on its increments (tone_fit)
     m = _measure(t_s, position, None, sent, t0_s, excitation, None, differenced=True)
-    common, good = _common(m)
+    common, good = _common(m, excitation)
     plant = _bode(m.tones_hz, m.response) | {
         "coherence": [round(float(c), 4) for c in m.coherence],
         "relative_error": [round(float(e), 4) for e in m.relative_error],
