@@ -138,6 +138,10 @@ async def test_frequency_response_bode_margins_and_what_if(
     await expect(page.get_by_test_id("bode-magnitude").locator("canvas")).to_have_count(1)
     await expect(page.get_by_test_id("bode-phase").locator("canvas")).to_have_count(1)
     await expect(page.get_by_test_id("nyquist")).to_have_attribute("data-curves", "1")
+    # 1-40 Hz asked at 19200 baud: the tones above what the wire resolves are listed
+    left_out = first["measured"]["not_measured_hz"]
+    assert left_out and left_out[0] == 21.0 and left_out[-1] == 40.0
+    await expect(page.get_by_test_id("frf-note")).to_contain_text("not measured: above what")
     model_pm = readouts.locator("tr[data-source='model'] [data-testid='frf-pm']")
     await expect(model_pm).to_contain_text("°")
     runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()

@@ -5,14 +5,15 @@
   ``tuning.loops``.
 * The model-based response and the what-if model against ``tuning.loops``.
 * The ``frequency_response`` kind on the pty simulator: bad input refused with 422
-  before anything moves; a measurement checked against the simulator's own plant
-  under the firmware's PID (where today's sparse poll reaches: see the strict xfail
-  below for the 1-40 Hz band that needs the capture branch).
+  before anything moves; measurements checked against the simulator's own plant
+  under the firmware's PID: 0.5-3 Hz, and 1-40 Hz asked at 19200 baud (1-20 Hz
+  measured, the rest listed as beyond the wire).
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -23,11 +24,13 @@ import pytest
 
 from servotune import frfbench
 from servotune.config import LinkSpec
+from servotune.drivers.base import InvalidArgumentError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band
+from servotune.tuning.injection import Slap2Injection
 from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
@@ -95,6 +98,30 @@ def test_the_multisine_stays_within_its_amplitude() -> None:
     assert max(targets) <= 1250 and min(targets) >= 750
     assert max(targets) - min(targets) > 400  # and uses the window
     assert excitation.tones_hz[0] == 1.0 and excitation.tones_hz[-1] == 40.0
+
+
+def test_the_wire_plan_places_tones_where_the_capture_resolves_them() -> None:
+    """SLAP2 injection step ``ma`` + ``rp``: 26 characters, 10 bits each. At 19200
+    baud 73.8 steps/s at most, 70 % of it expected (51.7/s, Nyquist 25.8 Hz), tones up
+    to 0.8 x Nyquist = 20.7 Hz: a 1-40 Hz request sends 1-20 Hz and lists the
+    requested tones above as not measured. At 38400 baud the whole band fits. A band
+    entirely above the wire's top (9600 baud: 10.3 Hz) is refused naming low_hz."""
+    inject = Slap2Injection()
+    wire = inject.wire(19200)
+    assert wire.steps_per_s_limit == pytest.approx(19200 / 10 / 26)
+    assert wire.max_tone_hz == pytest.approx(0.8 * 0.7 * 19200 / 10 / 26 / 2)
+    requested = frfrun.design(0.0, 1.0, 1.0, 40.0).tones_hz
+    high, left_out, reason, plan = frfbench.wire_band(inject, 19200, 1.0, 40.0)
+    assert high == 20.0 and left_out == tuple(f for f in requested if f > 20.68)
+    assert left_out[0] == 21.0 and left_out[-1] == 40.0
+    assert reason is not None and "19200 baud" in reason and plan == wire.to_dict()
+    assert frfbench.wire_band(inject, 38400, 1.0, 40.0)[:3] == (40.0, (), None)
+    frfbench.check_request("slap2", 200, 1.0, 40.0, 9.0, 20_000, baud=19200)  # accepted
+    with pytest.raises(InvalidArgumentError, match="wire") as refused:
+        frfbench.check_request("slap2", 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
+    assert refused.value.field == "low_hz"
+    # the Z1100 does not inject: model-based, no wire plan
+    assert frfbench.injection_for("z1100") is None and frfbench.measured("slap2")
 
 
 def test_model_margins_are_those_of_tuning_loops() -> None:
@@ -333,29 +360,30 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     assert again["measured"] == frf["measured"]
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="issue 9 not met: during an injection run at 19200 baud the line carries about "
-    "45 samples/s (one ma target and one rp poll share it), even with the simulator in a "
-    "process of its own; the tones above ~22 Hz lie beyond Nyquist and their aliases leave "
-    "coherence 0.6-0.8 at every tone, so no tone is coherent (measured 3x on a quiet host, "
-    "session 4). A 1-20 Hz run is within 1 dB, but 11-15 deg off at 18-20 Hz: a ~2 ms "
-    "bias of the latch times that the error bound does not cover",
-)
 async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServer) -> None:
-    """1-40 Hz with the line devoted to the axis (docs/capture.md): within 1 dB and 10 deg
-    of the simulator's own plant + PID at every tone with coherence >= 0.9 below the
-    capture's Nyquist frequency. At 19200 baud one ``ma`` target and one ``rp`` poll
-    share the wire (~25 characters, ~13 ms): about 75 of each per second, so tones
-    near 40 Hz lie beyond what the line can carry and show low coherence — honestly.
-    8 analysed periods (9 s): at coherence 0.9 the estimate's 1-sigma error is then
-    0.7 dB (4 periods: 1 dB, the tolerance itself); the estimator is least squares at
-    the sample times against the input replayed from the latched targets
-    (docs/frequency-response.md, "Why the first estimator was off")."""
+    """1-40 Hz asked at 19200 baud: one ``ma`` target and one ``rp`` sample share the
+    wire (~26 characters, 73.8 per second at most, ~52/s expected: Nyquist ~26 Hz), so
+    the tones are sent up to 20 Hz (``tuning.injection.WirePlan``: 0.8 x the expected
+    Nyquist frequency) and 21-40 Hz are listed as not measured, with the reason. The
+    measured closed loop is within 1 dB and 10 deg of the simulator's own plant + PID
+    at every tone with coherence >= 0.9 below the capture's Nyquist frequency. 8
+    analysed periods (9 s): at coherence 0.9 the 1-sigma error is then 0.7 dB. The
+    estimator is an impulse response fitted at the sample times against the input
+    replayed from the latched targets (docs/frequency-response.md)."""
+    began = time.monotonic()
     run, frf = await _run_until_covered(
         api, 40.0, True, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0
     )
-    up_to_hz = min(40.0, frf["measured"]["nyquist_hz"])
+    measured = frf["measured"]
+    requested = frfrun.design(0.0, 1.0, 1.0, 40.0).tones_hz
+    assert measured["not_measured_hz"] == [f for f in requested if f > 20.68]
+    assert measured["not_measured_hz"][0] == 21.0 and measured["not_measured_hz"][-1] == 40.0
+    assert "19200 baud" in measured["not_measured_reason"]
+    assert measured["wire"]["max_tone_hz"] == pytest.approx(20.68, abs=0.01)
+    assert max(measured["closed_loop"]["frequency_hz"]) == 20.0
+    assert run["excitation"]["not_measured_hz"] == measured["not_measured_hz"]
+    assert run["excitation"]["wire"] == measured["wire"]
+    up_to_hz = min(40.0, measured["nyquist_hz"])
     margins = frf["measured"]["margins"]
     # a margin is a number or null with the reason, never both
     for key in ("gain_margin", "phase_margin"):
@@ -368,6 +396,18 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     if margins["phase_margin_deg"] is not None:
         error = max(3.0, margins["phase_margin_error_deg"])
         assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= error, margins
+    # the figures of docs/frequency-response.md (pytest -s)
+    closed = measured["closed_loop"]
+    f = np.asarray(closed["frequency_hz"])
+    truth = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).closed_loop_response(f)
+    good = (np.asarray(closed["coherence"]) >= 0.9) & (f <= measured["nyquist_hz"])
+    db = np.abs(np.asarray(closed["magnitude_db"]) - truth.magnitude_db)[good]
+    deg = np.abs((np.asarray(closed["phase_deg"]) - truth.phase_deg + 180) % 360 - 180)[good]
+    print(
+        f"\n1-40 Hz FRF: {measured['sample_rate_hz']} samples/s, {good.sum()}/{f.size} tones "
+        f"coherent, worst {db.max():.2f} dB {deg.max():.1f} deg, request to analysed "
+        f"run {time.monotonic() - began:.1f} s"
+    )
 
 
 async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_path: Path) -> None:

@@ -16,11 +16,16 @@
   profile): the frequency response of the identified plant under the device's exact
   law (``tuning.whatif``), stored as a run like any other and labelled model-based.
 
-The planning logic lives here so that the drivers only list the kind.
+Which devices inject is per device: ``tuning.devices.DeviceLaw.injection`` (the
+SLAP2's ``tuning.injection.Slap2Injection``; None for the Z1100, model-based). The
+injection's ``WirePlan`` places tones only where the wire's sample rate resolves them:
+the rest of a requested band is listed as ``not_measured_hz`` with the reason. The
+planning logic lives here so that the drivers only list the kind.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -29,14 +34,51 @@ import numpy as np
 
 from servotune.drivers.base import BenchPlan, DeviceRefusedError, InvalidArgumentError, Sample
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.tuning import frfrun
+from servotune.tuning import frfrun, injection
+from servotune.tuning.devices import law_for
 from servotune.tuning.frfrun import Excitation
+from servotune.tuning.injection import Injection
 from servotune.tuning.whatif import loop_for, model_summary, plant_from_identification
 
 KIND = "frequency_response"
-MEASURED_DEVICES = frozenset({"slap2"})
 LOW_HZ_RANGE = (0.2, 20.0)
 HIGH_HZ_MAX = 200.0
+
+
+def injection_for(device: str) -> Injection | None:
+    """How ``device`` takes an excitation on its wire; None: its frequency response is
+    model-based (or it has no controller law at all)."""
+    try:
+        return law_for(device).injection
+    except ValueError:
+        return None
+
+
+def measured(device: str) -> bool:
+    """Whether a frequency response of ``device`` is measured (it can inject)."""
+    return injection_for(device) is not None
+
+
+def wire_band(
+    inject: Injection, baud: int | None, low_hz: float, high_hz: float
+) -> tuple[float, tuple[float, ...], str | None, dict[str, Any] | None]:
+    """The band the wire lets ``inject`` measure: (top tone's band edge, the requested
+    tones left out, why, the wire plan); the whole band without a baud rate (a link
+    that is not a serial line). InvalidArgumentError naming low_hz when the whole band
+    lies above what the wire resolves."""
+    if baud is None:
+        return high_hz, (), None, None
+    wire = inject.wire(baud)
+    requested = frfrun.design(0.0, 1.0, low_hz, high_hz).tones_hz
+    try:
+        top, left_out = injection.split(wire, low_hz, high_hz, requested)
+    except ValueError as exc:
+        raise InvalidArgumentError("low_hz", str(exc)) from None
+    if not left_out:
+        return high_hz, (), None, wire.to_dict()
+    # tones are multiples of low_hz: the highest multiple at or below the wire's top
+    high = max(low_hz, low_hz * math.floor(top / low_hz + 1e-9))
+    return high, left_out, f"not measured: {wire.reason()}", wire.to_dict()
 
 
 def check_request(
@@ -52,13 +94,17 @@ def check_request(
     max_pwm: int = 255,
     confirm_open_loop: bool = False,
     window: tuple[int | None, int | None] = (None, None),
+    baud: int | None = None,
 ) -> None:
     """422 (InvalidArgumentError naming the field and the range) before anything moves.
 
     Open loop (SLAP2 only): ``pwm`` 1..``max_pwm`` (the bench limit), a travel window
     set on both sides (``window``: the bench's min/max_position_counts) and
-    ``confirm_open_loop`` true — the motor runs without position control."""
-    if device not in MEASURED_DEVICES:
+    ``confirm_open_loop`` true — the motor runs without position control. A band
+    entirely above what the wire at ``baud`` resolves: 422 naming low_hz
+    (``wire_band``)."""
+    inject = injection_for(device)
+    if inject is None:
         if loop != "closed":
             raise InvalidArgumentError(
                 "loop", f"a {device} frequency response is model-based: loop must be 'closed'"
@@ -69,6 +115,8 @@ def check_request(
             )
         return
     if loop == "open":
+        if inject.open_loop is None:
+            raise InvalidArgumentError("loop", f"a {device} cannot be driven open loop")
         if not (1 <= pwm <= max_pwm):
             raise InvalidArgumentError(
                 "pwm",
@@ -110,12 +158,37 @@ def check_request(
             f"duration {duration_s:g} s is too short for low_hz {low_hz:g}: at least "
             f"{needed:g} s (one settling period and {frfrun.MIN_PERIODS} analysed)",
         )
+    wire_band(inject, baud, low_hz, high_hz)
 
 
-def plan_slap2(
-    latest: Sample, params: Mapping[str, int], amplitude: int, low_hz: float, high_hz: float
+def _design(
+    inject: Injection,
+    baud: int | None,
+    y0: float,
+    amplitude: float,
+    low_hz: float,
+    high_hz: float,
+    command: tuple[str, str],
+) -> Excitation:
+    high, left_out, reason, wire = wire_band(inject, baud, low_hz, high_hz)
+    excitation = frfrun.design(y0, amplitude, low_hz, high, *command)
+    return dataclasses.replace(
+        excitation, not_measured_hz=left_out, not_measured_reason=reason, wire=wire
+    )
+
+
+def plan_closed(
+    inject: Injection,
+    latest: Sample,
+    params: Mapping[str, int],
+    amplitude: int,
+    low_hz: float,
+    high_hz: float,
+    baud: int | None = None,
 ) -> tuple[BenchPlan, Excitation]:
-    """The plan (hold, max profile for the test, back to y0 at the end) and the signal."""
+    """The plan (hold, the injection's overrides for the test, back to y0 at the end)
+    and the signal: targets around the held position, tones up to what the wire at
+    ``baud`` resolves (``wire_band``)."""
     if latest.flags.get("move") or latest.flags.get("vm"):
         raise DeviceRefusedError(
             "the axis is moving: a test must start from rest (wait, or press STOP)"
@@ -124,33 +197,40 @@ def plan_slap2(
     if latest.flags.get("pm") and latest.channels.get("setpoint") is not None:
         position = float(latest.channels["setpoint"] or position)
     y0 = float(round(position))
-    excitation = frfrun.design(y0, amplitude, low_hz, high_hz)
+    excitation = _design(inject, baud, y0, amplitude, low_hz, high_hz, inject.closed_loop)
     plan = BenchPlan(
         setup=[] if latest.flags.get("pm") else [("position_mode", {})],
         trigger=[],
-        finish=[("move_absolute", {"position": round(y0)})],
+        finish=[(inject.closed_loop[0], {inject.closed_loop[1]: round(y0)})],
         response="position",
         y0=y0,
         y_final=y0,
         band=float(params.get("inpos_window", 5)),
-        overrides={"velocity": VELOCITY_MAX, "acceleration": ACCELERATION_MAX},
-        fault_flags=["oc", "limit1", "limit2"],
+        overrides=dict(inject.overrides),
+        fault_flags=list(inject.fault_flags),
     )
     return plan, excitation
 
 
-def plan_slap2_open(
-    latest: Sample, pwm: int, low_hz: float, high_hz: float
+def plan_open(
+    inject: Injection,
+    latest: Sample,
+    pwm: int,
+    low_hz: float,
+    high_hz: float,
+    baud: int | None = None,
 ) -> tuple[BenchPlan, Excitation]:
     """Open loop: the multisine as PWM (``spwm``) around 0, from rest; ``st`` at the
     end (the axis is left unpowered where it stands: no return move without the
     controller). The first ``spwm`` leaves position mode."""
+    if inject.open_loop is None:
+        raise DeviceRefusedError("this device cannot be driven open loop")
     if latest.flags.get("move") or latest.flags.get("vm"):
         raise DeviceRefusedError(
             "the axis is moving: a test must start from rest (wait, or press STOP)"
         )
     position = float(latest.channels.get("position") or 0.0)
-    excitation = frfrun.design(0.0, pwm, low_hz, high_hz, "open_loop_pwm", "pwm")
+    excitation = _design(inject, baud, 0.0, pwm, low_hz, high_hz, inject.open_loop)
     plan = BenchPlan(
         setup=[],
         trigger=[],
@@ -159,7 +239,7 @@ def plan_slap2_open(
         y0=position,
         y_final=position,
         band=None,
-        fault_flags=["oc", "limit1", "limit2"],
+        fault_flags=list(inject.fault_flags),
     )
     return plan, excitation
 
@@ -196,7 +276,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
     out: dict[str, Any] = {
         "run_id": run.get("id"),
         "device": device,
-        "model_based": device not in MEASURED_DEVICES,
+        "model_based": not measured(device),
         "loop": str(test.get("loop") or "closed"),
         "low_hz": low,
         "high_hz": high,
@@ -233,7 +313,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                 )
         except ValueError as exc:
             out["measured_problem"] = str(exc)
-    elif device in MEASURED_DEVICES:
+    elif measured(device):
         out["measured_problem"] = "the run recorded no excitation"
     model = run.get("plant_model") or identified
     try:

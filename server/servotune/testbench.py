@@ -297,8 +297,9 @@ class TestBench:
                 max_pwm=limits.max_pwm,
                 confirm_open_loop=request.confirm_open_loop,
                 window=(limits.min_position_counts, limits.max_position_counts),
+                baud=entry.link.baud,
             )
-            if entry.info.device not in frfbench.MEASURED_DEVICES and not identified:
+            if not frfbench.measured(entry.info.device) and not identified:
                 raise DeviceRefusedError(
                     f"a {entry.info.device} frequency response is model-based: identify the "
                     "plant first (auto-tune, Identify)"
@@ -333,18 +334,26 @@ class TestBench:
         )
         excitation: Excitation | None = None
         model_based = False
+        inject = frfbench.injection_for(entry.info.device)
         if test.kind == frfbench.KIND:
-            if entry.info.device in frfbench.MEASURED_DEVICES and request.loop == "open":
-                plan, excitation = frfbench.plan_slap2_open(
-                    entry.latest, request.pwm, request.low_hz, request.high_hz
+            if inject is not None and request.loop == "open":
+                plan, excitation = frfbench.plan_open(
+                    inject,
+                    entry.latest,
+                    request.pwm,
+                    request.low_hz,
+                    request.high_hz,
+                    entry.link.baud,
                 )
-            elif entry.info.device in frfbench.MEASURED_DEVICES:
-                plan, excitation = frfbench.plan_slap2(
+            elif inject is not None:
+                plan, excitation = frfbench.plan_closed(
+                    inject,
                     entry.latest,
                     entry.device_values,
                     request.amplitude,
                     request.low_hz,
                     request.high_hz,
+                    entry.link.baud,
                 )
                 self._check_excursion(plan.y0, request.amplitude, limits)
             else:
@@ -470,7 +479,9 @@ class TestBench:
                 stop_generation=recording.stop_generation,
             )
             # [acknowledged, target, latched]: the analysis replays the profile from
-            # the latch (the ack comes a status read later, 10-15 ms and jittery).
+            # the latch. The acknowledgement is stamped when the command returns, after
+            # the status read (rss) the driver sends right after the ma: 10-15 ms late
+            # and jittery.
             driver = recording.entry.driver
             latch = driver.last_command_latch_s if isinstance(driver, CommandClock) else None
             recording.sent.append(

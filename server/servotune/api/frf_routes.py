@@ -64,7 +64,9 @@ async def run_frf(run_id: str, request: Request, bench: BenchDep) -> dict[str, A
 
     ``measured`` (SLAP2): the closed loop at the tones with coherence, the open loop
     ``T / (1 - T)``, margins, crossover, -3 dB bandwidth and resonance over the tones
-    with coherence >= 0.9, the usable band ``usable_from_hz``..``usable_until_hz``;
+    with coherence >= 0.9, the usable band ``usable_from_hz``..``usable_until_hz``,
+    the requested tones the wire could not resolve (``not_measured_hz``, with
+    ``not_measured_reason`` and the ``wire`` plan: not sent, not measured);
     ``model``: the identified plant under the exact law with the run's gains (dense
     curves, margins). Either is null with a ``measured_problem`` / ``model_problem``
     sentence. 404 for an unknown run, 422 for a run of another kind."""

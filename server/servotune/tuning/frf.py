@@ -291,3 +291,108 @@ def frf_relative_error(coherence: npt.ArrayLike, averages: int) -> FloatArray:
             np.where(g2 > 0, np.sqrt(1.0 - g2) / np.sqrt(g2 * 2.0 * max(averages, 1)), np.inf),
             dtype=np.float64,
         )
+
+
+@dataclass(frozen=True, slots=True)
+class ImpulseFit:
+    """An impulse response fitted to irregular samples of a system's output against
+    its input known on a uniform grid (``impulse_fit``).
+
+    ``impulse`` is piecewise constant: ``impulse[j]`` per grid step over the ``j``-th
+    box of ``box_steps`` grid steps back from a sample (the first box starts at the
+    last grid point at or before the sample). ``covariance`` is that of ``impulse``
+    (``s^2 (A^T A + R)^-1``, s^2 the residual variance)."""
+
+    impulse: FloatArray
+    box_steps: int
+    step_s: float
+    covariance: FloatArray
+    residual_rms: float
+    samples: int
+
+    def response(self, frequency_hz: npt.ArrayLike) -> tuple[ComplexArray, FloatArray]:
+        """The frequency response of the fitted impulse response at ``frequency_hz``
+        (output per input of the discrete system on the grid) and each value's
+        standard error per real component (propagated from ``covariance``)."""
+        f = np.asarray(frequency_hz, dtype=np.float64)
+        n = self.impulse.size * self.box_steps
+        z = np.exp(-2j * np.pi * np.outer(f, np.arange(n)) * self.step_s)
+        # d T / d impulse[j]: the sum of the box's grid terms, each a step's weight
+        g = z.reshape(f.size, self.impulse.size, self.box_steps).sum(axis=2)
+        response = g @ self.impulse
+        var_re = np.einsum("fi,ij,fj->f", g.real, self.covariance, g.real)
+        var_im = np.einsum("fi,ij,fj->f", g.imag, self.covariance, g.imag)
+        error = np.sqrt(0.5 * np.clip(var_re + var_im, 0.0, None))
+        return np.asarray(response, dtype=np.complex128), np.asarray(error, dtype=np.float64)
+
+
+def impulse_fit(
+    t_s: npt.ArrayLike,
+    y: npt.ArrayLike,
+    grid_t0_s: float,
+    step_s: float,
+    u: npt.ArrayLike,
+    *,
+    taps: int,
+    box_steps: int = 1,
+    ridge: float = 1e-4,
+) -> ImpulseFit:
+    """Least-squares fit of an impulse response (``taps`` boxes of ``box_steps`` grid
+    steps each, plus an offset and a linear trend) from samples ``y`` at any times
+    ``t_s`` of the output of a system whose input ``u`` is known on the uniform grid
+    ``grid_t0_s + i * step_s`` (a controller's ticks):
+    ``y(t_k) ~ c0 + c1 t_k + sum_j impulse[j] sum_{i in box j} u[n_k - i]``,
+    ``n_k`` the last grid point at or before ``t_k`` (``numpy.linalg.lstsq``).
+
+    Why, rather than a per-tone fit (``tone_fit``) of input and output: an input that
+    is a staircase of targets sent over a slow wire has power at images of its tones
+    around multiples of the target rate, and output samples taken at about the same
+    rate fold the response to those images back onto the tones. A tone fit counts it
+    as response at the tone; the impulse response explains the output from the whole
+    input, images included, so they do not bias it. The fit needs the impulse
+    response to have died out within ``taps * box_steps`` grid steps.
+
+    ``ridge`` is a light Tikhonov term, relative to the mean diagonal of ``A^T A``:
+    a periodic input excites few directions of a long impulse response, and the
+    others are left small rather than arbitrary (at the excited frequencies the
+    data dominate). ValueError when there are fewer samples than unknowns or
+    samples before the grid holds a whole impulse response."""
+    t = np.asarray(t_s, dtype=np.float64)
+    ys = np.asarray(y, dtype=np.float64)
+    us = np.asarray(u, dtype=np.float64)
+    length = taps * box_steps
+    columns = 2 + taps
+    if t.size <= columns:
+        raise ValueError(
+            f"{t.size} samples cannot fit an impulse response of {taps} taps "
+            f"({columns} unknowns): record longer"
+        )
+    n_k = np.floor((t - grid_t0_s) / step_s + 1e-9).astype(np.int64)
+    if n_k.min() < length - 1 or n_k.max() >= us.size:
+        raise ValueError("the input grid does not cover every sample's impulse response")
+    # sum of u over the box ending `lag` steps back: differences of a cumulative sum
+    cumulative = np.concatenate([[0.0], np.cumsum(us)])
+    lags = np.arange(taps) * box_steps
+    upper = n_k[:, None] - lags[None, :] + 1
+    boxes = cumulative[upper] - cumulative[upper - box_steps]
+    t_mid = 0.5 * (t[0] + t[-1])
+    design = np.empty((t.size, columns))
+    design[:, 0] = 1.0
+    design[:, 1] = t - t_mid
+    design[:, 2:] = boxes
+    gram = design.T @ design
+    penalty = np.zeros(columns)
+    penalty[2:] = ridge * float(np.mean(np.diag(gram)[2:]))
+    stacked = np.vstack([design, np.diag(np.sqrt(penalty))])
+    coef, *_ = np.linalg.lstsq(stacked, np.concatenate([ys, np.zeros(columns)]), rcond=None)
+    residual = ys - design @ coef
+    variance = float(residual @ residual) / max(ys.size - columns, 1)
+    covariance = variance * np.linalg.pinv(gram + np.diag(penalty))
+    return ImpulseFit(
+        impulse=np.asarray(coef[2:], dtype=np.float64),
+        box_steps=box_steps,
+        step_s=step_s,
+        covariance=np.asarray(covariance[2:, 2:], dtype=np.float64),
+        residual_rms=float(np.sqrt(np.mean(residual**2))),
+        samples=int(t.size),
+    )

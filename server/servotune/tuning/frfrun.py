@@ -13,10 +13,15 @@ average out).
 Analysis: the loop's input is rebuilt on the controller's tick grid from the targets
 sent, at the times the device latched them, through the firmware's profile law at the
 test's sv/sa (``rebuild_input``); the output is the position samples at their latch
-times, irregular as the wire delivered them. Over the analysed whole periods both are
-fitted with all tones at once by least squares (``tuning.frf.tone_fit``), and the
-closed loop is ``T = Y / U`` at each tone, with a relative error from the fits'
-standard errors and the host's timing uncertainty, and the coherence equivalent to
+times, irregular as the wire delivered them. Closed loop: an impulse response on the
+tick grid is fitted at the sample times against that input by least squares
+(``tuning.frf.impulse_fit``) and ``T`` is its frequency response at the tones: a
+staircase of targets sent at a few tens per second has images of its tones around
+multiples of the target rate, which output samples at about the same rate fold back
+onto the tones; a per-tone fit of input and output (``tuning.frf.tone_fit``, still
+used open loop, where the input is PWM held by the firmware) counts them as response.
+The relative error is the fit's standard error, the jackknife over periods when
+larger, and the host's timing uncertainty; the coherence is the one equivalent to
 that error. (The first version interpolated the samples onto a uniform grid and took
 Welch spectra against the targets stamped when acknowledged: 1.1-1.7 dB off the
 simulator's plant at coherence >= 0.9; docs/frequency-response.md says why.)
@@ -30,7 +35,7 @@ measurable: near T = 1 the division amplifies T's error (``measured_margins``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,6 +47,7 @@ from servotune.tuning.frf import (
     ComplexArray,
     FloatArray,
     coherence_from_error,
+    impulse_fit,
     tone_fit,
     usable_band,
 )
@@ -59,6 +65,16 @@ TIMING_UNCERTAINTY_S = TICK_S / 2
 # about +-2 dB and its phase within about +-14 deg.
 ERROR_COVERAGE = 2.0
 MAX_LOOP_ERROR = 0.25
+# The closed loop's impulse response fitted by ``_impulse_estimate``: IMPULSE_TAPS
+# boxes of IMPULSE_BOX_TICKS ticks (about 270 ms: the SLAP2 loops of the demo and
+# the tests decay to 1e-3 of their impulse response's area within 150-230 ms).
+IMPULSE_TAPS = 80
+IMPULSE_BOX_TICKS = 4
+IMPULSE_RIDGE = 1e-4
+ESTIMATORS = {
+    "impulse": "impulse response fitted at the sample times (least squares)",
+    "tones": "tones fitted at the sample times (least squares)",
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,6 +92,11 @@ class Excitation:
     # open-loop PWM (``spwm``, the plant alone; see ``analyse_open``).
     command: str = "move_absolute"
     argument: str = "position"
+    # Tones of the requested band left out because the wire cannot resolve them
+    # (``tuning.injection.WirePlan``), why, and the wire plan itself.
+    not_measured_hz: tuple[float, ...] = ()
+    not_measured_reason: str | None = None
+    wire: Mapping[str, Any] | None = None
 
     def target(self, t_s: float) -> int:
         f = np.asarray(self.tones_hz)
@@ -93,6 +114,9 @@ class Excitation:
             "settle_periods": self.settle_periods,
             "command": self.command,
             "argument": self.argument,
+            "not_measured_hz": list(self.not_measured_hz),
+            "not_measured_reason": self.not_measured_reason,
+            "wire": None if self.wire is None else dict(self.wire),
         }
 
     @classmethod
@@ -107,6 +131,9 @@ class Excitation:
             int(d.get("settle_periods", 1)),
             str(d.get("command", "move_absolute")),
             str(d.get("argument", "position")),
+            tuple(float(x) for x in d.get("not_measured_hz") or ()),
+            d.get("not_measured_reason"),
+            d.get("wire"),
         )
 
 
@@ -204,6 +231,107 @@ class _Measured:
     samples: int
     rate_hz: float
     input_check_counts: float | None
+    estimator: str
+
+
+def _jackknife(partial: ComplexArray, response: ComplexArray, periods: int) -> FloatArray:
+    """Relative error per tone from leave-one-period-out estimates (the spread Welch
+    averaging over periods would see); NaN rows (a refit that failed) count as
+    infinite error."""
+    spread = np.sqrt(
+        (periods - 1) / periods * np.sum(np.abs(partial - partial.mean(axis=0)) ** 2, axis=0)
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return _nan_inf(spread / (np.sqrt(2.0) * np.abs(response)))
+
+
+def _tone_estimate(
+    t_k: FloatArray,
+    y_k: FloatArray,
+    u_t: FloatArray,
+    u: FloatArray,
+    tones: FloatArray,
+    start: float,
+    t_mid: float,
+    period_s: float,
+    periods: int,
+    differenced: bool,
+) -> tuple[ComplexArray, FloatArray]:
+    """``Y / U`` per tone from joint tone fits of output and input (``tone_fit``), and
+    its relative error: the fits' standard errors, or the jackknife over periods when
+    larger (the standard errors assume white residuals; gaps, a host that stalled the
+    driver, and the response to the non-periodic part of the input are not)."""
+    fit_u = tone_fit(u_t, u, tones, t_mid)
+    fit_y = tone_fit(t_k, y_k, tones, t_mid, differenced=differenced)
+    response = fit_y.amplitude / fit_u.amplitude
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit_error = np.hypot(
+            fit_y.standard_error / np.abs(fit_y.amplitude),
+            fit_u.standard_error / np.abs(fit_u.amplitude),
+        )
+    if periods >= 2:
+        period_of_sample = np.floor((t_k - start) / period_s)
+        period_of_tick = np.floor((u_t - start) / period_s)
+        partial = np.empty((periods, tones.size), dtype=np.complex128)
+        for i in range(periods):
+            ys, us = period_of_sample != i, period_of_tick != i
+            try:
+                fy = tone_fit(t_k[ys], y_k[ys], tones, t_mid, differenced=differenced)
+                fu = tone_fit(u_t[us], u[us], tones, t_mid)
+            except ValueError:
+                partial[i] = np.nan
+                continue
+            partial[i] = fy.amplitude / fu.amplitude
+        fit_error = np.fmax(_nan_inf(fit_error), _jackknife(partial, response, periods))
+    return np.asarray(response, dtype=np.complex128), np.asarray(fit_error, dtype=np.float64)
+
+
+def _impulse_estimate(
+    t_k: FloatArray,
+    y_k: FloatArray,
+    tick_t: FloatArray,
+    u_ticks: FloatArray,
+    tones: FloatArray,
+    start: float,
+    period_s: float,
+    periods: int,
+) -> tuple[ComplexArray, FloatArray]:
+    """The closed loop at the tones from an impulse response fitted at the sample
+    times against the input on the tick grid (``tuning.frf.impulse_fit``, see there
+    why), with its relative error: the fit's standard error, or the jackknife over
+    periods (leave one period's samples out, refit) when larger."""
+    lead = IMPULSE_TAPS * IMPULSE_BOX_TICKS
+    # the input before the grid: the first value held (the position the test held)
+    u = np.concatenate([np.full(lead, u_ticks[0]), u_ticks])
+    grid_t0 = float(tick_t[0]) - lead * TICK_S
+
+    def fit(t: FloatArray, y: FloatArray) -> tuple[ComplexArray, FloatArray]:
+        result = impulse_fit(
+            t,
+            y,
+            grid_t0,
+            TICK_S,
+            u,
+            taps=IMPULSE_TAPS,
+            box_steps=IMPULSE_BOX_TICKS,
+            ridge=IMPULSE_RIDGE,
+        )
+        return result.response(tones)
+
+    response, error = fit(t_k, y_k)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit_error = _nan_inf(error / np.abs(response))
+    if periods >= 2:
+        period_of_sample = np.floor((t_k - start) / period_s)
+        partial = np.empty((periods, tones.size), dtype=np.complex128)
+        for i in range(periods):
+            keep = period_of_sample != i
+            try:
+                partial[i] = fit(t_k[keep], y_k[keep])[0]
+            except ValueError:
+                partial[i] = np.nan
+        fit_error = np.fmax(fit_error, _jackknife(partial, response, periods))
+    return response, fit_error
 
 
 def _measure(
@@ -216,9 +344,11 @@ def _measure(
     profile: tuple[int, int] | None,
     *,
     differenced: bool = False,
+    estimator: str = "tones",
 ) -> _Measured:
-    """The estimator shared by the closed-loop and the open-loop runs (``analyse``);
-    ``differenced`` for an integrating output (``tone_fit``)."""
+    """The estimator shared by the closed-loop and the open-loop runs (``analyse``):
+    ``estimator`` "impulse" (``_impulse_estimate``) or "tones" (``_tone_estimate``);
+    ``differenced`` for an integrating output (tones only, ``tone_fit``)."""
     t = np.asarray(t_s, dtype=np.float64) - t0_s
     y = np.asarray(output, dtype=np.float64)
     start = excitation.settle_periods * excitation.period_s
@@ -238,37 +368,23 @@ def _measure(
     tick_t, u_ticks = rebuild_input(sent, t0_s, excitation.y0, profile, end + TICK_S)
     on_ticks = (tick_t >= start) & (tick_t < end)
     t_mid = 0.5 * (start + end)
-    fit_u = tone_fit(tick_t[on_ticks], u_ticks[on_ticks], tones, t_mid)
-    fit_y = tone_fit(t_k, y_k, tones, t_mid, differenced=differenced)
-    response = fit_y.amplitude / fit_u.amplitude
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fit_error = np.hypot(
-            fit_y.standard_error / np.abs(fit_y.amplitude),
-            fit_u.standard_error / np.abs(fit_u.amplitude),
+    if estimator == "impulse":
+        response, fit_error = _impulse_estimate(
+            t_k, y_k, tick_t, u_ticks, tones, start, excitation.period_s, periods
         )
-    # The fit's standard errors assume white residuals; gaps (a host that stalled the
-    # driver) and the response to the non-periodic part of the input are not. The
-    # jackknife over periods (leave one whole period out, refit) measures the spread
-    # as Welch averaging would; the larger of the two is used.
-    if periods >= 2:
-        period_of_sample = np.floor((t_k - start) / excitation.period_s)
-        period_of_tick = np.floor((tick_t[on_ticks] - start) / excitation.period_s)
-        partial = np.empty((periods, tones.size), dtype=np.complex128)
-        for i in range(periods):
-            ys, us = period_of_sample != i, period_of_tick != i
-            try:
-                fy = tone_fit(t_k[ys], y_k[ys], tones, t_mid, differenced=differenced)
-                fu = tone_fit(tick_t[on_ticks][us], u_ticks[on_ticks][us], tones, t_mid)
-            except ValueError:
-                partial[i] = np.nan
-                continue
-            partial[i] = fy.amplitude / fu.amplitude
-        spread = np.sqrt(
-            (periods - 1) / periods * np.sum(np.abs(partial - partial.mean(axis=0)) ** 2, axis=0)
+    else:
+        response, fit_error = _tone_estimate(
+            t_k,
+            y_k,
+            tick_t[on_ticks],
+            u_ticks[on_ticks],
+            tones,
+            start,
+            t_mid,
+            excitation.period_s,
+            periods,
+            differenced,
         )
-        with np.errstate(divide="ignore", invalid="ignore"):
-            jackknife = spread / (np.sqrt(2.0) * np.abs(response))
-        fit_error = np.fmax(fit_error, _nan_inf(jackknife))
     timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
     relative_error = np.hypot(_nan_inf(fit_error), timing_error)
     check: float | None = None
@@ -286,6 +402,7 @@ def _measure(
         int(t_k.size),
         rate_measured,
         check,
+        estimator,
     )
 
 
@@ -299,7 +416,7 @@ def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
     return bode_dict(f, 20 * np.log10(np.maximum(np.abs(response), 1e-300)), phase)
 
 
-def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
+def _common(m: _Measured, excitation: Excitation) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
     nyquist = m.rate_hz / 2.0
     usable_from, usable = usable_band(m.tones_hz, m.coherence, nyquist, MIN_COHERENCE)
     good = (m.coherence >= MIN_COHERENCE) & (m.tones_hz <= nyquist)
@@ -313,7 +430,11 @@ def _common(m: _Measured) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
         "input_check_counts": None
         if m.input_check_counts is None
         else round(m.input_check_counts, 2),
-        "estimator": "least squares at the sample times",
+        "estimator": ESTIMATORS[m.estimator],
+        # the requested tones the wire could not resolve: not sent, not measured
+        "not_measured_hz": list(excitation.not_measured_hz),
+        "not_measured_reason": excitation.not_measured_reason,
+        "wire": None if excitation.wire is None else dict(excitation.wire),
     }, good
 
 
@@ -325,6 +446,8 @@ def analyse(
     t0_s: float,
     excitation: Excitation,
     profile: tuple[int, int] | None = None,
+    *,
+    estimator: str = "impulse",
 ) -> dict[str, Any]:
     """The measured closed loop at the tones with its error and coherence, the usable
     band, and (Cb = 0) the open loop with margins where it is measurable; ValueError
@@ -339,8 +462,8 @@ def analyse(
     that error (``coherence_from_error``, as many averages as periods), so the 0.9
     threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
     per-sample reconstruction), when recorded, checks the rebuilt input."""
-    m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile)
-    common, good = _common(m)
+    m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile, estimator=estimator)
+    common, good = _common(m, excitation)
     open_loop = open_loop_from_closed(m.tones_hz, m.response, m.relative_error, good)
     return {
         "loop": "closed",
@@ -383,7 +506,7 @@ def analyse_open(
     without gains (a run that did not record them)."""
     # the position integrates the PWM: fitted on its increments (tone_fit)
     m = _measure(t_s, position, None, sent, t0_s, excitation, None, differenced=True)
-    common, good = _common(m)
+    common, good = _common(m, excitation)
     plant = _bode(m.tones_hz, m.response) | {
         "coherence": [round(float(c), 4) for c in m.coherence],
         "relative_error": [round(float(e), 4) for e in m.relative_error],

@@ -55,6 +55,9 @@ interface Part {
   input?: string;
   law?: string;
   loop?: "closed" | "open";
+  // tones of the requested band the wire cannot resolve: not sent, not measured
+  not_measured_hz?: number[];
+  not_measured_reason?: string | null;
 }
 
 export interface FrfData {
@@ -395,6 +398,11 @@ export class FrfPanel {
         notes.push(
           `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable ${d.measured.usable_until_hz ? `${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")}` : "nowhere (coherence < 0.9)"}, input: ${d.measured.input === "pwm" ? "open-loop PWM (spwm): the plant measured, L = C·P with the run's PID" : d.measured.input === "profile" ? "targets through the profile law" : "targets sent"}`,
         );
+        const left = d.measured.not_measured_hz ?? [];
+        if (left.length)
+          notes.push(
+            `${run.label}: ${fmt(left[0], 1, "Hz")} to ${fmt(left[left.length - 1], 1, "Hz")} ${d.measured.not_measured_reason ?? "not measured"}`,
+          );
       } else if (d.measured_problem) notes.push(`${run.label}: ${d.measured_problem}`);
       if (d.model_based) notes.push(`${run.label}: MODEL-BASED (${d.model?.law ?? "device law"}), not a measurement`);
     });

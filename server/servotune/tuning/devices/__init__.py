@@ -4,7 +4,8 @@ Each device module holds its controller law (the exact integer arithmetic, tick 
 tick, and its simulation on the identified plant), the identification's excitation
 and its limits: ``slap2`` (PID at 841.5 us, open-loop PWM staircase) and ``z1100``
 (K/A/B every Stm x 32 us, closed-loop move). What the frequency response and the
-what-if view need from a device is ``DeviceLaw``; ``law_for`` picks it. The auto-tune's
+what-if view need from a device (its law, and how it takes an injected excitation:
+``tuning.injection``) is ``DeviceLaw``; ``law_for`` picks it. The auto-tune's
 sessions (``servotune.autotune``) use the modules directly.
 
 Layering: device modules import ``tuning.plants``, ``tuning.identify`` and
@@ -19,6 +20,7 @@ from typing import Any, Literal, Protocol
 
 from servotune.tuning.devices.slap2 import Slap2Law
 from servotune.tuning.devices.z1100 import Z1100Law
+from servotune.tuning.injection import Injection
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import IdentifiedPlant
 
@@ -42,6 +44,13 @@ class DeviceLaw(Protocol):
     @property
     def output_limit(self) -> int:
         """The controller output's full scale (PWM units)."""
+        ...
+
+    @property
+    def injection(self) -> Injection | None:
+        """How the device takes a frequency-response excitation on its wire
+        (``tuning.injection``); None: it cannot, and its frequency response is the
+        identified model's (model-based)."""
         ...
 
     def period_s(self, params: Mapping[str, int]) -> float:

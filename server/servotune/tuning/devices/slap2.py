@@ -32,6 +32,7 @@ from servotune.protocols.slap2 import (
     PWM_MAX,
     TICK_S,
 )
+from servotune.tuning.injection import Slap2Injection
 from servotune.tuning.loops import LoopModel, slap2_loop_for
 from servotune.tuning.plants import FrictionMotor, IdentifiedPlant, PlantModel
 
@@ -427,6 +428,8 @@ class Slap2Law:
     law: Final[Literal["slap2_pid"]] = "slap2_pid"
     description: Final = "PID at 841.5 us"
     output_limit: Final = PWM_MAX
+    # targets through ma, PWM through spwm (docs/frequency-response.md)
+    injection: Final = Slap2Injection()
 
     def period_s(self, params: Mapping[str, int]) -> float:
         return TICK_S

@@ -296,6 +296,9 @@ class Z1100Law:
     law: Final[Literal["z1100_kab"]] = "z1100_kab"
     description: Final = "KABD (hold) gains"
     output_limit: Final = PWM_FULL_SCALE
+    # go-to targets only, through the Z1100's own profile: nothing can be streamed on
+    # its wire, so its frequency response is the identified model's
+    injection: Final = None
 
     def period_s(self, params: Mapping[str, int]) -> float:
         return max(1, params.get("stm", 1)) * SAMPLE_UNIT_S

@@ -1,0 +1,149 @@
+"""What a device's wire allows a frequency-response injection to measure (sans-IO).
+
+A device that takes its excitation over a serial line gets one injection step (a new
+target, and a sample of the response) per round trip of a few short commands. The
+line's character rate bounds the steps per second; the samples come at that rate at
+best, and the capture's Nyquist frequency bounds the tones worth sending: a tone
+above it is aliased, and the samples cannot tell its response from a lower tone's.
+
+``WirePlan`` turns a baud rate and the characters of one step into the expected
+sample rate and the highest tone placed (``max_tone_hz``); ``split`` divides a
+requested band into the part measured and the tones left out, with the reason the
+API shows (``not_measured_hz``, ``not_measured_reason``).
+
+``Slap2Injection`` is the SLAP2's (``tuning.devices.DeviceLaw.injection``): closed
+loop through ``ma`` targets at the maximum profile, open loop through ``spwm``. A
+device without one (Z1100: no target or PWM can be streamed on its wire without
+leaving its own profile) gets a model-based frequency response instead.
+
+Nothing here imports drivers, hub or api (``servotune.frfbench`` builds the bench's
+plan from this).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Final, Protocol
+
+from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
+
+BITS_PER_CHAR: Final = 10  # start + 8 data + stop
+# Measured sample rates of injection runs are 60-80 % of the characters' limit (the
+# host's turnaround between commands, the status read after a refused-or-not check,
+# gaps when the host is loaded): plan with 70 %.
+EXPECTED_FRACTION: Final = 0.7
+# Tones up to 80 % of the expected Nyquist frequency: a run that gets somewhat fewer
+# samples than expected still resolves every tone it sent.
+TONE_FRACTION: Final = 0.8
+
+
+@dataclass(frozen=True, slots=True)
+class WirePlan:
+    """The pace of an injection over a serial line: ``chars_per_step`` characters (both
+    directions, echoes included) per target sent and sample read, at ``baud``."""
+
+    baud: int
+    chars_per_step: int
+
+    @property
+    def steps_per_s_limit(self) -> float:
+        """Steps per second if the line carried nothing else and never paused."""
+        return self.baud / BITS_PER_CHAR / self.chars_per_step
+
+    @property
+    def expected_rate_hz(self) -> float:
+        """The sample rate to plan with (``EXPECTED_FRACTION`` of the limit)."""
+        return EXPECTED_FRACTION * self.steps_per_s_limit
+
+    @property
+    def nyquist_hz(self) -> float:
+        return self.expected_rate_hz / 2.0
+
+    @property
+    def max_tone_hz(self) -> float:
+        """The highest tone an injection on this wire sends."""
+        return TONE_FRACTION * self.nyquist_hz
+
+    def reason(self) -> str:
+        return (
+            f"above what the wire resolves: at {self.baud} baud one injection step "
+            f"({self.chars_per_step} characters) allows {self.steps_per_s_limit:.1f} "
+            f"samples/s, about {self.expected_rate_hz:.0f}/s expected (Nyquist "
+            f"{self.nyquist_hz:.1f} Hz); tones are sent up to {self.max_tone_hz:.1f} Hz"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "baud": self.baud,
+            "chars_per_step": self.chars_per_step,
+            "steps_per_s_limit": round(self.steps_per_s_limit, 2),
+            "expected_rate_hz": round(self.expected_rate_hz, 2),
+            "nyquist_hz": round(self.nyquist_hz, 2),
+            "max_tone_hz": round(self.max_tone_hz, 2),
+        }
+
+
+class Injection(Protocol):
+    """How a device takes a frequency-response excitation on its wire."""
+
+    @property
+    def chars_per_step(self) -> int:
+        """Characters on the line per injection step (a target and a sample)."""
+        ...
+
+    @property
+    def overrides(self) -> Mapping[str, int]:
+        """Device parameters set for a closed-loop test and restored after it."""
+        ...
+
+    @property
+    def closed_loop(self) -> tuple[str, str]:
+        """(command, argument) each closed-loop target is sent as."""
+        ...
+
+    @property
+    def open_loop(self) -> tuple[str, str] | None:
+        """(command, argument) of an open-loop drive value; None: no open loop."""
+        ...
+
+    @property
+    def fault_flags(self) -> tuple[str, ...]:
+        """Status flags that end the test."""
+        ...
+
+    def wire(self, baud: int) -> WirePlan: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Slap2Injection:
+    """The SLAP2: a position target per step (``ma n``, ~10 characters with its echo
+    and reply) and one ``rp`` sample (~16): about 26 characters, 73.8 steps/s at 19200
+    baud. The maximum sv/sa for the test, so the profile generator follows the targets
+    (``servotune.profiles`` rebuilds what it does between them)."""
+
+    chars_per_step: int = 26
+    overrides: Mapping[str, int] = field(
+        default_factory=lambda: {"velocity": VELOCITY_MAX, "acceleration": ACCELERATION_MAX}
+    )
+    closed_loop: tuple[str, str] = ("move_absolute", "position")
+    open_loop: tuple[str, str] | None = ("open_loop_pwm", "pwm")
+    fault_flags: tuple[str, ...] = ("oc", "limit1", "limit2")
+
+    def wire(self, baud: int) -> WirePlan:
+        return WirePlan(baud, self.chars_per_step)
+
+
+def split(
+    wire: WirePlan, low_hz: float, high_hz: float, requested_tones_hz: tuple[float, ...]
+) -> tuple[float, tuple[float, ...]]:
+    """The top of the band measured on ``wire`` (``high_hz`` or ``max_tone_hz``) and the
+    requested tones above it (``requested_tones_hz``: the excitation the whole band
+    would have had). ValueError when even ``low_hz`` lies above what the wire resolves
+    (the caller answers 422 naming low_hz)."""
+    top = wire.max_tone_hz
+    if low_hz > top:
+        raise ValueError(f"low_hz {low_hz:g} Hz is {wire.reason()}: ask for low_hz <= {top:.1f} Hz")
+    if high_hz <= top:
+        return high_hz, ()
+    return top, tuple(f for f in requested_tones_hz if f > top)
