@@ -2,7 +2,7 @@
 
 Usage:
     python scripts/bench_draw.py DIST_OR_URL [--ab OTHER_DIST_OR_URL] [--rounds N] [--runs N]
-                                [--width 1600] [--height 1000]
+                                [--width 1200] [--height 800]
 
 DIST_OR_URL is a built client (a directory such as server/servotune/web_dist, served
 here on a free port: the scope lab needs no servotune server) or the URL of a running
@@ -16,7 +16,8 @@ plots of 50k samples 1 ms apart and a flag lane, a 50 s window) and times, per r
 Each time is the script time of ``stack.redraw()`` plus the raster of every canvas,
 forced by reading one pixel of each (Chromium records canvas commands and rasterises
 them lazily: without the read, a software canvas' raster would fall outside the timing).
-Prints p50/p95/max (ms) per round with the load average; ``--ab`` alternates two builds
+Prints min/p50/p95/max (ms) per round with the load average (on a loaded machine the
+min is the least disturbed figure); ``--ab`` alternates two builds
 round by round so both see the same machine load. A benchmark, not a test: the figures
 depend on the machine and its load.
 """
@@ -39,14 +40,31 @@ from typing import Any
 from playwright.async_api import Browser, async_playwright
 
 CHROMIUM = "/usr/bin/chromium"
+# The data sets: the lab's sine (1000 counts, 0.5 Hz), and the same with +-60 counts of
+# noise (a velocity or a following error looks like that: every column spans a range).
+DATA = {"smooth": 0, "noisy": 60}
 
-BENCH_JS = """async ({runs, samples, periodS}) => {
+BENCH_JS = """async ({runs, samples, periodS, noise, width, height}) => {
   const plots = 4;
-  const lab = window.__servotune.lab({samples, periodS, plots});
+  const lab = window.__servotune.lab({samples, periodS, plots, width, height});
   const frame = () => new Promise((r) => requestAnimationFrame(() => r()));
   const canvases = [...lab.el.querySelectorAll('canvas')];
   const raster = () => { for (const c of canvases) c.getContext('2d').getImageData(0, 0, 1, 1); };
-  const signal = (t) => Math.round(1000 * Math.sin(2 * Math.PI * 0.5 * t));
+  // Deterministic noise (xorshift32), +-noise counts around the lab's sine.
+  let seed = 12345;
+  const rnd = () => {
+    seed ^= seed << 13; seed ^= seed >>> 17; seed ^= seed << 5;
+    return (seed >>> 0) / 4294967296;
+  };
+  const sine = (t) => 1000 * Math.sin(2 * Math.PI * 0.5 * t);
+  const signal = (t) => Math.round(sine(t) + noise * (2 * rnd() - 1));
+  const b = lab.buffer;
+  if (noise) {
+    for (let c = 0; c < plots; c++) {
+      const col = b.channels.get(`ch${c}`);
+      for (let i = b.start; i < b.end; i++) col[i] = signal(b.t[i]) + c;
+    }
+  }
   let at = samples;
   const more = (m) => {
     const t = Array.from({length: m}, (_v, k) => (at + k) * periodS);
@@ -58,12 +76,16 @@ BENCH_JS = """async ({runs, samples, periodS}) => {
     return {type: 'telemetry', axis: 'lab', t, channels, flags: {move}};
   };
   await frame(); await frame();
+  // A new window length folds the (changed) data afresh.
+  lab.stack.windowS = samples * periodS * 0.999; lab.stack.redraw();
+  lab.stack.windowS = samples * periodS; lab.stack.redraw();
+  await frame();
   const time = (fn) => {
     const t0 = performance.now(); fn(); raster(); return performance.now() - t0;
   };
   const rolling = [], still = [];
   for (let i = 0; i < runs; i++) {
-    lab.buffer.push(more(100));
+    b.push(more(100));
     rolling.push(time(() => lab.stack.redraw()));
     await frame();
   }
@@ -74,7 +96,7 @@ BENCH_JS = """async ({runs, samples, periodS}) => {
   const q = (a) => {
     a.sort((x, y) => x - y);
     const at_ = (p) => Math.round(a[Math.min(a.length - 1, Math.floor(p * a.length))] * 100) / 100;
-    return {p50: at_(0.5), p95: at_(0.95), max: at_(1)};
+    return {min: at_(0), p50: at_(0.5), p95: at_(0.95), max: at_(1)};
   };
   lab.destroy();
   return {rolling: q(rolling), static: q(still)};
@@ -110,12 +132,16 @@ def served(target: str) -> Iterator[str]:
 
 
 async def bench(browser: Browser, base: str, runs: int, size: tuple[int, int]) -> Any:
-    page = await browser.new_page(viewport={"width": size[0], "height": size[1]})
+    page = await browser.new_page(viewport={"width": 1600, "height": 1000})
     try:
         await page.goto(f"{base}/#/overview")
         await page.wait_for_function("() => !!(window.__servotune && window.__servotune.lab)")
         await page.wait_for_timeout(500)
-        return await page.evaluate(BENCH_JS, {"runs": runs, "samples": 50_000, "periodS": 0.001})
+        out = {}
+        for name, noise in DATA.items():
+            args = {"runs": runs, "samples": 50_000, "periodS": 0.001, "noise": noise}
+            out[name] = await page.evaluate(BENCH_JS, {**args, "width": size[0], "height": size[1]})
+        return out
     finally:
         await page.close()
 
@@ -134,7 +160,7 @@ async def main() -> None:
         targets = [("A", option("--ab", "")), ("B", args[0])]
     rounds = int(option("--rounds", "3"))
     runs = int(option("--runs", "60"))
-    size = (int(option("--width", "1600")), int(option("--height", "1000")))
+    size = (int(option("--width", "1200")), int(option("--height", "800")))
     results: dict[str, list[Any]] = {}
     with contextlib.ExitStack() as stack:
         bases = [(label, stack.enter_context(served(t))) for label, t in targets]
@@ -151,9 +177,10 @@ async def main() -> None:
     print(f"\nmedians over {rounds} rounds of {runs} redraws (ms), load now {load()}:")
     for label, rs in results.items():
         med = {
-            f"{kind}.{q}": round(statistics.median(x[kind][q] for x in rs), 2)
+            f"{data}.{kind}.{q}": round(statistics.median(x[data][kind][q] for x in rs), 2)
+            for data in DATA
             for kind in ("rolling", "static")
-            for q in ("p50", "p95", "max")
+            for q in ("min", "p50", "p95", "max")
         }
         print(f"  {label}  {json.dumps(med)}")
 
