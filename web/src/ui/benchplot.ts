@@ -2,6 +2,7 @@
 // the target, the settling band and the settling instants drawn on the canvas.
 import uPlot from "uplot";
 import { h, replace, setText } from "../dom";
+import { fitLastTick } from "./plotkit";
 
 export interface Trace {
   id: string;
@@ -199,7 +200,8 @@ export class Overlay {
           space: 60,
           size: 24,
           gap: 2,
-          values: (_u, splits, _ai, _space, incr) => splits.map((v) => `${v.toFixed(decimals(incr))} s`),
+          // The last label is dropped when centring it on its tick would cut it.
+          values: (u, splits, _ai, _space, incr) => fitLastTick(u, splits.map((v) => `${v.toFixed(decimals(incr))} s`), splits),
         },
         {
           stroke: theme.axis,

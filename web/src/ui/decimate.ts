@@ -421,3 +421,69 @@ export function flagRuns(buffer: AxisBuffer, name: string, lo: number, hi: numbe
   if (!Number.isNaN(start)) runs.push(start, t[hi - 1] as number);
   return runs;
 }
+
+/**
+ * The runs of one flag (as flagRuns) for a window that moves forward, scanning only the
+ * samples that arrived since the last call. Runs that ended before the window are let
+ * go; a run that began before it keeps its real start (the plot clips it). Any other
+ * request — a window that moved back or ends earlier than the last (pause, zoom), a
+ * cleared buffer, a gap threshold more than 25 % off the one scanned with — scans the
+ * window afresh, once. The returned array is reused: draw it before the next call.
+ */
+export class FlagRunCache {
+  private closed: number[] = [];
+  /** Index in ``closed`` of the first run still in the window. */
+  private head = 0;
+  private open = Number.NaN;
+  /** Absolute sample numbers (AxisBuffer.base + index): scanned [from, next). */
+  private from = 0;
+  private next = 0;
+  private epoch = -1;
+  private gapS = Number.NaN;
+  private readonly out: number[] = [];
+
+  constructor(readonly name: string) {}
+
+  runs(buffer: AxisBuffer, lo: number, hi: number, gapS: number): number[] {
+    const out = this.out;
+    out.length = 0;
+    const col = buffer.flags.get(this.name);
+    if (!col || hi <= lo) return out;
+    const t = buffer.t;
+    const absLo = buffer.base + lo;
+    const absHi = buffer.base + hi;
+    const sameGap = gapS === this.gapS || Math.abs(gapS - this.gapS) <= 0.25 * this.gapS;
+    if (buffer.epoch !== this.epoch || !sameGap || absLo < this.from || absHi < this.next || this.next < buffer.base + buffer.start) {
+      this.closed.length = 0;
+      this.head = 0;
+      this.open = Number.NaN;
+      this.from = this.next = absLo;
+      this.epoch = buffer.epoch;
+      this.gapS = gapS;
+    }
+    const first = this.from - buffer.base;
+    for (let i = this.next - buffer.base; i < hi; i++) {
+      const ti = t[i] as number;
+      if (!Number.isNaN(this.open) && i > first && ti - (t[i - 1] as number) > this.gapS) {
+        this.closed.push(this.open, t[i - 1] as number);
+        this.open = Number.NaN;
+      }
+      const on = col[i] === 1;
+      if (on && Number.isNaN(this.open)) this.open = ti;
+      else if (!on && !Number.isNaN(this.open)) {
+        this.closed.push(this.open, ti);
+        this.open = Number.NaN;
+      }
+    }
+    this.next = absHi;
+    const startT = t[lo] as number;
+    while (this.head + 1 < this.closed.length && (this.closed[this.head + 1] as number) < startT) this.head += 2;
+    if (this.head > 256) {
+      this.closed.splice(0, this.head);
+      this.head = 0;
+    }
+    for (let k = this.head; k < this.closed.length; k++) out.push(this.closed[k] as number);
+    if (!Number.isNaN(this.open)) out.push(this.open, t[hi - 1] as number);
+    return out;
+  }
+}

@@ -11,6 +11,7 @@ import type { UnitPrefs } from "../units";
 import type { FlagDescriptor, PlotDescriptor } from "../wire.gen";
 import type { Frame } from "./decimate";
 import { drawStates, laneCount, lanePos, type StatesPanel } from "./statesplot";
+import { drawTraceLayer, rastered } from "./tracelayer";
 
 export const WINDOWS_S = [5, 10, 30, 60] as const;
 export const LANE = 1; // height of a flag trace
@@ -180,6 +181,22 @@ export function drawCursors(host: PlotHost, u: uPlot): void {
   ctx.restore();
 }
 
+/** Width of an x tick label (11 px monospace: about 0.62 em per character). */
+const TICK_CHAR_PX = 6.9;
+
+/** The x tick labels with the last one dropped when it would run past the canvas's right
+ * edge (uPlot centres a label on its tick: the right half would be cut). */
+export function fitLastTick(u: uPlot, labels: string[], splits: number[]): string[] {
+  const k = labels.length - 1;
+  const last = labels[k];
+  const at = splits[k];
+  if (last === undefined || at === undefined) return labels;
+  const px = devicePixelRatio || 1;
+  const right = u.bbox.left / px + u.valToPos(at, "x") + (last.length * TICK_CHAR_PX) / 2;
+  if (right > u.width) labels[k] = "";
+  return labels;
+}
+
 /** The uPlot options of ``panel`` (``isLast``: the bottom plot, which carries the x axis). */
 export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast: boolean): uPlot.Options {
   const { plot } = panel;
@@ -207,8 +224,9 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
         show: !host.isHidden(plot.name, name),
         spanGaps: false,
         // Slow channels hold their value until the next real sample: a step, not a
-        // line that seems to lead the fast ones.
-        paths: (u, si, i0, i1) => (host.frame?.slow.has(name) ? stepped : linear)?.(u, si, i0, i1) ?? null,
+        // line that seems to lead the fast ones. A decimated fast series is drawn by
+        // the trace layer (tracelayer.ts), not by a path.
+        paths: (u, si, i0, i1) => (rastered(host.frame, name) ? null : (host.frame?.slow.has(name) ? stepped : linear)?.(u, si, i0, i1)) ?? null,
         points: {
           size: 5,
           fill: host.color(i),
@@ -219,15 +237,17 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
       });
     });
   }
+  const line = !flags && !states;
   const xAxis: uPlot.Axis = {
     stroke: theme.axis,
     font: theme.font,
-    grid: { stroke: theme.grid, width: 1 },
+    // A line plot's grid is drawn by its trace layer (which replaces the plot area's pixels).
+    grid: line ? { show: false } : { stroke: theme.grid, width: 1 },
     ticks: { stroke: theme.grid, width: 1, size: isLast ? 4 : 0 },
     space: host.xMode === "clock" ? 96 : 70,
     size: isLast ? X_AXIS_PX : 4,
     gap: 2,
-    values: isLast ? (_u, splits, _ai, _space, incr) => splits.map((v) => host.xText(v, incr)) : (_u, splits) => splits.map(() => ""),
+    values: isLast ? (u, splits, _ai, _space, incr) => fitLastTick(u, splits.map((v) => host.xText(v, incr)), splits) : (_u, splits) => splits.map(() => ""),
   };
   const label = !flags && !states ? host.units.unit(panel.series[0] ?? "").unit || plot.unit : "";
   const yCommon = { font: theme.font, size: host.yAxisPx, gap: 4, label, labelSize: Y_LABEL_PX, labelGap: 0, labelFont: theme.font };
@@ -261,7 +281,7 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
           ...yCommon,
           stroke: theme.axis,
           space: 18,
-          grid: { stroke: theme.grid, width: 1 },
+          grid: { show: false }, // drawn by the trace layer
           ticks: { stroke: theme.grid, width: 1, size: 3 },
           values: (_u, splits, _ai, _space, incr) => splits.map((v) => axisNumber(v, incr)),
         };
@@ -300,7 +320,11 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
     hooks: {
       setSelect: [(u) => host.onSelect(u)],
       setCursor: [(u) => host.onCursor(panel, u)],
-      drawAxes: states ? [(u) => drawStates(u, states, host.theme, host.light, host.theme.mono)] : flags ? [(u) => drawFlags(host, panel, u)] : [],
+      drawAxes: states
+        ? [(u) => drawStates(u, states, host.theme, host.light, host.theme.mono)]
+        : flags
+          ? [(u) => drawFlags(host, panel, u)]
+          : [(u) => drawTraceLayer(host, panel.series, u)],
       draw: [(u) => drawCursors(host, u)],
     },
   };

@@ -16,7 +16,7 @@ import { formatValue } from "../format";
 import { store } from "../store";
 import type { UnitPrefs } from "../units";
 import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
-import { Cutter, flagRuns, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
+import { Cutter, FlagRunCache, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
 import { ScopeTools } from "./scopetools";
 import {
   clockText,
@@ -49,7 +49,6 @@ interface ScopePrefs {
   hidden: Record<string, string[]>;
   xMode: "clock" | "rel";
 }
-
 
 export { clockText, MARKER_PX, WINDOWS_S };
 
@@ -101,6 +100,11 @@ export class PlotStack implements PlotHost {
   private readonly prefsKey: string;
   private prefs: ScopePrefs;
   private readonly phone = window.matchMedia?.(PHONE);
+  /** Phones: one plot at a time, chosen with the tabs. Kept from the media query's change
+   * events: reading ``matches`` in every frame is a style query each time. */
+  private single = this.phone?.matches ?? false;
+  /** Flag runs per flag, scanned only for new samples. */
+  private readonly flagRuns = new Map<string, FlagRunCache>();
   private current = 0; // the plot shown on a phone
 
   constructor(
@@ -154,6 +158,7 @@ export class PlotStack implements PlotHost {
       this.rebuild();
     }, signal);
     this.phone?.addEventListener("change", () => {
+      this.single = this.phone?.matches ?? false;
       this.syncSingle();
       this.rebuild();
     });
@@ -262,11 +267,6 @@ export class PlotStack implements PlotHost {
 
   isHidden(plotName: string, name: string): boolean {
     return (this.prefs.hidden[plotName] ?? []).includes(name);
-  }
-
-  /** Phones: one plot at a time, chosen with the tabs. */
-  private get single(): boolean {
-    return this.phone?.matches ?? false;
   }
 
   private syncSingle(): void {
@@ -742,7 +742,7 @@ export class PlotStack implements PlotHost {
         continue;
       }
       if (p.plot.kind === "flags") {
-        p.runs = p.plot.series.map((name) => flagRuns(buffer, name, lo, hi, gapS));
+        p.runs = p.plot.series.map((name) => this.runsOf(name).runs(buffer, lo, hi, gapS));
         u.batch(() => {
           u.setData([flat, [null, null]] as uPlot.AlignedData, false);
           u.setScale("x", { min, max });
@@ -780,6 +780,15 @@ export class PlotStack implements PlotHost {
     const took = performance.now() - started;
     this.lastDrawMs = took;
     this.skipUntil = took > 8 ? started + 2 * took : 0;
+  }
+
+  private runsOf(name: string): FlagRunCache {
+    let cache = this.flagRuns.get(name);
+    if (!cache) {
+      cache = new FlagRunCache(name);
+      this.flagRuns.set(name, cache);
+    }
+    return cache;
   }
 
   destroy(): void {
