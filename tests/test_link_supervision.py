@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import random
 import threading
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -107,16 +106,14 @@ class ZLine:
 
 
 @contextlib.asynccontextmanager
-async def z_line(tmp_path: Path, verify_period_s: float = 2.0) -> AsyncIterator[ZLine]:
+async def z_line(tmp_path: Path) -> AsyncIterator[ZLine]:
     flash = tmp_path / "flash.json"
     _z1100_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z_BAUD)
     tap = Tap(chip)
     with PtySimulator(tap, baud=Z_BAUD) as sim:
         sink = RecordingSink()
-        config = Z1100LinkConfig(
-            link_id="chip", path=sim.path, baud=Z_BAUD, verify_period_s=verify_period_s
-        )
+        config = Z1100LinkConfig(link_id="chip", path=sim.path, baud=Z_BAUD)
         link = Z1100Link(config, SerialConnector(sim.path, Z_BAUD), sink)
         task = asyncio.create_task(link.run())
         try:
@@ -289,46 +286,6 @@ async def test_z1100_late_reply_is_dropped_and_not_taken_for_the_next_one(tmp_pa
         assert line.link.counters["retries"] > retries
         assert states_after(line.sink, index) == []
         # Every value read afterwards is the right one (no reply taken for another).
-        assert (await line.axis(0).read_params())["vmax"] == 54321
-        mark = line.tap.mark()
-        await line.axis(0).stop()
-        assert any(r.command is zcodec.Command.SET_ESTOP for r in line.requests_since(mark))
-
-
-async def test_z1100_starved_chip_answering_late_is_no_chip_reset(tmp_path: Path) -> None:
-    """A chip simulated on a starved host answers every request, but late and one at a
-    time (here: one reply per 150 ms, beyond the 100 ms reply timeout, for 3 s): the
-    driver's retries queue more requests, the replies trickle in behind them, and a
-    reply of a GetError (0 at rest) can be read as the answer to a reset witness or to
-    GetJob. That is a desynchronisation, never a chip reset (issue 8: no false alarms):
-    no axis is flagged reset, and afterwards every value reads right."""
-    async with z_line(tmp_path, verify_period_s=0.05) as line:
-        await line.axis(0).write_params({"vmax": 54321})
-        tap = line.tap
-        state = {"until": tap._now + 10.0, "next": 0.0}
-        trickle_s = 0.3
-
-        def starved(byte: int, out: bytes) -> bytes:
-            if len(out) != zcodec.REPLY_SIZE or tap._now >= state["until"]:
-                return out
-            release = max(tap._now, state["next"]) + trickle_s * random.random()
-            state["next"] = release
-            tap.send_late(out, release - tap._now)
-            return b""
-
-        desyncs = line.link.counters["desyncs"]
-        tap.rewrite = starved
-        await wait_for(lambda: tap._now >= state["until"], 10, "the starved spell")
-        await asyncio.sleep(2.0)  # the backlog drains; verification goes on
-        tap.rewrite = None
-        count = line.samples(0)
-        await wait_for(lambda: line.samples(0) > count + 5, 10, "polling to go on")
-        assert line.link.counters["desyncs"] + line.link.counters["retries"] > desyncs
-        print(dict(line.link.counters))
-        resets = [entry for entry in line.sink.health_log if entry[1] == "reset"]
-        assert resets == []
-        # The axes stand still: a stall read off another request's reply is false too.
-        assert not any("reset" in m or "stall" in m for _, _, m in line.sink.events)
         assert (await line.axis(0).read_params())["vmax"] == 54321
         mark = line.tap.mark()
         await line.axis(0).stop()

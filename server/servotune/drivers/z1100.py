@@ -15,12 +15,9 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
   retry is taken as success.
 * A Get can never be "forbidden while moving", nor unknown to the chip: a reply with
   those bits to a Get is the reply to *another* request (a late one: replies have no
-  header). It is a desynchronisation: counted (``desyncs``), the line is brought back
-  in step with a fence (an unknown command, ``codec.make_fence``: every reply before
-  its answer is late and dropped; a quiet line alone proves nothing on a starved
-  host), and the Get is sent again. Never a refusal, never the end of a session. The
-  same fence precedes every retry, follows a failed poll, and comes before a reset
-  cue is confirmed.
+  header). It is a desynchronisation: counted (``desyncs``), the line is left to go
+  quiet for a whole reply timeout (so whatever else was late arrives and is dropped),
+  and the Get is sent again. Never a refusal, never the end of a session.
 * A poll that still fails after its retries is counted and the poll goes on; the
   link shows ``error`` only after three failed poll cycles in a row and turns
   ``connected`` again with the next good one.
@@ -114,9 +111,6 @@ class Z1100LinkConfig:
     # Failed poll cycles in a row before the link shows ``error`` (one failed cycle on
     # a slow host is a retry, not an alarm).
     error_after_failures: int = 3
-    # How long to wait for the answer to a resynchronising fence (``_resync``): ten
-    # reply timeouts, so a host stalled for most of a second still gets in step.
-    fence_timeout_s: float = 1.0
 
 
 @dataclass(slots=True)
@@ -212,7 +206,7 @@ class Z1100Link(LinkEngine):
                 # before a retry the line must stay quiet for a whole reply timeout:
                 # whatever was late has then arrived (and is dropped) or is lost.
                 self._count("retries")
-                await self._resync(channel)
+                await self._drain_quiet(channel)
             stray = channel.discard_input()
             if stray:
                 # Late bytes (of a reply that timed out, or noise): counted and shown
@@ -247,14 +241,7 @@ class Z1100Link(LinkEngine):
                 )
                 continue
             if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
-                if request.command is None:
-                    raise ProtocolError(f"{name}: the chip does not know this command")
-                # The chip knows every command the driver builds: this is the late
-                # answer to a fence (or another request). A desync, sent again.
-                self._errors += 1
-                self._count("desyncs")
-                last_problem = f"reply 0x{int(reply.code):02X} belongs to another request"
-                continue
+                raise ProtocolError(f"{name}: the chip does not know this command")
             if reply.code & MOVING_BITS:
                 if attempt > 0 and request.command is codec.Command.SET_START:
                     return codec.Reply(codec.ReplyCode.OK)  # the lost first Start ran
@@ -263,45 +250,6 @@ class Z1100Link(LinkEngine):
                 self._stall_noted = True
             return reply
         raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
-
-    async def _resync(self, channel: ByteChannel) -> bool:
-        """Bring the line back in step after a reply came late or not at all.
-
-        Replies carry no header, and on a starved host (the simulator's, or a USB
-        adapter's) they can trickle in behind their requests, so a quiet line proves
-        nothing: the next request could still read a late reply of another (a
-        GetError's 0 taken for a reset witness: a false "chip reset"). Instead a fence
-        is sent, an unknown command (``codec.make_fence``): the chip answers in order,
-        so once the fence's reply is read, every earlier reply has arrived and been
-        dropped. Returns True then; False when the fence's reply did not come within
-        ``fence_timeout_s``, after also waiting for a quiet line (its late reply, if
-        any, is recognised later as belonging to another request)."""
-        stray = channel.discard_input()
-        dropped = len(stray)
-        await channel.write(codec.make_fence().encode())
-        decoder = codec.ReplyDecoder()
-        deadline = self._clock() + self.config.fence_timeout_s
-        fenced = False
-        while not fenced:
-            remaining = deadline - self._clock()
-            if remaining <= 0:
-                break
-            data = await channel.read_available(remaining)
-            if not data:
-                break
-            dropped += len(data)
-            for reply in decoder.feed(data):
-                if codec.is_fence_reply(reply):
-                    fenced = True
-                    dropped -= codec.REPLY_SIZE
-                    break
-        if dropped > 0:
-            self._errors += 1
-            self._count("dropped_bytes", dropped)
-        if not fenced:
-            self._count("fence_timeouts")
-            await self._drain_quiet(channel)
-        return fenced
 
     async def _drain_quiet(self, channel: ByteChannel) -> None:
         deadline = self._clock() + 1.0
@@ -379,7 +327,7 @@ class Z1100Link(LinkEngine):
         self._failed_cycles += 1
         self._count("desyncs")
         logger.info("%s: poll failed (%s), resynchronising", self.id, exc)
-        await self._resync(channel)
+        await self._drain_quiet(channel)
         if self._failed_cycles >= self.config.error_after_failures:
             if self._state != "error":
                 self._sink.on_event("error", None, f"{self.id}: {exc}")
@@ -595,8 +543,7 @@ class Z1100Link(LinkEngine):
         # Confirm with a second reading of all three witnesses after the line has gone
         # quiet: one late or misframed reply (the protocol has no header; on a stalled
         # host a reply can land after its request timed out) must not wipe the state.
-        if not await self._resync(self._require_channel()):
-            return  # the line is not in step: no evidence either way; read again later
+        await self._drain_quiet(self._require_channel())
         zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
         if len(zeros) >= 2:
             for each in self._motors:
@@ -614,8 +561,7 @@ class Z1100Link(LinkEngine):
         """A zero read once is confirmed only by reading zero again after the line has
         gone quiet (a late reply to an earlier request is drained first): the reset
         cue must survive a slow host (issue 8: no false alarms)."""
-        if not await self._resync(self._require_channel()):
-            return False  # not in step: no evidence; the next verify step reads again
+        await self._drain_quiet(self._require_channel())
         return await read() == 0
 
     async def _read_witness(self, axis: int, witness: str) -> int:

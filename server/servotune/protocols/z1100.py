@@ -866,27 +866,6 @@ def make_flash() -> Request:
     return Request(Command.SET_FLASH)
 
 
-# A command byte the chip does not know (the manual's table uses 0x00..0x48 and
-# 0x80..0xC6; 0x7C is in neither). The chip answers it, like every packet, in order,
-# with bit 1 set and data 0: the driver's fence for resynchronising a line whose
-# replies came late (drivers/z1100.py). Decision, the manual being silent on free
-# codes: should a chip ever answer 0x7C without bit 1, the fence simply never
-# matches and the driver falls back to waiting for a quiet line.
-FENCE_COMMAND_BYTE: Final = 0x7C
-
-
-def make_fence() -> Request:
-    """An unknown command whose only effect is a reply with bit 1 (see above)."""
-    return Request(FENCE_COMMAND_BYTE)
-
-
-def is_fence_reply(reply: Reply) -> bool:
-    """True for the chip's answer to :func:`make_fence` (bit 1, perhaps the stall
-    flag, nothing else, data 0)."""
-    rest = int(reply.code) & ~int(ReplyCode.STALL)
-    return rest == int(ReplyCode.UNKNOWN_COMMAND) and reply.data == 0
-
-
 def make_get(command: Command, axis: int | None = None) -> Request:
     """Any Get; ``axis`` is required for per-axis commands and refused otherwise."""
     info = COMMANDS[command]
