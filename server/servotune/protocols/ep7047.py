@@ -390,38 +390,62 @@ def start_type_of(code: int) -> StartType | int:
         return code
 
 
+# The PDO fields in packing order with their ranges, to name a field that does not fit.
+_OUTPUT_FIELDS: Final = (
+    ("ENC control", 0, UINT16_MAX),
+    ("set counter value", INT32_MIN, INT32_MAX),
+    ("STM control", 0, UINT16_MAX),
+    ("POS control", 0, UINT16_MAX),
+    ("target position", INT32_MIN, INT32_MAX),
+    ("velocity", INT16_MIN, INT16_MAX),
+    ("start type", 0, UINT16_MAX),
+    ("acceleration", 0, UINT16_MAX),
+    ("deceleration", 0, UINT16_MAX),
+)
+_INPUT_FIELDS: Final = (
+    ("ENC status", 0, UINT16_MAX),
+    ("counter value", INT32_MIN, INT32_MAX),
+    ("latch value", INT32_MIN, INT32_MAX),
+    ("STM status", 0, UINT16_MAX),
+    ("POS status", 0, UINT16_MAX),
+    ("actual position", INT32_MIN, INT32_MAX),
+    ("actual velocity", INT16_MIN, INT16_MAX),
+    ("actual drive time", 0, UINT32_MAX),
+)
+
+
+def _pack(
+    packer: struct.Struct,
+    what: str,
+    ranges: tuple[tuple[str, int, int], ...],
+    values: tuple[int, ...],
+) -> bytes:
+    """Pack first: each struct code range-checks exactly its PDO field's range (H:
+    UINT16, I: UINT32, i: INT32, h: INT16) and never clips, so a frame that packs is
+    valid; the field checks run only to name what does not fit."""
+    try:
+        return packer.pack(*values)
+    except struct.error as exc:
+        for (name, minimum, maximum), value in zip(ranges, values, strict=True):
+            _check(name, int(value), minimum, maximum)
+        raise CodecError(f"{what} do not fit the process image: {exc}") from exc
+
+
 def encode_outputs(outputs: Outputs) -> bytes:
     """The 22 output bytes for ``outputs``; raises :class:`CodecError` if a field is out of
     its PDO range (nothing is clipped: a wrong value must never reach the drive)."""
-    # Pack first: each struct code range-checks exactly the PDO field's range (H: UINT16,
-    # i: INT32, h: INT16) and never clips, so a frame that packs is valid; the field
-    # checks run only to name what does not fit.
-    try:
-        return _OUTPUTS.pack(
-            outputs.enc_control,
-            outputs.set_counter_counts,
-            outputs.stm_control,
-            outputs.pos_control,
-            outputs.target_position_counts,
-            outputs.velocity_bp,
-            outputs.start_type,
-            outputs.acceleration_ms,
-            outputs.deceleration_ms,
-        )
-    except struct.error as exc:
-        for name, value, minimum, maximum in (
-            ("ENC control", outputs.enc_control, 0, UINT16_MAX),
-            ("set counter value", outputs.set_counter_counts, INT32_MIN, INT32_MAX),
-            ("STM control", outputs.stm_control, 0, UINT16_MAX),
-            ("POS control", outputs.pos_control, 0, UINT16_MAX),
-            ("target position", outputs.target_position_counts, INT32_MIN, INT32_MAX),
-            ("velocity", outputs.velocity_bp, INT16_MIN, INT16_MAX),
-            ("start type", outputs.start_type, 0, UINT16_MAX),
-            ("acceleration", outputs.acceleration_ms, 0, UINT16_MAX),
-            ("deceleration", outputs.deceleration_ms, 0, UINT16_MAX),
-        ):
-            _check(name, int(value), minimum, maximum)
-        raise CodecError(f"outputs do not fit the process image: {exc}") from exc
+    values = (
+        outputs.enc_control,
+        outputs.set_counter_counts,
+        outputs.stm_control,
+        outputs.pos_control,
+        outputs.target_position_counts,
+        outputs.velocity_bp,
+        outputs.start_type,
+        outputs.acceleration_ms,
+        outputs.deceleration_ms,
+    )
+    return _pack(_OUTPUTS, "outputs", _OUTPUT_FIELDS, values)
 
 
 def decode_outputs(data: bytes) -> Outputs:
@@ -443,31 +467,17 @@ def decode_outputs(data: bytes) -> Outputs:
 
 def encode_inputs(inputs: Inputs) -> bytes:
     """The 24 input bytes for ``inputs``; raises :class:`CodecError` on out-of-range fields."""
-    # Pack first, as in encode_outputs (I: UINT32 as well).
-    try:
-        return _INPUTS.pack(
-            inputs.enc_status,
-            inputs.counter_counts,
-            inputs.latch_counts,
-            inputs.stm_status,
-            inputs.pos_status,
-            inputs.actual_position_counts,
-            inputs.actual_velocity_bp,
-            inputs.actual_drive_time_ms,
-        )
-    except struct.error as exc:
-        for name, value, minimum, maximum in (
-            ("ENC status", inputs.enc_status, 0, UINT16_MAX),
-            ("counter value", inputs.counter_counts, INT32_MIN, INT32_MAX),
-            ("latch value", inputs.latch_counts, INT32_MIN, INT32_MAX),
-            ("STM status", inputs.stm_status, 0, UINT16_MAX),
-            ("POS status", inputs.pos_status, 0, UINT16_MAX),
-            ("actual position", inputs.actual_position_counts, INT32_MIN, INT32_MAX),
-            ("actual velocity", inputs.actual_velocity_bp, INT16_MIN, INT16_MAX),
-            ("actual drive time", inputs.actual_drive_time_ms, 0, UINT32_MAX),
-        ):
-            _check(name, int(value), minimum, maximum)
-        raise CodecError(f"inputs do not fit the process image: {exc}") from exc
+    values = (
+        inputs.enc_status,
+        inputs.counter_counts,
+        inputs.latch_counts,
+        inputs.stm_status,
+        inputs.pos_status,
+        inputs.actual_position_counts,
+        inputs.actual_velocity_bp,
+        inputs.actual_drive_time_ms,
+    )
+    return _pack(_INPUTS, "inputs", _INPUT_FIELDS, values)
 
 
 def decode_inputs(data: bytes) -> Inputs:

@@ -189,14 +189,7 @@ class SerialChannel(ByteChannel):
             first_timeout_s=char_timeout_s,
             char_timeout_s=char_timeout_s,
         )
-        self._protocol.exchange = exchange
-        try:
-            self._protocol.send(data[:1])
-            exchange.step(time.monotonic())  # an echo may already sit in the buffer (stale)
-            result = await exchange.future
-        finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+        result = await self._run(exchange, data[:1])
         if result is None:  # the port closed meanwhile
             self._check_open()
         assert isinstance(result, EchoResult)
@@ -212,13 +205,7 @@ class SerialChannel(ByteChannel):
             first_timeout_s=first_timeout_s,
             char_timeout_s=char_timeout_s,
         )
-        self._protocol.exchange = exchange
-        try:
-            exchange.step(time.monotonic())
-            result = await exchange.future
-        finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+        result = await self._run(exchange, b"")
         if result is None:
             self._check_open()
             return None
@@ -237,15 +224,7 @@ class SerialChannel(ByteChannel):
             char_timeout_s=char_timeout_s,
             first_reply_timeout_s=first_reply_timeout_s,
         )
-        self._protocol.exchange = exchange
-        try:
-            if data:
-                self._protocol.send(data[:1])
-            exchange.step(time.monotonic())  # an echo may already sit in the buffer (stale)
-            result = await exchange.future
-        finally:
-            exchange.timer.cancel()
-            self._protocol.exchange = None
+        result = await self._run(exchange, data[:1])
         echo = exchange.echo
         if echo is None:  # the port closed during the echo
             self._check_open()
@@ -254,6 +233,19 @@ class SerialChannel(ByteChannel):
         if reply is None and echo.echoed == len(data):
             self._check_open()
         return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
+
+    async def _run(self, exchange: _Exchange, first: bytes) -> EchoResult | bytes | None:
+        """Install ``exchange``, send ``first`` (the first payload byte, or nothing),
+        and wait for its outcome, advanced from ``data_received``."""
+        self._protocol.exchange = exchange
+        try:
+            if first:
+                self._protocol.send(first)
+            exchange.step(time.monotonic())  # what already sits in the buffer (stale echo)
+            return await exchange.future
+        finally:
+            exchange.timer.cancel()
+            self._protocol.exchange = None
 
     async def read_available(self, timeout_s: float) -> bytes:
         await self._wait_data(timeout_s)
