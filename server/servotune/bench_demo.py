@@ -366,6 +366,13 @@ class BenchReport:
             levels = ", ".join(f"{k} {v}" for k, v in sorted(self.stream.events.items()))
             resets = sum(self.stream.resets.values())
             out.append(f"events: {levels or 'none'}; reset banners: {resets}")
+            # The warnings and errors themselves: a count alone cannot tell a true alarm
+            # (an autopilot move refused for a reason) from a false one.
+            alarms = Counter(
+                text for text in self.stream.event_texts if not text.startswith("info:")
+            )
+            for text, count in alarms.most_common(8):
+                out.append(f"  {count:3d} x {text[:150]}")
         return out
 
 
