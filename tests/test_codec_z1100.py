@@ -456,3 +456,41 @@ def test_a_stray_header_byte_swallows_part_of_the_next_packet() -> None:
     events = decoder.feed(b"\x5a" + codec.make_get_kab(0).encode())
     assert len(events) == 1 and isinstance(events[0], codec.BadRequest)
     assert decoder.pending == 0
+
+
+# --- the fence (resynchronisation; decision in the codec) ----------------------------
+
+
+def test_the_fence_byte_is_unknown_to_the_chip() -> None:
+    fence = codec.make_fence()
+    assert codec.resolve(fence.command_byte) is None
+    assert fence.command is None and fence.axis is None
+    assert codec.decode_request(fence.encode()) == fence
+
+
+@pytest.mark.parametrize(
+    ("code", "expected"),
+    [
+        (ReplyCode.UNKNOWN_COMMAND, True),
+        (ReplyCode.UNKNOWN_COMMAND | ReplyCode.STALL, True),  # bit 7 rides on anything
+        (ReplyCode.OK, False),
+        (ReplyCode.STALL, False),
+        (ReplyCode.UNKNOWN_COMMAND | ReplyCode.CHECKSUM, False),
+        (ReplyCode.UNKNOWN_COMMAND | ReplyCode.MOVING_2, False),
+        (ReplyCode.MOVING_1, False),
+        (ReplyCode.TIMEOUT, False),
+    ],
+)
+def test_is_fence_reply(code: ReplyCode, expected: bool) -> None:
+    for data in (0, 0x12345678):
+        assert codec.is_fence_reply(codec.Reply(code, data)) is expected
+
+
+def test_no_reply_to_a_known_request_looks_like_a_fence_reply() -> None:
+    """What a chip can answer to a known command never carries bit 1 alone: the codes
+    a known request earns are OK, its rejections 0, 2, 3, 4..6 and the stall bit."""
+    possible = [ReplyCode.OK, ReplyCode.CHECKSUM, ReplyCode.TIMEOUT, ReplyCode.COMMUNICATION]
+    possible += [codec.moving_flag(axis) for axis in range(codec.AXES)]
+    for code in possible:
+        for stall in (ReplyCode.OK, ReplyCode.STALL):
+            assert not codec.is_fence_reply(codec.Reply(code | stall))

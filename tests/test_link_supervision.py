@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import random
 import threading
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -46,18 +47,34 @@ class Tap:
         # (received byte, device output) -> what goes on the wire instead
         self.rewrite: Callable[[int, bytes], bytes] | None = None
         self._late: list[tuple[float, bytes]] = []
+        self._in_order = False
         self._now = 0.0
 
     def power_cycle(self, address: int | None = None) -> None:
         self.device.power_cycle(address)  # type: ignore[attr-defined]
 
-    def send_late(self, data: bytes, delay_s: float) -> None:
-        """Put ``data`` on the wire ``delay_s`` after the current simulation time."""
-        self._late.append((self._now + delay_s, data))
+    def send_late(self, data: bytes, delay_s: float, *, in_order: bool = False) -> None:
+        """Put ``data`` on the wire ``delay_s`` after the current simulation time.
+
+        ``in_order``: a device that is slow to answer, as on a real line: whatever it
+        sends later waits behind ``data`` (and is due no earlier than it). Without it,
+        later output overtakes ``data``, which no single serial device can do."""
+        due = self._now + delay_s
+        if in_order and self._late:
+            due = max(due, self._late[-1][0])
+        self._late.append((due, data))
+        self._in_order = in_order
+
+    def _hold_behind_late(self, out: bytes) -> bytes:
+        # Output of a device answering late in order queues behind what is held back.
+        if out and self._late and self._in_order:
+            self._late.append((self._late[-1][0], out))
+            return b""
+        return out
 
     def advance_to(self, t_s: float) -> bytes:
         self._now = max(self._now, t_s)
-        out = self.device.advance_to(t_s)
+        out = self._hold_behind_late(self.device.advance_to(t_s))
         due = [item for item in self._late if item[0] <= t_s]
         if due:
             self._late = [item for item in self._late if item[0] > t_s]
@@ -70,7 +87,7 @@ class Tap:
         out = self.device.receive(byte)
         if self.rewrite is not None:
             out = self.rewrite(byte, out)
-        return out
+        return self._hold_behind_late(out)
 
     def mark(self) -> int:
         with self._lock:
@@ -106,15 +123,17 @@ class ZLine:
 
 
 @contextlib.asynccontextmanager
-async def z_line(tmp_path: Path) -> AsyncIterator[ZLine]:
+async def z_line(tmp_path: Path, *, verify_period_s: float = 2.0) -> AsyncIterator[ZLine]:
     flash = tmp_path / "flash.json"
     _z1100_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z_BAUD)
     tap = Tap(chip)
     with PtySimulator(tap, baud=Z_BAUD) as sim:
         sink = RecordingSink()
-        config = Z1100LinkConfig(link_id="chip", path=sim.path, baud=Z_BAUD)
-        link = Z1100Link(config, SerialConnector(sim.path, Z_BAUD), sink)
+        link_config = Z1100LinkConfig(
+            link_id="chip", path=sim.path, baud=Z_BAUD, verify_period_s=verify_period_s
+        )
+        link = Z1100Link(link_config, SerialConnector(sim.path, Z_BAUD), sink)
         task = asyncio.create_task(link.run())
         try:
             await wait_for(lambda: link.state == "connected", 10, "the chip link")
@@ -273,7 +292,9 @@ async def test_z1100_late_reply_is_dropped_and_not_taken_for_the_next_one(tmp_pa
         def late_reply(byte: int, out: bytes) -> bytes:
             if armed.is_set() and len(out) == zcodec.REPLY_SIZE:
                 armed.clear()
-                tap.send_late(out, 0.13)  # after the 100 ms reply timeout
+                # After the 100 ms reply timeout; the chip answers in order, so what it
+                # answers next comes after this.
+                tap.send_late(out, 0.13, in_order=True)
                 return b""
             return out
 
@@ -286,6 +307,73 @@ async def test_z1100_late_reply_is_dropped_and_not_taken_for_the_next_one(tmp_pa
         assert line.link.counters["retries"] > retries
         assert states_after(line.sink, index) == []
         # Every value read afterwards is the right one (no reply taken for another).
+        assert (await line.axis(0).read_params())["vmax"] == 54321
+        mark = line.tap.mark()
+        await line.axis(0).stop()
+        assert any(r.command is zcodec.Command.SET_ESTOP for r in line.requests_since(mark))
+
+
+async def test_z1100_starved_chip_answering_late_is_no_chip_reset(tmp_path: Path) -> None:
+    """A host so starved that replies trickle in behind their requests (each reply
+    held back 0..300 ms, in order, for 10 s: many land after their 100 ms timeout,
+    while the retry is already out). No reply may be taken for another's: a late
+    GetError 0 read as GetVmax would be a "chip reset" witness (seen in the demo
+    under a CPU hog). Before the fence: 2 of 6 runs raised a false reset."""
+    async with z_line(tmp_path, verify_period_s=0.05) as line:
+        await line.axis(0).write_params({"vmax": 54321})
+        # Every motor holds a target job: then the verify step also reads GetJob, whose
+        # reset cue (0, free shaft) a late GetError 0 at rest imitates exactly.
+        for axis in range(3):
+            motor = line.link.motor(axis)
+            assert motor.position is not None
+            await line.axis(axis).command("go_to_target", {"target": motor.position + 300})
+        await wait_for(
+            lambda: all(m.job == zcodec.Job.TARGET for m in map(line.link.motor, range(3))),
+            5,
+            "the target jobs",
+        )
+        await asyncio.sleep(0.5)
+        await wait_for(
+            lambda: not any(line.link.motor(axis).running for axis in range(3)), 10, "the moves"
+        )
+        tap = line.tap
+        rng = random.Random(8)
+        starving = threading.Event()
+        starving.set()
+
+        def late(byte: int, out: bytes) -> bytes:
+            if starving.is_set() and len(out) == zcodec.REPLY_SIZE:
+                tap.send_late(out, rng.random() * 0.3, in_order=True)
+                return b""
+            return out
+
+        retries = line.link.counters["retries"]
+        events = len(line.sink.events)
+        health = len(line.sink.health_log)
+        at_rest = {axis: line.sink.samples[line.link.axis_id(axis)][-1] for axis in range(3)}
+        first = {axis: line.samples(axis) for axis in range(3)}
+        tap.rewrite = late
+        await asyncio.sleep(10)
+        starving.clear()
+        await asyncio.sleep(1.5)  # what was held back arrives; polling goes on
+        assert line.link.counters["retries"] > retries  # the fault did bite
+        # The motors rest: every sample read meanwhile shows the rest position (a reply
+        # taken for another's would show a following error, a speed or a gain).
+        for axis in range(3):
+            rest = at_rest[axis].channels["position"]
+            seen = line.sink.samples[line.link.axis_id(axis)][first[axis] :]
+            wrong = [
+                (s.channels["position"], s.channels["following_error"])
+                for s in seen
+                if s.channels["position"] != rest or abs(s.channels["following_error"] or 0) > 2
+            ]
+            assert wrong == [], (axis, rest, len(seen))
+        resets = [entry for entry in line.sink.health_log[health:] if entry[1] == "reset"]
+        assert resets == []
+        alarms = [
+            text for _, _, text in line.sink.events[events:] if "reset" in text or "stall" in text
+        ]
+        assert alarms == []
         assert (await line.axis(0).read_params())["vmax"] == 54321
         mark = line.tap.mark()
         await line.axis(0).stop()

@@ -196,6 +196,12 @@ def test_unknown_commands_set_bit_1(bench: Bench, byte: int) -> None:
     assert reply.error_message() == "unknown command"
 
 
+def test_the_fence_is_answered_as_unknown_and_changes_nothing(bench: Bench) -> None:
+    before = bench.get(Command.GET_VMAX, 0)
+    assert codec.is_fence_reply(bench.tx(codec.make_fence()))
+    assert bench.get(Command.GET_VMAX, 0) == before
+
+
 def test_bad_checksum_sets_bit_0_and_executes_nothing(bench: Bench) -> None:
     packet = bytearray(codec.make_set_vmax(0, 5000).encode())
     packet[6] ^= 0x01

@@ -80,7 +80,7 @@ class LinkStatus(BaseModel):
         description=(
             "what the link retried, resynchronised or dropped since start instead of "
             "alarming (retries, desyncs, dropped_bytes, restarts; EP7047: lost_frames, "
-            "overruns, watchdog_trips)"
+            "overruns, watchdog_trips; Z1100: fence_timeouts)"
         ),
     )
 

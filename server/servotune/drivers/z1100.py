@@ -15,9 +15,17 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
   retry is taken as success.
 * A Get can never be "forbidden while moving", nor unknown to the chip: a reply with
   those bits to a Get is the reply to *another* request (a late one: replies have no
-  header). It is a desynchronisation: counted (``desyncs``), the line is left to go
-  quiet for a whole reply timeout (so whatever else was late arrives and is dropped),
-  and the Get is sent again. Never a refusal, never the end of a session.
+  header). Nor is a known Set ever "unknown". Either is a desynchronisation: counted
+  (``desyncs``) and retried after a resynchronisation. Never a refusal, never the end
+  of a session.
+* Resynchronisation (before every retry, after a failed poll, and before a reset cue is
+  confirmed) is a *fence*: a command byte the chip does not know
+  (``codec.make_fence``), which it answers in order with reply bit 1. Every reply that
+  arrives before that answer was late and is dropped; once it is in, the line is in
+  step. Waiting for a quiet line instead proves nothing on a starved host, where late
+  replies trickle in behind their requests (issue 8: a GetError 0 read late was taken
+  for a reset witness). A fence unanswered within ``fence_timeout_s`` is counted
+  (``fence_timeouts``) and the line is then left to go quiet for a reply timeout.
 * A poll that still fails after its retries is counted and the poll goes on; the
   link shows ``error`` only after three failed poll cycles in a row and turns
   ``connected`` again with the next good one.
@@ -108,6 +116,9 @@ class Z1100LinkConfig:
     status_every: int = 4
     verify_period_s: float = 2.0
     reconnect_max_s: float = 5.0
+    # How long the answer to a fence may take: late replies queued before it arrive
+    # first, so this covers the worst lateness the line tolerates (10 replies' worth).
+    fence_timeout_s: float = 1.0
     # Failed poll cycles in a row before the link shows ``error`` (one failed cycle on
     # a slow host is a retry, not an alarm).
     error_after_failures: int = 3
@@ -172,6 +183,8 @@ class Z1100Link(LinkEngine):
         self._last_status_t = 0.0
         self._last_latch_t = 0.0
         self._transactions = 0
+        # Fences whose answer did not come (a line worse than merely late).
+        self._counters["fence_timeouts"] = 0
 
     # --- identity ---------------------------------------------------------------------
 
@@ -203,10 +216,9 @@ class Z1100Link(LinkEngine):
                 # Replies have no header, and a rotation of a valid reply sums to 0 as
                 # well: a late reply to the failed attempt, or its tail plus the head
                 # of the next reply, would decode as a wrong but "valid" reply. So
-                # before a retry the line must stay quiet for a whole reply timeout:
-                # whatever was late has then arrived (and is dropped) or is lost.
+                # before a retry the line is brought back in step with a fence.
                 self._count("retries")
-                await self._drain_quiet(channel)
+                await self._resync(channel)
             stray = channel.discard_input()
             if stray:
                 # Late bytes (of a reply that timed out, or noise): counted and shown
@@ -240,8 +252,16 @@ class Z1100Link(LinkEngine):
                     f"({codec.error_message(reply.code) or 'unknown command'})"
                 )
                 continue
-            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
+            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND and request.command is None:
                 raise ProtocolError(f"{name}: the chip does not know this command")
+            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
+                # Every known command is known to the chip: this is the (late) answer
+                # to a fence, and the Set's own reply is still to come. Not executed
+                # as far as we know: retried after a resynchronisation.
+                self._errors += 1
+                self._count("desyncs")
+                last_problem = "the reply to a fence came instead of this command's"
+                continue
             if reply.code & MOVING_BITS:
                 if attempt > 0 and request.command is codec.Command.SET_START:
                     return codec.Reply(codec.ReplyCode.OK)  # the lost first Start ran
@@ -250,6 +270,36 @@ class Z1100Link(LinkEngine):
                 self._stall_noted = True
             return reply
         raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
+
+    async def _resync(self, channel: ByteChannel) -> None:
+        """Bring the line back in step: send a fence and drop every reply that arrives
+        before its answer (those answered earlier requests). The chip answers in order,
+        so after the fence's answer nothing late is left on the line. Falls back to a
+        quiet line when the fence itself goes unanswered within ``fence_timeout_s``."""
+        stray = channel.discard_input()
+        if stray:
+            self._errors += 1
+            self._count("dropped_bytes", len(stray))
+        await channel.write(codec.make_fence().encode())
+        decoder = codec.ReplyDecoder()
+        deadline = self._clock() + self.config.fence_timeout_s
+        while True:
+            remaining = max(deadline - self._clock(), 0.0)
+            data = await channel.read_available(remaining)
+            if not data:
+                break
+            for reply in decoder.feed(data):
+                if codec.is_fence_reply(reply):
+                    if decoder.pending:  # bytes after the answer: noise, dropped
+                        self._count("dropped_bytes", decoder.pending)
+                    return
+                self._errors += 1
+                self._count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
+            if remaining <= 0:
+                break
+        self._errors += 1
+        self._count("fence_timeouts")
+        await self._drain_quiet(channel)
 
     async def _drain_quiet(self, channel: ByteChannel) -> None:
         deadline = self._clock() + 1.0
@@ -327,7 +377,7 @@ class Z1100Link(LinkEngine):
         self._failed_cycles += 1
         self._count("desyncs")
         logger.info("%s: poll failed (%s), resynchronising", self.id, exc)
-        await self._drain_quiet(channel)
+        await self._resync(channel)
         if self._failed_cycles >= self.config.error_after_failures:
             if self._state != "error":
                 self._sink.on_event("error", None, f"{self.id}: {exc}")
@@ -540,10 +590,10 @@ class Z1100Link(LinkEngine):
             return
         if await self._read_witness(motor.axis, witness) != 0:
             return
-        # Confirm with a second reading of all three witnesses after the line has gone
-        # quiet: one late or misframed reply (the protocol has no header; on a stalled
-        # host a reply can land after its request timed out) must not wipe the state.
-        await self._drain_quiet(self._require_channel())
+        # Confirm with a second reading of all three witnesses after a fence: one late
+        # or misframed reply (the protocol has no header; on a stalled host a reply can
+        # land after its request timed out) must not wipe the state.
+        await self._resync(self._require_channel())
         zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
         if len(zeros) >= 2:
             for each in self._motors:
@@ -558,10 +608,10 @@ class Z1100Link(LinkEngine):
             await self._probe_params_only()
 
     async def _confirm_zero(self, read: Callable[[], Awaitable[int]]) -> bool:
-        """A zero read once is confirmed only by reading zero again after the line has
-        gone quiet (a late reply to an earlier request is drained first): the reset
-        cue must survive a slow host (issue 8: no false alarms)."""
-        await self._drain_quiet(self._require_channel())
+        """A zero read once is confirmed only by reading zero again after a fence (late
+        replies to earlier requests are dropped first): the reset cue must survive a
+        slow host (issue 8: no false alarms)."""
+        await self._resync(self._require_channel())
         return await read() == 0
 
     async def _read_witness(self, axis: int, witness: str) -> int:

@@ -878,3 +878,27 @@ def make_get(command: Command, axis: int | None = None) -> Request:
     if axis is not None:
         raise CodecError(f"{info.name} is for the whole chip and takes no axis")
     return Request(command)
+
+
+# --- the fence: bringing the line back in step ------------------------------------------
+# Replies carry no header and no echo of their request, so after a timeout nothing in a
+# reply says which request it answers. Decision (the manual is silent on recovery): the
+# host sends a command byte the chip does not know; the chip answers every request in
+# order, and this one with reply bit 1 ("Mevcut olmayan komut isteği geldi", manual
+# 002_*.txt), which no known request ever earns. Once that answer is in, every reply to
+# an earlier request has arrived (or is lost for good): the line is in step. 0x7C sits
+# in the unused gap between the last Set (0x4A, SetFlash) and the first Get (0x80).
+FENCE_BYTE: Final = 0x7C
+assert FENCE_BYTE not in _BY_BYTE, "the fence byte must be unknown to the chip"
+
+
+def make_fence() -> Request:
+    """The fence request: unknown to the chip, answered in order with reply bit 1."""
+    return Request(FENCE_BYTE)
+
+
+def is_fence_reply(reply: Reply) -> bool:
+    """Whether ``reply`` is the chip's answer to a fence: the "unknown command" bit and
+    no other rejection bit (bit 7, a stall, rides on any reply). The data word is not
+    looked at: the manual does not say what the chip puts there for a refused command."""
+    return (reply.code & REJECTION_MASK) == ReplyCode.UNKNOWN_COMMAND
