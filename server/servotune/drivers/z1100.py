@@ -182,6 +182,7 @@ class Z1100Link(LinkEngine):
         self._capture_index = 0
         self._last_status_t = 0.0
         self._last_latch_t = 0.0
+        self._reply_t = 0.0
         self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
         self._counters["fence_timeouts"] = 0
@@ -233,7 +234,7 @@ class Z1100Link(LinkEngine):
                 char_s = 10 / self.config.baud
                 self._last_latch_t = min(
                     written + codec.REQUEST_SIZE * char_s,
-                    self._clock() - codec.REPLY_SIZE * char_s,
+                    self._reply_t - codec.REPLY_SIZE * char_s,
                 )
             if reply is None:
                 self._errors += 1
@@ -311,17 +312,24 @@ class Z1100Link(LinkEngine):
             self._count("dropped_bytes", len(data))
 
     async def _read_reply(self, channel: ByteChannel) -> codec.Reply | None:
+        """The first valid reply within the reply timeout, or ``None``; sets
+        ``_reply_t`` to the moment its last byte came (stamped in the receive callback
+        where the channel can, else when this task resumed)."""
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.reply_timeout_s
         while True:
             # Past the deadline, still take what is already buffered (once): on a host
             # that was stalled the reply may have arrived while nobody looked.
             remaining = max(deadline - self._clock(), 0.0)
-            data = await channel.read_available(remaining)
+            # Wait for a whole reply's worth in one wake-up (the line delivers it a
+            # character at a time: 6 wake-ups per reply cost more than the rest).
+            need = max(codec.REPLY_SIZE - decoder.pending, 1)
+            data, t_s = await channel.read_at_least(need, remaining)
             if not data:
                 return None
             replies = decoder.feed(data)
             if replies:
+                self._reply_t = self._clock() if t_s is None else t_s
                 return replies[0]
             if remaining <= 0:
                 return None

@@ -89,6 +89,15 @@ class ByteChannel(Protocol):
 
     async def read_available(self, timeout_s: float) -> bytes: ...
 
+    async def read_at_least(self, count: int, timeout_s: float) -> tuple[bytes, float | None]:
+        """Wait until ``count`` bytes are buffered (or ``timeout_s``), then take all of
+        them: ``(data, t_s)``. ``t_s`` is ``time.monotonic()`` read in the receive
+        callback when the ``count``-th byte came (``None`` on a timeout, where ``data``
+        is whatever had come). One task wake-up for a fixed-size reply however many
+        pieces it arrives in (a paced line delivers it a character at a time).
+        """
+        ...
+
     def discard_input(self) -> bytes:
         """Drop and return everything received but not yet read."""
         ...

@@ -29,6 +29,7 @@ class _Exchange:
         *,
         payload: bytes = b"",
         terminator: int | None = None,
+        count: int | None = None,
         first_timeout_s: float,
         char_timeout_s: float,
         first_reply_timeout_s: float | None = None,
@@ -36,6 +37,7 @@ class _Exchange:
         self.protocol = protocol
         self.payload = payload
         self.terminator = terminator
+        self.count = count
         self.char_timeout_s = char_timeout_s
         self.first_reply_timeout_s = first_reply_timeout_s
         self.index = 0
@@ -98,6 +100,13 @@ class _Exchange:
                 self.restart_timer()
             else:
                 return
+        if self.count is not None:
+            if len(buffer) >= self.count:
+                data = bytes(buffer)
+                buffer.clear()
+                self.t_reply_s = now_s
+                self.finish(data)
+            return
         if self.terminator is not None:
             end = buffer.find(self.terminator)
             if end < 0:
@@ -254,6 +263,19 @@ class SerialChannel(ByteChannel):
         if not data:
             self._check_open()
         return data
+
+    async def read_at_least(self, count: int, timeout_s: float) -> tuple[bytes, float | None]:
+        self._check_open()
+        exchange = _Exchange(
+            self._protocol, count=count, first_timeout_s=timeout_s, char_timeout_s=timeout_s
+        )
+        result = await self._run(exchange, b"")
+        if isinstance(result, bytes):
+            return result, exchange.t_reply_s
+        data = self.discard_input()  # a timeout: what came so far
+        if not data:
+            self._check_open()
+        return data, None
 
     def discard_input(self) -> bytes:
         data = bytes(self._protocol.buffer)
