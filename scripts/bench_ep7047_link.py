@@ -21,6 +21,7 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -81,9 +82,16 @@ async def measure(seconds: float) -> None:
                 {"start_type": 0x0003, "target": 0, "velocity": 1000},  # ENDLESS_PLUS
             )
             await asyncio.sleep(0.5)
+            sim_pid = int(simulator.ready["pid"])
+            cycle = [t for t in threading.enumerate() if t.name.startswith("ep7047-cycle")]
+            cycle_id = cycle[0].native_id if cycle else None
             before, samples_before, t0 = os.times(), sink.samples, time.monotonic()
+            sim0 = _cpu_s(f"/proc/{sim_pid}/stat")
+            thread0 = _cpu_s(f"/proc/self/task/{cycle_id}/stat") if cycle_id else 0.0
             await asyncio.sleep(seconds)
             after, samples, wall = os.times(), sink.samples - samples_before, time.monotonic() - t0
+            sim1 = _cpu_s(f"/proc/{sim_pid}/stat")
+            thread1 = _cpu_s(f"/proc/self/task/{cycle_id}/stat") if cycle_id else 0.0
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
@@ -91,9 +99,17 @@ async def measure(seconds: float) -> None:
             await asyncio.to_thread(simulator.stop)
     cpu = (after.user - before.user) + (after.system - before.system)
     print(
-        f"{wall:.1f} s: {samples / wall:.0f} samples/s; this process {cpu / wall:.3f} CPU s/s, "
-        f"{cpu / max(samples, 1) * 1e6:.0f} us CPU per sample; load {os.getloadavg()[0]:.2f}"
+        f"{wall:.1f} s: {samples / wall:.0f} samples/s; this process {cpu / wall:.3f} CPU s/s "
+        f"(cycle thread {(thread1 - thread0) / wall:.3f}), "
+        f"{cpu / max(samples, 1) * 1e6:.0f} us CPU per sample; simulator process "
+        f"{(sim1 - sim0) / wall:.3f} CPU s/s; load {os.getloadavg()[0]:.2f}"
     )
+
+
+def _cpu_s(stat_path: str) -> float:
+    """utime + stime of a process or thread from its ``/proc/.../stat``."""
+    fields = Path(stat_path).read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> int:
