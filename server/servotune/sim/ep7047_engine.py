@@ -257,6 +257,7 @@ _DRIVING = (
     _Mode.CALI_LEAVE_CAM,
     _Mode.CALI_GO_SYNC,
 )
+_SETTING_NAMES = {obj: name for name, obj in POS_SETTINGS_SDO.items()}
 _CALIBRATION_SEARCH = (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC)
 _MODE_STATE = {
     _Mode.IDLE: DriveState.IDLE,
@@ -411,9 +412,9 @@ class Ep7047Engine:
 
         Raises KeyError for objects the engine does not hold.
         """
-        for name, setting in POS_SETTINGS_SDO.items():
-            if setting == obj:
-                return int(getattr(self.settings, name))
+        name = _SETTING_NAMES.get(obj)  # a dict: the drive state is read every 10 ms
+        if name is not None:
+            return int(getattr(self.settings, name))
         if obj == POS_STATUS_WORD:
             return int(self._diag)
         if obj == DRIVE_STATE:

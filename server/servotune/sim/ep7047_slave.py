@@ -166,7 +166,9 @@ class SimulatedEp7047Slave:
         self._wd_cycle = 0  # the watchdog expires after this cycle
         self._last_inputs = Inputs()
         self.watchdog_tripped = False
-        self.sdo_log: list[tuple[int, str, int, int, int]] = []
+        # Bounded like ``history``: the demo reads the drive state 100 times a second,
+        # and an unbounded log grew by ~8 million entries a day.
+        self.sdo_log: deque[tuple[int, str, int, int, int]] = deque(maxlen=100_000)
         self.history: deque[Exchange] = deque(maxlen=100_000)
 
     # --- identity (SII) -------------------------------------------------------------------
