@@ -8,6 +8,9 @@ per second and per 1000 samples delivered to the event loop. The figure covers t
 cycle thread (exchange, handshakes, sample) and the delivery to the loop; a
 counting sink stands in for the hub.
 
+It also prints the cycle thread's share and the simulator process's CPU (``/proc``,
+Linux), per second and per sample: the simulator pays for every exchange too.
+
 Run: ``PYTHONPATH=server python scripts/bench_ep7047_link.py [--seconds 10]``. Compare
 two versions on the same machine state (alternate them; a loaded host lowers the rate
 but the CPU per sample much less).
@@ -102,7 +105,8 @@ async def measure(seconds: float) -> None:
         f"{wall:.1f} s: {samples / wall:.0f} samples/s; this process {cpu / wall:.3f} CPU s/s "
         f"(cycle thread {(thread1 - thread0) / wall:.3f}), "
         f"{cpu / max(samples, 1) * 1e6:.0f} us CPU per sample; simulator process "
-        f"{(sim1 - sim0) / wall:.3f} CPU s/s; load {os.getloadavg()[0]:.2f}"
+        f"{(sim1 - sim0) / wall:.3f} CPU s/s, {(sim1 - sim0) / max(samples, 1) * 1e6:.0f} us per "
+        f"sample; load {os.getloadavg()[0]:.2f}"
     )
 
 
