@@ -284,7 +284,7 @@ async def test_fake_master_settings_are_written_by_sdo_and_read_back() -> None:
         with pytest.raises(InvalidArgumentError) as refused:
             await run.axis.write_params({"default_start_type": int(StartType.ABSOLUTE_CHANGE)})
         assert refused.value.field == "default_start_type"
-        assert not any(op == "write" for _, op, *_ in run.slave.sdo_log[before:])
+        assert not any(op == "write" for _, op, *_ in list(run.slave.sdo_log)[before:])
         assert (await run.axis.read_params())["velocity_max_bp"] == 6000
         # the console reads and writes CoE objects of the positioning interface
         sent, lines = await run.axis.console("0x9020:03")

@@ -848,6 +848,87 @@ def test_run_equals_stepping_cycle_by_cycle() -> None:
     assert stepped.plant.actual_counts != 0  # the script did move the axis
 
 
+def _engine_state(engine: Ep7047Engine) -> dict[str, object]:
+    """Every field of the engine and its plant (what a cycle may change)."""
+    fields = {k: v for k, v in vars(engine).items() if k not in ("plant", "settings", "config")}
+    fields["plant"] = (
+        engine.plant.shaft_counts,
+        engine.plant.counter_shift_counts,
+        engine.plant.encoder_offset_counts,
+    )
+    return fields
+
+
+def _demo_like_engine() -> Ep7047Engine:
+    # The demo's mechanics: a C-track pulse every turn (4096 counts), a cam.
+    plant = StepperPlant(
+        cam_counts=(6000.0, 6800.0), sync_period_counts=4096.0, sync_phase_counts=1024.0
+    )
+    settings = PosSettings(velocity_min_bp=50, target_window_counts=10)
+    config = DriveConfig(speed_range_steps_s=2000, counts_per_full_step=4096 / 200)
+    return Ep7047Engine(settings, config, plant)
+
+
+@pytest.mark.parametrize("chunk", [8, 3, 1000])
+def test_run_cruising_equals_stepping_field_by_field(chunk: int) -> None:
+    """The cruise stretches of ``run`` (ENDLESS, and a positioning move at its velocity)
+    leave every field of the engine exactly as cycle-by-cycle stepping does: checked
+    after every ``run`` of ``chunk`` cycles (8: one 2 ms exchange) through C-track
+    pulses with the latch armed, ENDLESS both ways, a long move in each direction,
+    a _CHANGE of velocity while cruising, Execute dropped, and an emergency stop."""
+    enable = StmControl.ENABLE
+    run_bits = PosControl.EXECUTE
+
+    def outputs(
+        start: StartType, target: int, velocity: int, pos: PosControl = run_bits
+    ) -> Outputs:
+        return Outputs(
+            enc_control=EncControl.ENABLE_LATCH_C,
+            stm_control=enable,
+            pos_control=pos,
+            target_position_counts=target,
+            velocity_bp=velocity,
+            start_type=start,
+            acceleration_ms=200,
+            deceleration_ms=300,
+        )
+
+    idle = Outputs(stm_control=enable)
+    script = [
+        (idle, 400),
+        (outputs(StartType.ENDLESS_PLUS, 0, 3000, PosControl.NONE), 1),
+        (outputs(StartType.ENDLESS_PLUS, 0, 3000), 8000),  # several turns: pulses
+        (outputs(StartType.ENDLESS_PLUS, 0, 3000, PosControl.NONE), 2000),  # Execute low
+        (idle, 200),
+        (outputs(StartType.ABSOLUTE, 40_000, 4000, PosControl.NONE), 1),
+        (outputs(StartType.ABSOLUTE, 40_000, 4000), 6000),  # cruise, brake, arrive
+        (idle, 300),
+        (outputs(StartType.ABSOLUTE, -30_000, 2500, PosControl.NONE), 1),
+        (outputs(StartType.ABSOLUTE, -30_000, 2500), 2500),
+        (outputs(StartType.ABSOLUTE_CHANGE, -30_000, 1200), 9000),  # slower, to the end
+        (idle, 300),
+        (outputs(StartType.ENDLESS_MINUS, 0, 5000, PosControl.NONE), 1),
+        (outputs(StartType.ENDLESS_MINUS, 0, 5000), 3000),
+        (outputs(StartType.ENDLESS_MINUS, 0, 5000, run_bits | PosControl.EMERGENCY_STOP), 2000),
+        (idle, 100),
+    ]
+    stepped, chunked = _demo_like_engine(), _demo_like_engine()
+    latches = 0
+    for out, cycles in script:
+        left = cycles
+        while left:
+            n = min(chunk, left)
+            for _ in range(n):
+                expected = stepped.step(out)
+            latches += expected.enc_status & 1
+            assert chunked.run(out, n) == expected
+            assert _engine_state(chunked) == _engine_state(stepped)
+            left -= n
+    # The script went through what the cruise has to stop for.
+    assert latches > 0
+    assert stepped.plant.shaft_counts != 0
+
+
 def test_run_skips_a_quiet_stretch_in_one_go() -> None:
     engine = Ep7047Engine()
     enabled = Outputs(stm_control=StmControl.ENABLE)

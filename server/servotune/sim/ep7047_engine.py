@@ -257,6 +257,7 @@ _DRIVING = (
     _Mode.CALI_LEAVE_CAM,
     _Mode.CALI_GO_SYNC,
 )
+_SETTING_NAMES = {obj: name for name, obj in POS_SETTINGS_SDO.items()}
 _CALIBRATION_SEARCH = (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC)
 _MODE_STATE = {
     _Mode.IDLE: DriveState.IDLE,
@@ -411,9 +412,9 @@ class Ep7047Engine:
 
         Raises KeyError for objects the engine does not hold.
         """
-        for name, setting in POS_SETTINGS_SDO.items():
-            if setting == obj:
-                return int(getattr(self.settings, name))
+        name = _SETTING_NAMES.get(obj)  # a dict: the drive state is read every 10 ms
+        if name is not None:
+            return int(getattr(self.settings, name))
         if obj == POS_STATUS_WORD:
             return int(self._diag)
         if obj == DRIVE_STATE:
@@ -461,10 +462,109 @@ class Ep7047Engine:
             if self._quiescent(outputs):
                 self.cycles += remaining - 1
                 break
+            cruised = self._cruise_cycles(outputs, remaining - 1)
+            if cruised:
+                remaining -= cruised
+                continue
             self._cycle(outputs)
             remaining -= 1
         self._cycle(outputs)
         return self._inputs(outputs)
+
+    def _cruise_cycles(self, outputs: Outputs, limit: int) -> int:
+        """Run up to ``limit`` cycles of a move at constant velocity in a tight loop;
+        returns how many (0: not cruising, run :meth:`_cycle`).
+
+        Exactly what :meth:`_cycle` would do (``test_run_equals_stepping_cycle_by_cycle``
+        compares every field): it applies only to an ENDLESS move or a positioning move
+        at its cruise velocity, Execute high, the same outputs as in the cycle before
+        and no _CHANGE to take - so no edge, no level-driven assignment and no timer
+        can act - and it stops before the first cycle that would do anything but add
+        ``velocity * CYCLE_S`` to the setpoint: a C-track pulse within reach, the
+        braking point (the ``fits`` test of :meth:`_advance_move`, here with the
+        constants of the stretch), the arrival. The same float additions in the same
+        order, so the setpoint comes out bit for bit. Why: the demo's axis moves most
+        of the time, and eight full cycles per 2 ms exchange were most of the
+        simulator's CPU (profiled: ~9 us each against ~1 us here).
+        """
+        mode = self._mode
+        velocity = self._velocity
+        if (
+            (mode is not _Mode.ENDLESS and mode is not _Mode.MOVE)
+            or velocity == 0.0
+            or abs(velocity) != self._cruise
+            or self._phase is not _Phase.CONST
+            or self._label is not None
+            or self._pulse_seen
+            or self._braking
+        ):
+            return 0
+        previous = self._prev_outputs
+        if previous is None or (previous is not outputs and previous != outputs):
+            return 0
+        if (
+            not int(outputs.pos_control) & _EXECUTE
+            or not int(outputs.stm_control) & _ENABLE
+            or self._emergency
+            or self._is_new_change(outputs)
+        ):
+            return 0
+        speed = abs(velocity)
+        direction = _sign(velocity)
+        if mode is _Mode.ENDLESS and direction != self._endless_direction:
+            return 0
+        step = velocity * CYCLE_S
+        plant = self.plant
+        shift = plant.counter_shift_counts
+        # The next C-track pulse ahead: the cruise stops a whole step short of it, and
+        # the cycle that passes it is a full one (which latches it).
+        period = plant.sync_period_counts
+        if period > 0:
+            phase = plant.sync_phase_counts
+            shaft = plant.shaft_counts
+            if direction > 0:
+                pulse_ahead = phase + (math.floor((shaft - phase) / period) + 1) * period
+            else:
+                pulse_ahead = phase + (math.ceil((shaft - phase) / period) - 1) * period
+        else:
+            pulse_ahead = math.inf * direction
+        reach = 2 * abs(step)
+        setpoint = self._setpoint
+        done = 0
+        if mode is _Mode.ENDLESS:
+            while done < limit:
+                if abs(pulse_ahead - (setpoint - shift)) <= reach:
+                    break
+                setpoint += step
+                done += 1
+        else:
+            target = self._target
+            creep = self._creep()
+            _, dec = self._rates(direction)
+            margin = self._margin
+            braking_distance = (speed * speed - creep * creep) / (2 * dec)
+            arrive_speed = max(creep, dec * CYCLE_S)
+            while done < limit:
+                remaining = target - setpoint
+                distance = abs(remaining)
+                if (
+                    distance <= _EPS_COUNTS * 2
+                    or _sign(remaining) != direction
+                    or speed < creep
+                    or (speed > creep and distance - speed * CYCLE_S - margin < braking_distance)
+                    or (speed * CYCLE_S >= distance and speed <= arrive_speed)
+                    or abs(pulse_ahead - (setpoint - shift)) <= reach
+                ):
+                    break
+                setpoint += step
+                done += 1
+        if done:
+            self.cycles += done
+            self._setpoint = setpoint
+            self._last_phase = _Phase.CONST
+            self._prev_outputs = outputs
+            plant.shaft_counts = setpoint - shift
+        return done
 
     def _quiescent(self, outputs: Outputs) -> bool:
         """True when a cycle with ``outputs`` would change nothing but ``cycles``.

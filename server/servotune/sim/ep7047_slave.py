@@ -157,12 +157,18 @@ class SimulatedEp7047Slave:
         self._frames_in_safeop = 0
         self._latched = SAFE_OUTPUTS
         self._latched_bytes: bytes | None = None  # what _latched was decoded from
+        # Fixed from config_map to the next unmap (the assignment is writable in PRE-OP
+        # only, and leaving SAFE-OP/OP for PRE-OP unmaps): read every exchange.
+        self._positioning = False
+        self._encoded: Inputs | None = None  # the Inputs that _in_buf was encoded from
         self._t0: float | None = None
         self._cycle_no = 0
         self._wd_cycle = 0  # the watchdog expires after this cycle
         self._last_inputs = Inputs()
         self.watchdog_tripped = False
-        self.sdo_log: list[tuple[int, str, int, int, int]] = []
+        # Bounded like ``history``: the demo reads the drive state 100 times a second,
+        # and an unbounded log grew by ~8 million entries a day.
+        self.sdo_log: deque[tuple[int, str, int, int, int]] = deque(maxlen=100_000)
         self.history: deque[Exchange] = deque(maxlen=100_000)
 
     # --- identity (SII) -------------------------------------------------------------------
@@ -278,6 +284,8 @@ class SimulatedEp7047Slave:
 
     def _unmap(self) -> None:
         self._mapped = None
+        self._positioning = False
+        self._encoded = None
         self._out_buf = self._in_buf = b""
         self._latched = SAFE_OUTPUTS
         self._latched_bytes = None
@@ -445,6 +453,8 @@ class SimulatedEp7047Slave:
                 sum(PDO_SIZES[p] for p in self._assign[0x1C13]),
             )
             self._mapped = sizes
+            self._positioning = self.positioning_interface
+            self._encoded = None
             self._out_buf = bytes(sizes[0])
             self._in_buf = bytes(sizes[1])
             self.request_state(SAFEOP_STATE)
@@ -462,12 +472,14 @@ class SimulatedEp7047Slave:
             lost, self._lost = self._lost, False
             if sent is None or lost or self._al_state < SAFEOP_STATE:
                 return 0
-            if self.positioning_interface:
-                self._in_buf = codec.encode_inputs(self._last_inputs)
+            inputs = self._last_inputs
+            if self._positioning and inputs is not self._encoded:
+                self._in_buf = codec.encode_inputs(inputs)
+                self._encoded = inputs
             if self._al_state == SAFEOP_STATE:
                 self._frames_in_safeop += 1
                 return 1  # inputs only: the outputs are not taken in SAFE-OP
-            if self.positioning_interface and sent != self._latched_bytes:
+            if self._positioning and sent != self._latched_bytes:
                 # Unchanged outputs keep the same object: decoding is skipped and the
                 # engine sees "same outputs as the cycle before" at a glance.
                 self._latched = codec.decode_outputs(sent)
