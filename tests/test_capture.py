@@ -318,18 +318,21 @@ async def test_capture_switches_ucon_on_and_restores_it(tmp_path: Path) -> None:
 
 @pytest.mark.xfail(
     strict=False,
-    reason="issue 9 not reliably met: the spread of the five overshoots was 1.22 pp in "
-    "one CI run on a quiet machine (two peaks taken unrefined: the cap on the parabola's "
-    "rise was the smaller drop to a neighbour; now the larger one) and 0.16, 0.94, 0.49 pp "
-    "in three runs after that fix (the 3-point vertex follows the latch-time jitter)",
+    reason="issue 9 not reliably met on a shared, loaded host: with the spline peak "
+    "(docs/metrics.md) 14 of 16 runs at load 4-6 gave 0.18-0.49 pp, one 1.25 pp (one "
+    "step read 23.0 %; a like record had stamps late by milliseconds), one ran out of "
+    "retakes at load 9; the overshoot's run-to-run noise is the stamps' jitter (sd 0.2 "
+    "pp at load 2-6, 0.4 pp at load 9), no longer the sampling phase. Settling: within "
+    "0.26 periods in every run",
 )
 async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
-    """Five position steps with the same gains on the demo's unloaded plant (about 30 %
+    """Five position steps with the same gains on the demo's unloaded plant (about 22 %
     overshoot with the factory gains): overshoot within 1 percentage point, settling
     within 2 sample periods. The samples of a captured axis are dense and stamped at
-    their latch moment, so the metrics no longer depend on which sample caught the
-    peak. The simulator runs in a process of its own, as in the demo (in this process
-    it would share the interpreter with the driver: host stalls, not the measurement)."""
+    their latch moment, and the peak is refined by a spline through them, so the
+    metrics no longer depend on which sample caught the peak. The simulator runs in a
+    process of its own, as in the demo (in this process it would share the interpreter
+    with the driver: host stalls, not the measurement)."""
     spec = SerialSimSpec("slap2", functools.partial(build_slap2_bus, tmp_path), 19200)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
@@ -357,6 +360,7 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                         await asyncio.sleep(0.02)
                     latest = sink.samples["line-0"][-1]
                     y0 = float(latest.channels["setpoint"] or 0)
+                    start = len(sink.samples["line-0"])
                     try:
                         await drive.command("move_relative", {"distance": 2000})
                     except DriverError:
@@ -364,11 +368,13 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                         # and resynchronises): not a measurement of the axis
                         disturbed += 1
                         continue
-                    start = len(sink.samples["line-0"])
                     t0 = drive.last_command_latch_s
                     assert t0 is not None
                     await asyncio.sleep(0.6)
-                samples = sink.samples["line-0"][start:]
+                # By latch time, not by what had arrived when this task resumed after
+                # the command: on a loaded host it may resume after the rise and the
+                # peak (a record of the ringing only, 0.15 % "overshoot", was seen).
+                samples = [s for s in sink.samples["line-0"][start:] if s.t > t0]
                 # back to the start (not recorded): the steps never walk into E2
                 try:
                     await drive.command("move_absolute", {"position": round(y0)})
@@ -384,11 +390,11 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 # A host that stalls the driver (a loaded machine) leaves gaps in the
                 # record, visible in the data: such a run measures the host, not the
                 # axis, and is taken again (at most 60 times).
-                # (Only rp for 0.2 s after the command; later rss and pe add up to two
-                # transactions to a sample: up to 3 rp periods.)
-                # (From t0 to the first sample the command's own rss check is on the
-                # wire: that interval is the protocol's, not the host's.)
-                gaps = [(b, b - a) for a, b in itertools.pairwise(times)]
+                # (For 0.2 s after the command rp and one rss, which makes a gap of
+                # about 1.9 periods; later rss and pe add up to two transactions to a
+                # sample: up to 3 rp periods. With ucon on nothing follows the move
+                # command but rp: the first sample is due a period after t0.)
+                gaps = [(b, b - a) for a, b in itertools.pairwise([t0, *times])]
                 if any(gap > (2.0 if t - t0 < 0.2 else 4.0) * period for t, gap in gaps):
                     disturbed += 1
                     continue
