@@ -391,7 +391,7 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 # record, visible in the data: such a run measures the host, not the
                 # axis, and is taken again (at most 60 times).
                 # (For 0.2 s after the command rp and one rss, which makes a gap of
-                # about 1.9 periods; later rss and pe add up to two transactions to a
+                # about 1.8 periods; later rss and pe add up to two transactions to a
                 # sample: up to 3 rp periods. With ucon on nothing follows the move
                 # command but rp: the first sample is due a period after t0.)
                 gaps = [(b, b - a) for a, b in itertools.pairwise([t0, *times])]

@@ -698,3 +698,20 @@ def test_peak_near_the_record_ends_is_refined_by_the_parabola() -> None:
     t = [-2.0, -1.0, 1.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]  # t = 1 stamped twice
     m = compute_metrics(t, y_of(t), t0_s=-3.0, y0=0.0, y_final=1000.0)
     assert m.overshoot_pct == pytest.approx(10.0)
+
+
+def test_spline_peak_of_extreme_data_stays_finite() -> None:
+    """Differences to the highest sample that overflow leave it to the parabola, and
+    the spline is computed on scaled data: no overflow (warnings are errors here)."""
+    t = [float(i) for i in range(9)]
+    huge = [-1e308, -1e308, -1e308, 0.0, 1e308, 0.0, -1e308, -1e308, -1e308]
+    m = compute_metrics(t, huge, t0_s=0.0, y0=0.0, y_final=1e308)
+    assert m.overshoot_pct == 0.0  # the peak sample is y_final itself, never passed
+    m = compute_metrics(t, [v / 10 for v in huge], t0_s=0.0, y0=-1e307, y_final=0.0)
+    assert m.overshoot_pct is not None and math.isfinite(m.overshoot_pct)
+    assert m.overshoot_pct == pytest.approx(100.0, rel=0.5)
+    tiny = [i * 1e-300 for i in range(8)]
+    y = [0.0, 1.0, 2.0, 3.0, 5.0, 3.0, 2.0, 1.0]
+    m = compute_metrics(tiny, y, t0_s=0.0, y0=0.0, y_final=1.0)
+    scaled = compute_metrics([i * 1.0 for i in range(8)], y, t0_s=0.0, y0=0.0, y_final=1.0)
+    assert m.overshoot_pct == pytest.approx(scaled.overshoot_pct)

@@ -429,13 +429,23 @@ def _spline_peak(t: list[float], values: list[float]) -> float | None:
     """The maximum, between the middle sample's neighbours, of the not-a-knot cubic
     spline through the samples (the middle one the highest, its successor possibly
     tied with it), capped like the parabola's vertex; None when the times are not
-    strictly increasing (a repeated time stamp: the parabola decides)."""
+    strictly increasing (a repeated time stamp: the parabola decides) or the
+    differences to the middle sample overflow."""
     h = len(values) // 2
     best = values[h]
-    # relative to the peak sample: no cancellation in times of a long record
-    x = np.asarray(t, dtype=float) - t[h]
-    y = np.asarray(values, dtype=float) - best
-    if not np.all(np.diff(x) > 0):
+    # Relative to the peak sample (no cancellation in the times of a long record) and
+    # scaled to [-1, 1]: the spline's arithmetic cannot overflow for any finite data.
+    dx = [v - t[h] for v in t]
+    dy = [v - best for v in values]
+    if not all(math.isfinite(d) for d in (*dx, *dy)):
+        return None
+    if not all(a < b for a, b in pairwise(dx)):
+        return None
+    x_scale = max(-dx[0], dx[-1])
+    y_scale = max(-d for d in dy)  # > 0: the sample before the peak is lower
+    x = np.asarray(dx) / x_scale
+    y = np.asarray(dy) / y_scale
+    if not np.all(np.diff(x) > 0):  # a spacing lost to the scaling
         return None
     spline = CubicSpline(x, y, bc_type="not-a-knot")
     # y[h - 1] < 0 = y[h] >= y[h + 1]: the spline has a maximum strictly between
@@ -443,7 +453,7 @@ def _spline_peak(t: list[float], values: list[float]) -> float | None:
     roots = spline.derivative().roots(extrapolate=False)
     inside = roots[(roots > x[h - 1]) & (roots < x[h + 1])]
     rise = float(np.max(spline(inside))) if inside.size else 0.0
-    return best + _capped_rise(rise, -y[h - 1], -y[h + 1])
+    return best + _capped_rise(rise * y_scale, -dy[h - 1], -dy[h + 1])
 
 
 def _parabola_peak(t: list[float], values: list[float]) -> float:
