@@ -346,6 +346,9 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
             assert isinstance(drive, Slap2Axis)
             await drive.write_params({"velocity": 65535, "acceleration": 65535})
             await drive.command("position_mode", {})
+            # latch time of the last command that moved the axis (pm, the way back)
+            t_back = drive.last_command_latch_s
+            assert t_back is not None
             results = []
             disturbed = 0
             warm_up = True
@@ -353,20 +356,40 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 await asyncio.sleep(0.3)
                 async with drive.capture("repeatability"):
                     await asyncio.sleep(0.1)
+                    latest = None
                     for _ in range(100):  # at rest before each step (at most 2 s)
-                        flags = sink.samples["line-0"][-1].flags
-                        if flags["inpos"] and not flags["move"]:
+                        # ... in a sample latched since the way back: a starved host
+                        # delivers none for a while, and the last one before shows the
+                        # previous step's end (its setpoint taken for y0 once made the
+                        # record a 0 % "overshoot" that never settled, and walked the
+                        # axis 2000 counts from its start)
+                        sample = sink.samples["line-0"][-1]
+                        setpoint = sample.channels["setpoint"]
+                        position = sample.channels["position"]
+                        if (
+                            sample.t > t_back
+                            and sample.flags["inpos"]
+                            and not sample.flags["move"]
+                            and setpoint is not None
+                            and position is not None
+                            and abs(position - setpoint) <= 5  # the in-position window
+                        ):
+                            latest = sample
                             break
                         await asyncio.sleep(0.02)
-                    latest = sink.samples["line-0"][-1]
+                    if latest is None:
+                        disturbed += 1
+                        continue
                     y0 = float(latest.channels["setpoint"] or 0)
                     start = len(sink.samples["line-0"])
                     try:
                         await drive.command("move_relative", {"distance": 2000})
                     except DriverError:
                         # a stalled host desynchronised the line (the driver says so
-                        # and resynchronises): not a measurement of the axis
+                        # and resynchronises): not a measurement of the axis (which
+                        # may have moved: the next rest is judged on newer samples)
                         disturbed += 1
+                        t_back = max(t_back, sink.samples["line-0"][-1].t)
                         continue
                     t0 = drive.last_command_latch_s
                     assert t0 is not None
@@ -383,7 +406,9 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                     # tell whether the module took the move; the next run starts from
                     # wherever the axis is
                     disturbed += 1
+                    t_back = max(t_back, sink.samples["line-0"][-1].t)
                     continue
+                t_back = drive.last_command_latch_s or t_back
                 times = [s.t for s in samples]
                 positions = [float(s.channels["position"] or 0) for s in samples]
                 period = statistics.median(b - a for a, b in itertools.pairwise(times))
