@@ -1,10 +1,12 @@
-"""Step-response metrics of a recorded run (sans-IO, pure Python, no clocks).
+"""Step-response metrics of a recorded run (sans-IO, no clocks; scipy for the peak).
 
 A run is the telemetry of one axis during a test: a position step or move, or a
 velocity step. The samples are *polled* (serial telemetry at tens of Hz, irregular
 spacing of about 10..60 ms), so every time below is quantised to the sample spacing;
 crossings of a level are located by linear interpolation between the two samples that
-bracket them, flags (booleans) cannot be interpolated and are timed at the first
+bracket them, the overshoot's peak by a cubic spline through the samples around the
+highest one (at their own times, so neither the sampling phase nor an irregular
+spacing moves it), flags (booleans) cannot be interpolated and are timed at the first
 sample that shows them.
 
 Conventions shared by every metric (``docs/metrics.md`` repeats them with formulas):
@@ -33,6 +35,9 @@ from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any, ClassVar, Final
 
+import numpy as np
+from scipy.interpolate import CubicSpline
+
 ARRIVAL_FLAGS: Final = frozenset({"inpos", "in_target"})
 """Flags that drop at move start and rise on arrival: timed by ``time_to_flag_s``.
 Every other flag (``oc``, ``stall``, ...) is totalled by ``time_in_flag_s``."""
@@ -43,6 +48,9 @@ DEFAULT_BAND_FRACTION: Final = 0.02
 STEADY_STATE_FRACTION: Final = 0.1
 STEADY_STATE_MIN_SAMPLES: Final = 3
 _CRITICAL_ZETA_TOLERANCE: Final = 1e-6
+PEAK_SPLINE_HALF_WIDTH: Final = 3
+"""Samples either side of the highest one that the overshoot's spline goes through
+(``overshoot_pct``; docs/metrics.md "The peak" says why three)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,13 +98,15 @@ class Metrics:
         "overshoot_pct": (
             "Largest excursion of y beyond y_final in the step direction as a percentage "
             "of |step|, 0 when y never passes y_final (None for a zero step). The peak "
-            "is the vertex of the parabola through the highest sample and its two "
-            "neighbours when both are lower and the vertex lies between them (for two "
-            "equal highest samples: the parabola symmetric about their midpoint through "
-            "the outer neighbour giving the smaller rise), raised "
-            "above that sample by no more than the larger drop to a neighbour (a "
-            "sampled peak is low by up to |y''| (gap/2)^2 / 2; the vertex is off by a "
-            "gap^3 term), else the highest sample."
+            "is the maximum, between the highest sample's neighbours, of the not-a-knot "
+            "cubic spline through that sample and 3 samples either side at their own "
+            "times; nearer the record's ends (or with a repeated time among them) the "
+            "vertex of the parabola through it and its two neighbours when both are "
+            "lower and the vertex lies between them (for two equal highest samples: the "
+            "parabola symmetric about their midpoint through the outer neighbour giving "
+            "the smaller rise); either raised above the highest sample by no more than "
+            "the larger drop to a neighbour (a sampled peak is low by up to |y''| "
+            "(gap/2)^2 / 2), else the highest sample (a plateau of three or more)."
         ),
         "peak_time_s": (
             "Time after t0 of the first sample furthest in the step direction (for a "
@@ -394,19 +404,67 @@ def _oscillations(beyond: list[float], band: float) -> int:
 
 
 def _refined_peak(t: list[float], values: list[float]) -> float:
-    """The largest of ``values``, refined by the parabola through it and its two
-    neighbours (see ``overshoot_pct``); the sample itself where that is not a concave
-    vertex between the neighbours."""
+    """The largest of ``values``, refined between its sampled neighbours (see
+    ``overshoot_pct``): the maximum of the not-a-knot cubic spline through it and
+    ``PEAK_SPLINE_HALF_WIDTH`` samples either side, or, nearer the record's ends, the
+    vertex of the parabola through it and its two neighbours; the sample itself where
+    neither gives a concave peak between the neighbours."""
     i = _argmax(values)
     best = values[i]
     if not 0 < i < len(values) - 1:
         return best
+    if values[i + 1] == best and i + 2 < len(values) and values[i + 2] == best:
+        return best  # a plateau of three or more: nothing says where in it the peak is
+    h = PEAK_SPLINE_HALF_WIDTH
+    if h <= i < len(values) - h:
+        refined = _spline_peak(t[i - h : i + h + 1], values[i - h : i + h + 1])
+        if refined is not None:
+            return refined
     if values[i + 1] == best and i + 2 < len(values):
         return _refined_plateau(t[i - 1 : i + 3], values[i - 1 : i + 3])
-    ta, tb = t[i - 1] - t[i], t[i + 1] - t[i]  # relative to the peak sample: no cancellation
-    ya, yb = values[i - 1] - best, values[i + 1] - best
+    return _parabola_peak(t[i - 1 : i + 2], values[i - 1 : i + 2])
+
+
+def _spline_peak(t: list[float], values: list[float]) -> float | None:
+    """The maximum, between the middle sample's neighbours, of the not-a-knot cubic
+    spline through the samples (the middle one the highest, its successor possibly
+    tied with it), capped like the parabola's vertex; None when the times are not
+    strictly increasing (a repeated time stamp: the parabola decides) or the
+    differences to the middle sample overflow."""
+    h = len(values) // 2
+    best = values[h]
+    # Relative to the peak sample (no cancellation in the times of a long record) and
+    # scaled to [-1, 1]: the spline's arithmetic cannot overflow for any finite data.
+    dx = [v - t[h] for v in t]
+    dy = [v - best for v in values]
+    if not all(math.isfinite(d) for d in (*dx, *dy)):
+        return None
+    if not all(a < b for a, b in pairwise(dx)):
+        return None
+    x_scale = max(-dx[0], dx[-1])
+    y_scale = max(-d for d in dy)  # > 0: the sample before the peak is lower
+    x = np.asarray(dx) / x_scale
+    y = np.asarray(dy) / y_scale
+    if not np.all(np.diff(x) > 0):  # a spacing lost to the scaling
+        return None
+    spline = CubicSpline(x, y, bc_type="not-a-knot")
+    # y[h - 1] < 0 = y[h] >= y[h + 1]: the spline has a maximum strictly between
+    # the neighbours, where its derivative vanishes.
+    roots = spline.derivative().roots(extrapolate=False)
+    inside = roots[(roots > x[h - 1]) & (roots < x[h + 1])]
+    rise = float(np.max(spline(inside))) if inside.size else 0.0
+    return best + _capped_rise(rise * y_scale, -dy[h - 1], -dy[h + 1])
+
+
+def _parabola_peak(t: list[float], values: list[float]) -> float:
+    """The vertex of the parabola through three samples, the middle one the highest
+    (a record edge: too few samples for the spline), or that sample where the
+    parabola is not concave with its vertex between the outer two."""
+    best = values[1]
+    ta, tb = t[0] - t[1], t[2] - t[1]  # relative to the peak sample: no cancellation
+    ya, yb = values[0] - best, values[2] - best
     if ta >= 0 or tb <= 0 or not (ya < 0 and yb < 0):
-        return best  # a record edge or a longer plateau: nothing to refine
+        return best  # a repeated time or a tie at the record's end: nothing to refine
     # y = a x^2 + b x through (ta, ya), (0, 0), (tb, yb)
     a = (ya / ta - yb / tb) / (ta - tb)
     b = ya / ta - a * ta
@@ -415,12 +473,17 @@ def _refined_peak(t: list[float], values: list[float]) -> float:
     x = -b / (2 * a)
     if not ta < x < tb:
         return best
-    # Never more above the sample than the larger drop to a neighbour: sparse or noisy
-    # samples must not make a peak up. (Not the smaller drop: when the true peak lies
-    # nearly midway to a neighbour, a true parabola rises above the peak sample by more
-    # than the drop to that neighbour, up to (1 + sqrt 2)^-2 of the gap's curvature, and
-    # that cap cut 8-12 counts off a 435-count peak in one of five identical steps.)
-    return best + min(max(0.0, -b * b / (4 * a)), max(-ya, -yb))
+    return best + _capped_rise(-b * b / (4 * a), -ya, -yb)
+
+
+def _capped_rise(rise: float, drop_before: float, drop_after: float) -> float:
+    """The refinement's rise above the peak sample, at least 0 and never more than the
+    larger drop to a neighbour: sparse or noisy samples must not make a peak up.
+    (Not the smaller drop: when the true peak lies nearly midway to a neighbour, a
+    true parabola rises above the peak sample by more than the drop to that
+    neighbour, up to (1 + sqrt 2)^-2 of the gap's curvature, and that cap cut 8-12
+    counts off a 435-count peak in one of five identical steps.)"""
+    return min(max(0.0, rise), max(drop_before, drop_after))
 
 
 def _refined_plateau(t: list[float], values: list[float]) -> float:
