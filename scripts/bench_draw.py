@@ -17,7 +17,8 @@ Each time is the script time of ``stack.redraw()`` plus the raster of every canv
 forced by reading one pixel of each (Chromium records canvas commands and rasterises
 them lazily: without the read, a software canvas' raster would fall outside the timing).
 Prints min/p50/p95/max (ms) per round with the load average (on a loaded machine the
-min is the least disturbed figure); ``--ab`` alternates two builds
+min is the least disturbed figure) and the trace-layer redraw counts (whole, shifted,
+reused); ``--ab`` alternates two builds
 round by round so both see the same machine load. A benchmark, not a test: the figures
 depend on the machine and its load.
 """
@@ -98,8 +99,10 @@ BENCH_JS = """async ({runs, samples, periodS, noise, width, height}) => {
     const at_ = (p) => Math.round(a[Math.min(a.length - 1, Math.floor(p * a.length))] * 100) / 100;
     return {min: at_(0), p50: at_(0.5), p95: at_(0.95), max: at_(1)};
   };
+  // Trace-layer redraws (whole / shifted / reused) over both phases; null: an older client.
+  const layers = lab.stack.layerCounts ? lab.stack.layerCounts() : null;
   lab.destroy();
-  return {rolling: q(rolling), static: q(still)};
+  return {rolling: q(rolling), static: q(still), layers};
 }"""
 
 
