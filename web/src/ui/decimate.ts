@@ -15,6 +15,8 @@ import type { AxisBuffer } from "../buffer";
 export const GAP_PERIODS = 5;
 export const SLOW_FILL = 0.6;
 export const SLOW_HOLD = 3;
+/** A cut keeps the last base period while the median period is within ±25 % of it. */
+export const PERIOD_HOLD = 0.25;
 
 export interface Frame {
   x: number[];
@@ -26,7 +28,8 @@ export interface Frame {
   decimated: boolean;
   /** Samples in the window (before decimation). */
   samples: number;
-  /** Typical base sample period (s), the median of the sampled intervals. */
+  /** Typical base sample period (s), the median of the sampled intervals (the last
+   * cut's while the median stays within PERIOD_HOLD of it). */
   periodS: number;
   /** Bumped by every cut (Cutter.cut): a drawing can tell which cut it shows. */
   serial: number;
@@ -191,6 +194,8 @@ export class Cutter {
     changedFromT: Number.NEGATIVE_INFINITY,
   };
   private at: number[] = [];
+  /** The base period of the last cut (see cut). */
+  private periodS = Number.NaN;
   private readonly columnsOf = new Map<string, (number | null)[]>();
   private readonly realOf = new Map<string, number[]>();
 
@@ -231,7 +236,14 @@ export class Cutter {
   ): Frame {
     const t = buffer.t;
     const n = Math.max(0, hi - lo);
-    const periodS = medianPeriod(t, lo, hi);
+    // The period (and with it the gap threshold) is held while the median stays within
+    // PERIOD_HOLD of it: the median of a batched stream (EP7047) moves a little from
+    // frame to frame, and a new threshold may move a gap marker in any column, so the
+    // trace layer would have to draw every column again instead of shifting them.
+    const measured = medianPeriod(t, lo, hi);
+    const held = this.periodS;
+    const periodS = Number.isFinite(held) && Number.isFinite(measured) && Math.abs(measured - held) <= PERIOD_HOLD * held ? held : measured;
+    this.periodS = periodS;
     const gapS = Number.isFinite(periodS) ? GAP_PERIODS * periodS : Number.POSITIVE_INFINITY;
     const frame = this.frame;
     frame.channels.clear();
