@@ -15,9 +15,13 @@ plots of 50k samples 1 ms apart and a flag lane, a 50 s window) and times, per r
 
 Each time is the script time of ``stack.redraw()`` plus the raster of every canvas,
 forced by reading one pixel of each (Chromium records canvas commands and rasterises
-them lazily: without the read, a software canvas' raster would fall outside the timing).
+them lazily: without the read, a software canvas' raster would fall outside the timing):
+wall time (performance.now) and the main thread's CPU time of the same span (``cpu``:
+thread timestamps of two trace marks around it; on a loaded machine wall time is
+mostly the wait for a core, CPU time stays near the cost of the redraw).
 Prints min/p50/p95/max (ms) per round with the load average (on a loaded machine the
-min is the least disturbed figure); ``--ab`` alternates two builds
+min is the least disturbed figure) and the trace-layer redraw counts (whole, shifted,
+reused); ``--ab`` alternates two builds
 round by round so both see the same machine load. A benchmark, not a test: the figures
 depend on the machine and its load.
 """
@@ -28,6 +32,7 @@ import asyncio
 import contextlib
 import functools
 import http.server
+import itertools
 import json
 import os
 import statistics
@@ -80,17 +85,22 @@ BENCH_JS = """async ({runs, samples, periodS, noise, width, height}) => {
   lab.stack.windowS = samples * periodS * 0.999; lab.stack.redraw();
   lab.stack.windowS = samples * periodS; lab.stack.redraw();
   await frame();
-  const time = (fn) => {
-    const t0 = performance.now(); fn(); raster(); return performance.now() - t0;
+  // Each timed redraw is bracketed by two trace marks (console.timeStamp), so the
+  // benchmark can read the main thread's CPU time of it from a trace as well.
+  const time = (fn, phase) => {
+    console.timeStamp(`bench-draw:${phase}:0`);
+    const t0 = performance.now(); fn(); raster(); const took = performance.now() - t0;
+    console.timeStamp(`bench-draw:${phase}:1`);
+    return took;
   };
   const rolling = [], still = [];
   for (let i = 0; i < runs; i++) {
     b.push(more(100));
-    rolling.push(time(() => lab.stack.redraw()));
+    rolling.push(time(() => lab.stack.redraw(), 'rolling'));
     await frame();
   }
   for (let i = 0; i < runs; i++) {
-    still.push(time(() => lab.stack.redraw()));
+    still.push(time(() => lab.stack.redraw(), 'static'));
     await frame();
   }
   const q = (a) => {
@@ -98,8 +108,10 @@ BENCH_JS = """async ({runs, samples, periodS, noise, width, height}) => {
     const at_ = (p) => Math.round(a[Math.min(a.length - 1, Math.floor(p * a.length))] * 100) / 100;
     return {min: at_(0), p50: at_(0.5), p95: at_(0.95), max: at_(1)};
   };
+  // Trace-layer redraws (whole / shifted / reused) over both phases; null: an older client.
+  const layers = lab.stack.layerCounts ? lab.stack.layerCounts() : null;
   lab.destroy();
-  return {rolling: q(rolling), static: q(still)};
+  return {rolling: q(rolling), static: q(still), layers};
 }"""
 
 
@@ -131,16 +143,53 @@ def served(target: str) -> Iterator[str]:
         server.server_close()
 
 
+def quantiles(values: list[float]) -> dict[str, float]:
+    v = sorted(values)
+    at = lambda p: round(v[min(len(v) - 1, int(p * len(v)))], 2)  # noqa: E731
+    return {"min": at(0), "p50": at(0.5), "p95": at(0.95), "max": at(1)} if v else {}
+
+
+def cpu_times(events: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """CPU time (ms) of each timed redraw, per phase, from the marks' thread timestamps.
+
+    Thread time counts only what the main thread ran: on a loaded machine it stays near
+    the cost of the redraw where wall time grows with the wait for a core."""
+    marks: dict[str, list[tuple[int, int]]] = {}
+    for e in events:
+        msg = (e.get("args", {}).get("data") or {}).get("message", "")
+        if e.get("name") == "TimeStamp" and msg.startswith("bench-draw:") and "tts" in e:
+            _, phase, edge = msg.split(":")
+            marks.setdefault(phase, []).append((int(edge), int(e["tts"])))
+    out = {}
+    for phase, seq in marks.items():
+        pairs = itertools.pairwise(seq)
+        took = [(b - a) / 1000 for (ea, a), (eb, b) in pairs if ea == 0 and eb == 1]
+        out[phase] = quantiles(took)
+    return out
+
+
 async def bench(browser: Browser, base: str, runs: int, size: tuple[int, int]) -> Any:
     page = await browser.new_page(viewport={"width": 1600, "height": 1000})
     try:
         await page.goto(f"{base}/#/overview")
         await page.wait_for_function("() => !!(window.__servotune && window.__servotune.lab)")
         await page.wait_for_timeout(500)
+        cdp = await page.context.new_cdp_session(page)
+        events: list[dict[str, Any]] = []
+        complete = asyncio.Event()
+        cdp.on("Tracing.dataCollected", lambda e: events.extend(e["value"]))
+        cdp.on("Tracing.tracingComplete", lambda _e: complete.set())
         out = {}
         for name, noise in DATA.items():
+            events.clear()
+            complete.clear()
+            trace = {"categories": "devtools.timeline", "transferMode": "ReportEvents"}
+            await cdp.send("Tracing.start", trace)
             args = {"runs": runs, "samples": 50_000, "periodS": 0.001, "noise": noise}
             out[name] = await page.evaluate(BENCH_JS, {**args, "width": size[0], "height": size[1]})
+            await cdp.send("Tracing.end")
+            await complete.wait()
+            out[name]["cpu"] = cpu_times(events)
         return out
     finally:
         await page.close()
@@ -182,7 +231,15 @@ async def main() -> None:
             for kind in ("rolling", "static")
             for q in ("min", "p50", "p95", "max")
         }
-        print(f"  {label}  {json.dumps(med)}")
+        print(f"  {label}  wall {json.dumps(med)}")
+        cpu = {
+            f"{data}.{kind}.{q}": round(statistics.median(x[data]["cpu"][kind][q] for x in rs), 2)
+            for data in DATA
+            for kind in ("rolling", "static")
+            for q in ("min", "p50", "p95", "max")
+            if all(x[data]["cpu"].get(kind) for x in rs)
+        }
+        print(f"  {label}  cpu  {json.dumps(cpu)}")
 
 
 if __name__ == "__main__":

@@ -65,9 +65,17 @@ export function replace(el: Element, ...children: Child[]): void {
   append(el, children);
 }
 
-/** Set textContent only when it changes (cheap for 10 Hz readouts). */
+/** Set the text of ``el`` only when it changes (cheap for 10 Hz readouts). An element
+ * that holds one text node keeps it and gets new data: assigning textContent would
+ * remove that node and insert a fresh one, a style recalc and a re-attach to layout
+ * for every update instead of a text change. */
 export function setText(el: Element, text: string): void {
-  if (el.textContent !== text) el.textContent = text;
+  const only = el.firstChild;
+  // (An empty text goes through textContent: it leaves no child, so ``:empty`` matches.)
+  if (text && only && only === el.lastChild && only.nodeType === Node.TEXT_NODE) {
+    const node = only as Text;
+    if (node.data !== text) node.data = text;
+  } else if (el.textContent !== text) el.textContent = text;
 }
 
 export function toggleClass(el: Element, name: string, on: boolean): void {

@@ -15,6 +15,8 @@ import type { AxisBuffer } from "../buffer";
 export const GAP_PERIODS = 5;
 export const SLOW_FILL = 0.6;
 export const SLOW_HOLD = 3;
+/** A cut keeps the last base period while the median period is within ±25 % of it. */
+export const PERIOD_HOLD = 0.25;
 
 export interface Frame {
   x: number[];
@@ -26,8 +28,16 @@ export interface Frame {
   decimated: boolean;
   /** Samples in the window (before decimation). */
   samples: number;
-  /** Typical base sample period (s), the median of the sampled intervals. */
+  /** Typical base sample period (s), the median of the sampled intervals (the last
+   * cut's while the median stays within PERIOD_HOLD of it). */
   periodS: number;
+  /** Bumped by every cut (Cutter.cut): a drawing can tell which cut it shows. */
+  serial: number;
+  /** A decimated frame cut on the same pixel columns as the cut before it (serial − 1)
+   * equals it in every column that ends before this time: only later columns got new
+   * samples (+Infinity: none did). −Infinity when anything may differ (new columns,
+   * channels, a cleared buffer, sparse data). */
+  changedFromT: number;
 }
 
 const periods = new Float64Array(257);
@@ -63,6 +73,9 @@ class ColumnCache {
   k1 = 0;
   /** The next sample to fold (absolute sample number, AxisBuffer.base + index). */
   next = 0;
+  /** The first column the last update folded a sample into (−Infinity after a reset,
+   * +Infinity when it folded none). */
+  touched = Number.NEGATIVE_INFINITY;
   epoch = -1;
   tFirst = new Float64Array(0);
   tLast = new Float64Array(0);
@@ -109,7 +122,9 @@ class ColumnCache {
     const same = origin === this.origin && colS === this.colS && buffer.epoch === this.epoch && names.length === this.names.length && names.every((n, i) => n === this.names[i]);
     // A different grid or channel set, a window that grew to the left, a ring too small,
     // or samples the buffer has dropped since: fold the window from scratch, once.
-    if (!same || kStart < this.k0 || cap > this.cap || this.next < buffer.base + buffer.start) this.reset(buffer, origin, colS, names, cap, kStart);
+    const reset = !same || kStart < this.k0 || cap > this.cap || this.next < buffer.base + buffer.start;
+    if (reset) this.reset(buffer, origin, colS, names, cap, kStart);
+    this.touched = reset ? Number.NEGATIVE_INFINITY : Number.POSITIVE_INFINITY;
     const t = buffer.t;
     const cols = names.map((n) => buffer.channels.get(n));
     const limit = origin + (kStop + 1) * colS;
@@ -120,6 +135,7 @@ class ColumnCache {
       if (ti >= limit) break;
       const k = Math.floor((ti - origin) / colS);
       if (k < this.k0) continue;
+      if (k < this.touched) this.touched = k;
       while (this.k1 <= k) {
         this.open(this.k1);
         this.k1 += 1;
@@ -166,8 +182,20 @@ function sized<T>(a: T[], n: number): T[] {
  */
 export class Cutter {
   private readonly cache = new ColumnCache();
-  private readonly frame: Frame = { x: [], channels: new Map(), real: new Map(), slow: new Map(), decimated: false, samples: 0, periodS: Number.NaN };
+  private readonly frame: Frame = {
+    x: [],
+    channels: new Map(),
+    real: new Map(),
+    slow: new Map(),
+    decimated: false,
+    samples: 0,
+    periodS: Number.NaN,
+    serial: 0,
+    changedFromT: Number.NEGATIVE_INFINITY,
+  };
   private at: number[] = [];
+  /** The base period of the last cut (see cut). */
+  private periodS = Number.NaN;
   private readonly columnsOf = new Map<string, (number | null)[]>();
   private readonly realOf = new Map<string, number[]>();
 
@@ -208,7 +236,14 @@ export class Cutter {
   ): Frame {
     const t = buffer.t;
     const n = Math.max(0, hi - lo);
-    const periodS = medianPeriod(t, lo, hi);
+    // The period (and with it the gap threshold) is held while the median stays within
+    // PERIOD_HOLD of it: the median of a batched stream (EP7047) moves a little from
+    // frame to frame, and a new threshold may move a gap marker in any column, so the
+    // trace layer would have to draw every column again instead of shifting them.
+    const measured = medianPeriod(t, lo, hi);
+    const held = this.periodS;
+    const periodS = Number.isFinite(held) && Number.isFinite(measured) && Math.abs(measured - held) <= PERIOD_HOLD * held ? held : measured;
+    this.periodS = periodS;
     const gapS = Number.isFinite(periodS) ? GAP_PERIODS * periodS : Number.POSITIVE_INFINITY;
     const frame = this.frame;
     frame.channels.clear();
@@ -217,6 +252,8 @@ export class Cutter {
     frame.decimated = false;
     frame.samples = n;
     frame.periodS = periodS;
+    frame.serial += 1;
+    frame.changedFromT = Number.NEGATIVE_INFINITY;
     const list = [...channels];
     if (n <= columns * 2) {
       this.sparse(buffer, lo, hi, gapS, list);
@@ -230,6 +267,9 @@ export class Cutter {
     const names = list.map(([name]) => name);
     const cache = this.cache;
     cache.update(buffer, origin, colS, names, kLo, kHi);
+    // (A column that got samples also changes the gap marker and join before it: the
+    // consumer redraws from a little left of this time.)
+    frame.changedFromT = cache.touched === Number.POSITIVE_INFINITY ? Number.POSITIVE_INFINITY : origin + cache.touched * colS;
     const cap = cache.cap;
     const from = Math.max(kLo, cache.k0);
     const to = Math.min(kHi + 1, cache.k1);

@@ -22,6 +22,8 @@ export const lanePx = (lanes: number): number => (lanes <= 8 ? LANE_PX : Math.ma
 export const Y_AXIS_PX = 68; // at least; wider (up to Y_AXIS_MAX_PX) for long lane labels
 export const Y_AXIS_MAX_PX = 116;
 export const Y_LABEL_PX = 14; // the unit, written along the y axis
+/** Room right of the plot area (uPlot padding), so the last x tick label fits. */
+export const PAD_RIGHT_PX = 10;
 export const X_AXIS_PX = 26;
 export const HEADER_PX = 24;
 export const MIN_LINE_PX = 90;
@@ -289,7 +291,7 @@ export function plotOptions(host: PlotHost, panel: Panel, width: number, isLast:
     width,
     height: panel.height,
     legend: { show: false },
-    padding: [flags || states ? 4 : 9, 10, 0, 0],
+    padding: [flags || states ? 4 : 9, PAD_RIGHT_PX, 0, 0],
     cursor: {
       sync: { key: host.syncKey, setSeries: false },
       drag: { x: true, y: false, setScale: false },

@@ -25,6 +25,7 @@ import {
   lanePx,
   MARKER_PX,
   MIN_LINE_PX,
+  PAD_RIGHT_PX,
   type Panel,
   panelHeader,
   PHONE,
@@ -38,6 +39,7 @@ import {
   Y_LABEL_PX,
 } from "./plotkit";
 import { lanePos, scanStates, stateAt, statesPx, statesRuns } from "./statesplot";
+import { type LayerCounts, layerCounts } from "./tracelayer";
 import { Trigger } from "./trigger";
 
 /** Minimum interval between redraws of a rolling (live) trace: 30 Hz. */
@@ -660,9 +662,10 @@ export class PlotStack implements PlotHost {
     return { min: end - this.windowS, max: end, live: !this.paused };
   }
 
-  /** Pixel columns of the plot area (one min/max pair each when dense). */
+  /** Pixel columns of the plot area (one min/max pair each when dense): uPlot's plot
+   * width, so a rolling window moves by whole pixels (the trace layer shifts them). */
   private columns(): number {
-    return Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX));
+    return Math.max(50, Math.floor(this.width - this.yAxisPx - Y_LABEL_PX - PAD_RIGHT_PX));
   }
 
   /** Redraw now, whatever changed (benchmark, tests). */
@@ -780,6 +783,11 @@ export class PlotStack implements PlotHost {
     const took = performance.now() - started;
     this.lastDrawMs = took;
     this.skipUntil = took > 8 ? started + 2 * took : 0;
+  }
+
+  /** Trace-layer redraws of the line plots since they were made (tests, benchmarks). */
+  layerCounts(): LayerCounts {
+    return layerCounts(this.panels.map((p) => p.u));
   }
 
   private runsOf(name: string): FlagRunCache {

@@ -6,6 +6,7 @@ import { h } from "../dom";
 import { UnitPrefs } from "../units";
 import type { DeviceDescriptor } from "../wire.gen";
 import { PlotStack } from "./plots";
+import type { LayerCounts } from "./tracelayer";
 
 export interface LabOptions {
   samples: number;
@@ -98,7 +99,9 @@ function more(at: number, m: number, periodS: number, plots: number, n: number):
  * - static: a full redraw of unchanged data (decimated columns reused);
  * - cold: a redraw after the window changed, which decimates all 4 × 50k again.
  */
-export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static: Quantiles; cold: Quantiles; points: number }> {
+export async function benchDraw(
+  runs = 60,
+): Promise<{ rolling: Quantiles; static: Quantiles; cold: Quantiles; points: number; layers: Record<string, LayerCounts> }> {
   const n = 50_000;
   const periodS = 0.001;
   const plots = 4;
@@ -110,6 +113,14 @@ export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static
   const still: number[] = [];
   const cold: number[] = [];
   let at = n;
+  // Trace-layer redraws per phase (whole / shifted / reused: what the times are made of).
+  const counts = (): LayerCounts => lab.stack.layerCounts();
+  const diff = (a: LayerCounts, b: LayerCounts): LayerCounts => ({
+    whole: b.whole - a.whole,
+    shifted: b.shifted - a.shifted,
+    reused: b.reused - a.reused,
+  });
+  const c0 = counts();
   for (let i = 0; i < runs; i++) {
     lab.buffer.push(more(at, 100, periodS, plots, n));
     at += 100;
@@ -118,12 +129,14 @@ export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static
     rolling.push(performance.now() - t0);
     await frame();
   }
+  const c1 = counts();
   for (let i = 0; i < runs; i++) {
     const t0 = performance.now();
     lab.stack.redraw();
     still.push(performance.now() - t0);
     await frame();
   }
+  const c2 = counts();
   for (let i = 0; i < Math.min(runs, 30); i++) {
     // A new window length: new pixel columns, so all 4 × 50k samples are decimated again.
     lab.stack.windowS = i % 2 ? n * periodS : n * periodS * 0.999;
@@ -132,6 +145,7 @@ export async function benchDraw(runs = 60): Promise<{ rolling: Quantiles; static
     cold.push(performance.now() - t0);
     await frame();
   }
+  const layers = { rolling: diff(c0, c1), static: diff(c1, c2), cold: diff(c2, counts()) };
   lab.destroy();
-  return { rolling: quantiles(rolling), static: quantiles(still), cold: quantiles(cold), points: n };
+  return { rolling: quantiles(rolling), static: quantiles(still), cold: quantiles(cold), points: n, layers };
 }

@@ -44,6 +44,26 @@ export function pixelOf(color: string): number {
   return value;
 }
 
+/** What one raster of a layer was drawn from: a later frame that matches it but for a
+ * whole-pixel shift of the x range only needs its new columns drawn. */
+interface Drawn {
+  serial: number;
+  xmin: number;
+  kx: number;
+  ymax: number;
+  ky: number;
+  periodS: number;
+  /** Colour of each series drawn, in order (0: not drawn). */
+  colors: number[];
+  vlines: number[];
+  hlines: number[];
+  grid: number;
+}
+
+/** Whole redraws at least this often (in shifted redraws): a shift repeats the pixels
+ * of the last raster, so any rounding difference at a column edge is let go soon. */
+const FULL_EVERY = 60;
+
 /** The pixel buffer of one plot area, reused while its size stays. */
 export class TraceLayer {
   private image: ImageData | null = null;
@@ -52,6 +72,13 @@ export class TraceLayer {
   private h = 0;
   /** Line width in device pixels (2 on a 2× screen, so a trace stays 1 CSS px). */
   private lw = 1;
+  /** Columns left of this one are kept (shifted), not drawn. */
+  private from = 0;
+  private drawn: Drawn | null = null;
+  private shifts = 0;
+  /** Redraws since the layer was made: whole, shifted, and reused (the same pixels: a
+   * cut without new samples, an overlay redraw) (tests, benchmarks). */
+  readonly counts = { whole: 0, shifted: 0, reused: 0 };
 
   /** Clear to transparent, sized ``w`` × ``h`` device pixels. */
   begin(w: number, h: number, lw: number): void {
@@ -60,8 +87,59 @@ export class TraceLayer {
       this.px = new Uint32Array(this.image.data.buffer);
       this.w = w;
       this.h = h;
+      this.drawn = null;
     } else this.px.fill(0);
     this.lw = lw;
+    this.from = 0;
+    this.shifts = 0;
+    this.counts.whole += 1;
+  }
+
+  /**
+   * Reuse the last raster for ``next`` if it was drawn from the same scales, grid,
+   * series and gap threshold but for an x range moved right by a whole number of
+   * pixels: shift the pixels left by that many and clear the columns from where
+   * ``changedFromT`` (time) falls — the caller then draws only those (grid and traces
+   * clip to them). Returns false (nothing done) when the raster must be drawn whole.
+   */
+  shift(next: Drawn, changedFromT: number, w: number, h: number, lw: number): boolean {
+    const last = this.drawn;
+    if (!last || !this.image || this.w !== w || this.h !== h || this.lw !== lw || this.shifts >= FULL_EVERY) return false;
+    if (next.serial !== last.serial + 1 && next.serial !== last.serial) return false;
+    if (next.serial === last.serial) changedFromT = Number.POSITIVE_INFINITY; // the same cut
+    if (Number.isNaN(changedFromT) || changedFromT === Number.NEGATIVE_INFINITY) return false;
+    if (next.ymax !== last.ymax || next.ky !== last.ky || next.grid !== last.grid) return false;
+    if (Math.abs(next.kx - last.kx) > 1e-9 * Math.abs(last.kx)) return false;
+    if (!(next.periodS === last.periodS || (Number.isNaN(next.periodS) && Number.isNaN(last.periodS)))) return false;
+    if (!same(next.colors, last.colors) || !same(next.hlines, last.hlines)) return false;
+    const d = (next.xmin - last.xmin) * next.kx;
+    const k = Math.round(d);
+    if (Math.abs(d - k) > 1e-6 || k < 0 || 2 * k > w) return false;
+    // Columns from here on are drawn again: the first changed one, less the join into it
+    // and a line width; at least the k columns that come in on the right.
+    const changedPx = Number.isFinite(changedFromT) ? Math.floor((changedFromT - next.xmin) * next.kx) - 2 * lw - 2 : w;
+    const from = Math.max(0, Math.min(w - k, changedPx));
+    if (2 * from < w) return false; // most of it changed: as cheap to draw it whole
+    // The grid lines left of ``from`` must be where the shifted ones are.
+    const kept = (c: number): boolean => c + lw > 0 && c < from;
+    const moved = last.vlines.map((c) => c - k).filter(kept);
+    if (!same(moved, next.vlines.filter(kept))) return false;
+    const px = this.px;
+    for (let y = 0, row = 0; y < h; y++, row += w) {
+      if (k) px.copyWithin(row, row + k, row + w);
+      px.fill(0, row + from, row + w);
+    }
+    this.from = from;
+    if (k || from < w) {
+      this.shifts += 1;
+      this.counts.shifted += 1;
+    } else this.counts.reused += 1;
+    return true;
+  }
+
+  /** Remember what this raster was drawn from (for the next ``shift``). */
+  done(drawn: Drawn): void {
+    this.drawn = drawn;
   }
 
   /** A vertical grid line at column ``c``. */
@@ -69,7 +147,7 @@ export class TraceLayer {
     const { px, w, h } = this;
     for (let k = 0; k < this.lw; k++) {
       const x = c + k;
-      if (x < 0 || x >= w) continue;
+      if (x < this.from || x >= w) continue;
       for (let y = 0, i = x; y < h; y++, i += w) px[i] = color;
     }
   }
@@ -79,7 +157,7 @@ export class TraceLayer {
     for (let k = 0; k < this.lw; k++) {
       const y = r + k;
       if (y < 0 || y >= this.h) continue;
-      this.px.fill(color, y * this.w, (y + 1) * this.w);
+      this.px.fill(color, y * this.w + this.from, (y + 1) * this.w);
     }
   }
 
@@ -92,7 +170,7 @@ export class TraceLayer {
     if (r0 < 0) r0 = 0;
     if (r1 >= h) r1 = h - 1;
     for (let x = c; x < c + lw; x++) {
-      if (x < 0 || x >= w) continue;
+      if (x < this.from || x >= w) continue;
       for (let r = r0, i = r0 * w + x; r <= r1; r++, i += w) px[i] = color;
     }
   }
@@ -101,12 +179,14 @@ export class TraceLayer {
   private segment(x0: number, y0: number, x1: number, y1: number, color: number): void {
     const c0 = Math.floor(x0);
     const c1 = Math.floor(x1);
+    // Wholly left of the columns drawn (kept from the last raster).
+    if (c1 + this.lw <= this.from) return;
     if (c0 === c1 || !(x1 > x0)) {
       this.span(c0, y0, y1, color);
       return;
     }
     const slope = (y1 - y0) / (x1 - x0);
-    const from = Math.max(c0, -this.lw);
+    const from = Math.max(c0, this.from - this.lw);
     const to = Math.min(c1, this.w - 1);
     for (let c = from; c <= to; c++) {
       const xa = c > x0 ? c : x0;
@@ -143,6 +223,12 @@ export class TraceLayer {
   }
 }
 
+function same(a: number[], b: number[]): boolean {
+  if (a.length !== b.length) return false;
+  for (let i = 0; i < a.length; i++) if (a[i] !== b[i]) return false;
+  return true;
+}
+
 const layers = new WeakMap<uPlot, TraceLayer>();
 
 /** uPlot keeps the split values of each axis from its last layout (not in its types). */
@@ -153,7 +239,25 @@ export function rastered(frame: Frame | null, name: string): boolean {
   return !!frame && frame.decimated && !frame.slow.has(name);
 }
 
-/** The drawAxes hook of a line panel: grid and dense traces of ``series`` into ``u``'s plot area. */
+export type LayerCounts = TraceLayer["counts"];
+
+/** The trace-layer redraws of ``plots`` summed: whole, shifted, reused (tests, benchmarks). */
+export function layerCounts(plots: (uPlot | null)[]): LayerCounts {
+  const out = { whole: 0, shifted: 0, reused: 0 };
+  for (const u of plots) {
+    const c = u ? layers.get(u)?.counts : undefined;
+    if (c) {
+      out.whole += c.whole;
+      out.shifted += c.shifted;
+      out.reused += c.reused;
+    }
+  }
+  return out;
+}
+
+/** The drawAxes hook of a line panel: grid and dense traces of ``series`` into ``u``'s plot area.
+ * A rolling window that moved by whole pixels, on unchanged scales, shifts the last
+ * raster and draws only its new columns (TraceLayer.shift). */
 export function drawTraceLayer(host: TraceHost, series: string[], u: uPlot): void {
   const { left, top, width, height } = u.bbox;
   const w = Math.round(width);
@@ -166,21 +270,30 @@ export function drawTraceLayer(host: TraceHost, series: string[], u: uPlot): voi
   }
   const x0 = Math.round(left);
   const y0 = Math.round(top);
-  layer.begin(w, h, Math.max(1, Math.round(devicePixelRatio || 1)));
+  const lw = Math.max(1, Math.round(devicePixelRatio || 1));
   const grid = pixelOf(host.theme.grid);
-  for (const v of (u.axes[0] as WithSplits)._splits ?? []) layer.vline(Math.round(u.valToPos(v, "x", true)) - x0, grid);
-  for (const v of (u.axes[1] as WithSplits)._splits ?? []) layer.hline(Math.round(u.valToPos(v, "y", true)) - y0, grid);
   const frame = host.frame;
   const sx = u.scales.x;
   const sy = u.scales.y;
-  if (frame?.decimated && sx && sy && sx.min != null && sx.max != null && sy.min != null && sy.max != null && sx.max > sx.min && sy.max > sy.min) {
-    const kx = width / (sx.max - sx.min);
-    const ky = height / (sy.max - sy.min);
+  const dense = !!frame?.decimated && sx && sy && sx.min != null && sx.max != null && sy.min != null && sy.max != null && sx.max > sx.min && sy.max > sy.min;
+  const xmin = sx?.min ?? 0;
+  const ymax = sy?.max ?? 0;
+  const kx = dense ? width / ((sx.max as number) - xmin) : 0;
+  const ky = dense ? height / (ymax - (sy.min as number)) : 0;
+  const vlines = ((u.axes[0] as WithSplits)._splits ?? []).map((v) => Math.round(u.valToPos(v, "x", true)) - x0);
+  const hlines = ((u.axes[1] as WithSplits)._splits ?? []).map((v) => Math.round(u.valToPos(v, "y", true)) - y0);
+  const colors = series.map((name, i) => (dense && u.series[i + 1]?.show && rastered(frame, name) ? pixelOf(host.color(i)) : 0));
+  const drawn = { serial: frame?.serial ?? -1, xmin, kx, ymax, ky, periodS: frame?.periodS ?? Number.NaN, colors, vlines, hlines, grid };
+  if (!(dense && frame && layer.shift(drawn, frame.changedFromT, w, h, lw))) layer.begin(w, h, lw);
+  for (const c of vlines) layer.vline(c, grid);
+  for (const r of hlines) layer.hline(r, grid);
+  if (dense && frame) {
     series.forEach((name, i) => {
-      if (!u.series[i + 1]?.show || !rastered(frame, name)) return;
+      const color = colors[i] as number;
       const ys = frame.channels.get(name);
-      if (ys) layer.trace(frame.x, ys, sx.min as number, kx, sy.max as number, ky, pixelOf(host.color(i)));
+      if (color && ys) layer.trace(frame.x, ys, xmin, kx, ymax, ky, color);
     });
   }
+  layer.done(drawn);
   layer.put(u.ctx, x0, y0);
 }
