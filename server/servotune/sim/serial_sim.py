@@ -102,6 +102,11 @@ class PtySimulator:
         self._drop_pending = 0
         self._silent = False
         self.overflow_bytes = 0  # device bytes lost because the host did not read
+        # Timing probe (scripts/bench_slap2_timing.py): when a list, the owner thread
+        # appends ("rx", t, byte) for every host byte read, ("due", t, byte) for every
+        # device byte scheduled (t = its wire finish time) and ("tx", t, byte) for every
+        # device byte written; t is time.monotonic(), comparable across processes.
+        self.trace: list[tuple[str, float, int]] | None = None
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -310,6 +315,9 @@ class PtySimulator:
         if self._silent:
             return  # the cable is cut: the bytes never reach the device
         t = self._now()
+        trace = self.trace
+        if trace is not None:
+            trace.extend(("rx", t + self._epoch, byte) for byte in data)
         arrival = self._last_arrival_s
         device = self.device
         for byte in data:
@@ -333,6 +341,8 @@ class PtySimulator:
         for byte in data:
             finish = (ready_s if ready_s > finish else finish) + self.char_s
             self._outbound.append((finish, byte))
+            if self.trace is not None:
+                self.trace.append(("due", finish + self._epoch, byte))
         self._line_free_s = finish
 
     def _flush_due(self, now: float) -> None:
@@ -353,6 +363,9 @@ class PtySimulator:
             written = 0
         # The host is not reading and the pty buffer is full: a real UART overruns.
         self.overflow_bytes += len(batch) - written
+        if self.trace is not None:
+            t = time.monotonic()
+            self.trace.extend(("tx", t, byte) for byte in batch[:written])
 
     # --- pty handling -----------------------------------------------------------------
 
