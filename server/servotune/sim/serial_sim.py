@@ -11,7 +11,12 @@ open the slave side (``path``) like any serial port, e.g. with pyserial. Timing 
   up to a character ahead of the wall clock; only the output is wall-timed).
 * Every byte the device transmits finishes at ``max(previous finish, ready) + char_s``
   (``ready`` = the simulation time it was produced) and is written to the master fd at
-  that moment, so the host sees it no earlier than a real line would deliver it.
+  that moment, so the host sees it no earlier than a real line would deliver it. For
+  a device with line replies (``LineReplies``, e.g. the SLAP2) the first byte of each
+  response (the echo) goes alone and the rest is written a line at a time, when the
+  line's terminator (or the ``_MAX_GROUP``-th byte, or the response's last byte) has
+  finished: the characters before the terminator reach the host later than on a real
+  line, none earlier, and the terminator, the only one the host acts on, on time.
 * The device is also advanced at least every ``IDLE_ADVANCE_S``, so the physics keeps
   running and a banner after a power cycle comes out by itself.
 
@@ -44,7 +49,7 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import TypeVar, cast
 
-from servotune.sim.base import PowerCyclable, SimDevice
+from servotune.sim.base import LineReplies, PowerCyclable, SimDevice
 from servotune.sim.slap2 import Slap2Bus
 
 logger = logging.getLogger(__name__)
@@ -55,6 +60,7 @@ IDLE_ADVANCE_S = 0.005
 _REQUEST_TIMEOUT_S = 5.0
 _READ_CHUNK = 4096
 _PR_SET_TIMERSLACK = 29  # linux/prctl.h
+_MAX_GROUP = 32  # reply bytes written together at most (a long listing keeps flowing)
 
 
 class _Request:
@@ -96,7 +102,9 @@ class PtySimulator:
         self._epoch = 0.0
         self._sim_time_s = 0.0  # where simulation time resumes after a restart
         # Owner-thread state (also touched before start / after stop, single-threaded).
-        self._outbound: deque[tuple[float, int]] = deque()  # (finish time, byte)
+        # (when it may be written, byte); for a byte written alone its wire finish
+        self._outbound: deque[tuple[float, int]] = deque()
+        self._terminator = device.reply_terminator if isinstance(device, LineReplies) else None
         self._last_arrival_s = 0.0
         self._line_free_s = 0.0  # when the device-to-host wire is free again
         self._drop_pending = 0
@@ -338,11 +346,20 @@ class PtySimulator:
             self._drop_pending -= dropped
             data = data[dropped:]
         finish = self._line_free_s
-        for byte in data:
+        outbound = self._outbound
+        terminator = self._terminator
+        group: list[int] = []
+        for n, byte in enumerate(data):
             finish = (ready_s if ready_s > finish else finish) + self.char_s
-            self._outbound.append((finish, byte))
             if self.trace is not None:
                 self.trace.append(("due", finish + self._epoch, byte))
+            if terminator is None or n == 0:
+                outbound.append((finish, byte))
+                continue
+            group.append(byte)
+            if byte == terminator or len(group) == _MAX_GROUP or n == len(data) - 1:
+                outbound.extend((finish, b) for b in group)
+                group.clear()
         self._line_free_s = finish
 
     def _flush_due(self, now: float) -> None:
