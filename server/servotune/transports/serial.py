@@ -8,6 +8,8 @@ import errno
 import functools
 import os
 import time
+from collections import deque
+from collections.abc import Callable, Sequence
 
 import serial
 import serial_asyncio_fast
@@ -46,9 +48,33 @@ class _Exchange:
         self.t_echo_s: float | None = None
         self.t_reply_s: float | None = None
         self.loop = asyncio.get_running_loop()
-        self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
+        self.future: asyncio.Future[EchoResult | bytes | list[Transaction] | None] = (
+            self.loop.create_future()
+        )
         self.deadline = self.loop.time() + first_timeout_s
         self.timer = self.loop.call_at(self.deadline, self.on_timer)
+        # A chain (``transact_chain``): the transactions still to run, their first
+        # reply timeouts, the outcomes so far, and whether to go on after each one.
+        self.chain: deque[tuple[bytes, float]] | None = None
+        self.results: list[Transaction] = []
+        self.proceed: Callable[[], bool] | None = None
+
+    def close_transaction(self, reply: bytes | None) -> bool:
+        """Chain mode: record the current transaction; start the next one if it
+        completed, one is left and ``proceed()`` allows. True if one was started."""
+        echo = self.echo if self.echo is not None else EchoResult(self.index, None)
+        self.results.append(Transaction(echo, reply, self.t_echo_s, self.t_reply_s))
+        chain = self.chain
+        assert chain is not None
+        if reply is None or not chain or (self.proceed is not None and not self.proceed()):
+            return False
+        self.payload, self.first_reply_timeout_s = chain.popleft()
+        self.index = 0
+        self.echo = None
+        self.t_echo_s = self.t_reply_s = None
+        self.restart_timer()
+        self.protocol.send(self.payload[:1])
+        return True
 
     def restart_timer(self, timeout_s: float | None = None) -> None:
         # Only move the deadline; the armed timer re-arms itself when it fires early.
@@ -62,7 +88,7 @@ class _Exchange:
         else:
             self.on_timeout()
 
-    def finish(self, result: EchoResult | bytes | None) -> None:
+    def finish(self, result: EchoResult | bytes | list[Transaction] | None) -> None:
         self.timer.cancel()
         self.protocol.exchange = None
         if not self.future.done():
@@ -71,9 +97,13 @@ class _Exchange:
     def on_timeout(self) -> None:
         if self.echo is None:
             self.echo = EchoResult(self.index, None)
-            self.finish(self.echo)
+            self.finish(self.echo if self.chain is None else self.end_chain(None))
         else:
-            self.finish(None)
+            self.finish(None if self.chain is None else self.end_chain(None))
+
+    def end_chain(self, reply: bytes | None) -> list[Transaction]:
+        self.close_transaction(reply)
+        return self.results
 
     def step(self, now_s: float) -> None:
         """Consume what the buffer holds; called after every ``data_received`` with
@@ -86,7 +116,7 @@ class _Exchange:
                 del buffer[0]
                 if got != expected:
                     self.echo = EchoResult(self.index, got)
-                    self.finish(self.echo)
+                    self.finish(self.echo if self.chain is None else self.end_chain(None))
                     return
                 self.index += 1
                 if self.index == len(self.payload):
@@ -110,7 +140,15 @@ class _Exchange:
             line = bytes(buffer[: end + 1])
             del buffer[: end + 1]
             self.t_reply_s = now_s
-            self.finish(line)
+            if self.chain is None:
+                self.finish(line)
+            elif self.close_transaction(line):
+                # The next transaction's first byte is out, from this callback: no
+                # task wake-up between the transactions of a chain.
+                if buffer:
+                    self.step(now_s)
+            else:
+                self.finish(self.results)
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -237,7 +275,36 @@ class SerialChannel(ByteChannel):
             self._check_open()
         return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
 
-    async def _run(self, exchange: _Exchange, first: bytes) -> EchoResult | bytes | None:
+    async def transact_chain(
+        self,
+        payloads: Sequence[bytes],
+        terminator: int,
+        char_timeout_s: float,
+        first_reply_timeouts_s: Sequence[float],
+        proceed: Callable[[], bool] | None = None,
+    ) -> list[Transaction]:
+        self._check_open()
+        if not payloads:
+            return []
+        exchange = _Exchange(
+            self._protocol,
+            payload=payloads[0],
+            terminator=terminator,
+            first_timeout_s=char_timeout_s,
+            char_timeout_s=char_timeout_s,
+            first_reply_timeout_s=first_reply_timeouts_s[0],
+        )
+        exchange.chain = deque(zip(payloads[1:], first_reply_timeouts_s[1:], strict=True))
+        exchange.proceed = proceed
+        result = await self._run(exchange, payloads[0][:1])
+        if not isinstance(result, list):  # the port closed meanwhile
+            self._check_open()
+            return exchange.results
+        return result
+
+    async def _run(
+        self, exchange: _Exchange, first: bytes
+    ) -> EchoResult | bytes | list[Transaction] | None:
         """Install ``exchange``, send ``first`` (the first payload byte, or nothing),
         and wait for its outcome, advanced from ``data_received``."""
         self._protocol.exchange = exchange
