@@ -89,7 +89,7 @@ def _patch_host(events: list[Event]) -> None:
     protocol.data_received = traced_received  # type: ignore[method-assign]
 
 
-async def _poll(path: str, seconds: float, conn: Connection) -> tuple[float, float, float]:
+async def _poll(path: str, seconds: float, conn: Connection) -> tuple[float, float, float, int]:
     sink = _CountingSink()
     link = build_link(LinkSpec("slap2", path, "bench", BAUD, [0]), sink)
     assert isinstance(link, Slap2Link)
@@ -106,7 +106,8 @@ async def _poll(path: str, seconds: float, conn: Connection) -> tuple[float, flo
         await asyncio.sleep(seconds)
         times = sink.samples["bench-0"]
         rate = (len(times) - 1) / (times[-1] - times[0])
-        return start, rate / link.wire_limit_hz(), (time.process_time() - cpu0) / seconds
+        cpu_s = time.process_time() - cpu0
+        return start, rate / link.wire_limit_hz(), cpu_s / seconds, len(times)
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
@@ -207,7 +208,7 @@ def main() -> int:
     _patch_host(host)
     import uvloop
 
-    start_s, ratio, host_cpu = uvloop.run(_poll(path, args.seconds, parent))
+    start_s, ratio, host_cpu, samples = uvloop.run(_poll(path, args.seconds, parent))
     stop_s = time.monotonic()
     parent.send("stop")
     sim, (sim_user_s, sim_system_s) = parent.recv()
@@ -220,8 +221,8 @@ def main() -> int:
     cycles = b.cycles or 1
     print(
         f"simulator process {sim_cpu_s / args.seconds:.3f} core "
-        f"({sim_cpu_s / cycles * 1e6:.0f} us CPU per poll cycle, of which "
-        f"{sim_system_s / cycles * 1e6:.0f} us in the kernel)"
+        f"({sim_cpu_s / samples * 1e6:.0f} us CPU per sample, of which "
+        f"{sim_system_s / samples * 1e6:.0f} us in the kernel)"
     )
     total_ms, wire_ms = b.total_s / cycles * 1e3, b.wire_s / cycles * 1e3
     print(

@@ -17,8 +17,9 @@ open the slave side (``path``) like any serial port, e.g. with pyserial. Timing 
   line's terminator (or the ``_MAX_GROUP``-th byte, or the response's last byte) has
   finished: the characters before the terminator reach the host later than on a real
   line, none earlier, and the terminator, the only one the host acts on, on time.
-* The device is also advanced at least every ``IDLE_ADVANCE_S``, so the physics keeps
-  running and a banner after a power cycle comes out by itself.
+* The device is also advanced when no host byte came for ``IDLE_ADVANCE_S`` (every
+  host byte advances it anyway), so the physics keeps running and a banner after a
+  power cycle comes out by itself.
 
 Simulation time is the monotonic clock since ``start()`` (continuing where it stopped
 after a restart). The thread sleeps in ``select.select`` with float timeouts until
@@ -96,6 +97,8 @@ class PtySimulator:
         self._slave: int | None = None
         self._slave_name: str | None = None
         self._wake_r, self._wake_w = -1, -1
+        self._readers: list[int] = []  # what the owner thread waits on
+        self._last_advance_s = 0.0
         self._thread: threading.Thread | None = None
         self._stopping = False
         self._requests: queue.SimpleQueue[_Request] = queue.SimpleQueue()
@@ -144,6 +147,7 @@ class PtySimulator:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
+        self._readers = [self._wake_r] if self._master is None else [self._wake_r, self._master]
         self._stopping = False
         self._epoch = time.monotonic() - self._sim_time_s
         self._last_arrival_s = self._line_free_s = self._sim_time_s
@@ -262,36 +266,47 @@ class PtySimulator:
             logger.exception("pty simulator thread failed")
 
     def _loop(self) -> None:
-        last_advance_s = -IDLE_ADVANCE_S
         # Timed wake-ups come late by a fairly constant amount (~40 us on a VM even
         # with minimal timer slack). Without correction every byte would leave that
         # much after its wire time, a systematic modelling error of ~8 % per echoed
         # character at 19200 baud. So the thread wakes early by the measured median
         # lateness (a running estimate, capped at a quarter character) and writes
         # what is due within that margin: bytes leave at their wire time on average.
+        # Two wake-ups per echoed character is this loop's whole job, so it is kept
+        # lean: locals, no method call for the clock, the reader list built once per
+        # pty (``_readers``).
         lateness_s = 0.0
         max_early_s = self.char_s / 4
+        outbound = self._outbound
+        requests = self._requests
+        monotonic = time.monotonic
+        wait = select.select
+        self._last_advance_s = -IDLE_ADVANCE_S
         while not self._stopping:
-            now = self._now()
+            epoch = self._epoch
+            now = monotonic() - epoch
             # The wire-timed write first: it is what a waiting host is blocked on.
-            self._flush_due(now + lateness_s)
-            if not self._requests.empty():
+            if outbound and outbound[0][0] <= now + lateness_s:
+                self._flush_due(now + lateness_s)
+            if not requests.empty():
                 self._run_requests()
-            if now - last_advance_s >= IDLE_ADVANCE_S:
+            if now - self._last_advance_s >= IDLE_ADVANCE_S:
                 self._schedule_output(self.device.advance_to(now), now)
-                last_advance_s = now
+                self._last_advance_s = now
                 self._flush_due(now)  # a banner may start right away
-            deadline = last_advance_s + IDLE_ADVANCE_S
-            wire_timed = bool(self._outbound) and self._outbound[0][0] - lateness_s < deadline
+            deadline = self._last_advance_s + IDLE_ADVANCE_S
+            wire_timed = bool(outbound) and outbound[0][0] - lateness_s < deadline
             if wire_timed:
-                deadline = self._outbound[0][0] - lateness_s
-            before = self._now()
-            timeout = deadline - before
-            readers = [self._wake_r] if self._master is None else [self._wake_r, self._master]
-            ready, _, _ = select.select(readers, [], [], max(timeout, 0.0))
-            if wire_timed and not ready and timeout > 0:
-                late_s = self._now() - deadline
-                lateness_s = min(max_early_s, max(0.0, lateness_s + 0.1 * (late_s - lateness_s)))
+                deadline = outbound[0][0] - lateness_s
+            timeout = deadline - (monotonic() - epoch)
+            ready, _, _ = wait(self._readers, [], [], timeout if timeout > 0.0 else 0.0)
+            if not ready:
+                if wire_timed and timeout > 0:
+                    late_s = monotonic() - epoch - deadline
+                    lateness_s = min(
+                        max_early_s, max(0.0, lateness_s + 0.1 * (late_s - lateness_s))
+                    )
+                continue
             if self._wake_r in ready:
                 with contextlib.suppress(BlockingIOError):
                     os.read(self._wake_r, _READ_CHUNK)
@@ -337,6 +352,8 @@ class PtySimulator:
             self._schedule_output(device.advance_to(arrival), arrival)
             self._schedule_output(device.receive(byte), arrival)
         self._last_arrival_s = arrival
+        # The device ran up to here: no idle advance is due before IDLE_ADVANCE_S.
+        self._last_advance_s = t
 
     def _schedule_output(self, data: bytes, ready_s: float, *, faults: bool = True) -> None:
         if not data or self._silent:
@@ -392,6 +409,7 @@ class PtySimulator:
         tty.setraw(slave)
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
+        self._readers = [self._wake_r, master]
         self._slave_name = os.ttyname(slave)
         if self.link_path is not None:
             link = Path(self.link_path)
@@ -413,6 +431,7 @@ class PtySimulator:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._master = self._slave = None
+        self._readers = [self._wake_r]
         self._slave_name = None
         self._outbound.clear()
 
