@@ -571,7 +571,9 @@ class Slap2Link(LinkEngine):
         self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
 
-    async def _select(self, address: int) -> None:
+    async def _select(self, address: int, done: Transaction | None = None) -> None:
+        """Select ``address`` unless it is; ``done``: its ``se`` already run (see
+        ``_exchange_once``)."""
         if self._selected == address:
             return
         channel = self._require_channel()
@@ -580,7 +582,7 @@ class Slap2Link(LinkEngine):
         blind = False
         try:
             try:
-                lines = await self._exchange_once(command)
+                lines = await self._exchange_once(command, done)
             except _AbandonedError as abandoned:
                 if not isinstance(abandoned.error, DeviceTimeoutError):
                     raise abandoned.error from None
@@ -854,19 +856,25 @@ class Slap2Link(LinkEngine):
         commands = [codec.make_read(m) for m in mnemonics]
         if self.urgent_pending:
             return
-        await self._select(address)
+        # On a shared line the ``se`` leads the chain (its outcome is checked first;
+        # a refused or failed one ends the sample before its reads are looked at).
+        select = self._selected != address
+        chained = [codec.make_select(address), *commands] if select else commands
         channel = self._require_channel()
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
         chain = await channel.transact_chain(
-            [c.text.encode("ascii") + b"\r" for c in commands],
+            [c.text.encode("ascii") + b"\r" for c in chained],
             codec.CR,
             self.config.char_timeout_s,
-            [self._first_reply_timeout_s(c) for c in commands],
+            [self._first_reply_timeout_s(c) for c in chained],
             # A stop is waiting: give the line up, finish the sample later.
             proceed=lambda: not self.urgent_pending,
         )
+        if select:
+            await self._select(address, chain[0] if chain else None)
+            chain = chain[1:]
         for n, (mnemonic, command) in enumerate(zip(mnemonics, commands, strict=True)):
             done = chain[n] if n < len(chain) else None
             if done is None and self.urgent_pending:
