@@ -625,3 +625,27 @@ async def test_api_console_refuses_control_characters_and_logs_lines(tmp_path: P
                 messages = [e.message for e in hub._events]
                 assert any("console 'qp'" in m for m in messages)
                 assert any("console 'ma 100'" in m and "refused" in m for m in messages)
+
+
+async def test_slap2_listing_with_a_pause_mid_reply_is_read_whole(tmp_path: Path) -> None:
+    """A listing ends when the line goes quiet; a simulator (or a host) paused for 60 ms
+    mid-listing (seen in CI under load: rrss cut after "move") must not cut it short."""
+    async with s_line(tmp_path) as line:
+        tap = line.tap
+        armed = threading.Event()
+        armed.set()
+
+        def pause_mid_listing(byte: int, out: bytes) -> bytes:
+            if armed.is_set() and b"move" in out:
+                armed.clear()
+                cut = out.index(b"move")
+                tap.send_late(out[cut:], 0.06)
+                return out[:cut]
+            return out
+
+        tap.rewrite = pause_mid_listing
+        _, lines = await line.axis(0).console("rrss")
+        assert not armed.is_set()  # the pause did happen
+        names = [text.split(":")[0] for text in lines]
+        for name in ("limit1", "move", "inpos", "uc"):
+            assert name in names, lines

@@ -113,6 +113,11 @@ class Slap2LinkConfig:
     names: dict[int, str] = field(default_factory=dict)
     char_timeout_s: float = 0.15
     quiet_s: float = 0.03
+    # A listing (rrss, rrsyscon, rep) ends when the line goes quiet (the manual's rule):
+    # longer than ``quiet_s`` (which ends every other console reply), because a listing
+    # is asked for by a person, who does not feel 100 ms more, and a short pause of a
+    # busy host or simulator must not cut it short.
+    listing_quiet_s: float = 0.1
     banner_quiet_s: float = 0.25
     banner_max_s: float = 2.0
     poll_commands: tuple[str, ...] = ("rp", "pe", "rss")
@@ -491,8 +496,10 @@ class Slap2Link(LinkEngine):
         lines = decoder.feed(raw)
         if command.multiline:
             # Listings are for terminals: read until the line goes quiet.
+            listing = _mnemonic(command.text) in codec.MULTILINE_COMMANDS
+            quiet_s = self.config.listing_quiet_s if listing else self.config.quiet_s
             while True:
-                data = await channel.read_available(self.config.quiet_s)
+                data = await channel.read_available(quiet_s)
                 if not data:
                     break
                 lines.extend(decoder.feed(data))
