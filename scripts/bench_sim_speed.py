@@ -9,11 +9,7 @@ no pty, no I/O), for one module in each of these states:
   simulated second (a move takes ~0.6 s, then it settles and holds);
 * ``vm``: velocity mode at sv +-2000, reversed every simulated second (the shaft
   rarely rests and never reaches a limit switch: the dearest case, no idle fast path);
-* ``holding``: pm at rest (the idle fast path skips the ticks);
-* ``polled``: pm at rest while a driver polls rp+pe+rss at the wire rate (a
-  transaction every ~4.7 ms, its bytes a character apart), timed with the
-  ``receive`` calls: the reads must leave the fast path on (they once thawed it at
-  every byte, so a polled module at rest ran every tick).
+* ``holding``: pm at rest (the idle fast path skips the ticks).
 
 Run: ``PYTHONPATH=server python scripts/bench_sim_speed.py [--seconds 10]``. The figure
 depends on the machine and its load (printed); CPU time is far less sensitive to
@@ -44,8 +40,6 @@ def speed(kind: str, seconds: float) -> float:
     cpu_s = 0.0
     target = 0
     sv = 2000
-    if kind == "polled":
-        return _polled(bus, t, seconds)
     while t < 0.5 + seconds:
         if kind == "moving":
             target = 2000 - target
@@ -61,29 +55,12 @@ def speed(kind: str, seconds: float) -> float:
     return seconds / cpu_s if cpu_s > 0 else float("inf")
 
 
-def _polled(bus: Slap2Bus, t: float, seconds: float) -> float:
-    char_s = 10 / 19200
-    bus.advance_to(t + 1.0)  # settle into the fast path
-    t += 1.0
-    end = t + seconds
-    started = time.process_time()
-    while t < end:
-        for text in ("rp", "pe", "rss"):
-            for byte in (text + "\r").encode("ascii"):
-                t += 2 * char_s
-                bus.advance_to(t)
-                bus.receive(byte)
-            t += 3 * char_s  # the reply
-    cpu_s = time.process_time() - started
-    return seconds / cpu_s if cpu_s > 0 else float("inf")
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="simulated time per case")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} cores")
-    for kind in ("moving", "vm", "holding", "polled"):
+    for kind in ("moving", "vm", "holding"):
         print(f"  SLAP2 {kind:<8} {speed(kind, args.seconds):10.0f}x real time per axis")
     return 0
 

@@ -10,8 +10,6 @@ import pytest
 from servotune.drivers.base import DeviceRefusedError, LinkDownError
 from servotune.drivers.slap2 import Slap2Axis
 from servotune.protocols import slap2 as codec
-from servotune.transports.base import EchoResult
-from servotune.transports.serial import SerialConnector
 
 from .conftest import RunningLink, gather_in_order, run_link, running_simulator, wait_for
 
@@ -216,32 +214,3 @@ async def test_absent_module_does_not_flag_the_present_one_or_delay_stop(
             # Re-probes back off, so most stops find the line free (a probe can still
             # hold it for a few character timeouts once in a while).
             assert sorted(latencies)[len(latencies) // 2] < 0.1, latencies
-
-
-async def test_transact_chain_runs_back_to_back_and_stops_where_told(tmp_path: Path) -> None:
-    """The channel's chain: every reply in order; it stops after a failed echo or
-    when ``proceed`` says no (the rest is left to the caller)."""
-    with running_simulator([0], tmp_path) as (simulator, _):
-        channel = await SerialConnector(simulator.path, 19200).open()
-        try:
-            await asyncio.sleep(0.3)  # the banner
-            channel.discard_input()
-            assert (await channel.transact(b"se0\r", codec.CR, 0.15, 0.15)).reply == b"\r"
-            payloads = [b"qp\r", b"qi\r", b"qd\r"]
-            chain = await channel.transact_chain(payloads, codec.CR, 0.15, [0.15] * 3)
-            assert [t.reply for t in chain] == [b"40\r", b"40\r", b"80\r"]
-            assert all(t.echo.echoed == len(p) for t, p in zip(chain, payloads, strict=True))
-            stamps = [t for x in chain for t in (x.t_echo_s, x.t_reply_s)]
-            assert None not in stamps
-            assert stamps == sorted(stamps)  # type: ignore[type-var]
-            asked: list[int] = []
-            chain = await channel.transact_chain(
-                payloads, codec.CR, 0.15, [0.15] * 3, proceed=lambda: bool(asked.append(1))
-            )
-            assert [t.reply for t in chain] == [b"40\r"] and asked == [1]
-            simulator.drop_echoes(1)  # the first transaction's first echo is lost
-            chain = await channel.transact_chain(payloads, codec.CR, 0.05, [0.05] * 3)
-            assert len(chain) == 1  # nothing more was sent
-            assert chain[0].reply is None and chain[0].echo == EchoResult(0, None)
-        finally:
-            await channel.close()

@@ -84,31 +84,6 @@ def test_echo_and_reply_over_the_pty_take_wire_time(simulator: PtySimulator) -> 
         port.close()
 
 
-def test_a_reply_line_is_written_whole_when_its_cr_has_crossed_the_wire(
-    simulator: PtySimulator,
-) -> None:
-    """The echo alone at its wire time, the reply line in one write at its CR's: no
-    byte leaves before its wire finish time (less the thread's early-wake margin of a
-    quarter character, see ``PtySimulator._loop``)."""
-    port = open_port(simulator.path)
-    try:
-        trace: list[tuple[str, float, int]] = []
-        simulator.call(lambda: setattr(simulator, "trace", trace))
-        reply, _ = exchange(port, "id")
-        simulator.call(lambda: setattr(simulator, "trace", None))
-    finally:
-        port.close()
-    due = [(t, b) for kind, t, b in trace if kind == "due"]
-    written = [(t, b) for kind, t, b in trace if kind == "tx"]
-    line = reply.encode() + b"\r"
-    assert bytes(b for _, b in due) == bytes(b for _, b in written) == b"id\r" + line
-    for (t_due, _), (t_written, _) in zip(due, written, strict=True):
-        assert t_written >= t_due - CHAR_S / 4
-    reply_written = {t for t, _ in written[3:]}
-    assert len(reply_written) == 1  # one write for the whole line
-    assert reply_written.pop() >= due[-1][0] - CHAR_S / 4
-
-
 def test_back_to_back_bytes_queue_on_the_wire(simulator: PtySimulator) -> None:
     port = open_port(simulator.path)
     try:

@@ -761,36 +761,3 @@ def test_the_idle_fast_path_gives_the_same_state_bit_for_bit() -> None:
             torque = rng.uniform(-0.01, 0.01)
             fast.motor.external_torque_nm = slow.motor.external_torque_nm = torque
     assert skipped > 0  # the fast path was taken
-
-
-def test_polling_reads_keep_a_resting_module_on_the_fast_path() -> None:
-    """Reads between the ticks (a driver polling at the wire rate) neither change the
-    state nor thaw the idle fast path; a command that changes the state still does."""
-
-    def send(module: Slap2Module, line: str) -> bytes:
-        return b"".join(module.receive(byte) for byte in (line + "\r").encode())
-
-    fast, slow = Slap2Module(0), Slap2Module(0)
-    for module in (fast, slow):
-        send(module, "pm")
-        send(module, "ma500")
-    for _ in range(3000):  # the move, then at rest
-        fast.run_ticks(1)
-        slow.tick()
-    assert fast._frozen is not None
-    for _ in range(200):
-        for line in ("rp", "pe", "rss", "rve", "qp"):
-            assert send(fast, line) == send(slow, line)
-            fast.run_ticks(1)
-            slow.tick()
-            assert fast._frozen is not None, line
-    assert (fast.position, fast.rss) == (slow.position, slow.rss)
-    send(fast, "mr100")
-    send(slow, "mr100")
-    fast.run_ticks(1)
-    slow.tick()
-    assert fast._frozen is None  # the move thawed it
-    for _ in range(2000):
-        fast.run_ticks(1)
-        slow.tick()
-    assert (fast.position, fast.setpoint, fast.rss) == (slow.position, slow.setpoint, slow.rss)

@@ -79,7 +79,7 @@ from servotune.drivers.slap2_capture import (
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.profiles import ProfileTrack
 from servotune.protocols import slap2 as codec
-from servotune.transports.base import ByteChannel, Connector, EchoResult, Transaction
+from servotune.transports.base import ByteChannel, Connector, EchoResult
 from servotune.wire import AxisHealth
 
 logger = logging.getLogger(__name__)
@@ -507,32 +507,23 @@ class Slap2Link(LinkEngine):
                 lines.append(decoder.flush())
         return lines
 
-    async def _exchange_once(
-        self, command: codec.Command, done: Transaction | None = None
-    ) -> list[str]:
+    async def _exchange_once(self, command: codec.Command) -> list[str]:
         """One exchange with the selected module; no retry.
 
-        ``done``: the channel's outcome of this command's transaction, already run
-        (by ``channel.transact_chain``); it is finished from there.
         Raises ``_AbandonedError`` when it failed before CR (nothing executed),
         ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
         """
         channel = self._require_channel()
-        if done is None:
-            stray = channel.discard_input()
-            if stray:
-                self._note_unsolicited(stray)
+        stray = channel.discard_input()
+        if stray:
+            self._note_unsolicited(stray)
         payload = command.text.encode("ascii") + b"\r"
         try:
             # The usual case in one channel call: the echo checked and the reply read
             # in the receive callback, both arrival times stamped there.
-            if done is None:
-                done = await channel.transact(
-                    payload,
-                    codec.CR,
-                    self.config.char_timeout_s,
-                    self._first_reply_timeout_s(command),
-                )
+            done = await channel.transact(
+                payload, codec.CR, self.config.char_timeout_s, self._first_reply_timeout_s(command)
+            )
             t_echo, t_reply = done.t_echo_s, done.t_reply_s
             if done.echo.echoed < len(payload):
                 # A stray or missing echo: resynchronise the slow way.
@@ -578,9 +569,7 @@ class Slap2Link(LinkEngine):
         self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
         return lines
 
-    async def _select(self, address: int, done: Transaction | None = None) -> None:
-        """Select ``address`` unless it is; ``done``: its ``se`` already run (see
-        ``_exchange_once``)."""
+    async def _select(self, address: int) -> None:
         if self._selected == address:
             return
         channel = self._require_channel()
@@ -589,7 +578,7 @@ class Slap2Link(LinkEngine):
         blind = False
         try:
             try:
-                lines = await self._exchange_once(command, done)
+                lines = await self._exchange_once(command)
             except _AbandonedError as abandoned:
                 if not isinstance(abandoned.error, DeviceTimeoutError):
                     raise abandoned.error from None
@@ -628,24 +617,19 @@ class Slap2Link(LinkEngine):
             )
         return [""]
 
-    async def _transact(
-        self, address: int, command: codec.Command, done: Transaction | None = None
-    ) -> list[str]:
+    async def _transact(self, address: int, command: codec.Command) -> list[str]:
         """Select ``address`` and exchange ``command``; retried once if abandoned.
 
         A retry re-selects first: a missing echo may mean the module lost its
-        selection (reset), which a plain resend could not fix. ``done``: the first
-        attempt, already run on the selected module (see ``_exchange_once``).
+        selection (reset), which a plain resend could not fix.
         """
         idempotent = _mnemonic(command.text) in IDEMPOTENT_COMMANDS
         for attempt in range(2):
             if attempt:
                 self._count("retries")
-            if done is None:
-                await self._select(address)
+            await self._select(address)
             try:
-                first, done = done, None
-                return await self._exchange_once(command, first)
+                return await self._exchange_once(command)
             except _AbandonedError as abandoned:
                 if isinstance(abandoned.error, DeviceTimeoutError):
                     self._selected = None
@@ -687,7 +671,11 @@ class Slap2Link(LinkEngine):
         raise AssertionError("unreachable")
 
     async def _read_int(self, address: int, mnemonic: str) -> int:
-        return _int_reply(mnemonic, await self._transact(address, codec.make_read(mnemonic)))
+        lines = await self._transact(address, codec.make_read(mnemonic))
+        reply = codec.parse_reply(lines[0] if lines else "")
+        if reply.kind is not codec.ReplyKind.NUMBER or reply.value is None:
+            raise ProtocolError(f"{mnemonic} answered {reply.text!r}, expected a number")
+        return reply.value
 
     async def _execute(self, module: _ModuleState, command: codec.Command) -> list[str]:
         """Run a state-changing command and raise DeviceRefusedError if refused."""
@@ -847,56 +835,26 @@ class Slap2Link(LinkEngine):
                     self._sink.on_axis_health(self.axis_id(m.address), "offline", str(exc))
 
     async def _poll_module(self, module: _ModuleState) -> None:
-        """One sample: the poll set (and ``rve`` when due) as one chain of
-        transactions (``channel.transact_chain``: each next command goes out from the
-        callback that took the previous reply), finished one by one; a failed one and
-        the rest are done the usual way, with resynchronisation and retry."""
         address = module.address
         position: int | None = None
         t_position = 0.0
         following_error: int | None = None
         rss: int | None = None
-        measured: float | None = None
-        mnemonics = list(self.config.poll_commands)
-        if self.config.rve_every and (module.cycles + 1) % self.config.rve_every == 0:
-            mnemonics.append("rve")
-        commands = [codec.make_read(m) for m in mnemonics]
-        if self.urgent_pending:
-            return
-        # On a shared line the ``se`` leads the chain (its outcome is checked first;
-        # a refused or failed one ends the sample before its reads are looked at).
-        select = self._selected != address
-        chained = [codec.make_select(address), *commands] if select else commands
-        channel = self._require_channel()
-        stray = channel.discard_input()
-        if stray:
-            self._note_unsolicited(stray)
-        chain = await channel.transact_chain(
-            [c.text.encode("ascii") + b"\r" for c in chained],
-            codec.CR,
-            self.config.char_timeout_s,
-            [self._first_reply_timeout_s(c) for c in chained],
-            # A stop is waiting: give the line up, finish the sample later.
-            proceed=lambda: not self.urgent_pending,
-        )
-        if select:
-            await self._select(address, chain[0] if chain else None)
-            chain = chain[1:]
-        for n, (mnemonic, command) in enumerate(zip(mnemonics, commands, strict=True)):
-            done = chain[n] if n < len(chain) else None
-            if done is None and self.urgent_pending:
+        for mnemonic in self.config.poll_commands:
+            if self.urgent_pending:
+                # A stop is waiting: give the line up now, finish the sample later.
                 return
-            lines = await self._transact(address, command, done)
-            value = _int_reply(mnemonic, lines)
+            value = await self._read_int(address, mnemonic)
             if mnemonic == "rp":
                 position, t_position = value, self._last_latch_t
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
                 rss = value
-            elif mnemonic == "rve":
-                measured = value * codec.COUNTS_S_PER_SV
+        measured: float | None = None
         module.cycles += 1
+        if self.config.rve_every and module.cycles % self.config.rve_every == 0:
+            measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
         if self._state == "error":
             self._set_state("connected", self._connector.description)
         self._emit_sample(module, position, t_position, following_error, rss, measured)
@@ -1266,13 +1224,6 @@ class _AbandonedError(Exception):
     def __init__(self, error: DriverError) -> None:
         super().__init__(str(error))
         self.error = error
-
-
-def _int_reply(mnemonic: str, lines: list[str]) -> int:
-    reply = codec.parse_reply(lines[0] if lines else "")
-    if reply.kind is not codec.ReplyKind.NUMBER or reply.value is None:
-        raise ProtocolError(f"{mnemonic} answered {reply.text!r}, expected a number")
-    return reply.value
 
 
 def is_banner(text: str) -> bool:

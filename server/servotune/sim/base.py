@@ -42,17 +42,3 @@ class PowerCyclable(Protocol):
     def power_cycle(self, address: int | None = None) -> None:
         """Reset one module (``address``) or the whole line (``None``) as at power-on."""
         ...
-
-
-@runtime_checkable
-class LineReplies(Protocol):
-    """A device whose replies are lines that end with ``reply_terminator`` (optional).
-
-    A host of such a device acts on a reply's terminator, never on the characters
-    before it, so ``PtySimulator`` may hand those over together when the terminator
-    has crossed the wire (never earlier than the wire would), one wake-up and one
-    write per line instead of one per character.
-    """
-
-    @property
-    def reply_terminator(self) -> int: ...

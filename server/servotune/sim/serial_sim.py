@@ -11,15 +11,9 @@ open the slave side (``path``) like any serial port, e.g. with pyserial. Timing 
   up to a character ahead of the wall clock; only the output is wall-timed).
 * Every byte the device transmits finishes at ``max(previous finish, ready) + char_s``
   (``ready`` = the simulation time it was produced) and is written to the master fd at
-  that moment, so the host sees it no earlier than a real line would deliver it. For
-  a device with line replies (``LineReplies``, e.g. the SLAP2) the first byte of each
-  response (the echo) goes alone and the rest is written a line at a time, when the
-  line's terminator (or the ``_MAX_GROUP``-th byte, or the response's last byte) has
-  finished: the characters before the terminator reach the host later than on a real
-  line, none earlier, and the terminator, the only one the host acts on, on time.
-* The device is also advanced when no host byte came for ``IDLE_ADVANCE_S`` (every
-  host byte advances it anyway), so the physics keeps running and a banner after a
-  power cycle comes out by itself.
+  that moment, so the host sees it no earlier than a real line would deliver it.
+* The device is also advanced at least every ``IDLE_ADVANCE_S``, so the physics keeps
+  running and a banner after a power cycle comes out by itself.
 
 Simulation time is the monotonic clock since ``start()`` (continuing where it stopped
 after a restart). The thread sleeps in ``select.select`` with float timeouts until
@@ -50,7 +44,7 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import TypeVar, cast
 
-from servotune.sim.base import LineReplies, PowerCyclable, SimDevice
+from servotune.sim.base import PowerCyclable, SimDevice
 from servotune.sim.slap2 import Slap2Bus
 
 logger = logging.getLogger(__name__)
@@ -61,7 +55,6 @@ IDLE_ADVANCE_S = 0.005
 _REQUEST_TIMEOUT_S = 5.0
 _READ_CHUNK = 4096
 _PR_SET_TIMERSLACK = 29  # linux/prctl.h
-_MAX_GROUP = 32  # reply bytes written together at most (a long listing keeps flowing)
 
 
 class _Request:
@@ -97,27 +90,18 @@ class PtySimulator:
         self._slave: int | None = None
         self._slave_name: str | None = None
         self._wake_r, self._wake_w = -1, -1
-        self._readers: list[int] = []  # what the owner thread waits on
-        self._last_advance_s = 0.0
         self._thread: threading.Thread | None = None
         self._stopping = False
         self._requests: queue.SimpleQueue[_Request] = queue.SimpleQueue()
         self._epoch = 0.0
         self._sim_time_s = 0.0  # where simulation time resumes after a restart
         # Owner-thread state (also touched before start / after stop, single-threaded).
-        # (when it may be written, byte); for a byte written alone its wire finish
-        self._outbound: deque[tuple[float, int]] = deque()
-        self._terminator = device.reply_terminator if isinstance(device, LineReplies) else None
+        self._outbound: deque[tuple[float, int]] = deque()  # (finish time, byte)
         self._last_arrival_s = 0.0
         self._line_free_s = 0.0  # when the device-to-host wire is free again
         self._drop_pending = 0
         self._silent = False
         self.overflow_bytes = 0  # device bytes lost because the host did not read
-        # Timing probe (scripts/bench_slap2_timing.py): when a list, the owner thread
-        # appends ("rx", t, byte) for every host byte read, ("due", t, byte) for every
-        # device byte scheduled (t = its wire finish time) and ("tx", t, byte) for every
-        # device byte written; t is time.monotonic(), comparable across processes.
-        self.trace: list[tuple[str, float, int]] | None = None
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -147,7 +131,6 @@ class PtySimulator:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
-        self._readers = [self._wake_r] if self._master is None else [self._wake_r, self._master]
         self._stopping = False
         self._epoch = time.monotonic() - self._sim_time_s
         self._last_arrival_s = self._line_free_s = self._sim_time_s
@@ -266,47 +249,36 @@ class PtySimulator:
             logger.exception("pty simulator thread failed")
 
     def _loop(self) -> None:
+        last_advance_s = -IDLE_ADVANCE_S
         # Timed wake-ups come late by a fairly constant amount (~40 us on a VM even
         # with minimal timer slack). Without correction every byte would leave that
         # much after its wire time, a systematic modelling error of ~8 % per echoed
         # character at 19200 baud. So the thread wakes early by the measured median
         # lateness (a running estimate, capped at a quarter character) and writes
         # what is due within that margin: bytes leave at their wire time on average.
-        # Two wake-ups per echoed character is this loop's whole job, so it is kept
-        # lean: locals, no method call for the clock, the reader list built once per
-        # pty (``_readers``).
         lateness_s = 0.0
         max_early_s = self.char_s / 4
-        outbound = self._outbound
-        requests = self._requests
-        monotonic = time.monotonic
-        wait = select.select
-        self._last_advance_s = -IDLE_ADVANCE_S
         while not self._stopping:
-            epoch = self._epoch
-            now = monotonic() - epoch
+            now = self._now()
             # The wire-timed write first: it is what a waiting host is blocked on.
-            if outbound and outbound[0][0] <= now + lateness_s:
-                self._flush_due(now + lateness_s)
-            if not requests.empty():
+            self._flush_due(now + lateness_s)
+            if not self._requests.empty():
                 self._run_requests()
-            if now - self._last_advance_s >= IDLE_ADVANCE_S:
+            if now - last_advance_s >= IDLE_ADVANCE_S:
                 self._schedule_output(self.device.advance_to(now), now)
-                self._last_advance_s = now
+                last_advance_s = now
                 self._flush_due(now)  # a banner may start right away
-            deadline = self._last_advance_s + IDLE_ADVANCE_S
-            wire_timed = bool(outbound) and outbound[0][0] - lateness_s < deadline
+            deadline = last_advance_s + IDLE_ADVANCE_S
+            wire_timed = bool(self._outbound) and self._outbound[0][0] - lateness_s < deadline
             if wire_timed:
-                deadline = outbound[0][0] - lateness_s
-            timeout = deadline - (monotonic() - epoch)
-            ready, _, _ = wait(self._readers, [], [], timeout if timeout > 0.0 else 0.0)
-            if not ready:
-                if wire_timed and timeout > 0:
-                    late_s = monotonic() - epoch - deadline
-                    lateness_s = min(
-                        max_early_s, max(0.0, lateness_s + 0.1 * (late_s - lateness_s))
-                    )
-                continue
+                deadline = self._outbound[0][0] - lateness_s
+            before = self._now()
+            timeout = deadline - before
+            readers = [self._wake_r] if self._master is None else [self._wake_r, self._master]
+            ready, _, _ = select.select(readers, [], [], max(timeout, 0.0))
+            if wire_timed and not ready and timeout > 0:
+                late_s = self._now() - deadline
+                lateness_s = min(max_early_s, max(0.0, lateness_s + 0.1 * (late_s - lateness_s)))
             if self._wake_r in ready:
                 with contextlib.suppress(BlockingIOError):
                     os.read(self._wake_r, _READ_CHUNK)
@@ -338,9 +310,6 @@ class PtySimulator:
         if self._silent:
             return  # the cable is cut: the bytes never reach the device
         t = self._now()
-        trace = self.trace
-        if trace is not None:
-            trace.extend(("rx", t + self._epoch, byte) for byte in data)
         arrival = self._last_arrival_s
         device = self.device
         for byte in data:
@@ -352,8 +321,6 @@ class PtySimulator:
             self._schedule_output(device.advance_to(arrival), arrival)
             self._schedule_output(device.receive(byte), arrival)
         self._last_arrival_s = arrival
-        # The device ran up to here: no idle advance is due before IDLE_ADVANCE_S.
-        self._last_advance_s = t
 
     def _schedule_output(self, data: bytes, ready_s: float, *, faults: bool = True) -> None:
         if not data or self._silent:
@@ -363,20 +330,9 @@ class PtySimulator:
             self._drop_pending -= dropped
             data = data[dropped:]
         finish = self._line_free_s
-        outbound = self._outbound
-        terminator = self._terminator
-        group: list[int] = []
-        for n, byte in enumerate(data):
+        for byte in data:
             finish = (ready_s if ready_s > finish else finish) + self.char_s
-            if self.trace is not None:
-                self.trace.append(("due", finish + self._epoch, byte))
-            if terminator is None or n == 0:
-                outbound.append((finish, byte))
-                continue
-            group.append(byte)
-            if byte == terminator or len(group) == _MAX_GROUP or n == len(data) - 1:
-                outbound.extend((finish, b) for b in group)
-                group.clear()
+            self._outbound.append((finish, byte))
         self._line_free_s = finish
 
     def _flush_due(self, now: float) -> None:
@@ -397,9 +353,6 @@ class PtySimulator:
             written = 0
         # The host is not reading and the pty buffer is full: a real UART overruns.
         self.overflow_bytes += len(batch) - written
-        if self.trace is not None:
-            t = time.monotonic()
-            self.trace.extend(("tx", t, byte) for byte in batch[:written])
 
     # --- pty handling -----------------------------------------------------------------
 
@@ -409,7 +362,6 @@ class PtySimulator:
         tty.setraw(slave)
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
-        self._readers = [self._wake_r, master]
         self._slave_name = os.ttyname(slave)
         if self.link_path is not None:
             link = Path(self.link_path)
@@ -431,7 +383,6 @@ class PtySimulator:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._master = self._slave = None
-        self._readers = [self._wake_r]
         self._slave_name = None
         self._outbound.clear()
 

@@ -437,10 +437,7 @@ class Slap2Module:
 
     def receive(self, byte: int) -> bytes:
         """One host byte arrived; returns this module's transmission (see class doc)."""
-        # No ``_wake()`` here: ``run_ticks`` compares the fingerprint before it skips,
-        # so a command that changes what the controller reads thaws the fast path by
-        # itself, while the polling reads (rp, pe, rss ... several a millisecond at the
-        # wire rate) leave a module at rest frozen.
+        self._wake()  # a command may change anything the controller reads
         out = bytearray(self._pending)
         self._pending.clear()
         if self._transmitting:
@@ -1057,10 +1054,7 @@ class Slap2Bus:
     previously selected module comes first). Time advances in whole controller ticks
     of 841.5 us on all modules in lock-step; ``advance_to`` keeps the fraction of a
     tick for the next call and never steps backwards. Deterministic: no clock inside.
-    Replies are CR-terminated lines (``sim.base.LineReplies``).
     """
-
-    reply_terminator: Final = CR
 
     def __init__(self, modules: Iterable[Slap2Module]) -> None:
         self._modules: list[Slap2Module] = list(modules)

@@ -7,7 +7,6 @@ pseudo-terminal and lets the demo use exactly the path real hardware uses.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -85,24 +84,6 @@ class ByteChannel(Protocol):
         echo (no task wake-up in between), and both arrival times are stamped there
         (see ``Transaction``). ``first_reply_timeout_s`` applies from the last echo to
         the reply's first byte, ``char_timeout_s`` to every other gap.
-        """
-        ...
-
-    async def transact_chain(
-        self,
-        payloads: Sequence[bytes],
-        terminator: int,
-        char_timeout_s: float,
-        first_reply_timeouts_s: Sequence[float],
-        proceed: Callable[[], bool] | None = None,
-    ) -> list[Transaction]:
-        """``transact`` for each payload in turn, each next one started from the
-        receive callback that took the previous reply (no task wake-up in between).
-
-        Stops after the first transaction whose echo failed or whose reply did not
-        come (its ``Transaction`` is the last one returned), or when ``proceed()``
-        (asked after each completed transaction) says no: the result may be shorter
-        than ``payloads``. ``first_reply_timeouts_s``: one per payload.
         """
         ...
 

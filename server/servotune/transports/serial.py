@@ -4,14 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
-import functools
 import os
 import time
-from collections import deque
-from collections.abc import Callable, Sequence
 
-import serial
 import serial_asyncio_fast
 
 from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError, Transaction
@@ -50,33 +45,9 @@ class _Exchange:
         self.t_echo_s: float | None = None
         self.t_reply_s: float | None = None
         self.loop = asyncio.get_running_loop()
-        self.future: asyncio.Future[EchoResult | bytes | list[Transaction] | None] = (
-            self.loop.create_future()
-        )
+        self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
         self.deadline = self.loop.time() + first_timeout_s
         self.timer = self.loop.call_at(self.deadline, self.on_timer)
-        # A chain (``transact_chain``): the transactions still to run, their first
-        # reply timeouts, the outcomes so far, and whether to go on after each one.
-        self.chain: deque[tuple[bytes, float]] | None = None
-        self.results: list[Transaction] = []
-        self.proceed: Callable[[], bool] | None = None
-
-    def close_transaction(self, reply: bytes | None) -> bool:
-        """Chain mode: record the current transaction; start the next one if it
-        completed, one is left and ``proceed()`` allows. True if one was started."""
-        echo = self.echo if self.echo is not None else EchoResult(self.index, None)
-        self.results.append(Transaction(echo, reply, self.t_echo_s, self.t_reply_s))
-        chain = self.chain
-        assert chain is not None
-        if reply is None or not chain or (self.proceed is not None and not self.proceed()):
-            return False
-        self.payload, self.first_reply_timeout_s = chain.popleft()
-        self.index = 0
-        self.echo = None
-        self.t_echo_s = self.t_reply_s = None
-        self.restart_timer()
-        self.protocol.send(self.payload[:1])
-        return True
 
     def restart_timer(self, timeout_s: float | None = None) -> None:
         # Only move the deadline; the armed timer re-arms itself when it fires early.
@@ -90,7 +61,7 @@ class _Exchange:
         else:
             self.on_timeout()
 
-    def finish(self, result: EchoResult | bytes | list[Transaction] | None) -> None:
+    def finish(self, result: EchoResult | bytes | None) -> None:
         self.timer.cancel()
         self.protocol.exchange = None
         if not self.future.done():
@@ -99,13 +70,9 @@ class _Exchange:
     def on_timeout(self) -> None:
         if self.echo is None:
             self.echo = EchoResult(self.index, None)
-            self.finish(self.echo if self.chain is None else self.end_chain(None))
+            self.finish(self.echo)
         else:
-            self.finish(None if self.chain is None else self.end_chain(None))
-
-    def end_chain(self, reply: bytes | None) -> list[Transaction]:
-        self.close_transaction(reply)
-        return self.results
+            self.finish(None)
 
     def step(self, now_s: float) -> None:
         """Consume what the buffer holds; called after every ``data_received`` with
@@ -118,7 +85,7 @@ class _Exchange:
                 del buffer[0]
                 if got != expected:
                     self.echo = EchoResult(self.index, got)
-                    self.finish(self.echo if self.chain is None else self.end_chain(None))
+                    self.finish(self.echo)
                     return
                 self.index += 1
                 if self.index == len(self.payload):
@@ -149,15 +116,7 @@ class _Exchange:
             line = bytes(buffer[: end + 1])
             del buffer[: end + 1]
             self.t_reply_s = now_s
-            if self.chain is None:
-                self.finish(line)
-            elif self.close_transaction(line):
-                # The next transaction's first byte is out, from this callback: no
-                # task wake-up between the transactions of a chain.
-                if buffer:
-                    self.step(now_s)
-            else:
-                self.finish(self.results)
+            self.finish(line)
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -284,36 +243,7 @@ class SerialChannel(ByteChannel):
             self._check_open()
         return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
 
-    async def transact_chain(
-        self,
-        payloads: Sequence[bytes],
-        terminator: int,
-        char_timeout_s: float,
-        first_reply_timeouts_s: Sequence[float],
-        proceed: Callable[[], bool] | None = None,
-    ) -> list[Transaction]:
-        self._check_open()
-        if not payloads:
-            return []
-        exchange = _Exchange(
-            self._protocol,
-            payload=payloads[0],
-            terminator=terminator,
-            first_timeout_s=char_timeout_s,
-            char_timeout_s=char_timeout_s,
-            first_reply_timeout_s=first_reply_timeouts_s[0],
-        )
-        exchange.chain = deque(zip(payloads[1:], first_reply_timeouts_s[1:], strict=True))
-        exchange.proceed = proceed
-        result = await self._run(exchange, payloads[0][:1])
-        if not isinstance(result, list):  # the port closed meanwhile
-            self._check_open()
-            return exchange.results
-        return result
-
-    async def _run(
-        self, exchange: _Exchange, first: bytes
-    ) -> EchoResult | bytes | list[Transaction] | None:
+    async def _run(self, exchange: _Exchange, first: bytes) -> EchoResult | bytes | None:
         """Install ``exchange``, send ``first`` (the first payload byte, or nothing),
         and wait for its outcome, advanced from ``data_received``."""
         self._protocol.exchange = exchange
@@ -366,48 +296,6 @@ class SerialChannel(ByteChannel):
                 await asyncio.sleep(0.01)
 
 
-class _DirectSerial(serial.Serial):  # type: ignore[misc]  # pyserial has no types
-    """pyserial's POSIX port with a direct non-blocking ``read`` and ``write``.
-
-    pyserial-asyncio-fast calls ``read`` when the event loop saw the port readable and
-    ``write`` with both timeouts 0. pyserial's versions then run a ``select`` of their
-    own before every read and build timeout objects for every call: at 19200 baud the
-    SLAP2 line is one byte each way per round trip, so that sat on the critical path
-    of every echo (measured with scripts/bench_slap2_timing.py). Here they are one
-    system call each, with pyserial's semantics: no data -> ``b""``; a readable port
-    that yields nothing (a vanished adapter, a closed pty) or any other error ->
-    ``SerialException``; a full output buffer -> ``BlockingIOError``, which the
-    transport buffers and retries. Configuration (termios, exclusive lock) stays
-    pyserial's.
-    """
-
-    def read(self, size: int = 1) -> bytes:
-        if self._timeout != 0:  # not the transport's non-blocking use
-            return bytes(super().read(size))
-        try:
-            data = os.read(self.fd, size)
-        except (BlockingIOError, InterruptedError):
-            return b""
-        except OSError as exc:
-            raise serial.SerialException(f"read failed: {exc}") from exc
-        if not data:
-            raise serial.SerialException(
-                "device reports readiness to read but returned no data "
-                "(device disconnected or multiple access on port?)"
-            )
-        return data
-
-    def write(self, data: bytes | bytearray | memoryview) -> int | None:
-        if self._write_timeout != 0:
-            return super().write(data)  # type: ignore[no-any-return]
-        try:
-            return os.write(self.fd, data)
-        except OSError as exc:
-            if exc.errno in (errno.EAGAIN, errno.EINTR):
-                raise BlockingIOError(exc.errno, str(exc)) from exc
-            raise serial.SerialException(f"write failed: {exc}") from exc
-
-
 class SerialConnector:
     """Opens ``path`` (``/dev/ttyUSB0``, a pty, or a symlink to one) at ``baud`` 8N1."""
 
@@ -424,22 +312,16 @@ class SerialConnector:
             raise LinkClosedError(f"{self.path} does not exist (adapter unplugged?)")
         loop = asyncio.get_running_loop()
         protocol = _SerialProtocol()
-        port_class = _DirectSerial if os.name == "posix" else serial.Serial
-        open_port = functools.partial(
-            port_class,
-            self.path,
-            baudrate=self.baud,
-            bytesize=8,
-            parity="N",
-            stopbits=1,
-            exclusive=True,
-        )
         try:
-            # Opening blocks (termios, the exclusive lock): in a thread, as
-            # create_serial_connection does it.
-            port = await loop.run_in_executor(None, open_port)
-            transport, _ = await serial_asyncio_fast.connection_for_serial(
-                loop, lambda: protocol, port
+            transport, _ = await serial_asyncio_fast.create_serial_connection(
+                loop,
+                lambda: protocol,
+                self.path,
+                baudrate=self.baud,
+                bytesize=8,
+                parity="N",
+                stopbits=1,
+                exclusive=True,
             )
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
             raise LinkClosedError(f"cannot open {self.path}: {exc}") from exc
