@@ -228,10 +228,10 @@ export class Nav {
       if (status && (status.state === "connected" || status.rate_hz > 0)) {
         const pct = status.wire_limit_hz > 0 ? ` (${Math.round((100 * status.rate_hz) / status.wire_limit_hz)} % of wire)` : "";
         setText(rate, `${status.rate_hz.toFixed(1)} Hz${pct}`);
-        rate.title = `telemetry samples per second per axis; the wire allows ${status.wire_limit_hz.toFixed(1)} Hz for this poll set; ${status.errors} errors`;
+        rate.title = `telemetry samples per second per axis; the wire allows ${status.wire_limit_hz.toFixed(1)} Hz for this poll set; ${countOf(status.errors, "error")}`;
       } else setText(rate, "— Hz");
       const message = el.querySelector<HTMLElement>(".link-message") as HTMLElement;
-      setText(message, status && status.state !== "connected" ? status.message : status && status.errors ? `${status.errors} errors` : "");
+      setText(message, status && status.state !== "connected" ? status.message : status && status.errors ? countOf(status.errors, "error") : "");
       message.dataset.state = status?.state ?? "";
     }
     for (const el of this.list.querySelectorAll<HTMLElement>(".nav-axis")) {
@@ -379,4 +379,9 @@ export class EventLog {
       this.onUnread(this.unread, this.severe);
     }
   }
+}
+
+/** "1 error", "2 errors": a count with its noun. */
+function countOf(n: number, noun: string): string {
+  return `${n} ${noun}${n === 1 ? "" : "s"}`;
 }
