@@ -619,6 +619,17 @@ def _overshoots(records: list[tuple[list[float], list[float]]]) -> list[float]:
     return out
 
 
+def _assert_peaks_agree(
+    records: list[tuple[list[float], list[float]]], spread_pp: float, error_pp: float
+) -> None:
+    """The records' overshoots spread by at most ``spread_pp`` and each is within
+    ``error_pp`` of the exact 2nd-order overshoot."""
+    overshoots = _overshoots(records)
+    exact = overshoot_2nd(PEAK_ZETA) * 100
+    assert max(overshoots) - min(overshoots) <= spread_pp
+    assert max(abs(o - exact) for o in overshoots) <= error_pp
+
+
 @pytest.mark.parametrize(
     ("counts", "spread_pp", "error_pp"),
     [
@@ -643,10 +654,7 @@ def test_dense_peak_does_not_follow_the_sampling_phase(
         t = [gap_s * (k / 40 + j) for j in range(120)]
         y = predict_second_order(PEAK_WN_RAD_S, PEAK_ZETA, PEAK_STEP, t)
         records.append((t, [float(round(v)) for v in y] if counts else y))
-    overshoots = _overshoots(records)
-    exact = overshoot_2nd(PEAK_ZETA) * 100
-    assert max(overshoots) - min(overshoots) <= spread_pp
-    assert max(abs(o - exact) for o in overshoots) <= error_pp
+    _assert_peaks_agree(records, spread_pp, error_pp)
 
 
 @pytest.mark.parametrize(
@@ -668,10 +676,7 @@ def test_peak_of_irregular_samples_with_known_times(
         t = sample_times(random.Random(seed), 1.0, (0.5 * gap_s, 1.5 * gap_s))
         y = predict_second_order(PEAK_WN_RAD_S, PEAK_ZETA, PEAK_STEP, t)
         records.append((t, [float(round(v)) for v in y] if counts else y))
-    overshoots = _overshoots(records)
-    exact = overshoot_2nd(PEAK_ZETA) * 100
-    assert max(overshoots) - min(overshoots) <= spread_pp
-    assert max(abs(o - exact) for o in overshoots) <= error_pp
+    _assert_peaks_agree(records, spread_pp, error_pp)
 
 
 def test_spline_peak_rises_no_more_than_the_larger_drop_to_a_neighbour() -> None:

@@ -183,7 +183,6 @@ class Z1100Link(LinkEngine):
         self._capture_index = 0
         self._last_status_t = 0.0
         self._last_latch_t = 0.0
-        self._reply_t = 0.0
         self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
         self._counters["fence_timeouts"] = 0
@@ -229,18 +228,17 @@ class Z1100Link(LinkEngine):
                 self._count("dropped_bytes", len(stray))
             written = self._clock()
             await channel.write(packet)
-            reply = await self._read_reply(channel)
+            got = await self._read_reply(channel)
             self._transactions += 1
-            if reply is not None:
-                char_s = 10 / self.config.baud
-                self._last_latch_t = min(
-                    written + codec.REQUEST_SIZE * char_s,
-                    self._reply_t - codec.REPLY_SIZE * char_s,
-                )
-            if reply is None:
+            if got is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
                 continue
+            reply, reply_t = got
+            char_s = 10 / self.config.baud
+            self._last_latch_t = min(
+                written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
+            )
             if reply.code & RETRYABLE:
                 self._errors += 1
                 last_problem = codec.error_message(reply.code) or "rejected"
@@ -312,10 +310,10 @@ class Z1100Link(LinkEngine):
             self._errors += 1
             self._count("dropped_bytes", len(data))
 
-    async def _read_reply(self, channel: ByteChannel) -> codec.Reply | None:
-        """The first valid reply within the reply timeout, or ``None``; sets
-        ``_reply_t`` to the moment its last byte came (stamped in the receive callback
-        where the channel can, else when this task resumed)."""
+    async def _read_reply(self, channel: ByteChannel) -> tuple[codec.Reply, float] | None:
+        """The first valid reply within the reply timeout and the moment its last byte
+        came (stamped in the receive callback where the channel can, else when this
+        task resumed), or ``None``."""
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.reply_timeout_s
         while True:
@@ -330,8 +328,7 @@ class Z1100Link(LinkEngine):
                 return None
             replies = decoder.feed(data)
             if replies:
-                self._reply_t = self._clock() if t_s is None else t_s
-                return replies[0]
+                return replies[0], self._clock() if t_s is None else t_s
             if remaining <= 0:
                 return None
 
