@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import itertools
 import sys
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -535,6 +536,43 @@ async def test_fake_master_a_stall_past_the_watchdog_drops_enable_for_good() -> 
         assert run.link.state == "connected"
         await run.axis.command("enable", {})
         assert run.latest_flag("stm_ready")
+
+
+async def test_fake_master_a_stall_after_a_reply_is_a_watchdog_gap_not_a_silent_abort() -> None:
+    """The cycle thread can be held up after a frame's reply has arrived (the GIL taken
+    by another thread, the host busy): the slave counts its watchdog from the frame it
+    got, so the driver must too - not from when its thread saw the reply. Seen in the
+    demo as "ABSOLUTE ended ...: Error: Command aborted" with no watchdog message, and
+    Enable silently re-asserted by the next frame."""
+    master = demo_master()
+    real_receive = master.receive_processdata
+    stalls = [0]
+
+    def receive_then_stall(timeout: int = 2000) -> int:
+        wkc = real_receive(timeout)
+        if stalls[0] > 0:
+            stalls[0] -= 1
+            time.sleep(0.15)  # the reply is in; the thread runs again 150 ms later
+        return wkc
+
+    master.receive_processdata = receive_then_stall  # type: ignore[method-assign]
+    async with running(master, watchdog_s=0.1) as run:  # the device default
+        await run.axis.command("enable", {})
+        moving = asyncio.create_task(run.move(StartType.RELATIVE, 20 * TURN))
+        await wait_for(lambda: run.latest_flag("busy"), 2, "the move to start")
+        stalls[0] = 1
+        await wait_for(lambda: stalls[0] == 0, 2, "the stall")
+        await wait_for(
+            lambda: any("watchdog" in m for _, _, m in run.sink.events), 2, "the stall event"
+        )
+        with contextlib.suppress(DeviceRefusedError):
+            await asyncio.wait_for(moving, 5)
+        await wait_for(lambda: not run.latest_flag("enable_out"), 2, "Enable dropped")
+        off_at = len(run.samples)
+        await wait_for(lambda: len(run.samples) > off_at + 20, 2, "more samples")
+        assert not any(s.flags["enable_out"] for s in run.samples[off_at:]), (
+            "Enable re-asserted after the watchdog"
+        )
 
 
 async def test_fake_master_lost_frames_are_counted_and_a_long_gap_is_a_drop_out() -> None:

@@ -15,6 +15,7 @@ from servotune.drivers.ep7047_jobs import (
     _CALIBRATION_MOVES,
     _ENDLESS_TYPES,
     _SDO_KINDS,
+    WATCHDOG_MARGIN_S,
     _Exec,
     _Kind,
     _LinkCore,
@@ -52,7 +53,9 @@ class _CommandCycle(_LinkCore):
         off, the move aborted): never re-assert them silently - drop them here too."""
         cs = self._cs
         gap = time.monotonic() - self._last_good
-        if gap <= self._watchdog_s or not (cs.enable or cs.execute or cs.emergency):
+        if gap <= self._watchdog_s - WATCHDOG_MARGIN_S or not (
+            cs.enable or cs.execute or cs.emergency
+        ):
             return
         if cs.pending is not None:
             self._reject(
@@ -66,9 +69,9 @@ class _CommandCycle(_LinkCore):
         self._watchdog_trips += 1
         self._post_event(
             "error",
-            f"no good process data for {gap * 1000:.0f} ms (> the {self._watchdog_s * 1000:.0f} ms "
-            "watchdog): the drive has dropped its outputs; Enable is off - press Enable to "
-            "continue",
+            f"no good process data for {gap * 1000:.0f} ms (the drive's watchdog is "
+            f"{self._watchdog_s * 1000:.0f} ms): the drive has dropped its outputs or was "
+            "about to; Enable is off - press Enable to continue",
         )
 
     # --- requests (thread side) ---------------------------------------------------------

@@ -26,6 +26,7 @@ from servotune.drivers.ep7047_jobs import (
     _POS_BITS,
     _STM_BITS,
     CYCLE_THREAD_NICE,
+    WATCHDOG_MARGIN_S,
     _BringUpError,
     _CycleState,
     _DropOutError,
@@ -349,6 +350,12 @@ class _CycleThread(_CommandCycle):
 
     def _exchange(self, master: EthercatMaster, slave: EthercatSlave) -> bool:
         cs = self._cs
+        # Checked again here, after this cycle's other steps (an SDO, a request) and right
+        # before the frame leaves: the slave's watchdog runs between frames, whatever
+        # held this thread up.
+        sent_t = time.monotonic()
+        if sent_t - self._last_good > self._watchdog_s - WATCHDOG_MARGIN_S:
+            self._check_stall()
         key = (
             cs.enable, cs.reset, cs.emergency, cs.execute, cs.target, cs.velocity_bp,
             cs.start_type, cs.acceleration_ms, cs.deceleration_ms,
@@ -361,7 +368,9 @@ class _CycleThread(_CommandCycle):
         wkc = master.receive_processdata(self._receive_timeout_us())
         if wkc == master.expected_wkc:
             self._cs.lost_in_row = 0
-            self._last_good = time.monotonic()
+            # The send time, not now: the slave restarted its watchdog when the frame
+            # arrived, and this thread may have run again only long after the reply.
+            self._last_good = sent_t
             return True
         self._errors += 1
         self._lost_frames += 1
@@ -397,7 +406,7 @@ class _CycleThread(_CommandCycle):
         # time, and every microsecond here is one the event loop waits for the GIL.
         cs = self._cs
         now = self._clock()
-        if time.monotonic() - self._last_good > self._watchdog_s:
+        if time.monotonic() - self._last_good > self._watchdog_s - WATCHDOG_MARGIN_S:
             self._check_stall()
         # A racy peek at the deque (no lock): a request appended meanwhile is taken next
         # cycle, and _take_urgent reads it under the lock.

@@ -67,6 +67,14 @@ DEFAULT_COUNTS_PER_REV: Final = 4096
 # The SyncManager watchdog's default time: a gap this long without good process data
 # means the slave has dropped its outputs, so the driver drops Enable too.
 WATCHDOG_S: Final = 0.1
+WATCHDOG_MARGIN_S: Final = 0.002
+"""How much sooner than the slave the driver counts its watchdog as expired. The gap
+is measured between the times the cycle thread *sent* two frames (what the slave's
+SyncManager counts), stamped just before each send; the margin covers the few
+microseconds between stamp and wire, a thread switch between the last check and the
+send, and the slave's own timer granularity (the simulator counts whole 250 us
+cycles). Decision: better to drop Enable ourselves at 98 ms and say so than to let
+the drive drop it unseen at 100 ms and re-assert it with the next frame."""
 # Nice value the cycle thread asks for (see Ep7047Link._raise_priority).
 CYCLE_THREAD_NICE: Final = -10
 
@@ -293,6 +301,7 @@ class _LinkCore:
         self._revision: int | None = None
         self._in_cycle = False
         self._outbox: list[tuple[_Request, Any, BaseException | None]] = []
+        # When the last frame the slave took was sent (see WATCHDOG_MARGIN_S).
         self._last_good = time.monotonic()
         # samples not yet posted to the loop (cycle thread only, see SAMPLE_BATCH_S)
         self._sample_batch: list[Sample] = []
