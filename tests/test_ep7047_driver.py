@@ -40,6 +40,7 @@ from servotune.drivers.ep7047_descriptor import (
     PARAMETER_SDO,
     ep7047_descriptor,
 )
+from servotune.drivers.ep7047_jobs import STATE_ACTIVE_S
 from servotune.hub import Hub
 from servotune.protocols.ep7047 import PosSettings, StartType
 from servotune.sim.ep7047_slave import (
@@ -573,6 +574,33 @@ async def test_fake_master_a_stall_after_a_reply_is_a_watchdog_gap_not_a_silent_
         assert not any(s.flags["enable_out"] for s in run.samples[off_at:]), (
             "Enable re-asserted after the watchdog"
         )
+
+
+async def test_fake_master_drive_state_is_read_fast_while_moving_slowly_at_rest() -> None:
+    """The drive state (0x9020:03) is a mailbox read: every 10 ms while the drive does
+    something, every 100 ms at rest (nothing changes it by itself there). Bounds that a
+    slow host can only make smaller: at rest at most one read per 100 ms (plus one);
+    the move's states (ACCEL/CONST/DECEL...) still reach the samples."""
+
+    def state_reads() -> int:
+        return sum(1 for _, op, index, sub, _ in run.slave.sdo_log if (index, sub) == (0x9020, 3))
+
+    async with running() as run:
+        await run.axis.command("enable", {})
+        await asyncio.sleep(STATE_ACTIVE_S + 0.2)  # past the burst after the flags changed
+        before = state_reads()
+        await asyncio.sleep(1.0)
+        at_rest = state_reads() - before
+        assert 1 <= at_rest <= 11, f"{at_rest} drive-state reads in 1 s at rest"
+        first = len(run.samples)
+        await run.move(StartType.RELATIVE, 3 * TURN)
+        await run.move_ended()
+        states = {
+            int(s.channels["drive_state"])
+            for s in run.samples[first:]
+            if s.channels["drive_state"] is not None
+        }
+        assert len(states) >= 3, f"drive states seen during the move: {sorted(states)}"
 
 
 async def test_fake_master_lost_frames_are_counted_and_a_long_gap_is_a_drop_out() -> None:

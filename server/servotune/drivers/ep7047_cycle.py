@@ -11,6 +11,7 @@ import os
 import struct
 import threading
 import time
+from typing import Final
 
 from servotune.drivers.base import (
     DeviceRefusedError,
@@ -26,6 +27,7 @@ from servotune.drivers.ep7047_jobs import (
     _POS_BITS,
     _STM_BITS,
     CYCLE_THREAD_NICE,
+    STATE_ACTIVE_S,
     WATCHDOG_MARGIN_S,
     _BringUpError,
     _CycleState,
@@ -53,13 +55,16 @@ from servotune.drivers.ep7047_master import (
     state_name,
 )
 from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import CodecError, Inputs, PosStatus
+from servotune.protocols.ep7047 import CodecError, Inputs, PosStatus, StmStatus
 from servotune.wire import LinkState
 
 _POS_WARNING = int(PosStatus.WARNING)
 
 # The name of the module this came from: log filters and readers keep working.
 logger = logging.getLogger("servotune.drivers.ep7047")
+
+
+_STM_SHOWN: Final = 0xFFFF & ~int(StmStatus.TXPDO_TOGGLE)
 
 
 class _CycleThread(_CommandCycle):
@@ -455,7 +460,13 @@ class _CycleThread(_CommandCycle):
             return None
         if now < cs.next_state_poll:
             return None
-        cs.next_state_poll = now + self._state_poll_s
+        active = (
+            cs.execute
+            or cs.inputs.busy
+            or cs.stop_phase is not _StopPhase.NONE
+            or now < self._active_until
+        )
+        cs.next_state_poll = now + (self._state_poll_s if active else self._rest_state_poll_s)
         try:
             cs.drive_state = self._read_coe(slave, codec.DRIVE_STATE)
         except (EthercatError, CodecError):
@@ -496,9 +507,14 @@ class _CycleThread(_CommandCycle):
             "drive_time": float(inputs.actual_drive_time_ms),
             "drive_state": float(drive_state) if drive_state is not None else None,
         }
-        pos, stm, diag = int(inputs.pos_status), int(inputs.stm_status), int(cs.diag)
+        # Without the TxPDO toggle: it flips with the drive's own cycle, is no flag, and
+        # would count as a change (a flags rebuild, the drive state at the fast rate).
+        pos, stm, diag = int(inputs.pos_status), int(inputs.stm_status) & _STM_SHOWN, int(cs.diag)
         key = (pos, stm, diag, cs.enable, cs.execute, cs.emergency)
         if key != self._flags_key:  # rare: most cycles repeat the last flags
+            # Something changed: the drive state is read at the fast rate again, now.
+            self._active_until = now + STATE_ACTIVE_S
+            cs.next_state_poll = min(cs.next_state_poll, now + self._state_poll_s)
             flags = {name: pos & bit != 0 for name, bit in _POS_BITS}
             for name, bit in _STM_BITS:
                 flags[name] = stm & bit != 0

@@ -67,6 +67,8 @@ DEFAULT_COUNTS_PER_REV: Final = 4096
 # The SyncManager watchdog's default time: a gap this long without good process data
 # means the slave has dropped its outputs, so the driver drops Enable too.
 WATCHDOG_S: Final = 0.1
+STATE_ACTIVE_S: Final = 0.5
+"""How long after a status flag changed the drive state is still read at the fast rate."""
 WATCHDOG_MARGIN_S: Final = 0.002
 """How much sooner than the slave the driver counts its watchdog as expired. The gap
 is measured between the times the cycle thread *sent* two frames (what the slave's
@@ -252,6 +254,7 @@ class _LinkCore:
         name: str | None = None,
         clock: Callable[[], float] = time.monotonic,
         state_poll_s: float = 0.01,
+        rest_state_poll_s: float = 0.1,
         max_lost_frames: int = 10,
         reconnect_max_s: float = 5.0,
         watchdog_s: float = WATCHDOG_S,
@@ -269,7 +272,15 @@ class _LinkCore:
         self._speed_range = speed_range_steps_s
         self._counts_per_rev = counts_per_rev
         self._clock = clock
+        # The drive state (0xA010:11) is only in the mailbox: one SDO per read. Read every
+        # state_poll_s while the drive does something (Busy, Execute, a STOP ramp, or
+        # within STATE_ACTIVE_S of any status flag changing), every rest_state_poll_s
+        # at rest, where it does not change by itself: the state timeline keeps its
+        # 10 ms detail where there is detail, and a real drive's mailbox (and this
+        # thread) is spared 90 % of the reads while nothing moves.
         self._state_poll_s = state_poll_s
+        self._rest_state_poll_s = max(rest_state_poll_s, state_poll_s)
+        self._active_until = 0.0
         self._max_lost = max_lost_frames
         self._reconnect_max_s = reconnect_max_s
         self._watchdog_s = watchdog_s
