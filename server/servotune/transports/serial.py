@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
+import functools
 import os
 import time
 
+import serial
 import serial_asyncio_fast
 
 from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError, Transaction
@@ -296,6 +299,48 @@ class SerialChannel(ByteChannel):
                 await asyncio.sleep(0.01)
 
 
+class _DirectSerial(serial.Serial):  # type: ignore[misc]  # pyserial has no types
+    """pyserial's POSIX port with a direct non-blocking ``read`` and ``write``.
+
+    pyserial-asyncio-fast calls ``read`` when the event loop saw the port readable and
+    ``write`` with both timeouts 0. pyserial's versions then run a ``select`` of their
+    own before every read and build timeout objects for every call: at 19200 baud the
+    SLAP2 line is one byte each way per round trip, so that sat on the critical path
+    of every echo (measured with scripts/bench_slap2_timing.py). Here they are one
+    system call each, with pyserial's semantics: no data -> ``b""``; a readable port
+    that yields nothing (a vanished adapter, a closed pty) or any other error ->
+    ``SerialException``; a full output buffer -> ``BlockingIOError``, which the
+    transport buffers and retries. Configuration (termios, exclusive lock) stays
+    pyserial's.
+    """
+
+    def read(self, size: int = 1) -> bytes:
+        if self._timeout != 0:  # not the transport's non-blocking use
+            return bytes(super().read(size))
+        try:
+            data = os.read(self.fd, size)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            raise serial.SerialException(f"read failed: {exc}") from exc
+        if not data:
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data "
+                "(device disconnected or multiple access on port?)"
+            )
+        return data
+
+    def write(self, data: bytes | bytearray | memoryview) -> int | None:
+        if self._write_timeout != 0:
+            return super().write(data)  # type: ignore[no-any-return]
+        try:
+            return os.write(self.fd, data)
+        except OSError as exc:
+            if exc.errno in (errno.EAGAIN, errno.EINTR):
+                raise BlockingIOError(exc.errno, str(exc)) from exc
+            raise serial.SerialException(f"write failed: {exc}") from exc
+
+
 class SerialConnector:
     """Opens ``path`` (``/dev/ttyUSB0``, a pty, or a symlink to one) at ``baud`` 8N1."""
 
@@ -312,16 +357,22 @@ class SerialConnector:
             raise LinkClosedError(f"{self.path} does not exist (adapter unplugged?)")
         loop = asyncio.get_running_loop()
         protocol = _SerialProtocol()
+        port_class = _DirectSerial if os.name == "posix" else serial.Serial
+        open_port = functools.partial(
+            port_class,
+            self.path,
+            baudrate=self.baud,
+            bytesize=8,
+            parity="N",
+            stopbits=1,
+            exclusive=True,
+        )
         try:
-            transport, _ = await serial_asyncio_fast.create_serial_connection(
-                loop,
-                lambda: protocol,
-                self.path,
-                baudrate=self.baud,
-                bytesize=8,
-                parity="N",
-                stopbits=1,
-                exclusive=True,
+            # Opening blocks (termios, the exclusive lock): in a thread, as
+            # create_serial_connection does it.
+            port = await loop.run_in_executor(None, open_port)
+            transport, _ = await serial_asyncio_fast.connection_for_serial(
+                loop, lambda: protocol, port
             )
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
             raise LinkClosedError(f"cannot open {self.path}: {exc}") from exc
