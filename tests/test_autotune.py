@@ -364,7 +364,13 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
                 or measured["settling_time_s"] is None
                 or measured["settling_time_s"] < baseline["settling_time_s"]
             )
-            assert measured["overshoot_pct"] <= baseline["overshoot_pct"]
+            # (an overshoot is null, with the reason, when the samples around its peak
+            # cannot locate it: a gap where the curve bends, late stamps)
+            assert (
+                measured["overshoot_pct"] is None
+                or baseline["overshoot_pct"] is None
+                or measured["overshoot_pct"] <= baseline["overshoot_pct"]
+            )
             session = (await client.get(base)).json()
             assert session["state"] == "verified" and session["result"] == result
             await asyncio.sleep(0.2)

@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from servotune.metrics import compute_metrics
-from servotune.runquality import MIN_RISE_SAMPLES, assess
+from servotune.metrics import compute_metrics, predict_second_order
+from servotune.runquality import MAX_OVERSHOOT_UNCERTAINTY_PP, MIN_RISE_SAMPLES, assess
 
 from .conftest import running_simulator
 from .test_api import LiveServer, live_server
@@ -148,6 +148,34 @@ def test_sparse_samples_null_the_rise_and_times_shorter_than_their_gaps() -> Non
     metrics, quality = _run(times, positions)
     assert metrics is not None and metrics["rise_time_s"] is not None
     assert "rise_time_s" not in quality["untrusted"]
+
+
+def test_an_overshoot_whose_peak_samples_were_stamped_late_is_not_trusted() -> None:
+    # A 22 % overshoot (the demo SLAP2's factory gains) sampled every 6 ms: trusted.
+    times = [0.0035 + 0.006 * i for i in range(60)]
+    positions = [float(round(v)) for v in predict_second_order(60.0, 0.43, 1000.0, times)]
+    metrics, quality = _run(times, positions)
+    assert metrics is not None and metrics["overshoot_pct"] == pytest.approx(22.4, abs=0.2)
+    assert "overshoot_pct" not in quality["untrusted"]
+    clean_doubts = set(quality["untrusted"])
+    # The sample after the peak read 4 ms late (a busy host): the same values at a
+    # later stamp move the spline's peak by ~0.8 pp, more than the bound.
+    k = max(range(len(positions)), key=lambda i: positions[i])
+    late = list(times)
+    late[k + 1] += 0.004
+    wrong = compute_metrics(late, positions, t0_s=0.0, y0=0.0, y_final=1000.0)
+    assert wrong.overshoot_pct is not None
+    assert abs(wrong.overshoot_pct - metrics["overshoot_pct"]) > MAX_OVERSHOOT_UNCERTAINTY_PP
+    metrics, quality = _run(late, positions)
+    assert metrics is not None and metrics["overshoot_pct"] is None
+    assert "stamped late" in quality["untrusted"]["overshoot_pct"]
+    assert set(quality["untrusted"]) == clean_doubts | {"overshoot_pct"}  # only it
+    assert quality["status"] == "good"
+    # A late stamp far from the peak does not matter to it.
+    late = list(times)
+    late[k + 15] += 0.004
+    metrics, quality = _run(late, positions)
+    assert metrics is not None and metrics["overshoot_pct"] is not None
 
 
 def test_fewer_than_ten_samples_is_doubtful() -> None:

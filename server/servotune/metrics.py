@@ -259,6 +259,51 @@ def compute_metrics(
     )
 
 
+def overshoot_stamp_uncertainty_pct(
+    t_s: Sequence[float], y: Sequence[float], *, t0_s: float, y0: float, y_final: float
+) -> float | None:
+    """How far ``overshoot_pct`` could move, in percentage points, for the lateness the
+    record shows in the stamps of the samples that locate the peak (None when there is
+    no refined peak to judge: no step, no overshoot, too few samples).
+
+    A stamp is never early (it is taken when the host has read the reply, at or after
+    the device latched it) and nothing polls faster than the record's usual spacing,
+    so a sample followed by a *shorter* gap than the median is late by at least the
+    shortfall (its successor on time). The peak is recomputed with each such stamp
+    moved back by its shortfall, one at a time, and the changes are summed (a bound,
+    linear in small moves). On a busy host the peak's neighbours lie on steep flanks:
+    3 ms on one of them moved a 22 % overshoot by 1.3-1.8 pp (docs/metrics.md)."""
+    step = y_final - y0
+    if step == 0 or len(t_s) != len(y):
+        return None
+    direction = 1.0 if step > 0 else -1.0
+    pairs = [
+        (t - t0_s, (v - y_final) * direction)
+        for t, v in zip(t_s, y, strict=True)
+        if math.isfinite(t) and math.isfinite(v) and t >= t0_s
+    ]
+    if len(pairs) < 3:
+        return None
+    ts = [t for t, _ in pairs]
+    beyond = [v for _, v in pairs]
+    peak = _refined_peak(ts, beyond)
+    if peak <= 0:
+        return None
+    gaps = [b - a for a, b in pairwise(ts)]
+    usual = float(np.median(gaps))
+    i = _argmax(beyond)
+    h = PEAK_SPLINE_HALF_WIDTH
+    total = 0.0
+    for k in range(max(0, i - h), min(len(ts) - 1, i + h + 1)):
+        late = usual - gaps[k]
+        if late <= 0:
+            continue
+        moved = list(ts)
+        moved[k] = max(ts[k] - late, ts[k - 1] if k else -math.inf)
+        total += abs(_refined_peak(moved, beyond) - peak)
+    return total / abs(step) * 100.0
+
+
 def unmeasured(run: Mapping[str, Any] | None, metric: str = "settling_time_s") -> str | None:
     """Why the bench could not measure ``metric`` of ``run`` (its quality's
     ``untrusted`` reason, e.g. samples too sparse to locate it), None if it could."""

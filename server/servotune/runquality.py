@@ -18,7 +18,13 @@
   a metric the samples are too sparse for: the rise time needs ``MIN_RISE_SAMPLES``
   samples between 10 % and 90 % of the step; a time (settling, peak, time to a flag)
   is null when the gap between the samples that locate it is longer than the time
-  itself — the value is then mostly sampling, not response.
+  itself — the value is then mostly sampling, not response. The overshoot is null
+  when the lateness the record shows in the stamps around its peak could move it by
+  more than ``MAX_OVERSHOOT_UNCERTAINTY_PP`` (``metrics.overshoot_stamp_uncertainty_pct``:
+  a busy host reads a reply late, and the peak's neighbours lie on steep flanks), and
+  when a sample next to the highest one is more than ``MAX_PEAK_GAP_RATIO`` times the
+  record's usual spacing away (the host missed polls there: the peak may lie between
+  samples, where no refinement can see it).
 
 Facts that stay true whatever happened (step, band, samples, max gap, following error,
 time in flags) are never nulled.
@@ -26,14 +32,25 @@ time in flags) are never nulled.
 
 from __future__ import annotations
 
+import statistics
 from collections.abc import Mapping, Sequence
 from itertools import pairwise
 from typing import Any, Final
+
+from .metrics import overshoot_stamp_uncertainty_pct
 
 MIN_SAMPLES: Final = 10
 MIN_RISE_SAMPLES: Final = 10
 MOVED_FRACTION: Final = 0.1  # less travel than this fraction of the step: did not move
 PWM_MOVED_COUNTS: Final = 2.0
+MAX_OVERSHOOT_UNCERTAINTY_PP: Final = 0.5
+"""Half of issue 9's repeatability bound (1 pp between identical runs): two runs each
+within it of the truth agree within the bound."""
+MAX_PEAK_GAP_RATIO: Final = 1.9
+"""Measured on 50 steps of the demo SLAP2 (22 % overshoot, 6 ms spacing) at load 10:
+every overshoot off by more than 0.5 pp from the median had a gap next to its highest
+sample of 1.94..5.1 times the median spacing (peak low by 0.7..7 pp); with gaps up to
+1.9 (the capture's interleaved ``rss`` makes 1.6..1.8) all were within 0.44 pp."""
 POSITION_KINDS: Final = frozenset({"move", "position_step"})
 RESPONSE_METRICS: Final = (
     "rise_time_s",
@@ -202,6 +219,32 @@ def _sampling_trust(
                 f"{MIN_RISE_SAMPLES}): the rise is faster than the telemetry resolves"
             )
             out["rise_time_s"] = None
+    overshoot = out.get("overshoot_pct")
+    if overshoot is not None and overshoot > 0 and step != 0:
+        spread = overshoot_stamp_uncertainty_pct(
+            [t for t, _ in points], [y for _, y in points], t0_s=0.0, y0=y0, y_final=y0 + step
+        )
+        gap_s, usual_s, drop = _peak_gaps(points, 1.0 if step > 0 else -1.0)
+        drop_pp = drop / abs(step) * 100.0
+        # The refined peak rises above the highest sample by at most the larger drop to
+        # a neighbour: a gap matters only where the curve bends that much across it.
+        if (
+            usual_s > 0
+            and gap_s > MAX_PEAK_GAP_RATIO * usual_s
+            and drop_pp > MAX_OVERSHOOT_UNCERTAINTY_PP
+        ):
+            untrusted["overshoot_pct"] = (
+                f"a gap of {gap_s * 1000:.0f} ms next to the peak sample (the record's usual "
+                f"spacing is {usual_s * 1000:.1f} ms): the peak may lie between samples"
+            )
+            out["overshoot_pct"] = None
+        elif spread is not None and spread > MAX_OVERSHOOT_UNCERTAINTY_PP:
+            untrusted["overshoot_pct"] = (
+                f"samples around the peak were stamped late (a busy host): the overshoot "
+                f"could be off by {spread:.1f} percentage points (at most "
+                f"{MAX_OVERSHOOT_UNCERTAINTY_PP} trusted)"
+            )
+            out["overshoot_pct"] = None
     peak_t = out.get("peak_time_s")
     if peak_t is not None:
         k = next((i for i, (t, _) in enumerate(curve) if t == peak_t), None)
@@ -238,6 +281,21 @@ def _sampling_trust(
                 f"than the time to it ({value * 1000:.0f} ms)"
             )
             times[name] = None
+
+
+def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[float, float, float]:
+    """(the longer gap next to the sample furthest in the step direction, from the
+    command point on; the median gap of the record; the larger drop, in the step
+    direction, from that sample to a neighbour): zeros with fewer than 3 samples."""
+    if len(points) < 3:
+        return 0.0, 0.0, 0.0
+    times = [0.0, *(t for t, _ in points)]
+    gaps = [b - a for a, b in pairwise(times)]
+    travel = [y * direction for _, y in points]
+    k = max(range(len(points)), key=lambda i: travel[i])
+    around = [gaps[k], *(gaps[k + 1 : k + 2])]
+    drops = [travel[k] - travel[j] for j in (k - 1, k + 1) if 0 <= j < len(points)]
+    return max(around), statistics.median(gaps[1:]), max(drops)
 
 
 def _bracketing_gap(curve: list[tuple[float, float]], t: float) -> float:

@@ -41,8 +41,11 @@ def verdict(
     if base_settle is None or tuned_settle < base_settle:
         return "better"
     resolution = max(tuned.get("max_sample_gap_s") or 0.0, baseline.get("max_sample_gap_s") or 0.0)
-    base_os = baseline.get("overshoot_pct") or 0.0
-    tuned_os = tuned.get("overshoot_pct") or 0.0
+    base_os = baseline.get("overshoot_pct")
+    tuned_os = tuned.get("overshoot_pct")
+    if base_os is None or tuned_os is None:
+        # the bench could not trust an overshoot (run quality): no evidence either way
+        return "unknown"
     if tuned_settle <= base_settle + resolution and base_os >= 1.0 and tuned_os <= 0.5 * base_os:
         return "better"
     return "not better"
