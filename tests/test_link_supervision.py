@@ -649,3 +649,71 @@ async def test_slap2_listing_with_a_pause_mid_reply_is_read_whole(tmp_path: Path
         names = [text.split(":")[0] for text in lines]
         for name in ("limit1", "move", "inpos", "uc"):
             assert name in names, lines
+
+
+async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
+    tmp_path: Path,
+) -> None:
+    """One module of a shared line stops answering its polls, the other answers: the
+    link stays connected (its failures never come 3 in a row), so only the hub's
+    silence rule (AXIS_SILENT_S) can show that axis offline; its next sample after
+    the fault shows it ok again (issue 8, found in a soak)."""
+    from servotune.hub import AXIS_SILENT_S, Hub
+    from servotune.storage import Storage
+
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    tap = Tap(bus)
+    muted = threading.Event()
+    # Module 1 is selected but its transmitter stays dark: no echo, no reply.
+    tap.rewrite = lambda byte, out: b"" if muted.is_set() and bus.module(1).transmitting else out
+    with PtySimulator(tap, baud=19200) as sim:
+        holder: list[Hub] = []
+        config = Slap2LinkConfig(link_id="line", path=sim.path, addresses=[0, 1])
+
+        class Forward:
+            def __getattr__(self, name: str) -> object:
+                return getattr(holder[0], name)
+
+        link = Slap2Link(config, SerialConnector(sim.path, 19200), Forward())  # type: ignore[arg-type]
+        hub = Hub([link], Storage(tmp_path / "db.sqlite"))
+        holder.append(hub)
+        await hub.start()
+        try:
+            await wait_for(
+                lambda: (
+                    all(hub.entry(a).health == "ok" for a in ("line-0", "line-1"))
+                    and hub.entry("line-1").latest is not None
+                ),
+                10,
+                "both axes ok",
+            )
+            muted.set()
+            silent = hub.entry("line-1")
+            await wait_for(lambda: silent.health == "offline", AXIS_SILENT_S + 3, "axis 1 offline")
+            assert silent.health_message.startswith("no telemetry for ")
+            assert silent.health_message.endswith(
+                " s while its link is up: the device does not answer its polls"
+            )
+            assert any(
+                e.level == "warning" and e.axis == "line-1" and "no telemetry for" in e.message
+                for e in hub._events
+            )
+            # The other module answers throughout; the line stays connected.
+            count = len([e for e in hub._events if e.axis == "line-0"])
+            for _ in range(10):
+                assert hub.entry("line-0").health == "ok"
+                assert hub.link_status("line").state == "connected"
+                await asyncio.sleep(0.1)
+            assert silent.health == "offline"
+            # Still sampled (about once a second: each poll of the silent module waits
+            # out its timeouts), well within AXIS_SILENT_S.
+            before = hub.entry("line-0").latest
+            await wait_for(lambda: hub.entry("line-0").latest is not before, 2.5, "axis 0")
+            assert len([e for e in hub._events if e.axis == "line-0"]) == count
+            muted.clear()
+            await wait_for(lambda: silent.health == "ok", 10, "axis 1 back to ok")
+            assert silent.health_message == ""
+            assert any(e.axis == "line-1" and e.message == "telemetry again" for e in hub._events)
+            assert hub.link_status("line").state == "connected"
+        finally:
+            await hub.stop()

@@ -21,7 +21,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Final, Protocol
 
 from pydantic import BaseModel
 
@@ -70,6 +70,15 @@ LINK_RESTART_MAX_S = 5.0
 # A STOP that could not be sent is sent again once the link and axis are back; while the
 # link is connected it is tried this many times before the user is told to press again.
 STOP_RETRIES_CONNECTED = 10
+# An axis shown "ok" whose link is up (connected, or error while it still polls) and
+# that sent no telemetry sample for this long is shown offline (issue 8). A module on a
+# shared line can stop answering its polls while the others answer: the link then
+# stays connected, the driver counts desyncs but never sees 3 failures in a row, and
+# without this rule the silent axis would be shown "ok" forever. 3 s is many poll
+# cycles of every driver (each samples every axis several times a second) and close
+# to STATUS_STALE_S, the hub's horizon for a link that stopped reporting, so a short
+# hold-up of a busy host does not trip it.
+AXIS_SILENT_S: Final = 3.0
 
 
 class UnknownAxisError(KeyError):
@@ -105,6 +114,11 @@ class AxisEntry:
     stop_generation: int = 0
     # The task that delivers a STOP that could not be sent at once (see _deliver_stop).
     stop_task: asyncio.Task[None] | None = None
+    # When the hub last got a sample of this axis (its own monotonic clock), reset when
+    # the axis turns ok; ``silent``: the hub itself shows the axis offline because no
+    # sample came for AXIS_SILENT_S while its link was up (see _check_silent_axes).
+    last_sample_at: float = 0.0
+    silent: bool = False
 
 
 @dataclass(slots=True)
@@ -454,6 +468,7 @@ class Hub:
             )
         readback = await entry.driver.write_params(values)
         entry.health, entry.health_message = "ok", ""
+        entry.silent, entry.last_sample_at = False, self._clock()
         self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
         self.on_event("info", entry.info.id, f"re-applied {len(readback)} stored settings")
         return CommandOutcome([f"{k}={v}" for k, v in readback.items()], "settings re-applied")
@@ -509,6 +524,13 @@ class Hub:
         entry = self._axes[axis_id]
         entry.latest = sample
         entry.pending.append(sample)
+        entry.last_sample_at = self._clock()
+        if entry.silent:
+            entry.silent = False
+            if entry.health == "offline":  # still the hub's own verdict: undo it
+                entry.health, entry.health_message = "ok", ""
+                self.on_event("info", axis_id, "telemetry again")
+                self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
         for listener in self._sample_listeners:
             listener(axis_id, sample)
 
@@ -552,6 +574,8 @@ class Hub:
 
     def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
         entry = self._axes[axis_id]
+        # The driver's own verdict replaces the hub's "silent" one.
+        entry.silent = False
         if health != "offline" and entry.stop_on_reconnect:
             self._ensure_stop_task(entry)
         if entry.health == "reset" and health in ("ok", "paused"):
@@ -561,6 +585,9 @@ class Hub:
             # After an outage the device may have been power-cycled: compare its
             # values with the last applied ones again when it is back.
             entry.compared_at_connect = False
+        if health == "ok" and entry.health != "ok":
+            # Judged for silence from now on, not from a sample before an outage.
+            entry.last_sample_at = self._clock()
         entry.health, entry.health_message = health, message
         self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
 
@@ -768,12 +795,36 @@ class Hub:
                         # Links publish their own status every second; repeat the last
                         # one only for a link that did not.
                         self._broadcast(link_entry.status.model_dump_json(), droppable=False)
+                self._check_silent_axes(now)
                 for entry in self._axes.values():
                     if entry.stop_on_reconnect and entry.health != "offline":
                         self._ensure_stop_task(entry)
                 for client in self._clients:
                     stats = ClientStats(sent=client.sent, dropped=client.dropped)
                     client.put(stats.model_dump_json(), droppable=True)
+
+    def _check_silent_axes(self, now: float) -> None:
+        """Show offline every axis shown "ok" whose link is connected (or error) and
+        that got no sample for ``AXIS_SILENT_S``: its device does not answer its polls
+        although the line works. Its next sample shows it ok again (``on_sample``).
+        Axes paused, offline or reset and links connecting or disconnected are not
+        judged: no telemetry is expected from them."""
+        for entry in self._axes.values():
+            if entry.health != "ok" or entry.silent:
+                continue
+            if self._links[entry.link.id].status.state not in ("connected", "error"):
+                continue
+            silent_s = now - entry.last_sample_at
+            if silent_s < AXIS_SILENT_S:
+                continue
+            entry.silent = True
+            entry.health = "offline"
+            entry.health_message = (
+                f"no telemetry for {silent_s:.0f} s while its link is up: "
+                "the device does not answer its polls"
+            )
+            self.on_event("warning", entry.info.id, entry.health_message)
+            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
 
     # --- demo autopilot ---------------------------------------------------------------
 
