@@ -7,8 +7,9 @@ their processes write) and in the telemetry. Asserted are truths, not speeds:
 
 * no dead link: every link is connected again within ``RECOVER_S`` after the hog
   stops, and its samples flow;
-* every link state is truthful: a link that the status calls ``connected`` for two
-  polls in a row delivered samples in that time (no more than ``STALE_S`` without);
+* every link state is truthful: an axis shown ``ok`` on a link that the status calls
+  ``connected`` for two polls in a row delivered samples in that time (no more than
+  ``STALE_S`` without; a silent device must be shown offline, the hub's rule);
 * no reset banner without a real reset (nothing power-cycles a device here);
 * STOP reaches every axis: the API reports no failure, each device's own record
   shows it stopped, and so does the last telemetry.
@@ -103,6 +104,7 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
             ratios: dict[str, list[float]] = {link_id: [] for link_id in axes_of}
             first_status = {i: server.link_status(i) for i in axes_of}
             connected_polls = Counter[str]()
+            not_ok = Counter[tuple[str, str]]()
             samples_before: dict[str, int] = {}
             last_progress = {a: time.monotonic() for ids in axes_of.values() for a in ids}
             t0 = time.monotonic()
@@ -113,6 +115,7 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
                     now = time.monotonic()
                     with stream.lock:
                         counts = dict(stream.counts.samples)
+                        health = dict(stream.counts.health)
                     for link_id, axis_ids in axes_of.items():
                         status = server.link_status(link_id)
                         if status["wire_limit_hz"] > 0:
@@ -123,6 +126,13 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
                         if status["state"] == "connected":
                             connected_polls[link_id] += 1
                             for axis_id in axis_ids:
+                                if health.get(axis_id) != "ok":
+                                    # shown paused (a capture), offline (the hub's
+                                    # "no telemetry" rule) or reset: not claiming
+                                    # samples, the truth told by the axis itself
+                                    not_ok[axis_id, health.get(axis_id, "?")] += 1
+                                    last_progress[axis_id] = now
+                                    continue
                                 stale_s = now - last_progress[axis_id]
                                 if connected_polls[link_id] >= 2 and stale_s > STALE_S:
                                     lies.append(
@@ -198,6 +208,10 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
             f"errors +{errors}; final {final_status[link_id]['state']} {extra}"
         )
     report.append(f"events by level: {dict(events)}; reset banners: {dict(resets)}")
+    report.append(
+        "polls with an axis of a connected link shown not ok: "
+        + (", ".join(f"{a} {h} x{n}" for (a, h), n in sorted(not_ok.items())) or "none")
+    )
     report.append(
         "most frequent events: " + "; ".join(f"{n}x {t}" for t, n in texts.most_common(8))
     )

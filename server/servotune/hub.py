@@ -567,6 +567,11 @@ class Hub:
             errors=errors,
             counters=counters,
         )
+        if previous != state and state == "connected":
+            # Judged for silence from the (re)connection, not from a sample before it.
+            for entry in self._axes.values():
+                if entry.link.id == link_id:
+                    entry.last_sample_at = link_entry.updated_at
         if previous != state:
             level: EventLevel = "info" if state == "connected" else "warning"
             self.on_event(level, None, f"link {link_id}: {state} {message}".strip())
