@@ -16,6 +16,7 @@ import random
 import threading
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -555,22 +556,11 @@ async def test_hub_never_shows_a_dead_or_stalled_link_connected(
 async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) -> None:
     """STOP while the line is unplugged: it says it was not sent and that it will be
     sent on reconnect, and it is (the simulator receives ``st``)."""
-    from servotune.hub import Hub
-    from servotune.storage import Storage
 
     bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
-        holder: list[Hub] = []
-        config = Slap2LinkConfig(link_id="line", path=sim.path, addresses=[0])
-
-        class Forward:
-            def __getattr__(self, name: str) -> object:
-                return getattr(holder[0], name)
-
-        link = Slap2Link(config, SerialConnector(sim.path, 19200), Forward())  # type: ignore[arg-type]
-        hub = Hub([link], Storage(tmp_path / "db.sqlite"))
-        holder.append(hub)
+        hub, link = _hub_on_line(sim.path, [0], tmp_path)
         await hub.start()
         try:
             await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
@@ -658,8 +648,7 @@ async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
     link stays connected (its failures never come 3 in a row), so only the hub's
     silence rule (AXIS_SILENT_S) can show that axis offline; its next sample after
     the fault shows it ok again (issue 8, found in a soak)."""
-    from servotune.hub import AXIS_SILENT_S, Hub
-    from servotune.storage import Storage
+    from servotune.hub import AXIS_SILENT_S
 
     bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     tap = Tap(bus)
@@ -667,16 +656,7 @@ async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
     # Module 1 is selected but its transmitter stays dark: no echo, no reply.
     tap.rewrite = lambda byte, out: b"" if muted.is_set() and bus.module(1).transmitting else out
     with PtySimulator(tap, baud=19200) as sim:
-        holder: list[Hub] = []
-        config = Slap2LinkConfig(link_id="line", path=sim.path, addresses=[0, 1])
-
-        class Forward:
-            def __getattr__(self, name: str) -> object:
-                return getattr(holder[0], name)
-
-        link = Slap2Link(config, SerialConnector(sim.path, 19200), Forward())  # type: ignore[arg-type]
-        hub = Hub([link], Storage(tmp_path / "db.sqlite"))
-        holder.append(hub)
+        hub, _ = _hub_on_line(sim.path, [0, 1], tmp_path)
         await hub.start()
         try:
             await wait_for(
@@ -717,3 +697,22 @@ async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
             assert hub.link_status("line").state == "connected"
         finally:
             await hub.stop()
+
+
+def _hub_on_line(path: str, addresses: list[int], tmp_path: Path) -> tuple[Any, Slap2Link]:
+    """(a hub over one SLAP2 link on ``path``, that link): the link reports to the
+    hub, which exists only after the link, so a forwarding sink bridges the two."""
+    from servotune.hub import Hub
+    from servotune.storage import Storage
+
+    holder: list[Hub] = []
+
+    class Forward:
+        def __getattr__(self, name: str) -> object:
+            return getattr(holder[0], name)
+
+    config = Slap2LinkConfig(link_id="line", path=path, addresses=addresses)
+    link = Slap2Link(config, SerialConnector(path, 19200), Forward())  # type: ignore[arg-type]
+    hub = Hub([link], Storage(tmp_path / "db.sqlite"))
+    holder.append(hub)
+    return hub, link

@@ -221,9 +221,6 @@ def _sampling_trust(
             out["rise_time_s"] = None
     overshoot = out.get("overshoot_pct")
     if overshoot is not None and overshoot > 0 and step != 0:
-        spread = overshoot_stamp_uncertainty_pct(
-            [t for t, _ in points], [y for _, y in points], t0_s=0.0, y0=y0, y_final=y0 + step
-        )
         gap_s, usual_s, drop = _peak_gaps(points, 1.0 if step > 0 else -1.0)
         drop_pp = drop / abs(step) * 100.0
         # The refined peak rises above the highest sample by at most the larger drop to
@@ -238,7 +235,11 @@ def _sampling_trust(
                 f"spacing is {usual_s * 1000:.1f} ms): the peak may lie between samples"
             )
             out["overshoot_pct"] = None
-        elif spread is not None and spread > MAX_OVERSHOOT_UNCERTAINTY_PP:
+        elif (
+            spread := overshoot_stamp_uncertainty_pct(
+                [t for t, _ in points], [y for _, y in points], t0_s=0.0, y0=y0, y_final=y0 + step
+            )
+        ) is not None and spread > MAX_OVERSHOOT_UNCERTAINTY_PP:
             untrusted["overshoot_pct"] = (
                 f"samples around the peak were stamped late (a busy host): the overshoot "
                 f"could be off by {spread:.1f} percentage points (at most "
