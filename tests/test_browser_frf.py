@@ -119,18 +119,32 @@ async def test_frequency_response_bode_margins_and_what_if(
     await asyncio.sleep(0.3)
     assert len((await server.client.get("/api/axes/line-0/bench/runs")).json()) == before
     await page.get_by_test_id("frf-inject").select_option("closed")
-    clicked = time.monotonic()
-    await page.get_by_test_id("frf-run").click()
-    for _ in range(600):
-        runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
-        # (the click's run may not exist yet: the identification's is the last then)
-        if len(runs) > before and runs[-1]["status"] != "recording":
+    # A host starved by other work polls far below the wire's rate; the server then says
+    # the capture is too sparse to measure (the product's honest answer, checked here),
+    # and the user runs it again: so does this test, at most twice.
+    retakes: list[str] = []
+    for _attempt in range(3):
+        clicked = time.monotonic()
+        await page.get_by_test_id("frf-run").click()
+        for _ in range(600):
+            runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
+            # (the click's run may not exist yet: the previous run is the last then)
+            if len(runs) > before and runs[-1]["status"] != "recording":
+                break
+            await asyncio.sleep(0.05)
+        before = len(runs)
+        assert runs[-1]["test"]["kind"] == "frequency_response"
+        assert runs[-1]["status"] == "complete", runs[-1]["message"]
+        frf_run_s = time.monotonic() - clicked
+        first = (await server.client.get(f"/api/bench/runs/{runs[-1]['id']}/frf")).json()
+        problem = first["measured_problem"] or ""
+        if first["measured"] is not None or "too sparse to measure" not in problem:
             break
-        await asyncio.sleep(0.05)
-    assert runs[-1]["test"]["kind"] == "frequency_response"
-    assert runs[-1]["status"] == "complete", runs[-1]["message"]
-    frf_run_s = time.monotonic() - clicked
-    first = (await server.client.get(f"/api/bench/runs/{runs[-1]['id']}/frf")).json()
+        retakes.append(problem)
+        await expect(page.get_by_test_id("frf-panel")).to_contain_text("too sparse")
+        await page.get_by_test_id(f"bench-run-select-{runs[-1]['id']}").uncheck()
+    if retakes:
+        print(f"frequency response retaken {len(retakes)}x: {retakes}")
     assert first["measured"] is not None, first["measured_problem"]
     readouts = page.get_by_test_id("frf-readouts")
     await expect(readouts.locator("tr[data-source='measured']")).to_have_count(1, timeout=30_000)
@@ -146,7 +160,7 @@ async def test_frequency_response_bode_margins_and_what_if(
     model_pm = readouts.locator("tr[data-source='model'] [data-testid='frf-pm']")
     await expect(model_pm).to_contain_text("°")
     runs = (await server.client.get("/api/axes/line-0/bench/runs")).json()
-    run_id = next(r["id"] for r in runs if r["test"]["kind"] == "frequency_response")
+    run_id = first["run_id"]
     frf = (await server.client.get(f"/api/bench/runs/{run_id}/frf")).json()
     server_pm = frf["model"]["margins"]["phase_margin_deg"]
     assert f"{server_pm:.1f}" in await model_pm.inner_text()

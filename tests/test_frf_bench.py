@@ -92,6 +92,16 @@ def test_a_record_without_whole_periods_is_refused_with_a_reason() -> None:
         frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation)
 
 
+def test_a_capture_too_sparse_for_the_fit_says_how_sparse_and_to_run_again() -> None:
+    """What a starved host records (about 10 samples/s where the wire gives 120, seen in
+    CI under load): refused with the capture's rate, not only the fit's arithmetic."""
+    excitation = frfrun.design(0.0, 200.0, 1.0, 40.0)
+    t = np.arange(0.0, 6.0, 0.1)
+    sent = [[float(x), float(excitation.target(float(x)))] for x in np.arange(0.0, 6.0, 0.004)]
+    with pytest.raises(ValueError, match=r"samples in the .* per s\), too sparse to measure"):
+        frfrun.analyse(t, np.zeros(t.size), None, sent, 0.0, excitation)
+
+
 def test_the_multisine_stays_within_its_amplitude() -> None:
     excitation = frfrun.design(1000.0, 250.0, 1.0, 40.0)
     targets = [excitation.target(t) for t in np.arange(0.0, 2.0, 0.0005)]

@@ -368,23 +368,32 @@ def _measure(
     tick_t, u_ticks = rebuild_input(sent, t0_s, excitation.y0, profile, end + TICK_S)
     on_ticks = (tick_t >= start) & (tick_t < end)
     t_mid = 0.5 * (start + end)
-    if estimator == "impulse":
-        response, fit_error = _impulse_estimate(
-            t_k, y_k, tick_t, u_ticks, tones, start, excitation.period_s, periods
-        )
-    else:
-        response, fit_error = _tone_estimate(
-            t_k,
-            y_k,
-            tick_t[on_ticks],
-            u_ticks[on_ticks],
-            tones,
-            start,
-            t_mid,
-            excitation.period_s,
-            periods,
-            differenced,
-        )
+    try:
+        if estimator == "impulse":
+            response, fit_error = _impulse_estimate(
+                t_k, y_k, tick_t, u_ticks, tones, start, excitation.period_s, periods
+            )
+        else:
+            response, fit_error = _tone_estimate(
+                t_k,
+                y_k,
+                tick_t[on_ticks],
+                u_ticks[on_ticks],
+                tones,
+                start,
+                t_mid,
+                excitation.period_s,
+                periods,
+                differenced,
+            )
+    except ValueError as exc:
+        # Too few samples for the fit: say how sparse the capture was, which is what a
+        # user can act on (a starved host polls far below the wire's rate: run again).
+        span_s = end - start
+        raise ValueError(
+            f"{exc}: the capture holds {t_k.size} samples in the {span_s:.2f} s measured "
+            f"({t_k.size / span_s:.0f} per s), too sparse to measure; run it again"
+        ) from exc
     timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
     relative_error = np.hypot(_nan_inf(fit_error), timing_error)
     check: float | None = None
