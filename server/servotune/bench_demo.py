@@ -235,6 +235,18 @@ class LinkFigures:
     errors_first: int | None = None
     errors_last: int = 0
     wire_limit_hz: float = 0.0
+    # the link's counters (retries, desyncs, dropped bytes, ...) at the first and the
+    # last status read of the measurement
+    counters_first: dict[str, int] | None = None
+    counters_last: dict[str, int] = field(default_factory=dict)
+
+    def per_minute(self, seconds: float) -> dict[str, float]:
+        """What each counter grew by during the measurement, per minute."""
+        first = self.counters_first or {}
+        return {
+            name: (value - first.get(name, 0)) * 60.0 / seconds
+            for name, value in sorted(self.counters_last.items())
+        }
 
     @property
     def median(self) -> float:
@@ -350,6 +362,12 @@ class BenchReport:
                 f"  {link_id:<14} median {figures.median:6.1%}  min {figures.minimum:6.1%}  "
                 f"of {figures.wire_limit_hz:7.1f} Hz  errors +{errors}  ({states})"
             )
+            counted = figures.per_minute(self.seconds)
+            if counted:
+                out.append(
+                    f"  {'':<14} per minute: "
+                    + ", ".join(f"{name} {rate:.1f}" for name, rate in counted.items())
+                )
         if self.stream is not None:
             # The work done, to compare CPU figures between runs on a loaded host: a
             # starved link does less work, so less CPU there is no saving.
@@ -402,7 +420,9 @@ def measure(
                     figures.ratios.append(status["rate_hz"] / status["wire_limit_hz"])
                 if figures.errors_first is None:
                     figures.errors_first = status["errors"]
+                    figures.counters_first = dict(status.get("counters") or {})
                 figures.errors_last = status["errors"]
+                figures.counters_last = dict(status.get("counters") or {})
             next_poll += 1.0
             time.sleep(max(0.0, next_poll - time.monotonic()))
         elapsed = time.monotonic() - t0
