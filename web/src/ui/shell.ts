@@ -231,7 +231,24 @@ export class Nav {
         rate.title = `telemetry samples per second per axis; the wire allows ${status.wire_limit_hz.toFixed(1)} Hz for this poll set; ${countOf(status.errors, "error")}`;
       } else setText(rate, "— Hz");
       const message = el.querySelector<HTMLElement>(".link-message") as HTMLElement;
-      setText(message, status && status.state !== "connected" ? status.message : status && status.errors ? countOf(status.errors, "error") : "");
+      if (status && status.state !== "connected") {
+        setText(message, status.message);
+        message.title = "Open the event log";
+      } else if (status?.errors) {
+        // Errors of single transactions the link retried or resynchronised: the link
+        // stayed up, so they are counted here, not logged one by one as events.
+        setText(message, `${countOf(status.errors, "wire error")}, recovered`);
+        const counted = Object.entries(status.counters ?? {})
+          .filter(([, n]) => n > 0)
+          .map(([name, n]) => `${name.replace(/_/g, " ")} ${n}`)
+          .join(", ");
+        message.title =
+          `Transactions that failed since the server started and were retried or resynchronised; the link stayed up.` +
+          `${counted ? ` Counted: ${counted}.` : ""} The event log (click) lists what reached you as a warning or error.`;
+      } else {
+        setText(message, "");
+        message.title = "Open the event log";
+      }
       message.dataset.state = status?.state ?? "";
     }
     for (const el of this.list.querySelectorAll<HTMLElement>(".nav-axis")) {
