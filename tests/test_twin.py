@@ -178,9 +178,15 @@ async def test_proxy_shows_every_demo_axis_and_the_disc_follows_a_move(tmp_path:
             seen_from = len(rotor.orientations)
 
             async def settled() -> float:
+                # In position only after the move was seen: right after the command the
+                # state may still be a sample from before it (a loaded host polls late),
+                # at rest where the move starts (this read 0 instead of 768 under load).
+                started = False
                 while True:
                     state = (await demo.client.get(f"{axis}/state")).json()
-                    if state["flags"]["inpos"] and not state["flags"]["move"]:
+                    moving = bool(state["flags"]["move"])
+                    started = started or moving or abs(float(state["position"]) - start) > 10
+                    if started and state["flags"]["inpos"] and not moving:
                         return float(state["position"])
                     await asyncio.sleep(0.1)
 
