@@ -641,22 +641,31 @@ async def test_slap2_listing_with_a_pause_mid_reply_is_read_whole(tmp_path: Path
             assert name in names, lines
 
 
-async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
-    tmp_path: Path,
+@pytest.mark.parametrize("rule", ["driver", "hub"])
+async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
+    tmp_path: Path, rule: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """One module of a shared line stops answering its polls, the other answers: the
-    link stays connected (its failures never come 3 in a row), so only the hub's
-    silence rule (AXIS_SILENT_S) can show that axis offline; its next sample after
-    the fault shows it ok again (issue 8, found in a soak)."""
+    link stays connected (its failures never come 3 in a row). ``driver``: the driver
+    takes the module offline after MODULE_OFFLINE_FAILURES polls, says why, and
+    probes it with a growing interval, so the other module is polled at the line's
+    rate again instead of waiting out the silent one's timeouts every cycle.
+    ``hub`` (the driver's rule switched off): the hub's silence rule (AXIS_SILENT_S)
+    shows it offline, the backstop for any driver that keeps an axis "ok" without
+    samples. Either way its answers after the fault show it ok again (issue 8, found
+    in a soak)."""
+    from servotune.drivers import slap2 as slap2_driver
     from servotune.hub import AXIS_SILENT_S
 
+    if rule == "hub":
+        monkeypatch.setattr(slap2_driver, "MODULE_OFFLINE_FAILURES", 10**9)
     bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     tap = Tap(bus)
     muted = threading.Event()
     # Module 1 is selected but its transmitter stays dark: no echo, no reply.
     tap.rewrite = lambda byte, out: b"" if muted.is_set() and bus.module(1).transmitting else out
     with PtySimulator(tap, baud=19200) as sim:
-        hub, _ = _hub_on_line(sim.path, [0, 1], tmp_path)
+        hub, link = _hub_on_line(sim.path, [0, 1], tmp_path)
         await hub.start()
         try:
             await wait_for(
@@ -670,12 +679,17 @@ async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
             muted.set()
             silent = hub.entry("line-1")
             await wait_for(lambda: silent.health == "offline", AXIS_SILENT_S + 3, "axis 1 offline")
-            assert silent.health_message.startswith("no telemetry for ")
-            assert silent.health_message.endswith(
-                " s while its link is up: the device does not answer its polls"
-            )
+            if rule == "hub":
+                assert silent.health_message.startswith("no telemetry for ")
+                assert silent.health_message.endswith(
+                    " s while its link is up: the device does not answer its polls"
+                )
+                text = "no telemetry for"
+            else:
+                assert silent.health_message.startswith("module 1 does not answer: 3 polls")
+                text = "module 1 does not answer"
             assert any(
-                e.level == "warning" and e.axis == "line-1" and "no telemetry for" in e.message
+                e.level == "warning" and e.axis == "line-1" and text in e.message
                 for e in hub._events
             )
             # The other module answers throughout; the line stays connected.
@@ -685,15 +699,24 @@ async def test_hub_shows_a_silent_axis_of_a_connected_line_offline_and_back(
                 assert hub.link_status("line").state == "connected"
                 await asyncio.sleep(0.1)
             assert silent.health == "offline"
-            # Still sampled (about once a second: each poll of the silent module waits
-            # out its timeouts), well within AXIS_SILENT_S.
+            # Still sampled: about once a second while each poll of the silent module
+            # waits out its timeouts (hub rule); at the line's rate for one module once
+            # the driver stopped polling the silent one, but for its probes (counted
+            # over 2 s: more than the 2 samples a second the hub rule leaves).
             before = hub.entry("line-0").latest
             await wait_for(lambda: hub.entry("line-0").latest is not before, 2.5, "axis 0")
+            if rule == "driver":
+                await asyncio.sleep(2.0)
+                times = link.module_state(0).samples
+                recent = [t for t in times if t > times[-1] - 2.0]
+                print(f"axis 0: {len(recent)} samples in 2 s with module 1 silent")
+                assert len(recent) > 10, f"{len(recent)} samples of axis 0 in 2 s"
             assert len([e for e in hub._events if e.axis == "line-0"]) == count
             muted.clear()
             await wait_for(lambda: silent.health == "ok", 10, "axis 1 back to ok")
             assert silent.health_message == ""
-            assert any(e.axis == "line-1" and e.message == "telemetry again" for e in hub._events)
+            back = "telemetry again" if rule == "hub" else "module 1 answers again after"
+            assert any(e.axis == "line-1" and e.message.startswith(back) for e in hub._events)
             assert hub.link_status("line").state == "connected"
         finally:
             await hub.stop()

@@ -91,6 +91,12 @@ T = TypeVar("T")
 IDEMPOTENT_COMMANDS = frozenset({"st"})
 # Tries of switching syscon ucon for a capture (or back) before doing without.
 UCON_ATTEMPTS = 3
+# Polls of one module that fail in a row while the line's other modules answer between
+# them: that module is taken offline and probed with a growing interval, as a module
+# missing at start-up is. Polling it on would hold the line for its character timeouts
+# on every cycle (the other modules fell from ~23 to ~1 sample/s) and show it as if it
+# answered. Three, like the line's own rule: one or two failures are a slow host.
+MODULE_OFFLINE_FAILURES = 3
 SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -147,6 +153,8 @@ class _ModuleState:
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
     next_probe_t: float = 0.0
     probe_interval_s: float = 0.0
+    poll_failures: int = 0  # this module's polls failed in a row
+    silent_since_s: float | None = None  # taken offline for it (_module_silent) then
     # A weak reset cue waiting to be confirmed (see the module docstring), and whether
     # the cal flag was seen set since the last calibration servotune started.
     suspect: str = ""
@@ -221,6 +229,8 @@ class Slap2Link(LinkEngine):
         for module in self._modules.values():
             module.profile.clear()
             module.ucon_failures = 0
+            module.poll_failures = 0
+            module.silent_since_s = None  # the line's outage says it now
             if module.online:
                 module.online = False
                 self._sink.on_axis_health(self.axis_id(module.address), "offline", "link down")
@@ -303,6 +313,12 @@ class Slap2Link(LinkEngine):
         module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
         module.cal_seen = flags["cal"]
         module.suspect = ""
+        if module.silent_since_s is not None:
+            silent_s = self._clock() - module.silent_since_s
+            module.silent_since_s = None
+            self._sink.on_event(
+                "info", axis_id, f"module {module.address} answers again after {silent_s:.1f} s"
+            )
         module.online = True
         module.probe_interval_s = 0.0
         self._sink.on_params(axis_id, values, "read")
@@ -817,8 +833,37 @@ class Slap2Link(LinkEngine):
         try:
             await self._poll_module(module)
             self._consecutive_failures = 0
+            module.poll_failures = 0
         except DriverError as exc:
             self._poll_failed(exc)
+            module.poll_failures += 1
+            if (
+                module.poll_failures >= MODULE_OFFLINE_FAILURES
+                and self._consecutive_failures < module.poll_failures
+                and module.online
+            ):
+                # Another module answered since this one's first failure: the line
+                # works, this module does not.
+                self._module_silent(module, exc)
+
+    def _module_silent(self, module: _ModuleState, exc: DriverError) -> None:
+        """Take a module whose polls keep failing on a working line offline; the
+        owner loop probes it again (``offline_retry_s``, doubling up to 30 s), and
+        the probe that reads it brings it back."""
+        axis_id = self.axis_id(module.address)
+        failures = module.poll_failures
+        module.online = False
+        module.poll_failures = 0
+        module.probe_interval_s = 0.0
+        module.silent_since_s = self._clock()
+        module.next_probe_t = module.silent_since_s + self.config.offline_retry_s
+        message = (
+            f"module {module.address} does not answer: {failures} polls in a row failed "
+            f"while the line's other modules answered ({exc}); tried again with a growing "
+            "interval (power, cable, address pins?)"
+        )
+        self._sink.on_event("warning", axis_id, message)
+        self._sink.on_axis_health(axis_id, "offline", message)
 
     def _poll_failed(self, exc: DriverError) -> None:
         # An odd reply to a poll is a desynchronisation, never the end of the
