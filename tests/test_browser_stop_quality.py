@@ -254,3 +254,62 @@ async def test_a_run_the_server_judges_bad_has_no_check_mark_and_shows_why(
     for cell in await row.locator("td.untrusted").all():
         why = await cell.get_attribute("data-untrusted")
         assert why in quality["untrusted"].values(), (why, quality["untrusted"])
+
+
+async def test_an_imported_bad_run_is_not_coloured_against_the_baseline(
+    dashboard: tuple[Page, LiveServer],  # noqa: F811
+) -> None:
+    """A run exported by a server that judged it bad keeps that verdict on import, and
+    its metrics are not coloured against the baseline; the same metrics in a run judged
+    good are (the control: the colouring is there to be seen)."""
+    page, server = dashboard
+    run = await finished_run(
+        server, "line-1", await start(server, "line-1", kind="move", distance=800)
+    )
+    assert run["status"] == "complete", run
+    response = await server.client.post(f"/api/bench/runs/{run['id']}/baseline")
+    assert response.is_success, response.text
+    meta = (await server.client.get(f"/api/bench/runs/{run['id']}/run.json")).json()
+    csv_text = (await server.client.get(f"/api/bench/runs/{run['id']}/samples.csv")).text
+    assert meta["metrics"]["peak_following_error"] is not None, meta["metrics"]
+    # Far off the baseline's following error, whatever it measured.
+    worse = {
+        **meta["metrics"],
+        "peak_following_error": 10 * abs(meta["metrics"]["peak_following_error"]) + 100,
+    }
+    reason = {"code": "did_not_move", "message": "the axis moved 0 of 800 counts"}
+    imported: dict[str, str] = {}
+    for verdict, quality in (
+        ("bad", {"status": "bad", "reasons": [reason], "untrusted": {}}),
+        ("good", {"status": "good", "reasons": [], "untrusted": {}}),
+    ):
+        response = await server.client.post(
+            "/api/axes/line-1/bench/runs/import",
+            json={
+                "meta": {**meta, "baseline": False, "metrics": worse, "quality": quality},
+                "csv": csv_text,
+            },
+        )
+        assert response.is_success, response.text
+        imported[verdict] = response.json()["id"]
+        stored = (await server.client.get(f"/api/bench/runs/{imported[verdict]}")).json()
+        assert stored["quality"]["status"] == verdict, stored["quality"]
+
+    await page.get_by_test_id("axis-link-line-1").click()
+    await page.get_by_test_id("bench-toggle").click()
+    bad_id, good_id = imported["bad"], imported["good"]
+    await expect(page.get_by_test_id(f"bench-run-status-{bad_id}")).to_have_attribute(
+        "data-quality", "bad"
+    )
+    await expect(page.get_by_test_id(f"bench-run-status-{bad_id}")).not_to_have_text("✓")
+    await expect(page.get_by_test_id(f"bench-run-reasons-{bad_id}")).to_contain_text(
+        reason["message"]
+    )
+    await expect(page.get_by_test_id(f"bench-run-status-{good_id}")).to_have_text("✓")
+    # The control: judged good, the same number is coloured worse than the baseline.
+    await expect(page.get_by_test_id(f"bench-metric-{good_id}-peak_following_error")).to_have_class(
+        "c-metric num worse"
+    )
+    bad_cell = page.get_by_test_id(f"bench-metric-{bad_id}-peak_following_error")
+    await expect(bad_cell).to_have_attribute("data-value", str(worse["peak_following_error"]))
+    await expect(bad_cell).to_have_class("c-metric num")
