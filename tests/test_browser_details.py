@@ -12,7 +12,7 @@ import pytest
 from playwright.async_api import Page, Request, expect
 
 from .test_api import LiveServer
-from .test_browser import browser, dashboard  # noqa: F401  (the fixtures)
+from .test_browser import ARTIFACTS, browser, dashboard  # noqa: F401  (the fixtures)
 
 pytestmark = pytest.mark.browser
 
@@ -69,6 +69,14 @@ async def test_an_overview_tile_opens_its_axis(
     tile = page.get_by_test_id("tile-line-1")
     await expect(tile).to_be_visible(timeout=10_000)
     await expect(page.get_by_test_id("tile-position-line-1")).not_to_have_text("—")
+    # What STOP does is on each tile, at any width (the top bar shows it only when wide).
+    await page.set_viewport_size({"width": 390, "height": 844})
+    stop = page.get_by_test_id("tile-stop-line-1")
+    await expect(stop).to_contain_text("STOP: SLAP2: motor unpowered")
+    await expect(stop).to_be_in_viewport()
+    await page.wait_for_timeout(600)  # the rail slides into its drawer
+    await page.screenshot(path=str(ARTIFACTS / "overview-phone.png"))
+    await page.set_viewport_size({"width": 1400, "height": 900})
     await tile.click()
     await expect(page).to_have_url(f"{page.url.split('#')[0]}#/axis/line-1")
     await expect(page.get_by_test_id("axis-health")).to_be_visible()

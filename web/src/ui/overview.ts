@@ -37,6 +37,7 @@ interface Tile {
   rate: HTMLElement;
   health: HTMLElement;
   holder: HTMLElement;
+  stop: HTMLElement;
   descriptor: DeviceDescriptor | null;
 }
 
@@ -63,6 +64,9 @@ export class OverviewView {
         rate: h("span", { class: "tile-rate mono" }, "— Hz"),
         health: h("span", { class: "badge health" }, "ok"),
         holder: h("span", { class: "tile-holder", testid: `tile-control-${axis.id}`, title: "Who holds the control lock of this axis (STOP works for everyone)" }, "control: —"),
+        // What STOP does to this axis, on every screen (the top bar has room for it
+        // only on wide ones)
+        stop: h("div", { class: "tile-stop", testid: `tile-stop-${axis.id}` }, ""),
         descriptor: null,
         el: h("a"),
       };
@@ -74,6 +78,7 @@ export class OverviewView {
         h("div", { class: "tile-line" }, tile.position, tile.unit),
         h("div", { class: "tile-line" }, tile.state, tile.rate),
         h("div", { class: "tile-line" }, tile.holder),
+        tile.stop,
       );
       grid.appendChild(tile.el);
       this.tiles.push(tile);
@@ -81,6 +86,7 @@ export class OverviewView {
         .descriptor(axis.id, () => api.descriptor(axis.id))
         .then((d) => {
           tile.descriptor = d;
+          setText(tile.stop, `STOP: ${d.stop.summary}`);
           setText(tile.unit, d.channels.find((c) => c.name === this.positionChannel(d))?.unit ?? "");
         })
         .catch(() => setText(tile.state, "no descriptor"));
