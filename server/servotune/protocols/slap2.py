@@ -10,6 +10,7 @@ echo-per-character exchange itself lives in ``servotune.drivers.slap2``.
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass
 
 CR = 0x0D
@@ -175,9 +176,19 @@ def normalise_line(line: str) -> str:
     return text
 
 
+@functools.cache
+def _bit_table(bits: type[enum.IntEnum]) -> tuple[tuple[str, int], ...]:
+    return tuple((bit.name, bit.value) for bit in bits)
+
+
 def decode_bits(value: int, bits: type[enum.IntEnum]) -> dict[str, bool]:
-    """Map a status/config word to ``{flag name: bool}`` for the given bit enum."""
-    return {bit.name: bool(value >> bit.value & 1) for bit in bits}
+    """Map a status/config word to ``{flag name: bool}`` for the given bit enum (a new
+    dict per call).
+
+    The enum's (name, bit) pairs are looked up once: iterating an enum and reading its
+    members' properties cost 9 us per call, and a capture decodes ``rss`` several
+    times per sample at ~150 samples/s, between two transactions on the wire."""
+    return {name: bool(value >> bit & 1) for name, bit in _bit_table(bits)}
 
 
 def encode_bits(flags: dict[str, bool], bits: type[enum.IntEnum]) -> int:
