@@ -81,3 +81,27 @@ async def test_an_overview_tile_opens_its_axis(
     await expect(page).to_have_url(f"{page.url.split('#')[0]}#/axis/line-1")
     await expect(page.get_by_test_id("axis-health")).to_be_visible()
     await expect(page.get_by_test_id("console-input")).to_be_visible()
+
+
+async def test_the_live_plot_of_a_captured_axis_gets_every_captured_sample(
+    dashboard: tuple[Page, LiveServer],  # noqa: F811
+) -> None:
+    """Issue 9, 1: "the live plots of a captured axis show the dense data". A bench step
+    captures the axis (the line devoted to it); the page open on that axis receives at
+    least every sample the run recorded: the fan-out thins nothing. (A count, not a
+    rate: what the host manages to poll does not matter.)"""
+    from .test_bench import finished_run, start
+
+    page, server = dashboard
+    await page.get_by_test_id("axis-link-line-0").click()
+    await expect(page.get_by_test_id("plot-position")).to_be_visible(timeout=10_000)
+    before = await page.evaluate("window.__servotune.samplesReceived('line-0')")
+    run = await finished_run(
+        server, "line-0", await start(server, "line-0", kind="position_step", distance=2000)
+    )
+    assert run["status"] == "complete", run["message"]
+    await asyncio.sleep(0.5)  # the last samples' websocket batch
+    received = await page.evaluate("window.__servotune.samplesReceived('line-0')") - before
+    recorded = len(run["samples"])
+    assert recorded > 20, recorded
+    assert received >= recorded, f"the page got {received} samples of the run's {recorded}"
