@@ -151,8 +151,15 @@ class LoopModel:
     def step(self, duration_s: float, amplitude: float = 1.0) -> tuple[FloatArray, FloatArray]:
         """Predicted response of the position to a setpoint step (linear, no limits)."""
         n = max(2, round(duration_s / self.period_s))
-        t = np.arange(n, dtype=np.float64) * self.period_s
-        response = control.forced_response(self._closed_loop_tf(), T=t, U=np.full(n, amplitude))
+        return self.response(np.full(n, amplitude))
+
+    def response(self, setpoint: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Predicted position for a setpoint given at every controller tick from rest at
+        0 (a profiled move: the verification step's trapezoid); linear, no limits.
+        Returns (tick times from 0, positions)."""
+        u = np.asarray(setpoint, dtype=np.float64)
+        t = np.arange(u.size, dtype=np.float64) * self.period_s
+        response = control.forced_response(self._closed_loop_tf(), T=t, U=u)
         return t, np.asarray(response.outputs, dtype=np.float64)
 
     def nyquist(self, frequency_hz: npt.ArrayLike) -> npt.NDArray[np.complex128]:
