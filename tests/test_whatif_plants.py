@@ -11,6 +11,17 @@ the gains in use, driven by the verification step's own profile (the SLAP2
 firmware's trapezoid at sv/sa maximum, the Z1100 chip's at its Vmax/Acc), and the
 bench runs that step on the simulator. Predicted overshoot and settling time must
 agree with the measured run within the tolerances below.
+
+The Z1100's prediction is ``simulate_move`` at the chip's sample (``predict``): the law
+with KABH during the move and KABD at rest, as the chip and the browser's
+``predictStep`` run it; the linear KABD-only ``loop`` is printed beside it (on these
+moves the two agree within 0.04 pp and 0 ms). Where the model's loop is unstable (the
+loaded SLAP2 module with the default gains: phase margin about -4 deg) the test checks
+that the measured run does not settle either.
+
+The samples carry host-clock stamps; the horizon is the last one minus the run's
+``t0_s`` (the first version took the stamp itself, some thousand seconds of 32-us
+ticks, and the state-space simulation then in ``LoopModel.response`` grew to 17 GB).
 """
 
 from __future__ import annotations
@@ -18,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -33,6 +45,9 @@ from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.protocols.z1100 import Gains
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.tuning.devices.z1100 import Kab, MoveProfile, simulate_move
+from servotune.tuning.loops import LoopModel
+from servotune.tuning.plants import Z1100Plant
 from servotune.tuning.whatif import loop_for, plant_from_identification
 
 from .test_api import LiveServer, live_server
@@ -45,9 +60,24 @@ Z1100_LIMITS = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_ov
 DISTANCE = {"slap2": 2000, "z1100": 2000}  # the what-if view's default step
 RETAKES = 2  # a run whose overshoot or settling the bench nulls as untrusted
 
-# Tolerances (set from the figures measured below; see the report in the commit):
-OVERSHOOT_TOLERANCE_PP = 5.0
-SETTLING_TOLERANCE_S = 0.05
+# Tolerances per device, from 3 runs of each plant (2026-12-03; measured - predicted):
+#   slap2-unloaded  overshoot +2.6, +2.6, +3.4 pp   settling +47, -3, +72 ms
+#   z1100-x/y/z     overshoot -0.11..+0.03 pp        settling -2..0 ms
+# SLAP2 overshoot: the model leaves out Coulomb friction (identified 1.45 PWM) and the
+#   firmware's integer PWM; the measured peak came 2-3.4 pp above the linear one each
+#   time. 5 pp: 1.5x the worst.
+# SLAP2 settling: the step's error rings with a half period of 29 ms, each lobe a third
+#   of the one before, and the +-5-count band sits at the 5th lobe (4 to 7 counts for
+#   tau 7.6 to 8.1 ms): one lobe more or less is +-29 ms. Friction (not in the model)
+#   holds the last small lobes outside the band until the integrator has wound up, so
+#   the measured settling comes later, by up to two lobes seen (+72 ms); it can also
+#   damp a lobe into the band (-3 ms). Window: one lobe early, three late.
+# Z1100 (overshoot about 0.1 %: no ringing; friction-free chip law): 0.5 pp, and
+#   settling +-10 ms. Both settling windows are widened by the record's largest sample
+#   gap: the measured settling is the first sample back in the band, so it is
+#   quantised by the sample spacing, which depends on the host's load, not the loop.
+OVERSHOOT_TOLERANCE_PP = {"slap2": 5.0, "z1100": 0.5}
+SETTLING_WINDOW_S = {"slap2": (-0.035, 0.10), "z1100": (-0.01, 0.01)}  # measured - predicted
 
 PLANTS = {
     "slap2-unloaded": ("slap2", "line-0"),
@@ -140,18 +170,57 @@ async def measured_run(server: LiveServer, axis_id: str, kind: str, distance: in
     pytest.fail(f"{axis_id}: {1 + RETAKES} runs, each with untrusted metrics: {untrusted}")
 
 
-# The Z1100 cases did not finish within 9 min on the first try (cause not yet found:
-# Identify at 38400, or the linear response of the z^-32 law over ~10^4 ticks).
-_UNFINISHED = pytest.mark.skip(reason="Z1100 case hangs: not diagnosed yet")
+def predict(
+    device: str,
+    loop: LoopModel,
+    plant: dict[str, Any],
+    params: dict[str, Any],
+    verify: dict[str, Any],
+    distance: int,
+    horizon_s: float,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """The predicted verification step from rest at 0, per controller tick: (times
+    from the step's start, positions, what predicted it).
+
+    SLAP2: ``loop.response`` (the linear law, one gain set) on the firmware's trapezoid.
+    Z1100: ``simulate_move`` at the chip's own sample (coarse 1): its law with KABH while
+    the profile runs and KABD at rest, as the chip and the what-if view's
+    ``predictStep`` (web/src/ui/whatif.ts) switch them; ``loop`` (``Z1100Law.loop``)
+    is linear with KABD only, so it is printed beside it, not asserted (the report
+    gives the figures)."""
+    ticks = max(2, round(horizon_s / loop.period_s))
+    if device == "slap2":
+        t, y = loop.response(setpoint_per_tick(device, distance, verify, params, ticks))
+        return t, y, "linear"
+    kabh, kabd = (
+        Kab(params[f"{g}_k"], params[f"{g}_a"], params[f"{g}_b"]) for g in ("kabh", "kabd")
+    )
+    profile = MoveProfile(
+        distance, verify["velocity_counts_s"], verify["acceleration_counts_s2"], params["stm"]
+    )
+    sim = simulate_move(
+        Z1100Plant(float(plant["gain_counts_s_per_duty"]), float(plant["tau_s"])),
+        kabh,
+        kabd,
+        profile,
+        hold_s=max(0.0, horizon_s - profile.time_s()),
+        record_every=1,
+        coarse=1,
+    )
+    return np.asarray(sim.t), np.asarray(sim.position), "KABH/KABD"
 
 
-@pytest.mark.parametrize(
-    "plant",
-    [pytest.param(p, marks=_UNFINISHED) if p.startswith("z1100") else p for p in PLANTS],
-)
+def metrics_of(t: np.ndarray, y: np.ndarray, latency_s: float, distance: int, band: float) -> Any:
+    return compute_metrics(
+        (t + latency_s).tolist(), y.tolist(), t0_s=0.0, y0=0.0, y_final=float(distance), band=band
+    )
+
+
+@pytest.mark.parametrize("plant", list(PLANTS))
 async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
     tmp_path: Path, plant: str
 ) -> None:
+    started = time.monotonic()
     device, axis_id = PLANTS[plant]
     limits = SLAP2_LIMITS if device == "slap2" else Z1100_LIMITS
     async with demo_server(tmp_path, device) as server:
@@ -171,9 +240,11 @@ async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
         distance = DISTANCE[device]
         run = await measured_run(server, axis_id, info["verify"]["kind"], distance)
         measured = run["metrics"]
+        band = float(measured["band"])
         latency_s = run.get("trigger_latency_s") or 0.0
-        horizon_s = max(0.3, run["samples"][-1][0])
-        ticks = max(2, round((horizon_s - latency_s) / loop.period_s))
+        # the samples carry the host clock's stamps (time.monotonic), the step starts
+        # at the run's t0_s; the prediction starts when the device latched the trigger
+        horizon_s = max(0.3, run["samples"][-1][0] - run["t0_s"]) - latency_s
         margins = loop.margins()
         if not margins.stable:
             print(
@@ -185,35 +256,50 @@ async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
             )
             assert measured["settling_time_s"] is None
             return
-        t, y = loop.response(setpoint_per_tick(device, distance, info["verify"], params, ticks))
-        predicted = compute_metrics(
-            (t + latency_s).tolist(),
-            y.tolist(),
-            t0_s=0.0,
-            y0=0.0,
-            y_final=float(distance),
-            band=float(measured["band"]),
+        t, y, how = predict(
+            device, loop, session["model"], params, info["verify"], distance, horizon_s
         )
+        predicted = metrics_of(t, y, latency_s, distance, band)
+        linear = predicted
+        if device == "z1100":
+            ticks = max(2, round(horizon_s / loop.period_s))
+            tl, yl = loop.response(
+                setpoint_per_tick(device, distance, info["verify"], params, ticks)
+            )
+            linear = metrics_of(tl, yl, latency_s, distance, band)
 
         def ms(value: float | None) -> str:
             return "never" if value is None else f"{value * 1000:.0f} ms"
 
-        gains = {k: v for k, v in info["gains"].items()}
+        def pct(value: float | None) -> str:
+            return "  none" if value is None else f"{value:6.2f}"
+
         print(
-            f"\n{plant:15s} gains {gains} plant {session['model']}"
-            f"\n  {'':15s} overshoot   settling  (band ±{measured['band']}, "
-            f"latency {latency_s * 1000:.0f} ms, samples {len(run['samples'])}, "
-            f"max gap {measured['max_sample_gap_s']} s)"
-            f"\n  {'predicted':15s} {predicted.overshoot_pct:6.2f} %   "
+            f"\n{plant:15s} gains {info['gains']} plant {session['model']}"
+            f"\n  {'':20s} overshoot   settling  (band ±{band}, latency "
+            f"{latency_s * 1000:.0f} ms, horizon {horizon_s:.2f} s, samples "
+            f"{len(run['samples'])}, max gap {measured['max_sample_gap_s']} s)"
+            f"\n  {'predicted ' + how:20s} {pct(predicted.overshoot_pct)} %   "
             f"{ms(predicted.settling_time_s)}"
-            f"\n  {'measured':15s} {measured['overshoot_pct']:6.2f} %   "
+            + (
+                f"\n  {'linear KABD only':20s} {pct(linear.overshoot_pct)} %   "
+                f"{ms(linear.settling_time_s)}"
+                if device == "z1100"
+                else ""
+            )
+            + f"\n  {'measured':20s} {pct(measured['overshoot_pct'])} %   "
             f"{ms(measured['settling_time_s'])}"
+            f"\n  case time {time.monotonic() - started:.1f} s"
         )
         assert predicted.overshoot_pct is not None and measured["overshoot_pct"] is not None
         assert predicted.settling_time_s is not None and measured["settling_time_s"] is not None
         assert predicted.overshoot_pct == pytest.approx(
-            measured["overshoot_pct"], abs=OVERSHOOT_TOLERANCE_PP
+            measured["overshoot_pct"], abs=OVERSHOOT_TOLERANCE_PP[device]
         )
-        assert predicted.settling_time_s == pytest.approx(
-            measured["settling_time_s"], abs=SETTLING_TOLERANCE_S
+        early_s, late_s = SETTLING_WINDOW_S[device]
+        gap_s = float(measured["max_sample_gap_s"] or 0.0)
+        late_by_s = measured["settling_time_s"] - predicted.settling_time_s
+        assert early_s - gap_s <= late_by_s <= late_s + gap_s, (
+            f"measured settling {late_by_s * 1000:+.0f} ms from the prediction, outside "
+            f"{early_s * 1000:+.0f}..{late_s * 1000:+.0f} ms (+- max gap {gap_s * 1000:.0f} ms)"
         )
