@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import control
 import numpy as np
 import numpy.typing as npt
+import scipy.signal
 
 from servotune.tuning.frf import FloatArray, FrequencyResponse
 
@@ -151,19 +152,56 @@ class LoopModel:
     def step(self, duration_s: float, amplitude: float = 1.0) -> tuple[FloatArray, FloatArray]:
         """Predicted response of the position to a setpoint step (linear, no limits)."""
         n = max(2, round(duration_s / self.period_s))
-        t = np.arange(n, dtype=np.float64) * self.period_s
-        response = control.forced_response(self._closed_loop_tf(), T=t, U=np.full(n, amplitude))
-        return t, np.asarray(response.outputs, dtype=np.float64)
+        return self.response(np.full(n, amplitude))
+
+    def response(self, setpoint: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Predicted position for a setpoint given at every controller tick from rest at
+        0 (a profiled move: the verification step's trapezoid); linear, no limits.
+        Returns (tick times from 0, positions)."""
+        u = np.asarray(setpoint, dtype=np.float64)
+        t = np.arange(u.size, dtype=np.float64) * self.period_s
+        # T's own difference equation (lfilter), not control.forced_response: that
+        # realises T in state space and scipy's dlsim keeps every state at every tick
+        # (python-control a second copy), so a Z1100 loop (T of order 34, from the
+        # 32-sample window) over a few seconds of 32 us ticks took gigabytes (a test
+        # was killed at 17 GB); this keeps the output array only. Same output from rest.
+        num, den = self._closed_loop_polynomials()
+        num = np.concatenate([np.zeros(den.size - num.size), num])  # powers of z^-1
+        y = scipy.signal.lfilter(num / den[0], den / den[0], u)
+        return t, np.asarray(y, dtype=np.float64)
 
     def nyquist(self, frequency_hz: npt.ArrayLike) -> npt.NDArray[np.complex128]:
         """Open-loop L(e^{jwT}) at the given frequencies (a Nyquist curve)."""
         return self.open_loop_response(frequency_hz).response
 
     def _closed_loop_tf(self) -> control.TransferFunction:
-        # T = Cf P / (1 + (Cf + Cb) P), built from polynomials so no cancellation of
-        # Cf is needed when Cb is zero.
-        num = self.forward * self.plant_d
-        return control.minreal(num / (1 + self.open_loop), verbose=False)
+        num, den = self._closed_loop_polynomials()
+        return control.tf(num, den, self.period_s)
+
+    def _closed_loop_polynomials(self) -> tuple[FloatArray, FloatArray]:
+        """T = Cf P / (1 + (Cf + Cb) P) as (num, den) in descending powers of z, from
+        the polynomials with exact arithmetic only: no ``control.minreal``, whose
+        tolerance cancelled the SLAP2 integrator's pole near z = 1 against a nearby
+        zero and left a slow error (176 counts of a 2000-count ramp after 17 s)."""
+        (nf, df), (nb, db), (npl, dpl) = (
+            (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(tf))
+            for tf in (self.forward, self.feedback, self.plant_d)
+        )
+        if df.size == db.size and np.allclose(df, db, rtol=0.0, atol=0.0):
+            d = df  # one denominator (the Z1100's 64 z^32): T = Nf Np / (D Dp + (Nf+Nb) Np)
+            num = np.polymul(nf, npl)
+            den = np.polyadd(np.polymul(d, dpl), np.polymul(np.polyadd(nf, nb), npl))
+        else:  # T = Nf Db Np / (Df Db Dp + (Nf Db + Nb Df) Np)
+            num = np.polymul(np.polymul(nf, db), npl)
+            den = np.polyadd(
+                np.polymul(np.polymul(df, db), dpl),
+                np.polymul(np.polyadd(np.polymul(nf, db), np.polymul(nb, df)), npl),
+            )
+        num, den = np.trim_zeros(num, "f"), np.trim_zeros(den, "f")
+        # common roots at z = 0 (trailing zero coefficients) cancel exactly
+        while num.size > 1 and den.size > 1 and num[-1] == 0.0 and den[-1] == 0.0:
+            num, den = num[:-1], den[:-1]
+        return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
 def _at(tf: control.TransferFunction, z: npt.NDArray[np.complex128]) -> npt.NDArray[np.complex128]:
