@@ -14,8 +14,8 @@ agree with the measured run within the tolerances below.
 
 The Z1100's prediction is ``simulate_move`` at the chip's sample (``predict``): the law
 with KABH during the move and KABD at rest, as the chip and the browser's
-``predictStep`` run it; the linear KABD-only ``loop`` is printed beside it (on these
-moves the two agree within 0.04 pp and 0 ms). Where the model's loop is unstable (the
+``predictStep`` run it (the linear KABD-only ``loop`` agreed with it within 0.04 pp and
+0 ms on these moves when this test was written). Where the model's loop is unstable (the
 loaded SLAP2 module with the default gains: phase margin about -4 deg) the test checks
 that the measured run does not settle either.
 
@@ -27,8 +27,6 @@ ticks, and the state-space simulation then in ``LoopModel.response`` grew to 17 
 from __future__ import annotations
 
 import contextlib
-import json
-import math
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
@@ -38,13 +36,12 @@ import numpy as np
 import pytest
 
 from servotune.config import LinkSpec
-from servotune.demo import Z1100_DEMO_FLASH, Z1100_LOADS_KG_M2
+from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.metrics import compute_metrics
 from servotune.profiles import TrapezoidGenerator
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.protocols.z1100 import Gains
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.sim.z1100 import Z1100Chip
 from servotune.tuning.devices.z1100 import Kab, MoveProfile, simulate_move
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
@@ -94,19 +91,7 @@ PLANTS = {
 def z1100_demo_chip(tmp_path: Path) -> Iterator[PtySimulator]:
     """The demo's Z1100 (its three loads, its flash gains and profile) on a pty."""
     flash = tmp_path / "flash.json"
-    axes = [
-        AxisParameters(
-            kabh=Gains(*gains["kabh"]),
-            kabd=Gains(*gains["kabd"]),
-            vmax_counts_s=100_000,
-            acc_counts_s2=1_000_000,
-            limit_counts=4000,
-            hvm_counts_s=20_000,
-            hac_counts_s2=200_000,
-        ).to_json()
-        for gains in Z1100_DEMO_FLASH
-    ]
-    flash.write_text(json.dumps({"axes": axes}))
+    _z1100_flash(flash)  # the demo's own flash file
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
     simulator = PtySimulator(chip, baud=Z1100_BAUD)
     simulator.start()
@@ -129,32 +114,11 @@ async def demo_server(tmp_path: Path, device: str) -> AsyncIterator[LiveServer]:
                 yield server
 
 
-def setpoint_per_tick(
-    device: str, distance: int, verify: dict[str, Any], params: dict[str, Any], ticks: int
-) -> np.ndarray:
-    """The verification step's setpoint at every controller tick from its start."""
-    if device == "slap2":
-        generator = TrapezoidGenerator.from_wire(0.0, distance, VELOCITY_MAX, ACCELERATION_MAX)
-        return np.array([generator.step() for _ in range(ticks)])
-    # The chip's go-to-target profile, one step per sample (sim/z1100.py ``_approach``):
-    # speed min(v + a, vmax, sqrt(2 a d)); the reference snaps to the goal when the
-    # speed would carry it there.
-    ts = max(1, int(params.get("stm", 1))) * 32e-6
-    vmax = verify["velocity_counts_s"] * ts
-    acc = verify["acceleration_counts_s2"] * ts * ts
-    out = np.empty(ticks)
-    ref = speed = 0.0
-    goal = abs(distance)
-    for n in range(ticks):
-        left = goal - ref
-        if left > 0:
-            speed = min(speed + acc, vmax, math.sqrt(2.0 * acc * left))
-            if speed >= left:
-                ref, speed = goal, 0.0
-            else:
-                ref += speed
-        out[n] = math.copysign(ref, distance)
-    return out
+def slap2_setpoint_per_tick(distance: int, ticks: int) -> np.ndarray:
+    """The SLAP2 verification step's setpoint at every controller tick from its start
+    (the firmware's trapezoid at sv/sa maximum)."""
+    generator = TrapezoidGenerator.from_wire(0.0, distance, VELOCITY_MAX, ACCELERATION_MAX)
+    return np.array([generator.step() for _ in range(ticks)])
 
 
 async def measured_run(server: LiveServer, axis_id: str, kind: str, distance: int) -> Any:
@@ -187,12 +151,12 @@ def predict(
     SLAP2: ``loop.response`` (the linear law, one gain set) on the firmware's trapezoid.
     Z1100: ``simulate_move`` at the chip's own sample (coarse 1): its law with KABH while
     the profile runs and KABD at rest, as the chip and the what-if view's
-    ``predictStep`` (web/src/ui/whatif.ts) switch them; ``loop`` (``Z1100Law.loop``)
-    is linear with KABD only, so it is printed beside it, not asserted (the report
-    gives the figures)."""
+    ``predictStep`` (web/src/ui/whatif.ts) switch them (``loop``, ``Z1100Law.loop``, is
+    linear with KABD only: on these moves it agreed within 0.04 pp and 0 ms, measured
+    when this test was written)."""
     ticks = max(2, round(horizon_s / loop.period_s))
     if device == "slap2":
-        t, y = loop.response(setpoint_per_tick(device, distance, verify, params, ticks))
+        t, y = loop.response(slap2_setpoint_per_tick(distance, ticks))
         return t, y, "linear"
     kabh, kabd = (
         Kab(params[f"{g}_k"], params[f"{g}_a"], params[f"{g}_b"]) for g in ("kabh", "kabd")
@@ -262,13 +226,6 @@ async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
             device, loop, session["model"], params, info["verify"], distance, horizon_s
         )
         predicted = metrics_of(t, y, latency_s, distance, band)
-        linear = predicted
-        if device == "z1100":
-            ticks = max(2, round(horizon_s / loop.period_s))
-            tl, yl = loop.response(
-                setpoint_per_tick(device, distance, info["verify"], params, ticks)
-            )
-            linear = metrics_of(tl, yl, latency_s, distance, band)
 
         def ms(value: float | None) -> str:
             return "never" if value is None else f"{value * 1000:.0f} ms"
@@ -283,13 +240,7 @@ async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
             f"{len(run['samples'])}, max gap {measured['max_sample_gap_s']} s)"
             f"\n  {'predicted ' + how:20s} {pct(predicted.overshoot_pct)} %   "
             f"{ms(predicted.settling_time_s)}"
-            + (
-                f"\n  {'linear KABD only':20s} {pct(linear.overshoot_pct)} %   "
-                f"{ms(linear.settling_time_s)}"
-                if device == "z1100"
-                else ""
-            )
-            + f"\n  {'measured':20s} {pct(measured['overshoot_pct'])} %   "
+            f"\n  {'measured':20s} {pct(measured['overshoot_pct'])} %   "
             f"{ms(measured['settling_time_s'])}"
             f"\n  case time {time.monotonic() - started:.1f} s"
         )

@@ -860,7 +860,7 @@ class Slap2Link(LinkEngine):
         message = (
             f"module {module.address} does not answer: {failures} polls in a row failed "
             f"while the line's other modules answered ({exc}); tried again with a growing "
-            "interval (power, cable, address pins?)"
+            "interval"
         )
         self._sink.on_event("warning", axis_id, message)
         self._sink.on_axis_health(axis_id, "offline", message)
