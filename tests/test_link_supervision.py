@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import random
+import re
 import threading
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -711,6 +712,12 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
                 recent = [t for t in times if t > times[-1] - 2.0]
                 print(f"axis 0: {len(recent)} samples in 2 s with module 1 silent")
                 assert len(recent) > 10, f"{len(recent)} samples of axis 0 in 2 s"
+                # A failed probe keeps saying why it is offline, for how long, and when
+                # it is tried next (not the bare timeout of the probe).
+                assert re.fullmatch(
+                    r"module 1 offline for \d+ s, does not answer \(.+\); next try in \d+ s",
+                    silent.health_message,
+                ), silent.health_message
             assert len([e for e in hub._events if e.axis == "line-0"]) == count
             muted.clear()
             await wait_for(lambda: silent.health == "ok", 10, "axis 1 back to ok")
