@@ -6,6 +6,10 @@ two wire transactions the owner takes, in this order: a stop job, a user job, th
 next poll transaction. A stop therefore waits at most for the one transaction in
 flight (a few ms at 19200 baud), never for queued polls or commands.
 
+Layers: ``Slap2Wire`` (drivers/slap2_wire.py) does the exchange on the line; this
+module owns what is known of each module (online, reset evidence, parameters, the
+profile of its last move), the session loop, polling and capture scheduling.
+
 The exchange follows the manual's host algorithm exactly ("sstring"/"rstring"): send
 one character, wait for its echo and compare it, then the next; after the last one
 send CR and wait for its echo; then collect the reply (chars > 31) up to CR. Decisions
@@ -47,7 +51,6 @@ where the manual is silent (also in docs/slap2.md):
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import logging
 import time
@@ -67,7 +70,7 @@ from servotune.drivers.base import (
     check_console_line,
 )
 from servotune.drivers.capture import CaptureRegistry, CaptureStats
-from servotune.drivers.engine import LinkEngine, recent_rate_hz
+from servotune.drivers.engine import recent_rate_hz
 from servotune.drivers.slap2_axis import Slap2Axis
 from servotune.drivers.slap2_capture import (
     CAPTURE_UCON,
@@ -77,18 +80,20 @@ from servotune.drivers.slap2_capture import (
     ProfileState,
 )
 from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.drivers.slap2_wire import (
+    Slap2Wire,
+    command_mnemonic,
+    is_banner,
+)
 from servotune.profiles import ProfileTrack
 from servotune.protocols import slap2 as codec
-from servotune.transports.base import ByteChannel, Connector, EchoResult
+from servotune.transports.base import ByteChannel, Connector
 from servotune.wire import AxisHealth
 
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-# Commands that may run twice with the same effect: sent again after a failure that
-# came after their CR (for any other command that failure is final: it may have run).
-IDEMPOTENT_COMMANDS = frozenset({"st"})
 # Tries of switching syscon ucon for a capture (or back) before doing without.
 UCON_ATTEMPTS = 3
 # Polls of one module that fail in a row while the line's other modules answer between
@@ -97,7 +102,6 @@ UCON_ATTEMPTS = 3
 # on every cycle (the other modules fell from ~23 to ~1 sample/s) and show it as if it
 # answered. Three, like the line's own rule: one or two failures are a slow host.
 MODULE_OFFLINE_FAILURES = 3
-SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
     "mr": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -173,7 +177,7 @@ class _ModuleState:
     ucon_failures: int = 0
 
 
-class Slap2Link(LinkEngine):
+class Slap2Link(Slap2Wire):
     """Owner of one SLAP2 RS232 line; see the module docstring for the protocol rules."""
 
     device = "slap2"
@@ -191,7 +195,7 @@ class Slap2Link(LinkEngine):
         super().__init__(
             config.link_id,
             config.path,
-            config.baud,
+            config,
             connector,
             sink,
             clock=clock,
@@ -201,23 +205,9 @@ class Slap2Link(LinkEngine):
         self._descriptor = slap2_descriptor(config.lines)
         self._modules = {a: _ModuleState(a) for a in config.addresses}
         self._axes = [Slap2Axis(self, a) for a in config.addresses]
-        self._selected: int | None = None
-        # The last module we selected, kept when ``_selected`` is forgotten after an
-        # error, to tell a reset (it lost its selection) from a glitch.
-        self._believed_selected: int | None = None
-        # The address of the last ``se`` that nobody answered: that module holds the
-        # line's selection with its transmitter dark, so the next ``se`` cannot be
-        # echoed and is sent blind at once (saves a character timeout and a Ctrl-X
-        # recovery, about 0.35 s, per cycle while a module is silent).
-        self._dark_selection: int | None = None
         self._poll_index = 0
         self._last_verify_t = 0.0
-        self._reply_chars: dict[str, int] = {}
         self._consecutive_failures = 0
-        # Best estimate of when the module latched the last exchange's value (see
-        # ``_exchange_once``), and the character times all exchanges took on the wire.
-        self._last_latch_t = 0.0
-        self._wire_chars = 0
         self._captures = CaptureRegistry(self._capture_changed)
         self._capture_index = 0
 
@@ -243,7 +233,7 @@ class Slap2Link(LinkEngine):
     # --- session ---------------------------------------------------------------------
 
     async def _session(self, channel: ByteChannel) -> None:
-        self._selected = self._believed_selected = self._dark_selection = None
+        self._forget_selection()
         self._set_state("connecting", f"draining power-on output on {self.path}")
         banner = await self._drain(channel, self.config.banner_quiet_s, self.config.banner_max_s)
         if banner.strip():
@@ -338,25 +328,14 @@ class Slap2Link(LinkEngine):
         self._sink.on_params(axis_id, values, "read")
         self._sink.on_axis_health(axis_id, *self._resumed_health(module))
 
-    # --- the wire exchange ------------------------------------------------------------
-
-    async def _drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
-        """Read until nothing arrives for ``quiet_s`` (or ``max_s`` passed)."""
-        collected = bytearray(channel.discard_input())
-        deadline = self._clock() + max_s
-        while self._clock() < deadline:
-            data = await channel.read_available(quiet_s)
-            if not data:
-                break
-            collected += data
-        return bytes(collected)
+    # --- unsolicited bytes and reset evidence (the wire's hooks) -----------------------
 
     def _note_unsolicited(self, data: bytes) -> None:
         text = " ".join(codec.LineDecoder().feed(data + b"\r")).strip()
         self._errors += 1
         if self._connected_once and is_banner(text):
             # Only address 0 sends a banner after power-on; all modules lose selection.
-            self._selected = self._believed_selected = None
+            self._forget_selection()
             message = f"power-on banner received ({text!r}): module reset"
             self._sink.on_event("warning", None, f"{self.id}: {message}")
             if 0 in self._modules:
@@ -378,6 +357,10 @@ class Slap2Link(LinkEngine):
         module.profile.clear()
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
         self._sink.on_event("warning", self.axis_id(module.address), message)
+
+    def _lost_selection(self, address: int) -> None:
+        if address in self._modules:
+            self._suspect(self._modules[address], "it answered only after a blind re-selection")
 
     def _suspect(self, module: _ModuleState, cue: str) -> None:
         """A weak reset cue: check the module again before anyone is alarmed."""
@@ -439,286 +422,11 @@ class Slap2Link(LinkEngine):
                 return f"{parameter.name} reads {value}, last known {expected}"
         return ""
 
-    async def _abandon(self, channel: ByteChannel, head: bytes = b"") -> None:
-        """Ctrl-X discards a half-sent command in the module; then wait for quiet.
-
-        The module echoes the Ctrl-X: wait for that echo first (up to a character
-        timeout), so it cannot arrive during the next command and pass for its echo.
-        """
-        await channel.write(bytes([codec.CTRL_X]))
-        leftover = bytearray(head)
-        deadline = self._clock() + self.config.char_timeout_s
-        while codec.CTRL_X not in leftover:
-            remaining = deadline - self._clock()
-            if remaining <= 0:
-                break
-            data = await channel.read_available(remaining)
-            if not data:
-                break
-            leftover += data
-        leftover += await self._drain(channel, self.config.quiet_s, 0.5)
-        stray = bytes(leftover).replace(bytes([codec.CTRL_X]), b"")
-        if stray.strip(b"\r\n"):
-            self._note_unsolicited(stray)
-
-    async def _send_echoed(
-        self, channel: ByteChannel, text: str, first: EchoResult | None = None
-    ) -> None:
-        """Send ``text`` + CR one char at a time, each after the previous echo.
-
-        ``first``: the outcome of an echoed write of the whole line already made (by
-        ``channel.transact``) that stopped early; the rest is sent from there.
-        Raises ``_AbandonedError`` for failures before CR was sent (the command was
-        abandoned with Ctrl-X and did not execute, so it may be retried).
-        """
-        payload = text.encode("ascii") + b"\r"
-        done = 0
-        while True:
-            if first is not None:
-                result, first = first, None
-            else:
-                result = await channel.write_echoed(payload[done:], self.config.char_timeout_s)
-            done += result.echoed
-            if done == len(payload):
-                return
-            if result.got != codec.CTRL_X:
-                break
-            # A late echo of our own Ctrl-X (nothing else sends 0x18): skip it; the
-            # echo of the byte just sent is due next.
-            self._count("desyncs")
-            echo = await channel.read_byte(self.config.char_timeout_s)
-            if echo != payload[done]:
-                result = EchoResult(result.echoed, echo)
-                break
-            done += 1
-            if done == len(payload):
-                return
-        byte = payload[done]
-        if result.got is None:
-            error: DriverError = DeviceTimeoutError(
-                f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
-            )
-        else:
-            error = ProtocolError(
-                f"echo mismatch in {text!r}: sent {byte:#04x}, got {result.got:#04x}"
-            )
-        if done == len(payload) - 1:  # CR was sent: it may have executed
-            raise error
-        # The wrong byte may be the head of a banner: keep it with what follows.
-        await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
-        raise _AbandonedError(error)
-
-    def _first_reply_timeout_s(self, command: codec.Command) -> float:
-        return max(
-            self.config.char_timeout_s, SLOW_COMMANDS_REPLY_S.get(_mnemonic(command.text), 0.0)
-        )
-
-    async def _read_reply(
-        self, channel: ByteChannel, command: codec.Command, raw: bytes | None = None
-    ) -> list[str]:
-        """The reply's lines; ``raw``: its first line if already read (by ``transact``)."""
-        decoder = codec.LineDecoder()
-        if raw is None:
-            raw = await channel.read_until(
-                codec.CR, self._first_reply_timeout_s(command), self.config.char_timeout_s
-            )
-        if raw is None:
-            raise DeviceTimeoutError(f"no reply to {command.text!r}")
-        lines = decoder.feed(raw)
-        if command.multiline:
-            # Listings are for terminals: read until the line goes quiet.
-            listing = _mnemonic(command.text) in codec.MULTILINE_COMMANDS
-            quiet_s = self.config.listing_quiet_s if listing else self.config.quiet_s
-            while True:
-                data = await channel.read_available(quiet_s)
-                if not data:
-                    break
-                lines.extend(decoder.feed(data))
-            if decoder.pending:
-                lines.append(decoder.flush())
-        return lines
-
-    async def _exchange_once(self, command: codec.Command) -> list[str]:
-        """One exchange with the selected module; no retry.
-
-        Raises ``_AbandonedError`` when it failed before CR (nothing executed),
-        ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
-        """
-        channel = self._require_channel()
-        stray = channel.discard_input()
-        if stray:
-            self._note_unsolicited(stray)
-        payload = command.text.encode("ascii") + b"\r"
-        try:
-            # The usual case in one channel call: the echo checked and the reply read
-            # in the receive callback, both arrival times stamped there.
-            done = await channel.transact(
-                payload, codec.CR, self.config.char_timeout_s, self._first_reply_timeout_s(command)
-            )
-            t_echo, t_reply = done.t_echo_s, done.t_reply_s
-            if done.echo.echoed < len(payload):
-                # A stray or missing echo: resynchronise the slow way.
-                await self._send_echoed(channel, command.text, done.echo)
-                t_echo = self._clock()
-                raw = None
-            else:
-                raw = done.reply
-                if raw is None:
-                    raise DeviceTimeoutError(f"no reply to {command.text!r}")
-            lines = await self._read_reply(channel, command, raw)
-            if t_reply is None or raw is None or command.multiline:
-                t_reply = self._clock()
-        except _AbandonedError:
-            self._errors += 1
-            raise
-        except DeviceTimeoutError:
-            self._errors += 1
-            self._selected = None
-            await self._abandon(channel)
-            raise
-        if (
-            not command.multiline
-            and _mnemonic(command.text) != "id"
-            and any(is_banner(x) for x in lines)
-        ):
-            # A module powered up while we waited for this reply: its banner came
-            # instead (a reset). The reply, if any, is lost.
-            self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
-            raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
-        reply_chars = sum(len(x) + 1 for x in lines)
-        self._reply_chars[_mnemonic(command.text)] = reply_chars
-        # When the module latched the value: it acts on the CR, whose echo ends one
-        # character later, and (sent back to back) the reply ends reply_chars after
-        # that. Both clock readings can only be late (a busy host resumes this task
-        # late), so each gives an upper bound; the smaller one is the best estimate.
-        # The time the reply was parsed would bias rise and settling times by the
-        # reply length and by the host's load.
-        char_s = 10 / self.config.baud
-        if t_echo is None:
-            t_echo = t_reply
-        self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
-        self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
-        return lines
-
-    async def _select(self, address: int) -> None:
-        if self._selected == address:
-            return
-        channel = self._require_channel()
-        believed = self._believed_selected
-        command = codec.make_select(address)
-        blind = False
-        try:
-            try:
-                if self._dark_selection is not None:
-                    # ``se n`` reached every module; the one it selected is silent.
-                    lines = await self._select_blind(channel, command)
-                    blind = True
-                else:
-                    lines = await self._exchange_once(command)
-            except _AbandonedError as abandoned:
-                if not isinstance(abandoned.error, DeviceTimeoutError):
-                    raise abandoned.error from None
-                # No echo: perhaps nobody is selected (nobody could echo).
-                lines = await self._select_blind(channel, command)
-                blind = True
-            except DeviceTimeoutError:
-                lines = await self._select_blind(channel, command)
-                blind = True
-        except BaseException as exc:
-            # Every module saw ``se n``: whoever was selected switched its transmitter
-            # off, for a known reason; its later silence is no sign of a reset.
-            self._selected = self._believed_selected = None
-            self._dark_selection = address if isinstance(exc, DeviceTimeoutError) else None
-            raise
-        if lines != [""]:
-            raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
-        dark = self._dark_selection
-        self._dark_selection = None
-        self._selected = self._believed_selected = address
-        if blind and believed is not None and believed in self._modules and dark is None:
-            # The module we had selected stopped transmitting without an ``se``: a
-            # reset (power-on deselects every address but 0) does that, but so does
-            # one echo lost or late on a slow host. Weak evidence: check it first.
-            self._suspect(self._modules[believed], "it answered only after a blind re-selection")
-
-    async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
-        """Nobody is selected, so nobody echoes: send ``se n`` paced, await its CR."""
-        char_s = 10 / self.config.baud
-        channel.discard_input()
-        for byte in command.text.encode("ascii") + b"\r":
-            await channel.write(bytes([byte]))
-            await asyncio.sleep(2 * char_s)
-        received = await self._drain(channel, self.config.char_timeout_s, 0.5)
-        # The new module's reply is a bare CR; an echo cannot come from anyone.
-        if b"\r" not in received:
-            raise DeviceTimeoutError(
-                f"no module answers at address {command.text[2:]} (power, cable, address pins?)"
-            )
-        return [""]
-
-    async def _transact(self, address: int, command: codec.Command) -> list[str]:
-        """Select ``address`` and exchange ``command``; retried once if abandoned.
-
-        A retry re-selects first: a missing echo may mean the module lost its
-        selection (reset), which a plain resend could not fix.
-        """
-        idempotent = _mnemonic(command.text) in IDEMPOTENT_COMMANDS
-        for attempt in range(2):
-            if attempt:
-                self._count("retries")
-            await self._select(address)
-            try:
-                return await self._exchange_once(command)
-            except _AbandonedError as abandoned:
-                if isinstance(abandoned.error, DeviceTimeoutError):
-                    self._selected = None
-                if attempt == 1:
-                    raise abandoned.error from None
-            except (DeviceTimeoutError, ProtocolError):
-                # After CR: it may have run. Only a command that may run twice (st)
-                # is sent again - a STOP whose CR echo came late must still go out.
-                if not idempotent or attempt == 1:
-                    raise
-        raise AssertionError("unreachable")
-
-    async def _read_rss_after(self, command_text: str) -> int:
-        """``rss`` right after a command, on the same selection.
-
-        Its ``uc`` bit tells whether the command was refused; a re-selection would
-        spoil that (``se`` is a command too), so a failed read is repeated without
-        one. If it still fails, the outcome is unknown and the error says so.
-        """
-        for attempt in range(3):
-            try:
-                lines = await self._exchange_once(codec.make_read("rss"))
-            except _AbandonedError as abandoned:
-                if attempt < 2:
-                    self._count("retries")
-                    continue
-                error = abandoned.error
-            except (DeviceTimeoutError, ProtocolError) as exc:
-                error = exc
-            else:
-                reply = codec.parse_reply(lines[0] if lines else "")
-                if reply.kind is codec.ReplyKind.NUMBER and reply.value is not None:
-                    return reply.value
-                error = ProtocolError(f"rss answered {reply.text!r}, expected a number")
-            raise ProtocolError(
-                f"{command_text}: sent, but whether the module accepted it is unknown "
-                f"(the status read after it failed: {error})"
-            )
-        raise AssertionError("unreachable")
-
-    async def _read_int(self, address: int, mnemonic: str) -> int:
-        lines = await self._transact(address, codec.make_read(mnemonic))
-        reply = codec.parse_reply(lines[0] if lines else "")
-        if reply.kind is not codec.ReplyKind.NUMBER or reply.value is None:
-            raise ProtocolError(f"{mnemonic} answered {reply.text!r}, expected a number")
-        return reply.value
+    # --- commands ---------------------------------------------------------------------
 
     async def _execute(self, module: _ModuleState, command: codec.Command) -> list[str]:
         """Run a state-changing command and raise DeviceRefusedError if refused."""
-        mnemonic = _mnemonic(command.text)
+        mnemonic = command_mnemonic(command.text)
         previous: ProfileTrack | None = None
         resting = self._resting_setpoint(module)
         if mnemonic in MOVE_MNEMONICS or mnemonic in PROFILE_BREAKERS:
@@ -764,7 +472,7 @@ class Slap2Link(LinkEngine):
     ) -> None:
         """Reconstruct the profile of a move the module accepted (slap2_capture);
         ``resting``: the setpoint before it if the module was at rest in pm."""
-        mnemonic = _mnemonic(text)
+        mnemonic = command_mnemonic(text)
         try:
             value = codec.parse_int(text[len(mnemonic) :])
         except codec.CodecError:
@@ -802,7 +510,7 @@ class Slap2Link(LinkEngine):
         readback: dict[str, int] = {}
         for name, value in values.items():
             parameter = self._descriptor.parameter(name)
-            command = codec.make_set(_mnemonic(parameter.set_command), value)
+            command = codec.make_set(command_mnemonic(parameter.set_command), value)
             try:
                 await self._execute(module, command)
             except DeviceRefusedError as exc:
@@ -1248,7 +956,7 @@ class Slap2Link(LinkEngine):
             text = codec.normalise_line(line)
         except codec.CodecError as exc:
             raise InvalidArgumentError("line", str(exc)) from None
-        mnemonic = _mnemonic(text)
+        mnemonic = command_mnemonic(text)
         if mnemonic == "se":
             raise InvalidArgumentError(
                 "line", "se is managed by servotune: pick the module in the navigation"
@@ -1280,7 +988,7 @@ class Slap2Link(LinkEngine):
         return text, await self.submit(job, axis=address, motion=True, stop=mnemonic == "st")
 
     def _track_mode(self, module: _ModuleState, text: str) -> None:
-        mnemonic = _mnemonic(text)
+        mnemonic = command_mnemonic(text)
         if mnemonic in PROFILE_BREAKERS:
             module.profile.clear()
         if mnemonic == "st":
@@ -1293,28 +1001,6 @@ class Slap2Link(LinkEngine):
                 module.cal_seen = False  # a new calibration clears the flag until it ends
         elif mnemonic in _PARAM_SETTERS:
             module.known.pop(_PARAM_SETTERS[mnemonic], None)
-
-
-class _AbandonedError(Exception):
-    """A command abandoned with Ctrl-X before its CR: it did not execute."""
-
-    def __init__(self, error: DriverError) -> None:
-        super().__init__(str(error))
-        self.error = error
-
-
-def is_banner(text: str) -> bool:
-    """A power-on banner names the module type (``SLAP2 V2205 HW3 SN10000``); late
-    echoes of servotune's own commands (``se0``, ``rss``) and noise never do."""
-    return "slap2" in text.lower()
-
-
-def _mnemonic(text: str) -> str:
-    """The command word of a wire line: its leading letters (``sv1000`` -> ``sv``)."""
-    end = 0
-    while end < len(text) and text[end].isalpha():
-        end += 1
-    return text[:end].lower()
 
 
 _PARAM_SETTERS = {
