@@ -4,8 +4,17 @@ Source: ``shared/spec/ep7047.md`` and the vendor manual. :class:`Ep7047Engine` i
 sits behind the "Positioning interface" process data: ``step(outputs) -> inputs``
 advances it by one 250 us controller cycle. It is pure and deterministic (no clock, no
 randomness), so a simulator can drive it from any loop and tests can replay it exactly.
-:class:`StepperPlant` is the minimal mechanics it moves: an ideal stepper that follows
-the setpoint, with an optional encoder offset, a calibration cam and a C-track pulse.
+:class:`~servotune.sim.ep7047_plant.StepperPlant` is the minimal mechanics it moves: an
+ideal stepper that follows the setpoint, with an optional encoder offset, a calibration
+cam and a C-track pulse.
+
+The engine is split in three modules. This one is the drive's face: the cycle (edges of
+the outputs, :meth:`Ep7047Engine.step`/:meth:`Ep7047Engine.run` and their fast paths),
+the read-outs, the SDO objects and the inputs image. What a command does and how the
+setpoint moves is ``servotune.sim.ep7047_positioning`` (the base class
+``_Positioning``); the mechanics and the scale are ``servotune.sim.ep7047_plant``.
+Imports: those two and ``servotune.protocols.ep7047``. Imported by:
+``servotune.sim.ep7047_slave`` and the tests.
 
 Decisions where the spec and the manual are silent are written next to the code and
 listed in ``docs/ep7047.md``.
@@ -13,13 +22,11 @@ listed in ``docs/ep7047.md``.
 
 from __future__ import annotations
 
-import enum
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 from servotune.protocols.ep7047 import (
-    CHANGE_START_TYPES,
     CYCLE_S,
     DIAG_COMMAND_ABORTED,
     DIAG_COMMAND_REJECTED,
@@ -27,7 +34,6 @@ from servotune.protocols.ep7047 import (
     DRIVE_STATE,
     INT16_MAX,
     INT16_MIN,
-    MODULO_START_TYPES,
     POS_SETTINGS_SDO,
     POS_STATUS_WORD,
     SPEED_RANGE_FULL_SCALE_BP,
@@ -51,11 +57,15 @@ from servotune.protocols.ep7047 import (
     stm_status_of,
     wrap_int32,
 )
-
-# Share of the move distance by which braking starts early (manual: 0.5 %); the rest is
-# crept at Velocity min.
-EARLY_BRAKING_FRACTION = 0.005
-_EPS_COUNTS = 1e-6
+from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
+from servotune.sim.ep7047_positioning import (
+    _CALIBRATION_SEARCH,
+    _EPS_COUNTS,
+    _Mode,
+    _Phase,
+    _Positioning,
+    _sign,
+)
 
 # Bits as plain ints for the per-cycle code (see Ep7047Engine._cycle and _inputs).
 _POS_BUSY = int(PosStatus.BUSY)
@@ -85,180 +95,10 @@ _EMERGENCY_STOP = int(PosControl.EMERGENCY_STOP)
 _SET_COUNTER = int(EncControl.SET_COUNTER)
 _ENABLE_LATCH_C = int(EncControl.ENABLE_LATCH_C)
 
-
-@dataclass(frozen=True, slots=True)
-class DriveConfig:
-    """What the engine needs besides 0x8020/0x8021: the scale of velocities and positions.
-
-    ``speed_range_steps_s`` is the speed range 0x8012:05 in full steps per second
-    (10000 bp); ``counts_per_full_step`` relates the counter to full steps (4 x encoder
-    lines / full steps per turn with an encoder; the microstep resolution with the
-    internal counter).
-    """
-
-    speed_range_steps_s: int = 2000
-    counts_per_full_step: float = 64.0
-
-    @property
-    def full_scale_counts_s(self) -> float:
-        """Counter speed at 10000 bp (100 % of the speed range)."""
-        return self.speed_range_steps_s * self.counts_per_full_step
-
-
-@dataclass(slots=True)
-class StepperPlant:
-    """An ideal stepper: the shaft follows the engine's setpoint exactly, every cycle.
-
-    Two frames: ``shaft_counts`` is the machine's fixed frame, where the cam and the
-    C-track marks are; the counter (what the drive reports) reads
-    ``shaft + counter_shift + encoder_offset``. ``counter_shift_counts`` changes when
-    the counter is set (calibration, ENC "Set counter"). ``encoder_offset_counts``
-    models what a real drive cannot pull in - lost steps, a slipped encoder: the actual
-    position stays that far from the setpoint, which is how a test makes In-Target fail.
-
-    ``cam_counts`` is the shaft interval [low, high] on which the cam (digital input 1)
-    is on; ``sync_period_counts`` > 0 puts a C-track pulse at ``sync_phase_counts`` plus
-    every whole period.
-    """
-
-    shaft_counts: float = 0.0
-    encoder_offset_counts: float = 0.0
-    cam_counts: tuple[float, float] | None = None
-    sync_period_counts: float = 0.0
-    sync_phase_counts: float = 0.0
-    counter_shift_counts: float = 0.0
-
-    @property
-    def commanded_counts(self) -> float:
-        """The setpoint (counter frame) that holds the shaft where it is."""
-        return self.shaft_counts + self.counter_shift_counts
-
-    @property
-    def actual_counts(self) -> float:
-        """What the counter reads."""
-        return self.commanded_counts + self.encoder_offset_counts
-
-    @property
-    def cam_on(self) -> bool:
-        if self.cam_counts is None:
-            return False
-        low, high = self.cam_counts
-        return low <= self.shaft_counts <= high
-
-    def follow(self, setpoint_counts: float) -> float | None:
-        """Move the shaft to ``setpoint_counts`` (counter frame, before the encoder offset).
-
-        Returns the counter value at the first C-track pulse passed on the way (as the
-        hardware latches it, exact, not polled), or None.
-        """
-        old = self.shaft_counts
-        new = setpoint_counts - self.counter_shift_counts
-        self.shaft_counts = new
-        pulse = self._first_pulse(old, new)
-        if pulse is None:
-            return None
-        return pulse + self.counter_shift_counts + self.encoder_offset_counts
-
-    def set_counter(self, value_counts: float) -> None:
-        """Make the counter read ``value_counts`` now; the shaft does not move."""
-        self.counter_shift_counts = value_counts - self.shaft_counts - self.encoder_offset_counts
-
-    def _first_pulse(self, old: float, new: float) -> float | None:
-        period = self.sync_period_counts
-        if period <= 0 or new == old:
-            return None
-        phase = self.sync_phase_counts
-        if new > old:
-            pulse = phase + (math.floor((old - phase) / period) + 1) * period
-            return pulse if pulse <= new else None
-        pulse = phase + (math.ceil((old - phase) / period) - 1) * period
-        return pulse if pulse >= new else None
-
-
-class ModuloError(ValueError):
-    """A modulo start the drive refuses with Error."""
-
-
-def modulo_travel(
-    start_type: StartType,
-    start_counts: int,
-    target_counts: int,
-    modulo_factor_counts: int,
-    window_counts: int,
-    last_direction: int,
-) -> tuple[int, int]:
-    """Relative travel of a modulo move, and the direction it was ordered in (+1/-1).
-
-    ``target_counts`` is a modulo position; each whole ``modulo_factor_counts`` in it
-    adds a revolution in PLUS/MINUS/CURRENT. A target equal to the current modulo
-    position does not move. Non-_EXT types treat a start within ``window_counts`` past
-    the target (in the ordered direction) as standing on it, so they move back by that
-    little instead of a whole extra turn; _EXT types ignore the window. CURRENT uses
-    ``last_direction``. Raises :class:`ModuloError` for a modulo factor <= 0, a negative
-    target, or a SHORT target outside [0, modulo factor).
-
-    Decisions (manual silent): the window is closed (a start exactly ``window`` past the
-    target is inside); SHORT picks the positive direction on an exact half turn; SHORT
-    and SHORT_EXT behave alike, because the shortest way never costs a whole turn.
-    """
-    m = modulo_factor_counts
-    if m <= 0:
-        raise ModuloError("modulo factor (0x8020:0E) is not set")
-    if target_counts < 0:
-        raise ModuloError(f"modulo target {target_counts} is negative")
-    revolutions, target_mod = divmod(target_counts, m)
-    start_mod = start_counts % m
-    base = start_type & ~0x0010  # the _EXT bit
-    window = 0 if start_type & 0x0010 else window_counts
-    if base == StartType.MODULO_SHORT:
-        if revolutions:
-            raise ModuloError(f"MODULO_SHORT target {target_counts} is not below {m}")
-        ahead = (target_mod - start_mod) % m
-        if ahead == 0:
-            return 0, last_direction
-        return (ahead, 1) if ahead <= m - ahead else (ahead - m, -1)
-    if base == StartType.MODULO_PLUS:
-        direction = 1
-    elif base == StartType.MODULO_MINUS:
-        direction = -1
-    else:
-        direction = last_direction
-    # distance still to go in the ordered direction, within one turn
-    to_go = ((target_mod - start_mod) * direction) % m
-    if to_go and m - to_go <= window:
-        to_go -= m  # just past the target: step back instead of a whole turn
-    return direction * (to_go + revolutions * m), direction
-
-
-class _Mode(enum.Enum):
-    IDLE = enum.auto()
-    INIT = enum.auto()
-    END = enum.auto()
-    FINISH = enum.auto()  # last busy cycle; reported as _finish_state
-    MOVE = enum.auto()
-    ENDLESS = enum.auto()
-    HALT = enum.auto()  # Execute dropped: ramp down, then STOP
-    EMCY = enum.auto()
-    PRE_TARGET = enum.auto()
-    CALI_GO_CAM = enum.auto()
-    CALI_LEAVE_CAM = enum.auto()
-    CALI_GO_SYNC = enum.auto()
-    CALI_STOP = enum.auto()
-
-
 # Tuples, not sets: ``in`` a tuple compares by identity first, ``in`` a set hashes the
 # member with Enum.__hash__, a Python-level call (several per 250 us cycle).
 _NOT_BUSY = (_Mode.IDLE, _Mode.INIT, _Mode.END)
-_DRIVING = (
-    _Mode.MOVE,
-    _Mode.ENDLESS,
-    _Mode.HALT,
-    _Mode.CALI_GO_CAM,
-    _Mode.CALI_LEAVE_CAM,
-    _Mode.CALI_GO_SYNC,
-)
 _SETTING_NAMES = {obj: name for name, obj in POS_SETTINGS_SDO.items()}
-_CALIBRATION_SEARCH = (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC)
 _MODE_STATE = {
     _Mode.IDLE: DriveState.IDLE,
     _Mode.INIT: DriveState.INIT,
@@ -270,13 +110,6 @@ _MODE_STATE = {
     _Mode.CALI_GO_SYNC: DriveState.CALI_GO_SYNC,
     _Mode.CALI_STOP: DriveState.CALI_STOP,
 }
-
-
-class _Phase(enum.Enum):
-    NONE = enum.auto()
-    ACCEL = enum.auto()
-    CONST = enum.auto()
-    DECEL = enum.auto()
 
 
 _PHASE_STATE = {
@@ -293,11 +126,7 @@ _DIAG_SDO = {
 }
 
 
-def _sign(value: float) -> int:
-    return (value > 0) - (value < 0)
-
-
-class Ep7047Engine:
+class Ep7047Engine(_Positioning):
     """The positioning interface of one EP7047-1032, stepped one 250 us cycle at a time.
 
     Contract: ``step(outputs)`` takes the decoded outputs the master wrote for this
@@ -666,414 +495,6 @@ class Ep7047Engine:
         self._prev_reset = reset
         self._prev_set_counter = set_counter
         self._prev_outputs = outputs
-
-    # --- commands -----------------------------------------------------------------------
-
-    def _start(self, outputs: Outputs) -> None:
-        self._clear_flags()
-        self._start_cycle = self.cycles
-        self._drive_time_ms = 0
-        self._taken = self._signature(outputs)
-        self._label = DriveState.START
-        code = int(outputs.start_type) or self.settings.start_type
-        if not self._enabled:
-            self._fail()  # decision: a start without Enable is an error, nothing moves
-            return
-        if self._emergency:
-            self._diag |= PosDiag.COMMAND_ABORTED
-            self._mode = _Mode.EMCY
-            return
-        try:
-            start_type = StartType(code)
-        except ValueError:
-            self._fail()
-            return
-        if start_type in CHANGE_START_TYPES:
-            # At standstill a plain start is expected (manual).
-            self._diag |= PosDiag.COMMAND_REJECTED
-            self._finish(DriveState.WARNING)
-            return
-        if start_type in (StartType.SET_CALIBRATION, StartType.SET_CALIBRATION_AUTO):
-            # Decision: SET_CALIBRATION_AUTO sent through the PDO acts like SET_CALIBRATION.
-            self._calibrated = True
-            self._finish(DriveState.CALIBRATED)
-            return
-        if start_type is StartType.CLEAR_CALIBRATION:
-            self._calibrated = False
-            self._finish(DriveState.NOT_CALIBRATED)
-            return
-        if start_type in (StartType.CALI_PLC_CAM, StartType.CALI_HW_SYNC):
-            self._start_calibration(sync=start_type is StartType.CALI_HW_SYNC)
-            return
-
-        velocity_bp = min(abs(outputs.velocity_bp), self.settings.velocity_max_bp)
-        if velocity_bp <= 0:
-            self._fail()  # decision: velocity 0 is an error, never "use Velocity max."
-            return
-        self._set_dynamics(outputs, velocity_bp)
-        actual = round(self.plant.actual_counts)
-        operand = outputs.target_position_counts
-        if start_type in (StartType.ENDLESS_PLUS, StartType.ENDLESS_MINUS):
-            self._endless_direction = 1 if start_type is StartType.ENDLESS_PLUS else -1
-            self._last_direction = self._endless_direction
-            self._has_target = False
-            self._mode = _Mode.ENDLESS
-            return
-        if start_type is StartType.ABSOLUTE:
-            target = operand
-        elif start_type is StartType.RELATIVE:
-            target = actual + operand
-        elif start_type is StartType.ADDITIVE:
-            target = self._last_target + operand
-        else:
-            assert start_type in MODULO_START_TYPES
-            try:
-                travel, direction = modulo_travel(
-                    start_type,
-                    actual,
-                    operand,
-                    self.settings.modulo_factor_counts,
-                    self.settings.modulo_tolerance_window_counts,
-                    self._last_direction,
-                )
-            except ModuloError:
-                self._fail()
-                return
-            target = actual + travel
-            self._last_direction = direction
-        if target != actual and start_type not in MODULO_START_TYPES:
-            self._last_direction = _sign(target - actual)
-        self._begin_move(target)
-
-    def _begin_move(self, target: float) -> None:
-        self._target = target
-        self._has_target = True
-        self._last_target = round(target)
-        self._margin = EARLY_BRAKING_FRACTION * abs(target - self._setpoint)
-        self._braking = False
-        self._mode = _Mode.MOVE
-
-    def _set_dynamics(self, outputs: Outputs, velocity_bp: int) -> None:
-        self._cruise = velocity_bp / SPEED_RANGE_FULL_SCALE_BP * self.config.full_scale_counts_s
-        self._acc_ms = outputs.acceleration_ms
-        self._dec_ms = outputs.deceleration_ms
-
-    @staticmethod
-    def _signature(outputs: Outputs) -> tuple[int, int, int, int, int]:
-        return (
-            int(outputs.start_type),
-            outputs.target_position_counts,
-            outputs.velocity_bp,
-            outputs.acceleration_ms,
-            outputs.deceleration_ms,
-        )
-
-    def _is_new_change(self, outputs: Outputs) -> bool:
-        # Decision: with Execute high, a change is taken when the outputs hold a _CHANGE
-        # start type and differ from the command last taken; the same values again are
-        # not a new command (so repeat an ADDITIVE_CHANGE by altering something).
-        return (
-            int(outputs.start_type) in CHANGE_START_TYPES
-            and self._signature(outputs) != self._taken
-        )
-
-    def _change(self, outputs: Outputs) -> None:
-        self._taken = self._signature(outputs)
-        code = StartType(int(outputs.start_type))
-        velocity_bp = min(abs(outputs.velocity_bp), self.settings.velocity_max_bp)
-        moving = self._mode in (_Mode.MOVE, _Mode.ENDLESS) and self._velocity != 0.0
-        # Rejected at standstill and while accelerating (the braking point is not known
-        # yet); decision: also for velocity 0 and, for ADDITIVE_CHANGE, during an
-        # ENDLESS move, which has no active target to add to.
-        if (
-            not moving
-            or self._last_phase is _Phase.ACCEL
-            or velocity_bp <= 0
-            or (code is StartType.ADDITIVE_CHANGE and self._mode is _Mode.ENDLESS)
-        ):
-            self._diag |= PosDiag.COMMAND_REJECTED
-            self._label = DriveState.WARNING
-            return
-        operand = outputs.target_position_counts
-        if code is StartType.ABSOLUTE_CHANGE:
-            target: float = operand
-        elif code is StartType.RELATIVE_CHANGE:
-            target = round(self.plant.actual_counts) + operand
-        else:
-            target = self._target + operand
-        self._set_dynamics(outputs, velocity_bp)
-        self._begin_move(target)
-        if target != self._setpoint:
-            self._last_direction = _sign(target - self._setpoint)
-        if self._needs_reversal():
-            self._diag |= PosDiag.TARGET_OVERRUN
-        self._label = DriveState.TARGET_RESTART
-
-    def _needs_reversal(self) -> bool:
-        """True when the new target cannot be reached without passing it and coming back."""
-        direction = _sign(self._velocity)
-        remaining = self._target - self._setpoint
-        speed = abs(self._velocity)
-        _, dec = self._rates(direction)
-        creep = self._creep()
-        if remaining * direction <= 0:
-            return not (abs(remaining) <= _EPS_COUNTS and speed <= max(creep, dec * CYCLE_S))
-        return speed > creep and (speed * speed - creep * creep) / (2 * dec) > abs(remaining)
-
-    def _abort_by_execute(self) -> None:
-        if self._mode in _DRIVING and self._mode is not _Mode.HALT:
-            if self._mode is not _Mode.ENDLESS:
-                self._diag |= PosDiag.COMMAND_ABORTED
-            self._mode = _Mode.HALT
-        elif self._mode in (_Mode.PRE_TARGET, _Mode.CALI_STOP):
-            self._diag |= PosDiag.COMMAND_ABORTED
-            self._finish(DriveState.STOP)
-
-    def _start_calibration(self, *, sync: bool) -> None:
-        self._label = DriveState.CALI_START
-        self._calibrated = False
-        self._cali_sync = sync
-        self._cali_pulse = None
-        self._acc_ms = self._dec_ms = 0  # an aborted calibration ramps with 0x8020 values
-        # Decision: starting on the cam skips the search for it.
-        self._mode = _Mode.CALI_LEAVE_CAM if self.plant.cam_on else _Mode.CALI_GO_CAM
-
-    def _fail(self) -> None:
-        self._error = True
-        self._finish(DriveState.ERROR)
-
-    def _finish(self, state: DriveState) -> None:
-        self._mode = _Mode.FINISH
-        self._finish_state = state
-        self._finish_shown = False
-        if not self._has_target:
-            # Decision: after an ENDLESS move, ADDITIVE adds to where it stopped.
-            self._last_target = round(self.plant.actual_counts)
-            self._has_target = True
-
-    def _clear_flags(self) -> None:
-        self._diag = PosDiag.NONE
-        self._error = False
-        self._in_target = False
-
-    def _set_counter(self, value_counts: float) -> None:
-        self.plant.set_counter(value_counts)
-        self._setpoint = self.plant.commanded_counts
-        self._target = self._setpoint
-        # Decision: after the counter is set, ADDITIVE counts from the new position.
-        self._last_target = round(self.plant.actual_counts)
-
-    # --- motion -------------------------------------------------------------------------
-
-    def _advance_transient(self) -> None:
-        # The finishing state (TARGET, STOP, ERROR, ...) is shown for one cycle of its
-        # own, also when it was entered in a cycle that reported START.
-        if self._mode is _Mode.FINISH:
-            if self._finish_shown:
-                self._mode = _Mode.END
-        elif self._mode is _Mode.END:
-            self._mode = _Mode.INIT
-        elif self._mode is _Mode.INIT:
-            self._mode = _Mode.IDLE
-
-    def _advance_motion(self) -> None:
-        mode = self._mode
-        if mode is _Mode.MOVE:
-            self._advance_move()
-        elif mode is _Mode.ENDLESS:
-            self._advance_endless()
-        elif mode is _Mode.HALT:
-            _, dec = self._rates(_sign(self._velocity))
-            self._ramp_to_standstill(dec)
-        elif mode is _Mode.EMCY:
-            self._ramp_to_standstill(self._rate(self.settings.emergency_deceleration_ms))
-        elif mode is _Mode.PRE_TARGET:
-            self._settle()
-        elif mode in _CALIBRATION_SEARCH:
-            self._advance_calibration()
-        elif mode is _Mode.CALI_STOP:
-            self._finish_calibration()
-
-    def _rate(self, ramp_ms: int) -> float:
-        """counts/s^2 of a ramp that takes ``ramp_ms`` for 100 % of the speed range."""
-        if ramp_ms <= 0:
-            return math.inf
-        return self.config.full_scale_counts_s / (ramp_ms / 1000)
-
-    def _rates(self, direction: int) -> tuple[float, float]:
-        """(acceleration, deceleration) in counts/s^2 for travel in ``direction``.
-
-        Decision (spec silent on how the PDO ramps and the 0x8020 ramps combine): the
-        Acceleration/Deceleration outputs apply to both directions; a 0 there selects
-        Acceleration/Deceleration pos. or neg. (0x8020:03..06) by direction of travel,
-        as the compact interface (no ramps in the PDO) must. 0 there too: no ramp.
-        """
-        s = self.settings
-        acc_ms = self._acc_ms or (s.acceleration_neg_ms if direction < 0 else s.acceleration_pos_ms)
-        dec_ms = self._dec_ms or (s.deceleration_neg_ms if direction < 0 else s.deceleration_pos_ms)
-        return self._rate(acc_ms), self._rate(dec_ms)
-
-    def _creep(self) -> float:
-        # Decision: Velocity min. 0 creeps at 1 bp, or a move braked 0.5 % early would
-        # never arrive; a move slower than Velocity min. creeps at its own velocity.
-        velocity_min_bp = max(self.settings.velocity_min_bp, 1)
-        creep = velocity_min_bp / SPEED_RANGE_FULL_SCALE_BP * self.config.full_scale_counts_s
-        return min(creep, self._cruise) if self._cruise > 0 else creep
-
-    def _set_velocity(self, velocity: float) -> None:
-        old, new = abs(self._velocity), abs(velocity)
-        if new > old:
-            self._phase = _Phase.ACCEL
-        elif new < old:
-            self._phase = _Phase.DECEL
-        else:
-            self._phase = _Phase.CONST
-        self._velocity = velocity
-        self._setpoint += velocity * CYCLE_S
-
-    def _advance_move(self) -> None:
-        """One cycle of a positioning move towards ``_target``.
-
-        Trapezoid planned online, so changes and reversals need no special profile:
-        accelerate while a brake to Velocity min. still fits before the target less the
-        0.5 % early-braking margin; else hold; else brake, and once braking never
-        accelerate again (no hunting between the two). After the ramp the remaining
-        margin is crept at Velocity min., from which the motor may stop abruptly.
-        """
-        remaining = self._target - self._setpoint
-        speed = abs(self._velocity)
-        moving = _sign(self._velocity)
-        creep = self._creep()
-        if abs(remaining) <= _EPS_COUNTS:
-            _, dec = self._rates(moving)
-            if speed <= max(creep, dec * CYCLE_S):
-                self._arrive()
-                return
-        direction = _sign(remaining)
-        if moving and moving != direction:
-            # Past the target (a late change): brake to a standstill, then turn round.
-            _, dec = self._rates(moving)
-            self._braking = False
-            self._set_velocity(moving * max(speed - dec * CYCLE_S, 0.0))
-            return
-        acc, dec = self._rates(direction)
-        distance = abs(remaining)
-        margin = self._margin
-
-        def fits(candidate: float) -> bool:
-            if candidate <= creep:
-                return True
-            braking_distance = (candidate * candidate - creep * creep) / (2 * dec)
-            return distance - candidate * CYCLE_S - margin >= braking_distance
-
-        if self._braking:
-            new_speed = max(speed - dec * CYCLE_S, creep)
-        elif speed > self._cruise:
-            # a change lowered the velocity: ramp down to it, or brake if that is due
-            new_speed = max(speed - dec * CYCLE_S, self._cruise)
-            if not fits(new_speed):
-                self._braking = True
-                new_speed = max(speed - dec * CYCLE_S, creep)
-        else:
-            accelerated = min(speed + acc * CYCLE_S, self._cruise)
-            if accelerated > speed and fits(accelerated):
-                new_speed = accelerated
-            elif speed >= creep and fits(speed):
-                new_speed = speed
-            else:
-                self._braking = speed > creep
-                new_speed = max(speed - dec * CYCLE_S, creep)
-        if new_speed * CYCLE_S >= distance and new_speed <= max(creep, dec * CYCLE_S):
-            self._arrive()
-            return
-        self._set_velocity(direction * new_speed)
-
-    def _arrive(self) -> None:
-        self._setpoint = self._target
-        self._velocity = 0.0
-        self._mode = _Mode.PRE_TARGET
-        self._timer_cycle = self.cycles
-
-    def _settle(self) -> None:
-        # "In-Target" needs the actual position in the window within the timeout
-        # (the ideal plant is at standstill as soon as the setpoint is).
-        error = abs(self.plant.actual_counts - self._target)
-        if error <= self.settings.target_window_counts:
-            self._in_target = True
-            self._finish(DriveState.TARGET)
-        elif self._elapsed_ms(self._timer_cycle) >= self.settings.in_target_timeout_ms:
-            self._mode = _Mode.END  # only the falling Busy tells (manual)
-
-    def _advance_endless(self) -> None:
-        direction = self._endless_direction
-        speed = abs(self._velocity)
-        acc, dec = self._rates(direction)
-        if speed < self._cruise:
-            new_speed = min(speed + acc * CYCLE_S, self._cruise)
-        else:
-            new_speed = max(speed - dec * CYCLE_S, self._cruise)
-        self._set_velocity(direction * new_speed)
-
-    def _ramp_to_standstill(self, dec: float) -> None:
-        if self._velocity == 0.0:
-            self._finish(DriveState.STOP)
-            self._target = self._setpoint
-            return
-        moving = _sign(self._velocity)
-        self._set_velocity(moving * max(abs(self._velocity) - dec * CYCLE_S, 0.0))
-
-    def _elapsed_ms(self, since_cycle: int) -> float:
-        return (self.cycles - since_cycle) * CYCLE_S * 1000
-
-    # --- calibration --------------------------------------------------------------------
-
-    def _advance_calibration(self) -> None:
-        # Decision: calibration runs at its two creep velocities without ramps: they
-        # are meant to be slow enough to start and stop abruptly, like Velocity min.
-        s = self.settings
-        scale = self.config.full_scale_counts_s / SPEED_RANGE_FULL_SCALE_BP
-        if self._mode is _Mode.CALI_GO_CAM:
-            direction = -1 if s.invert_calibration_cam_search else 1
-            speed = abs(s.calibration_velocity_towards_cam_bp) * scale
-        else:
-            direction = -1 if s.invert_sync_impulse_search else 1
-            speed = abs(s.calibration_velocity_off_cam_bp) * scale
-        self._velocity = direction * speed
-        self._setpoint += self._velocity * CYCLE_S
-
-    def _watch_calibration_sensors(self, pulse: float | None) -> None:
-        # The cam input is polled once a cycle (the manual's systematic error); the
-        # C-track pulse position comes latched by hardware.
-        if self._mode is _Mode.CALI_GO_CAM and self.plant.cam_on:
-            self._mode = _Mode.CALI_LEAVE_CAM
-            self._label = DriveState.CALI_ON_CAM
-        elif self._mode is _Mode.CALI_LEAVE_CAM and not self.plant.cam_on:
-            if self._cali_sync:
-                self._mode = _Mode.CALI_GO_SYNC
-            else:
-                self._stop_calibration_drive()
-        elif self._mode is _Mode.CALI_GO_SYNC and pulse is not None:
-            self._cali_pulse = pulse
-            self._stop_calibration_drive()
-
-    def _stop_calibration_drive(self) -> None:
-        self._velocity = 0.0
-        self._mode = _Mode.CALI_STOP
-        self._timer_cycle = self.cycles
-
-    def _finish_calibration(self) -> None:
-        self._velocity = 0.0
-        if self._elapsed_ms(self._timer_cycle) < self.settings.in_target_timeout_ms:
-            return
-        value = float(self.settings.calibration_position_counts)
-        if self._cali_pulse is not None:
-            # Decision: with the C track the calibration position belongs to the pulse
-            # itself, not to where the motor came to rest a fraction of a cycle later;
-            # that is what makes this calibration the accurate one.
-            value += self.plant.actual_counts - self._cali_pulse
-        self._set_counter(value)
-        self._calibrated = True
-        self._finish(DriveState.CALIBRATED)
 
     # --- inputs -------------------------------------------------------------------------
 

@@ -71,7 +71,8 @@ from servotune.protocols.ep7047 import (
     PosSettings,
     SdoObject,
 )
-from servotune.sim.ep7047_engine import DriveConfig, Ep7047Engine, StepperPlant
+from servotune.sim.ep7047_engine import Ep7047Engine
+from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
 
 WATCHDOG_S: Final = 0.1
 MAX_CATCH_UP_S: Final = 1.0
