@@ -24,7 +24,8 @@ from servotune.protocols import z1100 as codec
 from servotune.protocols.z1100 import Gains
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.sim.z1100 import Z1100Chip
+from servotune.sim.z1100_servo import AxisParameters
 from servotune.tuning.devices.z1100 import (
     Kab,
     MoveProfile,

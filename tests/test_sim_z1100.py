@@ -13,7 +13,8 @@ import pytest
 from servotune.protocols import z1100 as codec
 from servotune.protocols.z1100 import Cab, Command, Gains, Job, ReplyCode, StartStatus, StopStatus
 from servotune.sim.base import PowerCyclable, SimDevice
-from servotune.sim.z1100 import AxisHardware, Z1100Chip
+from servotune.sim.z1100 import Z1100Chip
+from servotune.sim.z1100_servo import AxisHardware
 
 BYTE_S = 10 / 9600  # one character at 9600 8N1
 HEAVY_KG_M2 = 7.6e-6  # 20 x the rotor inertia
@@ -764,7 +765,7 @@ def _move_scenario(chip: Z1100Chip) -> list[tuple[object, ...]]:
     import random
     from dataclasses import replace
 
-    import servotune.sim.z1100 as sim
+    import servotune.sim.z1100_servo as sim
 
     rng = random.Random(7)
     states: list[tuple[object, ...]] = []
@@ -818,7 +819,7 @@ def test_the_move_fast_path_gives_the_same_samples_bit_for_bit(
 ) -> None:
     fast_chip = Z1100Chip()
     fast = _move_scenario(fast_chip)
-    import servotune.sim.z1100 as sim
+    import servotune.sim.z1100_servo as sim
 
     monkeypatch.setattr(sim._Axis, "_move_samples", lambda self, n: 0)
     slow_chip = Z1100Chip()

@@ -23,7 +23,8 @@ from servotune.protocols import z1100 as codec
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.protocols.z1100 import Gains as ChipGains
 from servotune.sim.slap2 import TICK_S, Slap2Module
-from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.sim.z1100 import Z1100Chip
+from servotune.sim.z1100_servo import AxisParameters
 from servotune.tuning.devices import law_for
 from servotune.tuning.devices.slap2 import (
     Gains,

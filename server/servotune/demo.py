@@ -28,7 +28,8 @@ from servotune.sim.ep7047_process import ep7047_sim_process
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.slap2 import Slap2Bus, Slap2Module
-from servotune.sim.z1100 import AxisParameters, Z1100Chip
+from servotune.sim.z1100 import Z1100Chip
+from servotune.sim.z1100_servo import AxisParameters
 
 SLAP2_BAUD = 19200
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead

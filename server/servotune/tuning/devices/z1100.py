@@ -1,7 +1,7 @@
 """Z1100: the chip's K/A/B servo law, its closed loop on the identified model, the
 closed-loop fit, and the limits (docs/autotune.md, "Z1100").
 
-**The Z1100 manual gives no law**; this is the simulator's (``sim/z1100.py``,
+**The Z1100 manual gives no law**; this is the simulator's (``sim/z1100_servo.py``,
 docs/z1100-simulator.md), every Stm x 32 us sample::
 
     u = K (16 e + A (e - e[-32])) - B (y - y[-32]),  pwm = clamp(trunc(u / 64), +-255)
@@ -29,7 +29,7 @@ from servotune.tuning.identify import fit_closed_loop
 from servotune.tuning.loops import LoopModel, z1100_loop_for
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 
-# --- the law (sim/z1100.py; assumed, the manual gives none) --------------------------
+# --- the law (sim/z1100_servo.py; assumed, the manual gives none) --------------------
 SAMPLE_UNIT_S: Final = 32e-6  # one sample is Stm x 32 us
 WINDOW: Final = 32  # samples of the derivative difference
 ERROR_WEIGHT: Final = 16
