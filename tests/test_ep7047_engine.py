@@ -30,9 +30,9 @@ from servotune.protocols.ep7047 import (
     StmControl,
     StmStatus,
 )
+from servotune.protocols.ep7047_modulo import modulo_travel
 from servotune.sim.ep7047_engine import Ep7047Engine
 from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
-from servotune.sim.ep7047_positioning import modulo_travel
 
 # The project's copy of the manual's modulo tables (source named in the file's header):
 # tests never read anything outside the repository.

@@ -36,7 +36,7 @@ from servotune.protocols.ep7047 import (
     StartType,
     StmStatus,
 )
-from servotune.sim.ep7047_positioning import ModuloError, modulo_travel
+from servotune.protocols.ep7047_modulo import ModuloError, modulo_travel
 from servotune.wire import EventLevel
 
 

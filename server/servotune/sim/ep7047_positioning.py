@@ -4,8 +4,8 @@ What lives here: :class:`_Positioning`, the half of ``Ep7047Engine`` that decide
 the drive does - what a start type, a _CHANGE or a falling Execute does to the running
 move (commands), how the setpoint moves each cycle (the trapezoid planned online,
 ENDLESS, the halt and emergency ramps, settling into In-Target) and the calibration
-runs - plus :func:`modulo_travel` (the arithmetic of a modulo start) and the modes and
-phases both halves use.
+runs - and the modes and phases both halves use. The modulo rule itself
+(``modulo_travel``) is in ``servotune.protocols.ep7047_modulo``, shared with the driver.
 
 Why this seam: ``ep7047_engine`` is the drive's face - the edges of the outputs, the
 cycle and its fast paths, the SDO objects and the inputs image - and calls in here;
@@ -13,10 +13,9 @@ nothing here reads the outputs' control bits, the edge memory or the inputs. The
 are one object (the engine inherits this class), so the state the methods share is
 declared below and set by ``Ep7047Engine.__init__``.
 
-Imports: ``servotune.protocols.ep7047`` and ``servotune.sim.ep7047_plant`` only, never
-``ep7047_engine``. Imported by: ``servotune.sim.ep7047_engine``,
-``servotune.drivers.ep7047_commands`` (``modulo_travel``, to preview a modulo start)
-and the tests.
+Imports: ``servotune.protocols.ep7047``, ``servotune.protocols.ep7047_modulo`` and
+``servotune.sim.ep7047_plant`` only, never ``ep7047_engine``. Imported by:
+``servotune.sim.ep7047_engine`` and the tests.
 """
 
 from __future__ import annotations
@@ -35,67 +34,13 @@ from servotune.protocols.ep7047 import (
     PosSettings,
     StartType,
 )
+from servotune.protocols.ep7047_modulo import ModuloError, modulo_travel
 from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
 
 # Share of the move distance by which braking starts early (manual: 0.5 %); the rest is
 # crept at Velocity min.
 EARLY_BRAKING_FRACTION = 0.005
 _EPS_COUNTS = 1e-6
-
-
-class ModuloError(ValueError):
-    """A modulo start the drive refuses with Error."""
-
-
-def modulo_travel(
-    start_type: StartType,
-    start_counts: int,
-    target_counts: int,
-    modulo_factor_counts: int,
-    window_counts: int,
-    last_direction: int,
-) -> tuple[int, int]:
-    """Relative travel of a modulo move, and the direction it was ordered in (+1/-1).
-
-    ``target_counts`` is a modulo position; each whole ``modulo_factor_counts`` in it
-    adds a revolution in PLUS/MINUS/CURRENT. A target equal to the current modulo
-    position does not move. Non-_EXT types treat a start within ``window_counts`` past
-    the target (in the ordered direction) as standing on it, so they move back by that
-    little instead of a whole extra turn; _EXT types ignore the window. CURRENT uses
-    ``last_direction``. Raises :class:`ModuloError` for a modulo factor <= 0, a negative
-    target, or a SHORT target outside [0, modulo factor).
-
-    Decisions (manual silent): the window is closed (a start exactly ``window`` past the
-    target is inside); SHORT picks the positive direction on an exact half turn; SHORT
-    and SHORT_EXT behave alike, because the shortest way never costs a whole turn.
-    """
-    m = modulo_factor_counts
-    if m <= 0:
-        raise ModuloError("modulo factor (0x8020:0E) is not set")
-    if target_counts < 0:
-        raise ModuloError(f"modulo target {target_counts} is negative")
-    revolutions, target_mod = divmod(target_counts, m)
-    start_mod = start_counts % m
-    base = start_type & ~0x0010  # the _EXT bit
-    window = 0 if start_type & 0x0010 else window_counts
-    if base == StartType.MODULO_SHORT:
-        if revolutions:
-            raise ModuloError(f"MODULO_SHORT target {target_counts} is not below {m}")
-        ahead = (target_mod - start_mod) % m
-        if ahead == 0:
-            return 0, last_direction
-        return (ahead, 1) if ahead <= m - ahead else (ahead - m, -1)
-    if base == StartType.MODULO_PLUS:
-        direction = 1
-    elif base == StartType.MODULO_MINUS:
-        direction = -1
-    else:
-        direction = last_direction
-    # distance still to go in the ordered direction, within one turn
-    to_go = ((target_mod - start_mod) * direction) % m
-    if to_go and m - to_go <= window:
-        to_go -= m  # just past the target: step back instead of a whole turn
-    return direction * (to_go + revolutions * m), direction
 
 
 class _Mode(enum.Enum):
