@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.ep7047_master import EthercatMailboxError
 from servotune.sim.ep7047_process import ProcessMaster
+from servotune.transports.ethercat import EthercatMailboxError
 
 
 class _Listener:

@@ -247,8 +247,8 @@ def test_process_master_without_a_simulator_says_what_is_missing(tmp_path: Path)
 def test_binary_sdo_read_gives_what_the_json_request_gives(tmp_path: Path) -> None:
     """The cyclic SDO read is binary (``R``); it must answer exactly as the JSON request
     did: the same bytes, the same abort, and each slave's state updated."""
-    from servotune.drivers.ep7047_master import EthercatSdoError
     from servotune.protocols import ep7047 as codec
+    from servotune.transports.ethercat import EthercatSdoError
 
     with ep7047_sim_process(tmp_path / "record.json") as simulator:
         master = ProcessMaster(simulator.ready["path"].removeprefix("sim:"))

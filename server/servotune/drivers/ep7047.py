@@ -26,7 +26,7 @@ The owner: one cycle thread
     ``SAMPLE_BATCH_S`` (one loop wake-up per batch, not per cycle).
 
 Modules (one layer each, every one using only those before it; this module re-exports
-the public names): ``ep7047_master`` the library seam (protocols, errors, state values,
+the public names): ``transports.ethercat`` the library seam (protocols, errors, state values,
 pysoem adapter); ``ep7047_jobs`` requests, the cycle state and ``_LinkCore`` (status,
 posts from the thread to the loop, sample batches); ``ep7047_commands``
 ``_CommandCycle`` (the command handshakes); ``ep7047_cycle`` ``_CycleThread`` (bring-up,
@@ -121,7 +121,10 @@ from servotune.drivers.ep7047_jobs import (
     _state_label,
     diag_text,
 )
-from servotune.drivers.ep7047_master import (
+from servotune.drivers.validation import validate_command
+from servotune.protocols import ep7047 as codec
+from servotune.protocols.ep7047 import CodecError, PosDiag, PosSettings, SdoObject, StartType
+from servotune.transports.ethercat import (
     BOOT_STATE,
     INIT_STATE,
     NONE_STATE,
@@ -140,9 +143,6 @@ from servotune.drivers.ep7047_master import (
     raw_socket_problem,
     state_name,
 )
-from servotune.drivers.validation import validate_command
-from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import CodecError, PosDiag, PosSettings, SdoObject, StartType
 
 logger = logging.getLogger(__name__)
 

@@ -24,7 +24,6 @@ from servotune.drivers.ep7047_jobs import (
     _StopPhase,
     diag_text,
 )
-from servotune.drivers.ep7047_master import EthercatError, EthercatSlave
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     CHANGE_START_TYPES,
@@ -37,6 +36,7 @@ from servotune.protocols.ep7047 import (
     StmStatus,
 )
 from servotune.protocols.ep7047_modulo import ModuloError, modulo_travel
+from servotune.transports.ethercat import EthercatError, EthercatSlave
 from servotune.wire import EventLevel
 
 

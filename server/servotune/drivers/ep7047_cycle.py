@@ -38,7 +38,9 @@ from servotune.drivers.ep7047_jobs import (
     _settle,
     _StopPhase,
 )
-from servotune.drivers.ep7047_master import (
+from servotune.protocols import ep7047 as codec
+from servotune.protocols.ep7047 import CodecError, Inputs, PosStatus, StmStatus
+from servotune.transports.ethercat import (
     INIT_STATE,
     OP_STATE,
     PREOP_STATE,
@@ -54,8 +56,6 @@ from servotune.drivers.ep7047_master import (
     al_status_text,
     state_name,
 )
-from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import CodecError, Inputs, PosStatus, StmStatus
 from servotune.wire import LinkState
 
 _POS_WARNING = int(PosStatus.WARNING)

@@ -22,7 +22,6 @@ from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import DriverSink, Sample
 from servotune.drivers.engine import recent_rate_hz
 from servotune.drivers.ep7047_descriptor import DIAG_FLAGS, POS_FLAGS, STM_FLAGS, ep7047_descriptor
-from servotune.drivers.ep7047_master import EthercatMaster
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     DriveState,
@@ -35,6 +34,7 @@ from servotune.protocols.ep7047 import (
     StartType,
     StmControl,
 )
+from servotune.transports.ethercat import EthercatMaster
 from servotune.wire import AxisHealth, EventLevel, LinkState
 
 SAMPLE_BATCH_S: Final = 0.02

@@ -56,15 +56,15 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Final
 
-from servotune.drivers.ep7047_master import (
+from servotune.sim.ep7047_slave import SimulatedEp7047Slave, SimulatedEthercatMaster, demo_master
+from servotune.sim.process import SimProcess, serve_lifeline, write_record
+from servotune.transports.ethercat import (
     INIT_STATE,
     EthercatMailboxError,
     EthercatSdoError,
     EthercatSlave,
     EthercatUnavailableError,
 )
-from servotune.sim.ep7047_slave import SimulatedEp7047Slave, SimulatedEthercatMaster, demo_master
-from servotune.sim.process import SimProcess, serve_lifeline, write_record
 
 logger = logging.getLogger(__name__)
 

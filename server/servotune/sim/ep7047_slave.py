@@ -1,7 +1,7 @@
 """A SIMULATED EtherCAT master with simulated EP7047-1032 slaves behind it (a fake).
 
 ``SimulatedEthercatMaster`` implements the driver's library seam
-(``servotune.drivers.ep7047_master.EthercatMaster``, pysoem's names) without a network: it is
+(``servotune.transports.ethercat.EthercatMaster``, pysoem's names) without a network: it is
 the test fake of the EP7047 driver and what the demo runs in-process. Nothing here
 touches a NIC or raw sockets.
 
@@ -50,18 +50,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final
 
-from servotune.drivers.ep7047_master import (
-    INIT_STATE,
-    OP_STATE,
-    PREOP_STATE,
-    SAFEOP_STATE,
-    STATE_ACK,
-    STATE_ERROR,
-    EthercatMailboxError,
-    EthercatSdoError,
-    EthercatSlave,
-    EthercatUnavailableError,
-)
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import (
     CYCLE_S,
@@ -73,6 +61,18 @@ from servotune.protocols.ep7047 import (
 )
 from servotune.sim.ep7047_engine import Ep7047Engine
 from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
+from servotune.transports.ethercat import (
+    INIT_STATE,
+    OP_STATE,
+    PREOP_STATE,
+    SAFEOP_STATE,
+    STATE_ACK,
+    STATE_ERROR,
+    EthercatMailboxError,
+    EthercatSdoError,
+    EthercatSlave,
+    EthercatUnavailableError,
+)
 
 WATCHDOG_S: Final = 0.1
 MAX_CATCH_UP_S: Final = 1.0

@@ -1,9 +1,11 @@
-"""The EtherCAT library seam of the EP7047-1032 driver: the master and slave protocols
+"""The EtherCAT transport: the master and slave protocols the EP7047-1032 driver uses
 (pysoem's names), their errors, the state-machine values and the pysoem adapter.
 
-Split out of ``servotune.drivers.ep7047`` (which re-exports every public name here):
-the simulators (``servotune.sim.ep7047_slave``, ``ep7047_process``) implement this
-seam and import only this module.
+This is the EtherCAT counterpart of ``transports/base.py``'s byte channel: the driver
+(``servotune.drivers.ep7047``, which re-exports every public name here) talks to a
+master through it, and the simulators (``servotune.sim.ep7047_slave``,
+``ep7047_process``) implement it, so they import this module and no driver code.
+Imports: the standard library (pysoem lazily, only for real hardware).
 """
 
 from __future__ import annotations
