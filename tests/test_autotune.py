@@ -29,7 +29,8 @@ from servotune.metrics import compute_metrics, unmeasured
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import TICK_S, Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2_control import TICK_S
 from servotune.tuning.devices.slap2 import (
     Gains,
     MoveSpec,
