@@ -1,32 +1,31 @@
-"""SLAP2 firmware emulation: one module (``Slap2Module``) and a multi-drop line (``Slap2Bus``).
+"""SLAP2 firmware emulation: one module (``Slap2Module``).
 
 The seam: a module is a motion controller with a host interface in front of it. The
 controller (the 841.5 us tick: profile generator, PID, in-position, limit switches,
 calibration, idle fast path) and the manual's constants it runs on are in
 ``sim/slap2_control.py`` (``Slap2Controller``). Here is the host interface on top - line
 parser (echo, Ctrl-X, Ctrl-K, ``se``), command table, replies, EEPROM file, power-on
-reset and banner - and ``Slap2Bus``, the RS232 line the modules share. ``Slap2Module``
-subclasses ``Slap2Controller`` and drives it through its private state (the contract is
-in that class's docstring).
+reset and banner. ``Slap2Module`` subclasses ``Slap2Controller`` and drives it through
+its private state (the contract is in that class's docstring). The RS232 line the
+modules share, ``Slap2Bus``, is in ``sim/slap2_bus.py`` on top of this one.
 
 Imports: ``sim/slap2_control.py``, ``sim/physics.py``, the standard library. Imported by:
-``sim/serial_sim.py``, the demo, tests, scripts; never by ``sim/slap2_control.py``.
+``sim/slap2_bus.py``, the demo, tests, scripts; never by ``sim/slap2_control.py``.
 
 Sans-IO: nothing here reads a clock or touches a file descriptor (except the optional
-EEPROM file). The bus is driven in simulation time through the ``SimDevice`` contract
-(``advance_to`` / ``receive``); ``PtySimulator`` puts it on a real pseudo-terminal with
-wire timing. Every decision where the manual is silent is listed in docs/simulator.md;
-the important ones are repeated next to the code that implements them. Units: see
-``sim/slap2_control.py``.
+EEPROM file). The modules are driven in simulation time by ``Slap2Bus`` through the
+``SimDevice`` contract (``advance_to`` / ``receive``); ``PtySimulator`` puts the bus on a
+real pseudo-terminal with wire timing. Every decision where the manual is silent is
+listed in docs/simulator.md; the important ones are repeated next to the code that
+implements them. Units: see ``sim/slap2_control.py``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Final
 
@@ -50,7 +49,6 @@ from servotune.sim.slap2_control import (
     L2ON,
     PWM_MAX,
     SETTING_RANGES,
-    TICK_S,
     UCON,
     Slap2Controller,
 )
@@ -655,92 +653,3 @@ class Slap2Module(Slap2Controller):
             self._cal_phase = _CAL_SEEK
         self._cal_index_armed = False
         return None
-
-
-class Slap2Bus:
-    """Several SLAP2 modules on one RS232 line; implements ``SimDevice``.
-
-    Every host byte goes to every module; the bytes of all modules whose transmitter is
-    on are returned (normally exactly one: the selected module; the echo of the
-    previously selected module comes first). Time advances in whole controller ticks
-    of 841.5 us on all modules in lock-step; ``advance_to`` keeps the fraction of a
-    tick for the next call and never steps backwards. Deterministic: no clock inside.
-    """
-
-    def __init__(self, modules: Iterable[Slap2Module]) -> None:
-        self._modules: list[Slap2Module] = list(modules)
-        if not self._modules:
-            raise ValueError("a bus needs at least one module")
-        addresses = [m.address for m in self._modules]
-        if len(set(addresses)) != len(addresses):
-            raise ValueError(f"duplicate module addresses: {addresses}")
-        self._by_address = {m.address: m for m in self._modules}
-        self._ticks = 0
-        self._time_s = 0.0
-
-    @classmethod
-    def with_addresses(
-        cls,
-        addresses: Sequence[int],
-        *,
-        state_dir: Path | None = None,
-        params: DcMotorParams | None = None,
-    ) -> Slap2Bus:
-        """Modules with default serial numbers; EEPROM files ``slap2_<addr>.json``."""
-        modules = []
-        for address in addresses:
-            path = state_dir / f"slap2_{address}.json" if state_dir is not None else None
-            modules.append(Slap2Module(address, eeprom_path=path, params=params))
-        return cls(modules)
-
-    @property
-    def modules(self) -> list[Slap2Module]:
-        return list(self._modules)
-
-    @property
-    def time_s(self) -> float:
-        """Simulation time reached."""
-        return self._time_s
-
-    @property
-    def ticks(self) -> int:
-        """Controller ticks run so far."""
-        return self._ticks
-
-    def module(self, address: int) -> Slap2Module:
-        """The module with this address (``KeyError`` if there is none)."""
-        return self._by_address[address]
-
-    def power_cycle(self, address: int | None = None) -> None:
-        """Power-cycle one module, or all (``None``: the whole line's supply).
-
-        Only address 0 powers up selected (and sends its banner); if another module
-        was selected when address 0 alone is cycled, both transmit afterwards, as two
-        real modules would.
-        """
-        targets = self._modules if address is None else [self.module(address)]
-        for module in targets:
-            module.power_cycle()
-
-    def advance_to(self, t_s: float) -> bytes:
-        """Run every module's controller ticks due up to ``t_s``; returns banners."""
-        if t_s > self._time_s:
-            self._time_s = t_s
-            due = math.floor(t_s / TICK_S + 1e-9)
-            if due > self._ticks:
-                # The modules do not interact between two host bytes (each has its own
-                # motor), so each runs its ticks in one go: the same as lock-step.
-                for module in self._modules:
-                    module.run_ticks(due - self._ticks)
-                self._ticks = due
-        return b"".join(module.take_output() for module in self._modules)
-
-    def receive(self, byte: int) -> bytes:
-        """Deliver one host byte to every module; returns what goes on the line."""
-        first = bytearray()
-        later = bytearray()
-        for module in self._modules:
-            was_transmitting = module.transmitting
-            data = module.receive(byte)
-            (first if was_transmitting else later).extend(data)
-        return bytes(first + later)

@@ -1,18 +1,19 @@
-"""SLAP2 firmware emulation, lower half: the controller cycle (``Slap2Controller``).
+"""SLAP2 firmware emulation, lowest layer: the controller cycle (``Slap2Controller``).
 
 The seam: a SLAP2 module is a motion controller with a host interface in front of it.
 This module is the controller - the manual's constants it runs on, the settings table,
 and every 841.5 us tick: profile generator (ma/mr, vm), integer PID, in-position
 timer, limit switches, the calibration phases, and the idle fast path that skips the
 ticks of a fixed point. ``sim/slap2.py`` is the host interface on top of it
-(``Slap2Module``: line parser, command table, replies, EEPROM, reset) and the
-multi-drop line (``Slap2Bus``).
+(``Slap2Module``: line parser, command table, replies, EEPROM, reset), and
+``sim/slap2_bus.py`` the multi-drop line on top of that (``Slap2Bus``).
 
 Imports: the plant (``sim/physics.py``) and the standard library only; never
-``sim/slap2.py``. Imported by: ``sim/slap2.py`` (``Slap2Module`` subclasses
-``Slap2Controller`` and shares its private state and the underscore constants below:
-that is the whole contract between the two halves), and by whoever needs the manual's
-constants (``TICK_S``, ``FACTORY_DEFAULTS`` ...).
+``sim/slap2.py`` or ``sim/slap2_bus.py``. Imported by: ``sim/slap2.py``
+(``Slap2Module`` subclasses ``Slap2Controller`` and shares its private state and the
+underscore constants below: that is the whole contract between the two), and by
+whoever needs the manual's constants (``sim/slap2_bus.py`` and tests: ``TICK_S``,
+``FACTORY_DEFAULTS`` ...).
 
 Sans-IO: nothing here reads a clock or touches a file descriptor.
 
