@@ -23,7 +23,8 @@ import os
 import sys
 import time
 
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 
 
 def _send(bus: Slap2Bus, text: str) -> None:

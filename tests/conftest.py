@@ -17,7 +17,8 @@ import pytest
 from servotune.drivers.base import Sample
 from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 from servotune.transports.serial import SerialConnector
 from servotune.wire import AxisHealth, EventLevel, LinkState
 

@@ -32,7 +32,8 @@ from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.control import CLIENT_HEADER, ControlSettings
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 
 from .conftest import use_csrf_token
 

@@ -29,7 +29,9 @@ from servotune.metrics import compute_metrics, unmeasured
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import TICK_S, Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
+from servotune.sim.slap2_control import TICK_S
 from servotune.tuning.devices.slap2 import (
     Gains,
     MoveSpec,
@@ -396,7 +398,8 @@ def _summary(metrics: dict[str, Any] | None) -> str:
 async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) -> None:
     """The STOP button during identification: the staircase ends, the axis stays off."""
     from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.slap2 import Slap2Bus, Slap2Module
+    from servotune.sim.slap2 import Slap2Module
+    from servotune.sim.slap2_bus import Slap2Bus
 
     from .test_api import live_server
 

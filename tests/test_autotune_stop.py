@@ -11,7 +11,8 @@ import pytest
 
 from servotune.autotune import slap2 as slap2_tuner
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 
 from .test_api import live_server
 

@@ -23,7 +23,8 @@ from playwright.async_api import Browser, Page, expect
 from servotune.api.app import WEB_DIST
 from servotune.config import LinkSpec
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 
 from .test_api import LiveServer, live_server
 from .test_browser import browser  # noqa: F401  (the fixture)

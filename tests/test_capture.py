@@ -28,7 +28,8 @@ from servotune.profiles import (
 from servotune.runquality import assess
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for

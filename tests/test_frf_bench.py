@@ -27,7 +27,8 @@ from servotune.config import LinkSpec
 from servotune.drivers.base import InvalidArgumentError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band
 from servotune.tuning.injection import Slap2Injection

@@ -28,7 +28,8 @@ from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.protocols import z1100 as zcodec
 from servotune.sim.base import SimDevice
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
 

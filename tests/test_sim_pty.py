@@ -14,7 +14,7 @@ import pytest
 import serial
 
 from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Bus
+from servotune.sim.slap2_bus import Slap2Bus
 
 BAUD = 19200
 CHAR_S = 10 / BAUD

@@ -14,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.slap2 import FACTORY_DEFAULTS, TICK_S, Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
+from servotune.sim.slap2_control import FACTORY_DEFAULTS, TICK_S
 
 CHAR_S = 10 / 19200
 CR = b"\r"

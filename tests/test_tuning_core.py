@@ -22,7 +22,8 @@ from servotune.demo import Z1100_LOADS_KG_M2
 from servotune.protocols import z1100 as codec
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.protocols.z1100 import Gains as ChipGains
-from servotune.sim.slap2 import TICK_S, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_control import TICK_S
 from servotune.sim.z1100 import Z1100Chip
 from servotune.sim.z1100_servo import AxisParameters
 from servotune.tuning.devices import law_for

@@ -27,7 +27,8 @@ from servotune.protocols.z1100 import Gains
 from servotune.sim.ep7047_process import ep7047_sim_process
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SerialSimSpec, serial_sim_process
-from servotune.sim.slap2 import Slap2Bus, Slap2Module
+from servotune.sim.slap2 import Slap2Module
+from servotune.sim.slap2_bus import Slap2Bus
 from servotune.sim.z1100 import Z1100Chip
 from servotune.sim.z1100_servo import AxisParameters
 

@@ -3,7 +3,7 @@
 Pure (no I/O, no clock, no imports from the rest of servotune), so both the driver
 (which reconstructs the setpoint of a captured axis from the ``ma``/``mr`` it sent and
 the ``sv``/``sa`` in force) and the simulator may use it without breaking the layering.
-The law is the one ``sim/slap2.py`` implements tick by tick (``_move_tick`` and
+The law is the one ``sim/slap2_control.py`` implements tick by tick (``_move_tick`` and
 ``_ramp``); tests/test_capture_profile.py checks this copy against the simulator's
 firmware on the same commands, tick for tick, so the two cannot drift apart silently.
 

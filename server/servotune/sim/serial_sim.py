@@ -45,7 +45,7 @@ from types import FrameType, TracebackType
 from typing import TypeVar, cast
 
 from servotune.sim.base import PowerCyclable, SimDevice
-from servotune.sim.slap2 import Slap2Bus
+from servotune.sim.slap2_bus import Slap2Bus
 
 logger = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 identification's excitation and timing, and the limits (docs/autotune.md).
 
 **The SLAP2 manual does not give the scaling of its PID law**; this is the law the
-simulator implements (``sim/slap2.py``, docs/simulator.md), every 841.5 us tick::
+simulator implements (``sim/slap2_control.py``, docs/simulator.md), every 841.5 us tick::
 
     u = (16 kp e + ki S + 32 kd (e - e_prev)) >> 12,  |ki S| <= 255 << 12,  |u| <= 255
 
