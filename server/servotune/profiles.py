@@ -4,7 +4,7 @@ Pure (no I/O, no clock, no imports from the rest of servotune), so both the driv
 (which reconstructs the setpoint of a captured axis from the ``ma``/``mr`` it sent and
 the ``sv``/``sa`` in force) and the simulator may use it without breaking the layering.
 The law is the one ``sim/slap2_control.py`` implements tick by tick (``_move_tick`` and
-``_ramp``); tests/test_capture_profile.py checks this copy against the simulator's
+``_ramp``); tests/test_capture.py checks this copy against the simulator's
 firmware on the same commands, tick for tick, so the two cannot drift apart silently.
 
 Law, per 841.5 us controller tick, in counts and counts/tick (``TICK_S``):
