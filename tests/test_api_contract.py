@@ -19,7 +19,7 @@ from servotune.drivers.ep7047_descriptor import ep7047_descriptor
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.drivers.z1100_descriptor import z1100_descriptor
-from servotune.hub import UnknownAxisError
+from servotune.hub_state import UnknownAxisError
 from servotune.wire import AxisInfo
 
 from .conftest import local_client, use_csrf_token

@@ -531,7 +531,7 @@ class _FakeLink:
 async def test_hub_never_shows_a_dead_or_stalled_link_connected(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import servotune.hub as hub_module
+    import servotune.hub_state as hub_module
     from servotune.hub import Hub
     from servotune.storage import Storage
 
@@ -657,7 +657,7 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
     samples. Either way its answers after the fault show it ok again (issue 8, found
     in a soak)."""
     from servotune.drivers import slap2 as slap2_driver
-    from servotune.hub import AXIS_SILENT_S
+    from servotune.hub_state import AXIS_SILENT_S
 
     if rule == "hub":
         monkeypatch.setattr(slap2_driver, "MODULE_OFFLINE_FAILURES", 10**9)

@@ -46,7 +46,8 @@ from pydantic import BaseModel
 
 from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
 from servotune.drivers.base import DeviceRefusedError, DriverError, LinkDownError
-from servotune.hub import Hub, UnknownAxisError
+from servotune.hub import Hub
+from servotune.hub_state import UnknownAxisError
 from servotune.wire import (
     AnswerControl,
     ControlAction,
@@ -674,7 +675,7 @@ class ControlManager:
             if c.heard_s < deadline and not c.lapsing and self._responsible(c)
         ]
 
-    # --- demo autopilot (hub.AutopilotGate) ---------------------------------------------
+    # --- demo autopilot (hub_state.AutopilotGate) ---------------------------------------
 
     def autopilot_paused(self, axis_id: str) -> None:
         """The autopilot stopped driving the axis (a user acted, or STOP)."""

@@ -44,7 +44,8 @@ from servotune.drivers.base import (
     capture_of,
 )
 from servotune.drivers.validation import validate_command, validate_params
-from servotune.hub import AxisEntry, Hub
+from servotune.hub import Hub
+from servotune.hub_state import AxisEntry
 from servotune.metrics import compute_metrics
 from servotune.runquality import POSITION_KINDS, assess
 from servotune.storage import Storage, StorageError

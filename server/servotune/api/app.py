@@ -43,7 +43,8 @@ from servotune.drivers.base import (
     LinkDownError,
     ProtocolError,
 )
-from servotune.hub import Hub, NotFoundError, UnknownAxisError
+from servotune.hub import Hub, NotFoundError
+from servotune.hub_state import UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.testbench import TestBench

@@ -26,7 +26,8 @@ from servotune.auth.principal import Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
 from servotune.control import ControlClient, ControlManager
-from servotune.hub import ClientQueue, Hub
+from servotune.hub import Hub
+from servotune.hub_state import ClientQueue
 from servotune.wire import ClientStats, Heartbeat, Ping
 
 # The same union as wire.ClientMessage | wire.ControlClientMessage, flattened so pydantic

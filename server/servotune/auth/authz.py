@@ -26,7 +26,7 @@ from servotune.auth.principal import LOCAL_PRINCIPAL, MOVE, PARAM_SETS, Principa
 from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS, command_permission
 from servotune.auth.security import CLIENT_HEADER, SecurityState
 from servotune.auth.store import AuthStore, Session
-from servotune.hub import UnknownAxisError
+from servotune.hub_state import UnknownAxisError
 
 logger = logging.getLogger(__name__)
 

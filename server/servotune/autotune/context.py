@@ -14,7 +14,8 @@ from collections.abc import Callable
 from typing import Any, Final
 
 from servotune.drivers.base import BenchKind, DeviceRefusedError, DriverError, Sample
-from servotune.hub import AxisEntry, Hub
+from servotune.hub import Hub
+from servotune.hub_state import AxisEntry
 from servotune.testbench import BenchTestRequest, TestBench
 
 # "No telemetry" means the link is down, not that a loaded host polled late: a link

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from servotune.drivers.base import BenchPlan, DeviceRefusedError, capture_of
-from servotune.hub import AxisEntry
+from servotune.hub_state import AxisEntry
 from servotune.testbench import TestBench, _Recording, run_meta
 from servotune.tuning.devices.slap2 import STAIRCASE_START_PWM
 

@@ -28,7 +28,8 @@ from servotune.drivers.base import (
     LinkDownError,
 )
 from servotune.drivers.z1100 import Z1100Axis
-from servotune.hub import AxisEntry, Hub
+from servotune.hub import Hub
+from servotune.hub_state import AxisEntry
 from servotune.testbench import TestBench
 
 

@@ -25,7 +25,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     capture_of,
 )
-from servotune.hub import AxisEntry
+from servotune.hub_state import AxisEntry
 from servotune.metrics import unmeasured
 from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.tuning.devices.slap2 import (

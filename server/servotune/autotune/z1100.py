@@ -19,7 +19,7 @@ from servotune.autotune.session import IdentifyRequest, Session
 from servotune.autotune.verdict import verdict_z1100
 from servotune.autotune.z1100_rule import Z1100Proposal, propose_kab
 from servotune.drivers.base import DeviceRefusedError, DriverError
-from servotune.hub import AxisEntry
+from servotune.hub_state import AxisEntry
 from servotune.metrics import unmeasured
 from servotune.tuning.devices.z1100 import (
     BAND_COUNTS,

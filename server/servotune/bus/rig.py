@@ -70,7 +70,8 @@ from servotune.drivers.base import (
     LinkDownError,
     ProtocolError,
 )
-from servotune.hub import ClientQueue, Hub, UnknownAxisError
+from servotune.hub import Hub
+from servotune.hub_state import ClientQueue, UnknownAxisError
 from servotune.storage import Storage, StorageError
 from servotune.testbench import BenchTestRequest, TestBench
 

@@ -44,7 +44,7 @@ cycle) instead of one per cycle: every wake-up of the loop costs a self-pipe wri
 an epoll round and a callback (measured: the per-sample wake-ups were the largest
 single cost of the demo server; one post to an otherwise idle loop costs it ~70 us
 of CPU, so 10 ms batches still cost it ~7 ms/s, 20 ms ones ~4.7). 20 ms stays below
-the hub's telemetry batch (``hub.BATCH_PERIOD_S``, 1/30 s), so every telemetry
+the hub's telemetry batch (``hub_state.BATCH_PERIOD_S``, 1/30 s), so every telemetry
 message still carries new samples of this axis and the plots see no added delay
 worth the name; every sample is still delivered, in order, with its own time.
 Anything else the thread posts (a result, a state change, an event) first flushes
