@@ -17,12 +17,13 @@ from starlette.datastructures import UploadFile
 
 from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
+from servotune.benchrun import BenchLimits
 from servotune.drivers.base import DriverError, InvalidArgumentError
 from servotune.hub import NotFoundError
 from servotune.metrics import Metrics
 from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
 from servotune.storage import Storage, dumps_strict
-from servotune.testbench import BenchLimits, BenchTestRequest, TestBench
+from servotune.testbench import BenchTestRequest, TestBench
 from servotune.wire import ErrorBody, StorageStatus
 
 STORE_ERRORS: dict[int | str, dict[str, Any]] = {

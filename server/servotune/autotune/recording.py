@@ -9,9 +9,10 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+from servotune.benchrun import _Recording, run_meta
 from servotune.drivers.base import BenchPlan, DeviceRefusedError, capture_of
 from servotune.hub_state import AxisEntry
-from servotune.testbench import TestBench, _Recording, run_meta
+from servotune.testbench import TestBench
 from servotune.tuning.devices.slap2 import STAIRCASE_START_PWM
 
 
