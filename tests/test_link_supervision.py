@@ -688,7 +688,7 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
                 )
                 text = "no telemetry for"
             else:
-                assert silent.health_message.startswith("module 1 does not answer: 3 polls")
+                assert silent.health_message.startswith("module 1 does not answer: 3 exchanges")
                 text = "module 1 does not answer"
             assert any(
                 e.level == "warning" and e.axis == "line-1" and text in e.message
@@ -730,9 +730,49 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
             await hub.stop()
 
 
-def _hub_on_line(path: str, addresses: list[int], tmp_path: Path) -> tuple[Any, Slap2Link]:
+@pytest.mark.parametrize("addresses", [[0], [0, 1]])
+async def test_a_line_whose_every_module_falls_silent_is_shown_in_error(
+    tmp_path: Path, addresses: list[int]
+) -> None:
+    """When no module answers, the line is down: the link goes to ``error`` by the
+    line's rule, and no module is taken offline by the per-module rule, whose
+    message ("... while the line's other modules answered") would be false and would
+    leave the link shown connected. Verify reads run every cycle here
+    (``verify_period_s`` short), so failed verify reads fall between failed polls:
+    counting them as "another module answered", the first version of the rule took
+    a one-module line's module offline and left the link connected (review)."""
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
+    tap = Tap(bus)
+    muted = threading.Event()
+    tap.rewrite = lambda byte, out: b"" if muted.is_set() else out
+    with PtySimulator(tap, baud=19200) as sim:
+        hub, link = _hub_on_line(sim.path, addresses, tmp_path, verify_period_s=0.05)
+        await hub.start()
+        try:
+            axes = [f"line-{a}" for a in addresses]
+            await wait_for(
+                lambda: all(hub.entry(a).latest is not None for a in axes), 10, "samples"
+            )
+            muted.set()
+            await wait_for(lambda: hub.link_status("line").state == "error", 10, "line error")
+            false_rule = [
+                e.message
+                for e in hub._events
+                if "other modules answered" in e.message or "offline for" in e.message
+            ]
+            assert not false_rule, false_rule
+            for a in addresses:
+                assert link.module_state(a).silent_since_s is None
+        finally:
+            await hub.stop()
+
+
+def _hub_on_line(
+    path: str, addresses: list[int], tmp_path: Path, **settings: Any
+) -> tuple[Any, Slap2Link]:
     """(a hub over one SLAP2 link on ``path``, that link): the link reports to the
-    hub, which exists only after the link, so a forwarding sink bridges the two."""
+    hub, which exists only after the link, so a forwarding sink bridges the two.
+    ``settings``: fields of ``Slap2LinkConfig`` to change."""
     from servotune.hub import Hub
     from servotune.storage import Storage
 
@@ -742,7 +782,7 @@ def _hub_on_line(path: str, addresses: list[int], tmp_path: Path) -> tuple[Any, 
         def __getattr__(self, name: str) -> object:
             return getattr(holder[0], name)
 
-    config = Slap2LinkConfig(link_id="line", path=path, addresses=addresses)
+    config = Slap2LinkConfig(link_id="line", path=path, addresses=addresses, **settings)
     link = Slap2Link(config, SerialConnector(path, 19200), Forward())  # type: ignore[arg-type]
     hub = Hub([link], Storage(tmp_path / "db.sqlite"))
     holder.append(hub)

@@ -1,14 +1,15 @@
 """The hub: owns the links, validates every change, and fans telemetry out to clients.
 
 Every command that changes a device goes through ``Hub.write_params``,
-``Hub.command``, ``Hub.console`` or ``Hub.stop_all``: one path where input is checked
+``Hub.command``, ``Hub.console`` or ``stop_all`` (in ``HubState``, beside the
+delivery of a STOP that could not be sent at once, which shares it): one path where input is checked
 against the device descriptor before anything is sent, where the axis is marked as
 operated (which switches the demo autopilot off for it), and where a later control
 lock, authentication and audit log will sit.
 
 What lives here (the upper half of the hub): ``Hub``, with what drives the devices:
-its lifecycle (the links' owner tasks, restarted with backoff), the one command path
-and the demo autopilot. What the hub knows of its links and axes (the ``DriverSink``
+its lifecycle (the links' owner tasks, restarted with backoff), the command path but
+for the STOP, and the demo autopilot. What the hub knows of its links and axes (the ``DriverSink``
 side, supervision, events, queries) and the fan-out to clients are in
 ``servotune.hub_state`` (``HubState``, which ``Hub`` extends); the seam is the
 direction, see there.

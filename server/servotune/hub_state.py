@@ -7,12 +7,14 @@ against the last applied settings and their saving), the hub's own judgement of 
 that stopped reporting (``STATUS_STALE_S``) and of an axis that sent no sample
 (``AXIS_SILENT_S``), the event log, the queries, the delivery of a STOP that could not
 be sent at once (it is set off from here: when an axis is back, and on the fan-out's
-status tick), and the fan-out to websocket clients. ``hub.Hub`` adds on top what
-drives the devices: the one command path, the link owner tasks and the demo autopilot.
+status tick) and with it ``stop_all``, and the fan-out to websocket clients.
+``hub.Hub`` adds on top what drives the devices otherwise: the command path (writes,
+commands, console), the link owner tasks and the demo autopilot.
 
 The seam is the direction: this half takes in what the drivers report and sends it
-out to clients; ``hub.py`` sends what users ask for to the devices. Nothing here calls
-into ``hub.py``.
+out to clients; ``hub.py`` sends what users ask for to the devices. The one
+exception is the STOP, which lives here because its retry is set off by what the
+drivers report. Nothing here calls into ``hub.py``.
 
 May import: ``descriptor``, ``drivers.base``, ``storage``, ``wire`` and the package's
 ``__version__`` (never ``servotune.hub``, the api or a driver implementation).

@@ -157,7 +157,10 @@ class _ModuleState:
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
     next_probe_t: float = 0.0
     probe_interval_s: float = 0.0
-    poll_failures: int = 0  # this module's polls failed in a row
+    # This module's exchanges (polls, verify reads, reset checks) that failed in a
+    # row, and the line's answer count at the first of them (_module_failed).
+    failures: int = 0
+    answers_at_first_failure: int = 0
     silent_since_s: float | None = None  # taken offline for it (_module_silent) then
     # A weak reset cue waiting to be confirmed (see the module docstring), and whether
     # the cal flag was seen set since the last calibration servotune started.
@@ -208,6 +211,9 @@ class Slap2Link(Slap2Wire):
         self._poll_index = 0
         self._last_verify_t = 0.0
         self._consecutive_failures = 0
+        # Exchanges any module answered (polls, verify reads, checks, capture steps):
+        # tells a silent module on a working line from a line that is down.
+        self._answers = 0
         self._captures = CaptureRegistry(self._capture_changed)
         self._capture_index = 0
 
@@ -224,7 +230,7 @@ class Slap2Link(Slap2Wire):
         for module in self._modules.values():
             module.profile.clear()
             module.ucon_failures = 0
-            module.poll_failures = 0
+            module.failures = 0
             module.silent_since_s = None  # the line's outage says it now
             if module.online:
                 module.online = False
@@ -303,10 +309,16 @@ class Slap2Link(Slap2Wire):
             module.online = False
             if module.silent_since_s is not None:
                 # Taken offline by _module_silent: say for how long, and when next.
-                silent_s = self._clock() - module.silent_since_s
+                now = self._clock()
+                silent_s = now - module.silent_since_s
+                # The loop set the next try before this probe; when every module is
+                # offline the loop retries all of them every offline_retry_s instead.
+                next_s = module.next_probe_t - now
+                if next_s <= 0:
+                    next_s = self.config.offline_retry_s
                 message = (
                     f"module {module.address} offline for {silent_s:.0f} s, does not "
-                    f"answer ({exc}); next try in {min(module.probe_interval_s * 2, 30.0):.0f} s"
+                    f"answer ({exc}); next try in {next_s:.0f} s"
                 )
             else:
                 message = str(exc)
@@ -380,12 +392,14 @@ class Slap2Link(Slap2Wire):
             # Still no answer after resynchronising: the poll's own failure counting
             # takes it from here (offline after repeated silence); no reset flag.
             module.suspect = ""
-            self._count("desyncs")
             logger.info(
                 "%s: module %d: check after %r failed: %s", self.id, module.address, cue, exc
             )
+            self._poll_failed(exc)  # counts the desync
             self._module_failed(module, exc)
             return
+        self._consecutive_failures = 0
+        self._module_answered(module)
         module.suspect = ""
         if evidence:
             self._mark_reset(
@@ -540,8 +554,11 @@ class Slap2Link(Slap2Wire):
         try:
             value = await self._read_int(module.address, parameter.read_command)
         except (DeviceTimeoutError, ProtocolError) as exc:
+            self._poll_failed(exc)
             self._module_failed(module, exc)
             return
+        self._consecutive_failures = 0
+        self._module_answered(module)
         expected = module.known[name]
         if value != expected:
             module.known[name] = value
@@ -565,25 +582,33 @@ class Slap2Link(Slap2Wire):
         try:
             await self._poll_module(module)
             self._consecutive_failures = 0
-            module.poll_failures = 0
+            self._module_answered(module)
         except DriverError as exc:
             self._poll_failed(exc)
             self._module_failed(module, exc)
 
+    def _module_answered(self, module: _ModuleState) -> None:
+        self._answers += 1
+        module.failures = 0
+
     def _module_failed(self, module: _ModuleState, exc: DriverError) -> None:
         """Count a failed exchange with ``module`` (a poll, a verify read, a reset
-        check) and take it offline after ``MODULE_OFFLINE_FAILURES`` in a row while
-        the line's other modules answer. Every kind counts: a silent module's
-        verify read or reset check costs the line as much as its poll, and counting
-        only polls let the hub's silence rule fire first."""
-        module.poll_failures += 1
+        check) and take it offline after ``MODULE_OFFLINE_FAILURES`` in a row if
+        another module answered since the first of them. Every kind counts: a
+        silent module's verify read or reset check costs the line as much as its
+        poll, and counting only polls let the hub's silence rule fire first. The
+        line's answer count decides "another module answered" (this module's own
+        answer would have reset its count), so a line that is down, or has one
+        module, is left to the line's rule (_poll_failed): never shown connected
+        with its only module offline."""
+        if module.failures == 0:
+            module.answers_at_first_failure = self._answers
+        module.failures += 1
         if (
-            module.poll_failures >= MODULE_OFFLINE_FAILURES
-            and self._consecutive_failures < module.poll_failures
+            module.failures >= MODULE_OFFLINE_FAILURES
+            and self._answers > module.answers_at_first_failure
             and module.online
         ):
-            # Another module answered since this one's first failure: the line
-            # works, this module does not.
             self._module_silent(module, exc)
 
     def _module_silent(self, module: _ModuleState, exc: DriverError) -> None:
@@ -591,21 +616,23 @@ class Slap2Link(Slap2Wire):
         owner loop probes it again (``offline_retry_s``, doubling up to 30 s), and
         the probe that reads it brings it back."""
         axis_id = self.axis_id(module.address)
-        failures = module.poll_failures
+        failures = module.failures
         module.online = False
-        module.poll_failures = 0
+        module.failures = 0
         module.probe_interval_s = 0.0
         module.silent_since_s = self._clock()
         module.next_probe_t = module.silent_since_s + self.config.offline_retry_s
         message = (
-            f"module {module.address} does not answer: {failures} polls in a row failed "
-            f"while the line's other modules answered ({exc}); tried again with a growing "
-            "interval"
+            f"module {module.address} does not answer: {failures} exchanges in a row "
+            f"failed while the line's other modules answered ({exc}); tried again with a "
+            "growing interval"
         )
         self._sink.on_event("warning", axis_id, message)
         self._sink.on_axis_health(axis_id, "offline", message)
 
     def _poll_failed(self, exc: DriverError) -> None:
+        # A failed exchange of the owner loop's own (a poll, a verify read, a reset
+        # check): three in a row with no answer between and the line shows ``error``.
         # An odd reply to a poll is a desynchronisation, never the end of the
         # session: counted, the next poll resynchronises (select, echo check).
         self._count("desyncs")
@@ -779,6 +806,7 @@ class Slap2Link(Slap2Wire):
                 self._check_rss(module, rss)
                 module.rss = rss
             self._consecutive_failures = 0
+            self._module_answered(module)
         except DriverError as exc:
             capture.stats.wire_chars += self._wire_chars - chars_before
             self._poll_failed(exc)

@@ -283,25 +283,16 @@ class Slap2Wire(LinkEngine):
             return
         channel = self._require_channel()
         believed = self._believed_selected
+        dark = self._dark_selection
         command = codec.make_select(address)
-        blind = False
         try:
-            try:
-                if self._dark_selection is not None:
-                    # ``se n`` reached every module; the one it selected is silent.
-                    lines = await self._select_blind(channel, command)
-                    blind = True
-                else:
-                    lines = await self._exchange_once(command)
-            except _AbandonedError as abandoned:
-                if not isinstance(abandoned.error, DeviceTimeoutError):
-                    raise abandoned.error from None
-                # No echo: perhaps nobody is selected (nobody could echo).
-                lines = await self._select_blind(channel, command)
-                blind = True
-            except DeviceTimeoutError:
-                lines = await self._select_blind(channel, command)
-                blind = True
+            if dark is not None:
+                # The last ``se`` reached every module and selected a silent one: no
+                # echo can come, so straight to the blind form (once: not again on its
+                # own timeout).
+                lines, blind = await self._select_blind(channel, command), True
+            else:
+                lines, blind = await self._select_echoed(channel, command)
         except BaseException as exc:
             # Every module saw ``se n``: whoever was selected switched its transmitter
             # off, for a known reason; its later silence is no sign of a reset.
@@ -310,7 +301,6 @@ class Slap2Wire(LinkEngine):
             raise
         if lines != [""]:
             raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
-        dark = self._dark_selection
         self._dark_selection = None
         self._selected = self._believed_selected = address
         if blind and believed is not None and dark is None:
@@ -319,19 +309,52 @@ class Slap2Wire(LinkEngine):
             # one echo lost or late on a slow host. Weak evidence: the link checks it.
             self._lost_selection(believed)
 
+    async def _select_echoed(
+        self, channel: ByteChannel, command: codec.Command
+    ) -> tuple[list[str], bool]:
+        """``se n`` the usual way; sent blind if it got no echo (perhaps nobody is
+        selected, so nobody could echo). Returns (the reply's lines, sent blind)."""
+        try:
+            return await self._exchange_once(command), False
+        except _AbandonedError as abandoned:
+            if not isinstance(abandoned.error, DeviceTimeoutError):
+                raise abandoned.error from None
+        except DeviceTimeoutError:
+            pass
+        return await self._select_blind(channel, command), True
+
     async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
-        """Nobody is selected, so nobody echoes: send ``se n`` paced, await its CR."""
+        """Send ``se n`` paced, without waiting for echoes, and await the new module's
+        CR: for when nobody may be able to echo (nobody selected, or the selected
+        module is silent).
+
+        Should the old module transmit after all, it echoes the line before it
+        switches off: one such echo is removed before the CR is looked for, so it
+        cannot pass for the new module's reply. Any other bytes (late echoes, noise)
+        go to ``_note_unsolicited``; a power-on banner among them means the module
+        reset and the ``se`` is lost, a ``ProtocolError``.
+        """
         char_s = 10 / self._timing.baud
-        channel.discard_input()
-        for byte in command.text.encode("ascii") + b"\r":
+        stray = channel.discard_input()
+        if stray:
+            self._note_unsolicited(stray)
+        payload = command.text.encode("ascii") + b"\r"
+        for byte in payload:
             await channel.write(bytes([byte]))
             await asyncio.sleep(2 * char_s)
         received = await self._drain(channel, self._timing.char_timeout_s, 0.5)
-        # The new module's reply is a bare CR; an echo cannot come from anyone.
-        if b"\r" not in received:
+        rest = received.replace(payload, b"", 1)
+        if b"\r" not in rest:
+            if rest.strip():
+                self._note_unsolicited(rest)
             raise DeviceTimeoutError(
                 f"no module answers at address {command.text[2:]} (power, cable, address pins?)"
             )
+        other = rest.replace(b"\r", b"", 1)
+        if other.strip(b"\r\n"):
+            self._note_unsolicited(other)
+            if is_banner(other.decode("ascii", "replace")):
+                raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
         return [""]
 
     async def _transact(self, address: int, command: codec.Command) -> list[str]:

@@ -197,7 +197,7 @@ def simulate_response(
     give_up_s: float = math.inf,
     stop_when_settled: bool = False,
 ) -> SimulatedResponse:
-    """The SLAP2 firmware (as ``sim/slap2.py`` implements it) running ``spec`` on ``model``.
+    """The SLAP2 firmware (as ``sim/slap2_control.py`` implements it) running ``spec`` on ``model``.
 
     Each 841.5 us tick: sample the count, run the trapezoid generator, ``PidLaw``
     (inlined), then integrate the plant over the tick with that PWM. In pm holding at
