@@ -395,10 +395,8 @@ class Slap2Link(Slap2Wire):
             logger.info(
                 "%s: module %d: check after %r failed: %s", self.id, module.address, cue, exc
             )
-            self._poll_failed(exc)  # counts the desync
-            self._module_failed(module, exc)
+            self._module_failed(module, exc)  # counts the desync
             return
-        self._consecutive_failures = 0
         self._module_answered(module)
         module.suspect = ""
         if evidence:
@@ -554,10 +552,8 @@ class Slap2Link(Slap2Wire):
         try:
             value = await self._read_int(module.address, parameter.read_command)
         except (DeviceTimeoutError, ProtocolError) as exc:
-            self._poll_failed(exc)
             self._module_failed(module, exc)
             return
-        self._consecutive_failures = 0
         self._module_answered(module)
         expected = module.known[name]
         if value != expected:
@@ -581,19 +577,20 @@ class Slap2Link(Slap2Wire):
         self._poll_index += 1
         try:
             await self._poll_module(module)
-            self._consecutive_failures = 0
             self._module_answered(module)
         except DriverError as exc:
-            self._poll_failed(exc)
             self._module_failed(module, exc)
 
     def _module_answered(self, module: _ModuleState) -> None:
+        """An exchange with ``module`` succeeded: the line works, and so does it."""
+        self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0
 
     def _module_failed(self, module: _ModuleState, exc: DriverError) -> None:
         """Count a failed exchange with ``module`` (a poll, a verify read, a reset
-        check) and take it offline after ``MODULE_OFFLINE_FAILURES`` in a row if
+        check) for the line's rule (``_poll_failed``) and for the module's own: it is
+        taken offline after ``MODULE_OFFLINE_FAILURES`` in a row if
         another module answered since the first of them. Every kind counts: a
         silent module's verify read or reset check costs the line as much as its
         poll, and counting only polls let the hub's silence rule fire first. The
@@ -601,6 +598,7 @@ class Slap2Link(Slap2Wire):
         answer would have reset its count), so a line that is down, or has one
         module, is left to the line's rule (_poll_failed): never shown connected
         with its only module offline."""
+        self._poll_failed(exc)
         if module.failures == 0:
             module.answers_at_first_failure = self._answers
         module.failures += 1
@@ -612,7 +610,7 @@ class Slap2Link(Slap2Wire):
             self._module_silent(module, exc)
 
     def _module_silent(self, module: _ModuleState, exc: DriverError) -> None:
-        """Take a module whose polls keep failing on a working line offline; the
+        """Take a module whose exchanges keep failing on a working line offline; the
         owner loop probes it again (``offline_retry_s``, doubling up to 30 s), and
         the probe that reads it brings it back."""
         axis_id = self.axis_id(module.address)
@@ -805,7 +803,6 @@ class Slap2Link(Slap2Wire):
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)
                 module.rss = rss
-            self._consecutive_failures = 0
             self._module_answered(module)
         except DriverError as exc:
             capture.stats.wire_chars += self._wire_chars - chars_before

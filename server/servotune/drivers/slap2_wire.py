@@ -303,7 +303,8 @@ class Slap2Wire(LinkEngine):
             raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
         self._dark_selection = None
         self._selected = self._believed_selected = address
-        if blind and believed is not None and dark is None:
+        # (After a dark selection nothing is believed selected, so no cue then.)
+        if blind and believed is not None:
             # The module we had selected stopped transmitting without an ``se``: a
             # reset (power-on deselects every address but 0) does that, but so does
             # one echo lost or late on a slow host. Weak evidence: the link checks it.

@@ -187,7 +187,7 @@ class LoopModel:
             (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(tf))
             for tf in (self.forward, self.feedback, self.plant_d)
         )
-        if df.size == db.size and np.allclose(df, db, rtol=0.0, atol=0.0):
+        if np.array_equal(df, db):
             d = df  # one denominator (the Z1100's 64 z^32): T = Nf Np / (D Dp + (Nf+Nb) Np)
             num = np.polymul(nf, npl)
             den = np.polyadd(np.polymul(d, dpl), np.polymul(np.polyadd(nf, nb), npl))
