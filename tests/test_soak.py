@@ -22,6 +22,7 @@ load average - machine-dependent figures that are reported, never asserted.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -48,6 +49,43 @@ POLL_S = 1.0
 STALE_S = 5.0  # a connected link goes no longer than this without a sample
 RECOVER_S = 30.0
 STOP_S = 15.0
+
+
+OBSERVER_STALL_S = 1.0  # a gap of the test's own clock thread this long is a stall
+
+
+class ObserverStalls:
+    """A thread of this test process that ticks every 50 ms and keeps every gap between
+    two ticks longer than ``OBSERVER_STALL_S``: the observer itself (or the whole
+    machine) was held off the CPU then. Across such a gap the test cannot tell a
+    silent link from samples it has not read yet, so it does not judge; the server's
+    own stalls do not hold this thread (another process) and stay judged."""
+
+    def __init__(self) -> None:
+        self.gaps: list[tuple[float, float]] = []  # (start, end), monotonic
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stall-meter", daemon=True)
+
+    def __enter__(self) -> ObserverStalls:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+    def _run(self) -> None:
+        last = time.monotonic()
+        while not self._stop.wait(0.05):
+            now = time.monotonic()
+            if now - last > OBSERVER_STALL_S:
+                self.gaps.append((last, now))
+            last = now
+
+    def since(self, t: float) -> list[tuple[float, float]]:
+        """The gaps that ended after ``t`` (a gap still open ends at the next tick, so
+        the caller also checks how late its own poll came)."""
+        return [gap for gap in list(self.gaps) if gap[1] > t]
 
 
 def _read_record(path: Path) -> dict[str, Any]:
@@ -106,13 +144,18 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
             connected_polls = Counter[str]()
             not_ok = Counter[tuple[str, str]]()
             samples_before: dict[str, int] = {}
+            observer_skips = 0
             last_progress = {a: time.monotonic() for ids in axes_of.values() for a in ids}
             t0 = time.monotonic()
-            with cpu_hog():
+            with cpu_hog(), ObserverStalls() as stalls:
                 while time.monotonic() - t0 < SOAK_S:
+                    asleep = time.monotonic()
                     time.sleep(POLL_S)
                     load_seen.append(load_average()[0])
                     now = time.monotonic()
+                    held_s = now - asleep - POLL_S
+                    if held_s > OBSERVER_STALL_S:
+                        stalls.gaps.append((asleep + POLL_S, now))
                     with stream.lock:
                         counts = dict(stream.counts.samples)
                         health = dict(stream.counts.health)
@@ -134,17 +177,28 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
                                     last_progress[axis_id] = now
                                     continue
                                 stale_s = now - last_progress[axis_id]
-                                if connected_polls[link_id] >= 2 and stale_s > STALE_S:
-                                    lies.append(
-                                        f"{link_id} says connected but {axis_id} had no "
-                                        f"sample for {stale_s:.1f} s (t={now - t0:.0f} s)"
-                                    )
+                                if connected_polls[link_id] < 2 or stale_s <= STALE_S:
+                                    continue
+                                held = stalls.since(last_progress[axis_id])
+                                if held:
+                                    # Not judged: the observer was stalled (see
+                                    # ObserverStalls); judged again from now on.
+                                    observer_skips += 1
+                                    last_progress[axis_id] = now
+                                    continue
+                                lies.append(
+                                    f"{link_id} says connected but {axis_id} had no "
+                                    f"sample for {stale_s:.1f} s (t={now - t0:.0f} s; "
+                                    f"status {status['rate_hz']:.1f} Hz, errors "
+                                    f"{status['errors']}, {status['message']!r})"
+                                )
                         else:
                             connected_polls[link_id] = 0
                             for axis_id in axis_ids:
                                 last_progress[axis_id] = now  # not claiming anything
                     samples_before = counts
             soak_s = time.monotonic() - t0
+            gaps = sorted(stalls.gaps)
             cpu: dict[str, float] = {}
             for pid in pids:
                 before, after = cpu_start[pid], cpu_seconds(pid)
@@ -207,6 +261,11 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
             f"{link_id}: rate/wire median {median:.0%} min {values[0] if values else 0:.0%}; "
             f"errors +{errors}; final {final_status[link_id]['state']} {extra}"
         )
+    held = ", ".join(f"{end - start:.1f} s at t={start - t0:.0f} s" for start, end in gaps)
+    report.append(
+        f"observer stalls over {OBSERVER_STALL_S:g} s: {held or 'none'}; "
+        f"axis judgements skipped across them: {observer_skips}"
+    )
     report.append(f"events by level: {dict(events)}; reset banners: {dict(resets)}")
     report.append(
         "polls with an axis of a connected link shown not ok: "
