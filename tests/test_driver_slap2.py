@@ -7,11 +7,24 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.base import DeviceRefusedError, LinkDownError
-from servotune.drivers.slap2 import Slap2Axis
+from servotune.drivers.base import (
+    DeviceRefusedError,
+    DeviceTimeoutError,
+    LinkDownError,
+    ProtocolError,
+)
+from servotune.drivers.slap2 import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.protocols import slap2 as codec
+from servotune.transports.serial import SerialConnector
 
-from .conftest import RunningLink, gather_in_order, run_link, running_simulator, wait_for
+from .conftest import (
+    RecordingSink,
+    RunningLink,
+    gather_in_order,
+    run_link,
+    running_simulator,
+    wait_for,
+)
 
 
 def axis(line: RunningLink, address: int) -> Slap2Axis:
@@ -214,3 +227,56 @@ async def test_absent_module_does_not_flag_the_present_one_or_delay_stop(
             # Re-probes back off, so most stops find the line free (a probe can still
             # hold it for a few character timeouts once in a while).
             assert sorted(latencies)[len(latencies) // 2] < 0.1, latencies
+
+
+def _rule_link() -> tuple[Slap2Link, RecordingSink, list[float]]:
+    """A link that is never connected, for the line's error rule alone: its clock is
+    the list's last value (``_poll_failed`` and ``_module_answered`` are the owner
+    loop's calls after each failed or answered exchange)."""
+    sink = RecordingSink()
+    now = [100.0]
+    config = Slap2LinkConfig(link_id="rule", path="/dev/null", addresses=[0, 1])
+    link = Slap2Link(config, SerialConnector("/dev/null", 19200), sink, clock=lambda: now[-1])
+    return link, sink, now
+
+
+def test_a_burst_of_wrong_bytes_after_a_stall_is_counted_not_an_error() -> None:
+    """One stall of a loaded host: a reply held past the character timeout, then its
+    late bytes spoil two echoes, three failures within 0.6 s, then an answer (seen in
+    the soak under a CPU hog). Bytes came back, so the line is alive: counted as
+    desyncs, never shown as ``error``; the same failures spread over more than
+    LINE_ERROR_SPAN_S are an error (wrong baud, noise)."""
+    link, sink, now = _rule_link()
+    module = link.module_state(0)
+    failures = [
+        DeviceTimeoutError("no reply to 'rp'"),
+        ProtocolError("echo mismatch in 'se0': sent 0x73, got 0x0d"),
+        ProtocolError("echo mismatch in 'rp': sent 0x72, got 0x31"),
+    ]
+    for t, exc in zip((100.0, 100.3, 100.6), failures, strict=True):
+        now.append(t)
+        link._module_failed(module, exc)
+    assert not sink.states and not [e for e in sink.events if e[0] == "error"]
+    assert link.counters["desyncs"] == 3
+    link._module_answered(module)
+    # Wrong bytes that persist: the fourth failure comes after the span.
+    for t in (101.0, 101.3, 101.6):
+        now.append(t)
+        link._module_failed(module, failures[1])
+    assert not sink.states
+    now.append(101.0 + LINE_ERROR_SPAN_S)
+    link._module_failed(module, failures[2])
+    assert sink.states[-1][0] == "error" and "echo mismatch" in sink.states[-1][1]
+
+
+def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:
+    """Nothing comes back (a cut cable): three timeouts in a row are an error at once,
+    however close together (after a dark selection each costs only a character
+    timeout); the span is not waited for."""
+    link, sink, now = _rule_link()
+    module = link.module_state(0)
+    for t in (100.0, 100.2, 100.4):
+        now.append(t)
+        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+    assert sink.states[-1][0] == "error"
+    assert [e for e in sink.events if e[0] == "error"]

@@ -767,6 +767,33 @@ async def test_a_line_whose_every_module_falls_silent_is_shown_in_error(
             await hub.stop()
 
 
+async def test_a_line_that_answers_only_wrong_bytes_is_shown_in_error_and_back(
+    tmp_path: Path,
+) -> None:
+    """Every byte the modules send comes back wrong (a wrong baud rate, noise): bytes
+    come back, so the line's rule waits out LINE_ERROR_SPAN_S (a burst after one
+    stall is no error), but wrong bytes that persist are: ``error`` naming the echo
+    mismatch, and connected again with samples once the bytes are right."""
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    tap = Tap(bus)
+    garbled = threading.Event()
+    tap.rewrite = lambda byte, out: bytes(b ^ 0x01 for b in out) if garbled.is_set() else out
+    with PtySimulator(tap, baud=19200) as sim:
+        hub, _ = _hub_on_line(sim.path, [0, 1], tmp_path)
+        await hub.start()
+        try:
+            await wait_for(lambda: hub.entry("line-0").latest is not None, 10, "samples")
+            garbled.set()
+            await wait_for(lambda: hub.link_status("line").state == "error", 10, "line error")
+            assert "echo mismatch" in hub.link_status("line").message
+            garbled.clear()
+            await wait_for(lambda: hub.link_status("line").state == "connected", 15, "back")
+            before = hub.entry("line-0").last_sample_at
+            await wait_for(lambda: hub.entry("line-0").last_sample_at > before, 10, "samples")
+        finally:
+            await hub.stop()
+
+
 def _hub_on_line(
     path: str, addresses: list[int], tmp_path: Path, **settings: Any
 ) -> tuple[Any, Slap2Link]:

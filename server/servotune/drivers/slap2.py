@@ -102,6 +102,17 @@ UCON_ATTEMPTS = 3
 # on every cycle (the other modules fell from ~23 to ~1 sample/s) and show it as if it
 # answered. Three, like the line's own rule: one or two failures are a slow host.
 MODULE_OFFLINE_FAILURES = 3
+# The line's rule: ``error`` after LINE_ERROR_FAILURES failed exchanges in a row. When
+# bytes came back in that run (a wrong echo, an odd reply, a refusal: any failure but
+# a timeout), the line is alive, and the run must also span LINE_ERROR_SPAN_S.
+# Measured in the soak under a CPU hog: one stall held a reply past the character
+# timeout, its late bytes spoiled the next two echoes, three failures within ~0.6 s,
+# then an answer 24 ms later; that is counted (desyncs, dropped bytes), not shown as
+# an error. A dead line sends nothing back (timeouts only): its verdict comes as fast
+# as before (1.0-1.15 s after the cut, measured on a pty; with the span for timeouts
+# too it was 1.3-1.8 s). Wrong baud or noise (only wrong bytes) shows after the span.
+LINE_ERROR_FAILURES = 3
+LINE_ERROR_SPAN_S = 0.9
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
     "mr": "a move needs position mode: switch on 'Position mode' (pm) first",
@@ -211,6 +222,10 @@ class Slap2Link(Slap2Wire):
         self._poll_index = 0
         self._last_verify_t = 0.0
         self._consecutive_failures = 0
+        # The current run of failed exchanges: when it began, and whether bytes came
+        # back in it (see LINE_ERROR_SPAN_S).
+        self._first_failure_t = 0.0
+        self._failures_saw_bytes = False
         # Exchanges any module answered (polls, verify reads, checks, capture steps):
         # tells a silent module on a working line from a line that is down.
         self._answers = 0
@@ -630,12 +645,20 @@ class Slap2Link(Slap2Wire):
 
     def _poll_failed(self, exc: DriverError) -> None:
         # A failed exchange of the owner loop's own (a poll, a verify read, a reset
-        # check): three in a row with no answer between and the line shows ``error``.
-        # An odd reply to a poll is a desynchronisation, never the end of the
-        # session: counted, the next poll resynchronises (select, echo check).
+        # check): LINE_ERROR_FAILURES in a row with no answer between (spread over
+        # LINE_ERROR_SPAN_S if bytes came back) and the line shows ``error``. An odd
+        # reply to a poll is a desynchronisation, never the end of the session:
+        # counted, the next poll resynchronises (select, echo check).
         self._count("desyncs")
+        now = self._clock()
+        if self._consecutive_failures == 0:
+            self._first_failure_t = now
+            self._failures_saw_bytes = False
         self._consecutive_failures += 1
-        if self._consecutive_failures >= 3:
+        self._failures_saw_bytes |= not isinstance(exc, DeviceTimeoutError)
+        if self._consecutive_failures >= LINE_ERROR_FAILURES and (
+            not self._failures_saw_bytes or now - self._first_failure_t >= LINE_ERROR_SPAN_S
+        ):
             if self._state != "error":
                 self._sink.on_event("error", None, f"{self.id}: {exc}")
             self._set_state("error", str(exc))
