@@ -291,8 +291,12 @@ async def test_a_rig_cut_off_is_offline_within_2_s_and_refused_at_once(lab: LabR
     assert response.status_code == 503 and "offline" in response.json()["detail"]
     # Refused before anything is sent, not after a request timeout (5 s).
     assert refused_s < 1.0
-    # rig-a is not affected.
+    # rig-a is not affected, and its status (as the rig's link reports it, wire_busy
+    # included) still reaches the hub.
     assert hub.entry("rig-a.line-0").health != "offline"
+    await wait_for(
+        lambda: (hub.link_status("rig-a.line").wire_busy or 0) > 0, 3, "rig-a's wire busy"
+    )
     response = await lab.hub_client.patch("/api/axes/rig-a.line-0/params", json={"kp": 50})
     assert response.status_code == 200, response.text
 

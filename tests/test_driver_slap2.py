@@ -280,3 +280,25 @@ def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:
         link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
     assert [e for e in sink.events if e[0] == "error"]
+
+
+def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
+    """``wire_busy`` from each exchange's wire time (injected clock): none without a
+    channel; over the time since the channel opened while that is shorter than the
+    2 s window; exchanges that ended more than 2 s ago drop out; capped at 1 (an
+    exchange that began before the window counts whole)."""
+    link, _, now = _rule_link()
+    assert link.wire_busy is None  # no channel
+    link._channel = object()  # type: ignore[assignment]
+    link._opened_at = 100.0
+    for i in range(100):  # 5 ms exchanges back to back for 0.5 s, then 0.5 s idle
+        now.append(100.005 + 0.005 * i)
+        link._wire_used(0.005)
+    now.append(101.0)
+    assert link.wire_busy == pytest.approx(0.5)
+    now.append(102.0)  # a 2 s window now: 0.5 s of 2 s
+    assert link.wire_busy == pytest.approx(0.25)
+    now.append(103.0)  # all of them ended more than 2 s ago
+    assert link.wire_busy == 0
+    link._wire_used(5.0)
+    assert link.wire_busy == 1.0

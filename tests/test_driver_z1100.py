@@ -66,6 +66,9 @@ async def test_three_axes_stream_and_read_flash_parameters(tmp_path: Path) -> No
         assert line.sink.params["chip-y"]["kabh_k"] == 128
         assert line.sink.params["chip-x"]["vmax"] == 100_000
         await wait_for(lambda: all(len(line.samples(i)) > 5 for i in range(3)), 5, "samples")
+        # The line carried the polls: a share of its time, never more than all of it.
+        busy = line.link.wire_busy
+        assert busy is not None and 0 < busy <= 1
 
 
 async def test_kabh_overwrites_kabd_and_both_are_read_back(tmp_path: Path) -> None:

@@ -783,6 +783,9 @@ async def test_a_line_that_answers_only_wrong_bytes_is_shown_in_error_and_back(
         await hub.start()
         try:
             await wait_for(lambda: hub.entry("line-0").latest is not None, 10, "samples")
+            # The link's status carries the share of time its line was busy.
+            await wait_for(lambda: (hub.link_status("line").wire_busy or 0) > 0, 5, "wire busy")
+            assert (hub.link_status("line").wire_busy or 0) <= 1
             garbled.set()
             await wait_for(lambda: hub.link_status("line").state == "error", 10, "line error")
             assert "echo mismatch" in hub.link_status("line").message

@@ -9,7 +9,9 @@ connected, then for ``seconds`` samples:
   core busy). That figure is far less sensitive to other work on the machine than a
   rate, so it is what to compare between machines;
 * every link's ``rate_hz / wire_limit_hz`` from ``GET /api/links/{id}/status``, once a
-  second (median and minimum), its state and its error counter;
+  second (median and minimum), its state and its error counter, and its
+  ``wire_busy`` (the share of time the line carried any of its exchanges: polls,
+  commands and echoes; the autopilot's moves share the wire with the polls);
 * the websocket stream: events by level and axis health changes to ``reset``;
 * the load average before and after.
 
@@ -231,6 +233,8 @@ def demo_server(
 @dataclass
 class LinkFigures:
     ratios: list[float] = field(default_factory=list)
+    # the link's wire_busy (the share of time its line carried any of its exchanges)
+    busy: list[float] = field(default_factory=list)
     states: Counter[str] = field(default_factory=Counter)
     errors_first: int | None = None
     errors_last: int = 0
@@ -255,6 +259,10 @@ class LinkFigures:
     @property
     def minimum(self) -> float:
         return min(self.ratios) if self.ratios else 0.0
+
+    @property
+    def busy_median(self) -> float | None:
+        return statistics.median(self.busy) if self.busy else None
 
 
 @dataclass
@@ -362,6 +370,13 @@ class BenchReport:
                 f"  {link_id:<14} median {figures.median:6.1%}  min {figures.minimum:6.1%}  "
                 f"of {figures.wire_limit_hz:7.1f} Hz  errors +{errors}  ({states})"
             )
+            if figures.busy_median is not None:
+                # Polls, commands and echoes: the autopilot's moves share the wire, so
+                # the sample rate stays below the poll set's limit while this does not.
+                out.append(
+                    f"  {'':<14} line busy (all exchanges) median {figures.busy_median:6.1%}  "
+                    f"min {min(figures.busy):6.1%}"
+                )
             counted = figures.per_minute(self.seconds)
             if counted:
                 out.append(
@@ -418,6 +433,8 @@ def measure(
                 figures.wire_limit_hz = status["wire_limit_hz"]
                 if status["wire_limit_hz"] > 0:
                     figures.ratios.append(status["rate_hz"] / status["wire_limit_hz"])
+                if status.get("wire_busy") is not None:
+                    figures.busy.append(status["wire_busy"])
                 if figures.errors_first is None:
                     figures.errors_first = status["errors"]
                     figures.counters_first = dict(status.get("counters") or {})

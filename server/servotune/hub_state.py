@@ -46,6 +46,7 @@ from servotune.drivers.base import (
     AxisDriver,
     DriverError,
     HasCounters,
+    HasWireBusy,
     Link,
     LinkDownError,
     Sample,
@@ -393,6 +394,7 @@ class HubState:
         previous = link_entry.status.state
         link = link_entry.link
         counters = dict(link.counters) if isinstance(link, HasCounters) else {}
+        busy = link.wire_busy if isinstance(link, HasWireBusy) else None
         if link_entry.restarts:
             counters["restarts"] = counters.get("restarts", 0) + link_entry.restarts
         link_entry.updated_at = self._clock()
@@ -402,6 +404,7 @@ class HubState:
             message=message,
             rate_hz=round(rate_hz, 2),
             wire_limit_hz=round(wire_limit_hz, 2),
+            wire_busy=None if busy is None else round(busy, 3),
             errors=errors,
             counters=counters,
         )

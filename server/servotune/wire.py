@@ -74,6 +74,14 @@ class LinkStatus(BaseModel):
     message: str
     rate_hz: float = Field(description="telemetry samples per second per axis, achieved")
     wire_limit_hz: float = Field(description="what the wire allows for the same poll set")
+    wire_busy: float | None = Field(
+        default=None,
+        description=(
+            "share (0..1) of the last 2 s the line carried this link's exchanges (polls, "
+            "commands and echoes alike); null where not measured (EtherCAT: cyclic, "
+            "rate_hz / wire_limit_hz says it) or while no channel is open"
+        ),
+    )
     errors: int
     counters: dict[str, int] = Field(
         default_factory=dict,

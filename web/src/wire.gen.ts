@@ -182,6 +182,7 @@ export interface LinkStatus {
   message: string;
   rate_hz: number;
   wire_limit_hz: number;
+  wire_busy: number | null;
   errors: number;
   counters: Record<string, number>;
 }

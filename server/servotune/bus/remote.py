@@ -248,6 +248,8 @@ class RemoteLink:
         self._axes = [RemoteAxis(self, axis) for axis in info.axes]
         self._by_local = {axis.local_id: axis for axis in self._axes}
         self._state: LinkState = "connecting"
+        # The rig's own link's wire_busy, as its last status said (HasWireBusy).
+        self._wire_busy: float | None = None
         self._offline_after_s = offline_after_s
         # Hub clock of the rig's last presence; 0: never seen since the hub started.
         self.seen_at = 0.0
@@ -283,6 +285,10 @@ class RemoteLink:
     @property
     def state(self) -> LinkState:
         return self._state
+
+    @property
+    def wire_busy(self) -> float | None:
+        return self._wire_busy if self._state != "disconnected" else None
 
     def present(self) -> bool:
         return self.online and self.port.clock() - self.seen_at <= self._offline_after_s
@@ -359,6 +365,8 @@ class RemoteLink:
         if kind == "link_status" and message.get("link") == self.local_id:
             state = str(message.get("state"))
             self._state = state  # type: ignore[assignment]
+            busy = message.get("wire_busy")
+            self._wire_busy = float(busy) if isinstance(busy, int | float) else None
             self._sink.on_link_status(
                 self._id,
                 self._state,

@@ -217,6 +217,15 @@ class HasCounters(Protocol):
     def counters(self) -> Mapping[str, int]: ...
 
 
+@runtime_checkable
+class HasWireBusy(Protocol):
+    """Optional for a link: the share of the last seconds its wire was busy (0..1),
+    ``None`` when not known (see ``drivers.engine.LinkEngine.wire_busy``)."""
+
+    @property
+    def wire_busy(self) -> float | None: ...
+
+
 class Link(Protocol):
     """One physical connection and its owner task."""
 

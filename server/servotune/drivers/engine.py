@@ -15,6 +15,10 @@ probe, then poll forever) and the wire exchange of its device. The engine provid
   rate falling to 0 instead of a frozen value;
 * ``counters``: what was retried, resynchronised or dropped (shown with the link
   status) — a slow host makes a few of these, which are counted, not alarmed;
+* ``wire_busy``: the share of the last ``RATE_WINDOW_S`` the line carried the link's
+  characters (subclasses report each exchange's wire time with ``_wire_used``):
+  polls, commands and echoes alike, so it tells a link that keeps its wire full
+  while it also carries commands from one that loses time between exchanges;
 * ``submit(job, urgent=...)``: run a coroutine on the owner task with exclusive use of
   the line. ``_take_job`` hands out urgent jobs (stops) before user jobs; the session
   calls it between two wire transactions, so a stop waits at most for the one
@@ -109,6 +113,10 @@ class LinkEngine(abc.ABC):
         self._wakeup = asyncio.Event()
         self._connected_once = False
         self._counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
+        # (when an exchange ended, the wire time it took), the last RATE_WINDOW_S of
+        # them, and when the current session's channel opened (see ``wire_busy``).
+        self._wire_log: deque[tuple[float, float]] = deque()
+        self._opened_at: float | None = None
         self._axes: list[AxisDriver] = []
         self._descriptor: DeviceDescriptor
 
@@ -153,6 +161,35 @@ class LinkEngine(abc.ABC):
     def _count(self, name: str, n: int = 1) -> None:
         self._counters[name] = self._counters.get(name, 0) + n
 
+    def _wire_used(self, busy_s: float) -> None:
+        """An exchange just ended that kept the line busy for ``busy_s`` (its characters
+        at 10 bit times each, both directions as the device's protocol serialises them)."""
+        now = self._clock()
+        log = self._wire_log
+        log.append((now, busy_s))
+        while log and now - log[0][0] > RATE_WINDOW_S:
+            log.popleft()
+
+    @property
+    def wire_busy(self) -> float | None:
+        """The share (0..1) of the last ``RATE_WINDOW_S`` the line was busy with this
+        link's exchanges, or ``None`` while no channel is open.
+
+        Counted from the characters of each exchange that ended in the window (one that
+        began before the window counts whole, hence the cap at 1), over the window or
+        the time since the channel opened if that is shorter. A link that loses no
+        time between exchanges approaches 1 whatever it carries; the sample rate over
+        ``wire_limit_hz`` cannot, while commands share the wire with the polls.
+        """
+        if self._channel is None or self._opened_at is None:
+            return None
+        now = self._clock()
+        span_s = min(RATE_WINDOW_S, now - self._opened_at)
+        if span_s <= 0:
+            return None
+        busy_s = sum(b for t, b in self._wire_log if now - t <= RATE_WINDOW_S)
+        return min(1.0, busy_s / span_s)
+
     async def run(self) -> None:
         """Connect, run sessions and reconnect with backoff until cancelled.
 
@@ -185,6 +222,8 @@ class LinkEngine(abc.ABC):
                 continue
             opened_at = self._clock()
             self._channel = channel
+            self._opened_at = opened_at
+            self._wire_log.clear()
             try:
                 await self._session(channel)
             except LinkClosedError as exc:

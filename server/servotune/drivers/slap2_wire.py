@@ -275,7 +275,9 @@ class Slap2Wire(LinkEngine):
         if t_echo is None:
             t_echo = t_reply
         self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
-        self._wire_chars += 2 * (len(command.text) + 1) + reply_chars
+        chars = 2 * (len(command.text) + 1) + reply_chars
+        self._wire_chars += chars
+        self._wire_used(chars * char_s)
         return lines
 
     async def _select(self, address: int) -> None:

@@ -230,12 +230,14 @@ class Z1100Link(LinkEngine):
             await channel.write(packet)
             got = await self._read_reply(channel)
             self._transactions += 1
+            char_s = 10 / self.config.baud
+            # The request's characters, and the reply's if one came (wire_busy).
+            self._wire_used((TRANSACTION_CHARS if got else codec.REQUEST_SIZE) * char_s)
             if got is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
                 continue
             reply, reply_t = got
-            char_s = 10 / self.config.baud
             self._last_latch_t = min(
                 written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
             )

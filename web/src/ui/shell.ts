@@ -228,7 +228,13 @@ export class Nav {
       if (status && (status.state === "connected" || status.rate_hz > 0)) {
         const pct = status.wire_limit_hz > 0 ? ` (${Math.round((100 * status.rate_hz) / status.wire_limit_hz)} % of wire)` : "";
         setText(rate, `${status.rate_hz.toFixed(1)} Hz${pct}`);
-        rate.title = `telemetry samples per second per axis; the wire allows ${status.wire_limit_hz.toFixed(1)} Hz for this poll set; ${countOf(status.errors, "error")}`;
+        // wire_busy counts commands too: a link that carries moves samples less than
+        // wire_limit_hz while its line stays full, and this tells the two apart.
+        const busy =
+          status.wire_busy !== null && status.wire_busy !== undefined
+            ? `; the line was busy ${Math.round(100 * status.wire_busy)} % of the last 2 s (polls, commands and echoes)`
+            : "";
+        rate.title = `telemetry samples per second per axis; the wire allows ${status.wire_limit_hz.toFixed(1)} Hz for this poll set${busy}; ${countOf(status.errors, "error")}`;
       } else setText(rate, "— Hz");
       const message = el.querySelector<HTMLElement>(".link-message") as HTMLElement;
       if (status && status.state !== "connected") {
