@@ -55,12 +55,15 @@ async def test_stop_during_accept_answers_normally_and_restores_the_previous_gai
             assert session["state"] == "failed" and "STOP" in session["message"]
 
 
+def failing_fit(*args: object, **kwargs: object) -> object:
+    """A fit that fails (module level: the fit runs in the compute worker, which gets
+    the function by its name)."""
+    raise ValueError("injected: the fit did not converge")
+
+
 async def test_a_failed_identification_returns_the_axis_and_says_everything(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    def failing_fit(*args: object, **kwargs: object) -> object:
-        raise ValueError("injected: the fit did not converge")
-
     monkeypatch.setattr(slap2_tuner, "fit_plant", failing_fit)
     bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
     module = bus.module(0)

@@ -34,7 +34,8 @@ from servotune.config import LinkSpec
 from .test_bench import finished_run, start
 from .test_storage_errors import _origin, serve
 
-IMPORT_ROWS = 250_000  # about 25 MB of CSV
+IMPORT_ROWS = 250_000  # about 16 MB of CSV
+EXPORTS_MIN_S = 1.5  # the exports phase lasts at least this (see the test)
 
 
 @contextlib.contextmanager
@@ -158,17 +159,23 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
             phases.append(("import", began, imported_at))
             assert response.status_code == 201, response.text
             run_id = response.json()["id"]
-            size = 0
-            async with client.stream("GET", f"/api/bench/runs/{run_id}", timeout=300) as r:
-                async for chunk in r.aiter_bytes():
-                    size += len(chunk)
-            lines = 0
-            async with client.stream(
-                "GET", f"/api/bench/runs/{run_id}/samples.csv", timeout=300
-            ) as r:
-                async for chunk in r.aiter_bytes():
-                    lines += chunk.count(b"\n")
-            phases.append(("exports", imported_at, time.perf_counter()))
+            # Exported again until the phase lasts EXPORTS_MIN_S: on a fast host one
+            # pair of exports takes 0.5 s, too short for the STOPs this test counts.
+            exports = 0
+            while exports == 0 or time.perf_counter() - imported_at < EXPORTS_MIN_S:
+                size = 0
+                async with client.stream("GET", f"/api/bench/runs/{run_id}", timeout=300) as r:
+                    async for chunk in r.aiter_bytes():
+                        size += len(chunk)
+                lines = 0
+                async with client.stream(
+                    "GET", f"/api/bench/runs/{run_id}/samples.csv", timeout=300
+                ) as r:
+                    async for chunk in r.aiter_bytes():
+                        lines += chunk.count(b"\n")
+                assert lines == IMPORT_ROWS + 1 and size > 20 * IMPORT_ROWS
+                exports += 1
+            phases.append((f"exports (x{exports})", imported_at, time.perf_counter()))
             fit_began = time.perf_counter()
             proposal = await client.post(
                 "/api/axes/tune-0/autotune/identify",
@@ -181,7 +188,6 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
             for task in watchers:
                 await task
 
-            assert lines == IMPORT_ROWS + 1 and size > 20 * IMPORT_ROWS
             gaps = [(b, b - a) for a, b in itertools.pairwise(telemetry) if b >= began]
             for name, t_from, t_to in phases:
                 in_phase = [lat for sent, lat in stops if t_from <= sent < t_to] or [0.0]
@@ -207,7 +213,11 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
                 answered = [
                     (sent, lat) for sent, lat in stops if t_from <= sent and sent + lat < t_to
                 ]
-                assert len(answered) >= 3, f"{name}: only {len(answered)} STOPs answered"
+                # A STOP leaves every 0.2 s plus its latency: three fit in a phase of
+                # 1.2 s; a shorter phase (a fast host) must still answer one before it
+                # ends, which a loop held for the phase's duration cannot.
+                wanted = max(1, min(3, int((t_to - t_from) / 0.4)))
+                assert len(answered) >= wanted, f"{name}: only {len(answered)} STOPs answered"
                 assert max(lat for _, lat in answered) < 0.5 * (t_to - t_from), name
             import_s = imported_at - began
             assert max(g for t, g in gaps if t < imported_at) < 0.5 * import_s

@@ -33,6 +33,7 @@ from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune import AutoTuner
+from servotune.compute import ComputePool
 from servotune.config import LinkSpec
 from servotune.control import ControlManager, ControlSettings
 from servotune.drivers.base import (
@@ -135,7 +136,11 @@ def create_app(config: AppConfig) -> FastAPI:
                 from servotune.bus.lifecycle import autotuner_class  # the hub forwards
 
                 autotuner_cls = autotuner_class(config.bus)
-            app.state.autotuner = autotuner_cls(hub, bench)
+            # Fits, gain searches and FRF analysis: in a worker process, never on the
+            # loop or in a thread that holds the interpreter lock (servotune.compute).
+            compute = ComputePool()
+            app.state.compute = compute
+            app.state.autotuner = autotuner_cls(hub, bench, compute=compute)
             app.state.storage = storage
             # The control lock and dead-man (servotune.control); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
@@ -164,6 +169,7 @@ def create_app(config: AppConfig) -> FastAPI:
                     await app.state.twin.stop()
                 await bench.stop()
                 await hub.stop()
+                await compute.close()
                 # Let pending storage writes finish before the database closes.
                 await asyncio.sleep(0)
                 storage.close()

@@ -20,6 +20,7 @@ from servotune import frfbench
 from servotune.api.bench_routes import BenchDep
 from servotune.api.responses import errors
 from servotune.autotune import AutoTuner
+from servotune.compute import ComputePool
 from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
 from servotune.hub import Hub, NotFoundError
 from servotune.protocols.slap2 import (
@@ -58,8 +59,18 @@ def get_hub(request: Request) -> Hub:
 HubDep = Annotated[Hub, Depends(get_hub)]
 
 
+def get_compute(request: Request) -> ComputePool:
+    compute: ComputePool = request.app.state.compute
+    return compute
+
+
+ComputeDep = Annotated[ComputePool, Depends(get_compute)]
+
+
 @router.get("/api/bench/runs/{run_id}/frf", responses=errors(404, 422))
-async def run_frf(run_id: str, request: Request, bench: BenchDep) -> dict[str, Any]:
+async def run_frf(
+    run_id: str, request: Request, bench: BenchDep, compute: ComputeDep
+) -> dict[str, Any]:
     """Bode and Nyquist data of a frequency-response run.
 
     ``measured`` (SLAP2): the closed loop at the tones with coherence, the open loop
@@ -77,7 +88,8 @@ async def run_frf(run_id: str, request: Request, bench: BenchDep) -> dict[str, A
     if (run.get("test") or {}).get("kind") != frfbench.KIND:
         raise InvalidArgumentError("run_id", f"run {run_id} is not a frequency_response run")
     identified = identified_model(request, str(run.get("axis_id", "")))
-    return await asyncio.to_thread(frfbench.analyse_run, run, identified)
+    # The analysis of a long run takes seconds of numpy and Python: in the worker.
+    return await compute.run(frfbench.analyse_run, run, identified)
 
 
 @router.get("/api/axes/{axis_id}/whatif", responses=errors(404, 409, 422))

@@ -13,6 +13,7 @@ import asyncio
 from collections.abc import Callable
 from typing import Any, Final
 
+from servotune.compute import ComputePool
 from servotune.drivers.base import BenchKind, DeviceRefusedError, DriverError, Sample
 from servotune.hub import Hub
 from servotune.hub_state import AxisEntry
@@ -25,12 +26,17 @@ RUN_GRACE_S: Final = 10.0  # a recorded test may finish this much after its dura
 
 
 class TuningContext:
-    """Hub, bench, clock and the per-axis stop generation of the running sequence."""
+    """Hub, bench, clock, the worker process for fits and gain searches (``compute``:
+    never a thread, see servotune.compute) and the per-axis stop generation of the
+    running sequence."""
 
-    def __init__(self, hub: Hub, bench: TestBench, clock: Callable[[], float]) -> None:
+    def __init__(
+        self, hub: Hub, bench: TestBench, clock: Callable[[], float], compute: ComputePool
+    ) -> None:
         self.hub = hub
         self.bench = bench
         self.clock = clock
+        self.compute = compute
         # Per axis: the stop generation when the running sequence started.
         self.generations: dict[str, int] = {}
         self._sample_events: dict[str, asyncio.Event] = {}

@@ -20,6 +20,7 @@ from servotune.autotune.context import TuningContext
 from servotune.autotune.session import IdentifyRequest, Session, SessionState
 from servotune.autotune.slap2 import Slap2Tuner
 from servotune.autotune.z1100 import Z1100Tuner
+from servotune.compute import ComputePool
 from servotune.drivers.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -84,10 +85,17 @@ class AutoTuner:
     """
 
     def __init__(
-        self, hub: Hub, bench: TestBench, *, clock: Callable[[], float] = time.monotonic
+        self,
+        hub: Hub,
+        bench: TestBench,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        compute: ComputePool | None = None,
     ) -> None:
+        """``compute``: the app's worker process for the fits (a pool of its own if
+        none is given; its worker starts only when a fit runs)."""
         self._hub = hub
-        self._ctx = TuningContext(hub, bench, clock)
+        self._ctx = TuningContext(hub, bench, clock, compute or ComputePool())
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, asyncio.Lock] = {}
         self._tuners: dict[str, DeviceTuner] = {

@@ -4,7 +4,8 @@ docs/autotune.md describes what the user sees. The science is in the shared core
 the staircase, the driver's timing and the law in ``tuning.devices.slap2``, the fit
 in ``tuning.identify``, the rule in ``autotune.slap2_rule``; this module sequences it
 on a live axis through ``TuningContext`` (hub and bench). The fit and the gain search
-run in worker threads (``asyncio.to_thread``): nothing heavy on the event loop.
+run in the worker process (``servotune.compute``): nothing heavy on the event loop,
+and no thread that holds the interpreter lock against it.
 """
 
 from __future__ import annotations
@@ -133,7 +134,7 @@ class Slap2Tuner:
         session.model = model.to_dict()
         doubt = model_doubt(model, travel)
         spec = self._spec(entry, request.test, request.direction * distance, latency)
-        proposal = await asyncio.to_thread(
+        proposal = await self._ctx.compute.run(
             propose_gains,
             model,
             spec,
@@ -199,7 +200,7 @@ class Slap2Tuner:
         try:
             # the model is symmetric: a negative staircase is fitted mirrored
             sign = request.direction
-            model = await asyncio.to_thread(
+            model = await self._ctx.compute.run(
                 fit_plant,
                 times,
                 [sign * p for p in positions],

@@ -87,7 +87,7 @@ class Z1100Tuner:
         run = await self._run_test(entry, signed, "auto-tune identification (gains in use)")
         await self._return(entry, start)
         times, errors = _trace(run, request.direction)
-        plant = await asyncio.to_thread(
+        plant = await self._ctx.compute.run(
             fit_plant_closed_loop, times, errors, current, current_kabd, profile.positive()
         )
         session.model = plant.to_dict()
@@ -97,7 +97,7 @@ class Z1100Tuner:
             f"auto-tune: model {plant.gain:.0f} counts/s per duty, tau "
             f"{plant.tau_s * 1000:.1f} ms (rms {plant.rms_error_counts:.1f} counts)",
         )
-        proposal = await asyncio.to_thread(
+        proposal = await self._ctx.compute.run(
             propose_kab,
             plant,
             profile.positive(),

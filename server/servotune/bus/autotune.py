@@ -27,6 +27,7 @@ from servotune.autotune import AutoTuner, IdentifyRequest
 from servotune.autotune.session import Session
 from servotune.bus import subjects
 from servotune.bus.remote import RemoteAxis
+from servotune.compute import ComputePool
 from servotune.drivers.base import DriverError
 from servotune.hub import Hub
 from servotune.testbench import TestBench
@@ -37,8 +38,8 @@ AUTOTUNE_TIMEOUT_S: Final = 120.0
 class HubAutoTuner(AutoTuner):
     """``AutoTuner`` for the hub: a rig's axis is tuned by the rig; others as usual."""
 
-    def __init__(self, hub: Hub, bench: TestBench) -> None:
-        super().__init__(hub, bench)
+    def __init__(self, hub: Hub, bench: TestBench, *, compute: ComputePool | None = None) -> None:
+        super().__init__(hub, bench, compute=compute)
         # The session each rig sent with its last auto-tune reply, by the hub's axis id.
         self._remote_sessions: dict[str, dict[str, Any]] = {}
 

@@ -1,0 +1,117 @@
+"""CPU-heavy pure functions in a worker process: model fits, gain searches, FRF analysis.
+
+Why a process and not a thread: these functions are mostly Python bytecode (scipy's
+optimisers call a Python residual thousands of times, the gain searches simulate
+the discrete loop per candidate), so a worker *thread* holds the interpreter lock
+most of the time. The event loop then waits for the lock after every system call
+it makes. Measured with ``tests/test_loop_latency.py`` on the 2-core VM (load < 1),
+during an auto-tune identification and its fit: with threads, STOP answers max
+89-170 ms, telemetry gaps max 91-164 ms, event-loop lag max 33-49 ms (three runs);
+with this pool, 21-32 ms, 68 ms and 2-3 ms. Issue 8's targets are 50 ms and 100 ms.
+
+Contract of ``ComputePool.run(fn, *args, **kwargs)``: ``fn`` is a module-level
+function whose arguments and result pickle; exceptions it raises are raised to the
+caller as they were. One worker: two fits queue rather than compete with the event
+loop for the second core. A worker that died (killed, out of memory) is replaced and
+the call made once more. The worker is started on the first call, from a thread, so
+the start never holds the event loop; until then nothing runs.
+
+Start method: ``forkserver`` where the platform has it, with the tuning modules
+preloaded in the fork server, so each app's worker is a fork of an interpreter
+that has numpy and scipy imported (the import costs ~1.5 s of CPU once per
+process, not once per app: the test suite builds hundreds of apps); ``spawn``
+elsewhere.
+
+Imports: the standard library only (the modules named in ``PRELOAD`` are imported
+by the fork server and the worker, never here). Used by the auto-tune
+(``autotune.context``) and the frequency-response routes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import importlib
+import multiprocessing
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.context import BaseContext
+from typing import ParamSpec, TypeVar
+
+P = ParamSpec("P")
+T = TypeVar("T")
+
+# Where the functions run here live: imported once in the fork server.
+PRELOAD = (
+    "servotune.tuning.identify",
+    "servotune.autotune.slap2_rule",
+    "servotune.autotune.z1100_rule",
+    "servotune.frfbench",
+)
+
+
+def _warm(modules: tuple[str, ...]) -> None:
+    """Run in the new worker: import what the calls will need, before the first one."""
+    for name in modules:
+        importlib.import_module(name)
+
+
+class ComputePool:
+    """One worker process for CPU-heavy pure functions (see the module docstring)."""
+
+    def __init__(self, *, preload: tuple[str, ...] = PRELOAD) -> None:
+        self._preload = preload
+        self._pool: ProcessPoolExecutor | None = None
+        self._starting = asyncio.Lock()
+        self._closed = False
+
+    async def run(self, fn: Callable[P, T], /, *args: P.args, **kwargs: P.kwargs) -> T:
+        """``fn(*args, **kwargs)`` in the worker; its result or its exception."""
+        call = functools.partial(fn, *args, **kwargs)
+        loop = asyncio.get_running_loop()
+        for attempt in range(2):
+            pool = await self._started()
+            try:
+                return await loop.run_in_executor(pool, call)
+            except BrokenProcessPool:
+                # The worker died under this call (killed, out of memory): a new one,
+                # and the call once more; a second death is the caller's error.
+                self._pool = None
+                await asyncio.to_thread(pool.shutdown, wait=False, cancel_futures=True)
+                if attempt == 1:
+                    raise
+        raise AssertionError("unreachable")
+
+    async def _started(self) -> ProcessPoolExecutor:
+        if self._closed:
+            raise RuntimeError("the compute pool is closed")
+        async with self._starting:
+            if self._pool is None:
+                # In a thread: creating the worker may wait for the fork server's
+                # imports (about a second, once), and submit() does that in the
+                # calling thread.
+                self._pool = await asyncio.to_thread(self._start)
+            return self._pool
+
+    def _start(self) -> ProcessPoolExecutor:
+        context: BaseContext
+        if "forkserver" in multiprocessing.get_all_start_methods():
+            forkserver = multiprocessing.get_context("forkserver")
+            # Only effective before the process' fork server starts; a later call
+            # (another pool, or a server already running) leaves the imports to _warm.
+            forkserver.set_forkserver_preload(list(self._preload))
+            context = forkserver
+        else:
+            context = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=context)
+        pool.submit(_warm, self._preload).result()
+        return pool
+
+    async def close(self) -> None:
+        """Stop the worker once a call still running has ended; later calls fail."""
+        self._closed = True
+        async with self._starting:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            await asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True)
