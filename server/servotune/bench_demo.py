@@ -281,7 +281,15 @@ class StreamCounts:
 
 
 class StreamWatcher:
-    """Reads ``/ws`` in a thread and keeps :class:`StreamCounts` (needs ``websockets``)."""
+    """Reads ``/ws`` in a thread and keeps :class:`StreamCounts` (needs ``websockets``).
+
+    Like the web client it connects again when the connection drops (a server starved
+    long enough misses the websocket keep-alive and closes it): every drop is kept in
+    ``drops`` as ``(lost, back, reason)`` (monotonic times; ``back`` is None while it
+    is down), and ``error`` is set only when no connection could be made for
+    ``GIVE_UP_S``."""
+
+    GIVE_UP_S = 30.0
 
     def __init__(self, base_url: str) -> None:
         self.url = base_url.replace("http://", "ws://") + "/ws"
@@ -290,6 +298,7 @@ class StreamWatcher:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="stream-watcher", daemon=True)
         self.error: str | None = None
+        self.drops: list[tuple[float, float | None, str]] = []
 
     def __enter__(self) -> StreamWatcher:
         self._thread.start()
@@ -299,23 +308,45 @@ class StreamWatcher:
         self._stop.set()
         self._thread.join(5)
 
+    def down_since(self, t: float) -> bool:
+        """Whether the connection was down at any time after ``t``."""
+        with self.lock:
+            return any(back is None or back > t for _, back, _ in self.drops)
+
     def _run(self) -> None:
         from websockets.exceptions import WebSocketException
         from websockets.sync.client import connect
         from websockets.typing import Origin
 
-        try:
-            # The dashboard's own origin: the server refuses any other.
-            origin = Origin(self.url.replace("ws://", "http://", 1).removesuffix("/ws"))
-            with connect(self.url, max_size=None, open_timeout=10, origin=origin) as ws:
-                while not self._stop.is_set():
-                    try:
-                        text = ws.recv(timeout=0.2)
-                    except TimeoutError:
-                        continue
-                    self._note(json.loads(text))
-        except (OSError, WebSocketException) as exc:
-            self.error = repr(exc)
+        # The dashboard's own origin: the server refuses any other.
+        origin = Origin(self.url.replace("ws://", "http://", 1).removesuffix("/ws"))
+        failing_since: float | None = None
+        backoff_s = 0.25
+        while not self._stop.is_set():
+            try:
+                with connect(self.url, max_size=None, open_timeout=10, origin=origin) as ws:
+                    with self.lock:
+                        if self.drops and self.drops[-1][1] is None:
+                            lost, _, why = self.drops[-1]
+                            self.drops[-1] = (lost, time.monotonic(), why)
+                    failing_since, backoff_s = None, 0.25
+                    while not self._stop.is_set():
+                        try:
+                            text = ws.recv(timeout=0.2)
+                        except TimeoutError:
+                            continue
+                        self._note(json.loads(text))
+            except (OSError, WebSocketException) as exc:
+                now = time.monotonic()
+                with self.lock:
+                    if not self.drops or self.drops[-1][1] is not None:
+                        self.drops.append((now, None, repr(exc)))
+                failing_since = failing_since if failing_since is not None else now
+                if now - failing_since > self.GIVE_UP_S:
+                    self.error = f"no connection for {now - failing_since:.0f} s: {exc!r}"
+                    return
+                self._stop.wait(backoff_s)
+                backoff_s = min(2 * backoff_s, 2.0)
 
     def _note(self, message: dict[str, Any]) -> None:
         kind = message.get("type")
