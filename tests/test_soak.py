@@ -22,7 +22,6 @@ load average - machine-dependent figures that are reported, never asserted.
 from __future__ import annotations
 
 import json
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -31,6 +30,7 @@ from typing import Any
 import pytest
 
 from servotune.bench_demo import (
+    BackgroundThread,
     StreamWatcher,
     cpu_hog,
     cpu_seconds,
@@ -54,25 +54,18 @@ STOP_S = 15.0
 OBSERVER_STALL_S = 1.0  # a gap of the test's own clock thread this long is a stall
 
 
-class ObserverStalls:
+class ObserverStalls(BackgroundThread):
     """A thread of this test process that ticks every 50 ms and keeps every gap between
     two ticks longer than ``OBSERVER_STALL_S``: the observer itself (or the whole
     machine) was held off the CPU then. Across such a gap the test cannot tell a
     silent link from samples it has not read yet, so it does not judge; the server's
     own stalls do not hold this thread (another process) and stay judged."""
 
+    join_s = 2.0
+
     def __init__(self) -> None:
+        super().__init__("stall-meter")
         self.gaps: list[tuple[float, float]] = []  # (start, end), monotonic
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="stall-meter", daemon=True)
-
-    def __enter__(self) -> ObserverStalls:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(2)
 
     def _run(self) -> None:
         last = time.monotonic()

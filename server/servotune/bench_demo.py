@@ -39,7 +39,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 _CLOCK_TICKS_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
@@ -280,7 +280,29 @@ class StreamCounts:
     last_channels: dict[str, dict[str, float | None]] = field(default_factory=dict)
 
 
-class StreamWatcher:
+class BackgroundThread:
+    """A daemon thread for the length of a ``with`` block: ``_run`` until ``_stop`` is
+    set on exit, then joined for up to ``join_s``."""
+
+    join_s = 5.0
+
+    def __init__(self, name: str) -> None:
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(self.join_s)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+
+class StreamWatcher(BackgroundThread):
     """Reads ``/ws`` in a thread and keeps :class:`StreamCounts` (needs ``websockets``).
 
     Like the web client it connects again when the connection drops (a server starved
@@ -292,21 +314,12 @@ class StreamWatcher:
     GIVE_UP_S = 30.0
 
     def __init__(self, base_url: str) -> None:
+        super().__init__("stream-watcher")
         self.url = base_url.replace("http://", "ws://") + "/ws"
         self.counts = StreamCounts()
         self.lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="stream-watcher", daemon=True)
         self.error: str | None = None
         self.drops: list[tuple[float, float | None, str]] = []
-
-    def __enter__(self) -> StreamWatcher:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(5)
 
     def down_since(self, t: float) -> bool:
         """Whether the connection was down at any time after ``t``."""

@@ -220,9 +220,8 @@ class LinkEngine(abc.ABC):
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, self._reconnect_max_s)
                 continue
-            opened_at = self._clock()
+            self._opened_at = opened_at = self._clock()
             self._channel = channel
-            self._opened_at = opened_at
             self._wire_log.clear()
             try:
                 await self._session(channel)
