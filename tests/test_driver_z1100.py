@@ -111,6 +111,28 @@ async def test_chip_reset_is_detected(tmp_path: Path) -> None:
         assert "reads 0" in line.sink.health["chip-y"][1]
 
 
+async def test_a_zero_after_an_unanswered_fence_is_no_reset(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reset witness that reads 0 is confirmed only on a line back in step: while the
+    fence goes unanswered (a starved chip or host), a late reply may still be on its
+    way, so no reset is flagged; once the fence is answered the same zeros are."""
+    async with chip_line(tmp_path, flash=False) as line:
+        await line.axis(1).write_params({"kabh_k": 30, "vmax": 20_000, "acc": 100_000})
+
+        async def unanswered_fence(channel: object) -> bool:
+            return False
+
+        monkeypatch.setattr(line.link, "_resync", unanswered_fence)
+        line.sim.power_cycle()  # the witnesses read 0 from now on
+        await asyncio.sleep(3 * line.link.config.verify_period_s * 3)
+        assert all(health != "reset" for health, _ in line.sink.health.values())
+        monkeypatch.undo()
+        await wait_for(
+            lambda: line.sink.health.get("chip-y", ("", ""))[0] == "reset", 5, "reset flag"
+        )
+
+
 async def test_reset_with_flashed_parameters_is_detected_by_the_job(tmp_path: Path) -> None:
     async with chip_line(tmp_path) as line:  # flash holds good parameters
         await line.axis(0).command("go_to_target", {"target": 3000})

@@ -273,11 +273,12 @@ class Z1100Link(LinkEngine):
             return reply
         raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
 
-    async def _resync(self, channel: ByteChannel) -> None:
+    async def _resync(self, channel: ByteChannel) -> bool:
         """Bring the line back in step: send a fence and drop every reply that arrives
         before its answer (those answered earlier requests). The chip answers in order,
-        so after the fence's answer nothing late is left on the line. Falls back to a
-        quiet line when the fence itself goes unanswered within ``fence_timeout_s``."""
+        so after the fence's answer nothing late is left on the line: True. Falls back
+        to a quiet line when the fence itself goes unanswered within
+        ``fence_timeout_s``: False, and a late reply may still be on its way."""
         stray = channel.discard_input()
         if stray:
             self._errors += 1
@@ -294,7 +295,7 @@ class Z1100Link(LinkEngine):
                 if codec.is_fence_reply(reply):
                     if decoder.pending:  # bytes after the answer: noise, dropped
                         self._count("dropped_bytes", decoder.pending)
-                    return
+                    return True
                 self._errors += 1
                 self._count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
             if remaining <= 0:
@@ -302,6 +303,7 @@ class Z1100Link(LinkEngine):
         self._errors += 1
         self._count("fence_timeouts")
         await self._drain_quiet(channel)
+        return False
 
     async def _drain_quiet(self, channel: ByteChannel) -> None:
         deadline = self._clock() + 1.0
@@ -600,8 +602,11 @@ class Z1100Link(LinkEngine):
             return
         # Confirm with a second reading of all three witnesses after a fence: one late
         # or misframed reply (the protocol has no header; on a stalled host a reply can
-        # land after its request timed out) must not wipe the state.
-        await self._resync(self._require_channel())
+        # land after its request timed out) must not wipe the state. A fence that went
+        # unanswered leaves the line out of step: no verdict now, the next check asks
+        # again.
+        if not await self._resync(self._require_channel()):
+            return
         zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
         if len(zeros) >= 2:
             for each in self._motors:
@@ -618,8 +623,12 @@ class Z1100Link(LinkEngine):
     async def _confirm_zero(self, read: Callable[[], Awaitable[int]]) -> bool:
         """A zero read once is confirmed only by reading zero again after a fence (late
         replies to earlier requests are dropped first): the reset cue must survive a
-        slow host (issue 8: no false alarms)."""
-        await self._resync(self._require_channel())
+        slow host (issue 8: no false alarms). A fence that went unanswered confirms
+        nothing: the line may still be out of step (seen in a soak on a starved
+        machine: 16 fence timeouts, then "chip reset detected (job 0)" although the
+        simulated chip never reset and its job read 2 at the end)."""
+        if not await self._resync(self._require_channel()):
+            return False
         return await read() == 0
 
     async def _read_witness(self, axis: int, witness: str) -> int:
