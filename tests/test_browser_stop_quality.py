@@ -272,10 +272,11 @@ async def test_an_imported_bad_run_is_not_coloured_against_the_baseline(
     meta = (await server.client.get(f"/api/bench/runs/{run['id']}/run.json")).json()
     csv_text = (await server.client.get(f"/api/bench/runs/{run['id']}/samples.csv")).text
     assert meta["metrics"]["peak_following_error"] is not None, meta["metrics"]
-    # Far off the baseline's following error, whatever it measured.
+    # Far off the baseline's following error, whatever it measured. A whole number,
+    # because the page writes a number as JavaScript prints it (228.0 -> "228").
     worse = {
         **meta["metrics"],
-        "peak_following_error": 10 * abs(meta["metrics"]["peak_following_error"]) + 100,
+        "peak_following_error": int(10 * abs(meta["metrics"]["peak_following_error"])) + 100,
     }
     reason = {"code": "did_not_move", "message": "the axis moved 0 of 800 counts"}
     imported: dict[str, str] = {}
