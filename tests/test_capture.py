@@ -11,6 +11,7 @@ import functools
 import itertools
 import statistics
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -30,7 +31,7 @@ from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.slap2 import Slap2Module
 from servotune.sim.slap2_bus import Slap2Bus
-from servotune.transports.serial import SerialConnector
+from servotune.transports.serial import SerialChannel, SerialConnector
 
 from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for
 from .test_driver_z1100 import chip_line
@@ -502,3 +503,47 @@ async def _rate_z(running: object, index: int, seconds: float) -> float:
     before = len(samples)
     await asyncio.sleep(seconds)
     return (len(samples) - before) / seconds
+
+
+async def test_polls_chain_their_next_read_and_keep_the_wire_order(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The poll loop hands the channel the read it makes next (rp -> pe -> rss of a
+    module; in a capture rp -> rp), so the port's callback can send it right after
+    the reply (drivers/slap2_wire.py, _exchange_once). What the modules receive is
+    the same sequence as without it, no chained read is wasted while nothing else
+    runs, and a STOP in between still reaches the wire."""
+    chained: list[tuple[bytes, bytes]] = []
+    original = SerialChannel.transact
+
+    async def spy(self: SerialChannel, data: bytes, *args: Any, **kwargs: Any) -> Any:
+        chained.append((data, kwargs.get("then", b"")))
+        return await original(self, data, *args, **kwargs)
+
+    monkeypatch.setattr(SerialChannel, "transact", spy)
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            await asyncio.sleep(1.0)
+            assert line.link.counters["chained_reads_dropped"] == 0
+            assert (b"rp\r", b"pe\r") in chained and (b"pe\r", b"rss\r") in chained
+            polled = [text for _, text in clock.lines if text in ("rp", "pe", "rss")]
+            start = polled.index("rp")
+            cycle = polled[start : start + 3 * (len(polled[start:]) // 3)]
+            assert cycle == ["rp", "pe", "rss"] * (len(cycle) // 3), cycle
+            drive = _axis(line, 0)
+            await drive.command("position_mode", {})
+            async with drive.capture("test"):
+                await asyncio.sleep(0.5)
+                assert (b"rp\r", b"rp\r") in chained
+                before = len(clock.lines)
+                await drive.stop()
+                assert "st" in [text for _, text in clock.lines[before:]]
+            samples = line.sink.samples["line-0"]
+            assert samples and all(s.channels["position"] is not None for s in samples)
+    finally:
+        simulator.stop()

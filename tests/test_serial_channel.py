@@ -1,14 +1,19 @@
-"""SerialChannel.read_at_least over a real pseudo-terminal: one wake-up for a reply that
-arrives in pieces, the arrival stamped when the last needed byte came, and a timeout
-that hands back what came so far."""
+"""SerialChannel over a real pseudo-terminal. read_at_least: one wake-up for a reply
+that arrives in pieces, the arrival stamped when the last needed byte came, and a
+timeout that hands back what came so far. transact(then=...): the next read chained
+from the receive callback, taken over by the next transact, or waited out and dropped
+when something else is asked for."""
 
 from __future__ import annotations
 
 import asyncio
 import os
+import select
+import threading
 import time
 import tty
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 
@@ -74,3 +79,131 @@ async def test_read_at_least_on_a_closed_port_raises(line: tuple[int, SerialChan
     await channel.close()
     with pytest.raises(LinkClosedError):
         await channel.read_at_least(6, 0.1)
+
+
+# --- transact(then=...): the next read chained from the receive callback --------------
+
+
+class EchoPeer:
+    """A device on the pty's master side: echoes every byte; after a CR answers
+    ``<command>=ok`` CR. Records when each command's first byte arrived."""
+
+    def __init__(self, master: int) -> None:
+        self.master = master
+        self.started: list[tuple[bytes, float]] = []  # (command, first byte's arrival)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        pending = b""
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.05)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 64)
+            except OSError:
+                return
+            for byte in data:
+                if not pending:
+                    self.started.append((b"", time.monotonic()))
+                os.write(self.master, bytes([byte]))
+                pending += bytes([byte])
+                if byte == 0x0D:
+                    command = pending[:-1]
+                    self.started[-1] = (command, self.started[-1][1])
+                    os.write(self.master, command + b"=ok\r")
+                    pending = b""
+
+    def commands(self) -> list[bytes]:
+        return [command for command, _ in self.started]
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+
+
+@pytest.fixture
+async def peer(line: tuple[int, SerialChannel]) -> AsyncIterator[tuple[EchoPeer, SerialChannel]]:
+    master, channel = line
+    device = EchoPeer(master)
+    try:
+        yield device, channel
+    finally:
+        device.stop()
+
+
+async def _transact(channel: SerialChannel, data: bytes, **kwargs: Any) -> bytes | None:
+    done = await channel.transact(data, 0x0D, 0.5, 0.5, **kwargs)
+    assert done.echo.echoed == len(data), done.echo
+    return done.reply
+
+
+async def test_a_chained_read_is_on_the_wire_before_it_is_asked_for(
+    peer: tuple[EchoPeer, SerialChannel],
+) -> None:
+    device, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    await asyncio.sleep(0.2)  # the caller is busy: the line is not idle meanwhile
+    asked_at = time.monotonic()
+    assert device.commands() == [b"rp", b"pe"]
+    assert device.started[1][1] < asked_at
+    done = await channel.transact(b"pe\r", 0x0D, 0.5, 0.5)
+    assert done.reply == b"pe=ok\r" and done.echo.echoed == 3
+    assert done.t_reply_s is not None and done.t_reply_s < asked_at  # stamped when it came
+    assert channel.chains_dropped == 0
+
+
+async def test_no_chain_while_may_chain_says_no(peer: tuple[EchoPeer, SerialChannel]) -> None:
+    device, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r", may_chain=lambda: False) == b"rp=ok\r"
+    await asyncio.sleep(0.2)
+    assert device.commands() == [b"rp"]  # a STOP waiting: nothing more went out
+    assert await _transact(channel, b"st\r") == b"st=ok\r"
+    assert device.commands() == [b"rp", b"st"]
+
+
+async def test_chains_follow_each_other(peer: tuple[EchoPeer, SerialChannel]) -> None:
+    device, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    assert await _transact(channel, b"pe\r", then=b"rss\r") == b"pe=ok\r"
+    assert await _transact(channel, b"rss\r") == b"rss=ok\r"
+    assert device.commands() == [b"rp", b"pe", b"rss"]
+    assert channel.chains_dropped == 0
+
+
+async def test_another_call_waits_for_the_chain_and_drops_its_reply(
+    peer: tuple[EchoPeer, SerialChannel],
+) -> None:
+    device, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    assert channel.discard_input() == b""  # the chain's bytes are not stray input
+    # Not the read that was guessed: it ends first, its reply never reaches this one.
+    assert await _transact(channel, b"se1\r") == b"se1=ok\r"
+    assert device.commands() == [b"rp", b"pe", b"se1"]
+    assert channel.chains_dropped == 1
+
+
+async def test_a_plain_write_waits_for_the_chain(peer: tuple[EchoPeer, SerialChannel]) -> None:
+    device, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    await channel.write(b"\x18")  # e.g. Ctrl-X: not inside the chained read's bytes
+    data, _ = await channel.read_at_least(1, 0.5)
+    assert data == b"\x18"  # its echo, after the whole chained read
+    assert device.commands()[:2] == [b"rp", b"pe"]
+    assert channel.chains_dropped == 1
+
+
+async def test_a_chain_on_a_port_that_closed_raises_when_taken_over(
+    line: tuple[int, SerialChannel],
+) -> None:
+    master, channel = line
+    device = EchoPeer(master)
+    try:
+        assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    finally:
+        device.stop()
+    await channel.close()
+    with pytest.raises(LinkClosedError):
+        await channel.transact(b"pe\r", 0x0D, 0.5, 0.5)

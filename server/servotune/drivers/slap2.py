@@ -673,11 +673,15 @@ class Slap2Link(Slap2Wire):
         t_position = 0.0
         following_error: int | None = None
         rss: int | None = None
-        for mnemonic in self.config.poll_commands:
+        module.cycles += 1
+        rve_due = bool(self.config.rve_every and module.cycles % self.config.rve_every == 0)
+        sequence = [*self.config.poll_commands, *(["rve"] if rve_due else [])]
+        for index, mnemonic in enumerate(sequence[: len(self.config.poll_commands)]):
             if self.urgent_pending:
                 # A stop is waiting: give the line up now, finish the sample later.
                 return
-            value = await self._read_int(address, mnemonic)
+            then = sequence[index + 1] if index + 1 < len(sequence) else None
+            value = await self._read_int(address, mnemonic, then)
             if mnemonic == "rp":
                 position, t_position = value, self._last_latch_t
             elif mnemonic == "pe":
@@ -685,8 +689,7 @@ class Slap2Link(Slap2Wire):
             elif mnemonic == "rss":
                 rss = value
         measured: float | None = None
-        module.cycles += 1
-        if self.config.rve_every and module.cycles % self.config.rve_every == 0:
+        if rve_due:
             measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
         if self._state == "error":
             self._set_state("connected", self._connector.description)
@@ -802,16 +805,27 @@ class Slap2Link(Slap2Wire):
             return
         chars_before = self._wire_chars
         fresh_pe: int | None = None
+        # The step's reads are planned before its rp, so that each can be chained from
+        # the reply before it (see _exchange_once): pe and rss if due now, then the
+        # next step's rp when that is this module's again. (Decided after the rp,
+        # a pe or rss would come one step later at most.)
+        alone = len(captured) == 1
+        now = self._clock()
+        flags_now = codec.decode_rss(module.rss or 0)
+        pe_due = capture.wants_pe(module.profile, flags_now, now)
+        rss_due = capture.wants_rss(module.profile, now, flags_fresh=not module.ucon)
+        after_rss = "rp" if alone else None
+        after_pe = "rss" if rss_due else after_rss
         try:
-            position = await self._read_int(address, "rp")
+            position = await self._read_int(address, "rp", "pe" if pe_due else after_pe)
             t = self._last_latch_t
             why = capture.resolve(module.profile, t, position)
             if why:
                 self._count("setpoint_mismatches")
                 logger.info("%s: module %d: %s", self.id, address, why)
             flags = codec.decode_rss(module.rss or 0)
-            if not self.urgent_pending and capture.wants_pe(module.profile, flags, t):
-                fresh_pe = await self._read_int(address, "pe")
+            if not self.urgent_pending and pe_due:
+                fresh_pe = await self._read_int(address, "pe", after_pe)
                 capture.pending = (self._last_latch_t, fresh_pe)
                 capture.last_pe_s = self._last_latch_t
                 capture.samples_since_pe = 0
@@ -819,10 +833,8 @@ class Slap2Link(Slap2Wire):
                 capture.note_rest(module.profile, flags, t, position + fresh_pe)
             else:
                 capture.samples_since_pe += 1
-            if not self.urgent_pending and capture.wants_rss(
-                module.profile, t, flags_fresh=not module.ucon
-            ):
-                rss = await self._read_int(address, "rss")
+            if not self.urgent_pending and rss_due:
+                rss = await self._read_int(address, "rss", after_rss)
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)
                 module.rss = rss

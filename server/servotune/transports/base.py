@@ -7,6 +7,7 @@ pseudo-terminal and lets the demo use exactly the path real hardware uses.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -76,7 +77,14 @@ class ByteChannel(Protocol):
         ...
 
     async def transact(
-        self, data: bytes, terminator: int, char_timeout_s: float, first_reply_timeout_s: float
+        self,
+        data: bytes,
+        terminator: int,
+        char_timeout_s: float,
+        first_reply_timeout_s: float,
+        *,
+        then: bytes = b"",
+        may_chain: Callable[[], bool] | None = None,
     ) -> Transaction:
         """``write_echoed(data)`` then ``read_until(terminator)`` as one exchange.
 
@@ -84,7 +92,21 @@ class ByteChannel(Protocol):
         echo (no task wake-up in between), and both arrival times are stamped there
         (see ``Transaction``). ``first_reply_timeout_s`` applies from the last echo to
         the reply's first byte, ``char_timeout_s`` to every other gap.
+
+        ``then``: the exchange the caller expects to make next (only one that may
+        be sent for nothing: a read). That same callback starts it when the reply is
+        complete, nothing else is buffered, and ``may_chain()`` (checked then, e.g.
+        "no STOP is waiting") allows it, so the line does not idle while the caller
+        wakes up and parses. The next ``transact`` with exactly that payload takes it
+        over; any other call first lets it end and drops its outcome
+        (``chains_dropped`` counts those).
         """
+        ...
+
+    @property
+    def chains_dropped(self) -> int:
+        """Exchanges started with ``transact(then=...)`` that the caller did not
+        take over (it asked for something else): sent, their reply dropped."""
         ...
 
     async def read_available(self, timeout_s: float) -> bytes: ...

@@ -8,6 +8,7 @@ import errno
 import functools
 import os
 import time
+from collections.abc import Callable
 
 import serial
 import serial_asyncio_fast
@@ -36,9 +37,13 @@ class _Exchange:
         first_timeout_s: float,
         char_timeout_s: float,
         first_reply_timeout_s: float | None = None,
+        then: bytes = b"",
+        may_chain: Callable[[], bool] | None = None,
     ) -> None:
         self.protocol = protocol
         self.payload = payload
+        self.then = then
+        self.may_chain = may_chain
         self.terminator = terminator
         self.count = count
         self.char_timeout_s = char_timeout_s
@@ -120,6 +125,24 @@ class _Exchange:
             del buffer[: end + 1]
             self.t_reply_s = now_s
             self.finish(line)
+            if self.then and not buffer and (self.may_chain is None or self.may_chain()):
+                self._chain()
+
+    def _chain(self) -> None:
+        """Start the follow-up exchange ``then`` from this callback: its first byte
+        leaves now, not after the waiting task has woken up and parsed this reply.
+        ``SerialChannel.transact`` adopts it when that task asks for it."""
+        chained = _Exchange(
+            self.protocol,
+            payload=self.then,
+            terminator=self.terminator,
+            first_timeout_s=self.char_timeout_s,
+            char_timeout_s=self.char_timeout_s,
+            first_reply_timeout_s=self.first_reply_timeout_s,
+        )
+        self.protocol.exchange = chained
+        self.protocol.chained = chained
+        self.protocol.send(self.then[:1])
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -132,6 +155,9 @@ class _SerialProtocol(asyncio.Protocol):
         self.is_closed = False
         self.transport: asyncio.Transport | None = None
         self.exchange: _Exchange | None = None
+        # A follow-up started from the receive callback (``_Exchange.then``) that no
+        # ``transact`` has taken over yet; it may still be running (``exchange``).
+        self.chained: _Exchange | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -162,13 +188,41 @@ class SerialChannel(ByteChannel):
         self._transport = transport
         self._protocol = protocol
         self._path = path
+        self._chains_dropped = 0
 
     def _check_open(self) -> None:
         if self._protocol.is_closed:
             reason = f": {self._protocol.lost}" if self._protocol.lost else ""
             raise LinkClosedError(f"{self._path} closed{reason}")
 
+    @property
+    def chains_dropped(self) -> int:
+        return self._chains_dropped
+
+    async def _settle(self, adopt: bytes | None = None) -> _Exchange | None:
+        """Before any other use of the line: the exchange chained from the receive
+        callback (``transact(then=...)``), if it is the one asked for now (``adopt``,
+        the next ``transact``'s payload), is handed back to be awaited; otherwise it
+        is left to end (its own timeouts bound that) and its outcome is dropped, so
+        its bytes never mix with the next exchange's."""
+        protocol = self._protocol
+        chained = protocol.chained
+        if chained is None:
+            return None
+        protocol.chained = None
+        if adopt is not None and chained.payload == adopt:
+            return chained
+        try:
+            await chained.future
+        finally:
+            chained.timer.cancel()
+            if protocol.exchange is chained:
+                protocol.exchange = None
+        self._chains_dropped += 1
+        return None
+
     async def write(self, data: bytes) -> None:
+        await self._settle()
         self._check_open()
         self._transport.write(data)
 
@@ -182,6 +236,7 @@ class SerialChannel(ByteChannel):
                 await protocol.data_event.wait()
 
     async def read_byte(self, timeout_s: float) -> int | None:
+        await self._settle()
         await self._wait_data(timeout_s)
         buffer = self._protocol.buffer
         if buffer:
@@ -192,6 +247,7 @@ class SerialChannel(ByteChannel):
         return None
 
     async def write_echoed(self, data: bytes, char_timeout_s: float) -> EchoResult:
+        await self._settle()
         self._check_open()
         if not data:
             return EchoResult(0, None)
@@ -210,6 +266,7 @@ class SerialChannel(ByteChannel):
     async def read_until(
         self, terminator: int, first_timeout_s: float, char_timeout_s: float
     ) -> bytes | None:
+        await self._settle()
         self._check_open()
         exchange = _Exchange(
             self._protocol,
@@ -225,18 +282,33 @@ class SerialChannel(ByteChannel):
         return result
 
     async def transact(
-        self, data: bytes, terminator: int, char_timeout_s: float, first_reply_timeout_s: float
+        self,
+        data: bytes,
+        terminator: int,
+        char_timeout_s: float,
+        first_reply_timeout_s: float,
+        *,
+        then: bytes = b"",
+        may_chain: Callable[[], bool] | None = None,
     ) -> Transaction:
+        exchange = await self._settle(data)
         self._check_open()
-        exchange = _Exchange(
-            self._protocol,
-            payload=data,
-            terminator=terminator,
-            first_timeout_s=char_timeout_s,
-            char_timeout_s=char_timeout_s,
-            first_reply_timeout_s=first_reply_timeout_s,
-        )
-        result = await self._run(exchange, data[:1])
+        if exchange is not None:
+            # Chained by the previous transact: already under way (or done).
+            exchange.then, exchange.may_chain = then, may_chain
+            result = await self._run(exchange, b"", started=True)
+        else:
+            exchange = _Exchange(
+                self._protocol,
+                payload=data,
+                terminator=terminator,
+                first_timeout_s=char_timeout_s,
+                char_timeout_s=char_timeout_s,
+                first_reply_timeout_s=first_reply_timeout_s,
+                then=then,
+                may_chain=may_chain,
+            )
+            result = await self._run(exchange, data[:1])
         echo = exchange.echo
         if echo is None:  # the port closed during the echo
             self._check_open()
@@ -246,20 +318,29 @@ class SerialChannel(ByteChannel):
             self._check_open()
         return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
 
-    async def _run(self, exchange: _Exchange, first: bytes) -> EchoResult | bytes | None:
+    async def _run(
+        self, exchange: _Exchange, first: bytes, *, started: bool = False
+    ) -> EchoResult | bytes | None:
         """Install ``exchange``, send ``first`` (the first payload byte, or nothing),
-        and wait for its outcome, advanced from ``data_received``."""
-        self._protocol.exchange = exchange
+        and wait for its outcome, advanced from ``data_received``. ``started``: it was
+        chained from the receive callback and runs already."""
+        protocol = self._protocol
+        if not started:
+            protocol.exchange = exchange
         try:
             if first:
-                self._protocol.send(first)
-            exchange.step(time.monotonic())  # what already sits in the buffer (stale echo)
+                protocol.send(first)
+            if not started:
+                exchange.step(time.monotonic())  # what already sits in the buffer
             return await exchange.future
         finally:
             exchange.timer.cancel()
-            self._protocol.exchange = None
+            # Not a follow-up this exchange chained from its last callback.
+            if protocol.exchange is exchange:
+                protocol.exchange = None
 
     async def read_available(self, timeout_s: float) -> bytes:
+        await self._settle()
         await self._wait_data(timeout_s)
         data = bytes(self._protocol.buffer)
         self._protocol.buffer.clear()
@@ -268,6 +349,7 @@ class SerialChannel(ByteChannel):
         return data
 
     async def read_at_least(self, count: int, timeout_s: float) -> tuple[bytes, float | None]:
+        await self._settle()
         self._check_open()
         exchange = _Exchange(
             self._protocol, count=count, first_timeout_s=timeout_s, char_timeout_s=timeout_s
@@ -281,6 +363,9 @@ class SerialChannel(ByteChannel):
         return data, None
 
     def discard_input(self) -> bytes:
+        chained = self._protocol.chained
+        if chained is not None and not chained.future.done():
+            return b""  # what came belongs to the chained exchange under way
         data = bytes(self._protocol.buffer)
         self._protocol.buffer.clear()
         return data
