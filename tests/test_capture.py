@@ -10,6 +10,7 @@ import dataclasses
 import functools
 import itertools
 import statistics
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -227,6 +228,19 @@ class _LineClock:
         return self.device.receive(byte)
 
 
+@contextlib.contextmanager
+def _recorded_line(tmp_path: Path) -> Iterator[tuple[_LineClock, PtySimulator, Slap2Bus]]:
+    """Two simulated modules on a pty behind a ``_LineClock`` that records every line."""
+    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    try:
+        yield clock, simulator, bus
+    finally:
+        simulator.stop()
+
+
 async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) -> None:
     """Every captured sample's time and the move's ``last_command_latch_s`` against the
     moment the simulated module received the command's CR. The estimate is built
@@ -234,11 +248,7 @@ async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) ->
     by more than the simulator's write margin (a quarter character); on the median it
     is within one character (the time the reply was parsed would be late by the
     reply's length, three characters and more for rp)."""
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
-    clock = _LineClock(bus)
-    simulator = PtySimulator(clock, baud=19200)
-    simulator.start()
-    try:
+    with _recorded_line(tmp_path) as (clock, simulator, bus):
         async with run_link(simulator, bus, [0, 1]) as line:
             await line.connected()
             drive = _axis(line, 0)
@@ -253,8 +263,6 @@ async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) ->
                 samples = line.sink.samples["line-0"][start:]
         # simulation time 0 is the simulator's epoch on the host's monotonic clock
         epoch = simulator._epoch  # the test's only window into simulation time
-    finally:
-        simulator.stop()
     char_s = 10 / 19200
     # Only module 0 is polled during the capture: after the move, its k-th rp is the
     # k-th sample (paired in order, so a late estimate cannot pass for a nearer read).
@@ -521,11 +529,7 @@ async def test_polls_chain_their_next_read_and_keep_the_wire_order(
         return await original(self, data, *args, **kwargs)
 
     monkeypatch.setattr(SerialChannel, "transact", spy)
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
-    clock = _LineClock(bus)
-    simulator = PtySimulator(clock, baud=19200)
-    simulator.start()
-    try:
+    with _recorded_line(tmp_path) as (clock, simulator, bus):
         async with run_link(simulator, bus, [0, 1]) as line:
             await line.connected()
             await asyncio.sleep(1.0)
@@ -545,5 +549,3 @@ async def test_polls_chain_their_next_read_and_keep_the_wire_order(
                 assert "st" in [text for _, text in clock.lines[before:]]
             samples = line.sink.samples["line-0"]
             assert samples and all(s.channels["position"] is not None for s in samples)
-    finally:
-        simulator.stop()
