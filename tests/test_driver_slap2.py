@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import select
+import threading
+import tty
 from pathlib import Path
 
 import pytest
@@ -15,6 +19,7 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.slap2 import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.protocols import slap2 as codec
+from servotune.sim.slap2 import Slap2Module
 from servotune.transports.serial import SerialConnector
 
 from .conftest import (
@@ -302,3 +307,77 @@ def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
     assert link.wire_busy == 0
     link._wire_used(5.0)
     assert link.wire_busy == 1.0
+
+
+# --- a chained read that failed (drivers/slap2_wire.py, _settle_chain) ---------------
+
+
+class _ModuleOnPty:
+    """A simulated module behind a pty, fed byte by byte; the echo of byte number
+    ``garble_at`` (counted from 1) comes back as 0xFF (noise on the way back)."""
+
+    def __init__(self, master: int, module: Slap2Module, garble_at: int) -> None:
+        self.master, self.module, self.garble_at = master, module, garble_at
+        self.received = bytearray()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.02)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 64)
+            except OSError:
+                return
+            for byte in data:
+                self.received.append(byte)
+                out = self.module.receive(byte)
+                if len(self.received) == self.garble_at and out:
+                    out = b"\xff" + out[1:]
+                os.write(self.master, out)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+
+
+async def test_a_stop_after_a_chained_read_that_failed_is_not_glued_to_it(
+    tmp_path: Path,
+) -> None:
+    """rp is answered and the chained pe goes out, but the echo of its 'e' is
+    garbled; the poll loop then gives the line to a STOP. The module still holds
+    "pe": without a Ctrl-X the STOP would reach it as "pest" (refused, the axis
+    keeps moving; found in review). The driver abandons the failed read first."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    path = os.ttyname(slave)
+    module = Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")
+    module.receive(codec.CTRL_X)  # its power-on banner is not this test's subject
+    sink = RecordingSink()
+    link = Slap2Link(
+        Slap2LinkConfig(link_id="line", path=path, addresses=[0]),
+        SerialConnector(path, 19200),
+        sink,
+    )
+    link._channel = await SerialConnector(path, 19200).open()
+    await asyncio.sleep(0.01)  # the transport is handed to the protocol from the loop
+    # bytes 1-3 "pm\r", 4-6 "rp\r", then the chained "pe\r": 'e' is byte 8
+    peer = _ModuleOnPty(master, module, garble_at=8)
+    try:
+        link._selected = 0  # address 0 is selected at power-on
+        await link._transact(0, codec.make_simple("pm"))
+        assert await link._read_int(0, "rp", then="pe") == module.position
+        await asyncio.sleep(0.3)  # the chained pe has failed by now
+        await link._transact(0, codec.make_simple("st"))
+        flags = codec.decode_rss(await link._read_int(0, "rss"))
+        assert not flags["uc"] and not flags["pm"], flags  # st was taken, and as st
+        assert b"pest" not in peer.received and codec.CTRL_X in peer.received
+        assert link.counters["chained_reads_dropped"] == 1
+    finally:
+        peer.stop()
+        await link._require_channel().close()
+        os.close(master)
+        os.close(slave)

@@ -88,8 +88,9 @@ class EchoPeer:
     """A device on the pty's master side: echoes every byte; after a CR answers
     ``<command>=ok`` CR. Records when each command's first byte arrived."""
 
-    def __init__(self, master: int) -> None:
+    def __init__(self, master: int, slow: bytes = b"", delay_s: float = 0.0) -> None:
         self.master = master
+        self.slow, self.delay_s = slow, delay_s  # echo a command starting so late
         self.started: list[tuple[bytes, float]] = []  # (command, first byte's arrival)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -108,6 +109,8 @@ class EchoPeer:
             for byte in data:
                 if not pending:
                     self.started.append((b"", time.monotonic()))
+                if self.slow and (pending + bytes([byte])).startswith(self.slow):
+                    time.sleep(self.delay_s)
                 os.write(self.master, bytes([byte]))
                 pending += bytes([byte])
                 if byte == 0x0D:
@@ -207,3 +210,33 @@ async def test_a_chain_on_a_port_that_closed_raises_when_taken_over(
     await channel.close()
     with pytest.raises(LinkClosedError):
         await channel.transact(b"pe\r", 0x0D, 0.5, 0.5)
+
+
+async def test_settle_says_how_a_dropped_chain_ended(peer: tuple[EchoPeer, SerialChannel]) -> None:
+    _, channel = peer
+    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+    assert await channel.settle(b"pe\r") is None  # the one asked for: left to take over
+    assert channel.chains_dropped == 0
+    dropped = await channel.settle(b"st\r")
+    assert dropped is not None and dropped.reply == b"pe=ok\r" and dropped.echo.echoed == 3
+    assert await channel.settle() is None and channel.chains_dropped == 1
+    assert await _transact(channel, b"st\r") == b"st=ok\r"
+
+
+async def test_a_cancelled_wait_leaves_the_chain_to_the_next_call(
+    line: tuple[int, SerialChannel],
+) -> None:
+    master, channel = line
+    device = EchoPeer(master, slow=b"pe", delay_s=0.1)  # the chained read takes 0.2 s
+    try:
+        assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
+        waiting = asyncio.create_task(channel.read_available(1.0))
+        await asyncio.sleep(0.05)
+        waiting.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await waiting
+        dropped = await channel.settle()  # still known, still running, then ended
+        assert dropped is not None and dropped.reply == b"pe=ok\r"
+        assert await _transact(channel, b"st\r") == b"st=ok\r"
+    finally:
+        device.stop()

@@ -673,8 +673,8 @@ class Slap2Link(Slap2Wire):
         t_position = 0.0
         following_error: int | None = None
         rss: int | None = None
-        module.cycles += 1
-        rve_due = bool(self.config.rve_every and module.cycles % self.config.rve_every == 0)
+        # (Counted only when the cycle completes, so that a cut-short one keeps its rve.)
+        rve_due = bool(self.config.rve_every and (module.cycles + 1) % self.config.rve_every == 0)
         sequence = [*self.config.poll_commands, *(["rve"] if rve_due else [])]
         for index, mnemonic in enumerate(sequence[: len(self.config.poll_commands)]):
             if self.urgent_pending:
@@ -689,6 +689,7 @@ class Slap2Link(Slap2Wire):
             elif mnemonic == "rss":
                 rss = value
         measured: float | None = None
+        module.cycles += 1
         if rve_due:
             measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
         if self._state == "error":
@@ -1002,6 +1003,9 @@ class Slap2Link(Slap2Wire):
         """Send one control character (Ctrl-K) to a module and drain its echo."""
 
         async def job() -> None:
+            channel = self._require_channel()
+            if await self._settle_chain(channel):
+                self._selected = None
             await self._select(address)
             channel = self._require_channel()
             await channel.write(bytes([byte]))

@@ -240,15 +240,11 @@ class Slap2Wire(LinkEngine):
         ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
         """
         channel = self._require_channel()
-        if channel is not self._chain_channel:
-            self._chain_channel, self._chain_drops_seen = channel, 0
-        if channel.chains_dropped != self._chain_drops_seen:
-            self._count("chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen)
-            self._chain_drops_seen = channel.chains_dropped
+        payload = command.text.encode("ascii") + b"\r"
+        await self._settle_chain(channel, payload)
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
-        payload = command.text.encode("ascii") + b"\r"
         try:
             # The usual case in one channel call: the echo checked and the reply read
             # in the receive callback, both arrival times stamped there.
@@ -370,6 +366,7 @@ class Slap2Wire(LinkEngine):
         reset and the ``se`` is lost, a ``ProtocolError``.
         """
         char_s = 10 / self._timing.baud
+        await self._settle_chain(channel)
         stray = channel.discard_input()
         if stray:
             self._note_unsolicited(stray)
@@ -392,6 +389,28 @@ class Slap2Wire(LinkEngine):
                 raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
         return [""]
 
+    async def _settle_chain(self, channel: ByteChannel, adopt: bytes = b"") -> bool:
+        """Before a new exchange: end a chained read that is not ``adopt`` (see
+        ``_exchange_once``). One that failed before its reply was complete (a wrong
+        or missing echo, no reply) may have left part of its command in the module's
+        buffer, which the next command would be glued to (``pe`` + ``st`` = ``pest``,
+        refused: a STOP lost). So Ctrl-X and drain, as after any failed exchange.
+        True when it failed so (the selection is then in doubt, like after a timeout).
+        """
+        dropped = await channel.settle(adopt)
+        self._count_dropped_chains(channel)
+        if dropped is None or dropped.reply is not None:
+            return False
+        await self._abandon(channel)
+        return True
+
+    def _count_dropped_chains(self, channel: ByteChannel) -> None:
+        if channel is not self._chain_channel:
+            self._chain_channel, self._chain_drops_seen = channel, 0
+        if channel.chains_dropped != self._chain_drops_seen:
+            self._count("chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen)
+            self._chain_drops_seen = channel.chains_dropped
+
     def _may_chain(self) -> bool:
         """Called from the receive callback: no job waits for the line."""
         return not self.jobs_pending
@@ -406,6 +425,9 @@ class Slap2Wire(LinkEngine):
         ``_exchange_once`` (not on a retry).
         """
         idempotent = command_mnemonic(command.text) in IDEMPOTENT_COMMANDS
+        channel = self._require_channel()
+        if await self._settle_chain(channel, command.text.encode("ascii") + b"\r"):
+            self._selected = None  # a read failed: select again, as after a timeout
         for attempt in range(2):
             if attempt:
                 self._count("retries")

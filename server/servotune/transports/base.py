@@ -99,8 +99,16 @@ class ByteChannel(Protocol):
         "no STOP is waiting") allows it, so the line does not idle while the caller
         wakes up and parses. The next ``transact`` with exactly that payload takes it
         over; any other call first lets it end and drops its outcome
-        (``chains_dropped`` counts those).
+        (``chains_dropped`` counts those). A caller that must know how a dropped
+        one ended calls ``settle`` before its next exchange.
         """
+        ...
+
+    async def settle(self, adopt: bytes = b"") -> Transaction | None:
+        """End a chained exchange (``transact(then=...)``) other than ``adopt``: wait
+        for it, drop it, and return how it ended (a reply of None: it failed before
+        its reply was complete, so the device may hold part of that command). None
+        when nothing is chained, or when it is ``adopt`` (left to be taken over)."""
         ...
 
     @property

@@ -199,27 +199,51 @@ class SerialChannel(ByteChannel):
     def chains_dropped(self) -> int:
         return self._chains_dropped
 
-    async def _settle(self, adopt: bytes | None = None) -> _Exchange | None:
-        """Before any other use of the line: the exchange chained from the receive
-        callback (``transact(then=...)``), if it is the one asked for now (``adopt``,
-        the next ``transact``'s payload), is handed back to be awaited; otherwise it
-        is left to end (its own timeouts bound that) and its outcome is dropped, so
-        its bytes never mix with the next exchange's."""
+    async def settle(self, adopt: bytes = b"") -> Transaction | None:
+        """End an exchange chained with ``transact(then=...)`` that is not ``adopt``:
+        wait for it (its own timeouts bound that), drop it and return its outcome;
+        None when there is none, or when it is ``adopt`` (left to be taken over)."""
+        chained = self._protocol.chained
+        if chained is None or (adopt and chained.payload == adopt):
+            return None
+        await self._settle()
+        return self._outcome(chained)
+
+    async def _settle(self, adopt: bytes = b"") -> _Exchange | None:
+        """Before any other use of the line: the chained exchange, if it is the one
+        asked for now (``adopt``, the next ``transact``'s payload), is handed back to
+        be awaited; any other is waited out and dropped, so that its bytes never mix
+        with the next exchange's. A caller that must know how a dropped one ended
+        (the SLAP2 driver sends Ctrl-X after a half-sent command) calls ``settle``
+        first."""
         protocol = self._protocol
         chained = protocol.chained
         if chained is None:
             return None
-        protocol.chained = None
-        if adopt is not None and chained.payload == adopt:
+        if adopt and chained.payload == adopt:
+            protocol.chained = None
             return chained
-        try:
-            await chained.future
-        finally:
-            chained.timer.cancel()
-            if protocol.exchange is chained:
-                protocol.exchange = None
-        self._chains_dropped += 1
+        # Shielded: a cancelled caller leaves the chain running and still pending, for
+        # the next call to settle (cancelling its future would orphan its bytes).
+        await asyncio.shield(chained.future)
+        if protocol.chained is chained:
+            protocol.chained = None
+            self._chains_dropped += 1
+        chained.timer.cancel()
+        if protocol.exchange is chained:
+            protocol.exchange = None
         return None
+
+    @staticmethod
+    def _outcome(exchange: _Exchange) -> Transaction:
+        """What an ended exchange got: its echo, and its reply line or None."""
+        echo = exchange.echo
+        if echo is None:  # the port closed during the echo
+            echo = EchoResult(exchange.index, None)
+        future = exchange.future
+        result = future.result() if future.done() and not future.cancelled() else None
+        reply = result if isinstance(result, bytes) else None
+        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
 
     async def write(self, data: bytes) -> None:
         await self._settle()
