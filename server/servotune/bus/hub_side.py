@@ -336,11 +336,15 @@ class HubBus:
         if unknown and not gone and self._control is not None and subjects.check_token_ok(rig):
             self._asking.add(rig)
             self._tasks.spawn(self._ask_manifest(rig), f"bus: manifest of {rig}")
+        rig_now: float | None = None
+        if msg.headers and "St-Rig-Mono" in msg.headers:
+            with contextlib.suppress(ValueError):
+                rig_now = float(msg.headers["St-Rig-Mono"])
         for link in self._rigs.get(rig, []):
             if gone:
                 link.on_gone()
             else:
-                link.on_presence()
+                link.on_presence(rig_now)
 
     async def _on_manifest(self, msg: Msg) -> None:
         rig = msg.subject.split(".")[2]

@@ -18,6 +18,7 @@ import asyncio
 import contextlib
 import json
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -78,6 +79,14 @@ def raise_for_reply(rig: str, reply: CommandReply) -> None:
     if reply.kind == "protocol":
         raise ProtocolError(detail)
     raise DriverError(detail)
+
+
+# A presence's lateness at the hub (RemoteLink.on_presence) is judged against the
+# quickest delivery of the presences of the last PRESENCE_BASELINE_S (the clocks'
+# drift over that time is microseconds); a presence more than
+# PRESENCE_MAX_LATENESS_S late is another clock (the rig's machine rebooted).
+PRESENCE_BASELINE_S = 30.0
+PRESENCE_MAX_LATENESS_S = 10.0
 
 
 @dataclass(slots=True)
@@ -256,6 +265,13 @@ class RemoteLink:
         self.online = False
         # Rig clock -> hub clock: hub_t = rig_t + offset, from the last telemetry batch.
         self._offset: float | None = None
+        # (hub clock, hub clock - rig clock) of the presences of the last
+        # PRESENCE_BASELINE_S: the smallest difference is the clocks' offset plus the
+        # quickest delivery; a presence above it came that much late (see on_presence).
+        self._presence_delays: deque[tuple[float, float]] = deque()
+        # Hub clock when the rig was last shown offline: a presence sent before that
+        # is old news and does not bring it back (None: shown present since).
+        self._offline_at: float | None = None
         self.snapshot_wanted = asyncio.Event()
 
     @property
@@ -327,12 +343,45 @@ class RemoteLink:
 
     # --- fed by HubBus ----------------------------------------------------------------
 
-    def on_presence(self) -> None:
+    def on_presence(self, rig_now: float | None = None) -> None:
+        """The rig is there. ``rig_now``: the rig machine's monotonic clock when it
+        sent this presence (header ``St-Rig-Mono``).
+
+        A presence the hub takes in late (its loop was held up, e.g. on a loaded
+        machine) is dated back by that lateness: it must not show a rig that went
+        silent present again (the hub would then send it requests that time out,
+        instead of refusing them at once; seen in CI). The lateness is how much the
+        clock difference exceeds the smallest one of the last PRESENCE_BASELINE_S,
+        so neither the clocks' offset nor their drift matters. And once the rig was
+        shown offline, only a presence sent after that brings it back: one sent
+        before is old news (the state would flap, and a request sent in that
+        window waits for its timeout)."""
+        now = self.port.clock()
+        seen = now
+        if rig_now is not None:
+            delays = self._presence_delays
+            delays.append((now, now - rig_now))
+            while delays and now - delays[0][0] > PRESENCE_BASELINE_S:
+                delays.popleft()
+            lateness_s = delays[-1][1] - min(delay for _, delay in delays)
+            if lateness_s > PRESENCE_MAX_LATENESS_S:
+                # Not a late message but another clock (the rig restarted on a machine
+                # that rebooted): start the baseline again.
+                delays.clear()
+                delays.append((now, now - rig_now))
+                lateness_s = 0.0
+            seen = now - lateness_s
+        if seen <= self.seen_at:
+            return  # no news: an older presence than the last one counted
+        if self._offline_at is not None and seen <= self._offline_at:
+            return  # sent before the rig was shown offline
         was = self.present()
-        self.seen_at = self.port.clock()
+        self.seen_at = seen
         self.online = True
-        if not was:
-            self.snapshot_wanted.set()
+        if self.present():
+            self._offline_at = None
+            if not was:
+                self.snapshot_wanted.set()
 
     def on_gone(self) -> None:
         """The rig deleted its presence (a graceful stop): offline now."""
@@ -392,6 +441,7 @@ class RemoteLink:
             self._sink.on_event(level, axis.id if axis else None, text)  # type: ignore[arg-type]
 
     def show_offline(self, why: str) -> None:
+        self._offline_at = self.port.clock()
         self._state = "disconnected"
         self._sink.on_link_status(self._id, "disconnected", why, 0.0, 0.0, 0)
         for axis in self._axes:

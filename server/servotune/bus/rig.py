@@ -284,7 +284,13 @@ class RigAgent:
                     manifest_put = True
                 body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
                 # Not acknowledged: the next one follows in ``period``.
-                await self._nc.publish(subjects.presence(self.rig), body.model_dump_json().encode())
+                # The machine's monotonic clock (not reset with this process): the hub
+                # dates a presence it takes in late back by that lateness.
+                await self._nc.publish(
+                    subjects.presence(self.rig),
+                    body.model_dump_json().encode(),
+                    headers={"St-Rig-Mono": f"{time.monotonic():.6f}"},
+                )
             except (NatsError, JetStreamError, TimeoutError) as exc:
                 # Lab network down: the rig keeps working; presence resumes with it.
                 logger.debug("presence not published: %s", exc)
