@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import select
-import threading
 import tty
 from pathlib import Path
 
@@ -30,6 +28,7 @@ from .conftest import (
     running_simulator,
     wait_for,
 )
+from .pty_peer import PtyPeer
 
 
 def axis(line: RunningLink, address: int) -> Slap2Axis:
@@ -312,36 +311,21 @@ def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
 # --- a chained read that failed (drivers/slap2_wire.py, _settle_chain) ---------------
 
 
-class _ModuleOnPty:
+class _ModuleOnPty(PtyPeer):
     """A simulated module behind a pty, fed byte by byte; the echo of byte number
     ``garble_at`` (counted from 1) comes back as 0xFF (noise on the way back)."""
 
     def __init__(self, master: int, module: Slap2Module, garble_at: int) -> None:
-        self.master, self.module, self.garble_at = master, module, garble_at
+        self.module, self.garble_at = module, garble_at
         self.received = bytearray()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(master)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.02)
-            if not ready:
-                continue
-            try:
-                data = os.read(self.master, 64)
-            except OSError:
-                return
-            for byte in data:
-                self.received.append(byte)
-                out = self.module.receive(byte)
-                if len(self.received) == self.garble_at and out:
-                    out = b"\xff" + out[1:]
-                os.write(self.master, out)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(1.0)
+    def handle(self, byte: int) -> bytes:
+        self.received.append(byte)
+        out = self.module.receive(byte)
+        if len(self.received) == self.garble_at and out:
+            out = b"\xff" + out[1:]
+        return out
 
 
 async def test_a_stop_after_a_chained_read_that_failed_is_not_glued_to_it(

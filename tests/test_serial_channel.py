@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import select
-import threading
 import time
 import tty
 from collections.abc import AsyncIterator
@@ -19,6 +17,8 @@ import pytest
 
 from servotune.transports.base import LinkClosedError
 from servotune.transports.serial import SerialChannel, SerialConnector
+
+from .pty_peer import PtyPeer
 
 
 @pytest.fixture
@@ -84,47 +84,30 @@ async def test_read_at_least_on_a_closed_port_raises(line: tuple[int, SerialChan
 # --- transact(then=...): the next read chained from the receive callback --------------
 
 
-class EchoPeer:
+class EchoPeer(PtyPeer):
     """A device on the pty's master side: echoes every byte; after a CR answers
     ``<command>=ok`` CR. Records when each command's first byte arrived."""
 
     def __init__(self, master: int, slow: bytes = b"", delay_s: float = 0.0) -> None:
-        self.master = master
-        self.slow, self.delay_s = slow, delay_s  # echo a command starting so late
         self.started: list[tuple[bytes, float]] = []  # (command, first byte's arrival)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        self.slow, self.delay_s = slow, delay_s  # echo a command starting so late
+        self._pending = b""
+        super().__init__(master)
 
-    def _run(self) -> None:
-        pending = b""
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.05)
-            if not ready:
-                continue
-            try:
-                data = os.read(self.master, 64)
-            except OSError:
-                return
-            for byte in data:
-                if not pending:
-                    self.started.append((b"", time.monotonic()))
-                if self.slow and (pending + bytes([byte])).startswith(self.slow):
-                    time.sleep(self.delay_s)
-                os.write(self.master, bytes([byte]))
-                pending += bytes([byte])
-                if byte == 0x0D:
-                    command = pending[:-1]
-                    self.started[-1] = (command, self.started[-1][1])
-                    os.write(self.master, command + b"=ok\r")
-                    pending = b""
+    def handle(self, byte: int) -> bytes:
+        if not self._pending:
+            self.started.append((b"", time.monotonic()))
+        self._pending += bytes([byte])
+        if self.slow and self._pending.startswith(self.slow):
+            time.sleep(self.delay_s)
+        if byte != 0x0D:
+            return bytes([byte])
+        command, self._pending = self._pending[:-1], b""
+        self.started[-1] = (command, self.started[-1][1])
+        return b"\r" + command + b"=ok\r"
 
     def commands(self) -> list[bytes]:
         return [command for command, _ in self.started]
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(1.0)
 
 
 @pytest.fixture

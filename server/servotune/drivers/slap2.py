@@ -1007,7 +1007,6 @@ class Slap2Link(Slap2Wire):
             if await self._settle_chain(channel):
                 self._selected = None
             await self._select(address)
-            channel = self._require_channel()
             await channel.write(bytes([byte]))
             await self._drain(channel, self.config.quiet_s, 0.2)
 
