@@ -360,6 +360,9 @@ def impulse_fit(
     t = np.asarray(t_s, dtype=np.float64)
     ys = np.asarray(y, dtype=np.float64)
     us = np.asarray(u, dtype=np.float64)
+    # The input's mean is removed (the offset column takes it): the ridge is relative
+    # to the boxes' power, which must be the excitation's, not where the input sits.
+    us = us - float(np.mean(us)) if us.size else us
     length = taps * box_steps
     columns = 2 + taps
     if t.size <= columns:
