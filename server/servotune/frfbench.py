@@ -291,6 +291,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         rows = [r for r in run["samples"] if r[columns.index("position")] is not None]
         ip = columns.index("position")
         isp = columns.index("setpoint") if "setpoint" in columns else None
+        spans = _sample_spans(excitation, [r[0] for r in rows])
         try:
             if test.get("loop") == "open":
                 out["measured"] = frfrun.analyse_open(
@@ -300,6 +301,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
                     _gains(run),
+                    sample_spans_s=spans,
                 )
             else:
                 out["measured"] = frfrun.analyse(
@@ -310,6 +312,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
                     profile=_test_profile(run),
+                    sample_spans_s=spans,
                 )
         except ValueError as exc:
             out["measured_problem"] = str(exc)
@@ -334,6 +337,16 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         )
     safe: dict[str, Any] = _json_safe(out)
     return safe
+
+
+def _sample_spans(excitation: Mapping[str, Any], times: list[float]) -> list[float | None] | None:
+    """The latch span of each sample (``excitation["spans"]``: ``[t, span]`` rows the
+    bench recorded), matched by time; None for a run recorded without them."""
+    recorded = excitation.get("spans")
+    if not recorded:
+        return None
+    by_time = {round(float(t), 6): span for t, span in recorded}
+    return [by_time.get(round(float(t), 6)) for t in times]
 
 
 def _gains(run: Mapping[str, Any]) -> tuple[int, int, int] | None:
