@@ -39,6 +39,7 @@ import numpy.typing as npt
 import scipy.signal
 
 from servotune.tuning.frf import FloatArray, FrequencyResponse
+from servotune.tuning.stability import schur_stable
 
 SLAP2_TICK_S = 841.5e-6
 Z1100_TICK_S = 32e-6
@@ -112,8 +113,8 @@ class LoopModel:
 
     def margins(self) -> Margins:
         """Gain and phase margins of the open loop (python-control ``stability_margins``
-        on its frequency response) and whether the closed loop is stable (its
-        characteristic polynomial's roots inside the unit circle)."""
+        on its frequency response) and whether the closed loop is stable
+        (``stable``)."""
         nyquist_hz = 0.5 / self.period_s
         # A dense frequency response rather than the polynomials: the Z1100's z^32
         # derivative window makes root finding on them ill-conditioned (and slow).
@@ -126,13 +127,15 @@ class LoopModel:
             phase_margin_deg=float(pm) if np.isfinite(pm) else math.inf,
             gain_crossover_hz=float(wgc) / (2 * math.pi) if np.isfinite(wgc) else math.nan,
             phase_crossover_hz=float(wpc) / (2 * math.pi) if np.isfinite(wpc) else math.nan,
-            stable=bool(np.all(np.abs(np.roots(self._characteristic())) < 1.0)),
+            stable=self.stable,
         )
 
-    def _characteristic(self) -> FloatArray:
-        """1 + L = 0 as a polynomial in z: den(L) + num(L)."""
-        num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(self.open_loop))
-        return np.asarray(np.polyadd(den, num), dtype=np.float64)
+    @property
+    def stable(self) -> bool:
+        """The one stability verdict (``tuning.stability``): every root of the closed
+        loop's characteristic polynomial, from the exact component polynomials, strictly
+        inside the unit circle."""
+        return schur_stable(self._closed_loop_polynomials()[1])
 
     def bandwidth_hz(self, frequency_hz: npt.ArrayLike | None = None) -> tuple[float, float]:
         """(-3 dB bandwidth, resonance peak in dB) of the closed loop, from its response
@@ -231,9 +234,15 @@ def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
 def slap2_loop_for(plant: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
     """The SLAP2 PID around a continuous plant (counts per controller output unit)."""
     ts = SLAP2_TICK_S
-    # (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096 over the common denominator z (z-1)
-    num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
-    den = [4096.0, -4096.0, 0.0]
+    if ki:
+        # (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096 over the common denominator z (z-1)
+        num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
+        den = [4096.0, -4096.0, 0.0]
+    else:
+        # ki = 0: the running sum is multiplied by 0, there is no integrator - and no
+        # factor z - 1 in numerator and denominator to read as a pole on the circle
+        num = [16 * kp + 32 * kd, -32 * kd]
+        den = [4096.0, 0.0]
     forward = control.tf(num, den, ts)
     zero = control.tf([0.0], [1.0], ts)
     return LoopModel(forward, zero, control.c2d(plant, ts, "zoh"), ts)
