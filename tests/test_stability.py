@@ -98,8 +98,14 @@ def _browser_plant(plant_d: control.TransferFunction) -> tuple[list[float], list
 
 
 def _browser_verdicts(cases: list[dict[str, Any]], tmp_path: Path) -> list[bool]:
-    """``loopStable`` of web/src/stability.ts for each case, compiled with the web
-    client's TypeScript and run under node."""
+    """``loopStable`` of web/src/stability.ts for each case (see ``_browser``)."""
+    verdicts: list[bool] = _browser(cases, tmp_path, "loopStable(c.model, c.gains)")
+    return verdicts
+
+
+def _browser(cases: list[dict[str, Any]], tmp_path: Path, expression: str) -> list[Any]:
+    """``expression`` (of ``c``, a case) with web/src/stability.ts's exports for each
+    case, compiled with the web client's TypeScript and run under node."""
     tsc = ROOT / "web" / "node_modules" / ".bin" / "tsc"
     node = shutil.which("node")
     assert tsc.exists() and node, "the web client's packages and node are needed (scripts/test.sh)"
@@ -110,12 +116,13 @@ def _browser_verdicts(cases: list[dict[str, Any]], tmp_path: Path) -> list[bool]
     module = out / "stability.mjs"
     (out / "stability.js").rename(module)
     script = (
-        f"import {{ loopStable }} from {json.dumps(str(module))};"
+        f"import * as s from {json.dumps(str(module))};"
+        "const { loopStable, modelMargins } = s;"
         "let text = '';"
         "process.stdin.on('data', (d) => (text += d));"
         "process.stdin.on('end', () => {"
         "  const cases = JSON.parse(text);"
-        "  process.stdout.write(JSON.stringify(cases.map((c) => loopStable(c.model, c.gains))));"
+        f"  process.stdout.write(JSON.stringify(cases.map((c) => {expression})));"
         "});"
     )
     result = subprocess.run(
@@ -125,8 +132,8 @@ def _browser_verdicts(cases: list[dict[str, Any]], tmp_path: Path) -> list[bool]
         text=True,
         check=True,
     )
-    verdicts: list[bool] = json.loads(result.stdout)
-    return verdicts
+    values: list[Any] = json.loads(result.stdout)
+    return values
 
 
 def test_schur_cohn_agrees_with_the_roots() -> None:
@@ -229,3 +236,39 @@ def test_the_model_bode_margins_table_and_verdict_agree(ki: int) -> None:
     plant = plant_from_identification("slap2", IDENTIFIED["slap2"])
     loop = loop_for("slap2", plant, {"kp": 600, "ki": ki, "kd": 1500})
     assert loop.margins().stable is loop.stable is True
+
+
+def test_browser_and_server_read_the_same_margins(tmp_path: Path) -> None:
+    """The what-if's margins (web/src/stability.ts ``modelMargins``) are the server's
+    (``LoopModel.margins``: the margins table, the model Bode, the auto-tune) for the
+    same plant and gains: the same grid, interpolation and rule."""
+    plant = plant_from_identification("slap2", IDENTIFIED["slap2"])
+    model = browser_model("slap2", plant, {})
+    cases = [
+        {"model": model, "gains": {"kp": kp, "ki": ki, "kd": kd}}
+        for kp, ki, kd in [
+            (40, 40, 80),
+            (600, 10, 1500),
+            (1676, 0, 1100),
+            (600, 3000, 1500),
+            (361, 0, 2815),
+        ]
+    ]
+    z_plant = plant_from_identification("z1100", IDENTIFIED["z1100"])
+    cases += [
+        {
+            "model": browser_model("z1100", z_plant, {}),
+            "gains": {"kabd_k": k, "kabd_a": a, "kabd_b": b},
+        }
+        for k, a, b in [(24, 16, 8), (96, 64, 8)]
+    ]
+    browser = _browser(cases, tmp_path, "modelMargins(c.model, c.gains)")
+    for case, got in zip(cases, browser, strict=True):
+        device = "slap2" if case["model"]["law"] == "slap2_pid" else "z1100"
+        truth = loop_for(device, plant if device == "slap2" else z_plant, case["gains"]).margins()
+        for key, value in (
+            ("phaseMarginDeg", truth.phase_margin_deg),
+            ("gainMarginDb", truth.gain_margin_db),
+            ("crossoverHz", truth.gain_crossover_hz),
+        ):
+            assert got[key] == pytest.approx(value, abs=1e-6, rel=1e-6), (case["gains"], key, got)
