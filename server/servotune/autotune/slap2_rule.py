@@ -376,7 +376,14 @@ def propose_gains(
                     break
             target = wanted
             if not robust:
-                reasons, robust = free_reasons, free_robust
+                # no relaxed search found a robust candidate: of the robust ones found
+                # without margins, those closest to the target (never simply the
+                # fastest, which is often the thinnest)
+                closest = max(_share(margins_of(g), wanted) for _, _, g in free_robust)
+                reasons = free_reasons
+                robust = [
+                    r for r in free_robust if _share(margins_of(r[2]), wanted) >= 0.999 * closest
+                ]
     if not robust:
         counts = {why: 0 for why in _REJECTIONS}
         for why in reasons.values():
