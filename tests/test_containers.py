@@ -14,7 +14,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import stat
 import subprocess
 import sys
@@ -30,6 +29,8 @@ from packaging.requirements import Requirement
 
 from servotune.auth.cli import account_data_dir
 from servotune.cli import build_parser, local_bind_refusal, main
+
+from .control_support import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 ACCOUNT_ACTIONS = {
@@ -170,13 +171,6 @@ def test_the_cli_refuses_the_images_default_command_without_the_statement(
 # --- 6. the demo on a data directory it cannot write ---------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 @contextlib.contextmanager
 def _unwritable_dir() -> Iterator[tuple[Path, list[str]]]:
     """A data directory this process's uid cannot write, and the command prefix that
@@ -212,7 +206,7 @@ def test_the_demo_starts_on_a_data_directory_it_cannot_write() -> None:
     """A root-owned or read-only /data: the simulators keep their state in a temporary
     directory, the log names the path and the uid, and all six axes are served
     (before: exit 3, 'simulator slap2 failed to start: PermissionError(13, ...)')."""
-    port = _free_port()
+    port = free_port()
     with _unwritable_dir() as (data_dir, prefix):
         argv = [*prefix, sys.executable, "-m", "servotune", "demo", "--port", str(port),
                 "--data-dir", str(data_dir), "--no-autopilot"]  # fmt: skip
