@@ -49,8 +49,9 @@ def add_security_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("auto", "local", "exposed"),
         default="auto",
         help="auto (default): exposed when bound to a non-loopback address or given "
-        "TLS or a proxy; local: no login even on 0.0.0.0 (only for a container whose "
-        "port is published on the host's loopback); exposed: login even on 127.0.0.1",
+        "TLS or a proxy; local: no login, on 0.0.0.0 only with --loopback-published (a "
+        "container whose port is published on the host's loopback); exposed: login even "
+        "on 127.0.0.1",
     )
 
 
