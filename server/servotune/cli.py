@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import stat
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,7 +33,51 @@ def _addresses(text: str) -> list[int]:
     return values
 
 
-def _run_server(app_config: object, host: str, port: int) -> None:
+# The operator's statement that a container's port is published on the host's loopback
+# only (docker -p 127.0.0.1:8000:8000): set by docker-compose.yml's demo service.
+LOOPBACK_PUBLISHED_ENV = "SERVOTUNE_LOOPBACK_PUBLISHED"
+
+
+def loopback_published(args: argparse.Namespace, environ: dict[str, str] | None = None) -> bool:
+    """Whether ``--loopback-published`` or ``SERVOTUNE_LOOPBACK_PUBLISHED=1`` was given."""
+    env = os.environ if environ is None else environ
+    return bool(args.loopback_published) or env.get(LOOPBACK_PUBLISHED_ENV, "") == "1"
+
+
+def local_bind_refusal(*, exposed: bool, host: str, published_on_loopback: bool) -> str | None:
+    """Why the server must not start as configured (None: it may).
+
+    Local mode has no login: on a non-loopback bind anyone who reaches the port could
+    move the motors. Inside a container the server must bind 0.0.0.0, and only the
+    operator knows whether the port is then published on the host's loopback only, so
+    local mode there needs that said explicitly.
+    """
+    from servotune.auth.security import is_loopback
+
+    if exposed or is_loopback(host) or published_on_loopback:
+        return None
+    return (
+        f"refusing local mode (no login) on {host}: anyone who can reach that address "
+        "could move the motors. Give accounts and TLS or a proxy for exposed mode "
+        "(docs/remote-lab.md), bind 127.0.0.1, or, in a container whose port is "
+        "published on the host's loopback only (docker run -p 127.0.0.1:8000:8000), "
+        f"say so with {LOOPBACK_PUBLISHED_ENV}=1 or --loopback-published"
+    )
+
+
+def _add_bind_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--loopback-published",
+        action="store_true",
+        help="local mode on a non-loopback bind (a container's 0.0.0.0) is refused unless "
+        "this says the port is published on the host's loopback only (also "
+        f"{LOOPBACK_PUBLISHED_ENV}=1)",
+    )
+
+
+def _run_server(
+    app_config: object, host: str, port: int, *, published_on_loopback: bool = False
+) -> None:
     import uvicorn
 
     from servotune.api.app import AppConfig, create_app
@@ -40,16 +86,17 @@ def _run_server(app_config: object, host: str, port: int) -> None:
 
     assert isinstance(app_config, AppConfig)
     security = app_config.security
+    refusal = local_bind_refusal(
+        exposed=security.exposed, host=host, published_on_loopback=published_on_loopback
+    )
+    if refusal is not None:
+        print(f"servotune: {refusal}", file=sys.stderr)
+        raise SystemExit(2)
     try:
         app = create_app(app_config)
     except SecurityConfigError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    if not security.exposed and host not in ("127.0.0.1", "localhost", "::1"):
-        logging.getLogger(__name__).warning(
-            "local mode on %s: no login; anyone who can reach this address can move the motors",
-            host,
-        )
     scheme = "https" if security.tls else "http"
     mode = "exposed: login required" if security.exposed else "local"
     print(f"servotune {__version__}: {scheme}://{host}:{port}  ({mode})", flush=True)
@@ -83,6 +130,8 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
     if credentials is not None and not credentials.is_file():
         print(f"servotune: --bus-credentials: no file {credentials}", file=sys.stderr)
         raise SystemExit(2)
+    if credentials is not None:
+        _check_credentials_readable(credentials, hub=hub)
     try:
         if hub:
             return BusSettings(
@@ -100,6 +149,37 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
     except ValueError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def _check_credentials_readable(path: Path, *, hub: bool) -> None:
+    """SystemExit(2) naming this process's uid when a credential file cannot be read
+    (a container reads its secrets as the image's user, uid 1000: files written 0600 by
+    another user are unreadable there)."""
+    from servotune.bus.connection import role_credentials
+
+    paths = [path]
+    if hub:  # the view and STOP users' files next to the hub's, where present
+        paths += [role_credentials(path, "view"), role_credentials(path, "stop")]
+    for candidate in paths:
+        if candidate != path and not candidate.exists():
+            continue
+        try:
+            with candidate.open("rb"):
+                pass
+        except OSError as exc:
+            uid = os.getuid()
+            try:
+                info = candidate.stat()
+                owner = f"; it belongs to uid {info.st_uid}, mode {stat.filemode(info.st_mode)}"
+            except OSError:
+                owner = ""
+            print(
+                f"servotune: --bus-credentials: cannot read {candidate} as uid {uid} "
+                f"({exc.strerror or exc}{owner}). Make it readable by uid {uid}: for "
+                "docker-compose.yml's lab, chown -R 1000 lab/nats/secrets (docs/lab.md)",
+                file=sys.stderr,
+            )
+            raise SystemExit(2) from None
 
 
 def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
@@ -157,21 +237,44 @@ def cmd_bus_accounts(args: argparse.Namespace) -> int:
             )
             write_private(path, text)
             print(f"wrote {path}")
+    print(
+        f"The files are readable by their owner only (uid {os.getuid()}, mode 0600). The "
+        "servotune image runs as uid 1000: for docker-compose.yml's lab, chown -R 1000 "
+        f"{args.out} (docs/lab.md)"
+    )
     return 0
+
+
+# Under the default data directory, each server command's own (``--data-dir`` replaces
+# it); ``servotune users``/``tokens`` must be given the same directory.
+_DATA_SUBDIR = {"demo": "demo", "serve": "", "hub": "hub"}
+
+
+def server_data_dir(args: argparse.Namespace) -> Path:
+    """The data directory ``demo``, ``serve`` or ``hub`` keeps its stores in."""
+    explicit: Path | None = args.data_dir
+    return explicit or default_data_dir() / _DATA_SUBDIR[args.command]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
-    from servotune.demo import demo_simulators
+    from servotune.demo import demo_simulators, demo_state_dir
 
-    data_dir = args.data_dir or default_data_dir() / "demo"
-    config = AppConfig(
-        data_dir=data_dir,
-        autopilot=not args.no_autopilot,
-        simulators=demo_simulators(data_dir),
-        security=security_config_from_args(args, args.host),
-    )
-    _run_server(config, args.host, args.port)
+    data_dir = server_data_dir(args)
+    with demo_state_dir(data_dir) as (state_dir, problem):
+        if problem is not None:
+            logging.getLogger(__name__).warning(
+                "%s: the simulated EEPROMs and flash are kept in %s for this run only",
+                problem,
+                state_dir,
+            )
+        config = AppConfig(
+            data_dir=data_dir,
+            autopilot=not args.no_autopilot,
+            simulators=demo_simulators(data_dir, state_dir),
+            security=security_config_from_args(args, args.host),
+        )
+        _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -200,11 +303,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=False)
     config = AppConfig(
         links=links,
-        data_dir=args.data_dir or default_data_dir(),
+        data_dir=server_data_dir(args),
         security=security_config_from_args(args, host),
         bus=bus,
     )
-    _run_server(config, host, port)
+    _run_server(config, host, port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -215,12 +318,12 @@ def cmd_hub(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=True)
     config = AppConfig(
         links=[],
-        data_dir=args.data_dir or default_data_dir() / "hub",
+        data_dir=server_data_dir(args),
         security=security_config_from_args(args, args.host),
         bus=bus,
         twin=False,
     )
-    _run_server(config, args.host, args.port)
+    _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -281,6 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
     demo.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(demo)
+    _add_bind_arguments(demo)
     demo.set_defaults(func=cmd_demo)
 
     serve = sub.add_parser("serve", help="dashboard for real devices")
@@ -295,6 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(serve)
+    _add_bind_arguments(serve)
     _add_bus_arguments(serve, hub=False)
     serve.set_defaults(func=cmd_serve)
 
@@ -303,6 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     hub.add_argument("--port", type=int, default=8000)
     hub.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(hub)
+    _add_bind_arguments(hub)
     _add_bus_arguments(hub, hub=True)
     hub.set_defaults(func=cmd_hub)
 

@@ -18,6 +18,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import os
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -201,13 +203,47 @@ def ep7047_demo_slave(state_dir: Path) -> Iterator[list[LinkSpec]]:
         ]
 
 
-def demo_simulators(
-    data_dir: Path,
-) -> list[Callable[[], contextlib.AbstractContextManager[list[LinkSpec]]]]:
-    """Context managers that start the demo's simulators and yield their link specs."""
+def state_dir_problem(state_dir: Path) -> str | None:
+    """Why the simulators cannot keep their state in ``state_dir`` (None: they can).
+
+    Checked before the simulators start: each creates and writes it from its own
+    process, where a failure only says "failed to start".
+    """
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=state_dir, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        return (
+            f"the simulators' state directory {state_dir} cannot be written by uid "
+            f"{os.getuid()} ({exc.strerror or exc})"
+        )
+    return None
+
+
+@contextlib.contextmanager
+def demo_state_dir(data_dir: Path) -> Iterator[tuple[Path, str | None]]:
+    """``<data_dir>/sim``, or, when that cannot be written, a temporary directory that
+    lives as long as the context, with the reason. A demo on a read-only or foreign-owned
+    volume still runs (its simulated EEPROMs and flash are then kept for this run only),
+    as storage and the accounts database do."""
     state_dir = data_dir / "sim"
+    problem = state_dir_problem(state_dir)
+    if problem is None:
+        yield state_dir, None
+        return
+    with tempfile.TemporaryDirectory(prefix="servotune-demo-sim-") as scratch:
+        yield Path(scratch), problem
+
+
+def demo_simulators(
+    data_dir: Path, state_dir: Path | None = None
+) -> list[Callable[[], contextlib.AbstractContextManager[list[LinkSpec]]]]:
+    """Context managers that start the demo's simulators and yield their link specs;
+    their state lives in ``state_dir`` (default ``<data_dir>/sim``)."""
+    directory = state_dir if state_dir is not None else data_dir / "sim"
     return [
-        lambda: slap2_demo_line(state_dir),
-        lambda: z1100_demo_line(state_dir),
-        lambda: ep7047_demo_slave(state_dir),
+        lambda: slap2_demo_line(directory),
+        lambda: z1100_demo_line(directory),
+        lambda: ep7047_demo_slave(directory),
     ]
