@@ -12,6 +12,7 @@ import pytest
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
 from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.protocols.z1100 import Command
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
@@ -161,6 +162,21 @@ async def test_noise_reply_and_console(tmp_path: Path) -> None:
         assert line.link.errors >= errors
         with pytest.raises(InvalidArgumentError, match="K A B"):
             await line.axis(2).console("SetKABH 1 2")
+
+
+async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> None:
+    """Pinned rule (issue 25): a reply whose code byte was corrupted on the wire (its
+    checksum no longer adds up) is rejected and the request asked again, never taken
+    for the refusal its bits would spell ("forbidden while motor 1 is moving")."""
+    async with chip_line(tmp_path) as line:
+        retries = line.link.counters["retries"]
+        line.sim.call(
+            lambda: line.chip.inject_corrupt_codes(1, mask=0x10, command=Command.SET_VMAX)
+        )
+        readback = await line.axis(0).write_params({"vmax": 50_000})
+        assert readback["vmax"] == 50_000
+        assert line.link.counters["retries"] >= retries + 1
+        assert not any("moving" in message for _, _, message in line.sink.events)
 
 
 async def test_stall_is_flagged(tmp_path: Path) -> None:

@@ -105,6 +105,9 @@ class ImportMetrics(_Strict):
     rms_following_error: FiniteFloat | None
     time_to_flag_s: dict[str, FiniteFloat | None]
     time_in_flag_s: dict[str, FiniteFloat]
+    # Runs exported before flags were timed by their reads have no resolutions.
+    time_to_flag_resolution_s: dict[str, FiniteFloat | None] = Field(default_factory=dict)
+    time_in_flag_resolution_s: dict[str, FiniteFloat] = Field(default_factory=dict)
 
 
 class ImportReason(_Strict):

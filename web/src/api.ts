@@ -143,6 +143,9 @@ export interface RunMetrics {
   rms_following_error: number | null;
   time_to_flag_s: Record<string, number | null>;
   time_in_flag_s: Record<string, number>;
+  /** ± of the flag times: flags are polled (runs recorded before this have none). */
+  time_to_flag_resolution_s?: Record<string, number | null>;
+  time_in_flag_resolution_s?: Record<string, number>;
 }
 
 export type RunStatus = "recording" | "complete" | "incomplete";

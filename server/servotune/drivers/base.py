@@ -66,11 +66,17 @@ def check_console_line(line: str) -> None:
 
 @dataclass(frozen=True, slots=True)
 class Sample:
-    """One telemetry sample of one axis, in device units."""
+    """One telemetry sample of one axis, in device units.
+
+    ``t`` is when the device latched the sample's position. ``flags_t`` is when its
+    flags were read, on the same clock: a driver that polls the flags less often than
+    the position carries the last read on every sample and says when it was taken;
+    None means "read with the sample" (a cyclic device)."""
 
     t: float
     channels: Mapping[str, float | None]
     flags: Mapping[str, bool]
+    flags_t: float | None = None
 
 
 @dataclass(slots=True)

@@ -159,6 +159,7 @@ class _ModuleState:
     following_error: int | None = None
     velocity: float | None = None
     rss: int | None = None
+    rss_t: float | None = None  # when rss was read (latch time): the flags' read time
     cycles: int = 0
     hex_mode: bool = False
     ucon: bool = False
@@ -318,6 +319,7 @@ class Slap2Link(Slap2Wire):
         try:
             values = await self._read_params(module)
             rss = await self._read_int(module.address, "rss")
+            rss_t = self._last_latch_t
         except DriverError as exc:
             if module.online or not self._connected_once:
                 self._sink.on_event("warning", axis_id, f"module {module.address}: {exc}")
@@ -339,7 +341,7 @@ class Slap2Link(Slap2Wire):
                 message = str(exc)
             self._sink.on_axis_health(axis_id, "offline", message)
             return
-        module.rss = rss
+        module.rss, module.rss_t = rss, rss_t
         flags = codec.decode_rss(rss)
         module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
         module.cal_seen = flags["cal"]
@@ -400,6 +402,7 @@ class Slap2Link(Slap2Wire):
         cue = module.suspect
         try:
             rss = await self._read_int(module.address, "rss")
+            rss_t = self._last_latch_t
             evidence = self._rss_evidence(module, rss)
             if not evidence:
                 evidence = await self._settings_evidence(module)
@@ -422,7 +425,7 @@ class Slap2Link(Slap2Wire):
         else:
             self._count("desyncs")
             logger.info("%s: module %d: %s, but no reset evidence", self.id, module.address, cue)
-        module.rss = rss
+        module.rss, module.rss_t = rss, rss_t
         module.cal_seen = module.cal_seen and codec.decode_rss(rss)["cal"]
 
     def _rss_evidence(self, module: _ModuleState, rss: int) -> str:
@@ -469,7 +472,7 @@ class Slap2Link(Slap2Wire):
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
         if command.changes_device and not module.ucon:
             rss = await self._read_rss_after(command.text)
-            module.rss = rss
+            module.rss, module.rss_t = rss, self._last_latch_t
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
         if mnemonic in MOVE_MNEMONICS:
@@ -673,6 +676,7 @@ class Slap2Link(Slap2Wire):
         t_position = 0.0
         following_error: int | None = None
         rss: int | None = None
+        rss_t: float | None = None
         # (Counted only when the cycle completes, so that a cut-short one keeps its rve.)
         rve_due = bool(self.config.rve_every and (module.cycles + 1) % self.config.rve_every == 0)
         sequence = [*self.config.poll_commands, *(["rve"] if rve_due else [])]
@@ -687,14 +691,14 @@ class Slap2Link(Slap2Wire):
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
-                rss = value
+                rss, rss_t = value, self._last_latch_t
         measured: float | None = None
         module.cycles += 1
         if rve_due:
             measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
         if self._state == "error":
             self._set_state("connected", self._connector.description)
-        self._emit_sample(module, position, t_position, following_error, rss, measured)
+        self._emit_sample(module, position, t_position, following_error, rss, rss_t, measured)
 
     def _emit_sample(
         self,
@@ -703,6 +707,7 @@ class Slap2Link(Slap2Wire):
         t_position: float,
         following_error: int | None,
         rss: int | None,
+        rss_t: float | None,
         measured: float | None,
     ) -> None:
         t = t_position or self._clock()
@@ -716,7 +721,7 @@ class Slap2Link(Slap2Wire):
             module.following_error = following_error
         if rss is not None:
             self._check_rss(module, rss)
-            module.rss = rss
+            module.rss, module.rss_t = rss, rss_t
         flags = codec.decode_rss(module.rss or 0)
         channels: dict[str, float | None] = {
             "position": module.position,
@@ -730,7 +735,9 @@ class Slap2Link(Slap2Wire):
             "velocity_measured": measured,
         }
         module.samples.append(t)
-        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+        self._sink.on_sample(
+            self.axis_id(module.address), Sample(t, channels, flags, flags_t=module.rss_t)
+        )
 
     def _check_rss(self, module: _ModuleState, rss: int) -> None:
         cue = self._rss_evidence(module, rss)
@@ -838,7 +845,7 @@ class Slap2Link(Slap2Wire):
                 rss = await self._read_int(address, "rss", after_rss)
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)
-                module.rss = rss
+                module.rss, module.rss_t = rss, self._last_latch_t
             self._module_answered(module)
         except DriverError as exc:
             capture.stats.wire_chars += self._wire_chars - chars_before
@@ -920,7 +927,9 @@ class Slap2Link(Slap2Wire):
             "velocity_measured": None,
         }
         module.samples.append(t)
-        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+        self._sink.on_sample(
+            self.axis_id(module.address), Sample(t, channels, flags, flags_t=module.rss_t)
+        )
 
     # --- status -----------------------------------------------------------------------
 

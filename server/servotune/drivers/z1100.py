@@ -183,6 +183,7 @@ class Z1100Link(LinkEngine):
         self._capture_index = 0
         self._last_status_t = 0.0
         self._last_latch_t = 0.0
+        self._flags_t: float | None = None  # when the flags were last read (GetStart)
         self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
         self._counters["fence_timeouts"] = 0
@@ -439,6 +440,7 @@ class Z1100Link(LinkEngine):
 
     async def _read_status(self) -> None:
         start = await self._get(codec.Command.GET_START)
+        self._flags_t = self._last_latch_t
         stop = await self._get(codec.Command.GET_STOP)
         assert isinstance(start, codec.StartStatus) and isinstance(stop, codec.StopStatus)
         axis = self._cycle % codec.AXES
@@ -531,6 +533,7 @@ class Z1100Link(LinkEngine):
     async def _read_capture_status(self) -> None:
         """GetStart (running bits of all motors); GetStop only after a stall bit."""
         start = await self._get(codec.Command.GET_START)
+        self._flags_t = self._last_latch_t
         assert isinstance(start, codec.StartStatus)
         for motor in self._motors:
             motor.running = motor.axis in start.running
@@ -570,7 +573,10 @@ class Z1100Link(LinkEngine):
             "stall": motor.stall,
             "switch": motor.switch,
         }
-        self._sink.on_sample(self.axis_id(motor.axis), Sample(t, channels, flags))
+        # The flags are those of the last status read (GetStart first; ``flags_t``).
+        self._sink.on_sample(
+            self.axis_id(motor.axis), Sample(t, channels, flags, flags_t=self._flags_t)
+        )
 
     async def _verify_step(self) -> None:
         motor = self._motors[self._verify_index % codec.AXES]

@@ -11,6 +11,8 @@ export interface MetricColumn {
   unit: string;
   help: string;
   get(m: RunMetrics): number | null | undefined;
+  /** The ± of the value where the server gives one (flag times: flags are polled). */
+  resolution?(m: RunMetrics): number | null | undefined;
   text(v: number): string;
   /** An absolute difference below this is not "better" or "worse". */
   slack: number;
@@ -84,6 +86,7 @@ export function metricColumns(descriptor: DeviceDescriptor, metrics: (RunMetrics
       unit: "ms",
       help: `Time to ${flag}: ${metricHelp("time_to_flag_s")}`,
       get: (m) => m.time_to_flag_s?.[flag],
+      resolution: (m) => m.time_to_flag_resolution_s?.[flag],
       text: ms,
       slack: 0.005,
     });
@@ -97,6 +100,7 @@ export function metricColumns(descriptor: DeviceDescriptor, metrics: (RunMetrics
       unit: "ms",
       help: `Time in ${flag}: ${metricHelp("time_in_flag_s")}`,
       get: (m) => m.time_in_flag_s?.[flag],
+      resolution: (m) => m.time_in_flag_resolution_s?.[flag],
       text: ms,
       slack: 0.005,
     });
@@ -144,13 +148,21 @@ export function metricCell(
     return cell;
   }
   cell.dataset.value = String(value);
-  setText(cell, c.text(value));
+  const resolution = metrics && c.resolution ? c.resolution(metrics) : null;
+  if (resolution != null && Number.isFinite(resolution) && resolution > 0) {
+    // A polled flag: the time lies within ± half the poll period around the value.
+    cell.dataset.resolution = String(resolution);
+    setText(cell, `${c.text(value)} ±${c.text(resolution)}`);
+  } else setText(cell, c.text(value));
   const ref = reference ? c.get(reference) : null;
   if (ref !== null && ref !== undefined && Number.isFinite(ref)) {
     const a = Math.abs(value);
     const b = Math.abs(ref);
     const rel = b > 0 ? (a - b) / b : a > 0 ? 1 : 0;
-    if (Math.abs(a - b) > c.slack && Math.abs(rel) >= DELTA) {
+    // Two polled times differ only beyond both their ± (else neither is "better").
+    const refResolution = reference && c.resolution ? c.resolution(reference) ?? 0 : 0;
+    const slack = Math.max(c.slack, (resolution ?? 0) + refResolution);
+    if (Math.abs(a - b) > slack && Math.abs(rel) >= DELTA) {
       cell.classList.add(a < b ? "better" : "worse");
       cell.title = `${c.text(value)} vs ${c.text(ref)} on ${refName} (${rel > 0 ? "+" : ""}${(rel * 100).toFixed(0)} %)`;
     } else cell.title = `${c.text(value)} ≈ ${refName} ${c.text(ref)}`;
