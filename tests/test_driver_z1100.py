@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -177,6 +178,47 @@ async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> 
         assert readback["vmax"] == 50_000
         assert line.link.counters["retries"] >= retries + 1
         assert not any("moving" in message for _, _, message in line.sink.events)
+
+
+async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path) -> None:
+    """Issue 25: a chip that answers nothing at all (power lost, cable cut) left its
+    link ``connected`` at 0 Hz for 11 s (three failed poll cycles of fence timeouts);
+    the silence rule (``drivers.engine``) shows ``error`` once 3 requests in a row over
+    1 s went unanswered, and ``connected`` again with the next good poll. A host that
+    stalls while the chip answers is no silence: it sent nothing and missed nothing."""
+    async with chip_line(tmp_path) as line:
+        # The event loop (the driver) stalls 1.5 s while the chip, in its own thread,
+        # answers: its reply waits in the pty, nothing is unanswered.
+        stalled = asyncio.Event()
+
+        def stall() -> None:
+            time.sleep(1.5)
+            stalled.set()
+
+        asyncio.get_running_loop().call_soon(stall)
+        await stalled.wait()
+        await asyncio.sleep(1.2)  # a status tick after the stall
+        assert "error" not in [state for state, _ in line.sink.states], line.sink.states
+        assert not any("no answer" in message for _, _, message in line.sink.events)
+
+        line.sim.set_silent(True)
+        silent_at = time.monotonic()
+        await wait_for(lambda: line.link.state == "error", 5, "the link in error")
+        shown_s = time.monotonic() - silent_at
+        state, message = line.sink.states[-1]
+        assert state == "error" and message.startswith("no answer from the device for"), message
+        assert any(
+            level == "error" and "no answer from the device" in text
+            for level, _, text in line.sink.events
+        )
+        print(f"silent chip shown in error after {shown_s:.2f} s")
+        await asyncio.sleep(2.0)
+        assert line.link.state == "error"  # for as long as it lasts
+
+        line.sim.set_silent(False)
+        await wait_for(lambda: line.link.state == "connected", 10, "connected again")
+        count = len(line.sink.samples["chip-x"])
+        await wait_for(lambda: len(line.sink.samples["chip-x"]) > count + 5, 5, "samples again")
 
 
 async def test_stall_is_flagged(tmp_path: Path) -> None:

@@ -821,7 +821,20 @@ class Slap2Link(Slap2Wire):
         now = self._clock()
         flags_now = codec.decode_rss(module.rss or 0)
         pe_due = capture.wants_pe(module.profile, flags_now, now)
-        rss_due = capture.wants_rss(module.profile, now, flags_fresh=not module.ucon)
+        track = module.profile.track
+        window = module.known.get("inpos_window")
+        rss_due = capture.wants_rss(
+            module.profile,
+            now,
+            flags_fresh=not module.ucon,
+            arrived=flags_now["inpos"],
+            inside_window=(
+                track is not None
+                and window is not None
+                and module.position is not None
+                and abs(module.position - track.target) <= window
+            ),
+        )
         after_rss = "rp" if alone else None
         after_pe = "rss" if rss_due else after_rss
         try:

@@ -237,8 +237,10 @@ class Z1100Link(LinkEngine):
             if got is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
+                self._unanswered_request()
                 continue
             reply, reply_t = got
+            self._answered()
             self._last_latch_t = min(
                 written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
             )
@@ -287,15 +289,18 @@ class Z1100Link(LinkEngine):
         await channel.write(codec.make_fence().encode())
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.fence_timeout_s
+        heard = False  # any byte at all: the chip is alive, only late or noisy
         while True:
             remaining = max(deadline - self._clock(), 0.0)
             data = await channel.read_available(remaining)
             if not data:
                 break
+            heard = True
             for reply in decoder.feed(data):
                 if codec.is_fence_reply(reply):
                     if decoder.pending:  # bytes after the answer: noise, dropped
                         self._count("dropped_bytes", decoder.pending)
+                    self._answered()
                     return True
                 self._errors += 1
                 self._count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
@@ -303,6 +308,8 @@ class Z1100Link(LinkEngine):
                 break
         self._errors += 1
         self._count("fence_timeouts")
+        if not heard:
+            self._unanswered_request()
         await self._drain_quiet(channel)
         return False
 
