@@ -215,6 +215,52 @@ async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, t
         await raw.close_quietly()
 
 
+async def test_a_bench_run_ended_by_the_dead_man_says_so(server: Server) -> None:
+    """Issue 25: the cause of a stop is recorded as it was. A run the dead-man ended
+    read "STOP was pressed during the test"; it names the dead-man now, and a run the
+    user's STOP ended still says STOP."""
+    raw, client_id, beat = await take_with_raw_client(server, "line-0", take=True)
+    headers = {"X-Servotune-Client": client_id}
+    response = await server.client.post(
+        "/api/axes/line-0/bench/runs",
+        json={"kind": "velocity_step", "velocity": 300, "duration_s": 5.0},
+        headers=headers,
+    )
+    assert response.status_code == 202, response.text
+    run_id = response.json()["id"]
+    await asyncio.sleep(0.6)
+    beat.cancel()
+    raw.drop()
+    run: dict[str, object] = {}
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        run = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+        if run["status"] != "recording":
+            break
+        await asyncio.sleep(0.1)
+    assert run["status"] == "incomplete", run
+    message = str(run["message"])
+    assert "STOP (dead-man: " in message and "during the test" in message, message
+    assert "STOP was pressed" not in message
+    await raw.close_quietly()
+
+    response = await server.client.post(
+        "/api/axes/line-1/bench/runs",
+        json={"kind": "velocity_step", "velocity": 300, "duration_s": 5.0},
+    )
+    assert response.status_code == 202, response.text
+    run_id = response.json()["id"]
+    await asyncio.sleep(0.6)
+    assert (await server.client.post("/api/stop")).status_code == 200
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        run = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+        if run["status"] != "recording":
+            break
+        await asyncio.sleep(0.1)
+    assert "STOP was pressed during the test" in str(run["message"]), run["message"]
+
+
 async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server) -> None:
     async with websockets.connect(
         server.ws_url, max_size=None, origin=Origin(server.base_url)

@@ -381,7 +381,7 @@ class BenchRunner:
                 raise DriverError(recording.abort)
             generation = recording.stop_generation
             if generation is not None and recording.entry.stop_generation != generation:
-                raise DriverError("STOP was pressed during the test")
+                raise DriverError(f"{recording.entry.stop_cause} during the test")
             if now - start >= test.duration_s:
                 return
             latest = recording.entry.latest
@@ -496,7 +496,7 @@ class BenchRunner:
                 since = None
             generation = recording.stop_generation
             if generation is not None and entry.stop_generation != generation:
-                raise DriverError("STOP was pressed during the test")
+                raise DriverError(f"{entry.stop_cause} during the test")
             await asyncio.sleep(0.05)
         return False
 

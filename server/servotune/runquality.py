@@ -17,8 +17,9 @@
   measurements, e.g. of a limit cycle) and loses the steady-state error.
 
   Sampling, one rule for every metric and every run kind (``_unresolved``): a value is
-  kept only when the samples resolve it — at least ``MIN_INTERVAL_SAMPLES`` samples in
-  the interval that defines it (the rise between its 10 % and 90 % crossings; peak and
+  kept only when the samples resolve it — enough samples in the interval that defines
+  it (``MIN_RISE_SAMPLES`` for the rise, ``MIN_INTERVAL_SAMPLES`` for the others: the
+  rise between its 10 % and 90 % crossings; peak and
   settling time from the command on; oscillations and the following error over the
   move, until it settled), and no gap across that interval wider than the quantity
   (for the oscillations: than the shortest half-cycle counted). A flag's time is
@@ -44,12 +45,15 @@ from typing import Any, Final
 from .metrics import overshoot_stamp_uncertainty_pct, rise_crossings
 
 MIN_SAMPLES: Final = 10
-MIN_INTERVAL_SAMPLES: Final = 10
-"""Samples a metric needs inside the interval that defines it (a spacing of about a
-tenth of the interval): the rise between its 10 % and 90 % crossings, the settling and
-peak times from the command on, the following error and the oscillation count over the
-move. The same for every metric and every run kind."""
-MIN_RISE_SAMPLES: Final = MIN_INTERVAL_SAMPLES
+MIN_RISE_SAMPLES: Final = 10
+"""Samples the rise time needs between its 10 % and 90 % crossings: the rise is the
+shape of the motion itself, a spacing of about a tenth of it."""
+MIN_INTERVAL_SAMPLES: Final = 3
+"""Samples every other metric needs inside the interval that defines it (peak and
+settling time: from the command to the instant; oscillations and following error: the
+move, until it settled): the response seen at all before the instant, which the gap
+rule then bounds (no gap across the interval wider than the quantity). The instant
+itself is located to one bracketing gap, never wider than the quantity."""
 MOVED_FRACTION: Final = 0.1  # less travel than this fraction of the step: did not move
 PWM_MOVED_COUNTS: Final = 2.0
 MAX_OVERSHOOT_UNCERTAINTY_PP: Final = 0.5
@@ -244,7 +248,16 @@ def _sampling_trust(
             t10, t90 = crossings
             null(
                 "rise_time_s",
-                _unresolved(sample_t, curve_t, t10, t90, rise, "rise", "between 10 % and 90 %"),
+                _unresolved(
+                    sample_t,
+                    curve_t,
+                    t10,
+                    t90,
+                    rise,
+                    "rise",
+                    "between 10 % and 90 %",
+                    min_samples=MIN_RISE_SAMPLES,
+                ),
             )
     overshoot = out.get("overshoot_pct")
     if overshoot is not None and overshoot > 0 and step != 0:
@@ -281,6 +294,7 @@ def _sampling_trust(
                 half_cycle if half_cycle is not None else end,
                 "shortest half-cycle" if half_cycle is not None else "response",
                 "until it settled" if settled else "in the record",
+                bounded=True,
             ),
         )
     if out.get("peak_following_error") is not None or out.get("rms_following_error") is not None:
@@ -296,6 +310,7 @@ def _sampling_trust(
                 "move",
                 "of following error " + ("until the axis settled" if settled else "in the record"),
                 "the following error was read too rarely to show the move's",
+                bounded=True,
             )
             if end > 0
             else "no following-error sample after the command"
@@ -327,25 +342,33 @@ def _unresolved(
     name: str,
     where: str,
     too_few: str = "",
+    min_samples: int = MIN_INTERVAL_SAMPLES,
+    bounded: bool = False,
 ) -> str | None:
     """Why ``name`` (``quantity_s`` long, defined by the interval ``start``..``end``
     after t0) is not resolved by the samples, or None when it is: at least
-    ``MIN_INTERVAL_SAMPLES`` of ``samples`` in the interval, and no gap between the
+    ``min_samples`` of ``samples`` in the interval, and no gap between the
     ``points`` (the samples and any point the metric interpolates from, e.g. the
     command point) from the last one at or before ``start`` to the first one at or
-    after ``end`` wider than ``quantity_s``. ``too_few`` ends the reason for too few
-    samples (default: the metric is faster than the telemetry resolves)."""
+    after ``end`` wider than ``quantity_s``; ``bounded``: a metric over the interval
+    (a peak, a count) rather than an instant interpolated between samples: the spans
+    are measured from ``start`` and to ``end`` themselves (before the command nothing
+    moved; after ``end`` the metric does not look). ``too_few`` ends the reason for
+    too few samples (default: the metric is faster than the telemetry resolves)."""
     inside = sum(1 for t in samples if start <= t <= end)
-    if inside < MIN_INTERVAL_SAMPLES:
+    if inside < min_samples:
         return (
             f"only {inside} sample{'' if inside == 1 else 's'} {where} "
             f"({start * 1000:.0f}..{end * 1000:.0f} ms; needs "
-            f"{MIN_INTERVAL_SAMPLES}): "
-            + (too_few or f"the {name} is faster than the telemetry resolves")
+            f"{min_samples}): " + (too_few or f"the {name} is faster than the telemetry resolves")
         )
-    before = [t for t in points if t <= start]
-    after = [t for t in points if t >= end]
-    span = sorted({*(before[-1:]), *(t for t in points if start < t < end), *(after[:1])})
+    inner = [t for t in points if start < t < end]
+    if bounded:
+        span = sorted({start, *inner, end})
+    else:
+        before = [t for t in points if t <= start]
+        after = [t for t in points if t >= end]
+        span = sorted({*(before[-1:]), *inner, *(after[:1])})
     gap = max((b - a for a, b in pairwise(span)), default=0.0)
     if gap > quantity_s:
         return (

@@ -37,6 +37,11 @@ class ProtocolError(DriverError):
     """The device answered something the protocol does not allow (bad echo, garbage)."""
 
 
+class MeasurementError(DriverError):
+    """A measurement cannot support its result (too few samples, nothing moved): the
+    device refused nothing; ``str`` says what was measured and what to change."""
+
+
 class InvalidArgumentError(DriverError):
     """An argument is missing or out of range; nothing was sent."""
 
@@ -83,6 +88,8 @@ class Sample:
 class CommandOutcome:
     sent: list[str] = field(default_factory=list)
     message: str = ""
+    # The hub watches the move the command started (servotune.movewatch).
+    outcome_pending: bool = False
 
 
 class DriverSink(Protocol):

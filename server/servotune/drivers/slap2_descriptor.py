@@ -18,6 +18,7 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -443,6 +444,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             description="ma: move to a position (needs position mode).",
             group="motion",
             arguments=[position_arg],
+            target=MoveTarget(argument="position"),
         ),
         CommandDescriptor(
             name="move_relative",
@@ -460,6 +462,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="distance", relative=True),
         ),
         CommandDescriptor(
             name="set_position",
@@ -526,6 +529,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             group="persist",
             confirm="Store the current settings permanently in the module's EEPROM?",
+            stores_parameters="axis",
         ),
         CommandDescriptor(
             name="restore_parameters",

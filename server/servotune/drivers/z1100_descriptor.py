@@ -17,6 +17,7 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -334,6 +335,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="target"),
         ),
         CommandDescriptor(
             name="constant_velocity",
@@ -378,6 +380,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             group="persist",
             description="SetFlash: store all parameters of all three motors; loaded at power-on.",
             confirm="Write the parameters of all three motors to the chip's flash?",
+            stores_parameters="link",
         ),
         CommandDescriptor(
             name="restore_parameters",
