@@ -15,10 +15,11 @@ from pathlib import Path
 
 import pytest
 import websockets
+from fastapi import HTTPException
 from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
-from servotune.control import ControlManager, ControlSettings
+from servotune.control import CLIENT_HEADER, ControlManager, ControlSettings
 from servotune.wire import ForceControl, TakeControl
 
 from .control_support import (
@@ -153,6 +154,35 @@ async def test_unanswered_request_granted_when_the_holder_is_idle(server: Server
         granted = await bob.reply("grant", timeout_s=3)
         assert granted["ok"] and "idle" in granted["message"]
         assert manager.holder("line-0").client_tag == bob.tag  # type: ignore[union-attr]
+
+
+async def test_a_request_carrying_another_users_client_id_is_refused(server: Server) -> None:
+    """Pinned rule (issue 25): a client id is a connection's secret, but a secret can
+    leak (a log, a shared screen); it authorises only its own user. Olga's tab holds
+    line-0; a request of another user carrying Olga's client id is refused (423) and
+    nothing is written, while Olga herself may change the axis."""
+    manager = control(server)
+    sent: list[str] = []
+    operator = Principal("olga", "operator", frozenset({VIEW, STOP, CONTROL, MOVE}))
+    olga = manager.connect(operator, "test", sent.append)
+    try:
+        await manager.handle(olga, TakeControl(axis="line-0"))
+        assert manager.holder("line-0").client_tag == olga.tag  # type: ignore[union-attr]
+        kp = server.bus.module(0).settings["kp"]
+        # The local user (this server runs without accounts) with Olga's client id.
+        response = await server.client.patch(
+            "/api/axes/line-0/params", json={"kp": kp + 7}, headers={CLIENT_HEADER: olga.client_id}
+        )
+        assert response.status_code == 423, response.text
+        assert "controlled by olga" in response.json()["detail"]
+        assert server.bus.module(0).settings["kp"] == kp
+        mallory = Principal("mallory", "operator", frozenset({VIEW, STOP, CONTROL, MOVE}))
+        with pytest.raises(HTTPException) as refused:
+            await manager.require("line-0", olga.client_id, mallory)
+        assert refused.value.status_code == 423
+        await manager.require("line-0", olga.client_id, operator)  # her own: allowed
+    finally:
+        manager.disconnect(olga)
 
 
 async def test_admin_forces_a_hand_over_an_operator_cannot(server: Server) -> None:
