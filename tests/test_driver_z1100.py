@@ -221,6 +221,24 @@ async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path
         await wait_for(lambda: len(line.sink.samples["chip-x"]) > count + 5, 5, "samples again")
 
 
+async def test_the_rate_never_exceeds_the_wire_limit_after_a_capture(tmp_path: Path) -> None:
+    """Issue 25: after a capture the link's rate counted the capture's dense samples
+    of the last 2 s against the normal poll set's wire limit: "131 % of wire". The
+    rate restarts with the poll set, so it never reads above the limit."""
+    async with chip_line(tmp_path) as line:
+        link = line.link
+        ratios: list[float] = []
+        async with link.capture(0, "test"):
+            for _ in range(20):
+                await asyncio.sleep(0.05)
+                ratios.append(link.achieved_rate_hz() / link.wire_limit_hz())
+        for _ in range(50):
+            await asyncio.sleep(0.05)
+            ratios.append(link.achieved_rate_hz() / link.wire_limit_hz())
+        assert max(ratios) <= 1.0, [round(r, 2) for r in ratios]
+        assert max(ratios[20:]) > 0.3  # the normal polls did run meanwhile
+
+
 async def test_stall_is_flagged(tmp_path: Path) -> None:
     async with chip_line(tmp_path) as line:
         await line.axis(0).write_params({"limit": 200})

@@ -71,9 +71,12 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import recent_rate_hz
+from servotune.drivers.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
 from servotune.drivers.slap2_axis import Slap2Axis
 from servotune.drivers.slap2_capture import (
     CAPTURE_UCON,
+    CHECK_TOLERANCE_COUNTS,
+    MISSES_TO_DROP,
     MOVE_MNEMONICS,
     PROFILE_BREAKERS,
     ModuleCapture,
@@ -85,12 +88,16 @@ from servotune.drivers.slap2_wire import (
     command_mnemonic,
     is_banner,
 )
-from servotune.profiles import ProfileTrack
+from servotune.profiles import TICK_S, ProfileTrack, firmware_setpoint
 from servotune.protocols import slap2 as codec
 from servotune.transports.base import ByteChannel, Connector
 from servotune.wire import AxisHealth
 
 logger = logging.getLogger(__name__)
+
+# Outside a capture pe is read one transaction after rp (~6 ms at 19200 baud): what the
+# profile moves in that time is allowed in the live check of the reconstruction.
+LIVE_SKEW_S = 0.01
 
 T = TypeVar("T")
 
@@ -182,6 +189,10 @@ class _ModuleState:
     # servotune sent, the state of a capture of this module, and whether it is paused
     # for another module's capture.
     profile: ProfileState = field(default_factory=ProfileState)
+    # Outside a capture: rp + pe while pe is steady (drivers.setpoint), and how often
+    # in a row it disagreed with the reconstructed profile (_live_setpoint).
+    skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
+    live_misses: int = 0
     last_command_latch_s: float | None = None
     capture: ModuleCapture | None = None
     last_capture: CaptureStats | None = None
@@ -723,14 +734,23 @@ class Slap2Link(Slap2Wire):
             self._check_rss(module, rss)
             module.rss, module.rss_t = rss, rss_t
         flags = codec.decode_rss(module.rss or 0)
+        # The setpoint: the reconstructed profile where the driver knows it; else rp +
+        # pe, two reads a transaction apart, only while pe is steady (drivers.setpoint).
+        skewed = module.skewed.setpoint(
+            module.position, following_error, profile_running=flags["move"]
+        )
+        reconstructed = self._live_setpoint(module, flags, t, skewed)
+        setpoint: float | None
+        error: float | None
+        if reconstructed is not None and module.position is not None:
+            setpoint = round(reconstructed, 2)
+            error = round(setpoint - module.position, 2)
+        else:
+            setpoint, error = skewed, module.following_error
         channels: dict[str, float | None] = {
             "position": module.position,
-            "setpoint": (
-                module.position + module.following_error
-                if module.position is not None and module.following_error is not None
-                else None
-            ),
-            "following_error": module.following_error,
+            "setpoint": setpoint,
+            "following_error": error,
             "velocity": module.velocity,
             "velocity_measured": measured,
         }
@@ -738,6 +758,44 @@ class Slap2Link(Slap2Wire):
         self._sink.on_sample(
             self.axis_id(module.address), Sample(t, channels, flags, flags_t=module.rss_t)
         )
+
+    def _live_setpoint(
+        self, module: _ModuleState, flags: Mapping[str, bool], t: float, skewed: float | None
+    ) -> float | None:
+        """The reconstructed profile at ``t`` outside a capture, checked where rp + pe
+        is steady (at rest, or tracking smoothly): two disagreements in a row beyond
+        what the reads' skew and the tick allow (a limit switch ended the move, a
+        setting changed behind servotune's back) drop it, as a capture's pe check does.
+        A ringing axis is not checked (its rp + pe is no setpoint)."""
+        track = module.profile.track
+        if track is None or not flags["pm"]:
+            return None
+        reconstructed = track.setpoint_at(t)
+        if skewed is None:
+            return reconstructed
+        tolerance = (
+            CHECK_TOLERANCE_COUNTS
+            + STEADY_ERROR_COUNTS
+            + abs(track.setpoint_at(t + TICK_S) - track.setpoint_at(t - TICK_S))
+            + abs(track.setpoint_at(t + LIVE_SKEW_S) - reconstructed)
+        )
+        if abs(skewed - firmware_setpoint(reconstructed)) <= tolerance:
+            module.live_misses = 0
+            return reconstructed
+        module.live_misses += 1
+        if module.live_misses < MISSES_TO_DROP:
+            return reconstructed
+        module.live_misses = 0
+        module.profile.clear()
+        self._count("setpoint_mismatches")
+        logger.info(
+            "%s: module %d: rp + pe %.0f, the reconstructed setpoint %.0f: dropped",
+            self.id,
+            module.address,
+            skewed,
+            reconstructed,
+        )
+        return None
 
     def _check_rss(self, module: _ModuleState, rss: int) -> None:
         cue = self._rss_evidence(module, rss)
@@ -773,7 +831,12 @@ class Slap2Link(Slap2Wire):
             if module.address in captured and module.capture is None:
                 module.capture = ModuleCapture(CaptureStats(started_s=now))
                 module.ucon_failures = 0
+                module.samples.clear()  # the rate restarts with the limit (see below)
             elif module.address not in captured and module.capture is not None:
+                # The rate counts the samples of the last 2 s against the limit of the
+                # poll set in force: the capture's dense samples, counted against the
+                # normal poll set's limit, read above 100 % of the wire (issue 25).
+                module.samples.clear()
                 stats = module.capture.stats
                 stats.ended_s = now
                 module.last_capture, module.capture = stats, None

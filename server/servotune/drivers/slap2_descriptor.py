@@ -302,7 +302,12 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="setpoint",
             label="Setpoint",
             unit="counts",
-            description="Profile generator setpoint = position + following error.",
+            description=(
+                "Profile generator setpoint: the move servotune commanded, replayed through "
+                "the firmware's trapezoid law and checked against pe; where there is none, "
+                "position + pe while pe is steady. Empty otherwise: rp and pe are read a "
+                "transaction apart, and on a ringing axis their sum is no setpoint."
+            ),
             conversions=[revs, deg],
         ),
         ChannelDescriptor(

@@ -69,6 +69,7 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import LinkEngine, recent_rate_hz
+from servotune.drivers.setpoint import SkewedSetpoint
 from servotune.drivers.z1100_axis import (
     Z1100Axis,
     describe_reply,
@@ -145,6 +146,8 @@ class _MotorState:
     last_capture: CaptureStats | None = None
     paused: bool = False
     since_error: int = 0
+    # position + GetError, two reads a transaction apart (drivers.setpoint)
+    skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
 
 
 class Z1100Link(LinkEngine):
@@ -486,9 +489,14 @@ class Z1100Link(LinkEngine):
             if motor.axis in captured and motor.capture is None:
                 motor.capture = CaptureStats(started_s=now)
                 motor.since_error = CAPTURE_ERROR_EVERY  # the first sample reads it
+                motor.samples.clear()  # the rate restarts with the limit (see below)
             elif motor.axis not in captured and motor.capture is not None:
                 motor.capture.ended_s = now
                 motor.last_capture, motor.capture = motor.capture, None
+                # The rate counts the samples of the last 2 s against the limit of the
+                # poll set in force: the capture's dense samples, counted against the
+                # normal poll set's limit, read 131 % of the wire (issue 25).
+                motor.samples.clear()
             paused = bool(captured) and motor.axis not in captured
             if paused != motor.paused:
                 motor.paused = paused
@@ -569,7 +577,9 @@ class Z1100Link(LinkEngine):
         channels: dict[str, float | None] = {
             "position": position,
             "target": motor.target,
-            "setpoint": position + error if position is not None and error is not None else None,
+            # Only while the error is steady: on a ringing motor the sum of two reads a
+            # transaction apart is no setpoint (drivers.setpoint).
+            "setpoint": motor.skewed.setpoint(position, error, profile_running=motor.running),
             "following_error": error,
             "velocity": motor.velocity,
         }

@@ -228,7 +228,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             name="setpoint",
             label="Profile position",
             unit="counts",
-            description="Position + GetError: where the trapezoid is now.",
+            description=(
+                "Position + GetError: where the trapezoid is now. Empty while the error "
+                "is not steady: the two are read a transaction apart, and on a ringing "
+                "motor their sum is no profile position."
+            ),
             conversions=[revs],
         ),
         ChannelDescriptor(
