@@ -12,6 +12,7 @@ import json
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import websockets
@@ -261,13 +262,7 @@ async def test_a_bench_run_ended_by_the_dead_man_says_so(server: Server) -> None
     await asyncio.sleep(0.6)
     beat.cancel()
     raw.drop()
-    run: dict[str, object] = {}
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        run = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
-        if run["status"] != "recording":
-            break
-        await asyncio.sleep(0.1)
+    run = await _finished(server, run_id)
     assert run["status"] == "incomplete", run
     message = str(run["message"])
     assert "STOP (dead-man: " in message and "during the test" in message, message
@@ -282,13 +277,18 @@ async def test_a_bench_run_ended_by_the_dead_man_says_so(server: Server) -> None
     run_id = response.json()["id"]
     await asyncio.sleep(0.6)
     assert (await server.client.post("/api/stop")).status_code == 200
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        run = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
-        if run["status"] != "recording":
-            break
-        await asyncio.sleep(0.1)
+    run = await _finished(server, run_id)
     assert "STOP was pressed during the test" in str(run["message"]), run["message"]
+
+
+async def _finished(server: Server, run_id: str, timeout_s: float = 10.0) -> dict[str, Any]:
+    """The run once it no longer records (or as it is after ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        run: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+        if run["status"] != "recording" or time.monotonic() > deadline:
+            return run
+        await asyncio.sleep(0.1)
 
 
 async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server) -> None:
