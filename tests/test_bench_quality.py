@@ -95,7 +95,7 @@ def _first_order(
 def test_a_well_sampled_settled_move_is_good_and_keeps_its_metrics() -> None:
     times, positions = _first_order(200, 0.01)
     metrics, quality = _run(times, positions)
-    assert quality == {"status": "good", "reasons": [], "untrusted": {}}
+    assert quality == {"status": "good", "reasons": [], "untrusted": {}, "sampling_rule": 2}
     assert metrics is not None and metrics["rise_time_s"] == pytest.approx(0.3 * math.log(9), 0.05)
     assert metrics["settling_time_s"] is not None
 

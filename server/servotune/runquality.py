@@ -64,6 +64,10 @@ MAX_PEAK_GAP_RATIO: Final = 1.9
 every overshoot off by more than 0.5 pp from the median had a gap next to its highest
 sample of 1.94..5.1 times the median spacing (peak low by 0.7..7 pp); with gaps up to
 1.9 (the capture's interleaved ``rss`` makes 1.6..1.8) all were within 0.44 pp."""
+SAMPLING_RULE: Final = 2
+"""The version of the sampling rule (``_sampling_trust``) stored with a run's quality
+(``quality.sampling_rule``): a stored or imported run judged by an older one is judged
+again (``rejudge``), so the same rule holds for every run on the page."""
 POSITION_KINDS: Final = frozenset({"move", "position_step"})
 RESPONSE_METRICS: Final = (
     "rise_time_s",
@@ -440,4 +444,48 @@ def _quality(
     bad: list[dict[str, str]], doubts: list[dict[str, str]], untrusted: dict[str, str]
 ) -> dict[str, Any]:
     status = "bad" if bad else "doubtful" if doubts else "good"
-    return {"status": status, "reasons": [*bad, *doubts], "untrusted": untrusted}
+    return {
+        "status": status,
+        "reasons": [*bad, *doubts],
+        "untrusted": untrusted,
+        "sampling_rule": SAMPLING_RULE,
+    }
+
+
+def rejudge(
+    run: Mapping[str, Any], rows: Sequence[Sequence[Any]]
+) -> tuple[dict[str, Any], dict[str, Any]] | None:
+    """(metrics, quality) of a stored run with today's sampling rule applied on top of
+    what was stored (its faults and reasons stay as they were: the fault flags a test
+    watched are not stored), or None when there is nothing to judge (no metrics, no
+    trigger) or it was judged by this rule already. ``rows``: the run's sample rows."""
+    metrics = run.get("metrics")
+    quality = dict(run.get("quality") or {"status": "good", "reasons": [], "untrusted": {}})
+    t0_s, plan = run.get("t0_s"), run.get("plan") or {}
+    columns: list[str] = list(run.get("columns") or [])
+    if quality.get("sampling_rule") == SAMPLING_RULE or not metrics or t0_s is None:
+        return None
+    response = plan.get("response")
+    if response not in columns:
+        return None
+    index = columns.index(response)
+    points = [
+        (float(r[0]) - t0_s, float(r[index]))
+        for r in rows
+        if r[0] is not None and r[0] >= t0_s and r[index] is not None
+    ]
+    fe = columns.index("following_error") if "following_error" in columns else None
+    series = _Series(
+        following_error_t=[float(r[0]) - t0_s for r in rows if fe is not None and r[fe] is not None]
+    )
+    out = dict(metrics)
+    out["time_to_flag_s"] = dict(metrics.get("time_to_flag_s") or {})
+    if "time_to_flag_resolution_s" in metrics:
+        out["time_to_flag_resolution_s"] = dict(metrics.get("time_to_flag_resolution_s") or {})
+    untrusted = dict(quality.get("untrusted") or {})
+    y0, y_final = float(plan.get("y0", 0.0)), float(plan.get("y_final", 0.0))
+    band = plan.get("band")
+    _sampling_trust(out, points, series, y0, y_final - y0, band, untrusted)
+    quality["untrusted"] = untrusted
+    quality["sampling_rule"] = SAMPLING_RULE
+    return out, quality
