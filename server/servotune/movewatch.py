@@ -10,11 +10,12 @@ into ✓ or ⚠), and an event for every end that is not "arrived" — a limit s
 the position where the axis stopped.
 
 Decisions where the devices are silent: the move has ended when the moving flag is
-clear and the position has stayed within the window for ``REST_S`` (flags are polled,
-and the SLAP2 shows ``move`` for up to 200 ms after the profile ended); a move is not
-watched for longer than its own planned duration plus ``WATCH_MARGIN_S`` (then
-"still moving", not a verdict); a later command on the axis ends the watch of the
-earlier one (a jog's steps).
+clear and successive samples have stayed within half the window of each other for
+``REST_S`` of sample time (flags are polled, and the SLAP2 shows ``move`` for up to
+200 ms after the profile ended; judged on new samples only, so a host that is slow to
+look sees no false rest); a move is not watched for longer than ``WATCH_S``
+after the command (then "still moving ... not watched further", not a verdict); a
+later command on the axis ends the watch of the earlier one (a jog's steps).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from servotune.hub_state import AxisEntry
 
 REST_S: Final = 0.15
 POLL_S: Final = 0.02
-WATCH_MARGIN_S: Final = 5.0
+WATCH_S: Final = 120.0  # a slow move (sv 100: ~940 counts/s) of 30 000 counts takes 32 s
 START_GRACE_S: Final = 0.3  # the first samples after a command may not show the move yet
 
 Outcome = Literal["arrived", "short", "limit", "fault", "stopped", "timeout"]
@@ -49,9 +50,7 @@ class MovePlan:
     timeout_s: float
 
 
-def plan_move(
-    entry: AxisEntry, name: str, args: Mapping[str, int], *, profile_s: float | None = None
-) -> MovePlan | None:
+def plan_move(entry: AxisEntry, name: str, args: Mapping[str, int]) -> MovePlan | None:
     """The plan of a command that moves to a target, from the axis' latest sample before
     it is sent; None for any other command, or when the device cannot plan it."""
     descriptor = entry.driver.descriptor
@@ -71,7 +70,7 @@ def plan_move(
     except DriverError:
         return None  # moving, or a device that cannot plan moves: not watched
     end = reference.y0 + value if target.relative else float(value)
-    return _plan(command.label, value, end, reference, descriptor, profile_s)
+    return _plan(command.label, value, end, reference, descriptor)
 
 
 def _plan(
@@ -80,7 +79,6 @@ def _plan(
     end: float,
     reference: BenchPlan,
     descriptor: DeviceDescriptor,
-    profile_s: float | None,
 ) -> MovePlan:
     flags = {f.name for f in descriptor.flags}
     return MovePlan(
@@ -90,7 +88,7 @@ def _plan(
         band=reference.band if reference.band is not None else 0.0,
         moving_flag=reference.moving_flag if reference.moving_flag in flags else None,
         fault_flags=tuple(f for f in reference.fault_flags if f in flags),
-        timeout_s=(profile_s or 0.0) + WATCH_MARGIN_S,
+        timeout_s=WATCH_S,
     )
 
 
@@ -111,8 +109,8 @@ async def watch_move(
     descriptor = entry.driver.descriptor
     labels = {f.name: f.label for f in descriptor.flags}
     started = clock()
-    rest_since: float | None = None
-    last: float | None = None
+    rest_since: float | None = None  # the sample time the axis has rested since
+    last: Sample | None = None
     while True:
         await asyncio.sleep(POLL_S)
         now = clock()
@@ -126,17 +124,18 @@ async def watch_move(
                 position,
                 f"{plan.label}: {entry.stop_cause} at {_at(position)}{_short(position, plan)}",
             )
-        if sample is None or position is None:
-            continue
-        moving = bool(plan.moving_flag and sample.flags.get(plan.moving_flag))
-        still = last is not None and abs(position - last) <= max(plan.band, 1.0) / 2
-        last = position
-        if moving or not still or now - started < START_GRACE_S:
-            rest_since = None
+        if sample is None or position is None or sample is last:
+            pass  # judged on new samples only: a host that polls late sees no rest
         else:
-            rest_since = rest_since if rest_since is not None else now
-            if now - rest_since >= REST_S:
-                return _ended(plan, sample, position, labels)
+            before, last = _position(last), sample
+            moving = bool(plan.moving_flag and sample.flags.get(plan.moving_flag))
+            still = before is not None and abs(position - before) <= max(plan.band, 1.0) / 2
+            if moving or not still or now - started < START_GRACE_S:
+                rest_since = None
+            else:
+                rest_since = rest_since if rest_since is not None else sample.t
+                if sample.t - rest_since >= REST_S:
+                    return _ended(plan, sample, position, labels)
         if now - started > plan.timeout_s:
             return MoveEnd(
                 "timeout",
