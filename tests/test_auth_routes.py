@@ -6,6 +6,7 @@ is attacked too (and a route without a declared permission fails the first test)
 
 from __future__ import annotations
 
+import base64
 import sqlite3
 import time
 from pathlib import Path
@@ -191,6 +192,28 @@ async def test_cookie_mutation_needs_the_csrf_token(tmp_path: Path) -> None:
             headers={"Origin": "https://evil.example", "Access-Control-Request-Method": "POST"},
         )
         assert not any(k.lower().startswith("access-control") for k in preflight.headers)
+
+
+async def test_only_a_bearer_authorization_skips_the_csrf_check(tmp_path: Path) -> None:
+    """Pinned rule (issue 25): a browser never attaches ``Authorization: Bearer`` on its
+    own, so a bearer call needs no CSRF token; it does attach ``Basic`` credentials it
+    has cached (a proxy's, a page's), so a ``Basic`` header proves nothing and the
+    logged-in session still needs its token."""
+    app = await exposed_app(tmp_path)
+    async with running(app), client(app) as admin, client(app) as olga:
+        await login(admin, "alice")
+        created = await admin.post("/api/auth/tokens", json={"name": "bench", "user": "olga"})
+        secret = created.json()["token"]
+        await login(olga, "olga")
+        olga.headers.pop("X-CSRF-Token")
+        basic = "Basic " + base64.b64encode(b"olga:whatever").decode()
+        for header in (basic, "basic b2xnYTp4", "Bearerstk_x", "Digest username=olga"):
+            response = await olga.post("/api/stop", headers={"Authorization": header})
+            assert response.status_code == 403, (header, response.text)
+            assert "CSRF" in response.json()["detail"], header
+        for header in (f"Bearer {secret}", f"bearer {secret}"):
+            response = await olga.post("/api/stop", headers={"Authorization": header})
+            assert response.status_code == 200, (header, response.text)
 
 
 async def test_csrf_token_of_another_session_does_not_work(tmp_path: Path) -> None:

@@ -590,7 +590,7 @@ class ControlManager:
         (stop generation). A STOP that cannot reach the axis is sent on reconnect.
         """
         entry = self._hub.entry(axis_id)
-        entry.stop_generation += 1
+        entry.stopped(f"STOP ({reason})")
         for attempt in range(1, _STOP_ATTEMPTS + 1):
             try:
                 await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)

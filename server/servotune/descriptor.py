@@ -137,6 +137,14 @@ class ArgumentDescriptor(BaseModel):
     choices: list[Choice] = []
 
 
+class MoveTarget(BaseModel):
+    """A motion command that ends at a position: the hub watches it to its end and says
+    how it ended (arrived, stopped short, stopped by a limit switch or a STOP)."""
+
+    argument: str = Field(description="the argument that gives the position or distance")
+    relative: bool = Field(default=False, description="the argument is a distance")
+
+
 class CommandDescriptor(BaseModel):
     """An action the user can trigger: ``POST /api/axes/{id}/commands``."""
 
@@ -156,6 +164,17 @@ class CommandDescriptor(BaseModel):
         default=None,
         description="a flag that is on while the mode this command selects is active "
         "(the UI shows the button as engaged)",
+    )
+    stores_parameters: Literal["axis", "link"] | None = Field(
+        default=None,
+        description="the device's save command: it stores the persisted parameters of "
+        "this axis (axis) or of every axis of the link (link) in non-volatile memory; "
+        "the UI marks a parameter saved only while its value is the one stored",
+    )
+    target: MoveTarget | None = Field(
+        default=None,
+        description="a move to a position: its answer says it was sent, a move_outcome "
+        "message says how it ended",
     )
 
 

@@ -114,6 +114,9 @@ class AxisEntry:
     stop_on_reconnect: bool = False
     # Bumped by every user STOP; sequences (bench, auto-tune) compare it before each step.
     stop_generation: int = 0
+    # Why the axis was last stopped, as it was ("STOP was pressed", "stop and hold was
+    # pressed", "STOP (dead-man: ...)"): what a sequence that the stop ended reports.
+    stop_cause: str = "STOP was pressed"
     # The task that delivers a STOP that could not be sent at once (see _deliver_stop).
     stop_task: asyncio.Task[None] | None = None
     # When the hub last got a sample of this axis (its own monotonic clock), reset when
@@ -121,6 +124,14 @@ class AxisEntry:
     # sample came for AXIS_SILENT_S while its link was up (see _check_silent_axes).
     last_sample_at: float = 0.0
     silent: bool = False
+    # The persisted parameters as the device's save command stored them, since the
+    # last save servotune saw succeed (None: not known, e.g. after a start).
+    stored_values: dict[str, int] | None = None
+
+    def stopped(self, cause: str) -> None:
+        """A stop ends every sequence running on the axis; ``cause`` says what it was."""
+        self.stop_generation += 1
+        self.stop_cause = cause
 
 
 @dataclass(slots=True)
@@ -210,6 +221,8 @@ class HubState:
         self._clients: set[ClientQueue] = set()
         self._events: deque[Event] = deque(maxlen=200)
         self._tasks: list[asyncio.Task[None]] = []
+        # The watch of each axis' last move to a target (servotune.movewatch, Hub).
+        self._move_watches: dict[str, asyncio.Task[None]] = {}
         self._sample_listeners: list[Callable[[str, Sample], None]] = []
         # Set by servotune.control: the autopilot yields to a holder and resumes later.
         self.autopilot_gate: AutopilotGate | None = None
@@ -326,6 +339,12 @@ class HubState:
         messages = [e.status.model_dump_json() for e in self._links.values()]
         for entry in self._axes.values():
             messages.append(self._axis_status(entry).model_dump_json())
+            if entry.stored_values is not None:
+                messages.append(
+                    Params(
+                        axis=entry.info.id, values=entry.stored_values, source="stored"
+                    ).model_dump_json()
+                )
             if entry.device_values:
                 messages.append(
                     Params(
@@ -340,7 +359,7 @@ class HubState:
         entries = list(self._axes.values())
         for entry in entries:
             entry.operated = True
-            entry.stop_generation += 1
+            entry.stopped("STOP was pressed")
         results = await asyncio.gather(*(e.driver.stop() for e in entries), return_exceptions=True)
         failed = []
         for entry, result in zip(entries, results, strict=True):

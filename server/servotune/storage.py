@@ -330,6 +330,12 @@ class Storage:
             ).fetchall()
         return [_run_row(row) for row in rows]
 
+    def run_ids(self) -> list[str]:
+        """Every stored run's id, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT id FROM runs ORDER BY created_s").fetchall()
+        return [run_id for (run_id,) in rows]
+
     def get_run_meta(self, run_id: str) -> dict[str, Any] | None:
         """A run without its samples (the JSON export), None if there is no such run."""
         with self._lock:

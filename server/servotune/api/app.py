@@ -42,6 +42,7 @@ from servotune.drivers.base import (
     DriverError,
     InvalidArgumentError,
     LinkDownError,
+    MeasurementError,
     ProtocolError,
 )
 from servotune.hub import Hub, NotFoundError
@@ -77,8 +78,13 @@ class AppConfig:
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
 
 
-def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
-    return JSONResponse(status_code=status, content={"detail": detail, "field": field_name})
+def _error(
+    status: int, detail: str, field_name: str | None = None, kind: str | None = None
+) -> JSONResponse:
+    content: dict[str, str | None] = {"detail": detail, "field": field_name}
+    if kind is not None:
+        content["kind"] = kind
+    return JSONResponse(status_code=status, content=content)
 
 
 HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
@@ -253,6 +259,10 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(DeviceRefusedError)
     async def refused(_: Request, exc: DeviceRefusedError) -> JSONResponse:
         return _error(409, str(exc))
+
+    @app.exception_handler(MeasurementError)
+    async def measurement(_: Request, exc: MeasurementError) -> JSONResponse:
+        return _error(409, str(exc), kind="measurement")
 
     @app.exception_handler(LinkDownError)
     async def link_down(_: Request, exc: LinkDownError) -> JSONResponse:

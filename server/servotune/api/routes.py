@@ -122,7 +122,12 @@ async def command(axis_id: str, hub: HubDep, request: CommandRequest) -> Command
     """
     args = dict(request.model_extra or {})
     outcome = await hub.command(axis_id, request.command, args)
-    return CommandResult(command=request.command, sent=outcome.sent, message=outcome.message)
+    return CommandResult(
+        command=request.command,
+        sent=outcome.sent,
+        message=outcome.message,
+        outcome_pending=outcome.outcome_pending,
+    )
 
 
 @router.post("/api/stop", response_model=StopResult, tags=["commands"])

@@ -37,6 +37,11 @@ class ProtocolError(DriverError):
     """The device answered something the protocol does not allow (bad echo, garbage)."""
 
 
+class MeasurementError(DriverError):
+    """A measurement cannot support its result (too few samples, nothing moved): the
+    device refused nothing; ``str`` says what was measured and what to change."""
+
+
 class InvalidArgumentError(DriverError):
     """An argument is missing or out of range; nothing was sent."""
 
@@ -66,17 +71,25 @@ def check_console_line(line: str) -> None:
 
 @dataclass(frozen=True, slots=True)
 class Sample:
-    """One telemetry sample of one axis, in device units."""
+    """One telemetry sample of one axis, in device units.
+
+    ``t`` is when the device latched the sample's position. ``flags_t`` is when its
+    flags were read, on the same clock: a driver that polls the flags less often than
+    the position carries the last read on every sample and says when it was taken;
+    None means "read with the sample" (a cyclic device)."""
 
     t: float
     channels: Mapping[str, float | None]
     flags: Mapping[str, bool]
+    flags_t: float | None = None
 
 
 @dataclass(slots=True)
 class CommandOutcome:
     sent: list[str] = field(default_factory=list)
     message: str = ""
+    # The hub watches the move the command started (servotune.movewatch).
+    outcome_pending: bool = False
 
 
 class DriverSink(Protocol):

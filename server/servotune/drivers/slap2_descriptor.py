@@ -18,6 +18,7 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -301,7 +302,12 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="setpoint",
             label="Setpoint",
             unit="counts",
-            description="Profile generator setpoint = position + following error.",
+            description=(
+                "Profile generator setpoint: the move servotune commanded, replayed through "
+                "the firmware's trapezoid law and checked against pe; where there is none, "
+                "position + pe while pe is steady. Empty otherwise: rp and pe are read a "
+                "transaction apart, and on a ringing axis their sum is no setpoint."
+            ),
             conversions=[revs, deg],
         ),
         ChannelDescriptor(
@@ -443,6 +449,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             description="ma: move to a position (needs position mode).",
             group="motion",
             arguments=[position_arg],
+            target=MoveTarget(argument="position"),
         ),
         CommandDescriptor(
             name="move_relative",
@@ -460,6 +467,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="distance", relative=True),
         ),
         CommandDescriptor(
             name="set_position",
@@ -526,6 +534,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             group="persist",
             confirm="Store the current settings permanently in the module's EEPROM?",
+            stores_parameters="axis",
         ),
         CommandDescriptor(
             name="restore_parameters",

@@ -17,6 +17,7 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -227,7 +228,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             name="setpoint",
             label="Profile position",
             unit="counts",
-            description="Position + GetError: where the trapezoid is now.",
+            description=(
+                "Position + GetError: where the trapezoid is now. Empty while the error "
+                "is not steady: the two are read a transaction apart, and on a ringing "
+                "motor their sum is no profile position."
+            ),
             conversions=[revs],
         ),
         ChannelDescriptor(
@@ -334,6 +339,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="target"),
         ),
         CommandDescriptor(
             name="constant_velocity",
@@ -378,6 +384,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             group="persist",
             description="SetFlash: store all parameters of all three motors; loaded at power-on.",
             confirm="Write the parameters of all three motors to the chip's flash?",
+            stores_parameters="link",
         ),
         CommandDescriptor(
             name="restore_parameters",
