@@ -15,7 +15,7 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final, Protocol, runtime_checkable
 
 # --- EtherCAT state machine values (the same numbers as pysoem's constants) ---------------
 
@@ -214,6 +214,27 @@ class EthercatMaster(Protocol):
     def expected_wkc(self) -> int: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class PacedMaster(Protocol):
+    """A master whose process data runs on a cycle of its own (``ethercat_cycle``):
+    ``receive_processdata`` waits for that cycle, so the driver's loop does not sleep,
+    and the slave's watchdog is judged by the cycle's exchanges (``last_good_t``: the
+    send time of its last good one), not by the driver's thread."""
+
+    paced: bool
+    priority_granted: bool
+    priority_text: str
+
+    @property
+    def cycle_lost(self) -> int:
+        """Exchanges of the cycle without the expected working counter, so far."""
+        ...
+
+    def last_good_t(self) -> float | None: ...
+
+    def shutdown(self) -> None: ...
 
 
 # --- pysoem adapter ---------------------------------------------------------------------

@@ -1,0 +1,694 @@
+"""The EtherCAT process-data cycle in a process of its own: a cycle a loaded host cannot
+stall.
+
+``CycleProcessMaster`` is the driver's ``EthercatMaster`` (pysoem's names) over a child
+process that owns the real master (``PysoemMaster`` on a NIC, or any master a
+picklable factory builds, e.g. the demo's ``ProcessMaster`` behind the seam). Why: in
+the server, the driver's cycle thread shares one interpreter lock with the event loop,
+the hub, the websockets and the other links; under load it missed the slave's 100 ms
+watchdog (the demo's EP7047 lost its process data 64 times in 23 minutes). In the child
+nothing else runs: it sends the latest outputs every period to an absolute deadline at
+real-time priority (SCHED_FIFO where the OS grants it; the reason is logged and shown
+where it does not), whatever the server does.
+
+Channels (``multiprocessing`` pipes between this process and its own child):
+
+* requests (``rpc``): bring-up, state machine, SDO transfers, one synchronous exchange
+  for the bring-up; answered one at a time, run by the child between two cycles;
+* the cycle (``cyc``): the parent sends the outputs when it has new ones (bytes, with a
+  sequence number); the child sends one record per cycle: its sequence number, the
+  send time, the working counter, the sequence number of the outputs it carried, the
+  longest gap between good exchanges, and the inputs. The child's end is non-blocking:
+  a server that does not read (stalled) loses records, never holds the cycle.
+
+Semantics for the driver: ``send_processdata`` hands the outputs over;
+``receive_processdata`` waits for the first cycle that carried them and returns its
+working counter and inputs (so a handshake that waits for the drive's answer to an
+output still sees it). The driver's own loop does not sleep (``paced``): it runs at the
+child's pace. ``last_good_t()`` is the send time of the child's last good exchange: the
+driver judges the slave's watchdog by the wire, not by its own thread.
+
+Safety (decisions): the child lives as long as this process (its end of the request
+pipe closes when this process dies, however it dies: the child then sends all-zero
+outputs for a few cycles - Enable off - asks for INIT and exits). A server that is
+alive but sends nothing for ``SERVER_SILENCE_S`` (2 s: far beyond any stall of a busy
+host, seen up to ~1 s) is taken as hung: the child stops the cycle, so the slave's own
+watchdog stops the drive, and the driver finds it in SAFE-OP + ERROR when it runs again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import multiprocessing
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any, Final
+
+from servotune.transports.ethercat import (
+    INIT_STATE,
+    OP_STATE,
+    EthercatError,
+    EthercatMailboxError,
+    EthercatMaster,
+    EthercatSdoError,
+    EthercatSlave,
+    EthercatUnavailableError,
+)
+
+logger = logging.getLogger(__name__)
+
+SERVER_SILENCE_S: Final = 2.0
+REQUEST_TIMEOUT_S: Final = 5.0
+CYCLE_REPLY_TIMEOUT_S: Final = 1.0
+START_TIMEOUT_S: Final = 30.0
+RT_PRIORITY: Final = 50
+_RECORD = struct.Struct("<QdiQQQ")  # seq, sent_t, wkc, out_seq, lost, max_gap_us
+_OUTPUTS = struct.Struct("<Q")  # out_seq, then the outputs of each slave
+_PR_SET_NAME: Final = 15
+
+
+def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
+    """SCHED_FIFO ``priority`` for the calling thread (and threads it starts later);
+    (granted, what was granted or why not - for the log and the user)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, -10)
+        except OSError:
+            return False, (
+                f"{what} runs at normal priority: real-time scheduling was refused ({exc}); "
+                "run servotune as root or give it CAP_SYS_NICE (`sudo setcap "
+                "cap_net_raw,cap_net_admin,cap_sys_nice+ep $(readlink -f .venv/bin/python)`) "
+                "so that a loaded host cannot delay the process data"
+            )
+        return False, f"{what} at nice -10: real-time scheduling was refused ({exc})"
+    return True, f"{what} at real-time priority (SCHED_FIFO {priority})"
+
+
+def set_process_name(name: str) -> None:
+    """Best effort: ``/proc/<pid>/comm`` (15 characters) on Linux."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
+
+
+# --- the child ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class CycleSpec:
+    """What the child runs: ``factory()`` builds the master (module level or a
+    ``functools.partial``: it is pickled); the period; the process name."""
+
+    factory: Callable[[], EthercatMaster]
+    cycle_s: float
+    name: str = "ec-cycle"
+    realtime: bool = True
+
+
+def _error_reply(exc: Exception) -> tuple[str, ...]:
+    if isinstance(exc, EthercatSdoError):
+        return ("sdo", str(exc.index), str(exc.subindex), str(exc.abort_code), exc.desc)
+    if isinstance(exc, EthercatUnavailableError):
+        return ("unavailable", str(exc))
+    if isinstance(exc, ValueError):
+        return ("value", str(exc))
+    return ("mailbox", f"{exc}" if isinstance(exc, EthercatError) else repr(exc))
+
+
+def _raise_from(reply: tuple[str, ...]) -> None:
+    kind = reply[0]
+    if kind == "sdo":
+        raise EthercatSdoError(int(reply[1]), int(reply[2]), int(reply[3]), reply[4])
+    if kind == "unavailable":
+        raise EthercatUnavailableError(reply[1])
+    if kind == "value":
+        raise ValueError(reply[1])
+    raise EthercatMailboxError(reply[1])
+
+
+def _slave_info(slave: EthercatSlave) -> tuple[int, int, int, str, int, int]:
+    return (slave.man, slave.id, slave.rev, slave.name, slave.state, slave.al_status)
+
+
+class _Child:
+    def __init__(self, spec: CycleSpec, rpc: Connection, cyc: Connection) -> None:
+        self.spec = spec
+        self.rpc = rpc
+        self.cyc = cyc
+        self.master: EthercatMaster | None = None
+        self.cyclic = False
+        self.outputs: list[bytes] = []
+        self.out_seq = 0
+        self.seq = 0
+        self.lost = 0
+        self.last_good_t = 0.0
+        self.max_gap_s = 0.0
+        self.heard_t = time.monotonic()
+
+    def run(self) -> None:
+        period = self.spec.cycle_s
+        deadline = time.monotonic()
+        while True:
+            if self.cyclic:
+                if time.monotonic() - self.heard_t > SERVER_SILENCE_S:
+                    logger.error(
+                        "the server sent nothing for %.1f s: the cycle stops, the drive's "
+                        "watchdog stops the motor",
+                        SERVER_SILENCE_S,
+                    )
+                    self.cyclic = False
+                    continue
+                self._take_outputs()
+                self._exchange()
+                deadline += period
+                delay = deadline - time.monotonic()
+                if delay < -period:
+                    deadline = time.monotonic()  # more than a period late: re-anchor
+                # Requests in the rest of the period (at least one, so none starves).
+                served = False
+                while True:
+                    remaining = deadline - time.monotonic()
+                    if served and remaining <= 0:
+                        break
+                    if not self.rpc.poll(max(remaining, 0)):
+                        break
+                    if not self._serve_one():
+                        return
+                    served = True
+                remaining = deadline - time.monotonic()
+                if remaining > 0:
+                    time.sleep(remaining)
+            else:
+                if self.rpc.poll(0.05) and not self._serve_one():
+                    return
+                deadline = time.monotonic()
+
+    def _take_outputs(self) -> None:
+        cyc = self.cyc
+        with contextlib.suppress(OSError, EOFError):
+            while cyc.poll(0):
+                message = cyc.recv_bytes()
+                self.out_seq = _OUTPUTS.unpack_from(message)[0]
+                self.heard_t = time.monotonic()
+                self._split_outputs(message[_OUTPUTS.size :])
+
+    def _split_outputs(self, data: bytes) -> None:
+        master = self.master
+        if master is None:
+            return
+        offset = 0
+        for slave in master.slaves:
+            size = len(slave.output)
+            if size:
+                slave.output = data[offset : offset + size]
+                offset += size
+
+    def _exchange(self) -> None:
+        master = self.master
+        if master is None:
+            return
+        sent_t = time.monotonic()
+        try:
+            master.send_processdata()
+            wkc = master.receive_processdata(min(2000, int(self.spec.cycle_s * 1e6)))
+        except (EthercatError, OSError) as exc:
+            logger.warning("exchange failed: %s", exc)
+            wkc = -1
+        self.seq += 1
+        if wkc == master.expected_wkc:
+            if self.last_good_t:
+                self.max_gap_s = max(self.max_gap_s, sent_t - self.last_good_t)
+            self.last_good_t = sent_t
+        else:
+            self.lost += 1
+        inputs = b"".join(slave.input for slave in master.slaves)
+        record = _RECORD.pack(
+            self.seq, sent_t, wkc, self.out_seq, self.lost, int(self.max_gap_s * 1e6)
+        )
+        try:
+            self.cyc.send_bytes(record + inputs)
+            self.max_gap_s = 0.0
+        except BlockingIOError:
+            pass  # the server does not read: it gets the next record
+        except OSError:
+            pass  # the server went away: the request pipe tells
+
+    def _serve_one(self) -> bool:
+        try:
+            request = self.rpc.recv()
+        except (EOFError, OSError):
+            self._server_gone()
+            return False
+        self.heard_t = time.monotonic()
+        op, args = request[0], request[1:]
+        if op == "stop":
+            self._close()
+            self.rpc.send(("ok", None))
+            return False
+        try:
+            result = self._do(op, args)
+        except Exception as exc:
+            reply: tuple[Any, ...] = ("error", *_error_reply(exc))
+        else:
+            reply = ("ok", result)
+        try:
+            self.rpc.send(reply)
+        except OSError:
+            self._server_gone()
+            return False
+        return True
+
+    def _do(self, op: str, args: tuple[Any, ...]) -> Any:
+        if op == "open":
+            self._close()
+            self.master = self.spec.factory()
+            self.master.open(str(args[0]))
+            return None
+        master = self.master
+        if master is None:
+            raise EthercatMailboxError("the EtherCAT master is not open")
+        if op == "config_init":
+            self.cyclic = False
+            found = master.config_init()
+            return found, [_slave_info(s) for s in master.slaves]
+        if op == "config_map":
+            total = master.config_map()
+            return total, [(len(s.output), bytes(s.input)) for s in master.slaves]
+        if op == "exchange":  # one synchronous exchange (bring-up)
+            self._split_outputs(bytes(args[0]))
+            master.send_processdata()
+            wkc = master.receive_processdata(int(args[1]))
+            return wkc, b"".join(s.input for s in master.slaves), self._states()
+        if op == "start_cyclic":
+            self.cyclic = True
+            self.last_good_t = time.monotonic()
+            self.max_gap_s = 0.0
+            self.heard_t = time.monotonic()
+            return None
+        if op == "read_state":
+            return master.read_state(), self._states()
+        if op == "write_state":
+            master.state = int(args[0])
+            return master.write_state(), self._states()
+        if op == "state_check":
+            return master.state_check(int(args[0]), int(args[1])), self._states()
+        if op == "expected_wkc":
+            return master.expected_wkc
+        slave = master.slaves[int(args[0]) - 1]
+        if op == "sdo_read":
+            return bytes(slave.sdo_read(int(args[1]), int(args[2]), int(args[3]))), self._states()
+        if op == "sdo_write":
+            slave.sdo_write(int(args[1]), int(args[2]), bytes(args[3]))
+            return None, self._states()
+        if op == "slave_write_state":
+            slave.state = int(args[1])
+            return slave.write_state(), self._states()
+        if op == "slave_state_check":
+            return slave.state_check(int(args[1]), int(args[2])), self._states()
+        if op == "close":
+            self._close()
+            return None
+        raise EthercatMailboxError(f"unknown request {op!r}")
+
+    def _states(self) -> list[tuple[int, int]]:
+        master = self.master
+        return [] if master is None else [(s.state, s.al_status) for s in master.slaves]
+
+    def _close(self) -> None:
+        self.cyclic = False
+        master, self.master = self.master, None
+        if master is not None:
+            with contextlib.suppress(Exception):
+                master.close()
+
+    def _server_gone(self) -> None:
+        """The server died: all-zero outputs (Enable off) for a few cycles, INIT, exit."""
+        master = self.master
+        if master is not None and self.cyclic:
+            with contextlib.suppress(Exception):
+                for slave in master.slaves:
+                    slave.output = bytes(len(slave.output))
+                for _ in range(5):
+                    master.send_processdata()
+                    master.receive_processdata(2000)
+                    time.sleep(self.spec.cycle_s)
+                master.state = INIT_STATE
+                master.write_state()
+        self._close()
+
+
+def _child_main(spec: CycleSpec, rpc: Connection, cyc: Connection, parent_pid: int) -> None:
+    set_process_name(spec.name)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops it
+    logging.basicConfig(
+        level=logging.INFO, format=f"%(asctime)s %(levelname)s {spec.name}: %(message)s"
+    )
+    os.set_blocking(cyc.fileno(), False)  # never wait for the server
+    granted, text = raise_priority("the EtherCAT cycle") if spec.realtime else (False, "")
+    rpc.send(("ready", os.getpid(), granted, text))
+    _Child(spec, rpc, cyc).run()
+
+
+# --- the parent: the driver's EthercatMaster -------------------------------------------------
+
+
+class _Slave:
+    """One slave of a :class:`CycleProcessMaster` (the driver's ``EthercatSlave``)."""
+
+    def __init__(self, master: CycleProcessMaster, position: int, info: Sequence[Any]) -> None:
+        self._master = master
+        self._position = position
+        self._man, self._id, self._rev, self._name, self._state, self._al_status = info
+        self._output = b""
+        self._input = b""
+        self._output_size: int | None = None
+
+    @property
+    def man(self) -> int:
+        return int(self._man)
+
+    @property
+    def id(self) -> int:
+        return int(self._id)
+
+    @property
+    def rev(self) -> int:
+        return int(self._rev)
+
+    @property
+    def name(self) -> str:
+        return str(self._name)
+
+    @property
+    def state(self) -> int:
+        return int(self._state)
+
+    @state.setter
+    def state(self, value: int) -> None:
+        self._state = value
+
+    @property
+    def al_status(self) -> int:
+        return int(self._al_status)
+
+    @property
+    def input(self) -> bytes:
+        return self._input
+
+    @property
+    def output(self) -> bytes:
+        return self._output
+
+    @output.setter
+    def output(self, value: bytes) -> None:
+        if self._output_size is None:
+            raise ValueError("the process data is not mapped (config_map)")
+        if len(value) != self._output_size:
+            raise ValueError(f"outputs are {self._output_size} bytes, got {len(value)}")
+        self._output = bytes(value)
+
+    def sdo_read(self, index: int, subindex: int, size: int = 0) -> bytes:
+        data: bytes = self._master._call("sdo_read", self._position, index, subindex, size)
+        return data
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        self._master._call("sdo_write", self._position, index, subindex, bytes(data))
+
+    def write_state(self) -> int:
+        return int(self._master._call("slave_write_state", self._position, self._state))
+
+    def state_check(self, expected_state: int, timeout: int = 2000) -> int:
+        return int(self._master._call("slave_state_check", self._position, expected_state, timeout))
+
+
+class CycleProcessMaster:
+    """The driver's ``EthercatMaster`` over a cycle process (see the module docstring).
+
+    ``factory`` builds the real master in the child (picklable). The child is started by
+    ``open`` and ended by :meth:`shutdown` (or with this process).
+    """
+
+    paced = True
+
+    def __init__(
+        self,
+        factory: Callable[[], EthercatMaster],
+        *,
+        cycle_s: float = 0.002,
+        name: str = "ec-cycle",
+        realtime: bool = True,
+    ) -> None:
+        self._spec = CycleSpec(factory, cycle_s, name, realtime)
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._rpc: Connection | None = None
+        self._cyc: Connection | None = None
+        self._lock = threading.Lock()
+        self._slaves: list[_Slave] = []
+        self._state = INIT_STATE
+        self._expected_wkc = 0
+        self._out_seq = 0
+        self._cyclic = False  # the child runs the cycle; set by the first send in OP
+        self._sent_outputs: bytes | None = None
+        self._last_good_t: float | None = None
+        self._max_gap_s = 0.0
+        self._lost = 0
+        self.pid: int | None = None
+        self.priority_granted = False
+        self.priority_text = ""
+
+    # --- the child -----------------------------------------------------------------------
+
+    def _start(self) -> None:
+        if self._process is not None and self._process.is_alive():
+            return
+        self._reap()
+        context = multiprocessing.get_context("spawn")
+        rpc_parent, rpc_child = context.Pipe()
+        cyc_parent, cyc_child = context.Pipe()
+        process = context.Process(
+            target=_child_main,
+            args=(self._spec, rpc_child, cyc_child, os.getpid()),
+            name=self._spec.name,
+            daemon=True,
+        )
+        process.start()
+        rpc_child.close()
+        cyc_child.close()
+        self._process, self._rpc, self._cyc = process, rpc_parent, cyc_parent
+        if not rpc_parent.poll(START_TIMEOUT_S):
+            self._reap()
+            raise EthercatUnavailableError(
+                f"the EtherCAT cycle process did not start within {START_TIMEOUT_S:g} s"
+            )
+        try:
+            _, pid, granted, text = rpc_parent.recv()
+        except (EOFError, OSError) as exc:
+            self._reap()
+            raise EthercatUnavailableError(f"the EtherCAT cycle process ended: {exc!r}") from exc
+        self.pid, self.priority_granted, self.priority_text = pid, granted, text
+        if text:
+            (logger.info if granted else logger.warning)("%s", text)
+
+    def _reap(self) -> None:
+        process, self._process = self._process, None
+        for conn in (self._rpc, self._cyc):
+            if conn is not None:
+                conn.close()
+        self._rpc = self._cyc = None
+        if process is not None:
+            process.join(2.0)
+            if process.is_alive():
+                process.kill()
+                process.join(2.0)
+            process.close()
+
+    def shutdown(self) -> None:
+        """End the child (the link is done with this master)."""
+        with self._lock:
+            rpc = self._rpc
+            if rpc is not None and self._process is not None and self._process.is_alive():
+                with contextlib.suppress(OSError, EOFError):
+                    rpc.send(("stop",))
+                    if rpc.poll(2.0):
+                        rpc.recv()
+            self._reap()
+
+    def _call(self, op: str, *args: Any) -> Any:
+        with self._lock:
+            rpc = self._rpc
+            if rpc is None or self._process is None or not self._process.is_alive():
+                raise EthercatMailboxError("the EtherCAT cycle process is not running")
+            try:
+                rpc.send((op, *args))
+                if not rpc.poll(REQUEST_TIMEOUT_S):
+                    raise EthercatMailboxError(
+                        f"the EtherCAT cycle process did not answer {op} within "
+                        f"{REQUEST_TIMEOUT_S:g} s"
+                    )
+                reply = rpc.recv()
+            except (EOFError, OSError) as exc:
+                raise EthercatMailboxError(f"lost the EtherCAT cycle process: {exc!r}") from exc
+        if reply[0] == "error":
+            _raise_from(reply[1:])
+        result = reply[1]
+        if op in ("read_state", "write_state", "state_check", "sdo_read", "sdo_write",
+                  "slave_write_state", "slave_state_check", "exchange"):  # fmt: skip
+            self._update_states(result[-1])
+            return result[0] if op != "exchange" else result
+        return result
+
+    def _update_states(self, states: Sequence[tuple[int, int]]) -> None:
+        for slave, (state, al_status) in zip(self._slaves, states, strict=False):
+            slave._state, slave._al_status = state, al_status
+
+    # --- EthercatMaster -----------------------------------------------------------------
+
+    def open(self, ifname: str) -> None:
+        self._start()
+        self._call("open", ifname)
+
+    def config_init(self) -> int:
+        found, infos = self._call("config_init")
+        self._cyclic = False
+        self._slaves = [_Slave(self, i + 1, info) for i, info in enumerate(infos)]
+        self._sent_outputs = None
+        return int(found)
+
+    @property
+    def slaves(self) -> Sequence[EthercatSlave]:
+        return self._slaves
+
+    def config_map(self) -> int:
+        total, images = self._call("config_map")
+        for slave, (output_size, inputs) in zip(self._slaves, images, strict=True):
+            slave._output_size = output_size
+            slave._output = bytes(output_size)
+            slave._input = bytes(inputs)
+        self._expected_wkc = int(self._call("expected_wkc"))
+        return int(total)
+
+    def _outputs(self) -> bytes:
+        return b"".join(s.output for s in self._slaves)
+
+    def send_processdata(self) -> int:
+        """Before OP: kept for the next synchronous exchange. In OP: handed to the
+        cycle (the first call in OP starts it)."""
+        outputs = self._outputs()
+        if not self._cyclic and self._state != OP_STATE:
+            self._sent_outputs = outputs
+            return 1
+        if not self._cyclic:
+            self._call("start_cyclic")
+            self._cyclic = True
+        if self._cyc is None:
+            raise EthercatMailboxError("the EtherCAT cycle process is not running")
+        self._out_seq += 1
+        try:
+            self._cyc.send_bytes(_OUTPUTS.pack(self._out_seq) + outputs)
+        except OSError as exc:
+            raise EthercatMailboxError(f"lost the EtherCAT cycle process: {exc!r}") from exc
+        return 1
+
+    def receive_processdata(self, timeout: int = 2000) -> int:
+        if not self._cyclic:
+            outputs = self._sent_outputs if self._sent_outputs is not None else self._outputs()
+            wkc, inputs, _ = self._call("exchange", outputs, timeout)
+            self._set_inputs(inputs)
+            return int(wkc)
+        return self._await_cycle()
+
+    def _await_cycle(self) -> int:
+        cyc = self._cyc
+        if cyc is None:
+            raise EthercatMailboxError("the EtherCAT cycle process is not running")
+        deadline = time.monotonic() + CYCLE_REPLY_TIMEOUT_S
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                if not cyc.poll(max(remaining, 0)):
+                    raise EthercatMailboxError(
+                        f"the EtherCAT cycle process sent no cycle for {CYCLE_REPLY_TIMEOUT_S:g} s"
+                    )
+                message = cyc.recv_bytes()
+            except (EOFError, OSError) as exc:
+                raise EthercatMailboxError(f"lost the EtherCAT cycle process: {exc!r}") from exc
+            wkc, out_seq = self._take_record(message)
+            if out_seq >= self._out_seq:
+                return wkc
+
+    def _take_record(self, message: bytes) -> tuple[int, int]:
+        _, sent_t, wkc, out_seq, lost, max_gap_us = _RECORD.unpack_from(message)
+        self._set_inputs(message[_RECORD.size :])
+        if wkc == self._expected_wkc:
+            self._last_good_t = sent_t
+        self._max_gap_s = max(self._max_gap_s, max_gap_us / 1e6)
+        self._lost = lost
+        return wkc, out_seq
+
+    def _set_inputs(self, data: bytes) -> None:
+        offset = 0
+        for slave in self._slaves:
+            size = len(slave._input)
+            slave._input = data[offset : offset + size]
+            offset += size
+
+    def last_good_t(self) -> float | None:
+        """The send time of the cycle's last good exchange, after reading every record
+        that is waiting (None before the cycle runs)."""
+        cyc = self._cyc
+        if cyc is not None and self._cyclic:
+            with contextlib.suppress(OSError, EOFError):
+                while cyc.poll(0):
+                    self._take_record(cyc.recv_bytes())
+        return self._last_good_t
+
+    def take_max_gap_s(self) -> float:
+        """The longest gap between two good exchanges of the cycle since the last call."""
+        gap, self._max_gap_s = self._max_gap_s, 0.0
+        return gap
+
+    @property
+    def cycle_lost(self) -> int:
+        """Exchanges of the cycle process without the expected working counter."""
+        return self._lost
+
+    def read_state(self) -> int:
+        return int(self._call("read_state"))
+
+    def write_state(self) -> int:
+        return int(self._call("write_state", self._state))
+
+    def state_check(self, expected_state: int, timeout: int = 50000) -> int:
+        return int(self._call("state_check", expected_state, timeout))
+
+    @property
+    def state(self) -> int:
+        return self._state
+
+    @state.setter
+    def state(self, value: int) -> None:
+        self._state = value
+
+    @property
+    def expected_wkc(self) -> int:
+        return self._expected_wkc
+
+    def close(self) -> None:
+        self._cyclic = False
+        self._state = INIT_STATE
+        if self._process is not None and self._process.is_alive():
+            with contextlib.suppress(EthercatError):
+                self._call("close")
