@@ -168,7 +168,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     config = AppConfig(
         data_dir=data_dir,
         autopilot=not args.no_autopilot,
-        simulators=demo_simulators(data_dir),
+        simulators=demo_simulators(data_dir, ethercat_wire=args.ethercat_wire),
         security=security_config_from_args(args, args.host),
     )
     _run_server(config, args.host, args.port)
@@ -310,6 +310,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--port", type=int, default=8000)
     demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
     demo.add_argument("--data-dir", type=Path, default=None)
+    demo.add_argument(
+        "--ethercat-wire",
+        action="store_true",
+        help="the EP7047 as a real EtherCAT slave on a veth pair, driven by pysoem (root; "
+        "default: behind the master seam)",
+    )
     add_security_arguments(demo)
     demo.set_defaults(func=cmd_demo)
 

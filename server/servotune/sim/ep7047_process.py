@@ -65,11 +65,13 @@ from servotune.transports.ethercat import (
     EthercatSlave,
     EthercatUnavailableError,
 )
+from servotune.transports.ethercat_cycle import raise_priority
 
 logger = logging.getLogger(__name__)
 
 ADDRESS_PREFIX: Final = "sim:"
 REPLY_TIMEOUT_S: Final = 1.0
+SIM_RT_PRIORITY: Final = 45  # below the cycle process (50), above everything else
 _MAX_MESSAGE: Final = 1 << 16
 _PROCESS: Final = b"P"[0]
 _JSON: Final = b"J"[0]
@@ -663,6 +665,10 @@ def _listening(socket_path: str | None) -> Iterator[tuple[socket.socket, str]]:
 
 def serve_ep7047(spec: Ep7047SimSpec, conn: Connection) -> None:
     """Child: the simulated master on a socket until the lifeline says stop (or ends)."""
+    # Real-time priority where granted: the driver's cycle process (SCHED_FIFO) waits
+    # for this simulator's answer each cycle, so a simulator that a CPU hog delays
+    # would stretch the cycle - a real slave is hardware and answers in microseconds.
+    logger.info("%s", raise_priority("the simulated EP7047-1032", SIM_RT_PRIORITY)[1])
     clock = _FrameClock(time.monotonic())
     master = spec.build(clock)
     server = _SlaveServer(master, clock)

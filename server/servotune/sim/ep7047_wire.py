@@ -218,6 +218,9 @@ class WireSlave:
         self._t0 = clock_ns()
         self._cycle_no = 0
         self._last_frame_ns: int | None = None
+        # Gaps between process-data frames in OP (ns), for the period/jitter figures;
+        # bounded (an hour at 1 ms), read and cleared through the control socket.
+        self.gaps_ns: deque[int] = deque(maxlen=3_600_000)
         self._lock = threading.Lock()
         self._set_sms_for_state()
 
@@ -546,13 +549,19 @@ class WireSlave:
         with self._lock:
             self.advance(now_ns)
             self.stats.frames += 1
-            if self.al_state == AL_OP and self._last_frame_ns is not None:
-                self.stats.max_gap_ns = max(self.stats.max_gap_ns, now_ns - self._last_frame_ns)
-            self._last_frame_ns = now_ns
             faults = self.faults
             # The knobs act on process-data frames (a logical datagram first), so that a
             # test knows how many cycles they cost; mailbox polls pass.
             cyclic = len(payload) > 2 and payload[2] in (10, 11, 12)
+            if cyclic and self.al_state == AL_OP:
+                # The period the wire sees: between two process-data frames in OP.
+                if self._last_frame_ns is not None:
+                    gap = now_ns - self._last_frame_ns
+                    self.stats.max_gap_ns = max(self.stats.max_gap_ns, gap)
+                    self.gaps_ns.append(gap)
+                self._last_frame_ns = now_ns
+            elif self.al_state != AL_OP:
+                self._last_frame_ns = None
             if cyclic and faults.drop_frames > 0:
                 faults.drop_frames -= 1
                 self.stats.dropped += 1
@@ -732,6 +741,29 @@ class WireSlave:
                 self.faults.refuse_code = int(request.get("code", 0))
             elif op == "reset_gap":
                 self.stats.max_gap_ns = 0
+                self.gaps_ns.clear()
+            elif op == "gaps":
+                gaps = sorted(self.gaps_ns)
+                self.gaps_ns.clear()
+                return {"ok": _gap_summary(gaps)}
             elif op != "record":
                 return {"error": f"unknown op {op!r}"}
         return {"ok": self.record()}
+
+
+def _gap_summary(gaps: list[int]) -> dict[str, float]:
+    """Count, p50/p99/max and mean of sorted frame gaps, in ms."""
+    if not gaps:
+        return {"count": 0}
+
+    def at(q: float) -> float:
+        return gaps[min(len(gaps) - 1, int(q * len(gaps)))] / 1e6
+
+    return {
+        "count": len(gaps),
+        "mean_ms": sum(gaps) / len(gaps) / 1e6,
+        "p50_ms": at(0.5),
+        "p99_ms": at(0.99),
+        "max_ms": gaps[-1] / 1e6,
+        "over_10ms": sum(1 for g in gaps if g > 10_000_000),
+    }

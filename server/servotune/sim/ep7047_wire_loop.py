@@ -26,6 +26,7 @@ from typing import Any, Final
 from servotune.sim.ep7047_esc import ETHERTYPE_ECAT
 from servotune.sim.ep7047_sii import Identity
 from servotune.sim.ep7047_wire import WireSlave
+from servotune.transports.ethercat_cycle import raise_priority
 
 logger = logging.getLogger(__name__)
 
@@ -33,23 +34,6 @@ SOL_PACKET: Final = 263  # linux/socket.h
 PACKET_IGNORE_OUTGOING: Final = 23  # linux/if_packet.h (Linux 4.20+)
 PACKET_OUTGOING: Final = 4
 RT_PRIORITY: Final = 40
-
-
-def raise_priority(what: str, priority: int = RT_PRIORITY) -> str:
-    """SCHED_FIFO ``priority`` for this process (the calling thread's scheduling class is
-    inherited by threads started after); returns what was granted, for the log."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, AttributeError) as exc:
-        try:
-            os.setpriority(os.PRIO_PROCESS, 0, -10)
-        except OSError:
-            return (
-                f"{what}: normal priority (real-time scheduling refused: {exc}; run as root "
-                "or grant CAP_SYS_NICE for a cycle a loaded host cannot stall)"
-            )
-        return f"{what}: nice -10 (real-time scheduling refused: {exc})"
-    return f"{what}: real-time priority SCHED_FIFO {priority}"
 
 
 def _open_socket(ifname: str) -> socket.socket:
@@ -184,7 +168,7 @@ def run_wire_simulator(
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: stop.set())
     if realtime:
-        print(raise_priority("EP7047 wire simulator"), flush=True)
+        print(raise_priority("the EP7047 wire simulator", RT_PRIORITY)[1], flush=True)
     slave = demo_wire_slave(identity)
 
     def ready(name: str) -> None:

@@ -352,7 +352,11 @@ class _Child:
 
 def _child_main(spec: CycleSpec, rpc: Connection, cyc: Connection, parent_pid: int) -> None:
     set_process_name(spec.name)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops it
+    # Ctrl-C and a service manager's SIGTERM reach the whole process group: the server
+    # ramps the axis down through this process first, then stops it (or its death
+    # closes the request pipe, and the child makes the outputs safe by itself).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(
         level=logging.INFO, format=f"%(asctime)s %(levelname)s {spec.name}: %(message)s"
     )
