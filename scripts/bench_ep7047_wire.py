@@ -139,12 +139,15 @@ async def run_one(
                      "velocity": 3000, "acceleration_ms": 400, "deceleration_ms": 400},
                 )  # fmt: skip
             target = -target
-            end = time.monotonic() + 1.5
-            while time.monotonic() < end and time.monotonic() - t0 < seconds:
-                await asyncio.sleep(0.1)
-                if link.state != "connected":
-                    with contextlib.suppress(Exception):
-                        await axis.command("enable", {})
+            await asyncio.sleep(max(0.0, min(1.5, seconds - (time.monotonic() - t0))))
+            latest = sink.latest
+            if (
+                link.state == "connected"
+                and latest is not None
+                and not latest.flags.get("enable_out")
+            ):
+                with contextlib.suppress(Exception):  # after a trip: Enable again
+                    await axis.command("enable", {})
         elapsed = time.monotonic() - t0
         cpu = {name: (cpu_s(pid) - cpu_before[name]) / elapsed for name, pid in pids.items()}
         gaps = slave.control("gaps")["ok"]

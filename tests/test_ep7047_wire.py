@@ -10,32 +10,27 @@ Each test makes its own namespace and slave (unique names) and removes them.
 from __future__ import annotations
 
 import asyncio
-import csv
 import os
 import re
 import signal
 import time
-from decimal import Decimal
 from pathlib import Path
-from typing import NamedTuple
 
 import pytest
 
 from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
-from servotune.drivers.ep7047 import PysoemMaster, build_ep7047_link
+from servotune.drivers.ep7047 import PysoemMaster
 from servotune.drivers.ep7047_descriptor import INVERSION_PARAMETER, PARAMETER_SDO
 from servotune.hub import Hub
 from servotune.protocols.ep7047 import StartType
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
-from servotune.storage import Storage
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 from .conftest import wait_for
-from .wire_support import Wire, WireRun, wire_link, wire_setup
+from .test_ep7047_engine import load_cases
+from .wire_support import Wire, WireRun, start_endless, wire_hub, wire_link, wire_setup
 
 pytestmark = pytest.mark.slow
 
-CASES_CSV = Path(__file__).resolve().parent / "data" / "ep7047_modulo_cases.csv"
 TURN_DEGREES = 3600  # the manual's tables in tenths of a degree: modulo factor 360°
 
 
@@ -151,37 +146,6 @@ async def test_wire_a_value_the_drive_refuses_is_a_field_error_with_the_abort(
 # --- moves ------------------------------------------------------------------------------
 
 
-class ModuloCase(NamedTuple):
-    start_type: StartType
-    window: int
-    start: int
-    target: int
-    relative: int
-    abs_end: int
-
-
-def _tenths(text: str) -> int:
-    value = Decimal(text) * 10
-    assert value == value.to_integral_value(), text
-    return int(value)
-
-
-def _cases() -> list[ModuloCase]:
-    with CASES_CSV.open(newline="") as file:
-        rows = [line for line in file if not line.startswith("#")]
-    return [
-        ModuloCase(
-            StartType[row["start_type"]],
-            _tenths(row["window"]),
-            _tenths(row["start"]),
-            _tenths(row["target"]),
-            _tenths(row["relative"]),
-            _tenths(row["abs_end"]),
-        )
-        for row in csv.DictReader(rows)
-    ]
-
-
 async def _modulo_setup(run: WireRun, window: int) -> None:
     await run.axis.write_params(
         {"modulo_factor_counts": TURN_DEGREES, "modulo_tolerance_window_counts": window}
@@ -189,7 +153,7 @@ async def _modulo_setup(run: WireRun, window: int) -> None:
 
 
 async def test_wire_every_modulo_case_of_the_manual(wire: Wire) -> None:
-    cases = _cases()
+    cases = load_cases()  # the manual's tables in tenths of a degree
     assert len(cases) == 37
     async with wire_link(wire) as run:
         await run.axis.command("enable", {})
@@ -282,28 +246,9 @@ async def test_wire_dropped_and_unprocessed_frames_are_counted_not_alarmed(wire:
 async def test_wire_cable_pull_is_an_error_within_the_watchdog_then_op_again(
     wire: Wire, tmp_path: Path
 ) -> None:
-    storage = Storage(tmp_path / "servotune.db")
-    hub = Hub([], storage)
-    link = build_ep7047_link(
-        "wire",
-        wire.pair.master_if,
-        1,
-        hub,
-        speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
-        counts_per_rev=DEMO_COUNTS_PER_REV,
-    )
-    hub.add_link(link)
-    await hub.start()
-    try:
+    async with wire_hub(wire, tmp_path) as (hub, link):
         axis_id = link.axes[0].id
-        await wait_for(lambda: link.state == "connected", 10, "OP")
-        await hub.command(axis_id, "enable", {})
-        await hub.command(
-            axis_id,
-            "execute_move",
-            {"start_type": int(StartType.ENDLESS_PLUS), "target": 0, "velocity": 3000,
-             "acceleration_ms": 100, "deceleration_ms": 100},
-        )  # fmt: skip
+        await start_endless(hub, axis_id, 3000)
         pulled = time.monotonic()
         wire.pair.set_master_link(False)
         await wait_for(lambda: link.state == "error", 1, "the link to notice the pull")
@@ -328,9 +273,6 @@ async def test_wire_cable_pull_is_an_error_within_the_watchdog_then_op_again(
         entry = hub.entry(axis_id)
         await wait_for(lambda: not entry.stop_on_reconnect, 5, "the STOP sent after the return")
         assert not wire.slave.record()["enabled"]  # nothing moved by itself
-    finally:
-        await hub.stop()
-        storage.close()
 
 
 async def test_wire_a_stalled_cycle_trips_the_watchdog_and_recovers_without_motion(
@@ -339,31 +281,11 @@ async def test_wire_a_stalled_cycle_trips_the_watchdog_and_recovers_without_moti
     """SIGSTOP of the cycle process for 200 ms: the slave's watchdog (100 ms) trips, the
     drive drops Enable; the driver says so (not a reset: the settings are kept) and
     brings the slave back to OP with Enable off - nothing moves by itself."""
-    storage = Storage(tmp_path / "servotune.db")
-    hub = Hub([], storage)
     master = CycleProcessMaster(PysoemMaster, cycle_s=0.002)
-    link = build_ep7047_link(
-        "wire",
-        wire.pair.master_if,
-        1,
-        hub,
-        master=master,
-        speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
-        counts_per_rev=DEMO_COUNTS_PER_REV,
-    )
-    hub.add_link(link)
-    await hub.start()
-    try:
+    async with wire_hub(wire, tmp_path, master=master) as (hub, link):
         axis_id = link.axes[0].id
         entry = hub.entry(axis_id)
-        await wait_for(lambda: link.state == "connected", 10, "OP")
-        await hub.command(axis_id, "enable", {})
-        await hub.command(
-            axis_id,
-            "execute_move",
-            {"start_type": int(StartType.ENDLESS_PLUS), "target": 0, "velocity": 2000,
-             "acceleration_ms": 100, "deceleration_ms": 100},
-        )  # fmt: skip
+        await start_endless(hub, axis_id, 2000)
         await wait_for(lambda: wire.slave.record()["velocity_counts_s"] > 0, 3, "motion")
         assert master.pid is not None
         os.kill(master.pid, signal.SIGSTOP)
@@ -388,9 +310,6 @@ async def test_wire_a_stalled_cycle_trips_the_watchdog_and_recovers_without_moti
         assert after["actual_counts"] == before["actual_counts"]
         latest = entry.latest
         assert latest is not None and not latest.flags["enable_out"]
-    finally:
-        await hub.stop()
-        storage.close()
 
 
 def _events(hub: Hub) -> list[tuple[str, str | None, str]]:

@@ -17,8 +17,10 @@ import pytest
 
 from servotune.drivers.base import Sample
 from servotune.drivers.ep7047 import Ep7047Axis, Ep7047Link, build_ep7047_link
+from servotune.hub import Hub
 from servotune.protocols.ep7047 import StartType
 from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.storage import Storage
 
 from .conftest import RecordingSink, wait_for
 from .netns_support import SlaveProcess, VethPair, netns_problem, slave_process, veth_pair
@@ -139,3 +141,42 @@ async def wire_link(wire: Wire, *, connect: bool = True, **options: Any) -> Asyn
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+@contextlib.asynccontextmanager
+async def wire_hub(
+    wire: Wire, tmp_path: Path, **options: Any
+) -> AsyncIterator[tuple[Hub, Ep7047Link]]:
+    """The real driver behind a Hub (STOP handling, events, health), connected."""
+    storage = Storage(tmp_path / "servotune.db")
+    hub = Hub([], storage)
+    link = build_ep7047_link(
+        "wire",
+        wire.pair.master_if,
+        1,
+        hub,
+        speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+        counts_per_rev=DEMO_COUNTS_PER_REV,
+        **options,
+    )
+    hub.add_link(link)
+    await hub.start()
+    try:
+        await wait_for(lambda: link.state == "connected", 10, "OP")
+        yield hub, link
+    finally:
+        await hub.stop()
+        storage.close()
+
+
+async def start_endless(hub: Hub, axis_id: str, velocity: int) -> None:
+    """Enable, then an ENDLESS_PLUS move at ``velocity`` bp, through the hub."""
+    await hub.command(axis_id, "enable", {})
+    move = {
+        "start_type": int(StartType.ENDLESS_PLUS),
+        "target": 0,
+        "velocity": velocity,
+        "acceleration_ms": 100,
+        "deceleration_ms": 100,
+    }
+    await hub.command(axis_id, "execute_move", move)

@@ -31,8 +31,10 @@ driver judges the slave's watchdog by the wire, not by its own thread.
 Safety (decisions): the child lives as long as this process (its end of the request
 pipe closes when this process dies, however it dies: the child then sends all-zero
 outputs for a few cycles - Enable off - asks for INIT and exits). A server that is
-alive but sends nothing for ``SERVER_SILENCE_S`` (2 s: far beyond any stall of a busy
-host, seen up to ~1 s) is taken as hung: the child stops the cycle, so the slave's own
+alive but sends nothing for ``SERVER_SILENCE_S`` (10 s; a first choice of 2 s was
+reached once in a 30-minute soak at load 16-20 with a CPU hog: the server's thread can
+be held that long on a starved host, and stopping the drive then is the false trip this
+process exists to avoid) is taken as hung: the child stops the cycle, so the slave's own
 watchdog stops the drive, and the driver finds it in SAFE-OP + ERROR when it runs again.
 """
 
@@ -62,11 +64,13 @@ from servotune.transports.ethercat import (
     EthercatSdoError,
     EthercatSlave,
     EthercatUnavailableError,
+    RemoteSlave,
 )
 
 logger = logging.getLogger(__name__)
 
-SERVER_SILENCE_S: Final = 2.0
+SERVER_SILENCE_S: Final = 10.0
+SILENCE_LOGGED_S: Final = 0.5  # a silence this long is logged when it ends
 REQUEST_TIMEOUT_S: Final = 5.0
 CYCLE_REPLY_TIMEOUT_S: Final = 1.0
 START_TIMEOUT_S: Final = 30.0
@@ -202,8 +206,15 @@ class _Child:
             while cyc.poll(0):
                 message = cyc.recv_bytes()
                 self.out_seq = _OUTPUTS.unpack_from(message)[0]
-                self.heard_t = time.monotonic()
+                self._heard()
                 self._split_outputs(message[_OUTPUTS.size :])
+
+    def _heard(self) -> None:
+        now = time.monotonic()
+        silence = now - self.heard_t
+        if silence > SILENCE_LOGGED_S and self.cyclic:
+            logger.warning("the server was silent for %.2f s (the cycle went on)", silence)
+        self.heard_t = now
 
     def _split_outputs(self, data: bytes) -> None:
         master = self.master
@@ -252,7 +263,7 @@ class _Child:
         except (EOFError, OSError):
             self._server_gone()
             return False
-        self.heard_t = time.monotonic()
+        self._heard()
         op, args = request[0], request[1:]
         if op == "stop":
             self._close()
@@ -369,75 +380,6 @@ def _child_main(spec: CycleSpec, rpc: Connection, cyc: Connection, parent_pid: i
 # --- the parent: the driver's EthercatMaster -------------------------------------------------
 
 
-class _Slave:
-    """One slave of a :class:`CycleProcessMaster` (the driver's ``EthercatSlave``)."""
-
-    def __init__(self, master: CycleProcessMaster, position: int, info: Sequence[Any]) -> None:
-        self._master = master
-        self._position = position
-        self._man, self._id, self._rev, self._name, self._state, self._al_status = info
-        self._output = b""
-        self._input = b""
-        self._output_size: int | None = None
-
-    @property
-    def man(self) -> int:
-        return int(self._man)
-
-    @property
-    def id(self) -> int:
-        return int(self._id)
-
-    @property
-    def rev(self) -> int:
-        return int(self._rev)
-
-    @property
-    def name(self) -> str:
-        return str(self._name)
-
-    @property
-    def state(self) -> int:
-        return int(self._state)
-
-    @state.setter
-    def state(self, value: int) -> None:
-        self._state = value
-
-    @property
-    def al_status(self) -> int:
-        return int(self._al_status)
-
-    @property
-    def input(self) -> bytes:
-        return self._input
-
-    @property
-    def output(self) -> bytes:
-        return self._output
-
-    @output.setter
-    def output(self, value: bytes) -> None:
-        if self._output_size is None:
-            raise ValueError("the process data is not mapped (config_map)")
-        if len(value) != self._output_size:
-            raise ValueError(f"outputs are {self._output_size} bytes, got {len(value)}")
-        self._output = bytes(value)
-
-    def sdo_read(self, index: int, subindex: int, size: int = 0) -> bytes:
-        data: bytes = self._master._call("sdo_read", self._position, index, subindex, size)
-        return data
-
-    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
-        self._master._call("sdo_write", self._position, index, subindex, bytes(data))
-
-    def write_state(self) -> int:
-        return int(self._master._call("slave_write_state", self._position, self._state))
-
-    def state_check(self, expected_state: int, timeout: int = 2000) -> int:
-        return int(self._master._call("slave_state_check", self._position, expected_state, timeout))
-
-
 class CycleProcessMaster:
     """The driver's ``EthercatMaster`` over a cycle process (see the module docstring).
 
@@ -460,7 +402,7 @@ class CycleProcessMaster:
         self._rpc: Connection | None = None
         self._cyc: Connection | None = None
         self._lock = threading.Lock()
-        self._slaves: list[_Slave] = []
+        self._slaves: list[RemoteSlave] = []
         self._state = INIT_STATE
         self._expected_wkc = 0
         self._out_seq = 0
@@ -556,7 +498,7 @@ class CycleProcessMaster:
 
     def _update_states(self, states: Sequence[tuple[int, int]]) -> None:
         for slave, (state, al_status) in zip(self._slaves, states, strict=False):
-            slave._state, slave._al_status = state, al_status
+            slave.reported(state, al_status)
 
     # --- EthercatMaster -----------------------------------------------------------------
 
@@ -567,7 +509,7 @@ class CycleProcessMaster:
     def config_init(self) -> int:
         found, infos = self._call("config_init")
         self._cyclic = False
-        self._slaves = [_Slave(self, i + 1, info) for i, info in enumerate(infos)]
+        self._slaves = [RemoteSlave(self, i + 1, info) for i, info in enumerate(infos)]
         self._sent_outputs = None
         return int(found)
 
@@ -578,9 +520,7 @@ class CycleProcessMaster:
     def config_map(self) -> int:
         total, images = self._call("config_map")
         for slave, (output_size, inputs) in zip(self._slaves, images, strict=True):
-            slave._output_size = output_size
-            slave._output = bytes(output_size)
-            slave._input = bytes(inputs)
+            slave.mapped(output_size, inputs)
         self._expected_wkc = int(self._call("expected_wkc"))
         return int(total)
 
@@ -645,8 +585,8 @@ class CycleProcessMaster:
     def _set_inputs(self, data: bytes) -> None:
         offset = 0
         for slave in self._slaves:
-            size = len(slave._input)
-            slave._input = data[offset : offset + size]
+            size = len(slave.input)
+            slave.input = data[offset : offset + size]
             offset += size
 
     def last_good_t(self) -> float | None:
@@ -668,6 +608,21 @@ class CycleProcessMaster:
     def cycle_lost(self) -> int:
         """Exchanges of the cycle process without the expected working counter."""
         return self._lost
+
+    # --- SlaveCalls (for RemoteSlave) ----------------------------------------------
+
+    def slave_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        data: bytes = self._call("sdo_read", position, index, subindex, size)
+        return data
+
+    def slave_sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
+        self._call("sdo_write", position, index, subindex, data)
+
+    def slave_write_state(self, position: int, state: int) -> int:
+        return int(self._call("slave_write_state", position, state))
+
+    def slave_state_check(self, position: int, expected_state: int, timeout: int) -> int:
+        return int(self._call("slave_state_check", position, expected_state, timeout))
 
     def read_state(self) -> int:
         return int(self._call("read_state"))
