@@ -22,7 +22,7 @@ from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
 from servotune.drivers.ep7047 import PysoemMaster
 from servotune.drivers.ep7047_descriptor import INVERSION_PARAMETER, PARAMETER_SDO
 from servotune.hub import Hub
-from servotune.protocols.ep7047 import StartType
+from servotune.protocols.ep7047 import DriveState, StartType
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 from .conftest import wait_for
@@ -176,6 +176,9 @@ async def test_wire_plain_and_change_moves(wire: Wire) -> None:
         await run.axis.command("enable", {})
         await run.move_and_wait(StartType.ABSOLUTE, 5000)
         assert run.position() == 5000
+        # The state machine, sampled over CoE (0x9020:03) while the move ran.
+        states = {s.channels["drive_state"] for s in run.samples} - {None}
+        assert {float(DriveState.ACCEL), float(DriveState.DECEL)} <= states, states
         await run.move_and_wait(StartType.RELATIVE, -1500)
         assert run.position() == 3500
         await run.move_and_wait(StartType.ADDITIVE, 500)
