@@ -209,6 +209,19 @@ async def test_wire_plain_and_change_moves(wire: Wire) -> None:
         assert round(run.record()["actual_counts"]) == run.position()
 
 
+async def test_wire_calibration_on_the_cam_then_clear_and_set(wire: Wire) -> None:
+    async with wire_link(wire) as run:
+        await run.axis.command("enable", {})
+        await run.axis.command("cali_plc_cam", {})  # the demo's cam: 6000..6800 counts
+        await wait_for(lambda: run.flag("calibrated") and not run.flag("busy"), 20, "Calibrated")
+        # After the In-Target timeout the calibration position (0) is the actual position.
+        assert run.position() == 0 and round(run.record()["actual_counts"]) == 0
+        await run.axis.command("clear_calibration", {})
+        await wait_for(lambda: not run.flag("calibrated"), 3, "Calibrated cleared")
+        await run.axis.command("set_calibration", {})
+        await wait_for(lambda: run.flag("calibrated"), 3, "Calibrated set")
+
+
 async def test_wire_change_at_standstill_is_refused_before_the_wire(wire: Wire) -> None:
     async with wire_link(wire) as run:
         await run.axis.command("enable", {})
