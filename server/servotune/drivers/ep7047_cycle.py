@@ -374,7 +374,10 @@ class _CycleThread(_CommandCycle):
         period = self._cycle_s
         deadline = time.monotonic()
         if isinstance(master, PacedMaster):
-            # The cycle process keeps the period; receive_processdata waits for it.
+            # The cycle process keeps the period; receive_processdata waits for it. Its
+            # cycles in SAFE-OP (working counter 1) are no lost frames: count from here.
+            master.last_good_t()
+            self._paced_lost = master.cycle_lost
             while not self._halt.is_set():
                 self._one_cycle(master, slave)
             return

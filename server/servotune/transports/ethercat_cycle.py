@@ -13,15 +13,17 @@ where it does not), whatever the server does.
 
 Channels (``multiprocessing`` pipes between this process and its own child):
 
-* requests (``rpc``): bring-up, state machine, SDO transfers, one synchronous exchange
-  for the bring-up; answered one at a time, run by the child between two cycles;
+* requests (``rpc``): bring-up, state machine, SDO transfers; answered one at a time,
+  run by the child between two cycles;
 * the cycle (``cyc``): the parent sends the outputs when it has new ones (bytes, with a
   sequence number); the child sends one record per cycle: its sequence number, the
   send time, the working counter, the sequence number of the outputs it carried, the
   longest gap between good exchanges, and the inputs. The child's end is non-blocking:
   a server that does not read (stalled) loses records, never holds the cycle.
 
-Semantics for the driver: ``send_processdata`` hands the outputs over;
+Semantics for the driver: the first ``send_processdata`` after ``config_map`` starts the
+cycle (in SAFE-OP: the slave's watchdog is served from the moment it enters OP, however
+long this process takes to call again); ``send_processdata`` hands the outputs over;
 ``receive_processdata`` waits for the first cycle that carried them and returns its
 working counter and inputs (so a handshake that waits for the drive's answer to an
 output still sees it). The driver's own loop does not sleep (``paced``): it runs at the
@@ -57,7 +59,6 @@ from typing import Any, Final
 
 from servotune.transports.ethercat import (
     INIT_STATE,
-    OP_STATE,
     EthercatError,
     EthercatMailboxError,
     EthercatMaster,
@@ -78,6 +79,11 @@ RT_PRIORITY: Final = 50
 _RECORD = struct.Struct("<QdiQQQ")  # seq, sent_t, wkc, out_seq, lost, max_gap_us
 _OUTPUTS = struct.Struct("<Q")  # out_seq, then the outputs of each slave
 _PR_SET_NAME: Final = 15
+# Requests whose answer ends with every slave's (state, AL status) after the call.
+_REPORTS_STATES: Final = frozenset(
+    {"read_state", "write_state", "state_check", "sdo_read", "sdo_write",
+     "slave_write_state", "slave_state_check"}
+)  # fmt: skip
 
 
 def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
@@ -298,11 +304,6 @@ class _Child:
         if op == "config_map":
             total = master.config_map()
             return total, [(len(s.output), bytes(s.input)) for s in master.slaves]
-        if op == "exchange":  # one synchronous exchange (bring-up)
-            self._split_outputs(bytes(args[0]))
-            master.send_processdata()
-            wkc = master.receive_processdata(int(args[1]))
-            return wkc, b"".join(s.input for s in master.slaves), self._states()
         if op == "start_cyclic":
             self.cyclic = True
             self.last_good_t = time.monotonic()
@@ -407,7 +408,6 @@ class CycleProcessMaster:
         self._expected_wkc = 0
         self._out_seq = 0
         self._cyclic = False  # the child runs the cycle; set by the first send in OP
-        self._sent_outputs: bytes | None = None
         self._last_good_t: float | None = None
         self._max_gap_s = 0.0
         self._lost = 0
@@ -490,10 +490,9 @@ class CycleProcessMaster:
         if reply[0] == "error":
             _raise_from(reply[1:])
         result = reply[1]
-        if op in ("read_state", "write_state", "state_check", "sdo_read", "sdo_write",
-                  "slave_write_state", "slave_state_check", "exchange"):  # fmt: skip
+        if op in _REPORTS_STATES:
             self._update_states(result[-1])
-            return result[0] if op != "exchange" else result
+            return result[0]
         return result
 
     def _update_states(self, states: Sequence[tuple[int, int]]) -> None:
@@ -510,7 +509,6 @@ class CycleProcessMaster:
         found, infos = self._call("config_init")
         self._cyclic = False
         self._slaves = [RemoteSlave(self, i + 1, info) for i, info in enumerate(infos)]
-        self._sent_outputs = None
         return int(found)
 
     @property
@@ -528,12 +526,10 @@ class CycleProcessMaster:
         return b"".join(s.output for s in self._slaves)
 
     def send_processdata(self) -> int:
-        """Before OP: kept for the next synchronous exchange. In OP: handed to the
-        cycle (the first call in OP starts it)."""
+        """Hand the outputs to the cycle; the first call after ``config_map`` starts it
+        (in SAFE-OP, so that the slave's watchdog is served from the moment it enters
+        OP, whatever this process does between its request for OP and its next call)."""
         outputs = self._outputs()
-        if not self._cyclic and self._state != OP_STATE:
-            self._sent_outputs = outputs
-            return 1
         if not self._cyclic:
             self._call("start_cyclic")
             self._cyclic = True
@@ -547,11 +543,10 @@ class CycleProcessMaster:
         return 1
 
     def receive_processdata(self, timeout: int = 2000) -> int:
+        """The working counter of the first cycle that carried the outputs handed over
+        last (0 before the cycle runs)."""
         if not self._cyclic:
-            outputs = self._sent_outputs if self._sent_outputs is not None else self._outputs()
-            wkc, inputs, _ = self._call("exchange", outputs, timeout)
-            self._set_inputs(inputs)
-            return int(wkc)
+            return 0
         return self._await_cycle()
 
     def _await_cycle(self) -> int:
