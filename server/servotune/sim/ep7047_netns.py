@@ -70,6 +70,9 @@ class VethPair:
 def veth_pair() -> Iterator[VethPair]:
     suffix = f"{os.getpid() % 100000}{next(_counter)}"
     pair = VethPair(f"stn{suffix}", f"stm{suffix}", f"sts{suffix}")
+    # Leftovers of a killed run that had the same pid: removed by name first.
+    _ip("link", "del", pair.master_if, check=False)
+    _ip("netns", "del", pair.namespace, check=False)
     try:
         _ip("netns", "add", pair.namespace)
         _ip(
