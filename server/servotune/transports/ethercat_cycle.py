@@ -15,11 +15,15 @@ Channels (``multiprocessing`` pipes between this process and its own child):
 
 * requests (``rpc``): bring-up, state machine, SDO transfers; answered one at a time,
   run by the child between two cycles;
-* the cycle (``cyc``): the parent sends the outputs when it has new ones (bytes, with a
-  sequence number); the child sends one record per cycle: its sequence number, the
-  send time, the working counter, the sequence number of the outputs it carried, the
-  longest gap between good exchanges, and the inputs. The child's end is non-blocking:
-  a server that does not read (stalled) loses records, never holds the cycle.
+* the outputs (``cyc``, parent -> child): the parent sends them with a sequence number;
+  the child takes the latest at each cycle;
+* the latest cycle (shared memory: a file in /dev/shm mapped by both and unlinked at
+  once, so nothing is left behind however the processes end): a seqlock-protected record
+  of the last exchange - its sequence number, send time, working counter, the outputs'
+  sequence number it carried, the lost exchanges so far, the send time of the last good
+  one, and the inputs - plus one byte per cycle on a wake-up pipe (non-blocking on the
+  child's side). A server that was stalled reads the *latest* cycle when it runs again,
+  never a backlog of old ones, and the child never waits for it.
 
 Semantics for the driver: the first ``send_processdata`` after ``config_map`` starts the
 cycle (in SAFE-OP: the slave's watchdog is served from the moment it enters OP, however
@@ -45,11 +49,14 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import logging
+import mmap
 import multiprocessing
 import os
+import select
 import signal
 import struct
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -76,7 +83,11 @@ REQUEST_TIMEOUT_S: Final = 5.0
 CYCLE_REPLY_TIMEOUT_S: Final = 1.0
 START_TIMEOUT_S: Final = 30.0
 RT_PRIORITY: Final = 50
-_RECORD = struct.Struct("<QdiQQQ")  # seq, sent_t, wkc, out_seq, lost, max_gap_us
+# The shared latest cycle: seqlock counter (odd while written), seq, sent_t, wkc,
+# out_seq, lost, last_good_t, inputs length; then the inputs.
+_RECORD = struct.Struct("<QQdiQQdI")
+_INPUTS_MAX: Final = 1024
+_SHARED_SIZE: Final = _RECORD.size + _INPUTS_MAX
 _OUTPUTS = struct.Struct("<Q")  # out_seq, then the outputs of each slave
 _PR_SET_NAME: Final = 15
 # Requests whose answer ends with every slave's (state, AL status) after the call.
@@ -154,10 +165,15 @@ def _slave_info(slave: EthercatSlave) -> tuple[int, int, int, str, int, int]:
 
 
 class _Child:
-    def __init__(self, spec: CycleSpec, rpc: Connection, cyc: Connection) -> None:
+    def __init__(
+        self, spec: CycleSpec, rpc: Connection, cyc: Connection, shared: mmap.mmap, wake: int
+    ) -> None:
         self.spec = spec
         self.rpc = rpc
         self.cyc = cyc
+        self.shared = shared
+        self.wake = wake
+        self.lock_count = 0
         self.master: EthercatMaster | None = None
         self.cyclic = False
         self.outputs: list[bytes] = []
@@ -165,7 +181,6 @@ class _Child:
         self.seq = 0
         self.lost = 0
         self.last_good_t = 0.0
-        self.max_gap_s = 0.0
         self.heard_t = time.monotonic()
 
     def run(self) -> None:
@@ -246,22 +261,22 @@ class _Child:
             wkc = -1
         self.seq += 1
         if wkc == master.expected_wkc:
-            if self.last_good_t:
-                self.max_gap_s = max(self.max_gap_s, sent_t - self.last_good_t)
             self.last_good_t = sent_t
         else:
             self.lost += 1
-        inputs = b"".join(slave.input for slave in master.slaves)
-        record = _RECORD.pack(
-            self.seq, sent_t, wkc, self.out_seq, self.lost, int(self.max_gap_s * 1e6)
-        )
-        try:
-            self.cyc.send_bytes(record + inputs)
-            self.max_gap_s = 0.0
-        except BlockingIOError:
-            pass  # the server does not read: it gets the next record
-        except OSError:
-            pass  # the server went away: the request pipe tells
+        inputs = b"".join(slave.input for slave in master.slaves)[:_INPUTS_MAX]
+        # Seqlock: odd while writing; a reader retries until it reads one even value.
+        self.lock_count += 1
+        struct.pack_into("<Q", self.shared, 0, self.lock_count)
+        self.shared[_RECORD.size : _RECORD.size + len(inputs)] = inputs
+        struct.pack_into(
+            "<QdiQQdI", self.shared, 8, self.seq, sent_t, wkc, self.out_seq, self.lost,
+            self.last_good_t, len(inputs),
+        )  # fmt: skip
+        self.lock_count += 1
+        struct.pack_into("<Q", self.shared, 0, self.lock_count)
+        with contextlib.suppress(BlockingIOError, OSError):  # full: the server is behind
+            os.write(self.wake, b"\x01")
 
     def _serve_one(self) -> bool:
         try:
@@ -307,7 +322,6 @@ class _Child:
         if op == "start_cyclic":
             self.cyclic = True
             self.last_good_t = time.monotonic()
-            self.max_gap_s = 0.0
             self.heard_t = time.monotonic()
             return None
         if op == "read_state":
@@ -362,7 +376,9 @@ class _Child:
         self._close()
 
 
-def _child_main(spec: CycleSpec, rpc: Connection, cyc: Connection, parent_pid: int) -> None:
+def _child_main(
+    spec: CycleSpec, rpc: Connection, cyc: Connection, shared_path: str, wake: Connection
+) -> None:
     set_process_name(spec.name)
     # Ctrl-C and a service manager's SIGTERM reach the whole process group: the server
     # ramps the axis down through this process first, then stops it (or its death
@@ -372,10 +388,16 @@ def _child_main(spec: CycleSpec, rpc: Connection, cyc: Connection, parent_pid: i
     logging.basicConfig(
         level=logging.INFO, format=f"%(asctime)s %(levelname)s {spec.name}: %(message)s"
     )
-    os.set_blocking(cyc.fileno(), False)  # never wait for the server
+    fd = os.open(shared_path, os.O_RDWR)
+    try:
+        shared = mmap.mmap(fd, _SHARED_SIZE)
+    finally:
+        os.close(fd)
+    wake_fd = wake.fileno()
+    os.set_blocking(wake_fd, False)  # never wait for the server
     granted, text = raise_priority("the EtherCAT cycle") if spec.realtime else (False, "")
     rpc.send(("ready", os.getpid(), granted, text))
-    _Child(spec, rpc, cyc).run()
+    _Child(spec, rpc, cyc, shared, wake_fd).run()
 
 
 # --- the parent: the driver's EthercatMaster -------------------------------------------------
@@ -402,6 +424,9 @@ class CycleProcessMaster:
         self._process: multiprocessing.process.BaseProcess | None = None
         self._rpc: Connection | None = None
         self._cyc: Connection | None = None
+        self._wake: Connection | None = None
+        self._shared: mmap.mmap | None = None
+        self._seen_seq = 0
         self._lock = threading.Lock()
         self._slaves: list[RemoteSlave] = []
         self._state = INIT_STATE
@@ -409,7 +434,6 @@ class CycleProcessMaster:
         self._out_seq = 0
         self._cyclic = False  # the child runs the cycle; set by the first send in OP
         self._last_good_t: float | None = None
-        self._max_gap_s = 0.0
         self._lost = 0
         self.pid: int | None = None
         self.priority_granted = False
@@ -424,17 +448,36 @@ class CycleProcessMaster:
         context = multiprocessing.get_context("spawn")
         rpc_parent, rpc_child = context.Pipe()
         cyc_parent, cyc_child = context.Pipe()
+        wake_parent, wake_child = context.Pipe(duplex=False)
+        # The shared latest cycle: a file in /dev/shm (RAM), unlinked once both map it.
+        directory = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        fd, shared_path = tempfile.mkstemp(prefix="servotune-ec-", dir=directory)
+        try:
+            os.ftruncate(fd, _SHARED_SIZE)
+            self._shared = mmap.mmap(fd, _SHARED_SIZE)
+        finally:
+            os.close(fd)
         process = context.Process(
             target=_child_main,
-            args=(self._spec, rpc_child, cyc_child, os.getpid()),
+            args=(self._spec, rpc_child, cyc_child, shared_path, wake_child),
             name=self._spec.name,
             daemon=True,
         )
-        process.start()
-        rpc_child.close()
-        cyc_child.close()
-        self._process, self._rpc, self._cyc = process, rpc_parent, cyc_parent
-        if not rpc_parent.poll(START_TIMEOUT_S):
+        try:
+            process.start()
+        finally:
+            rpc_child.close()
+            cyc_child.close()
+            wake_child.close()
+        self._process, self._rpc, self._cyc, self._wake = (
+            process, rpc_parent, cyc_parent, wake_parent
+        )  # fmt: skip
+        self._seen_seq = 0
+        try:
+            ready = rpc_parent.poll(START_TIMEOUT_S)
+        finally:
+            os.unlink(shared_path)  # mapped by the child by now, or it failed to start
+        if not ready:
             self._reap()
             raise EthercatUnavailableError(
                 f"the EtherCAT cycle process did not start within {START_TIMEOUT_S:g} s"
@@ -450,10 +493,13 @@ class CycleProcessMaster:
 
     def _reap(self) -> None:
         process, self._process = self._process, None
-        for conn in (self._rpc, self._cyc):
+        for conn in (self._rpc, self._cyc, self._wake):
             if conn is not None:
                 conn.close()
-        self._rpc = self._cyc = None
+        self._rpc = self._cyc = self._wake = None
+        if self._shared is not None:
+            self._shared.close()
+            self._shared = None
         if process is not None:
             process.join(2.0)
             if process.is_alive():
@@ -550,31 +596,47 @@ class CycleProcessMaster:
         return self._await_cycle()
 
     def _await_cycle(self) -> int:
-        cyc = self._cyc
-        if cyc is None:
+        wake = self._wake
+        if wake is None or self._shared is None:
             raise EthercatMailboxError("the EtherCAT cycle process is not running")
         deadline = time.monotonic() + CYCLE_REPLY_TIMEOUT_S
         while True:
-            remaining = deadline - time.monotonic()
-            try:
-                if not cyc.poll(max(remaining, 0)):
-                    raise EthercatMailboxError(
-                        f"the EtherCAT cycle process sent no cycle for {CYCLE_REPLY_TIMEOUT_S:g} s"
-                    )
-                message = cyc.recv_bytes()
-            except (EOFError, OSError) as exc:
-                raise EthercatMailboxError(f"lost the EtherCAT cycle process: {exc!r}") from exc
-            wkc, out_seq = self._take_record(message)
+            wkc, out_seq = self._read_latest()
             if out_seq >= self._out_seq:
                 return wkc
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise EthercatMailboxError(
+                    f"the EtherCAT cycle process sent no cycle for {CYCLE_REPLY_TIMEOUT_S:g} s"
+                )
+            readable, _, _ = select.select([wake], [], [], remaining)
+            if readable:
+                try:
+                    os.read(wake.fileno(), 4096)  # the wake-ups so far: the latest counts
+                except OSError as exc:
+                    raise EthercatMailboxError(f"lost the EtherCAT cycle process: {exc!r}") from exc
 
-    def _take_record(self, message: bytes) -> tuple[int, int]:
-        _, sent_t, wkc, out_seq, lost, max_gap_us = _RECORD.unpack_from(message)
-        self._set_inputs(message[_RECORD.size :])
-        if wkc == self._expected_wkc:
-            self._last_good_t = sent_t
-        self._max_gap_s = max(self._max_gap_s, max_gap_us / 1e6)
-        self._lost = lost
+    def _read_latest(self) -> tuple[int, int]:
+        """The latest cycle from the shared record (seqlock): (wkc, outputs' seq); the
+        inputs, the last good send time and the lost count are taken over."""
+        shared = self._shared
+        assert shared is not None
+        for _ in range(10_000):
+            before = struct.unpack_from("<Q", shared, 0)[0]
+            if before & 1:
+                continue  # the child is writing it (a few microseconds)
+            _, seq, _, wkc, out_seq, lost, last_good_t, size = _RECORD.unpack_from(shared, 0)
+            inputs = bytes(shared[_RECORD.size : _RECORD.size + size])
+            if struct.unpack_from("<Q", shared, 0)[0] == before:
+                break
+        else:  # stopped while writing (SIGSTOP): nothing new until it runs again
+            return -1, 0
+        if seq != self._seen_seq:
+            self._seen_seq = seq
+            self._set_inputs(inputs)
+            self._lost = lost
+            if last_good_t:
+                self._last_good_t = last_good_t
         return wkc, out_seq
 
     def _set_inputs(self, data: bytes) -> None:
@@ -585,19 +647,11 @@ class CycleProcessMaster:
             offset += size
 
     def last_good_t(self) -> float | None:
-        """The send time of the cycle's last good exchange, after reading every record
-        that is waiting (None before the cycle runs)."""
-        cyc = self._cyc
-        if cyc is not None and self._cyclic:
-            with contextlib.suppress(OSError, EOFError):
-                while cyc.poll(0):
-                    self._take_record(cyc.recv_bytes())
+        """The send time of the cycle's last good exchange, as of its latest cycle (None
+        before the cycle runs)."""
+        if self._shared is not None and self._cyclic:
+            self._read_latest()
         return self._last_good_t
-
-    def take_max_gap_s(self) -> float:
-        """The longest gap between two good exchanges of the cycle since the last call."""
-        gap, self._max_gap_s = self._max_gap_s, 0.0
-        return gap
 
     @property
     def cycle_lost(self) -> int:
