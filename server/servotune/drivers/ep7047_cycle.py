@@ -439,7 +439,13 @@ class _CycleThread(_CommandCycle):
             if cs.silent_in_row == 0:
                 cs.silent_since = sent_t
             cs.silent_in_row += 1
-            silent_s = time.monotonic() - cs.silent_since
+            if paced:
+                # The cycle process saw every exchange: silence is the time since its
+                # last good one, not between the few cycles this thread happened to see
+                # (two isolated losses around a stall of this thread are no pulled cable).
+                silent_s = time.monotonic() - self._last_good
+            else:
+                silent_s = time.monotonic() - cs.silent_since
             if cs.silent_in_row >= 2 and silent_s >= self._silent_limit_s:
                 raise _DropOutError(
                     f"no EtherCAT frame comes back on {self._ifname} (for "

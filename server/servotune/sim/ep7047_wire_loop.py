@@ -5,7 +5,7 @@ control socket (fault injection, the slave's own record) and ``servotune sim ep7
 The loop answers every EtherCAT frame (EtherType 0x88A4) that arrives on the interface
 at once, steps the drive in between (at least every 20 ms, and when the watchdog is
 due), and serves control requests (JSON over a Unix datagram socket: a path socket
-reaches into a network namespace). It asks for real-time priority (SCHED_FIFO 40): a
+reaches into a network namespace). It asks for real-time priority (SCHED_FIFO 60): a
 real slave is hardware, and a simulated one that a CPU hog delays would make the
 master count lost frames that no wire lost.
 """
@@ -33,7 +33,10 @@ logger = logging.getLogger(__name__)
 SOL_PACKET: Final = 263  # linux/socket.h
 PACKET_IGNORE_OUTGOING: Final = 23  # linux/if_packet.h (Linux 4.20+)
 PACKET_OUTGOING: Final = 4
-RT_PRIORITY: Final = 40
+# Above the cycle process (50): SOEM busy-waits for the answer at its own priority, and
+# a simulated slave below it on the same core could answer only after SOEM gave up (a
+# lost frame the wire never lost). The slave runs only when a frame arrives.
+RT_PRIORITY: Final = 60
 
 
 def _open_socket(ifname: str) -> socket.socket:
