@@ -165,6 +165,7 @@ async def run_one(
             "watchdog_trips": slave.record()["watchdog_trips"] - trips_before,
             "cpu": cpu,
             "priority": getattr(master, "priority_text", ""),
+            "events": [e for e in sink.events if not e.startswith("info")],
         }
     finally:
         task.cancel()
@@ -209,6 +210,8 @@ async def main(args: argparse.Namespace) -> int:
                 with hog(loaded):
                     result = await run_one(cycle_s, seconds, args.thread, pair, slave)
                 show(result, "hog" if loaded else "quiet")
+                for event in result["events"]:  # why a drop-out or a trip happened
+                    print(f"  {event}", flush=True)
         if result.get("priority"):
             print(f"\n{result['priority']}")
     return 0
