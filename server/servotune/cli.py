@@ -271,7 +271,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         config = AppConfig(
             data_dir=data_dir,
             autopilot=not args.no_autopilot,
-            simulators=demo_simulators(data_dir, state_dir),
+            simulators=demo_simulators(data_dir, state_dir, ethercat_wire=args.ethercat_wire),
             security=security_config_from_args(args, args.host),
         )
         _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
@@ -331,10 +331,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from servotune.sim.serial_sim import run_pty_simulator, serve_slap2
 
     if args.device == "ep7047":
+        if args.ifname:
+            return _sim_ep7047_wire(args)
         from servotune.sim.ep7047_process import run_ep7047_simulator
 
         if not args.socket:
-            print("servotune sim ep7047: give --socket PATH (a Unix socket to create)")
+            print(
+                "servotune sim ep7047: give --ifname IF (an EtherCAT slave on a network "
+                "interface) or --socket PATH (behind the master seam, a Unix socket)"
+            )
             return 2
         run_ep7047_simulator(args.socket)
         return 0
@@ -349,6 +354,31 @@ def cmd_sim(args: argparse.Namespace) -> int:
     chip = Z1100Chip(flash_path=flash, jumper_baud=baud)
     run_pty_simulator(chip, baud=baud, link_path=args.link)
     return 0
+
+
+def _sim_ep7047_wire(args: argparse.Namespace) -> int:
+    from servotune.sim.ep7047_sii import Identity
+    from servotune.sim.ep7047_wire_loop import run_wire_simulator
+    from servotune.transports.ethercat import raw_socket_problem
+
+    problem = raw_socket_problem(args.ifname)
+    if problem is not None:
+        print(f"servotune sim ep7047: {problem}", file=sys.stderr)
+        return 2
+    identity = Identity()
+    if args.product is not None:
+        identity = Identity(product=args.product, name=f"product 0x{args.product:08X}")
+    run_wire_simulator(
+        args.ifname, control_path=args.control, identity=identity, realtime=not args.no_rt
+    )
+    return 0
+
+
+def _hex_int(text: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -383,6 +413,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--port", type=int, default=8000)
     demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
     demo.add_argument("--data-dir", type=Path, default=None)
+    demo.add_argument(
+        "--ethercat-wire",
+        action="store_true",
+        help="the EP7047 as a real EtherCAT slave on a veth pair, driven by pysoem (root; "
+        "default: behind the master seam)",
+    )
     add_security_arguments(demo)
     _add_bind_arguments(demo)
     demo.set_defaults(func=cmd_demo)
@@ -441,8 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser(
         "sim",
-        help="serve a simulated device on a new pseudo-terminal (slap2, z1100) or a Unix "
-        "socket (ep7047: link spec ep7047:sim:PATH)",
+        help="serve a simulated device on a new pseudo-terminal (slap2, z1100), a Unix "
+        "socket (ep7047 --socket: link spec ep7047:sim:PATH) or a network interface "
+        "(ep7047 --ifname: a real EtherCAT slave)",
     )
     sim.add_argument("device", choices=["slap2", "z1100", "ep7047"])
     sim.add_argument("--addresses", type=_addresses, default=[0, 1], help="SLAP2 modules")
@@ -450,6 +487,22 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
     sim.add_argument("--link", default=None, help="also create this symlink to the pty")
     sim.add_argument("--socket", default=None, help="ep7047: the Unix socket to serve on")
+    sim.add_argument(
+        "--ifname",
+        default=None,
+        help="ep7047: a real EtherCAT slave on this network interface (raw socket; "
+        "docs/ep7047-wire.md); link spec ep7047:<the master's interface>",
+    )
+    sim.add_argument(
+        "--control", default=None, help="ep7047 --ifname: a Unix socket for fault injection"
+    )
+    sim.add_argument(
+        "--product",
+        type=_hex_int,
+        default=None,
+        help="ep7047 --ifname: another product code in the SII (identity tests)",
+    )
+    sim.add_argument("--no-rt", action="store_true", help="ep7047 --ifname: no real-time priority")
     sim.set_defaults(func=cmd_sim)
 
     bench = sub.add_parser(
