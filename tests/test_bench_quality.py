@@ -13,14 +13,17 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import websockets
+from scipy import signal
 
 from servotune.metrics import compute_metrics, predict_second_order
 from servotune.runquality import (
     MAX_OVERSHOOT_UNCERTAINTY_PP,
     MIN_INTERVAL_SAMPLES,
     MIN_RISE_SAMPLES,
+    SAMPLING_RULE,
     assess,
 )
 
@@ -95,7 +98,12 @@ def _first_order(
 def test_a_well_sampled_settled_move_is_good_and_keeps_its_metrics() -> None:
     times, positions = _first_order(200, 0.01)
     metrics, quality = _run(times, positions)
-    assert quality == {"status": "good", "reasons": [], "untrusted": {}, "sampling_rule": 2}
+    assert quality == {
+        "status": "good",
+        "reasons": [],
+        "untrusted": {},
+        "sampling_rule": SAMPLING_RULE,
+    }
     assert metrics is not None and metrics["rise_time_s"] == pytest.approx(0.3 * math.log(9), 0.05)
     assert metrics["settling_time_s"] is not None
 
@@ -273,6 +281,67 @@ def test_a_flag_polled_slower_than_its_rise_is_timed_by_its_reads() -> None:
     resolution = metrics["time_to_flag_resolution_s"]["inpos"]
     assert value == pytest.approx(0.09) and resolution == pytest.approx(0.01)
     assert "time_to_flag_s.inpos" not in quality["untrusted"]
+
+
+def _trapezoid_followed(times: list[float], target: float) -> tuple[list[float], float]:
+    """A trapezoidal move to ``target`` (10⁶ counts/s², 60 000 counts/s) followed by
+    a damped loop (150 rad/s, ζ 0.6), as the demo Z1100 axis moves: the positions
+    at ``times`` in whole counts, and the true overshoot (%) from a 20 µs grid."""
+    acc, vmax, wn, zeta = 1_000_000.0, 60_000.0, 150.0, 0.6
+    grid = np.arange(0.0, times[-1] + 0.01, 20e-6)
+    t_acc = min(vmax / acc, math.sqrt(target / acc))
+    v_top = acc * t_acc
+    t_flat = (target - acc * t_acc**2) / v_top
+    t_end = 2 * t_acc + t_flat
+    tc = np.clip(grid, 0.0, t_end)
+    profile = np.where(
+        tc < t_acc,
+        0.5 * acc * tc**2,
+        np.where(
+            tc < t_acc + t_flat,
+            0.5 * acc * t_acc**2 + v_top * (tc - t_acc),
+            target - 0.5 * acc * (t_end - tc) ** 2,
+        ),
+    )
+    loop = signal.lti([wn * wn], [1.0, 2 * zeta * wn, wn * wn])
+    _, y, _ = signal.lsim(loop, profile, grid)
+    overshoot_pct = 100.0 * (float(np.max(y)) - target) / target
+    return [float(round(v)) for v in np.interp(times, grid, y)], overshoot_pct
+
+
+@pytest.mark.parametrize("phase", [0, 1, 2])
+@pytest.mark.parametrize("offset_s", [0.0, 0.0011, 0.0023])
+def test_a_regular_schedule_with_longer_gaps_keeps_a_flat_peaks_overshoot(
+    phase: int, offset_s: float
+) -> None:
+    # The Z1100 capture reads GetError every third sample, so every third gap between
+    # positions is two transactions (7.2 ms, twice the median). Where the peak is a
+    # gentle hump after a hard deceleration, the gap next to it hides far less than
+    # 0.5 pp: the overshoot stays trusted, and right, whichever sample it falls next to.
+    target = 2000.0
+    times, t = [], 0.0036 + offset_s
+    for i in range(120):
+        times.append(t)
+        t += 0.0072 if (i + phase) % 3 == 2 else 0.0036
+    positions, truth_pct = _trapezoid_followed(times, target)
+    assert 0.05 < truth_pct < 3.0  # a small overshoot, as on the demo axis
+    metrics, quality = _run(times, positions, target=target, band=20.0)
+    assert metrics is not None
+    assert "overshoot_pct" not in quality["untrusted"], quality["untrusted"]
+    assert metrics["overshoot_pct"] == pytest.approx(truth_pct, abs=MAX_OVERSHOOT_UNCERTAINTY_PP)
+
+
+@pytest.mark.parametrize("shift", [-1, 0, 1])
+def test_a_gap_over_a_sharp_peak_makes_the_overshoot_untrusted(shift: int) -> None:
+    # The demo SLAP2's factory gains (22 % overshoot, 6 ms spacing) with four samples
+    # missing around the peak (a 30 ms gap): the peak may lie anywhere in it.
+    times = [0.0035 + 0.006 * i for i in range(60)]
+    positions = [float(round(v)) for v in predict_second_order(60.0, 0.43, 1000.0, times)]
+    k = max(range(len(positions)), key=lambda i: positions[i]) + shift
+    keep = [i for i in range(len(times)) if not k - 2 <= i <= k + 1]
+    metrics, quality = _run([times[i] for i in keep], [positions[i] for i in keep])
+    assert metrics is not None and metrics["overshoot_pct"] is None
+    assert "may lie between samples" in quality["untrusted"]["overshoot_pct"]
 
 
 def test_an_overshoot_whose_peak_samples_were_stamped_late_is_not_trusted() -> None:

@@ -28,7 +28,9 @@
   peak located: null when the lateness the record shows in the stamps around the peak
   could move it by more than ``MAX_OVERSHOOT_UNCERTAINTY_PP``
   (``metrics.overshoot_stamp_uncertainty_pct``), or when a sample next to the highest
-  one is more than ``MAX_PEAK_GAP_RATIO`` times the record's usual spacing away.
+  one is more than ``MAX_PEAK_GAP_RATIO`` times the record's usual spacing away and
+  the curve bends enough around the peak for the peak to hide in that gap
+  (``_peak_bound_pp``).
 
 Facts that stay true whatever happened (step, band, samples, max gap, time in flags
 with its ±) are never nulled.
@@ -64,7 +66,7 @@ MAX_PEAK_GAP_RATIO: Final = 1.9
 every overshoot off by more than 0.5 pp from the median had a gap next to its highest
 sample of 1.94..5.1 times the median spacing (peak low by 0.7..7 pp); with gaps up to
 1.9 (the capture's interleaved ``rss`` makes 1.6..1.8) all were within 0.44 pp."""
-SAMPLING_RULE: Final = 2
+SAMPLING_RULE: Final = 3
 """The version of the sampling rule (``_sampling_trust``) stored with a run's quality
 (``quality.sampling_rule``): a stored or imported run judged by an older one is judged
 again (``rejudge``), so the same rule holds for every run on the page."""
@@ -400,18 +402,17 @@ def _shortest_half_cycle(t: Sequence[float], beyond: Sequence[float], band: floa
 def _overshoot_unresolved(points: list[tuple[float, float]], y0: float, step: float) -> str | None:
     """Why the overshoot's peak is not located by the samples (a gap next to the highest
     sample where the curve bends, or late stamps around it), None when it is."""
-    gap_s, usual_s, drop = _peak_gaps(points, 1.0 if step > 0 else -1.0)
-    drop_pp = drop / abs(step) * 100.0
-    # The refined peak rises above the highest sample by at most the larger drop to
-    # a neighbour: a gap matters only where the curve bends that much across it.
+    gap_s, usual_s, bound = _peak_gaps(points, 1.0 if step > 0 else -1.0)
+    bound_pp = bound / abs(step) * 100.0
     if (
         usual_s > 0
         and gap_s > MAX_PEAK_GAP_RATIO * usual_s
-        and drop_pp > MAX_OVERSHOOT_UNCERTAINTY_PP
+        and bound_pp > MAX_OVERSHOOT_UNCERTAINTY_PP
     ):
         return (
             f"a gap of {gap_s * 1000:.0f} ms next to the peak sample (the record's usual "
-            f"spacing is {usual_s * 1000:.1f} ms): the peak may lie between samples"
+            f"spacing is {usual_s * 1000:.1f} ms) where the curve bends enough to hide "
+            f"up to {bound_pp:.1f} percentage points: the peak may lie between samples"
         )
     spread = overshoot_stamp_uncertainty_pct(
         [t for t, _ in points], [y for _, y in points], t0_s=0.0, y0=y0, y_final=y0 + step
@@ -427,8 +428,17 @@ def _overshoot_unresolved(points: list[tuple[float, float]], y0: float, step: fl
 
 def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[float, float, float]:
     """(the longer gap next to the sample furthest in the step direction, from the
-    command point on; the median gap of the record; the larger drop, in the step
-    direction, from that sample to a neighbour): zeros with fewer than 3 samples."""
+    command point on; the median gap of the record; how far, in counts, the true peak
+    may rise above that sample): zeros with fewer than 3 samples.
+
+    The true peak lies between the highest sample's neighbours and, where the curve
+    is a parabola over them, no further from the highest sample than half the gap on
+    its side (that neighbour is lower). With the curvature bounded by ``A`` there, the
+    peak rises above the sample by at most ``A (gap / 2)² / 2``; ``A`` is the largest
+    curvature of the parabolas through three successive samples around the peak (two
+    samples either side). A regular schedule with longer gaps (the Z1100 capture
+    reads its following error every third sample) then costs the overshoot nothing
+    where the curve is flat over them, and a gap over a sharp peak still does."""
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     times = [0.0, *(t for t, _ in points)]
@@ -436,8 +446,17 @@ def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[flo
     travel = [y * direction for _, y in points]
     k = max(range(len(points)), key=lambda i: travel[i])
     around = [gaps[k], *(gaps[k + 1 : k + 2])]
-    drops = [travel[k] - travel[j] for j in (k - 1, k + 1) if 0 <= j < len(points)]
-    return max(around), statistics.median(gaps[1:]), max(drops)
+    window = points[max(0, k - 2) : k + 3]
+    curvature = max(
+        (
+            abs(2.0 * ((y2 - y1) / (t2 - t1) - (y1 - y0) / (t1 - t0)) / (t2 - t0))
+            for (t0, y0), (t1, y1), (t2, y2) in zip(window, window[1:], window[2:], strict=False)
+            if t0 < t1 < t2
+        ),
+        default=0.0,
+    )
+    gap_s = max(around)
+    return gap_s, statistics.median(gaps[1:]), curvature * (gap_s / 2.0) ** 2 / 2.0
 
 
 def _quality(
