@@ -20,6 +20,7 @@ import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -166,7 +167,7 @@ async def nats_lab(directory: Path, rigs: list[str]) -> AsyncIterator[Lab]:
 server_name: lab
 listen: 127.0.0.1:{port}
 max_payload: 8MB
-jetstream {{ store_dir: "{directory / "js"}", max_memory_store: 64MB, max_file_store: 256MB }}
+jetstream {{ store_dir: "{directory / "js"}", max_memory_store: 64MB, max_file_store: 2GB }}
 include "accounts.conf"
 """
     server = ServerProcess("lab", config, directory, port)
@@ -182,3 +183,35 @@ include "accounts.conf"
         for proxy in lab.proxies.values():
             await proxy.stop()
         server.stop()
+
+
+async def rig_request(
+    nc: Any, subject: str, body: dict[str, Any], timeout_s: float = 5.0
+) -> tuple[bool, dict[str, Any]]:
+    """A handmade command as the hub sends it (``bus.remote``): the rig answers "taken"
+    (``St-Taken``) before it runs a command, then the outcome. Returns (taken, the
+    outcome's JSON)."""
+    import json
+
+    from servotune.bus.messages import ACK_HEADER
+
+    inbox = nc.new_inbox()
+    got: asyncio.Queue[Any] = asyncio.Queue()
+
+    async def collect(msg: Any) -> None:
+        await got.put(msg)
+
+    subscription = await nc.subscribe(inbox, cb=collect)
+    try:
+        await nc.publish(subject, json.dumps(body).encode(), reply=inbox)
+        taken = False
+        deadline = time.monotonic() + timeout_s
+        while True:
+            msg = await asyncio.wait_for(got.get(), max(0.01, deadline - time.monotonic()))
+            if (msg.headers or {}).get(ACK_HEADER):
+                taken = True
+                continue
+            reply: dict[str, Any] = json.loads(msg.data)
+            return taken, reply
+    finally:
+        await subscription.unsubscribe()
