@@ -30,6 +30,17 @@ from servotune.bus.messages import ACK_HEADER, RemoteAxisInfo, RemoteLinkInfo, R
 from servotune.drivers.slap2_descriptor import slap2_descriptor
 from servotune.wire import AxisInfo, LinkInfo
 
+# The fake link's status, as a rig's link publishes it.
+LINK_STATUS = {
+    "type": "link_status",
+    "link": "line",
+    "state": "connected",
+    "message": "",
+    "rate_hz": 30.0,
+    "wire_limit_hz": 100.0,
+    "errors": 0,
+}
+
 
 class FakeRig:
     """The rig agent's side of the protocol, without a device behind it."""
@@ -102,16 +113,7 @@ class FakeRig:
         await self.nc.publish(msg.reply, b"", headers=self.clock_headers())
 
     async def _snapshot(self, msg: Any) -> None:
-        status = {
-            "type": "link_status",
-            "link": "line",
-            "state": "connected",
-            "message": "",
-            "rate_hz": 30.0,
-            "wire_limit_hz": 100.0,
-            "errors": 0,
-        }
-        messages = [json.dumps(status)] + [
+        messages = [json.dumps(LINK_STATUS)] + [
             json.dumps({"type": "params", "axis": a, "values": {"kp": 100}, "source": "read"})
             for a in self.axes
         ]
@@ -123,15 +125,7 @@ class FakeRig:
         await msg.respond(json.dumps({"ok": True, "result": {"values": {"kp": 100}}}).encode())
 
     async def presence(self) -> None:
-        link = {
-            "type": "link_status",
-            "link": "line",
-            "state": "connected",
-            "message": "",
-            "rate_hz": 30.0,
-            "wire_limit_hz": 100.0,
-            "errors": 0,
-        }
+        link = LINK_STATUS
         while True:
             body = json.dumps({"rig": self.name, "period_s": 0.5, "sent_wall_s": time.time()})
             await self.nc.publish(

@@ -16,8 +16,9 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,46 @@ def free_port() -> int:
 def require_nats_server() -> None:
     if not os.path.exists(NATS_SERVER):
         pytest.fail("nats-server is not installed: scripts/test.sh installs it (ensure_nats)")
+
+
+@contextlib.contextmanager
+def child_process(args: list[str], log: Path, cwd: Path | None = None) -> Iterator[Any]:
+    """``args`` as a process of its own (output to ``log``), ended with it (by its
+    pid, resumed first in case a test stopped it)."""
+    import signal
+
+    with log.open("wb") as out:
+        child = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, cwd=cwd)
+    try:
+        yield child
+    finally:
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGCONT)
+            child.terminate()
+            try:
+                child.wait(10)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+
+
+def hub_command(lab: Lab, port: int, data_dir: Path) -> list[str]:
+    """``servotune hub`` on ``lab`` (its own process: its CPU, threads and stalls are
+    its own)."""
+    return [
+        sys.executable,
+        "-m",
+        "servotune",
+        "hub",
+        "--bus",
+        lab.url,
+        "--bus-credentials",
+        str(lab.users["hub"].credentials),
+        "--port",
+        str(port),
+        "--data-dir",
+        str(data_dir),
+    ]
 
 
 @dataclass
@@ -75,6 +116,11 @@ class ServerProcess:
             if self._process.poll() is not None or time.monotonic() > deadline:
                 pytest.fail(f"nats-server {self.name} did not start: {self.log_path.read_text()}")
             time.sleep(0.05)
+
+    @property
+    def pid(self) -> int:
+        assert self._process is not None
+        return self._process.pid
 
     def stop(self) -> None:
         if self._process is not None and self._process.poll() is None:

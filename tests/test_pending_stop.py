@@ -12,6 +12,8 @@ user moved the axis) is in tests/test_bus_faults.py.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -167,50 +169,45 @@ async def test_the_stop_overtaken_rule(tmp_path: Path) -> None:
 # --- a real line unplugged and plugged back ----------------------------------------------
 
 
+@contextlib.asynccontextmanager
+async def _stop_while_unplugged(tmp_path: Path) -> AsyncIterator[tuple[Hub, Any, Tap]]:
+    """A hub on a real pty line whose cable is pulled, and STOP all pressed then:
+    (the hub, the simulator to plug back, the device's record of what it received)."""
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    tap = Tap(bus)
+    with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
+        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
+        await hub.start()
+        try:
+            await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
+            sim.unplug()
+            await wait_for(lambda: hub.link_status("line").state != "connected", 10, "down")
+            assert await hub.stop_all() == ["line-0"]
+            yield hub, sim, tap
+        finally:
+            await hub.stop()
+
+
 async def test_a_stop_pending_too_long_is_not_sent_when_the_line_is_back(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(hub_state, "PENDING_STOP_MAX_S", 1.0)
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
-    tap = Tap(bus)
-    with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
-        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
-        await hub.start()
-        try:
-            await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
-            sim.unplug()
-            await wait_for(lambda: hub.link_status("line").state != "connected", 10, "down")
-            assert await hub.stop_all() == ["line-0"]
-            await wait_for(
-                lambda: any("never delivered" in m for m in _messages(hub)), 5, "the expiry"
-            )
-            mark = tap.mark()
-            sim.replug()
-            await wait_for(lambda: hub.link_status("line").state == "connected", 15, "back")
-            await wait_for(lambda: hub.entry("line-0").health == "ok", 10, "axis back")
-            await asyncio.sleep(1.0)  # several polls: a STOP would be out by now
-            assert b"st\r" not in tap.since(mark)
-            assert not any("STOP sent" in m for m in _messages(hub))
-        finally:
-            await hub.stop()
+    async with _stop_while_unplugged(tmp_path) as (hub, sim, tap):
+        await wait_for(lambda: any("never delivered" in m for m in _messages(hub)), 5, "expiry")
+        mark = tap.mark()
+        sim.replug()
+        await wait_for(lambda: hub.link_status("line").state == "connected", 15, "back")
+        await wait_for(lambda: hub.entry("line-0").health == "ok", 10, "axis back")
+        await asyncio.sleep(1.0)  # several polls: a STOP would be out by now
+        assert b"st\r" not in tap.since(mark)
+        assert not any("STOP sent" in m for m in _messages(hub))
 
 
 async def test_a_pending_stop_that_goes_out_says_when_it_was_pressed(tmp_path: Path) -> None:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
-    tap = Tap(bus)
-    with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
-        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
-        await hub.start()
-        try:
-            await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
-            sim.unplug()
-            await wait_for(lambda: hub.link_status("line").state != "connected", 10, "down")
-            assert await hub.stop_all() == ["line-0"]
-            mark = tap.mark()
-            sim.replug()
-            await wait_for(lambda: b"st\r" in tap.since(mark), 15, "the STOP on the wire")
-            await wait_for(lambda: any("STOP sent" in m for m in _messages(hub)), 5, "the event")
-            sent = next(m for m in _messages(hub) if "STOP sent" in m)
-            assert "pressed at" in sent and "s ago" in sent, sent
-        finally:
-            await hub.stop()
+    async with _stop_while_unplugged(tmp_path) as (hub, sim, tap):
+        mark = tap.mark()
+        sim.replug()
+        await wait_for(lambda: b"st\r" in tap.since(mark), 15, "the STOP on the wire")
+        await wait_for(lambda: any("STOP sent" in m for m in _messages(hub)), 5, "the event")
+        sent = next(m for m in _messages(hub) if "STOP sent" in m)
+        assert "pressed at" in sent and "s ago" in sent, sent

@@ -15,7 +15,10 @@ turns (``main_turned``, at least every ``MAIN_STALL_MAX_S``). A hub whose loop h
 stops them, and the rigs' dead-man stops what it set in motion (an independent sender
 would keep that motion alive with nobody able to stop it from the hub). A round that
 goes out late is logged with how much of the delay the lane's thread spent waiting for
-a CPU (Linux ``schedstat``): an overloaded machine, not something the hub did.
+a CPU, and how long the hub's main thread did (Linux ``schedstat``): the lane needs
+the interpreter lock, which the main thread holds while it runs Python, so a main
+thread the kernel preempted holding it holds the lane back too (on an overloaded
+machine: not something the hub did).
 
 What the lane decides, per rig (``RigLiveness``): present or not (its presence,
 dated with the rig's clock as estimated from round trips, ``bus.clock``; a presence
@@ -54,12 +57,15 @@ logger = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-def cpu_wait_s() -> float | None:
-    """How long this thread has waited for a CPU while runnable, in all (Linux
-    ``/proc/thread-self/schedstat``: time on CPU, time waiting on a run queue, slices);
-    None where the kernel does not say."""
+def cpu_wait_s(thread: int | None = None) -> float | None:
+    """How long a thread of this process (this one by default) has waited for a CPU
+    while runnable, in all (Linux ``schedstat``: time on CPU, time waiting on a run
+    queue, slices); None where the kernel does not say."""
+    path = (
+        "/proc/thread-self/schedstat" if thread is None else f"/proc/self/task/{thread}/schedstat"
+    )
     try:
-        with open("/proc/thread-self/schedstat") as stat:
+        with open(path) as stat:
             return int(stat.read().split()[1]) / 1e9
     except (OSError, IndexError, ValueError):
         return None
@@ -67,9 +73,15 @@ def cpu_wait_s() -> float | None:
 
 # The hub's loop must have turned this recently for the keep-alives to go out.
 MAIN_STALL_MAX_S = 1.0
+# The lane's loop notes the time this often (``heard_until``).
+LANE_TICK_S = 0.02
 # How often a present rig's clock is probed again (each probe narrows the estimate and
-# follows the clocks' drift), and how long a probe may take.
+# follows the clocks' drift), and how long a probe may take. While the estimate is
+# wider than CLOCK_WIDE_S (only slow round trips so far: a loaded machine) it is
+# probed every CLOCK_PROBE_SOON_S.
 CLOCK_PROBE_PERIOD_S = 5.0
+CLOCK_WIDE_S = 0.05
+CLOCK_PROBE_SOON_S = 0.5
 CLOCK_PROBE_TIMEOUT_S = 1.0
 
 
@@ -157,9 +169,10 @@ class RigLiveness:
                 return False  # cannot be dated: not counted (a rig of an older version)
             if instance != self.instance or not self.rig_clock.known:
                 return True
-            _, high = self.rig_clock.bounds(now)
-            # Sent at the earliest hub time the estimate allows: never believed younger.
-            sent = min(now, rig_now - high)
+            # Sent when the estimate says (the middle of its interval, off by at most
+            # half its width: milliseconds once a quick round trip came back; probes
+            # follow each other quickly while it is wide, ``_probes``).
+            sent = min(now, self.rig_clock.to_hub(rig_now, now))
             if now - sent > self.offline_after_s:
                 self.stale_presences += 1
                 return False
@@ -228,6 +241,10 @@ class SafetyLane:
         self.keepalives_withheld = 0
         # The hub's loop's last turn (hub clock; ``main_turned``).
         self._main_turn = clock()
+        # The lane's own loop's last turn (hub clock): what it has heard is current up
+        # to about then (``heard_until``).
+        self.turned_at = clock()
+        self._main_thread: int | None = None
         self._logged_at = -math.inf
 
     # --- lifespan (called from the hub's loop) ------------------------------------------
@@ -235,6 +252,7 @@ class SafetyLane:
     async def start(self) -> None:
         """Start the thread and connect; raises what connecting raised."""
         self._main_loop = asyncio.get_running_loop()
+        self._main_thread = threading.get_native_id()
         ready: concurrent.futures.Future[None] = concurrent.futures.Future()
         self._thread = threading.Thread(
             target=self._run, args=(ready,), name="bus safety lane", daemon=True
@@ -250,6 +268,15 @@ class SafetyLane:
         if self._thread is not None:
             await asyncio.to_thread(self._thread.join, 10)
             self._thread = None
+
+    def heard_until(self, at: float) -> bool:
+        """Has the lane's loop run for two ticks after ``at`` (hub clock), so
+        that whatever a rig sent before then has been read? A silence is judged only
+        then: a hub whose own threads were held up (an overloaded machine) must not show
+        a rig offline whose presences it has not read yet. A lane that stopped turning
+        (5 s) is not waited for."""
+        turned = self.turned_at
+        return turned >= at + 2 * LANE_TICK_S or self._clock() - turned > 5.0
 
     def main_turned(self) -> None:
         """The hub's loop is turning (called from it every ``keepalive_period_s``)."""
@@ -309,6 +336,7 @@ class SafetyLane:
             return
         ready.set_result(None)
         self._tasks.spawn(self._keepalives(), "bus lane: keep-alives")
+        self._tasks.spawn(self._ticks(), "bus lane: ticks")
         self._tasks.spawn(self._probes(), "bus lane: clock probes")
         await self._done.wait()
         await self._tasks.cancel_all()
@@ -326,7 +354,7 @@ class SafetyLane:
         while the hub's loop turns."""
         assert self._nc is not None
         period = self._settings.keepalive_period_s
-        last, waited = self._clock(), cpu_wait_s()
+        last, waited = self._clock(), self._cpu_waits()
         while True:
             now = self._clock()
             stalled_s = now - self._main_turn
@@ -345,8 +373,8 @@ class SafetyLane:
                     await self._nc.publish(
                         subjects.rig_cmd(live.rig, "keepalive"), body.model_dump_json().encode()
                     )
-            waited_now = cpu_wait_s()
-            cpu_s = (waited_now - waited) if waited_now is not None and waited is not None else 0.0
+            waited_now = self._cpu_waits()
+            cpu_s = waited_now - waited
             if self.keepalive_rounds:
                 gap = now - last
                 self.keepalive_max_gap_s = max(self.keepalive_max_gap_s, gap)
@@ -358,12 +386,24 @@ class SafetyLane:
                 if gap > 3 * period:
                     self._log_late(
                         f"keep-alives went out {1000 * gap:.0f} ms apart (every "
-                        f"{1000 * period:.0f} ms wanted); this thread waited "
-                        f"{1000 * cpu_s:.0f} ms of it for a CPU"
+                        f"{1000 * period:.0f} ms wanted); this thread and the hub's main "
+                        f"thread waited {1000 * cpu_s:.0f} ms of it for a CPU"
                     )
             self.keepalive_rounds += 1
             last, waited = now, waited_now
             await asyncio.sleep(period)
+
+    async def _ticks(self) -> None:
+        """``turned_at``, every ``LANE_TICK_S``: the lane's loop keeps time."""
+        while True:
+            self.turned_at = self._clock()
+            await asyncio.sleep(LANE_TICK_S)
+
+    def _cpu_waits(self) -> float:
+        """This thread's and the hub's main thread's waits for a CPU, in all."""
+        own = cpu_wait_s() or 0.0
+        main = cpu_wait_s(self._main_thread) if self._main_thread is not None else None
+        return own + (main or 0.0)
 
     def _log_late(self, text: str) -> None:
         if self._clock() - self._logged_at >= 10.0:
@@ -374,8 +414,9 @@ class SafetyLane:
         return (
             f"keep-alive rounds {self.keepalive_rounds}: longest gap "
             f"{1000 * self.keepalive_max_gap_s:.0f} ms, longest wait for a CPU "
-            f"{1000 * self.keepalive_max_cpu_wait_s:.0f} ms, longest gap not spent waiting for "
-            f"a CPU {1000 * self.keepalive_max_unexplained_s:.0f} ms; "
+            f"{1000 * self.keepalive_max_cpu_wait_s:.0f} ms (the lane's and the main "
+            "thread's), longest gap not spent waiting for a CPU "
+            f"{1000 * self.keepalive_max_unexplained_s:.0f} ms; "
             f"withheld {self.keepalives_withheld} (the hub's loop stalled)"
         )
 
@@ -410,7 +451,12 @@ class SafetyLane:
             with self._rigs_lock:
                 rigs = list(self._rigs.values())
             for live in rigs:
-                if live.present(now) and now - live.last_probe > CLOCK_PROBE_PERIOD_S:
+                if not live.present(now):
+                    continue
+                bounds = live.clock_bounds(now)
+                wide = bounds is None or bounds[1] - bounds[0] > CLOCK_WIDE_S
+                period = CLOCK_PROBE_SOON_S if wide else CLOCK_PROBE_PERIOD_S
+                if now - live.last_probe > period:
                     self._probe_soon(live)
 
     def _probe_soon(self, live: RigLiveness) -> None:

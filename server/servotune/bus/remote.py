@@ -364,10 +364,12 @@ class RemoteLink:
         timeout_s: float | None = None,
         pressed_at: float | None = None,
         axis_id: str | None = None,
+        renewed: bool = False,
     ) -> dict[str, object]:
         """A request to the rig; refused at once (LinkDownError) when the rig is offline.
         ``timeout_s``: for the long requests (auto-tune), else the port's;
-        ``pressed_at``: a STOP's press time (hub clock)."""
+        ``pressed_at``: a STOP's press time (hub clock); ``renewed``: sent again in a
+        new session (once) because the rig's dead-man had ended the last one."""
         if self.port.closing:
             raise LinkDownError(
                 f"the hub is shutting down: nothing sent to {self.rig} (the rig's own "
@@ -396,14 +398,29 @@ class RemoteLink:
             body.deadline_s = start_by + low
             body.reply_by_s = now + timeout + low
             msg = await self._two_part(subject, body, verb, now, start_by, timeout, axis_id)
-        try:
-            reply = CommandReply.model_validate_json(msg.data)
-        except ValueError:
-            raise ProtocolError(f"rig {self.rig} answered something that is not a reply") from None
-        if reply.kind == "session_ended":
-            self.live.renew_session(body.session)
+        reply = self._reply_of(msg)
+        if reply.kind == "session_ended" and not renewed:
+            # Not run: the rig's dead-man had ended this hub's session there (the axis
+            # was stopped; its event says so). This request is the user's, sent now:
+            # once more in a new session, with a new deadline.
+            body.session = self.live.renew_session(body.session)
+            return await self.request(
+                subject,
+                body,
+                verb=verb,
+                timeout_s=timeout_s,
+                pressed_at=pressed_at,
+                axis_id=axis_id,
+                renewed=True,
+            )
         raise_for_reply(self.rig, reply)
         return reply.result
+
+    def _reply_of(self, msg: Msg) -> CommandReply:
+        try:
+            return CommandReply.model_validate_json(msg.data)
+        except ValueError:
+            raise ProtocolError(f"rig {self.rig} answered something that is not a reply") from None
 
     async def _view_request(self, subject: str, data: bytes, timeout_s: float) -> Msg:
         return await self.port.view_nc.request(subject, data, timeout=timeout_s)
@@ -601,7 +618,11 @@ class RemoteLink:
                 if returns != self._returns_seen and await self._snapshot():
                     self._returns_seen = returns
                 shown_offline = False
-            elif not shown_offline and now >= self._judged_from:
+            elif (
+                not shown_offline
+                and now >= self._judged_from
+                and self.port.lane.heard_until(self.live.seen_at + self.live.offline_after_s)
+            ):
                 seen_at = self.live.seen_at
                 why = (
                     f"rig {self.rig} is offline (nothing heard for {now - seen_at:.1f} s)"

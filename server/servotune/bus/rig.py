@@ -479,8 +479,12 @@ class RigAgent:
                 self._admit(verb, request)
             body = await self._execute(link, axis, verb, request)
         except NotRunError as exc:
+            # Not run: counted apart (``not_run``), not among the verbs handled.
             self.not_run.append((verb, exc.kind))
-            body = _error_reply(exc)
+            if msg.reply:
+                with contextlib.suppress(NatsError):
+                    await msg.respond(_error_reply(exc))
+            return
         except (DriverError, HTTPException, UnknownAxisError) as exc:
             body = _error_reply(exc)
         except StorageError as exc:
