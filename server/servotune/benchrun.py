@@ -297,7 +297,7 @@ class BenchRunner:
                 await entry.driver.stop()
             except DriverError:
                 # The link is down: stop the axis the moment it is back.
-                entry.stop_on_reconnect = True
+                self._hub.pend_stop(entry)
                 message += "; the axis will be stopped when its link is back"
         except asyncio.CancelledError:
             status, message = "incomplete", "server stopped during the test"

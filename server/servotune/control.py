@@ -600,12 +600,13 @@ class ControlManager:
                     exc, LinkDownError | DeviceRefusedError
                 )
                 if isinstance(exc, LinkDownError):
-                    entry.stop_on_reconnect = True  # the hub sends it when the axis is back
+                    self._hub.pend_stop(entry)  # the hub sends it when the axis is back
                 again = f" (attempt {attempt}, sending again)" if retry else ""
                 self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}{again}")
                 if retry:
                     continue
                 return False
+            self._hub.note_stopped(entry)  # a STOP pressed before has nothing left to stop
             self._hub.on_event("warning", axis_id, f"STOP ({reason})")
             return True
         return False

@@ -146,7 +146,9 @@ class Hub(HubState):
         # Cross-field constraints are checked against the device's values as last seen.
         checked = validate_params(entry.driver.descriptor, values, entry.device_values)
         self._operate(entry)
-        return await entry.driver.write_params(checked)
+        written = await entry.driver.write_params(checked)
+        self.note_commanded(entry, "parameters written")
+        return written
 
     async def command(
         self,
@@ -176,6 +178,7 @@ class Hub(HubState):
         if origin == "user" and entry.driver.descriptor.command(name).group == "stop":
             label = entry.driver.descriptor.command(name).label
             entry.stopped("STOP was pressed" if name == "stop" else f"{label} was pressed")
+        pressed_at = self._clock()
         # A user's move to a target is watched to its end (servotune.movewatch); a
         # bench or auto-tune sequence judges its own moves.
         move = plan_move(entry, name, checked) if origin == "user" else None
@@ -185,10 +188,12 @@ class Hub(HubState):
         except DriverError as exc:
             if name == "stop" and not isinstance(exc, DeviceRefusedError):
                 # The stop could not reach the axis: deliver it as soon as it can go.
-                self._schedule_stop(entry, exc)
+                self._schedule_stop(entry, exc, pressed_at)
             raise
         if name == "stop":
-            self._cancel_pending_stop(entry)
+            self.note_stopped(entry)
+        else:
+            self.note_commanded(entry, name)
         if (scope := entry.driver.descriptor.command(name).stores_parameters) is not None:
             self._stored(entry, scope)
         level: EventLevel = "warning" if name == "stop" else "info"
@@ -251,6 +256,7 @@ class Hub(HubState):
                 "command", "no earlier settings of this axis are stored: nothing to re-apply"
             )
         readback = await entry.driver.write_params(values)
+        self.note_commanded(entry, "stored settings re-applied")
         entry.health, entry.health_message = "ok", ""
         entry.silent, entry.last_sample_at = False, self._clock()
         self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
@@ -274,6 +280,7 @@ class Hub(HubState):
         except DriverError as exc:
             self.on_event("warning", axis_id, f"console {line!r}: {exc}")
             raise
+        self.note_commanded(entry, f"console {sent!r}")
         shown = " | ".join(reply)
         if len(shown) > 200:
             shown = shown[:200] + " …"

@@ -115,7 +115,7 @@ class TuningContext:
         try:
             await entry.driver.stop()
         except DriverError:
-            entry.stop_on_reconnect = True
+            self.hub.pend_stop(entry)
             self.hub.on_event(
                 "error", entry.info.id, "auto-tune: stop failed; repeated when the link is back"
             )
