@@ -112,7 +112,7 @@ def create_app(config: AppConfig) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         storage = Storage(config.data_dir / "servotune.db")
-        with security.running(app), contextlib.ExitStack() as simulators:
+        async with security.running(app), contextlib.AsyncExitStack() as simulators:
             specs = list(config.links)
             for start_simulator in config.simulators:
                 specs.extend(simulators.enter_context(start_simulator()))

@@ -11,7 +11,6 @@ completes with the response's status.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from typing import Any
@@ -22,7 +21,7 @@ from starlette.requests import HTTPConnection
 from servotune.auth.audit import AuditLog
 from servotune.auth.middleware import MUTATING, client_address, session_cookie
 from servotune.auth.permissions import DANGEROUS, LOCKED, REAUTH_AFTER_S, permissions_of
-from servotune.auth.principal import LOCAL_PRINCIPAL, MOVE, PARAM_SETS, Principal
+from servotune.auth.principal import LOCAL_PRINCIPAL, MOVE, PARAM_SETS, STOP, Principal
 from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS, command_permission
 from servotune.auth.security import CLIENT_HEADER, SecurityState
 from servotune.auth.store import AuthStore, Session
@@ -105,6 +104,27 @@ def resolve_principal(
     return principal, session
 
 
+def needs_lookup(connection: HTTPConnection, security: SecurityState) -> bool:
+    """Whether resolving the caller reads the accounts database (a token or a session
+    cookie is presented). Without one the answer is known at once, with no I/O."""
+    if _bearer(connection) is not None:
+        return True
+    return security.exposed and session_cookie(connection.scope) is not None
+
+
+async def caller(
+    connection: HTTPConnection, security: SecurityState, *, urgent: bool = False
+) -> tuple[Principal | None, Session | None]:
+    """``resolve_principal`` off the event loop when it reads the database: in the
+    threads reserved for the accounts database, or (``urgent``: STOP and the other
+    stops) in the one thread reserved for those, which nothing else queues in."""
+    if not needs_lookup(connection, security):
+        return resolve_principal(connection, security)
+    if urgent:
+        return await security.db_urgent(resolve_principal, connection, security)
+    return await security.db(resolve_principal, connection, security)
+
+
 async def _permission_for(request: Request, permission: str) -> str:
     if permission != COMMAND:
         return permission
@@ -134,7 +154,11 @@ async def authorize(connection: HTTPConnection) -> None:
         logger.error("route %s %s has no entry in ROUTE_PERMISSIONS", *key)
         raise HTTPException(500, f"route {request.method} {path} declares no permission")
     security = security_of(request)
-    principal, session = await asyncio.to_thread(resolve_principal, request, security)
+    # The permission first (a command's comes from its body): a STOP resolves its
+    # caller in the lane reserved for stops, so no queue of other requests (a login
+    # flood once held STOP for seconds) stands in front of it.
+    permission = declared if declared == PUBLIC else await _permission_for(request, declared)
+    principal, session = await caller(request, security, urgent=permission == STOP)
     request.state.principal = principal
     request.state.session = session
     if declared == PUBLIC:
@@ -152,7 +176,6 @@ async def authorize(connection: HTTPConnection) -> None:
                 detail="not logged in",
             )
         raise HTTPException(401, "log in first", headers={"WWW-Authenticate": "Bearer"})
-    permission = await _permission_for(request, declared)
     axis_id = request.path_params.get("axis_id")
     if permission not in principal.permissions:
         _refused(audit, principal, request, path, address, f"needs permission {permission!r}")

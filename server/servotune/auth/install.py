@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 from fastapi import Depends, FastAPI
@@ -22,18 +22,23 @@ class InstalledSecurity:
     def __init__(self, state: SecurityState) -> None:
         self.state = state
 
-    @contextlib.contextmanager
-    def running(self, app: FastAPI) -> Iterator[SecurityState]:
+    @contextlib.asynccontextmanager
+    async def running(self, app: FastAPI) -> AsyncIterator[SecurityState]:
         """Open the accounts database and the audit writer for the app's lifetime, and
-        re-check open websockets against it (entered inside the running event loop)."""
+        re-check open websockets against it."""
         self.state.open()
         app.state.audit = self.state.audit
-        recheck = asyncio.get_running_loop().create_task(recheck_websockets(self.state))
+        loop = asyncio.get_running_loop()
+        tasks = [loop.create_task(recheck_websockets(self.state))]
         try:
             yield self.state
         finally:
-            recheck.cancel()
-            self.state.close()
+            for task in tasks:
+                task.cancel()
+            for task in tasks:
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            await self.state.close()
 
 
 def install_security(app: FastAPI, config: SecurityConfig, data_dir: Path) -> InstalledSecurity:

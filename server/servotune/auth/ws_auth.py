@@ -31,7 +31,7 @@ import logging
 
 from fastapi import WebSocket
 
-from servotune.auth.authz import resolve_principal
+from servotune.auth.authz import caller
 from servotune.auth.middleware import client_address, own_origin
 from servotune.auth.principal import VIEW, Principal
 from servotune.auth.security import CloseCallback, SecurityState
@@ -94,10 +94,10 @@ async def recheck_websockets(security: SecurityState) -> None:
         for principal, callback in security.websockets.entries():
             session_id = principal.session_id or ""
             if principal.via == "session":
-                alive = await asyncio.to_thread(store.session_by_public_id, session_id) is not None
+                alive = await security.db(store.session_by_public_id, session_id) is not None
             elif principal.via == "token":
                 token_id = session_id.removeprefix("token:")
-                alive = await asyncio.to_thread(store.token_alive, token_id)
+                alive = await security.db(store.token_alive, token_id)
             else:
                 continue
             if not alive:
@@ -142,12 +142,12 @@ async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
         if principal.via == "session" and principal.session_id is not None:
             # The session may have ended in the seconds since the ticket was issued.
             store = security.require_store()
-            alive = await asyncio.to_thread(store.session_by_public_id, principal.session_id)
+            alive = await security.db(store.session_by_public_id, principal.session_id)
             if alive is None:
                 await refuse("the ticket's session has ended", principal.user)
                 return None
     else:
-        principal, _ = await asyncio.to_thread(resolve_principal, websocket, security)
+        principal, _ = await caller(websocket, security)
     if principal is None:
         await refuse("not logged in")
         return None

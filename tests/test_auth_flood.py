@@ -1,0 +1,188 @@
+"""A login flood against the exposed mode: STOP does not wait behind it, and the throttle
+holds under concurrency (issue 26, finding 1).
+
+The server is a real uvicorn on a recorded simulated SLAP2 line, in exposed mode behind
+a "proxy" on 127.0.0.1, so ``X-Forwarded-For`` gives each client its address. STOP is
+timed twice per request: its answer, and the ``st`` on the simulated device's own
+record of the wire (``WireRecorder``). The baseline is measured in the same test,
+before and after the flood, so the comparison does not depend on the machine's speed.
+The flood comes from another process, as separate clients would send it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import statistics
+import sys
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import uvicorn
+
+from servotune.api.app import AppConfig, create_app
+from servotune.auth.security import SecurityConfig
+from servotune.config import LinkSpec
+
+from .auth_helpers import PASSWORDS, make_accounts
+from .conftest import wait_for
+from .control_support import WireRecorder, free_port, recorded_line
+
+FLOOD_ADDRESS = "198.51.100.66"
+VIEWER_ADDRESS = "192.0.2.5"
+ADDRESSES = [0, 1]
+
+
+@dataclass
+class ExposedServer:
+    base_url: str
+    app: object
+    wire: WireRecorder
+
+
+@contextlib.asynccontextmanager
+async def exposed_line_server(tmp_path: Path) -> AsyncIterator[ExposedServer]:
+    make_accounts(tmp_path / "data")
+    with recorded_line(tmp_path, ADDRESSES) as (simulator, wire):
+        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, ADDRESSES, 512)
+        security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
+        app = create_app(
+            AppConfig(
+                links=[spec],
+                data_dir=tmp_path / "data",
+                web_dir=tmp_path / "no-web",
+                security=security,
+                twin=False,
+            )
+        )
+        port = free_port()
+        server = uvicorn.Server(
+            uvicorn.Config(
+                app,
+                host="127.0.0.1",
+                port=port,
+                log_level="warning",
+                lifespan="on",
+                proxy_headers=False,  # as `servotune serve`: the middleware decides
+            )
+        )
+        task = asyncio.create_task(server.serve())
+        try:
+            await wait_for(lambda: server.started, 20, "the server to start")
+            yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
+        finally:
+            server.should_exit = True
+            await task
+
+
+async def viewer_client(server: ExposedServer) -> httpx.AsyncClient:
+    http = httpx.AsyncClient(
+        base_url=server.base_url, timeout=60, headers={"X-Forwarded-For": VIEWER_ADDRESS}
+    )
+    response = await http.post(
+        "/api/auth/login", json={"user": "victor", "password": PASSWORDS["victor"]}
+    )
+    assert response.status_code == 200, response.text
+    http.headers["X-CSRF-Token"] = response.json()["csrf_token"]
+    return http
+
+
+async def timed_stop(http: httpx.AsyncClient, wire: WireRecorder) -> tuple[float, float]:
+    """(seconds to the answer, seconds until every module had its ``st`` on the wire)."""
+    started = time.monotonic()
+    response = await http.post("/api/stop")
+    answered = time.monotonic() - started
+    assert response.status_code == 200, response.text
+    deadline = time.monotonic() + 30
+    on_wire: list[float] = []
+    while time.monotonic() < deadline:
+        on_wire = [t for a in ADDRESSES if (t := wire.first("st", a, started)) is not None]
+        if len(on_wire) == len(ADDRESSES):
+            break
+        await asyncio.sleep(0.005)
+    assert len(on_wire) == len(ADDRESSES), "STOP never reached the wire"
+    return answered, max(on_wire) - started
+
+
+@dataclass
+class Flood:
+    """``count`` concurrent logins with unknown names from one address, sent by another
+    process (``tests/login_flood.py``): the test process only times STOP."""
+
+    base_url: str
+    count: int
+    statuses: list[int] = field(default_factory=list)
+    process: asyncio.subprocess.Process | None = None
+    reader: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        self.process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            str(Path(__file__).with_name("login_flood.py")),
+            self.base_url,
+            str(self.count),
+            FLOOD_ADDRESS,
+            stdout=asyncio.subprocess.PIPE,
+        )
+        assert self.process.stdout is not None
+        line = await asyncio.wait_for(self.process.stdout.readline(), 30)
+        assert line.strip() == b"started", line
+        self.reader = asyncio.create_task(self._read())
+
+    async def _read(self) -> None:
+        assert self.process is not None and self.process.stdout is not None
+        async for line in self.process.stdout:
+            self.statuses.append(int(line))
+
+    @property
+    def outstanding(self) -> int:
+        return self.count - len(self.statuses)
+
+    async def join(self) -> None:
+        assert self.process is not None and self.reader is not None
+        await asyncio.wait_for(self.reader, 600)
+        assert await self.process.wait() == 0, "the flood process failed"
+
+
+async def test_stop_is_not_held_by_a_login_flood_and_the_throttle_holds(tmp_path: Path) -> None:
+    async with exposed_line_server(tmp_path) as server:
+        viewer = await viewer_client(server)
+        try:
+            for address in ADDRESSES:  # the link is up and polling
+                await wait_for(
+                    lambda a=address: bool(server.wire.since(0, a)), 20, f"module {address} polled"
+                )
+            baseline = [await timed_stop(viewer, server.wire) for _ in range(5)]
+            flood = Flood(server.base_url, 100)
+            await flood.start()
+            during: list[tuple[float, float]] = []
+            await asyncio.sleep(0.5)  # every login is in; the first ones are being hashed
+            while flood.outstanding > 0 and len(during) < 8:
+                before = flood.outstanding
+                stop = await timed_stop(viewer, server.wire)
+                # Counted only when the flood was still unanswered on both sides of this
+                # STOP: a STOP after the flood would prove nothing.
+                if before > 0 and flood.outstanding > 0:
+                    during.append(stop)
+                await asyncio.sleep(0.2)
+            await flood.join()
+            baseline += [await timed_stop(viewer, server.wire) for _ in range(5)]
+        finally:
+            await viewer.aclose()
+    print(f"baseline answer/wire ms: {[(round(a * 1e3), round(w * 1e3)) for a, w in baseline]}")
+    print(f"during the flood:        {[(round(a * 1e3), round(w * 1e3)) for a, w in during]}")
+    print(f"flood statuses: {sorted(set(flood.statuses))}, 401: {flood.statuses.count(401)}")
+    # Never more password checks than the per-address limit, however concurrent.
+    assert flood.statuses.count(401) == 20
+    assert flood.statuses.count(429) == 80
+    assert len(during) >= 3, "the flood ended before STOP could be timed during it"
+    for index, what in ((0, "answer"), (1, "st on the wire")):
+        base = statistics.median(s[index] for s in baseline)
+        loaded = statistics.median(s[index] for s in during)
+        assert loaded <= base + 0.050, (
+            f"STOP {what}: median {loaded * 1e3:.0f} ms during the flood against "
+            f"{base * 1e3:.0f} ms without it"
+        )
