@@ -25,6 +25,7 @@ import uvicorn
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import SecurityConfig
+from servotune.cli import GRACEFUL_SHUTDOWN_S
 from servotune.config import LinkSpec
 
 from .auth_helpers import PASSWORDS, make_accounts
@@ -67,6 +68,7 @@ async def exposed_line_server(tmp_path: Path) -> AsyncIterator[ExposedServer]:
                 log_level="warning",
                 lifespan="on",
                 proxy_headers=False,  # as `servotune serve`: the middleware decides
+                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,  # as `servotune serve`
             )
         )
         task = asyncio.create_task(server.serve())
@@ -135,28 +137,35 @@ class Flood:
     async def _read(self) -> None:
         assert self.process is not None and self.process.stdout is not None
         async for line in self.process.stdout:
-            self.statuses.append(int(line))
+            if line.strip().isdigit():
+                self.statuses.append(int(line))
 
     @property
     def outstanding(self) -> int:
         return self.count - len(self.statuses)
 
-    async def join(self) -> None:
-        assert self.process is not None and self.reader is not None
-        await asyncio.wait_for(self.reader, 600)
-        assert await self.process.wait() == 0, "the flood process failed"
+    async def kill(self) -> None:
+        if self.process is not None and self.process.returncode is None:
+            self.process.kill()
+            await self.process.wait()
+        if self.reader is not None:
+            self.reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError, ValueError):
+                await self.reader
 
 
 async def test_stop_is_not_held_by_a_login_flood_and_the_throttle_holds(tmp_path: Path) -> None:
     async with exposed_line_server(tmp_path) as server:
         viewer = await viewer_client(server)
+        flood = Flood(server.base_url, 100)
         try:
             for address in ADDRESSES:  # the link is up and polling
                 await wait_for(
                     lambda a=address: bool(server.wire.since(0, a)), 20, f"module {address} polled"
                 )
             baseline = [await timed_stop(viewer, server.wire) for _ in range(5)]
-            flood = Flood(server.base_url, 100)
+            passwords = server.app.state.security.passwords  # type: ignore[attr-defined]
+            checks_before = passwords.checks  # the viewer's own login
             await flood.start()
             during: list[tuple[float, float]] = []
             await asyncio.sleep(0.5)  # every login is in; the first ones are being hashed
@@ -168,16 +177,18 @@ async def test_stop_is_not_held_by_a_login_flood_and_the_throttle_holds(tmp_path
                 if before > 0 and flood.outstanding > 0:
                     during.append(stop)
                 await asyncio.sleep(0.2)
-            await flood.join()
+            statuses = list(flood.statuses)
+            # The checks that passed the throttle are queued for the hashing workers; on
+            # a loaded machine they take minutes there (their priority is low on
+            # purpose). What was let through is counted now: it cannot change.
+            checks = passwords.checks - checks_before
             baseline += [await timed_stop(viewer, server.wire) for _ in range(5)]
         finally:
             await viewer.aclose()
+            await flood.kill()
     print(f"baseline answer/wire ms: {[(round(a * 1e3), round(w * 1e3)) for a, w in baseline]}")
     print(f"during the flood:        {[(round(a * 1e3), round(w * 1e3)) for a, w in during]}")
-    print(f"flood statuses: {sorted(set(flood.statuses))}, 401: {flood.statuses.count(401)}")
-    # Never more password checks than the per-address limit, however concurrent.
-    assert flood.statuses.count(401) == 20
-    assert flood.statuses.count(429) == 80
+    print(f"statuses so far: 429 x {statuses.count(429)}, 401 x {statuses.count(401)}")
     assert len(during) >= 3, "the flood ended before STOP could be timed during it"
     for index, what in ((0, "answer"), (1, "st on the wire")):
         base = statistics.median(s[index] for s in baseline)
@@ -186,3 +197,8 @@ async def test_stop_is_not_held_by_a_login_flood_and_the_throttle_holds(tmp_path
             f"STOP {what}: median {loaded * 1e3:.0f} ms during the flood against "
             f"{base * 1e3:.0f} ms without it"
         )
+    # Never more password checks than the per-address limit, however concurrent: the
+    # rest answered 429 at once, unchecked.
+    assert checks == 20
+    assert statuses.count(429) == 80
+    assert set(statuses) <= {401, 429}

@@ -31,6 +31,10 @@ def _addresses(text: str) -> list[int]:
     return values
 
 
+# Seconds uvicorn waits for open requests at shutdown before it cancels them.
+GRACEFUL_SHUTDOWN_S = 3
+
+
 def _run_server(app_config: object, host: str, port: int) -> None:
     import uvicorn
 
@@ -65,6 +69,9 @@ def _run_server(app_config: object, host: str, port: int) -> None:
         ssl_keyfile=security.tls_key,
         # uvicorn refuses bigger websocket frames (1009) before buffering them.
         ws_max_size=WS_MAX_MESSAGE_BYTES,
+        # At shutdown uvicorn waits for open requests before the lifespan's STOP of
+        # every axis: logins queued for the hashing workers (a flood) must not hold it.
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
 
 

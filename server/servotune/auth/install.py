@@ -29,15 +29,21 @@ class InstalledSecurity:
         self.state.open()
         app.state.audit = self.state.audit
         loop = asyncio.get_running_loop()
-        tasks = [loop.create_task(recheck_websockets(self.state))]
+        recheck = loop.create_task(recheck_websockets(self.state))
+        # Exposed: the hashing workers start now, in the background, so the first login
+        # does not wait for a process to start (seconds on a loaded machine). Awaited,
+        # never cancelled, before closing: a start cut short would orphan its process.
+        passwords = self.state.require_passwords()
+        start = loop.create_task(passwords.start()) if self.state.exposed else None
         try:
             yield self.state
         finally:
-            for task in tasks:
-                task.cancel()
-            for task in tasks:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+            recheck.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await recheck
+            if start is not None:
+                with contextlib.suppress(Exception):
+                    await start
             await self.state.close()
 
 

@@ -1,35 +1,45 @@
 """Password hashing with Argon2id (argon2-cffi), the rule a new password must meet, and
 the bounded pool the server hashes in.
 
-Hashing takes tens to hundreds of milliseconds of CPU and 64 MiB on purpose (argon2-cffi
-releases the interpreter lock meanwhile and computes the 4 lanes in 4 threads). The
-server never runs it on the event loop nor in the shared default thread pool:
-:class:`PasswordWorkers` is a pool of its own, of few threads at a lower CPU priority,
-with a bounded queue. A login flood then queues behind itself only, and the event loop
-(STOP, the dead-man, the links) takes the CPU first.
+Hashing takes tens to hundreds of milliseconds of CPU and 64 MiB on purpose (argon2
+computes its 4 lanes in 4 threads). The server never runs it on the event loop nor in
+the shared default thread pool: :class:`PasswordWorkers` hashes in worker processes of
+their own, with a bounded queue, in two lanes:
 
-Measured (tests/test_auth_flood.py, 2-core VM at a load of 15-18, 100 concurrent
-logins from one address, 20 of them checked): STOP answered median 55-65 ms during
-the flood against 44 ms without it, with nice-10 threads. Hashing in a worker process
-in a session (autogroup) of its own at nice 10 gave 38-62 ms, but a login then took
-6-11 s on that machine instead of about 1 s, and the first one waited for the
-process to start: threads it is.
+- the *prompt* lane, one process at normal priority, takes a check when no other is
+  running and none started in the last PROMPT_INTERVAL_S: a login on a quiet server
+  is as fast as the machine allows, and this lane never takes more than a fraction of
+  a core (0.2 s of CPU per hash here, at most one per second);
+- the *low* lane takes every other check: processes in a session (so an autogroup) of
+  their own at nice 10, whose hashes take only CPU the rest of the machine leaves.
+
+Why processes in a session of their own and not threads: a hashing thread, even at
+nice 10, belongs to the server's scheduling entity (its autogroup or cgroup). On a
+loaded machine a server that keeps the cores busy with hashes loses its "sleeper"
+credit, and the event loop then waits behind every other runnable process each time it
+wakes. Measured on the 2-core VM at a load of 15-20 (tests/test_auth_flood.py,
+alternating runs): STOP answered median 219 and 243 ms during a flood of 20 checks
+against 59 and 38 ms without it with nice-10 threads, 45 and 44 ms against 41 and
+42 ms with a nice-10 process of its own; with a nice-0 process of its own (single
+threaded hash) 175 ms against 59 ms. The low lane's price is paid by concurrent logins
+on a saturated machine (seconds each): the prompt lane is why a single login is not.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
+import math
 import os
 import sys
-import threading
+import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+
+from servotune.compute import ComputePool
 
 MIN_PASSWORD_LENGTH = 10
 MAX_PASSWORD_LENGTH = 1024
@@ -42,7 +52,7 @@ _HASHER = PasswordHasher()
 # costs as long as one for a known name (no user enumeration by timing).
 _DUMMY_HASH = _HASHER.hash("servotune-no-such-user")
 
-# Nice value of the hashing threads (Linux: per thread).
+# Nice value of the hashing processes (and of their autogroup on Linux).
 HASH_NICE = 10
 
 T = TypeVar("T")
@@ -79,63 +89,109 @@ def verify_password(stored_hash: str | None, password: str) -> bool:
         return False
 
 
-def _lower_priority() -> None:
-    """Initializer of a hashing thread: nice HASH_NICE for this thread only (Linux keeps
-    a nice value per thread, and argon2's lane threads inherit it). Elsewhere the same
-    call would renice the whole process, so nothing is done there."""
+def _isolate() -> None:
+    """Initializer of a hashing process: a session (and so an autogroup) of its own and
+    nice HASH_NICE, so a flood of hashes competes with the machine, not with the server.
+
+    Linux only: elsewhere the worker keeps the server's priority (not measured there).
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError):
+        os.setsid()
+    # The autogroup's own nice value (``sched(7)``): raising it needs no privilege.
+    with (
+        contextlib.suppress(OSError),
+        open("/proc/self/autogroup", "w", encoding="ascii") as autogroup,
+    ):
+        autogroup.write(str(HASH_NICE))
+    with contextlib.suppress(OSError):
+        os.nice(HASH_NICE)
+
+
+def _own_session() -> None:
+    """Initializer of a prompt-lane process: a session of its own (Linux: its own
+    autogroup), so even it does not count as the server's own work."""
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), HASH_NICE)
+            os.setsid()
 
 
 def default_workers() -> int:
-    """One hashing thread per two cores (at least one): argon2 computes its 4 lanes in
-    threads of its own, so one hash already uses every core of a small machine."""
+    """Low-lane processes: one per two cores (at least one)."""
     return max(1, (os.cpu_count() or 1) // 2)
 
 
-class PasswordWorkers:
-    """Argon2id hashing and verification in a bounded pool of its own.
+PROMPT_INTERVAL_S = 1.0
 
-    ``workers`` threads hash; at most ``max_waiting`` further calls wait for one, and a
-    call beyond that raises :class:`PasswordWorkersBusyError` at once (the route answers
-    429 with ``Retry-After``): a flood costs a queue of bounded length, never the
-    memory and CPU of an unbounded one. ``checks`` counts verifications started.
+
+class PasswordWorkers:
+    """Argon2id hashing and verification in worker processes of their own (bounded).
+
+    Two lanes (see the module doc). At most ``max_waiting`` calls wait beyond the ones
+    running; a call beyond that raises :class:`PasswordWorkersBusyError` at once (the
+    route answers 429 with ``Retry-After``): a flood costs a queue of bounded length,
+    never the memory and CPU of an unbounded one. ``checks`` counts verifications
+    started. The processes start on :meth:`start` or on the first call
+    (``servotune.compute.ComputePool``).
     """
 
-    def __init__(self, workers: int | None = None, max_waiting: int = 32) -> None:
+    def __init__(
+        self,
+        workers: int | None = None,
+        max_waiting: int = 32,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.workers = workers or default_workers()
         self.max_waiting = max_waiting
         self.checks = 0
         self.in_flight = 0
-        self._pool = ThreadPoolExecutor(
-            max_workers=self.workers,
-            thread_name_prefix="servotune-argon2",
-            initializer=_lower_priority,
-        )
+        self.prompt_calls = 0
+        self.low_calls = 0
+        self._clock = clock
+        self._prompt_busy = False
+        self._prompt_next_s = -math.inf
+        preload = ("servotune.auth.passwords",)
+        self._prompt = ComputePool(preload=preload, workers=1, initializer=_own_session)
+        self._low = ComputePool(preload=preload, workers=self.workers, initializer=_isolate)
+
+    async def start(self) -> None:
+        """Start the workers now, so the first login does not wait for them."""
+        await asyncio.gather(self._prompt.start(), self._low.start())
 
     async def verify(self, stored_hash: str | None, password: str) -> bool:
-        """``verify_password`` in the pool (see the class doc for the bound)."""
+        """``verify_password`` in a worker (see the class doc for the bound)."""
         self._admit()
         self.checks += 1
-        return await self._run(functools.partial(verify_password, stored_hash, password))
+        return await self._run(verify_password, stored_hash, password)
 
     async def hash(self, password: str) -> str:
-        """``hash_password`` in the pool."""
+        """``hash_password`` in a worker."""
         self._admit()
-        return await self._run(functools.partial(hash_password, password))
+        return await self._run(hash_password, password)
 
     def _admit(self) -> None:
-        if self.in_flight >= self.workers + self.max_waiting:
+        if self.in_flight >= 1 + self.workers + self.max_waiting:
             raise PasswordWorkersBusyError("too many password checks at once: try again shortly")
 
-    async def _run(self, job: Callable[[], T]) -> T:
+    async def _run(self, fn: Callable[..., T], *args: str | None) -> T:
+        now = self._clock()
+        prompt = not self._prompt_busy and now >= self._prompt_next_s
         self.in_flight += 1
         try:
-            return await asyncio.get_running_loop().run_in_executor(self._pool, job)
+            if prompt:
+                self._prompt_busy = True
+                self._prompt_next_s = now + PROMPT_INTERVAL_S
+                self.prompt_calls += 1
+                try:
+                    return await self._prompt.run(fn, *args)
+                finally:
+                    self._prompt_busy = False
+            self.low_calls += 1
+            return await self._low.run(fn, *args)
         finally:
             self.in_flight -= 1
 
     async def close(self) -> None:
-        """Drop queued calls; wait (in a thread) for the hashes running to end."""
-        await asyncio.to_thread(self._pool.shutdown, wait=True, cancel_futures=True)
+        """Stop the workers once the hashes running have ended."""
+        await asyncio.gather(self._prompt.close(), self._low.close())
