@@ -168,6 +168,77 @@ async def control_server(
 
 
 @dataclass
+class ExposedServer:
+    base_url: str
+    app: Any
+    wire: WireRecorder
+
+
+@contextlib.asynccontextmanager
+async def exposed_line_server(
+    tmp_path: Path, addresses: list[int], *, twin: bool = False
+) -> AsyncIterator[ExposedServer]:
+    """A real uvicorn server in exposed mode (the accounts of ``tests/auth_helpers``)
+    on a recorded simulated SLAP2 line, behind a "proxy" on 127.0.0.1: each client
+    names its address with ``X-Forwarded-For`` and reaches it as ``http://127.0.0.1``."""
+    from servotune.auth.security import SecurityConfig
+    from servotune.cli import GRACEFUL_SHUTDOWN_S
+
+    from .auth_helpers import make_accounts
+
+    make_accounts(tmp_path / "data")
+    with recorded_line(tmp_path, addresses) as (simulator, wire):
+        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
+        security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
+        app = create_app(
+            AppConfig(
+                links=[spec],
+                data_dir=tmp_path / "data",
+                web_dir=tmp_path / "no-web",
+                security=security,
+                twin=twin,
+            )
+        )
+        port = free_port()
+        server = uvicorn.Server(
+            uvicorn.Config(
+                app,
+                host="127.0.0.1",
+                port=port,
+                log_level="warning",
+                lifespan="on",
+                proxy_headers=False,  # as `servotune serve`: the middleware decides
+                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,  # as `servotune serve`
+            )
+        )
+        task = asyncio.create_task(server.serve())
+        try:
+            deadline = time.monotonic() + 20
+            while not server.started:
+                assert time.monotonic() < deadline, "the server did not start"
+                await asyncio.sleep(0.02)
+            yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
+        finally:
+            server.should_exit = True
+            await task
+
+
+async def session_of(
+    server: ExposedServer, user: str, address: str = "192.0.2.10"
+) -> httpx.AsyncClient:
+    """A logged-in client of ``user`` (tests/auth_helpers' passwords) from ``address``."""
+    from .auth_helpers import PASSWORDS
+
+    http = httpx.AsyncClient(
+        base_url=server.base_url, timeout=60, headers={"X-Forwarded-For": address}
+    )
+    response = await http.post("/api/auth/login", json={"user": user, "password": PASSWORDS[user]})
+    assert response.status_code == 200, response.text
+    http.headers["X-CSRF-Token"] = response.json()["csrf_token"]
+    return http
+
+
+@dataclass
 class Operator:
     """One browser tab: a websocket that heartbeats, plus REST with its client id."""
 

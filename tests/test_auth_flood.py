@@ -16,80 +16,17 @@ import contextlib
 import statistics
 import sys
 import time
-from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
-import uvicorn
 
-from servotune.api.app import AppConfig, create_app
-from servotune.auth.security import SecurityConfig
-from servotune.cli import GRACEFUL_SHUTDOWN_S
-from servotune.config import LinkSpec
-
-from .auth_helpers import PASSWORDS, make_accounts
 from .conftest import wait_for
-from .control_support import WireRecorder, free_port, recorded_line
+from .control_support import WireRecorder, exposed_line_server, session_of
 
 FLOOD_ADDRESS = "198.51.100.66"
 VIEWER_ADDRESS = "192.0.2.5"
 ADDRESSES = [0, 1]
-
-
-@dataclass
-class ExposedServer:
-    base_url: str
-    app: object
-    wire: WireRecorder
-
-
-@contextlib.asynccontextmanager
-async def exposed_line_server(tmp_path: Path) -> AsyncIterator[ExposedServer]:
-    make_accounts(tmp_path / "data")
-    with recorded_line(tmp_path, ADDRESSES) as (simulator, wire):
-        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, ADDRESSES, 512)
-        security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
-        app = create_app(
-            AppConfig(
-                links=[spec],
-                data_dir=tmp_path / "data",
-                web_dir=tmp_path / "no-web",
-                security=security,
-                twin=False,
-            )
-        )
-        port = free_port()
-        server = uvicorn.Server(
-            uvicorn.Config(
-                app,
-                host="127.0.0.1",
-                port=port,
-                log_level="warning",
-                lifespan="on",
-                proxy_headers=False,  # as `servotune serve`: the middleware decides
-                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,  # as `servotune serve`
-            )
-        )
-        task = asyncio.create_task(server.serve())
-        try:
-            await wait_for(lambda: server.started, 20, "the server to start")
-            yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
-        finally:
-            server.should_exit = True
-            await task
-
-
-async def viewer_client(server: ExposedServer) -> httpx.AsyncClient:
-    http = httpx.AsyncClient(
-        base_url=server.base_url, timeout=60, headers={"X-Forwarded-For": VIEWER_ADDRESS}
-    )
-    response = await http.post(
-        "/api/auth/login", json={"user": "victor", "password": PASSWORDS["victor"]}
-    )
-    assert response.status_code == 200, response.text
-    http.headers["X-CSRF-Token"] = response.json()["csrf_token"]
-    return http
 
 
 async def timed_stop(http: httpx.AsyncClient, wire: WireRecorder) -> tuple[float, float]:
@@ -155,8 +92,8 @@ class Flood:
 
 
 async def test_stop_is_not_held_by_a_login_flood_and_the_throttle_holds(tmp_path: Path) -> None:
-    async with exposed_line_server(tmp_path) as server:
-        viewer = await viewer_client(server)
+    async with exposed_line_server(tmp_path, ADDRESSES) as server:
+        viewer = await session_of(server, "victor", VIEWER_ADDRESS)
         flood = Flood(server.base_url, 100)
         try:
             for address in ADDRESSES:  # the link is up and polling

@@ -17,7 +17,7 @@ from starlette.routing import Mount, Route
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.permissions import ROLES
-from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS
+from servotune.auth.routes_table import COMMAND, CONSOLE_LINE, PUBLIC, ROUTE_PERMISSIONS
 from servotune.auth.security import AUTH_DB, SecurityConfig, SecurityConfigError
 
 from .auth_helpers import (
@@ -69,7 +69,7 @@ def test_every_route_declares_a_permission(tmp_path: Path) -> None:
     assert set(ROUTE_PERMISSIONS) == declared, "stale entries in ROUTE_PERMISSIONS"
     all_permissions = ROLES["admin"]
     for permission in ROUTE_PERMISSIONS.values():
-        assert permission in all_permissions | {PUBLIC, COMMAND}
+        assert permission in all_permissions | {PUBLIC, COMMAND, CONSOLE_LINE}
 
 
 async def test_a_route_added_without_a_permission_answers_500(tmp_path: Path) -> None:
@@ -130,6 +130,8 @@ async def test_role_cannot_call_what_it_lacks(tmp_path: Path, user: str) -> None
             needed = ROUTE_PERMISSIONS[(method, template)]
             if needed == COMMAND:
                 needed = "move"  # a move command (stop is tested below)
+            elif needed == CONSOLE_LINE:
+                needed = "console"  # and then what the line is (tests/test_auth_console.py)
             if needed == PUBLIC or needed in allowed:
                 continue
             body = _bodies(template) if method in ("POST", "PUT", "PATCH") else None

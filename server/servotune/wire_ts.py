@@ -28,6 +28,7 @@ MODELS: list[type[BaseModel]] = [
     descriptor.Choice,
     descriptor.ArgumentDescriptor,
     descriptor.CommandDescriptor,
+    descriptor.ConsoleRule,
     descriptor.ConsoleDescriptor,
     descriptor.StopEffect,
     descriptor.ParameterConstraint,

@@ -210,9 +210,13 @@ class SecurityMiddleware:
                 parsed = json.loads(body)
             except ValueError:
                 parsed = None
+        # A route may state "after" itself (the console: the parameters read back).
+        stated = context.pop("after", None)
         if status < 400:
             result = "ok"
             after = parsed if context.pop("keep_after", False) else None
+            if stated is not None:
+                after = {"answer": after, "read_back": stated} if after is not None else stated
         else:
             context.pop("keep_after", None)
             detail = parsed.get("detail") if isinstance(parsed, dict) else None
