@@ -209,6 +209,7 @@ async def exposed_line_server(
                 lifespan="on",
                 proxy_headers=False,  # as `servotune serve`: the middleware decides
                 timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,  # as `servotune serve`
+                log_config=None,  # uvicorn's loggers propagate: caplog sees them
             )
         )
         task = asyncio.create_task(server.serve())

@@ -221,8 +221,13 @@ async def _serve(
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             error = task.exception()
-            if error is not None and not isinstance(error, WebSocketDisconnect):
-                raise error
+            if error is None or isinstance(error, WebSocketDisconnect):
+                continue
+            if websocket.application_state == WebSocketState.DISCONNECTED:
+                # Closed by the server from another task (logout, revocation, expiry)
+                # while the sender was sending: how this connection ends, not an error.
+                continue
+            raise error
     finally:
         for task in tasks:
             task.cancel()
