@@ -179,9 +179,9 @@ def create_app(config: AppConfig) -> FastAPI:
         version=__version__,
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
-        # Any route: not logged in (exposed mode), or refused by a permission or by the
-        # Host / Origin / CSRF checks (servotune.auth).
-        responses=errors(401, 403),
+        # Any route: not logged in (exposed mode), refused by a permission or by the
+        # Host / Origin / CSRF checks, or a body over the cap (servotune.auth).
+        responses=errors(401, 403, 413),
         # Served below: the schema is built in a worker thread, not on the event loop.
         openapi_url=None,
         docs_url=None,
