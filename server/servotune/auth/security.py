@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, ParamSpec, TypeVar
 
-from servotune.auth.audit import AuditLog
+from servotune.auth.audit import ANONYMOUS_RETENTION_DAYS, AuditLog
 from servotune.auth.passwords import PasswordWorkers
 from servotune.auth.principal import Principal
 from servotune.auth.store import AuthStore
@@ -66,6 +66,8 @@ class SecurityConfig:
     tls_key: Path | None = None
     proxy: list[str] = field(default_factory=list)  # addresses, CIDRs or host names
     public_hosts: list[str] = field(default_factory=list)  # names the dashboard is reached by
+    # Days the audit rows of anonymous callers (refusals, failed logins) are kept.
+    audit_anonymous_days: float = ANONYMOUS_RETENTION_DAYS
 
     @property
     def exposed(self) -> bool:
@@ -217,7 +219,9 @@ class SecurityState:
             self.auth_path = Path(self._scratch.name) / AUTH_DB
             self.store = AuthStore(self.auth_path)
         check_exposed_startup(self.config, self.store)
-        self.audit = AuditLog(self.auth_path)
+        self.audit = AuditLog(
+            self.auth_path, anonymous_retention_days=self.config.audit_anonymous_days
+        )
         self._secret = self.store.server_secret()
         self.passwords = PasswordWorkers()
         self._db_pool = ThreadPoolExecutor(
