@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import os
 import re
 import secrets
 import sqlite3
@@ -28,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from servotune.auth.permissions import permissions_of, role_at_most
+from servotune.private_files import private_dir, private_file
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS users (
@@ -126,11 +126,9 @@ class AuthStore:
     """Users, sessions and tokens. Thread-safe: one connection behind a lock."""
 
     def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        new = not path.exists()
-        if new:
-            # Create the file 0600 before SQLite opens it: it holds password hashes.
-            os.close(os.open(path, os.O_CREAT | os.O_WRONLY, 0o600))
+        # The directory 0700 and the file 0600 before SQLite opens it: password hashes.
+        private_dir(path.parent)
+        private_file(path)
         self.path = path
         self._lock = threading.Lock()
         self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
