@@ -171,57 +171,69 @@ async def control_server(
 class ExposedServer:
     base_url: str
     app: Any
-    wire: WireRecorder
+    wire: WireRecorder | None = None
+
+
+@contextlib.asynccontextmanager
+async def served(app: Any, wire: WireRecorder | None = None) -> AsyncIterator[ExposedServer]:
+    """``app`` on a real uvicorn on a free port, configured as ``servotune serve`` runs
+    it (forwarded headers left to servotune's middleware, a bounded graceful shutdown);
+    uvicorn's records propagate, so caplog sees them."""
+    from servotune.cli import GRACEFUL_SHUTDOWN_S
+
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host="127.0.0.1",
+            port=port,
+            log_level="warning",
+            lifespan="on",
+            proxy_headers=False,
+            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+            log_config=None,
+        )
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        deadline = time.monotonic() + 30
+        while not server.started:
+            assert time.monotonic() < deadline, "the server did not start"
+            await asyncio.sleep(0.02)
+        yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
+    finally:
+        server.should_exit = True
+        await task
+
+
+def exposed_security() -> Any:
+    """Exposed mode behind a TLS "proxy" on 127.0.0.1: each client names its address
+    with ``X-Forwarded-For`` and reaches the server as ``http://127.0.0.1``."""
+    from servotune.auth.security import SecurityConfig
+
+    return SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
 
 
 @contextlib.asynccontextmanager
 async def exposed_line_server(
     tmp_path: Path, addresses: list[int], *, twin: bool = False
 ) -> AsyncIterator[ExposedServer]:
-    """A real uvicorn server in exposed mode (the accounts of ``tests/auth_helpers``)
-    on a recorded simulated SLAP2 line, behind a "proxy" on 127.0.0.1: each client
-    names its address with ``X-Forwarded-For`` and reaches it as ``http://127.0.0.1``."""
-    from servotune.auth.security import SecurityConfig
-    from servotune.cli import GRACEFUL_SHUTDOWN_S
-
+    """A real server in exposed mode (the accounts of ``tests/auth_helpers``) on a
+    recorded simulated SLAP2 line (``exposed_security``, ``served``)."""
     from .auth_helpers import make_accounts
 
     make_accounts(tmp_path / "data")
     with recorded_line(tmp_path, addresses) as (simulator, wire):
         spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
-        security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
-        app = create_app(
-            AppConfig(
-                links=[spec],
-                data_dir=tmp_path / "data",
-                web_dir=tmp_path / "no-web",
-                security=security,
-                twin=twin,
-            )
+        config = AppConfig(
+            links=[spec],
+            data_dir=tmp_path / "data",
+            web_dir=tmp_path / "no-web",
+            security=exposed_security(),
+            twin=twin,
         )
-        port = free_port()
-        server = uvicorn.Server(
-            uvicorn.Config(
-                app,
-                host="127.0.0.1",
-                port=port,
-                log_level="warning",
-                lifespan="on",
-                proxy_headers=False,  # as `servotune serve`: the middleware decides
-                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,  # as `servotune serve`
-                log_config=None,  # uvicorn's loggers propagate: caplog sees them
-            )
-        )
-        task = asyncio.create_task(server.serve())
-        try:
-            deadline = time.monotonic() + 20
-            while not server.started:
-                assert time.monotonic() < deadline, "the server did not start"
-                await asyncio.sleep(0.02)
-            yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
-        finally:
-            server.should_exit = True
-            await task
+        async with served(create_app(config), wire) as server:
+            yield server
 
 
 async def session_of(

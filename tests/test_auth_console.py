@@ -21,15 +21,13 @@ from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 import websockets
 from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.permissions import ROLES
 from servotune.auth.routes_table import command_permission, console_permission
-from servotune.auth.security import AUTH_DB, SecurityConfig
-from servotune.cli import GRACEFUL_SHUTDOWN_S
+from servotune.auth.security import AUTH_DB
 from servotune.demo import z1100_demo_line
 from servotune.descriptor import UnknownConsoleLineError
 from servotune.drivers.ep7047_descriptor import ep7047_descriptor
@@ -41,7 +39,13 @@ from servotune.sim.slap2 import Slap2Module
 
 from .auth_helpers import make_accounts
 from .conftest import wait_for
-from .control_support import ExposedServer, exposed_line_server, free_port, session_of
+from .control_support import (
+    ExposedServer,
+    exposed_line_server,
+    exposed_security,
+    served,
+    session_of,
+)
 
 SLAP2 = slap2_descriptor(512)
 Z1100 = z1100_descriptor(2048)
@@ -291,32 +295,16 @@ async def test_websocket_force_needs_a_recent_password_like_rest(tmp_path: Path)
 async def test_console_setflash_of_an_operator_is_refused(tmp_path: Path) -> None:
     make_accounts(tmp_path)
     state = tmp_path / "sim"
-    security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
     config = AppConfig(
         data_dir=tmp_path,
         web_dir=tmp_path / "no-web",
         simulators=[lambda: z1100_demo_line(state)],
-        security=security,
+        security=exposed_security(),
         twin=False,
     )
-    app = create_app(config)
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(
-            app,
-            host="127.0.0.1",
-            port=port,
-            log_level="warning",
-            proxy_headers=False,
-            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
-        )
-    )
-    task = asyncio.create_task(server.serve())
-    try:
-        await wait_for(lambda: server.started, 30, "the server to start")
-        exposed = ExposedServer(f"http://127.0.0.1:{port}", app, None)  # type: ignore[arg-type]
-        olga = await session_of(exposed, "olga")
-        alice = await session_of(exposed, "alice")
+    async with served(create_app(config)) as server:
+        olga = await session_of(server, "olga")
+        alice = await session_of(server, "alice")
         try:
             flash = state / "z1100_flash.json"
             await wait_for(flash.exists, 20, "the chip's flash file")
@@ -332,6 +320,3 @@ async def test_console_setflash_of_an_operator_is_refused(tmp_path: Path) -> Non
         finally:
             await olga.aclose()
             await alice.aclose()
-    finally:
-        server.should_exit = True
-        await task

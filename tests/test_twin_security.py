@@ -29,7 +29,7 @@ from servotune.twin.service import SECRET_HEADER
 
 from .conftest import wait_for
 from .control_support import ExposedServer, exposed_line_server, session_of
-from .twin_client import ViserScene, until
+from .twin_client import ViserScene, until, viser_session
 
 SUBPROTOCOL = Subprotocol(f"viser-v{viser.__version__}")
 CAMERA = {
@@ -76,31 +76,11 @@ async def twin_socket(
     if http is not None:
         extra["Cookie"] = f"servotune_session={http.cookies['servotune_session']}"
         extra["X-Forwarded-For"] = http.headers["X-Forwarded-For"]
-        origin = Origin(server.base_url)
+        origin = server.base_url
     url = server.base_url.replace("http", "ws", 1) + "/twin" + query
-    scene = ViserScene()
-    async with websockets.connect(
-        url,
-        subprotocols=[SUBPROTOCOL],
-        origin=origin,
-        additional_headers=extra,
-        max_size=None,
-        compression=None,
-    ) as connection:
-
-        async def receive() -> None:
-            async for frame in connection:
-                assert isinstance(frame, bytes)
-                scene.apply(frame)
-
-        task = asyncio.create_task(receive())
-        try:
-            await until(lambda: scene.replay_done, 20, "viser's scene replay")
-            yield scene, connection
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, websockets.ConnectionClosed):
-                await task
+    async with viser_session(url, viser.__version__, origin, extra) as (scene, connection):
+        await until(lambda: scene.replay_done, 20, "viser's scene replay")
+        yield scene, connection
 
 
 async def closed_code(connection: ClientConnection, timeout_s: float) -> int | None:
@@ -187,22 +167,9 @@ async def test_viser_port_answers_only_the_dashboards_proxy(tmp_path: Path) -> N
         ) as guessed:
             assert await closed_code(guessed, 10) == 1008
         # The proxy's own connection (what /twin does) is served.
-        scene = ViserScene()
         right = {SECRET_HEADER: twin.secret}
-        async with websockets.connect(
-            url, subprotocols=[SUBPROTOCOL], additional_headers=right, max_size=None
-        ) as proxy:
-
-            async def receive() -> None:
-                async for frame in proxy:
-                    assert isinstance(frame, bytes)
-                    scene.apply(frame)
-
-            task = asyncio.create_task(receive())
+        async with viser_session(url, viser.__version__, None, right) as (scene, _):
             await until(lambda: scene.replay_done, 20, "the replay through the secret")
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, websockets.ConnectionClosed):
-                await task
 
 
 async def test_twin_closes_with_the_session_like_ws(tmp_path: Path) -> None:
