@@ -33,6 +33,10 @@ def _addresses(text: str) -> list[int]:
     return values
 
 
+# Seconds uvicorn waits for open requests at shutdown before it cancels them.
+GRACEFUL_SHUTDOWN_S = 3
+
+
 # The operator's statement that a container's port is published on the host's loopback
 # only (docker -p 127.0.0.1:8000:8000): set by docker-compose.yml's demo service.
 LOOPBACK_PUBLISHED_ENV = "SERVOTUNE_LOOPBACK_PUBLISHED"
@@ -112,6 +116,9 @@ def _run_server(
         ssl_keyfile=security.tls_key,
         # uvicorn refuses bigger websocket frames (1009) before buffering them.
         ws_max_size=WS_MAX_MESSAGE_BYTES,
+        # At shutdown uvicorn waits for open requests before the lifespan's STOP of
+        # every axis: logins queued for the hashing workers (a flood) must not hold it.
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
 
 

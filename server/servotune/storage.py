@@ -30,6 +30,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from servotune.private_files import private_dir, private_file
+
 logger = logging.getLogger(__name__)
 
 
@@ -123,7 +125,8 @@ class Storage:
         # axis key -> values applied to a device but not saved yet (see save_params)
         self.unsaved: dict[str, dict[str, int]] = {}
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            private_dir(path.parent)
+            private_file(path)
             self._db = self._open_writable(path)
         except (OSError, sqlite3.Error) as exc:
             self.problem = f"the database {path} cannot be written ({exc})"

@@ -29,6 +29,7 @@ MODELS: list[type[BaseModel]] = [
     descriptor.ArgumentDescriptor,
     descriptor.MoveTarget,
     descriptor.CommandDescriptor,
+    descriptor.ConsoleRule,
     descriptor.ConsoleDescriptor,
     descriptor.StopEffect,
     descriptor.ParameterConstraint,

@@ -98,6 +98,12 @@ export function setReauthHandler(handler: () => Promise<boolean>): void {
   reauthHandler = handler;
 }
 
+/** Ask for the password again (the page's prompt); true when it was accepted. The
+ * websocket's forced hand-over follows the same rule as REST (docs/remote-lab.md). */
+export async function reauthenticate(): Promise<boolean> {
+  return reauthHandler ? reauthHandler() : false;
+}
+
 // --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---
 
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";

@@ -99,15 +99,25 @@ export interface CommandDescriptor {
   confirm: string | null;
   abort_command: string | null;
   marks_operated: boolean;
+  powers_motor: boolean;
   active_flag: string | null;
   stores_parameters: "axis" | "link" | null;
   target: MoveTarget | null;
+}
+
+export interface ConsoleRule {
+  words: string[];
+  effect: "read" | "write" | "command" | "persist";
+  command: string | null;
+  parameters: string[];
 }
 
 export interface ConsoleDescriptor {
   help: string;
   multiline_commands: string[];
   examples: string[];
+  syntax: "letters" | "word" | "object";
+  rules: ConsoleRule[];
 }
 
 export interface StopEffect {

@@ -118,7 +118,7 @@ def create_app(config: AppConfig) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         storage = Storage(config.data_dir / "servotune.db")
-        with security.running(app), contextlib.ExitStack() as simulators:
+        async with security.running(app), contextlib.AsyncExitStack() as simulators:
             specs = list(config.links)
             for start_simulator in config.simulators:
                 specs.extend(simulators.enter_context(start_simulator()))
@@ -185,9 +185,9 @@ def create_app(config: AppConfig) -> FastAPI:
         version=__version__,
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
-        # Any route: not logged in (exposed mode), or refused by a permission or by the
-        # Host / Origin / CSRF checks (servotune.auth).
-        responses=errors(401, 403),
+        # Any route: not logged in (exposed mode), refused by a permission or by the
+        # Host / Origin / CSRF checks, or a body over the cap (servotune.auth).
+        responses=errors(401, 403, 413),
         # Served below: the schema is built in a worker thread, not on the event loop.
         openapi_url=None,
         docs_url=None,

@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from servotune.auth.audit import ANONYMOUS_RETENTION_DAYS
 from servotune.auth.passwords import WeakPasswordError, check_password_rule, hash_password
 from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError
 from servotune.auth.security import AUTH_DB, SecurityConfig
@@ -45,6 +46,14 @@ def add_security_arguments(parser: argparse.ArgumentParser) -> None:
         help="host name the dashboard is reached by (Host header allowlist; repeatable)",
     )
     group.add_argument(
+        "--audit-anonymous-days",
+        type=_positive_days,
+        default=ANONYMOUS_RETENTION_DAYS,
+        metavar="DAYS",
+        help="days the audit log keeps the rows of anonymous callers: refused requests "
+        f"and failed logins (default {ANONYMOUS_RETENTION_DAYS:g}); other rows are kept",
+    )
+    group.add_argument(
         "--mode",
         choices=("auto", "local", "exposed"),
         default="auto",
@@ -55,6 +64,16 @@ def add_security_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _positive_days(text: str) -> float:
+    try:
+        days = float(text)
+    except ValueError:
+        days = 0.0
+    if not days > 0:
+        raise argparse.ArgumentTypeError(f"days must be a number above 0 (got {text!r})")
+    return days
+
+
 def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityConfig:
     return SecurityConfig(
         mode=None if args.mode == "auto" else args.mode,
@@ -63,6 +82,7 @@ def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityCo
         tls_key=args.tls_key,
         proxy=list(args.proxy),
         public_hosts=list(args.public_host),
+        audit_anonymous_days=args.audit_anonymous_days,
     )
 
 

@@ -54,7 +54,11 @@ from pydantic import ValidationError
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
 from servotune.auth.principal import AUTOTUNE, BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
-from servotune.auth.routes_table import command_permission
+from servotune.auth.routes_table import (
+    UnknownConsoleLineError,
+    command_permission,
+    console_permission,
+)
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
 from servotune.bus.leaf import ensure_rig_streams
@@ -570,13 +574,21 @@ class RigAgent:
             values = await self._hub.write_params(axis_id, request.values)
             return _reply(ok=True, result={"values": values})
         if verb == subjects.CONSOLE:
-            # The rig's console route: its permission, the lock, the hub's line check
-            # (control characters refused naming ``line``) and the driver's own refusals.
+            # The rig's console route: its permission and that of what the line is
+            # (routes_table.console_permission: pg needs persist, ma move ...), the lock
+            # unless it is a stop, the hub's line check (control characters refused
+            # naming ``line``) and the driver's own refusals.
             self._need(principal, CONSOLE)
-            await self._control.require(axis_id, client.client_id, principal)
             line = request.args.get("line")
             if not isinstance(line, str):
                 raise InvalidArgumentError("line", "line must be a string")
+            try:
+                needed = console_permission(self._hub.descriptor(axis_id), line)
+            except UnknownConsoleLineError as exc:
+                raise InvalidArgumentError("line", str(exc)) from None
+            self._need(principal, needed)
+            if needed != STOP:
+                await self._control.require(axis_id, client.client_id, principal)
             try:
                 sent, reply = await self._hub.console(axis_id, line)
             except (DeviceRefusedError, InvalidArgumentError, LinkDownError):

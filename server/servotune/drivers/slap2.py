@@ -82,7 +82,7 @@ from servotune.drivers.slap2_capture import (
     ModuleCapture,
     ProfileState,
 )
-from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.drivers.slap2_descriptor import PARAM_SETTERS, slap2_descriptor
 from servotune.drivers.slap2_wire import (
     Slap2Wire,
     command_mnemonic,
@@ -1147,29 +1147,8 @@ class Slap2Link(Slap2Wire):
             module.expected_mode = "unknown"
             if mnemonic != "spwm":
                 module.cal_seen = False  # a new calibration clears the flag until it ends
-        elif mnemonic in _PARAM_SETTERS:
-            module.known.pop(_PARAM_SETTERS[mnemonic], None)
-
-
-_PARAM_SETTERS = {
-    "kp": "kp",
-    "ki": "ki",
-    "kd": "kd",
-    "sv": "velocity",
-    "sa": "acceleration",
-    "sipw": "inpos_window",
-    "ws": "inpos_window",
-    "sipt": "inpos_time",
-    "scl": "current_limit_ma",
-    "sc": "current_limit_ma",
-    "scv": "cal_velocity",
-    "sca": "cal_acceleration",
-    "ssyscon": "syscon",
-    "ssb": "syscon",
-    "rsb": "syscon",
-    "li": "syscon",
-    "il": "syscon",
-}
+        elif mnemonic in PARAM_SETTERS:
+            module.known.pop(PARAM_SETTERS[mnemonic], None)
 
 
 __all__ = ["Slap2Axis", "Slap2Link", "Slap2LinkConfig", "is_banner"]
