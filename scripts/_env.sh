@@ -47,3 +47,12 @@ ensure_nats() {  # the bus tests start nats-server themselves (tests/nats_suppor
   $sudo apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq nats-server >/dev/null
 }
+
+ensure_caddy() {  # tests/test_containers.py adapts the lab's Caddyfiles with the real caddy
+  if command -v caddy >/dev/null; then return; fi
+  echo "==> installing Debian's caddy for the Caddyfile tests"
+  local sudo=""
+  if [ "$(id -u)" != 0 ]; then sudo="sudo"; fi
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq caddy >/dev/null
+}

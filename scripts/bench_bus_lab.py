@@ -8,10 +8,11 @@ and the bus throughput.
   of ``servotune bus-accounts``).
 * the hub: ``servotune hub`` in a process of its own (port ``--port``), so its CPU is
   its own (``/proc/<pid>/stat``: user + system time over the measuring window).
-* the rigs: fake rigs, in-process clients of the bus with each rig's own credentials,
-  speaking the rig agent's protocol (manifest, presence every 0.5 s, telemetry batches
-  with ``St-Rig-Now``/``St-Wall``, snapshot replies). NOT whole servotune apps: 20 of
-  those on simulated lines would not fit on this machine; the hub cannot tell them apart.
+* the rigs: fake rigs (tests/fake_rig.py), in-process clients of the bus with each
+  rig's own credentials, speaking the rig agent's protocol (manifest, presence every
+  0.5 s with the rig's clock, clock answers, telemetry batches, snapshot and command
+  answers). NOT whole servotune apps: 20 of those on simulated lines would not fit on
+  this machine; the hub cannot tell them apart.
   Each batch carries ``--samples`` samples; a sample's ``position`` channel is the wall
   clock when it was made and its ``velocity`` channel a per-axis sequence number, so a
   viewer measures latency (same machine, one clock) and counts missing samples.
@@ -42,7 +43,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tests.nats_support import Lab, free_port, nats_lab  # noqa: E402
+from tests.fake_rig import FakeRig  # noqa: E402
+from tests.nats_support import free_port, hub_command, nats_lab  # noqa: E402
 from tests.test_bus import create_bus_state  # noqa: E402
 
 BATCH_PERIOD_S = 1 / 30
@@ -60,145 +62,6 @@ def percentiles(values: list[float]) -> str:
 def cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS  # utime + stime
-
-
-class FakeRig:
-    """The rig agent's side of the protocol, without a device behind it."""
-
-    def __init__(self, name: str, axes: int, samples: int, lab: Lab) -> None:
-        self.name = name
-        self.axes = [f"ax-{i}" for i in range(axes)]
-        self.samples = samples
-        self.lab = lab
-        self.nc: Any = None
-        self.published = 0
-        self.bytes = 0
-        self._seq = dict.fromkeys(self.axes, 0)
-
-    def manifest(self) -> bytes:
-        from servotune import __version__
-        from servotune.bus.messages import RemoteAxisInfo, RemoteLinkInfo, RigManifest
-        from servotune.drivers.slap2_descriptor import slap2_descriptor
-        from servotune.wire import AxisInfo, LinkInfo
-
-        descriptor = slap2_descriptor(512)
-        link = LinkInfo(id="line", device="slap2", path="/dev/fake", baud=115200)
-        axes = [
-            RemoteAxisInfo(
-                info=AxisInfo(id=a, device="slap2", link="line", address=i, name=a),
-                descriptor=descriptor,
-            )
-            for i, a in enumerate(self.axes)
-        ]
-        return (
-            RigManifest(
-                rig=self.name,
-                server_version=__version__,
-                links=[RemoteLinkInfo(info=link, axes=axes)],
-            )
-            .model_dump_json()
-            .encode()
-        )
-
-    async def start(self) -> None:
-        import nats
-
-        from servotune.bus import subjects
-
-        user = self.lab.users[self.name]
-        self.nc = await nats.connect(
-            self.lab.url,
-            user=user.name,
-            password=user.password,
-            inbox_prefix=subjects.inbox_prefix(self.name),
-        )
-
-        async def snapshot(msg: Any) -> None:
-            status = [
-                json.dumps(
-                    {
-                        "type": "link_status",
-                        "link": "line",
-                        "state": "connected",
-                        "message": "",
-                        "rate_hz": 30.0,
-                        "wire_limit_hz": 100.0,
-                        "errors": 0,
-                    }
-                )
-            ]
-            status += [
-                json.dumps({"type": "params", "axis": a, "values": {"kp": 100}, "source": "read"})
-                for a in self.axes
-            ]
-            await msg.respond(json.dumps(status).encode())
-
-        async def answer(msg: Any) -> None:
-            await msg.respond(json.dumps({"ok": True, "result": {"values": {"kp": 100}}}).encode())
-
-        root = f"{subjects.PREFIX}.{self.name}"
-        await self.nc.subscribe(subjects.rig_cmd(self.name, "snapshot"), cb=snapshot)
-        await self.nc.subscribe(f"{root}.*.*.cmd.*", cb=answer)
-
-        async def ignore(msg: Any) -> None:
-            return None
-
-        await self.nc.subscribe(subjects.rig_cmd(self.name, "keepalive"), cb=ignore)
-        await self.nc.jetstream().publish(subjects.manifest(self.name), self.manifest())
-
-    async def presence(self) -> None:
-        from servotune.bus import subjects
-
-        while True:
-            body = json.dumps({"rig": self.name, "period_s": 0.5, "sent_wall_s": time.time()})
-            await self.nc.publish(subjects.presence(self.name), body.encode())
-            link = {
-                "type": "link_status",
-                "link": "line",
-                "state": "connected",
-                "message": "",
-                "rate_hz": 30.0,
-                "wire_limit_hz": 100.0,
-                "errors": 0,
-            }
-            await self.nc.publish(subjects.events(self.name), json.dumps(link).encode())
-            await asyncio.sleep(0.5)
-
-    async def telemetry(self) -> None:
-        from servotune.bus import subjects
-
-        next_at = time.monotonic()
-        spacing = BATCH_PERIOD_S / self.samples
-        while True:
-            next_at += BATCH_PERIOD_S
-            if next_at < time.monotonic() - BATCH_PERIOD_S:
-                next_at = time.monotonic()  # fell behind (a loaded machine): no burst
-            await asyncio.sleep(max(0.0, next_at - time.monotonic()))
-            now_m, now_w = time.monotonic(), time.time()
-            for axis in self.axes:
-                seq = self._seq[axis]
-                self._seq[axis] = seq + self.samples
-                # Samples made over the last batch period, oldest first.
-                ages = [spacing * (self.samples - 1 - k) for k in range(self.samples)]
-                body = json.dumps(
-                    {
-                        "type": "telemetry",
-                        "axis": axis,
-                        "t": [now_m - age for age in ages],
-                        "channels": {
-                            "position": [now_w - age for age in ages],
-                            "velocity": [float(seq + k) for k in range(self.samples)],
-                            "following_error": [0.0] * self.samples,
-                        },
-                        "flags": {},
-                    }
-                ).encode()
-                headers = {"St-Rig-Now": f"{now_m:.6f}", "St-Wall": f"{now_w:.6f}"}
-                await self.nc.publish(
-                    subjects.telemetry(self.name, "line", axis), body, headers=headers
-                )
-                self.published += 1
-                self.bytes += len(body)
 
 
 class Viewer:
@@ -282,25 +145,23 @@ async def run(args: argparse.Namespace) -> None:
         tmp = Path(tmp_name)
         async with nats_lab(tmp / "nats", names) as lab:
             await create_bus_state(lab)
-            rigs = [FakeRig(name, args.axes, args.samples, lab) for name in names]
+            rigs = [
+                FakeRig(
+                    name,
+                    args.axes,
+                    url=lab.url,
+                    user=lab.users[name].name,
+                    password=lab.users[name].password,
+                    samples_per_s=args.samples / BATCH_PERIOD_S,
+                    batch=args.samples,
+                )
+                for name in names
+            ]
             for rig in rigs:
                 await rig.start()
             env = dict(os.environ, PYTHONPATH=str(ROOT / "server"))
             hub = subprocess.Popen(  # noqa: ASYNC220 (once, before measuring)
-                [
-                    sys.executable,
-                    "-m",
-                    "servotune",
-                    "hub",
-                    "--bus",
-                    lab.url,
-                    "--bus-credentials",
-                    str(lab.users["hub"].credentials),
-                    "--port",
-                    str(args.port),
-                    "--data-dir",
-                    str(tmp / "hub"),
-                ],
+                hub_command(lab, args.port, tmp / "hub"),
                 env=env,
                 stdout=subprocess.DEVNULL,
                 stderr=open(tmp / "hub.log", "wb"),  # noqa: SIM115, ASYNC230
@@ -319,6 +180,7 @@ async def run(args: argparse.Namespace) -> None:
                         print(f"the hub lists {len(axes)} axes")
                         log = (tmp / "hub.log").read_text()[-2000:]
                         raise SystemExit(f"the hub did not list every axis: {log}")
+                print(f"the hub lists every axis at {time.strftime('%H:%M:%S')}")
                 for rig in rigs:
                     tasks.append(asyncio.create_task(rig.presence()))
                     tasks.append(asyncio.create_task(rig.telemetry()))
@@ -337,12 +199,22 @@ async def run(args: argparse.Namespace) -> None:
                         raise SystemExit("a viewer did not connect in 2 minutes")
                 await asyncio.sleep(3.0)  # settle: every rig online, the viewers caught up
                 window[0], window[1] = time.time(), time.time() + args.seconds
+                print(f"measuring from {time.strftime('%H:%M:%S')} for {args.seconds:g} s")
                 published0 = sum(r.published for r in rigs)
                 bytes0 = sum(r.bytes for r in rigs)
+                nats_pid = lab.server.pid
                 cpu0, wall0 = cpu_s(hub.pid), time.monotonic()
+                nats0, rigs0 = cpu_s(nats_pid), cpu_s(os.getpid())
                 load0 = os.getloadavg()[0]
                 await asyncio.sleep(args.seconds)
                 cpu1, wall1 = cpu_s(hub.pid), time.monotonic()
+                nats1, rigs1 = cpu_s(nats_pid), cpu_s(os.getpid())
+                counters: dict[str, int] = {}
+                async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{args.port}") as http:
+                    for name in names:
+                        status = (await http.get(f"/api/links/{name}.line/status")).json()
+                        for key, value in status.get("counters", {}).items():
+                            counters[key] = counters.get(key, 0) + int(value)
                 published = sum(r.published for r in rigs) - published0
                 sent_bytes = sum(r.bytes for r in rigs) - bytes0
                 got = [await asyncio.to_thread(results.get, True, 120) for _ in viewers]
@@ -360,9 +232,11 @@ async def run(args: argparse.Namespace) -> None:
                     f"(expected {args.rigs * args.axes * 30} messages/s)"
                 )
                 print(
-                    f"hub CPU: {100 * (cpu1 - cpu0) / elapsed:.0f} % of one core "
-                    f"(servotune hub, pid {hub.pid}, user + system)"
+                    f"CPU (% of one core, user + system): hub {100 * (cpu1 - cpu0) / elapsed:.0f}, "
+                    f"nats-server {100 * (nats1 - nats0) / elapsed:.0f}, "
+                    f"the fake rigs (one process) {100 * (rigs1 - rigs0) / elapsed:.0f}"
                 )
+                print(f"the hub, summed over the rigs' links: {counters}")
                 for index, result in enumerate(got):
                     print(
                         f"viewer {index}: {result['samples']} samples (~{expected:.0f} made), "
@@ -375,7 +249,10 @@ async def run(args: argparse.Namespace) -> None:
                 for task in tasks:
                     task.cancel()
                 hub.terminate()
-                hub.wait(10)
+                hub.wait(30)
+                for line in (tmp / "hub.log").read_text().splitlines():
+                    if any(k in line for k in ("keep-alive", "withheld", "safety lane")):
+                        print("hub log:", line)
                 for rig in rigs:
                     with contextlib.suppress(Exception):
                         await rig.nc.close()

@@ -7,6 +7,7 @@ ensure_venv "[dev]"
 ensure_web
 ensure_chromium
 ensure_nats
+ensure_caddy
 cd "$ROOT"
 echo "==> ruff"
 "$VENV/bin/ruff" check server tests

@@ -168,6 +168,90 @@ async def control_server(
 
 
 @dataclass
+class ExposedServer:
+    base_url: str
+    app: Any
+    wire: WireRecorder | None = None
+
+
+@contextlib.asynccontextmanager
+async def served(app: Any, wire: WireRecorder | None = None) -> AsyncIterator[ExposedServer]:
+    """``app`` on a real uvicorn on a free port, configured as ``servotune serve`` runs
+    it (forwarded headers left to servotune's middleware, a bounded graceful shutdown);
+    uvicorn's records propagate, so caplog sees them."""
+    from servotune.cli import GRACEFUL_SHUTDOWN_S
+
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host="127.0.0.1",
+            port=port,
+            log_level="warning",
+            lifespan="on",
+            proxy_headers=False,
+            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+            log_config=None,
+        )
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        deadline = time.monotonic() + 30
+        while not server.started:
+            assert time.monotonic() < deadline, "the server did not start"
+            await asyncio.sleep(0.02)
+        yield ExposedServer(f"http://127.0.0.1:{port}", app, wire)
+    finally:
+        server.should_exit = True
+        await task
+
+
+def exposed_security() -> Any:
+    """Exposed mode behind a TLS "proxy" on 127.0.0.1: each client names its address
+    with ``X-Forwarded-For`` and reaches the server as ``http://127.0.0.1``."""
+    from servotune.auth.security import SecurityConfig
+
+    return SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
+
+
+@contextlib.asynccontextmanager
+async def exposed_line_server(
+    tmp_path: Path, addresses: list[int], *, twin: bool = False
+) -> AsyncIterator[ExposedServer]:
+    """A real server in exposed mode (the accounts of ``tests/auth_helpers``) on a
+    recorded simulated SLAP2 line (``exposed_security``, ``served``)."""
+    from .auth_helpers import make_accounts
+
+    make_accounts(tmp_path / "data")
+    with recorded_line(tmp_path, addresses) as (simulator, wire):
+        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
+        config = AppConfig(
+            links=[spec],
+            data_dir=tmp_path / "data",
+            web_dir=tmp_path / "no-web",
+            security=exposed_security(),
+            twin=twin,
+        )
+        async with served(create_app(config), wire) as server:
+            yield server
+
+
+async def session_of(
+    server: ExposedServer, user: str, address: str = "192.0.2.10"
+) -> httpx.AsyncClient:
+    """A logged-in client of ``user`` (tests/auth_helpers' passwords) from ``address``."""
+    from .auth_helpers import PASSWORDS
+
+    http = httpx.AsyncClient(
+        base_url=server.base_url, timeout=60, headers={"X-Forwarded-For": address}
+    )
+    response = await http.post("/api/auth/login", json={"user": user, "password": PASSWORDS[user]})
+    assert response.status_code == 200, response.text
+    http.headers["X-CSRF-Token"] = response.json()["csrf_token"]
+    return http
+
+
+@dataclass
 class Operator:
     """One browser tab: a websocket that heartbeats, plus REST with its client id."""
 

@@ -16,10 +16,12 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -38,6 +40,46 @@ def free_port() -> int:
 def require_nats_server() -> None:
     if not os.path.exists(NATS_SERVER):
         pytest.fail("nats-server is not installed: scripts/test.sh installs it (ensure_nats)")
+
+
+@contextlib.contextmanager
+def child_process(args: list[str], log: Path, cwd: Path | None = None) -> Iterator[Any]:
+    """``args`` as a process of its own (output to ``log``), ended with it (by its
+    pid, resumed first in case a test stopped it)."""
+    import signal
+
+    with log.open("wb") as out:
+        child = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, cwd=cwd)
+    try:
+        yield child
+    finally:
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGCONT)
+            child.terminate()
+            try:
+                child.wait(10)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+
+
+def hub_command(lab: Lab, port: int, data_dir: Path) -> list[str]:
+    """``servotune hub`` on ``lab`` (its own process: its CPU, threads and stalls are
+    its own)."""
+    return [
+        sys.executable,
+        "-m",
+        "servotune",
+        "hub",
+        "--bus",
+        lab.url,
+        "--bus-credentials",
+        str(lab.users["hub"].credentials),
+        "--port",
+        str(port),
+        "--data-dir",
+        str(data_dir),
+    ]
 
 
 @dataclass
@@ -74,6 +116,11 @@ class ServerProcess:
             if self._process.poll() is not None or time.monotonic() > deadline:
                 pytest.fail(f"nats-server {self.name} did not start: {self.log_path.read_text()}")
             time.sleep(0.05)
+
+    @property
+    def pid(self) -> int:
+        assert self._process is not None
+        return self._process.pid
 
     def stop(self) -> None:
         if self._process is not None and self._process.poll() is None:
@@ -166,7 +213,7 @@ async def nats_lab(directory: Path, rigs: list[str]) -> AsyncIterator[Lab]:
 server_name: lab
 listen: 127.0.0.1:{port}
 max_payload: 8MB
-jetstream {{ store_dir: "{directory / "js"}", max_memory_store: 64MB, max_file_store: 256MB }}
+jetstream {{ store_dir: "{directory / "js"}", max_memory_store: 64MB, max_file_store: 2GB }}
 include "accounts.conf"
 """
     server = ServerProcess("lab", config, directory, port)
@@ -182,3 +229,35 @@ include "accounts.conf"
         for proxy in lab.proxies.values():
             await proxy.stop()
         server.stop()
+
+
+async def rig_request(
+    nc: Any, subject: str, body: dict[str, Any], timeout_s: float = 5.0
+) -> tuple[bool, dict[str, Any]]:
+    """A handmade command as the hub sends it (``bus.remote``): the rig answers "taken"
+    (``St-Taken``) before it runs a command, then the outcome. Returns (taken, the
+    outcome's JSON)."""
+    import json
+
+    from servotune.bus.messages import ACK_HEADER
+
+    inbox = nc.new_inbox()
+    got: asyncio.Queue[Any] = asyncio.Queue()
+
+    async def collect(msg: Any) -> None:
+        await got.put(msg)
+
+    subscription = await nc.subscribe(inbox, cb=collect)
+    try:
+        await nc.publish(subject, json.dumps(body).encode(), reply=inbox)
+        taken = False
+        deadline = time.monotonic() + timeout_s
+        while True:
+            msg = await asyncio.wait_for(got.get(), max(0.01, deadline - time.monotonic()))
+            if (msg.headers or {}).get(ACK_HEADER):
+                taken = True
+                continue
+            reply: dict[str, Any] = json.loads(msg.data)
+            return taken, reply
+    finally:
+        await subscription.unsubscribe()

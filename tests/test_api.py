@@ -244,6 +244,50 @@ async def test_settings_survive_a_server_restart(tmp_path: Path) -> None:
             assert bus.module(1).settings["ki"] == 3
 
 
+async def test_saved_means_stored_by_the_save_command(api: LiveServer) -> None:
+    """Issue 25: every SLAP2 parameter carried a "saved" badge meaning "can be stored".
+    The server now says which values the device's save command stored (``params``
+    with source ``stored``, after a save it saw succeed, and in the snapshot of a new
+    client); nothing before a save (not known). The UI marks a value saved only while
+    the device holds the stored value."""
+    async with websockets.connect(api.ws_url, origin=api.base_url) as ws:
+        snapshot = await _messages_until_quiet(ws)
+        assert not [m for m in snapshot if m["type"] == "params" and m["source"] == "stored"]
+        await api.client.patch("/api/axes/line-0/params", json={"kp": 77})
+        response = await api.client.post(
+            "/api/axes/line-0/commands", json={"command": "save_eeprom"}
+        )
+        assert response.status_code == 200, response.text
+        for _ in range(500):
+            message = json.loads(await asyncio.wait_for(ws.recv(), 5))
+            if message["type"] == "params" and message["source"] == "stored":
+                break
+        else:
+            pytest.fail("no stored values after a save")
+        assert message["axis"] == "line-0" and message["values"]["kp"] == 77
+        assert "ki" in message["values"] and "syscon" in message["values"]
+    async with websockets.connect(api.ws_url, origin=api.base_url) as late:
+        snapshot = await _messages_until_quiet(late)
+        stored = [m for m in snapshot if m["type"] == "params" and m["source"] == "stored"]
+        assert [m["axis"] for m in stored] == ["line-0"] and stored[0]["values"]["kp"] == 77
+
+
+async def _messages_until_quiet(ws: Any, window_s: float = 1.0) -> list[dict[str, Any]]:
+    """The messages a new client gets in its first ``window_s`` (hello, snapshot),
+    telemetry left out."""
+    out: list[dict[str, Any]] = []
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + window_s
+    while (remaining := deadline - loop.time()) > 0:
+        try:
+            message = json.loads(await asyncio.wait_for(ws.recv(), remaining))
+        except TimeoutError:
+            break
+        if message["type"] != "telemetry":
+            out.append(message)
+    return out
+
+
 async def test_websocket_streams_and_second_client_sees_changes(api: LiveServer) -> None:
     async with (
         websockets.connect(api.ws_url, origin=api.base_url) as first,

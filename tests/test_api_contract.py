@@ -141,7 +141,7 @@ async def client(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
             await use_csrf_token(client)
             yield client
     finally:
-        app.state.security.close()
+        await app.state.security.close()
 
 
 async def test_live_openapi_states_each_axis_body(client: httpx.AsyncClient) -> None:

@@ -174,3 +174,63 @@ def test_scrub_and_csv_formula_cells(tmp_path: Path) -> None:
         audit.close()
     row = next(csv.DictReader(io.StringIO(text)))
     assert row["detail"].startswith("'=")  # a spreadsheet shows it, never runs it
+
+
+# --- anonymous refusals: aggregated, with a retention ---------------------------------
+
+
+async def test_refused_anonymous_requests_are_aggregated(tmp_path: Path) -> None:
+    """Finding 7: 400 refused requests wrote 400 rows. Per address and result, one row
+    and one summary of the rest per window now."""
+    make_accounts(tmp_path)
+    app = create_app(exposed_config(tmp_path))
+    async with running(app), client(app) as http:
+        for i in range(200):
+            await http.post("/api/stop", headers={"X-Forwarded-For": "203.0.113.7"})
+            await http.get(f"/api/axes?n={i}", headers={"Host": "evil.example"})
+        await http.post("/api/stop", headers={"X-Forwarded-For": "203.0.113.8"})
+        app.state.audit.flush()
+        rows = app.state.audit.query(AuditQuery(who="?"))
+        # 2 results x 2 addresses at most, no summary before the window has passed.
+        assert 2 <= len(rows) <= 4, rows
+    # Closing writes the pending summaries: nothing is lost, it is counted.
+    audit = AuditLog(tmp_path / "auth.db")
+    rows = audit.query(AuditQuery(who="?"))
+    audit.close()
+    summaries = [r for r in rows if r["action"] == "refusals summarised"]
+    counted = sum(int(r["detail"].split()[0]) for r in summaries)
+    assert counted + len(rows) - len(summaries) == 401, rows
+
+
+def test_anonymous_windows_and_retention(tmp_path: Path) -> None:
+    import sqlite3
+    import time
+
+    now = [0.0]
+    path = tmp_path / "auth.db"
+    audit = AuditLog(path, anonymous_window_s=60.0, clock=lambda: now[0])
+    for _ in range(5):
+        audit.record(who="?", action="POST /api/stop", address="a", result="refused")
+    now[0] = 61.0  # the window passed: the next one writes the summary first
+    audit.record(who="?", action="POST /api/stop", address="a", result="refused")
+    audit.record(who="olga", action="POST /api/stop", address="a", result="refused")
+    audit.flush()
+    rows = audit.query(AuditQuery())
+    assert [r["action"] for r in reversed(rows)] == [
+        "POST /api/stop",
+        "refusals summarised",
+        "POST /api/stop",
+        "POST /api/stop",
+    ]
+    assert rows[2]["detail"].startswith("4 more like this from a")
+    audit.close()
+    # Rows of anonymous callers older than the retention go; everyone else's stay.
+    db = sqlite3.connect(path)
+    with db:
+        db.execute("UPDATE audit SET t_s = ?", (time.time() - 31 * 86400,))
+    db.close()
+    audit = AuditLog(path, anonymous_retention_days=30)
+    audit.flush()
+    rows = audit.query(AuditQuery())
+    audit.close()
+    assert [r["who"] for r in rows] == ["olga"]

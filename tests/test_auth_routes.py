@@ -6,6 +6,8 @@ is attacked too (and a route without a declared permission fails the first test)
 
 from __future__ import annotations
 
+import asyncio
+import base64
 import sqlite3
 import time
 from pathlib import Path
@@ -16,7 +18,7 @@ from starlette.routing import Mount, Route
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.permissions import ROLES
-from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS
+from servotune.auth.routes_table import COMMAND, CONSOLE_LINE, PUBLIC, ROUTE_PERMISSIONS
 from servotune.auth.security import AUTH_DB, SecurityConfig, SecurityConfigError
 
 from .auth_helpers import (
@@ -68,7 +70,7 @@ def test_every_route_declares_a_permission(tmp_path: Path) -> None:
     assert set(ROUTE_PERMISSIONS) == declared, "stale entries in ROUTE_PERMISSIONS"
     all_permissions = ROLES["admin"]
     for permission in ROUTE_PERMISSIONS.values():
-        assert permission in all_permissions | {PUBLIC, COMMAND}
+        assert permission in all_permissions | {PUBLIC, COMMAND, CONSOLE_LINE}
 
 
 async def test_a_route_added_without_a_permission_answers_500(tmp_path: Path) -> None:
@@ -129,6 +131,8 @@ async def test_role_cannot_call_what_it_lacks(tmp_path: Path, user: str) -> None
             needed = ROUTE_PERMISSIONS[(method, template)]
             if needed == COMMAND:
                 needed = "move"  # a move command (stop is tested below)
+            elif needed == CONSOLE_LINE:
+                needed = "console"  # and then what the line is (tests/test_auth_console.py)
             if needed == PUBLIC or needed in allowed:
                 continue
             body = _bodies(template) if method in ("POST", "PUT", "PATCH") else None
@@ -191,6 +195,28 @@ async def test_cookie_mutation_needs_the_csrf_token(tmp_path: Path) -> None:
             headers={"Origin": "https://evil.example", "Access-Control-Request-Method": "POST"},
         )
         assert not any(k.lower().startswith("access-control") for k in preflight.headers)
+
+
+async def test_only_a_bearer_authorization_skips_the_csrf_check(tmp_path: Path) -> None:
+    """Pinned rule (issue 25): a browser never attaches ``Authorization: Bearer`` on its
+    own, so a bearer call needs no CSRF token; it does attach ``Basic`` credentials it
+    has cached (a proxy's, a page's), so a ``Basic`` header proves nothing and the
+    logged-in session still needs its token."""
+    app = await exposed_app(tmp_path)
+    async with running(app), client(app) as admin, client(app) as olga:
+        await login(admin, "alice")
+        created = await admin.post("/api/auth/tokens", json={"name": "bench", "user": "olga"})
+        secret = created.json()["token"]
+        await login(olga, "olga")
+        olga.headers.pop("X-CSRF-Token")
+        basic = "Basic " + base64.b64encode(b"olga:whatever").decode()
+        for header in (basic, "basic b2xnYTp4", "Bearerstk_x", "Digest username=olga"):
+            response = await olga.post("/api/stop", headers={"Authorization": header})
+            assert response.status_code == 403, (header, response.text)
+            assert "CSRF" in response.json()["detail"], header
+        for header in (f"Bearer {secret}", f"bearer {secret}"):
+            response = await olga.post("/api/stop", headers={"Authorization": header})
+            assert response.status_code == 200, (header, response.text)
 
 
 async def test_csrf_token_of_another_session_does_not_work(tmp_path: Path) -> None:
@@ -390,42 +416,95 @@ async def test_dangerous_action_asks_the_password_again(tmp_path: Path) -> None:
 # --- login throttling -------------------------------------------------------------
 
 
-async def test_login_throttling_per_user_name_then_recovers(tmp_path: Path) -> None:
+async def test_login_throttling_per_account_and_address_then_recovers(tmp_path: Path) -> None:
     app = await exposed_app(tmp_path)
     now = [1000.0]
     app.state.security.throttle.clock = lambda: now[0]
+    attacker = {"X-Forwarded-For": "203.0.113.9"}
     async with running(app), client(app) as http:
         for _ in range(5):
             response = await http.post(
-                "/api/auth/login", json={"user": "olga", "password": "guess-guess"}
+                "/api/auth/login",
+                json={"user": "olga", "password": "guess-guess"},
+                headers=attacker,
             )
             assert response.status_code == 401
         right = {"user": "olga", "password": PASSWORDS["olga"]}
-        response = await http.post("/api/auth/login", json=right)
+        response = await http.post("/api/auth/login", json=right, headers=attacker)
         assert response.status_code == 429
         assert int(response.headers["retry-after"]) > 0
         # Another account from the same place is not blocked by olga's counter.
-        assert (
-            await http.post(
-                "/api/auth/login", json={"user": "oscar", "password": PASSWORDS["oscar"]}
-            )
-        ).status_code == 200
+        oscar = {"user": "oscar", "password": PASSWORDS["oscar"]}
+        assert (await http.post("/api/auth/login", json=oscar, headers=attacker)).status_code == 200
+        # The attacker's failures do not lock olga out from her own address (finding 7:
+        # 5 wrong passwords from one address made the right one from another 429).
+        own = {"X-Forwarded-For": "192.0.2.1"}
+        assert (await http.post("/api/auth/login", json=right, headers=own)).status_code == 200
         now[0] += 301  # not for good: the window passes
-        assert (await http.post("/api/auth/login", json=right)).status_code == 200
+        assert (await http.post("/api/auth/login", json=right, headers=attacker)).status_code == 200
+
+
+async def test_concurrent_guesses_of_one_account_get_the_limit_and_no_more(tmp_path: Path) -> None:
+    """Finding 1: 30 concurrent guesses for one account all passed the throttle's check
+    (29 x 401 and 1 x 200, the right password being the 20th). The attempt is reserved
+    before hashing now: 5 are checked, the rest answer 429 unchecked."""
+    app = await exposed_app(tmp_path)
+    async with running(app), client(app) as http:
+        passwords = [f"guess-number-{i:02d}" for i in range(30)]
+        passwords[19] = PASSWORDS["olga"]
+        responses = await asyncio.gather(
+            *(http.post("/api/auth/login", json={"user": "olga", "password": p}) for p in passwords)
+        )
+        statuses = [r.status_code for r in responses]
+        assert app.state.security.passwords.checks == 5
+        assert statuses.count(429) == 25
+        assert statuses.count(401) + statuses.count(200) == 5
 
 
 def test_throttle_per_address_counts_every_name() -> None:
-    from servotune.auth.throttle import LoginThrottle
+    from servotune.auth.throttle import LoginThrottle, ThrottledError
 
     now = [0.0]
     throttle = LoginThrottle(clock=lambda: now[0])
     for i in range(20):
-        assert throttle.retry_after_s("198.51.100.7", f"user{i}") == 0
-        throttle.failed("198.51.100.7", f"user{i}")
-    assert throttle.retry_after_s("198.51.100.7", "someone-else") > 0
-    assert throttle.retry_after_s("198.51.100.8", "someone-else") == 0
+        throttle.begin("198.51.100.7", f"user{i}")  # reserved: counts until it succeeds
+    with pytest.raises(ThrottledError):
+        throttle.begin("198.51.100.7", "someone-else")
+    throttle.begin("198.51.100.8", "someone-else")
     now[0] = 300.0
-    assert throttle.retry_after_s("198.51.100.7", "someone-else") == 0
+    throttle.begin("198.51.100.7", "someone-else")
+
+
+def test_throttle_reserves_before_the_check_and_a_success_gives_it_back() -> None:
+    from servotune.auth.throttle import LoginThrottle, ThrottledError
+
+    throttle = LoginThrottle(clock=lambda: 0.0)
+    # Five checks in flight at once (none has failed yet): the sixth is refused, which
+    # a count of failures made after hashing could not do.
+    attempts = [throttle.begin("192.0.2.1", "olga") for _ in range(5)]
+    with pytest.raises(ThrottledError):
+        throttle.begin("192.0.2.1", "olga")
+    throttle.succeeded(attempts[0])  # a right password: its reservation is given back
+    throttle.begin("192.0.2.1", "olga")
+
+
+def test_throttle_a_lockout_from_one_address_does_not_lock_the_owner_out() -> None:
+    from servotune.auth.throttle import LoginThrottle, ThrottledError
+
+    now = [0.0]
+    throttle = LoginThrottle(clock=lambda: now[0])
+    for _ in range(5):
+        throttle.begin("203.0.113.9", "olga")  # an attacker's wrong guesses
+    with pytest.raises(ThrottledError):
+        throttle.begin("203.0.113.9", "olga")
+    throttle.succeeded(throttle.begin("192.0.2.1", "olga"))  # olga at her desk
+    # Guessing olga from many addresses: 20 untrusted attempts in the window, then
+    # a new address waits too, while olga's own (trusted) address is not affected.
+    for i in range(15):
+        throttle.begin(f"203.0.113.{100 + i}", "olga")
+    with pytest.raises(ThrottledError):
+        throttle.begin("203.0.113.200", "olga")
+    throttle.begin("192.0.2.1", "olga")
 
 
 # --- API tokens ---------------------------------------------------------------------

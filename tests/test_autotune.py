@@ -372,11 +372,24 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
                 f"\n  verdict {result['verdict']} {result.get('verdict_reason') or ''}"
                 f"\n  samples {measured['samples']}, max gap {measured['max_sample_gap_s']} s"
             )
+            qualities = {
+                run_id: (await client.get(f"/api/bench/runs/{run_id}")).json()["quality"]
+                for run_id in (result["verification_run_id"], result["baseline_run_id"])
+            }
+            for run_id, quality in qualities.items():
+                print(f"  run {run_id} untrusted: {quality['untrusted']}")
             # stable: settles into the window, stays there, small oscillations
             # (the settling time itself may be null: the bench nulls it, with the reason,
             # when the samples are too sparse to locate it - the host's speed decides)
             assert abs(measured["steady_state_error"]) <= band
-            assert measured["oscillations"] <= 1
+            # At most one lobe out of the window. Null only where the samples cannot
+            # count lobes (fewer than 3 before it settled, or a gap as long as the
+            # move: a starved host), and the run's quality says so.
+            if measured["oscillations"] is None:
+                untrusted = qualities[result["verification_run_id"]]["untrusted"]
+                assert "samples" in untrusted["oscillations"], untrusted
+            else:
+                assert measured["oscillations"] <= 1
             # better than the defaults, measured the same way right before - decided from
             # the samples themselves, not from the product's verdict or its nulls: the
             # tuned run is back in the window for good before the baseline could be (the
@@ -483,6 +496,31 @@ async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) 
                 pwm_seen.add(bus.module(0).pwm)
                 await asyncio.sleep(0.025)
             assert pwm_seen == {0}, f"the motor was driven after STOP: {pwm_seen}"
+
+
+async def test_identification_is_refused_while_the_axis_moves(tmp_path: Path) -> None:
+    """Issue 25: an identification started on an axis spinning at 56,000 counts/s
+    with no move flag (a limit cycle after the profile ended) fitted the motion and
+    reported "the shaft did not move: raise max_pwm". Refused now, before anything is
+    sent, with what it saw; the motor kept what it was doing (nothing was written)."""
+    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    with PtySimulator(bus, baud=19200) as sim:
+        async with live_server(sim, bus, tmp_path / "data") as server:
+            spin = await server.client.post(
+                "/api/axes/line-0/commands", json={"command": "open_loop_pwm", "pwm": 40}
+            )
+            assert spin.status_code == 200, spin.text
+            await asyncio.sleep(0.4)
+            response = await server.client.post(
+                "/api/axes/line-0/autotune/identify",
+                json={"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"},
+            )
+            assert response.status_code == 409, response.text
+            detail = response.json()["detail"]
+            assert detail.startswith("the axis is moving: up to "), detail
+            assert "counts/s" in detail and "at rest" in detail
+            assert bus.module(0).pwm == 40  # nothing of the identification was sent
+            assert (await server.client.post("/api/stop")).json() == {"failed": []}
 
 
 async def test_identify_with_the_body_schemathesis_found_a_500_with(tmp_path: Path) -> None:

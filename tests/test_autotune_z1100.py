@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from servotune.autotune.verdict import verdict_z1100
+from servotune.autotune.verdict import verdict_z1100, verdict_z1100_with_reason
 from servotune.autotune.z1100_rule import propose_kab
 from servotune.config import LinkSpec
 from servotune.demo import Z1100_LOADS_KG_M2
@@ -129,7 +129,7 @@ def test_coarse_simulation_matches_the_chip(tmp_path: Path, axis: int, gains: Ka
 
 
 def test_verdict() -> None:
-    def run(settle: float | None, fe: float) -> dict[str, Any]:
+    def run(settle: float | None, fe: float | None) -> dict[str, Any]:
         return {"settling_time_s": settle, "peak_following_error": fe, "max_sample_gap_s": 0.02}
 
     assert verdict_z1100(run(None, 50), run(0.3, 10)) == "better"
@@ -137,6 +137,15 @@ def test_verdict() -> None:
     assert verdict_z1100(run(0.3, 50), run(0.31, 45)) == "not better"
     assert verdict_z1100(run(0.3, 50), run(None, 1)) == "not better"
     assert verdict_z1100(None, run(0.3, 1)) == "unknown"
+    # Issue 25: a "better" won over a settling time no better than the baseline's says
+    # what it rests on (the UI showed BETTER next to a settling time coloured worse).
+    decided, why = verdict_z1100_with_reason(run(0.3, 50), run(0.31, 10))
+    assert decided == "better" and "within the sample spacing" in why and "10 against 50" in why
+    # ... and a peak following error the bench could not resolve (null) is no evidence:
+    # it once counted as 0, "better" than any baseline.
+    decided, why = verdict_z1100_with_reason(run(0.3, 50), run(0.31, None))
+    assert decided == "unknown" and "could not be measured" in why
+    assert verdict_z1100(run(0.3, None), run(0.31, 10)) == "unknown"
 
 
 @contextlib.contextmanager
@@ -191,7 +200,11 @@ async def test_assistant_beats_mediocre_gains_on_each_demo_plant(tmp_path: Path,
                 f"\n  measured  {_summary(measured)}"
                 f"\n  before predicted {_summary(result['predicted_default'])}"
                 f"\n  before measured  {_summary(baseline)}"
+                f"\n  verdict {result['verdict']}: {result.get('verdict_reason')}"
             )
+            for run_id in (result["verification_run_id"], result["baseline_run_id"]):
+                quality = (await client.get(f"/api/bench/runs/{run_id}")).json()["quality"]
+                print(f"  run {run_id} untrusted: {quality['untrusted']}")
             assert measured["settling_time_s"] is not None
             assert abs(measured["steady_state_error"]) <= measured["band"]
             assert measured["oscillations"] <= 1

@@ -256,6 +256,29 @@ async def test_trigger_on_move_captures_the_move(browser: Browser, slap2: LiveSe
     # Single: the display stays frozen on that capture.
     await asyncio.sleep(0.5)
     assert await page.evaluate("window.__servotune.scope().shown[0]") == lo
+    # Issue 25: the capture is kept until re-armed or cleared, whatever the live ring
+    # drops (it keeps 60 s: after that the plot went blank, the CSV had only its
+    # header, and the state still said "captured"). Empty the ring as those 60 s would.
+    kept = await page.evaluate(
+        """() => {
+      const s = window.__servotune.scope();
+      s.buffer.clear();
+      s.redraw();
+      const lines = s.tools.exportCsv().trim().split(String.fromCharCode(10));
+      const csv = lines.filter((l) => !l.startsWith('#'));
+      const b = s.view, i = b.indexAt(s.trigger.capturedT);
+      return { rows: csv.length - 1, live: s.buffer.length, on: b.flags.get('move')[i],
+               status: document.querySelector('[data-testid=trigger-state]').dataset.state };
+    }"""
+    )
+    assert kept["live"] == 0 and kept["status"] == "captured", kept
+    assert kept["rows"] > 20 and kept["on"] == 1, kept
+    # Re-armed: the live trace again, the capture gone.
+    await page.get_by_test_id("trigger-source").select_option("flag:move:falling")
+    await expect(page.get_by_test_id("trigger-state")).to_have_attribute("data-state", "armed")
+    assert await page.evaluate(
+        "window.__servotune.scope().view === window.__servotune.scope().buffer"
+    )
     assert not errors
 
 

@@ -37,7 +37,7 @@ from servotune.wire import ReleaseControl, TakeControl
 
 from .conftest import local_client, use_csrf_token, wait_for
 from .control_support import WireRecorder, recorded_line, take_with_raw_client
-from .nats_support import Lab, free_port, nats_lab
+from .nats_support import Lab, free_port, nats_lab, rig_request
 
 RIGS = ["rig-a", "rig-b"]
 VM = 1 << 2  # SLAP2 rss bit: velocity mode
@@ -135,7 +135,10 @@ async def lab(tmp_path: Path) -> AsyncIterator[LabRun]:
                 for rig in RIGS:
                     await wait_for_manifest(nats_lab_, rig)
                 await start_hub(run)
-                await wait_for(lambda: hub_online(run, "rig-a.line-0"), 5, "rig-a online")
+                for name in RIGS:
+                    await wait_for(
+                        lambda n=name: hub_online(run, f"{n}.line-0"), 5, f"{name} online"
+                    )
                 yield run
             finally:
                 await stop_app(run.hub)
@@ -236,14 +239,20 @@ async def test_a_bad_value_is_refused_by_the_rig_itself_and_nothing_is_sent(
     # Past the hub, straight onto the bus with the hub's credentials: the rig refuses
     # it on its own with the same answer; the hub is not trusted for safety.
     nc = await hub_nats(lab)
+    rig_now = rig_app(lab, "rig-a").app.state.hub.now()
     try:
-        body = json.dumps({"session": "x" * 16, "hub": "handmade", "values": {"kp": 40000}})
-        msg = await nc.request(
-            axis_cmd("rig-a", "line", "line-0", "write_params"), body.encode(), timeout=5
+        body = {
+            "session": "x" * 16,
+            "hub": "handmade",
+            "values": {"kp": 40000},
+            "deadline_s": rig_now + 5.0,
+        }
+        taken, reply = await rig_request(
+            nc, axis_cmd("rig-a", "line", "line-0", "write_params"), body
         )
     finally:
         await nc.close()
-    reply = json.loads(msg.data)
+    assert taken  # run by the rig (its own check refuses it), not dropped
     assert reply["ok"] is False and reply["kind"] == "invalid" and reply["field"] == "kp"
     assert "32767" in reply["detail"]
     await asyncio.sleep(0.2)

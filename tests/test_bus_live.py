@@ -206,6 +206,10 @@ async def test_a_rig_joining_a_running_hub_is_listed_live_and_goes_offline(
         assert response.status_code == 423, response.text
         assert not [line for _, line in rig_b.wire.since(t1, 0) if line.startswith("kp")]
 
+        # Joining, rig-b was never announced offline (issue 29: every joining rig was
+        # first announced "is offline" right after "joined").
+        told = [e.message for e in hub.hub._events]
+        assert not [m for m in told if "rig-b.line: disconnected" in m], told
         # rig-b's network cut: offline within 2 s at the hub and at the tab.
         await run.lab.proxies["rig-b"].cut()
         cut = time.monotonic()

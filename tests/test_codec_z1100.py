@@ -120,6 +120,20 @@ def test_decode_rejects_wrong_length_header_and_sum() -> None:
         codec.decode_reply(bytes.fromhex("00 00 00 00 01 00"))
 
 
+@given(replies, st.integers(min_value=1, max_value=255))
+def test_a_reply_with_a_corrupt_code_byte_is_rejected(reply: codec.Reply, flip: int) -> None:
+    """Pinned rule (issue 25): the code byte is covered by the checksum. A flipped bit
+    there would turn an OK into a refusal ("forbidden while moving"), a stall or a
+    checksum complaint: such a reply is no reply, for both decoders."""
+    packet = bytearray(reply.encode())
+    packet[0] ^= flip
+    with pytest.raises(codec.CodecError, match="checksum"):
+        codec.decode_reply(bytes(packet))
+    decoder = codec.ReplyDecoder()
+    assert decoder.feed(bytes(packet)) == []
+    assert decoder.discarded == 1 and decoder.pending == 5
+
+
 # --- command table -----------------------------------------------------------------
 
 

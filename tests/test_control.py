@@ -12,13 +12,15 @@ import json
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import websockets
+from fastapi import HTTPException
 from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
-from servotune.control import ControlManager, ControlSettings
+from servotune.control import CLIENT_HEADER, ControlManager, ControlSettings
 from servotune.wire import ForceControl, TakeControl
 
 from .control_support import (
@@ -155,6 +157,35 @@ async def test_unanswered_request_granted_when_the_holder_is_idle(server: Server
         assert manager.holder("line-0").client_tag == bob.tag  # type: ignore[union-attr]
 
 
+async def test_a_request_carrying_another_users_client_id_is_refused(server: Server) -> None:
+    """Pinned rule (issue 25): a client id is a connection's secret, but a secret can
+    leak (a log, a shared screen); it authorises only its own user. Olga's tab holds
+    line-0; a request of another user carrying Olga's client id is refused (423) and
+    nothing is written, while Olga herself may change the axis."""
+    manager = control(server)
+    sent: list[str] = []
+    operator = Principal("olga", "operator", frozenset({VIEW, STOP, CONTROL, MOVE}))
+    olga = manager.connect(operator, "test", sent.append)
+    try:
+        await manager.handle(olga, TakeControl(axis="line-0"))
+        assert manager.holder("line-0").client_tag == olga.tag  # type: ignore[union-attr]
+        kp = server.bus.module(0).settings["kp"]
+        # The local user (this server runs without accounts) with Olga's client id.
+        response = await server.client.patch(
+            "/api/axes/line-0/params", json={"kp": kp + 7}, headers={CLIENT_HEADER: olga.client_id}
+        )
+        assert response.status_code == 423, response.text
+        assert "controlled by olga" in response.json()["detail"]
+        assert server.bus.module(0).settings["kp"] == kp
+        mallory = Principal("mallory", "operator", frozenset({VIEW, STOP, CONTROL, MOVE}))
+        with pytest.raises(HTTPException) as refused:
+            await manager.require("line-0", olga.client_id, mallory)
+        assert refused.value.status_code == 423
+        await manager.require("line-0", olga.client_id, operator)  # her own: allowed
+    finally:
+        manager.disconnect(olga)
+
+
 async def test_admin_forces_a_hand_over_an_operator_cannot(server: Server) -> None:
     manager = control(server)
     async with Operator(server) as alice, Operator(server) as admin:
@@ -213,6 +244,51 @@ async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, t
         assert not server.bus.module(0).rss & VM
         assert control(server).holder("line-0") is None
         await raw.close_quietly()
+
+
+async def test_a_bench_run_ended_by_the_dead_man_says_so(server: Server) -> None:
+    """Issue 25: the cause of a stop is recorded as it was. A run the dead-man ended
+    read "STOP was pressed during the test"; it names the dead-man now, and a run the
+    user's STOP ended still says STOP."""
+    raw, client_id, beat = await take_with_raw_client(server, "line-0", take=True)
+    headers = {"X-Servotune-Client": client_id}
+    response = await server.client.post(
+        "/api/axes/line-0/bench/runs",
+        json={"kind": "velocity_step", "velocity": 300, "duration_s": 5.0},
+        headers=headers,
+    )
+    assert response.status_code == 202, response.text
+    run_id = response.json()["id"]
+    await asyncio.sleep(0.6)
+    beat.cancel()
+    raw.drop()
+    run = await _finished(server, run_id)
+    assert run["status"] == "incomplete", run
+    message = str(run["message"])
+    assert "STOP (dead-man: " in message and "during the test" in message, message
+    assert "STOP was pressed" not in message
+    await raw.close_quietly()
+
+    response = await server.client.post(
+        "/api/axes/line-1/bench/runs",
+        json={"kind": "velocity_step", "velocity": 300, "duration_s": 5.0},
+    )
+    assert response.status_code == 202, response.text
+    run_id = response.json()["id"]
+    await asyncio.sleep(0.6)
+    assert (await server.client.post("/api/stop")).status_code == 200
+    run = await _finished(server, run_id)
+    assert "STOP was pressed during the test" in str(run["message"]), run["message"]
+
+
+async def _finished(server: Server, run_id: str, timeout_s: float = 10.0) -> dict[str, Any]:
+    """The run once it no longer records (or as it is after ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        run: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+        if run["status"] != "recording" or time.monotonic() > deadline:
+            return run
+        await asyncio.sleep(0.1)
 
 
 async def test_oversize_and_binary_frames_are_closed_with_a_code(server: Server) -> None:

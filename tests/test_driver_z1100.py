@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import pytest
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
 from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.protocols.z1100 import Command
 from servotune.sim.serial_sim import PtySimulator
 from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
@@ -161,6 +163,80 @@ async def test_noise_reply_and_console(tmp_path: Path) -> None:
         assert line.link.errors >= errors
         with pytest.raises(InvalidArgumentError, match="K A B"):
             await line.axis(2).console("SetKABH 1 2")
+
+
+async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> None:
+    """Pinned rule (issue 25): a reply whose code byte was corrupted on the wire (its
+    checksum no longer adds up) is rejected and the request asked again, never taken
+    for the refusal its bits would spell ("forbidden while motor 1 is moving")."""
+    async with chip_line(tmp_path) as line:
+        retries = line.link.counters["retries"]
+        line.sim.call(
+            lambda: line.chip.inject_corrupt_codes(1, mask=0x10, command=Command.SET_VMAX)
+        )
+        readback = await line.axis(0).write_params({"vmax": 50_000})
+        assert readback["vmax"] == 50_000
+        assert line.link.counters["retries"] >= retries + 1
+        assert not any("moving" in message for _, _, message in line.sink.events)
+
+
+async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path) -> None:
+    """Issue 25: a chip that answers nothing at all (power lost, cable cut) left its
+    link ``connected`` at 0 Hz for 11 s (three failed poll cycles of fence timeouts);
+    the silence rule (``drivers.engine``) shows ``error`` once 3 requests in a row over
+    1 s went unanswered, and ``connected`` again with the next good poll. A host that
+    stalls while the chip answers is no silence: it sent nothing and missed nothing."""
+    async with chip_line(tmp_path) as line:
+        # The event loop (the driver) stalls 1.5 s while the chip, in its own thread,
+        # answers: its reply waits in the pty, nothing is unanswered.
+        stalled = asyncio.Event()
+
+        def stall() -> None:
+            time.sleep(1.5)
+            stalled.set()
+
+        asyncio.get_running_loop().call_soon(stall)
+        await stalled.wait()
+        await asyncio.sleep(1.2)  # a status tick after the stall
+        assert "error" not in [state for state, _ in line.sink.states], line.sink.states
+        assert not any("no answer" in message for _, _, message in line.sink.events)
+
+        line.sim.set_silent(True)
+        silent_at = time.monotonic()
+        await wait_for(lambda: line.link.state == "error", 5, "the link in error")
+        shown_s = time.monotonic() - silent_at
+        state, message = line.sink.states[-1]
+        assert state == "error" and message.startswith("no answer from the device for"), message
+        assert any(
+            level == "error" and "no answer from the device" in text
+            for level, _, text in line.sink.events
+        )
+        print(f"silent chip shown in error after {shown_s:.2f} s")
+        await asyncio.sleep(2.0)
+        assert line.link.state == "error"  # for as long as it lasts
+
+        line.sim.set_silent(False)
+        await wait_for(lambda: line.link.state == "connected", 10, "connected again")
+        count = len(line.sink.samples["chip-x"])
+        await wait_for(lambda: len(line.sink.samples["chip-x"]) > count + 5, 5, "samples again")
+
+
+async def test_the_rate_never_exceeds_the_wire_limit_after_a_capture(tmp_path: Path) -> None:
+    """Issue 25: after a capture the link's rate counted the capture's dense samples
+    of the last 2 s against the normal poll set's wire limit: "131 % of wire". The
+    rate restarts with the poll set, so it never reads above the limit."""
+    async with chip_line(tmp_path) as line:
+        link = line.link
+        ratios: list[float] = []
+        async with link.capture(0, "test"):
+            for _ in range(20):
+                await asyncio.sleep(0.05)
+                ratios.append(link.achieved_rate_hz() / link.wire_limit_hz())
+        for _ in range(50):
+            await asyncio.sleep(0.05)
+            ratios.append(link.achieved_rate_hz() / link.wire_limit_hz())
+        assert max(ratios) <= 1.0, [round(r, 2) for r in ratios]
+        assert max(ratios[20:]) > 0.3  # the normal polls did run meanwhile
 
 
 async def test_stall_is_flagged(tmp_path: Path) -> None:

@@ -12,7 +12,13 @@ from typing import Any
 
 import pytest
 
-from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES
+from servotune.runio import (
+    MAX_IMPORT_BYTES,
+    MAX_IMPORT_JSON_BYTES,
+    needs_rejudging,
+    rejudge_in_process,
+)
+from servotune.runquality import SAMPLING_RULE
 from servotune.storage import Storage
 
 from .conftest import running_simulator
@@ -229,3 +235,51 @@ def test_the_text_path_of_the_csv_export_writes_what_the_csv_writer_writes() -> 
     assert plain_chunk_csv("[[1.0,true,[0]]]") is None
     assert plain_chunk_csv("[[1.0,[2.0,[0]]]]") is None
     assert plain_chunk_csv("[]") is None
+
+
+async def test_a_run_judged_by_an_older_rule_is_judged_again_when_imported_or_stored(
+    api: LiveServer, tmp_path: Path
+) -> None:
+    """Issue 25: one rule for every run on the page, wherever it was recorded. A run
+    exported (or stored) by an older version keeps the metrics it was judged with: a
+    peak time of 1 ms "trusted" that no 3 samples resolve. Imported, and at a server's
+    start-up for the runs in its database (runio.rejudge_in_process), it is judged by
+    today's sampling rule; a run judged by it already is left as it is."""
+    run, meta, csv_text = await _exported(api)
+    assert meta["quality"]["sampling_rule"] == SAMPLING_RULE
+    old = json.loads(json.dumps(meta))
+    del old["quality"]["sampling_rule"]
+    old["metrics"]["peak_time_s"] = 0.001
+    old["quality"]["untrusted"].pop("peak_time_s", None)
+    response = await _import(api, old, csv_text)
+    assert response.status_code == 201, response.text
+    imported = (await api.client.get(f"/api/bench/runs/{response.json()['id']}")).json()
+    assert imported["metrics"]["peak_time_s"] is None
+    assert "needs 3" in imported["quality"]["untrusted"]["peak_time_s"]
+    assert imported["quality"]["sampling_rule"] == SAMPLING_RULE
+    assert imported["metrics"]["overshoot_pct"] == run["metrics"]["overshoot_pct"]
+
+    # Stored by an older version: judged again by the start-up pass.
+    storage = Storage(tmp_path / "old.db")
+    rows = run["samples"]
+    stored = {k: v for k, v in old.items() if k not in ("id", "axis_id", "status", "baseline")}
+    storage.create_run("old", "slap2/x/0", "x-0", 1.0, stored)
+    storage.append_samples("old", 0, rows)
+    storage.finish_run("old", "complete", stored)
+    current = json.loads(json.dumps(stored))
+    current["quality"]["sampling_rule"] = SAMPLING_RULE
+    storage.create_run("current", "slap2/x/0", "x-0", 2.0, current)
+    storage.append_samples("current", 0, rows)
+    storage.finish_run("current", "complete", current)
+    storage.close()
+    assert needs_rejudging({**stored, "status": "complete"})
+    assert await asyncio.to_thread(rejudge_in_process, str(tmp_path / "old.db")) == 1
+    storage = Storage(tmp_path / "old.db")
+    try:
+        judged = storage.get_run_meta("old")
+        assert judged is not None and judged["metrics"]["peak_time_s"] is None
+        assert judged["quality"]["sampling_rule"] == SAMPLING_RULE
+        untouched = storage.get_run_meta("current")
+        assert untouched is not None and untouched["metrics"]["peak_time_s"] == 0.001
+    finally:
+        storage.close()

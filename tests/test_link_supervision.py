@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-from servotune.drivers.base import InvalidArgumentError, LinkDownError
+from servotune.drivers.base import DriverError, InvalidArgumentError, LinkDownError
 from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.protocols import z1100 as zcodec
@@ -817,3 +817,69 @@ def _hub_on_line(
     hub = Hub([link], Storage(tmp_path / "db.sqlite"))
     holder.append(hub)
     return hub, link
+
+
+class _MuteCrOf:
+    """A ``Tap.rewrite`` that swallows everything the device sends in answer to the CR
+    of the next ``line`` typed (its CR echo and its reply): the module executed the
+    line, the host never hears so."""
+
+    def __init__(self) -> None:
+        self.typed = bytearray()
+        self.armed: str | None = None
+
+    def __call__(self, byte: int, out: bytes) -> bytes:
+        if byte != 0x0D:
+            if byte >= 0x20:
+                self.typed.append(byte)
+            elif byte == 0x18:
+                self.typed.clear()
+            return out
+        line = self.typed.decode("latin-1").replace(" ", "").lower()
+        self.typed.clear()
+        if self.armed is not None and line == self.armed:
+            self.armed = None
+            return b""
+        return out
+
+
+def _lines(received: bytes) -> list[str]:
+    return [
+        part.decode("latin-1").replace(" ", "").lower().split("\x18")[-1]
+        for part in received.split(b"\r")
+    ]
+
+
+async def test_a_command_whose_cr_echo_failed_is_not_sent_again_a_stop_is(
+    tmp_path: Path,
+) -> None:
+    """Pinned rule (issue 25): once CR has gone out the module may have executed the
+    line, so a command whose CR echo (and reply) never came is not sent again: ``mr``
+    twice would move the axis twice as far. ``st`` may run twice and must reach the
+    module: a STOP whose CR echo was lost is sent again."""
+    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    tap = Tap(bus)
+    mute = _MuteCrOf()
+    tap.rewrite = mute
+    with PtySimulator(tap, baud=19200) as sim:
+        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
+        await hub.start()
+        try:
+            await wait_for(lambda: hub.entry("line-0").latest is not None, 10, "samples")
+            await hub.command("line-0", "position_mode", {})
+            start = bus.module(0).position
+            mark = tap.mark()
+            mute.armed = "mr2000"
+            with pytest.raises(DriverError, match="'mr2000'"):
+                await hub.command("line-0", "move_relative", {"distance": 2000})
+            await asyncio.sleep(1.5)
+            assert _lines(tap.since(mark)).count("mr2000") == 1, _lines(tap.since(mark))
+            # It ran once: the module's target moved by 2000, not 4000.
+            assert abs(bus.module(0).position - (start + 2000)) < 50, bus.module(0).position
+
+            mark = tap.mark()
+            mute.armed = "st"
+            await hub.entry("line-0").driver.stop()  # answers: the second st was heard
+            assert _lines(tap.since(mark)).count("st") == 2, _lines(tap.since(mark))
+        finally:
+            await hub.stop()

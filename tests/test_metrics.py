@@ -18,6 +18,7 @@ from servotune.metrics import (
     predict_first_order,
     predict_second_order,
 )
+from servotune.runquality import assess
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "metrics.md"
 
@@ -187,6 +188,43 @@ def test_settling_needs_the_end_inside_the_band() -> None:
     # already inside the band from the command point on (a step smaller than the band)
     m = compute_metrics(t, [1, 1, 1, 1, 1], t0_s=0.0, y0=0.0, y_final=1.0, band=2.0)
     assert m.settling_time_s == 0.0
+
+
+def test_a_band_edge_hit_exactly_by_integer_counts_is_inside_the_band() -> None:
+    # Pinned rule (issue 25): positions are integer counts and the in-position window
+    # an integer, so a response that comes to rest exactly on the window's edge is
+    # common (5 counts off a ±5 window). The band is closed: |e| <= band is inside.
+    t = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+    up = [50, 90, 106, 105, 105, 105]
+    down = [-50, -90, -94, -95, -95, -95]
+    for target, y in ((100.0, up), (-100.0, down)):
+        m = compute_metrics(t, y, t0_s=0.0, y0=0.0, y_final=target, band=5.0)
+        # the last point outside is 106 (-94) at 0.3; the edge is reached at 0.4 exactly
+        assert m.settling_time_s == pytest.approx(0.4), target
+        assert m.oscillations == (1 if target > 0 else 0)
+    # On the edge from the first sample on: settled where the curve from the command
+    # point reaches the edge, at that sample.
+    m = compute_metrics(t, [95] * 6, t0_s=0.0, y0=0.0, y_final=100.0, band=5.0)
+    assert m.settling_time_s == pytest.approx(0.1)
+    # The bench's window check takes the same edge as inside: a good run.
+    rows = [[ti, float(v), [1]] for ti, v in zip(t, up, strict=True)]
+    _, quality = assess(
+        kind="move",
+        columns=["t_s", "position"],
+        flag_names=["inpos"],
+        rows=rows,
+        t0_s=0.0,
+        response="position",
+        y0=0.0,
+        y_final=100.0,
+        band=5.0,
+        fault_flags=[],
+        done_flag="inpos",
+        metrics=None,
+        status="complete",
+        message="",
+    )
+    assert "outside_window" not in [r["code"] for r in quality["reasons"]]
 
 
 # --- symmetry and invariance (hypothesis) ---------------------------------------------
@@ -367,32 +405,77 @@ def test_time_in_fault_flag() -> None:
         y_final=100.0,
         flags={"oc": oc, "stall": [False] * 8},
     )
-    # set before t0 holds into it (0.03 s), 0.03..0.07, 0.12..0.26; the last sample holds for 0
-    assert m.time_in_flag_s["oc"] == pytest.approx(0.03 + 0.04 + 0.08 + 0.06)
+    # Each change midway between the reads around it: set from -0.06 (held into t0) to
+    # 0.05, from 0.095 to 0.23, from 0.285 to the last read at 0.31.
+    assert m.time_in_flag_s["oc"] == pytest.approx(0.05 + 0.135 + 0.025)
+    # ± half of each bracketing interval: 0.02 + 0.025 + 0.03 + 0.025 (the rise before
+    # t0 is no part of the time after it)
+    assert m.time_in_flag_resolution_s["oc"] == pytest.approx(0.1)
     assert m.time_in_flag_s["stall"] == 0.0
     assert m.time_to_flag_s == {}
 
 
 @pytest.mark.parametrize(
-    ("series", "expected"),
+    ("series", "expected", "resolution"),
     [
-        # stale "in position" at the first poll after the command, drops, rises at 0.26
-        ([True, True, True, False, False, False, True, True], 0.26),
-        ([True, True, False, True, False, True, True, True], 0.07),  # first rise counts
-        ([True] * 8, None),  # never dropped: the move was not seen
-        ([True, True, False, False, False, False, False, False], None),  # never arrived
-        ([False] * 8, None),
+        # stale "in position" at the first poll after the command, drops, rises
+        # between the reads at 0.20 and 0.26
+        ([True, True, True, False, False, False, True, True], 0.23, 0.03),
+        ([True, True, False, True, False, True, True, True], 0.05, 0.02),  # first rise counts
+        ([True] * 8, None, None),  # never dropped: the move was not seen
+        ([True, True, False, False, False, False, False, False], None, None),  # never arrived
+        ([False] * 8, None, None),
     ],
 )
 @pytest.mark.parametrize("name", ["inpos", "in_target"])
-def test_time_to_arrival_flag(name: str, series: list[bool], expected: float | None) -> None:
+def test_time_to_arrival_flag(
+    name: str, series: list[bool], expected: float | None, resolution: float | None
+) -> None:
     m = compute_metrics(FLAG_T, [0.0] * 8, t0_s=T0, y0=0.0, y_final=100.0, flags={name: series})
     assert set(m.time_to_flag_s) == {name}
     assert m.time_in_flag_s == {}
     if expected is None:
         assert m.time_to_flag_s[name] is None
+        assert m.time_to_flag_resolution_s[name] is None
     else:
         assert m.time_to_flag_s[name] == pytest.approx(expected)
+        assert m.time_to_flag_resolution_s[name] == pytest.approx(resolution)
+
+
+def test_flags_held_between_status_polls_are_timed_by_their_reads() -> None:
+    # Issue 25: the position is read every 10 ms, the flags every 200 ms (SLAP2 rss in
+    # a capture); every sample carries the last read. The axis arrives at 90 ms.
+    # Timed at the first *sample* that shows it, in-position read 200+ ms; timed by
+    # its reads it is 100 ms ± 100 (between the clear read at 0 and the set read at
+    # 200 ms): the truth lies inside, and the ± says how little that is.
+    t = [i * 0.01 for i in range(40)]
+    reads = [0.0 if ti < 0.2 else 0.2 for ti in t]
+    inpos = [ti >= 0.2 for ti in t]  # the read at 0.2 is the first that can show it
+    held = [ti + 0.005 for ti in t]  # the samples come 5 ms after each read
+    m = compute_metrics(
+        held,
+        [0.0] * 40,
+        t0_s=0.0,
+        y0=0.0,
+        y_final=100.0,
+        flags={"inpos": inpos, "oc": inpos},
+        flags_t_s=reads,
+    )
+    assert m.time_to_flag_s["inpos"] == pytest.approx(0.1)
+    assert m.time_to_flag_resolution_s["inpos"] == pytest.approx(0.1)
+    truth = 0.09
+    assert abs(m.time_to_flag_s["inpos"] - truth) <= m.time_to_flag_resolution_s["inpos"]
+    # Without the read times the sample's own time is taken: 205 ms, not within ±.
+    m = compute_metrics(held, [0.0] * 40, t0_s=0.0, y0=0.0, y_final=100.0, flags={"inpos": inpos})
+    assert m.time_to_flag_s["inpos"] == pytest.approx(0.2)
+    # The fault flag set by the same read: from 0.1 (± 0.1) to its last read (0.2).
+    m = compute_metrics(
+        held, [0.0] * 40, t0_s=0.0, y0=0.0, y_final=100.0, flags={"oc": inpos}, flags_t_s=reads
+    )
+    assert m.time_in_flag_s["oc"] == pytest.approx(0.1)
+    assert m.time_in_flag_resolution_s["oc"] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="flags_t_s"):
+        compute_metrics(t, [0.0] * 40, t0_s=0.0, y0=0.0, y_final=1.0, flags_t_s=reads[:-1])
 
 
 def test_following_error_statistics() -> None:

@@ -41,6 +41,7 @@ from hypothesis.errors import Unsatisfiable  # noqa: E402
 from schemathesis.specs.openapi import checks as openapi_checks  # noqa: E402
 
 from servotune.api.app import AppConfig, create_app  # noqa: E402
+from servotune.auth.security import SecurityConfig  # noqa: E402
 from servotune.config import LinkSpec  # noqa: E402
 from servotune.demo import ep7047_demo_slave, slap2_demo_line, z1100_demo_line  # noqa: E402
 
@@ -129,11 +130,17 @@ def _first_axis(
     return started
 
 
+@dataclasses.dataclass
+class Demo:
+    base_url: str
+    app: Any
+
+
 @contextlib.contextmanager
-def demo_server(data_dir: Path) -> Iterator[str]:
+def demo_server(data_dir: Path, security: SecurityConfig | None = None) -> Iterator[Demo]:
     """A demo-like app (a SLAP2 module and a Z1100 motor on ptys, the EP7047 slave; the
     simulators in their own processes as in the demo), served by uvicorn on a free port
-    in a thread; yields its base URL."""
+    in a thread; yields its base URL and the app."""
     config = AppConfig(
         data_dir=data_dir,
         simulators=[
@@ -142,17 +149,20 @@ def demo_server(data_dir: Path) -> Iterator[str]:
             lambda: ep7047_demo_slave(data_dir / "sim"),
         ],
         web_dir=data_dir / "no-web",
+        security=security or SecurityConfig(),
     )
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
+    app = create_app(config)
     server = uvicorn.Server(
         uvicorn.Config(
-            create_app(config),
+            app,
             host="127.0.0.1",
             port=port,
             log_level="warning",
             timeout_graceful_shutdown=5,
+            proxy_headers=False,  # as `servotune serve`
         )
     )
     thread = threading.Thread(target=server.run, name="schemathesis-demo-server")
@@ -162,7 +172,7 @@ def demo_server(data_dir: Path) -> Iterator[str]:
         while not server.started:
             assert thread.is_alive() and time.monotonic() < deadline, "server did not start"
             time.sleep(0.05)
-        yield f"http://127.0.0.1:{port}"
+        yield Demo(f"http://127.0.0.1:{port}", app)
     finally:
         server.should_exit = True
         thread.join(120)
@@ -194,41 +204,37 @@ def _run(
     check()
 
 
-@pytest.mark.slow
-def test_live_openapi_contract(tmp_path: Path) -> None:
+def _contract(base_url: str, raw: dict[str, Any], headers: dict[str, str]) -> None:
+    """Every operation of ``raw`` in both modes with ``headers``; fails with every
+    failure found."""
     from schemathesis import GenerationMode
 
     failures: list[str] = []
     operations = 0
     timings: list[tuple[float, str]] = []
-    with demo_server(tmp_path) as base_url:
-        raw = requests.get(f"{base_url}/openapi.json", timeout=60).json()
-        # As the web client does: the CSRF token from the session probe on every call.
-        session = requests.get(f"{base_url}/api/auth/session", timeout=60).json()
-        headers = {"X-CSRF-Token": session["csrf_token"]}
-        schema = schemathesis.openapi.from_dict(raw)
-        for result in schema.get_all_operations():
-            operation = result.ok()
-            label = f"{operation.method.upper()} {operation.path}"
-            if label in EXCLUDED:
-                continue
-            operations += 1
-            positive = [*CHECKS]
-            if label not in VALID_MAY_BE_422:
-                positive.append(positive_unless_constraint)
-            modes = [(GenerationMode.POSITIVE, positive)]
-            if _can_be_invalid(raw["paths"][operation.path][operation.method.lower()]):
-                negative = [*CHECKS, openapi_checks.negative_data_rejection]
-                modes.append((GenerationMode.NEGATIVE, negative))
-            for mode, checks in modes:
-                started = time.monotonic()
-                try:
-                    _run(operation, mode, checks, base_url, headers)
-                except Unsatisfiable:
-                    pass  # no request of this mode exists for the operation
-                except (Exception, BaseExceptionGroup) as exc:  # collect all, then fail
-                    failures.append(f"{label} ({mode.value}): {exc}")
-                timings.append((time.monotonic() - started, f"{label} {mode.value}"))
+    schema = schemathesis.openapi.from_dict(raw)
+    for result in schema.get_all_operations():
+        operation = result.ok()
+        label = f"{operation.method.upper()} {operation.path}"
+        if label in EXCLUDED:
+            continue
+        operations += 1
+        positive = [*CHECKS]
+        if label not in VALID_MAY_BE_422:
+            positive.append(positive_unless_constraint)
+        modes = [(GenerationMode.POSITIVE, positive)]
+        if _can_be_invalid(raw["paths"][operation.path][operation.method.lower()]):
+            negative = [*CHECKS, openapi_checks.negative_data_rejection]
+            modes.append((GenerationMode.NEGATIVE, negative))
+        for mode, checks in modes:
+            started = time.monotonic()
+            try:
+                _run(operation, mode, checks, base_url, headers)
+            except Unsatisfiable:
+                pass  # no request of this mode exists for the operation
+            except (Exception, BaseExceptionGroup) as exc:  # collect all, then fail
+                failures.append(f"{label} ({mode.value}): {exc}")
+            timings.append((time.monotonic() - started, f"{label} {mode.value}"))
     timings.sort(reverse=True)
     print(f"{operations} operations in {sum(t for t, _ in timings):.1f} s; slowest:")
     for seconds, what in timings[:5]:
@@ -236,3 +242,36 @@ def test_live_openapi_contract(tmp_path: Path) -> None:
     # Every route of the demo is in the schema, the per-axis ones included.
     assert operations >= 25
     assert not failures, "\n\n".join(failures)
+
+
+@pytest.mark.slow
+def test_live_openapi_contract(tmp_path: Path) -> None:
+    with demo_server(tmp_path) as demo:
+        raw = requests.get(f"{demo.base_url}/openapi.json", timeout=60).json()
+        # As the web client does: the CSRF token from the session probe on every call.
+        session = requests.get(f"{demo.base_url}/api/auth/session", timeout=60).json()
+        _contract(demo.base_url, raw, {"X-CSRF-Token": session["csrf_token"]})
+
+
+@pytest.mark.slow
+def test_live_openapi_contract_as_an_operator_in_exposed_mode(tmp_path: Path) -> None:
+    """The same contract where a lab runs it: exposed mode (behind a TLS proxy on
+    127.0.0.1), as an operator with an API token. What an operator may not do answers
+    403, which every route documents; nothing answers 500."""
+    from servotune.auth.security import AUTH_DB
+    from servotune.auth.store import AuthStore
+
+    from .auth_helpers import make_accounts
+
+    make_accounts(tmp_path)
+    store = AuthStore(tmp_path / AUTH_DB)
+    try:
+        token, _ = store.create_token("olga", "schemathesis", "operator")
+    finally:
+        store.close()
+    security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
+    with demo_server(tmp_path, security) as demo:
+        # An exposed server does not serve its schema: the app's own, built in-process.
+        assert requests.get(f"{demo.base_url}/openapi.json", timeout=60).status_code == 404
+        raw = demo.app.openapi()
+        _contract(demo.base_url, raw, {"Authorization": f"Bearer {token}"})

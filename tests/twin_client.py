@@ -82,15 +82,17 @@ def same_angle(a: float, b: float, tolerance: float) -> bool:
 
 @contextlib.asynccontextmanager
 async def viser_session(
-    url: str, version: str, origin: str
+    url: str, version: str, origin: str | None, headers: dict[str, str] | None = None
 ) -> AsyncIterator[tuple[ViserScene, ClientConnection]]:
-    """Connect like viser's browser client (subprotocol ``viser-v<version>``) and keep
-    a ``ViserScene`` up to date in the background."""
+    """Connect like viser's browser client (subprotocol ``viser-v<version>``; ``origin``
+    None: a script's handshake, without one) and keep a ``ViserScene`` up to date in
+    the background."""
     scene = ViserScene()
     async with websockets.connect(
         url,
         subprotocols=[Subprotocol(f"viser-v{version}")],
-        origin=Origin(origin),
+        origin=Origin(origin) if origin is not None else None,
+        additional_headers=headers,
         max_size=None,
         compression=None,
     ) as connection:

@@ -54,6 +54,10 @@ from servotune.tuning.frfrun import Excitation
 from servotune.wire import RunUpdate
 
 PRE_TRIGGER_S = 0.2
+FLAGS_T_COLUMN = "flags_t_s"
+"""The recorded column of when each sample's flags were read (``Sample.flags_t``; the
+sample's own time where the driver reads them with it): time to a polled flag is
+located between its reads, not at the samples that carry an older read."""
 FLUSH_PERIOD_S = 0.5
 SETTLED_HOLD_S = 0.3
 RETURN_TIMEOUT_S = 5.0  # after the return move's profile time
@@ -136,7 +140,7 @@ def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[st
             "band": plan.band,
             "overrides": plan.overrides,
         },
-        "columns": ["t_s", *(c.name for c in descriptor.channels)],
+        "columns": ["t_s", *(c.name for c in descriptor.channels), FLAGS_T_COLUMN],
         "flags": [f.name for f in descriptor.flags],
         "metrics": None,
         "message": "",
@@ -219,7 +223,12 @@ class BenchRunner:
         if recording is None or recording.ended:
             return
         row: list[Any] = [round(sample.t, 6)]
-        row += [_value(sample.channels.get(name)) for name in recording.columns[1:]]
+        row += [
+            round(sample.t if sample.flags_t is None else sample.flags_t, 6)
+            if name == FLAGS_T_COLUMN
+            else _value(sample.channels.get(name))
+            for name in recording.columns[1:]
+        ]
         row.append([int(bool(sample.flags.get(name))) for name in recording.flags])
         recording.samples.append(row)
         if recording.excitation is not None and sample.t_span_s is not None:
@@ -295,7 +304,7 @@ class BenchRunner:
                 await entry.driver.stop()
             except DriverError:
                 # The link is down: stop the axis the moment it is back.
-                entry.stop_on_reconnect = True
+                self._hub.pend_stop(entry)
                 message += "; the axis will be stopped when its link is back"
         except asyncio.CancelledError:
             status, message = "incomplete", "server stopped during the test"
@@ -382,7 +391,7 @@ class BenchRunner:
                 raise DriverError(recording.abort)
             generation = recording.stop_generation
             if generation is not None and recording.entry.stop_generation != generation:
-                raise DriverError("STOP was pressed during the test")
+                raise DriverError(f"{recording.entry.stop_cause} during the test")
             if now - start >= test.duration_s:
                 return
             latest = recording.entry.latest
@@ -425,6 +434,11 @@ class BenchRunner:
                 flag_series = {
                     name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
                 }
+                flags_t_index = (
+                    recording.columns.index(FLAGS_T_COLUMN)
+                    if FLAGS_T_COLUMN in recording.columns
+                    else None
+                )
                 raw = asdict(
                     compute_metrics(
                         [r[0] for r in rows],
@@ -437,6 +451,9 @@ class BenchRunner:
                             [r[error_index] for r in rows] if error_index is not None else None
                         ),
                         flags=flag_series,
+                        flags_t_s=(
+                            [r[flags_t_index] for r in rows] if flags_t_index is not None else None
+                        ),
                     )
                 )
         return assess(
@@ -489,7 +506,7 @@ class BenchRunner:
                 since = None
             generation = recording.stop_generation
             if generation is not None and entry.stop_generation != generation:
-                raise DriverError("STOP was pressed during the test")
+                raise DriverError(f"{entry.stop_cause} during the test")
             await asyncio.sleep(0.05)
         return False
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import stat
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,7 +33,55 @@ def _addresses(text: str) -> list[int]:
     return values
 
 
-def _run_server(app_config: object, host: str, port: int) -> None:
+# Seconds uvicorn waits for open requests at shutdown before it cancels them.
+GRACEFUL_SHUTDOWN_S = 3
+
+
+# The operator's statement that a container's port is published on the host's loopback
+# only (docker -p 127.0.0.1:8000:8000): set by docker-compose.yml's demo service.
+LOOPBACK_PUBLISHED_ENV = "SERVOTUNE_LOOPBACK_PUBLISHED"
+
+
+def loopback_published(args: argparse.Namespace, environ: dict[str, str] | None = None) -> bool:
+    """Whether ``--loopback-published`` or ``SERVOTUNE_LOOPBACK_PUBLISHED=1`` was given."""
+    env = os.environ if environ is None else environ
+    return bool(args.loopback_published) or env.get(LOOPBACK_PUBLISHED_ENV, "") == "1"
+
+
+def local_bind_refusal(*, exposed: bool, host: str, published_on_loopback: bool) -> str | None:
+    """Why the server must not start as configured (None: it may).
+
+    Local mode has no login: on a non-loopback bind anyone who reaches the port could
+    move the motors. Inside a container the server must bind 0.0.0.0, and only the
+    operator knows whether the port is then published on the host's loopback only, so
+    local mode there needs that said explicitly.
+    """
+    from servotune.auth.security import is_loopback
+
+    if exposed or is_loopback(host) or published_on_loopback:
+        return None
+    return (
+        f"refusing local mode (no login) on {host}: anyone who can reach that address "
+        "could move the motors. Give accounts and TLS or a proxy for exposed mode "
+        "(docs/remote-lab.md), bind 127.0.0.1, or, in a container whose port is "
+        "published on the host's loopback only (docker run -p 127.0.0.1:8000:8000), "
+        f"say so with {LOOPBACK_PUBLISHED_ENV}=1 or --loopback-published"
+    )
+
+
+def _add_bind_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--loopback-published",
+        action="store_true",
+        help="local mode on a non-loopback bind (a container's 0.0.0.0) is refused unless "
+        "this says the port is published on the host's loopback only (also "
+        f"{LOOPBACK_PUBLISHED_ENV}=1)",
+    )
+
+
+def _run_server(
+    app_config: object, host: str, port: int, *, published_on_loopback: bool = False
+) -> None:
     import uvicorn
 
     from servotune.api.app import AppConfig, create_app
@@ -40,16 +90,17 @@ def _run_server(app_config: object, host: str, port: int) -> None:
 
     assert isinstance(app_config, AppConfig)
     security = app_config.security
+    refusal = local_bind_refusal(
+        exposed=security.exposed, host=host, published_on_loopback=published_on_loopback
+    )
+    if refusal is not None:
+        print(f"servotune: {refusal}", file=sys.stderr)
+        raise SystemExit(2)
     try:
         app = create_app(app_config)
     except SecurityConfigError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    if not security.exposed and host not in ("127.0.0.1", "localhost", "::1"):
-        logging.getLogger(__name__).warning(
-            "local mode on %s: no login; anyone who can reach this address can move the motors",
-            host,
-        )
     scheme = "https" if security.tls else "http"
     mode = "exposed: login required" if security.exposed else "local"
     print(f"servotune {__version__}: {scheme}://{host}:{port}  ({mode})", flush=True)
@@ -65,6 +116,9 @@ def _run_server(app_config: object, host: str, port: int) -> None:
         ssl_keyfile=security.tls_key,
         # uvicorn refuses bigger websocket frames (1009) before buffering them.
         ws_max_size=WS_MAX_MESSAGE_BYTES,
+        # At shutdown uvicorn waits for open requests before the lifespan's STOP of
+        # every axis: logins queued for the hashing workers (a flood) must not hold it.
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
 
 
@@ -83,6 +137,8 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
     if credentials is not None and not credentials.is_file():
         print(f"servotune: --bus-credentials: no file {credentials}", file=sys.stderr)
         raise SystemExit(2)
+    if credentials is not None:
+        _check_credentials_readable(credentials, hub=hub)
     try:
         if hub:
             return BusSettings(
@@ -100,6 +156,37 @@ def _bus_settings(args: argparse.Namespace, *, hub: bool) -> BusSettings | None:
     except ValueError as exc:
         print(f"servotune: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def _check_credentials_readable(path: Path, *, hub: bool) -> None:
+    """SystemExit(2) naming this process's uid when a credential file cannot be read
+    (a container reads its secrets as the image's user, uid 1000: files written 0600 by
+    another user are unreadable there)."""
+    from servotune.bus.connection import role_credentials
+
+    paths = [path]
+    if hub:  # the view and STOP users' files next to the hub's, where present
+        paths += [role_credentials(path, "view"), role_credentials(path, "stop")]
+    for candidate in paths:
+        if candidate != path and not candidate.exists():
+            continue
+        try:
+            with candidate.open("rb"):
+                pass
+        except OSError as exc:
+            uid = os.getuid()
+            try:
+                info = candidate.stat()
+                owner = f"; it belongs to uid {info.st_uid}, mode {stat.filemode(info.st_mode)}"
+            except OSError:
+                owner = ""
+            print(
+                f"servotune: --bus-credentials: cannot read {candidate} as uid {uid} "
+                f"({exc.strerror or exc}{owner}). Make it readable by uid {uid}: for "
+                "docker-compose.yml's lab, chown -R 1000 lab/nats/secrets (docs/lab.md)",
+                file=sys.stderr,
+            )
+            raise SystemExit(2) from None
 
 
 def _add_bus_arguments(parser: argparse.ArgumentParser, *, hub: bool) -> None:
@@ -157,21 +244,44 @@ def cmd_bus_accounts(args: argparse.Namespace) -> int:
             )
             write_private(path, text)
             print(f"wrote {path}")
+    print(
+        f"The files are readable by their owner only (uid {os.getuid()}, mode 0600). The "
+        "servotune image runs as uid 1000: for docker-compose.yml's lab, chown -R 1000 "
+        f"{args.out} (docs/lab.md)"
+    )
     return 0
+
+
+# Under the default data directory, each server command's own (``--data-dir`` replaces
+# it); ``servotune users``/``tokens`` must be given the same directory.
+_DATA_SUBDIR = {"demo": "demo", "serve": "", "hub": "hub"}
+
+
+def server_data_dir(args: argparse.Namespace) -> Path:
+    """The data directory ``demo``, ``serve`` or ``hub`` keeps its stores in."""
+    explicit: Path | None = args.data_dir
+    return explicit or default_data_dir() / _DATA_SUBDIR[args.command]
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
-    from servotune.demo import demo_simulators
+    from servotune.demo import demo_simulators, demo_state_dir
 
-    data_dir = args.data_dir or default_data_dir() / "demo"
-    config = AppConfig(
-        data_dir=data_dir,
-        autopilot=not args.no_autopilot,
-        simulators=demo_simulators(data_dir),
-        security=security_config_from_args(args, args.host),
-    )
-    _run_server(config, args.host, args.port)
+    data_dir = server_data_dir(args)
+    with demo_state_dir(data_dir) as (state_dir, problem):
+        if problem is not None:
+            logging.getLogger(__name__).warning(
+                "%s: the simulated EEPROMs and flash are kept in %s for this run only",
+                problem,
+                state_dir,
+            )
+        config = AppConfig(
+            data_dir=data_dir,
+            autopilot=not args.no_autopilot,
+            simulators=demo_simulators(data_dir, state_dir, ethercat_wire=args.ethercat_wire),
+            security=security_config_from_args(args, args.host),
+        )
+        _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -200,11 +310,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=False)
     config = AppConfig(
         links=links,
-        data_dir=args.data_dir or default_data_dir(),
+        data_dir=server_data_dir(args),
         security=security_config_from_args(args, host),
         bus=bus,
     )
-    _run_server(config, host, port)
+    _run_server(config, host, port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -215,12 +325,12 @@ def cmd_hub(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=True)
     config = AppConfig(
         links=[],
-        data_dir=args.data_dir or default_data_dir() / "hub",
+        data_dir=server_data_dir(args),
         security=security_config_from_args(args, args.host),
         bus=bus,
         twin=False,
     )
-    _run_server(config, args.host, args.port)
+    _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
     return 0
 
 
@@ -228,10 +338,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from servotune.sim.serial_sim import run_pty_simulator, serve_slap2
 
     if args.device == "ep7047":
+        if args.ifname:
+            return _sim_ep7047_wire(args)
         from servotune.sim.ep7047_process import run_ep7047_simulator
 
         if not args.socket:
-            print("servotune sim ep7047: give --socket PATH (a Unix socket to create)")
+            print(
+                "servotune sim ep7047: give --ifname IF (an EtherCAT slave on a network "
+                "interface) or --socket PATH (behind the master seam, a Unix socket)"
+            )
             return 2
         run_ep7047_simulator(args.socket)
         return 0
@@ -246,6 +361,31 @@ def cmd_sim(args: argparse.Namespace) -> int:
     chip = Z1100Chip(flash_path=flash, jumper_baud=baud)
     run_pty_simulator(chip, baud=baud, link_path=args.link)
     return 0
+
+
+def _sim_ep7047_wire(args: argparse.Namespace) -> int:
+    from servotune.sim.ep7047_sii import Identity
+    from servotune.sim.ep7047_wire_loop import run_wire_simulator
+    from servotune.transports.ethercat import raw_socket_problem
+
+    problem = raw_socket_problem(args.ifname)
+    if problem is not None:
+        print(f"servotune sim ep7047: {problem}", file=sys.stderr)
+        return 2
+    identity = Identity()
+    if args.product is not None:
+        identity = Identity(product=args.product, name=f"product 0x{args.product:08X}")
+    run_wire_simulator(
+        args.ifname, control_path=args.control, identity=identity, realtime=not args.no_rt
+    )
+    return 0
+
+
+def _hex_int(text: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -280,7 +420,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--port", type=int, default=8000)
     demo.add_argument("--no-autopilot", action="store_true", help="no automatic demo moves")
     demo.add_argument("--data-dir", type=Path, default=None)
+    demo.add_argument(
+        "--ethercat-wire",
+        action="store_true",
+        help="the EP7047 as a real EtherCAT slave on a veth pair, driven by pysoem (root; "
+        "default: behind the master seam)",
+    )
     add_security_arguments(demo)
+    _add_bind_arguments(demo)
     demo.set_defaults(func=cmd_demo)
 
     serve = sub.add_parser("serve", help="dashboard for real devices")
@@ -295,6 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--port", type=int, default=8000)
     serve.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(serve)
+    _add_bind_arguments(serve)
     _add_bus_arguments(serve, hub=False)
     serve.set_defaults(func=cmd_serve)
 
@@ -303,6 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
     hub.add_argument("--port", type=int, default=8000)
     hub.add_argument("--data-dir", type=Path, default=None)
     add_security_arguments(hub)
+    _add_bind_arguments(hub)
     _add_bus_arguments(hub, hub=True)
     hub.set_defaults(func=cmd_hub)
 
@@ -335,8 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser(
         "sim",
-        help="serve a simulated device on a new pseudo-terminal (slap2, z1100) or a Unix "
-        "socket (ep7047: link spec ep7047:sim:PATH)",
+        help="serve a simulated device on a new pseudo-terminal (slap2, z1100), a Unix "
+        "socket (ep7047 --socket: link spec ep7047:sim:PATH) or a network interface "
+        "(ep7047 --ifname: a real EtherCAT slave)",
     )
     sim.add_argument("device", choices=["slap2", "z1100", "ep7047"])
     sim.add_argument("--addresses", type=_addresses, default=[0, 1], help="SLAP2 modules")
@@ -344,6 +494,22 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
     sim.add_argument("--link", default=None, help="also create this symlink to the pty")
     sim.add_argument("--socket", default=None, help="ep7047: the Unix socket to serve on")
+    sim.add_argument(
+        "--ifname",
+        default=None,
+        help="ep7047: a real EtherCAT slave on this network interface (raw socket; "
+        "docs/ep7047-wire.md); link spec ep7047:<the master's interface>",
+    )
+    sim.add_argument(
+        "--control", default=None, help="ep7047 --ifname: a Unix socket for fault injection"
+    )
+    sim.add_argument(
+        "--product",
+        type=_hex_int,
+        default=None,
+        help="ep7047 --ifname: another product code in the SII (identity tests)",
+    )
+    sim.add_argument("--no-rt", action="store_true", help="ep7047 --ifname: no real-time priority")
     sim.set_defaults(func=cmd_sim)
 
     bench = sub.add_parser(

@@ -59,10 +59,22 @@ def _warm(modules: tuple[str, ...]) -> None:
 
 
 class ComputePool:
-    """One worker process for CPU-heavy pure functions (see the module docstring)."""
+    """Worker processes for CPU-heavy pure functions (see the module docstring).
 
-    def __init__(self, *, preload: tuple[str, ...] = PRELOAD) -> None:
+    ``workers`` processes (one by default); ``initializer``, a module-level function,
+    runs first in each (``servotune.auth.passwords`` lowers their CPU priority).
+    """
+
+    def __init__(
+        self,
+        *,
+        preload: tuple[str, ...] = PRELOAD,
+        workers: int = 1,
+        initializer: Callable[[], None] | None = None,
+    ) -> None:
         self._preload = preload
+        self._workers = workers
+        self._initializer = initializer
         self._pool: ProcessPoolExecutor | None = None
         self._starting = asyncio.Lock()
         self._closed = False
@@ -84,6 +96,10 @@ class ComputePool:
                     raise
         raise AssertionError("unreachable")
 
+    async def start(self) -> None:
+        """Start the workers now (they start on the first call otherwise)."""
+        await self._started()
+
     async def _started(self) -> ProcessPoolExecutor:
         if self._closed:
             raise RuntimeError("the compute pool is closed")
@@ -101,11 +117,14 @@ class ComputePool:
             forkserver = multiprocessing.get_context("forkserver")
             # Only effective before the process' fork server starts; a later call
             # (another pool, or a server already running) leaves the imports to _warm.
-            forkserver.set_forkserver_preload(list(self._preload))
+            # Whichever pool starts it first preloads what every pool needs.
+            forkserver.set_forkserver_preload(sorted({*PRELOAD, *self._preload}))
             context = forkserver
         else:
             context = multiprocessing.get_context("spawn")
-        pool = ProcessPoolExecutor(max_workers=1, mp_context=context)
+        pool = ProcessPoolExecutor(
+            max_workers=self._workers, mp_context=context, initializer=self._initializer
+        )
         pool.submit(_warm, self._preload).result()
         return pool
 

@@ -590,7 +590,7 @@ class ControlManager:
         (stop generation). A STOP that cannot reach the axis is sent on reconnect.
         """
         entry = self._hub.entry(axis_id)
-        entry.stop_generation += 1
+        entry.stopped(f"STOP ({reason})")
         for attempt in range(1, _STOP_ATTEMPTS + 1):
             try:
                 await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
@@ -600,12 +600,13 @@ class ControlManager:
                     exc, LinkDownError | DeviceRefusedError
                 )
                 if isinstance(exc, LinkDownError):
-                    entry.stop_on_reconnect = True  # the hub sends it when the axis is back
+                    self._hub.pend_stop(entry)  # the hub sends it when the axis is back
                 again = f" (attempt {attempt}, sending again)" if retry else ""
                 self._hub.on_event("error", axis_id, f"STOP ({reason}) failed: {detail}{again}")
                 if retry:
                     continue
                 return False
+            self._hub.note_stopped(entry)  # a STOP pressed before has nothing left to stop
             self._hub.on_event("warning", axis_id, f"STOP ({reason})")
             return True
         return False

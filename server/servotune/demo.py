@@ -18,19 +18,26 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import logging
+import os
+import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from servotune.config import LinkSpec
 from servotune.protocols.z1100 import Gains
+from servotune.sim.ep7047_netns import netns_problem, slave_process, veth_pair
 from servotune.sim.ep7047_process import ep7047_sim_process
+from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.slap2 import Slap2Module
 from servotune.sim.slap2_bus import Slap2Bus
 from servotune.sim.z1100 import Z1100Chip
 from servotune.sim.z1100_servo import AxisParameters
+
+logger = logging.getLogger(__name__)
 
 SLAP2_BAUD = 19200
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead
@@ -201,13 +208,88 @@ def ep7047_demo_slave(state_dir: Path) -> Iterator[list[LinkSpec]]:
         ]
 
 
-def demo_simulators(
-    data_dir: Path,
-) -> list[Callable[[], contextlib.AbstractContextManager[list[LinkSpec]]]]:
-    """Context managers that start the demo's simulators and yield their link specs."""
+def state_dir_problem(state_dir: Path) -> str | None:
+    """Why the simulators cannot keep their state in ``state_dir`` (None: they can).
+
+    Checked before the simulators start: each creates and writes it from its own
+    process, where a failure only says "failed to start".
+    """
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=state_dir, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        return (
+            f"the simulators' state directory {state_dir} cannot be written by uid "
+            f"{os.getuid()} ({exc.strerror or exc})"
+        )
+    return None
+
+
+@contextlib.contextmanager
+def demo_state_dir(data_dir: Path) -> Iterator[tuple[Path, str | None]]:
+    """``<data_dir>/sim``, or, when that cannot be written, a temporary directory that
+    lives as long as the context, with the reason. A demo on a read-only or foreign-owned
+    volume still runs (its simulated EEPROMs and flash are then kept for this run only),
+    as storage and the accounts database do."""
     state_dir = data_dir / "sim"
+    problem = state_dir_problem(state_dir)
+    if problem is None:
+        yield state_dir, None
+        return
+    with tempfile.TemporaryDirectory(prefix="servotune-demo-sim-") as scratch:
+        yield Path(scratch), problem
+
+
+@contextlib.contextmanager
+def ep7047_wire_demo_slave(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """``--ethercat-wire``: the EP7047-1032 as a real EtherCAT slave on a veth pair (its
+    own network namespace, ``servotune sim ep7047 --ifname``), driven by the real
+    pysoem master - every frame crosses a network interface. Needs root (namespaces,
+    raw sockets) and pysoem; where either is missing the demo says why and keeps the
+    simulated slave behind the master seam."""
+    problem = netns_problem()
+    if problem is None:
+        try:
+            import pysoem  # noqa: F401 - only checked here
+        except ImportError:
+            problem = "pysoem is not installed (pip install -e '.[ethercat]')"
+    if problem is not None:
+        logger.warning("--ethercat-wire: %s; the EP7047 stays behind the master seam", problem)
+        with ep7047_demo_slave(state_dir) as specs:
+            yield specs
+        return
+    state_dir.mkdir(parents=True, exist_ok=True)
+    with veth_pair() as pair, slave_process(pair, state_dir, name="ep7047-wire"):
+        logger.info(
+            "EP7047-1032 on a real EtherCAT wire: slave in namespace %s on %s, master on %s",
+            pair.namespace,
+            pair.slave_if,
+            pair.master_if,
+        )
+        yield [
+            LinkSpec(
+                device="ep7047",
+                path=pair.master_if,
+                link_id="demo-ep7047",
+                baud=0,
+                addresses=[1],
+                lines=DEMO_COUNTS_PER_REV // 4,
+                names={1: "EP7047 stepper (EtherCAT wire)"},
+            )
+        ]
+
+
+def demo_simulators(
+    data_dir: Path, state_dir: Path | None = None, *, ethercat_wire: bool = False
+) -> list[Callable[[], contextlib.AbstractContextManager[list[LinkSpec]]]]:
+    """Context managers that start the demo's simulators and yield their link specs;
+    their state lives in ``state_dir`` (default ``<data_dir>/sim``). ``ethercat_wire``:
+    the EP7047 on a veth pair instead of behind the master seam."""
+    directory = state_dir if state_dir is not None else data_dir / "sim"
+    ep7047 = ep7047_wire_demo_slave if ethercat_wire else ep7047_demo_slave
     return [
-        lambda: slap2_demo_line(state_dir),
-        lambda: z1100_demo_line(state_dir),
-        lambda: ep7047_demo_slave(state_dir),
+        lambda: slap2_demo_line(directory),
+        lambda: z1100_demo_line(directory),
+        lambda: ep7047(directory),
     ]

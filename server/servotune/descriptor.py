@@ -137,6 +137,14 @@ class ArgumentDescriptor(BaseModel):
     choices: list[Choice] = []
 
 
+class MoveTarget(BaseModel):
+    """A motion command that ends at a position: the hub watches it to its end and says
+    how it ended (arrived, stopped short, stopped by a limit switch or a STOP)."""
+
+    argument: str = Field(description="the argument that gives the position or distance")
+    relative: bool = Field(default=False, description="the argument is a distance")
+
+
 class CommandDescriptor(BaseModel):
     """An action the user can trigger: ``POST /api/axes/{id}/commands``."""
 
@@ -152,10 +160,27 @@ class CommandDescriptor(BaseModel):
         default=None, description="command that aborts this one while it runs"
     )
     marks_operated: bool = True
+    powers_motor: bool = Field(
+        default=False,
+        description="the command may power a motor that is off or set it moving (SLAP2 "
+        "Stop and hold sends pm): in the stop group it still needs 'move' and the "
+        "control lock; every other stop (STOP, power off, halt) is open to every role",
+    )
     active_flag: str | None = Field(
         default=None,
         description="a flag that is on while the mode this command selects is active "
         "(the UI shows the button as engaged)",
+    )
+    stores_parameters: Literal["axis", "link"] | None = Field(
+        default=None,
+        description="the device's save command: it stores the persisted parameters of "
+        "this axis (axis) or of every axis of the link (link) in non-volatile memory; "
+        "the UI marks a parameter saved only while its value is the one stored",
+    )
+    target: MoveTarget | None = Field(
+        default=None,
+        description="a move to a position: its answer says it was sent, a move_outcome "
+        "message says how it ended",
     )
 
 
@@ -189,10 +214,87 @@ class ParameterConstraint(BaseModel):
     message: str = Field(description="why, in words a user can act on")
 
 
+class ConsoleRule(BaseModel):
+    """What the console lines whose command word is one of ``words`` do.
+
+    The permission table checks a console line as the command it is: a read needs only
+    the console, a parameter write what a parameter write needs, a line that is a
+    descriptor command what that command needs (``pg`` is ``save_eeprom``), a line
+    that stores or erases settings on the device what persisting needs.
+    """
+
+    words: list[str] = Field(description="command words as the device reads them, lower case")
+    effect: Literal["read", "write", "command", "persist"]
+    command: str | None = Field(
+        default=None, description="effect 'command': the descriptor command the line is"
+    )
+    parameters: list[str] = Field(
+        default=[], description="effect 'write': the descriptor parameters the line sets"
+    )
+
+
+class UnknownConsoleLineError(ValueError):
+    """A console line whose effect the descriptor does not state: it is not sent."""
+
+
 class ConsoleDescriptor(BaseModel):
     help: str
     multiline_commands: list[str] = []
     examples: list[str] = []
+    syntax: Literal["letters", "word", "object"] = Field(
+        default="word",
+        description="how the device finds a line's command word: 'letters' = the leading "
+        "letters once spaces are removed, any case (SLAP2: 'P G' is 'pg'); 'word' = the "
+        "first word, any case (Z1100); 'object' = the object address before '=', a line "
+        "without '= value' reading it (EP7047)",
+    )
+    rules: list[ConsoleRule] = Field(
+        default=[], description="what each command word does; a word without a rule is refused"
+    )
+
+    def rule(self, line: str) -> ConsoleRule:
+        """The rule of ``line``; UnknownConsoleLineError when no rule states its effect."""
+        word, assigns = _console_word(self.syntax, line)
+        for rule in self.rules:
+            if word in rule.words:
+                if self.syntax == "object" and not assigns and rule.effect == "write":
+                    return ConsoleRule(words=[word], effect="read")
+                return rule
+        shown = word or line.strip()
+        raise UnknownConsoleLineError(
+            f"the console cannot tell what {shown[:40]!r} does, so it is not sent "
+            "(see the console's help for the commands it knows)"
+        )
+
+    def parameters_set(self, line: str) -> list[str]:
+        """The parameters ``line`` writes ([] for a read, a command or an unknown line)."""
+        try:
+            rule = self.rule(line)
+        except UnknownConsoleLineError:
+            return []
+        return list(rule.parameters) if rule.effect == "write" else []
+
+
+def _console_word(syntax: str, line: str) -> tuple[str, bool]:
+    """(the command word of ``line`` as the device reads it, whether it assigns)."""
+    if syntax == "letters":
+        text = "".join(line.split()).lower()
+        end = 0
+        while end < len(text) and "a" <= text[end] <= "z":
+            end += 1
+        return text[:end], False
+    if syntax == "object":
+        address, equals, value = line.partition("=")
+        word = "".join(address.split()).lower()
+        index_text, colon, sub_text = word.partition(":")
+        try:
+            if colon:
+                word = f"0x{int(index_text, 16):04x}:{int(sub_text, 16):02x}"
+        except ValueError:
+            pass
+        return word, bool(equals and value.strip())
+    words = line.split()
+    return (words[0].lower() if words else ""), False
 
 
 class TwinDescriptor(BaseModel):

@@ -37,7 +37,8 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub_state import AxisEntry, HubState, LinkEntry
-from servotune.wire import EventLevel
+from servotune.movewatch import MovePlan, plan_move, watch_move
+from servotune.wire import EventLevel, MoveOutcome, Params
 
 logger = logging.getLogger(__name__)
 
@@ -71,12 +72,14 @@ class Hub(HubState):
 
     async def stop(self) -> None:
         """Cancel every task; the links close their ports."""
-        for task in self._tasks:
+        tasks = [*self._tasks, *self._move_watches.values()]
+        for task in tasks:
             task.cancel()
-        for task in self._tasks:
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks.clear()
+        self._move_watches.clear()
 
     async def _run_link(self, link_entry: LinkEntry) -> None:
         """Supervise a link's task: whatever ends it (a driver bug out of ``run``, or
@@ -143,7 +146,9 @@ class Hub(HubState):
         # Cross-field constraints are checked against the device's values as last seen.
         checked = validate_params(entry.driver.descriptor, values, entry.device_values)
         self._operate(entry)
-        return await entry.driver.write_params(checked)
+        written = await entry.driver.write_params(checked)
+        self.note_commanded(entry, "parameters written")
+        return written
 
     async def command(
         self,
@@ -163,7 +168,7 @@ class Hub(HubState):
         """
         entry = self.entry(axis_id)
         if stop_generation is not None and entry.stop_generation != stop_generation:
-            raise DeviceRefusedError("not sent: STOP was pressed during this sequence")
+            raise DeviceRefusedError(f"not sent: {entry.stop_cause} during this sequence")
         checked = validate_command(entry.driver.descriptor, name, args)
         self._operate(entry)
         if name == "restore_parameters":
@@ -171,19 +176,78 @@ class Hub(HubState):
         # Every stop-group command of the user (STOP, stop and hold, halt) ends a
         # running bench or auto-tune sequence, not only ``stop``.
         if origin == "user" and entry.driver.descriptor.command(name).group == "stop":
-            entry.stop_generation += 1
+            label = entry.driver.descriptor.command(name).label
+            entry.stopped("STOP was pressed" if name == "stop" else f"{label} was pressed")
+        pressed_at = self._clock()
+        # A user's move to a target is watched to its end (servotune.movewatch); a
+        # bench or auto-tune sequence judges its own moves.
+        move = plan_move(entry, name, checked) if origin == "user" else None
+        self._end_move_watch(axis_id)
         try:
             outcome = await entry.driver.command(name, checked)
         except DriverError as exc:
             if name == "stop" and not isinstance(exc, DeviceRefusedError):
                 # The stop could not reach the axis: deliver it as soon as it can go.
-                self._schedule_stop(entry, exc)
+                self._schedule_stop(entry, exc, pressed_at)
             raise
         if name == "stop":
-            self._cancel_pending_stop(entry)
+            self.note_stopped(entry)
+        else:
+            self.note_commanded(entry, name)
+        if (scope := entry.driver.descriptor.command(name).stores_parameters) is not None:
+            self._stored(entry, scope)
         level: EventLevel = "warning" if name == "stop" else "info"
         self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}")
+        if move is not None:
+            self._move_watches[axis_id] = asyncio.create_task(
+                self._watch_move(entry, name, move, entry.stop_generation),
+                name=f"move watch {axis_id}",
+            )
+            outcome.outcome_pending = True
+            outcome.message = f"moving to {move.target:.0f}"
         return outcome
+
+    def _stored(self, entry: AxisEntry, scope: str) -> None:
+        """The device's save command succeeded: the persisted parameters in force are
+        the stored ones (of this axis, or of every axis of its link)."""
+        axes = [
+            e
+            for e in self._axes.values()
+            if e is entry or (scope == "link" and e.link is entry.link)
+        ]
+        for each in axes:
+            persisted = {p.name for p in each.driver.descriptor.parameters if p.persisted}
+            each.stored_values = {k: v for k, v in each.device_values.items() if k in persisted}
+            self.broadcast_model(
+                Params(axis=each.info.id, values=each.stored_values, source="stored")
+            )
+
+    def _end_move_watch(self, axis_id: str) -> None:
+        """A new command ends the watch of the axis' previous move (a jog's steps)."""
+        task = self._move_watches.pop(axis_id, None)
+        if task is not None:
+            task.cancel()
+
+    async def _watch_move(
+        self, entry: AxisEntry, name: str, move: MovePlan, generation: int
+    ) -> None:
+        end = await watch_move(entry, move, generation, self._clock)
+        if self._move_watches.get(entry.info.id) is asyncio.current_task():
+            del self._move_watches[entry.info.id]
+        if end.outcome in ("limit", "fault", "short"):
+            self.on_event("warning", entry.info.id, end.message)
+        elif end.outcome != "arrived":
+            self.on_event("info", entry.info.id, end.message)
+        self.broadcast_model(
+            MoveOutcome(
+                axis=entry.info.id,
+                command=name,
+                target=move.target,
+                outcome=end.outcome,
+                position=end.position,
+                message=end.message,
+            )
+        )
 
     async def _restore(self, entry: AxisEntry) -> CommandOutcome:
         values = dict(entry.last_known)
@@ -192,6 +256,7 @@ class Hub(HubState):
                 "command", "no earlier settings of this axis are stored: nothing to re-apply"
             )
         readback = await entry.driver.write_params(values)
+        self.note_commanded(entry, "stored settings re-applied")
         entry.health, entry.health_message = "ok", ""
         entry.silent, entry.last_sample_at = False, self._clock()
         self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
@@ -215,6 +280,7 @@ class Hub(HubState):
         except DriverError as exc:
             self.on_event("warning", axis_id, f"console {line!r}: {exc}")
             raise
+        self.note_commanded(entry, f"console {sent!r}")
         shown = " | ".join(reply)
         if len(shown) > 200:
             shown = shown[:200] + " …"

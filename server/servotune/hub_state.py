@@ -32,11 +32,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Final, Protocol
+from typing import Final, Protocol, runtime_checkable
 
 from pydantic import BaseModel
 
@@ -44,6 +45,7 @@ from servotune import __version__
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
+    DeviceRefusedError,
     DriverError,
     HasCounters,
     HasWireBusy,
@@ -80,6 +82,13 @@ CLIENT_QUEUE_MESSAGES = 256
 # A STOP that could not be sent is sent again once the link and axis are back; while the
 # link is connected it is tried this many times before the user is told to press again.
 STOP_RETRIES_CONNECTED = 10
+# A STOP acts on the motion the user saw when pressing it, never on motion started
+# after it: a pending STOP is dropped by any command that reached the axis since, by a
+# STOP that reached it since (the dead-man's, a hand-over's), and after this long. A
+# STOP delivered 30 s late would cut whatever whoever stands at the machine started
+# meanwhile (seen in the lab, issue 29: 14 s after a network cut ended); after 10 s the
+# user is told it was not sent, and checks the axis.
+PENDING_STOP_MAX_S: Final = 10.0
 # An axis shown "ok" whose link is up (connected, or error while it still polls) and
 # that sent no telemetry sample for this long is shown offline (issue 8). A module on a
 # shared line can stop answering its polls while the others answer: the link then
@@ -93,6 +102,19 @@ AXIS_SILENT_S: Final = 3.0
 
 class UnknownAxisError(KeyError):
     pass
+
+
+class StopOvertakenError(DeviceRefusedError):
+    """A STOP not sent because the axis was commanded or stopped after it was pressed."""
+
+
+@runtime_checkable
+class PressTimedStop(Protocol):
+    """A driver whose STOP carries when it was pressed, so that the far end (a rig,
+    ``servotune.bus``) can refuse it if its axis was commanded since
+    (``StopOvertakenError``). ``pressed_at``: the hub's clock."""
+
+    async def stop_pressed(self, pressed_at: float) -> None: ...
 
 
 @dataclass(slots=True)
@@ -110,10 +132,21 @@ class AxisEntry:
     last_known: dict[str, int] = field(default_factory=dict)
     compared_at_connect: bool = False
     # Set when a stop could not reach the axis (link down during a bench test): the
-    # stop is sent as soon as the axis is back.
+    # stop is sent as soon as the axis is back, unless overtaken (``PENDING_STOP_MAX_S``).
     stop_on_reconnect: bool = False
+    # When that STOP was pressed (hub clock, and wall clock for the messages); None
+    # with ``stop_on_reconnect`` set by someone who did not say (stamped when noticed).
+    stop_pressed_at: float | None = None
+    stop_pressed_wall: float = 0.0
+    # When a command last reached the axis and when a STOP last did (hub clock): a
+    # STOP pressed before either does not act any more (``stop_overtaken``).
+    commanded_at: float = -math.inf
+    stopped_at: float = -math.inf
     # Bumped by every user STOP; sequences (bench, auto-tune) compare it before each step.
     stop_generation: int = 0
+    # Why the axis was last stopped, as it was ("STOP was pressed", "stop and hold was
+    # pressed", "STOP (dead-man: ...)"): what a sequence that the stop ended reports.
+    stop_cause: str = "STOP was pressed"
     # The task that delivers a STOP that could not be sent at once (see _deliver_stop).
     stop_task: asyncio.Task[None] | None = None
     # When the hub last got a sample of this axis (its own monotonic clock), reset when
@@ -121,6 +154,14 @@ class AxisEntry:
     # sample came for AXIS_SILENT_S while its link was up (see _check_silent_axes).
     last_sample_at: float = 0.0
     silent: bool = False
+    # The persisted parameters as the device's save command stored them, since the
+    # last save servotune saw succeed (None: not known, e.g. after a start).
+    stored_values: dict[str, int] | None = None
+
+    def stopped(self, cause: str) -> None:
+        """A stop ends every sequence running on the axis; ``cause`` says what it was."""
+        self.stop_generation += 1
+        self.stop_cause = cause
 
 
 @dataclass(slots=True)
@@ -210,6 +251,8 @@ class HubState:
         self._clients: set[ClientQueue] = set()
         self._events: deque[Event] = deque(maxlen=200)
         self._tasks: list[asyncio.Task[None]] = []
+        # The watch of each axis' last move to a target (servotune.movewatch, Hub).
+        self._move_watches: dict[str, asyncio.Task[None]] = {}
         self._sample_listeners: list[Callable[[str, Sample], None]] = []
         # Set by servotune.control: the autopilot yields to a holder and resumes later.
         self.autopilot_gate: AutopilotGate | None = None
@@ -251,6 +294,11 @@ class HubState:
 
     def now(self) -> float:
         return self._clock() - self._t0
+
+    def clock_at(self, now_s: float) -> float:
+        """The hub's clock reading at ``now()`` == ``now_s`` (e.g. a press time a rig
+        was sent in its own ``now()`` seconds, for ``stop_overtaken``)."""
+        return now_s + self._t0
 
     def axes_info(self) -> list[AxisInfo]:
         return [entry.info for entry in self._axes.values()]
@@ -326,6 +374,12 @@ class HubState:
         messages = [e.status.model_dump_json() for e in self._links.values()]
         for entry in self._axes.values():
             messages.append(self._axis_status(entry).model_dump_json())
+            if entry.stored_values is not None:
+                messages.append(
+                    Params(
+                        axis=entry.info.id, values=entry.stored_values, source="stored"
+                    ).model_dump_json()
+                )
             if entry.device_values:
                 messages.append(
                     Params(
@@ -338,24 +392,38 @@ class HubState:
     async def stop_all(self) -> list[str]:
         """Stop every axis at once; returns the ids of axes whose stop failed."""
         entries = list(self._axes.values())
+        pressed_at = self._clock()
         for entry in entries:
             entry.operated = True
-            entry.stop_generation += 1
-        results = await asyncio.gather(*(e.driver.stop() for e in entries), return_exceptions=True)
+            entry.stopped("STOP was pressed")
+        results = await asyncio.gather(
+            *(self._send_stop(e, pressed_at) for e in entries), return_exceptions=True
+        )
         failed = []
         for entry, result in zip(entries, results, strict=True):
-            if isinstance(result, BaseException):
+            if isinstance(result, StopOvertakenError):
+                self.on_event("info", entry.info.id, f"STOP not sent: {result}")
+            elif isinstance(result, BaseException):
                 failed.append(entry.info.id)
                 if isinstance(result, Exception):
-                    self._schedule_stop(entry, result)
+                    self._schedule_stop(entry, result, pressed_at)
                 else:
                     raise result
             else:
-                self._cancel_pending_stop(entry)
+                self.note_stopped(entry)
                 self.on_event("warning", entry.info.id, "STOP")
         for entry in entries:
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
         return failed
+
+    @staticmethod
+    async def _send_stop(entry: AxisEntry, pressed_at: float) -> None:
+        """The axis' STOP; a driver that can (a rig's axis) says when it was pressed."""
+        driver = entry.driver
+        if isinstance(driver, PressTimedStop):
+            await driver.stop_pressed(pressed_at)
+        else:
+            await driver.stop()
 
     # --- DriverSink -------------------------------------------------------------------
 
@@ -475,14 +543,15 @@ class HubState:
 
     # --- STOPs that could not be sent at once -------------------------------------------
 
-    def _schedule_stop(self, entry: AxisEntry, error: Exception) -> None:
-        """A STOP failed: say why and what happens next, and make it happen."""
+    def _schedule_stop(self, entry: AxisEntry, error: Exception, pressed_at: float) -> None:
+        """A STOP pressed at ``pressed_at`` failed: say why and what happens next."""
         link_state = self.link_status(entry.link.id).state
-        entry.stop_on_reconnect = True
+        self.pend_stop(entry, pressed_at)
         if isinstance(error, LinkDownError) or link_state != "connected":
             plan = (
                 f"link {entry.link.id} is {link_state}: the STOP will be sent the moment "
-                "the link and the axis are back"
+                f"the link and the axis are back, unless the axis is commanded or stopped "
+                f"before, and not after {PENDING_STOP_MAX_S:g} s"
             )
         else:
             plan = "the STOP is being sent again now"
@@ -490,8 +559,71 @@ class HubState:
         if link_state == "connected":
             self._ensure_stop_task(entry)
 
+    def pend_stop(self, entry: AxisEntry, pressed_at: float | None = None) -> None:
+        """Keep a STOP that could not reach the axis, pressed at ``pressed_at`` (now if
+        None), for the axis' return (the control lock's dead-man uses this too)."""
+        entry.stop_on_reconnect = True
+        entry.stop_pressed_at = self._clock() if pressed_at is None else pressed_at
+        entry.stop_pressed_wall = time.time() - (self._clock() - entry.stop_pressed_at)
+
+    def note_stopped(self, entry: AxisEntry) -> None:
+        """A STOP reached the axis (any: a user's, STOP all, the dead-man's, a
+        hand-over's): a STOP pressed before it has nothing left to stop."""
+        entry.stopped_at = self._clock()
+        if entry.stop_on_reconnect:
+            self._drop_pending_stop(entry, "the axis was stopped since")
+
+    def note_commanded(self, entry: AxisEntry, what: str) -> None:
+        """A command reached the axis: a STOP pressed before it must not act on the
+        motion it may have started."""
+        entry.commanded_at = self._clock()
+        if entry.stop_on_reconnect:
+            self._drop_pending_stop(entry, f"the axis was commanded since ({what})")
+
+    def stop_overtaken(self, axis_id: str, pressed_at: float) -> str | None:
+        """Why a STOP pressed at ``pressed_at`` (this hub's clock) must not be sent any
+        more (the axis was commanded or stopped since), or None: send it."""
+        entry = self.entry(axis_id)
+        if entry.commanded_at > pressed_at:
+            ago = self._clock() - entry.commanded_at
+            return (
+                f"{axis_id} was commanded {ago:.1f} s ago, "
+                f"{entry.commanded_at - pressed_at:.1f} s after this STOP was pressed"
+            )
+        if entry.stopped_at > pressed_at:
+            ago = self._clock() - entry.stopped_at
+            return f"{axis_id} was already stopped {ago:.1f} s ago, after this STOP was pressed"
+        return None
+
+    def _pressed_text(self, entry: AxisEntry) -> str:
+        pressed = entry.stop_pressed_at if entry.stop_pressed_at is not None else self._clock()
+        wall = time.strftime("%H:%M:%S", time.localtime(entry.stop_pressed_wall))
+        return f"pressed at {wall}, {self._clock() - pressed:.1f} s ago"
+
+    def _drop_pending_stop(self, entry: AxisEntry, why: str) -> None:
+        self.on_event("info", entry.info.id, f"STOP ({self._pressed_text(entry)}) not sent: {why}")
+        self._cancel_pending_stop(entry)
+
+    def _expire_stop(self, entry: AxisEntry) -> bool:
+        """Drop a pending STOP older than PENDING_STOP_MAX_S (told); True if it was."""
+        if entry.stop_pressed_at is None:
+            self.pend_stop(entry)  # set by someone who did not say when: from now
+        assert entry.stop_pressed_at is not None
+        if self._clock() - entry.stop_pressed_at <= PENDING_STOP_MAX_S:
+            return False
+        self.on_event(
+            "error",
+            entry.info.id,
+            f"STOP ({self._pressed_text(entry)}) was never delivered and is no longer "
+            f"pending (after {PENDING_STOP_MAX_S:g} s it could stop motion started later): "
+            "check the axis and press STOP again if it moves",
+        )
+        self._cancel_pending_stop(entry)
+        return True
+
     def _cancel_pending_stop(self, entry: AxisEntry) -> None:
         entry.stop_on_reconnect = False
+        entry.stop_pressed_at = None
         task, entry.stop_task = entry.stop_task, None
         if task is not None and task is not asyncio.current_task():
             task.cancel()
@@ -509,16 +641,29 @@ class HubState:
     async def _deliver_stop(self, entry: AxisEntry) -> None:
         """Send the pending STOP as soon as the link is connected and the axis online;
         retried while the link stays connected, until it is on the wire. A link that
-        goes down again keeps the STOP pending for its next return."""
+        goes down again keeps the STOP pending for its next return. Dropped, and
+        told, when it expires or is overtaken (``PENDING_STOP_MAX_S``)."""
         tries = 0
         while entry.stop_on_reconnect:
+            if self._expire_stop(entry):
+                return
             link_state = self.link_status(entry.link.id).state
             if link_state != "connected" or entry.health == "offline":
                 # Health turns ok while the link still probes its other axes.
                 await asyncio.sleep(0.05)
                 continue
+            pressed_at = entry.stop_pressed_at
+            assert pressed_at is not None
+            why = self.stop_overtaken(entry.info.id, pressed_at)
+            if why is not None:
+                self._drop_pending_stop(entry, why)
+                return
             try:
-                await entry.driver.stop()
+                await self._send_stop(entry, pressed_at)
+            except StopOvertakenError as exc:
+                # The far end (a rig) knows its axis better: commanded or stopped since.
+                self._drop_pending_stop(entry, str(exc))
+                return
             except LinkDownError:
                 await asyncio.sleep(0.05)
                 continue
@@ -535,8 +680,13 @@ class HubState:
                     return
                 await asyncio.sleep(0.1)
                 continue
+            pressed = self._pressed_text(entry)
             entry.stop_on_reconnect = False
-            self.on_event("warning", entry.info.id, "STOP sent (it could not go out before)")
+            entry.stop_pressed_at = None
+            entry.stopped_at = self._clock()
+            self.on_event(
+                "warning", entry.info.id, f"STOP sent ({pressed}; it could not go out before)"
+            )
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
             return
 
@@ -643,7 +793,8 @@ class HubState:
                         self._broadcast(link_entry.status.model_dump_json(), droppable=False)
                 self._check_silent_axes(now)
                 for entry in self._axes.values():
-                    if entry.stop_on_reconnect and entry.health != "offline":
+                    pending = entry.stop_on_reconnect and not self._expire_stop(entry)
+                    if pending and entry.health != "offline":
                         self._ensure_stop_task(entry)
                 for client in self._clients:
                     stats = ClientStats(sent=client.sent, dropped=client.dropped)

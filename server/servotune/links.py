@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 from servotune.config import SIMULATED_NIC, LinkSpec
 from servotune.drivers.base import DriverSink, Link
 from servotune.drivers.ep7047 import build_ep7047_link
@@ -9,6 +11,7 @@ from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
 from servotune.drivers.z1100 import Z1100Link, Z1100LinkConfig
 from servotune.sim.ep7047_process import ADDRESS_PREFIX, ProcessMaster, is_process_address
 from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S, demo_master
+from servotune.transports.ethercat_cycle import CycleProcessMaster
 from servotune.transports.serial import SerialConnector
 
 
@@ -42,7 +45,12 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
                 spec.path,
                 spec.addresses[0],
                 sink,
-                master=ProcessMaster(spec.path.removeprefix(ADDRESS_PREFIX)),
+                # The cycle in a process of its own (a loaded server cannot stall it),
+                # talking to the simulator process through the seam.
+                master=CycleProcessMaster(
+                    functools.partial(ProcessMaster, spec.path.removeprefix(ADDRESS_PREFIX)),
+                    name="ec-cycle-sim",
+                ),
                 speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
                 counts_per_rev=DEMO_COUNTS_PER_REV,
                 name=spec.names.get(spec.addresses[0]),

@@ -72,6 +72,8 @@ class Metrics:
     rms_following_error: float | None
     time_to_flag_s: dict[str, float | None]
     time_in_flag_s: dict[str, float]
+    time_to_flag_resolution_s: dict[str, float | None]
+    time_in_flag_resolution_s: dict[str, float]
 
     definitions: ClassVar[dict[str, str]] = {
         "step": (
@@ -138,13 +140,25 @@ class Metrics:
             "weighted equally (None without data)."
         ),
         "time_to_flag_s": (
-            "For the arrival flags inpos and in_target: time after t0 of the first sample "
-            "with the flag set that follows a sample (from t0 on) with it clear, None if "
-            "it never drops and rises again."
+            "For the arrival flags inpos and in_target: time after t0 at which the flag "
+            "rose, taken midway between the last read that showed it clear (from t0 on) "
+            "and the first read that showed it set after that, None if it never drops and "
+            "rises again. Flags are polled: the reads are the times the flags were read, "
+            "not the times of the samples that carry them."
         ),
         "time_in_flag_s": (
-            "For every other flag (oc, stall, ...): total time it was set after t0, each "
-            "sample holding its value until the next sample (the last one for no time)."
+            "For every other flag (oc, stall, ...): total time it was set between t0 and "
+            "its last read, each change taken midway between the read before it and the "
+            "read that showed it (a spell shorter than the flag's poll period can fall "
+            "between two reads and is not seen)."
+        ),
+        "time_to_flag_resolution_s": (
+            "± of time_to_flag_s: half the time between the two reads the rise lies "
+            "between (half the flag's poll period there)."
+        ),
+        "time_in_flag_resolution_s": (
+            "± of time_in_flag_s: the sum of half the time between the two reads around "
+            "each change counted."
         ),
     }
 
@@ -159,12 +173,16 @@ def compute_metrics(
     band: float | None = None,
     following_error: Sequence[float | None] | None = None,
     flags: Mapping[str, Sequence[bool]] | None = None,
+    flags_t_s: Sequence[float | None] | None = None,
 ) -> Metrics:
     """Metrics of one run; see ``Metrics.definitions`` for what each one is.
 
     ``band`` is the settling band (± in units of y, e.g. the device's in-position
-    window); without it 2 % of ``|y_final - y0|``. ``following_error`` and each
-    ``flags`` series are aligned with ``t_s`` (same length).
+    window); without it 2 % of ``|y_final - y0|``. ``following_error``, each
+    ``flags`` series and ``flags_t_s`` are aligned with ``t_s`` (same length).
+    ``flags_t_s`` is when each sample's flags were read (same clock as ``t_s``; a
+    driver that polls its flags less often than the position carries the last read
+    on every sample); None, or a non-finite entry, means "with the sample itself".
 
     Raises ``ValueError`` for times out of order, series of different lengths, a
     non-finite ``t0_s``/``y0``/``y_final`` or a negative or non-finite ``band``. Data
@@ -179,6 +197,8 @@ def compute_metrics(
     for name, series in (flags or {}).items():
         if len(series) != n:
             raise ValueError(f"flag series {name!r} and t_s differ in length: {len(series)} != {n}")
+    if flags_t_s is not None and len(flags_t_s) != n:
+        raise ValueError(f"flags_t_s and t_s differ in length: {len(flags_t_s)} != {n}")
     for name, value in (("t0_s", t0_s), ("y0", y0), ("y_final", y_final)):
         if not math.isfinite(value):
             raise ValueError(f"{name} must be finite, got {value!r}")
@@ -234,11 +254,14 @@ def compute_metrics(
     peak_fe, rms_fe = _following_error_stats(rel, following_error)
     time_to: dict[str, float | None] = {}
     time_in: dict[str, float] = {}
+    to_resolution: dict[str, float | None] = {}
+    in_resolution: dict[str, float] = {}
     for name, series in (flags or {}).items():
+        reads = flag_reads(rel, series, flags_t_s, t0_s)
         if name in ARRIVAL_FLAGS:
-            time_to[name] = _time_to_flag(rel, series)
+            time_to[name], to_resolution[name] = _time_to_flag(reads)
         else:
-            time_in[name] = _time_in_flag(rel, series)
+            time_in[name], in_resolution[name] = _time_in_flag(reads)
 
     return Metrics(
         step=step,
@@ -256,6 +279,8 @@ def compute_metrics(
         rms_following_error=rms_fe,
         time_to_flag_s=time_to,
         time_in_flag_s=time_in,
+        time_to_flag_resolution_s=to_resolution,
+        time_in_flag_resolution_s=in_resolution,
     )
 
 
@@ -400,14 +425,25 @@ def _crossing(
     return None
 
 
-def _rise_time(t: list[float], travel: list[float], size: float) -> float | None:
-    low = _crossing(t, travel, RISE_LOW * size, 0)
+def rise_crossings(
+    t: Sequence[float], travel: Sequence[float], size: float
+) -> tuple[float, float] | None:
+    """(t10, t90): the first crossings of 10 % and then 90 % of ``size`` by ``travel``
+    (the distance moved in the step direction; the command point first), as
+    ``rise_time_s`` locates them; None when 90 % is never reached."""
+    t_list, values = list(t), list(travel)
+    low = _crossing(t_list, values, RISE_LOW * size, 0)
     if low is None:
         return None
-    high = _crossing(t, travel, RISE_HIGH * size, low[1])
+    high = _crossing(t_list, values, RISE_HIGH * size, low[1])
     if high is None:
         return None
-    return high[0] - low[0]
+    return low[0], high[0]
+
+
+def _rise_time(t: list[float], travel: list[float], size: float) -> float | None:
+    crossings = rise_crossings(t, travel, size)
+    return None if crossings is None else crossings[1] - crossings[0]
 
 
 def _settling_time(t: list[float], errors: list[float], band: float) -> float | None:
@@ -578,22 +614,60 @@ def _following_error_stats(
     return peak, rms
 
 
-def _time_to_flag(rel: list[float | None], series: Sequence[bool]) -> float | None:
-    seen_low = False
-    for tr, v in zip(rel, series, strict=True):
-        if tr is None or tr < 0:
+def flag_reads(
+    rel: Sequence[float | None],
+    series: Sequence[bool],
+    flags_t_s: Sequence[float | None] | None,
+    t0_s: float,
+) -> list[tuple[float, bool]]:
+    """The reads of one flag, ``(time after t0, value)`` in order: one per distinct read
+    time (samples that carry the same read are one read), from each sample's
+    ``flags_t_s`` or, without it, the sample's own time ``rel``. Samples without a
+    finite time are skipped; a read stamped after its sample is taken at the sample."""
+    reads: list[tuple[float, bool]] = []
+    for i, (tr, value) in enumerate(zip(rel, series, strict=True)):
+        if tr is None:
             continue
-        if not v:
-            seen_low = True
-        elif seen_low:
-            return tr
-    return None
+        read = flags_t_s[i] if flags_t_s is not None else None
+        at = tr if read is None or not math.isfinite(read) else min(read - t0_s, tr)
+        if reads and at <= reads[-1][0]:
+            continue  # the same read again (or a stamp out of order: the first counts)
+        reads.append((at, bool(value)))
+    return reads
 
 
-def _time_in_flag(rel: list[float | None], series: Sequence[bool]) -> float:
-    points = [(tr, bool(v)) for tr, v in zip(rel, series, strict=True) if tr is not None]
-    total = 0.0
-    for (ta, on), (tb, _) in pairwise(points):
-        if on and tb > 0:
-            total += tb - max(ta, 0.0)
-    return total
+def _time_to_flag(reads: list[tuple[float, bool]]) -> tuple[float | None, float | None]:
+    """(time of the rise, ± half the interval between the reads around it)."""
+    last_clear: float | None = None
+    for at, value in reads:
+        if at < 0:
+            continue
+        if not value:
+            last_clear = at
+        elif last_clear is not None:
+            return (last_clear + at) / 2, (at - last_clear) / 2
+    return None, None
+
+
+def _time_in_flag(reads: list[tuple[float, bool]]) -> tuple[float, float]:
+    """(time set between t0 and the last read, ± the sum of half the interval around
+    each change counted)."""
+    if not reads:
+        return 0.0, 0.0
+    end = reads[-1][0]
+    total = resolution = 0.0
+    since: float | None = 0.0 if reads[0][1] else None
+    for (ta, a), (tb, b) in pairwise(reads):
+        if a == b:
+            continue
+        edge = (ta + tb) / 2
+        if tb > 0:  # a change before t0 is no part of the time after it
+            resolution += (tb - max(ta, 0.0)) / 2
+        if b:
+            since = edge
+        elif since is not None:
+            total += max(0.0, min(edge, end) - max(since, 0.0))
+            since = None
+    if since is not None:
+        total += max(0.0, end - max(since, 0.0))
+    return total, resolution

@@ -39,6 +39,7 @@ from typing import IO, Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError
 
 from servotune.drivers.base import BenchKind, InvalidArgumentError
+from servotune.runquality import SAMPLING_RULE, rejudge
 from servotune.storage import Storage, StorageError, dumps_strict
 
 MAX_IMPORT_BYTES = 64 * 1024 * 1024
@@ -105,6 +106,9 @@ class ImportMetrics(_Strict):
     rms_following_error: FiniteFloat | None
     time_to_flag_s: dict[str, FiniteFloat | None]
     time_in_flag_s: dict[str, FiniteFloat]
+    # Runs exported before flags were timed by their reads have no resolutions.
+    time_to_flag_resolution_s: dict[str, FiniteFloat | None] = Field(default_factory=dict)
+    time_in_flag_resolution_s: dict[str, FiniteFloat] = Field(default_factory=dict)
 
 
 class ImportReason(_Strict):
@@ -116,6 +120,8 @@ class ImportQuality(_Strict):
     status: Literal["good", "doubtful", "bad"]
     reasons: list[ImportReason]
     untrusted: dict[str, str] = Field(default_factory=dict)
+    # the version of the sampling rule that judged it (runquality.SAMPLING_RULE)
+    sampling_rule: StrictInt | None = None
 
 
 class ImportReturn(_Strict):
@@ -309,9 +315,17 @@ def store_import(
             stored.pop(optional, None)
     run_id = uuid.uuid4().hex[:12]
     storage.create_run(run_id, axis_key, axis_id, meta.created_s or time.time(), stored)
+    # What the sampling rule reads, kept compact: (t, response, following error).
+    judged = _JudgedColumns(meta.columns, meta.plan.response)
     try:
         for seq, chunk in enumerate(parse_csv(csv_lines, meta)):
             storage.append_samples(run_id, seq, chunk)
+            judged.add(chunk)
+        # An exported run is judged again by this version's sampling rule: the same
+        # rule for every run on the page, wherever it was recorded.
+        again = rejudge({**stored, "columns": judged.columns}, judged.rows)
+        if again is not None:
+            stored["metrics"], stored["quality"] = again
         storage.finish_run(run_id, meta.status, stored)
     except BaseException:
         # If the database refuses writes, the error that got us here is reported.
@@ -319,6 +333,22 @@ def store_import(
             storage.delete_run(run_id)
         raise
     return run_id
+
+
+class _JudgedColumns:
+    """The columns of imported rows the sampling rule reads (``runquality.rejudge``)."""
+
+    def __init__(self, columns: list[str], response: str) -> None:
+        wanted = ["t_s", response, "following_error"]
+        self._index = [columns.index(c) if c in columns else None for c in wanted]
+        self.columns = [
+            c if i is not None else f"-{c}" for c, i in zip(wanted, self._index, strict=True)
+        ]
+        self.rows: list[tuple[Any, ...]] = []
+
+    def add(self, chunk: list[list[Any]]) -> None:
+        index = self._index
+        self.rows.extend(tuple(r[i] if i is not None else None for i in index) for r in chunk)
 
 
 def import_json_body(
@@ -408,6 +438,53 @@ def import_in_process(
         return ("invalid", exc.field, str(exc))
     except StorageError as exc:
         return ("storage", "", str(exc))
+    finally:
+        storage.close()
+
+
+def needs_rejudging(run: dict[str, Any]) -> bool:
+    """A finished run with metrics that an older sampling rule judged."""
+    quality = run.get("quality") or {}
+    return (
+        run.get("status") != "recording"
+        and bool(run.get("metrics"))
+        and quality.get("sampling_rule") != SAMPLING_RULE
+    )
+
+
+def rejudge_in_process(db_path: str) -> int:
+    """Entry point of a process that judges every stored run that an older sampling
+    rule judged (``runquality.rejudge``) and stores the new metrics and quality;
+    returns how many changed. At the import's low priority, one run at a time."""
+    _lower_priority()
+    storage = Storage(Path(db_path))
+    changed = 0
+    try:
+        if storage.problem:
+            return 0
+        for run_id in storage.run_ids():
+            run = storage.get_run_meta(run_id)
+            if run is None or not needs_rejudging(run):
+                continue
+            judged = _JudgedColumns(
+                list(run.get("columns") or []), (run.get("plan") or {}).get("response", "")
+            )
+            for chunk in storage.iter_chunks(run_id):
+                judged.add(chunk)
+            again = rejudge({**run, "columns": judged.columns}, judged.rows)
+            if again is None:
+                continue
+            meta = {
+                k: v
+                for k, v in run.items()
+                if k not in ("id", "axis_id", "created_s", "status", "baseline")
+            }
+            meta["metrics"], meta["quality"] = again
+            storage.finish_run(run_id, run["status"], meta)
+            changed += 1
+        return changed
+    except StorageError:
+        return changed
     finally:
         storage.close()
 

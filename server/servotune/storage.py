@@ -30,6 +30,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from servotune.private_files import private_dir, private_file
+
 logger = logging.getLogger(__name__)
 
 
@@ -123,7 +125,8 @@ class Storage:
         # axis key -> values applied to a device but not saved yet (see save_params)
         self.unsaved: dict[str, dict[str, int]] = {}
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            private_dir(path.parent)
+            private_file(path)
             self._db = self._open_writable(path)
         except (OSError, sqlite3.Error) as exc:
             self.problem = f"the database {path} cannot be written ({exc})"
@@ -329,6 +332,12 @@ class Storage:
                 (axis_key,),
             ).fetchall()
         return [_run_row(row) for row in rows]
+
+    def run_ids(self) -> list[str]:
+        """Every stored run's id, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT id FROM runs ORDER BY created_s").fetchall()
+        return [run_id for (run_id,) in rows]
 
     def get_run_meta(self, run_id: str) -> dict[str, Any] | None:
         """A run without its samples (the JSON export), None if there is no such run."""

@@ -139,6 +139,44 @@ class TestBench(BenchRunner):
                 None,
                 f"{interrupted} bench run(s) were cut off by a restart: kept as incomplete",
             )
+        task = asyncio.create_task(self._rejudge_stored(), name="rejudge stored runs")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _rejudge_stored(self) -> None:
+        """Runs stored by an older version are judged by today's sampling rule
+        (runquality.rejudge), in a process of their own, like an import; the process
+        is started only when some run needs it (a look at the stored metadata)."""
+        if not await asyncio.to_thread(self._any_to_rejudge):
+            return
+        changed = await asyncio.get_running_loop().run_in_executor(
+            self._import_pool(), runio.rejudge_in_process, str(self._storage.path)
+        )
+        if changed:
+            self._hub.on_event(
+                "info",
+                None,
+                f"{changed} stored bench run(s) judged again by today's sampling rule "
+                "(metrics the samples cannot resolve are now null, with the reason)",
+            )
+
+    def _any_to_rejudge(self) -> bool:
+        for run_id in self._storage.run_ids():
+            run = self._storage.get_run_meta(run_id)
+            if run is not None and runio.needs_rejudging(run):
+                return True
+        return False
+
+    def _import_pool(self) -> ProcessPoolExecutor:
+        """One process at a time, each fresh (its memory goes with it): imports and the
+        re-judging of stored runs."""
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),
+                max_tasks_per_child=1,
+            )
+        return self._pool
 
     async def stop(self) -> None:
         if self._pool is not None:
@@ -477,15 +515,8 @@ class TestBench(BenchRunner):
         entry = self._hub.entry(axis_id)
         if self._storage.problem:
             raise StorageError(f"not saved: {self._storage.problem}")
-        if self._pool is None:
-            # One import at a time, each in a fresh process (its memory goes with it).
-            self._pool = ProcessPoolExecutor(
-                max_workers=1,
-                mp_context=multiprocessing.get_context("spawn"),
-                max_tasks_per_child=1,
-            )
         outcome = await asyncio.get_running_loop().run_in_executor(
-            self._pool,
+            self._import_pool(),
             functools.partial(
                 runio.import_in_process,
                 str(self._storage.path),

@@ -105,7 +105,10 @@ class Params(BaseModel):
     type: Literal["params"] = "params"
     axis: str
     values: dict[str, int]
-    source: Literal["read", "write", "restore"]
+    source: Literal["read", "write", "restore", "stored"] = Field(
+        description="stored: the values the device's save command stored (non-volatile), "
+        "as far as servotune saw it save them"
+    )
 
 
 class Event(BaseModel):
@@ -144,6 +147,19 @@ class ClientStats(BaseModel):
     dropped: int
 
 
+class MoveOutcome(BaseModel):
+    """How a user's move to a target ended (``servotune.movewatch``): the command's
+    answer only said it was sent."""
+
+    type: Literal["move_outcome"] = "move_outcome"
+    axis: str
+    command: str
+    target: float
+    outcome: Literal["arrived", "short", "limit", "fault", "stopped", "timeout"]
+    position: float | None
+    message: str
+
+
 ServerMessage = Annotated[
     Hello
     | Telemetry
@@ -153,7 +169,8 @@ ServerMessage = Annotated[
     | Event
     | RunUpdate
     | StorageStatus
-    | ClientStats,
+    | ClientStats
+    | MoveOutcome,
     Field(discriminator="type"),
 ]
 
@@ -197,6 +214,11 @@ class CommandResult(BaseModel):
     command: str
     sent: list[str] = Field(description="wire lines sent, in order")
     message: str
+    outcome_pending: bool = Field(
+        default=False,
+        description="a move to a target: the device took it; a move_outcome message says "
+        "how it ended (arrived, or where a limit switch or a STOP stopped it)",
+    )
 
 
 # A console line is printable: a control character (CR, LF, Ctrl-X, Ctrl-K, ...) inside a
@@ -234,6 +256,11 @@ class ErrorBody(BaseModel):
 
     detail: str
     field: str | None = None
+    kind: Literal["measurement"] | None = Field(
+        default=None,
+        description="measurement: a measurement could not support its result (too few "
+        "samples, ...); the device refused nothing",
+    )
 
 
 # --- control lock per axis (servotune.control; websocket /ws) -------------------------

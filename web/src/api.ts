@@ -13,6 +13,8 @@ export class ApiError extends Error {
     readonly status: number,
     readonly detail: string,
     readonly field: string | null,
+    /** "measurement": a measurement could not support its result; nothing was refused. */
+    readonly kind: string | null = null,
   ) {
     super(detail);
     this.name = "ApiError";
@@ -85,7 +87,8 @@ export async function request<T>(method: string, path: string, body?: unknown, r
     if (response.status === 401 && detail.includes("password again") && reauthHandler && !retried) {
       if (await reauthHandler()) return request<T>(method, path, body, true);
     }
-    throw new ApiError(response.status, detail, field);
+    const kind = body && typeof body === "object" && typeof (body as { kind?: unknown }).kind === "string" ? (body as { kind: string }).kind : null;
+    throw new ApiError(response.status, detail, field, kind);
   }
   return parsed as T;
 }
@@ -93,6 +96,12 @@ export async function request<T>(method: string, path: string, body?: unknown, r
 let reauthHandler: (() => Promise<boolean>) | null = null;
 export function setReauthHandler(handler: () => Promise<boolean>): void {
   reauthHandler = handler;
+}
+
+/** Ask for the password again (the page's prompt); true when it was accepted. The
+ * websocket's forced hand-over follows the same rule as REST (docs/remote-lab.md). */
+export async function reauthenticate(): Promise<boolean> {
+  return reauthHandler ? reauthHandler() : false;
 }
 
 // --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---
@@ -143,6 +152,9 @@ export interface RunMetrics {
   rms_following_error: number | null;
   time_to_flag_s: Record<string, number | null>;
   time_in_flag_s: Record<string, number>;
+  /** ± of the flag times: flags are polled (runs recorded before this have none). */
+  time_to_flag_resolution_s?: Record<string, number | null>;
+  time_in_flag_resolution_s?: Record<string, number>;
 }
 
 export type RunStatus = "recording" | "complete" | "incomplete";

@@ -5,6 +5,9 @@ import type { Telemetry } from "./wire.gen";
 export const KEEP_SECONDS = 60;
 const INITIAL_CAPACITY = 8192;
 const MAX_CAPACITY = 1 << 21;
+/** Epochs of detached copies (``snapshot``): never equal to a live ring's, so a view's
+ * caches (decimation, flag runs) start over when it switches between the two. */
+let snapshotEpoch = 1 << 30;
 
 export class AxisBuffer {
   capacity = INITIAL_CAPACITY;
@@ -85,6 +88,27 @@ export class AxisBuffer {
     this.samplesReceived += n;
     this.lastT = msg.t[n - 1] as number;
     this.version += 1;
+  }
+
+  /** A detached copy of the samples with times in [``from``, ``to``] (and one either
+   * side): what a single-shot capture keeps once the ring has dropped them (it keeps
+   * KEEP_SECONDS). Never written to again. */
+  snapshot(from: number, to: number): AxisBuffer {
+    const lo = Math.max(this.start, this.indexAt(from) - 1);
+    const hi = Math.min(this.end, this.indexAt(to) + 1);
+    const copy = new AxisBuffer();
+    const n = Math.max(0, hi - lo);
+    copy.capacity = Math.max(1, n);
+    copy.t = this.t.slice(lo, hi);
+    for (const [name, col] of this.channels) copy.channels.set(name, col.slice(lo, hi));
+    for (const [name, col] of this.flags) copy.flags.set(name, col.slice(lo, hi));
+    copy.end = n;
+    copy.samplesReceived = n;
+    copy.lastT = n ? (copy.t[n - 1] as number) : Number.NaN;
+    snapshotEpoch += 1;
+    copy.epoch = snapshotEpoch;
+    copy.version = 1;
+    return copy;
   }
 
   /** First index whose time is >= ``time`` (binary search). */

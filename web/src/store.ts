@@ -7,6 +7,7 @@ import type {
   Event as WireEvent,
   LinkInfo,
   LinkStatus,
+  MoveOutcome,
   RunUpdate,
   StorageStatus,
 } from "./wire.gen";
@@ -22,6 +23,7 @@ export interface Topics {
   run: RunUpdate; // bench run progress (every browser gets it)
   storage: StorageStatus; // saving failed / works again
   clientStats: void;
+  moveOutcome: MoveOutcome; // how a user's move to a target ended
   ws: WsState;
   error: string;
   theme: void;
@@ -39,6 +41,9 @@ export class Store {
   readonly buffers = new Map<string, AxisBuffer>();
   /** Parameter values as last read back from the device, per axis. */
   readonly deviceParams = new Map<string, Map<string, number>>();
+  /** Per axis: the persisted values the device's save command stored, as far as the
+   * server saw it save them (absent: not known). */
+  readonly storedParams = new Map<string, Map<string, number>>();
   /** Values the user entered that the device does not have (yet), per axis. */
   readonly uiParams = new Map<string, Map<string, number>>();
   readonly descriptors = new Map<string, Promise<DeviceDescriptor>>();
@@ -161,7 +166,10 @@ export class Store {
         this.emit("axisStatus", msg.axis);
         break;
       case "params":
-        this.setDeviceParams(msg.axis, msg.values, false);
+        if (msg.source === "stored") {
+          this.storedParams.set(msg.axis, new Map(Object.entries(msg.values)));
+          this.emit("params", { axis: msg.axis, names: Object.keys(msg.values) });
+        } else this.setDeviceParams(msg.axis, msg.values, false);
         break;
       case "event":
         // The server replays recent events on (re)connect: skip those already shown.
@@ -181,6 +189,9 @@ export class Store {
       case "client_stats":
         this.stats = { sent: msg.sent, dropped: msg.dropped };
         this.emit("clientStats", undefined);
+        break;
+      case "move_outcome":
+        this.emit("moveOutcome", msg);
         break;
       default: {
         const never: never = msg;

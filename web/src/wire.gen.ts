@@ -85,6 +85,11 @@ export interface ArgumentDescriptor {
   choices: Choice[];
 }
 
+export interface MoveTarget {
+  argument: string;
+  relative: boolean;
+}
+
 export interface CommandDescriptor {
   name: string;
   label: string;
@@ -94,13 +99,25 @@ export interface CommandDescriptor {
   confirm: string | null;
   abort_command: string | null;
   marks_operated: boolean;
+  powers_motor: boolean;
   active_flag: string | null;
+  stores_parameters: "axis" | "link" | null;
+  target: MoveTarget | null;
+}
+
+export interface ConsoleRule {
+  words: string[];
+  effect: "read" | "write" | "command" | "persist";
+  command: string | null;
+  parameters: string[];
 }
 
 export interface ConsoleDescriptor {
   help: string;
   multiline_commands: string[];
   examples: string[];
+  syntax: "letters" | "word" | "object";
+  rules: ConsoleRule[];
 }
 
 export interface StopEffect {
@@ -199,7 +216,7 @@ export interface Params {
   type: "params";
   axis: string;
   values: Record<string, number>;
-  source: "read" | "write" | "restore";
+  source: "read" | "write" | "restore" | "stored";
 }
 
 export interface Event {
@@ -232,6 +249,16 @@ export interface ClientStats {
   dropped: number;
 }
 
+export interface MoveOutcome {
+  type: "move_outcome";
+  axis: string;
+  command: string;
+  target: number;
+  outcome: "arrived" | "short" | "limit" | "fault" | "stopped" | "timeout";
+  position: number | null;
+  message: string;
+}
+
 export interface Ping {
   type: "ping";
 }
@@ -251,6 +278,7 @@ export interface CommandResult {
   command: string;
   sent: string[];
   message: string;
+  outcome_pending: boolean;
 }
 
 export interface StopResult {
@@ -271,6 +299,7 @@ export interface ConsoleReply {
 export interface ErrorBody {
   detail: string;
   field: string | null;
+  kind: "measurement" | null;
 }
 
 export interface Welcome {
@@ -350,7 +379,7 @@ export interface Heartbeat {
   type: "heartbeat";
 }
 
-export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats;
+export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;
 export type ClientMessage = Ping;
 export type ControlServerMessage = Welcome | ControlStatus | ControlPrompt | ControlReply;
 export type ControlClientMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl | Heartbeat;

@@ -42,6 +42,7 @@ from servotune.drivers.base import (
     DriverError,
     InvalidArgumentError,
     LinkDownError,
+    MeasurementError,
     ProtocolError,
 )
 from servotune.hub import Hub, NotFoundError
@@ -77,8 +78,13 @@ class AppConfig:
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
 
 
-def _error(status: int, detail: str, field_name: str | None = None) -> JSONResponse:
-    return JSONResponse(status_code=status, content={"detail": detail, "field": field_name})
+def _error(
+    status: int, detail: str, field_name: str | None = None, kind: str | None = None
+) -> JSONResponse:
+    content: dict[str, str | None] = {"detail": detail, "field": field_name}
+    if kind is not None:
+        content["kind"] = kind
+    return JSONResponse(status_code=status, content=content)
 
 
 HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
@@ -112,7 +118,7 @@ def create_app(config: AppConfig) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         storage = Storage(config.data_dir / "servotune.db")
-        with security.running(app), contextlib.ExitStack() as simulators:
+        async with security.running(app), contextlib.AsyncExitStack() as simulators:
             specs = list(config.links)
             for start_simulator in config.simulators:
                 specs.extend(simulators.enter_context(start_simulator()))
@@ -179,9 +185,9 @@ def create_app(config: AppConfig) -> FastAPI:
         version=__version__,
         summary="Tuning dashboard for servo motor controllers",
         lifespan=lifespan,
-        # Any route: not logged in (exposed mode), or refused by a permission or by the
-        # Host / Origin / CSRF checks (servotune.auth).
-        responses=errors(401, 403),
+        # Any route: not logged in (exposed mode), refused by a permission or by the
+        # Host / Origin / CSRF checks, or a body over the cap (servotune.auth).
+        responses=errors(401, 403, 413),
         # Served below: the schema is built in a worker thread, not on the event loop.
         openapi_url=None,
         docs_url=None,
@@ -253,6 +259,10 @@ def create_app(config: AppConfig) -> FastAPI:
     @app.exception_handler(DeviceRefusedError)
     async def refused(_: Request, exc: DeviceRefusedError) -> JSONResponse:
         return _error(409, str(exc))
+
+    @app.exception_handler(MeasurementError)
+    async def measurement(_: Request, exc: MeasurementError) -> JSONResponse:
+        return _error(409, str(exc), kind="measurement")
 
     @app.exception_handler(LinkDownError)
     async def link_down(_: Request, exc: LinkDownError) -> JSONResponse:

@@ -23,10 +23,9 @@ from servotune.auth.middleware import client_address, session_cookie
 from servotune.auth.passwords import (
     MAX_PASSWORD_LENGTH,
     MIN_PASSWORD_LENGTH,
+    PasswordWorkersBusyError,
     WeakPasswordError,
     check_password_rule,
-    hash_password,
-    verify_password,
 )
 from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError, permissions_of
 from servotune.auth.principal import AUDIT_ALL, Principal
@@ -39,6 +38,7 @@ from servotune.auth.store import (
     AccountError,
     Session,
 )
+from servotune.auth.throttle import Attempt, ThrottledError
 from servotune.auth.ws_auth import close_websockets
 
 # What the account routes can answer besides their success (bodies are ``ErrorBody``).
@@ -108,6 +108,43 @@ def _principal(request: Request) -> Principal:
     return principal
 
 
+def _begin_attempt(security: SecurityState, address: str, user: str, what: str) -> Attempt:
+    """Reserve a password check (before anything is hashed), or answer 429."""
+    try:
+        return security.throttle.begin(address, user)
+    except ThrottledError as exc:
+        security.require_audit().record(
+            who="?", action=what, address=address, result="throttled", detail="429"
+        )
+        raise HTTPException(
+            429,
+            f"too many failed attempts: try again in {exc.retry_after_s:.0f} s",
+            headers={"Retry-After": str(max(1, round(exc.retry_after_s)))},
+        ) from None
+
+
+async def _check_password(
+    security: SecurityState, attempt: Attempt, stored: str | None, password: str
+) -> bool:
+    """Verify in the hashing pool; a full pool uncounts the attempt and answers 429."""
+    try:
+        return await security.require_passwords().verify(stored, password)
+    except PasswordWorkersBusyError as exc:
+        security.throttle.cancel(attempt)
+        raise HTTPException(
+            429, str(exc), headers={"Retry-After": str(exc.retry_after_s)}
+        ) from None
+
+
+async def _hash(security: SecurityState, password: str) -> str:
+    try:
+        return await security.require_passwords().hash(password)
+    except PasswordWorkersBusyError as exc:
+        raise HTTPException(
+            429, str(exc), headers={"Retry-After": str(exc.retry_after_s)}
+        ) from None
+
+
 def _info(security: SecurityState, principal: Principal | None, cookie: str | None) -> SessionInfo:
     return SessionInfo(
         mode="exposed" if security.exposed else "local",
@@ -148,18 +185,9 @@ async def login(body: LoginRequest, request: Request, response: Response) -> Ses
     store = security.require_store()
     audit = security.require_audit()
     address = client_address(request.scope)
-    wait_s = security.throttle.retry_after_s(address, body.user)
-    if wait_s > 0:
-        audit.record(who="?", action="login", address=address, result="throttled", detail="429")
-        raise HTTPException(
-            429,
-            f"too many failed logins: try again in {wait_s:.0f} s",
-            headers={"Retry-After": str(max(1, round(wait_s)))},
-        )
-    stored = await asyncio.to_thread(store.password_hash, body.user)
-    ok = await asyncio.to_thread(verify_password, stored, body.password)
-    if not ok:
-        security.throttle.failed(address, body.user)
+    attempt = _begin_attempt(security, address, body.user, "login")
+    stored = await security.db(store.password_hash, body.user)
+    if not await _check_password(security, attempt, stored, body.password):
         # An unknown name is not written down: people type their password into it.
         audit.record(
             who=body.user if stored is not None else "?",
@@ -169,13 +197,13 @@ async def login(body: LoginRequest, request: Request, response: Response) -> Ses
             detail="wrong password" if stored is not None else "unknown user name",
         )
         raise HTTPException(401, "wrong user name or password")
-    security.throttle.succeeded(address, body.user)
+    security.throttle.succeeded(attempt)
     old = session_cookie(request.scope)
     if old is not None:
-        previous = await asyncio.to_thread(store.lookup_session, old)
+        previous = await security.db(store.lookup_session, old)
         if previous is not None:
-            await asyncio.to_thread(store.end_session, previous.digest)
-    cookie, session = await asyncio.to_thread(store.create_session, body.user, address)
+            await security.db(store.end_session, previous.digest)
+    cookie, session = await security.db(store.create_session, body.user, address)
     _set_cookie(request, response, cookie)
     audit.record(
         who=body.user, action="login", address=address, detail=f"session {session.public_id}"
@@ -201,7 +229,7 @@ async def logout(request: Request, response: Response) -> None:
     security = _security(request)
     session: Session | None = getattr(request.state, "session", None)
     if session is not None:
-        await asyncio.to_thread(security.require_store().end_session, session.digest)
+        await security.db(security.require_store().end_session, session.digest)
         await close_websockets(security, principal.user, principal.session_id)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     security.require_audit().record(
@@ -218,17 +246,16 @@ async def reauth(body: PasswordRequest, request: Request) -> None:
     if session is None:
         return  # local mode or a token: nothing to confirm
     address = client_address(request.scope)
-    if security.throttle.retry_after_s(address, principal.user) > 0:
-        raise HTTPException(429, "too many wrong passwords: wait a few minutes")
+    attempt = _begin_attempt(security, address, principal.user, "reauth")
     store = security.require_store()
-    stored = await asyncio.to_thread(store.password_hash, principal.user)
-    if not await asyncio.to_thread(verify_password, stored, body.password):
-        security.throttle.failed(address, principal.user)
+    stored = await security.db(store.password_hash, principal.user)
+    if not await _check_password(security, attempt, stored, body.password):
         security.require_audit().record(
             who=principal.user, action="reauth", address=address, result="failed"
         )
         raise HTTPException(401, "wrong password")
-    await asyncio.to_thread(store.mark_password_entered, session.digest)
+    security.throttle.succeeded(attempt)
+    await security.db(store.mark_password_entered, session.digest)
     security.require_audit().record(who=principal.user, action="reauth", address=address)
 
 
@@ -241,19 +268,20 @@ async def change_own_password(body: PasswordChange, request: Request, response: 
         raise HTTPException(409, "change a password from a logged-in browser session")
     store = security.require_store()
     address = client_address(request.scope)
-    stored = await asyncio.to_thread(store.password_hash, principal.user)
-    if not await asyncio.to_thread(verify_password, stored, body.current_password):
-        security.throttle.failed(address, principal.user)
+    attempt = _begin_attempt(security, address, principal.user, "password change")
+    stored = await security.db(store.password_hash, principal.user)
+    if not await _check_password(security, attempt, stored, body.current_password):
         security.require_audit().record(
             who=principal.user, action="password change", address=address, result="failed"
         )
         raise HTTPException(401, "wrong current password")
+    security.throttle.succeeded(attempt)
     try:
         check_password_rule(body.new_password)
     except WeakPasswordError as exc:
         raise HTTPException(422, str(exc)) from None
-    new_hash = await asyncio.to_thread(hash_password, body.new_password)
-    await asyncio.to_thread(store.set_password_hash, principal.user, new_hash)
+    new_hash = await _hash(security, body.new_password)
+    await security.db(store.set_password_hash, principal.user, new_hash)
     await close_websockets(security, principal.user)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     security.require_audit().record(who=principal.user, action="password change", address=address)
@@ -286,8 +314,9 @@ def _token_row(token: Any) -> dict[str, Any]:
 @router.get("/api/auth/tokens")
 async def list_tokens(request: Request, user: str | None = None) -> list[dict[str, Any]]:
     """Every token (``?user=`` filters); never the secret, which is not stored."""
-    store = _security(request).require_store()
-    return [_token_row(t) for t in await asyncio.to_thread(store.list_tokens, user)]
+    security = _security(request)
+    store = security.require_store()
+    return [_token_row(t) for t in await security.db(store.list_tokens, user)]
 
 
 @router.post("/api/auth/tokens", status_code=201)
@@ -297,14 +326,12 @@ async def create_token(body: TokenCreate, request: Request) -> dict[str, Any]:
     security = _security(request)
     store = security.require_store()
     owner = body.user or principal.user
-    user = await asyncio.to_thread(store.get_user, owner)
+    user = await security.db(store.get_user, owner)
     if user is None:
         raise HTTPException(404, f"no user {owner!r}")
     role = body.role or user.role
     try:
-        secret, token = await asyncio.to_thread(
-            store.create_token, owner, body.name, role, body.days
-        )
+        secret, token = await security.db(store.create_token, owner, body.name, role, body.days)
     except (AccountError, UnknownRoleError) as exc:
         raise HTTPException(422, str(exc)) from None
     security.require_audit().record(
@@ -322,7 +349,7 @@ async def revoke_token(token_id: str, request: Request) -> None:
     principal = _principal(request)
     security = _security(request)
     try:
-        token = await asyncio.to_thread(security.require_store().revoke_token, token_id)
+        token = await security.db(security.require_store().revoke_token, token_id)
     except AccountError as exc:
         raise HTTPException(404, str(exc)) from None
     await close_websockets(security, token.user, f"token:{token.id}")
@@ -339,10 +366,11 @@ async def revoke_token(token_id: str, request: Request) -> None:
 
 @router.get("/api/users")
 async def list_users(request: Request) -> list[dict[str, Any]]:
-    store = _security(request).require_store()
+    security = _security(request)
+    store = security.require_store()
     return [
         {"name": u.name, "role": u.role, "created_s": u.created_s}
-        for u in await asyncio.to_thread(store.list_users)
+        for u in await security.db(store.list_users)
     ]
 
 
@@ -353,8 +381,8 @@ async def add_user(body: UserCreate, request: Request) -> dict[str, Any]:
     security = _security(request)
     try:
         check_password_rule(body.password)
-        password_hash = await asyncio.to_thread(hash_password, body.password)
-        user = await asyncio.to_thread(
+        password_hash = await _hash(security, body.password)
+        user = await security.db(
             security.require_store().add_user, body.name, body.role, password_hash
         )
     except (AccountError, WeakPasswordError) as exc:
@@ -374,19 +402,19 @@ async def change_user(name: str, body: UserChange, request: Request) -> dict[str
     principal = _principal(request)
     security = _security(request)
     store = security.require_store()
-    user = await asyncio.to_thread(store.get_user, name)
+    user = await security.db(store.get_user, name)
     if user is None:
         raise HTTPException(404, f"no user {name!r}")
     demoted = body.role is not None and body.role != ADMIN and user.role == ADMIN
-    if demoted and await asyncio.to_thread(store.count_admins) <= 1:
+    if demoted and await security.db(store.count_admins) <= 1:
         raise HTTPException(409, "the last admin cannot lose the admin role")
     try:
         if body.password is not None:
             check_password_rule(body.password)
-            password_hash = await asyncio.to_thread(hash_password, body.password)
-            await asyncio.to_thread(store.set_password_hash, name, password_hash)
+            password_hash = await _hash(security, body.password)
+            await security.db(store.set_password_hash, name, password_hash)
         if body.role is not None:
-            await asyncio.to_thread(store.set_role, name, body.role)
+            await security.db(store.set_role, name, body.role)
     except (AccountError, WeakPasswordError) as exc:
         raise HTTPException(422, str(exc)) from None
     closed = await close_websockets(security, name)
@@ -408,12 +436,12 @@ async def remove_user(name: str, request: Request) -> None:
     principal = _principal(request)
     security = _security(request)
     store = security.require_store()
-    user = await asyncio.to_thread(store.get_user, name)
+    user = await security.db(store.get_user, name)
     if user is None:
         raise HTTPException(404, f"no user {name!r}")
-    if user.role == ADMIN and await asyncio.to_thread(store.count_admins) <= 1:
+    if user.role == ADMIN and await security.db(store.count_admins) <= 1:
         raise HTTPException(409, "the last admin cannot be removed")
-    await asyncio.to_thread(store.remove_user, name)
+    await security.db(store.remove_user, name)
     await close_websockets(security, name)
     security.require_audit().record(
         who=principal.user,

@@ -20,7 +20,7 @@ DESCRIPTIONS: dict[int, str] = {
     413: "request body too large",
     422: "bad input: detail names the field and the allowed range; nothing was sent",
     423: "locked: another browser tab controls this axis (detail names the holder)",
-    429: "too many failed logins: wait (Retry-After) and try again",
+    429: "too many failed logins, or too many at once: wait (Retry-After) and try again",
     502: "the device answered something its protocol does not allow",
     503: "link down or storage unavailable: nothing was sent",
     504: "the device did not answer in time",

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body
+from fastapi import APIRouter, Body, Request
 
 from servotune.api.deps import HubDep
 from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
@@ -122,7 +122,12 @@ async def command(axis_id: str, hub: HubDep, request: CommandRequest) -> Command
     """
     args = dict(request.model_extra or {})
     outcome = await hub.command(axis_id, request.command, args)
-    return CommandResult(command=request.command, sent=outcome.sent, message=outcome.message)
+    return CommandResult(
+        command=request.command,
+        sent=outcome.sent,
+        message=outcome.message,
+        outcome_pending=outcome.outcome_pending,
+    )
 
 
 @router.post("/api/stop", response_model=StopResult, tags=["commands"])
@@ -136,15 +141,22 @@ async def stop_all(hub: HubDep) -> StopResult:
 @router.post(
     "/api/axes/{axis_id}/console",
     response_model=ConsoleReply,
-    responses=errors(404, 409, 422, 503),
+    responses=errors(403, 404, 409, 422, 503),
     tags=["console"],
 )
-async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> ConsoleReply:
+async def console(
+    axis_id: str, hub: HubDep, request: ConsoleRequest, http: Request
+) -> ConsoleReply:
     """Send one raw line to the axis' module; returns every reply line.
 
     The line must be printable (no CR, LF, Ctrl-X or other control characters: 422
-    naming ``line``). Errors of the exchange (no echo, refused by the protocol) come
-    back in ``error`` with status 200 so the console can show them next to the line.
+    naming ``line``), and one whose effect the device's descriptor states (a read, a
+    parameter write, a command, storing settings): it needs the permission of what it
+    is, as the same action through its own route would (``pg`` on a SLAP2 needs
+    'persist' like ``save_eeprom``); any other line is refused with 422 naming
+    ``line``, nothing sent. Errors of the exchange (no echo, refused by the protocol)
+    come back in ``error`` with status 200 so the console can show them next to the
+    line. After a parameter write the parameters are read back for the audit log.
     """
     try:
         sent, reply = await hub.console(axis_id, request.line)
@@ -152,4 +164,12 @@ async def console(axis_id: str, hub: HubDep, request: ConsoleRequest) -> Console
         raise
     except DriverError as exc:
         return ConsoleReply(line=request.line, sent=request.line, reply=[], error=str(exc))
+    audit: dict[str, Any] | None = getattr(http.state, "audit", None)
+    written = hub.descriptor(axis_id).console.parameters_set(request.line)
+    if audit is not None and written:
+        try:
+            values = await hub.read_params(axis_id)
+            audit["after"] = {name: values.get(name) for name in written}
+        except DriverError as exc:
+            audit["after"] = {"read_back_failed": str(exc)}
     return ConsoleReply(line=request.line, sent=sent, reply=reply, error=None)

@@ -22,13 +22,14 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketState
 
-from servotune.auth.principal import Principal
+from servotune.auth.authz import REAUTH_DETAIL, password_fresh
+from servotune.auth.principal import FORCE_CONTROL, Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
 from servotune.control import ControlClient, ControlManager
 from servotune.hub import Hub
 from servotune.hub_state import ClientQueue
-from servotune.wire import ClientStats, Heartbeat, Ping
+from servotune.wire import ClientStats, ControlReply, Heartbeat, Ping
 
 # The same union as wire.ClientMessage | wire.ControlClientMessage, flattened so pydantic
 # can discriminate on ``type`` in one pass.
@@ -135,6 +136,35 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         unregister(handle)
 
 
+async def _active(websocket: WebSocket, principal: Principal) -> None:
+    """A control action is the user's activity: the session is not idle (watching the
+    stream and heartbeats are not; docs/remote-lab.md)."""
+    if principal.via == "session" and principal.session_id is not None:
+        security: SecurityState = websocket.app.state.security
+        await security.db(security.require_store().touch_session, principal.session_id)
+
+
+async def _password_fresh(websocket: WebSocket, client: ControlClient) -> bool:
+    """Whether the client's session typed its password recently enough for a forced
+    hand-over (sessions only; a refusal is audited)."""
+    principal = client.principal
+    if principal.via != "session" or principal.session_id is None:
+        return True
+    security: SecurityState = websocket.app.state.security
+    store = security.require_store()
+    session = await security.db(store.session_by_public_id, principal.session_id)
+    if session is not None and password_fresh(session):
+        return True
+    security.require_audit().record(
+        who=principal.user,
+        action="force_control",
+        address=client.address,
+        result="refused",
+        detail="password required again" if session is not None else "session ended",
+    )
+    return False
+
+
 async def _serve(
     websocket: WebSocket, queue: ClientQueue, control: ControlManager, client: ControlClient
 ) -> None:
@@ -169,19 +199,35 @@ async def _serve(
             elif isinstance(parsed, Ping):
                 stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
                 queue.put(stats.model_dump_json(), droppable=False)
+            elif (
+                isinstance(parsed, ForceControl)
+                and FORCE_CONTROL in client.principal.permissions
+                and not await _password_fresh(websocket, client)
+            ):
+                # The REST rule for dangerous actions (authz.password_fresh), here too.
+                reply = ControlReply(
+                    axis=parsed.axis, action="force", ok=False, message=REAUTH_DETAIL
+                )
+                queue.put(reply.model_dump_json(), droppable=False)
             else:
                 # Not awaited here: a hand-over waits for a STOP, and heartbeats must keep
                 # being read meanwhile. The control manager owns the task (it finishes
                 # even if this socket closes).
                 control.submit(client, parsed)
+                await _active(websocket, client.principal)
 
     tasks = [asyncio.create_task(sender()), asyncio.create_task(receiver())]
     try:
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             error = task.exception()
-            if error is not None and not isinstance(error, WebSocketDisconnect):
-                raise error
+            if error is None or isinstance(error, WebSocketDisconnect):
+                continue
+            if websocket.application_state == WebSocketState.DISCONNECTED:
+                # Closed by the server from another task (logout, revocation, expiry)
+                # while the sender was sending: how this connection ends, not an error.
+                continue
+            raise error
     finally:
         for task in tasks:
             task.cancel()

@@ -11,7 +11,6 @@ completes with the response's status.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from typing import Any
@@ -22,10 +21,19 @@ from starlette.requests import HTTPConnection
 from servotune.auth.audit import AuditLog
 from servotune.auth.middleware import MUTATING, client_address, session_cookie
 from servotune.auth.permissions import DANGEROUS, LOCKED, REAUTH_AFTER_S, permissions_of
-from servotune.auth.principal import LOCAL_PRINCIPAL, MOVE, PARAM_SETS, Principal
-from servotune.auth.routes_table import COMMAND, PUBLIC, ROUTE_PERMISSIONS, command_permission
+from servotune.auth.principal import CONSOLE, LOCAL_PRINCIPAL, MOVE, PARAM_SETS, STOP, Principal
+from servotune.auth.routes_table import (
+    COMMAND,
+    CONSOLE_LINE,
+    PUBLIC,
+    ROUTE_PERMISSIONS,
+    UnknownConsoleLineError,
+    command_permission,
+    console_permission,
+)
 from servotune.auth.security import CLIENT_HEADER, SecurityState
 from servotune.auth.store import AuthStore, Session
+from servotune.drivers.base import InvalidArgumentError
 from servotune.hub_state import UnknownAxisError
 
 logger = logging.getLogger(__name__)
@@ -105,20 +113,69 @@ def resolve_principal(
     return principal, session
 
 
+REAUTH_DETAIL = "enter your password again (POST /api/auth/reauth)"
+
+
+def password_fresh(session: Session | None, now_s: float | None = None) -> bool:
+    """The re-authentication rule of dangerous actions, for REST and websocket alike:
+    a session's password must have been typed in the last REAUTH_AFTER_S (an API token
+    or local mode has no session and was created under such a check)."""
+    if session is None:
+        return True
+    return (time.time() if now_s is None else now_s) - session.password_s <= REAUTH_AFTER_S
+
+
+def needs_lookup(connection: HTTPConnection, security: SecurityState) -> bool:
+    """Whether resolving the caller reads the accounts database (a token or a session
+    cookie is presented). Without one the answer is known at once, with no I/O."""
+    if _bearer(connection) is not None:
+        return True
+    return security.exposed and session_cookie(connection.scope) is not None
+
+
+async def caller(
+    connection: HTTPConnection, security: SecurityState, *, urgent: bool = False
+) -> tuple[Principal | None, Session | None]:
+    """``resolve_principal`` off the event loop when it reads the database: in the
+    threads reserved for the accounts database, or (``urgent``: STOP and the other
+    stops) in the one thread reserved for those, which nothing else queues in."""
+    if not needs_lookup(connection, security):
+        return resolve_principal(connection, security)
+    if urgent:
+        return await security.db_urgent(resolve_principal, connection, security)
+    return await security.db(resolve_principal, connection, security)
+
+
+# The permission of a console line whose effect the descriptor does not state: no role
+# has it; the caller with CONSOLE gets 422 naming ``line`` (see authorize).
+UNCLASSIFIED_LINE = "<unclassified console line>"
+
+
 async def _permission_for(request: Request, permission: str) -> str:
-    if permission != COMMAND:
+    """The permission this request needs: ``permission`` itself, or for a command or a
+    console line the one of what the body asks (routes_table's COMMAND, CONSOLE_LINE)."""
+    if permission not in (COMMAND, CONSOLE_LINE):
         return permission
     try:
         body = await request.json()
     except ValueError:
         body = None
-    name = body.get("command") if isinstance(body, dict) else None
     axis_id = request.path_params.get("axis_id", "")
     try:
         descriptor = request.app.state.hub.descriptor(axis_id)
     except UnknownAxisError:
         return MOVE  # the strictest reading; the route answers 404 to those allowed
-    return command_permission(descriptor, str(name or ""))
+    field = "command" if permission == COMMAND else "line"
+    value = body.get(field) if isinstance(body, dict) else None
+    if permission == COMMAND:
+        return command_permission(descriptor, str(value or ""))
+    if not isinstance(value, str):
+        return CONSOLE  # the route's own validation answers 422
+    try:
+        return console_permission(descriptor, value)
+    except UnknownConsoleLineError as exc:
+        request.state.console_refusal = str(exc)
+        return UNCLASSIFIED_LINE
 
 
 async def authorize(connection: HTTPConnection) -> None:
@@ -134,7 +191,11 @@ async def authorize(connection: HTTPConnection) -> None:
         logger.error("route %s %s has no entry in ROUTE_PERMISSIONS", *key)
         raise HTTPException(500, f"route {request.method} {path} declares no permission")
     security = security_of(request)
-    principal, session = await asyncio.to_thread(resolve_principal, request, security)
+    # The permission first (a command's comes from its body): a STOP resolves its
+    # caller in the lane reserved for stops, so no queue of other requests (a login
+    # flood once held STOP for seconds) stands in front of it.
+    permission = declared if declared == PUBLIC else await _permission_for(request, declared)
+    principal, session = await caller(request, security, urgent=permission == STOP)
     request.state.principal = principal
     request.state.session = session
     if declared == PUBLIC:
@@ -152,21 +213,21 @@ async def authorize(connection: HTTPConnection) -> None:
                 detail="not logged in",
             )
         raise HTTPException(401, "log in first", headers={"WWW-Authenticate": "Bearer"})
-    permission = await _permission_for(request, declared)
     axis_id = request.path_params.get("axis_id")
-    if permission not in principal.permissions:
-        _refused(audit, principal, request, path, address, f"needs permission {permission!r}")
-        raise HTTPException(
-            403, f"your role {principal.role!r} does not allow this (needs {permission!r})"
-        )
-    if (
-        mutating
-        and permission in DANGEROUS
-        and session is not None
-        and time.time() - session.password_s > REAUTH_AFTER_S
-    ):
+    # A console line needs the console, and then what the line is (routes_table).
+    for needed in (CONSOLE, permission) if declared == CONSOLE_LINE else (permission,):
+        if needed == UNCLASSIFIED_LINE:
+            why = getattr(request.state, "console_refusal", "unknown console line")
+            _refused(audit, principal, request, path, address, why)
+            raise InvalidArgumentError("line", why)
+        if needed not in principal.permissions:
+            _refused(audit, principal, request, path, address, f"needs permission {needed!r}")
+            raise HTTPException(
+                403, f"your role {principal.role!r} does not allow this (needs {needed!r})"
+            )
+    if mutating and permission in DANGEROUS and not password_fresh(session):
         _refused(audit, principal, request, path, address, "password required again")
-        raise HTTPException(401, "enter your password again (POST /api/auth/reauth)")
+        raise HTTPException(401, REAUTH_DETAIL)
     if mutating and not path.startswith(_SELF_AUDITED_PREFIXES):
         request.state.audit = await _audit_context(request, principal, path, address)
     if (
@@ -229,7 +290,16 @@ async def _audit_context(
         context["before"] = {name: known.get(name) for name in body}
         context["detail"] = "requested " + ", ".join(f"{k}={v}" for k, v in body.items())
     elif key == ("POST", "/api/axes/{axis_id}/console") and isinstance(body, dict):
-        context["detail"] = str(body.get("line", ""))
+        line = str(body.get("line", ""))
+        context["detail"] = line
+        try:
+            written = request.app.state.hub.descriptor(axis_id or "").console.parameters_set(line)
+        except UnknownAxisError:
+            written = []
+        if written:
+            # The route adds the read-back as "after" (servotune.api.routes.console).
+            known = request.app.state.hub.entry(axis_id).last_known
+            context["before"] = {name: known.get(name) for name in written}
     elif "run_id" in request.path_params:
         context["detail"] = f"run {request.path_params['run_id']}"
     elif "name" in request.path_params:

@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+from servotune.auth.audit import ANONYMOUS_RETENTION_DAYS
 from servotune.auth.passwords import WeakPasswordError, check_password_rule, hash_password
 from servotune.auth.permissions import ADMIN, ROLE_ORDER, UnknownRoleError
 from servotune.auth.security import AUTH_DB, SecurityConfig
@@ -45,13 +46,32 @@ def add_security_arguments(parser: argparse.ArgumentParser) -> None:
         help="host name the dashboard is reached by (Host header allowlist; repeatable)",
     )
     group.add_argument(
+        "--audit-anonymous-days",
+        type=_positive_days,
+        default=ANONYMOUS_RETENTION_DAYS,
+        metavar="DAYS",
+        help="days the audit log keeps the rows of anonymous callers: refused requests "
+        f"and failed logins (default {ANONYMOUS_RETENTION_DAYS:g}); other rows are kept",
+    )
+    group.add_argument(
         "--mode",
         choices=("auto", "local", "exposed"),
         default="auto",
         help="auto (default): exposed when bound to a non-loopback address or given "
-        "TLS or a proxy; local: no login even on 0.0.0.0 (only for a container whose "
-        "port is published on the host's loopback); exposed: login even on 127.0.0.1",
+        "TLS or a proxy; local: no login, on 0.0.0.0 only with --loopback-published (a "
+        "container whose port is published on the host's loopback); exposed: login even "
+        "on 127.0.0.1",
     )
+
+
+def _positive_days(text: str) -> float:
+    try:
+        days = float(text)
+    except ValueError:
+        days = 0.0
+    if not days > 0:
+        raise argparse.ArgumentTypeError(f"days must be a number above 0 (got {text!r})")
+    return days
 
 
 def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityConfig:
@@ -62,6 +82,7 @@ def security_config_from_args(args: argparse.Namespace, host: str) -> SecurityCo
         tls_key=args.tls_key,
         proxy=list(args.proxy),
         public_hosts=list(args.public_host),
+        audit_anonymous_days=args.audit_anonymous_days,
     )
 
 
@@ -76,10 +97,28 @@ def _read_password(args: argparse.Namespace) -> str:
     return password
 
 
-def _store(args: argparse.Namespace) -> AuthStore:
+def account_data_dir(args: argparse.Namespace) -> Path:
+    """The data directory a ``users``/``tokens`` command works on.
+
+    ``--data-dir`` may stand before the action (``users --data-dir D add ...``) or after
+    it (``users add ... --data-dir D``), as the recipes print it; given twice it must
+    name the same directory.
+    """
     from servotune.storage import default_data_dir
 
-    data_dir: Path = args.data_dir or default_data_dir()
+    before: Path | None = args.data_dir
+    after: Path | None = getattr(args, "action_data_dir", None)
+    if before is not None and after is not None and before != after:
+        raise AccountError(f"--data-dir given twice: {before} and {after}")
+    return after or before or default_data_dir()
+
+
+def _store(args: argparse.Namespace, command: str) -> AuthStore:
+    try:
+        data_dir = account_data_dir(args)
+    except AccountError as exc:
+        print(f"servotune {command}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     return AuthStore(data_dir / AUTH_DB)
 
 
@@ -90,7 +129,7 @@ def _when(t_s: float | None) -> str:
 def cmd_users(args: argparse.Namespace) -> int:
     from servotune.auth.audit import AuditLog
 
-    store = _store(args)
+    store = _store(args, "users")
     audit = AuditLog(store.path)
     try:
         action = args.users_command
@@ -152,7 +191,7 @@ def cmd_users(args: argparse.Namespace) -> int:
 def cmd_tokens(args: argparse.Namespace) -> int:
     from servotune.auth.audit import AuditLog
 
-    store = _store(args)
+    store = _store(args, "tokens")
     audit = AuditLog(store.path)
     try:
         action = args.tokens_command
@@ -198,35 +237,55 @@ def cmd_tokens(args: argparse.Namespace) -> int:
         store.close()
 
 
+_DATA_DIR_HELP = (
+    "the server's data directory, where auth.db lives (default: as for 'serve'; the "
+    "demo's is <default>/demo, the hub's <default>/hub)"
+)
+
+
+def _action_data_dir(parser: argparse.ArgumentParser) -> None:
+    # Its own dest: an action's default would otherwise overwrite a --data-dir given
+    # before the action (argparse sets a subparser's defaults on the shared namespace).
+    parser.add_argument(
+        "--data-dir", dest="action_data_dir", type=Path, default=None, help=_DATA_DIR_HELP
+    )
+
+
 def add_account_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``users`` and ``tokens`` on the main parser's subcommands."""
     users = sub.add_parser("users", help="accounts for exposed mode (login)")
-    users.add_argument("--data-dir", type=Path, default=None)
+    users.add_argument("--data-dir", type=Path, default=None, help=_DATA_DIR_HELP)
     users_sub = users.add_subparsers(dest="users_command", required=True)
-    users_sub.add_parser("list", help="list accounts")
+    _action_data_dir(users_sub.add_parser("list", help="list accounts"))
     for name, text in (("add", "create an account"), ("passwd", "set a new password")):
         p = users_sub.add_parser(name, help=text)
         p.add_argument("name")
         if name == "add":
             p.add_argument("--role", choices=ROLE_ORDER, required=True)
         p.add_argument("--password-stdin", action="store_true", help="read one line from stdin")
+        _action_data_dir(p)
     remove = users_sub.add_parser("remove", help="delete an account, its sessions and tokens")
     remove.add_argument("name")
+    _action_data_dir(remove)
     role = users_sub.add_parser("role", help="change an account's role")
     role.add_argument("name")
     role.add_argument("role", choices=ROLE_ORDER)
+    _action_data_dir(role)
     users.set_defaults(func=cmd_users)
 
     tokens = sub.add_parser("tokens", help="API tokens for scripts (Authorization: Bearer)")
-    tokens.add_argument("--data-dir", type=Path, default=None)
+    tokens.add_argument("--data-dir", type=Path, default=None, help=_DATA_DIR_HELP)
     tokens_sub = tokens.add_subparsers(dest="tokens_command", required=True)
     listing = tokens_sub.add_parser("list", help="list tokens (never their secrets)")
+    _action_data_dir(listing)
     listing.add_argument("--user", default=None)
     create = tokens_sub.add_parser("create", help="make a token; printed once")
     create.add_argument("user")
     create.add_argument("name", help="what the token is for, e.g. 'nightly-bench'")
     create.add_argument("--role", choices=ROLE_ORDER, default=None, help="at most the user's")
     create.add_argument("--days", type=int, default=TOKEN_DEFAULT_DAYS)
+    _action_data_dir(create)
     revoke = tokens_sub.add_parser("revoke", help="delete a token")
     revoke.add_argument("id")
+    _action_data_dir(revoke)
     tokens.set_defaults(func=cmd_tokens)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 from fastapi import Depends, FastAPI
@@ -22,18 +22,29 @@ class InstalledSecurity:
     def __init__(self, state: SecurityState) -> None:
         self.state = state
 
-    @contextlib.contextmanager
-    def running(self, app: FastAPI) -> Iterator[SecurityState]:
+    @contextlib.asynccontextmanager
+    async def running(self, app: FastAPI) -> AsyncIterator[SecurityState]:
         """Open the accounts database and the audit writer for the app's lifetime, and
-        re-check open websockets against it (entered inside the running event loop)."""
+        re-check open websockets against it."""
         self.state.open()
         app.state.audit = self.state.audit
-        recheck = asyncio.get_running_loop().create_task(recheck_websockets(self.state))
+        loop = asyncio.get_running_loop()
+        recheck = loop.create_task(recheck_websockets(self.state))
+        # Exposed: the hashing workers start now, in the background, so the first login
+        # does not wait for a process to start (seconds on a loaded machine). Awaited,
+        # never cancelled, before closing: a start cut short would orphan its process.
+        passwords = self.state.require_passwords()
+        start = loop.create_task(passwords.start()) if self.state.exposed else None
         try:
             yield self.state
         finally:
             recheck.cancel()
-            self.state.close()
+            with contextlib.suppress(asyncio.CancelledError):
+                await recheck
+            if start is not None:
+                with contextlib.suppress(Exception):
+                    await start
+            await self.state.close()
 
 
 def install_security(app: FastAPI, config: SecurityConfig, data_dir: Path) -> InstalledSecurity:

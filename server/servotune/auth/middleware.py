@@ -19,6 +19,15 @@ Order of the checks on each HTTP request or websocket handshake:
      carries ``Authorization: Bearer`` (a browser never attaches that on its own).
 4. No CORS: no ``Access-Control-*`` header is ever sent, so a page on another origin
    cannot read any answer (nor the CSRF token).
+5. Body size, before anything parses it: a ``Content-Length`` over the route's cap is
+   refused with 413 at once, a chunked body once it passes the cap (MAX_BODY_BYTES,
+   1 MiB; the run import MAX_UPLOAD_BYTES, which holds its own 64 MiB limit).
+
+Every HTTP answer carries ``X-Frame-Options: DENY`` and ``Content-Security-Policy:
+frame-ancestors 'none'`` (no page of servotune may be framed by another site: a framed
+dashboard under a decoy is one click from a command), except the 3D twin under
+``/twin``, which the dashboard itself frames: ``SAMEORIGIN`` / ``'self'``. Under TLS
+(own, or the proxy's ``X-Forwarded-Proto: https``) ``Strict-Transport-Security`` too.
 
 The websocket's Origin and credentials are checked in ``servotune.auth.ws_auth`` (CORS
 rules do not cover websockets); the Host check here covers the handshake too.
@@ -35,6 +44,7 @@ import re
 from http.cookies import SimpleCookie
 from typing import Any
 
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from servotune.auth.security import CSRF_HEADER, SESSION_COOKIE, SecurityState
@@ -42,6 +52,20 @@ from servotune.auth.security import CSRF_HEADER, SESSION_COOKIE, SecurityState
 MUTATING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 CSRF_EXEMPT_PATHS = frozenset({"/api/auth/login"})
 _MAX_CAPTURE = 64 * 1024
+# Request bodies: every JSON body of the API is a few hundred bytes to a few KiB.
+MAX_BODY_BYTES = 1024 * 1024
+# The run import (multipart run.json + samples.csv) checks its own 64 MiB
+# (servotune.runio.MAX_IMPORT_BYTES); this cap leaves room for the multipart framing.
+MAX_UPLOAD_BYTES = 65 * 1024 * 1024
+HSTS = b"max-age=31536000"
+_FRAME_DENY = [
+    (b"x-frame-options", b"DENY"),
+    (b"content-security-policy", b"frame-ancestors 'none'"),
+]
+_FRAME_SELF = [
+    (b"x-frame-options", b"SAMEORIGIN"),
+    (b"content-security-policy", b"frame-ancestors 'self'"),
+]
 # The one route that takes file uploads (a run's run.json + samples.csv). A cross-site
 # form can post multipart without a preflight, so there the CSRF token below is what
 # refuses it; everywhere else a non-JSON body is refused before that.
@@ -104,6 +128,9 @@ class SecurityMiddleware:
             await self.app(scope, receive, send)
             return
         scope = self._forwarded(scope)
+        if scope["type"] == "http":
+            send = _with_headers(scope, send)
+            receive = _capped(receive, _body_cap(scope))
         refusal = self._refusal(scope)
         if refusal is not None:
             status, detail = refusal
@@ -145,7 +172,12 @@ class SecurityMiddleware:
         host = host_name(header(scope, "host") or "")
         if allowed is not None and host not in allowed:
             return 403, f"Host {host!r} is not a name of this server"
-        if scope["type"] == "websocket" or scope["method"] not in MUTATING:
+        if scope["type"] == "websocket":
+            return None
+        length = header(scope, "content-length")
+        if length is not None and length.strip().isdigit() and int(length) > _body_cap(scope):
+            return 413, f"request body over {_body_cap(scope)} bytes"
+        if scope["method"] not in MUTATING:
             return None
         fetch_site = header(scope, "sec-fetch-site")
         if fetch_site is not None and fetch_site not in ("same-origin", "none"):
@@ -210,15 +242,60 @@ class SecurityMiddleware:
                 parsed = json.loads(body)
             except ValueError:
                 parsed = None
+        # A route may state "after" itself (the console: the parameters read back).
+        stated = context.pop("after", None)
         if status < 400:
             result = "ok"
             after = parsed if context.pop("keep_after", False) else None
+            if stated is not None:
+                after = {"answer": after, "read_back": stated} if after is not None else stated
         else:
             context.pop("keep_after", None)
             detail = parsed.get("detail") if isinstance(parsed, dict) else None
             result = f"http {status}" + (f": {detail}" if isinstance(detail, str) else "")
             after = None
         audit.record(after=after, result=result, **context)
+
+
+def _body_cap(scope: Scope) -> int:
+    return MAX_UPLOAD_BYTES if _UPLOAD_PATH.match(scope.get("path", "")) else MAX_BODY_BYTES
+
+
+def _capped(receive: Receive, cap: int) -> Receive:
+    """``receive`` that refuses (413) a body once more than ``cap`` bytes came in: a
+    chunked body names no length, so it is counted as it arrives, before any parser
+    holds it whole."""
+    total = 0
+
+    async def capped() -> Message:
+        nonlocal total
+        message = await receive()
+        if message["type"] == "http.request":
+            total += len(message.get("body", b""))
+            if total > cap:
+                # Raised where the app reads the body; FastAPI passes HTTPException on.
+                raise StarletteHTTPException(413, f"request body over {cap} bytes")
+        return message
+
+    return capped
+
+
+def _with_headers(scope: Scope, send: Send) -> Send:
+    """``send`` that adds the frame headers (and HSTS under TLS) to every answer."""
+    framing = _FRAME_SELF if scope.get("path", "").startswith("/twin") else _FRAME_DENY
+    extra = list(framing)
+    if scope.get("scheme") == "https":
+        extra.append((b"strict-transport-security", HSTS))
+
+    async def with_headers(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            names = {bytes(k).lower() for k, _ in message.get("headers", [])}
+            headers = list(message.get("headers", []))
+            headers += [(k, v) for k, v in extra if k not in names]
+            message = {**message, "headers": headers}
+        await send(message)
+
+    return with_headers
 
 
 def _has_body(scope: Scope) -> bool:

@@ -10,8 +10,15 @@ Special values:
 - ``PUBLIC``: no principal needed (the login call, the anonymous session probe).
 - ``COMMAND``: the permission depends on the command named in the body
   (see :func:`command_permission`): ``stop``-group commands and aborts need only STOP,
-  ``save_*`` in the persist group needs PERSIST, everything else MOVE (a re-apply of
+  unless the command may power a motor (SLAP2 ``hold`` sends ``pm``): then MOVE, like
+  every other command; ``save_*`` in the persist group needs PERSIST (a re-apply of
   stored settings is TUNE).
+- ``CONSOLE_LINE``: the console. The caller needs CONSOLE, and then what the line is
+  (see :func:`console_permission`, from the descriptor's console rules): a read needs
+  nothing more, a parameter write TUNE, a line that is a descriptor command that
+  command's permission (``pg`` is ``save_eeprom``: PERSIST; ``ma`` is a move: MOVE), a
+  line that stores or erases settings PERSIST. A line whose effect the descriptor does
+  not state is refused (422) and never sent.
 """
 
 from __future__ import annotations
@@ -29,10 +36,11 @@ from servotune.auth.principal import (
     USERS,
     VIEW,
 )
-from servotune.descriptor import DeviceDescriptor
+from servotune.descriptor import DeviceDescriptor, UnknownConsoleLineError
 
 PUBLIC = "<public>"
 COMMAND = "<command>"
+CONSOLE_LINE = "<console line>"
 
 ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     # --- the dashboard itself (no bundle built): a static page with no data
@@ -47,7 +55,7 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("GET", "/api/axes/{axis_id}/state"): VIEW,
     ("POST", "/api/axes/{axis_id}/commands"): COMMAND,
     ("POST", "/api/stop"): STOP,
-    ("POST", "/api/axes/{axis_id}/console"): CONSOLE,
+    ("POST", "/api/axes/{axis_id}/console"): CONSOLE_LINE,
     ("WS", "/ws"): VIEW,
     # --- parameter sets
     ("GET", "/api/axes/{axis_id}/param-sets"): VIEW,
@@ -111,14 +119,46 @@ CSRF_EXEMPT = frozenset({("POST", "/api/auth/login")})
 
 
 def command_permission(descriptor: DeviceDescriptor, command: str) -> str:
-    """The permission a descriptor command needs (unknown names: MOVE, the hub refuses them)."""
+    """The permission a descriptor command needs (unknown names: MOVE, the hub refuses them).
+
+    STOP for the stops (every command of the ``stop`` group: STOP, power off, halt ...)
+    and the aborts, which every role may send to any axis, held or not; but a command
+    that may power a motor (``powers_motor``) is a change of the axis like a move, even
+    in the stop group: MOVE, and the control lock.
+    """
     aborts = {c.abort_command for c in descriptor.commands if c.abort_command}
     for spec in descriptor.commands:
         if spec.name != command:
             continue
-        if spec.group == "stop" or spec.name in aborts:
+        if spec.name in aborts or (spec.group == "stop" and not spec.powers_motor):
             return STOP
         if spec.group == "persist":
             return PERSIST if spec.name.startswith("save") else TUNE
         return MOVE
     return MOVE
+
+
+def console_permission(descriptor: DeviceDescriptor, line: str) -> str:
+    """The permission a console line needs besides CONSOLE (see the module doc).
+
+    Raises UnknownConsoleLineError when the descriptor does not state what the line does.
+    """
+    rule = descriptor.console.rule(line)
+    if rule.effect == "read":
+        return CONSOLE
+    if rule.effect == "write":
+        return TUNE
+    if rule.effect == "persist":
+        return PERSIST
+    return command_permission(descriptor, rule.command or "")
+
+
+__all__ = [
+    "COMMAND",
+    "CONSOLE_LINE",
+    "PUBLIC",
+    "ROUTE_PERMISSIONS",
+    "UnknownConsoleLineError",
+    "command_permission",
+    "console_permission",
+]

@@ -13,6 +13,8 @@ the proxy's address; login is required for everything but the login call itself.
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import hashlib
 import hmac
 import ipaddress
@@ -23,11 +25,13 @@ import sqlite3
 import tempfile
 import time
 from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, ParamSpec, TypeVar
 
-from servotune.auth.audit import AuditLog
+from servotune.auth.audit import ANONYMOUS_RETENTION_DAYS, AuditLog
+from servotune.auth.passwords import PasswordWorkers
 from servotune.auth.principal import Principal
 from servotune.auth.store import AuthStore
 from servotune.auth.throttle import LoginThrottle
@@ -40,6 +44,12 @@ SESSION_COOKIE = "servotune_session"
 CSRF_HEADER = "x-csrf-token"
 CLIENT_HEADER = "x-servotune-client"
 TICKET_TTL_S = 10.0
+# Threads that run the accounts database's short lookups (who is asking, sessions,
+# tokens): reserved for them, so no hash, run write or other pool user delays a STOP.
+AUTH_DB_THREADS = 2
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 class SecurityConfigError(ValueError):
@@ -56,6 +66,8 @@ class SecurityConfig:
     tls_key: Path | None = None
     proxy: list[str] = field(default_factory=list)  # addresses, CIDRs or host names
     public_hosts: list[str] = field(default_factory=list)  # names the dashboard is reached by
+    # Days the audit rows of anonymous callers (refusals, failed logins) are kept.
+    audit_anonymous_days: float = ANONYMOUS_RETENTION_DAYS
 
     @property
     def exposed(self) -> bool:
@@ -169,6 +181,9 @@ class SecurityState:
         # session cookie for the rebound name, and every call needs a login anyway).
         self.allowed_hosts: frozenset[str] | None = frozenset(hosts) if hosts else None
         self.throttle = LoginThrottle()
+        self.passwords: PasswordWorkers | None = None
+        self._db_pool: ThreadPoolExecutor | None = None
+        self._urgent_pool: ThreadPoolExecutor | None = None
         self.websockets = WsRegistry()
         self._tickets: dict[str, _Ticket] = {}
         self.store: AuthStore | None = None
@@ -204,10 +219,22 @@ class SecurityState:
             self.auth_path = Path(self._scratch.name) / AUTH_DB
             self.store = AuthStore(self.auth_path)
         check_exposed_startup(self.config, self.store)
-        self.audit = AuditLog(self.auth_path)
+        self.audit = AuditLog(
+            self.auth_path, anonymous_retention_days=self.config.audit_anonymous_days
+        )
         self._secret = self.store.server_secret()
+        self.passwords = PasswordWorkers()
+        self._db_pool = ThreadPoolExecutor(
+            max_workers=AUTH_DB_THREADS, thread_name_prefix="servotune-auth-db"
+        )
+        self._urgent_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="servotune-stop")
 
-    def close(self) -> None:
+    async def close(self) -> None:
+        if self.passwords is not None:
+            await self.passwords.close()
+        for pool in (self._db_pool, self._urgent_pool):
+            if pool is not None:
+                await asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True)
         if self.audit is not None:
             self.audit.close()
         if self.store is not None:
@@ -225,6 +252,31 @@ class SecurityState:
         if self.audit is None:
             raise RuntimeError("security state used before the app's lifespan started")
         return self.audit
+
+    def require_passwords(self) -> PasswordWorkers:
+        if self.passwords is None:
+            raise RuntimeError("security state used before the app's lifespan started")
+        return self.passwords
+
+    async def db(self, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
+        """Run a short accounts-database call in the threads reserved for it.
+
+        Never the shared default pool: there a queue of other work (hashes used to
+        run there) delayed the caller resolution of every request, STOP's included.
+        """
+        if self._db_pool is None:
+            raise RuntimeError("security state used before the app's lifespan started")
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._db_pool, functools.partial(fn, *args, **kwargs))
+
+    async def db_urgent(self, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
+        """``db`` in the one thread reserved for the stops' lookups (STOP, the stop-group
+        commands): no other request's lookup ever queues there."""
+        if self._urgent_pool is None:
+            raise RuntimeError("security state used before the app's lifespan started")
+        loop = asyncio.get_running_loop()
+        call = functools.partial(fn, *args, **kwargs)
+        return await loop.run_in_executor(self._urgent_pool, call)
 
     # --- CSRF ------------------------------------------------------------------------
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import os
 import re
 import secrets
 import sqlite3
@@ -28,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from servotune.auth.permissions import permissions_of, role_at_most
+from servotune.private_files import private_dir, private_file
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS users (
@@ -66,6 +66,12 @@ SESSION_LIFETIME_S = 12 * 3600.0  # a lab day; then log in again whatever happen
 TOKEN_DEFAULT_DAYS = 90
 TOKEN_MAX_DAYS = 366
 _LAST_SEEN_RESOLUTION_S = 30.0  # write last_seen at most this often (no write per request)
+
+
+def _expired(session: Session, now: float) -> bool:
+    return (
+        now - session.last_seen_s > SESSION_IDLE_S or now - session.created_s > SESSION_LIFETIME_S
+    )
 
 
 class AccountError(ValueError):
@@ -120,11 +126,9 @@ class AuthStore:
     """Users, sessions and tokens. Thread-safe: one connection behind a lock."""
 
     def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        new = not path.exists()
-        if new:
-            # Create the file 0600 before SQLite opens it: it holds password hashes.
-            os.close(os.open(path, os.O_CREAT | os.O_WRONLY, 0o600))
+        # The directory 0700 and the file 0600 before SQLite opens it: password hashes.
+        private_dir(path.parent)
+        private_file(path)
         self.path = path
         self._lock = threading.Lock()
         self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
@@ -256,10 +260,7 @@ class AuthStore:
             if row is None:
                 return None
             session = Session(*row)
-            if (
-                now - session.last_seen_s > SESSION_IDLE_S
-                or now - session.created_s > SESSION_LIFETIME_S
-            ):
+            if _expired(session, now):
                 self._db.execute("DELETE FROM sessions WHERE digest=?", (key,))
                 return None
             if now - session.last_seen_s > _LAST_SEEN_RESOLUTION_S:
@@ -267,13 +268,31 @@ class AuthStore:
         return session
 
     def session_by_public_id(self, public_id: str) -> Session | None:
+        """The session with this public id if it exists and has not expired (idle for
+        SESSION_IDLE_S or older than SESSION_LIFETIME_S: then it is deleted)."""
+        now = time.time()
         with self._lock:
             row = self._db.execute(
                 "SELECT s.digest, s.user, u.role, s.created_s, s.last_seen_s, s.password_s "
                 "FROM sessions s JOIN users u ON u.name = s.user WHERE substr(s.digest,1,16)=?",
                 (public_id,),
             ).fetchone()
-        return Session(*row) if row else None
+            if row is None:
+                return None
+            session = Session(*row)
+            if _expired(session, now):
+                self._db.execute("DELETE FROM sessions WHERE digest=?", (session.digest,))
+                return None
+        return session
+
+    def touch_session(self, public_id: str) -> None:
+        """The user acted over a websocket (a control action): not idle."""
+        now = time.time()
+        with self._lock:
+            self._db.execute(
+                "UPDATE sessions SET last_seen_s=? WHERE substr(digest,1,16)=? AND last_seen_s<?",
+                (now, public_id, now - _LAST_SEEN_RESOLUTION_S),
+            )
 
     def mark_password_entered(self, session_digest: str) -> None:
         with self._lock:

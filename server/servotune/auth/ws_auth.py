@@ -31,7 +31,7 @@ import logging
 
 from fastapi import WebSocket
 
-from servotune.auth.authz import resolve_principal
+from servotune.auth.authz import caller
 from servotune.auth.middleware import client_address, own_origin
 from servotune.auth.principal import VIEW, Principal
 from servotune.auth.security import CloseCallback, SecurityState
@@ -80,32 +80,42 @@ RECHECK_PERIOD_S = 2.0
 
 
 async def recheck_websockets(security: SecurityState) -> None:
-    """Forever: close sockets whose session or token has gone (CLI changes, expiry).
+    """Forever: close sockets whose session or token has gone.
 
-    Changes through the API close sockets at once; ``servotune users``/``tokens`` run in
-    another process and only change ``auth.db``, which this loop notices within
-    RECHECK_PERIOD_S.
+    Changes through the API close sockets at once. Every RECHECK_PERIOD_S this loop
+    also closes (1008) the sockets of a session that expired while they were open (an
+    hour without a request or a control action, or 12 hours old), and those of sessions
+    and tokens that ``servotune users``/``tokens`` changed in another process.
     """
     while True:
         await asyncio.sleep(RECHECK_PERIOD_S)
-        store = security.store
-        if store is None:
+        try:
+            await _recheck(security)
+        except RuntimeError:
+            return  # the security state closed (shutdown)
+        except Exception:  # one failed pass must not end the checks for good
+            logger.exception("re-checking the open websockets failed")
+
+
+async def _recheck(security: SecurityState) -> None:
+    store = security.store
+    if store is None:
+        return
+    for principal, callback in security.websockets.entries():
+        session_id = principal.session_id or ""
+        if principal.via == "session":
+            alive = await security.db(store.session_by_public_id, session_id) is not None
+        elif principal.via == "token":
+            token_id = session_id.removeprefix("token:")
+            alive = await security.db(store.token_alive, token_id)
+        else:
             continue
-        for principal, callback in security.websockets.entries():
-            session_id = principal.session_id or ""
-            if principal.via == "session":
-                alive = await asyncio.to_thread(store.session_by_public_id, session_id) is not None
-            elif principal.via == "token":
-                token_id = session_id.removeprefix("token:")
-                alive = await asyncio.to_thread(store.token_alive, token_id)
-            else:
-                continue
-            if not alive:
-                security.websockets.remove(callback)
-                with contextlib.suppress(Exception):
-                    result = callback()
-                    if inspect.isawaitable(result):
-                        await result
+        if not alive:
+            security.websockets.remove(callback)
+            with contextlib.suppress(Exception):
+                result = callback()
+                if inspect.isawaitable(result):
+                    await result
 
 
 async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
@@ -142,12 +152,12 @@ async def authenticate_websocket(websocket: WebSocket) -> Principal | None:
         if principal.via == "session" and principal.session_id is not None:
             # The session may have ended in the seconds since the ticket was issued.
             store = security.require_store()
-            alive = await asyncio.to_thread(store.session_by_public_id, principal.session_id)
+            alive = await security.db(store.session_by_public_id, principal.session_id)
             if alive is None:
                 await refuse("the ticket's session has ended", principal.user)
                 return None
     else:
-        principal, _ = await asyncio.to_thread(resolve_principal, websocket, security)
+        principal, _ = await caller(websocket, security)
     if principal is None:
         await refuse("not logged in")
         return None

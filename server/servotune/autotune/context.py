@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
+from itertools import pairwise
 from typing import Any, Final
 
 from servotune.compute import ComputePool
@@ -23,6 +24,14 @@ from servotune.testbench import BenchTestRequest, TestBench
 # that delivers nothing for this long is also shown down by its status.
 SAMPLE_TIMEOUT_S: Final = 2.0
 RUN_GRACE_S: Final = 10.0  # a recorded test may finish this much after its duration
+# At rest before an identification: the position watched this long (and over at least
+# REST_SAMPLES samples) must stay within REST_SPREAD_COUNTS. An axis ringing in a limit
+# cycle shows no move flag (the profile has ended) and may read no velocity at the
+# sample that happens to fall on a turning point; an identification started on it
+# fitted the ring and reported "the shaft did not move" (issue 25).
+REST_WINDOW_S: Final = 0.3
+REST_SAMPLES: Final = 3
+REST_SPREAD_COUNTS: Final = 20.0
 
 
 class TuningContext:
@@ -40,6 +49,7 @@ class TuningContext:
         # Per axis: the stop generation when the running sequence started.
         self.generations: dict[str, int] = {}
         self._sample_events: dict[str, asyncio.Event] = {}
+        self._watched: dict[str, list[tuple[float, float]]] = {}  # axis -> (t, position)
         hub.add_sample_listener(self._on_sample)
 
     # --- samples ----------------------------------------------------------------------
@@ -48,6 +58,10 @@ class TuningContext:
         event = self._sample_events.get(axis_id)
         if event is not None:
             event.set()
+        watched = self._watched.get(axis_id)
+        position = sample.channels.get("position")
+        if watched is not None and position is not None:
+            watched.append((sample.t, float(position)))
 
     async def next_sample(self, entry: AxisEntry) -> Sample:
         """The axis' next sample; DriverError if none comes for ``SAMPLE_TIMEOUT_S``."""
@@ -101,7 +115,7 @@ class TuningContext:
         try:
             await entry.driver.stop()
         except DriverError:
-            entry.stop_on_reconnect = True
+            self.hub.pend_stop(entry)
             self.hub.on_event(
                 "error", entry.info.id, "auto-tune: stop failed; repeated when the link is back"
             )
@@ -113,6 +127,34 @@ class TuningContext:
 
     def connected(self, entry: AxisEntry) -> bool:
         return entry.latest is not None and self.hub.link_status(entry.link.id).state == "connected"
+
+    async def check_at_rest(self, entry: AxisEntry) -> None:
+        """Refuse (409) an axis whose position moves by more than
+        ``REST_SPREAD_COUNTS`` over ``REST_WINDOW_S``, whatever its flags say."""
+        watched = self._watched[entry.info.id] = []
+        try:
+            deadline = self.clock() + REST_WINDOW_S + SAMPLE_TIMEOUT_S
+            while self.clock() < deadline:
+                await self.sample_before(entry, deadline)
+                if len(watched) >= REST_SAMPLES and watched[-1][0] - watched[0][0] >= REST_WINDOW_S:
+                    break
+        finally:
+            self._watched.pop(entry.info.id, None)
+        if len(watched) < 2:
+            raise DriverError("no telemetry from the axis: is the link up?")
+        positions = [p for _, p in watched]
+        spread = max(positions) - min(positions)
+        if spread <= REST_SPREAD_COUNTS:
+            return
+        speed = max(
+            (abs(pb - pa) / (tb - ta) for (ta, pa), (tb, pb) in pairwise(watched) if tb > ta),
+            default=0.0,
+        )
+        raise DeviceRefusedError(
+            f"the axis is moving: up to {speed:,.0f} counts/s, {spread:,.0f} counts of travel "
+            f"in {watched[-1][0] - watched[0][0]:.1f} s although no move is running (ringing?): "
+            "an identification needs it at rest — stop or hold it first"
+        )
 
     def check_idle(self, entry: AxisEntry) -> None:
         if self.test_running(entry):

@@ -27,6 +27,7 @@ from servotune.drivers.base import (
     DriverError,
     InvalidArgumentError,
     LinkDownError,
+    MeasurementError,
 )
 from servotune.drivers.z1100 import Z1100Axis
 from servotune.hub import Hub
@@ -165,6 +166,9 @@ class AutoTuner:
                     raise InvalidArgumentError(exc.field, message) from exc
                 if isinstance(exc, LinkDownError | DeviceTimeoutError):
                     raise type(exc)(message) from exc
+                if isinstance(exc, MeasurementError | ValueError):
+                    # The fit or the record could not support a model: nothing refused.
+                    raise MeasurementError(message) from exc
                 raise DeviceRefusedError(message) from exc
             self._set(session, "proposed", tuner.proposed_message(body))
             return body
@@ -269,7 +273,7 @@ class AutoTuner:
                         f"THE NEW GAINS ARE IN FORCE, UNVERIFIED: writing back the previous "
                         f"gains failed ({restore_exc}); press Revert when the axis is back"
                     )
-            cause = "STOP was pressed" if stopped else str(exc)
+            cause = entry.stop_cause if stopped else str(exc)
             message = f"verification ended: {cause}; axis stopped; {restored_note}"
             self._set(session, "failed", message)
             body = {

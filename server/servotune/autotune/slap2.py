@@ -18,7 +18,7 @@ from servotune.autotune.context import TuningContext
 from servotune.autotune.recording import IdentificationRun
 from servotune.autotune.session import IdentifyRequest, Session, TestKind
 from servotune.autotune.slap2_rule import Proposal, propose_gains, settles
-from servotune.autotune.verdict import verdict
+from servotune.autotune.verdict import verdict_with_reason
 from servotune.drivers.base import (
     CommandClock,
     DeviceRefusedError,
@@ -75,6 +75,7 @@ class Slap2Tuner:
         )
         self._ctx.check_idle(entry)
         self._current_gains(entry)  # read before anything moves
+        await self._ctx.check_at_rest(entry)
         return distance
 
     @staticmethod
@@ -387,6 +388,12 @@ class Slap2Tuner:
         await self._move_and_wait(entry, start, gentle.profile_time_s())
         measured = verification.get("metrics") or {}
         baseline_measured = baseline.get("metrics") if baseline else None
+        decided, why = verdict_with_reason(
+            baseline_measured,
+            measured,
+            baseline_unmeasured=unmeasured(baseline),
+            tuned_unmeasured=unmeasured(verification),
+        )
         return {
             "gains": proposal.gains.to_dict(),
             "previous_gains": proposal.current_gains.to_dict(),
@@ -397,13 +404,8 @@ class Slap2Tuner:
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,
             "baseline_note": baseline_note,
-            "verdict": verdict(
-                baseline_measured,
-                measured,
-                baseline_unmeasured=unmeasured(baseline),
-                tuned_unmeasured=unmeasured(verification),
-            ),
-            "verdict_reason": unmeasured(verification) or unmeasured(baseline),
+            "verdict": decided,
+            "verdict_reason": why,
         }
 
     @staticmethod

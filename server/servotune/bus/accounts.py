@@ -18,6 +18,13 @@ file per user, ``DIR/<user>.cred`` (user name, password; mode 0600), for
   ``<hub>-stop`` sends STOP and the session's keep-alives, nothing else;
 * a viewer (a script that watches, a wall display) publishes nothing at all and
   subscribes to telemetry and events: a handmade command is refused by nats-server.
+
+Limits (what nats-server 2.9's configuration offers; it has no per-user or per-account
+message rates, so one rig's flood is limited by the hub, ``bus.gate``): each user may
+connect only the way it must (``allowed_connection_types``: a leaf rig's user only as
+a leaf node, every other user only as a client), a rig answers each request at most
+twice (taken, outcome: ``allow_responses``), and the lab's account bounds its
+JetStream streams and consumers and its subscriptions (``LabLimits``).
 """
 
 from __future__ import annotations
@@ -37,7 +44,8 @@ class Permissions:
     publish_allow: tuple[str, ...] = ()
     publish_deny: tuple[str, ...] = ()
     subscribe_allow: tuple[str, ...] = ()
-    allow_responses: bool = False
+    # How many answers the user may publish to each request it received (0: none).
+    allow_responses: int = 0
 
     def to_conf(self) -> str:
         """nats-server configuration syntax of these permissions."""
@@ -49,7 +57,7 @@ class Permissions:
         parts = [f"publish: {{ {', '.join(publish)} }}"]
         parts.append(f"subscribe: {{ allow: {_list(self.subscribe_allow)} }}")
         if self.allow_responses:
-            parts.append("allow_responses: true")
+            parts.append(f"allow_responses: {{ max: {self.allow_responses} }}")
         return "{ " + ", ".join(parts) + " }"
 
 
@@ -63,7 +71,13 @@ def rig_permissions(rig: str, *, leaf: bool = False) -> Permissions:
     lab's domain-API requests into the leaf and the leaf's answers and deliveries."""
     subjects.check_token("rig", rig)
     root = f"{subjects.PREFIX}.{rig}"
-    publish: tuple[str, ...] = (f"{root}.>",)
+    # The two literal subjects are inside ``<root>.>`` already: they are there for
+    # nats-server's leaf nodes, which pass the hub's subscriptions with a wildcard in
+    # the rig's token (``servotune.v1.*.presence``, ``*.manifest``: how the hub finds
+    # a rig it does not know yet) to a leaf only if one of its user's publish entries
+    # matches them token by token (nats-server 2.9.10, checked in
+    # tests/test_bus_leaf.py; without them such a subscription hears no leaf rig).
+    publish: tuple[str, ...] = (f"{root}.>", subjects.presence(rig), subjects.manifest(rig))
     subscribe: tuple[str, ...] = (
         f"{root}.*.*.cmd.*",
         f"{root}.cmd.*",
@@ -74,7 +88,8 @@ def rig_permissions(rig: str, *, leaf: bool = False) -> Permissions:
         # 2.9: the hub's requests time out), so the leaf may publish to reply inboxes.
         publish += ("$JSC.>", "$JS.S.>", "_INBOX.>")
         subscribe += (f"$JS.{rig}.API.>", "$JS.FC.>")
-    return Permissions(publish_allow=publish, subscribe_allow=subscribe, allow_responses=True)
+    # Two answers to a command: "taken" before it runs, then its outcome (bus.rig).
+    return Permissions(publish_allow=publish, subscribe_allow=subscribe, allow_responses=2)
 
 
 def hub_permissions() -> Permissions:
@@ -89,10 +104,12 @@ def hub_permissions() -> Permissions:
 
 
 def hub_view_permissions() -> Permissions:
-    """The hub's viewing user (its ``view`` connection): every rig's telemetry, events,
-    presence and manifest; the only requests it may send are reads (parameters, a
-    rig's snapshot, the last values of the rigs and presence streams). Not a single
-    command: what a hub viewer does goes through this connection or nowhere."""
+    """The hub's viewing user (its ``view`` connection): every rig's telemetry, events
+    and manifest; the only requests it may send are reads (parameters, a rig's
+    snapshot, the last values of the rigs and presence streams). Not a single
+    command: what a hub viewer does goes through this connection or nowhere. It may
+    not subscribe to a command subject either: a subscriber there would answer
+    nats-server's "anyone listening?" for a rig that is gone (no-responders)."""
     prefix = subjects.PREFIX
     return Permissions(
         publish_allow=(
@@ -104,21 +121,28 @@ def hub_view_permissions() -> Permissions:
             f"$JS.API.STREAM.MSG.GET.{subjects.RIGS_STREAM}",
             f"$JS.API.STREAM.MSG.GET.{subjects.PRESENCE_STREAM}",
         ),
-        subscribe_allow=(f"{prefix}.>", "_INBOX.>"),
+        subscribe_allow=(
+            f"{prefix}.*.*.*.telemetry",
+            f"{prefix}.*.events",
+            subjects.RIGS_SUBJECTS,
+            "_INBOX.>",
+        ),
     )
 
 
 def hub_stop_permissions() -> Permissions:
-    """The hub's STOP user (its ``stop`` connection): STOP one axis, STOP a rig, and
-    the session's keep-alives; nothing else."""
+    """The hub's STOP user (its ``stop`` connection, the safety lane ``bus.lane``):
+    STOP one axis, STOP a rig, the session's keep-alives and the clock probes; it
+    hears the rigs' presence. Nothing else."""
     prefix = subjects.PREFIX
     return Permissions(
         publish_allow=(
             f"{prefix}.*.*.*.cmd.{subjects.STOP}",
             f"{prefix}.*.cmd.stop_all",
             f"{prefix}.*.cmd.keepalive",
+            f"{prefix}.*.cmd.{subjects.CLOCK}",
         ),
-        subscribe_allow=("_INBOX.>",),
+        subscribe_allow=(subjects.PRESENCE_SUBJECTS, "_INBOX.>"),
     )
 
 
@@ -135,6 +159,24 @@ class Account:
     user: str
     password: str
     permissions: Permissions
+    # "STANDARD" (a client), "LEAFNODE" (a rig's own nats-server), ...
+    connection_types: tuple[str, ...] = ("STANDARD",)
+
+
+@dataclass(frozen=True, slots=True)
+class LabLimits:
+    """The lab account's limits (``accounts_conf``): JetStream streams and consumers
+    (the lab needs 3 streams and the hub's consumer; the rest is headroom for tools)
+    and subscriptions (a rig uses about 10, the hub 3 per rig): bounds against a
+    client gone wrong, not a share per rig (nats-server 2.9 has none per user)."""
+
+    max_streams: int = 16
+    max_consumers: int = 64
+    max_subscriptions: int = 10_000
+
+    @classmethod
+    def for_lab(cls, rigs: int) -> LabLimits:
+        return cls(max_subscriptions=10_000 + 100 * rigs)
 
 
 def lab_accounts(
@@ -147,8 +189,10 @@ def lab_accounts(
         Account(f"{hub}-view", secrets.token_urlsafe(24), hub_view_permissions()),
         Account(f"{hub}-stop", secrets.token_urlsafe(24), hub_stop_permissions()),
     ]
+    rig_connection = ("LEAFNODE",) if leaf else ("STANDARD",)
     accounts += [
-        Account(rig, secrets.token_urlsafe(24), rig_permissions(rig, leaf=leaf)) for rig in rigs
+        Account(rig, secrets.token_urlsafe(24), rig_permissions(rig, leaf=leaf), rig_connection)
+        for rig in rigs
     ]
     accounts += [
         Account(subjects.check_token("viewer", v), secrets.token_urlsafe(24), viewer_permissions())
@@ -160,16 +204,25 @@ def lab_accounts(
     return accounts
 
 
-def accounts_conf(accounts: list[Account]) -> str:
+def accounts_conf(accounts: list[Account], limits: LabLimits | None = None) -> str:
     """The ``accounts`` block: one account with JetStream, every user in it."""
+    if limits is None:
+        rigs = sum(1 for a in accounts if a.permissions.allow_responses)
+        limits = LabLimits.for_lab(rigs)
     users = ",\n".join(
         f'    {{ user: "{a.user}", password: "{a.password}", '
+        f"allowed_connection_types: {_list(a.connection_types)}, "
         f"permissions: {a.permissions.to_conf()} }}"
         for a in accounts
     )
     return (
-        "# Written by `servotune bus-accounts`: users and permissions of the lab's bus.\n"
-        f"accounts {{\n  {ACCOUNT} {{\n    jetstream: enabled\n    users = [\n{users}\n    ]\n"
+        "# Written by `servotune bus-accounts`: users, permissions and limits of the lab's\n"
+        "# bus (docs/lab.md). Storage is the server's (jetstream { max_file_store }).\n"
+        f"accounts {{\n  {ACCOUNT} {{\n"
+        f"    jetstream: {{ max_streams: {limits.max_streams}, "
+        f"max_consumers: {limits.max_consumers} }}\n"
+        f"    limits: {{ max_subscriptions: {limits.max_subscriptions} }}\n"
+        f"    users = [\n{users}\n    ]\n"
         "  }\n}\n"
     )
 

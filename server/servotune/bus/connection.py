@@ -9,6 +9,7 @@ and the password on the second. Neither is logged.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,6 +17,7 @@ from typing import Any, Literal
 
 import nats
 from nats.aio.client import Client
+from nats.errors import SlowConsumerError
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +45,12 @@ class BusSettings:
     keepalive_period_s: float = 0.1
     request_timeout_s: float = 5.0
     stop_timeout_s: float = 2.0
+    # A command the rig has not taken this long after the hub sent it is not run (the
+    # rig drops it: ``CommandRequest.deadline_s``); the hub says so a second later.
+    command_start_within_s: float = 3.0
+    # The hub takes at most this much telemetry a second from one rig (``bus.gate``):
+    # about 5,000 SLAP2 samples/s in 30 batches/s per axis; more sheds that rig's oldest.
+    rig_telemetry_bytes_per_s: float = 500_000.0
 
 
 HubRole = Literal["operate", "view", "stop"]
@@ -101,20 +109,40 @@ async def connect_bus(
     name: str,
     inbox_prefix: str | None = None,
     on_error: Callable[[Exception], Awaitable[None]] | None = None,
+    on_reconnect: Callable[[], Awaitable[None]] | None = None,
 ) -> Client:
-    """A connection to the bus that reconnects for ever (a rig outlives lab outages)."""
+    """A connection to the bus that reconnects for ever (a rig outlives lab outages).
+    ``on_reconnect``: called after every reconnection."""
+    # What nats-py reports again and again (a message dropped for a slow consumer, a
+    # reconnect attempt refused) is counted and logged at most every 10 s per kind.
+    repeated: dict[str, list[float]] = {}
 
     async def error_cb(exc: Exception) -> None:
         # nats-py reports permission violations and lost connections here; the message
         # names the subject, never a credential.
-        logger.warning("bus %s: %s", name, exc)
+        kind = type(exc).__name__
+        if isinstance(exc, SlowConsumerError | OSError):
+            seen = repeated.setdefault(kind, [0.0, -60.0])
+            seen[0] += 1
+            if time.monotonic() - seen[1] < 10.0:
+                return
+            seen[1] = time.monotonic()
+            logger.warning("bus %s: %s (%d times so far)", name, exc, int(seen[0]))
+        else:
+            logger.warning("bus %s: %s", name, exc)
         if on_error is not None:
             await on_error(exc)
+
+    async def reconnected_cb() -> None:
+        logger.info("bus %s: connected again", name)
+        if on_reconnect is not None:
+            await on_reconnect()
 
     options: dict[str, Any] = {
         "servers": [settings.url],
         "name": name,
         "error_cb": error_cb,
+        "reconnected_cb": reconnected_cb,
         "allow_reconnect": True,
         "max_reconnect_attempts": -1,
         "reconnect_time_wait": 0.5,

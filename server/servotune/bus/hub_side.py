@@ -6,20 +6,26 @@ their ``RemoteLink``s, keeps its session alive on every rig, and collects their 
   time from the manifests rigs publish when they join: a new rig's links are
   registered live (``Hub.add_running_link``, ``ControlManager.add_link``) and every
   web client gets a new ``hello``, so its navigation lists the rig at once.
-* Connections, one per kind of request (``BusPort``), each its own NATS user with
-  its own permissions (``accounts``): ``view`` (subscriptions, snapshots, parameter
-  reads: may not publish any command), ``operate`` (commands, parameter writes,
-  console, the JetStream API) and ``stop`` (STOP, STOP all, keep-alives).
-* Presence: the hub listens to the rigs' presence messages (every 0.5 s per rig);
-  ``offline_after_s`` (1.5 s) of silence shows the rig offline, and a "gone" presence
-  (a rig stopping cleanly) at once.
-* Keep-alive: every ``keepalive_period_s`` (100 ms) on the STOP connection, to every
-  rig, with this hub's session id; the rig's dead-man stops what this session moved
-  when they stop coming (hub killed, lab network or leaf link cut).
+* Connections, one per kind of traffic, each its own NATS user with its own
+  permissions (``accounts``): ``view`` (telemetry and events, one subscription per
+  rig, snapshots, parameter reads: may not publish any command), ``operate``
+  (commands, parameter writes, console, the JetStream API) and ``stop`` (STOP, the
+  keep-alives, the rigs' presence and clock probes), the last in a thread of its own
+  (``bus.lane``): nothing the other two carry can delay it.
+* The hub subscribes to nothing it sends requests to (no ``servotune.v1.>``), so a
+  request nobody answers is refused at once by nats-server (no-responders).
+* Identity from the subject: telemetry, events, presence, manifests and runs are
+  attributed to the rig (and axis) of the subject nats-server let the rig publish
+  on; a message that names another is refused and logged (stored manifests too,
+  when the hub starts).
+* Telemetry passes ``bus.gate``: per rig at most ``rig_telemetry_bytes_per_s`` (its
+  oldest shed first), nothing older than ``remote.LIVE_MAX_AGE_S``, and the hub's
+  loop never spends more than half its time on it.
 * Runs: a durable pull consumer on ``SERVOTUNE_RUNS`` writes every run into the hub's
-  SQLite store with the rig's name; acknowledged after the write, so a run published
-  while the hub was down is delivered when it is back (JetStream replay). A run
-  already stored (redelivery) is acknowledged and skipped.
+  SQLite store with the rig's name; acknowledged after the write (which removes it
+  from the work-queue stream, ``bus.streams``), so a run published while the hub was
+  down is delivered when it is back (JetStream replay). A run already stored
+  (redelivery) is acknowledged and skipped.
 """
 
 from __future__ import annotations
@@ -28,22 +34,26 @@ import asyncio
 import contextlib
 import json
 import logging
-import secrets
+from collections.abc import Awaitable, Callable
 
 from nats.aio.client import Client
 from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import TimeoutError as NatsTimeoutError
-from nats.js.api import ConsumerConfig, StorageType, StreamConfig
+from nats.js.api import ConsumerConfig
 from nats.js.errors import Error as JetStreamError
 from nats.js.errors import NotFoundError
 from pydantic import ValidationError
 
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus, role_settings
+from servotune.bus.gate import PUMP_PERIOD_S, TelemetryGate
+from servotune.bus.lane import SafetyLane
 from servotune.bus.leaf import ensure_sources
-from servotune.bus.messages import KeepAlive, RigManifest, RunRecord
-from servotune.bus.remote import BusPort, RemoteLink, hub_id
+from servotune.bus.messages import RigManifest, RunRecord
+from servotune.bus.remote import LIVE_MAX_AGE_S, BusPort, RemoteLink, hub_id
+from servotune.bus.replies import ReplyMux
+from servotune.bus.streams import ensure_bus_state
 from servotune.bus.tasks import BackgroundTasks
 from servotune.control import ControlManager
 from servotune.hub import Hub
@@ -51,38 +61,11 @@ from servotune.storage import Storage, StorageError
 
 logger = logging.getLogger(__name__)
 
-RUNS_DUPLICATE_WINDOW_S = 24 * 3600.0
+__all__ = ["HubBus", "ensure_bus_state", "last_values"]
 
-
-async def ensure_bus_state(nc: Client) -> None:
-    """Create the rigs, presence and runs streams if they are missing (the hub's job)."""
-    js = nc.jetstream()
-    for config in (
-        StreamConfig(
-            name=subjects.RIGS_STREAM,
-            subjects=[subjects.RIGS_SUBJECTS],
-            max_msgs_per_subject=1,
-            storage=StorageType.FILE,
-        ),
-        StreamConfig(
-            name=subjects.PRESENCE_STREAM,
-            subjects=[subjects.PRESENCE_SUBJECTS],
-            max_msgs_per_subject=1,
-            max_age=subjects.PRESENCE_TTL_S,
-            storage=StorageType.MEMORY,
-        ),
-        StreamConfig(
-            name=subjects.RUNS_STREAM,
-            subjects=[subjects.RUNS_SUBJECTS],
-            storage=StorageType.FILE,
-            duplicate_window=RUNS_DUPLICATE_WINDOW_S,
-        ),
-    ):
-        assert config.name is not None
-        try:
-            await js.stream_info(config.name)
-        except NotFoundError:
-            await js.add_stream(config=config)
+# A rig's telemetry waiting in nats-py for the hub's callback, at most (a last resort:
+# ``bus.gate`` sheds long before); beyond, nats-py drops that rig's newest.
+RIG_PENDING_BYTES = 16 << 20
 
 
 async def last_values(nc: Client, stream: str) -> dict[str, bytes]:
@@ -106,10 +89,9 @@ class HubBus:
             raise ValueError("a hub needs a name on the bus")
         self.name = subjects.check_token("--hub-name", settings.hub)
         self._settings = settings
-        self._session = secrets.token_hex(16)
         self._nc: Client | None = None
         self._view_nc: Client | None = None
-        self._stop_nc: Client | None = None
+        self.lane = SafetyLane(settings, self.name, self._on_unknown_rig)
         self._port: BusPort | None = None
         self._hub: Hub | None = None
         self._control: ControlManager | None = None
@@ -120,48 +102,87 @@ class HubBus:
         self._asking: set[str] = set()
         # Leaf rigs (their own JetStream domain) whose streams the lab's source.
         self._sourced: set[str] = set()
+        # Rigs whose telemetry and events the view connection subscribes to.
+        self._subscribed: set[str] = set()
         self.links: dict[tuple[str, str], RemoteLink] = {}
         self._rigs: dict[str, list[RemoteLink]] = {}
         self._tasks = BackgroundTasks(logger)
+        self.gate: TelemetryGate[tuple[RemoteLink, str, bytes]] = TelemetryGate(
+            settings.rig_telemetry_bytes_per_s,
+            max_wait_s=LIVE_MAX_AGE_S,
+            on_shed=self._shed,
+        )
         self.runs_stored = 0
+        self.runs_refused = 0
 
     async def prepare(self, hub: Hub, storage: Storage) -> None:
         """Connect, create what is missing, and register every known rig's links."""
         self._hub, self._storage = hub, storage
         base = f"hub-{self.name}"
-        self._nc = await connect_bus(role_settings(self._settings, "operate"), name=base)
+        self._nc = await connect_bus(
+            role_settings(self._settings, "operate"), name=base, on_reconnect=self._reconnected
+        )
         self._view_nc = await connect_bus(
             role_settings(self._settings, "view"), name=f"{base}-view"
         )
-        self._stop_nc = await connect_bus(
-            role_settings(self._settings, "stop"), name=f"{base}-stop"
-        )
+        await self.lane.start()
+        self._tasks.spawn(self._turns(), "bus: the hub's loop turns")
         await ensure_bus_state(self._nc)
+        mux = ReplyMux(self._nc)
+        await mux.start()
         self._port = BusPort(
             self._nc,
-            self._stop_nc,
-            self._session,
+            self._view_nc,
+            self.lane,
+            mux,
             self.name,
             self._settings.request_timeout_s,
             self._settings.stop_timeout_s,
-            view_nc=self._view_nc,
+            start_within_s=self._settings.command_start_within_s,
         )
         for manifest in await self._manifests():
             self._add_rig(manifest)
 
+    async def _turns(self) -> None:
+        """Tell the safety lane this loop turns: its keep-alives say the hub can act."""
+        while True:
+            self.lane.main_turned()
+            await asyncio.sleep(self._settings.keepalive_period_s)
+
+    async def _reconnected(self) -> None:
+        """The lab's server is back: it may have restarted and lost the presence
+        stream (memory) or more; create what is missing."""
+        if self._nc is None:
+            return
+        try:
+            await ensure_bus_state(self._nc)
+        except (NatsError, JetStreamError, TimeoutError) as exc:
+            logger.warning("bus: streams not checked after the reconnect (%s)", exc)
+
     async def _manifests(self) -> list[RigManifest]:
+        """The rigs stream's manifests, each checked against its subject's rig."""
         assert self._view_nc is not None
         found = []
         for rig, data in (await last_values(self._view_nc, subjects.RIGS_STREAM)).items():
             try:
-                found.append(RigManifest.model_validate_json(data))
+                manifest = RigManifest.model_validate_json(data)
             except ValidationError as exc:
                 logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
+                continue
+            if manifest.rig != rig:
+                logger.error(
+                    "the stored manifest on rig %s's subject names rig %s: refused, not listed",
+                    rig,
+                    manifest.rig,
+                )
+                continue
+            found.append(manifest)
         return found
 
     def _new_links(self, manifest: RigManifest) -> list[RemoteLink]:
         """RemoteLinks for the links of ``manifest`` the hub does not have yet."""
         assert self._hub is not None and self._port is not None
+        live = self.lane.list_rig(manifest.rig)
         links = []
         for info in manifest.links:
             key = (manifest.rig, info.info.id)
@@ -176,12 +197,7 @@ class HubBus:
                     )
                 continue
             link = RemoteLink(
-                manifest.rig,
-                info,
-                self._port,
-                self._hub,
-                self._settings.offline_after_s,
-                self._hub.broadcast_model,
+                manifest.rig, info, self._port, self._hub, live, self._hub.broadcast_model
             )
             self.links[key] = link
             self._rigs.setdefault(manifest.rig, []).append(link)
@@ -205,6 +221,7 @@ class HubBus:
             for link in added:
                 await self._hub.add_running_link(link)
                 self._control.add_link(link.id)
+            await self._subscribe_rig(manifest.rig)
             if added:
                 axes = sum(len(link.remote_axes) for link in added)
                 logger.info("rig %s joined: %d link(s), %d axes", manifest.rig, len(added), axes)
@@ -224,9 +241,15 @@ class HubBus:
         except (NatsError, JetStreamError) as exc:
             logger.warning("rig %s: its streams not sourced yet (%s)", manifest.rig, exc)
 
+    def _on_unknown_rig(self, rig: str) -> None:
+        """The lane heard a rig the hub does not list (a leaf rig whose manifest the
+        lab's stream has not got, or one that joined unseen): ask for its manifest."""
+        if rig in self._rigs or rig in self._asking or self._control is None:
+            return
+        self._asking.add(rig)
+        self._tasks.spawn(self._ask_manifest(rig), f"bus: manifest of {rig}")
+
     async def _ask_manifest(self, rig: str) -> None:
-        """A rig heard but not known (a leaf rig whose manifest the lab's stream has not
-        got, or one that joined unseen): ask it for its manifest."""
         assert self._view_nc is not None
         try:
             msg = await self._view_nc.request(
@@ -235,40 +258,52 @@ class HubBus:
             manifest = RigManifest.model_validate_json(msg.data)
             if manifest.rig == rig:
                 await self._add_rig_live(manifest)
-        except (NatsError, ValidationError) as exc:
+            else:
+                logger.error(
+                    "rig %s answered with a manifest of rig %s: refused", rig, manifest.rig
+                )
+        except (NatsError, TimeoutError, ValidationError) as exc:
             logger.info("rig %s: manifest not got (%s); asked again on its next presence", rig, exc)
         finally:
             self._asking.discard(rig)
 
     async def start(self, control: ControlManager) -> None:
-        """Listen to the rigs, keep the session alive, collect the runs."""
+        """Listen to the rigs, collect the runs (the lane keeps the session alive)."""
         assert self._view_nc is not None
         self._control = control
-        nc = self._view_nc
-        # One subscription to everything, dispatched here: nats-server 2.9 does not
-        # carry a subscription with a wildcard in the rig's token (``...v1.*.presence``)
-        # across a leaf link whose user may publish only ``servotune.v1.<rig>.>``
-        # (checked: such a subscription hears nothing from a leaf rig; ``v1.>`` does).
-        await nc.subscribe(f"{subjects.PREFIX}.>", cb=self._on_bus)
-        await nc.flush()
+        # Manifests of every rig (the rig token a wildcard: nats-server 2.9.10 carries
+        # it across a leaf link, tests/test_bus_leaf.py); telemetry and events per rig.
+        await self._view_nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
+        for rig in list(self._rigs):
+            await self._subscribe_rig(rig)
+        await self._view_nc.flush()
         # A rig that registered between ``prepare`` and the subscription above (and
         # the leaf rigs' sources, which a lab's server keeps but a new hub checks).
         for manifest in await self._manifests():
             await self._add_rig_live(manifest)
-        # Rigs already present: their last presence (younger than its age limit) counts.
-        present = await last_values(nc, subjects.PRESENCE_STREAM)
-        for rig, links in self._rigs.items():
-            if rig in present and present[rig] != b"{}":
-                for link in links:
-                    link.on_presence()
-        self._tasks.spawn(self._keepalive(), "bus: keep-alive")
+        self._tasks.spawn(self._pump(), "bus: telemetry pump")
         self._tasks.spawn(self._collect_runs(), "bus: runs")
+
+    async def _subscribe_rig(self, rig: str) -> None:
+        """The rig's telemetry and events, on subscriptions of their own: one rig's
+        backlog in nats-py is that rig's alone."""
+        if rig in self._subscribed or self._view_nc is None:
+            return
+        self._subscribed.add(rig)
+        root = f"{subjects.PREFIX}.{rig}"
+        await self._view_nc.subscribe(
+            f"{root}.*.*.telemetry",
+            cb=self._telemetry_of(rig),
+            pending_bytes_limit=RIG_PENDING_BYTES,
+        )
+        await self._view_nc.subscribe(subjects.events(rig), cb=self._events_of(rig))
 
     async def stop(self) -> None:
         if self._port is not None:
             self._port.closing = True
         await self._tasks.cancel_all()
-        for nc in (self._nc, self._view_nc, self._stop_nc):
+        await self.lane.stop()
+        for nc in (self._nc, self._view_nc):
             if nc is not None:
                 # A connection already cut (network down) fails its last flush.
                 with contextlib.suppress(NatsError, TimeoutError, OSError):
@@ -276,35 +311,40 @@ class HubBus:
 
     # --- what the rigs publish --------------------------------------------------------
 
-    async def _on_bus(self, msg: Msg) -> None:
-        tokens = msg.subject.split(".")
-        last = tokens[-1]
-        if len(tokens) == 6 and last == "telemetry":
-            await self._on_telemetry(msg)
-        elif len(tokens) == 4 and last == "events":
-            await self._on_events(msg)
-        elif len(tokens) == 4 and last == "presence":
-            await self._on_presence(msg)
-        elif len(tokens) == 4 and last == "manifest":
-            await self._on_manifest(msg)
-        # Anything else (commands, keep-alives, runs) is not for the hub's view.
+    def _telemetry_of(self, rig: str) -> Callable[[Msg], Awaitable[None]]:
+        async def on_telemetry(msg: Msg) -> None:
+            tokens = msg.subject.split(".")
+            link = self.links.get((rig, tokens[3])) if len(tokens) == 6 else None
+            if link is not None:
+                self.gate.offer(rig, (link, tokens[4], msg.data), len(msg.data))
 
-    async def _on_telemetry(self, msg: Msg) -> None:
-        tokens = msg.subject.split(".")
-        link = self.links.get((tokens[2], tokens[3]))
-        if link is None:
-            return
-        rig_now = None
-        if msg.headers and "St-Rig-Now" in msg.headers:
-            with contextlib.suppress(ValueError):
-                rig_now = float(msg.headers["St-Rig-Now"])
+        return on_telemetry
+
+    @staticmethod
+    def _shed(item: tuple[RemoteLink, str, bytes]) -> None:
+        item[0].batches_shed += 1
+
+    async def _pump(self) -> None:
+        """The gate's batches into the links, every ``PUMP_PERIOD_S``."""
+        while True:
+            await asyncio.sleep(PUMP_PERIOD_S)
+            self.gate.take(self._deliver)
+
+    @staticmethod
+    def _deliver(rig: str, item: tuple[RemoteLink, str, bytes]) -> None:
+        link, axis, data = item
         try:
-            link.on_telemetry(msg.data, rig_now)
+            link.on_telemetry(axis, data)
         except ValidationError as exc:
-            logger.warning("telemetry of %s not understood: %s", msg.subject, exc)
+            logger.warning("telemetry of rig %s not understood: %s", rig, exc)
 
-    async def _on_events(self, msg: Msg) -> None:
-        rig = msg.subject.split(".")[2]
+    def _events_of(self, rig: str) -> Callable[[Msg], Awaitable[None]]:
+        async def on_events(msg: Msg) -> None:
+            self._on_events(rig, msg)
+
+        return on_events
+
+    def _on_events(self, rig: str, msg: Msg) -> None:
         links = self._rigs.get(rig)
         if not links:
             return
@@ -329,23 +369,6 @@ class HubBus:
                 link.on_message(message)
                 return
 
-    async def _on_presence(self, msg: Msg) -> None:
-        rig = msg.subject.split(".")[2]
-        gone = bool(msg.headers and msg.headers.get(subjects.GONE_HEADER))
-        unknown = rig not in self._rigs and rig not in self._asking
-        if unknown and not gone and self._control is not None and subjects.check_token_ok(rig):
-            self._asking.add(rig)
-            self._tasks.spawn(self._ask_manifest(rig), f"bus: manifest of {rig}")
-        rig_now: float | None = None
-        if msg.headers and "St-Rig-Mono" in msg.headers:
-            with contextlib.suppress(ValueError):
-                rig_now = float(msg.headers["St-Rig-Mono"])
-        for link in self._rigs.get(rig, []):
-            if gone:
-                link.on_gone()
-            else:
-                link.on_presence(rig_now)
-
     async def _on_manifest(self, msg: Msg) -> None:
         rig = msg.subject.split(".")[2]
         try:
@@ -354,21 +377,9 @@ class HubBus:
             logger.error("rig %s: manifest not understood (%s); not listed", rig, exc)
             return
         if manifest.rig != rig:
-            logger.error("a manifest of rig %s on %s's subject: ignored", manifest.rig, rig)
+            logger.error("a manifest of rig %s on rig %s's subject: refused", manifest.rig, rig)
             return
         await self._add_rig_live(manifest)
-
-    # --- the session's keep-alive -----------------------------------------------------
-
-    async def _keepalive(self) -> None:
-        assert self._stop_nc is not None
-        body = KeepAlive(session=self._session, hub=self.name).model_dump_json().encode()
-        while True:
-            for rig, links in list(self._rigs.items()):
-                if any(link.present() for link in links):
-                    with contextlib.suppress(NatsError):
-                        await self._stop_nc.publish(subjects.rig_cmd(rig, "keepalive"), body)
-            await asyncio.sleep(self._settings.keepalive_period_s)
 
     # --- runs -------------------------------------------------------------------------
 
@@ -376,35 +387,64 @@ class HubBus:
         assert self._nc is not None
         js = self._nc.jetstream()
         durable = f"hub-{self.name}-runs"
-        subscription = await js.pull_subscribe(
-            subjects.RUNS_SUBJECTS,
-            durable=durable,
-            stream=subjects.RUNS_STREAM,
-            config=ConsumerConfig(ack_wait=30.0, max_ack_pending=64),
-        )
+        subscription = None
         while True:
+            if subscription is None:
+                try:
+                    subscription = await js.pull_subscribe(
+                        subjects.RUNS_SUBJECTS,
+                        durable=durable,
+                        stream=subjects.RUNS_STREAM,
+                        config=ConsumerConfig(ack_wait=30.0, max_ack_pending=64),
+                    )
+                except (NatsError, JetStreamError, TimeoutError) as exc:
+                    logger.info("runs consumer not ready (%s): retrying", exc)
+                    await asyncio.sleep(1.0)
+                    continue
             try:
                 messages = await subscription.fetch(8, timeout=1.0)
             except (NatsTimeoutError, TimeoutError):
                 continue  # nothing new (nats-py raises asyncio's TimeoutError here)
+            except NotFoundError:
+                # The lab's server lost the stream or the consumer (a new store): the
+                # stream is created again on reconnect, the consumer here.
+                subscription = None
+                await asyncio.sleep(1.0)
+                continue
             except (NatsError, JetStreamError) as exc:
                 logger.info("runs not fetched (%s): retrying", exc)
                 await asyncio.sleep(1.0)
                 continue
             for msg in messages:
-                try:
-                    record = RunRecord.model_validate_json(msg.data)
-                except ValidationError as exc:
-                    logger.error("a run on the bus is not understood (%s): dropped", exc)
-                    await msg.term()
-                    continue
-                try:
-                    await asyncio.to_thread(self._store_run, record)
-                except StorageError as exc:
-                    logger.error("run %s not stored (%s): redelivered later", record.run, exc)
-                    await msg.nak(delay=5.0)
-                    continue
-                await msg.ack()
+                await self._take_run(msg)
+
+    async def _take_run(self, msg: Msg) -> None:
+        """One run of the stream: stored under the rig of its subject, then
+        acknowledged; one that names another rig is refused (terminated) and logged."""
+        rig = msg.subject.split(".")[2]
+        try:
+            record = RunRecord.model_validate_json(msg.data)
+        except ValidationError as exc:
+            logger.error("a run on the bus is not understood (%s): dropped", exc)
+            await msg.term()
+            return
+        if record.rig != rig:
+            self.runs_refused += 1
+            logger.error(
+                "a run on rig %s's subject names rig %s: refused, not stored (run %s)",
+                rig,
+                record.rig,
+                record.run.get("id"),
+            )
+            await msg.term()
+            return
+        try:
+            await asyncio.to_thread(self._store_run, record)
+        except StorageError as exc:
+            logger.error("run %s not stored (%s): redelivered later", record.run, exc)
+            await msg.nak(delay=5.0)
+            return
+        await msg.ack()
 
     def _store_run(self, record: RunRecord) -> None:
         """Write one rig's run into the hub's store, under the hub's id of its axis

@@ -26,10 +26,25 @@ from __future__ import annotations
 from pathlib import Path
 
 from nats.aio.client import Client
-from nats.js.api import ExternalStream, StorageType, StreamConfig, StreamSource
+from nats.js.api import DiscardPolicy, ExternalStream, StorageType, StreamConfig, StreamSource
 from nats.js.errors import NotFoundError
 
 from servotune.bus import subjects
+from servotune.bus.streams import (
+    MANIFEST_MAX_BYTES,
+    RUN_MAX_BYTES,
+    RUNS_DUPLICATE_WINDOW_S,
+    RUNS_MAX_AGE_S,
+    RUNS_MAX_BYTES,
+    runs_limits,
+)
+
+# The rig's own runs stream is a buffer for the lab network's outages: the lab's
+# stream copies every run as soon as the leaf link is up. Its oldest runs go first
+# when it is full or a week old (the rig's own store keeps every run anyway): size it
+# for the longest outage of the lab network (docs/lab.md).
+RIG_RUNS_MAX_BYTES = 1 << 30
+RIG_RUNS_MAX_AGE_S = 7 * 24 * 3600.0
 
 
 def rig_runs_stream(rig: str) -> str:
@@ -38,13 +53,17 @@ def rig_runs_stream(rig: str) -> str:
 
 
 def rig_runs_config(rig: str) -> StreamConfig:
-    """``SERVOTUNE_RUNS_<rig>`` on the rig's server: its runs, kept until the lab has them
-    (the rig's disk is the limit; deduplicated by ``Nats-Msg-Id`` like the lab's)."""
+    """``SERVOTUNE_RUNS_<rig>`` on the rig's server: its runs, for the lab to copy
+    (deduplicated by ``Nats-Msg-Id`` like the lab's; limits: ``RIG_RUNS_MAX_*``)."""
     return StreamConfig(
         name=rig_runs_stream(rig),
         subjects=[subjects.runs(rig)],
         storage=StorageType.FILE,
-        duplicate_window=24 * 3600.0,
+        duplicate_window=RUNS_DUPLICATE_WINDOW_S,
+        max_bytes=RIG_RUNS_MAX_BYTES,
+        max_age=RIG_RUNS_MAX_AGE_S,
+        max_msg_size=RUN_MAX_BYTES,
+        discard=DiscardPolicy.OLD,
     )
 
 
@@ -59,6 +78,8 @@ def rig_stream_configs(rig: str) -> list[StreamConfig]:
             name=rig_manifest_stream(rig),
             subjects=[subjects.manifest(rig)],
             max_msgs_per_subject=1,
+            max_bytes=4 * MANIFEST_MAX_BYTES,
+            max_msg_size=MANIFEST_MAX_BYTES,
             storage=StorageType.FILE,
         ),
         rig_runs_config(rig),
@@ -106,11 +127,16 @@ def runs_source(rig: str) -> StreamSource:
 
 def lab_runs_config(rigs: list[str]) -> StreamConfig:
     """The lab's runs stream when every rig is a leaf node: no subjects of its own (a
-    rig's run reaches it only through its source, never twice)."""
-    return StreamConfig(
-        name=subjects.RUNS_STREAM,
-        storage=StorageType.FILE,
-        sources=[runs_source(rig) for rig in rigs],
+    rig's run reaches it only through its source, never twice); the limits and
+    retention of ``bus.streams``."""
+    return runs_limits(
+        StreamConfig(
+            name=subjects.RUNS_STREAM,
+            storage=StorageType.FILE,
+            sources=[runs_source(rig) for rig in rigs],
+        ),
+        RUNS_MAX_BYTES,
+        RUNS_MAX_AGE_S,
     )
 
 
@@ -137,7 +163,8 @@ server_name: {rig}
 listen: {host}:{port}
 # A run with its samples is one message (as on the lab's server).
 max_payload: 8MB
-jetstream {{ store_dir: "{store_dir}", domain: {rig} }}
+# The rig's runs stream reserves 1 GB of it (servotune.bus.leaf.RIG_RUNS_MAX_BYTES).
+jetstream {{ store_dir: "{store_dir}", domain: {rig}, max_file_store: 2GB, max_memory_store: 64MB }}
 accounts {{
   RIG {{ jetstream: enabled, users: [ {{ user: "{rig}", password: "{password}" }} ] }}
 }}

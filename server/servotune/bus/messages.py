@@ -50,17 +50,44 @@ class Presence(BaseModel):
 class CommandRequest(BaseModel):
     """Body of ``...<axis>.cmd.<verb>``: which hub session asks (its keep-alive is the
     rig's dead-man for what it moves) and the arguments. The hub has checked its own
-    user's permission; the rig grants a hub session at most an operator's."""
+    user's permission; the rig grants a hub session at most an operator's.
+
+    Times are on the rig's clock (its server's ``Hub.now()``), converted by the hub
+    from its round-trip estimate of that clock (``bus.clock``), each rounded the
+    safe way: ``deadline_s`` the latest the rig may start the command (a request that
+    comes later is dropped and reported, never run: the hub has told its user it
+    failed); ``reply_by_s`` when the hub stops waiting for the outcome; ``pressed_s``
+    (STOP only) when the user pressed it: a STOP pressed before the axis was
+    commanded or stopped again is not sent (it must not act on motion started after
+    it). Every verb but STOP and the reads needs a deadline."""
 
     session: str = Field(min_length=8, max_length=64)
     hub: str = Field(min_length=1, max_length=64)
     values: dict[str, object] = Field(default_factory=dict)
     args: dict[str, object] = Field(default_factory=dict)
+    sent_s: float | None = None
+    deadline_s: float | None = None
+    reply_by_s: float | None = None
+    pressed_s: float | None = None
 
 
 ErrorKind = Literal[
-    "invalid", "refused", "locked", "forbidden", "link_down", "timeout", "protocol", "device"
+    "invalid",
+    "refused",
+    "locked",
+    "forbidden",
+    "link_down",
+    "timeout",
+    "protocol",
+    "device",
+    # Not run: the request came after its deadline / from a hub session the rig's
+    # dead-man ended / (STOP) the axis was commanded or stopped after it was pressed.
+    "expired",
+    "session_ended",
+    "overtaken",
 ]
+# Header of the rig's first answer to a request: taken, it runs (its outcome follows).
+ACK_HEADER = "St-Taken"
 
 
 class CommandReply(BaseModel):

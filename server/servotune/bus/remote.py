@@ -7,9 +7,19 @@ control lock (the hub is not trusted for safety); the rig's answer comes back as
 same error the rig's REST would give (``InvalidArgumentError`` naming the field, ...).
 
 A rig that does not answer is offline at once: NATS answers a request nobody listens
-to with ``NoRespondersError`` (no timeout to wait for), and a rig whose presence has
-been silent for ``offline_after_s`` is shown offline, its axes too, with every request
-refused before it is sent. Telemetry of a rig is never replayed as if it were live.
+to with a no-responders status (no timeout to wait for; the hub subscribes to nothing
+it requests on), and a rig the safety lane has not heard for ``offline_after_s``
+(``bus.lane``) is shown offline, its axes too, with every request refused before it
+is sent.
+
+A command carries its deadline (``CommandRequest``): the rig runs it only if it is
+taken in time (``BusSettings.command_start_within_s``), and says so first. A hub that
+hears nothing by then answers "not run" and is right: the rig drops what comes later.
+One that heard "taken" but no outcome says "it may have run", and an outcome that
+comes after the hub gave up is told as an event. Telemetry is judged by when it was
+sampled, on the rig's clock as estimated from round trips (``bus.clock``): a sample
+older than ``LIVE_MAX_AGE_S`` is not shown live (counted, and told), whatever the
+presence says, so a rig's backlog after an outage never reaches the scope as now.
 """
 
 from __future__ import annotations
@@ -17,19 +27,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import time
-from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 
 from nats.aio.client import Client
+from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeoutError
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from servotune.bus import subjects
+from servotune.bus.lane import RigLiveness, SafetyLane
 from servotune.bus.messages import CommandReply, CommandRequest, RemoteAxisInfo, RemoteLinkInfo
+from servotune.bus.replies import Call, ReplyMux
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
     AxisDriver,
@@ -43,7 +56,20 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
+from servotune.hub_state import StopOvertakenError
 from servotune.wire import LinkState, RunUpdate, Telemetry
+
+logger = logging.getLogger(__name__)
+
+# A sample older than this (sampled, on the hub's clock) when it reaches the hub is not
+# shown live: the scope and the readouts show now, and a second is already long for
+# an operator deciding on a STOP. Its loss is counted and told (``RemoteLink.counters``).
+LIVE_MAX_AGE_S = 1.0
+# After the rig's deadline the hub waits this much longer for "taken" before it says
+# "not run" (the answer's way back, and the hub's own loop reading it).
+TAKEN_GRACE_S = 1.0
+# At most one event per link about samples not shown live or refused, this often.
+NOTICE_PERIOD_S = 10.0
 
 
 def hub_id(rig: str, local_id: str) -> str:
@@ -57,6 +83,10 @@ class RemoteLockedError(DeviceRefusedError):
 
 class RemoteForbiddenError(DeviceRefusedError):
     """The rig does not allow this over the bus (its REST would answer 403)."""
+
+
+class RemoteSessionEndedError(DeviceRefusedError):
+    """The rig's dead-man ended the hub's session: not run (the hub starts a new one)."""
 
 
 def raise_for_reply(rig: str, reply: CommandReply) -> None:
@@ -78,45 +108,38 @@ def raise_for_reply(rig: str, reply: CommandReply) -> None:
         raise DeviceTimeoutError(detail)
     if reply.kind == "protocol":
         raise ProtocolError(detail)
+    if reply.kind == "expired":
+        raise DeviceTimeoutError(f"{detail} (not run)")
+    if reply.kind == "session_ended":
+        raise RemoteSessionEndedError(f"{detail}; send it again")
+    if reply.kind == "overtaken":
+        raise StopOvertakenError(detail)
     raise DriverError(detail)
-
-
-# A presence's lateness at the hub (RemoteLink.on_presence) is judged against the
-# quickest delivery of the presences of the last PRESENCE_BASELINE_S (the clocks'
-# drift over that time is microseconds); a presence more than
-# PRESENCE_MAX_LATENESS_S late is another clock (the rig's machine rebooted).
-PRESENCE_BASELINE_S = 30.0
-PRESENCE_MAX_LATENESS_S = 10.0
 
 
 @dataclass(slots=True)
 class BusPort:
-    """What the remote drivers share: the connections, the session, liveness.
+    """What the remote drivers share: the connections and the timings.
 
-    ``nc`` operates (commands, parameter writes, console), ``view_nc`` reads (parameter
-    reads, snapshots; it may not publish a command: nats-server refuses it), ``stop_nc``
-    stops. Each is its own NATS user (``accounts``); which one a request takes follows
-    from the permission its verb needs at the hub (``connection_for``), the same table
-    the hub's REST checks its user against first."""
+    ``nc`` operates (commands, parameter writes, console; its answers through ``mux``),
+    ``view_nc`` reads (parameter reads, snapshots; it may not publish a command:
+    nats-server refuses it), ``lane`` stops (its own connection, loop and thread:
+    ``bus.lane``). Each is its own NATS user (``accounts``); which one a request takes
+    follows from the permission its verb needs at the hub, the same table the hub's
+    REST checks its user against first."""
 
     nc: Client
-    stop_nc: Client
-    session: str
+    view_nc: Client
+    lane: SafetyLane
+    mux: ReplyMux
     hub_name: str
     request_timeout_s: float
     stop_timeout_s: float
+    start_within_s: float = 3.0
     clock: Callable[[], float] = time.monotonic
     # Set when the hub shuts down: nothing more goes to the rigs (their own dead-man
     # stops what this hub set in motion once its keep-alives end).
     closing: bool = False
-    view_nc: Client | None = None
-
-    def connection_for(self, verb: str) -> Client:
-        if verb == subjects.STOP:
-            return self.stop_nc
-        if verb in subjects.READ_VERBS:
-            return self.view_nc or self.nc
-        return self.nc
 
 
 class RemoteAxis:
@@ -148,13 +171,19 @@ class RemoteAxis:
         return self._descriptor
 
     async def _request(
-        self, verb: str, body: CommandRequest, timeout_s: float | None = None
+        self,
+        verb: str,
+        body: CommandRequest,
+        timeout_s: float | None = None,
+        pressed_at: float | None = None,
     ) -> dict[str, object]:
         return await self._link.request(
             subjects.axis_cmd(self._link.rig, self._link.local_id, self.local_id, verb),
             body,
             verb=verb,
             timeout_s=timeout_s,
+            pressed_at=pressed_at,
+            axis_id=self._id,
         )
 
     async def autotune(
@@ -166,7 +195,7 @@ class RemoteAxis:
 
     def _body(self, **fields: object) -> CommandRequest:
         port = self._link.port
-        return CommandRequest(session=port.session, hub=port.hub_name, **fields)  # type: ignore[arg-type]
+        return CommandRequest(session=self._link.live.session, hub=port.hub_name, **fields)  # type: ignore[arg-type]
 
     async def read_params(self) -> dict[str, int]:
         result = await self._request(subjects.READ_PARAMS, self._body())
@@ -177,7 +206,8 @@ class RemoteAxis:
         return _int_values(result.get("values"))
 
     async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
-        result = await self._request(name, self._body(args=dict(args)))
+        pressed_at = self._link.port.clock() if name == subjects.STOP else None
+        result = await self._request(name, self._body(args=dict(args)), pressed_at=pressed_at)
         sent = result.get("sent")
         return CommandOutcome(
             [str(s) for s in sent] if isinstance(sent, list) else [],
@@ -197,7 +227,13 @@ class RemoteAxis:
         return str(result.get("sent", line)), lines
 
     async def stop(self) -> None:
-        await self._request(subjects.STOP, self._body())
+        await self.stop_pressed(self._link.port.clock())
+
+    async def stop_pressed(self, pressed_at: float) -> None:
+        """The STOP pressed at ``pressed_at`` (hub clock; ``hub_state.PressTimedStop``):
+        the rig does not send it if its axis was commanded or stopped since
+        (``StopOvertakenError``)."""
+        await self._request(subjects.STOP, self._body(), pressed_at=pressed_at)
 
     # --- bench tests run on the rig (``testbench.BenchDelegate``) ----------------------
 
@@ -233,7 +269,8 @@ def _int_values(values: object) -> dict[str, int]:
 
 
 class RemoteLink:
-    """One link of a rig, seen from the hub (``Link``); fed by ``HubBus``."""
+    """One link of a rig, seen from the hub (``Link``); fed by ``HubBus``; its rig's
+    liveness and clock come from the safety lane (``live``)."""
 
     def __init__(
         self,
@@ -241,10 +278,11 @@ class RemoteLink:
         info: RemoteLinkInfo,
         port: BusPort,
         sink: DriverSink,
-        offline_after_s: float,
+        live: RigLiveness,
         broadcast: Callable[[BaseModel], None] | None = None,
     ) -> None:
         self.rig = rig
+        self.live = live
         # To every hub tab: what the sink has no callback for (a bench run's progress).
         self._broadcast = broadcast
         self.local_id = info.info.id
@@ -259,20 +297,18 @@ class RemoteLink:
         self._state: LinkState = "connecting"
         # The rig's own link's wire_busy, as its last status said (HasWireBusy).
         self._wire_busy: float | None = None
-        self._offline_after_s = offline_after_s
-        # Hub clock of the rig's last presence; 0: never seen since the hub started.
-        self.seen_at = 0.0
-        self.online = False
-        # Rig clock -> hub clock: hub_t = rig_t + offset, from the last telemetry batch.
-        self._offset: float | None = None
-        # (hub clock, hub clock - rig clock) of the presences of the last
-        # PRESENCE_BASELINE_S: the smallest difference is the clocks' offset plus the
-        # quickest delivery; a presence above it came that much late (see on_presence).
-        self._presence_delays: deque[tuple[float, float]] = deque()
-        # Hub clock when the rig was last shown offline: a presence sent before that
-        # is old news and does not bring it back (None: shown present since).
-        self._offline_at: float | None = None
-        self.snapshot_wanted = asyncio.Event()
+        # Until then a rig not heard yet is "connecting", not announced offline: the
+        # lane needs a presence and a clock probe first (a rig that just joined, or
+        # every rig while the hub starts).
+        self._judged_from = port.clock() + live.offline_after_s
+        self._returns_seen = 0
+        # Counters (``counters``: shown with the link's status).
+        self.samples_live = 0
+        self.samples_stale = 0
+        self.samples_unclocked = 0
+        self.batches_shed = 0
+        self.refused = 0
+        self._noticed: dict[str, float] = {}
 
     @property
     def id(self) -> str:
@@ -306,14 +342,34 @@ class RemoteLink:
     def wire_busy(self) -> float | None:
         return self._wire_busy if self._state != "disconnected" else None
 
+    @property
+    def counters(self) -> Mapping[str, int]:
+        """What the hub did not show live, and why (with the link's status)."""
+        return {
+            "samples_stale": self.samples_stale,
+            "samples_unclocked": self.samples_unclocked,
+            "batches_shed": self.batches_shed,
+            "refused_not_its_own": self.refused,
+        }
+
     def present(self) -> bool:
-        return self.online and self.port.clock() - self.seen_at <= self._offline_after_s
+        return self.live.present(self.port.clock())
 
     async def request(
-        self, subject: str, body: CommandRequest, *, verb: str, timeout_s: float | None = None
+        self,
+        subject: str,
+        body: CommandRequest,
+        *,
+        verb: str,
+        timeout_s: float | None = None,
+        pressed_at: float | None = None,
+        axis_id: str | None = None,
+        renewed: bool = False,
     ) -> dict[str, object]:
         """A request to the rig; refused at once (LinkDownError) when the rig is offline.
-        ``timeout_s``: for the long requests (auto-tune), else the port's."""
+        ``timeout_s``: for the long requests (auto-tune), else the port's;
+        ``pressed_at``: a STOP's press time (hub clock); ``renewed``: sent again in a
+        new session (once) because the rig's dead-man had ended the last one."""
         if self.port.closing:
             raise LinkDownError(
                 f"the hub is shutting down: nothing sent to {self.rig} (the rig's own "
@@ -321,90 +377,194 @@ class RemoteLink:
             )
         if not self.present():
             raise LinkDownError(f"rig {self.rig} is offline: nothing was sent")
-        nc = self.port.connection_for(verb)
-        stop = verb == subjects.STOP
-        timeout = self.port.stop_timeout_s if stop else self.port.request_timeout_s
-        if timeout_s is not None:
-            timeout = timeout_s
-        try:
-            msg = await nc.request(subject, body.model_dump_json().encode(), timeout=timeout)
-        except NoRespondersError:
-            raise LinkDownError(f"rig {self.rig} is offline (nobody answers on the bus)") from None
-        except NatsTimeoutError:
-            raise DeviceTimeoutError(f"rig {self.rig} did not answer in {timeout:g} s") from None
-        except NatsError as exc:
-            raise LinkDownError(f"the bus is down: {exc}") from None
-        try:
-            reply = CommandReply.model_validate_json(msg.data)
-        except ValueError:
-            raise ProtocolError(f"rig {self.rig} answered something that is not a reply") from None
+        now = self.port.clock()
+        bounds = self.live.clock_bounds(now)
+        if bounds is None:
+            raise LinkDownError(f"rig {self.rig}: its clock is not known yet: nothing was sent")
+        low, high = bounds
+        if verb == subjects.STOP:
+            # Rounded late: a command the rig ran before the press is never taken for
+            # one after it (the STOP then acts on it).
+            body.pressed_s = (now if pressed_at is None else pressed_at) + high
+            msg = await self._plain(self.port.lane.request, subject, body, self.port.stop_timeout_s)
+        elif verb in subjects.READ_VERBS:
+            msg = await self._plain(self._view_request, subject, body, self.port.request_timeout_s)
+        else:
+            timeout = self.port.request_timeout_s if timeout_s is None else timeout_s
+            start_by = now + self.port.start_within_s
+            # Rounded early on the rig's clock: the rig never starts it later than the
+            # hub allowed, and warns when it finishes after the hub may have given up.
+            body.sent_s = now + (low + high) / 2
+            body.deadline_s = start_by + low
+            body.reply_by_s = now + timeout + low
+            msg = await self._two_part(subject, body, verb, now, start_by, timeout, axis_id)
+        reply = self._reply_of(msg)
+        if reply.kind == "session_ended" and not renewed:
+            # Not run: the rig's dead-man had ended this hub's session there (the axis
+            # was stopped; its event says so). This request is the user's, sent now:
+            # once more in a new session, with a new deadline.
+            body.session = self.live.renew_session(body.session)
+            return await self.request(
+                subject,
+                body,
+                verb=verb,
+                timeout_s=timeout_s,
+                pressed_at=pressed_at,
+                axis_id=axis_id,
+                renewed=True,
+            )
         raise_for_reply(self.rig, reply)
         return reply.result
 
+    def _reply_of(self, msg: Msg) -> CommandReply:
+        try:
+            return CommandReply.model_validate_json(msg.data)
+        except ValueError:
+            raise ProtocolError(f"rig {self.rig} answered something that is not a reply") from None
+
+    async def _view_request(self, subject: str, data: bytes, timeout_s: float) -> Msg:
+        return await self.port.view_nc.request(subject, data, timeout=timeout_s)
+
+    async def _plain(
+        self,
+        send: Callable[[str, bytes, float], Awaitable[Msg]],
+        subject: str,
+        body: CommandRequest,
+        timeout_s: float,
+    ) -> Msg:
+        try:
+            return await send(subject, body.model_dump_json().encode(), timeout_s)
+        except NoRespondersError:
+            raise LinkDownError(f"rig {self.rig} is offline (nobody answers on the bus)") from None
+        except (NatsTimeoutError, TimeoutError):
+            raise DeviceTimeoutError(f"rig {self.rig} did not answer in {timeout_s:g} s") from None
+        except NatsError as exc:
+            raise LinkDownError(f"the bus is down: {exc}") from None
+
+    async def _two_part(
+        self,
+        subject: str,
+        body: CommandRequest,
+        verb: str,
+        now: float,
+        start_by: float,
+        timeout_s: float,
+        axis_id: str | None,
+    ) -> Msg:
+        """Send; wait for "taken" until the deadline (+ ``TAKEN_GRACE_S``), then for
+        the outcome until ``timeout_s``; say which of the two did not come."""
+        mux, clock = self.port.mux, self.port.clock
+        call = mux.open(verb)
+        try:
+            await mux.publish(call, subject, body.model_dump_json().encode())
+        except NatsError as exc:
+            mux.close(call)
+            raise LinkDownError(f"the bus is down: {exc}; nothing was sent") from None
+        if not await _wait_taken(call, start_by + TAKEN_GRACE_S - clock()):
+            mux.give_up(call, "not taken", self._late_reporter(axis_id))
+            raise DeviceTimeoutError(
+                f"rig {self.rig} did not take {verb} within {self.port.start_within_s:g} s: "
+                "not run (the rig drops it if it comes later)"
+            )
+        if call.no_responders:
+            mux.close(call)
+            raise LinkDownError(
+                f"rig {self.rig} is offline (nobody answers on the bus): nothing was sent"
+            )
+        try:
+            msg = await asyncio.wait_for(
+                asyncio.shield(call.outcome), max(0.0, now + timeout_s - clock())
+            )
+        except TimeoutError:
+            mux.give_up(call, "no outcome", self._late_reporter(axis_id))
+            raise DeviceTimeoutError(
+                f"rig {self.rig} took {verb} but sent no outcome in {timeout_s:g} s: it may "
+                "have run (check the axis; a late outcome is told)"
+            ) from None
+        mux.close(call)
+        return msg
+
+    def _late_reporter(self, axis_id: str | None) -> Callable[[Call, Msg], None]:
+        def report(call: Call, msg: Msg) -> None:
+            late_s = time.monotonic() - call.given_up_at
+            try:
+                reply = CommandReply.model_validate_json(msg.data)
+            except ValidationError:
+                return
+            if reply.ok:
+                text = (
+                    f"rig {self.rig}: {call.verb}, reported as {call.given_up}, DID run "
+                    f"(its outcome came {late_s:.1f} s later)"
+                )
+                self._sink.on_event("warning", axis_id, text)
+            else:
+                text = f"rig {self.rig}: {call.verb} ({call.given_up}): {reply.detail}"
+                self._sink.on_event("info", axis_id, text)
+
+        return report
+
     # --- fed by HubBus ----------------------------------------------------------------
 
-    def on_presence(self, rig_now: float | None = None) -> None:
-        """The rig is there. ``rig_now``: the rig machine's monotonic clock when it
-        sent this presence (header ``St-Rig-Mono``).
+    def on_telemetry(self, axis_token: str, data: bytes) -> None:
+        """One telemetry batch of the rig's subject ``...<link>.<axis_token>.telemetry``.
 
-        A presence the hub takes in late (its loop was held up, e.g. on a loaded
-        machine) is dated back by that lateness: it must not show a rig that went
-        silent present again (the hub would then send it requests that time out,
-        instead of refusing them at once; seen in CI). The lateness is how much the
-        clock difference exceeds the smallest one of the last PRESENCE_BASELINE_S,
-        so neither the clocks' offset nor their drift matters. And once the rig was
-        shown offline, only a presence sent after that brings it back: one sent
-        before is old news (the state would flap, and a request sent in that
-        window waits for its timeout)."""
-        now = self.port.clock()
-        seen = now
-        if rig_now is not None:
-            delays = self._presence_delays
-            delays.append((now, now - rig_now))
-            while delays and now - delays[0][0] > PRESENCE_BASELINE_S:
-                delays.popleft()
-            lateness_s = delays[-1][1] - min(delay for _, delay in delays)
-            if lateness_s > PRESENCE_MAX_LATENESS_S:
-                # Not a late message but another clock (the rig restarted on a machine
-                # that rebooted): start the baseline again.
-                delays.clear()
-                delays.append((now, now - rig_now))
-                lateness_s = 0.0
-            seen = now - lateness_s
-        if seen <= self.seen_at:
-            return  # no news: an older presence than the last one counted
-        if self._offline_at is not None and seen <= self._offline_at:
-            return  # sent before the rig was shown offline
-        was = self.present()
-        self.seen_at = seen
-        self.online = True
-        if self.present():
-            self._offline_at = None
-            if not was:
-                self.snapshot_wanted.set()
-
-    def on_gone(self) -> None:
-        """The rig deleted its presence (a graceful stop): offline now."""
-        self.online = False
-
-    def on_telemetry(self, data: bytes, rig_now: float | None) -> None:
+        Attributed by the subject (nats-server lets the rig publish there only): a
+        batch naming another axis is refused and logged. Each sample is dated on the
+        hub's clock with the rig's clock estimate; one older than ``LIVE_MAX_AGE_S``
+        is not shown live (counted, told at most every ``NOTICE_PERIOD_S``)."""
         if not self.present():
             return  # a late batch of a rig shown offline is not shown as live
         message = Telemetry.model_validate_json(data)
         axis = self._by_local.get(message.axis)
-        if axis is None or not message.t:
+        if axis is None or message.axis != axis_token:
+            self.refused += 1
+            self._notice(
+                "refused",
+                "warning",
+                f"rig {self.rig}: a telemetry batch on the subject of axis {axis_token!r} "
+                f"names axis {message.axis!r}: refused",
+            )
+            return
+        if not message.t:
             return
         now = self.port.clock()
-        if rig_now is not None:
-            self._offset = now - rig_now
-        offset = self._offset if self._offset is not None else now - message.t[-1]
+        bounds = self.live.clock_bounds(now)
+        if bounds is None:
+            self.samples_unclocked += len(message.t)
+            return
+        offset = (bounds[0] + bounds[1]) / 2
         names = list(message.channels)
         flag_names = list(message.flags)
+        stale = 0
+        oldest_s = 0.0
         for index, t in enumerate(message.t):
+            hub_t = t - offset
+            age_s = now - hub_t
+            if age_s > LIVE_MAX_AGE_S:
+                stale += 1
+                oldest_s = max(oldest_s, age_s)
+                continue
             channels = {name: message.channels[name][index] for name in names}
             flags = {name: bool(message.flags[name][index]) for name in flag_names}
-            # The hub's Sample times are on its own clock; samples keep their spacing.
-            self._sink.on_sample(axis.id, Sample(t=t + offset, channels=channels, flags=flags))
+            self._sink.on_sample(axis.id, Sample(t=hub_t, channels=channels, flags=flags))
+            self.samples_live += 1
+        if stale:
+            self.samples_stale += stale
+            self._notice(
+                "stale",
+                "warning",
+                f"rig {self.rig}: telemetry sampled up to {oldest_s:.1f} s ago not shown live "
+                f"(older than {LIVE_MAX_AGE_S:g} s; {self.samples_stale} samples so far): the "
+                "rig's own dashboard and its recorded runs have it",
+            )
+
+    def _notice(self, key: str, level: str, text: str) -> None:
+        now = self.port.clock()
+        if now - self._noticed.get(key, -NOTICE_PERIOD_S) < NOTICE_PERIOD_S:
+            return
+        self._noticed[key] = now
+        logger.warning("%s", text)
+        self._sink.on_event(level, None, text)  # type: ignore[arg-type]
 
     def on_message(self, message: dict[str, object]) -> None:
         """A status, parameter or event message of the rig (``servotune.wire`` JSON)."""
@@ -441,42 +601,67 @@ class RemoteLink:
             self._sink.on_event(level, axis.id if axis else None, text)  # type: ignore[arg-type]
 
     def show_offline(self, why: str) -> None:
-        self._offline_at = self.port.clock()
+        self.live.shown_offline(self.port.clock())
         self._state = "disconnected"
         self._sink.on_link_status(self._id, "disconnected", why, 0.0, 0.0, 0)
         for axis in self._axes:
             self._sink.on_axis_health(axis.id, "offline", why)
 
     async def run(self) -> None:
-        """Watch the rig's presence: offline within ``offline_after_s`` of its silence,
+        """Watch the rig's liveness: offline within ``offline_after_s`` of its silence,
         and back with a fresh snapshot (statuses, parameters) when it returns."""
         shown_offline = False
         while True:
+            now = self.port.clock()
             if self.present():
-                if self.snapshot_wanted.is_set():
-                    self.snapshot_wanted.clear()
-                    await self._snapshot()
+                returns = self.live.returns
+                if returns != self._returns_seen and await self._snapshot():
+                    self._returns_seen = returns
                 shown_offline = False
-            elif not shown_offline:
-                silent = self.port.clock() - self.seen_at if self.seen_at else None
+            elif (
+                not shown_offline
+                and now >= self._judged_from
+                and self.port.lane.heard_until(self.live.seen_at + self.live.offline_after_s)
+            ):
+                seen_at = self.live.seen_at
                 why = (
-                    f"rig {self.rig} is offline (no presence for {silent:.1f} s)"
-                    if silent is not None and self.online
+                    f"rig {self.rig} is offline (nothing heard for {now - seen_at:.1f} s)"
+                    if seen_at
                     else f"rig {self.rig} is offline"
                 )
                 self.show_offline(why)
                 shown_offline = True
             await asyncio.sleep(0.1)
 
-    async def _snapshot(self) -> None:
+    async def _snapshot(self) -> bool:
         subject = subjects.rig_cmd(self.rig, "snapshot")
         try:
-            nc = self.port.view_nc or self.port.nc
-            msg = await nc.request(subject, b"{}", timeout=self.port.request_timeout_s)
+            msg = await self.port.view_nc.request(
+                subject, b"{}", timeout=self.port.request_timeout_s
+            )
             messages = json.loads(msg.data)
-        except (NatsError, ValueError):
-            self.snapshot_wanted.set()  # try again on the next turn
-            await asyncio.sleep(0.5)
-            return
+        except (NatsError, TimeoutError, ValueError):
+            await asyncio.sleep(0.5)  # tried again on the next turn
+            return False
         for text in messages:
             self.on_message(json.loads(text))
+        return True
+
+
+async def _wait_taken(call: Call, timeout_s: float) -> bool:
+    """Was ``call`` taken (or answered) within ``timeout_s``? Before saying no, the
+    loop gets a few turns to read what already arrived: a hub whose loop was busy
+    must not call "not run" what the rig took in time."""
+    taken: asyncio.Future[object] = asyncio.ensure_future(call.taken.wait())
+    outcome: asyncio.Future[object] = call.outcome  # type: ignore[assignment]
+    try:
+        await asyncio.wait(
+            {taken, outcome}, timeout=max(0.0, timeout_s), return_when=asyncio.FIRST_COMPLETED
+        )
+    finally:
+        taken.cancel()
+    for _ in range(10):
+        if call.taken.is_set() or call.outcome.done():
+            return True
+        await asyncio.sleep(0)
+    return call.taken.is_set() or call.outcome.done()

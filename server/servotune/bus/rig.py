@@ -14,9 +14,16 @@ What it does, beside everything the rig's server does anyway:
   the permission of the verb (``auth.routes_table.command_permission``), the rig's
   control lock (``ControlManager.require``), the hub's validation against the
   descriptor (422-equivalent reply naming the field, nothing sent);
-* answers STOP (``cmd.stop``, ``cmd.stop_all``) and the hub sessions' keep-alives on a
-  connection of their own: NATS has no priorities, and a STOP must not queue behind
-  telemetry;
+* answers STOP (``cmd.stop``, ``cmd.stop_all``), the hub sessions' keep-alives and the
+  hub's clock probes (``cmd.clock``) on a connection of their own: NATS has no
+  priorities, and a STOP must not queue behind telemetry;
+* runs a command only before its deadline (``CommandRequest.deadline_s``, on this
+  rig's clock): one that comes later (the rig was stalled, the network held it) is
+  dropped and reported, since the hub has told its user it failed; so is one from a
+  hub session the dead-man ended. The first answer to a request says it was taken
+  (``ACK_HEADER``), sent before it runs, so the hub can tell "not run" from "no
+  outcome". A hub STOP that was pressed before the axis was commanded or stopped again
+  is not sent (``Hub.stop_overtaken``);
 * keeps the dead-man on the rig: each hub session is a ``ControlClient`` of the rig's
   own ``ControlManager`` whose heartbeats are the session's keep-alives over the bus;
   when they stop (hub dead, leaf link cut) for the rig's lease, the axes that session
@@ -33,6 +40,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import secrets
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -46,11 +54,16 @@ from pydantic import ValidationError
 from servotune import __version__
 from servotune.auth.permissions import permissions_of
 from servotune.auth.principal import AUTOTUNE, BENCH, CONSOLE, STOP, TUNE, VIEW, Principal
-from servotune.auth.routes_table import command_permission
+from servotune.auth.routes_table import (
+    UnknownConsoleLineError,
+    command_permission,
+    console_permission,
+)
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
 from servotune.bus.leaf import ensure_rig_streams
 from servotune.bus.messages import (
+    ACK_HEADER,
     CommandReply,
     CommandRequest,
     KeepAlive,
@@ -71,7 +84,7 @@ from servotune.drivers.base import (
     ProtocolError,
 )
 from servotune.hub import Hub
-from servotune.hub_state import ClientQueue, UnknownAxisError
+from servotune.hub_state import ClientQueue, StopOvertakenError, UnknownAxisError
 from servotune.storage import Storage, StorageError
 from servotune.testbench import BenchTestRequest, TestBench
 
@@ -93,8 +106,20 @@ def _reply(**fields: Any) -> bytes:
     return CommandReply(**fields).model_dump_json().encode()
 
 
+class NotRunError(DriverError):
+    """A request the rig does not run at all (``kind``: expired, session_ended)."""
+
+    def __init__(self, kind: str, detail: str) -> None:
+        super().__init__(detail)
+        self.kind = kind
+
+
 def _error_reply(exc: Exception) -> bytes:
     """The rig's REST error for ``exc``, as a reply (``kind`` ~ status code)."""
+    if isinstance(exc, NotRunError):
+        return _reply(ok=False, kind=exc.kind, detail=str(exc))
+    if isinstance(exc, StopOvertakenError):
+        return _reply(ok=False, kind="overtaken", detail=str(exc))
     if isinstance(exc, InvalidArgumentError):
         return _reply(ok=False, kind="invalid", field=exc.field, detail=str(exc))
     if isinstance(exc, HTTPException):
@@ -153,6 +178,11 @@ class RigAgent:
         self._queue: ClientQueue | None = None
         self._tasks = BackgroundTasks(logger)
         self._sessions: dict[str, tuple[ControlClient, float]] = {}
+        # Hub sessions the rig's dead-man ended (their keep-alives stopped while they
+        # moved an axis): nothing they send runs any more; the hub starts a new one.
+        self._ended: dict[str, float] = {}
+        # This run of the agent: a hub that sees another id estimates the clock anew.
+        self.instance = secrets.token_hex(8)
         self._unpublished: set[str] = set()
         self._published: set[str] = set()
         self._principal = Principal(
@@ -162,6 +192,12 @@ class RigAgent:
         self.telemetry_sent = 0
         self.commands_handled = 0
         self.verbs_handled: list[str] = []
+        # Fan-out messages not published because the bus connection was down (nats-py
+        # would buffer them and deliver old telemetry as new after the outage).
+        self.unsent_while_down = 0
+        # Requests not run: (verb, kind) each, and the keep-alives' arrival times.
+        self.not_run: list[tuple[str, str]] = []
+        self.keepalives: list[float] = []
 
     # --- lifespan ---------------------------------------------------------------------
 
@@ -200,6 +236,7 @@ class RigAgent:
         await self._stop_nc.subscribe(f"{root}.*.*.cmd.{subjects.STOP}", cb=self._on_stop)
         await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "stop_all"), cb=self._on_stop)
         await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, "keepalive"), cb=self._on_alive)
+        await self._stop_nc.subscribe(subjects.rig_cmd(self.rig, subjects.CLOCK), cb=self._on_clock)
         await self._nc.subscribe(f"{root}.*.*.cmd.*", cb=self._on_command)
         await self._nc.subscribe(subjects.rig_cmd(self.rig, "snapshot"), cb=self._on_snapshot)
         await self._nc.subscribe(subjects.rig_cmd(self.rig, "manifest"), cb=self._on_manifest)
@@ -223,7 +260,9 @@ class RigAgent:
         if graceful and self._nc is not None and self._nc.is_connected:
             with contextlib.suppress(NatsError, TimeoutError):
                 await self._nc.publish(
-                    subjects.presence(self.rig), b"{}", headers={subjects.GONE_HEADER: "1"}
+                    subjects.presence(self.rig),
+                    b"{}",
+                    headers={subjects.GONE_HEADER: "1", **self._clock_headers()},
                 )
                 await self._nc.flush(timeout=1)
         for client, _ in self._sessions.values():
@@ -283,19 +322,27 @@ class RigAgent:
                     await self._put_manifest()
                     manifest_put = True
                 body = Presence(rig=self.rig, period_s=period, sent_wall_s=time.time())
-                # Not acknowledged: the next one follows in ``period``.
-                # The machine's monotonic clock (not reset with this process): the hub
-                # dates a presence it takes in late back by that lateness.
-                await self._nc.publish(
-                    subjects.presence(self.rig),
-                    body.model_dump_json().encode(),
-                    headers={"St-Rig-Mono": f"{time.monotonic():.6f}"},
-                )
+                # Not acknowledged: the next one follows in ``period``. Not published
+                # while the connection is down: nats-py would buffer it and deliver it
+                # late. The rig's clock: the hub dates it with its estimate of that
+                # clock (``bus.clock``), so a late one is taken for what it is.
+                if self._nc.is_connected:
+                    await self._nc.publish(
+                        subjects.presence(self.rig),
+                        body.model_dump_json().encode(),
+                        headers=self._clock_headers(),
+                    )
             except (NatsError, JetStreamError, TimeoutError) as exc:
                 # Lab network down: the rig keeps working; presence resumes with it.
                 logger.debug("presence not published: %s", exc)
             self._forget_silent_sessions()
             await asyncio.sleep(period)
+
+    def _clock_headers(self) -> dict[str, str]:
+        return {
+            subjects.RIG_NOW_HEADER: f"{self._hub.now():.6f}",
+            subjects.RIG_ID_HEADER: self.instance,
+        }
 
     async def _forward(self, queue: ClientQueue) -> None:
         """The hub's fan-out, as it would go to a websocket client, onto the bus."""
@@ -306,6 +353,14 @@ class RigAgent:
             text = await queue.get()
             message = json.loads(text)
             kind = message.get("type")
+            if not nc.is_connected:
+                # nats-py would buffer it while it reconnects and deliver minutes-old
+                # telemetry and statuses as new; the hub asks for a fresh snapshot when
+                # the rig is back. A finished run still goes to the stream.
+                self.unsent_while_down += 1
+                if kind == "run" and message.get("status") in ("complete", "incomplete"):
+                    self._unpublished.add(str(message["run_id"]))
+                continue
             headers = {"St-Rig-Now": f"{self._hub.now():.6f}", "St-Wall": f"{time.time():.6f}"}
             try:
                 if kind == "telemetry":
@@ -344,13 +399,41 @@ class RigAgent:
             return
         await self._answer(msg, tokens[3], tokens[4], subjects.STOP)
 
+    async def _on_clock(self, msg: Msg) -> None:
+        """The hub's clock probe (``bus.clock``): this rig's clock, answered at once."""
+        if msg.reply and self._stop_nc is not None:
+            with contextlib.suppress(NatsError):
+                await self._stop_nc.publish(msg.reply, b"", headers=self._clock_headers())
+
     async def _on_alive(self, msg: Msg) -> None:
         try:
             alive = KeepAlive.model_validate_json(msg.data)
         except ValidationError:
             return
+        self.keepalives.append(self._hub.now())
+        del self.keepalives[:-2000]
+        if self._session_ended(alive.session):
+            return  # the hub starts a new session when it hears of it
         client = self._session(alive.session)
         self._control.heartbeat(client)
+
+    def _session_ended(self, session: str) -> bool:
+        """Has the rig's dead-man ended ``session``? (Its lease lapsed while it moved
+        or held an axis: the control lock stopped them; whatever the session sent
+        before is void, and its later keep-alives do not revive it.)"""
+        if session in self._ended:
+            return True
+        known = self._sessions.get(session)
+        if known is not None and known[0].lapsing:
+            self._ended[session] = time.monotonic()
+            self._hub.on_event(
+                "warning",
+                None,
+                f"hub session {session[:8]}: its keep-alives stopped while it moved an axis "
+                "(the dead-man stopped it); nothing more it sent is run",
+            )
+            return True
+        return False
 
     async def _on_manifest(self, msg: Msg) -> None:
         """A hub that hears this rig's presence but does not know it yet asks this."""
@@ -377,29 +460,91 @@ class RigAgent:
             if now - seen > SESSION_FORGET_S:
                 del self._sessions[session]
                 self._control.disconnect(client)
+        for session, ended in list(self._ended.items()):
+            if now - ended > SESSION_FORGET_S:
+                del self._ended[session]
 
     async def _answer(self, msg: Msg, link: str, axis: str, verb: str) -> None:
+        request: CommandRequest | None = None
         try:
-            body = await self._execute(link, axis, verb, msg.data)
+            try:
+                request = CommandRequest.model_validate_json(msg.data)
+            except ValidationError as exc:
+                raise _invalid(exc) from None
+            self._admit(verb, request)
+            nc = self._nc
+            command = verb != subjects.STOP and verb not in subjects.READ_VERBS
+            if command and msg.reply and nc is not None:
+                # Taken: said before it runs (and on the server before the device is
+                # touched), so a hub that hears nothing by the deadline knows it never
+                # runs. Checked once more after, the flush may have taken long.
+                await nc.publish(msg.reply, b"", headers={ACK_HEADER: "1"})
+                await nc.flush(timeout=2)
+                self._admit(verb, request)
+            body = await self._execute(link, axis, verb, request)
+        except NotRunError as exc:
+            # Not run: counted apart (``not_run``), not among the verbs handled.
+            self.not_run.append((verb, exc.kind))
+            if msg.reply:
+                with contextlib.suppress(NatsError):
+                    await msg.respond(_error_reply(exc))
+            return
         except (DriverError, HTTPException, UnknownAxisError) as exc:
             body = _error_reply(exc)
         except StorageError as exc:
             body = _reply(ok=False, kind="device", detail=str(exc))
+        except (NatsError, TimeoutError) as exc:
+            # The taken message could not go out: the request is not run.
+            body = _reply(ok=False, kind="expired", detail=f"not run: the bus failed ({exc})")
         self.commands_handled += 1
         self.verbs_handled.append(verb)
+        if request is not None and request.reply_by_s is not None:
+            late_s = self._hub.now() - request.reply_by_s
+            if late_s > 0 and b'"ok":true' in body[:12]:
+                self._hub.on_event(
+                    "warning",
+                    self._axes.get((link, axis)),
+                    f"{verb} from hub {request.hub} was done {late_s:.1f} s after the hub "
+                    "stopped waiting for it (it may have shown it failed): it DID run",
+                )
         if msg.reply:
             with contextlib.suppress(NatsError):
                 await msg.respond(body)
 
-    async def _execute(self, link: str, axis: str, verb: str, data: bytes) -> bytes:
+    def _admit(self, verb: str, request: CommandRequest) -> None:
+        """Run this request at all? ``NotRunError`` (and reported) if it came after its
+        deadline, lacks one, or its hub session was ended by the dead-man."""
+        if verb == subjects.STOP or verb in subjects.READ_VERBS:
+            return  # a STOP always acts (unless overtaken); a read changes nothing
+        now = self._hub.now()
+        if request.deadline_s is None:
+            raise NotRunError(
+                "expired", f"{verb}: not run: a command needs a deadline (deadline_s)"
+            )
+        if now > request.deadline_s:
+            sent = (
+                f" {now - request.sent_s:.1f} s after it was sent,"
+                if request.sent_s is not None
+                else ""
+            )
+            detail = (
+                f"{verb} from hub {request.hub} came{sent} {now - request.deadline_s:.1f} s "
+                "after its deadline: dropped, nothing was sent (the hub reported it failed)"
+            )
+            self._hub.on_event("warning", None, detail)
+            raise NotRunError("expired", detail)
+        if self._session_ended(request.session):
+            raise NotRunError(
+                "session_ended",
+                f"{verb}: not run: this hub session was ended by the rig's dead-man (its "
+                "keep-alives stopped while it moved an axis; the axis was stopped)",
+            )
+
+    async def _execute(self, link: str, axis: str, verb: str, request: CommandRequest) -> bytes:
         """One request, exactly as the rig's REST route would run it."""
         axis_id = self._axes.get((link, axis))
         if axis_id is None:
             raise InvalidArgumentError("axis", f"no axis {axis!r} on link {link!r} of {self.rig}")
-        try:
-            request = CommandRequest.model_validate_json(data)
-        except ValidationError as exc:
-            raise _invalid(exc) from None
         principal = self._principal
         if verb == subjects.READ_PARAMS:
             self._need(principal, VIEW)
@@ -429,13 +574,21 @@ class RigAgent:
             values = await self._hub.write_params(axis_id, request.values)
             return _reply(ok=True, result={"values": values})
         if verb == subjects.CONSOLE:
-            # The rig's console route: its permission, the lock, the hub's line check
-            # (control characters refused naming ``line``) and the driver's own refusals.
+            # The rig's console route: its permission and that of what the line is
+            # (routes_table.console_permission: pg needs persist, ma move ...), the lock
+            # unless it is a stop, the hub's line check (control characters refused
+            # naming ``line``) and the driver's own refusals.
             self._need(principal, CONSOLE)
-            await self._control.require(axis_id, client.client_id, principal)
             line = request.args.get("line")
             if not isinstance(line, str):
                 raise InvalidArgumentError("line", "line must be a string")
+            try:
+                needed = console_permission(self._hub.descriptor(axis_id), line)
+            except UnknownConsoleLineError as exc:
+                raise InvalidArgumentError("line", str(exc)) from None
+            self._need(principal, needed)
+            if needed != STOP:
+                await self._control.require(axis_id, client.client_id, principal)
             try:
                 sent, reply = await self._hub.console(axis_id, line)
             except (DeviceRefusedError, InvalidArgumentError, LinkDownError):
@@ -449,8 +602,30 @@ class RigAgent:
         if permission != STOP:
             # STOP is never locked (docs/control.md); every other command is.
             await self._control.require(axis_id, client.client_id, principal)
+        elif request.pressed_s is not None:
+            self._check_stop_current(axis_id, request)
         outcome = await self._hub.command(axis_id, verb, request.args)
         return _reply(ok=True, result={"sent": outcome.sent, "message": outcome.message})
+
+    def _check_stop_current(self, axis_id: str, request: CommandRequest) -> None:
+        """A hub STOP acts on the motion its user saw: not sent (``StopOvertakenError``,
+        reported here too) when this axis was commanded or stopped after it was
+        pressed (its local user moved it during a network cut, the dead-man stopped
+        it); said when it was pressed if it comes late."""
+        assert request.pressed_s is not None
+        ago_s = self._hub.now() - request.pressed_s
+        why = self._hub.stop_overtaken(axis_id, self._hub.clock_at(request.pressed_s))
+        if why is not None:
+            self._hub.on_event(
+                "info",
+                axis_id,
+                f"STOP from hub {request.hub} (pressed {ago_s:.1f} s ago) not sent: {why}",
+            )
+            raise StopOvertakenError(why)
+        if ago_s > 1.0:
+            self._hub.on_event(
+                "warning", axis_id, f"STOP from hub {request.hub}, pressed {ago_s:.1f} s ago"
+            )
 
     async def _autotune(
         self,

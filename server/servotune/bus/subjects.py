@@ -28,6 +28,10 @@ RUNS_STREAM = "SERVOTUNE_RUNS"
 RUNS_SUBJECTS = f"{PREFIX}.*.runs"
 # Header of a presence message that says the rig left (a clean stop).
 GONE_HEADER = "St-Gone"
+# Headers of a rig's presence and clock answers: its clock (its server's ``Hub.now()``,
+# the clock of its telemetry) and the id of its agent's run (a new one: a new clock).
+RIG_NOW_HEADER = "St-Rig-Now"
+RIG_ID_HEADER = "St-Rig-Id"
 
 _TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
 # Verbs that are not descriptor commands (a descriptor command name is a verb too).
@@ -37,6 +41,8 @@ CONSOLE = "console"
 BENCH_START = "bench_start"
 BENCH_RUNS = "bench_runs"
 STOP = "stop"
+# Rig-wide: the rig answers its clock (``bus.clock``), on its STOP connection.
+CLOCK = "clock"
 # Auto-tune from the hub (``bus.autotune``): long requests, run by the rig's AutoTuner.
 AUTOTUNE_IDENTIFY = "autotune_identify"
 AUTOTUNE_ACCEPT = "autotune_accept"

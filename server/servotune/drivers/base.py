@@ -37,6 +37,11 @@ class ProtocolError(DriverError):
     """The device answered something the protocol does not allow (bad echo, garbage)."""
 
 
+class MeasurementError(DriverError):
+    """A measurement cannot support its result (too few samples, nothing moved): the
+    device refused nothing; ``str`` says what was measured and what to change."""
+
+
 class InvalidArgumentError(DriverError):
     """An argument is missing or out of range; nothing was sent."""
 
@@ -68,21 +73,27 @@ def check_console_line(line: str) -> None:
 class Sample:
     """One telemetry sample of one axis, in device units.
 
-    ``t`` is when the device latched it (the driver's best estimate, which a busy host
-    can only make late); ``t_span_s``, where the driver knows it, how far before ``t``
-    the latch may lie (a captured SLAP2 sample: down to when its command's CR was
-    written)."""
+    ``t`` is when the device latched the sample's position (the driver's best
+    estimate, which a busy host can only make late); ``t_span_s``, where the driver
+    knows it, how far before ``t`` the latch may lie (a captured SLAP2 sample: down to
+    when its command's CR was written). ``flags_t`` is when its flags were read, on the
+    same clock: a driver that polls the flags less often than the position carries the
+    last read on every sample and says when it was taken; None means "read with the
+    sample" (a cyclic device)."""
 
     t: float
     channels: Mapping[str, float | None]
     flags: Mapping[str, bool]
     t_span_s: float | None = None
+    flags_t: float | None = None
 
 
 @dataclass(slots=True)
 class CommandOutcome:
     sent: list[str] = field(default_factory=list)
     message: str = ""
+    # The hub watches the move the command started (servotune.movewatch).
+    outcome_pending: bool = False
 
 
 class DriverSink(Protocol):

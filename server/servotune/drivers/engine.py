@@ -24,7 +24,16 @@ probe, then poll forever) and the wire exchange of its device. The engine provid
   calls it between two wire transactions, so a stop waits at most for the one
   transaction in flight, never for queued polls. Jobs are refused at once while the
   link is down: a motion command must never be replayed later;
-* link state and status publishing through the ``DriverSink``.
+* link state and status publishing through the ``DriverSink``;
+* the silence rule: a device that answers none of the requests sent to it is not shown
+  ``connected``. A subclass reports each request that got no answer
+  (``_unanswered_request``) and each valid answer (``_answered``); once
+  ``SILENT_REQUESTS`` requests in a row went unanswered over at least ``SILENT_S``,
+  the link shows ``error`` ("no answer from the device for ...") with an error event,
+  checked at each unanswered request and by the status ticker (a session blocked in
+  a long wait). Counting requests, not wall time, keeps a stalled host from raising
+  it: a host that did not run sent nothing and missed no answer. The next good poll
+  shows ``connected`` again, as after any line error.
 """
 
 from __future__ import annotations
@@ -57,6 +66,9 @@ RATE_WINDOW_S = 2.0
 #   dropped_bytes: unsolicited bytes read and dropped (late echoes, line noise);
 #   restarts: sessions ended by an internal error and restarted.
 COUNTER_NAMES = ("retries", "desyncs", "dropped_bytes", "restarts")
+SILENT_REQUESTS = 3
+SILENT_S = 1.0
+_SILENT_PREFIX = "no answer from the device for"
 
 
 def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WINDOW_S) -> float:
@@ -124,6 +136,9 @@ class LinkEngine(abc.ABC):
         # them, and when the current session's channel opened (see ``wire_busy``).
         self._wire_log: deque[tuple[float, float]] = deque()
         self._opened_at: float | None = None
+        # The silence rule: when the device last answered, and the requests since.
+        self._last_answer_t: float | None = None
+        self._unanswered = 0
         self._axes: list[AxisDriver] = []
         self._descriptor: DeviceDescriptor
 
@@ -214,7 +229,39 @@ class LinkEngine(abc.ABC):
     async def _status_ticker(self) -> None:
         while True:
             await asyncio.sleep(STATUS_PERIOD_S)
+            self._check_silent()
             self._publish_status()
+
+    # --- the silence rule (module docstring) -------------------------------------------
+
+    def _answered(self) -> None:
+        """The device answered a request validly."""
+        self._last_answer_t = self._clock()
+        self._unanswered = 0
+
+    def _unanswered_request(self) -> None:
+        """A request got no answer at all within its timeout."""
+        self._unanswered += 1
+        self._check_silent()
+
+    def _check_silent(self) -> None:
+        if self._channel is None or self._state not in ("connected", "error"):
+            return
+        since = self._last_answer_t if self._last_answer_t is not None else self._opened_at
+        if since is None or self._unanswered < SILENT_REQUESTS:
+            return
+        silent_s = self._clock() - since
+        if silent_s < SILENT_S:
+            return
+        message = (
+            f"{_SILENT_PREFIX} {silent_s:.0f} s ({self._unanswered} requests in a row "
+            "unanswered): is it powered, is the cable in?"
+        )
+        if self._state == "connected":
+            self._sink.on_event("error", None, f"{self.id}: {message}")
+            self._set_state("error", message)
+        elif self._message.startswith(_SILENT_PREFIX):
+            self._set_state("error", message)  # the same error, its time brought up
 
     async def _supervise(self) -> None:
         backoff_s = 0.25
@@ -230,6 +277,7 @@ class LinkEngine(abc.ABC):
             self._opened_at = opened_at = self._clock()
             self._channel = channel
             self._wire_log.clear()
+            self._last_answer_t, self._unanswered = None, 0
             try:
                 await self._session(channel)
             except LinkClosedError as exc:

@@ -115,6 +115,8 @@ from servotune.drivers.ep7047_jobs import (
     DEFAULT_COUNTS_PER_REV,
     DEFAULT_SPEED_RANGE_STEPS_S,
     WATCHDOG_S,
+    DriveRefusedValueError,
+    SdoValueRefusedError,
     _CycleState,
     _Kind,
     _Request,
@@ -130,6 +132,7 @@ from servotune.transports.ethercat import (
     NONE_STATE,
     OP_STATE,
     PREOP_STATE,
+    PYSOEM_MISSING,
     SAFEOP_STATE,
     STATE_ACK,
     STATE_ERROR,
@@ -143,6 +146,7 @@ from servotune.transports.ethercat import (
     raw_socket_problem,
     state_name,
 )
+from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 logger = logging.getLogger(__name__)
 
@@ -344,6 +348,10 @@ class Ep7047Axis(AxisDriver):
             except DeviceRefusedError as exc:
                 if readback:
                     self._link._sink.on_params(self.id, readback, source)
+                if isinstance(exc, SdoValueRefusedError):
+                    raise DriveRefusedValueError(
+                        name, f"{name} = {value}: the drive refused the value: {exc.reason}"
+                    ) from exc
                 raise DeviceRefusedError(f"{name} = {value}: {exc}") from exc
         self._link._sink.on_params(self.id, readback, source)
         return readback
@@ -467,7 +475,12 @@ class Ep7047Axis(AxisDriver):
             except (ValueError, CodecError) as exc:
                 raise InvalidArgumentError("line", f"{label}: {exc}") from None
             # A refusal (an SDO abort) is raised: the console shows it as the answer.
-            await self._link.sdo_write(obj, value)
+            try:
+                await self._link.sdo_write(obj, value)
+            except SdoValueRefusedError as exc:
+                raise DriveRefusedValueError(
+                    "line", f"{label} = {value}: the drive refused the value: {exc.reason}"
+                ) from exc
         readback = await self._link.sdo_read(obj)
         self._report_console_value(obj, readback)
         unit = f" {obj.unit}" if obj.unit else ""
@@ -554,6 +567,17 @@ class Ep7047Axis(AxisDriver):
 # --- glue ---------------------------------------------------------------------------------------
 
 
+def _real_master(cycle_s: float, cycle_process: bool) -> EthercatMaster:
+    """pysoem on a NIC; in a cycle process unless ``cycle_process`` is False."""
+    try:
+        import pysoem  # noqa: F401 - checked here, so that the link says so at once
+    except ImportError as exc:
+        raise EthercatUnavailableError(PYSOEM_MISSING) from exc
+    if not cycle_process:
+        return PysoemMaster()
+    return CycleProcessMaster(PysoemMaster, cycle_s=cycle_s, name="ec-cycle")
+
+
 def build_ep7047_link(
     link_id: str,
     ifname: str,
@@ -567,18 +591,21 @@ def build_ep7047_link(
     settings: PosSettings | None = None,
     name: str | None = None,
     watchdog_s: float = WATCHDOG_S,
+    cycle_process: bool = True,
 ) -> Ep7047Link:
     """An EP7047-1032 link on ``ifname`` (slave position ``slave``, from 1).
 
     ``master`` None uses the real pysoem master (created when the link runs, so a missing
-    pysoem shows as the link's error state, not as a crash). ``settings``, when given, are
+    pysoem shows as the link's error state, not as a crash), in a cycle process of its
+    own (``transports.ethercat_cycle``; ``cycle_process=False``: in the driver's thread,
+    as before - kept for comparison). ``settings``, when given, are
     written over CoE at every bring-up; otherwise the drive's own values are read.
     ``watchdog_s`` is the slave's SyncManager watchdog time (the device default, 100 ms):
     a longer gap in the process data makes the driver drop Enable.
     """
     factory: Callable[[], EthercatMaster]
     if master is None:
-        factory = PysoemMaster
+        factory = functools.partial(_real_master, cycle_s, cycle_process)
     else:
         given = master
 

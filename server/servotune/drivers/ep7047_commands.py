@@ -70,8 +70,9 @@ class _CommandCycle(_LinkCore):
         self._post_event(
             "error",
             f"no good process data for {gap * 1000:.0f} ms (the drive's watchdog is "
-            f"{self._watchdog_s * 1000:.0f} ms): the drive has dropped its outputs or was "
-            "about to; Enable is off - press Enable to continue",
+            f"{self._watchdog_s * 1000:.0f} ms): the drive dropped Enable because process "
+            "data stopped (or was about to) - the motor stops without holding torque, its "
+            "settings are kept; Enable is off - press Enable to continue",
         )
 
     # --- requests (thread side) ---------------------------------------------------------

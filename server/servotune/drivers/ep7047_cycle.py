@@ -26,9 +26,12 @@ from servotune.drivers.ep7047_jobs import (
     _DIAG_BITS,
     _POS_BITS,
     _STM_BITS,
+    AL_WATCHDOG,
     CYCLE_THREAD_NICE,
     STATE_ACTIVE_S,
+    VALUE_ABORT_CODES,
     WATCHDOG_MARGIN_S,
+    SdoValueRefusedError,
     _BringUpError,
     _CycleState,
     _DropOutError,
@@ -37,6 +40,7 @@ from servotune.drivers.ep7047_jobs import (
     _Request,
     _settle,
     _StopPhase,
+    watchdog_trip_text,
 )
 from servotune.protocols import ep7047 as codec
 from servotune.protocols.ep7047 import CodecError, Inputs, PosStatus, StmStatus
@@ -53,10 +57,11 @@ from servotune.transports.ethercat import (
     EthercatSdoError,
     EthercatSlave,
     EthercatUnavailableError,
+    PacedMaster,
     al_status_text,
     state_name,
 )
-from servotune.wire import LinkState
+from servotune.wire import EventLevel, LinkState
 
 _POS_WARNING = int(PosStatus.WARNING)
 
@@ -91,8 +96,19 @@ class _CycleThread(_CommandCycle):
         else:
             logger.info("%s: cycle thread at nice %d", self.id, CYCLE_THREAD_NICE)
 
+    def _refresh_last_good(self, master: EthercatMaster) -> None:
+        """With a paced master the slave's watchdog runs on the cycle process's
+        exchanges: take the send time of its last good one (this thread may have been
+        held up while that cycle went on)."""
+        if isinstance(master, PacedMaster):
+            last = master.last_good_t()
+            if last is not None:
+                self._last_good = max(self._last_good, last)
+
     def _thread_main(self, master: EthercatMaster) -> None:
         connected_once = False
+        told_priority = False
+        tripped = False
         backoff_s = 0.25
         self._raise_priority()
         try:
@@ -102,7 +118,9 @@ class _CycleThread(_CommandCycle):
                 except _BringUpError as exc:
                     self._went_down(master, None, LinkDownError(f"link {self.id} is down: {exc}"))
                     state: LinkState = (
-                        "error" if exc.fatal or not connected_once else "reconnecting"
+                        "error"
+                        if exc.fatal or exc.no_answer or not connected_once
+                        else "reconnecting"
                     )
                     self._post_state(state, str(exc))
                     if self._halt.wait(backoff_s):
@@ -112,12 +130,19 @@ class _CycleThread(_CommandCycle):
                 if connected_once:
                     self._post_event(
                         "warning",
-                        f"{self.id}: slave {self._slave_pos} is back in OP; Enable is off - "
-                        "press Enable to continue",
+                        f"{self.id}: slave {self._slave_pos} is back in OP"
+                        + (" after its watchdog trip" if tripped else "")
+                        + "; Enable is off - press Enable to continue",
                         axis=False,
                     )
+                tripped = False
                 connected_once = True
                 backoff_s = 0.25
+                if isinstance(master, PacedMaster) and not told_priority:
+                    told_priority = True
+                    if master.priority_text:
+                        level: EventLevel = "info" if master.priority_granted else "warning"
+                        self._post_event(level, f"{self.id}: {master.priority_text}", axis=False)
                 revision = f"rev 0x{self._revision or 0:08X}"
                 self._post_state(
                     "connected",
@@ -132,9 +157,10 @@ class _CycleThread(_CommandCycle):
                         raise _DropOutError(f"EtherCAT failed on {self._ifname}: {exc}") from exc
                 except _DropOutError as exc:
                     self._errors += 1
+                    tripped = exc.watchdog
                     self._went_down(master, slave, LinkDownError(f"link {self.id} is down: {exc}"))
                     self._post_health("offline", str(exc))
-                    self._post_state("reconnecting", str(exc))
+                    self._post_state(exc.state, str(exc))
                     self._post_event("error", f"{self.id}: {exc}", axis=False)
                     if self._halt.wait(0.25):
                         break
@@ -150,6 +176,9 @@ class _CycleThread(_CommandCycle):
             self._flush_samples()
             self._thread_connected = False
             self._close_quietly(master)
+            if isinstance(master, PacedMaster):
+                with contextlib.suppress(Exception):
+                    master.shutdown()
 
     def _went_down(
         self, master: EthercatMaster, slave: EthercatSlave | None, error: Exception
@@ -210,7 +239,8 @@ class _CycleThread(_CommandCycle):
         if found <= 0:
             raise _BringUpError(
                 f"no EtherCAT slave answers on {self._ifname}: check the cable into the "
-                "box's X1 IN port, the link/activity LEDs at both ends and the 24 V supply"
+                "box's X1 IN port, the link/activity LEDs at both ends and the 24 V supply",
+                no_answer=True,
             )
         if self._slave_pos > len(master.slaves):
             raise _BringUpError(
@@ -343,6 +373,14 @@ class _CycleThread(_CommandCycle):
     def _cyclic(self, master: EthercatMaster, slave: EthercatSlave) -> None:
         period = self._cycle_s
         deadline = time.monotonic()
+        if isinstance(master, PacedMaster):
+            # The cycle process keeps the period; receive_processdata waits for it. Its
+            # cycles in SAFE-OP (working counter 1) are no lost frames: count from here.
+            master.last_good_t()
+            self._paced_lost = master.cycle_lost
+            while not self._halt.is_set():
+                self._one_cycle(master, slave)
+            return
         while not self._halt.is_set():
             self._one_cycle(master, slave)
             deadline += period
@@ -360,6 +398,7 @@ class _CycleThread(_CommandCycle):
         # held this thread up.
         sent_t = time.monotonic()
         if sent_t - self._last_good > self._watchdog_s - WATCHDOG_MARGIN_S:
+            self._refresh_last_good(master)
             self._check_stall()
         key = (
             cs.enable, cs.reset, cs.emergency, cs.execute, cs.target, cs.velocity_bp,
@@ -371,18 +410,60 @@ class _CycleThread(_CommandCycle):
         slave.output = self._outputs_bytes
         master.send_processdata()
         wkc = master.receive_processdata(self._receive_timeout_us())
+        paced = False
+        if isinstance(master, PacedMaster):
+            paced = True
+            # The cycle process sees every exchange, this thread only some: count its.
+            lost = master.cycle_lost
+            if lost > self._paced_lost:
+                self._errors += lost - self._paced_lost
+                self._lost_frames += lost - self._paced_lost
+            self._paced_lost = lost
         if wkc == master.expected_wkc:
-            self._cs.lost_in_row = 0
+            self._cs.lost_in_row = self._cs.silent_in_row = 0
             # The send time, not now: the slave restarted its watchdog when the frame
             # arrived, and this thread may have run again only long after the reply.
             self._last_good = sent_t
+            self._refresh_last_good(master)
             return True
-        self._errors += 1
-        self._lost_frames += 1
-        self._cs.lost_in_row += 1
+        if not paced:
+            self._errors += 1
+            self._lost_frames += 1
+        cs = self._cs
+        cs.lost_in_row += 1
+        if wkc < 0:
+            # No frame came back at all: nothing on the wire answers, so no state can be
+            # read either (reading it would only wait for more timeouts).
+            # Counted in time, not cycles: SOEM waits ~10 ms for a frame that never
+            # comes (however short the timeout), so a silent cycle lasts that long.
+            if cs.silent_in_row == 0:
+                cs.silent_since = sent_t
+            cs.silent_in_row += 1
+            if paced:
+                # The cycle process saw every exchange: silence is the time since its
+                # last good one, not between the few cycles this thread happened to see
+                # (two isolated losses around a stall of this thread are no pulled cable).
+                silent_s = time.monotonic() - self._last_good
+            else:
+                silent_s = time.monotonic() - cs.silent_since
+            if cs.silent_in_row >= 2 and silent_s >= self._silent_limit_s:
+                raise _DropOutError(
+                    f"no EtherCAT frame comes back on {self._ifname} (for "
+                    f"{silent_s * 1000:.0f} ms): the cable is pulled, the link is down or the "
+                    "box has no power - the drive's watchdog stops the motor; retrying",
+                    state="error",
+                )
+            return False
+        cs.silent_in_row = 0
         master.read_state()
         state = slave.state
         if state != OP_STATE:
+            if slave.al_status == AL_WATCHDOG:
+                raise _DropOutError(
+                    watchdog=True,
+                    message=f"{watchdog_trip_text(self._ifname, self._slave_pos)} (now "
+                    f"{state_name(state)})",
+                )
             raise _DropOutError(
                 f"slave {self._slave_pos} on {self._ifname} left OP: now {state_name(state)}, "
                 f"{al_status_text(slave.al_status)}"
@@ -412,6 +493,7 @@ class _CycleThread(_CommandCycle):
         cs = self._cs
         now = self._clock()
         if time.monotonic() - self._last_good > self._watchdog_s - WATCHDOG_MARGIN_S:
+            self._refresh_last_good(master)
             self._check_stall()
         # A racy peek at the deque (no lock): a request appended meanwhile is taken next
         # cycle, and _take_urgent reads it under the lock.
@@ -489,7 +571,14 @@ class _CycleThread(_CommandCycle):
                 self._resolve(job, None)
         except EthercatSdoError as exc:
             self._errors += 1
-            self._reject(job, DeviceRefusedError(f"{where}: the drive refused it: {exc}"))
+            message = f"{where}: the drive refused it: {exc}"
+            if job.kind is _Kind.SDO_WRITE and exc.abort_code in VALUE_ABORT_CODES:
+                error: DeviceRefusedError = SdoValueRefusedError(
+                    message, exc.abort_code, f"SDO abort 0x{exc.abort_code:08X} ({exc.desc})"
+                )
+            else:
+                error = DeviceRefusedError(message)
+            self._reject(job, error)
         except EthercatMailboxError as exc:
             self._errors += 1
             self._reject(job, DeviceTimeoutError(f"{where}: no answer: {exc}"))

@@ -23,6 +23,7 @@ from servotune.descriptor import (
     Choice,
     CommandDescriptor,
     ConsoleDescriptor,
+    ConsoleRule,
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
@@ -184,6 +185,24 @@ def _sdo_set(obj: SdoObject) -> str:
 
 def _sdo_read(obj: SdoObject) -> str:
     return f"SDO 0x{obj.index:04X}:{obj.subindex:02X}"
+
+
+def console_rules() -> list[ConsoleRule]:
+    """What the console's CoE lines do: a line without '= value' reads its object; a
+    write of an object is a write of the parameter it holds (or of a setting the
+    descriptor does not show: still a parameter write), a read-only one only reads."""
+    holder = {(o.index, o.subindex): name for name, o in PARAMETER_SDO.items()}
+    for obj in INVERSION_BITS.values():
+        holder[(obj.index, obj.subindex)] = INVERSION_PARAMETER
+    rules = [ConsoleRule(words=["list", "help"], effect="read")]
+    for obj in codec.SDO_OBJECTS:
+        word = f"0x{obj.index:04x}:{obj.subindex:02x}"
+        if not obj.writable:
+            rules.append(ConsoleRule(words=[word], effect="read"))
+            continue
+        name = holder.get((obj.index, obj.subindex))
+        rules.append(ConsoleRule(words=[word], effect="write", parameters=[name] if name else []))
+    return rules
 
 
 def _hex(code: int) -> str:
@@ -849,6 +868,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
                 "but not the data type."
             ),
             examples=["list", "0x9020:03", "0x9020:01", "0x8020:0E", "0x8020:02 = 5000"],
+            syntax="object",
+            rules=console_rules(),
         ),
         stop=StopEffect(
             summary="EP7047: emergency ramp, then no holding torque",

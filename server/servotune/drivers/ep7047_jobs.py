@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import DriverSink, Sample
+from servotune.drivers.base import DeviceRefusedError, DriverSink, InvalidArgumentError, Sample
 from servotune.drivers.engine import recent_rate_hz
 from servotune.drivers.ep7047_descriptor import DIAG_FLAGS, POS_FLAGS, STM_FLAGS, ep7047_descriptor
 from servotune.protocols import ep7047 as codec
@@ -97,14 +97,61 @@ def diag_text(diag: PosDiag) -> str:
     return "; ".join(parts) if parts else "no diagnosis bit set"
 
 
+# SDO abort codes that refuse the *value* (ETG.1000.6): range, too high, too low,
+# length/type. The request went out; the drive kept its old value.
+VALUE_ABORT_CODES: Final = frozenset(
+    {0x0609_0030, 0x0609_0031, 0x0609_0032, 0x0609_0036, 0x0607_0010, 0x0607_0012, 0x0607_0013}
+)
+
+
+class SdoValueRefusedError(DeviceRefusedError):
+    """The drive aborted an SDO download because of the value (``abort_code`` in
+    :data:`VALUE_ABORT_CODES`); the parameter or console layer names the field."""
+
+    def __init__(self, message: str, abort_code: int, reason: str) -> None:
+        super().__init__(message)
+        self.abort_code = abort_code
+        self.reason = reason
+
+
+class DriveRefusedValueError(InvalidArgumentError):
+    """A field error from the drive itself: it aborted the SDO download of this value
+    with a value-range code (the value was sent, and not taken)."""
+
+
 class _BringUpError(Exception):
-    def __init__(self, message: str, *, fatal: bool = False) -> None:
+    def __init__(self, message: str, *, fatal: bool = False, no_answer: bool = False) -> None:
         super().__init__(message)
         self.fatal = fatal
+        self.no_answer = no_answer  # nothing answers: the link shows error, and retries
 
 
 class _DropOutError(Exception):
-    pass
+    """The slave is gone from OP; ``state`` is what the link shows while it retries:
+    ``error`` when nothing answers (a pulled cable, no power), ``reconnecting`` when the
+    slave answers but left OP (e.g. its watchdog tripped)."""
+
+    def __init__(
+        self, message: str, *, state: LinkState = "reconnecting", watchdog: bool = False
+    ) -> None:
+        super().__init__(message)
+        self.state: LinkState = state
+        self.watchdog = watchdog  # the drive's watchdog tripped (AL status 0x001B)
+
+
+# AL status code of a SyncManager watchdog trip (ETG.1000.6).
+AL_WATCHDOG: Final = 0x001B
+
+
+def watchdog_trip_text(ifname: str, slave: int) -> str:
+    """What a user reads when the drive's process-data watchdog tripped (AL 0x001B): what
+    happened, not a reset - the drive kept its settings."""
+    return (
+        f"the drive (slave {slave} on {ifname}) dropped Enable because process data stopped: "
+        "its SyncManager watchdog tripped (AL status 0x001B) - the motor stopped without "
+        "holding torque, its settings are kept; servotune brings it back to OP with "
+        "Enable off"
+    )
 
 
 class _Kind(enum.Enum):
@@ -188,6 +235,8 @@ class _CycleState:
     last_target: float | None = None
     last_direction: int = 1
     lost_in_row: int = 0
+    silent_in_row: int = 0  # cycles in a row with no frame back at all
+    silent_since: float = 0.0  # the send time of the first of them
 
     def outputs(self) -> Outputs:
         stm = StmControl.NONE
@@ -284,6 +333,10 @@ class _LinkCore:
         self._max_lost = max_lost_frames
         self._reconnect_max_s = reconnect_max_s
         self._watchdog_s = watchdog_s
+        # No frame back at all for this long is a pulled cable (an error): half the
+        # watchdog, so that the user reads it before the drive has stopped, and a few
+        # lost frames in a row (each ~10 ms of SOEM's waiting) are only counted.
+        self._silent_limit_s = max(max_lost_frames * cycle_s, watchdog_s / 2)
         self._descriptor = ep7047_descriptor(speed_range_steps_s, counts_per_rev)
         self._axis_name = name or f"EP7047-1032 #{slave}"
         self._state: LinkState = "connecting"
@@ -291,6 +344,7 @@ class _LinkCore:
         self._errors = 0
         self._overruns = 0
         self._lost_frames = 0
+        self._paced_lost = 0  # the cycle process's lost exchanges counted so far
         self._watchdog_trips = 0
         self._restarts = 0
         self._sample_times: deque[float] = deque(maxlen=4096)

@@ -71,26 +71,33 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import recent_rate_hz
+from servotune.drivers.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
 from servotune.drivers.slap2_axis import Slap2Axis
 from servotune.drivers.slap2_capture import (
     CAPTURE_UCON,
+    CHECK_TOLERANCE_COUNTS,
+    MISSES_TO_DROP,
     MOVE_MNEMONICS,
     PROFILE_BREAKERS,
     ModuleCapture,
     ProfileState,
 )
-from servotune.drivers.slap2_descriptor import slap2_descriptor
+from servotune.drivers.slap2_descriptor import PARAM_SETTERS, slap2_descriptor
 from servotune.drivers.slap2_wire import (
     Slap2Wire,
     command_mnemonic,
     is_banner,
 )
-from servotune.profiles import ProfileTrack
+from servotune.profiles import TICK_S, ProfileTrack, firmware_setpoint
 from servotune.protocols import slap2 as codec
 from servotune.transports.base import ByteChannel, Connector
 from servotune.wire import AxisHealth
 
 logger = logging.getLogger(__name__)
+
+# Outside a capture pe is read one transaction after rp (~6 ms at 19200 baud): what the
+# profile moves in that time is allowed in the live check of the reconstruction.
+LIVE_SKEW_S = 0.01
 
 T = TypeVar("T")
 
@@ -159,6 +166,7 @@ class _ModuleState:
     following_error: int | None = None
     velocity: float | None = None
     rss: int | None = None
+    rss_t: float | None = None  # when rss was read (latch time): the flags' read time
     cycles: int = 0
     hex_mode: bool = False
     ucon: bool = False
@@ -181,6 +189,10 @@ class _ModuleState:
     # servotune sent, the state of a capture of this module, and whether it is paused
     # for another module's capture.
     profile: ProfileState = field(default_factory=ProfileState)
+    # Outside a capture: rp + pe while pe is steady (drivers.setpoint), and how often
+    # in a row it disagreed with the reconstructed profile (_live_setpoint).
+    skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
+    live_misses: int = 0
     last_command_latch_s: float | None = None
     last_command_latch_span_s: float | None = None
     capture: ModuleCapture | None = None
@@ -319,6 +331,7 @@ class Slap2Link(Slap2Wire):
         try:
             values = await self._read_params(module)
             rss = await self._read_int(module.address, "rss")
+            rss_t = self._last_latch_t
         except DriverError as exc:
             if module.online or not self._connected_once:
                 self._sink.on_event("warning", axis_id, f"module {module.address}: {exc}")
@@ -340,7 +353,7 @@ class Slap2Link(Slap2Wire):
                 message = str(exc)
             self._sink.on_axis_health(axis_id, "offline", message)
             return
-        module.rss = rss
+        module.rss, module.rss_t = rss, rss_t
         flags = codec.decode_rss(rss)
         module.expected_mode = "pm" if flags["pm"] else "vm" if flags["vm"] else "off"
         module.cal_seen = flags["cal"]
@@ -401,6 +414,7 @@ class Slap2Link(Slap2Wire):
         cue = module.suspect
         try:
             rss = await self._read_int(module.address, "rss")
+            rss_t = self._last_latch_t
             evidence = self._rss_evidence(module, rss)
             if not evidence:
                 evidence = await self._settings_evidence(module)
@@ -423,7 +437,7 @@ class Slap2Link(Slap2Wire):
         else:
             self._count("desyncs")
             logger.info("%s: module %d: %s, but no reset evidence", self.id, module.address, cue)
-        module.rss = rss
+        module.rss, module.rss_t = rss, rss_t
         module.cal_seen = module.cal_seen and codec.decode_rss(rss)["cal"]
 
     def _rss_evidence(self, module: _ModuleState, rss: int) -> str:
@@ -471,7 +485,7 @@ class Slap2Link(Slap2Wire):
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
         if command.changes_device and not module.ucon:
             rss = await self._read_rss_after(command.text)
-            module.rss = rss
+            module.rss, module.rss_t = rss, self._last_latch_t
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
         if mnemonic in MOVE_MNEMONICS:
@@ -675,6 +689,7 @@ class Slap2Link(Slap2Wire):
         t_position = 0.0
         following_error: int | None = None
         rss: int | None = None
+        rss_t: float | None = None
         # (Counted only when the cycle completes, so that a cut-short one keeps its rve.)
         rve_due = bool(self.config.rve_every and (module.cycles + 1) % self.config.rve_every == 0)
         sequence = [*self.config.poll_commands, *(["rve"] if rve_due else [])]
@@ -689,14 +704,14 @@ class Slap2Link(Slap2Wire):
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
-                rss = value
+                rss, rss_t = value, self._last_latch_t
         measured: float | None = None
         module.cycles += 1
         if rve_due:
             measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
         if self._state == "error":
             self._set_state("connected", self._connector.description)
-        self._emit_sample(module, position, t_position, following_error, rss, measured)
+        self._emit_sample(module, position, t_position, following_error, rss, rss_t, measured)
 
     def _emit_sample(
         self,
@@ -705,6 +720,7 @@ class Slap2Link(Slap2Wire):
         t_position: float,
         following_error: int | None,
         rss: int | None,
+        rss_t: float | None,
         measured: float | None,
     ) -> None:
         t = t_position or self._clock()
@@ -718,21 +734,70 @@ class Slap2Link(Slap2Wire):
             module.following_error = following_error
         if rss is not None:
             self._check_rss(module, rss)
-            module.rss = rss
+            module.rss, module.rss_t = rss, rss_t
         flags = codec.decode_rss(module.rss or 0)
+        # The setpoint: the reconstructed profile where the driver knows it; else rp +
+        # pe, two reads a transaction apart, only while pe is steady (drivers.setpoint).
+        skewed = module.skewed.setpoint(
+            module.position, following_error, profile_running=flags["move"]
+        )
+        reconstructed = self._live_setpoint(module, flags, t, skewed)
+        setpoint: float | None
+        error: float | None
+        if reconstructed is not None and module.position is not None:
+            setpoint = round(reconstructed, 2)
+            error = round(setpoint - module.position, 2)
+        else:
+            setpoint, error = skewed, module.following_error
         channels: dict[str, float | None] = {
             "position": module.position,
-            "setpoint": (
-                module.position + module.following_error
-                if module.position is not None and module.following_error is not None
-                else None
-            ),
-            "following_error": module.following_error,
+            "setpoint": setpoint,
+            "following_error": error,
             "velocity": module.velocity,
             "velocity_measured": measured,
         }
         module.samples.append(t)
-        self._sink.on_sample(self.axis_id(module.address), Sample(t, channels, flags))
+        self._sink.on_sample(
+            self.axis_id(module.address), Sample(t, channels, flags, flags_t=module.rss_t)
+        )
+
+    def _live_setpoint(
+        self, module: _ModuleState, flags: Mapping[str, bool], t: float, skewed: float | None
+    ) -> float | None:
+        """The reconstructed profile at ``t`` outside a capture, checked where rp + pe
+        is steady (at rest, or tracking smoothly): two disagreements in a row beyond
+        what the reads' skew and the tick allow (a limit switch ended the move, a
+        setting changed behind servotune's back) drop it, as a capture's pe check does.
+        A ringing axis is not checked (its rp + pe is no setpoint)."""
+        track = module.profile.track
+        if track is None or not flags["pm"]:
+            return None
+        reconstructed = track.setpoint_at(t)
+        if skewed is None:
+            return reconstructed
+        tolerance = (
+            CHECK_TOLERANCE_COUNTS
+            + STEADY_ERROR_COUNTS
+            + abs(track.setpoint_at(t + TICK_S) - track.setpoint_at(t - TICK_S))
+            + abs(track.setpoint_at(t + LIVE_SKEW_S) - reconstructed)
+        )
+        if abs(skewed - firmware_setpoint(reconstructed)) <= tolerance:
+            module.live_misses = 0
+            return reconstructed
+        module.live_misses += 1
+        if module.live_misses < MISSES_TO_DROP:
+            return reconstructed
+        module.live_misses = 0
+        module.profile.clear()
+        self._count("setpoint_mismatches")
+        logger.info(
+            "%s: module %d: rp + pe %.0f, the reconstructed setpoint %.0f: dropped",
+            self.id,
+            module.address,
+            skewed,
+            reconstructed,
+        )
+        return None
 
     def _check_rss(self, module: _ModuleState, rss: int) -> None:
         cue = self._rss_evidence(module, rss)
@@ -768,7 +833,12 @@ class Slap2Link(Slap2Wire):
             if module.address in captured and module.capture is None:
                 module.capture = ModuleCapture(CaptureStats(started_s=now))
                 module.ucon_failures = 0
+                module.samples.clear()  # the rate restarts with the limit (see below)
             elif module.address not in captured and module.capture is not None:
+                # The rate counts the samples of the last 2 s against the limit of the
+                # poll set in force: the capture's dense samples, counted against the
+                # normal poll set's limit, read above 100 % of the wire (issue 25).
+                module.samples.clear()
                 stats = module.capture.stats
                 stats.ended_s = now
                 module.last_capture, module.capture = stats, None
@@ -816,7 +886,20 @@ class Slap2Link(Slap2Wire):
         now = self._clock()
         flags_now = codec.decode_rss(module.rss or 0)
         pe_due = capture.wants_pe(module.profile, flags_now, now)
-        rss_due = capture.wants_rss(module.profile, now, flags_fresh=not module.ucon)
+        track = module.profile.track
+        window = module.known.get("inpos_window")
+        rss_due = capture.wants_rss(
+            module.profile,
+            now,
+            flags_fresh=not module.ucon,
+            arrived=flags_now["inpos"],
+            inside_window=(
+                track is not None
+                and window is not None
+                and module.position is not None
+                and abs(module.position - track.target) <= window
+            ),
+        )
         after_rss = "rp" if alone else None
         after_pe = "rss" if rss_due else after_rss
         try:
@@ -840,7 +923,7 @@ class Slap2Link(Slap2Wire):
                 rss = await self._read_int(address, "rss", after_rss)
                 capture.last_rss_s = self._last_latch_t
                 self._check_rss(module, rss)
-                module.rss = rss
+                module.rss, module.rss_t = rss, self._last_latch_t
             self._module_answered(module)
         except DriverError as exc:
             capture.stats.wire_chars += self._wire_chars - chars_before
@@ -928,7 +1011,8 @@ class Slap2Link(Slap2Wire):
         }
         module.samples.append(t)
         self._sink.on_sample(
-            self.axis_id(module.address), Sample(t, channels, flags, t_span_s=t_span)
+            self.axis_id(module.address),
+            Sample(t, channels, flags, t_span_s=t_span, flags_t=module.rss_t),
         )
 
     # --- status -----------------------------------------------------------------------
@@ -1071,29 +1155,8 @@ class Slap2Link(Slap2Wire):
             module.expected_mode = "unknown"
             if mnemonic != "spwm":
                 module.cal_seen = False  # a new calibration clears the flag until it ends
-        elif mnemonic in _PARAM_SETTERS:
-            module.known.pop(_PARAM_SETTERS[mnemonic], None)
-
-
-_PARAM_SETTERS = {
-    "kp": "kp",
-    "ki": "ki",
-    "kd": "kd",
-    "sv": "velocity",
-    "sa": "acceleration",
-    "sipw": "inpos_window",
-    "ws": "inpos_window",
-    "sipt": "inpos_time",
-    "scl": "current_limit_ma",
-    "sc": "current_limit_ma",
-    "scv": "cal_velocity",
-    "sca": "cal_acceleration",
-    "ssyscon": "syscon",
-    "ssb": "syscon",
-    "rsb": "syscon",
-    "li": "syscon",
-    "il": "syscon",
-}
+        elif mnemonic in PARAM_SETTERS:
+            module.known.pop(PARAM_SETTERS[mnemonic], None)
 
 
 __all__ = ["Slap2Axis", "Slap2Link", "Slap2LinkConfig", "is_banner"]

@@ -46,6 +46,15 @@ CAPTURE_UCON = True
 # RSS_AFTER_MOVE_S), so the flags show the move (not in position, moving) at once.
 RSS_PERIOD_S = 0.2
 RSS_AFTER_MOVE_S = 0.05
+# Arrival: while a move the driver commanded has not yet arrived (the last rss shows
+# in position clear) and the axis is inside the in-position window of its target
+# (where in position can rise: the firmware sets it after sipt ticks inside it), for at
+# most ARRIVAL_WATCH_S after the command, quiet time included: rss every
+# RSS_ARRIVAL_PERIOD_S, so that the time to in position is located to ±12.5 ms, not
+# ±100 ms. Each rss costs about one rp: a gap of ~2 sample periods every 25 ms, only
+# inside the window, so never in the rise nor at an overshoot larger than the window.
+RSS_ARRIVAL_PERIOD_S = 0.025
+ARRIVAL_WATCH_S = 3.0
 # After a move command only rp for this long: the rise and the first peak of a step
 # are what the metrics need densest, and any other read there is a gap of one more
 # transaction right where the response is fastest (a 20 % overshoot measured 18-21 %
@@ -150,14 +159,34 @@ class ModuleCapture:
         else:
             self.resting = setpoint
 
-    def wants_rss(self, profile: ProfileState, now_s: float, *, flags_fresh: bool) -> bool:
+    def wants_rss(
+        self,
+        profile: ProfileState,
+        now_s: float,
+        *,
+        flags_fresh: bool,
+        arrived: bool,
+        inside_window: bool,
+    ) -> bool:
         """``flags_fresh``: the driver read rss right after the move command (ucon
         off), so the flags are current; with ucon on nothing read them since: one
         rss after the move's first sample (no sooner than ``RSS_AFTER_MOVE_S`` after
-        the last), then nothing in the quiet time."""
+        the last), then nothing in the quiet time but the arrival watch.
+        ``arrived``: the last rss showed in position; ``inside_window``: the last
+        position is within the in-position window of the move's target (the arrival
+        watch, see ``RSS_ARRIVAL_PERIOD_S``)."""
         since = now_s - self.last_rss_s
+        track = profile.track
+        watching = (
+            not arrived
+            and inside_window
+            and track is not None
+            and track.moved
+            and now_s - track.t_command_s < ARRIVAL_WATCH_S
+        )
+        if watching and since >= RSS_ARRIVAL_PERIOD_S:
+            return True
         if _quiet(profile, now_s):
-            track = profile.track
             assert track is not None
             stale = not flags_fresh and self.last_rss_s < track.t_command_s
             return stale and since >= RSS_AFTER_MOVE_S

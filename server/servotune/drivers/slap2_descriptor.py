@@ -15,9 +15,11 @@ from servotune.descriptor import (
     Choice,
     CommandDescriptor,
     ConsoleDescriptor,
+    ConsoleRule,
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -26,6 +28,64 @@ from servotune.descriptor import (
 from servotune.protocols import slap2 as codec
 
 POSITION_LIMIT = codec.POSITION_LIMIT
+
+# Console mnemonics that set a descriptor parameter (the driver forgets what it knew of
+# that parameter after such a line; the permission table checks the line as a write).
+PARAM_SETTERS = {
+    "kp": "kp",
+    "ki": "ki",
+    "kd": "kd",
+    "sv": "velocity",
+    "sa": "acceleration",
+    "sipw": "inpos_window",
+    "ws": "inpos_window",
+    "sipt": "inpos_time",
+    "scl": "current_limit_ma",
+    "sc": "current_limit_ma",
+    "scv": "cal_velocity",
+    "sca": "cal_acceleration",
+    "ssyscon": "syscon",
+    "ssb": "syscon",
+    "rsb": "syscon",
+    "li": "syscon",
+    "il": "syscon",
+}
+# Console mnemonics that only read (``se`` is refused by the driver: servotune selects).
+READ_MNEMONICS = (
+    "rp", "pe", "rve", "rss", "ss", "rrss", "rv", "ra", "rcv", "rca", "qp", "qi", "qd",
+    "ripw", "rw", "ript", "rcl", "rc", "rsyscon", "rrsyscon", "ql", "id", "rep",
+)  # fmt: skip
+# Console mnemonics that are a descriptor command.
+COMMAND_MNEMONICS = {
+    "st": "stop",
+    "pm": "position_mode",
+    "vm": "velocity_mode",
+    "ma": "move_absolute",
+    "mr": "move_relative",
+    "sp": "set_position",
+    "zp": "set_position",
+    "spwm": "open_loop_pwm",
+    "cal": "calibrate",
+    "ca": "calibrate",
+    "pg": "save_eeprom",
+}
+
+
+def console_rules() -> list[ConsoleRule]:
+    """What every SLAP2 console mnemonic does. The module ignores spaces and (as its
+    manual's own examples in capitals show) case: ``PG``, `` pg`` and ``p g`` are
+    ``pg``; the console's ``letters`` syntax reads a line the same way."""
+    rules = [ConsoleRule(words=list(READ_MNEMONICS), effect="read")]
+    for parameter in sorted(set(PARAM_SETTERS.values())):
+        words = [m for m, p in PARAM_SETTERS.items() if p == parameter]
+        rules.append(ConsoleRule(words=words, effect="write", parameters=[parameter]))
+    for command in dict.fromkeys(COMMAND_MNEMONICS.values()):
+        words = [m for m, c in COMMAND_MNEMONICS.items() if c == command]
+        rules.append(ConsoleRule(words=words, effect="command", command=command))
+    # de: erase the EEPROM (defaults at the next power-on): as persisting as pg.
+    rules.append(ConsoleRule(words=["de"], effect="persist"))
+    return rules
+
 
 CALIBRATION_MODES = [
     Choice(
@@ -301,7 +361,12 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="setpoint",
             label="Setpoint",
             unit="counts",
-            description="Profile generator setpoint = position + following error.",
+            description=(
+                "Profile generator setpoint: the move servotune commanded, replayed through "
+                "the firmware's trapezoid law and checked against pe; where there is none, "
+                "position + pe while pe is steady. Empty otherwise: rp and pe are read a "
+                "transaction apart, and on a ringing axis their sum is no setpoint."
+            ),
             conversions=[revs, deg],
         ),
         ChannelDescriptor(
@@ -422,6 +487,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                 "calibration or STOP)."
             ),
             group="stop",
+            powers_motor=True,
         ),
         CommandDescriptor(
             name="position_mode",
@@ -443,6 +509,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             description="ma: move to a position (needs position mode).",
             group="motion",
             arguments=[position_arg],
+            target=MoveTarget(argument="position"),
         ),
         CommandDescriptor(
             name="move_relative",
@@ -460,6 +527,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="distance", relative=True),
         ),
         CommandDescriptor(
             name="set_position",
@@ -526,6 +594,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             group="persist",
             confirm="Store the current settings permanently in the module's EEPROM?",
+            stores_parameters="axis",
         ),
         CommandDescriptor(
             name="restore_parameters",
@@ -557,6 +626,8 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             ),
             multiline_commands=list(codec.MULTILINE_COMMANDS),
             examples=["rp", "rss", "rrss", "rep", "id", "qp"],
+            syntax="letters",
+            rules=console_rules(),
         ),
         stop=StopEffect(
             summary="SLAP2: motor unpowered at once - a vertical axis drops",

@@ -69,6 +69,7 @@ from servotune.drivers.base import (
 )
 from servotune.drivers.capture import CaptureRegistry, CaptureStats
 from servotune.drivers.engine import LinkEngine, recent_rate_hz
+from servotune.drivers.setpoint import SkewedSetpoint
 from servotune.drivers.z1100_axis import (
     Z1100Axis,
     describe_reply,
@@ -145,6 +146,8 @@ class _MotorState:
     last_capture: CaptureStats | None = None
     paused: bool = False
     since_error: int = 0
+    # position + GetError, two reads a transaction apart (drivers.setpoint)
+    skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
 
 
 class Z1100Link(LinkEngine):
@@ -183,6 +186,7 @@ class Z1100Link(LinkEngine):
         self._capture_index = 0
         self._last_status_t = 0.0
         self._last_latch_t = 0.0
+        self._flags_t: float | None = None  # when the flags were last read (GetStart)
         self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
         self._counters["fence_timeouts"] = 0
@@ -236,8 +240,10 @@ class Z1100Link(LinkEngine):
             if got is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
+                self._unanswered_request()
                 continue
             reply, reply_t = got
+            self._answered()
             self._last_latch_t = min(
                 written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
             )
@@ -286,15 +292,18 @@ class Z1100Link(LinkEngine):
         await channel.write(codec.make_fence().encode())
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.fence_timeout_s
+        heard = False  # any byte at all: the chip is alive, only late or noisy
         while True:
             remaining = max(deadline - self._clock(), 0.0)
             data = await channel.read_available(remaining)
             if not data:
                 break
+            heard = True
             for reply in decoder.feed(data):
                 if codec.is_fence_reply(reply):
                     if decoder.pending:  # bytes after the answer: noise, dropped
                         self._count("dropped_bytes", decoder.pending)
+                    self._answered()
                     return True
                 self._errors += 1
                 self._count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
@@ -302,6 +311,8 @@ class Z1100Link(LinkEngine):
                 break
         self._errors += 1
         self._count("fence_timeouts")
+        if not heard:
+            self._unanswered_request()
         await self._drain_quiet(channel)
         return False
 
@@ -439,6 +450,7 @@ class Z1100Link(LinkEngine):
 
     async def _read_status(self) -> None:
         start = await self._get(codec.Command.GET_START)
+        self._flags_t = self._last_latch_t
         stop = await self._get(codec.Command.GET_STOP)
         assert isinstance(start, codec.StartStatus) and isinstance(stop, codec.StopStatus)
         axis = self._cycle % codec.AXES
@@ -477,9 +489,14 @@ class Z1100Link(LinkEngine):
             if motor.axis in captured and motor.capture is None:
                 motor.capture = CaptureStats(started_s=now)
                 motor.since_error = CAPTURE_ERROR_EVERY  # the first sample reads it
+                motor.samples.clear()  # the rate restarts with the limit (see below)
             elif motor.axis not in captured and motor.capture is not None:
                 motor.capture.ended_s = now
                 motor.last_capture, motor.capture = motor.capture, None
+                # The rate counts the samples of the last 2 s against the limit of the
+                # poll set in force: the capture's dense samples, counted against the
+                # normal poll set's limit, read 131 % of the wire (issue 25).
+                motor.samples.clear()
             paused = bool(captured) and motor.axis not in captured
             if paused != motor.paused:
                 motor.paused = paused
@@ -531,6 +548,7 @@ class Z1100Link(LinkEngine):
     async def _read_capture_status(self) -> None:
         """GetStart (running bits of all motors); GetStop only after a stall bit."""
         start = await self._get(codec.Command.GET_START)
+        self._flags_t = self._last_latch_t
         assert isinstance(start, codec.StartStatus)
         for motor in self._motors:
             motor.running = motor.axis in start.running
@@ -559,7 +577,9 @@ class Z1100Link(LinkEngine):
         channels: dict[str, float | None] = {
             "position": position,
             "target": motor.target,
-            "setpoint": position + error if position is not None and error is not None else None,
+            # Only while the error is steady: on a ringing motor the sum of two reads a
+            # transaction apart is no setpoint (drivers.setpoint).
+            "setpoint": motor.skewed.setpoint(position, error, profile_running=motor.running),
             "following_error": error,
             "velocity": motor.velocity,
         }
@@ -570,7 +590,10 @@ class Z1100Link(LinkEngine):
             "stall": motor.stall,
             "switch": motor.switch,
         }
-        self._sink.on_sample(self.axis_id(motor.axis), Sample(t, channels, flags))
+        # The flags are those of the last status read (GetStart first; ``flags_t``).
+        self._sink.on_sample(
+            self.axis_id(motor.axis), Sample(t, channels, flags, flags_t=self._flags_t)
+        )
 
     async def _verify_step(self) -> None:
         motor = self._motors[self._verify_index % codec.AXES]

@@ -14,9 +14,11 @@ from servotune.descriptor import (
     Choice,
     CommandDescriptor,
     ConsoleDescriptor,
+    ConsoleRule,
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
     StopEffect,
@@ -33,6 +35,51 @@ GAINS = {
     "a": ("A", "Derivative action on the forward path (damps the response)."),
     "b": ("B", "Tachometric (velocity) feedback: damps, slows the response."),
 }
+
+# Console: the Set commands that write descriptor parameters, and those that are a
+# descriptor command (the Get commands only read). SetBaud re-clocks the chip's line:
+# a configuration change the link loses the chip over, as privileged as SetFlash.
+_CONSOLE_WRITES = {
+    codec.Command.SET_KABH: [f"kabh_{g}" for g in "kab"],
+    codec.Command.SET_KABD: [f"kabd_{g}" for g in "kab"],
+    codec.Command.SET_VMAX: ["vmax"],
+    codec.Command.SET_ACC: ["acc"],
+    codec.Command.SET_STM: ["stm"],
+    codec.Command.SET_HVM: ["hvm"],
+    codec.Command.SET_HAC: ["hac"],
+    codec.Command.SET_LIMIT: ["limit"],
+    codec.Command.SET_CAB: ["cab"],
+    codec.Command.SET_BUSY: ["busy"],
+}
+_CONSOLE_COMMANDS = {
+    codec.Command.SET_ESTOP: "stop",
+    codec.Command.SET_STOP: "decelerate",
+    codec.Command.SET_JOB: "free",  # job 0 frees the shaft; 2 and 3 prepare a move
+    codec.Command.SET_TARGET: "go_to_target",
+    codec.Command.SET_START: "go_to_target",
+    codec.Command.SET_CLR: "clear_errors",
+    codec.Command.SET_ZERO: "home",
+    codec.Command.SET_FLASH: "save_flash",
+}
+
+
+def console_rules() -> list[ConsoleRule]:
+    """What every Z1100 console command does (its name, any case, is the first word)."""
+    names = {command: codec.COMMANDS[command].name.lower() for command in codec.Command}
+    rules = [
+        ConsoleRule(words=[names[c] for c in codec.Command if c.is_get], effect="read"),
+        ConsoleRule(words=[names[codec.Command.SET_BAUD]], effect="persist"),
+    ]
+    rules += [
+        ConsoleRule(words=[names[c]], effect="write", parameters=parameters)
+        for c, parameters in _CONSOLE_WRITES.items()
+    ]
+    rules += [
+        ConsoleRule(words=[names[c]], effect="command", command=command)
+        for c, command in _CONSOLE_COMMANDS.items()
+    ]
+    return rules
+
 
 CAB_BITS = [
     BitDescriptor(
@@ -227,7 +274,11 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             name="setpoint",
             label="Profile position",
             unit="counts",
-            description="Position + GetError: where the trapezoid is now.",
+            description=(
+                "Position + GetError: where the trapezoid is now. Empty while the error "
+                "is not steady: the two are read a transaction apart, and on a ringing "
+                "motor their sum is no profile position."
+            ),
             conversions=[revs],
         ),
         ChannelDescriptor(
@@ -334,6 +385,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                     required=True,
                 )
             ],
+            target=MoveTarget(argument="target"),
         ),
         CommandDescriptor(
             name="constant_velocity",
@@ -378,6 +430,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             group="persist",
             description="SetFlash: store all parameters of all three motors; loaded at power-on.",
             confirm="Write the parameters of all three motors to the chip's flash?",
+            stores_parameters="link",
         ),
         CommandDescriptor(
             name="restore_parameters",
@@ -409,6 +462,8 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
                 "'SetKABH 40 10 20', 'GetStop'. The reply is decoded with its error bits."
             ),
             examples=["GetEncoder", "GetError", "GetKABH", "GetStart", "GetStop", "GetVmax"],
+            syntax="word",
+            rules=console_rules(),
         ),
         stop=StopEffect(
             summary="Z1100: hard stop at once, then holds under power",

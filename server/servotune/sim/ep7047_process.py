@@ -64,12 +64,15 @@ from servotune.transports.ethercat import (
     EthercatSdoError,
     EthercatSlave,
     EthercatUnavailableError,
+    RemoteSlave,
 )
+from servotune.transports.ethercat_cycle import raise_priority
 
 logger = logging.getLogger(__name__)
 
 ADDRESS_PREFIX: Final = "sim:"
 REPLY_TIMEOUT_S: Final = 1.0
+SIM_RT_PRIORITY: Final = 45  # below the cycle process (50), above everything else
 _MAX_MESSAGE: Final = 1 << 16
 _PROCESS: Final = b"P"[0]
 _JSON: Final = b"J"[0]
@@ -95,90 +98,6 @@ def is_process_address(path: str) -> bool:
 # --- the client: the driver's EthercatMaster ------------------------------------------------
 
 
-class _ProxySlave:
-    """One slave of a :class:`ProcessMaster` (the driver's ``EthercatSlave``)."""
-
-    def __init__(self, master: ProcessMaster, position: int, info: dict[str, Any]) -> None:
-        self._master = master
-        self._position = position
-        self._man = int(info["man"])
-        self._id = int(info["id"])
-        self._rev = int(info["rev"])
-        self._name = str(info["name"])
-        self._state = int(info["state"])
-        self._al_status = int(info["al_status"])
-        self._output = b""
-        self._input = b""
-        self._output_size: int | None = None
-
-    @property
-    def man(self) -> int:
-        return self._man
-
-    @property
-    def id(self) -> int:
-        return self._id
-
-    @property
-    def rev(self) -> int:
-        return self._rev
-
-    @property
-    def name(self) -> str:
-        return self._name
-
-    @property
-    def state(self) -> int:
-        return self._state
-
-    @state.setter
-    def state(self, value: int) -> None:
-        self._state = value
-
-    @property
-    def al_status(self) -> int:
-        return self._al_status
-
-    @property
-    def input(self) -> bytes:
-        return self._input
-
-    @property
-    def output(self) -> bytes:
-        return self._output
-
-    @output.setter
-    def output(self, value: bytes) -> None:
-        if self._output_size is None:
-            raise ValueError("the process data is not mapped (config_map)")
-        if len(value) != self._output_size:
-            raise ValueError(f"outputs are {self._output_size} bytes, got {len(value)}")
-        self._output = bytes(value)
-
-    def sdo_read(self, index: int, subindex: int, size: int = 0) -> bytes:
-        return self._master._sdo_read(self._position, index, subindex, size)
-
-    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
-        self._master._call("sdo_write", self._position, index, subindex, bytes(data).hex())
-
-    def write_state(self) -> int:
-        return int(self._master._call("slave_write_state", self._position, self._state))
-
-    def state_check(self, expected_state: int, timeout: int = 2000) -> int:
-        return int(self._master._call("slave_state_check", self._position, expected_state))
-
-    # --- updates from the simulator ---------------------------------------------------
-
-    def _update(self, info: dict[str, Any]) -> None:
-        self._state = int(info["state"])
-        self._al_status = int(info["al_status"])
-
-    def _mapped(self, output_size: int, input_data: bytes) -> None:
-        self._output_size = output_size
-        self._output = bytes(output_size)
-        self._input = input_data
-
-
 class ProcessMaster:
     """The driver's ``EthercatMaster`` over a simulator process at ``socket_path``."""
 
@@ -186,7 +105,7 @@ class ProcessMaster:
         self.socket_path = socket_path
         self._reply_timeout_s = reply_timeout_s
         self._sock: socket.socket | None = None
-        self._slaves: list[_ProxySlave] = []
+        self._slaves: list[RemoteSlave] = []
         self._state = INIT_STATE
         self._frame_sent = False
         self._lock = threading.Lock()
@@ -266,7 +185,7 @@ class ProcessMaster:
         offset = 1
         for slave in self._slaves:
             state, al_status = _SLAVE_STATE.unpack_from(reply, offset)
-            slave._state, slave._al_status = state, al_status
+            slave.reported(state, al_status)
             offset += _SLAVE_STATE.size
         return reply[offset:]
 
@@ -275,11 +194,25 @@ class ProcessMaster:
             raise EthercatMailboxError(f"unexpected reply from the simulator: {reply[:8]!r}")
         message = json.loads(reply[1:])
         for slave, info in zip(self._slaves, message.get("slaves", ()), strict=False):
-            slave._update(info)
+            slave.reported(int(info["state"]), int(info["al_status"]))
         error = message.get("error")
         if error is not None:
             raise _error_from(error)
         return message.get("ok")
+
+    # --- SlaveCalls (for RemoteSlave) ----------------------------------------------
+
+    def slave_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        return self._sdo_read(position, index, subindex, size)
+
+    def slave_sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
+        self._call("sdo_write", position, index, subindex, data.hex())
+
+    def slave_write_state(self, position: int, state: int) -> int:
+        return int(self._call("slave_write_state", position, state))
+
+    def slave_state_check(self, position: int, expected_state: int, timeout: int) -> int:
+        return int(self._call("slave_state_check", position, expected_state))
 
     # --- EthercatMaster ---------------------------------------------------------------
 
@@ -289,7 +222,14 @@ class ProcessMaster:
 
     def config_init(self) -> int:
         found = self._call("config_init")
-        self._slaves = [_ProxySlave(self, i + 1, info) for i, info in enumerate(found)]
+        self._slaves = [
+            RemoteSlave(
+                self,
+                i + 1,
+                (s["man"], s["id"], s["rev"], s["name"], s["state"], s["al_status"]),
+            )
+            for i, s in enumerate(found)
+        ]
         return len(self._slaves)
 
     @property
@@ -299,7 +239,7 @@ class ProcessMaster:
     def config_map(self) -> int:
         result = self._call("config_map")
         for slave, (output_size, input_hex) in zip(self._slaves, result["slaves"], strict=True):
-            slave._mapped(int(output_size), bytes.fromhex(input_hex))
+            slave.mapped(int(output_size), bytes.fromhex(input_hex))
         return int(result["total"])
 
     def send_processdata(self) -> int:
@@ -357,9 +297,9 @@ class ProcessMaster:
         wkc: int = _WKC.unpack_from(reply, 1)[0]
         offset = 1 + _WKC.size
         for slave in self._slaves:
-            size = len(slave._input)
+            size = len(slave.input)
             if size:
-                slave._input = reply[offset : offset + size]
+                slave.input = reply[offset : offset + size]
                 offset += size
         return wkc
 
@@ -663,6 +603,10 @@ def _listening(socket_path: str | None) -> Iterator[tuple[socket.socket, str]]:
 
 def serve_ep7047(spec: Ep7047SimSpec, conn: Connection) -> None:
     """Child: the simulated master on a socket until the lifeline says stop (or ends)."""
+    # Real-time priority where granted: the driver's cycle process (SCHED_FIFO) waits
+    # for this simulator's answer each cycle, so a simulator that a CPU hog delays
+    # would stretch the cycle - a real slave is hardware and answers in microseconds.
+    logger.info("%s", raise_priority("the simulated EP7047-1032", SIM_RT_PRIORITY)[1])
     clock = _FrameClock(time.monotonic())
     master = spec.build(clock)
     server = _SlaveServer(master, clock)

@@ -169,6 +169,11 @@ class Z1100Chip:
         self._decoder = RequestDecoder()
         self._packet_start_s = 0.0
         self._outbox = bytearray()
+        # inject_corrupt_codes: replies (to which command: None, any) still to send
+        # with their code byte corrupted, and the bits flipped
+        self._corrupt_replies = 0
+        self._corrupt_command: int | None = None
+        self._corrupt_mask = 0
         self._time_s = 0.0
         self._tick = 0
         self.baud = jumper_baud
@@ -239,6 +244,16 @@ class Z1100Chip:
         (code bit 3, data 0). Sent at the next ``advance_to``."""
         self._outbox += self._reply(ReplyCode.COMMUNICATION)
 
+    def inject_corrupt_codes(self, n: int, mask: int = 0x10, command: int | None = None) -> None:
+        """A noisy line from the chip: the code byte of the next ``n`` replies (to the
+        command byte ``command`` only, if given) arrives with the bits of ``mask``
+        flipped (data and checksum as sent); e.g. 0x10 makes an OK read as "forbidden
+        while motor 1 moves" to a host that did not check the sum."""
+        if n < 0 or not 0 < mask <= 0xFF:
+            raise ValueError("n must be >= 0 and mask 1..255")
+        self._corrupt_replies, self._corrupt_mask = n, mask
+        self._corrupt_command = command
+
     def jam(self, axis: int, jammed: bool = True) -> None:
         """Seize (or free) an axis's mechanism: friction far above the stall torque,
         so the servo error grows until the error limit cuts the power."""
@@ -290,8 +305,12 @@ class Z1100Chip:
         for event in events:
             if isinstance(event, BadRequest):
                 out += self._reply(ReplyCode.CHECKSUM)
-            else:
-                out += self._execute(event)
+                continue
+            reply = self._execute(event)
+            if self._corrupt_replies and self._corrupt_command in (None, event.command_byte):
+                self._corrupt_replies -= 1
+                reply = bytes((reply[0] ^ self._corrupt_mask, *reply[1:]))
+            out += reply
         return bytes(out)
 
     def _expire_packet(self, now_s: float) -> None:

@@ -15,7 +15,7 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final, Protocol, runtime_checkable
 
 # --- EtherCAT state machine values (the same numbers as pysoem's constants) ---------------
 
@@ -214,6 +214,125 @@ class EthercatMaster(Protocol):
     def expected_wkc(self) -> int: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class PacedMaster(Protocol):
+    """A master whose process data runs on a cycle of its own (``ethercat_cycle``):
+    ``receive_processdata`` waits for that cycle, so the driver's loop does not sleep,
+    and the slave's watchdog is judged by the cycle's exchanges (``last_good_t``: the
+    send time of its last good one), not by the driver's thread."""
+
+    paced: bool
+    priority_granted: bool
+    priority_text: str
+
+    @property
+    def cycle_lost(self) -> int:
+        """Exchanges of the cycle without the expected working counter, so far."""
+        ...
+
+    def last_good_t(self) -> float | None: ...
+
+    def shutdown(self) -> None: ...
+
+
+class SlaveCalls(Protocol):
+    """What a master in another process offers for one slave (by bus position)."""
+
+    def slave_sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes: ...
+
+    def slave_sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None: ...
+
+    def slave_write_state(self, position: int, state: int) -> int: ...
+
+    def slave_state_check(self, position: int, expected_state: int, timeout: int) -> int: ...
+
+
+class RemoteSlave:
+    """An :class:`EthercatSlave` whose master runs in another process: identity, the
+    state and AL status as last reported, the process data as last exchanged, and the
+    slave's calls forwarded to ``calls`` (the proxy master)."""
+
+    def __init__(self, calls: SlaveCalls, position: int, info: Sequence[Any]) -> None:
+        self._calls = calls
+        self.position = position
+        man, id_, rev, name, state, al_status = info
+        self._man, self._id, self._rev, self._name = int(man), int(id_), int(rev), str(name)
+        self._state, self._al_status = int(state), int(al_status)
+        self._output = b""
+        self._input = b""
+        self.output_size: int | None = None
+
+    @property
+    def man(self) -> int:
+        return self._man
+
+    @property
+    def id(self) -> int:
+        return self._id
+
+    @property
+    def rev(self) -> int:
+        return self._rev
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def state(self) -> int:
+        return self._state
+
+    @state.setter
+    def state(self, value: int) -> None:
+        self._state = value
+
+    @property
+    def al_status(self) -> int:
+        return self._al_status
+
+    def reported(self, state: int, al_status: int) -> None:
+        """The state and AL status the remote master read last."""
+        self._state, self._al_status = state, al_status
+
+    @property
+    def input(self) -> bytes:
+        return self._input
+
+    @input.setter
+    def input(self, value: bytes) -> None:
+        self._input = value
+
+    @property
+    def output(self) -> bytes:
+        return self._output
+
+    @output.setter
+    def output(self, value: bytes) -> None:
+        if self.output_size is None:
+            raise ValueError("the process data is not mapped (config_map)")
+        if len(value) != self.output_size:
+            raise ValueError(f"outputs are {self.output_size} bytes, got {len(value)}")
+        self._output = bytes(value)
+
+    def mapped(self, output_size: int, inputs: bytes) -> None:
+        """config_map: the image's sizes (outputs zero) and the first inputs."""
+        self.output_size = output_size
+        self._output = bytes(output_size)
+        self._input = bytes(inputs)
+
+    def sdo_read(self, index: int, subindex: int, size: int = 0) -> bytes:
+        return self._calls.slave_sdo_read(self.position, index, subindex, size)
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        self._calls.slave_sdo_write(self.position, index, subindex, bytes(data))
+
+    def write_state(self) -> int:
+        return self._calls.slave_write_state(self.position, self._state)
+
+    def state_check(self, expected_state: int, timeout: int = 2000) -> int:
+        return self._calls.slave_state_check(self.position, expected_state, timeout)
 
 
 # --- pysoem adapter ---------------------------------------------------------------------

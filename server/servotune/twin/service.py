@@ -13,14 +13,26 @@ the port) and stopping (joining viser's thread) run in a worker thread.
 Security: viser has no authentication and no Origin check. It binds 127.0.0.1 on a
 port the OS picks (``port=0``; viser silently takes the next port when one is busy,
 so the port is read back with ``get_port()``) and is reached only through the
-dashboard's proxy (``servotune.api.twin_routes``).
+dashboard's proxy (``servotune.api.twin_routes``), which proves itself with a random
+secret in the ``X-Servotune-Twin`` header of its handshake. viser's websocket handler
+runs its connect callbacks before it sends or reads a single message, so the last one
+(``_admit``) closes every other connection (1008) before a scene frame leaves: a local
+user who finds the port gets nothing. The HTTP side of the port serves only viser's
+own client files (the pip package's), which hold no data.
+
+viser can publish its port on the internet (``ShareUrlRequest`` from any client forks
+a tunnel process to viser's share service). servotune never wants that: the handlers
+are removed and ``request_share_url`` is replaced on the server (``_refuse_share``),
+beside the proxy's allowlist of client messages that drops the request first.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 import logging
+import secrets
 import threading
 import time
 from dataclasses import dataclass
@@ -39,6 +51,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 TICK_PERIOD_S = 1 / 30
+# The header that carries the proxy's secret to viser (see the module doc).
+SECRET_HEADER = "X-Servotune-Twin"
 
 
 @dataclass(slots=True)
@@ -71,6 +85,10 @@ class Twin:
         self.stats = TwinStats()
         self.client_page: Path = Path()
         self.version = ""
+        # The proxy's proof to viser; never leaves this process.
+        self.secret = secrets.token_urlsafe(32)
+        self.refused_connections = 0
+        self.share_requests_refused = 0
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -101,6 +119,7 @@ class Twin:
         from servotune.twin import scene as twin_scene
 
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        self._lock_down(server)
         self.version = viser.__version__
         self.client_page = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
         server.gui.configure_theme(show_logo=False, show_share_button=False)
@@ -143,6 +162,37 @@ class Twin:
         server.initial_camera.look_at = self._rig_view.look_at
         server.initial_camera.up = (0.0, 0.0, 1.0)
         self._server = server
+
+    def _lock_down(self, server: viser.ViserServer) -> None:
+        """No share tunnel, and nobody but the proxy on viser's port (module doc)."""
+        from viser import _messages
+
+        websock = server._websock_server
+        for message in (_messages.ShareUrlRequest, _messages.ShareUrlDisconnect):
+            if message in websock._incoming_handlers:
+                websock.unregister_handler(message)
+        # Instance attributes shadow the methods for every caller, viser's own included.
+        server.request_share_url = self._refuse_share  # type: ignore[method-assign]
+        server.disconnect_share_url = lambda: None  # type: ignore[method-assign]
+
+        async def admit(connection: object) -> None:
+            live = websock._live_connections.get(getattr(connection, "client_id", -1))
+            if live is None:
+                return
+            presented = live.request.headers.get(SECRET_HEADER, "") if live.request else ""
+            if not hmac.compare_digest(presented.encode(), self.secret.encode()):
+                self.refused_connections += 1
+                logger.warning("twin: a connection to viser's port without the proxy's secret")
+                await live.close(1008, "connect through the dashboard")
+
+        # Registered after viser's own callbacks: runs last, before any message flows.
+        websock.on_client_connect(admit)
+
+    def _refuse_share(self, verbose: bool = True) -> None:
+        """viser's ``request_share_url``, refused: servotune never publishes the twin."""
+        del verbose
+        self.share_requests_refused += 1
+        logger.warning("twin: a share URL was requested and refused")
 
     # --- what the proxy and the routes need ---------------------------------------------
 

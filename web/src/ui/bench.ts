@@ -312,7 +312,8 @@ export class BenchView {
         })
       : null;
     this.extras = h("div", { class: "bench-extras" }, ...(this.whatif ? [this.whatif.el] : []));
-    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, this.extras, runsPane);
+    // The runs right below their overlay: they are what the overlay draws.
+    this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, runsPane, this.extras);
     store.on("storage", (msg) => this.showStorage(msg.writable, msg.message), signal);
     void fetch("/api/storage", { signal })
       .then((r) => (r.ok ? (r.json() as Promise<{ writable: boolean; message: string }>) : null))

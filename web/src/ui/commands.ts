@@ -3,6 +3,7 @@
 import { ApiError, api } from "../api";
 import type { AxisBuffer } from "../buffer";
 import { h, setText, toggleClass } from "../dom";
+import { store } from "../store";
 import type { ArgumentDescriptor, CommandDescriptor, DeviceDescriptor } from "../wire.gen";
 import { confirmDialog, errorText, showError, statusLabel } from "./feedback";
 
@@ -56,6 +57,12 @@ export function makeRunner(axisId: string, status: HTMLElement): CommandRunner {
       try {
         const result = await api.command(axisId, cmd.name, args);
         const sent = result.sent.length ? ` → ${result.sent.join(" ")}` : "";
+        if (result.outcome_pending) {
+          // A move to a target: sent is not done. ✓ only once it arrived (move_outcome).
+          setStatus(status, "pending", `… ${cmd.label}${sent}: ${result.message}`);
+          watchOutcome(axisId, cmd, status);
+          return true;
+        }
         setStatus(status, "ok", `✓ ${cmd.label}${sent}${result.message && result.message !== "ok" ? ` (${result.message})` : ""}`);
         return true;
       } catch (error) {
@@ -74,7 +81,29 @@ export function makeRunner(axisId: string, status: HTMLElement): CommandRunner {
   };
 }
 
-function setStatus(el: HTMLElement, kind: "ok" | "error" | "pending" | "info", text: string): void {
+/** The end of the move ``cmd`` started: ✓ arrived, ⚠ stopped short (a limit switch,
+ * a fault, a STOP) with where the axis stopped. A later command's status wins. */
+function watchOutcome(axisId: string, cmd: CommandDescriptor, status: HTMLElement): void {
+  const stamp = String(Date.now()) + Math.random();
+  status.dataset.watch = stamp;
+  const done = new AbortController();
+  store.on(
+    "moveOutcome",
+    (m) => {
+      if (m.axis !== axisId || m.command !== cmd.name) return;
+      done.abort();
+      if (status.dataset.watch !== stamp) return;
+      delete status.dataset.watch;
+      if (m.outcome === "arrived") setStatus(status, "ok", `✓ ${m.message}`);
+      else if (m.outcome === "timeout") setStatus(status, "info", m.message);
+      else setStatus(status, "warn", `⚠ ${m.message}`);
+    },
+    done.signal,
+  );
+}
+
+function setStatus(el: HTMLElement, kind: "ok" | "error" | "pending" | "info" | "warn", text: string): void {
+  if (kind !== "pending") delete el.dataset.watch;
   el.dataset.kind = kind;
   setText(el, text);
   el.title = text;

@@ -3,7 +3,7 @@
 // prompt, the heartbeats that keep this tab's lease, read-only controls while another
 // tab holds the axis (STOP stays live), and hold-to-run jog buttons.
 import "./control.css";
-import { api, setClientId } from "../api";
+import { api, reauthenticate, setClientId } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../wire.gen";
 import type { WsClient, WsMessage } from "../ws";
@@ -95,7 +95,13 @@ export class ControlState {
         this.renderPrompts();
         break;
       case "control_reply":
-        if (!m.ok && m.action !== "answer") showError(`Control of ${m.axis ?? "axis"}`, new Error(m.message));
+        if (!m.ok && m.action === "force" && m.axis && m.message.includes("password again")) {
+          // Forcing a hand-over is a dangerous action: the password again, then retry.
+          const axis = m.axis;
+          void reauthenticate().then((ok) => {
+            if (ok) this.send("force_control", axis);
+          });
+        } else if (!m.ok && m.action !== "answer") showError(`Control of ${m.axis ?? "axis"}`, new Error(m.message));
         if (m.axis) this.prompts.delete(m.axis);
         this.renderPrompts();
         this.emit(m.axis);

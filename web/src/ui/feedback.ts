@@ -35,11 +35,14 @@ export function errorText(error: unknown): string {
 
 export function statusLabel(error: unknown): string {
   if (!(error instanceof ApiError)) return "error";
+  // A failed measurement is not a refusal (the device refused nothing); every other
+  // 409 says in its detail who refused and why (the device, a busy axis, ...).
+  if (error.kind === "measurement") return "measurement failed";
   switch (error.status) {
     case 0:
       return "no connection";
     case 409:
-      return "device refused";
+      return "refused";
     case 422:
       return "invalid value";
     case 503:

@@ -11,6 +11,11 @@ export interface MetricColumn {
   unit: string;
   help: string;
   get(m: RunMetrics): number | null | undefined;
+  /** The ± of the value where the server gives one (flag times: flags are polled). */
+  resolution?(m: RunMetrics): number | null | undefined;
+  /** For times located between samples: the run's sample spacing. A difference within
+   * it is no difference (the auto-tune's verdict uses the same resolution). */
+  spacing?(m: RunMetrics): number | null | undefined;
   text(v: number): string;
   /** An absolute difference below this is not "better" or "worse". */
   slack: number;
@@ -56,9 +61,9 @@ export function metricColumns(descriptor: DeviceDescriptor, metrics: (RunMetrics
   const flagLabel = new Map(descriptor.flags.map((f) => [f.name, f.label]));
   const channelUnit = (name: string): string => descriptor.channels.find((c) => c.name === name)?.unit ?? "";
   const cols: MetricColumn[] = [
-    { key: "rise_time_s", label: "rise", unit: "ms", help: metricHelp("rise_time_s"), get: (m) => m.rise_time_s, text: ms, slack: 0.005 },
+    { key: "rise_time_s", label: "rise", unit: "ms", help: metricHelp("rise_time_s"), get: (m) => m.rise_time_s, spacing: (m) => m.max_sample_gap_s, text: ms, slack: 0.005 },
     { key: "overshoot_pct", label: "OS", unit: "%", help: metricHelp("overshoot_pct"), get: (m) => m.overshoot_pct, text: (v) => (v < 10 ? v.toFixed(2) : v.toFixed(1)), slack: 0.5 },
-    { key: "settling_time_s", label: "settle", unit: "ms", help: metricHelp("settling_time_s"), get: (m) => m.settling_time_s, text: ms, slack: 0.005 },
+    { key: "settling_time_s", label: "settle", unit: "ms", help: metricHelp("settling_time_s"), get: (m) => m.settling_time_s, spacing: (m) => m.max_sample_gap_s, text: ms, slack: 0.005 },
     { key: "steady_state_error", label: "ss err", unit: "resp", help: `${metricHelp("steady_state_error")} (units of the response)`, get: (m) => m.steady_state_error, text: num, slack: 1 },
   ];
   const hasFe = descriptor.channels.some((c) => c.name === "following_error") || metrics.some((m) => m?.peak_following_error != null);
@@ -84,6 +89,7 @@ export function metricColumns(descriptor: DeviceDescriptor, metrics: (RunMetrics
       unit: "ms",
       help: `Time to ${flag}: ${metricHelp("time_to_flag_s")}`,
       get: (m) => m.time_to_flag_s?.[flag],
+      resolution: (m) => m.time_to_flag_resolution_s?.[flag],
       text: ms,
       slack: 0.005,
     });
@@ -97,6 +103,7 @@ export function metricColumns(descriptor: DeviceDescriptor, metrics: (RunMetrics
       unit: "ms",
       help: `Time in ${flag}: ${metricHelp("time_in_flag_s")}`,
       get: (m) => m.time_in_flag_s?.[flag],
+      resolution: (m) => m.time_in_flag_resolution_s?.[flag],
       text: ms,
       slack: 0.005,
     });
@@ -144,13 +151,22 @@ export function metricCell(
     return cell;
   }
   cell.dataset.value = String(value);
-  setText(cell, c.text(value));
+  const resolution = metrics && c.resolution ? c.resolution(metrics) : null;
+  if (resolution != null && Number.isFinite(resolution) && resolution > 0) {
+    // A polled flag: the time lies within ± half the poll period around the value.
+    cell.dataset.resolution = String(resolution);
+    setText(cell, `${c.text(value)} ±${c.text(resolution)}`);
+  } else setText(cell, c.text(value));
   const ref = reference ? c.get(reference) : null;
   if (ref !== null && ref !== undefined && Number.isFinite(ref)) {
     const a = Math.abs(value);
     const b = Math.abs(ref);
     const rel = b > 0 ? (a - b) / b : a > 0 ? 1 : 0;
-    if (Math.abs(a - b) > c.slack && Math.abs(rel) >= DELTA) {
+    // Two polled times differ only beyond both their ± (else neither is "better").
+    const refResolution = reference && c.resolution ? c.resolution(reference) ?? 0 : 0;
+    const spacing = Math.max((c.spacing?.(metrics as RunMetrics) ?? 0) || 0, (reference && c.spacing ? c.spacing(reference) ?? 0 : 0) || 0);
+    const slack = Math.max(c.slack, (resolution ?? 0) + refResolution, spacing);
+    if (Math.abs(a - b) > slack && Math.abs(rel) >= DELTA) {
       cell.classList.add(a < b ? "better" : "worse");
       cell.title = `${c.text(value)} vs ${c.text(ref)} on ${refName} (${rel > 0 ? "+" : ""}${(rel * 100).toFixed(0)} %)`;
     } else cell.title = `${c.text(value)} ≈ ${refName} ${c.text(ref)}`;

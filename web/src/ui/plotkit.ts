@@ -99,6 +99,8 @@ export interface Panel {
   legendItems: HTMLElement[];
   unitButtons: HTMLButtonElement[];
   height: number;
+  /** The header's height as last measured (a phone's legend may wrap), px. */
+  headerPx?: number;
   states: StatesPanel | null;
   /** Flag runs [t0, t1, …] per flag (flags plots). */
   runs: number[][];

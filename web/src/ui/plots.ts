@@ -65,6 +65,8 @@ export class PlotStack implements PlotHost {
   cursors: { a: number | null; b: number | null; next: "a" | "b"; on: boolean } = { a: null, b: null, next: "a", on: false };
   private zoom: [number, number] | null = null;
   private frozenEnd = Number.NaN;
+  /** The window of the last single-shot capture, copied out of the ring (``view``). */
+  private held: AxisBuffer | null = null;
   private readonly panels: Panel[] = [];
   readonly theme = readTheme();
   private readonly scroller: HTMLElement;
@@ -318,8 +320,17 @@ export class PlotStack implements PlotHost {
     let lines = 0;
     const fixedPx = (p: Panel): number | null =>
       this.single ? null : p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : p.states ? statesPx(p.states) : null;
+    // A phone wraps a legend that does not fit next to the title (issue 25: two of
+    // three traces were hidden behind a sideways scroll): the headers are measured
+    // where the layout is fresh, their last height reused otherwise.
+    if (measure) {
+      for (const p of visible) {
+        const header = p.el.firstElementChild as HTMLElement | null;
+        p.headerPx = header ? Math.max(HEADER_PX, header.offsetHeight) : HEADER_PX;
+      }
+    }
     for (const p of visible) {
-      fixed += HEADER_PX + 6 + (p === last ? X_AXIS_PX : 4);
+      fixed += (p.headerPx ?? HEADER_PX) + 6 + (p === last ? X_AXIS_PX : 4);
       const px = fixedPx(p);
       if (px !== null) fixed += px;
       else lines += 1;
@@ -494,12 +505,20 @@ export class PlotStack implements PlotHost {
   }
 
   nearestSampleT(t: number): number | null {
-    return this.buffer.nearestT(t);
+    return this.view.nearestT(t);
   }
 
   /** The latest real value of ``name`` at or before ``t`` (device units), or null. */
   valueAt(name: string, t: number): number | null {
-    return this.buffer.valueAt(name, t);
+    return this.view.valueAt(name, t);
+  }
+
+  /** What the plots show: the live ring, or a single-shot capture's own copy of its
+   * window while it is on screen (kept until re-armed or cleared: the ring drops
+   * samples older than KEEP_SECONDS, and the capture once went blank with it). */
+  get view(): AxisBuffer {
+    const t = this.trigger;
+    return t.active && t.capturedT !== null && this.held ? this.held : this.buffer;
   }
 
   /** Channels drawn now (visible line series), with their plot. */
@@ -631,6 +650,7 @@ export class PlotStack implements PlotHost {
   /** Trigger settings changed: (re)arm, and show the live trace until it fires. */
   rearm(): void {
     this.trigger.capturedT = null;
+    this.held = null;
     this.trigger.arm(this.buffer);
     if (this.paused) {
       this.paused = false;
@@ -683,6 +703,11 @@ export class PlotStack implements PlotHost {
     const started = performance.now();
     if (started < this.skipUntil) return;
     if (this.trigger.poll(this.buffer, this.windowS)) {
+      const window = this.trigger.window(this.windowS);
+      if (window) {
+        const margin = 0.1 * (window[1] - window[0]);
+        this.held = this.buffer.snapshot(window[0] - margin, window[1] + margin);
+      }
       this.dirty = true;
       if (this.trigger.config.mode === "single") this.tools.fired();
       this.syncControls();
@@ -701,7 +726,8 @@ export class PlotStack implements PlotHost {
       min = max - this.windowS;
       origin = 0;
     }
-    if (live && this.buffer.version === this.drawnVersion && !this.dirty) return;
+    const buffer = this.view;
+    if (live && buffer.version === this.drawnVersion && !this.dirty) return;
     // A rolling trace redraws at most every LIVE_REDRAW_MS and at most once per pixel
     // column of time (a 60 s window moves 1 px per ~55 ms: redrawing faster shows
     // nothing new). With software canvases (no GPU) the raster of every redraw is most
@@ -710,9 +736,8 @@ export class PlotStack implements PlotHost {
     if (live) this.lastLiveDraw = started;
     if (!live && !this.dirty) return;
     this.dirty = false;
-    this.drawnVersion = this.buffer.version;
+    this.drawnVersion = buffer.version;
     this.shown = [min, max];
-    const buffer = this.buffer;
     // One sample either side so lines run to the plot edges.
     const lo = Math.max(buffer.start, buffer.indexAt(min) - 1);
     const hi = Math.min(buffer.end, buffer.indexAt(max) + 1);
@@ -726,7 +751,7 @@ export class PlotStack implements PlotHost {
     this.frame = frame;
     const gapS = GAP_PERIODS * (Number.isFinite(frame.periodS) ? frame.periodS : medianPeriod(buffer.t, lo, hi) || 1);
     let newLanes = false;
-    for (const p of this.panels) if (p.states && scanStates(this.buffer, p.states)) newLanes = true;
+    for (const p of this.panels) if (p.states && scanStates(buffer, p.states)) newLanes = true;
     if (newLanes) this.layout(false, false);
     const flat = this.flat;
     flat[0] = min;
@@ -736,7 +761,7 @@ export class PlotStack implements PlotHost {
       const u = p.u as uPlot;
       const s = p.states;
       if (s) {
-        statesRuns(this.buffer, s, lo, hi);
+        statesRuns(buffer, s, lo, hi);
         const ys = s.values.map((v) => lanePos(s, v));
         u.batch(() => {
           u.setData([s.x, ys] as uPlot.AlignedData, false);

@@ -220,7 +220,7 @@ export class ScopeTools {
   /** The visible window, every channel (device units) and flag, as CSV. */
   exportCsv(): string {
     const s = this.stack;
-    const b = s.buffer;
+    const b = s.view;
     const [min, max] = s.shown;
     const lo = Math.max(b.start, b.indexAt(min));
     const hi = Math.min(b.end, b.indexAt(max + 1e-9));

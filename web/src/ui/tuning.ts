@@ -61,6 +61,7 @@ class ParamRow {
   private busy = 0;
   private offer: Offer | null = null;
   private readonly offerHost: HTMLElement;
+  private readonly persistTag: HTMLElement | null;
 
   constructor(
     private readonly axisId: string,
@@ -68,6 +69,9 @@ class ParamRow {
     private readonly byName: Map<string, ParameterDescriptor>,
     /** The write group this parameter belongs to: edits are staged, the group bar writes. */
     private readonly group: string[] | null = null,
+    /** The device's save command, if it has one (SLAP2 pg, Z1100 SetFlash); without one
+     * a persisted parameter is stored by the write itself (EP7047 CoE). */
+    private readonly saveCommand: CommandDescriptor | null = null,
   ) {
     // The slider covers the useful range (slider_minimum..slider_maximum, e.g. a signed
     // velocity of ±20000 out of ±65535); the field takes the whole range, and the
@@ -96,6 +100,7 @@ class ParamRow {
     this.conversions = h("div", { class: "param-conv", testid: `param-${p.name}-conv` });
     this.error = h("div", { class: "param-error", testid: `param-${p.name}-error`, role: "status" });
     this.offerHost = h("div", { class: "overwrite-slot" });
+    this.persistTag = p.persisted ? h("span", { class: "tag persist", testid: `param-${p.name}-persist` }, "") : null;
 
     this.input.addEventListener("input", () => {
       const value = this.parse(this.input.value);
@@ -116,7 +121,7 @@ class ParamRow {
       "div",
       { class: "param-label", title: tip },
       h("span", { class: "param-name" }, p.label),
-      p.persisted ? h("span", { class: "tag persist", title: "stored by the device's save command" }, "saved") : null,
+      this.persistTag,
     );
     let control: HTMLElement;
     if (p.kind === "bits") {
@@ -368,6 +373,33 @@ class ParamRow {
     store.emit("uiParams", this.axisId);
   }
 
+  /** "saved" only for a value known to be stored: the device keeps every write (no
+   * save command), or the last save servotune saw stored this value. */
+  private renderPersist(device: number | undefined): void {
+    const tag = this.persistTag;
+    if (!tag) return;
+    const save = this.saveCommand;
+    const stored = store.storedParams.get(this.axisId)?.get(this.p.name);
+    let state: "saved" | "unsaved" | "storable";
+    let title: string;
+    if (!save) {
+      state = "saved";
+      title = "The device stores this setting with every write";
+    } else if (stored === undefined || device === undefined) {
+      state = "storable";
+      title = `Kept over a power cycle only once stored with “${save.label}”; whether the value in force is stored is not known (no save seen since the server started)`;
+    } else if (stored === device) {
+      state = "saved";
+      title = `Stored by “${save.label}”: the device loads ${stored} at power-on`;
+    } else {
+      state = "unsaved";
+      title = `Not stored: the device holds ${device}, its memory ${stored} (the last “${save.label}”). Lost at power-off unless stored.`;
+    }
+    setText(tag, state);
+    tag.dataset.state = state;
+    tag.title = title;
+  }
+
   render(): void {
     // An offer is settled once the device has the user's values again (written here,
     // in their own rows, or by a restore).
@@ -386,6 +418,7 @@ class ParamRow {
     toggleClass(this.el, "unknown", device === undefined);
     this.el.dataset.differs = differs ? "1" : "0";
     setText(this.device, device === undefined ? "—" : p.kind === "bits" ? `${device} (0x${device.toString(16).toUpperCase()})` : String(device));
+    this.renderPersist(device);
     this.deviceBox.title = differs
       ? `The device has ${device ?? "unknown"}; this field shows ${pending}. Press Enter (or release the slider) to write it.`
       : "Value read back from the device";
@@ -472,7 +505,8 @@ export class TuningPanel {
         body.appendChild(new WriteGroupBar(axisId, wg, byName, writeGroups.indexOf(wg), signal).el);
       }
       for (const p of params) {
-        const row = new ParamRow(axisId, p, byName, groupOf.get(p.name) ?? null);
+        const save = descriptor.commands.find((c) => c.stores_parameters != null) ?? null;
+        const row = new ParamRow(axisId, p, byName, groupOf.get(p.name) ?? null, save);
         this.rows.set(p.name, row);
         section.appendChild(row.el);
       }

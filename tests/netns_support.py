@@ -1,0 +1,12 @@
+"""The namespace, veth pair and wire-slave process for the EP7047 wire tests: they live
+in ``servotune.sim.ep7047_netns`` (the demo and the benchmark use them too)."""
+
+from servotune.sim.ep7047_netns import (
+    SlaveProcess,
+    VethPair,
+    netns_problem,
+    slave_process,
+    veth_pair,
+)
+
+__all__ = ["SlaveProcess", "VethPair", "netns_problem", "slave_process", "veth_pair"]
