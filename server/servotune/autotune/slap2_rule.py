@@ -58,20 +58,6 @@ _REJECTIONS: Final = {
 }
 
 
-def _share(margins: Margins, target: MarginTarget) -> float:
-    """How much of ``target`` ``margins`` reach (the smaller share of the two; 0 for
-    an unstable loop)."""
-    if not margins.stable:
-        return 0.0
-    return max(
-        0.0,
-        min(
-            margins.phase_margin_deg / target.phase_margin_deg,
-            margins.gain_margin_db / target.gain_margin_db,
-        ),
-    )
-
-
 @dataclass(frozen=True, slots=True)
 class _Score:
     settled: bool
@@ -361,7 +347,7 @@ def propose_gains(
             # the largest share of the target a qualifying candidate reaches that a
             # robust one does too (the robust ranking looks at the fastest 40 only)
             shares = sorted(
-                {_share(margins_of(g), wanted) for g, why in free_reasons.items() if why is None},
+                {wanted.share(margins_of(g)) for g, why in free_reasons.items() if why is None},
                 reverse=True,
             )
             enforce_margins = True
@@ -379,10 +365,10 @@ def propose_gains(
                 # no relaxed search found a robust candidate: of the robust ones found
                 # without margins, those closest to the target (never simply the
                 # fastest, which is often the thinnest)
-                closest = max(_share(margins_of(g), wanted) for _, _, g in free_robust)
+                closest = max(wanted.share(margins_of(g)) for _, _, g in free_robust)
                 reasons = free_reasons
                 robust = [
-                    r for r in free_robust if _share(margins_of(r[2]), wanted) >= 0.999 * closest
+                    r for r in free_robust if wanted.share(margins_of(r[2])) >= 0.999 * closest
                 ]
     if not robust:
         counts = {why: 0 for why in _REJECTIONS}

@@ -41,19 +41,6 @@ FEASIBLE_DUTY: Final = 0.9  # perturbed models needing more duty for the profile
 TIE_S: Final = 0.01  # settling times this close count as equal
 
 
-def _share(margins: Margins, target: MarginTarget) -> float:
-    """How much of ``target`` ``margins`` reach (the smaller share; 0 if unstable)."""
-    if not margins.stable:
-        return 0.0
-    return max(
-        0.0,
-        min(
-            margins.phase_margin_deg / target.phase_margin_deg,
-            margins.gain_margin_db / target.gain_margin_db,
-        ),
-    )
-
-
 def _overshoot_counts(m: Metrics) -> float:
     return (m.overshoot_pct or 0.0) / 100.0 * abs(m.step)
 
@@ -172,8 +159,8 @@ def propose_kab(
     rejected_for_margins = len(settling) - len(nominal)
     if not nominal and settling:
         # the chip cannot reach the target on this model: the closest any candidate does
-        share = max(_share(margins[c[2]], target) for c in settling)
-        nominal = [c for c in settling if _share(margins[c[2]], target) >= 0.999 * share]
+        share = max(target.share(margins[c[2]]) for c in settling)
+        nominal = [c for c in settling if target.share(margins[c[2]]) >= 0.999 * share]
     nominal.sort(key=lambda c: (round(c[0] / TIE_S), c[1], c[2].k))
     peak_v = min(abs(profile.vmax), math.sqrt(abs(profile.acc) * abs(profile.distance)))
     perturbed = [

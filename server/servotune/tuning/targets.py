@@ -34,6 +34,20 @@ class MarginTarget:
             "gain_margin_db": self.gain_margin_db,
         }
 
+    def share(self, margins: Margins) -> float:
+        """How much of this target ``margins`` reach: the smaller share of the two
+        margins (0 for an unstable loop) - how gain searches rank candidates that
+        cannot reach it."""
+        if not margins.stable:
+            return 0.0
+        return max(
+            0.0,
+            min(
+                margins.phase_margin_deg / self.phase_margin_deg,
+                margins.gain_margin_db / self.gain_margin_db,
+            ),
+        )
+
     def met_by(self, margins: Margins) -> bool:
         """Stable, and both margins at least the target's."""
         return (
