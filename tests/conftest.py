@@ -14,6 +14,8 @@ from typing import Any
 
 import pytest
 
+# One BLAS thread (servotune.tuning.threads): set before anything loads numpy.
+import servotune.tuning.threads  # noqa: F401
 from servotune.drivers.base import Sample
 from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
 from servotune.sim.serial_sim import PtySimulator

@@ -14,6 +14,7 @@ import contextlib
 import math
 import random
 from collections.abc import Iterator
+from dataclasses import astuple
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -40,7 +41,9 @@ from servotune.tuning.devices.slap2 import (
     simulate_response,
 )
 from servotune.tuning.identify import fit_plant
-from servotune.tuning.plants import PlantModel, model_positions
+from servotune.tuning.loops import slap2_loop_for
+from servotune.tuning.plants import IdentifiedPlant, PlantModel, model_positions
+from servotune.tuning.targets import PRESETS
 
 from .test_api import live_server
 
@@ -198,7 +201,9 @@ def test_proposal_meets_its_rule_in_prediction(name: str, response: Any) -> None
     predicted = proposal.predicted
     assert proposal.gains != DEFAULTS
     assert predicted.overshoot_pct is not None
-    assert predicted.overshoot_pct <= OVERSHOOT_LIMIT_PCT[response]
+    # the rule judges the peak count of every tick; the metrics' spline through the
+    # samples around it may read up to a count higher
+    assert predicted.overshoot_pct <= OVERSHOOT_LIMIT_PCT[response] + 100.0 / STEP.distance
     assert predicted.settling_time_s is not None
     assert predicted.steady_state_error is not None and abs(predicted.steady_state_error) <= 5
     assert pwm_per_count(proposal.gains) <= MAX_PWM_PER_COUNT
@@ -207,6 +212,15 @@ def test_proposal_meets_its_rule_in_prediction(name: str, response: Any) -> None
     assert default is None or predicted.settling_time_s < default
     assert proposal.predicted_excursion <= 8000
     assert "settling" in proposal.rule
+    # designed to the default margin target: stable with PM >= 45 deg, GM >= 8 dB on
+    # the model (the loop the margins table and the what-if show)
+    loop = slap2_loop_for(
+        IdentifiedPlant(model.gain, model.tau_s, "").transfer_function(), *astuple(proposal.gains)
+    )
+    margins = loop.margins()
+    assert margins.stable and margins.phase_margin_deg >= 45.0 and margins.gain_margin_db >= 8.0
+    assert proposal.margins["meets_target"] is True
+    assert proposal.margins["phase_margin_deg"] == pytest.approx(margins.phase_margin_deg, abs=1e-3)
     # robust: it still settles with the plant 25 % off
     for gain, tau in ((0.75, 1.33), (1.33, 0.75)):
         perturbed = simulate_response(model.scaled(gain, tau), proposal.gains, STEP).metrics()
@@ -328,6 +342,15 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
             assert proposal["current_gains"] == DEFAULTS.to_dict()
             assert proposal["gains"] != DEFAULTS.to_dict()
             assert proposal["predicted"]["overshoot_pct"] <= 1.0
+            # designed to the default margin target (medium): met on the model
+            margins = proposal["margins"]
+            assert margins["target"] == {
+                "preset": "medium",
+                "phase_margin_deg": 45.0,
+                "gain_margin_db": 8.0,
+            }
+            assert margins["stable"] and margins["meets_target"], margins
+            assert margins["phase_margin_deg"] >= 45.0 and margins["gain_margin_db"] >= 8.0
             assert proposal["identification_run_id"]
             run = (await client.get(f"/api/bench/runs/{proposal['identification_run_id']}")).json()
             assert run["status"] == "complete" and len(run["samples"]) > 10
@@ -367,30 +390,64 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
                 assert "samples" in untrusted["oscillations"], untrusted
             else:
                 assert measured["oscillations"] <= 1
-            # better than the defaults, measured the same way right before
+            # better than the defaults, measured the same way right before - decided from
+            # the samples themselves, not from the product's verdict or its nulls: the
+            # tuned run is back in the window for good before the baseline could be (the
+            # tuned run's last sample outside, plus the gap to the next, against the
+            # baseline's last sample outside; a baseline that ends outside never settled)
             assert result["baseline_run_id"] is not None
-            # (never "not better"; "unknown" only when the bench could not measure a
-            # settling time and says why - a host too busy to sample, not the gains)
+            tuned_run = (
+                await client.get(f"/api/bench/runs/{result['verification_run_id']}")
+            ).json()
+            base_run = (await client.get(f"/api/bench/runs/{result['baseline_run_id']}")).json()
+            tuned_lo, tuned_hi = _settling_bounds(tuned_run)
+            base_lo, _ = _settling_bounds(base_run)
+            assert math.isfinite(tuned_hi), (tuned_lo, tuned_hi)
+            assert tuned_hi < base_lo, (tuned_lo, tuned_hi, base_lo)
+            # the product says so too, or says why it cannot (never "not better")
             assert result["verdict"] == "better" or (
                 result["verdict"] == "unknown" and result["verdict_reason"]
             ), result["verdict"]
-            assert (
-                baseline["settling_time_s"] is None
-                or measured["settling_time_s"] is None
-                or measured["settling_time_s"] < baseline["settling_time_s"]
-            )
-            # (an overshoot is null, with the reason, when the samples around its peak
-            # cannot locate it: a gap where the curve bends, late stamps)
-            assert (
-                measured["overshoot_pct"] is None
-                or baseline["overshoot_pct"] is None
-                or measured["overshoot_pct"] <= baseline["overshoot_pct"]
-            )
+            # overshoot: the tuned run's samples (a lower bound of its peak) stay within
+            # the proposal's 1 % plus the window; the baseline's reach beyond that
+            tuned_peak = _peak_beyond(tuned_run)
+            assert tuned_peak <= 0.01 * abs(proposal["test"]["distance"]) + band, tuned_peak
             session = (await client.get(base)).json()
             assert session["state"] == "verified" and session["result"] == result
             await asyncio.sleep(0.2)
             assert abs(module.position - position) <= 3 * band  # back where it started
             assert module.rss & 0b1000  # holding in pm
+
+
+def _settling_bounds(run: dict[str, Any]) -> tuple[float, float]:
+    """When a recorded step settled into its band, bounded by its samples alone: not
+    before its last sample outside the band (the curve was out then), and, if the
+    samples after it stay inside to the end, by the first of those (inf: the record
+    ends outside; 0: never outside)."""
+    columns = run["columns"]
+    t0, plan = run["t0_s"], run["plan"]
+    ip = columns.index("position")
+    rows = [(r[0] - t0, r[ip]) for r in run["samples"] if r[ip] is not None and r[0] >= t0]
+    outside = [i for i, (_, y) in enumerate(rows) if abs(y - plan["y_final"]) > plan["band"]]
+    if not outside:
+        return 0.0, 0.0
+    last = outside[-1]
+    if last + 1 >= len(rows):
+        return math.inf, math.inf
+    return rows[last][0], rows[last + 1][0]
+
+
+def _peak_beyond(run: dict[str, Any]) -> float:
+    """How far the samples went past the target in the step's direction (counts)."""
+    columns, plan = run["columns"], run["plan"]
+    ip = columns.index("position")
+    sign = 1.0 if plan["y_final"] >= plan["y0"] else -1.0
+    beyond = [
+        (r[ip] - plan["y_final"]) * sign
+        for r in run["samples"]
+        if r[ip] is not None and r[0] >= run["t0_s"]
+    ]
+    return max([0.0, *beyond])
 
 
 def _summary(metrics: dict[str, Any] | None) -> str:
@@ -482,3 +539,25 @@ async def test_identify_with_the_body_schemathesis_found_a_500_with(tmp_path: Pa
                 "/api/axes/line-1/autotune/identify", json={**body, "distance": 381.5}
             )
             assert response.status_code == 422 and response.json()["field"] == "distance"
+
+
+def test_margin_presets_and_a_target_the_model_cannot_reach() -> None:
+    """The loaded demo model: stiff, medium and soft ask for more margin in turn; medium
+    is met; soft (PM 60 deg / GM 12 dB) is not reachable there with the friction floor's
+    kp - the proposal is the closest the search finds and says so, with the warning."""
+    model = plant_model(SLAP2_LOADED)
+    found = {}
+    for preset in ("stiff", "medium", "soft"):
+        proposal = propose_gains(model, STEP, "no_overshoot", DEFAULTS, target=PRESETS[preset])
+        found[preset] = proposal.margins
+        assert proposal.margins["target"] == PRESETS[preset].to_dict()
+        assert proposal.margins["stable"]
+    assert found["medium"]["meets_target"] and found["medium"]["phase_margin_deg"] >= 45.0
+    assert found["stiff"]["meets_target"]
+    soft = found["soft"]
+    assert soft["meets_target"] is False and "below 60 deg" in (soft["warning"] or "")
+    # the closest: no thinner than what medium gave
+    assert soft["phase_margin_deg"] >= found["medium"]["phase_margin_deg"] - 1e-6
+    # the issue's proposal (PM 18 deg) is below every preset
+    thin = propose_gains(model, STEP, "no_overshoot", Gains(1676, 0, 1100), target=PRESETS["stiff"])
+    assert thin.margins_default["meets_target"] is False

@@ -238,3 +238,22 @@ def _summary(m: dict[str, Any] | None) -> str:
         f"overshoot {m['overshoot_pct']} %, peak FE {m['peak_following_error']}, "
         f"oscillations {m['oscillations']}, sse {m['steady_state_error']}"
     )
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2], ids=["unloaded", "5x", "20x"])
+def test_proposals_meet_the_margin_target_on_each_demo_motor(axis: int) -> None:
+    """The rule designs to the default target (medium: PM 45 deg / GM 8 dB) on the hold
+    loop (KABD): met on each demo motor's model, and the report says so; the gains in
+    use are read against the same target."""
+    plant = _physics_plant(Z1100_LOADS_KG_M2[axis])
+    proposal = propose_kab(plant, PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE)
+    margins = proposal.margins
+    assert margins["target"] == {
+        "preset": "medium",
+        "phase_margin_deg": 45.0,
+        "gain_margin_db": 8.0,
+    }
+    assert margins["stable"] and margins["meets_target"], margins
+    assert margins["phase_margin_deg"] >= 45.0 and margins["gain_margin_db"] >= 8.0
+    assert proposal.margins_default["target"] == margins["target"]
+    assert proposal.to_dict()["margins"] == margins

@@ -77,6 +77,14 @@ async def test_frequency_response_bode_margins_and_what_if(
         if (await server.state("line-0")).get("position") is not None:
             break
         await asyncio.sleep(0.05)
+    # The bench page open before the identification: the what-if view has no model yet
+    # and gets it live when the identification's run ends (no reload).
+    await page.goto(server.base_url)
+    await page.get_by_test_id("axis-link-line-0").click()
+    await page.get_by_test_id("bench-toggle").click()
+    await expect(page.get_by_test_id("whatif-status")).to_contain_text(
+        "no identified plant model", timeout=10_000
+    )
     # The identification is this test's precondition, not its subject (test_autotune.py
     # has that): a second attempt when a starved host lost the line during the first.
     for _attempt in range(2):
@@ -89,9 +97,9 @@ async def test_frequency_response_bode_margins_and_what_if(
             break
         await asyncio.sleep(1.0)
     assert response.status_code == 200, response.text
-    await page.goto(server.base_url)
-    await page.get_by_test_id("axis-link-line-0").click()
-    await page.get_by_test_id("bench-toggle").click()
+    proposal = response.json()["gains"]
+    await expect(page.get_by_test_id("whatif-pm")).to_contain_text("°", timeout=15_000)
+    await expect(page.get_by_test_id("whatif-proposal")).to_be_visible()
     panel = page.get_by_test_id("frf-panel")
     await expect(panel).to_be_visible(timeout=10_000)
     await page.get_by_test_id("frf-low_hz").fill("1")
@@ -201,11 +209,41 @@ async def test_frequency_response_bode_margins_and_what_if(
     compute = float(await whatif.get_attribute("data-compute-ms") or "nan")
     await slide(page, "whatif-kp", 40)
 
-    # Apply (the gains in use) and verify: a position step of 2000 counts.
+    # The proposal is previewable from the gains in use: a number field takes any gain
+    # the device does (the slider follows), and "proposal" loads the auto-tune's gains;
+    # margins are read against the target, with a warning below it.
+    kp_field = page.get_by_test_id("whatif-kp-value")
+    await kp_field.fill("1676")
+    await expect(page.get_by_test_id("whatif-kp")).to_have_value("1676")
+    assert int(await page.get_by_test_id("whatif-kp").get_attribute("max") or 0) >= 1676
+    await page.get_by_test_id("whatif-proposal").click()
+    for name, value in proposal.items():
+        await expect(page.get_by_test_id(f"whatif-{name}-value")).to_have_value(str(value))
+    await expect(whatif).to_have_attribute("data-stable", "1")
+    await expect(page.get_by_test_id("whatif-warning")).to_be_hidden()
+    await kp_field.fill("4000")  # past the margins: the warning says what and against what
+    await expect(page.get_by_test_id("whatif-warning")).to_contain_text("target medium")
+    await page.get_by_test_id("whatif-in-use").click()
+    await expect(kp_field).to_have_value("40")
+
+    # Apply (the gains in use) and verify: a position step of 2000 counts; the status
+    # says the verification runs, then that it is done (not "running" after it ended).
     await page.get_by_test_id("whatif-distance").fill("2000")
     await page.get_by_test_id("whatif-apply").click()
+    await expect(page.get_by_test_id("whatif-status")).to_contain_text("verification")
     await expect(whatif).not_to_have_attribute("data-rms-vs-measured", "", timeout=30_000)
     rms = float(await whatif.get_attribute("data-rms-vs-measured") or "nan")
+    await expect(page.get_by_test_id("whatif-status")).not_to_contain_text(
+        "running", timeout=30_000
+    )
+    # The step predicted is the compared run's: a 900-count step run selected alone.
+    other = (
+        await server.client.post(
+            "/api/axes/line-0/bench/runs", json={"kind": "position_step", "distance": 900}
+        )
+    ).json()["id"]
+    await expect(page.get_by_test_id("whatif-distance")).to_have_value("900", timeout=30_000)
+    assert other
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     await panel.scroll_into_view_if_needed()
     await page.screenshot(path=str(ARTIFACTS / "bench-frequency-response.png"), full_page=True)

@@ -206,14 +206,16 @@ def test_measured_frf_and_margins_on_the_scripted_simulator() -> None:
     phase_err = np.abs((phase - truth.phase_deg + 180) % 360 - 180)[wanted]
     assert mag_err.max() < 1.0, (f[wanted], mag_err)
     assert phase_err.max() < 10.0, (f[wanted], phase_err)
-    assert result["usable_from_hz"] == 1.0 and float(result["usable_until_hz"]) >= 15.0  # type: ignore[arg-type]
+    # the trusted band: the timing (a tick: 5 deg at 17 Hz) ends it near 13-17 Hz
+    assert result["usable_from_hz"] == 1.0 and float(result["usable_until_hz"]) >= 10.0  # type: ignore[arg-type]
     margins = result["margins"]
     assert isinstance(margins, dict)
     expected = model.margins()
     assert margins["gain_crossover_hz"] == pytest.approx(expected.gain_crossover_hz, rel=0.03)
-    assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= max(
-        2.0, margins["phase_margin_error_deg"]
-    )
+    # measured, within a fixed tolerance (not the run's own error estimate)
+    assert margins["phase_margin_deg"] is not None, margins
+    assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= 3.0, margins
+    assert 0 < margins["phase_margin_error_deg"] <= 10.0
     assert margins["gain_margin_db"] is None  # the model's phase crossover: ~256 Hz
     assert "not measurable from this run" in margins["gain_margin_problem"]
 
@@ -272,7 +274,6 @@ def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
     margins = result["margins"]
     truth_margins = model.margins()
     assert margins["gain_crossover_hz"] == pytest.approx(truth_margins.gain_crossover_hz, rel=0.03)
-    assert abs(margins["phase_margin_deg"] - truth_margins.phase_margin_deg) <= max(
-        2.0, margins["phase_margin_error_deg"]
-    )
+    assert margins["phase_margin_deg"] is not None, margins
+    assert abs(margins["phase_margin_deg"] - truth_margins.phase_margin_deg) <= 3.0, margins
     assert all(result["open_loop"]["measurable"][i] for i in np.nonzero(wanted)[0])

@@ -112,6 +112,8 @@ class _Recording:
     ended: bool = False  # the record is over (the return move is not recorded)
     excitation: Excitation | None = None  # frequency_response: the targets to stream
     sent: list[list[float]] = field(default_factory=list)  # [t, target] as acknowledged
+    # frequency_response: [t, span] of the samples whose latch span the driver knows
+    spans: list[list[float]] = field(default_factory=list)
     trigger_acked: float | None = None  # when the device acknowledged the trigger
     abort: str | None = None  # why the exciter stopped the axis (ends the record)
 
@@ -201,15 +203,18 @@ class BenchRunner:
                 origin="bench",
                 stop_generation=recording.stop_generation,
             )
-            # [acknowledged, target, latched]: the analysis replays the profile from
-            # the latch. The acknowledgement is stamped when the command returns, after
-            # the status read (rss) the driver sends right after the ma: 10-15 ms late
+            # [acknowledged, target, latched, span]: the analysis replays the profile
+            # from the latch, which lies up to span before it (a host stall,
+            # tuning.frftrust). The acknowledgement is stamped when the command returns,
+            # after the status read (rss) the driver may send right after the ma: late
             # and jittery.
             driver = recording.entry.driver
             latch = driver.last_command_latch_s if isinstance(driver, CommandClock) else None
+            span = driver.last_command_latch_span_s if isinstance(driver, CommandClock) else None
             recording.sent.append(
                 [round(self._clock(), 6), float(target)]
                 + ([round(latch, 6)] if latch is not None else [])
+                + ([round(span, 6)] if latch is not None and span is not None else [])
             )
             last = target
 
@@ -226,6 +231,8 @@ class BenchRunner:
         ]
         row.append([int(bool(sample.flags.get(name))) for name in recording.flags])
         recording.samples.append(row)
+        if recording.excitation is not None and sample.t_span_s is not None:
+            recording.spans.append([row[0], round(sample.t_span_s, 6)])
 
     async def _flush(self, recording: _Recording) -> None:
         rows = recording.samples[recording.flushed :]
@@ -337,7 +344,10 @@ class BenchRunner:
                     # before its reply came: the bound a prediction is aligned at.
                     meta["trigger_latency_s"] = round(recording.trigger_acked - recording.t0, 6)
                 if recording.excitation is not None:
-                    meta["excitation"] = recording.excitation.to_dict() | {"sent": recording.sent}
+                    meta["excitation"] = recording.excitation.to_dict() | {
+                        "sent": recording.sent,
+                        "spans": recording.spans,
+                    }
                 meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")

@@ -44,6 +44,7 @@ T = TypeVar("T")
 
 # Where the functions run here live: imported once in the fork server.
 PRELOAD = (
+    "servotune.tuning.threads",  # first: one BLAS thread, set before numpy loads
     "servotune.tuning.identify",
     "servotune.autotune.slap2_rule",
     "servotune.autotune.z1100_rule",

@@ -38,6 +38,7 @@ from servotune.tuning import frfrun, injection
 from servotune.tuning.devices import law_for
 from servotune.tuning.frfrun import Excitation
 from servotune.tuning.injection import Injection
+from servotune.tuning.targets import MarginTarget, margin_report, target_for
 from servotune.tuning.whatif import loop_for, model_summary, plant_from_identification
 
 KIND = "frequency_response"
@@ -258,17 +259,26 @@ def model_plan(latest: Sample) -> BenchPlan:
     )
 
 
-def tone_grid_hz(low_hz: float, high_hz: float, count: int = 200) -> np.ndarray[Any, Any]:
-    return np.geomspace(low_hz, high_hz, count)
+def model_grid_hz(low_hz: float, period_s: float, count: int = 400) -> np.ndarray[Any, Any]:
+    """Where the model's Bode curves are drawn: from below the run's band up to the
+    controller's Nyquist frequency, so that both crossovers are on the plot."""
+    return np.geomspace(min(low_hz, 1.0), 0.999 * 0.5 / period_s, count)
 
 
-def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Everything the Bode view shows for one stored run (runs in a worker thread).
+def analyse_run(
+    run: Mapping[str, Any],
+    identified: Mapping[str, Any] | None,
+    preset: str | None = None,
+) -> dict[str, Any]:
+    """Everything the Bode view shows for one stored run (runs in the compute worker).
 
     ``measured``: from the samples (SLAP2 runs); ``model``: the identified plant under
     the exact law with the run's gains (``identified`` is the auto-tune's model, or the
     one stored with a model-based run); either may be null with a ``*_problem`` reason.
+    Both margins are read against the margin target ``preset`` (``tuning.targets``;
+    the default for None): ``margins.target``, ``meets_target``, ``warning``.
     """
+    target = target_for(preset)
     test = run.get("test") or {}
     device = str(run.get("device", ""))
     low = float(test.get("low_hz") or 1.0)
@@ -291,6 +301,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         rows = [r for r in run["samples"] if r[columns.index("position")] is not None]
         ip = columns.index("position")
         isp = columns.index("setpoint") if "setpoint" in columns else None
+        spans = _sample_spans(excitation, [r[0] for r in rows])
         try:
             if test.get("loop") == "open":
                 out["measured"] = frfrun.analyse_open(
@@ -300,6 +311,7 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
                     _gains(run),
+                    sample_spans_s=spans,
                 )
             else:
                 out["measured"] = frfrun.analyse(
@@ -310,16 +322,22 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
                     profile=_test_profile(run),
+                    sample_spans_s=spans,
                 )
         except ValueError as exc:
             out["measured_problem"] = str(exc)
+        if out["measured"] is not None:
+            out["measured"]["margins"] = out["measured"]["margins"] | measured_target(
+                out["measured"]["margins"], target
+            )
     elif measured(device):
         out["measured_problem"] = "the run recorded no excitation"
     model = run.get("plant_model") or identified
     try:
         plant = plant_from_identification(device, model)
         loop = loop_for(device, plant, run.get("params") or {})
-        summary = model_summary(loop, tone_grid_hz(min(low, 1.0), max(high, 10.0) * 1.5))
+        summary = model_summary(loop, model_grid_hz(low, loop.period_s))
+        summary["margins"] = margin_report(loop.margins(), target)
         out["model"] = summary | {
             "plant": {
                 "gain_counts_s_per_unit": plant.gain_counts_s_per_unit,
@@ -334,6 +352,36 @@ def analyse_run(run: Mapping[str, Any], identified: Mapping[str, Any] | None) ->
         )
     safe: dict[str, Any] = _json_safe(out)
     return safe
+
+
+def _sample_spans(excitation: Mapping[str, Any], times: list[float]) -> list[float | None] | None:
+    """The latch span of each sample (``excitation["spans"]``: ``[t, span]`` rows the
+    bench recorded), matched by time; None for a run recorded without them."""
+    recorded = excitation.get("spans")
+    if not recorded:
+        return None
+    by_time = {round(float(t), 6): span for t, span in recorded}
+    return [by_time.get(round(float(t), 6)) for t in times]
+
+
+def measured_target(margins: Mapping[str, Any], target: MarginTarget) -> dict[str, Any]:
+    """Measured margins against ``target``: met, not met (with the warning), or unknown
+    (None) where a margin is not measurable - never "met" from a margin the run could
+    not read."""
+    gm, pm = margins.get("gain_margin_db"), margins.get("phase_margin_deg")
+    short: list[str] = []
+    if pm is not None and pm < target.phase_margin_deg:
+        short.append(f"phase margin {pm:.1f} deg is below {target.phase_margin_deg:g} deg")
+    if gm is not None and gm < target.gain_margin_db:
+        short.append(f"gain margin {gm:.1f} dB is below {target.gain_margin_db:g} dB")
+    meets: bool | None = False if short else (True if gm is not None and pm is not None else None)
+    warning = (
+        f"{'; '.join(short)} (target: {target.preset}, PM {target.phase_margin_deg:g} deg "
+        f"/ GM {target.gain_margin_db:g} dB)"
+        if short
+        else None
+    )
+    return {"target": target.to_dict(), "meets_target": meets, "warning": warning}
 
 
 def _gains(run: Mapping[str, Any]) -> tuple[int, int, int] | None:

@@ -209,6 +209,27 @@ export interface ParamSetComparison {
 
 export type AutoTuneGoal = "no_overshoot" | "fast";
 
+/** Margin targets (server/servotune/tuning/targets.py). */
+export type MarginPreset = "stiff" | "medium" | "soft";
+export interface MarginTarget {
+  preset: MarginPreset;
+  phase_margin_deg: number;
+  gain_margin_db: number;
+}
+
+/** A set of gains' margins on the model against a target (``tuning.targets``). */
+export interface MarginReport {
+  gain_margin_db: number | null;
+  phase_margin_deg: number | null;
+  gain_crossover_hz: number | null;
+  phase_crossover_hz: number | null;
+  stable: boolean | null;
+  target: MarginTarget;
+  /** null: a margin could not be measured (measured runs). */
+  meets_target: boolean | null;
+  warning: string | null;
+}
+
 /** ``POST .../autotune/identify``: the user's limits and the goal. */
 export interface AutoTuneRequest {
   max_pwm: number;
@@ -220,6 +241,8 @@ export interface AutoTuneRequest {
   direction?: 1 | -1;
   /** Distance of the tests, counts (server default: 1000 or half the distance limit). */
   distance?: number;
+  /** The margin target the gains are designed to (server default medium). */
+  margins?: MarginPreset;
 }
 
 /** Gains by parameter name (kp, ki, kd for the SLAP2). */
@@ -246,6 +269,9 @@ export interface AutoTuneProposal {
   travel_counts?: number;
   warnings?: string[]; // doubts about the model, in words
   baseline_possible?: boolean;
+  /** The proposal's and the gains in use's margins on the model, against the target. */
+  margins?: MarginReport;
+  margins_default?: MarginReport;
 }
 
 /** ``POST .../autotune/accept``: baseline test, write, verification test. */

@@ -29,6 +29,7 @@ from servotune.protocols.slap2 import (
     COUNTS_S_PER_SV,
     VELOCITY_MAX,
 )
+from servotune.tuning.targets import DEFAULT_PRESET, PRESETS
 from servotune.tuning.whatif import browser_model, plant_from_identification
 
 router = APIRouter(tags=["bench"])
@@ -39,16 +40,27 @@ GAINS: dict[str, tuple[str, ...]] = {
 }
 
 
-def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
-    """The auto-tune's identified plant of the axis in this server's session, if any."""
+def _session(request: Request, axis_id: str) -> dict[str, Any]:
     autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
     if autotuner is None:
-        return None
+        return {}
     try:
-        model: dict[str, Any] | None = autotuner.session(axis_id).get("model")
+        return autotuner.session(axis_id)
     except DriverError:
-        return None  # a device the auto-tune does not handle
+        return {}  # a device the auto-tune does not handle
+
+
+def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
+    """The auto-tune's identified plant of the axis in this server's session, if any."""
+    model: dict[str, Any] | None = _session(request, axis_id).get("model")
     return model
+
+
+def margin_preset(request: Request, axis_id: str) -> str:
+    """The margin target of the axis' auto-tune session (its request), else the
+    default (``tuning.targets``)."""
+    asked = (_session(request, axis_id).get("request") or {}).get("margins")
+    return str(asked) if asked in PRESETS else DEFAULT_PRESET
 
 
 def get_hub(request: Request) -> Hub:
@@ -87,9 +99,19 @@ async def run_frf(
         raise NotFoundError("run", f"no run {run_id!r}") from None
     if (run.get("test") or {}).get("kind") != frfbench.KIND:
         raise InvalidArgumentError("run_id", f"run {run_id} is not a frequency_response run")
-    identified = identified_model(request, str(run.get("axis_id", "")))
+    axis_id = str(run.get("axis_id", ""))
+    identified = identified_model(request, axis_id)
+    preset = margin_preset(request, axis_id)
     # The analysis of a long run takes seconds of numpy and Python: in the worker.
-    return await compute.run(frfbench.analyse_run, run, identified)
+    return await compute.run(frfbench.analyse_run, run, identified, preset)
+
+
+def _proposal_gains(request: Request, axis_id: str) -> dict[str, int] | None:
+    """The auto-tune's proposed gains for the axis, if there is a proposal (the what-if
+    view's ranges cover them)."""
+    proposal = _session(request, axis_id).get("proposal") or {}
+    gains = proposal.get("gains")
+    return dict(gains) if isinstance(gains, dict) else None
 
 
 @router.get("/api/axes/{axis_id}/whatif", responses=errors(404, 409, 422))
@@ -108,6 +130,7 @@ async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str,
         name: [descriptor.parameter(name).minimum, descriptor.parameter(name).maximum]
         for name in GAINS[device]
     }
+    preset = margin_preset(request, axis_id)
     out: dict[str, Any] = {
         "axis_id": axis_id,
         "device": device,
@@ -115,6 +138,11 @@ async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str,
         "ranges": ranges,
         "model": None,
         "problem": None,
+        # what the margins are read against (the auto-tune session's preset), and the
+        # presets to choose from
+        "target": PRESETS[preset].to_dict(),
+        "targets": {name: t.to_dict() for name, t in PRESETS.items()},
+        "proposal": _proposal_gains(request, axis_id),
     }
     if device == "slap2":
         out["verify"] = {

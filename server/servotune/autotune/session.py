@@ -11,6 +11,7 @@ from pydantic import BaseModel, Field
 from servotune.autotune.slap2_rule import Proposal, Response
 from servotune.drivers.base import InvalidArgumentError
 from servotune.protocols.slap2 import PWM_MAX
+from servotune.tuning.targets import DEFAULT_PRESET, Preset
 
 TestKind = Literal["position_step", "move"]
 SessionState = Literal["idle", "identifying", "proposed", "verifying", "verified", "failed"]
@@ -36,6 +37,11 @@ class IdentifyRequest(BaseModel):
     )
     direction: Literal[1, -1] = Field(
         default=1, description="1: identify and test towards positive counts, -1: negative"
+    )
+    margins: Preset = Field(
+        default=DEFAULT_PRESET,
+        description="the margin target the gains are designed to: stiff (PM 40 deg / GM 6 dB), "
+        "medium (45 deg / 8 dB) or soft (60 deg / 12 dB)",
     )
     distance: int | None = Field(
         default=None,

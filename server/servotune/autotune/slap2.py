@@ -40,6 +40,7 @@ from servotune.tuning.devices.slap2 import (
 )
 from servotune.tuning.identify import fit_plant
 from servotune.tuning.plants import PlantModel
+from servotune.tuning.targets import target_for
 
 IDENT_ATTEMPTS: Final = 2  # a doubtful fit is repeated once
 MAX_SLOWDOWN: Final = 1.3  # cap of the per-character stretch of the command tail
@@ -142,6 +143,7 @@ class Slap2Tuner:
             request.response,
             current,
             max_excursion=request.max_distance_counts,
+            target=target_for(request.margins),
         )
         body = proposal.to_dict()
         body["identification_run_id"] = run_id

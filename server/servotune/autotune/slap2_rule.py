@@ -9,8 +9,10 @@ Pure: no I/O (it runs in a worker thread).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any, Final, Literal
+
+import control
 
 from servotune.metrics import Metrics
 from servotune.tuning.devices.slap2 import (
@@ -25,7 +27,9 @@ from servotune.tuning.devices.slap2 import (
     pwm_per_count,
     simulate_response,
 )
-from servotune.tuning.plants import PlantModel
+from servotune.tuning.loops import ZERO, Margins, MarginSearch, slap2_pid_polynomials
+from servotune.tuning.plants import IdentifiedPlant, PlantModel
+from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
 
 Response = Literal["no_overshoot", "fast"]
 
@@ -42,6 +46,7 @@ FINE_SEEDS: Final = 3
 MAX_ROBUST_CHECKS: Final = 40  # the fastest ones are compared on the perturbed models
 ROBUST_TIE_S: Final = 0.005  # worst cases this close count as equal: gentler gains win
 KD_FLOOR: Final = 16  # the smallest nonzero kd of the grid
+MAX_RELAXATIONS: Final = 8  # shares of an unreachable margin target tried, largest first
 _REJECTIONS: Final = {
     "pwm_per_count": "more than 24 PWM per count",
     "friction": "too weak against friction (friction/P > window/2)",
@@ -49,6 +54,7 @@ _REJECTIONS: Final = {
     "overshoot": "overshoot > {limit:g} %",
     "excursion": "travelled too far",
     "not_robust": "not settled with the model's gain -25 %/+33 %, tau -50 %/+100 %",
+    "margins": "margins below the target",
 }
 
 
@@ -127,17 +133,19 @@ def _neighbours(gains: Gains) -> list[Gains]:
 
 
 RULE_TEXT: Final = (
-    "Gains by simulation: the SLAP2 firmware's discrete loop (841.5 us tick, integer PID "
-    "law, anti-windup, PWM saturation, count quantisation, the same profile generator) "
-    "runs the test on the identified model for each candidate of a kp/kd/ki grid "
-    "(coarse, then finer around the best). A candidate qualifies if it settles into the "
-    "in-position window and stays there, overshoots at most {limit}, changes the PWM by "
-    "at most 24 per count of error, has a kp that alone holds the axis within half the "
-    "window against the identified friction, and still settles with the plant gain off "
-    "by -25 %/+33 % and the time constant by -50 %/+100 %. Of the 40 fastest "
-    "qualifying candidates, the proposal is the one whose slowest settling on those "
-    "perturbed models is shortest; within 5 ms of that, the one with the fewest PWM "
-    "per count."
+    "Gains by simulation, to margin targets: the SLAP2 firmware's discrete loop "
+    "(841.5 us tick, integer PID law, anti-windup, PWM saturation, count quantisation, "
+    "the same profile generator) runs the test on the identified model for each "
+    "candidate of a kp/kd/ki grid (coarse, then finer around the best). A candidate "
+    "qualifies if it settles into the in-position window and stays there, overshoots "
+    "at most {limit}, changes the PWM by at most 24 per count of error, has a kp that "
+    "alone holds the axis within half the window against the identified friction, "
+    "still settles with the plant gain off by -25 %/+33 % and the time constant by "
+    "-50 %/+100 %, and on the model's linear part keeps the loop stable with the "
+    "target's margins ({margins}; where no candidate reaches them, the closest any "
+    "does, said). Of the 40 fastest qualifying candidates, the proposal is the one "
+    "whose slowest settling on those perturbed models is shortest; within 5 ms of "
+    "that, the one with the fewest PWM per count."
 )
 
 
@@ -159,6 +167,9 @@ class Proposal:
     rule: str
     candidates: int
     simulations: int
+    # the margins of the proposal and of the gains in use against the target
+    margins: dict[str, Any] = field(default_factory=dict)
+    margins_default: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -176,6 +187,8 @@ class Proposal:
             "rule": self.rule,
             "candidates": self.candidates,
             "simulations": self.simulations,
+            "margins": self.margins,
+            "margins_default": self.margins_default,
         }
 
 
@@ -186,6 +199,7 @@ def propose_gains(
     current: Gains,
     *,
     max_excursion: int | None = None,
+    target: MarginTarget = PRESETS[DEFAULT_PRESET],
 ) -> Proposal:
     """Search gains by the rule (``RULE_TEXT``, docs/autotune.md) for ``spec`` on ``model``.
 
@@ -201,6 +215,12 @@ def propose_gains(
     their slowest settling time there (ties: the nominal ranking): the proposal is the
     one that settles soonest in the worst case. Raises ``ValueError`` if none
     qualifies.
+
+    Margins: a candidate qualifies only if, on the model's linear part under the exact
+    law, the loop is stable with at least ``target``'s phase and gain margins
+    (``tuning.targets``). When no candidate reaches them (the device does not allow
+    it on this model), the search is made without them and the proposal says so
+    (``margins.meets_target`` false, with the warning).
     """
     if spec.distance == 0:
         raise ValueError("the test distance must not be 0")
@@ -209,6 +229,19 @@ def propose_gains(
     kp_floor = friction_floor(model, spec.band)
     scores: dict[Gains, _Score] = {}
     simulations = 0
+    plant_d = control.c2d(
+        IdentifiedPlant(model.gain, model.tau_s, "").transfer_function(), TICK_S, "zoh"
+    )
+    margin_cache: dict[Gains, Margins] = {}
+    enforce_margins = True
+    search_margins = MarginSearch(plant_d, TICK_S)
+
+    def margins_of(gains: Gains) -> Margins:
+        found = margin_cache.get(gains)
+        if found is None:
+            pid = slap2_pid_polynomials(gains.kp, gains.ki, gains.kd)
+            found = margin_cache[gains] = search_margins.margins(pid, ZERO)
+        return found
 
     def score(gains: Gains, plant: PlantModel | None = None) -> _Score:
         nonlocal simulations
@@ -227,6 +260,8 @@ def propose_gains(
             return "pwm_per_count"
         if gains.kp < kp_floor:
             return "friction"
+        if enforce_margins and not target.met_by(margins_of(gains)):
+            return "margins"
         s = score(gains)
         if not s.settled:
             return "not_settled"
@@ -282,15 +317,59 @@ def propose_gains(
                 best = min(best, worst)
         return sorted(found)
 
-    reasons: dict[Gains, str | None] = {}
-    for gains in [*candidate_grid(model, spec.band), current]:
-        reasons.setdefault(gains, rejection(gains))
-    coarse = sorted((g for g, why in reasons.items() if why is None), key=key)
-    for _, _, seed in robust_ranking(coarse)[:FINE_SEEDS]:
-        for gains in _neighbours(seed):
+    def search() -> tuple[dict[Gains, str | None], list[tuple[float, int, Gains]]]:
+        reasons: dict[Gains, str | None] = {}
+        for gains in [*candidate_grid(model, spec.band), current]:
             reasons.setdefault(gains, rejection(gains))
-    ranked = sorted((g for g, why in reasons.items() if why is None), key=key)
-    robust = robust_ranking(ranked)
+        coarse = sorted((g for g, why in reasons.items() if why is None), key=key)
+        seeds = [seed for _, _, seed in robust_ranking(coarse)[:FINE_SEEDS]]
+        if not seeds:
+            # nothing of the coarse grid qualifies: refine around those that only
+            # overshoot (a finer kd may not), fastest first
+            near = sorted((g for g, why in reasons.items() if why == "overshoot"), key=key)
+            seeds = near[:FINE_SEEDS]
+        for seed in seeds:
+            for gains in _neighbours(seed):
+                reasons.setdefault(gains, rejection(gains))
+        ranked = sorted((g for g, why in reasons.items() if why is None), key=key)
+        return reasons, robust_ranking(ranked)
+
+    wanted = target
+    reasons, robust = search()
+    margin_rejections = sum(1 for why in reasons.values() if why == "margins")
+    if not robust and margin_rejections:
+        # The device cannot reach the target on this model: the margins closest to it
+        # that a robust candidate reaches (the same share of both), said.
+        enforce_margins = False
+        free_reasons, free_robust = search()
+        reasons, robust = free_reasons, free_robust
+        if free_robust:
+            # the largest share of the target a qualifying candidate reaches that a
+            # robust one does too (the robust ranking looks at the fastest 40 only)
+            shares = sorted(
+                {wanted.share(margins_of(g)) for g, why in free_reasons.items() if why is None},
+                reverse=True,
+            )
+            enforce_margins = True
+            for share in shares[:MAX_RELAXATIONS]:
+                target = MarginTarget(
+                    wanted.preset,
+                    wanted.phase_margin_deg * share * 0.999,
+                    wanted.gain_margin_db * share * 0.999,
+                )
+                reasons, robust = search()
+                if robust:
+                    break
+            target = wanted
+            if not robust:
+                # no relaxed search found a robust candidate: of the robust ones found
+                # without margins, those closest to the target (never simply the
+                # fastest, which is often the thinnest)
+                closest = max(wanted.share(margins_of(g)) for _, _, g in free_robust)
+                reasons = free_reasons
+                robust = [
+                    r for r in free_robust if wanted.share(margins_of(r[2])) >= 0.999 * closest
+                ]
     if not robust:
         counts = {why: 0 for why in _REJECTIONS}
         for why in reasons.values():
@@ -320,6 +399,8 @@ def propose_gains(
         "pwm_per_count": round(pwm_per_count(best), 2),
         "worst_case_settling_s": round(worst, 4),
         "unchanged": best == current,
+        "margin_target": target.to_dict(),
+        "rejected_for_margins": margin_rejections,
     }
     predicted_run = simulate_response(model, best, spec)
     default_run = simulate_response(model, current, spec)
@@ -335,7 +416,13 @@ def propose_gains(
         predicted_excursion=predicted_run.peak_excursion(),
         default_excursion=default_run.peak_excursion(),
         design=design,
-        rule=RULE_TEXT.format(limit=f"{limit_pct:g} %"),
+        rule=RULE_TEXT.format(
+            limit=f"{limit_pct:g} %",
+            margins=f"{target.preset}: PM {target.phase_margin_deg:g} deg, "
+            f"GM {target.gain_margin_db:g} dB",
+        ),
         candidates=len(reasons),
         simulations=simulations,
+        margins=margin_report(margins_of(best), target),
+        margins_default=margin_report(margins_of(current), target),
     )

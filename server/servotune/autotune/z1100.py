@@ -30,6 +30,7 @@ from servotune.tuning.devices.z1100 import (
     fit_plant_closed_loop,
     kab_dict,
 )
+from servotune.tuning.targets import target_for
 
 DEFAULT_DISTANCE: Final = 10_000
 SETTLE_TIMEOUT_S: Final = 3.0
@@ -128,6 +129,7 @@ class Z1100Tuner:
             current_kabd,
             BAND_COUNTS,
             request.max_distance_counts,
+            target_for(request.margins),
         )
         self._proposals[entry.info.id] = proposal
         body = proposal.to_dict()

@@ -9,21 +9,26 @@ Pure: no I/O (it runs in a worker thread).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any, Final
+
+import control
 
 from servotune.metrics import Metrics
 from servotune.tuning.devices.z1100 import (
     BAND_COUNTS,
     KABD_FRACTION,
     PWM_FULL_SCALE,
+    SAMPLE_UNIT_S,
     Kab,
     MoveProfile,
     kab_dict,
     move_metrics,
     simulate_move,
 )
-from servotune.tuning.plants import Z1100Plant
+from servotune.tuning.loops import Margins, MarginSearch, z1100_kab_polynomials
+from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
+from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
 
 K_GRID: Final = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 160, 192, 255)
 A_GRID: Final = (8, 16, 32, 64, 128)
@@ -57,6 +62,9 @@ class Z1100Proposal:
     peak_pwm: int = 0
     excursion: int = 0
     default_excursion: int = 0
+    margins: dict[str, Any] = field(default_factory=dict)
+    margins_default: dict[str, Any] = field(default_factory=dict)
+    rejected_for_margins: int = 0
 
     def gains_dict(self) -> dict[str, int]:
         return kab_dict(self.gains, self.gains.kabd())
@@ -74,7 +82,11 @@ class Z1100Proposal:
                 "worst_case_settling_s": self.worst_case_settling_s,
                 "unchanged": self.gains == self.current,
                 "kabd_fraction": KABD_FRACTION,
+                "margin_target": self.margins.get("target"),
+                "rejected_for_margins": self.rejected_for_margins,
             },
+            "margins": self.margins,
+            "margins_default": self.margins_default,
             "test": {
                 "distance": self.profile.distance,
                 "velocity": self.profile.vmax,
@@ -105,6 +117,7 @@ def propose_kab(
     current_kabd: Kab,
     band: float = BAND_COUNTS,
     max_excursion: float = math.inf,
+    target: MarginTarget = PRESETS[DEFAULT_PRESET],
 ) -> Z1100Proposal:
     """The rule (docs/autotune.md, Z1100): among K x A x B of the grid, with KABD =
     KABH with K x 3/4, keep those that settle on the model within the band with
@@ -113,10 +126,24 @@ def propose_kab(
     also on the model with gain -25 %/+33 % and tau -50 %/+100 % (those on which the
     move needs more than ``FEASIBLE_DUTY`` are left out); propose the smallest
     worst-case settling time (ties within ``TIE_S``: the smaller peak following error,
-    then the smaller K)."""
+    then the smaller K). Margins: only candidates whose hold loop (KABD on the model's
+    linear part, ``tuning.targets``) is stable with ``target``'s margins; where none
+    is, those closest to it (the same share of both), and the proposal says so."""
     limit = OVERSHOOT_LIMIT_BAND[response] * band
     sims = 0
-    nominal: list[tuple[float, float, Kab, Metrics]] = []
+    plant_d = control.c2d(
+        IdentifiedPlant(plant.gain / PWM_FULL_SCALE, plant.tau_s, "").transfer_function(),
+        max(1, profile.stm) * SAMPLE_UNIT_S,
+        "zoh",
+    )
+
+    search_margins = MarginSearch(plant_d, max(1, profile.stm) * SAMPLE_UNIT_S)
+
+    def margins_of(gains: Kab) -> Margins:
+        hold = gains.kabd() if gains != current else current_kabd
+        return search_margins.margins(*z1100_kab_polynomials(hold.k, hold.a, hold.b))
+
+    settling: list[tuple[float, float, Kab, Metrics]] = []
     for k in K_GRID:
         for a in A_GRID:
             for b in B_GRID:
@@ -126,7 +153,14 @@ def propose_kab(
                 sims += 1
                 if _acceptable(m, limit) and max(abs(x) for x in sim.position) <= max_excursion:
                     assert m.settling_time_s is not None
-                    nominal.append((m.settling_time_s, m.peak_following_error or 0.0, gains, m))
+                    settling.append((m.settling_time_s, m.peak_following_error or 0.0, gains, m))
+    margins = {c[2]: margins_of(c[2]) for c in settling}
+    nominal = [c for c in settling if target.met_by(margins[c[2]])]
+    rejected_for_margins = len(settling) - len(nominal)
+    if not nominal and settling:
+        # the chip cannot reach the target on this model: the closest any candidate does
+        share = max(target.share(margins[c[2]]) for c in settling)
+        nominal = [c for c in settling if target.share(margins[c[2]]) >= 0.999 * share]
     nominal.sort(key=lambda c: (round(c[0] / TIE_S), c[1], c[2].k))
     peak_v = min(abs(profile.vmax), math.sqrt(abs(profile.acc) * abs(profile.distance)))
     perturbed = [
@@ -173,6 +207,11 @@ def propose_kab(
     )
     chosen_sim = simulate_move(plant, chosen, chosen.kabd(), profile)
     sims += 1
+    rule += (
+        f"; the hold loop stable with the target's margins ({target.preset}: PM "
+        f"{target.phase_margin_deg:g} deg, GM {target.gain_margin_db:g} dB; where no "
+        "candidate reaches them, the closest any does, said)"
+    )
     return Z1100Proposal(
         chosen,
         current,
@@ -189,4 +228,7 @@ def propose_kab(
         peak_pwm=round(chosen_sim.peak_duty * PWM_FULL_SCALE),
         excursion=round(max(abs(x) for x in chosen_sim.position)),
         default_excursion=round(max(abs(x) for x in default_sim.position)),
+        margins=margin_report(margins_of(chosen), target),
+        margins_default=margin_report(margins_of(current), target),
+        rejected_for_margins=rejected_for_margins,
     )

@@ -73,14 +73,18 @@ def check_console_line(line: str) -> None:
 class Sample:
     """One telemetry sample of one axis, in device units.
 
-    ``t`` is when the device latched the sample's position. ``flags_t`` is when its
-    flags were read, on the same clock: a driver that polls the flags less often than
-    the position carries the last read on every sample and says when it was taken;
-    None means "read with the sample" (a cyclic device)."""
+    ``t`` is when the device latched the sample's position (the driver's best
+    estimate, which a busy host can only make late); ``t_span_s``, where the driver
+    knows it, how far before ``t`` the latch may lie (a captured SLAP2 sample: down to
+    when its command's CR was written). ``flags_t`` is when its flags were read, on the
+    same clock: a driver that polls the flags less often than the position carries the
+    last read on every sample and says when it was taken; None means "read with the
+    sample" (a cyclic device)."""
 
     t: float
     channels: Mapping[str, float | None]
     flags: Mapping[str, bool]
+    t_span_s: float | None = None
     flags_t: float | None = None
 
 
@@ -293,6 +297,12 @@ class CommandClock(Protocol):
 
     @property
     def last_command_latch_s(self) -> float | None: ...
+
+    @property
+    def last_command_latch_span_s(self) -> float | None:
+        """How far before ``last_command_latch_s`` the device may have executed it
+        (down to when the command's last byte was written; None: not known)."""
+        ...
 
 
 def capture_of(axis: object, reason: str) -> contextlib.AbstractAsyncContextManager[None]:

@@ -194,6 +194,7 @@ class _ModuleState:
     skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
     live_misses: int = 0
     last_command_latch_s: float | None = None
+    last_command_latch_span_s: float | None = None
     capture: ModuleCapture | None = None
     last_capture: CaptureStats | None = None
     paused: bool = False
@@ -477,6 +478,7 @@ class Slap2Link(Slap2Wire):
             module.profile.clear()
         lines = await self._transact(module.address, command)
         latched = module.last_command_latch_s = self._last_latch_t
+        module.last_command_latch_span_s = self._last_latch_span_s
         reply = codec.parse_reply(lines[0] if lines else "")
         hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
         if reply.kind is codec.ReplyKind.REFUSED:
@@ -902,7 +904,7 @@ class Slap2Link(Slap2Wire):
         after_pe = "rss" if rss_due else after_rss
         try:
             position = await self._read_int(address, "rp", "pe" if pe_due else after_pe)
-            t = self._last_latch_t
+            t, t_span = self._last_latch_t, self._last_latch_span_s
             why = capture.resolve(module.profile, t, position)
             if why:
                 self._count("setpoint_mismatches")
@@ -932,7 +934,7 @@ class Slap2Link(Slap2Wire):
         capture.previous = (t, position)
         if self._state == "error":
             self._set_state("connected", self._connector.description)
-        self._emit_captured(module, t, position, fresh_pe)
+        self._emit_captured(module, t, position, fresh_pe, t_span)
 
     async def _switch_ucon(self, module: _ModuleState, *, on: bool) -> None:
         """Switch syscon ``ucon`` on for a capture (``ssb5``) or restore it (``rsb5``).
@@ -978,7 +980,12 @@ class Slap2Link(Slap2Wire):
         )
 
     def _emit_captured(
-        self, module: _ModuleState, t: float, position: int, fresh_pe: int | None
+        self,
+        module: _ModuleState,
+        t: float,
+        position: int,
+        fresh_pe: int | None,
+        t_span: float | None = None,
     ) -> None:
         if module.position is not None and module.position_t is not None and t > module.position_t:
             module.velocity = (position - module.position) / (t - module.position_t)
@@ -1004,7 +1011,8 @@ class Slap2Link(Slap2Wire):
         }
         module.samples.append(t)
         self._sink.on_sample(
-            self.axis_id(module.address), Sample(t, channels, flags, flags_t=module.rss_t)
+            self.axis_id(module.address),
+            Sample(t, channels, flags, t_span_s=t_span, flags_t=module.rss_t),
         )
 
     # --- status -----------------------------------------------------------------------

@@ -103,6 +103,11 @@ class Slap2Axis(EngineAxis, AxisDriver):
         """``drivers.base.CommandClock``: when the module executed the last command."""
         return self._link.module_state(self._address).last_command_latch_s
 
+    @property
+    def last_command_latch_span_s(self) -> float | None:
+        """``drivers.base.CommandClock``: how far before that it may have been."""
+        return self._link.module_state(self._address).last_command_latch_span_s
+
     # --- demo autopilot (drivers.base.Autopilot) -----------------------------------
 
     def autopilot_amplitude(self) -> int:

@@ -99,6 +99,9 @@ class Slap2Wire(LinkEngine):
         # Best estimate of when the module latched the last exchange's value (see
         # ``_exchange_once``), and the character times all exchanges took on the wire.
         self._last_latch_t = 0.0
+        # ... and how far before it the latch may lie: down to when the CR was written
+        # (None: not known, e.g. after the slow path of a stray echo).
+        self._last_latch_span_s: float | None = None
         self._wire_chars = 0
 
     def _forget_selection(self) -> None:
@@ -261,11 +264,12 @@ class Slap2Wire(LinkEngine):
                 then=then.text.encode("ascii") + b"\r" if chain and then else b"",
                 may_chain=self._may_chain,
             )
-            t_echo, t_reply = done.t_echo_s, done.t_reply_s
+            t_echo, t_reply, t_sent = done.t_echo_s, done.t_reply_s, done.t_sent_s
             if done.echo.echoed < len(payload):
                 # A stray or missing echo: resynchronise the slow way.
                 await self._send_echoed(channel, command.text, done.echo)
                 t_echo = self._clock()
+                t_sent = None
                 raw = None
             else:
                 raw = done.reply
@@ -303,6 +307,9 @@ class Slap2Wire(LinkEngine):
         if t_echo is None:
             t_echo = t_reply
         self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
+        # The module cannot have acted before the CR was written: a host that ran the
+        # echo's callback late (a stall) stamps late by the stall, and this says so.
+        self._last_latch_span_s = None if t_sent is None else max(0.0, self._last_latch_t - t_sent)
         chars = 2 * (len(command.text) + 1) + reply_chars
         self._wire_chars += chars
         self._wire_used(chars * char_s)

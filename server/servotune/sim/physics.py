@@ -336,10 +336,13 @@ class DcMotor:
             w_new = f.on_wi * i + f.on_ww * w + f.on_wv * v + f.on_wt * torque
             d_angle = f.on_ai * i + f.on_aw * w + f.on_av * v + f.on_at * torque
             self.current_a = i_end
-        if w_new != 0.0 and (w_new > 0.0) != (direction > 0.0):
+        if tc > 0.0 and w_new != 0.0 and (w_new > 0.0) != (direction > 0.0):
             # The speed would cross zero within the step: friction stops the shaft
             # here (it sticks for the rest of the step and may break away in the
-            # next). The angle keeps the exact travel up to about that turn.
+            # next). The angle keeps the exact travel up to about that turn. Without
+            # friction nothing stops it: the motor is then the linear plant of
+            # tuning.loops (a reversal within a tick - a loop oscillating near its
+            # Nyquist frequency - used to be damped here; tests/test_stability.py).
             w_new = 0.0
         self.angle_rad += d_angle
         self.speed_rad_s = w_new

@@ -20,8 +20,8 @@ after a restart). The thread sleeps in ``select.select`` with float timeouts unt
 the next due event: ``selectors``/``epoll`` round timeouts up to whole milliseconds,
 which is two characters at 19200 baud.
 
-Fault injection (``drop_echoes``, ``inject_garbage``, ``set_silent``, ``unplug``,
-``replug``, ``power_cycle``) is thread-safe: each request is executed by the owner
+Fault injection (``drop_echoes``, ``inject_garbage``, ``set_silent``, ``stall_host``,
+``unplug``, ``replug``, ``power_cycle``) is thread-safe: each request is executed by the owner
 thread between two events, so no other thread ever touches the fds or the device.
 """
 
@@ -32,6 +32,7 @@ import ctypes
 import logging
 import os
 import queue
+import random
 import select
 import signal
 import sys
@@ -69,6 +70,45 @@ class _Request:
         self.error: BaseException | None = None
 
 
+class HostStalls:
+    """A host that runs its receive callbacks late, as the wire shows it (a fault for
+    ``PtySimulator.stall_host``): after one CR in ``every`` (drawn from a generator
+    seeded with ``seed``: the same bytes, the same stalls) the device's output is
+    held back ``seconds`` (drawn in that range). With probability ``after_cr`` the
+    hold starts at the CR's echo: the device acted on the CR on time, the host sees
+    the echo and the reply late, exactly as if it had stalled after writing the CR
+    (its stamps of that exchange are late). Otherwise it starts at the echo of the
+    next byte received: the host's next CR leaves late (its stamps stay right)."""
+
+    def __init__(
+        self, every: int, seconds: tuple[float, float], *, after_cr: float = 0.7, seed: int = 0
+    ) -> None:
+        if every < 1 or not 0 <= seconds[0] <= seconds[1]:
+            raise ValueError("every >= 1 and 0 <= seconds[0] <= seconds[1]")
+        self.every = every
+        self.seconds = seconds
+        self.after_cr = after_cr
+        self._random = random.Random(seed)
+        self._before_next = 0.0
+        self.after_cr_count = 0
+        self.before_count = 0
+
+    def delay(self, byte: int) -> float:
+        """How long the output caused by receiving ``byte`` is held back."""
+        if byte != 0x0D:
+            held, self._before_next = self._before_next, 0.0
+            return held
+        if self._random.random() >= 1.0 / self.every:
+            return 0.0
+        pause = self._random.uniform(*self.seconds)
+        if self._random.random() < self.after_cr:
+            self.after_cr_count += 1
+            return pause
+        self.before_count += 1
+        self._before_next = pause
+        return 0.0
+
+
 class PtySimulator:
     """A ``SimDevice`` on a pseudo-terminal (see the module docstring).
 
@@ -101,6 +141,7 @@ class PtySimulator:
         self._line_free_s = 0.0  # when the device-to-host wire is free again
         self._drop_pending = 0
         self._silent = False
+        self._stalls: HostStalls | None = None
         self.overflow_bytes = 0  # device bytes lost because the host did not read
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -180,6 +221,14 @@ class PtySimulator:
         """Put ``data`` on the device-to-host wire now, as line noise would."""
         payload = bytes(data)
         self._call(lambda: self._schedule_output(payload, self._now(), faults=False))
+
+    def stall_host(self, stalls: HostStalls | None) -> None:
+        """Inject host stalls (``HostStalls``) from now on; None ends them."""
+
+        def request() -> None:
+            self._stalls = stalls
+
+        self._call(request)
 
     def set_silent(self, silent: bool) -> None:
         """A cut cable: while silent nothing flows either way; host bytes are lost."""
@@ -319,7 +368,8 @@ class PtySimulator:
             # clock). Waiting for the arrival in wall time as well would add a timer
             # wake-up, with its latency, to every echo round trip.
             self._schedule_output(device.advance_to(arrival), arrival)
-            self._schedule_output(device.receive(byte), arrival)
+            held = self._stalls.delay(byte) if self._stalls is not None else 0.0
+            self._schedule_output(device.receive(byte), arrival + held)
         self._last_arrival_s = arrival
 
     def _schedule_output(self, data: bytes, ready_s: float, *, faults: bool = True) -> None:

@@ -38,12 +38,16 @@ class Transaction:
     the channel's receive callback when the last echo byte / the terminator arrived,
     not when the awaiting task resumed: a busy event loop delays the task's resumption
     by far more than it delays the callback (``None`` where that byte never came).
+    Both can only be late. ``t_sent_s`` is read just before the last byte of ``data``
+    was written: it can only be early, so the device received that byte after it (a
+    host that ran the echo's callback late leaves the two far apart).
     """
 
     echo: EchoResult
     reply: bytes | None
     t_echo_s: float | None
     t_reply_s: float | None
+    t_sent_s: float | None = None
 
 
 class ByteChannel(Protocol):

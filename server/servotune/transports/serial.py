@@ -52,6 +52,7 @@ class _Exchange:
         self.echo: EchoResult | None = None if payload else EchoResult(0, None)
         self.t_echo_s: float | None = None
         self.t_reply_s: float | None = None
+        self.t_sent_s: float | None = None  # just before the last payload byte left
         self.loop = asyncio.get_running_loop()
         self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
         self.deadline = self.loop.time() + first_timeout_s
@@ -104,7 +105,7 @@ class _Exchange:
                         return
                     self.restart_timer(self.first_reply_timeout_s)
                     break
-                self.protocol.send(self.payload[self.index : self.index + 1])
+                self.send_next(now_s)
                 self.restart_timer()
             else:
                 return
@@ -128,6 +129,12 @@ class _Exchange:
             if self.then and not buffer and (self.may_chain is None or self.may_chain()):
                 self._chain()
 
+    def send_next(self, now_s: float) -> None:
+        """Write payload byte ``index`` (stamping ``t_sent_s`` for the last one)."""
+        if self.index == len(self.payload) - 1:
+            self.t_sent_s = now_s
+        self.protocol.send(self.payload[self.index : self.index + 1])
+
     def _chain(self) -> None:
         """Start the follow-up exchange ``then`` from this callback: its first byte
         leaves now, not after the waiting task has woken up and parsed this reply.
@@ -142,7 +149,7 @@ class _Exchange:
         )
         self.protocol.exchange = chained
         self.protocol.chained = chained
-        self.protocol.send(self.then[:1])
+        chained.send_next(time.monotonic())
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -243,7 +250,7 @@ class SerialChannel(ByteChannel):
         future = exchange.future
         result = future.result() if future.done() and not future.cancelled() else None
         reply = result if isinstance(result, bytes) else None
-        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
+        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s, exchange.t_sent_s)
 
     async def write(self, data: bytes) -> None:
         await self._settle()
@@ -340,7 +347,7 @@ class SerialChannel(ByteChannel):
         reply = result if isinstance(result, bytes) else None
         if reply is None and echo.echoed == len(data):
             self._check_open()
-        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s)
+        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s, exchange.t_sent_s)
 
     async def _run(
         self, exchange: _Exchange, first: bytes, *, started: bool = False
@@ -353,7 +360,7 @@ class SerialChannel(ByteChannel):
             protocol.exchange = exchange
         try:
             if first:
-                protocol.send(first)
+                exchange.send_next(time.monotonic())
             if not started:
                 exchange.step(time.monotonic())  # what already sits in the buffer
             return await exchange.future

@@ -91,6 +91,15 @@ def usable_band(
     does not extend it."""
     f = np.asarray(frequency_hz, dtype=np.float64)
     good = (np.asarray(coherence, dtype=np.float64) >= min_coherence) & (f <= nyquist_hz)
+    return usable_run(f, good)
+
+
+def usable_run(frequency_hz: npt.ArrayLike, good: npt.ArrayLike) -> tuple[float, float]:
+    """The longest run of consecutive ``good`` points as (first, last) frequency; the
+    lowest such run on a tie; (0, 0) when no point is good. ``usable_band`` with the
+    points chosen by the caller (the bench: the tones it trusts)."""
+    f = np.asarray(frequency_hz, dtype=np.float64)
+    good = np.asarray(good, dtype=np.bool_)
     best: tuple[int, int] | None = None
     start: int | None = None
     for i, ok in enumerate([*good.tolist(), False]):
@@ -342,7 +351,8 @@ def impulse_fit(
     ``t_s`` of the output of a system whose input ``u`` is known on the uniform grid
     ``grid_t0_s + i * step_s`` (a controller's ticks):
     ``y(t_k) ~ c0 + c1 t_k + sum_j impulse[j] sum_{i in box j} u[n_k - i]``,
-    ``n_k`` the last grid point at or before ``t_k`` (``numpy.linalg.lstsq``).
+    ``n_k`` the last grid point at or before ``t_k`` (least squares, by the normal
+    equations with the ridge term below).
 
     Why, rather than a per-tone fit (``tone_fit``) of input and output: an input that
     is a staircase of targets sent over a slow wire has power at images of its tones
@@ -360,6 +370,9 @@ def impulse_fit(
     t = np.asarray(t_s, dtype=np.float64)
     ys = np.asarray(y, dtype=np.float64)
     us = np.asarray(u, dtype=np.float64)
+    # The input's mean is removed (the offset column takes it): the ridge is relative
+    # to the boxes' power, which must be the excitation's, not where the input sits.
+    us = us - float(np.mean(us)) if us.size else us
     length = taps * box_steps
     columns = 2 + taps
     if t.size <= columns:
@@ -383,11 +396,14 @@ def impulse_fit(
     gram = design.T @ design
     penalty = np.zeros(columns)
     penalty[2:] = ridge * float(np.mean(np.diag(gram)[2:]))
-    stacked = np.vstack([design, np.diag(np.sqrt(penalty))])
-    coef, *_ = np.linalg.lstsq(stacked, np.concatenate([ys, np.zeros(columns)]), rcond=None)
+    # The normal equations of min |A c - y|^2 + c^T R c: with the ridge they are well
+    # conditioned, and one (2 + taps)-square inverse gives the fit and its covariance
+    # (an SVD of the tall A costs far more).
+    inverse = np.linalg.pinv(gram + np.diag(penalty), hermitian=True)
+    coef = inverse @ (design.T @ ys)
     residual = ys - design @ coef
     variance = float(residual @ residual) / max(ys.size - columns, 1)
-    covariance = variance * np.linalg.pinv(gram + np.diag(penalty))
+    covariance = variance * inverse
     return ImpulseFit(
         impulse=np.asarray(coef[2:], dtype=np.float64),
         box_steps=box_steps,

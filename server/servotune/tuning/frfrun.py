@@ -43,23 +43,20 @@ import numpy as np
 import numpy.typing as npt
 
 from servotune.profiles import TICK_S, TrapezoidGenerator
+from servotune.tuning import frftrust
 from servotune.tuning.frf import (
     ComplexArray,
     FloatArray,
-    coherence_from_error,
+    ImpulseFit,
     impulse_fit,
     tone_fit,
-    usable_band,
+    usable_run,
 )
 from servotune.tuning.whatif import bode_dict, margins_dict
 
 MAX_TONES = 24
-MIN_COHERENCE = 0.9
+MIN_COHERENCE = frftrust.MIN_COHERENCE
 MIN_PERIODS = 3  # analysed, after the settling period (coherence needs averages)
-# What the host cannot know about when things happened: the phase of the controller's
-# tick against the latch estimates (half a tick either way). A phase error of w * dt,
-# counted in T's relative error so that the coherence (and L's error) include it.
-TIMING_UNCERTAINTY_S = TICK_S / 2
 # L = T / (1 - T) is used for margins at a tone only where its relative error, at
 # ERROR_COVERAGE standard errors (about 95 %), is at most MAX_LOOP_ERROR: |L| within
 # about +-2 dB and its phase within about +-14 deg.
@@ -191,32 +188,110 @@ def rebuild_input(
     the targets sent: ``(t_s, setpoint)`` with t from ``t0_s``.
 
     Each row of ``sent`` is ``[acknowledged, target]`` or ``[acknowledged, target,
-    latched]``; a target takes effect at the first tick after its latch time (the
+    latched, ...]``; a target takes effect at the first tick after its latch time (the
     acknowledgement when the latch is unknown). With ``profile = (sv, sa)`` (wire
     units, the test's overrides) the setpoint follows the firmware's trapezoid law
     (``servotune.profiles``): at the SLAP2's maximum sv/sa a 50-count jump still takes
     about 10 ticks (8 ms), a delay the response must not be blamed for. Without it
     the targets are held (a device whose setpoint jumps)."""
-    rows = sorted(
-        ((float(r[2] if len(r) > 2 else r[0]) - t0_s, float(r[1])) for r in sent),
-        key=lambda row: row[0],
-    )
-    if not rows:
-        raise ValueError("no excitation was sent")
-    start = min(rows[0][0], 0.0)
-    n = int((t_end_s - start) / TICK_S) + 2
-    t = np.asarray(start + np.arange(n) * TICK_S, dtype=np.float64)
-    out = np.empty(n)
-    generator = TrapezoidGenerator.from_wire(y0, y0, *profile) if profile else None
-    value, j = y0, 0
-    for i in range(n):
-        while j < len(rows) and rows[j][0] <= t[i]:
-            value = rows[j][1]
-            if generator is not None and profile is not None:
-                generator.replan(value, *profile)
-            j += 1
-        out[i] = generator.step() if generator is not None else value
-    return t, out
+    rebuild = InputRebuild(sent, t0_s, y0, profile, t_end_s)
+    return rebuild.t, rebuild.u
+
+
+_State = tuple[float, float, float, float, float, bool]  # the generator's fields
+
+
+class InputRebuild:
+    """``rebuild_input`` that can also give the input with one target latched at
+    another time (``moved``), replaying only the ticks that change: from that target's
+    earlier latch until the generator is back in the state it had."""
+
+    def __init__(
+        self,
+        sent: Sequence[Sequence[float]],
+        t0_s: float,
+        y0: float,
+        profile: tuple[int, int] | None,
+        t_end_s: float,
+    ) -> None:
+        latched = [float(r[2] if len(r) > 2 else r[0]) - t0_s for r in sent]
+        if not latched:
+            raise ValueError("no excitation was sent")
+        self._targets = [float(r[1]) for r in sent]
+        self._latched = latched
+        self._profile = profile
+        self._y0 = y0
+        start = min(min(latched), 0.0)
+        n = int((t_end_s - start) / TICK_S) + 2
+        self.t = np.asarray(start + np.arange(n) * TICK_S, dtype=np.float64)
+        self.u = np.empty(n)
+        self._states: list[_State] = []
+        order = sorted(range(len(latched)), key=lambda i: latched[i])
+        self._play(order, 0, self._initial(), 0, self.u, self._states, None)
+
+    def _initial(self) -> _State:
+        return (self._y0, self._y0, 1.0, 1.0, 0.0, False)
+
+    def _play(
+        self,
+        order: list[int],
+        i0: int,
+        state: _State,
+        j0: int,
+        out: FloatArray,
+        states: list[_State] | None,
+        settle_after: int | None,
+    ) -> int:
+        """Run ticks from ``i0`` (generator ``state``, rows ``order[j0:]`` still to
+        come) into ``out``; with ``settle_after``, stop once past that tick the state
+        equals the recorded one. Returns the first tick not written."""
+        profile = self._profile
+        t, latched, targets = self.t, self._latched, self._targets
+        setpoint, target, vmax, acc, velocity, moving = state
+        generator = TrapezoidGenerator(setpoint, target, vmax, acc, velocity, moving)
+        j = j0
+        for i in range(i0, t.size):
+            while j < len(order) and latched[order[j]] <= t[i]:
+                value = targets[order[j]]
+                if profile is not None:
+                    generator.replan(value, *profile)
+                else:
+                    generator = TrapezoidGenerator(value, value, 1.0, 1.0, 0.0, False)
+                j += 1
+            out[i] = generator.step()
+            now = (
+                generator.setpoint,
+                generator.target,
+                generator.vmax,
+                generator.acceleration,
+                generator.velocity,
+                generator.moving,
+            )
+            if states is not None:
+                states.append(now)
+            elif settle_after is not None and i > settle_after and now == self._states[i]:
+                return i + 1
+        return t.size
+
+    def moved(self, index: int, latched_s: float) -> FloatArray:
+        """The input with row ``index`` of ``sent`` latched at ``latched_s`` (from t0)."""
+        latched = list(self._latched)
+        old, latched[index] = latched[index], latched_s
+        first = min(old, latched_s)
+        i0 = max(0, int(np.searchsorted(self.t, first, side="left")) - 1)
+        state = self._states[i0 - 1] if i0 > 0 else self._initial()
+        saved = self._latched
+        self._latched = latched
+        try:
+            order = sorted(range(len(latched)), key=lambda i: latched[i])
+            t_before = self.t[i0 - 1] if i0 > 0 else -math.inf
+            j0 = sum(1 for i in order if latched[i] <= t_before)
+            out = self.u.copy()
+            last = int(np.searchsorted(self.t, max(old, latched_s), side="right"))
+            self._play(order, i0, state, j0, out, None, last)
+        finally:
+            self._latched = saved
+        return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -227,11 +302,28 @@ class _Measured:
     response: ComplexArray
     relative_error: FloatArray
     coherence: FloatArray
+    trust: frftrust.ToneTrust
+    summary: dict[str, Any]
     periods: int
     samples: int
     rate_hz: float
     input_check_counts: float | None
     estimator: str
+
+    def tone_fields(self) -> dict[str, Any]:
+        """The per-tone coherence, errors and trust of a Bode dict."""
+        return {
+            "coherence": _rounded(self.coherence, 4),
+            "relative_error": _rounded(self.relative_error, 4),
+            "error_db": _rounded(self.trust.error_db, 3),
+            "error_deg": _rounded(self.trust.error_deg, 2),
+            "trusted": [bool(v) for v in self.trust.trusted],
+            "not_trusted_because": list(self.trust.limited_by),
+        }
+
+
+def _rounded(values: FloatArray, digits: int) -> list[float | None]:
+    return [round(float(v), digits) if np.isfinite(v) else None for v in values]
 
 
 def _jackknife(partial: ComplexArray, response: ComplexArray, periods: int) -> FloatArray:
@@ -305,8 +397,8 @@ def _impulse_estimate(
     u = np.concatenate([np.full(lead, u_ticks[0]), u_ticks])
     grid_t0 = float(tick_t[0]) - lead * TICK_S
 
-    def fit(t: FloatArray, y: FloatArray) -> tuple[ComplexArray, FloatArray]:
-        result = impulse_fit(
+    def fit(t: FloatArray, y: FloatArray) -> ImpulseFit:
+        return impulse_fit(
             t,
             y,
             grid_t0,
@@ -316,9 +408,8 @@ def _impulse_estimate(
             box_steps=IMPULSE_BOX_TICKS,
             ridge=IMPULSE_RIDGE,
         )
-        return result.response(tones)
 
-    response, error = fit(t_k, y_k)
+    response, error = fit(t_k, y_k).response(tones)
     with np.errstate(divide="ignore", invalid="ignore"):
         fit_error = _nan_inf(error / np.abs(response))
     if periods >= 2:
@@ -327,7 +418,7 @@ def _impulse_estimate(
         for i in range(periods):
             keep = period_of_sample != i
             try:
-                partial[i] = fit(t_k[keep], y_k[keep])[0]
+                partial[i] = fit(t_k[keep], y_k[keep]).response(tones)[0]
             except ValueError:
                 partial[i] = np.nan
         fit_error = np.fmax(fit_error, _jackknife(partial, response, periods))
@@ -345,10 +436,13 @@ def _measure(
     *,
     differenced: bool = False,
     estimator: str = "tones",
+    sample_spans_s: Sequence[float | None] | None = None,
 ) -> _Measured:
     """The estimator shared by the closed-loop and the open-loop runs (``analyse``):
     ``estimator`` "impulse" (``_impulse_estimate``) or "tones" (``_tone_estimate``);
-    ``differenced`` for an integrating output (tones only, ``tone_fit``)."""
+    ``differenced`` for an integrating output (tones only, ``tone_fit``). Samples the
+    host stalled on are left out and stalled targets bounded (``tuning.frftrust``);
+    ``sample_spans_s`` are the samples' latch spans (None: inferred from the gaps)."""
     t = np.asarray(t_s, dtype=np.float64) - t0_s
     y = np.asarray(output, dtype=np.float64)
     start = excitation.settle_periods * excitation.period_s
@@ -362,30 +456,56 @@ def _measure(
         raise ValueError("the record does not hold one whole period after the settling one")
     end = start + periods * excitation.period_s
     keep = after & (t < end)
-    t_k, y_k = t[keep], y[keep]
-    rate_measured = float(1.0 / np.median(np.diff(t_k))) if t_k.size > 1 else 0.0
+    # the host's latch spans (tuning.frftrust): recorded, or inferred from the gaps
+    spans = frftrust.nan_array(sample_spans_s, t.size)
+    command_spans = frftrust.command_spans(sent)
+    latched = np.asarray([float(r[2] if len(r) > 2 else r[0]) for r in sent]) - t0_s
+    missing = np.isnan(spans[keep]).any() or np.isnan(command_spans).any()
+    spans_source = "recorded by the driver"
+    if missing:
+        from_gaps = frftrust.spans_from_gaps(t, latched)
+        recorded_any = np.isfinite(spans).any() or np.isfinite(command_spans).any()
+        spans = np.where(np.isnan(spans), from_gaps[0], spans)
+        command_spans = np.where(np.isnan(command_spans), from_gaps[1], command_spans)
+        spans_source = (
+            "recorded; inferred from the gaps where missing"
+            if recorded_any
+            else "inferred from the gaps (not recorded)"
+        )
+    stalled = keep & (spans > frftrust.STALL_SPAN_S)
+    use = keep & ~stalled
+    t_k, y_k = t[use], y[use]
+    kept_t = t[keep]
+    rate_measured = float(1.0 / np.median(np.diff(kept_t))) if kept_t.size > 1 else 0.0
     tones = np.asarray(excitation.tones_hz, dtype=np.float64)
-    tick_t, u_ticks = rebuild_input(sent, t0_s, excitation.y0, profile, end + TICK_S)
+    rebuild = InputRebuild(sent, t0_s, excitation.y0, profile, end + TICK_S)
+    tick_t, u_ticks = rebuild.t, rebuild.u
     on_ticks = (tick_t >= start) & (tick_t < end)
     t_mid = 0.5 * (start + end)
-    try:
+
+    def estimate(
+        ticks: FloatArray, u: FloatArray, jackknife: int
+    ) -> tuple[ComplexArray, FloatArray]:
         if estimator == "impulse":
-            response, fit_error = _impulse_estimate(
-                t_k, y_k, tick_t, u_ticks, tones, start, excitation.period_s, periods
+            return _impulse_estimate(
+                t_k, y_k, ticks, u, tones, start, excitation.period_s, jackknife
             )
-        else:
-            response, fit_error = _tone_estimate(
-                t_k,
-                y_k,
-                tick_t[on_ticks],
-                u_ticks[on_ticks],
-                tones,
-                start,
-                t_mid,
-                excitation.period_s,
-                periods,
-                differenced,
-            )
+        on = (ticks >= start) & (ticks < end)
+        return _tone_estimate(
+            t_k,
+            y_k,
+            ticks[on],
+            u[on],
+            tones,
+            start,
+            t_mid,
+            excitation.period_s,
+            jackknife,
+            differenced,
+        )
+
+    try:
+        response, fit_error = estimate(tick_t, u_ticks, periods)
     except ValueError as exc:
         # Too few samples for the fit: say how sparse the capture was, which is what a
         # user can act on (a starved host polls far below the wire's rate: run again).
@@ -394,23 +514,66 @@ def _measure(
             f"{exc}: the capture holds {t_k.size} samples in the {span_s:.2f} s measured "
             f"({t_k.size / span_s:.0f} per s), too sparse to measure; run it again"
         ) from exc
-    timing_error = 2.0 * np.pi * tones * TIMING_UNCERTAINTY_S
-    relative_error = np.hypot(_nan_inf(fit_error), timing_error)
-    check: float | None = None
-    if setpoint is not None:
-        sp = np.asarray([math.nan if v is None else v for v in setpoint], dtype=np.float64)
-        ok = keep & np.isfinite(sp)
-        if ok.any():
-            check = float(np.max(np.abs(np.interp(t[ok], tick_t, u_ticks) - sp[ok])))
+
+    def respond(index: int, latched_s: float) -> tuple[ComplexArray, FloatArray]:
+        u = rebuild.moved(index, latched_s)
+        return estimate(tick_t, u, 1)[0], u
+
+    # only targets that reach the analysed samples matter
+    reach = IMPULSE_TAPS * IMPULSE_BOX_TICKS * TICK_S if estimator == "impulse" else 0.0
+    relevant = (latched >= start - reach - excitation.period_s) & (latched < end)
+    stall_bias, stalled_targets, input_unknown = frftrust.command_stall_bias(
+        latched, np.where(relevant, command_spans, 0.0), respond, response, t_k, tick_t, u_ticks
+    )
+    timing = frftrust.timing_s(spans[use], command_spans[relevant])
+    random = _nan_inf(fit_error)
+    input_amplitude = tone_fit(tick_t[on_ticks], u_ticks[on_ticks], tones, t_mid).amplitude
+    # where a stalled target leaves the input unknown, neither the check nor the
+    # coherence can say anything (the stall bound covers it)
+    known = ~input_unknown
+    sp = frftrust.nan_array(setpoint, t.size)[use]
+    check = frftrust.input_check(
+        t_k[known], sp[known], tick_t, u_ticks, tones, t_mid, input_amplitude
+    )
+    coherence = frftrust.period_coherence(
+        t_k[known],
+        y_k[known],
+        np.interp(t_k[known], tick_t, u_ticks),
+        tones,
+        start,
+        excitation.period_s,
+        periods,
+        trend=differenced,
+    )
+    trust = frftrust.tone_trust(
+        tones, random, check.bias, stall_bias, timing, coherence, rate_measured / 2.0
+    )
+    timing_error = 2.0 * np.pi * tones * timing
+    relative_error = np.hypot(random, timing_error) + (check.bias + stall_bias) / ERROR_COVERAGE
+    spanned = spans[keep]
+    summary = frftrust.summary(
+        tones,
+        trust,
+        check,
+        int(stalled.sum()),
+        stalled_targets,
+        float(np.nanmax(np.concatenate([spanned, command_spans[relevant]])))
+        if spanned.size
+        else None,
+        spans_source,
+        np.diff(kept_t),
+    )
     return _Measured(
         tones,
         np.asarray(response, dtype=np.complex128),
         np.asarray(relative_error, dtype=np.float64),
-        coherence_from_error(relative_error, periods),
+        coherence,
+        trust,
+        summary,
         periods,
         int(t_k.size),
         rate_measured,
-        check,
+        check.max_counts,
         estimator,
     )
 
@@ -426,9 +589,16 @@ def _bode(f: FloatArray, response: ComplexArray) -> dict[str, Any]:
 
 
 def _common(m: _Measured, excitation: Excitation) -> tuple[dict[str, Any], npt.NDArray[np.bool_]]:
+    """The fields every measured run shows, and the tones margins and bandwidth are read
+    from: coherent, below Nyquist, with a finite error (whether L is known there is
+    ``open_loop_from_closed``'s call, from that error)."""
     nyquist = m.rate_hz / 2.0
-    usable_from, usable = usable_band(m.tones_hz, m.coherence, nyquist, MIN_COHERENCE)
-    good = (m.coherence >= MIN_COHERENCE) & (m.tones_hz <= nyquist)
+    usable_from, usable = usable_run(m.tones_hz, m.trust.trusted)
+    good = (
+        (np.nan_to_num(m.coherence) >= MIN_COHERENCE)
+        & (m.tones_hz <= nyquist)
+        & np.isfinite(m.relative_error)
+    )
     return {
         "usable_from_hz": usable_from,
         "usable_until_hz": usable,
@@ -439,6 +609,7 @@ def _common(m: _Measured, excitation: Excitation) -> tuple[dict[str, Any], npt.N
         "input_check_counts": None
         if m.input_check_counts is None
         else round(m.input_check_counts, 2),
+        "trust": m.summary,
         "estimator": ESTIMATORS[m.estimator],
         # the requested tones the wire could not resolve: not sent, not measured
         "not_measured_hz": list(excitation.not_measured_hz),
@@ -457,30 +628,39 @@ def analyse(
     profile: tuple[int, int] | None = None,
     *,
     estimator: str = "impulse",
+    sample_spans_s: Sequence[float | None] | None = None,
 ) -> dict[str, Any]:
-    """The measured closed loop at the tones with its error and coherence, the usable
-    band, and (Cb = 0) the open loop with margins where it is measurable; ValueError
-    when the record cannot give a response.
+    """The measured closed loop at the tones, each with its coherence, error bounds and
+    whether it is trusted (``tuning.frftrust``), the usable band (the longest run of
+    trusted tones), the run's ``trust`` account, and (Cb = 0) the open loop with margins
+    where it is measurable; ValueError when the record cannot give a response.
 
     Estimator (docs/frequency-response.md): the input is rebuilt from the sent targets
     on the tick grid (``rebuild_input``), the output is the position samples at their
-    latch times; over the analysed whole periods both are fitted with all tones at
-    once by least squares (``tuning.frf.tone_fit``: no interpolation of irregular
-    samples), ``T = Y / U``. Its relative error combines the fits' standard errors
-    with the host's timing uncertainty; ``coherence`` is the equivalent coherence of
-    that error (``coherence_from_error``, as many averages as periods), so the 0.9
-    threshold means what it means for an H1 estimate. ``setpoint`` (the capture's
-    per-sample reconstruction), when recorded, checks the rebuilt input."""
-    m = _measure(t_s, position, setpoint, sent, t0_s, excitation, profile, estimator=estimator)
+    latch times (less those the host stalled on); ``estimator`` "impulse" fits the
+    closed loop's impulse response at the sample times (``tuning.frf.impulse_fit``),
+    "tones" fits the tones of input and output and takes ``T = Y / U``.
+    ``relative_error`` combines the fit's standard error (or the spread over periods),
+    the timing uncertainty and the bias bounds (input check, stalled targets) divided
+    by ``ERROR_COVERAGE``; ``coherence`` is the magnitude-squared coherence over the
+    periods. ``setpoint`` (the capture's per-sample reconstruction), when recorded,
+    checks the rebuilt input; ``sample_spans_s`` are the samples' latch spans."""
+    m = _measure(
+        t_s,
+        position,
+        setpoint,
+        sent,
+        t0_s,
+        excitation,
+        profile,
+        estimator=estimator,
+        sample_spans_s=sample_spans_s,
+    )
     common, good = _common(m, excitation)
     open_loop = open_loop_from_closed(m.tones_hz, m.response, m.relative_error, good)
     return {
         "loop": "closed",
-        "closed_loop": _bode(m.tones_hz, m.response)
-        | {
-            "coherence": [round(float(c), 4) for c in m.coherence],
-            "relative_error": [round(float(e), 4) for e in m.relative_error],
-        },
+        "closed_loop": _bode(m.tones_hz, m.response) | m.tone_fields(),
         "open_loop": open_loop["bode"],
         "nyquist": open_loop["nyquist"],
         "margins": open_loop["margins"],
@@ -506,6 +686,8 @@ def analyse_open(
     t0_s: float,
     excitation: Excitation,
     gains: tuple[int, int, int] | None,
+    *,
+    sample_spans_s: Sequence[float | None] | None = None,
 ) -> dict[str, Any]:
     """An open-loop run (PWM through ``spwm``, no controller): the plant ``P`` =
     position / PWM at the tones, measured; with the run's gains the loop the PID would
@@ -514,12 +696,19 @@ def analyse_open(
     so no tone is lost near T = 1; T's error is ``e_P / |1 + L|``. ValueError
     without gains (a run that did not record them)."""
     # the position integrates the PWM: fitted on its increments (tone_fit)
-    m = _measure(t_s, position, None, sent, t0_s, excitation, None, differenced=True)
+    m = _measure(
+        t_s,
+        position,
+        None,
+        sent,
+        t0_s,
+        excitation,
+        None,
+        differenced=True,
+        sample_spans_s=sample_spans_s,
+    )
     common, good = _common(m, excitation)
-    plant = _bode(m.tones_hz, m.response) | {
-        "coherence": [round(float(c), 4) for c in m.coherence],
-        "relative_error": [round(float(e), 4) for e in m.relative_error],
-    }
+    plant = _bode(m.tones_hz, m.response) | m.tone_fields()
     out: dict[str, Any] = {"loop": "open", "plant": plant, "input": "pwm", **common}
     if gains is None:
         raise ValueError("the run's PID gains are not recorded: no loop to close around the plant")
@@ -529,11 +718,10 @@ def analyse_open(
     with np.errstate(divide="ignore", invalid="ignore"):
         closed_error = m.relative_error / np.abs(1.0 + loop)
     return out | {
+        # T's error is P's over |1 + L|: where P is trusted, so is T
         "closed_loop": _bode(m.tones_hz, closed)
-        | {
-            "coherence": plant["coherence"],
-            "relative_error": [round(float(e), 4) for e in closed_error],
-        },
+        | m.tone_fields()
+        | {"relative_error": _rounded(closed_error, 4)},
         "open_loop": _bode(m.tones_hz, loop)
         | {
             "relative_error": plant["relative_error"],

@@ -39,6 +39,7 @@ import numpy.typing as npt
 import scipy.signal
 
 from servotune.tuning.frf import FloatArray, FrequencyResponse
+from servotune.tuning.stability import loop_margins, margin_grid, schur_stable
 
 SLAP2_TICK_S = 841.5e-6
 Z1100_TICK_S = 32e-6
@@ -111,28 +112,25 @@ class LoopModel:
         return _model_response(f, (cf + cb) * p, self.period_s)
 
     def margins(self) -> Margins:
-        """Gain and phase margins of the open loop (python-control ``stability_margins``
-        on its frequency response) and whether the closed loop is stable (its
-        characteristic polynomial's roots inside the unit circle)."""
-        nyquist_hz = 0.5 / self.period_s
-        # A dense frequency response rather than the polynomials: the Z1100's z^32
-        # derivative window makes root finding on them ill-conditioned (and slow).
-        f = np.logspace(-1, math.log10(nyquist_hz * 0.9999), 8000)
-        values = self.open_loop_response(f).response
-        data = control.frd(values, 2 * np.pi * f, dt=self.period_s)
-        gm, pm, _sm, wpc, wgc, _wms = control.stability_margins(data)
+        """Gain and phase margins of the open loop and their crossovers, read by the one
+        rule (``tuning.stability.loop_margins`` on ``margin_grid``: the what-if view
+        reads them the same way), and whether the closed loop is stable (``stable``)."""
+        f = margin_grid(self.period_s)
+        gm, pm, wgc, wpc = loop_margins(f, self.open_loop_response(f).response)
         return Margins(
-            gain_margin_db=float(20 * math.log10(gm)) if np.isfinite(gm) and gm > 0 else math.inf,
-            phase_margin_deg=float(pm) if np.isfinite(pm) else math.inf,
-            gain_crossover_hz=float(wgc) / (2 * math.pi) if np.isfinite(wgc) else math.nan,
-            phase_crossover_hz=float(wpc) / (2 * math.pi) if np.isfinite(wpc) else math.nan,
-            stable=bool(np.all(np.abs(np.roots(self._characteristic())) < 1.0)),
+            gain_margin_db=float(gm),
+            phase_margin_deg=float(pm),
+            gain_crossover_hz=float(wgc),
+            phase_crossover_hz=float(wpc),
+            stable=self.stable,
         )
 
-    def _characteristic(self) -> FloatArray:
-        """1 + L = 0 as a polynomial in z: den(L) + num(L)."""
-        num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(self.open_loop))
-        return np.asarray(np.polyadd(den, num), dtype=np.float64)
+    @property
+    def stable(self) -> bool:
+        """The one stability verdict (``tuning.stability``): every root of the closed
+        loop's characteristic polynomial, from the exact component polynomials, strictly
+        inside the unit circle."""
+        return schur_stable(self._closed_loop_polynomials()[1])
 
     def bandwidth_hz(self, frequency_hz: npt.ArrayLike | None = None) -> tuple[float, float]:
         """(-3 dB bandwidth, resonance peak in dB) of the closed loop, from its response
@@ -183,25 +181,63 @@ class LoopModel:
         the polynomials with exact arithmetic only: no ``control.minreal``, whose
         tolerance cancelled the SLAP2 integrator's pole near z = 1 against a nearby
         zero and left a slow error (176 counts of a 2000-count ramp after 17 s)."""
-        (nf, df), (nb, db), (npl, dpl) = (
-            (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(tf))
-            for tf in (self.forward, self.feedback, self.plant_d)
+        return closed_loop_polynomials(
+            *(_polynomials(tf) for tf in (self.forward, self.feedback, self.plant_d))
         )
-        if np.array_equal(df, db):
-            d = df  # one denominator (the Z1100's 64 z^32): T = Nf Np / (D Dp + (Nf+Nb) Np)
-            num = np.polymul(nf, npl)
-            den = np.polyadd(np.polymul(d, dpl), np.polymul(np.polyadd(nf, nb), npl))
-        else:  # T = Nf Db Np / (Df Db Dp + (Nf Db + Nb Df) Np)
-            num = np.polymul(np.polymul(nf, db), npl)
-            den = np.polyadd(
-                np.polymul(np.polymul(df, db), dpl),
-                np.polymul(np.polyadd(np.polymul(nf, db), np.polymul(nb, df)), npl),
-            )
-        num, den = np.trim_zeros(num, "f"), np.trim_zeros(den, "f")
-        # common roots at z = 0 (trailing zero coefficients) cancel exactly
-        while num.size > 1 and den.size > 1 and num[-1] == 0.0 and den[-1] == 0.0:
-            num, den = num[:-1], den[:-1]
-        return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
+
+
+Polynomial = tuple[FloatArray, FloatArray]  # (numerator, denominator), descending powers of z
+
+
+def _polynomials(tf: control.TransferFunction) -> Polynomial:
+    num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(tf))
+    return num, den
+
+
+def closed_loop_polynomials(
+    forward: Polynomial, feedback: Polynomial, plant: Polynomial
+) -> Polynomial:
+    """``T = Cf P / (1 + (Cf + Cb) P)`` as (num, den) from the components' exact
+    polynomials (``LoopModel``; gain searches call it without building the loop)."""
+    (nf, df), (nb, db), (npl, dpl) = forward, feedback, plant
+    if np.array_equal(df, db):
+        d = df  # one denominator (the Z1100's 64 z^32): T = Nf Np / (D Dp + (Nf+Nb) Np)
+        num = np.polymul(nf, npl)
+        den = np.polyadd(np.polymul(d, dpl), np.polymul(np.polyadd(nf, nb), npl))
+    else:  # T = Nf Db Np / (Df Db Dp + (Nf Db + Nb Df) Np)
+        num = np.polymul(np.polymul(nf, db), npl)
+        den = np.polyadd(
+            np.polymul(np.polymul(df, db), dpl),
+            np.polymul(np.polyadd(np.polymul(nf, db), np.polymul(nb, df)), npl),
+        )
+    num, den = np.trim_zeros(num, "f"), np.trim_zeros(den, "f")
+    # common roots at z = 0 (trailing zero coefficients) cancel exactly
+    while num.size > 1 and den.size > 1 and num[-1] == 0.0 and den[-1] == 0.0:
+        num, den = num[:-1], den[:-1]
+    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
+
+
+class MarginSearch:
+    """The margins and the verdict of many controllers around one discrete plant, by
+    the rules of ``LoopModel.margins`` (the same polynomials, grid and tests) without
+    building python-control objects per candidate: what a gain search needs."""
+
+    def __init__(self, plant_d: control.TransferFunction, period_s: float) -> None:
+        self._plant = _polynomials(plant_d)
+        self._f = margin_grid(period_s)
+        self._z = np.exp(2j * np.pi * self._f * period_s)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self._p = np.polyval(self._plant[0], self._z) / np.polyval(self._plant[1], self._z)
+
+    def margins(self, forward: Polynomial, feedback: Polynomial) -> Margins:
+        z = self._z
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c = np.polyval(forward[0], z) / np.polyval(forward[1], z) + np.polyval(
+                feedback[0], z
+            ) / np.polyval(feedback[1], z)
+        gm, pm, wgc, wpc = loop_margins(self._f, c * self._p)
+        stable = schur_stable(closed_loop_polynomials(forward, feedback, self._plant)[1])
+        return Margins(float(gm), float(pm), float(wgc), float(wpc), stable)
 
 
 def _at(tf: control.TransferFunction, z: npt.NDArray[np.complex128]) -> npt.NDArray[np.complex128]:
@@ -230,13 +266,33 @@ def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
 
 def slap2_loop_for(plant: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
     """The SLAP2 PID around a continuous plant (counts per controller output unit)."""
+    return slap2_loop_on(control.c2d(plant, SLAP2_TICK_S, "zoh"), kp, ki, kd)
+
+
+def slap2_loop_on(plant_d: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID around a plant already discretised at its tick (a gain search
+    discretises once)."""
     ts = SLAP2_TICK_S
-    # (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096 over the common denominator z (z-1)
-    num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
-    den = [4096.0, -4096.0, 0.0]
-    forward = control.tf(num, den, ts)
-    zero = control.tf([0.0], [1.0], ts)
-    return LoopModel(forward, zero, control.c2d(plant, ts, "zoh"), ts)
+    forward = control.tf(*slap2_pid_polynomials(kp, ki, kd), ts)
+    zero = control.tf(*ZERO, ts)
+    return LoopModel(forward, zero, plant_d, ts)
+
+
+ZERO: Polynomial = (np.zeros(1), np.ones(1))
+
+
+def slap2_pid_polynomials(kp: int, ki: int, kd: int) -> Polynomial:
+    """The SLAP2 PID ``C(z) = (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096``."""
+    if ki:
+        # over the common denominator z (z-1)
+        num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
+        den = [4096.0, -4096.0, 0.0]
+    else:
+        # ki = 0: the running sum is multiplied by 0, there is no integrator - and no
+        # factor z - 1 in numerator and denominator to read as a pole on the circle
+        num = [16 * kp + 32 * kd, -32 * kd]
+        den = [4096.0, 0.0]
+    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
 
 
 def z1100_loop(
@@ -250,12 +306,26 @@ def z1100_loop_for(
     plant: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
 ) -> LoopModel:
     """The Z1100 K/A/B law around a continuous plant (counts per PWM unit)."""
+    plant_d = control.c2d(plant, max(1, stm) * Z1100_TICK_S, "zoh")
+    return z1100_loop_on(plant_d, k, a, b, stm, window)
+
+
+def z1100_loop_on(
+    plant_d: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 law around a plant already discretised at Stm x 32 us."""
     ts = max(1, stm) * Z1100_TICK_S
+    forward, feedback = z1100_kab_polynomials(k, a, b, window)
+    return LoopModel(control.tf(*forward, ts), control.tf(*feedback, ts), plant_d, ts)
+
+
+def z1100_kab_polynomials(
+    k: int, a: int, b: int, window: int = 32
+) -> tuple[Polynomial, Polynomial]:
+    """The Z1100 law: ``Cf = K (16 + A (1 - z^-w)) / 64``, ``Cb = B (1 - z^-w) / 64``."""
     shift = np.zeros(window + 1)
     shift[0] = 1.0  # z^window
     delta = shift.copy()
     delta[-1] = -1.0  # z^window - 1: (1 - z^-window) over z^window
     den = shift * 64.0
-    forward = control.tf(k * (16 * shift + a * delta), den, ts)
-    feedback = control.tf(b * delta, den, ts)
-    return LoopModel(forward, feedback, control.c2d(plant, ts, "zoh"), ts)
+    return (k * (16 * shift + a * delta), den), (b * delta, den.copy())

@@ -13,12 +13,15 @@ import {
   type AutoTuneSession,
   type BenchLimits,
   type GainSet,
+  type MarginPreset,
+  type MarginReport,
   type RunMetrics,
 } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
 import type { DeviceDescriptor } from "../wire.gen";
 import { errorText, statusLabel } from "./feedback";
+import { PRESET_HELP, marginValue, marginWarning, targetText } from "./margins";
 import { type MetricColumn, metricCell, metricHeads, num } from "./metriccols";
 
 const GOALS: Record<AutoTuneGoal, { label: string; help: string }> = {
@@ -45,6 +48,7 @@ interface Form {
   max_pwm: string;
   max_distance: string;
   response: AutoTuneGoal;
+  margins: MarginPreset;
   test: "position_step" | "move";
   direction: "1" | "-1";
   distance: string; // "" = the server's default
@@ -59,6 +63,8 @@ export interface AutoTuneHost {
   columns(metrics: (RunMetrics | null | undefined)[]): MetricColumn[];
   /** Select exactly these runs in the bench overlay (after re-reading the list). */
   showRuns(ids: string[]): Promise<void>;
+  /** A new identified model (and proposal) exists: views built on it reload it. */
+  modelChanged(): void;
 }
 
 function gainsText(g: GainSet | undefined): string {
@@ -71,6 +77,7 @@ export class AutoTunePanel {
   private readonly maxPwm: HTMLInputElement;
   private readonly maxDistance: HTMLInputElement;
   private readonly goal: HTMLSelectElement;
+  private readonly margins: HTMLSelectElement;
   private readonly test: HTMLSelectElement;
   private readonly direction: HTMLSelectElement;
   private readonly distance: HTMLInputElement;
@@ -95,7 +102,7 @@ export class AutoTunePanel {
     private readonly host: AutoTuneHost,
     private readonly signal: AbortSignal,
   ) {
-    this.form = forms.get(axisId) ?? { max_pwm: "", max_distance: "", response: "no_overshoot", test: "position_step", direction: "1", distance: "" };
+    this.form = forms.get(axisId) ?? { max_pwm: "", max_distance: "", response: "no_overshoot", margins: "medium", test: "position_step", direction: "1", distance: "" };
     forms.set(axisId, this.form);
     this.open = localStorage.getItem(OPEN_KEY) !== "0";
 
@@ -128,6 +135,13 @@ export class AutoTunePanel {
     );
     this.goal.value = this.form.response;
     this.goal.addEventListener("change", () => (this.form.response = this.goal.value as AutoTuneGoal));
+    this.margins = h(
+      "select",
+      { class: "input", testid: "at-margins", "aria-label": "Margin target", title: "The margins the gains are designed to (on the identified model): stiff PM 40° / GM 6 dB, medium PM 45° / GM 8 dB (default), soft PM 60° / GM 12 dB" },
+      (["stiff", "medium", "soft"] as MarginPreset[]).map((m) => h("option", { value: m, title: PRESET_HELP[m] }, m)),
+    );
+    this.margins.value = this.form.margins;
+    this.margins.addEventListener("change", () => (this.form.margins = this.margins.value as MarginPreset));
     this.test = h(
       "select",
       { class: "input", testid: "at-test", "aria-label": "Test", title: "The bench test the gains are tuned for and verified with" },
@@ -178,6 +192,7 @@ export class AutoTunePanel {
         field("PWM ±", this.maxPwm, ""),
         field("distance ±", this.maxDistance, this.descriptor.channels.find((c) => c.name === "position")?.unit ?? "counts"),
         field("goal", this.goal, ""),
+        field("margins", this.margins, ""),
         h(
           "span",
           { class: "at-test-fields" },
@@ -198,6 +213,12 @@ export class AutoTunePanel {
         if (e.axis !== axisId || !/auto-?tune/i.test(e.message)) return;
         this.lastEvent = e.message.replace(/^auto-tune:\s*/i, "");
         this.syncProgress();
+        if (/^auto-?tune:\s*proposed/i.test(e.message)) {
+          // A new model and proposal (this page's or another's): whatever is built on
+          // them reloads without a page reload.
+          this.host.modelChanged();
+          if (!this.busy) void this.loadSession();
+        }
       },
       signal,
     );
@@ -279,6 +300,7 @@ export class AutoTunePanel {
     if (req) {
       this.form.response = req.response;
       this.goal.value = req.response;
+      if (req.margins) this.margins.value = this.form.margins = req.margins;
       if (req.test === "position_step" || req.test === "move") this.test.value = this.form.test = req.test;
       if (req.direction === 1 || req.direction === -1) this.direction.value = this.form.direction = String(req.direction) as Form["direction"];
     }
@@ -303,6 +325,7 @@ export class AutoTunePanel {
       max_pwm: n(this.maxPwm),
       max_distance_counts: n(this.maxDistance),
       response: this.goal.value as AutoTuneGoal,
+      margins: this.margins.value as MarginPreset,
       test: this.test.value as Form["test"],
       direction: this.direction.value === "-1" ? -1 : 1,
     };
@@ -323,6 +346,7 @@ export class AutoTunePanel {
       this.el.dataset.state = "proposed";
       this.setProgress("ok", `✓ model fitted, gains proposed (${took})`);
       this.setOpen(true);
+      this.host.modelChanged();
     } catch (error) {
       this.stop();
       this.showError(error);
@@ -472,6 +496,37 @@ export class AutoTunePanel {
     replace(this.details, this.proposalView(p, cols, busy), this.result ? this.resultView(p, this.result, cols, busy) : null);
   }
 
+  /** The margins of the gains in use and of the proposal on the model, against the
+   * target they were designed to, with a warning under any below it. */
+  private marginsView(p: AutoTuneProposal): HTMLElement | null {
+    const m = p.margins;
+    if (!m) return null;
+    const t = m.target;
+    const row = (label: string, r: MarginReport | undefined, key: string): HTMLElement =>
+      h(
+        "tr",
+        { "data-row": key },
+        h("td", { class: "d-name" }, label),
+        h("td", { class: "d-val num" }, r ? marginValue(r.phase_margin_deg, t.phase_margin_deg, 1, "°", `at-pm-${key}`) : "—"),
+        h("td", { class: "d-val num" }, r ? marginValue(r.gain_margin_db, t.gain_margin_db, 1, "dB", `at-gm-${key}`) : "—"),
+        h("td", { class: "d-val num" }, r?.gain_crossover_hz === null || r?.gain_crossover_hz === undefined ? "—" : `${r.gain_crossover_hz.toFixed(0)} Hz`),
+        h("td", { class: "d-val", testid: `at-stable-${key}` }, r?.stable === false ? "UNSTABLE" : r?.stable ? "stable" : "—"),
+      );
+    return h(
+      "div",
+      { class: "at-card at-margins", testid: "at-margins-card" },
+      h("div", { class: "at-card-title" }, "Margins on the model", h("span", { class: "at-card-sub", testid: "at-margin-target" }, ` — target ${targetText(t)}`)),
+      h(
+        "table",
+        { class: "diff-table" },
+        h("thead", null, h("tr", null, h("th", { class: "d-name" }, ""), h("th", null, "phase"), h("th", null, "gain"), h("th", null, "crossover"), h("th", null, "loop"))),
+        h("tbody", null, row("now", p.margins_default, "current"), row("proposed", m, "proposed")),
+      ),
+      marginWarning(m, "at-margin-warning"),
+      m.meets_target === false ? h("div", { class: "at-sub" }, "no gains of the search reach the target on this model: these are the closest it found") : null,
+    );
+  }
+
   private proposalView(p: AutoTuneProposal, cols: MetricColumn[], busy: boolean): HTMLElement {
     const model = h(
       "div",
@@ -569,7 +624,12 @@ export class AutoTunePanel {
           p.predicted_peak_pwm !== undefined ? `peak PWM ${p.predicted_peak_pwm}` : "",
           p.travel_counts !== undefined ? `identification travelled ${p.travel_counts} counts` : "",
           p.candidates !== undefined ? `${p.candidates} candidates, ${p.simulations ?? "?"} robustness simulations` : "",
-          p.design ? Object.entries(p.design).filter(([k]) => k !== "unchanged").map(([k, v]) => `${k} ${typeof v === "number" ? num(v) : String(v)}`).join(", ") : "",
+          p.design
+            ? Object.entries(p.design)
+                .filter(([k, v]) => k !== "unchanged" && (typeof v !== "object" || v === null))
+                .map(([k, v]) => `${k} ${typeof v === "number" ? num(v) : String(v)}`)
+                .join(", ")
+            : "",
         ]
           .filter(Boolean)
           .join(" · "),
@@ -605,7 +665,7 @@ export class AutoTunePanel {
       { class: "at-proposal", testid: "at-proposal", "data-run": p.identification_run_id },
       (p.warnings ?? []).map((w) => h("div", { class: "at-warning", testid: "at-warning", role: "note" }, h("b", null, "⚠ "), w)),
       attempts > 1 ? h("div", { class: "at-sub" }, `identified in ${attempts} attempts (runs ${(p.identification_run_ids ?? []).map((id) => `#${id.slice(0, 4)}`).join(", ")})`) : null,
-      h("div", { class: "at-grid" }, model, gains, rule),
+      h("div", { class: "at-grid" }, model, gains, this.marginsView(p), rule),
       // Once verified, the result table repeats the predictions next to the measurements.
       this.result ? null : metrics,
       h(

@@ -296,6 +296,8 @@ export class BenchView {
           {
             columns: (metrics) => metricColumns(this.descriptor, [...this.runs.map((r) => r.metrics), ...metrics]),
             showRuns: (ids) => this.showRuns(ids),
+            // the what-if view is built on the identified model: reload it
+            modelChanged: () => void this.whatif?.load(),
           },
           signal,
         )
@@ -306,6 +308,7 @@ export class BenchView {
           const run = await api.startRun(axisId, { kind, distance, velocity: 0, pwm: 0, duration_s: 2, note: "what-if verification" });
           this.finished.add(run.id);
           await this.refresh();
+          return run.id;
         })
       : null;
     this.extras = h("div", { class: "bench-extras" }, ...(this.whatif ? [this.whatif.el] : []));
@@ -769,7 +772,11 @@ export class BenchView {
   private onRun(msg: RunUpdate): void {
     this.syncProgress(msg);
     const known = this.runs.find((r) => r.id === msg.run_id);
-    if (msg.status !== "recording") this.finished.add(msg.run_id);
+    if (msg.status !== "recording") {
+      this.finished.add(msg.run_id);
+      this.whatif?.runEnded(msg.run_id, msg.status, msg.message);
+      void this.whatif?.load(); // an identification may have given a new model
+    }
     if (known && msg.status === "recording") {
       known.status = "recording";
       const cell = this.table.querySelector<HTMLElement>(`[data-status-of="${msg.run_id}"]`);
@@ -1176,7 +1183,8 @@ export class BenchView {
     if (this.whatif) {
       const col = lastStep ? column(lastStep, "position", triggerTime(lastStep), lastStep.plan.y0) : null;
       const delayS = (lastStep as { trigger_latency_s?: number } | undefined)?.trigger_latency_s ?? 0;
-      this.whatif.setMeasured(lastStep && col ? { label: `${shortId(lastStep.id)} measured`, delayS, t: col.x, y: col.y } : null);
+      const distance = lastStep ? (lastStep.test as { distance?: number }).distance ?? null : null;
+      this.whatif.setMeasured(lastStep && col ? { id: lastStep.id, distance, label: `${shortId(lastStep.id)} measured`, delayS, t: col.x, y: col.y } : null);
     }
     this.renderLegend(differing);
   }

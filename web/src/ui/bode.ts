@@ -8,16 +8,43 @@ import uPlot from "uplot";
 import "./frf.css";
 import { api, request } from "../api";
 import { h, replace, setText } from "../dom";
+import type { MarginTarget } from "../api";
 import { errorText } from "./feedback";
 import { plotTheme, type PlotTheme } from "./benchplot";
+import { targetText } from "./margins";
 
 export interface Bode {
   frequency_hz: (number | null)[];
   magnitude_db: (number | null)[];
   phase_deg: (number | null)[];
-  coherence?: number[];
+  /** Measured: the magnitude-squared coherence over the run's periods. */
+  coherence?: (number | null)[];
+  /** Measured: the tone is known within the instrument's limits (every bias bounded). */
+  trusted?: boolean[];
+  /** Measured: the error bounds (about 95 %) and, for an untrusted tone, why. */
+  error_db?: (number | null)[];
+  error_deg?: (number | null)[];
+  not_trusted_because?: (string | null)[];
   /** Measured open loop: whether L = T/(1-T) is known at the tone (T's error propagated). */
   measurable?: boolean[];
+}
+
+/** Why a measured run's tones are (not) trusted: tuning/frftrust.py. */
+export interface Trust {
+  trusted_tones: number;
+  tones: number;
+  max_error_db: number;
+  max_error_deg: number;
+  not_trusted: string[];
+  input_check_counts: number | null;
+  input_check_excess_counts: number | null;
+  input_check_samples_over: number;
+  stalled_samples_left_out: number;
+  stalled_targets_bounded: number;
+  max_latch_span_ms: number | null;
+  spans: string;
+  max_gap_ms: number | null;
+  gaps_over_50_ms: number;
 }
 
 export interface Margins {
@@ -32,6 +59,10 @@ export interface Margins {
   /** Measured runs: the margin's uncertainty (about 95 %). */
   gain_margin_error_db?: number | null;
   phase_margin_error_deg?: number | null;
+  /** Against the margin target: met, not (with the warning), or unknown (null). */
+  target?: MarginTarget;
+  meets_target?: boolean | null;
+  warning?: string | null;
 }
 
 interface Nyquist {
@@ -43,6 +74,8 @@ interface Nyquist {
 
 interface Part {
   closed_loop: Bode;
+  /** An open-loop run: the plant P measured (the closed loop is derived from it). */
+  plant?: Bode;
   open_loop: Bode;
   nyquist: Nyquist;
   margins: Margins;
@@ -58,6 +91,7 @@ interface Part {
   // tones of the requested band the wire cannot resolve: not sent, not measured
   not_measured_hz?: number[];
   not_measured_reason?: string | null;
+  trust?: Trust;
 }
 
 export interface FrfData {
@@ -161,11 +195,19 @@ interface Band {
   until: number;
 }
 
-const BINS: { min: number; max: number; alpha: string; label: string }[] = [
-  { min: MIN_COHERENCE, max: 1.01, alpha: "ff", label: "coherence ≥ 0.9" },
-  { min: 0.5, max: MIN_COHERENCE, alpha: "80", label: "0.5–0.9" },
-  { min: -1, max: 0.5, alpha: "30", label: "< 0.5" },
+/** How a measured point is drawn: trusted (every bias bounded within the limits)
+ * filled; not trusted but coherent hollow; incoherent faint and hollow. */
+type Bin = "trusted" | "untrusted" | "incoherent";
+const BINS: { bin: Bin; alpha: string; fill: boolean; label: string }[] = [
+  { bin: "trusted", alpha: "ff", fill: true, label: "trusted (±0.5 dB, ±5°)" },
+  { bin: "untrusted", alpha: "b0", fill: false, label: "not trusted (see why)" },
+  { bin: "incoherent", alpha: "40", fill: false, label: "coherence < 0.9" },
 ];
+
+function binOf(b: Bode, j: number): Bin {
+  if (b.trusted?.[j]) return "trusted";
+  return (b.coherence?.[j] ?? 0) >= MIN_COHERENCE ? "untrusted" : "incoherent";
+}
 
 function hex(color: string): string {
   // Palette colours are #rrggbb; anything else is drawn without alpha shading.
@@ -371,7 +413,7 @@ export class FrfPanel {
       } else if (d.model_problem) notes.push(`${run.label}: no model — ${d.model_problem}`);
       if (d.measured) {
         const b = open ? d.measured.open_loop : d.measured.closed_loop;
-        const coherence = d.measured.closed_loop.coherence ?? [];
+        const tones = d.measured.loop === "open" ? (d.measured.plant ?? d.measured.closed_loop) : d.measured.closed_loop;
         const band: Band = { from: d.measured.usable_from_hz ?? 0, until: d.measured.usable_until_hz ?? 0 };
         usable = usable === null ? band : { from: Math.max(usable.from, band.from), until: Math.min(usable.until, band.until) };
         // Open loop: a tone where L is not measurable (|1 - T| small against T's
@@ -386,17 +428,18 @@ export class FrfPanel {
           phaseSeries.push({ ...s });
         }
         for (const bin of BINS) {
-          const keep = (j: number): boolean => known(j) && (coherence[j] ?? 0) >= bin.min && (coherence[j] ?? 0) < bin.max;
+          const keep = (j: number): boolean => known(j) && binOf(tones, j) === bin.bin;
           xs.push(b.frequency_hz as number[]);
           mags.push(b.magnitude_db.map((v, j) => (keep(j) ? v : null)));
           phases.push(b.phase_deg.map((v, j) => (keep(j) ? v : null)));
           const color = hex(run.color) ? `${run.color}${bin.alpha}` : run.color;
-          const s: uPlot.Series = { label: `${run.label} ${bin.label}`, stroke: color, paths: () => null, points: { show: true, size: 7, stroke: color, fill: color } };
+          const s: uPlot.Series = { label: `${run.label} ${bin.label}`, stroke: color, paths: () => null, points: { show: true, size: 7, width: 1.5, stroke: color, fill: bin.fill ? color : "transparent" } };
           magSeries.push(s);
           phaseSeries.push({ ...s });
         }
+        const trust = d.measured.trust;
         notes.push(
-          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), usable ${d.measured.usable_until_hz ? `${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")}` : "nowhere (coherence < 0.9)"}, input: ${d.measured.input === "pwm" ? "open-loop PWM (spwm): the plant measured, L = C·P with the run's PID" : d.measured.input === "profile" ? "targets through the profile law" : "targets sent"}`,
+          `${run.label}: measured at ${d.measured.sample_rate_hz ?? "?"} samples/s (Nyquist ${d.measured.nyquist_hz ?? "?"} Hz), ${trust ? `${trust.trusted_tones} of ${trust.tones} tones trusted` : ""}${d.measured.usable_until_hz ? ` (${fmt(d.measured.usable_from_hz, 1, "Hz")} to ${fmt(d.measured.usable_until_hz, 1, "Hz")})` : ""}, input: ${d.measured.input === "pwm" ? "open-loop PWM (spwm): the plant measured, L = C·P with the run's PID" : d.measured.input === "profile" ? "targets through the profile law" : "targets sent"}`,
         );
         const left = d.measured.not_measured_hz ?? [];
         if (left.length)
@@ -422,18 +465,22 @@ export class FrfPanel {
   private renderReadouts(loaded: FrfData[]): void {
     // A measured margin is a number (± its uncertainty) or "not measurable" with the
     // reason, never a number read from tones where L is unknown.
-    const margin = (testid: string, v: number | null, err: number | null | undefined, unit: string, problem: string | null | undefined): HTMLElement =>
+    const margin = (testid: string, v: number | null, err: number | null | undefined, unit: string, problem: string | null | undefined, target: number | undefined): HTMLElement =>
       problem
         ? h("td", { class: "frf-unmeasurable", testid, title: problem }, "not measurable")
-        : h("td", { class: "mono", testid }, err !== null && err !== undefined && v !== null ? `${v.toFixed(1)} ± ${err.toFixed(1)} ${unit}` : fmt(v, 1, unit));
+        : h(
+            "td",
+            { class: `mono margin-value ${v === null || target === undefined ? "" : v >= target ? "ok" : "low"}`, testid, title: target === undefined ? "" : `target ≥ ${target} ${unit}` },
+            err !== null && err !== undefined && v !== null ? `${v.toFixed(1)} ± ${err.toFixed(1)} ${unit}` : fmt(v, 1, unit),
+          );
     const row = (label: string, color: string, source: string, p: Part): HTMLElement =>
       h(
         "tr",
-        { "data-source": source },
+        { "data-source": source, "data-meets-target": p.margins.meets_target === undefined || p.margins.meets_target === null ? "" : String(p.margins.meets_target) },
         h("td", null, h("span", { class: "swatch", style: `background:${color}` }), ` ${label}`),
         h("td", null, source),
-        margin("frf-gm", p.margins.gain_margin_db, p.margins.gain_margin_error_db, "dB", p.margins.gain_margin_problem),
-        margin("frf-pm", p.margins.phase_margin_deg, p.margins.phase_margin_error_deg, "°", p.margins.phase_margin_problem),
+        margin("frf-gm", p.margins.gain_margin_db, p.margins.gain_margin_error_db, "dB", p.margins.gain_margin_problem, p.margins.target?.gain_margin_db),
+        margin("frf-pm", p.margins.phase_margin_deg, p.margins.phase_margin_error_deg, "°", p.margins.phase_margin_problem, p.margins.target?.phase_margin_deg),
         h("td", { class: "mono" }, fmt(p.margins.gain_crossover_hz, 1, "Hz")),
         h("td", { class: "mono" }, fmt(p.margins.phase_crossover_hz, 1, "Hz")),
         h("td", { class: "mono", testid: "frf-bw" }, fmt(p.bandwidth_hz, 1, "Hz")),
@@ -442,6 +489,9 @@ export class FrfPanel {
       );
     const rows: HTMLElement[] = [];
     const reasons: HTMLElement[] = [];
+    const warnings: HTMLElement[] = [];
+    const details: HTMLElement[] = [];
+    let target: MarginTarget | undefined;
     loaded.forEach((d, i) => {
       const run = this.runs[i] as FrfRun;
       if (d.measured) {
@@ -450,8 +500,25 @@ export class FrfPanel {
         for (const [name, why] of [["gain margin", m.gain_margin_problem], ["phase margin", m.phase_margin_problem]] as const) {
           if (why) reasons.push(h("li", { testid: "frf-margin-reason" }, `${run.label}, ${name}: ${why}`));
         }
+        if (m.meets_target === false && m.warning) warnings.push(h("div", { class: "at-warning margin-warning", testid: "frf-margin-warning", role: "note" }, h("b", null, "⚠ "), `${run.label} measured: ${m.warning}`));
+        const trust = d.measured.trust;
+        if (trust) {
+          for (const why of trust.not_trusted) reasons.push(h("li", { testid: "frf-trust-reason" }, `${run.label}, not trusted: ${why}`));
+          if (trust.input_check_excess_counts)
+            reasons.push(h("li", { testid: "frf-input-check" }, `${run.label}: the rebuilt input differs from the captured setpoint by up to ${trust.input_check_excess_counts} counts beyond the tick phase at ${trust.input_check_samples_over} samples`));
+          if (trust.stalled_samples_left_out || trust.stalled_targets_bounded)
+            reasons.push(
+              h("li", { testid: "frf-stalls" }, `${run.label}: the host stalled (latch spans up to ${trust.max_latch_span_ms ?? "?"} ms, ${trust.spans}): ${trust.stalled_samples_left_out} samples left out, ${trust.stalled_targets_bounded} targets bounded`),
+            );
+        }
+        details.push(this.toneTable(run, d.measured));
       }
-      if (d.model) rows.push(row(run.label, run.color, d.model_based ? "model (model-based run)" : "model", d.model));
+      if (d.model) {
+        rows.push(row(run.label, run.color, d.model_based ? "model (model-based run)" : "model", d.model));
+        const m = d.model.margins;
+        if (m.meets_target === false && m.warning) warnings.push(h("div", { class: "at-warning margin-warning", testid: "frf-margin-warning", role: "note" }, h("b", null, "⚠ "), `${run.label} model: ${m.warning}`));
+      }
+      target = target ?? d.measured?.margins.target ?? d.model?.margins.target;
     });
     replace(
       this.readouts,
@@ -465,7 +532,39 @@ export class FrfPanel {
         ),
         ...rows,
       ),
+      target ? h("div", { class: "frf-target", testid: "frf-target" }, `margin target ${targetText(target)}`) : null,
+      ...warnings,
       reasons.length ? h("ul", { class: "frf-reasons" }, ...reasons) : null,
+      ...details,
+    );
+  }
+
+  /** Every measured tone with its bounds and why it is (not) trusted. */
+  private toneTable(run: FrfRun, m: Part): HTMLElement {
+    const b = m.loop === "open" ? (m.plant ?? m.closed_loop) : m.closed_loop;
+    const n = (v: number | null | undefined, digits: number): string => (v === null || v === undefined ? "—" : v.toFixed(digits));
+    return h(
+      "details",
+      { class: "frf-tones", testid: "frf-tones" },
+      h("summary", null, `${run.label}: the ${b.frequency_hz.length} tones (${m.loop === "open" ? "plant P" : "closed loop T"})`),
+      h(
+        "table",
+        { class: "bench-table frf-table" },
+        h("tr", null, ...["Hz", "|·| dB", "± dB", "phase °", "± °", "coherence", "trusted"].map((t) => h("th", null, t))),
+        ...b.frequency_hz.map((f, j) =>
+          h(
+            "tr",
+            { "data-trusted": b.trusted?.[j] ? "1" : "0" },
+            h("td", { class: "mono" }, n(f, 1)),
+            h("td", { class: "mono" }, n(b.magnitude_db[j], 2)),
+            h("td", { class: "mono" }, n(b.error_db?.[j], 2)),
+            h("td", { class: "mono" }, n(b.phase_deg[j], 1)),
+            h("td", { class: "mono" }, n(b.error_deg?.[j], 1)),
+            h("td", { class: "mono" }, n(b.coherence?.[j], 3)),
+            h("td", null, b.trusted?.[j] ? "yes" : `no: ${b.not_trusted_because?.[j] ?? "?"}`),
+          ),
+        ),
+      ),
     );
   }
 

@@ -6,10 +6,12 @@
 // the controller period); every update is computed here, in a few hundred
 // microseconds to a few milliseconds, with no request.
 import uPlot from "uplot";
-import { api, request } from "../api";
+import { api, type MarginTarget, request } from "../api";
 import { h, replace, setText } from "../dom";
+import { loopStable, modelMargins, type LoopMargins } from "../stability";
 import { errorText } from "./feedback";
 import { plotTheme } from "./benchplot";
+import { marginValue, shortfall, targetText } from "./margins";
 
 export interface WhatIfModel {
   device: string;
@@ -29,6 +31,11 @@ export interface WhatIfInfo {
   verify: { kind: "position_step" | "move"; velocity_counts_s: number; acceleration_counts_s2: number };
   model: WhatIfModel | null;
   problem: string | null;
+  /** What the margins are read against (the auto-tune session's preset). */
+  target: MarginTarget;
+  targets: Record<string, MarginTarget>;
+  /** The auto-tune's proposed gains, if there is a proposal. */
+  proposal: Record<string, number> | null;
 }
 
 export interface Prediction {
@@ -39,12 +46,7 @@ export interface Prediction {
   peakPwm: number;
 }
 
-export interface LoopMargins {
-  gainMarginDb: number | null;
-  phaseMarginDeg: number | null;
-  crossoverHz: number | null;
-  phaseCrossoverHz: number | null;
-}
+export type { LoopMargins };
 
 /** The trapezoid of the profile generators (the simulators' per-sample rule): speed
  * min(v + a, vmax, sqrt(2 a d)) per sample, so a short move never reaches vmax. */
@@ -142,97 +144,10 @@ export function predictStep(model: WhatIfModel, gains: Record<string, number>, d
   return { t, y, overshootPct, settlingS, peakPwm };
 }
 
-interface Complex {
-  re: number;
-  im: number;
-}
-
-/** Open loop L(e^{jwT}) of the law (the Z1100's hold gains, KABD) and the plant. */
-function openLoop(model: WhatIfModel, gains: Record<string, number>, f: number): Complex {
-  const w = 2 * Math.PI * f * model.period_s;
-  // z^-k = cos(kw) - j sin(kw)
-  const zk = (k: number): Complex => ({ re: Math.cos(k * w), im: -Math.sin(k * w) });
-  const poly = (c: number[]): Complex => {
-    let re = 0;
-    let im = 0;
-    c.forEach((v, k) => {
-      const z = zk(k);
-      re += v * z.re;
-      im += v * z.im;
-    });
-    return { re, im };
-  };
-  const div = (a: Complex, b: Complex): Complex => {
-    const d = b.re * b.re + b.im * b.im;
-    return { re: (a.re * b.re + a.im * b.im) / d, im: (a.im * b.re - a.re * b.im) / d };
-  };
-  const mul = (a: Complex, b: Complex): Complex => ({ re: a.re * b.re - a.im * b.im, im: a.re * b.im + a.im * b.re });
-  const p = div(poly(model.plant_num), poly(model.plant_den));
-  let c: Complex;
-  if (model.law === "slap2_pid") {
-    const one = { re: 1, im: 0 };
-    const z1 = zk(1);
-    const integ = div(one, { re: 1 - z1.re, im: -z1.im }); // z/(z-1) = 1/(1-z^-1)
-    const kp = gains.kp ?? 0;
-    const ki = gains.ki ?? 0;
-    const kd = gains.kd ?? 0;
-    c = { re: (16 * kp + ki * integ.re + 32 * kd * (1 - z1.re)) / 4096, im: (ki * integ.im - 32 * kd * z1.im) / 4096 };
-  } else {
-    const z32 = zk(32);
-    const d = { re: 1 - z32.re, im: -z32.im };
-    const k = gains.kabd_k ?? 0;
-    const a = gains.kabd_a ?? 0;
-    const b = gains.kabd_b ?? 0;
-    c = { re: (k * (16 + a * d.re) + b * d.re) / 64, im: (k * a * d.im + b * d.im) / 64 };
-  }
-  return mul(c, p);
-}
-
-/** Gain and phase margins from L on a log grid (crossings interpolated in log f). */
+/** Gain and phase margins of the law around the plant, by the one rule the server
+ * uses (web/src/stability.ts, tuning.stability.loop_margins). */
 export function predictMargins(model: WhatIfModel, gains: Record<string, number>): LoopMargins {
-  const nyq = 0.5 / model.period_s;
-  const n = 600;
-  let prevMag = NaN;
-  let prevPhase = NaN;
-  let prevF = NaN;
-  let unwrap = 0;
-  let lastRaw = NaN;
-  const out: LoopMargins = { gainMarginDb: null, phaseMarginDeg: null, crossoverHz: null, phaseCrossoverHz: null };
-  for (let i = 0; i < n; i++) {
-    const f = 0.1 * Math.pow((nyq * 0.999) / 0.1, i / (n - 1));
-    const l = openLoop(model, gains, f);
-    const mag = Math.hypot(l.re, l.im);
-    let raw = (Math.atan2(l.im, l.re) * 180) / Math.PI;
-    if (!Number.isNaN(lastRaw)) {
-      if (raw + unwrap - (lastRaw + unwrap) > 180) unwrap -= 360;
-      else if (raw + unwrap - (lastRaw + unwrap) < -180) unwrap += 360;
-    }
-    lastRaw = raw;
-    raw += unwrap;
-    if (i > 0) {
-      const frac = (a: number, b: number, target: number): number => (target - a) / (b - a);
-      const logf = (x: number): number => Math.exp(Math.log(prevF) + x * (Math.log(f) - Math.log(prevF)));
-      if (out.crossoverHz === null && prevMag >= 1 && mag < 1) {
-        const x = frac(Math.log(prevMag), Math.log(mag), 0);
-        out.crossoverHz = logf(x);
-        out.phaseMarginDeg = 180 + prevPhase + x * (raw - prevPhase);
-      }
-      // Phase crossover: the phase passes -180 (mod 360) going down.
-      const k = Math.floor((prevPhase + 180) / 360);
-      const level = -180 + 360 * k;
-      if (out.phaseCrossoverHz === null && prevPhase >= level && raw < level) {
-        const x = frac(prevPhase, raw, level);
-        out.phaseCrossoverHz = logf(x);
-        const m = Math.exp(Math.log(prevMag) + x * (Math.log(mag) - Math.log(prevMag)));
-        out.gainMarginDb = -20 * Math.log10(m);
-      }
-    }
-    prevMag = mag;
-    prevPhase = raw;
-    prevF = f;
-  }
-  if (out.phaseMarginDeg !== null) out.phaseMarginDeg = ((out.phaseMarginDeg + 180) % 360 + 360) % 360 - 180;
-  return out;
+  return modelMargins(model, gains);
 }
 
 /** RMS of measured - predicted at the measured samples (the prediction interpolated
@@ -261,6 +176,9 @@ function fmt(v: number | null, digits: number, unit: string): string {
 }
 
 export interface Measured {
+  /** The run compared with; its step distance is the prediction's. */
+  id: string;
+  distance: number | null;
   label: string;
   /** When the device acknowledged the step's command, after t0 (s): the prediction
    * starts there (the samples' t0 is stamped before the command is sent). */
@@ -275,23 +193,32 @@ export class WhatIfPanel {
   private readonly body: HTMLElement;
   private readonly status: HTMLElement;
   private readonly readout: HTMLElement;
+  private readonly warning: HTMLElement;
   private readonly plotHost: HTMLElement;
   private readonly sliders = new Map<string, HTMLInputElement>();
+  private readonly numbers = new Map<string, HTMLInputElement>();
   private readonly distance: HTMLInputElement;
+  private readonly targetSelect: HTMLSelectElement;
   private u: uPlot | null = null;
   private measured: Measured | null = null;
   private lastUpdateMs: number[] = [];
   private applyButton: HTMLButtonElement | null = null;
+  /** The verification run "Apply and verify" started, until it ends. */
+  private verifying: string | null = null;
+  private loads = 0;
 
   constructor(
     private readonly axisId: string,
-    private readonly onVerify: (distance: number, kind: "position_step" | "move") => Promise<void>,
+    private readonly onVerify: (distance: number, kind: "position_step" | "move") => Promise<string>,
   ) {
     this.status = h("span", { class: "pane-sub", testid: "whatif-status" });
     this.readout = h("div", { class: "whatif-readout", testid: "whatif-readout" });
+    this.warning = h("div", { class: "whatif-warning", testid: "whatif-warning" });
     this.plotHost = h("div", { class: "whatif-plot", testid: "whatif-plot" });
-    this.distance = h("input", { class: "input num", type: "number", value: "2000", testid: "whatif-distance", "aria-label": "Step distance (counts)" });
+    this.distance = h("input", { class: "input num", type: "number", value: "1000", step: "1", testid: "whatif-distance", "aria-label": "Step distance (counts)", title: "The step predicted and verified (counts): the compared run's when one is selected" });
     this.distance.addEventListener("input", () => this.update());
+    this.targetSelect = h("select", { class: "input", testid: "whatif-target", "aria-label": "Margin target", title: "The margins the prediction is read against" });
+    this.targetSelect.addEventListener("change", () => this.update());
     this.body = h("div", { class: "whatif-body" });
     this.el = h(
       "section",
@@ -299,23 +226,44 @@ export class WhatIfPanel {
       h("div", { class: "pane-header" }, h("span", { class: "pane-title" }, "What-if gains"), this.status),
       this.body,
       this.readout,
+      this.warning,
       this.plotHost,
     );
   }
 
+  /** (Re)load the model and the gains in use: on opening the bench, after every
+   * identification and whenever a run ends (an identification from another page),
+   * without a page reload; the sliders are rebuilt only when the model changed. */
   async load(): Promise<void> {
+    const load = ++this.loads;
+    let info: WhatIfInfo;
     try {
-      this.info = await request<WhatIfInfo>("GET", `/api/axes/${encodeURIComponent(this.axisId)}/whatif`);
+      info = await request<WhatIfInfo>("GET", `/api/axes/${encodeURIComponent(this.axisId)}/whatif`);
     } catch (error) {
-      setText(this.status, `unavailable: ${errorText(error)}`);
+      if (load === this.loads) setText(this.status, `unavailable: ${errorText(error)}`);
       return;
     }
-    this.render();
+    if (load !== this.loads) return;
+    const same = this.info?.model && info.model && JSON.stringify(this.info.model) === JSON.stringify(info.model);
+    this.info = info;
+    // The same model: keep what the user has set on the sliders.
+    if (!same) this.render();
   }
 
   setMeasured(measured: Measured | null): void {
+    const changed = measured?.id !== this.measured?.id;
     this.measured = measured;
+    // The step predicted is the one it is compared with.
+    if (changed && measured?.distance) this.distance.value = String(measured.distance);
     this.update();
+  }
+
+  /** A bench run ended: the verification this panel started says so. */
+  runEnded(runId: string, status: string, message: string): void {
+    if (runId !== this.verifying) return;
+    this.verifying = null;
+    setText(this.status, status === "complete" ? `gains written; verification #${runId.slice(0, 4)} done — selected in the runs table` : `gains written; verification #${runId.slice(0, 4)} ${status}${message ? `: ${message}` : ""}`);
+    this.status.dataset.state = status;
   }
 
   private render(): void {
@@ -324,25 +272,63 @@ export class WhatIfPanel {
     if (!info.model) {
       setText(this.status, info.problem ?? "no model");
       replace(this.body);
+      replace(this.readout);
+      replace(this.warning);
       return;
     }
-    setText(this.status, `plant: ${info.model.plant.source}, gain ${info.model.plant.gain_counts_s_per_unit.toFixed(1)} counts/s per PWM, τ ${(info.model.plant.tau_s * 1000).toFixed(1)} ms · nothing is written until Apply`);
+    if (!this.verifying) setText(this.status, `plant: ${info.model.plant.source}, gain ${info.model.plant.gain_counts_s_per_unit.toFixed(1)} counts/s per PWM, τ ${(info.model.plant.tau_s * 1000).toFixed(1)} ms · nothing is written until Apply`);
+    replace(
+      this.targetSelect,
+      Object.values(info.targets).map((t) => h("option", { value: t.preset }, targetText(t))),
+    );
+    this.targetSelect.value = info.target.preset;
     this.sliders.clear();
+    this.numbers.clear();
     const rows = Object.entries(info.gains).map(([name, value]) => {
       const [lo, hi] = info.ranges[name] ?? [0, 1000];
       const v = value ?? 0;
-      const max = Math.min(hi, Math.max(4 * v, 100));
-      const slider = h("input", { type: "range", min: String(lo), max: String(max), step: "1", value: String(v), testid: `whatif-${name}`, "aria-label": name });
-      const shown = h("span", { class: "mono whatif-value" }, String(v));
+      // The slider spans the gains in use, the proposal, and room around both; the
+      // number field takes anything the device does.
+      const proposed = info.proposal?.[name] ?? 0;
+      const max = Math.min(hi, Math.max(4 * v, 2 * proposed, 100));
+      const slider = h("input", { type: "range", min: String(lo), max: String(max), step: "1", value: String(v), testid: `whatif-${name}`, "aria-label": `${name} (slider)` });
+      const number = h("input", { class: "input num whatif-number", type: "number", min: String(lo), max: String(hi), step: "1", value: String(v), testid: `whatif-${name}-value`, "aria-label": name, title: `${name}: ${lo}..${hi}` });
       slider.addEventListener("input", () => {
-        setText(shown, slider.value);
+        number.value = slider.value;
+        number.classList.remove("invalid");
+        this.update();
+      });
+      number.addEventListener("input", () => {
+        const n = Number(number.value);
+        const ok = number.value.trim() !== "" && Number.isInteger(n) && n >= lo && n <= hi;
+        number.classList.toggle("invalid", !ok);
+        if (!ok) return;
+        if (n > Number(slider.max)) slider.max = String(Math.min(hi, 2 * n));
+        slider.value = String(n);
         this.update();
       });
       this.sliders.set(name, slider);
-      return h("label", { class: "whatif-gain" }, h("span", { class: "bf-label" }, name), slider, shown);
+      this.numbers.set(name, number);
+      return h("label", { class: "whatif-gain" }, h("span", { class: "bf-label" }, name), slider, number);
     });
     this.applyButton = h("button", { class: "btn primary", testid: "whatif-apply", onclick: () => void this.apply() }, "Apply and verify");
-    replace(this.body, ...rows, h("label", { class: "whatif-gain" }, h("span", { class: "bf-label" }, "step"), this.distance), this.applyButton);
+    const set = (gains: Record<string, number | null>): void => {
+      for (const [name, v] of Object.entries(gains)) {
+        const number = this.numbers.get(name);
+        if (!number || v === null || v === undefined) continue;
+        number.value = String(v);
+        number.dispatchEvent(new Event("input"));
+      }
+    };
+    replace(
+      this.body,
+      ...rows,
+      h("label", { class: "whatif-gain" }, h("span", { class: "bf-label" }, "step"), this.distance),
+      h("label", { class: "whatif-gain" }, h("span", { class: "bf-label" }, "margins"), this.targetSelect),
+      h("button", { class: "btn small", testid: "whatif-in-use", title: "Back to the gains in use", onclick: () => set(info.gains) }, "in use"),
+      info.proposal ? h("button", { class: "btn small", testid: "whatif-proposal", title: "The auto-tune's proposal", onclick: () => set(info.proposal ?? {}) }, "proposal") : null,
+      this.applyButton,
+    );
     this.update();
   }
 
@@ -352,10 +338,16 @@ export class WhatIfPanel {
     return out;
   }
 
+  private target(): MarginTarget | null {
+    const info = this.info;
+    return info ? (info.targets[this.targetSelect.value] ?? info.target) : null;
+  }
+
   /** Redraw prediction and margins; the time it takes is shown and kept. */
   update(): void {
     const info = this.info;
-    if (!info?.model) return;
+    const target = this.target();
+    if (!info?.model || !target) return;
     const start = performance.now();
     const gains = this.gains();
     const distance = Number(this.distance.value) || 0;
@@ -365,6 +357,7 @@ export class WhatIfPanel {
     const raw = predictStep(info.model, gains, distance, info.verify, Math.max(0.05, horizon - delay), 5);
     const prediction = delay ? { ...raw, t: raw.t.map((t) => t + delay), settlingS: raw.settlingS === null ? null : raw.settlingS + delay } : raw;
     const margins = predictMargins(info.model, gains);
+    const stable = loopStable(info.model, gains);
     const computeMs = performance.now() - start;
     const versus = this.measured ? rmsAgainst(prediction, this.measured) : null;
     this.draw(prediction);
@@ -375,18 +368,24 @@ export class WhatIfPanel {
     this.el.dataset.overshoot = prediction.overshootPct.toFixed(3);
     this.el.dataset.settling = prediction.settlingS === null ? "" : prediction.settlingS.toFixed(4);
     this.el.dataset.rmsVsMeasured = versus === null ? "" : versus.toFixed(3);
+    this.el.dataset.stable = stable ? "1" : "0";
     replace(
       this.readout,
-      h("span", { testid: "whatif-pm" }, `phase margin ${fmt(margins.phaseMarginDeg, 1, "°")}`),
+      h("span", { testid: "whatif-pm" }, "phase margin ", marginValue(margins.phaseMarginDeg, target.phase_margin_deg, 1, "°")),
       " · ",
-      h("span", { testid: "whatif-gm" }, `gain margin ${fmt(margins.gainMarginDb, 1, "dB")}`),
+      h("span", { testid: "whatif-gm" }, "gain margin ", marginValue(margins.gainMarginDb, target.gain_margin_db, 1, "dB")),
       " · ",
       `crossover ${fmt(margins.crossoverHz, 1, "Hz")}`,
+      " · ",
+      h("span", { testid: "whatif-stable", class: stable ? "" : "margin-value low" }, stable ? "closed loop stable" : "closed loop UNSTABLE"),
       " · ",
       `predicted overshoot ${prediction.overshootPct.toFixed(1)} %, settling (±5) ${fmt(prediction.settlingS === null ? null : prediction.settlingS * 1000, 0, "ms")}, peak PWM ${prediction.peakPwm.toFixed(0)}`,
       versus === null ? "" : h("span", { testid: "whatif-vs-measured" }, ` · vs ${this.measured?.label ?? "measured"} (aligned at its command's acknowledgement, +${(delay * 1000).toFixed(0)} ms): rms ${versus.toFixed(1)} counts`),
       h("span", { class: "tb-hint" }, ` · update ${computeMs.toFixed(2)} ms compute, ${totalMs.toFixed(2)} ms with the plot`),
     );
+    const short = shortfall(margins.phaseMarginDeg, margins.gainMarginDb, stable, target);
+    this.warning.hidden = !short;
+    replace(this.warning, short ? h("div", { class: "at-warning margin-warning", role: "note" }, h("b", null, "⚠ "), `${short} (target ${targetText(target)})`) : null);
   }
 
   private draw(p: Prediction): void {
@@ -426,8 +425,10 @@ export class WhatIfPanel {
     this.applyButton.disabled = true;
     try {
       await api.writeParams(this.axisId, this.gains());
-      await this.onVerify(Math.round(Number(this.distance.value)), this.info.verify.kind);
-      setText(this.status, "gains written; verification step running");
+      const runId = await this.onVerify(Math.round(Number(this.distance.value)), this.info.verify.kind);
+      this.verifying = runId;
+      setText(this.status, `gains written; verification #${runId.slice(0, 4)} running`);
+      this.status.dataset.state = "recording";
     } catch (error) {
       setText(this.status, `not applied: ${errorText(error)}`);
     } finally {
