@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -191,6 +192,20 @@ def test_the_impulse_fit_at_the_pace_of_the_wire() -> None:
         assert result["estimator"] == frfrun.ESTIMATORS["impulse"]
 
 
+def _crossover_range_hz(model: Any, shift_s: float) -> tuple[float, float]:
+    """The gain crossovers of the loop ``T / (1 - T)`` measured from the model's closed
+    loop ``T`` delayed or advanced by ``shift_s`` (the lowest and the highest)."""
+    f = np.linspace(1.0, 100.0, 99_001)
+    response = model.closed_loop_response(f)
+    closed = 10 ** (response.magnitude_db / 20) * np.exp(1j * np.radians(response.phase_deg))
+    crossings = []
+    for shift in (-shift_s, shift_s):
+        shifted = closed * np.exp(2j * np.pi * f * shift)
+        loop = np.abs(shifted / (1 - shifted))
+        crossings.append(float(f[np.argmax(loop < 1.0)]))
+    return min(crossings), max(crossings)
+
+
 def test_measured_frf_and_margins_on_the_scripted_simulator() -> None:
     result, _ = _scripted_run(1)
     closed = result["closed_loop"]
@@ -211,7 +226,12 @@ def test_measured_frf_and_margins_on_the_scripted_simulator() -> None:
     margins = result["margins"]
     assert isinstance(margins, dict)
     expected = model.margins()
-    assert margins["gain_crossover_hz"] == pytest.approx(expected.gain_crossover_hz, rel=0.03)
+    # The host cannot know the phase of the module's tick, so the loop is measured
+    # with a timing uncertainty of one tick either way (docs/frequency-response.md):
+    # the crossover must lie between those of the model's loop shifted by a tick
+    # either way (18.7..19.8 Hz here), with 1 % for the tones' magnitude noise.
+    low, high = _crossover_range_hz(model, TICK_S)
+    assert low * 0.99 <= margins["gain_crossover_hz"] <= high * 1.01, (low, high, margins)
     # measured, within a fixed tolerance (not the run's own error estimate)
     assert margins["phase_margin_deg"] is not None, margins
     assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= 3.0, margins
