@@ -28,8 +28,12 @@ export function shortfall(pm: number | null, gm: number | null, stable: boolean 
   return out.join("; ");
 }
 
-/** A margin value coloured against its target: "ok" at or above it, "low" below. */
-export function marginValue(v: number | null, target: number, digits: number, unit: string, testid?: string): HTMLElement {
+/** A margin value coloured against its target: "ok" at or above it, "low" below.
+ * ``unbounded`` says why a missing value is infinite (shown as ∞, "ok"), not unknown. */
+export function marginValue(v: number | null, target: number, digits: number, unit: string, testid?: string, unbounded?: string): HTMLElement {
+  if (v === null && unbounded) {
+    return h("span", { class: "margin-value ok", testid, title: `${unbounded}; target ≥ ${target} ${unit}` }, `∞ (${unbounded})`);
+  }
   const kind = v === null || !Number.isFinite(v) ? "" : v >= target ? "ok" : "low";
   return h("span", { class: `margin-value ${kind}`, testid, title: `target ≥ ${target} ${unit}` }, fmt(v, digits, unit));
 }

@@ -373,7 +373,7 @@ export class WhatIfPanel {
       this.readout,
       h("span", { testid: "whatif-pm" }, "phase margin ", marginValue(margins.phaseMarginDeg, target.phase_margin_deg, 1, "°")),
       " · ",
-      h("span", { testid: "whatif-gm" }, "gain margin ", marginValue(margins.gainMarginDb, target.gain_margin_db, 1, "dB")),
+      h("span", { testid: "whatif-gm" }, "gain margin ", marginValue(margins.gainMarginDb, target.gain_margin_db, 1, "dB", undefined, stable && margins.phaseCrossoverHz === null ? "the phase stays above −180° up to Nyquist" : undefined)),
       " · ",
       `crossover ${fmt(margins.crossoverHz, 1, "Hz")}`,
       " · ",
