@@ -55,6 +55,29 @@ async def status_of(
     )
 
 
+# What the driver reads by itself (polls, verify reads): not commands.
+POLLS = frozenset({"rp", "pe", "rss", "rve", "qp", "qi", "qd", "rv", "ra", "ripw", "ript", "rcl"})
+
+
+def held_not_coasting(server: Server, address: int = 0) -> None:
+    """A controlled stop happened (docs/control.md "Stops"): the module holds in pm, out
+    of vm and not moving; an unpowered coast would show neither pm nor vm."""
+    module = server.bus.module(address)
+    assert module.rss & PM and not module.rss & VM, f"rss {module.rss:#x}: not held in pm"
+    assert not module.moving
+
+
+async def first_hold(server: Server, mark: float, timeout_s: float = 2.0) -> float:
+    """When the controlled stop's ``pm`` reached module 0 after ``mark``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        at = server.wire.first("pm", 0, mark)
+        if at is not None:
+            return at
+        await asyncio.sleep(0.005)
+    raise AssertionError(f"no controlled stop (pm) on the wire: {server.wire.since(mark, 0)}")
+
+
 async def test_start_up_stops_every_axis_before_anything_else(server: Server) -> None:
     for address in (0, 1):
         lines = [line for _, line in server.wire.since(0.0, address)]
@@ -84,9 +107,16 @@ async def test_the_holder_changes_the_axis_the_other_tab_gets_423(server: Server
         sent = [line for _, line in server.wire.since(mark, 0)]
         assert not [line for line in sent if line.startswith(("ma", "skp", "kp"))], sent
         assert server.bus.module(0).settings["kp"] == 40
-        # STOP stays live for everyone.
+        # STOP stays live for everyone: in pm it is st + pm, holding where it is.
+        mark = time.monotonic()
         assert (await bob.command("line-0", "stop")).status_code == 200
-        assert not server.bus.module(0).rss & (PM | VM)
+        commands = [
+            line
+            for _, line in server.wire.since(mark, 0)
+            if line not in POLLS and not line.startswith("se")
+        ]
+        assert commands[:2] == ["st", "pm"], commands
+        held_not_coasting(server)
         # The other axis is free: bob may change it, and so may alice (no implicit lock).
         assert (await bob.patch("line-1", {"kp": 66})).status_code == 200
         assert (await alice.patch("line-1", {"kp": 67})).status_code == 200
@@ -109,10 +139,11 @@ async def test_hand_over_allowed_stops_the_axis_first(server: Server) -> None:
         granted = await bob.reply("grant")
         assert granted["ok"], granted
         await status_of(alice, "line-0", bob.tag)
-        # Safe state before the transfer: st on the wire, nothing moving for the new holder.
-        stopped_at = server.wire.first("st", 0, mark)
-        assert stopped_at is not None, "no STOP before the hand-over"
-        assert not server.bus.module(0).rss & (PM | VM)
+        # A controlled stop before the transfer (from vm: pm, holding where the shaft
+        # is), nothing moving for the new holder, and no unpowered coast.
+        await first_hold(server, mark)
+        assert "st" not in [line for _, line in server.wire.since(mark, 0)]
+        held_not_coasting(server)
         assert (await alice.command("line-0", "velocity_mode")).status_code == 423
         assert (await bob.command("line-0", "position_mode")).status_code == 200
 
@@ -184,7 +215,7 @@ async def test_admin_forces_a_hand_over_an_operator_cannot(server: Server) -> No
         assert (await admin.reply("force"))["ok"]
         lost = await alice.reply("force")
         assert not lost["ok"] and "taken over by local" in lost["message"]
-        assert not server.bus.module(0).rss & (PM | VM), "forced hand-over without a STOP"
+        held_not_coasting(server)  # the forced hand-over stopped the axis, holding it
         assert (await alice.patch("line-0", {"kp": 50})).status_code == 423
 
 
@@ -204,13 +235,11 @@ async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, t
         gone = time.monotonic()  # the last heartbeat left at most 100 ms before this
         if how.startswith("socket dropped"):
             raw.drop()
-        stopped_at = None
-        while time.monotonic() - gone < 2.0 and stopped_at is None:
-            stopped_at = server.wire.first("st", 0, gone)
-            await asyncio.sleep(0.005)
-        assert stopped_at is not None, "the dead-man never stopped the axis"
+        # The dead-man's stop is a controlled one: pm (from vm), the axis held.
+        stopped_at = await first_hold(server, gone)
         assert stopped_at - gone <= 0.5, f"stop {1000 * (stopped_at - gone):.0f} ms after"
-        assert not server.bus.module(0).rss & VM
+        await asyncio.sleep(0.05)
+        held_not_coasting(server)
         assert control(server).holder("line-0") is None
         await raw.close_quietly()
 
@@ -265,7 +294,7 @@ async def test_autopilot_yields_to_a_holder_and_resumes_when_free(tmp_path: Path
             await asyncio.sleep(0.02)
         await alice.send("take_control", "line-0")
         assert (await alice.reply("take"))["ok"]
-        assert not live.bus.module(0).rss & (PM | VM)
+        held_not_coasting(live)  # the autopilot's move stopped (st + pm), held
         mark = time.monotonic()
         await asyncio.sleep(2.0)  # longer than autopilot_resume_s: held, so it stays away
         sent = [line for _, line in live.wire.since(mark, 0)]

@@ -22,7 +22,7 @@ Rules (docs/control.md has the reasoning):
   takes the axis. A change without a client id (scripts, the test suite) changes
   nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
-  safe state (``ControlManager._safe_stop``: the device's STOP); the new holder starts
+  rest (``ControlManager._safe_stop``: a controlled stop that holds); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
 * Dead-man: a holder renews its lease with heartbeats (``heartbeat_period_s``); when no
   heartbeat came for ``lease_s`` of time in which the server was listening, or the
@@ -48,6 +48,7 @@ from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
 from servotune.drivers.base import DeviceRefusedError, DriverError, LinkDownError
 from servotune.hub import Hub
 from servotune.hub_state import UnknownAxisError
+from servotune.stops import StopKind
 from servotune.wire import (
     AnswerControl,
     ControlAction,
@@ -268,7 +269,9 @@ class ControlManager:
             if self._hub.link_status(link_id).state == "connected":
                 break
             await asyncio.sleep(0.02)
-        await asyncio.gather(*(self._safe_stop(a, "server start-up") for a in axis_ids))
+        await asyncio.gather(
+            *(self._safe_stop(a, "server start-up", kind="stop") for a in axis_ids)
+        )
         for axis_id in axis_ids:
             self._release_startup(self._axes[axis_id])
 
@@ -575,25 +578,27 @@ class ControlManager:
             self._record(client, "control take", ax.axis_id, "ok", f"from {previous}")
         self._broadcast_status(ax)
 
-    async def _safe_stop(self, axis_id: str, reason: str) -> bool:
-        """Bring one axis to its safe state: the device's own STOP, ahead of everything.
+    async def _safe_stop(self, axis_id: str, reason: str, *, kind: StopKind = "controlled") -> bool:
+        """Bring one axis to rest ahead of everything, through the hub's stop service
+        (``servotune.stops``, docs/control.md "Stops").
 
-        Per device (``AxisDriver.stop``, see docs/control.md):
-        SLAP2 ``st`` — controller off: ends velocity mode, open-loop PWM, calibration and
-        a move in position mode (the motor is unpowered; a vertical axis needs a brake).
-        Z1100 ``SetEstop`` — the motor stops at once: ends a constant-velocity job and a
-        go-to-target. EP7047 STOP — the drive ramps down with its emergency deceleration
-        and Enable drops: ends endless (velocity) moves and positioning moves.
-        A bounded move in position mode is stopped too, not allowed to finish: nobody is
-        watching it any more (lapse) or somebody else is about to act (transfer). Every
-        STOP also fails the axis' queued motion and ends its bench / auto-tune sequence
-        (stop generation). A STOP that cannot reach the axis is sent on reconnect.
+        A hand-over or a lapse is a *controlled* stop that keeps holding (SLAP2: pm where
+        the shaft is; Z1100: Estop, holding; EP7047: the emergency ramp with Enable kept),
+        unless the loop is not working (then its power is cut, as STOP would). The
+        start-up stop is the device's STOP (``kind="stop"``). A bounded move in position
+        mode is stopped too, not allowed to finish: nobody is watching it any more
+        (lapse) or somebody else is about to act (transfer). Every stop also fails the
+        axis' queued motion and ends its bench / auto-tune sequence (stop generation).
+        A stop that cannot reach the axis is sent on reconnect.
         """
         entry = self._hub.entry(axis_id)
         entry.stop_generation += 1
         for attempt in range(1, _STOP_ATTEMPTS + 1):
             try:
-                await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
+                await asyncio.wait_for(
+                    self._hub.stops.stop(axis_id, kind, f"STOP ({reason})"),
+                    self.settings.stop_timeout_s,
+                )
             except (DriverError, TimeoutError) as exc:
                 detail = str(exc) or type(exc).__name__
                 retry = attempt < _STOP_ATTEMPTS and not isinstance(

@@ -107,7 +107,33 @@ export interface StopEffect {
   summary: string;
   motor_powered: boolean;
   sends: string;
+  category: 0 | 1 | 2;
+  loop_failed: string;
+  power_off_command: string | null;
   gentler: string[];
+}
+
+export interface LoopSignals {
+  position_channel: string;
+  following_error_channel: string;
+  reference_channel: string | null;
+  moving_flags: string[];
+  current_limit_flag: string | null;
+  closed_loop_flags: string[];
+  oscillation_counts: number;
+  rest_velocity: number;
+}
+
+export interface JogPress {
+  command: string;
+  args: Record<string, number>;
+}
+
+export interface JogDescriptor {
+  minus: JogPress;
+  plus: JogPress;
+  release: string;
+  title: string;
 }
 
 export interface ParameterConstraint {
@@ -141,6 +167,8 @@ export interface DeviceDescriptor {
   constraints: ParameterConstraint[];
   write_groups: string[][];
   twin: TwinDescriptor | null;
+  loop: LoopSignals | null;
+  jog: JogDescriptor | null;
   autotune: boolean;
 }
 

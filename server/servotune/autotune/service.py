@@ -31,6 +31,7 @@ from servotune.drivers.base import (
 from servotune.drivers.z1100 import Z1100Axis
 from servotune.hub import Hub
 from servotune.hub_state import AxisEntry
+from servotune.stops import Settled, gains_of
 from servotune.testbench import TestBench
 
 
@@ -166,8 +167,25 @@ class AutoTuner:
                 if isinstance(exc, LinkDownError | DeviceTimeoutError):
                     raise type(exc)(message) from exc
                 raise DeviceRefusedError(message) from exc
+            settled = await self._settle(entry, "auto-tune identification")
+            if settled is not None:
+                self._set(session, "failed", settled.message)
+                raise DeviceRefusedError(settled.message)
             self._set(session, "proposed", tuner.proposed_message(body))
             return body
+
+    async def _settle(self, entry: AxisEntry, reason: str) -> Settled | None:
+        """Nothing an auto-tune step set going is left oscillating (the hub's stop
+        service): the gains it had found, else the last verified ones, are put back."""
+        gains = gains_of(entry.driver.descriptor, entry.device_values)
+        restore = self._hub.verified_gains.get(entry.info.id, gains)
+        try:
+            return await self._hub.stops.settle_check(
+                entry.info.id, gains_now=gains, restore=restore, reason=reason
+            )
+        except DriverError as exc:
+            self._hub.on_event("error", entry.info.id, f"{reason}: after the step: {exc}")
+            return None
 
     async def _return_after_failure(
         self,
@@ -225,6 +243,7 @@ class AutoTuner:
             )
             if result.get("stopped"):
                 return result
+            self._hub.verified_gains[axis_id] = dict(result.get("gains") or {})
             self._set(session, "verified", tuner.verified_message(result))
             return result
 

@@ -155,6 +155,10 @@ class LinkEngine(abc.ABC):
         """The descriptor all axes of this link share (set as ``_descriptor``)."""
         return self._descriptor
 
+    def now(self) -> float:
+        """The link's clock (the times of its samples and latches)."""
+        return self._clock()
+
     @property
     def errors(self) -> int:
         """Wire errors since start: timeouts, bad echoes or checksums, stray bytes."""

@@ -26,6 +26,8 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    JogDescriptor,
+    JogPress,
     ParameterConstraint,
     ParameterDescriptor,
     PlotDescriptor,
@@ -686,6 +688,15 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             group="stop",
         ),
         CommandDescriptor(
+            name="power_off",
+            label="Power off",
+            description=(
+                "Enable off at once, whatever the axis does (stop category 0): the motor "
+                "is unpowered, a moving axis stops abruptly and may lose steps."
+            ),
+            group="stop",
+        ),
+        CommandDescriptor(
             name="emergency_stop",
             label="Emergency stop",
             description=(
@@ -854,7 +865,34 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             summary="EP7047: emergency ramp, then no holding torque",
             motor_powered=False,
             sends="Emergency stop output on the next cycle, then Enable off",
+            category=1,
+            loop_failed="an open-loop stepper: no position loop to fail, the ramp as always",
+            power_off_command="power_off",
             gentler=["emergency_stop", "halt"],
+        ),
+        jog=JogDescriptor(
+            minus=JogPress(
+                command="execute_move",
+                args={
+                    "start_type": int(StartType.ENDLESS_MINUS),
+                    "target": 0,
+                    "velocity": 2000,
+                    "acceleration_ms": 500,
+                    "deceleration_ms": 500,
+                },
+            ),
+            plus=JogPress(
+                command="execute_move",
+                args={
+                    "start_type": int(StartType.ENDLESS_PLUS),
+                    "target": 0,
+                    "velocity": 2000,
+                    "acceleration_ms": 500,
+                    "deceleration_ms": 500,
+                },
+            ),
+            release="halt",
+            title="Hold: endless move at 2000 bp; release halts with the move's deceleration",
         ),
         constraints=[
             ParameterConstraint(

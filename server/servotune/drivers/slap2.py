@@ -116,7 +116,7 @@ LINE_ERROR_SPAN_S = 0.9
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
     "mr": "a move needs position mode: switch on 'Position mode' (pm) first",
-    "pg": "pg is refused while position or velocity mode is on: press STOP first",
+    "pg": "pg is refused while position or velocity mode is on: Power off (st) first",
     "cal": "the module could not start the calibration",
     "ca": "the module could not start the calibration",
 }
@@ -162,7 +162,7 @@ class _ModuleState:
     cycles: int = 0
     hex_mode: bool = False
     ucon: bool = False
-    expected_mode: str = "unknown"  # off | pm | vm | unknown
+    expected_mode: str = "unknown"  # off | pm | vm | pwm | unknown
     known: dict[str, int] = field(default_factory=dict)
     verify_index: int = 0
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
@@ -984,8 +984,16 @@ class Slap2Link(Slap2Wire):
         return readback
 
     async def op_execute(
-        self, address: int, commands: list[codec.Command], *, urgent: bool = False
+        self,
+        address: int,
+        commands: list[codec.Command],
+        *,
+        urgent: bool = False,
+        stop: bool | None = None,
     ) -> list[str]:
+        """Run ``commands`` on module ``address`` as one job. ``stop`` (default: the
+        commands contain ``st``) fails the module's queued motion first and makes the
+        job urgent (``LinkEngine.submit``)."""
         module = self._modules[address]
 
         async def job() -> list[str]:
@@ -996,7 +1004,7 @@ class Slap2Link(Slap2Wire):
                 self._track_mode(module, command.text)
             return sent
 
-        is_stop = any(c.text == "st" for c in commands)
+        is_stop = any(c.text == "st" for c in commands) if stop is None else stop
         return await self.submit(job, urgent=urgent, axis=address, motion=True, stop=is_stop)
 
     async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None:
@@ -1058,10 +1066,11 @@ class Slap2Link(Slap2Wire):
             module.expected_mode = "off"
         elif mnemonic in ("pm", "vm"):
             module.expected_mode = mnemonic
-        elif mnemonic in ("spwm", "cal", "ca"):
+        elif mnemonic == "spwm":
+            module.expected_mode = "pwm"
+        elif mnemonic in ("cal", "ca"):
             module.expected_mode = "unknown"
-            if mnemonic != "spwm":
-                module.cal_seen = False  # a new calibration clears the flag until it ends
+            module.cal_seen = False  # a new calibration clears the flag until it ends
         elif mnemonic in _PARAM_SETTERS:
             module.known.pop(_PARAM_SETTERS[mnemonic], None)
 

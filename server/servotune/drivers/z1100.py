@@ -724,7 +724,11 @@ class Z1100Link(LinkEngine):
         *,
         urgent: bool = False,
         starts: bool = False,
+        stop: bool | None = None,
     ) -> list[str]:
+        """Send ``requests`` for motor ``axis`` as one job; ``stop`` (default: an Estop
+        among them) fails the motor's queued motion first and makes it urgent."""
+
         async def job() -> list[str]:
             sent = []
             for request in requests:
@@ -739,7 +743,9 @@ class Z1100Link(LinkEngine):
                 self._motors[axis].running = True
             return sent
 
-        is_stop = any(r.command is codec.Command.SET_ESTOP for r in requests)
+        is_stop = (
+            any(r.command is codec.Command.SET_ESTOP for r in requests) if stop is None else stop
+        )
         return await self.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
 
     async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:

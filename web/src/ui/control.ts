@@ -180,36 +180,24 @@ export const control = new ControlState();
 interface JogSpec {
   label: string;
   title: string;
+  side: "minus" | "plus";
   press: [string, Record<string, number>];
   release: string;
 }
 
-/** Hold-to-run jog from the descriptor's velocity-like commands, if it has any. */
+/** Hold-to-run jog both ways, from the descriptor's ``jog`` (the device's own way of
+ * reversing; the release is a controlled stop that holds). */
 function jogSpecs(d: DeviceDescriptor): JogSpec[] {
-  const has = (name: string): boolean => d.commands.some((c) => c.name === name);
-  if (has("constant_velocity") && has("decelerate")) {
-    const title = "Hold to run at Vmax; release (or leave the page) decelerates";
-    return [
-      { label: "◀ jog", title, press: ["constant_velocity", { direction: 0 }], release: "decelerate" },
-      { label: "jog ▶", title, press: ["constant_velocity", { direction: 1 }], release: "decelerate" },
-    ];
-  }
-  if (has("velocity_mode") && has("stop")) {
-    return [{ label: "jog (vm)", title: "Hold: velocity mode at sv; release (or leave the page) stops", press: ["velocity_mode", {}], release: "stop" }];
-  }
-  if (has("execute_move") && has("halt")) {
-    const move = (startType: number): [string, Record<string, number>] => ["execute_move", { start_type: startType, target: 0, velocity: 2000, acceleration_ms: 500, deceleration_ms: 500 }];
-    const title = "Hold: endless move at 2000 bp; release (or leave the page) halts";
-    return [
-      { label: "◀ jog", title, press: move(4), release: "halt" },
-      { label: "jog ▶", title, press: move(3), release: "halt" },
-    ];
-  }
-  return [];
+  const jog = d.jog;
+  if (!jog) return [];
+  return [
+    { label: "◀ jog", title: jog.title, side: "minus", press: [jog.minus.command, jog.minus.args], release: jog.release },
+    { label: "jog ▶", title: jog.title, side: "plus", press: [jog.plus.command, jog.plus.args], release: jog.release },
+  ];
 }
 
 function jogButton(axisId: string, spec: JogSpec, signal: AbortSignal): HTMLButtonElement {
-  const button = h("button", { class: "btn jog-hold", title: spec.title, testid: `jog-${spec.press[0]}-${spec.label.includes("◀") ? "minus" : "plus"}` }, spec.label);
+  const button = h("button", { class: "btn jog-hold", title: spec.title, testid: `jog-${spec.side}` }, spec.label);
   let active = false;
   const press = (): void => {
     if (active) return;
