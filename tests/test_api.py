@@ -31,6 +31,7 @@ class LiveServer:
     client: httpx.AsyncClient
     simulator: Any
     bus: Any
+    app: Any = None
 
     async def state(self, axis_id: str) -> dict[str, Any]:
         response = await self.client.get(f"/api/axes/{axis_id}/state")
@@ -78,7 +79,7 @@ async def live_server(
         base = f"http://127.0.0.1:{port}"
         async with httpx.AsyncClient(base_url=base, timeout=10) as client:
             await use_csrf_token(client)
-            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus)
+            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus, app)
             for axis in (await client.get("/api/axes")).json():
                 axis_id = axis["id"]
                 for _ in range(250):
