@@ -268,12 +268,12 @@ class RawWebsocket:
         self._task: asyncio.Task[None] | None = None
 
     @classmethod
-    async def connect(cls, port: int) -> RawWebsocket:
+    async def connect(cls, port: int, path: str = "/ws") -> RawWebsocket:
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         key = base64.b64encode(os.urandom(16)).decode()
         writer.write(
             (
-                f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
                 f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
                 f"Sec-WebSocket-Version: 13\r\nOrigin: http://127.0.0.1:{port}\r\n\r\n"
             ).encode()

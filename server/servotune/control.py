@@ -89,6 +89,9 @@ class ControlSettings:
 
     heartbeat_period_s: float = 0.1
     lease_s: float = 0.35
+    # A page whose own thread has not run for this long (its heartbeat worker says so)
+    # loses its axes too: a frozen page cannot release a jog (docs/control.md).
+    frozen_page_s: float = 2.0
     watchdog_period_s: float = 0.025
     request_timeout_s: float = 30.0
     idle_grant_s: float = 60.0
@@ -124,10 +127,13 @@ class ControlClient:
     principal: Principal
     address: str
     send: Callable[[str], None]
-    # When the server last heard from the client (heartbeat, or a change / hold).
+    # When the server last heard from the client (heartbeat, or a change / hold), and how
+    # long the page's own thread had not run by then (its heartbeat worker's report).
     heard_s: float = 0.0
+    page_age_s: float = 0.0
     lapsing: bool = False
     connected: bool = True
+    beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
 
     @property
     def user(self) -> str:
@@ -321,13 +327,20 @@ class ControlManager:
         """``control_status`` of every axis, for a new connection."""
         return [self._status(ax).model_dump_json() for ax in self._axes.values()]
 
-    def heartbeat(self, client: ControlClient) -> None:
+    def heartbeat(self, client: ControlClient, page_age_ms: int | None = None) -> None:
         """Renew the client's lease (cheap: called a few times a second per tab).
 
-        Ignored from a principal that may not control: it can hold and move nothing.
+        ``page_age_ms``: from the tab's heartbeat worker, how long ago the page itself
+        last ran. Ignored from a principal that may not control: it can hold and move
+        nothing.
         """
         if _can_control(client.principal):
             self._heard(client)
+            client.page_age_s = (page_age_ms or 0) / 1000
+
+    def client(self, client_id: str) -> ControlClient | None:
+        """The connected client with this (secret) id, if any."""
+        return self._clients.get(client_id)
 
     # --- control messages -------------------------------------------------------------
 
@@ -666,18 +679,28 @@ class ControlManager:
             for client in suspects:
                 if client in confirmed:
                     client.lapsing = True  # once; a heartbeat or a new hold resets it
-                    silent_ms = round(1000 * (self._clock() - client.heard_s))
-                    self._spawn(
-                        self._lapse(client, f"no heartbeat for {silent_ms} ms"),
-                        f"lapse of {client.tag}",
-                    )
+                    now = self._clock()
+                    silent_ms = round(1000 * (now - client.heard_s))
+                    if silent_ms > 1000 * self.settings.lease_s:
+                        why = f"no heartbeat for {silent_ms} ms"
+                    else:
+                        frozen = client.page_age_s + now - client.heard_s
+                        why = f"the page has not run for {frozen:.1f} s (frozen)"
+                    self._spawn(self._lapse(client, why), f"lapse of {client.tag}")
 
     def _silent_clients(self) -> list[ControlClient]:
-        deadline = self._clock() - self.settings.lease_s
+        """Clients with axes that went silent (no heartbeat for ``lease_s``: a closed
+        tab, a sleeping laptop, a cut network) or whose page froze (its worker still
+        beats, the page has not run for ``frozen_page_s``)."""
+        now = self._clock()
+        deadline = now - self.settings.lease_s
+        frozen = self.settings.frozen_page_s
         return [
             c
             for c in list(self._clients.values())
-            if c.heard_s < deadline and not c.lapsing and self._responsible(c)
+            if (c.heard_s < deadline or c.page_age_s + now - c.heard_s > frozen)
+            and not c.lapsing
+            and self._responsible(c)
         ]
 
     # --- demo autopilot (hub_state.AutopilotGate) ---------------------------------------

@@ -376,6 +376,7 @@ export interface ForceControl {
 
 export interface Heartbeat {
   type: "heartbeat";
+  page_age_ms: number | null;
 }
 
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats;

@@ -99,10 +99,14 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
     principal = await authenticate(websocket)
     if principal is None:
         return
+    control: ControlManager = websocket.app.state.control
+    beat = websocket.query_params.get("beat")
+    if beat is not None:
+        await _heartbeat_socket(websocket, control, principal, beat)
+        return
     if websocket.client_state == WebSocketState.CONNECTING:
         await websocket.accept()
     hub: Hub = websocket.app.state.hub
-    control: ControlManager = websocket.app.state.control
     queue = hub.subscribe()
     address = websocket.client.host if websocket.client else "?"
 
@@ -135,6 +139,47 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         unregister(handle)
 
 
+async def _heartbeat_socket(
+    websocket: WebSocket, control: ControlManager, principal: Principal, client_id: str
+) -> None:
+    """``/ws?beat=<client_id>``: the heartbeats of a tab's worker, on a socket of their own
+    (docs/control.md, "The dead-man"). Only the same user's open tab can be beaten for;
+    only ``heartbeat`` messages count; nothing is sent back. Its end changes nothing by
+    itself: the lease runs out when the heartbeats stop (a closed tab also closes its
+    main socket, which lapses at once)."""
+    client = control.client(client_id)
+    if client is None or client.user != principal.user:
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await websocket.close(code=CLOSE_POLICY_VIOLATION, reason="no such client")
+        return
+    if websocket.client_state == WebSocketState.CONNECTING:
+        await websocket.accept()
+    window_start, count = time.monotonic(), 0
+    try:
+        while client.connected:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            text = message.get("text")
+            now = time.monotonic()
+            if now - window_start >= 1.0:
+                window_start, count = now, 0
+            count += 1
+            if text is None or len(text) > 200 or count > WS_MAX_MESSAGES_PER_S:
+                break
+            try:
+                parsed = _incoming.validate_json(text)
+            except ValidationError:
+                continue
+            if isinstance(parsed, Heartbeat):
+                client.beats += 1
+                control.heartbeat(client, parsed.page_age_ms)
+    except WebSocketDisconnect:
+        return
+    with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+        await websocket.close(code=CLOSE_POLICY_VIOLATION, reason="heartbeats only")
+
+
 async def _serve(
     websocket: WebSocket, queue: ClientQueue, control: ControlManager, client: ControlClient
 ) -> None:
@@ -165,7 +210,7 @@ async def _serve(
             except ValidationError:
                 continue
             if isinstance(parsed, Heartbeat):
-                control.heartbeat(client)
+                control.heartbeat(client, parsed.page_age_ms)
             elif isinstance(parsed, Ping):
                 stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
                 queue.put(stats.model_dump_json(), droppable=False)

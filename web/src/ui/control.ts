@@ -6,42 +6,67 @@ import "./control.css";
 import { api, setClientId } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../wire.gen";
-import type { WsClient, WsMessage } from "../ws";
+import { type WsClient, type WsMessage, wsUrl } from "../ws";
 import { showError } from "./feedback";
 
 const CONTROL_TYPES = new Set(["welcome", "control_status", "control_prompt", "control_reply"]);
 
-/** Heartbeat ticks from a worker: a hidden tab's own timers are throttled to 1 Hz by the
- * browser, which would let the lease (300 ms) lapse while the operator reads another
- * tab; a dedicated worker's timer is not throttled that way. Falls back to setInterval. */
-class Ticker {
+/** The tab's heartbeats (docs/control.md, "The dead-man"): a dedicated worker sends
+ * them on a websocket of its own (``/ws?beat=<client id>``), so a page busy drawing on a
+ * loaded machine does not delay them (its timers are not throttled when the tab is
+ * hidden either). The page tells the worker it is alive on every tick; the worker reports
+ * how long ago that was (``page_age_ms``): a frozen page (it could not release a jog)
+ * loses its axes after the server's ``frozen_page_s``. Until the worker's socket is open,
+ * or where workers are not available, the page sends the heartbeats itself. */
+class Heartbeats {
   private worker: Worker | null = null;
   private timer: number | undefined;
   private running = false;
 
-  constructor(private readonly tick: () => void) {
+  constructor(private readonly fallback: () => void) {
     try {
-      const source = "let t; onmessage = (e) => { clearInterval(t); if (e.data > 0) t = setInterval(() => postMessage(0), e.data); };";
+      const source = `
+        let ws = null, timer = 0, alive = 0, url = "";
+        const open = () => {
+          const socket = new WebSocket(url);
+          ws = socket;
+          socket.onclose = () => { if (ws === socket) { ws = null; if (timer) setTimeout(() => timer && !ws && open(), 500); } };
+        };
+        const beat = () => {
+          if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "heartbeat", page_age_ms: Math.max(0, Math.round(performance.now() - alive)) }));
+          else postMessage("fallback");
+        };
+        onmessage = (e) => {
+          const m = e.data;
+          if (m.kind === "alive") { alive = performance.now(); return; }
+          clearInterval(timer); timer = 0;
+          if (ws) { const old = ws; ws = null; old.close(); }
+          if (m.kind === "start") { url = m.url; alive = performance.now(); open(); timer = setInterval(beat, m.period); }
+        };`;
       const url = URL.createObjectURL(new Blob([source], { type: "text/javascript" }));
       this.worker = new Worker(url);
-      this.worker.onmessage = () => this.tick();
+      this.worker.onmessage = () => this.fallback();
     } catch {
       this.worker = null;
     }
   }
 
-  start(periodMs: number): void {
-    if (this.running) return;
+  start(periodMs: number, beatUrl: string): void {
+    this.stop();
     this.running = true;
-    this.tick();
-    if (this.worker) this.worker.postMessage(periodMs);
-    else this.timer = window.setInterval(this.tick, periodMs);
+    this.fallback();
+    if (this.worker) {
+      this.worker.postMessage({ kind: "start", url: beatUrl, period: periodMs });
+      this.timer = window.setInterval(() => this.worker?.postMessage({ kind: "alive" }), periodMs);
+    } else {
+      this.timer = window.setInterval(this.fallback, periodMs);
+    }
   }
 
   stop(): void {
     if (!this.running) return;
     this.running = false;
-    if (this.worker) this.worker.postMessage(0);
+    this.worker?.postMessage({ kind: "stop" });
     window.clearInterval(this.timer);
   }
 }
@@ -55,7 +80,7 @@ export class ControlState {
   readonly prompts = new Map<string, ControlPrompt & { until: number }>();
   private ws: WsClient | null = null;
   private readonly listeners = new Set<Listener>();
-  private readonly ticker = new Ticker(() => this.ws?.send({ type: "heartbeat" }));
+  private readonly ticker = new Heartbeats(() => this.ws?.send({ type: "heartbeat", page_age_ms: null }));
   private promptHost: HTMLElement | null = null;
 
   attach(ws: WsClient): void {
@@ -144,8 +169,10 @@ export class ControlState {
    * (explicit, or implicit by a change) must not wait for the first one. */
   private syncTicker(): void {
     const canHold = this.may("control") || this.may("force_control");
-    if (canHold && this.welcome) this.ticker.start(this.welcome.heartbeat_period_s * 1000);
-    else this.ticker.stop();
+    if (canHold && this.welcome) {
+      const beatUrl = `${wsUrl()}?beat=${encodeURIComponent(this.welcome.client_id)}`;
+      this.ticker.start(this.welcome.heartbeat_period_s * 1000, beatUrl);
+    } else this.ticker.stop();
   }
 
   private emit(axis: string | null): void {
