@@ -73,6 +73,12 @@ CLIENT_HEADER = "X-Servotune-Client"
 _READ_TURNS = 10
 # A STOP garbled on the wire (echo mismatch, no answer) is sent again, at once.
 _STOP_ATTEMPTS = 3
+# A tab whose heartbeat is this late gets a small message every PROBE_PERIOD_S, so that
+# its machine has something to acknowledge by the time its lease runs out.
+PROBE_AFTER_S = 0.2
+PROBE_PERIOD_S = 0.1
+# An acknowledgement counts as "after the last heartbeat" when it came this much later.
+ACK_AFTER_HEARTBEAT_S = 0.05
 
 ControlMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl
 
@@ -92,6 +98,10 @@ class ControlSettings:
     # A page whose own thread has not run for this long (its heartbeat worker says so)
     # loses its axes too: a frozen page cannot release a jog (docs/control.md).
     frozen_page_s: float = 2.0
+    # Heartbeats late beyond the lease are forgiven this long while the tab's connection
+    # is demonstrably alive (its machine's TCP stack acknowledges the telemetry: a busy
+    # browser, not a vanished one; ``api.tcp_alive``).
+    alive_grace_s: float = 2.0
     watchdog_period_s: float = 0.025
     request_timeout_s: float = 30.0
     idle_grant_s: float = 60.0
@@ -134,6 +144,14 @@ class ControlClient:
     lapsing: bool = False
     connected: bool = True
     beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
+    # How long ago the tab's machine last acknowledged this connection's data (None:
+    # cannot be told, e.g. behind a reverse proxy): see ControlSettings.alive_grace_s.
+    alive: Callable[[], float | None] | None = None
+    alive_cache: tuple[float, float | None] = (-math.inf, None)
+    # Sends the tab something small, so that its machine has something to acknowledge
+    # while its heartbeats are late (``alive`` needs a busy line to prove anything).
+    probe: Callable[[], None] | None = None
+    probed_s: float = -math.inf
 
     @property
     def user(self) -> str:
@@ -670,11 +688,14 @@ class ControlManager:
         period = self.settings.watchdog_period_s
         while True:
             await asyncio.sleep(period)
+            self._probe_late_clients()
             suspects = self._silent_clients()
             if not suspects:
                 continue
             for _ in range(_READ_TURNS):
                 await asyncio.sleep(0)
+            for client in suspects:
+                client.alive_cache = (-math.inf, None)  # ask afresh: a probe may be acked
             confirmed = set(self._silent_clients())
             for client in suspects:
                 if client in confirmed:
@@ -682,7 +703,13 @@ class ControlManager:
                     now = self._clock()
                     silent_ms = round(1000 * (now - client.heard_s))
                     if silent_ms > 1000 * self.settings.lease_s:
-                        why = f"no heartbeat for {silent_ms} ms"
+                        source = "its worker" if client.beats else "the page itself"
+                        why = f"no heartbeat for {silent_ms} ms (from {source}"
+                        ack_s = client.alive_cache[1]
+                        if client.alive is None or ack_s is None:
+                            why += "; its connection cannot be checked)"
+                        else:
+                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago)"
                     else:
                         frozen = client.page_age_s + now - client.heard_s
                         why = f"the page has not run for {frozen:.1f} s (frozen)"
@@ -698,10 +725,47 @@ class ControlManager:
         return [
             c
             for c in list(self._clients.values())
-            if (c.heard_s < deadline or c.page_age_s + now - c.heard_s > frozen)
+            if (
+                (c.heard_s < deadline and not self._forgiven(c, now))
+                or c.page_age_s + now - c.heard_s > frozen
+            )
             and not c.lapsing
             and self._responsible(c)
         ]
+
+    def _probe_late_clients(self) -> None:
+        """Write to every tab whose heartbeat is late (after ``PROBE_AFTER_S``), every
+        ``PROBE_PERIOD_S``: by the time its lease runs out its machine has had data to
+        acknowledge, or not (``_forgiven``)."""
+        now = self._clock()
+        for client in list(self._clients.values()):
+            if (
+                client.probe is not None
+                and now - client.heard_s > PROBE_AFTER_S
+                and now - client.probed_s >= PROBE_PERIOD_S
+                and not client.lapsing
+                and self._responsible(client)
+            ):
+                client.probed_s = now
+                client.probe()
+
+    def _forgiven(self, client: ControlClient, now: float) -> bool:
+        """A late client whose connection is demonstrably alive, within the grace: its
+        machine acknowledged data after its last heartbeat arrived (a cut network or a
+        sleeping laptop acknowledges nothing from the moment it goes), and within the
+        lease (so a cut after that heartbeat is seen within the lease too)."""
+        silent_s = now - client.heard_s
+        if client.alive is None or silent_s > self.settings.alive_grace_s:
+            return False
+        checked_at, ack_s = client.alive_cache
+        if now - checked_at > 0.05:
+            ack_s = client.alive()
+            client.alive_cache = (now, ack_s)
+            checked_at = now
+        if ack_s is None:
+            return False
+        ack_s += now - checked_at  # as old as it is now
+        return ack_s <= min(self.settings.lease_s, silent_s - ACK_AFTER_HEARTBEAT_S)
 
     # --- demo autopilot (hub_state.AutopilotGate) ---------------------------------------
 

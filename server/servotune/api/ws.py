@@ -22,6 +22,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketState
 
+from servotune.api.tcp_alive import last_ack_s
 from servotune.auth.principal import Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
@@ -122,6 +123,11 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         # below: a client reads the snapshot's control_status lines as "held by
         # someone" until welcome tells it its own tag (a new tab holds nothing yet).
         client = control.connect(principal, address, lambda t: queue.put(t, droppable=False))
+        client.alive = _liveness(websocket)
+        client.probe = lambda: queue.put(
+            ClientStats(sent=queue.sent, dropped=queue.dropped).model_dump_json(),
+            droppable=False,
+        )
         for text in hub.snapshot_messages():
             await websocket.send_text(text)
         for text in control.snapshot():
@@ -137,6 +143,19 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         if client is not None:
             control.disconnect(client)
         unregister(handle)
+
+
+def _liveness(websocket: WebSocket) -> Callable[[], float | None] | None:
+    """How to ask when this socket's far end last acknowledged (``api.tcp_alive``), or
+    None behind a reverse proxy (the proxy acknowledges, not the browser's machine)."""
+    security: SecurityState | None = getattr(websocket.app.state, "security", None)
+    if security is not None and security.config.proxy:
+        return None
+    server, client = websocket.scope.get("server"), websocket.scope.get("client")
+    if not server or not client:
+        return None
+    local, peer = (server[0], int(server[1])), (client[0], int(client[1]))
+    return lambda: last_ack_s(local, peer)
 
 
 async def _heartbeat_socket(
