@@ -209,3 +209,26 @@ def test_a_stop_that_overshoots_once_and_settles_is_not_an_oscillation() -> None
     for sample in data:
         sample.flags["move"] = False  # type: ignore[index]
     assert loopcheck.judge(data, HELD, since=0.0).working is True
+
+
+# --- gains predicted unstable on an identified plant (servotune.tuning.predicted) ---------
+
+SLAP2_MODEL = {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012}  # the demo's unloaded module
+
+
+@pytest.mark.parametrize(
+    ("gains", "unstable"),
+    [
+        ({"kp": 40, "ki": 40, "kd": 80}, False),  # the manual's defaults
+        ({"kp": 1676, "ki": 0, "kd": 1100}, False),  # an auto-tune proposal (ki 0)
+        ({"kp": 1, "ki": 0, "kd": 0}, False),  # slow, but it settles
+        ({"kp": 2000, "ki": 0, "kd": 0}, True),  # no damping: it rings up
+        ({"kp": 32767, "ki": 32767, "kd": 0}, True),
+    ],
+)
+def test_gains_predicted_unstable_on_the_identified_plant(
+    gains: dict[str, int], unstable: bool
+) -> None:
+    from servotune.tuning.predicted import unstable_reason
+
+    assert bool(unstable_reason("slap2", SLAP2_MODEL, gains)) is unstable

@@ -181,3 +181,24 @@ async def test_a_run_that_leaves_the_axis_oscillating_restores_gains_and_holds(
     assert max(positions) - min(positions) <= 10, positions
     events = [e.message for e in hub._events]
     assert any("left the axis oscillating" in e for e in events), events
+
+
+async def test_gains_predicted_unstable_are_written_only_when_confirmed(
+    demo_line: LiveServer,
+) -> None:
+    module = demo_line.bus.module(0)
+    # The auto-tune identified this axis' plant (the unloaded module's fit).
+    tuner = demo_line.app.state.autotuner
+    tuner._session("line-0").model = {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012}
+    url = "/api/axes/line-0/params"
+    unstable = {"kp": 2000, "ki": 0, "kd": 0}
+    response = await demo_line.client.patch(url, json=unstable)
+    assert response.status_code == 409, response.text
+    assert response.json()["field"] == "confirm_unstable"
+    assert "predicted" in response.json()["detail"]
+    assert module.settings["kp"] == 40  # nothing was written
+    response = await demo_line.client.patch(url, json={"kp": 600, "kd": 1500})
+    assert response.status_code == 200, response.text  # predicted to settle: no question
+    response = await demo_line.client.patch(f"{url}?confirm_unstable=true", json=unstable)
+    assert response.status_code == 200, response.text
+    assert module.settings["kp"] == 2000

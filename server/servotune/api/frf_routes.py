@@ -18,10 +18,10 @@ from fastapi import APIRouter, Depends, Request
 
 from servotune import frfbench
 from servotune.api.bench_routes import BenchDep
+from servotune.api.gains_check import GAINS, identified_model
 from servotune.api.responses import errors
-from servotune.autotune import AutoTuner
 from servotune.compute import ComputePool
-from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
+from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
 from servotune.hub import Hub, NotFoundError
 from servotune.protocols.slap2 import (
     ACCELERATION_MAX,
@@ -32,23 +32,6 @@ from servotune.protocols.slap2 import (
 from servotune.tuning.whatif import browser_model, plant_from_identification
 
 router = APIRouter(tags=["bench"])
-
-GAINS: dict[str, tuple[str, ...]] = {
-    "slap2": ("kp", "ki", "kd"),
-    "z1100": ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b"),
-}
-
-
-def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
-    """The auto-tune's identified plant of the axis in this server's session, if any."""
-    autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
-    if autotuner is None:
-        return None
-    try:
-        model: dict[str, Any] | None = autotuner.session(axis_id).get("model")
-    except DriverError:
-        return None  # a device the auto-tune does not handle
-    return model
 
 
 def get_hub(request: Request) -> Hub:

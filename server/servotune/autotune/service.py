@@ -22,6 +22,7 @@ from servotune.autotune.slap2 import Slap2Tuner
 from servotune.autotune.z1100 import Z1100Tuner
 from servotune.compute import ComputePool
 from servotune.drivers.base import (
+    ConfirmationRequiredError,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -33,6 +34,7 @@ from servotune.hub import Hub
 from servotune.hub_state import AxisEntry
 from servotune.stops import Settled, gains_of
 from servotune.testbench import TestBench
+from servotune.tuning.predicted import unstable_reason
 
 
 class DeviceTuner(Protocol):
@@ -223,8 +225,12 @@ class AutoTuner:
 
     # --- accept and verify ------------------------------------------------------------
 
-    async def accept(self, axis_id: str) -> dict[str, Any]:
-        """Baseline test (previous gains), write the proposal, verification test."""
+    async def accept(self, axis_id: str, *, confirm_unstable: bool = False) -> dict[str, Any]:
+        """Baseline test (previous gains), write the proposal, verification test.
+
+        A proposal its own identified plant predicts unstable (``tuning.predicted``) is
+        refused (``ConfirmationRequiredError``, field ``confirm_unstable``) unless
+        ``confirm_unstable``."""
         entry, tuner = self._check_device(axis_id)
         lock = self._lock(axis_id)
         session = self._session(axis_id)
@@ -232,6 +238,17 @@ class AutoTuner:
         self._ctx.started(entry)
         tuner.check_accept(entry, session)
         self._ctx.check_idle(entry)
+        gains = (session.proposal_dict or {}).get("gains")
+        if not confirm_unstable and gains and session.model:
+            device = entry.info.device
+            why = await self._ctx.compute.run(unstable_reason, device, session.model, gains)
+            if why:
+                raise ConfirmationRequiredError(
+                    "confirm_unstable",
+                    f"the proposed gains: {why}. Accept them only if you mean it "
+                    "(confirm_unstable=true); the verification's axis is watched and "
+                    "braked if it oscillates, and the previous gains are put back",
+                )
         async with lock:
             previous = tuner.previous_gains(entry, session)
             result = await self._guarded_verify(

@@ -25,6 +25,15 @@ class DeviceRefusedError(DriverError):
     """The device (or the server on its behalf) refused a command; ``str`` says why."""
 
 
+class ConfirmationRequiredError(DeviceRefusedError):
+    """Refused until the user confirms (HTTP 409 naming ``field``, the flag that
+    confirms), e.g. gains predicted unstable; nothing was sent."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
 class LinkDownError(DriverError):
     """The link is not connected; nothing was sent."""
 
