@@ -18,6 +18,14 @@ from .test_api import LiveServer, live_server
 pytestmark = pytest.mark.browser
 
 CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
 
 
@@ -26,17 +34,7 @@ async def browser() -> AsyncIterator[Browser]:
     assert Path(CHROMIUM).exists(), "install Debian's chromium (scripts/test.sh does)"
     assert (WEB_DIST / "index.html").exists(), "build the web bundle (scripts/test.sh does)"
     async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(
-            executable_path=CHROMIUM,
-            args=[
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--no-first-run",
-            ],
-        )
+        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             yield browser
         finally:

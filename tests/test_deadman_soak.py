@@ -22,7 +22,7 @@ from playwright.async_api import async_playwright, expect
 
 from servotune.bench_demo import StreamWatcher, cpu_hog, demo_server, load_average
 
-from .test_browser import CHROMIUM
+from .test_browser import CHROMIUM, CHROMIUM_ARGS
 
 pytestmark = pytest.mark.slow
 
@@ -52,17 +52,7 @@ async def test_a_held_idle_page_keeps_its_axis_under_a_cpu_hog(tmp_path: Path) -
         StreamWatcher(server.base_url) as stream,
     ):
         async with async_playwright() as playwright:
-            browser = await playwright.chromium.launch(
-                executable_path=CHROMIUM,
-                args=[
-                    "--no-sandbox",
-                    "--disable-gpu",
-                    "--disable-background-networking",
-                    "--disable-component-update",
-                    "--disable-sync",
-                    "--no-first-run",
-                ],
-            )
+            browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             try:
                 page = await browser.new_page(viewport={"width": 1440, "height": 900})
                 await page.goto(f"{server.base_url}/#/axis/{AXIS}")

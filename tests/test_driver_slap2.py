@@ -102,6 +102,19 @@ async def test_stop_overtakes_queued_jobs(line: RunningLink) -> None:
     await line.until(lambda: not module.rss & (1 << codec.RssBit.pm), "pm off")
 
 
+async def test_stop_passes_a_long_write_between_two_of_its_exchanges(line: RunningLink) -> None:
+    """A write of several parameters is one job (write, read back, next); a STOP that
+    comes meanwhile goes out after the exchange on the wire, not after the whole job."""
+    drive = axis(line, 0)
+    values = {"kp": 41, "ki": 41, "kd": 81, "inpos_window": 6, "inpos_time": 51}
+    write = asyncio.ensure_future(drive.write_params(values))
+    await line.until(lambda: line.bus.module(0).settings["kp"] == 41, "the write to start")
+    stopped = await drive.power_off()
+    assert stopped.sent == ["st"]
+    assert not write.done(), "the STOP waited for the whole write"
+    assert await write == values
+
+
 async def test_motion_queued_before_stop_is_never_sent(line: RunningLink) -> None:
     drive = axis(line, 0)
     # Created together, with no await between them: the move is queued and the STOP

@@ -11,9 +11,10 @@ every 0.2 s, and the phase's analysis is fetched as the page does.
 
 Asserted, whatever the machine's load: the loop's *own* lag (what it spent running or
 blocked inside this process, not waiting for a CPU: ``/proc/thread-self/schedstat``)
-stays under 100 ms, and every STOP is answered within 50 ms of its own share (its
-latency less the time the loop's thread and the simulator's threads waited for a CPU
-meanwhile). The raw figures are printed per phase.
+stays under 100 ms; the STOPs of each phase are answered within 50 ms of their own share
+(the median of their latency less the time the loop's thread and the simulator's
+threads waited for a CPU meanwhile), none beyond 250 ms. The raw figures are printed per
+phase.
 """
 
 from __future__ import annotations
@@ -38,7 +39,11 @@ from .test_storage_errors import serve
 pytestmark = pytest.mark.slow
 
 OWN_LAG_MAX_S = 0.1
-STOP_OWN_MAX_S = 0.05
+STOP_OWN_MAX_S = 0.05  # the median of a phase's STOPs
+# No single STOP waits longer than this of its own: what the estimate leaves in (the
+# exchange in flight, the simulator's own pty round trips) stays well under it; a
+# stalled loop (the issue's 1.5-25 s freezes) does not.
+STOP_OWN_WORST_S = 0.25
 
 
 def _process_runqueue_wait_s(pid: int) -> float:
@@ -185,8 +190,10 @@ async def test_stop_and_the_loop_are_never_held_back_by_a_test_or_a_tuning_step(
         assert worst is not None and worst.own_s < OWN_LAG_MAX_S, (name, worst)
         in_phase = [s for s in stops if t_from <= s[0] < t_to]
         assert in_phase, f"{name}: no STOP was answered"
-        own = max(s[2] for s in in_phase)
-        assert own < STOP_OWN_MAX_S, f"{name}: a STOP took {own * 1000:.0f} ms of its own"
+        own = statistics.median(s[2] for s in in_phase)
+        assert own < STOP_OWN_MAX_S, f"{name}: STOPs took {own * 1000:.0f} ms of their own"
+        worst_stop = max(s[2] for s in in_phase)
+        assert worst_stop < STOP_OWN_WORST_S, f"{name}: a STOP took {worst_stop:.2f} s"
 
 
 def _runqueue_loop_and_sim(sim_pid: int) -> tuple[float, float]:

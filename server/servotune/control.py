@@ -95,8 +95,9 @@ class ControlSettings:
 
     heartbeat_period_s: float = 0.1
     lease_s: float = 0.35
-    # A page whose own thread has not run for this long (its heartbeat worker says so)
-    # loses its axes too: a frozen page cannot release a jog (docs/control.md).
+    # A page that holds a jog and whose own thread has not run for this long (its
+    # heartbeat worker says so) loses its axes too: a frozen page cannot release the jog
+    # (docs/control.md). Without a jog held the worker reports no page age.
     frozen_page_s: float = 2.0
     # Heartbeats late beyond the lease are forgiven this long while the tab's connection
     # is demonstrably alive (its machine's TCP stack acknowledges the telemetry: a busy

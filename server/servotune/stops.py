@@ -101,10 +101,6 @@ class StopService:
         while history and sample.t - history[0].t > HISTORY_S:
             history.popleft()
 
-    def history(self, axis_id: str) -> list[Sample]:
-        ax = self._axes.get(axis_id)
-        return list(ax.history) if ax is not None else []
-
     def verdict(self, axis_id: str, *, window_s: float = JUDGE_S) -> loopcheck.LoopVerdict:
         """The loop check on the axis' last ``window_s`` of telemetry."""
         ax = self._axes[axis_id]
@@ -116,11 +112,6 @@ class StopService:
     def watching(self, axis_id: str) -> bool:
         ax = self._axes.get(axis_id)
         return ax is not None and ax.watch is not None and not ax.watch.done()
-
-    def stats(self, axis_id: str) -> tuple[int, int]:
-        """(watches started, watches that ended with the brake) of the axis."""
-        ax = self._axes[axis_id]
-        return ax.watches, ax.escalations
 
     def cancel_watch(self, axis_id: str) -> None:
         """A new change of the axis: what follows is the user's (see the module doc)."""

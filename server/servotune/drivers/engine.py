@@ -307,6 +307,14 @@ class LinkEngine(abc.ABC):
         result = await future
         return result  # type: ignore[return-value]
 
+    async def _let_stops_pass(self) -> None:
+        """Run the urgent jobs (STOPs) waiting now, inside a long job that has no motion
+        of its own (a write or read of several parameters), between two of its
+        exchanges: a STOP then waits for one exchange, not for the whole job. The job
+        goes on afterwards (its exchanges select their module again as needed)."""
+        while self._urgent:
+            await self._run_job(self._urgent.popleft())
+
     @property
     def urgent_pending(self) -> bool:
         """A stop is waiting: a poll sequence should give the line up now."""

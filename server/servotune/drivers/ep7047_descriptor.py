@@ -192,6 +192,12 @@ def _hex(code: int) -> str:
     return f"0x{code:04X}"
 
 
+def _jog_press(start_type: StartType) -> JogPress:
+    """A jog direction: an endless move at 2000 bp (20 % of the speed range)."""
+    args = {"target": 0, "velocity": 2000, "acceleration_ms": 500, "deceleration_ms": 500}
+    return JogPress(command="execute_move", args={"start_type": int(start_type), **args})
+
+
 def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDescriptor:
     """The descriptor of one EP7047-1032 axis.
 
@@ -871,26 +877,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             gentler=["emergency_stop", "halt"],
         ),
         jog=JogDescriptor(
-            minus=JogPress(
-                command="execute_move",
-                args={
-                    "start_type": int(StartType.ENDLESS_MINUS),
-                    "target": 0,
-                    "velocity": 2000,
-                    "acceleration_ms": 500,
-                    "deceleration_ms": 500,
-                },
-            ),
-            plus=JogPress(
-                command="execute_move",
-                args={
-                    "start_type": int(StartType.ENDLESS_PLUS),
-                    "target": 0,
-                    "velocity": 2000,
-                    "acceleration_ms": 500,
-                    "deceleration_ms": 500,
-                },
-            ),
+            minus=_jog_press(StartType.ENDLESS_MINUS),
+            plus=_jog_press(StartType.ENDLESS_PLUS),
             release="halt",
             title="Hold: endless move at 2000 bp; release halts with the move's deceleration",
         ),

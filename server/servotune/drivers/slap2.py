@@ -519,6 +519,7 @@ class Slap2Link(Slap2Wire):
     async def _read_params(self, module: _ModuleState) -> dict[str, int]:
         values: dict[str, int] = {}
         for parameter in self._descriptor.parameters:
+            await self._let_stops_pass()
             values[parameter.name] = await self._read_int(module.address, parameter.read_command)
         self._learn_syscon(module, values.get("syscon"))
         module.known.update(values)
@@ -536,6 +537,7 @@ class Slap2Link(Slap2Wire):
     ) -> dict[str, int]:
         readback: dict[str, int] = {}
         for name, value in values.items():
+            await self._let_stops_pass()
             parameter = self._descriptor.parameter(name)
             command = codec.make_set(command_mnemonic(parameter.set_command), value)
             try:

@@ -654,6 +654,7 @@ class Z1100Link(LinkEngine):
             assert isinstance(gains, codec.Gains)
             values.update({f"{prefix}_k": gains.k, f"{prefix}_a": gains.a, f"{prefix}_b": gains.b})
         for name, (_, getter) in _SCALAR_PARAMS.items():
+            await self._let_stops_pass()
             values[name] = int(await self._get_int(getter, axis))
         self._motors[axis].known.update(values)
         return values
@@ -674,6 +675,7 @@ class Z1100Link(LinkEngine):
             if not any(n in values for n in names):
                 continue
             k, a, b = (values.get(n, motor.known.get(n, 0)) for n in names)
+            await self._let_stops_pass()
             await self._request(codec.make_set_kab(axis, k, a, b, moving=moving))
             for read_prefix, command in (
                 ("kabh", codec.Command.GET_KABH),
@@ -692,6 +694,7 @@ class Z1100Link(LinkEngine):
             if name not in _SCALAR_PARAMS:
                 continue
             setter, getter = _SCALAR_PARAMS[name]
+            await self._let_stops_pass()
             await self._request(codec.Request(setter + axis, int(value)))
             readback[name] = await self._get_int(getter, axis)
         motor.known.update(readback)

@@ -26,19 +26,21 @@ class Heartbeats {
   constructor(private readonly fallback: () => void) {
     try {
       const source = `
-        let ws = null, timer = 0, alive = 0, url = "";
+        let ws = null, timer = 0, alive = 0, url = "", holding = false;
         const open = () => {
           const socket = new WebSocket(url);
           ws = socket;
           socket.onclose = () => { if (ws === socket) { ws = null; if (timer) setTimeout(() => timer && !ws && open(), 500); } };
         };
         const beat = () => {
-          if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "heartbeat", page_age_ms: Math.max(0, Math.round(performance.now() - alive)) }));
+          const age = holding ? Math.max(0, Math.round(performance.now() - alive)) : null;
+          if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "heartbeat", page_age_ms: age }));
           else postMessage("fallback");
         };
         onmessage = (e) => {
           const m = e.data;
           if (m.kind === "alive") { alive = performance.now(); return; }
+          if (m.kind === "hold") { holding = m.on; alive = performance.now(); return; }
           clearInterval(timer); timer = 0;
           if (ws) { const old = ws; ws = null; old.close(); }
           if (m.kind === "start") { url = m.url; alive = performance.now(); open(); timer = setInterval(beat, m.period); }
@@ -68,6 +70,12 @@ class Heartbeats {
     this.running = false;
     this.worker?.postMessage({ kind: "stop" });
     window.clearInterval(this.timer);
+  }
+
+  /** A hold-to-run control (a jog) is engaged or let go: only while one is, the worker
+   * reports the page's age, and a frozen page loses its axes (it could not release). */
+  holding(on: boolean): void {
+    this.worker?.postMessage({ kind: "hold", on });
   }
 }
 
@@ -127,6 +135,14 @@ export class ControlState {
         break;
     }
     return true;
+  }
+
+  private held = 0;
+
+  /** A jog button was pressed (+1) or released (-1) in this tab. */
+  holdToRun(delta: 1 | -1): void {
+    this.held = Math.max(0, this.held + delta);
+    this.ticker.holding(this.held > 0);
   }
 
   mine(axis: string): boolean {
@@ -229,6 +245,7 @@ function jogButton(axisId: string, spec: JogSpec, signal: AbortSignal): HTMLButt
   const press = (): void => {
     if (active) return;
     active = true;
+    control.holdToRun(1);
     button.classList.add("engaged");
     const [name, args] = spec.press;
     api.command(axisId, name, args).catch((error: unknown) => showError(spec.label, error));
@@ -236,6 +253,7 @@ function jogButton(axisId: string, spec: JogSpec, signal: AbortSignal): HTMLButt
   const release = (): void => {
     if (!active) return;
     active = false;
+    control.holdToRun(-1);
     button.classList.remove("engaged");
     api.command(axisId, spec.release, {}).catch((error: unknown) => showError(`${spec.label}: release`, error));
   };
