@@ -152,6 +152,11 @@ class CommandDescriptor(BaseModel):
         default=None, description="command that aborts this one while it runs"
     )
     marks_operated: bool = True
+    hold_to_run: bool = Field(
+        default=False,
+        description="sent only by a hold-to-run control (the jog buttons, whose release "
+        "stops it): the UI offers no plain button for it",
+    )
     active_flag: str | None = Field(
         default=None,
         description="a flag that is on while the mode this command selects is active "

@@ -94,6 +94,7 @@ export interface CommandDescriptor {
   confirm: string | null;
   abort_command: string | null;
   marks_operated: boolean;
+  hold_to_run: boolean;
   active_flag: string | null;
 }
 

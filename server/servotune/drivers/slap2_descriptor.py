@@ -474,6 +474,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                 "direction, at sv and sa; the release decelerates with sa and holds."
             ),
             group="motion",
+            hold_to_run=True,
             arguments=[
                 ArgumentDescriptor(
                     name="direction",

@@ -314,7 +314,9 @@ export class Controls {
     const watch = descriptor.plots.find((p) => p.kind === "line")?.series[0];
     const groups = new Map<CommandDescriptor["group"], HTMLElement[]>();
     for (const cmd of descriptor.commands) {
-      if (aborts.has(cmd.name) || cmd.group === "persist") continue;
+      // A hold-to-run command (the jog) only ever goes out from the jog buttons, whose
+      // release stops it: a plain button would start it with nothing to end it.
+      if (aborts.has(cmd.name) || cmd.group === "persist" || cmd.hold_to_run) continue;
       let widget: HTMLElement;
       const only = cmd.arguments.length === 1 ? cmd.arguments[0] : undefined;
       if (cmd.abort_command) {
