@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import time
 from pathlib import Path
 
@@ -79,12 +80,19 @@ async def test_a_held_idle_page_keeps_its_axis_under_a_cpu_hog(tmp_path: Path) -
             finally:
                 await browser.close()
     mine = [e for e in events if "dead-man" in e]
+    # The server's own view: the longest it went without a heartbeat from the page's
+    # tab while it held the axis (logged by the control service when it grows).
+    gaps_ms = [
+        float(m.group(1))
+        for m in re.finditer(r"dead-man: \S+ heard after (\d+) ms", log.read_text(errors="replace"))
+    ]
     print(
         f"\ndead-man soak: {SOAK_S:.0f} s, a CPU hog on each of {os.cpu_count()} cores, "
         f"load average (1 min) min {min(load):.1f} / max {max(load):.1f}; page timer: "
         f"{gaps['n']} ticks, worst gap {gaps['max']:.0f} ms, {gaps['over']} gaps over "
         f"{100 + LEASE_MS} ms (where the page's own heartbeats would have tripped); "
-        f"dead-man events: {len(mine)}; badge at the end: {badge!r}"
+        f"dead-man events: {len(mine)}; badge at the end: {badge!r}; server: worst heartbeat "
+        f"gap {max(gaps_ms, default=0):.0f} ms ({len(gaps_ms)} new worsts over {LEASE_MS // 2} ms)"
     )
     for event in mine[:10]:
         print("  ", event)

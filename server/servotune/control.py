@@ -142,6 +142,10 @@ class ControlClient:
     # long the page's own thread had not run by then (its heartbeat worker's report).
     heard_s: float = 0.0
     page_age_s: float = 0.0
+    # The longest the server went without hearing from the client while it held or
+    # moved an axis (how near its lease came to lapsing); logged when it grows.
+    worst_gap_s: float = 0.0
+    held_when_heard: bool = False
     lapsing: bool = False
     connected: bool = True
     beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
@@ -799,7 +803,21 @@ class ControlManager:
         return self._status(ax).holder
 
     def _heard(self, client: ControlClient) -> None:
-        client.heard_s = self._clock()
+        now = self._clock()
+        gap_s = now - client.heard_s
+        held = bool(self._responsible(client))
+        if client.held_when_heard and held and gap_s > client.worst_gap_s:
+            client.worst_gap_s = gap_s
+            if gap_s > self.settings.lease_s / 2:
+                logger.info(
+                    "dead-man: %s heard after %.0f ms (its longest gap while holding; "
+                    "lease %.0f ms)",
+                    client.tag,
+                    1000 * gap_s,
+                    1000 * self.settings.lease_s,
+                )
+        client.heard_s = now
+        client.held_when_heard = held
         client.lapsing = False
 
     def _responsible(self, client: ControlClient) -> list[_Axis]:
