@@ -9,9 +9,12 @@ line that this process serves on a pty through ``WireRecorder``, so the stop is 
 the simulated device's own record of its wire, not on anything the server says.
 
 Dead-man: a raw websocket client takes the axis, heartbeats, starts velocity mode, then
-vanishes — (a) RST without a close frame (SO_LINGER 0), (b) silent: the socket stays
-open but nothing more comes (laptop asleep, cable cut). Time from the vanishing to
-``st`` reaching the simulated module; median and worst of ``--trials``.
+vanishes — (a) RST without a close frame (SO_LINGER 0), (b) a network cut: an iptables
+rule drops every packet of the client on the loopback, its acknowledgements included
+(laptop asleep, cable cut; root only), (c) silent while its machine still acknowledges
+(a frozen browser: given ``alive_grace_s`` first). Time from the vanishing to the
+dead-man's controlled stop (``pm``, from velocity mode) reaching the simulated module;
+median and worst of ``--trials``.
 
 Fan-out: ``--viewers`` websocket clients read telemetry for ``--seconds``; reported are
 the server process' CPU share, the samples each viewer received per second, and the
@@ -39,6 +42,8 @@ import websockets
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from tests.control_support import (
     RawWebsocket,
+    can_cut_the_network,
+    cut_network,
     free_port,
     recorded_line,
     take_with_raw_client,
@@ -87,7 +92,10 @@ async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> No
 
     target = _Server()
     target.port = port  # type: ignore[attr-defined]
-    for mode in ("RST, no close frame", "silent socket"):
+    modes = ["RST, no close frame", "network cut", "silent, machine alive"]
+    if can_cut_the_network():
+        modes.remove("network cut")
+    for mode in modes:
         delays: list[float] = []
         for _ in range(trials):
             raw, client_id, beat = await take_with_raw_client(target, axis)  # type: ignore[arg-type]
@@ -98,21 +106,24 @@ async def deadman(trials: int, port: int, client: httpx.AsyncClient, wire) -> No
             )
             assert response.status_code == 200, response.text
             await asyncio.sleep(0.4)
-            beat.cancel()
-            gone = time.monotonic()
-            if mode.startswith("RST"):
-                raw.drop()
-            stopped = None
-            while stopped is None and time.monotonic() - gone < 3:
-                stopped = wire.first("st", 0, gone)
-                await asyncio.sleep(0.002)
+            with contextlib.ExitStack() as vanish:
+                if mode == "network cut":
+                    vanish.enter_context(cut_network(raw.port))
+                beat.cancel()
+                gone = time.monotonic()
+                if mode.startswith("RST"):
+                    raw.drop()
+                stopped = None
+                while stopped is None and time.monotonic() - gone < 5:
+                    stopped = wire.first("pm", 0, gone)
+                    await asyncio.sleep(0.002)
             await raw.close_quietly()
             if stopped is None:
                 lines = [line for _, line in wire.since(gone, 0)][:30]
-                print(f"  {mode}: NO STOP within 3 s; module 0 got {lines}")
+                print(f"  {mode}: NO STOP within 5 s; module 0 got {lines}")
                 continue
             delays.append(stopped - gone)
-            if stopped - gone > 0.5:
+            if stopped - gone > 0.5 and mode != "silent, machine alive":
                 lines = [line for _, line in wire.since(gone, 0)][:30]
                 print(f"  {mode}: {1000 * (stopped - gone):.0f} ms; module 0 got {lines}")
             await asyncio.sleep(0.3)

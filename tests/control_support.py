@@ -14,8 +14,10 @@ import base64
 import contextlib
 import json
 import os
+import shutil
 import socket
 import struct
+import subprocess
 import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -352,12 +354,12 @@ class RawWebsocket:
         self._task: asyncio.Task[None] | None = None
 
     @classmethod
-    async def connect(cls, port: int) -> RawWebsocket:
+    async def connect(cls, port: int, path: str = "/ws") -> RawWebsocket:
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         key = base64.b64encode(os.urandom(16)).decode()
         writer.write(
             (
-                f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
                 f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
                 f"Sec-WebSocket-Version: 13\r\nOrigin: http://127.0.0.1:{port}\r\n\r\n"
             ).encode()
@@ -410,6 +412,12 @@ class RawWebsocket:
             if match(message):
                 return message
 
+    @property
+    def port(self) -> int:
+        """The client's own (source) port."""
+        port: int = self.writer.get_extra_info("sockname")[1]
+        return port
+
     def drop(self) -> None:
         """Vanish: RST, no close frame (SO_LINGER 0, then close)."""
         sock = self.writer.get_extra_info("socket")
@@ -427,6 +435,29 @@ class RawWebsocket:
         self.writer.close()
         with contextlib.suppress(ConnectionError):
             await self.writer.wait_closed()
+
+
+def can_cut_the_network() -> str:
+    """Why ``cut_network`` cannot work here ("" when it can)."""
+    if os.geteuid() != 0:
+        return "cutting a connection needs root (an iptables rule)"
+    if shutil.which("iptables") is None:
+        return "cutting a connection needs iptables"
+    return ""
+
+
+@contextlib.contextmanager
+def cut_network(*client_ports: int) -> Iterator[None]:
+    """A network cut between a test client and the server: every packet from the
+    client's ports is dropped on the loopback, its acknowledgements included (a laptop
+    gone to sleep, a cable pulled), from one moment until the block ends."""
+    ports = ",".join(str(p) for p in client_ports)
+    rule = ["INPUT", "-i", "lo", "-p", "tcp", "-m", "multiport", "--sports", ports, "-j", "DROP"]
+    subprocess.run(["iptables", "-I", *rule], check=True)
+    try:
+        yield
+    finally:
+        subprocess.run(["iptables", "-D", *rule], check=True)
 
 
 async def take_with_raw_client(

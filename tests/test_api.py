@@ -31,6 +31,7 @@ class LiveServer:
     client: httpx.AsyncClient
     simulator: Any
     bus: Any
+    app: Any = None
 
     async def state(self, axis_id: str) -> dict[str, Any]:
         response = await self.client.get(f"/api/axes/{axis_id}/state")
@@ -78,7 +79,7 @@ async def live_server(
         base = f"http://127.0.0.1:{port}"
         async with httpx.AsyncClient(base_url=base, timeout=10) as client:
             await use_csrf_token(client)
-            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus)
+            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus, app)
             for axis in (await client.get("/api/axes")).json():
                 axis_id = axis["id"]
                 for _ in range(250):
@@ -176,8 +177,14 @@ async def test_move_refused_without_pm_then_runs(api: LiveServer) -> None:
         await asyncio.sleep(0.05)
     else:
         pytest.fail(f"no arrival: {await api.state('line-0')}")
-    # STOP for all axes: the controller goes off.
+    # STOP for all axes: the module in pm keeps holding (st + pm), the one that was
+    # never powered stays unpowered (STOP never powers a motor).
     assert (await api.client.post("/api/stop")).json() == {"failed": []}
+    assert api.bus.module(0).rss & (1 << 3) and not api.bus.module(0).moving
+    assert not api.bus.module(1).rss & (0b11 << 2)
+    # The explicit power-off (category 0) leaves the controller off.
+    response = await api.client.post(url, json={"command": "power_off"})
+    assert response.status_code == 200 and response.json()["sent"] == ["st"]
     assert not api.bus.module(0).rss & (1 << 3)
 
 
@@ -334,12 +341,16 @@ async def test_a_stalled_client_does_not_slow_the_others(api: LiveServer) -> Non
 
 async def test_stop_says_what_it_does_and_hold_keeps_the_motor_powered(api: LiveServer) -> None:
     descriptor = (await api.client.get("/api/axes/line-0/descriptor")).json()
-    assert descriptor["stop"]["motor_powered"] is False
-    assert descriptor["stop"]["gentler"] == ["hold"]
+    assert descriptor["stop"]["motor_powered"] is True
+    assert descriptor["stop"]["category"] == 2
+    assert descriptor["stop"]["power_off_command"] == "power_off"
+    assert descriptor["stop"]["gentler"] == ["jog_stop", "hold"]
     url = "/api/axes/line-0/commands"
     pm = 1 << 3
-    # After st (motor unpowered) hold turns the controller on where the shaft is.
-    assert (await api.client.post(url, json={"command": "stop"})).status_code == 200
+    # After st (motor unpowered) hold turns the controller on where the shaft is; STOP
+    # on an unpowered motor sends st only.
+    response = await api.client.post(url, json={"command": "stop"})
+    assert response.status_code == 200 and response.json()["sent"] == ["st"]
     assert not api.bus.module(0).rss & pm
     response = await api.client.post(url, json={"command": "hold"})
     assert response.status_code == 200, response.text

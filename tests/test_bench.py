@@ -39,6 +39,9 @@ async def api(tmp_path: Path) -> Any:
             yield server
 
 
+VM, PM = 1 << 2, 1 << 3  # rss bits
+
+
 async def test_moves_with_different_kp_give_different_metrics(api: LiveServer) -> None:
     info = (await api.client.get("/api/axes/line-1/bench")).json()
     assert "move" in info["kinds"] and "pwm_step" in info["kinds"]
@@ -134,11 +137,14 @@ async def test_link_loss_keeps_samples_marks_incomplete_and_stops(api: LiveServe
     assert run["status"] == "incomplete"
     assert len(stored) >= 3 and run["samples"][: len(stored)] == stored
     api.simulator.replug()
+    module = api.bus.module(0)
     for _ in range(200):
-        if not api.bus.module(0).rss & 0b1100:
+        if not module.rss & VM:
             break
         await asyncio.sleep(0.05)
-    assert not api.bus.module(0).rss & 0b1100, "the axis was not stopped after the link came back"
+    # Stopped the moment the link was back: out of velocity mode, held in pm.
+    assert not module.rss & VM, "the axis was not stopped after the link came back"
+    assert module.rss & PM, "the stop after the link came back was not a controlled one"
 
 
 async def test_runs_survive_restart_and_cut_runs_become_incomplete(tmp_path: Path) -> None:
@@ -164,10 +170,11 @@ async def test_velocity_test_is_stopped_at_the_travel_limit(api: LiveServer) -> 
     run = await finished_run(api, "line-1", run_id)
     assert run["status"] == "incomplete"
     assert "exceeded your limit" in run["message"]
-    assert not api.bus.module(1).rss & 0b1100, "the axis was left running"
-    # Stopped near the limit (st lets the motor coast a little), far from the ~110000
-    # counts four seconds at this speed would have covered.
-    assert abs(api.bus.module(1).position) < 12_000
+    module = api.bus.module(1)
+    assert not module.rss & VM and module.rss & PM, "the axis was left running, or unpowered"
+    # Stopped near the limit and held there (pm where the shaft is), far from the
+    # ~110000 counts four seconds at this speed would have covered.
+    assert abs(module.position) < 6_000
 
 
 async def test_a_test_is_refused_while_the_axis_moves(api: LiveServer) -> None:
@@ -197,7 +204,9 @@ async def test_stop_ends_a_running_test(api: LiveServer) -> None:
     assert run["status"] == "incomplete"
     assert "STOP" in run["message"]
     await asyncio.sleep(0.3)
-    assert not api.bus.module(0).rss & 0b1100, "the test went on after STOP"
+    module = api.bus.module(0)
+    assert not module.rss & VM, "the test went on after STOP"
+    assert module.rss & PM and abs(module.motor.speed_rad_s) < 1.0, "STOP did not hold the axis"
 
 
 async def test_ep7047_move_on_the_bench_ends_in_target(tmp_path: Path) -> None:

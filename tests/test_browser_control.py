@@ -19,6 +19,7 @@ from .test_browser import ARTIFACTS, browser  # noqa: F401  (the fixture)
 pytestmark = pytest.mark.browser
 
 VM = 1 << 2
+PM = 1 << 3
 
 
 @pytest.fixture
@@ -88,19 +89,23 @@ async def test_two_tabs_hand_an_axis_over(two_tabs: tuple[Page, Page, Server]) -
     await bob.screenshot(path=str(ARTIFACTS / "control-handed-over.png"))
     await alice.screenshot(path=str(ARTIFACTS / "control-read-only.png"))
 
-    # Hold-to-run jog: pressed runs, released stops.
-    jog = bob.get_by_test_id("jog-velocity_mode-plus")
-    await jog.hover()
-    await bob.mouse.down()
-    deadline = time.monotonic() + 5
-    while not server.bus.module(0).rss & VM:
-        assert time.monotonic() < deadline, "jog did not start"
-        await asyncio.sleep(0.02)
-    await bob.mouse.up()
-    deadline = time.monotonic() + 5
-    while server.bus.module(0).rss & VM:
-        assert time.monotonic() < deadline, "jog release did not stop"
-        await asyncio.sleep(0.02)
+    # Hold-to-run jog, both ways: pressed runs (pm + ma towards the end), released
+    # decelerates and holds (ma to where the profile stops).
+    module = server.bus.module(0)
+    for side, sign in (("minus", -1), ("plus", 1)):
+        start = module.position
+        await bob.get_by_test_id(f"jog-{side}").hover()
+        await bob.mouse.down()
+        deadline = time.monotonic() + 5
+        while (module.position - start) * sign < 500:
+            assert time.monotonic() < deadline, f"jog {side} did not start"
+            await asyncio.sleep(0.02)
+        await bob.mouse.up()
+        deadline = time.monotonic() + 5
+        while module.moving or abs(module.motor.speed_rad_s) > 0.5:
+            assert time.monotonic() < deadline, f"jog {side} release did not stop"
+            await asyncio.sleep(0.02)
+        assert module.rss & PM, "the jog release left the motor unpowered"
 
     # Bob's tab closes while the axis runs: the dead-man stops it.
     await bob.get_by_test_id("cmd-velocity_mode").click()

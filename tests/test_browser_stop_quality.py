@@ -38,6 +38,7 @@ pytestmark = pytest.mark.browser
 
 ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
 VM = 0b0100  # the SLAP2's rss bit of velocity mode
+PM = 0b1000  # the SLAP2's rss bit of position mode
 
 
 # --- item 10: the stop effect at the button -------------------------------------------
@@ -150,7 +151,10 @@ class StopEvents:
             ready.set()
             async for raw in ws:
                 message = json.loads(raw)
-                if message.get("type") == "event" and message.get("message") == "STOP":
+                # The STOP button's event per axis: "STOP" or "STOP: <sent>: <outcome>"
+                # (not "STOP (server start-up)", "STOP sent", "STOP not delivered").
+                text = message.get("message", "")
+                if message.get("type") == "event" and (text == "STOP" or text.startswith("STOP: ")):
                     self.axes.append(message["axis"])
                     self.changed.set()
 
@@ -193,11 +197,12 @@ async def test_escape_in_a_dialog_closes_it_and_sends_no_stop(
         await page.keyboard.press("Escape")
         await expect(page.get_by_test_id("stop-note")).to_have_text("STOPPED (Esc)")
         await stops.wait_for(2)
+        # STOP from velocity mode holds the shaft in pm where it is (issue 24).
         for _ in range(250):
-            if not server.bus.module(1).rss & 0b1100:
+            if server.bus.module(1).rss & 0b1100 == PM:
                 break
             await asyncio.sleep(0.02)
-        assert not server.bus.module(1).rss & 0b1100, "Esc did not stop the axis"
+        assert server.bus.module(1).rss & 0b1100 == PM, "Esc did not stop and hold the axis"
         # Had the Esc in the dialog sent a STOP, its request (sent first) would have
         # given two more events by the time the second one was answered.
         assert sorted(stops.axes) == ["line-0", "line-1"], stops.axes

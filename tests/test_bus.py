@@ -336,8 +336,9 @@ async def test_motion_started_from_the_hub_stops_when_the_rigs_network_is_cut(
     await wait_for(lambda: bool(wire.bus.module(0).rss & VM), 2, "velocity mode on rig-a")
     await lab.lab.proxies["rig-a"].cut()
     cut = time.monotonic()
-    await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
-    stopped_at = wire.first("st", 0, cut)
+    # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+    await wait_for(lambda: wire.first("pm", 0, cut) is not None, 3, "pm on rig-a's wire")
+    stopped_at = wire.first("pm", 0, cut)
     assert stopped_at is not None
     assert not wire.bus.module(0).rss & VM
     rig = rig_app(lab, "rig-a").app
@@ -509,11 +510,12 @@ async def test_the_hub_tab_vanishing_stops_the_rigs_axis(lab: LabRun) -> None:
         beat.cancel()
         gone = time.monotonic()  # the last heartbeat left at most 100 ms before this
         raw.drop()
-        await wait_for(lambda: wire.first("st", 0, gone) is not None, 3, "st on rig-a's wire")
-        stopped_at = wire.first("st", 0, gone)
+        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        await wait_for(lambda: wire.first("pm", 0, gone) is not None, 3, "pm on rig-a's wire")
+        stopped_at = wire.first("pm", 0, gone)
         assert stopped_at is not None and not wire.bus.module(0).rss & VM
         # The hub's lease (350 ms) + its watchdog + one bus request + the STOP on the wire.
-        assert stopped_at - gone < 1.5, f"st {1000 * (stopped_at - gone):.0f} ms after"
+        assert stopped_at - gone < 1.5, f"pm {1000 * (stopped_at - gone):.0f} ms after"
         await raw.close_quietly()
 
 

@@ -92,7 +92,27 @@ async def test_stop_overtakes_queued_jobs(line: RunningLink) -> None:
     stop_index = 8
     # At most the transaction already on the wire finishes before the stop.
     assert order.index(stop_index) <= 1, order
-    await line.until(lambda: not line.bus.module(0).rss & (1 << codec.RssBit.pm), "pm off")
+    # STOP in pm: st + pm, the module holds where the shaft is (not unpowered).
+    module = line.bus.module(0)
+    assert module.rss & (1 << codec.RssBit.pm) and not module.moving
+    order = await gather_in_order(
+        *[drive.write_params({"kd": 90 + i}) for i in range(8)], drive.power_off()
+    )
+    assert order.index(stop_index) <= 1, order
+    await line.until(lambda: not module.rss & (1 << codec.RssBit.pm), "pm off")
+
+
+async def test_stop_passes_a_long_write_between_two_of_its_exchanges(line: RunningLink) -> None:
+    """A write of several parameters is one job (write, read back, next); a STOP that
+    comes meanwhile goes out after the exchange on the wire, not after the whole job."""
+    drive = axis(line, 0)
+    values = {"kp": 41, "ki": 41, "kd": 81, "inpos_window": 6, "inpos_time": 51}
+    write = asyncio.ensure_future(drive.write_params(values))
+    await line.until(lambda: line.bus.module(0).settings["kp"] == 41, "the write to start")
+    stopped = await drive.power_off()
+    assert stopped.sent == ["st"]
+    assert not write.done(), "the STOP waited for the whole write"
+    assert await write == values
 
 
 async def test_motion_queued_before_stop_is_never_sent(line: RunningLink) -> None:
@@ -204,9 +224,12 @@ async def test_console_multiline_and_pg_refused_in_pm(line: RunningLink) -> None
     assert len(lines) > 3
     await drive.command("position_mode", {})
     await wait_for(lambda: line.sink.samples["line-0"][-1].flags["pm"], what="pm flag")
-    with pytest.raises(DeviceRefusedError, match="STOP"):
+    with pytest.raises(DeviceRefusedError, match="Power off"):
         await drive.command("save_eeprom", {})
-    await drive.stop()
+    await drive.stop()  # STOP holds: pg stays refused
+    with pytest.raises(DeviceRefusedError, match="Power off"):
+        await drive.command("save_eeprom", {})
+    await drive.power_off()
     await wait_for(lambda: not line.sink.samples["line-0"][-1].flags["pm"], what="pm off")
     await drive.command("save_eeprom", {})
 

@@ -462,16 +462,22 @@ def test_short_moves_become_triangles_and_deccel_is_reported() -> None:
     assert wire.number("rp") == pytest.approx(200, abs=5)
 
 
-def test_velocity_mode_follows_sv_and_its_sign() -> None:
+def test_velocity_mode_follows_sv_and_refuses_a_negative_one() -> None:
     _, wire = make(limit1_count=None, limit2_count=None)
     wire.ask("sv 1000")
     wire.ask("vm")
     wire.run(0.6)
     assert wire.number("rve") == pytest.approx(1000, rel=0.05)
     assert wire.number("rss") & (RSS_VM | RSS_MOVE | RSS_PM) == RSS_VM
-    wire.ask("sv -500")  # changes apply while running
+    wire.ask("sv 500")  # changes apply while running
     wire.run(0.6)
-    assert wire.number("rve") == pytest.approx(-500, rel=0.05)
+    assert wire.number("rve") == pytest.approx(500, rel=0.05)
+    # sv is a speed (manual): a sign is refused and changes nothing.
+    wire.ask("sv -500")
+    assert wire.number("rss") & RSS_UC
+    assert wire.number("rv") == 500
+    wire.run(0.3)
+    assert wire.number("rve") == pytest.approx(500, rel=0.05)
 
 
 def test_stop_unpowers_the_motor_but_the_counter_keeps_counting() -> None:
@@ -748,7 +754,7 @@ def test_the_idle_fast_path_gives_the_same_state_bit_for_bit() -> None:
 
     fast, slow = Slap2Module(0), Slap2Module(0)
     rng = random.Random(1)
-    lines = ["pm", "ma2000", "mr-500", "sv3000", "ma0", "vm", "sv-1000", "st", "pm", "ma100"]
+    lines = ["pm", "ma2000", "mr-500", "sv3000", "ma0", "vm", "sv1000", "st", "pm", "ma100"]
     skipped = 0
     for line in [*lines, "spwm40", "st", "pm", "ma-3000"]:
         assert send(fast, line) == send(slow, line)

@@ -49,6 +49,7 @@ from servotune.hub import Hub
 from servotune.hub_state import AxisEntry
 from servotune.metrics import compute_metrics
 from servotune.runquality import POSITION_KINDS, assess
+from servotune.stops import Settled, gains_of
 from servotune.storage import Storage
 from servotune.tuning.frfrun import Excitation
 from servotune.wire import RunUpdate
@@ -116,6 +117,15 @@ class _Recording:
     spans: list[list[float]] = field(default_factory=list)
     trigger_acked: float | None = None  # when the device acknowledged the trigger
     abort: str | None = None  # why the exciter stopped the axis (ends the record)
+    # The gains to put back if the run leaves the axis oscillating (None: the gains in
+    # force when the run started; the auto-tune passes the ones before its proposal).
+    restore_gains: dict[str, int] | None = None
+
+
+def left_oscillating(quality: dict[str, Any], settled: Settled) -> dict[str, Any]:
+    """The run's quality with the reason that it left the axis oscillating first."""
+    reason = {"code": "left_oscillating", "message": settled.message}
+    return {**quality, "status": "bad", "reasons": [reason, *quality.get("reasons", [])]}
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -194,7 +204,7 @@ class BenchRunner:
             position = latest.channels.get("position") if latest is not None else None
             if open_loop and position is not None and (why := limits.outside(position)):
                 recording.abort = f"left your travel window: {why}: axis stopped"
-                await recording.entry.driver.stop()
+                await self._hub.stops.stop(axis, "controlled", "bench: travel window")
                 return
             await self._hub.command(
                 axis,
@@ -257,6 +267,8 @@ class BenchRunner:
         entry, plan = recording.entry, recording.plan
         status, message = "complete", ""
         saved: dict[str, int] = {}
+        gains_before = gains_of(entry.driver.descriptor, entry.device_values)
+        settled: Settled | None = None
         try:
             if plan.overrides:
                 saved = {
@@ -301,7 +313,7 @@ class BenchRunner:
         except DriverError as exc:
             status, message = "incomplete", f"test stopped: {exc}"
             try:
-                await entry.driver.stop()
+                await self._hub.stops.stop(entry.info.id, "controlled", "bench: test stopped")
             except DriverError:
                 # The link is down: stop the axis the moment it is back.
                 self._hub.pend_stop(entry)
@@ -309,7 +321,7 @@ class BenchRunner:
         except asyncio.CancelledError:
             status, message = "incomplete", "server stopped during the test"
             with contextlib.suppress(DriverError):
-                await entry.driver.stop()
+                await self._hub.stops.stop(entry.info.id, "controlled", "bench: server stopping")
             raise
         finally:
             try:
@@ -329,6 +341,7 @@ class BenchRunner:
                         changed = ", ".join(f"{k}={v}" for k, v in saved.items())
                         message += f"; could not restore {changed}: re-apply them"
                 await self._flush(recording)
+                settled = await self._settle(recording, gains_before)
             finally:
                 self._active.pop(entry.info.id, None)
                 if recording.returned is not None:
@@ -349,8 +362,39 @@ class BenchRunner:
                         "spans": recording.spans,
                     }
                 meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
+                if settled is not None:
+                    meta["left_oscillating"] = settled.as_dict()
+                    meta["quality"] = left_oscillating(meta["quality"], settled)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self._update(recording, status, message or "done")
+
+    async def _settle(self, recording: _Recording, gains_before: dict[str, int]) -> Settled | None:
+        """Nothing the bench started is left oscillating (``StopService.settle_check``):
+        unless the user's STOP ended the run (its own watch follows it) or the link is
+        down. The gains put back: the caller's, else those in force before the run, else
+        (when the run did not change them) the last verified ones."""
+        entry = recording.entry
+        generation = recording.stop_generation
+        if generation is not None and entry.stop_generation != generation:
+            return None
+        if self._hub.link_status(entry.link.id).state != "connected":
+            return None
+        restore = recording.restore_gains or gains_before
+        now = gains_of(entry.driver.descriptor, entry.device_values)
+        if restore == now:
+            restore = self._hub.verified_gains.get(entry.info.id, restore)
+        try:
+            return await self._hub.stops.settle_check(
+                entry.info.id,
+                gains_now=now,
+                restore=restore,
+                reason=f"bench run {recording.run_id}",
+            )
+        except DriverError as exc:
+            self._hub.on_event(
+                "error", entry.info.id, f"bench run {recording.run_id}: after the run: {exc}"
+            )
+            return None
 
     async def _restore(self, entry: AxisEntry, saved: Mapping[str, int]) -> None:
         """Restore test overrides; some devices refuse while the axis still moves."""
@@ -507,6 +551,8 @@ class BenchRunner:
             generation = recording.stop_generation
             if generation is not None and entry.stop_generation != generation:
                 raise DriverError(f"{entry.stop_cause} during the test")
+            if self._hub.stops.verdict(entry.info.id).working is False:
+                return False  # it oscillates: no use waiting (``_settle`` acts on it)
             await asyncio.sleep(0.05)
         return False
 

@@ -22,7 +22,7 @@ Rules (docs/control.md has the reasoning):
   takes the axis. A change without a client id (scripts, the test suite) changes
   nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
-  safe state (``ControlManager._safe_stop``: the device's STOP); the new holder starts
+  rest (``ControlManager._safe_stop``: a controlled stop that holds); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
 * Dead-man: a holder renews its lease with heartbeats (``heartbeat_period_s``); when no
   heartbeat came for ``lease_s`` of time in which the server was listening, or the
@@ -48,6 +48,7 @@ from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
 from servotune.drivers.base import DeviceRefusedError, DriverError, LinkDownError
 from servotune.hub import Hub
 from servotune.hub_state import UnknownAxisError
+from servotune.stops import StopKind
 from servotune.wire import (
     AnswerControl,
     ControlAction,
@@ -72,6 +73,12 @@ CLIENT_HEADER = "X-Servotune-Client"
 _READ_TURNS = 10
 # A STOP garbled on the wire (echo mismatch, no answer) is sent again, at once.
 _STOP_ATTEMPTS = 3
+# A tab whose heartbeat is this late gets a small message every PROBE_PERIOD_S, so that
+# its machine has something to acknowledge by the time its lease runs out.
+PROBE_AFTER_S = 0.2
+PROBE_PERIOD_S = 0.1
+# An acknowledgement counts as "after the last heartbeat" when it came this much later.
+ACK_AFTER_HEARTBEAT_S = 0.05
 
 ControlMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl
 
@@ -88,6 +95,14 @@ class ControlSettings:
 
     heartbeat_period_s: float = 0.1
     lease_s: float = 0.35
+    # A page that holds a jog and whose own thread has not run for this long (its
+    # heartbeat worker says so) loses its axes too: a frozen page cannot release the jog
+    # (docs/control.md). Without a jog held the worker reports no page age.
+    frozen_page_s: float = 2.0
+    # Heartbeats late beyond the lease are forgiven this long while the tab's connection
+    # is demonstrably alive (its machine's TCP stack acknowledges the telemetry: a busy
+    # browser, not a vanished one; ``api.tcp_alive``).
+    alive_grace_s: float = 2.0
     watchdog_period_s: float = 0.025
     request_timeout_s: float = 30.0
     idle_grant_s: float = 60.0
@@ -123,10 +138,25 @@ class ControlClient:
     principal: Principal
     address: str
     send: Callable[[str], None]
-    # When the server last heard from the client (heartbeat, or a change / hold).
+    # When the server last heard from the client (heartbeat, or a change / hold), and how
+    # long the page's own thread had not run by then (its heartbeat worker's report).
     heard_s: float = 0.0
+    page_age_s: float = 0.0
+    # The longest the server went without hearing from the client while it held or
+    # moved an axis (how near its lease came to lapsing); logged when it grows.
+    worst_gap_s: float = 0.0
+    held_when_heard: bool = False
     lapsing: bool = False
     connected: bool = True
+    beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
+    # How long ago the tab's machine last acknowledged this connection's data (None:
+    # cannot be told, e.g. behind a reverse proxy): see ControlSettings.alive_grace_s.
+    alive: Callable[[], float | None] | None = None
+    alive_cache: tuple[float, float | None] = (-math.inf, None)
+    # Sends the tab something small, so that its machine has something to acknowledge
+    # while its heartbeats are late (``alive`` needs a busy line to prove anything).
+    probe: Callable[[], None] | None = None
+    probed_s: float = -math.inf
 
     @property
     def user(self) -> str:
@@ -268,7 +298,9 @@ class ControlManager:
             if self._hub.link_status(link_id).state == "connected":
                 break
             await asyncio.sleep(0.02)
-        await asyncio.gather(*(self._safe_stop(a, "server start-up") for a in axis_ids))
+        await asyncio.gather(
+            *(self._safe_stop(a, "server start-up", kind="stop") for a in axis_ids)
+        )
         for axis_id in axis_ids:
             self._release_startup(self._axes[axis_id])
 
@@ -318,13 +350,20 @@ class ControlManager:
         """``control_status`` of every axis, for a new connection."""
         return [self._status(ax).model_dump_json() for ax in self._axes.values()]
 
-    def heartbeat(self, client: ControlClient) -> None:
+    def heartbeat(self, client: ControlClient, page_age_ms: int | None = None) -> None:
         """Renew the client's lease (cheap: called a few times a second per tab).
 
-        Ignored from a principal that may not control: it can hold and move nothing.
+        ``page_age_ms``: from the tab's heartbeat worker, how long ago the page itself
+        last ran. Ignored from a principal that may not control: it can hold and move
+        nothing.
         """
         if _can_control(client.principal):
             self._heard(client)
+            client.page_age_s = (page_age_ms or 0) / 1000
+
+    def client(self, client_id: str) -> ControlClient | None:
+        """The connected client with this (secret) id, if any."""
+        return self._clients.get(client_id)
 
     # --- control messages -------------------------------------------------------------
 
@@ -575,25 +614,27 @@ class ControlManager:
             self._record(client, "control take", ax.axis_id, "ok", f"from {previous}")
         self._broadcast_status(ax)
 
-    async def _safe_stop(self, axis_id: str, reason: str) -> bool:
-        """Bring one axis to its safe state: the device's own STOP, ahead of everything.
+    async def _safe_stop(self, axis_id: str, reason: str, *, kind: StopKind = "controlled") -> bool:
+        """Bring one axis to rest ahead of everything, through the hub's stop service
+        (``servotune.stops``, docs/control.md "Stops").
 
-        Per device (``AxisDriver.stop``, see docs/control.md):
-        SLAP2 ``st`` — controller off: ends velocity mode, open-loop PWM, calibration and
-        a move in position mode (the motor is unpowered; a vertical axis needs a brake).
-        Z1100 ``SetEstop`` — the motor stops at once: ends a constant-velocity job and a
-        go-to-target. EP7047 STOP — the drive ramps down with its emergency deceleration
-        and Enable drops: ends endless (velocity) moves and positioning moves.
-        A bounded move in position mode is stopped too, not allowed to finish: nobody is
-        watching it any more (lapse) or somebody else is about to act (transfer). Every
-        STOP also fails the axis' queued motion and ends its bench / auto-tune sequence
-        (stop generation). A STOP that cannot reach the axis is sent on reconnect.
+        A hand-over or a lapse is a *controlled* stop that keeps holding (SLAP2: pm where
+        the shaft is; Z1100: Estop, holding; EP7047: the emergency ramp with Enable kept),
+        unless the loop is not working (then its power is cut, as STOP would). The
+        start-up stop is the device's STOP (``kind="stop"``). A bounded move in position
+        mode is stopped too, not allowed to finish: nobody is watching it any more
+        (lapse) or somebody else is about to act (transfer). Every stop also fails the
+        axis' queued motion and ends its bench / auto-tune sequence (stop generation).
+        A stop that cannot reach the axis is sent on reconnect.
         """
         entry = self._hub.entry(axis_id)
         entry.stopped(f"STOP ({reason})")
         for attempt in range(1, _STOP_ATTEMPTS + 1):
             try:
-                await asyncio.wait_for(entry.driver.stop(), self.settings.stop_timeout_s)
+                await asyncio.wait_for(
+                    self._hub.stops.stop(axis_id, kind, f"STOP ({reason})"),
+                    self.settings.stop_timeout_s,
+                )
             except (DriverError, TimeoutError) as exc:
                 detail = str(exc) or type(exc).__name__
                 retry = attempt < _STOP_ATTEMPTS and not isinstance(
@@ -653,28 +694,84 @@ class ControlManager:
         period = self.settings.watchdog_period_s
         while True:
             await asyncio.sleep(period)
+            self._probe_late_clients()
             suspects = self._silent_clients()
             if not suspects:
                 continue
             for _ in range(_READ_TURNS):
                 await asyncio.sleep(0)
+            for client in suspects:
+                client.alive_cache = (-math.inf, None)  # ask afresh: a probe may be acked
             confirmed = set(self._silent_clients())
             for client in suspects:
                 if client in confirmed:
                     client.lapsing = True  # once; a heartbeat or a new hold resets it
-                    silent_ms = round(1000 * (self._clock() - client.heard_s))
-                    self._spawn(
-                        self._lapse(client, f"no heartbeat for {silent_ms} ms"),
-                        f"lapse of {client.tag}",
-                    )
+                    now = self._clock()
+                    silent_ms = round(1000 * (now - client.heard_s))
+                    if silent_ms > 1000 * self.settings.lease_s:
+                        source = "its worker" if client.beats else "the page itself"
+                        why = f"no heartbeat for {silent_ms} ms (from {source}"
+                        ack_s = client.alive_cache[1]
+                        if client.alive is None or ack_s is None:
+                            why += "; its connection cannot be checked)"
+                        else:
+                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago)"
+                    else:
+                        frozen = client.page_age_s + now - client.heard_s
+                        why = f"the page has not run for {frozen:.1f} s (frozen)"
+                    self._spawn(self._lapse(client, why), f"lapse of {client.tag}")
 
     def _silent_clients(self) -> list[ControlClient]:
-        deadline = self._clock() - self.settings.lease_s
+        """Clients with axes that went silent (no heartbeat for ``lease_s``: a closed
+        tab, a sleeping laptop, a cut network) or whose page froze (its worker still
+        beats, the page has not run for ``frozen_page_s``)."""
+        now = self._clock()
+        deadline = now - self.settings.lease_s
+        frozen = self.settings.frozen_page_s
         return [
             c
             for c in list(self._clients.values())
-            if c.heard_s < deadline and not c.lapsing and self._responsible(c)
+            if (
+                (c.heard_s < deadline and not self._forgiven(c, now))
+                or c.page_age_s + now - c.heard_s > frozen
+            )
+            and not c.lapsing
+            and self._responsible(c)
         ]
+
+    def _probe_late_clients(self) -> None:
+        """Write to every tab whose heartbeat is late (after ``PROBE_AFTER_S``), every
+        ``PROBE_PERIOD_S``: by the time its lease runs out its machine has had data to
+        acknowledge, or not (``_forgiven``)."""
+        now = self._clock()
+        for client in list(self._clients.values()):
+            if (
+                client.probe is not None
+                and now - client.heard_s > PROBE_AFTER_S
+                and now - client.probed_s >= PROBE_PERIOD_S
+                and not client.lapsing
+                and self._responsible(client)
+            ):
+                client.probed_s = now
+                client.probe()
+
+    def _forgiven(self, client: ControlClient, now: float) -> bool:
+        """A late client whose connection is demonstrably alive, within the grace: its
+        machine acknowledged data after its last heartbeat arrived (a cut network or a
+        sleeping laptop acknowledges nothing from the moment it goes), and within the
+        lease (so a cut after that heartbeat is seen within the lease too)."""
+        silent_s = now - client.heard_s
+        if client.alive is None or silent_s > self.settings.alive_grace_s:
+            return False
+        checked_at, ack_s = client.alive_cache
+        if now - checked_at > 0.05:
+            ack_s = client.alive()
+            client.alive_cache = (now, ack_s)
+            checked_at = now
+        if ack_s is None:
+            return False
+        ack_s += now - checked_at  # as old as it is now
+        return ack_s <= min(self.settings.lease_s, silent_s - ACK_AFTER_HEARTBEAT_S)
 
     # --- demo autopilot (hub_state.AutopilotGate) ---------------------------------------
 
@@ -707,7 +804,21 @@ class ControlManager:
         return self._status(ax).holder
 
     def _heard(self, client: ControlClient) -> None:
-        client.heard_s = self._clock()
+        now = self._clock()
+        gap_s = now - client.heard_s
+        held = bool(self._responsible(client))
+        if client.held_when_heard and held and gap_s > client.worst_gap_s:
+            client.worst_gap_s = gap_s
+            if gap_s > self.settings.lease_s / 2:
+                logger.info(
+                    "dead-man: %s heard after %.0f ms (its longest gap while holding; "
+                    "lease %.0f ms)",
+                    client.tag,
+                    1000 * gap_s,
+                    1000 * self.settings.lease_s,
+                )
+        client.heard_s = now
+        client.held_when_heard = held
         client.lapsing = False
 
     def _responsible(self, client: ControlClient) -> list[_Axis]:

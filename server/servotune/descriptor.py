@@ -166,6 +166,11 @@ class CommandDescriptor(BaseModel):
         "Stop and hold sends pm): in the stop group it still needs 'move' and the "
         "control lock; every other stop (STOP, power off, halt) is open to every role",
     )
+    hold_to_run: bool = Field(
+        default=False,
+        description="sent only by a hold-to-run control (the jog buttons, whose release "
+        "stops it): the UI offers no plain button for it",
+    )
     active_flag: str | None = Field(
         default=None,
         description="a flag that is on while the mode this command selects is active "
@@ -188,20 +193,95 @@ class StopEffect(BaseModel):
     """What the device's STOP (the ``stop`` command, the top bar's STOP and Esc) does.
 
     A motion engineer must know before pressing it whether the motor keeps its torque:
-    a vertical axis whose motor goes unpowered drops.
+    a vertical axis whose motor goes unpowered drops. STOP brings the axis to rest in
+    the shortest distance the device allows while its position loop works, then to the
+    device's safe state; where the loop is not working (``servotune.loopcheck``) it cuts
+    the motor's power at once (category 0) instead (docs/control.md).
     """
 
-    summary: str = Field(description="one line for next to the STOP button")
+    summary: str = Field(description="one line for next to the STOP button: what STOP does now")
     motor_powered: bool = Field(
-        description="the motor keeps holding torque after the stop (False: a vertical "
-        "or loaded axis can drop or be back-driven)"
+        description="the motor keeps holding torque after a STOP with a working loop "
+        "(False: a vertical or loaded axis can drop or be back-driven)"
     )
     sends: str = Field(description="what goes to the wire")
+    category: Literal[0, 1, 2] = Field(
+        default=0,
+        description="IEC 60204-1 stop category of STOP with a working loop: 0 power cut "
+        "at once, 1 controlled stop then power off, 2 controlled stop, power kept (holds)",
+    )
+    loop_failed: str = Field(
+        default="",
+        description="one line: what STOP does instead when the loop is not working "
+        "(following error growing, oscillation, current limit held)",
+    )
+    power_off_command: str | None = Field(
+        default=None,
+        description="the stop-group command that cuts the motor's power at once "
+        "(category 0), open to everyone who may STOP",
+    )
     gentler: list[str] = Field(
         default=[],
         description="commands of this descriptor that stop more gently (e.g. stop and "
         "hold), in the order the UI offers them",
     )
+
+
+class LoopSignals(BaseModel):
+    """Where to see whether an axis' position loop works: the data the hub's loop
+    check (``servotune.loopcheck``) reads, after a STOP, a bench run or an auto-tune
+    step. Every name refers to a channel or flag of the same descriptor."""
+
+    position_channel: str
+    following_error_channel: str = Field(
+        description="setpoint minus position, counts (a loop that works keeps it small "
+        "against the setpoint's own motion)"
+    )
+    reference_channel: str | None = Field(
+        default=None,
+        description="what the loop is asked to follow, counts (a setpoint or a target): "
+        "an error that swings while the reference goes back and forth is the loop "
+        "following it, not an oscillation (None: position + following error)",
+    )
+    moving_flags: list[str] = Field(
+        default=[],
+        description="flags on while the reference moves (a profile, velocity mode); with "
+        "none of them on the loop holds a fixed position",
+    )
+    current_limit_flag: str | None = Field(
+        default=None, description="on while the drive limits the motor current"
+    )
+    closed_loop_flags: list[str] = Field(
+        default=[],
+        description="the position loop runs only while one of these flags is on (empty: "
+        "always); without it the following error says nothing about the loop",
+    )
+    oscillation_counts: float = Field(
+        gt=0,
+        description="a swing of the following error this big (peak to peak) counts as "
+        "one half cycle of an oscillation",
+    )
+    rest_velocity: float = Field(
+        gt=0, description="counts/s below which the axis counts as at rest"
+    )
+
+
+class JogPress(BaseModel):
+    """One jog direction: the descriptor command (and its arguments) a press sends."""
+
+    command: str
+    args: dict[str, int] = {}
+
+
+class JogDescriptor(BaseModel):
+    """Hold-to-run jog both ways, with the device's own way of reversing: a press sends
+    ``minus`` or ``plus``, a release (and losing the page) sends ``release``, a
+    controlled stop that keeps holding."""
+
+    minus: JogPress
+    plus: JogPress
+    release: str
+    title: str = Field(description="tooltip: what a press and a release do")
 
 
 class ParameterConstraint(BaseModel):
@@ -353,6 +433,12 @@ class DeviceDescriptor(BaseModel):
     twin: TwinDescriptor | None = Field(
         default=None, description="how the 3D twin draws the axis (None: not drawn)"
     )
+    loop: LoopSignals | None = Field(
+        default=None,
+        description="where to see whether the position loop works (None: no loop to "
+        "judge, e.g. an open-loop stepper)",
+    )
+    jog: JogDescriptor | None = Field(default=None, description="hold-to-run jog both ways")
     autotune: bool = Field(
         default=False,
         description="the auto-tune assistant supports this device (the UI shows its panel "

@@ -33,11 +33,13 @@ from servotune.drivers.base import (
     DriverError,
     InvalidArgumentError,
     Link,
+    StopOutcome,
     check_console_line,
 )
 from servotune.drivers.validation import validate_command, validate_params
 from servotune.hub_state import AxisEntry, HubState, LinkEntry
 from servotune.movewatch import MovePlan, plan_move, watch_move
+from servotune.stops import StopKind
 from servotune.wire import EventLevel, MoveOutcome, Params
 
 logger = logging.getLogger(__name__)
@@ -132,6 +134,8 @@ class Hub(HubState):
         self._operate(entry)
 
     def _operate(self, entry: AxisEntry) -> None:
+        # A new change ends the watch of an earlier stop: what follows is the user's.
+        self.stops.cancel_watch(entry.info.id)
         if not entry.operated:
             entry.operated = True
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
@@ -173,10 +177,12 @@ class Hub(HubState):
         self._operate(entry)
         if name == "restore_parameters":
             return await self._restore(entry)
+        descriptor = entry.driver.descriptor
+        group = descriptor.command(name).group
         # Every stop-group command of the user (STOP, stop and hold, halt) ends a
         # running bench or auto-tune sequence, not only ``stop``.
-        if origin == "user" and entry.driver.descriptor.command(name).group == "stop":
-            label = entry.driver.descriptor.command(name).label
+        if origin == "user" and group == "stop":
+            label = descriptor.command(name).label
             entry.stopped("STOP was pressed" if name == "stop" else f"{label} was pressed")
         pressed_at = self._clock()
         # A user's move to a target is watched to its end (servotune.movewatch); a
@@ -184,20 +190,36 @@ class Hub(HubState):
         move = plan_move(entry, name, checked) if origin == "user" else None
         self._end_move_watch(axis_id)
         try:
-            outcome = await entry.driver.command(name, checked)
+            if name == "stop" or name == descriptor.stop.power_off_command:
+                kind: StopKind = "stop" if name == "stop" else "power_off"
+                stopped = await self.stops.stop(axis_id, kind, "STOP" if kind == "stop" else name)
+                outcome = (
+                    CommandOutcome(stopped.sent, stopped.message)
+                    if stopped is not None
+                    else CommandOutcome([name], "sent")
+                )
+            else:
+                outcome = await entry.driver.command(name, checked)
+                if group == "stop":
+                    # A stop of the descriptor's that keeps the axis held (stop and hold,
+                    # decelerate, halt): watched like a STOP until the axis is at rest.
+                    self.stops.follow(axis_id, StopOutcome(outcome.sent, "hold"), name)
         except DriverError as exc:
             if name == "stop" and not isinstance(exc, DeviceRefusedError):
                 # The stop could not reach the axis: deliver it as soon as it can go.
                 self._schedule_stop(entry, exc, pressed_at)
             raise
-        if name == "stop":
+        if group == "stop":
+            # STOP, or a stop that holds or unpowers the axis: a pending STOP has
+            # nothing left to stop.
             self.note_stopped(entry)
         else:
             self.note_commanded(entry, name)
-        if (scope := entry.driver.descriptor.command(name).stores_parameters) is not None:
+        if (scope := descriptor.command(name).stores_parameters) is not None:
             self._stored(entry, scope)
-        level: EventLevel = "warning" if name == "stop" else "info"
-        self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}")
+        level: EventLevel = "warning" if group == "stop" else "info"
+        said = f": {outcome.message}" if group == "stop" and outcome.message else ""
+        self.on_event(level, axis_id, f"{name} {checked or ''} -> {', '.join(outcome.sent)}{said}")
         if move is not None:
             self._move_watches[axis_id] = asyncio.create_task(
                 self._watch_move(entry, name, move, entry.stop_generation),

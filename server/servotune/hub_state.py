@@ -52,7 +52,9 @@ from servotune.drivers.base import (
     Link,
     LinkDownError,
     Sample,
+    StopOutcome,
 )
+from servotune.stops import StopKind, StopService
 from servotune.storage import Storage, StorageError
 from servotune.wire import (
     AxisHealth,
@@ -256,6 +258,11 @@ class HubState:
         self._sample_listeners: list[Callable[[str, Sample], None]] = []
         # Set by servotune.control: the autopilot yields to a holder and resumes later.
         self.autopilot_gate: AutopilotGate | None = None
+        # Every stop of an axis goes through it (servotune.stops).
+        self.stops = StopService(self.on_event, clock=clock)
+        # The last gains an auto-tune verified per axis (what the bench puts back when a
+        # run leaves the axis oscillating with the gains that were in force before it).
+        self.verified_gains: dict[str, dict[str, int]] = {}
         for link in links:
             self.add_link(link)
 
@@ -281,6 +288,7 @@ class HubState:
             )
             key = f"{link.device}/{link.id}/{axis.address}"
             self._axes[axis.id] = AxisEntry(axis, link, info, key)
+            self.stops.add_axis(axis.id, axis, axis.descriptor)
 
     def _show_link_down(self, link_entry: LinkEntry, message: str) -> None:
         """The hub's own view when the link cannot report: error, rate 0, axes offline."""
@@ -389,8 +397,17 @@ class HubState:
         messages.extend(event.model_dump_json() for event in self._events)
         return messages
 
+    async def stop_axis(self, entry: AxisEntry, kind: StopKind, reason: str) -> StopOutcome | None:
+        """Stop one axis through the stop service (``servotune.stops``): the STOP
+        button (``"stop"``), every other stop (``"controlled"``: hand-over, dead-man,
+        bench and auto-tune ends) or the power-off (``"power_off"``). Bumps the stop
+        generation (ends a bench or auto-tune sequence); raises the driver's error when
+        nothing could be sent."""
+        entry.stop_generation += 1
+        return await self.stops.stop(entry.info.id, kind, reason)
+
     async def stop_all(self) -> list[str]:
-        """Stop every axis at once; returns the ids of axes whose stop failed."""
+        """STOP every axis at once; returns the ids of axes whose stop failed."""
         entries = list(self._axes.values())
         pressed_at = self._clock()
         for entry in entries:
@@ -411,19 +428,22 @@ class HubState:
                     raise result
             else:
                 self.note_stopped(entry)
-                self.on_event("warning", entry.info.id, "STOP")
+                said = f": {', '.join(result.sent)}: {result.message}" if result else ""
+                self.on_event("warning", entry.info.id, f"STOP{said}")
         for entry in entries:
             self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
         return failed
 
-    @staticmethod
-    async def _send_stop(entry: AxisEntry, pressed_at: float) -> None:
-        """The axis' STOP; a driver that can (a rig's axis) says when it was pressed."""
+    async def _send_stop(self, entry: AxisEntry, pressed_at: float) -> StopOutcome | None:
+        """The axis' STOP: a driver that can (a rig's axis, whose rig judges the stop)
+        is told when it was pressed; every other goes through the stop service (the
+        shortest safe stop, watched to rest)."""
         driver = entry.driver
         if isinstance(driver, PressTimedStop):
+            self.stops.cancel_watch(entry.info.id)
             await driver.stop_pressed(pressed_at)
-        else:
-            await driver.stop()
+            return None
+        return await self.stops.stop(entry.info.id, "stop", "STOP")
 
     # --- DriverSink -------------------------------------------------------------------
 
@@ -432,6 +452,7 @@ class HubState:
         entry.latest = sample
         entry.pending.append(sample)
         entry.last_sample_at = self._clock()
+        self.stops.on_sample(axis_id, sample)
         if entry.silent:
             entry.silent = False
             if entry.health == "offline":  # still the hub's own verdict: undo it

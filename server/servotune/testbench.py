@@ -222,11 +222,15 @@ class TestBench(BenchRunner):
         axis_id: str,
         request: BenchTestRequest,
         identified: Mapping[str, Any] | None = None,
+        *,
+        restore_gains: Mapping[str, int] | None = None,
     ) -> dict[str, Any]:
         """Check, plan and start a test; returns the run summary (status 'recording').
 
         ``identified``: the auto-tune's plant model of the axis, which a model-based
-        frequency response (a device the bench cannot inject into) is computed from."""
+        frequency response (a device the bench cannot inject into) is computed from.
+        ``restore_gains``: what to write back if the run leaves the axis oscillating
+        (default: the gains in force when it started; ``BenchRunner._settle``)."""
         entry = self._hub.entry(axis_id)
         driver = entry.driver
         if isinstance(driver, BenchDelegate):
@@ -265,7 +269,9 @@ class TestBench(BenchRunner):
         # Claimed before the first await, so a second request cannot slip in.
         self._claimed.add(axis_id)
         try:
-            return await self._start_claimed(axis_id, entry, driver, request, limits, identified)
+            return await self._start_claimed(
+                axis_id, entry, driver, request, limits, identified, restore_gains
+            )
         finally:
             self._claimed.discard(axis_id)
 
@@ -277,6 +283,7 @@ class TestBench(BenchRunner):
         request: BenchTestRequest,
         limits: BenchLimits,
         identified: Mapping[str, Any] | None = None,
+        restore_gains: Mapping[str, int] | None = None,
     ) -> dict[str, Any]:
         await self._hub.take_over(entry)
         if entry.latest is None or self._hub.link_status(entry.link.id).state != "connected":
@@ -350,6 +357,7 @@ class TestBench(BenchRunner):
             flags,
             stop_generation=entry.stop_generation,
             excitation=excitation,
+            restore_gains=dict(restore_gains) if restore_gains else None,
         )
         self._active[axis_id] = recording
         task = asyncio.create_task(self._run(recording, test, meta))

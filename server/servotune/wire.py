@@ -364,7 +364,14 @@ class ForceControl(BaseModel):
 
 
 class Heartbeat(BaseModel):
+    """Renews the tab's lease. Sent by the tab's heartbeat worker on a socket of its own
+    (``/ws?beat=<client_id>``), so a page busy drawing does not delay it. While a
+    hold-to-run control (a jog) is engaged, ``page_age_ms`` is how long ago the page's
+    own thread last ran (a page frozen with a jog held loses its axes after
+    ``ControlSettings.frozen_page_s``: it could not release the jog); null otherwise."""
+
     type: Literal["heartbeat"] = "heartbeat"
+    page_age_ms: int | None = Field(default=None, ge=0, le=86_400_000)
 
 
 ControlClientMessage = Annotated[

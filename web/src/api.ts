@@ -57,6 +57,19 @@ export function setClientId(id: string | null): void {
   clientId = id;
 }
 
+/** A call the server may refuse until the user confirms (409 naming ``confirm_unstable``:
+ * gains the identified plant predicts unstable). The user is shown the server's reason
+ * and asked; only a yes sends the call again with the confirmation. */
+export async function confirmed<T>(call: (confirm: string) => Promise<T>): Promise<T> {
+  try {
+    return await call("");
+  } catch (error) {
+    if (!(error instanceof ApiError) || error.status !== 409 || error.field !== "confirm_unstable") throw error;
+    if (!window.confirm(`Predicted unstable.\n\n${error.detail}\n\nWrite them anyway?`)) throw new ApiError(409, `not written: ${error.detail}`, "confirm_unstable");
+    return call("?confirm_unstable=true");
+  }
+}
+
 export async function request<T>(method: string, path: string, body?: unknown, retried = false): Promise<T> {
   let response: Response;
   const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
@@ -312,7 +325,7 @@ export const api = {
   descriptor: (id: string) => request<DeviceDescriptor>("GET", `${axis(id)}/descriptor`),
   readParams: (id: string) => request<Record<string, number>>("GET", `${axis(id)}/params`),
   writeParams: (id: string, values: Record<string, number>) =>
-    request<Record<string, number>>("PATCH", `${axis(id)}/params`, values),
+    confirmed((confirm) => request<Record<string, number>>("PATCH", `${axis(id)}/params${confirm}`, values)),
   state: (id: string) => request<AxisState>("GET", `${axis(id)}/state`),
   command: (id: string, command: string, args: Record<string, number>) =>
     request<CommandResult>("POST", `${axis(id)}/commands`, { command, ...args }),
@@ -335,7 +348,7 @@ export const api = {
   deleteParamSet: (id: string, name: string) => request<null>("DELETE", paramSet(id, name)),
   autotune: (id: string) => request<AutoTuneSession>("GET", `${axis(id)}/autotune`),
   autotuneIdentify: (id: string, body: AutoTuneRequest) => request<AutoTuneProposal>("POST", `${axis(id)}/autotune/identify`, body),
-  autotuneAccept: (id: string) => request<AutoTuneResult>("POST", `${axis(id)}/autotune/accept`),
+  autotuneAccept: (id: string) => confirmed((confirm) => request<AutoTuneResult>("POST", `${axis(id)}/autotune/accept${confirm}`)),
   autotuneRevert: (id: string) => request<Record<string, number>>("POST", `${axis(id)}/autotune/revert`),
 };
 

@@ -100,6 +100,7 @@ export interface CommandDescriptor {
   abort_command: string | null;
   marks_operated: boolean;
   powers_motor: boolean;
+  hold_to_run: boolean;
   active_flag: string | null;
   stores_parameters: "axis" | "link" | null;
   target: MoveTarget | null;
@@ -124,7 +125,33 @@ export interface StopEffect {
   summary: string;
   motor_powered: boolean;
   sends: string;
+  category: 0 | 1 | 2;
+  loop_failed: string;
+  power_off_command: string | null;
   gentler: string[];
+}
+
+export interface LoopSignals {
+  position_channel: string;
+  following_error_channel: string;
+  reference_channel: string | null;
+  moving_flags: string[];
+  current_limit_flag: string | null;
+  closed_loop_flags: string[];
+  oscillation_counts: number;
+  rest_velocity: number;
+}
+
+export interface JogPress {
+  command: string;
+  args: Record<string, number>;
+}
+
+export interface JogDescriptor {
+  minus: JogPress;
+  plus: JogPress;
+  release: string;
+  title: string;
 }
 
 export interface ParameterConstraint {
@@ -158,6 +185,8 @@ export interface DeviceDescriptor {
   constraints: ParameterConstraint[];
   write_groups: string[][];
   twin: TwinDescriptor | null;
+  loop: LoopSignals | null;
+  jog: JogDescriptor | null;
   autotune: boolean;
 }
 
@@ -377,6 +406,7 @@ export interface ForceControl {
 
 export interface Heartbeat {
   type: "heartbeat";
+  page_age_ms: number | null;
 }
 
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;

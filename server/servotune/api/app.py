@@ -258,7 +258,8 @@ def create_app(config: AppConfig) -> FastAPI:
 
     @app.exception_handler(DeviceRefusedError)
     async def refused(_: Request, exc: DeviceRefusedError) -> JSONResponse:
-        return _error(409, str(exc))
+        # A refusal that a confirmation lifts names the flag that confirms.
+        return _error(409, str(exc), getattr(exc, "field", None))
 
     @app.exception_handler(MeasurementError)
     async def measurement(_: Request, exc: MeasurementError) -> JSONResponse:

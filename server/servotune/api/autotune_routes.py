@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Query, Request
 
 from servotune.api.routes import ERRORS
 from servotune.autotune import AutoTuner, IdentifyRequest
@@ -54,7 +54,13 @@ async def autotune_identify(
 
 
 @router.post("/api/axes/{axis_id}/autotune/accept", responses=TUNE_ERRORS)
-async def autotune_accept(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
+async def autotune_accept(
+    axis_id: str,
+    autotuner: AutoTunerDep,
+    confirm_unstable: Annotated[
+        bool, Query(description="accept a proposal its identified plant predicts unstable")
+    ] = False,
+) -> dict[str, Any]:
     """Baseline test with the previous gains, write the proposed gains (validated
     path), verification test: ``{predicted, measured, predicted_default,
     baseline_measured, verification_run_id, baseline_run_id, verdict, ...}``.
@@ -63,7 +69,7 @@ async def autotune_accept(axis_id: str, autotuner: AutoTunerDep) -> dict[str, An
     previous_gains, gains_in_force, unverified}``: the axis is stopped and the
     previous gains are written back (``unverified`` true if that failed: revert).
     Other failures put the previous gains back too and answer an error."""
-    return await autotuner.accept(axis_id)
+    return await autotuner.accept(axis_id, confirm_unstable=confirm_unstable)
 
 
 @router.post("/api/axes/{axis_id}/autotune/revert", responses=TUNE_ERRORS)

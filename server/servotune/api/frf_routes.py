@@ -18,6 +18,7 @@ from fastapi import APIRouter, Depends, Request
 
 from servotune import frfbench
 from servotune.api.bench_routes import BenchDep
+from servotune.api.gains_check import GAINS, identified_model
 from servotune.api.responses import errors
 from servotune.autotune import AutoTuner
 from servotune.compute import ComputePool
@@ -34,11 +35,6 @@ from servotune.tuning.whatif import browser_model, plant_from_identification
 
 router = APIRouter(tags=["bench"])
 
-GAINS: dict[str, tuple[str, ...]] = {
-    "slap2": ("kp", "ki", "kd"),
-    "z1100": ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b"),
-}
-
 
 def _session(request: Request, axis_id: str) -> dict[str, Any]:
     autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
@@ -48,12 +44,6 @@ def _session(request: Request, axis_id: str) -> dict[str, Any]:
         return autotuner.session(axis_id)
     except DriverError:
         return {}  # a device the auto-tune does not handle
-
-
-def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
-    """The auto-tune's identified plant of the axis in this server's session, if any."""
-    model: dict[str, Any] | None = _session(request, axis_id).get("model")
-    return model
 
 
 def margin_preset(request: Request, axis_id: str) -> str:

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Request
+from fastapi import APIRouter, Body, Query, Request
 
 from servotune.api.deps import HubDep
+from servotune.api.gains_check import check_predicted_stable
 from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
 from servotune.descriptor import DeviceDescriptor
 from servotune.drivers.base import (
@@ -20,6 +21,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     LinkDownError,
 )
+from servotune.drivers.validation import validate_params
 from servotune.hub import NotFoundError
 from servotune.wire import (
     AxisInfo,
@@ -82,15 +84,24 @@ async def read_params(axis_id: str, hub: HubDep) -> dict[str, int]:
 async def write_params(
     axis_id: str,
     hub: HubDep,
+    request: Request,
     values: Annotated[dict[str, Any], Body(examples=[{"kp": 60, "kd": 120}])],
+    confirm_unstable: Annotated[
+        bool,
+        Query(description="write gains the identified plant predicts unstable all the same"),
+    ] = False,
 ) -> dict[str, int]:
     """Write parameters, read them back from the device and return the read-back values.
 
     All values are checked against the descriptor first: one bad value (unknown name,
     not an integer, out of range, or breaking a descriptor ``constraint`` together with
     the device's current values) answers 422 naming the field and its range, and then
-    nothing is written. The body's schema per device is in the live OpenAPI.
+    nothing is written. Gains that the axis' identified plant predicts unstable
+    (``tuning.predicted``) answer 409 naming ``confirm_unstable`` unless it is set.
+    The body's schema per device is in the live OpenAPI.
     """
+    validate_params(hub.descriptor(axis_id), values, hub.entry(axis_id).device_values)
+    await check_predicted_stable(request, axis_id, values, confirm_unstable)
     return await hub.write_params(axis_id, values)
 
 

@@ -22,6 +22,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from pydantic import Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketState
 
+from servotune.api.tcp_alive import last_ack_s
 from servotune.auth.authz import REAUTH_DETAIL, password_fresh
 from servotune.auth.principal import FORCE_CONTROL, Principal
 from servotune.auth.security import SecurityState
@@ -100,10 +101,14 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
     principal = await authenticate(websocket)
     if principal is None:
         return
+    control: ControlManager = websocket.app.state.control
+    beat = websocket.query_params.get("beat")
+    if beat is not None:
+        await _heartbeat_socket(websocket, control, principal, beat)
+        return
     if websocket.client_state == WebSocketState.CONNECTING:
         await websocket.accept()
     hub: Hub = websocket.app.state.hub
-    control: ControlManager = websocket.app.state.control
     queue = hub.subscribe()
     address = websocket.client.host if websocket.client else "?"
 
@@ -119,6 +124,11 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
         # below: a client reads the snapshot's control_status lines as "held by
         # someone" until welcome tells it its own tag (a new tab holds nothing yet).
         client = control.connect(principal, address, lambda t: queue.put(t, droppable=False))
+        client.alive = _liveness(websocket)
+        client.probe = lambda: queue.put(
+            ClientStats(sent=queue.sent, dropped=queue.dropped).model_dump_json(),
+            droppable=False,
+        )
         for text in hub.snapshot_messages():
             await websocket.send_text(text)
         for text in control.snapshot():
@@ -165,6 +175,60 @@ async def _password_fresh(websocket: WebSocket, client: ControlClient) -> bool:
     return False
 
 
+def _liveness(websocket: WebSocket) -> Callable[[], float | None] | None:
+    """How to ask when this socket's far end last acknowledged (``api.tcp_alive``), or
+    None behind a reverse proxy (the proxy acknowledges, not the browser's machine)."""
+    security: SecurityState | None = getattr(websocket.app.state, "security", None)
+    if security is not None and security.config.proxy:
+        return None
+    server, client = websocket.scope.get("server"), websocket.scope.get("client")
+    if not server or not client:
+        return None
+    local, peer = (server[0], int(server[1])), (client[0], int(client[1]))
+    return lambda: last_ack_s(local, peer)
+
+
+async def _heartbeat_socket(
+    websocket: WebSocket, control: ControlManager, principal: Principal, client_id: str
+) -> None:
+    """``/ws?beat=<client_id>``: the heartbeats of a tab's worker, on a socket of their own
+    (docs/control.md, "The dead-man"). Only the same user's open tab can be beaten for;
+    only ``heartbeat`` messages count; nothing is sent back. Its end changes nothing by
+    itself: the lease runs out when the heartbeats stop (a closed tab also closes its
+    main socket, which lapses at once)."""
+    client = control.client(client_id)
+    if client is None or client.user != principal.user:
+        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+            await websocket.close(code=CLOSE_POLICY_VIOLATION, reason="no such client")
+        return
+    if websocket.client_state == WebSocketState.CONNECTING:
+        await websocket.accept()
+    window_start, count = time.monotonic(), 0
+    try:
+        while client.connected:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            text = message.get("text")
+            now = time.monotonic()
+            if now - window_start >= 1.0:
+                window_start, count = now, 0
+            count += 1
+            if text is None or len(text) > 200 or count > WS_MAX_MESSAGES_PER_S:
+                break
+            try:
+                parsed = _incoming.validate_json(text)
+            except ValidationError:
+                continue
+            if isinstance(parsed, Heartbeat):
+                client.beats += 1
+                control.heartbeat(client, parsed.page_age_ms)
+    except WebSocketDisconnect:
+        return
+    with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+        await websocket.close(code=CLOSE_POLICY_VIOLATION, reason="heartbeats only")
+
+
 async def _serve(
     websocket: WebSocket, queue: ClientQueue, control: ControlManager, client: ControlClient
 ) -> None:
@@ -195,7 +259,7 @@ async def _serve(
             except ValidationError:
                 continue
             if isinstance(parsed, Heartbeat):
-                control.heartbeat(client)
+                control.heartbeat(client, parsed.page_age_ms)
             elif isinstance(parsed, Ping):
                 stats = ClientStats(sent=queue.sent, dropped=queue.dropped)
                 queue.put(stats.model_dump_json(), droppable=False)

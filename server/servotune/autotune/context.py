@@ -112,8 +112,10 @@ class TuningContext:
         return self.clock() - sent
 
     async def safe_stop(self, entry: AxisEntry) -> None:
+        """A controlled stop that keeps holding (the hub's stop service), unless the loop
+        is not working; the axis is watched until it is at rest."""
         try:
-            await entry.driver.stop()
+            await self.hub.stops.stop(entry.info.id, "controlled", "auto-tune: stop")
         except DriverError:
             self.hub.pend_stop(entry)
             self.hub.on_event(
@@ -175,15 +177,19 @@ class TuningContext:
         note: str,
         *,
         samples: bool = False,
+        restore_gains: dict[str, int] | None = None,
     ) -> dict[str, Any]:
         """Run a bench test of ``kind`` (recorded like any other) and wait for it:
         ``wanted_s`` long at most the bench's duration limit. Returns its metadata
-        (with ``samples``: the whole run); DriverError when it does not complete."""
+        (with ``samples``: the whole run); DriverError when it does not complete, or
+        when it left the axis oscillating (the bench then brought it to rest and put
+        ``restore_gains`` back, default the gains in force when it started)."""
         limits = await self.bench.limits(entry.info.id)
         duration = min(limits.max_duration_s, wanted_s)
         started = await self.bench.start_run(
             entry.info.id,
             BenchTestRequest(kind=kind, distance=distance, duration_s=duration, note=note),
+            restore_gains=restore_gains,
         )
         run_id: str = started["id"]
         deadline = self.clock() + duration + RUN_GRACE_S
@@ -193,5 +199,8 @@ class TuningContext:
             if run["status"] != "recording":
                 if run["status"] != "complete":
                     raise DriverError(f"test {run_id} {run['status']}: {run.get('message')}")
+                left = run.get("left_oscillating")
+                if left:
+                    raise DriverError(f"test {run_id}: {left['message']}")
                 return await self.bench.get_run(run_id) if samples else run
         raise DriverError(f"test {run_id} did not finish")

@@ -22,6 +22,7 @@ from servotune.autotune.slap2 import Slap2Tuner
 from servotune.autotune.z1100 import Z1100Tuner
 from servotune.compute import ComputePool
 from servotune.drivers.base import (
+    ConfirmationRequiredError,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -32,7 +33,9 @@ from servotune.drivers.base import (
 from servotune.drivers.z1100 import Z1100Axis
 from servotune.hub import Hub
 from servotune.hub_state import AxisEntry
+from servotune.stops import Settled, gains_of
 from servotune.testbench import TestBench
+from servotune.tuning.predicted import unstable_reason
 
 
 class DeviceTuner(Protocol):
@@ -170,8 +173,25 @@ class AutoTuner:
                     # The fit or the record could not support a model: nothing refused.
                     raise MeasurementError(message) from exc
                 raise DeviceRefusedError(message) from exc
+            settled = await self._settle(entry, "auto-tune identification")
+            if settled is not None:
+                self._set(session, "failed", settled.message)
+                raise DeviceRefusedError(settled.message)
             self._set(session, "proposed", tuner.proposed_message(body))
             return body
+
+    async def _settle(self, entry: AxisEntry, reason: str) -> Settled | None:
+        """Nothing an auto-tune step set going is left oscillating (the hub's stop
+        service): the gains it had found, else the last verified ones, are put back."""
+        gains = gains_of(entry.driver.descriptor, entry.device_values)
+        restore = self._hub.verified_gains.get(entry.info.id, gains)
+        try:
+            return await self._hub.stops.settle_check(
+                entry.info.id, gains_now=gains, restore=restore, reason=reason
+            )
+        except DriverError as exc:
+            self._hub.on_event("error", entry.info.id, f"{reason}: after the step: {exc}")
+            return None
 
     async def _return_after_failure(
         self,
@@ -209,8 +229,12 @@ class AutoTuner:
 
     # --- accept and verify ------------------------------------------------------------
 
-    async def accept(self, axis_id: str) -> dict[str, Any]:
-        """Baseline test (previous gains), write the proposal, verification test."""
+    async def accept(self, axis_id: str, *, confirm_unstable: bool = False) -> dict[str, Any]:
+        """Baseline test (previous gains), write the proposal, verification test.
+
+        A proposal its own identified plant predicts unstable (``tuning.predicted``) is
+        refused (``ConfirmationRequiredError``, field ``confirm_unstable``) unless
+        ``confirm_unstable``."""
         entry, tuner = self._check_device(axis_id)
         lock = self._lock(axis_id)
         session = self._session(axis_id)
@@ -218,6 +242,17 @@ class AutoTuner:
         self._ctx.started(entry)
         tuner.check_accept(entry, session)
         self._ctx.check_idle(entry)
+        gains = (session.proposal_dict or {}).get("gains")
+        if not confirm_unstable and gains and session.model:
+            device = entry.info.device
+            why = await self._ctx.compute.run(unstable_reason, device, session.model, gains)
+            if why:
+                raise ConfirmationRequiredError(
+                    "confirm_unstable",
+                    f"the proposed gains: {why}. Accept them only if you mean it "
+                    "(confirm_unstable=true); the verification's axis is watched and "
+                    "braked if it oscillates, and the previous gains are put back",
+                )
         async with lock:
             previous = tuner.previous_gains(entry, session)
             result = await self._guarded_verify(
@@ -229,6 +264,7 @@ class AutoTuner:
             )
             if result.get("stopped"):
                 return result
+            self._hub.verified_gains[axis_id] = dict(result.get("gains") or {})
             self._set(session, "verified", tuner.verified_message(result))
             return result
 

@@ -382,8 +382,14 @@ class Slap2Tuner:
         gentle = self._spec(entry, "move", back, 0.0)
         await self._move_and_wait(entry, start, gentle.profile_time_s())
         ctx.hub.on_event("info", axis_id, "auto-tune: verification test with the new gains")
+        # Left oscillating, the run puts the previous gains back (and fails here).
         verification = await ctx.run_test(
-            entry, kind, spec.distance, duration, "auto-tune verification (proposed gains)"
+            entry,
+            kind,
+            spec.distance,
+            duration,
+            "auto-tune verification (proposed gains)",
+            restore_gains=proposal.current_gains.to_dict(),
         )
         await self._move_and_wait(entry, start, gentle.profile_time_s())
         measured = verification.get("metrics") or {}

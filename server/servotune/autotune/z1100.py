@@ -181,10 +181,22 @@ class Z1100Tuner:
         """Move back to ``target`` with the gains in use (after a failed identification)."""
         await self._return(entry, round(target))
 
-    async def _run_test(self, entry: AxisEntry, distance: int, note: str) -> dict[str, Any]:
+    async def _run_test(
+        self,
+        entry: AxisEntry,
+        distance: int,
+        note: str,
+        restore_gains: dict[str, int] | None = None,
+    ) -> dict[str, Any]:
         profile = self._profile(entry, distance)
         return await self._ctx.run_test(
-            entry, "move", distance, profile.time_s() + TEST_RECORD_S, note, samples=True
+            entry,
+            "move",
+            distance,
+            profile.time_s() + TEST_RECORD_S,
+            note,
+            samples=True,
+            restore_gains=restore_gains,
         )
 
     async def _return(self, entry: AxisEntry, target: int) -> None:
@@ -254,8 +266,12 @@ class Z1100Tuner:
         kabd = gains.kabd()
         await hub.write_params(axis_id, {"kabd_k": kabd.k, "kabd_a": kabd.a, "kabd_b": kabd.b})
         hub.on_event("info", axis_id, "auto-tune: verification test with the new gains")
+        # Left oscillating, the run puts the previous gains back (and fails here).
         verification = await self._run_test(
-            entry, distance, "auto-tune verification (proposed gains)"
+            entry,
+            distance,
+            "auto-tune verification (proposed gains)",
+            restore_gains=kab_dict(proposal.current, proposal.current_kabd),
         )
         await self._return(entry, start)
         measured = verification.get("metrics") or {}

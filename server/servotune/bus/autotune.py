@@ -78,11 +78,12 @@ class HubAutoTuner(AutoTuner):
         )
         return result if isinstance(result, dict) else {}
 
-    async def accept(self, axis_id: str) -> dict[str, Any]:
+    async def accept(self, axis_id: str, *, confirm_unstable: bool = False) -> dict[str, Any]:
         axis = self._remote(axis_id)
         if axis is None:
-            return await super().accept(axis_id)
-        result = await self._forward(axis, axis_id, subjects.AUTOTUNE_ACCEPT, {})
+            return await super().accept(axis_id, confirm_unstable=confirm_unstable)
+        args: dict[str, object] = {"confirm_unstable": True} if confirm_unstable else {}
+        result = await self._forward(axis, axis_id, subjects.AUTOTUNE_ACCEPT, args)
         return result if isinstance(result, dict) else {}
 
     async def revert(self, axis_id: str) -> dict[str, int]:

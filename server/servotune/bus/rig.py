@@ -656,7 +656,8 @@ class RigAgent:
         if verb == subjects.AUTOTUNE_IDENTIFY:
             result = await tuner.identify(axis_id, limits)
         elif verb == subjects.AUTOTUNE_ACCEPT:
-            result = await tuner.accept(axis_id)
+            confirm = request.args.get("confirm_unstable") is True
+            result = await tuner.accept(axis_id, confirm_unstable=confirm)
         else:
             result = dict(await tuner.revert(axis_id))
         return _reply(ok=True, result={"result": result, "session": tuner.session(axis_id)})

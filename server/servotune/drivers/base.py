@@ -25,6 +25,15 @@ class DeviceRefusedError(DriverError):
     """The device (or the server on its behalf) refused a command; ``str`` says why."""
 
 
+class ConfirmationRequiredError(DeviceRefusedError):
+    """Refused until the user confirms (HTTP 409 naming ``field``, the flag that
+    confirms), e.g. gains predicted unstable; nothing was sent."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
 class LinkDownError(DriverError):
     """The link is not connected; nothing was sent."""
 
@@ -96,6 +105,24 @@ class CommandOutcome:
     outcome_pending: bool = False
 
 
+# What an axis does after a stop went out (``StopOutcome.action``):
+#   hold: brought to rest under power by its loop, and holding there;
+#   brake: braking without its loop (SLAP2: the winding shorted), to be switched off
+#          once at rest (the caller does that: ``StopModes.power_off``);
+#   power_off: unpowered (it may still coast to rest);
+#   ramp: ramping down by itself, then unpowered by the drive's own sequence (EP7047).
+StopAction = Literal["hold", "brake", "power_off", "ramp"]
+
+
+@dataclass(frozen=True, slots=True)
+class StopOutcome:
+    """What a stop sent and what the axis does now (see ``StopAction``)."""
+
+    sent: list[str]
+    action: StopAction
+    message: str = ""
+
+
 class DriverSink(Protocol):
     """Callbacks from a link's owner task to the hub. They must not block."""
 
@@ -155,8 +182,42 @@ class AxisDriver(Protocol):
         """
         ...
 
-    async def stop(self) -> None:
-        """Stop this axis; goes to the wire ahead of every queued poll or command."""
+    async def stop(self) -> StopOutcome | None:
+        """STOP: bring the axis to rest in the shortest distance the device allows with
+        its loop working, then into the device's safe state; never powers a motor that
+        is unpowered. Goes to the wire ahead of every queued poll or command. (Where
+        the loop is not working the hub cuts the power instead, ``StopModes``.)"""
+        ...
+
+
+@runtime_checkable
+class StopModes(Protocol):
+    """Optional for an axis: its stops besides STOP (docs/control.md, "Stops").
+
+    Every method goes to the wire ahead of everything queued (like ``stop``) and fails
+    the axis' queued motion.
+    """
+
+    async def controlled_stop(self) -> StopOutcome:
+        """To rest under power, then keep holding there (IEC 60204-1 category 2): every
+        stop that is not the STOP button (a jog release, a hand-over, the dead-man, the
+        end of a bench run). Never powers a motor that is unpowered."""
+        ...
+
+    async def power_off(self) -> StopOutcome:
+        """Cut the motor's power at once (category 0), whatever the axis does."""
+        ...
+
+    async def brake(self) -> StopOutcome:
+        """Stop as short as the device can without its position loop (the loop is not
+        working), ending unpowered or braking (``action``); a device without such a
+        brake powers off (``power_off``)."""
+        ...
+
+    async def hold_here(self) -> StopOutcome:
+        """Power the motor and hold where the shaft is (after gains were restored on an
+        axis that was brought to rest unpowered). Powers a motor: only for a sequence
+        the user started with control of the axis (a bench run, an auto-tune step)."""
         ...
 
 

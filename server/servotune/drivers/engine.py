@@ -170,6 +170,10 @@ class LinkEngine(abc.ABC):
         """The descriptor all axes of this link share (set as ``_descriptor``)."""
         return self._descriptor
 
+    def now(self) -> float:
+        """The link's clock (the times of its samples and latches)."""
+        return self._clock()
+
     @property
     def errors(self) -> int:
         """Wire errors since start: timeouts, bad echoes or checksums, stray bytes."""
@@ -350,6 +354,14 @@ class LinkEngine(abc.ABC):
         self._wakeup.set()
         result = await future
         return result  # type: ignore[return-value]
+
+    async def _let_stops_pass(self) -> None:
+        """Run the urgent jobs (STOPs) waiting now, inside a long job that has no motion
+        of its own (a write or read of several parameters), between two of its
+        exchanges: a STOP then waits for one exchange, not for the whole job. The job
+        goes on afterwards (its exchanges select their module again as needed)."""
+        while self._urgent:
+            await self._run_job(self._urgent.popleft())
 
     @property
     def urgent_pending(self) -> bool:

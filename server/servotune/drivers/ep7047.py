@@ -99,6 +99,7 @@ from servotune.drivers.base import (
     InvalidArgumentError,
     LinkDownError,
     Sample,
+    StopOutcome,
     check_console_line,
 )
 from servotune.drivers.ep7047_cycle import _CycleThread
@@ -396,10 +397,11 @@ class Ep7047Axis(AxisDriver):
         checked = self._check_args(name, args)
         link = self._link
         if name == "stop":
-            await self.stop()
-            return CommandOutcome(
-                ["Emergency stop", "Execute off", "Enable off at standstill"], "STOP sent"
-            )
+            stopped = await self.stop()
+            return CommandOutcome(stopped.sent, "STOP sent")
+        if name == "power_off":
+            stopped = await self.power_off()
+            return CommandOutcome(stopped.sent, stopped.message)
         if name == "emergency_stop":
             await link.submit(link.new_request(_Kind.EMERGENCY_STOP))
             return CommandOutcome(["Emergency stop"], "emergency stop sent")
@@ -496,9 +498,39 @@ class Ep7047Axis(AxisDriver):
             if parameter_obj == obj:
                 self._link._sink.on_params(self.id, {name: value}, "read")
 
-    async def stop(self) -> None:
+    # --- stops (drivers.base.StopModes; docs/control.md "Stops") ----------------------
+
+    async def stop(self) -> StopOutcome:
+        """STOP: the emergency ramp on the next cycle, then Enable off (category 1: a
+        stepper's safe state is unpowered)."""
         link = self._link
         await link.submit(link.new_request(_Kind.STOP))
+        return StopOutcome(
+            ["Emergency stop", "Execute off", "Enable off at standstill"],
+            "ramp",
+            "emergency ramp, then Enable off",
+        )
+
+    async def controlled_stop(self) -> StopOutcome:
+        """The emergency ramp with Enable kept on: the motor holds where it stops."""
+        link = self._link
+        await link.submit(link.new_request(_Kind.EMERGENCY_STOP))
+        return StopOutcome(["Emergency stop"], "hold", "emergency ramp, then holding (Enable on)")
+
+    async def power_off(self) -> StopOutcome:
+        """Enable off: the driver stage unpowers the motor at once (category 0)."""
+        link = self._link
+        await link.submit(link.new_request(_Kind.DISABLE))
+        return StopOutcome(["Enable off"], "power_off", "Enable off: motor unpowered")
+
+    async def brake(self) -> StopOutcome:
+        """A stepper has no position loop to fail: its STOP ramp is its brake."""
+        return await self.stop()
+
+    async def hold_here(self) -> StopOutcome:
+        link = self._link
+        await link.submit(link.new_request(_Kind.ENABLE))
+        return StopOutcome(["Enable on"], "hold", "Enable on: holding torque")
 
     # --- demo autopilot (drivers.base.Autopilot) ----------------------------------------
 

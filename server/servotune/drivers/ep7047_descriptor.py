@@ -27,6 +27,8 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    JogDescriptor,
+    JogPress,
     ParameterConstraint,
     ParameterDescriptor,
     PlotDescriptor,
@@ -207,6 +209,12 @@ def console_rules() -> list[ConsoleRule]:
 
 def _hex(code: int) -> str:
     return f"0x{code:04X}"
+
+
+def _jog_press(start_type: StartType) -> JogPress:
+    """A jog direction: an endless move at 2000 bp (20 % of the speed range)."""
+    args = {"target": 0, "velocity": 2000, "acceleration_ms": 500, "deceleration_ms": 500}
+    return JogPress(command="execute_move", args={"start_type": int(start_type), **args})
 
 
 def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDescriptor:
@@ -705,6 +713,15 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             group="stop",
         ),
         CommandDescriptor(
+            name="power_off",
+            label="Power off",
+            description=(
+                "Enable off at once, whatever the axis does (stop category 0): the motor "
+                "is unpowered, a moving axis stops abruptly and may lose steps."
+            ),
+            group="stop",
+        ),
+        CommandDescriptor(
             name="emergency_stop",
             label="Emergency stop",
             description=(
@@ -875,7 +892,16 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             summary="EP7047: emergency ramp, then no holding torque",
             motor_powered=False,
             sends="Emergency stop output on the next cycle, then Enable off",
+            category=1,
+            loop_failed="an open-loop stepper: no position loop to fail, the ramp as always",
+            power_off_command="power_off",
             gentler=["emergency_stop", "halt"],
+        ),
+        jog=JogDescriptor(
+            minus=_jog_press(StartType.ENDLESS_MINUS),
+            plus=_jog_press(StartType.ENDLESS_PLUS),
+            release="halt",
+            title="Hold: endless move at 2000 bp; release halts with the move's deceleration",
         ),
         constraints=[
             ParameterConstraint(

@@ -123,7 +123,7 @@ LINE_ERROR_SPAN_S = 0.9
 REFUSAL_HINTS = {
     "ma": "a move needs position mode: switch on 'Position mode' (pm) first",
     "mr": "a move needs position mode: switch on 'Position mode' (pm) first",
-    "pg": "pg is refused while position or velocity mode is on: press STOP first",
+    "pg": "pg is refused while position or velocity mode is on: Power off (st) first",
     "cal": "the module could not start the calibration",
     "ca": "the module could not start the calibration",
 }
@@ -170,7 +170,7 @@ class _ModuleState:
     cycles: int = 0
     hex_mode: bool = False
     ucon: bool = False
-    expected_mode: str = "unknown"  # off | pm | vm | unknown
+    expected_mode: str = "unknown"  # off | pm | vm | pwm | unknown
     known: dict[str, int] = field(default_factory=dict)
     verify_index: int = 0
     samples: deque[float] = field(default_factory=lambda: deque(maxlen=512))
@@ -535,6 +535,7 @@ class Slap2Link(Slap2Wire):
     async def _read_params(self, module: _ModuleState) -> dict[str, int]:
         values: dict[str, int] = {}
         for parameter in self._descriptor.parameters:
+            await self._let_stops_pass()
             values[parameter.name] = await self._read_int(module.address, parameter.read_command)
         self._learn_syscon(module, values.get("syscon"))
         module.known.update(values)
@@ -552,6 +553,7 @@ class Slap2Link(Slap2Wire):
     ) -> dict[str, int]:
         readback: dict[str, int] = {}
         for name, value in values.items():
+            await self._let_stops_pass()
             parameter = self._descriptor.parameter(name)
             command = codec.make_set(command_mnemonic(parameter.set_command), value)
             try:
@@ -1077,8 +1079,16 @@ class Slap2Link(Slap2Wire):
         return readback
 
     async def op_execute(
-        self, address: int, commands: list[codec.Command], *, urgent: bool = False
+        self,
+        address: int,
+        commands: list[codec.Command],
+        *,
+        urgent: bool = False,
+        stop: bool | None = None,
     ) -> list[str]:
+        """Run ``commands`` on module ``address`` as one job. ``stop`` (default: the
+        commands contain ``st``) fails the module's queued motion first and makes the
+        job urgent (``LinkEngine.submit``)."""
         module = self._modules[address]
 
         async def job() -> list[str]:
@@ -1089,7 +1099,7 @@ class Slap2Link(Slap2Wire):
                 self._track_mode(module, command.text)
             return sent
 
-        is_stop = any(c.text == "st" for c in commands)
+        is_stop = any(c.text == "st" for c in commands) if stop is None else stop
         return await self.submit(job, urgent=urgent, axis=address, motion=True, stop=is_stop)
 
     async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None:
@@ -1151,10 +1161,11 @@ class Slap2Link(Slap2Wire):
             module.expected_mode = "off"
         elif mnemonic in ("pm", "vm"):
             module.expected_mode = mnemonic
-        elif mnemonic in ("spwm", "cal", "ca"):
+        elif mnemonic == "spwm":
+            module.expected_mode = "pwm"
+        elif mnemonic in ("cal", "ca"):
             module.expected_mode = "unknown"
-            if mnemonic != "spwm":
-                module.cal_seen = False  # a new calibration clears the flag until it ends
+            module.cal_seen = False  # a new calibration clears the flag until it ends
         elif mnemonic in PARAM_SETTERS:
             module.known.pop(PARAM_SETTERS[mnemonic], None)
 

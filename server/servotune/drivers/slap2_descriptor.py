@@ -19,6 +19,9 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    JogDescriptor,
+    JogPress,
+    LoopSignals,
     MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
@@ -209,14 +212,20 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="velocity",
             label="Velocity (sv)",
             unit="sv",
-            minimum=-codec.VELOCITY_MAX,
+            # The manual defines sv as a speed ("maximale Verfahrgeschwindigkeit/
+            # Motordrehzahl", an rpm by its formula) and never gives it a sign; its own
+            # way to drive the other way is pm + ma to a negative position. A negative
+            # sv is refused here (field error), nothing sent; Jog ◀ reverses.
+            minimum=0,
             maximum=codec.VELOCITY_MAX,
             default=2000,
             persisted=True,
             group="profile",
             description=(
-                "Profile velocity of moves (sign ignored), or the speed and direction in "
-                "velocity mode (may change while running). rpm = SV x 140.417 / lines."
+                "Profile velocity of moves, and the speed of velocity mode (may change "
+                "while running). A speed, never negative (the manual gives it no sign): "
+                "to turn the other way, move or jog to lower positions. "
+                "rpm = SV x 140.417 / lines."
             ),
             set_command="sv{value}",
             read_command="rv",
@@ -224,7 +233,6 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                 Conversion(unit="rpm", factor=rpm_per_sv, digits=1),
                 Conversion(unit="counts/s", factor=counts_s_per_sv, digits=0),
             ],
-            slider_minimum=-20000,
             slider_maximum=20000,
         ),
         ParameterDescriptor(
@@ -469,9 +477,30 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             name="stop",
             label="STOP",
             description=(
-                "st: controller off, motor unpowered at once; leaves pm, vm and spwm. The "
-                "shaft coasts: a vertical or loaded axis drops. Use Stop and hold to keep "
-                "the position under power."
+                "Shortest stop, then holds: in velocity mode pm, in position mode st + pm "
+                "- the loop holds the position where the shaft is, braking with the full "
+                "supply. Open-loop PWM or a coasting shaft: spwm 0 (winding shorted), st "
+                "once at rest. An unpowered motor is never powered: st only. A loop that "
+                "is not working (oscillating, error growing, current limit held) is not "
+                "trusted to hold: spwm 0, then st."
+            ),
+            group="stop",
+        ),
+        CommandDescriptor(
+            name="power_off",
+            label="Power off (st)",
+            description=(
+                "st: controller off, motor unpowered at once (stop category 0); leaves "
+                "pm, vm and spwm. The shaft coasts: a vertical or loaded axis drops."
+            ),
+            group="stop",
+        ),
+        CommandDescriptor(
+            name="jog_stop",
+            label="Decelerate and hold",
+            description=(
+                "Ends a jog or a move: ma to where the running profile stops with sa, "
+                "then holds there (no return). Without a known profile: as STOP."
             ),
             group="stop",
         ),
@@ -502,6 +531,30 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             description="vm: controller on, accelerates with sa to sv at once.",
             group="mode",
             active_flag="vm",
+        ),
+        CommandDescriptor(
+            name="jog",
+            label="Jog",
+            description=(
+                "Hold to run: pm (unless on), then ma towards the end of the range in the "
+                "direction, at sv and sa; the release decelerates with sa and holds."
+            ),
+            group="motion",
+            hold_to_run=True,
+            arguments=[
+                ArgumentDescriptor(
+                    name="direction",
+                    label="Direction",
+                    minimum=-1,
+                    maximum=1,
+                    default=1,
+                    required=True,
+                    choices=[
+                        Choice(value=1, label="+", description="towards positive counts (E2)"),
+                        Choice(value=-1, label="−", description="towards negative counts (E1)"),
+                    ],
+                )
+            ],
         ),
         CommandDescriptor(
             name="move_absolute",
@@ -630,10 +683,32 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             rules=console_rules(),
         ),
         stop=StopEffect(
-            summary="SLAP2: motor unpowered at once - a vertical axis drops",
-            motor_powered=False,
-            sends="st (ahead of anything queued)",
-            gentler=["hold"],
+            summary="SLAP2: brakes at full power in pm and holds there",
+            motor_powered=True,
+            sends="pm (from vm) or st + pm (from pm), ahead of anything queued",
+            category=2,
+            loop_failed="loop not working: spwm 0 (winding shorted), st once at rest",
+            power_off_command="power_off",
+            gentler=["jog_stop", "hold"],
+        ),
+        loop=LoopSignals(
+            position_channel="position",
+            following_error_channel="following_error",
+            moving_flags=["move", "vm"],
+            reference_channel="setpoint",
+            current_limit_flag="oc",
+            closed_loop_flags=["pm", "vm"],
+            # ~18° of a 2048-count revolution: far above the ringing of a loop that
+            # works (a few tens of counts), far below the loaded module's limit cycle
+            # with the factory gains (±1900).
+            oscillation_counts=100,
+            rest_velocity=200,
+        ),
+        jog=JogDescriptor(
+            minus=JogPress(command="jog", args={"direction": -1}),
+            plus=JogPress(command="jog", args={"direction": 1}),
+            release="jog_stop",
+            title="Hold to run at sv (pm + ma); release decelerates with sa and holds",
         ),
         autotune=True,
         twin=TwinDescriptor(

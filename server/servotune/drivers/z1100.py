@@ -677,6 +677,7 @@ class Z1100Link(LinkEngine):
             assert isinstance(gains, codec.Gains)
             values.update({f"{prefix}_k": gains.k, f"{prefix}_a": gains.a, f"{prefix}_b": gains.b})
         for name, (_, getter) in _SCALAR_PARAMS.items():
+            await self._let_stops_pass()
             values[name] = int(await self._get_int(getter, axis))
         self._motors[axis].known.update(values)
         return values
@@ -697,6 +698,7 @@ class Z1100Link(LinkEngine):
             if not any(n in values for n in names):
                 continue
             k, a, b = (values.get(n, motor.known.get(n, 0)) for n in names)
+            await self._let_stops_pass()
             await self._request(codec.make_set_kab(axis, k, a, b, moving=moving))
             for read_prefix, command in (
                 ("kabh", codec.Command.GET_KABH),
@@ -715,6 +717,7 @@ class Z1100Link(LinkEngine):
             if name not in _SCALAR_PARAMS:
                 continue
             setter, getter = _SCALAR_PARAMS[name]
+            await self._let_stops_pass()
             await self._request(codec.Request(setter + axis, int(value)))
             readback[name] = await self._get_int(getter, axis)
         motor.known.update(readback)
@@ -747,7 +750,11 @@ class Z1100Link(LinkEngine):
         *,
         urgent: bool = False,
         starts: bool = False,
+        stop: bool | None = None,
     ) -> list[str]:
+        """Send ``requests`` for motor ``axis`` as one job; ``stop`` (default: an Estop
+        among them) fails the motor's queued motion first and makes it urgent."""
+
         async def job() -> list[str]:
             sent = []
             for request in requests:
@@ -762,7 +769,9 @@ class Z1100Link(LinkEngine):
                 self._motors[axis].running = True
             return sent
 
-        is_stop = any(r.command is codec.Command.SET_ESTOP for r in requests)
+        is_stop = (
+            any(r.command is codec.Command.SET_ESTOP for r in requests) if stop is None else stop
+        )
         return await self.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
 
     async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:

@@ -21,6 +21,7 @@ from servotune.drivers.base import (
     DeviceRefusedError,
     InvalidArgumentError,
     Sample,
+    StopOutcome,
 )
 from servotune.drivers.engine import EngineAxis
 from servotune.drivers.z1100_descriptor import MOVING_COMMANDS
@@ -106,6 +107,8 @@ class Z1100Axis(EngineAxis, AxisDriver):
         axis = self._axis
         if name == "stop":
             return [codec.make_estop([axis])]
+        if name == "power_off":
+            return [codec.make_set_job(axis, codec.Job.FREE)]
         if name == "decelerate":
             return [codec.make_stop([axis])]
         if name == "go_to_target":
@@ -131,6 +134,9 @@ class Z1100Axis(EngineAxis, AxisDriver):
         raise InvalidArgumentError("command", f"unknown command {name!r}")
 
     async def command(self, name: str, args: Mapping[str, int]) -> CommandOutcome:
+        if name in ("stop", "power_off"):
+            outcome = await (self.stop() if name == "stop" else self.power_off())
+            return CommandOutcome(outcome.sent, outcome.message)
         motor = self._link.motor(self._axis)
         if name in MOVING_COMMANDS and motor.running:
             raise DeviceRefusedError(
@@ -154,8 +160,44 @@ class Z1100Axis(EngineAxis, AxisDriver):
     async def console(self, line: str) -> tuple[str, list[str]]:
         return await self._link.op_console(self._axis, line)
 
-    async def stop(self) -> None:
-        await self._link.op_requests(self._axis, [codec.make_estop([self._axis])], urgent=True)
+    # --- stops (drivers.base.StopModes; docs/control.md "Stops") ----------------------
+
+    async def stop(self) -> StopOutcome:
+        """Estop: the reference jumps to where the shaft is and the servo brakes as hard
+        as it can, then holds (the chip's shortest stop); a free shaft stays free."""
+        motor = self._link.motor(self._axis)
+        sent = await self._link.op_requests(
+            self._axis, [codec.make_estop([self._axis])], urgent=True
+        )
+        if motor.job in (codec.Job.TARGET, codec.Job.VELOCITY) and not motor.stall:
+            return StopOutcome(sent, "hold", "stopped at once: holding under power")
+        return StopOutcome(sent, "power_off", "the motor is unpowered (free shaft)")
+
+    async def controlled_stop(self) -> StopOutcome:
+        """The chip's shortest stop already holds (``stop``)."""
+        return await self.stop()
+
+    async def power_off(self) -> StopOutcome:
+        """Job 0: motor power off at once, the shaft turns freely (allowed while moving)."""
+        sent = await self._link.op_requests(
+            self._axis,
+            [codec.make_set_job(self._axis, codec.Job.FREE)],
+            urgent=True,
+            stop=True,
+        )
+        return StopOutcome(sent, "power_off", "motor power off (Job 0: free shaft)")
+
+    async def brake(self) -> StopOutcome:
+        """No brake without the loop on this chip: power off."""
+        return await self.power_off()
+
+    async def hold_here(self) -> StopOutcome:
+        """Job 2 (go to target) without Start: the servo engages holding where the shaft
+        is (the job alone moves nothing)."""
+        sent = await self._link.op_requests(
+            self._axis, [codec.make_set_job(self._axis, codec.Job.TARGET)]
+        )
+        return StopOutcome(sent, "hold", "holding under power (Job 2)")
 
     def capture(self, reason: str) -> contextlib.AbstractAsyncContextManager[None]:
         """``drivers.base.Capturer``: the line polls this motor only while open."""

@@ -18,6 +18,9 @@ from servotune.descriptor import (
     Conversion,
     DeviceDescriptor,
     FlagDescriptor,
+    JogDescriptor,
+    JogPress,
+    LoopSignals,
     MoveTarget,
     ParameterDescriptor,
     PlotDescriptor,
@@ -364,6 +367,15 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             ),
         ),
         CommandDescriptor(
+            name="power_off",
+            label="Power off",
+            group="stop",
+            description=(
+                "Job 0 at once (allowed while moving): motor power off, the shaft turns "
+                "freely (stop category 0). Clears errors."
+            ),
+        ),
+        CommandDescriptor(
             name="decelerate",
             label="Stop (decelerate)",
             group="motion",
@@ -469,7 +481,27 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             summary="Z1100: hard stop at once, then holds under power",
             motor_powered=True,
             sends="Estop for this motor (ahead of anything queued)",
+            category=2,
+            loop_failed="loop not working: Job 0, motor power off at once",
+            power_off_command="power_off",
             gentler=["decelerate"],
+        ),
+        loop=LoopSignals(
+            position_channel="position",
+            following_error_channel="following_error",
+            moving_flags=["running"],
+            # The chip's target, not position + error: GetError is read at another
+            # moment than GetEncoder, so their sum scatters with a fast oscillation.
+            reference_channel="target",
+            # ~18° of a 2048-count revolution, as for the SLAP2.
+            oscillation_counts=100,
+            rest_velocity=200,
+        ),
+        jog=JogDescriptor(
+            minus=JogPress(command="constant_velocity", args={"direction": 0}),
+            plus=JogPress(command="constant_velocity", args={"direction": 1}),
+            release="decelerate",
+            title="Hold to run at Vmax; release decelerates with Acc and holds",
         ),
         autotune=True,
         twin=TwinDescriptor(

@@ -57,7 +57,10 @@ FACTORY_DEFAULTS: Final[dict[str, int]] = {
     "sa": 1000,
 }
 # Accepted ranges. The manual gives none for sv/sa/scv/sca/sipw/sipt: 16 bits, the
-# decision shared with the driver's codec. sv is signed: its sign is the vm direction.
+# decision shared with the driver's codec. sv is a speed without a sign: the manual
+# defines it as the maximum travel velocity / motor speed (an rpm by its formula) and
+# never shows a negative one; its own way to drive towards E1 is pm + ma -8000000. So
+# a negative sv is refused (uc) and velocity mode turns towards positive counts.
 SETTING_RANGES: Final[dict[str, tuple[int, int]]] = {
     "kp": (0, 32767),
     "ki": (0, 32767),
@@ -68,7 +71,7 @@ SETTING_RANGES: Final[dict[str, tuple[int, int]]] = {
     "sca": (0, 65535),
     "scl": (0, 2000),
     "syscon": (0, 63),
-    "sv": (-65535, 65535),
+    "sv": (0, 65535),
     "sa": (0, 65535),
 }
 

@@ -343,7 +343,9 @@ export class Controls {
     const watch = descriptor.plots.find((p) => p.kind === "line")?.series[0];
     const groups = new Map<CommandDescriptor["group"], HTMLElement[]>();
     for (const cmd of descriptor.commands) {
-      if (aborts.has(cmd.name) || cmd.group === "persist") continue;
+      // A hold-to-run command (the jog) only ever goes out from the jog buttons, whose
+      // release stops it: a plain button would start it with nothing to end it.
+      if (aborts.has(cmd.name) || cmd.group === "persist" || cmd.hold_to_run) continue;
       let widget: HTMLElement;
       const only = cmd.arguments.length === 1 ? cmd.arguments[0] : undefined;
       if (cmd.abort_command) {
@@ -366,14 +368,20 @@ export class Controls {
     }
     // Short groups first so the wide motion group wraps as a whole.
     const order: CommandDescriptor["group"][] = ["stop", "mode", "calibration", "other", "motion"];
-    // What this device's STOP does (a SLAP2 axis goes unpowered and may drop), and the
-    // gentler stops it offers, at the stop group.
-    const gentler = descriptor.stop.gentler.map((n) => byName.get(n)?.label ?? n);
+    // What this device's STOP does now (shortest stop, then its safe state), what it does
+    // instead when the loop is not working, and the gentler stops, at the stop group.
+    const stop = descriptor.stop;
+    const gentler = stop.gentler.map((n) => byName.get(n)?.label ?? n);
+    const categories = ["power cut at once", "controlled stop, then power off", "controlled stop, holds under power"];
     groups.get("stop")?.push(
       h(
         "div",
-        { class: "stop-effect", testid: "stop-effect" },
-        descriptor.stop.summary + (gentler.length ? `. Gentler: ${gentler.join(", ")}.` : "."),
+        {
+          class: "stop-effect",
+          testid: "stop-effect",
+          title: `STOP sends ${stop.sends}: stop category ${stop.category} (${categories[stop.category]}).${stop.power_off_command ? ` ${byName.get(stop.power_off_command)?.label ?? stop.power_off_command} cuts the power at once.` : ""}`,
+        },
+        stop.summary + (stop.loop_failed ? `; ${stop.loop_failed}` : "") + (gentler.length ? `. Gentler: ${gentler.join(", ")}.` : "."),
       ),
     );
     const boxes = order

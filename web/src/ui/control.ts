@@ -6,43 +6,76 @@ import "./control.css";
 import { api, reauthenticate, setClientId } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../wire.gen";
-import type { WsClient, WsMessage } from "../ws";
+import { type WsClient, type WsMessage, wsUrl } from "../ws";
 import { showError } from "./feedback";
 
 const CONTROL_TYPES = new Set(["welcome", "control_status", "control_prompt", "control_reply"]);
 
-/** Heartbeat ticks from a worker: a hidden tab's own timers are throttled to 1 Hz by the
- * browser, which would let the lease (300 ms) lapse while the operator reads another
- * tab; a dedicated worker's timer is not throttled that way. Falls back to setInterval. */
-class Ticker {
+/** The tab's heartbeats (docs/control.md, "The dead-man"): a dedicated worker sends
+ * them on a websocket of its own (``/ws?beat=<client id>``), so a page busy drawing on a
+ * loaded machine does not delay them (its timers are not throttled when the tab is
+ * hidden either). The page tells the worker it is alive on every tick; the worker reports
+ * how long ago that was (``page_age_ms``): a frozen page (it could not release a jog)
+ * loses its axes after the server's ``frozen_page_s``. Until the worker's socket is open,
+ * or where workers are not available, the page sends the heartbeats itself. */
+class Heartbeats {
   private worker: Worker | null = null;
   private timer: number | undefined;
   private running = false;
 
-  constructor(private readonly tick: () => void) {
+  constructor(private readonly fallback: () => void) {
     try {
-      const source = "let t; onmessage = (e) => { clearInterval(t); if (e.data > 0) t = setInterval(() => postMessage(0), e.data); };";
+      const source = `
+        let ws = null, timer = 0, alive = 0, url = "", holding = false;
+        const open = () => {
+          const socket = new WebSocket(url);
+          ws = socket;
+          socket.onclose = () => { if (ws === socket) { ws = null; if (timer) setTimeout(() => timer && !ws && open(), 500); } };
+        };
+        const beat = () => {
+          const age = holding ? Math.max(0, Math.round(performance.now() - alive)) : null;
+          if (ws && ws.readyState === 1) ws.send(JSON.stringify({ type: "heartbeat", page_age_ms: age }));
+          else postMessage("fallback");
+        };
+        onmessage = (e) => {
+          const m = e.data;
+          if (m.kind === "alive") { alive = performance.now(); return; }
+          if (m.kind === "hold") { holding = m.on; alive = performance.now(); return; }
+          clearInterval(timer); timer = 0;
+          if (ws) { const old = ws; ws = null; old.close(); }
+          if (m.kind === "start") { url = m.url; alive = performance.now(); open(); timer = setInterval(beat, m.period); }
+        };`;
       const url = URL.createObjectURL(new Blob([source], { type: "text/javascript" }));
       this.worker = new Worker(url);
-      this.worker.onmessage = () => this.tick();
+      this.worker.onmessage = () => this.fallback();
     } catch {
       this.worker = null;
     }
   }
 
-  start(periodMs: number): void {
-    if (this.running) return;
+  start(periodMs: number, beatUrl: string): void {
+    this.stop();
     this.running = true;
-    this.tick();
-    if (this.worker) this.worker.postMessage(periodMs);
-    else this.timer = window.setInterval(this.tick, periodMs);
+    this.fallback();
+    if (this.worker) {
+      this.worker.postMessage({ kind: "start", url: beatUrl, period: periodMs });
+      this.timer = window.setInterval(() => this.worker?.postMessage({ kind: "alive" }), periodMs);
+    } else {
+      this.timer = window.setInterval(this.fallback, periodMs);
+    }
   }
 
   stop(): void {
     if (!this.running) return;
     this.running = false;
-    if (this.worker) this.worker.postMessage(0);
+    this.worker?.postMessage({ kind: "stop" });
     window.clearInterval(this.timer);
+  }
+
+  /** A hold-to-run control (a jog) is engaged or let go: only while one is, the worker
+   * reports the page's age, and a frozen page loses its axes (it could not release). */
+  holding(on: boolean): void {
+    this.worker?.postMessage({ kind: "hold", on });
   }
 }
 
@@ -55,7 +88,7 @@ export class ControlState {
   readonly prompts = new Map<string, ControlPrompt & { until: number }>();
   private ws: WsClient | null = null;
   private readonly listeners = new Set<Listener>();
-  private readonly ticker = new Ticker(() => this.ws?.send({ type: "heartbeat" }));
+  private readonly ticker = new Heartbeats(() => this.ws?.send({ type: "heartbeat", page_age_ms: null }));
   private promptHost: HTMLElement | null = null;
 
   attach(ws: WsClient): void {
@@ -110,6 +143,14 @@ export class ControlState {
     return true;
   }
 
+  private held = 0;
+
+  /** A jog button was pressed (+1) or released (-1) in this tab. */
+  holdToRun(delta: 1 | -1): void {
+    this.held = Math.max(0, this.held + delta);
+    this.ticker.holding(this.held > 0);
+  }
+
   mine(axis: string): boolean {
     const holder = this.status.get(axis)?.holder;
     return !!holder && !!this.welcome && holder.client_tag === this.welcome.client_tag;
@@ -150,8 +191,10 @@ export class ControlState {
    * (explicit, or implicit by a change) must not wait for the first one. */
   private syncTicker(): void {
     const canHold = this.may("control") || this.may("force_control");
-    if (canHold && this.welcome) this.ticker.start(this.welcome.heartbeat_period_s * 1000);
-    else this.ticker.stop();
+    if (canHold && this.welcome) {
+      const beatUrl = `${wsUrl()}?beat=${encodeURIComponent(this.welcome.client_id)}`;
+      this.ticker.start(this.welcome.heartbeat_period_s * 1000, beatUrl);
+    } else this.ticker.stop();
   }
 
   private emit(axis: string | null): void {
@@ -186,40 +229,29 @@ export const control = new ControlState();
 interface JogSpec {
   label: string;
   title: string;
+  side: "minus" | "plus";
   press: [string, Record<string, number>];
   release: string;
 }
 
-/** Hold-to-run jog from the descriptor's velocity-like commands, if it has any. */
+/** Hold-to-run jog both ways, from the descriptor's ``jog`` (the device's own way of
+ * reversing; the release is a controlled stop that holds). */
 function jogSpecs(d: DeviceDescriptor): JogSpec[] {
-  const has = (name: string): boolean => d.commands.some((c) => c.name === name);
-  if (has("constant_velocity") && has("decelerate")) {
-    const title = "Hold to run at Vmax; release (or leave the page) decelerates";
-    return [
-      { label: "◀ jog", title, press: ["constant_velocity", { direction: 0 }], release: "decelerate" },
-      { label: "jog ▶", title, press: ["constant_velocity", { direction: 1 }], release: "decelerate" },
-    ];
-  }
-  if (has("velocity_mode") && has("stop")) {
-    return [{ label: "jog (vm)", title: "Hold: velocity mode at sv; release (or leave the page) stops", press: ["velocity_mode", {}], release: "stop" }];
-  }
-  if (has("execute_move") && has("halt")) {
-    const move = (startType: number): [string, Record<string, number>] => ["execute_move", { start_type: startType, target: 0, velocity: 2000, acceleration_ms: 500, deceleration_ms: 500 }];
-    const title = "Hold: endless move at 2000 bp; release (or leave the page) halts";
-    return [
-      { label: "◀ jog", title, press: move(4), release: "halt" },
-      { label: "jog ▶", title, press: move(3), release: "halt" },
-    ];
-  }
-  return [];
+  const jog = d.jog;
+  if (!jog) return [];
+  return [
+    { label: "◀ jog", title: jog.title, side: "minus", press: [jog.minus.command, jog.minus.args], release: jog.release },
+    { label: "jog ▶", title: jog.title, side: "plus", press: [jog.plus.command, jog.plus.args], release: jog.release },
+  ];
 }
 
 function jogButton(axisId: string, spec: JogSpec, signal: AbortSignal): HTMLButtonElement {
-  const button = h("button", { class: "btn jog-hold", title: spec.title, testid: `jog-${spec.press[0]}-${spec.label.includes("◀") ? "minus" : "plus"}` }, spec.label);
+  const button = h("button", { class: "btn jog-hold", title: spec.title, testid: `jog-${spec.side}` }, spec.label);
   let active = false;
   const press = (): void => {
     if (active) return;
     active = true;
+    control.holdToRun(1);
     button.classList.add("engaged");
     const [name, args] = spec.press;
     api.command(axisId, name, args).catch((error: unknown) => showError(spec.label, error));
@@ -227,6 +259,7 @@ function jogButton(axisId: string, spec: JogSpec, signal: AbortSignal): HTMLButt
   const release = (): void => {
     if (!active) return;
     active = false;
+    control.holdToRun(-1);
     button.classList.remove("engaged");
     api.command(axisId, spec.release, {}).catch((error: unknown) => showError(`${spec.label}: release`, error));
   };

@@ -22,7 +22,7 @@ const NEEDS: [RegExp, string][] = [
   [/^console-(input|send|example-.+)$/, "console"],
   [/^(ps-save|ps-restore|ps-name|ps-note|ps-delete-.+)$/, "param_sets"],
 ];
-const ALWAYS_LIVE = /^(stop-all|cmd-(stop|halt|emergency_stop|decelerate|abort_calibration)|abort-.+)$/;
+const ALWAYS_LIVE = /^(stop-all|cmd-(stop|power_off|jog_stop|halt|emergency_stop|decelerate|abort_calibration)|abort-.+)$/;
 
 function neededPermission(testid: string): string | null {
   if (ALWAYS_LIVE.test(testid)) return null;
