@@ -113,6 +113,7 @@ class FaultKnobs:
     unprocessed_frames: int = 0  # the next n frames come back untouched (working counter 0)
     refuse_state: int = 0  # refuse requests for this AL state ...
     refuse_code: int = 0  # ... with this AL status code
+    answer_delay_us: int = 0  # every answer leaves this late (a slow slave, a long line)
 
 
 @dataclass(slots=True)
@@ -736,6 +737,8 @@ class WireSlave:
                 self.faults.drop_frames = int(request.get("count", 1))
             elif op == "unprocessed":
                 self.faults.unprocessed_frames = int(request.get("count", 1))
+            elif op == "delay":
+                self.faults.answer_delay_us = max(0, int(request.get("us", 0)))
             elif op == "refuse":
                 self.faults.refuse_state = int(request.get("state", 0))
                 self.faults.refuse_code = int(request.get("code", 0))
