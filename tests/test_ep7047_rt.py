@@ -9,7 +9,8 @@ pty work stuck was seen on this 2-core host). Each loop must sleep until its dea
 Measured here per state of the wire, over ``WINDOW_S`` each, from the kernel's own
 account (``/proc/PID/stat`` utime + stime): the cycle process idle (open, no cycle),
 cycling in OP, cycling with the cable pulled (every exchange waits in vain for its
-frame), and cycling with the slave killed; the slave idle and answering every frame.
+frame), with the interface deleted and with the slave killed; the slave idle, answering
+every frame, and with its interface gone.
 
 The bound, ``CPU_BOUND_CORES`` = 0.4 of a core: a loop that waits by spinning uses its
 core for the whole wait - at real-time priority that is 0.95 of a core (the kernel's
@@ -31,6 +32,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -151,6 +153,12 @@ def test_no_real_time_process_of_the_wire_spins_in_any_state(wire: Wire) -> None
             assert master.cycle_lost - lost >= 10
             wire.pair.set_master_link(True)
             time.sleep(0.5)
+            # The interface itself gone under both (a namespace torn down under them).
+            subprocess.run(["ip", "link", "del", wire.pair.master_if], check=True, timeout=10)
+            lost = master.cycle_lost
+            _check("cycling, interface deleted", cores_used(pids, WINDOW_S), pids, results)
+            assert master.cycle_lost - lost >= 10
+            assert wire.slave.process.poll() is None, "the slave ended with its interface"
             wire.slave.signal(signal.SIGKILL)
             wire.slave.process.wait(5)
             del pids["slave"]

@@ -13,6 +13,7 @@ master count lost frames that no wire lost.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -113,7 +114,12 @@ def _drain(sock: socket.socket, slave: WireSlave) -> None:
     while True:
         try:
             frame, address = sock.recvfrom(2048)
-        except OSError:  # nothing more (EAGAIN), or the interface went down (ENETDOWN)
+        except BlockingIOError:
+            return
+        except OSError as exc:  # the interface went down or away: reported once
+            if exc.errno != errno.ENETDOWN:
+                raise
+            logger.warning("%s: waiting for the interface", exc)
             return
         if address[2] == PACKET_OUTGOING or len(frame) < 16:
             continue
