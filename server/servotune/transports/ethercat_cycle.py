@@ -80,6 +80,7 @@ logger = logging.getLogger(__name__)
 
 SERVER_SILENCE_S: Final = 10.0
 SILENCE_LOGGED_S: Final = 0.5  # a silence this long is logged when it ends
+REQUEST_HELD_LOGGED_S: Final = 0.02  # a request that holds the cycle this long is logged
 REQUEST_TIMEOUT_S: Final = 5.0
 CYCLE_REPLY_TIMEOUT_S: Final = 1.0
 START_TIMEOUT_S: Final = 30.0
@@ -361,12 +362,17 @@ class _Child:
             self._close()
             self.rpc.send(("ok", None))
             return False
+        started = time.monotonic()
         try:
             result = self._do(op, args)
         except Exception as exc:
             reply: tuple[Any, ...] = ("error", *_error_reply(exc))
         else:
             reply = ("ok", result)
+        held_s = time.monotonic() - started
+        if self.cyclic and held_s > REQUEST_HELD_LOGGED_S:
+            # Between two cycles: no process data went out meanwhile.
+            logger.warning("%s held the cycle for %.0f ms", op, held_s * 1000)
         try:
             self.rpc.send(reply)
         except OSError:
