@@ -259,8 +259,8 @@ async def main(args: argparse.Namespace) -> int:
                     elif phase == "pulled":
                         pair.set_master_link(True)
                         back = time.monotonic()
-                        while link.state != "connected" and time.monotonic() - back < 60:
-                            await asyncio.sleep(0.05)  # noqa: ASYNC110 - the link's state
+                        while link.state != "connected" and time.monotonic() - back < 60:  # noqa: ASYNC110
+                            await asyncio.sleep(0.05)
                         print(f"(cable back: {link.state} after {time.monotonic() - back:.1f} s)")
             events = [e for e in sink.events if not e.startswith("info")]
             for event in events[-12:]:
