@@ -69,7 +69,9 @@ class Sink:
         pass
 
     def on_event(self, level: str, axis_id: str | None, message: str) -> None:
-        self.events.append(f"{level}: {message}")
+        # Wall-clock time: to match the slave's log and the cycle process's (stderr).
+        stamp = time.strftime("%H:%M:%S", time.gmtime()) + f".{int(time.time() * 1000) % 1000:03d}"
+        self.events.append(f"{stamp} {level}: {message}")
 
 
 def cpu_s(pid: int) -> float:
@@ -165,7 +167,7 @@ async def run_one(
             "watchdog_trips": slave.record()["watchdog_trips"] - trips_before,
             "cpu": cpu,
             "priority": getattr(master, "priority_text", ""),
-            "events": [e for e in sink.events if not e.startswith("info")],
+            "events": [e for e in sink.events if " info: " not in e],
         }
     finally:
         task.cancel()
@@ -214,6 +216,11 @@ async def main(args: argparse.Namespace) -> int:
                     print(f"  {event}", flush=True)
         if result.get("priority"):
             print(f"\n{result['priority']}")
+        # The slave's own account of every trip and state change (its log, timestamped).
+        log = Path(tmp) / "slave.log"
+        for line in log.read_text().splitlines() if log.exists() else []:
+            if "WARNING" in line or "ERROR" in line:
+                print(f"  slave: {line}", flush=True)
     return 0
 
 

@@ -13,6 +13,7 @@ master count lost frames that no wire lost.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -33,10 +34,18 @@ logger = logging.getLogger(__name__)
 SOL_PACKET: Final = 263  # linux/socket.h
 PACKET_IGNORE_OUTGOING: Final = 23  # linux/if_packet.h (Linux 4.20+)
 PACKET_OUTGOING: Final = 4
-# Above the cycle process (50): SOEM busy-waits for the answer at its own priority, and
-# a simulated slave below it on the same core could answer only after SOEM gave up (a
-# lost frame the wire never lost). The slave runs only when a frame arrives.
+# Real-time, above the cycle process (50): this stands in for hardware, which answers a
+# frame at once whatever the host does; below the cycle (SOEM answers its own frames in
+# between) or at normal priority under a CPU hog it answered late enough for SOEM to
+# count a lost frame no wire lost (soaks 1-3 of issue 27: 113-180 per 30 min at 40).
+# It never spins: the loop sleeps in select() until a frame, a control request or the
+# watchdog's deadline (at least WAIT_MIN_S away); tests/test_ep7047_rt.py measures it.
 RT_PRIORITY: Final = 60
+# The shortest wait for the watchdog's deadline: the drive steps in 250 us cycles and a
+# trip is judged at the cycle where it falls, so waking earlier than the next cycle
+# would only loop (a zero timeout at real-time priority is a busy loop).
+WAIT_MIN_S: Final = 0.00025
+WAIT_MAX_S: Final = 0.02
 
 
 def _open_socket(ifname: str) -> socket.socket:
@@ -80,7 +89,11 @@ def serve_wire(
         while not stop.is_set():
             deadline = slave.next_deadline_ns()
             now = time.monotonic_ns()
-            timeout = 0.02 if deadline is None else max(0.0, min(0.02, (deadline - now) / 1e9))
+            timeout = (
+                WAIT_MAX_S
+                if deadline is None
+                else min(WAIT_MAX_S, max(WAIT_MIN_S, (deadline - now) / 1e9))
+            )
             readable, _, _ = select.select(readers, [], [], timeout)
             if sock in readable:
                 _drain(sock, slave)
@@ -103,12 +116,20 @@ def _drain(sock: socket.socket, slave: WireSlave) -> None:
             frame, address = sock.recvfrom(2048)
         except BlockingIOError:
             return
+        except OSError as exc:  # the interface went down or away: reported once
+            if exc.errno != errno.ENETDOWN:
+                raise
+            logger.warning("%s: waiting for the interface", exc)
+            return
         if address[2] == PACKET_OUTGOING or len(frame) < 16:
             continue
         if frame[12:14] != b"\x88\xa4":
             continue
         payload = bytearray(frame[14:])
         if slave.frame(payload, time.monotonic_ns()):
+            delay_us = slave.faults.answer_delay_us
+            if delay_us:  # a slow slave: it sleeps (at its real-time priority: never spins)
+                time.sleep(delay_us / 1e6)
             with contextlib.suppress(OSError):  # the interface went down: the master sees it
                 sock.send(_reply_frame(frame, bytes(payload)))
 

@@ -52,6 +52,7 @@ import logging
 import mmap
 import multiprocessing
 import os
+import resource
 import select
 import signal
 import struct
@@ -79,10 +80,15 @@ logger = logging.getLogger(__name__)
 
 SERVER_SILENCE_S: Final = 10.0
 SILENCE_LOGGED_S: Final = 0.5  # a silence this long is logged when it ends
+REQUEST_HELD_LOGGED_S: Final = 0.02  # a request that holds the cycle this long is logged
 REQUEST_TIMEOUT_S: Final = 5.0
 CYCLE_REPLY_TIMEOUT_S: Final = 1.0
 START_TIMEOUT_S: Final = 30.0
 RT_PRIORITY: Final = 50
+# The spin guard (guard_realtime): CPU time at real-time priority without one blocking
+# call. A cycle blocks every period (its CPU is ~0.1 ms of each); 0.2 s of it is a bug.
+RT_SPIN_LIMIT_S: Final = 0.2
+RT_KILL_LIMIT_S: Final = 2.0
 # The shared latest cycle: seqlock counter (odd while written), seq, sent_t, wkc,
 # out_seq, lost, last_good_t, inputs length; then the inputs.
 _RECORD = struct.Struct("<QQdiQQdI")
@@ -98,11 +104,14 @@ _REPORTS_STATES: Final = frozenset(
 
 
 def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
-    """SCHED_FIFO ``priority`` for the calling thread (and threads it starts later);
-    (granted, what was granted or why not - for the log and the user)."""
+    """SCHED_FIFO ``priority`` for the calling thread (and threads it starts later), with
+    the spin guard (:func:`guard_realtime`) armed first; (granted, what was granted or
+    why not - for the log and the user). Call it from the main thread (the guard's
+    signal handler is installed there)."""
     try:
+        guard_realtime(what)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, AttributeError) as exc:
+    except (OSError, AttributeError, ValueError) as exc:
         try:
             os.setpriority(os.PRIO_PROCESS, 0, -10)
         except OSError:
@@ -113,7 +122,70 @@ def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
                 "so that a loaded host cannot delay the process data"
             )
         return False, f"{what} at nice -10: real-time scheduling was refused ({exc})"
-    return True, f"{what} at real-time priority (SCHED_FIFO {priority})"
+    text = f"{what} at real-time priority (SCHED_FIFO {priority})"
+    runtime_us = rt_runtime_us()
+    if runtime_us is not None and runtime_us < 0:
+        text += (
+            "; the kernel's real-time throttling is off (sched_rt_runtime_us = -1): only "
+            "the spin guard stands between a stuck real-time process and the host"
+        )
+    return True, text
+
+
+def raise_weight(what: str, nice: int) -> str:
+    """A larger share of the CPU at normal priority (nice ``nice``) for this process;
+    what was granted or why not."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except OSError as exc:
+        return f"{what} at normal priority ({exc}: nice {nice} needs CAP_SYS_NICE)"
+    return f"{what} at normal priority, nice {nice}"
+
+
+def rt_runtime_us() -> int | None:
+    """The kernel's real-time throttling budget per period (µs; -1: off; None: unknown)."""
+    try:
+        with open("/proc/sys/kernel/sched_rt_runtime_us") as file:
+            return int(file.read())
+    except (OSError, ValueError):
+        return None
+
+
+def guard_realtime(what: str) -> None:
+    """Arm the kernel's guard against a real-time process that spins: RLIMIT_RTTIME.
+
+    Every loop of ours at real-time priority sleeps until its deadline (a frame, a
+    period, a request), so none of them runs ``RT_SPIN_LIMIT_S`` without blocking; one
+    that does is a bug that starves every normal task on its core (the server, the
+    simulators, the kernel's own workers - a ``workqueue lockup`` with pty work stuck).
+    Then the kernel sends SIGXCPU: this process drops every thread to normal priority
+    and says so; a spin inside C code that never lets the handler run is ended by
+    SIGKILL at ``RT_KILL_LIMIT_S`` (the drive's own watchdog then stops the motor).
+    """
+    soft_us, hard_us = int(RT_SPIN_LIMIT_S * 1e6), int(RT_KILL_LIMIT_S * 1e6)
+
+    def demote(signum: int, frame: object) -> None:
+        drop_realtime()
+        logger.error(
+            "%s ran %.1f s at real-time priority without sleeping (a busy loop): it now "
+            "runs at normal priority",
+            what,
+            RT_SPIN_LIMIT_S,
+        )
+
+    signal.signal(signal.SIGXCPU, demote)
+    _, hard = resource.getrlimit(resource.RLIMIT_RTTIME)
+    if hard != resource.RLIM_INFINITY:
+        hard_us = min(hard_us, hard)
+    resource.setrlimit(resource.RLIMIT_RTTIME, (min(soft_us, hard_us), hard_us))
+
+
+def drop_realtime() -> None:
+    """Every thread of this process back to normal priority (SCHED_OTHER)."""
+    with contextlib.suppress(OSError):
+        for tid in os.listdir("/proc/self/task"):
+            with contextlib.suppress(OSError, ValueError):
+                os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
 
 
 def set_process_name(name: str) -> None:
@@ -290,12 +362,17 @@ class _Child:
             self._close()
             self.rpc.send(("ok", None))
             return False
+        started = time.monotonic()
         try:
             result = self._do(op, args)
         except Exception as exc:
             reply: tuple[Any, ...] = ("error", *_error_reply(exc))
         else:
             reply = ("ok", result)
+        held_s = time.monotonic() - started
+        if self.cyclic and held_s > REQUEST_HELD_LOGGED_S:
+            # Between two cycles: no process data went out meanwhile.
+            logger.warning("%s held the cycle for %.0f ms", op, held_s * 1000)
         try:
             self.rpc.send(reply)
         except OSError:
