@@ -90,13 +90,18 @@ def test_enumerated_parameter_accepts_only_its_codes() -> None:
 
 
 def test_every_device_names_its_stop_effect() -> None:
-    assert SLAP2.stop.motor_powered is False and "drops" in SLAP2.stop.summary
-    assert SLAP2.stop.gentler == ["hold"] and SLAP2.command("hold").group == "stop"
+    # STOP is the shortest safe stop (issue 24): the servos hold under power (cat. 2),
+    # the stepper ramps and drops Enable (cat. 1); cutting power is a command of its own.
+    assert SLAP2.stop.motor_powered is True and "holds" in SLAP2.stop.summary
+    assert SLAP2.stop.category == 2 and "spwm 0" in (SLAP2.stop.loop_failed or "")
+    assert SLAP2.stop.gentler == ["jog_stop", "hold"] and SLAP2.command("hold").group == "stop"
     assert Z1100.stop.motor_powered is True and Z1100.stop.gentler == ["decelerate"]
-    assert EP7047.stop.motor_powered is False
+    assert EP7047.stop.motor_powered is False and EP7047.stop.category == 1
     for descriptor in (SLAP2, Z1100, EP7047):
         for name in descriptor.stop.gentler:
             descriptor.command(name)  # exists
+        assert descriptor.stop.power_off_command is not None
+        assert descriptor.command(descriptor.stop.power_off_command).group == "stop"
         for constraint in descriptor.constraints:
             descriptor.parameter(constraint.lower), descriptor.parameter(constraint.upper)
 

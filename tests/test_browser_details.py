@@ -28,11 +28,16 @@ async def test_console_says_no_reply_and_shows_the_refusal(
     await console.press("Enter")
     await expect(output.get_by_test_id("console-no-reply")).to_have_count(1, timeout=5000)
     await expect(output.get_by_test_id("console-refusal")).to_have_count(0)
-    await console.fill("zz")  # no such command: the module sets uc
+    await console.fill("cal 9")  # calibration modes are 0..5: the module sets uc
     await console.press("Enter")
     last = output.locator(".con-entry").last
     await expect(last).to_contain_text("refused", timeout=5000)
     await expect(last).to_contain_text("uc")
+    await expect(last).to_have_class("con-entry error")
+    await console.fill("zz")  # no such command: the console does not send it at all
+    await console.press("Enter")
+    last = output.locator(".con-entry").last
+    await expect(last).to_contain_text("not sent", timeout=5000)
     await expect(last).to_have_class("con-entry error")
 
 
@@ -72,7 +77,7 @@ async def test_an_overview_tile_opens_its_axis(
     # What STOP does is on each tile, at any width (the top bar shows it only when wide).
     await page.set_viewport_size({"width": 390, "height": 844})
     stop = page.get_by_test_id("tile-stop-line-1")
-    await expect(stop).to_contain_text("STOP: SLAP2: motor unpowered")
+    await expect(stop).to_contain_text("STOP: SLAP2: brakes at full power in pm and holds")
     await expect(stop).to_be_in_viewport()
     await page.wait_for_timeout(600)  # the rail slides into its drawer
     await page.screenshot(path=str(ARTIFACTS / "overview-phone.png"))
