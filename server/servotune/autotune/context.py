@@ -178,12 +178,16 @@ class TuningContext:
         *,
         samples: bool = False,
         restore_gains: dict[str, int] | None = None,
+        oscillation_is_a_result: bool = False,
     ) -> dict[str, Any]:
         """Run a bench test of ``kind`` (recorded like any other) and wait for it:
         ``wanted_s`` long at most the bench's duration limit. Returns its metadata
         (with ``samples``: the whole run); DriverError when it does not complete, or
         when it left the axis oscillating (the bench then brought it to rest and put
-        ``restore_gains`` back, default the gains in force when it started)."""
+        ``restore_gains`` back, default the gains in force when it started) unless
+        ``oscillation_is_a_result`` (a baseline of gains that may oscillate: the run,
+        with its ``left_oscillating``, is returned; the axis is at rest, maybe
+        unpowered)."""
         limits = await self.bench.limits(entry.info.id)
         duration = min(limits.max_duration_s, wanted_s)
         started = await self.bench.start_run(
@@ -200,7 +204,7 @@ class TuningContext:
                 if run["status"] != "complete":
                     raise DriverError(f"test {run_id} {run['status']}: {run.get('message')}")
                 left = run.get("left_oscillating")
-                if left:
+                if left and not oscillation_is_a_result:
                     raise DriverError(f"test {run_id}: {left['message']}")
                 return await self.bench.get_run(run_id) if samples else run
         raise DriverError(f"test {run_id} did not finish")

@@ -368,9 +368,24 @@ class Slap2Tuner:
         duration = spec.profile_time_s() + TEST_RECORD_S
         if proposal.default_excursion <= session.request.max_distance_counts:
             ctx.hub.on_event("info", axis_id, "auto-tune: baseline test with the previous gains")
+            # The previous gains may be the reason for the auto-tune (the loaded demo
+            # axis' factory gains limit-cycle): a baseline they leave oscillating is a
+            # result to compare with, not a failure; the bench has braked the axis.
             baseline = await ctx.run_test(
-                entry, kind, spec.distance, duration, "auto-tune baseline (previous gains)"
+                entry,
+                kind,
+                spec.distance,
+                duration,
+                "auto-tune baseline (previous gains)",
+                oscillation_is_a_result=True,
             )
+            if baseline.get("left_oscillating"):
+                ctx.hub.on_event(
+                    "warning",
+                    axis_id,
+                    "auto-tune: the previous gains left the axis oscillating (the baseline "
+                    "is recorded so); verifying the proposal",
+                )
         else:
             baseline_note = (
                 f"baseline skipped: the previous gains are predicted to travel "
@@ -378,6 +393,10 @@ class Slap2Tuner:
             )
             ctx.hub.on_event("warning", axis_id, f"auto-tune: {baseline_note}")
         await ctx.hub.write_params(axis_id, proposal.gains.to_dict())
+        if not entry.latest or not entry.latest.flags.get("pm"):
+            # Braked and unpowered after an oscillating baseline: the loop comes back
+            # on with the proposed gains, never with the ones that oscillated.
+            await ctx.command(entry, "position_mode", {})
         back = start - round(ctx.position(entry.latest)) or 1
         gentle = self._spec(entry, "move", back, 0.0)
         await self._move_and_wait(entry, start, gentle.profile_time_s())
