@@ -3,7 +3,8 @@ its axis (issue 24: no false dead-man stops under load).
 
 ``python -m servotune demo`` runs as a subprocess (autopilot on for the other axes:
 their plots keep the page drawing), a page holds one SLAP2 axis (Take control) and
-stays idle for ``SERVOTUNE_DEADMAN_SOAK_S`` seconds (30 min by default) while one busy
+stays idle for ``SERVOTUNE_DEADMAN_SOAK_S`` seconds (60 s in the suite; the issue's soak is
+``SERVOTUNE_DEADMAN_SOAK_S=1800``) while one busy
 process per core runs. Asserted: no dead-man stop of that axis and the page still holds
 it at the end. Printed (``-s``): the load, how often and how long the page's own thread
 was held off (a 100 ms interval timer in the page: gaps over the lease are where the
@@ -27,7 +28,7 @@ from .test_browser import CHROMIUM, CHROMIUM_ARGS
 
 pytestmark = pytest.mark.slow
 
-SOAK_S = float(os.environ.get("SERVOTUNE_DEADMAN_SOAK_S", "1800"))
+SOAK_S = float(os.environ.get("SERVOTUNE_DEADMAN_SOAK_S", "60"))
 AXIS = "demo-slap2-1"
 LEASE_MS = 350
 
