@@ -256,7 +256,8 @@ async def test_what_a_hub_session_the_dead_man_ended_sent_is_not_run(
         assert taken and reply["ok"], reply
         assert wire.bus.module(0).rss & VM
         silent = time.monotonic()  # no keep-alive from now on: the dead-man's lease
-        await wait_for(lambda: wire.first("st", 0, silent) is not None, 3, "the dead-man's STOP")
+        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        await wait_for(lambda: wire.first("pm", 0, silent) is not None, 3, "the dead-man's STOP")
         await keepalive()  # too late: does not revive the session
         t0 = time.monotonic()
         taken, reply = await rig_request(

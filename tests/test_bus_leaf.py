@@ -289,8 +289,9 @@ async def test_motion_started_from_the_hub_stops_when_the_leaf_link_is_cut(
         assert agent.connected
         await leaf.proxy.cut()
         cut = time.monotonic()
-        await wait_for(lambda: wire.first("st", 0, cut) is not None, 3, "st on rig-a's wire")
-        stopped_at = wire.first("st", 0, cut)
+        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        await wait_for(lambda: wire.first("pm", 0, cut) is not None, 3, "pm on rig-a's wire")
+        stopped_at = wire.first("pm", 0, cut)
         assert stopped_at is not None
         assert not wire.bus.module(0).rss & VM
         # The rig's connection to its own nats-server never went down: the keep-alives

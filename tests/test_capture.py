@@ -159,7 +159,9 @@ async def test_stop_during_capture_goes_first(tmp_path: Path) -> None:
                 done = sum(1 for job in queued if job.done())
                 assert done <= 1
                 await asyncio.gather(*queued)
-                assert not bus.module(1).rss & (1 << 3)  # pm off: the stop reached it
+                # The stop reached it: STOP in pm is st + pm (issue 24), so the module
+                # was switched off and holds again where the shaft stood.
+                assert bus.module(1).rss & (1 << 3) and not bus.module(1).rss & (1 << 4)
 
 
 async def test_captured_move_carries_the_reconstructed_setpoint(tmp_path: Path) -> None:

@@ -100,10 +100,12 @@ async def test_a_ringing_axis_shows_no_false_setpoint(tmp_path: Path) -> None:
         assert len(offsets) > n // 2, "the reconstruction should give most samples"
         assert max(abs(o) for o in offsets) <= 2000
         assert sorted(abs(o) for o in offsets)[len(offsets) // 2] <= 1, offsets[-20:]
-        await axis.stop()
+        # The axis' own STOP would hold it in pm, ringing with these gains (the hub's
+        # stop service brakes that; this test has no hub): unpowered, it coasts to rest.
+        await axis.power_off()
         await asyncio.sleep(0.5)
         # A console move: no reconstruction; rp + pe only while pe is steady.
         offsets, n = await _ring(axis, sink, console=True)
         wrong = [o for o in offsets if abs(o) > 2 * STEADY_ERROR_COUNTS]
         assert not wrong, f"{len(wrong)} of {len(offsets)} setpoints off the target: {wrong[:10]}"
-        await axis.stop()
+        await axis.power_off()

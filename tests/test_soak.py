@@ -95,9 +95,9 @@ def _device_stopped(device: str, record: dict[str, Any]) -> list[str]:
     """What in a simulator's record says the device is not (yet) stopped."""
     problems: list[str] = []
     data = record["device"]
-    if device == "slap2":  # st: controller off, motor unpowered
+    if device == "slap2":  # STOP holds in pm where the shaft is (issue 24), or braked off
         for module in data["modules"]:
-            if module["vm"] or module["pm"] or module["moving"] or module["pwm"]:
+            if module["vm"] or module["moving"] or module["pwm"]:
                 problems.append(f"SLAP2 module {module['address']}: {module}")
     elif device == "z1100":  # stop: decelerate to standstill
         for axis in data["axes"]:
@@ -111,7 +111,7 @@ def _device_stopped(device: str, record: dict[str, Any]) -> list[str]:
 
 
 STOPPED_FLAGS = {
-    "slap2": ("pm", "vm", "move"),
+    "slap2": ("vm", "move"),
     "z1100": ("running",),
     "ep7047": ("busy", "enable_out", "execute_out"),
 }

@@ -58,7 +58,13 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
     off = await stopbench.measure(plant, "power off")
     stop = await stopbench.measure(plant, "STOP")
     assert abs(off.speed_counts_s) > 20_000 and abs(stop.speed_counts_s) > 20_000, (off, stop)
-    assert stop.distance_counts <= ratio * off.distance_counts, (stop, off)
+    # Two trials never start at quite the same speed (a limit cycle is pressed near its
+    # peak as the host sees it): the distance per unit of starting speed is compared
+    # (a stopping time: the same at any speed for a damped stop, shorter for a coast
+    # that friction ends, so the comparison never favours the STOP).
+    stop_s = stop.distance_counts / abs(stop.speed_counts_s)
+    off_s = off.distance_counts / abs(off.speed_counts_s)
+    assert stop_s <= ratio * off_s, (stop, off)
     assert stop.time_s is not None and off.time_s is not None
     assert stop.time_s <= off.time_s, (stop, off)
     if plant.state == "limit cycle":
