@@ -13,8 +13,3 @@ The identification, the models, the controller laws and their simulation are the
 shared core in ``servotune.tuning`` (also used by the frequency response and the
 what-if view); nothing there imports this package.
 """
-
-from servotune.autotune.service import AutoTuner
-from servotune.autotune.session import IdentifyRequest
-
-__all__ = ["AutoTuner", "IdentifyRequest"]
