@@ -15,7 +15,7 @@ its previous read (which bounds the change within one transaction as long as the
 does not swing back and forth between two reads); once the profile has ended, only
 when the position is steady as well (a resting axis; a ringing one moves by hundreds of
 counts between two polls). Else nothing. A driver that can reconstruct the profile
-(SLAP2: the moves it commanded, ``slap2_capture``) uses that instead.
+(SLAP2: the moves it commanded, ``devices.slap2.capture``) uses that instead.
 """
 
 from __future__ import annotations

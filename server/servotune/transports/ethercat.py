@@ -4,7 +4,7 @@
 This is the EtherCAT counterpart of ``transports/base.py``'s byte channel: the driver
 (``servotune.devices.ep7047.link``, which re-exports every public name here) talks to a
 master through it, and the simulators (``servotune.devices.ep7047.sim.slave``,
-``ep7047_process``) implement it, so they import this module and no driver code.
+``devices.ep7047.sim.process``) implement it, so they import this module and no driver code.
 Imports: the standard library (pysoem lazily, only for real hardware).
 """
 

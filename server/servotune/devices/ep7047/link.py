@@ -27,9 +27,9 @@ The owner: one cycle thread
 
 Modules (one layer each, every one using only those before it; this module re-exports
 the public names): ``transports.ethercat`` the library seam (protocols, errors, state values,
-pysoem adapter); ``ep7047_jobs`` requests, the cycle state and ``_LinkCore`` (status,
-posts from the thread to the loop, sample batches); ``ep7047_commands``
-``_CommandCycle`` (the command handshakes); ``ep7047_cycle`` ``_CycleThread`` (bring-up,
+pysoem adapter); ``devices.ep7047.requests`` requests, the cycle state and ``_LinkCore`` (status,
+posts from the thread to the loop, sample batches); ``devices.ep7047.handshakes``
+``_CommandCycle`` (the command handshakes); ``devices.ep7047.cycle`` ``_CycleThread`` (bring-up,
 exchange, SDO slots, samples, shutdown); here ``Ep7047Link`` (the event-loop side),
 ``Ep7047Axis`` (parameters, commands, console, bench planner) and the glue.
 

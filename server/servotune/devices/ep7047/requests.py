@@ -1,8 +1,8 @@
 """The EP7047-1032 driver's requests, the cycle thread's state and the plumbing between
 the event loop and the cycle thread (``_LinkCore``: status, the thread-to-loop posts,
 the sample batches). See ``servotune.devices.ep7047.link`` for the design; the link class
-is assembled there from ``_LinkCore`` < ``_CommandCycle`` (``ep7047_commands``) <
-``_CycleThread`` (``ep7047_cycle``) < ``Ep7047Link``, each layer using only those below.
+is assembled there from ``_LinkCore`` < ``_CommandCycle`` (``devices.ep7047.handshakes``) <
+``_CycleThread`` (``devices.ep7047.cycle``) < ``Ep7047Link``, each layer using only those below.
 """
 
 from __future__ import annotations

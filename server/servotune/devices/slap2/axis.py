@@ -190,7 +190,7 @@ class Slap2Axis(EngineAxis, AxisDriver):
     def jog_stop_target(self, now_s: float) -> int | None:
         """Where the running move's profile comes to rest decelerating with its own sa,
         if the ``ma`` went out now (pure: the reconstructed profile of the move the
-        driver sent, ``slap2_capture``); None when no profile is known."""
+        driver sent, ``devices.slap2.capture``); None when no profile is known."""
         track = self._link.module_state(self._address).profile.track
         if track is None:
             return None

@@ -15,11 +15,11 @@ The codec is two modules, cut where the frame ends and its meaning begins:
   positions, limits, errors; the typed value of any Get), the Stm unit, and the
   ``make_*`` request builders, each of which checks its ranges.
 
-This module may import ``z1100_wire`` and the standard library, nothing else of
-servotune; ``z1100_wire`` never imports this module. The drivers, the simulator and
+This module may import ``devices.z1100.frame`` and the standard library, nothing else of
+servotune; ``devices.z1100.frame`` never imports this module. The drivers, the simulator and
 the tests import the codec as a whole from here
 (``from servotune.devices.z1100 import codec``), so every public name of
-``z1100_wire`` is re-exported below (see ``__all__``).
+``devices.z1100.frame`` is re-exported below (see ``__all__``).
 """
 
 from __future__ import annotations

@@ -7,14 +7,14 @@ ENDLESS, the halt and emergency ramps, settling into In-Target) and the calibrat
 runs - and the modes and phases both halves use. The modulo rule itself
 (``modulo_travel``) is in ``servotune.devices.ep7047.modulo``, shared with the driver.
 
-Why this seam: ``ep7047_engine`` is the drive's face - the edges of the outputs, the
+Why this seam: ``devices.ep7047.sim.engine`` is the drive's face - the edges of the outputs, the
 cycle and its fast paths, the SDO objects and the inputs image - and calls in here;
 nothing here reads the outputs' control bits, the edge memory or the inputs. The two
 are one object (the engine inherits this class), so the state the methods share is
 declared below and set by ``Ep7047Engine.__init__``.
 
 Imports: ``servotune.devices.ep7047.codec``, ``servotune.devices.ep7047.modulo`` and
-``servotune.devices.ep7047.sim.plant`` only, never ``ep7047_engine``. Imported by:
+``servotune.devices.ep7047.sim.plant`` only, never ``devices.ep7047.sim.engine``. Imported by:
 ``servotune.devices.ep7047.sim.engine`` and the tests.
 """
 

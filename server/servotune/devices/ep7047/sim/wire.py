@@ -1,15 +1,15 @@
 """A SIMULATED EP7047-1032 on a real Ethernet interface: an EtherCAT slave that a real
 master (SOEM through pysoem) brings up and drives.
 
-Layers: ``ep7047_esc`` (the slave controller: registers, datagrams, SyncManagers,
-FMMUs, EEPROM, watchdog), ``ep7047_coe`` (object dictionary, PDO mapping, SDO server,
+Layers: ``sim.ethercat_esc`` (the slave controller: registers, datagrams, SyncManagers,
+FMMUs, EEPROM, watchdog), ``devices.ep7047.sim.coe`` (object dictionary, PDO mapping, SDO server,
 written from the spec and the manual), here the application that joins them to the
 existing drive simulation (``Ep7047Engine`` and ``StepperPlant``): the AL state machine
 with its status codes, the mailbox, the process data and the watchdog, then the socket
 loop (:func:`serve_wire`, ``servotune sim ep7047 --ifname IF``).
 
 Independence from the driver's codec: the process image's layout and every CoE
-address come from ``ep7047_coe``; the engine's model types (``Inputs``, ``Outputs``,
+address come from ``devices.ep7047.sim.coe``; the engine's model types (``Inputs``, ``Outputs``,
 ``PosSettings`` and the flag enums of ``servotune.devices.ep7047.codec``) are used only by
 *name* to translate between mapped objects and the engine (0x6020:01 is the engine's
 ``Busy``). Where each object sits on the wire is decided here, so a wrong bit, offset
