@@ -32,14 +32,14 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash, build_slap2_bus
-from servotune.drivers.base import Sample
-from servotune.drivers.engine import LinkEngine
-from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.link.base import Sample
+from servotune.link.engine import LinkEngine
+from servotune.schema import AxisHealth, EventLevel, LinkState
 from servotune.sim.process import SerialSimSpec, serial_sim_process
-from servotune.sim.z1100 import Z1100Chip
 from servotune.transports.serial import SerialConnector
-from servotune.wire import AxisHealth, EventLevel, LinkState
 
 Z1100_BAUD = 38400
 

@@ -31,10 +31,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from servotune.drivers.base import Sample
-from servotune.drivers.ep7047 import build_ep7047_link
-from servotune.sim.ep7047_process import ProcessMaster, ep7047_sim_process
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.devices.ep7047.link import build_ep7047_link
+from servotune.devices.ep7047.sim.process import ProcessMaster, ep7047_sim_process
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.link.base import Sample
 
 
 class CountingSink:

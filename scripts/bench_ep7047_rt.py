@@ -43,10 +43,10 @@ from typing import Any
 
 from bench_ep7047_wire import CLOCK_TICKS, Sink, cpu_s, hog  # scripts/ is this script's directory
 
-from servotune.drivers.ep7047 import PysoemMaster, build_ep7047_link
-from servotune.protocols.ep7047 import StartType
-from servotune.sim.ep7047_netns import netns_problem, slave_process, veth_pair
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.devices.ep7047.codec import StartType
+from servotune.devices.ep7047.link import PysoemMaster, build_ep7047_link
+from servotune.devices.ep7047.sim.netns import netns_problem, slave_process, veth_pair
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 KERNEL_TROUBLE = re.compile(

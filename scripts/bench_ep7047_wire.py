@@ -38,11 +38,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from servotune.drivers.base import Sample
-from servotune.drivers.ep7047 import PysoemMaster, build_ep7047_link
-from servotune.protocols.ep7047 import VELOCITY_MAX, StartType
-from servotune.sim.ep7047_netns import netns_problem, slave_process, veth_pair
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.devices.ep7047.codec import VELOCITY_MAX, StartType
+from servotune.devices.ep7047.link import PysoemMaster, build_ep7047_link
+from servotune.devices.ep7047.sim.netns import netns_problem, slave_process, veth_pair
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.link.base import Sample
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")

@@ -23,10 +23,10 @@ import threading
 import time
 from pathlib import Path
 
-from servotune.bench import _CountingSink
 from servotune.config import LinkSpec
 from servotune.demo import ep7047_demo_slave, slap2_demo_line, z1100_demo_line
 from servotune.links import build_link
+from servotune.perf.link_rate import _CountingSink
 
 
 def _thread_cpu_s(native_id: int) -> float:

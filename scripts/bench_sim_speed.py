@@ -23,8 +23,8 @@ import os
 import sys
 import time
 
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
 
 
 def _send(bus: Slap2Bus, text: str) -> None:

@@ -34,7 +34,7 @@ import urllib.request
 import uuid
 from typing import Any
 
-from servotune.bench_demo import cpu_hog, demo_server, get_json
+from servotune.perf.demo import cpu_hog, demo_server, get_json
 
 STOP_AXIS = "demo-ep7047-1"
 RUN_AXIS = "demo-slap2-1"

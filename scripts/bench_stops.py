@@ -3,7 +3,7 @@
     .venv/bin/python scripts/bench_stops.py [--only slap2|z1100|ep7047] [--rounds N]
 
 Starts each simulated device with its real driver and a real hub (one fresh rig per
-run, see ``servotune.stopbench``), brings one axis to top speed or into a limit cycle,
+run, see ``servotune.perf.stops``), brings one axis to top speed or into a limit cycle,
 presses STOP (or the explicit power-off: SLAP2 st, Z1100 Job 0, EP7047 Enable off)
 and records the shaft as the simulator sees it until it is at rest. Prints a markdown
 table (the one in docs/control.md) and the events each STOP logged. The figures
@@ -17,7 +17,7 @@ import asyncio
 import os
 import sys
 
-from servotune import stopbench
+from servotune.perf import stops as stopbench
 
 
 def main() -> None:

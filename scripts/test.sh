@@ -14,7 +14,7 @@ echo "==> ruff"
 "$VENV/bin/ruff" format --check server tests
 echo "==> mypy"
 "$VENV/bin/mypy"
-echo "==> generated TypeScript wire types are current"
-"$VENV/bin/python" -m servotune.wire_ts --check web/src/wire.gen.ts
+echo "==> generated TypeScript schema types are current"
+"$VENV/bin/python" -m servotune.schema_ts --check web/src/schema.gen.ts
 echo "==> pytest"
 "$VENV/bin/pytest" "$@"

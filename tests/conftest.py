@@ -16,13 +16,13 @@ import pytest
 
 # One BLAS thread (servotune.tuning.threads): set before anything loads numpy.
 import servotune.tuning.threads  # noqa: F401
-from servotune.drivers.base import Sample
-from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.base import Sample
+from servotune.schema import AxisHealth, EventLevel, LinkState
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
-from servotune.wire import AxisHealth, EventLevel, LinkState
 
 
 @pytest.fixture(autouse=True)

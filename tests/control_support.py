@@ -32,10 +32,10 @@ from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
-from servotune.control import CLIENT_HEADER, ControlSettings
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.hub.control_lock import CLIENT_HEADER, ControlSettings
+from servotune.sim.pty import PtySimulator
 
 from .conftest import use_csrf_token
 

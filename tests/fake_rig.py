@@ -27,8 +27,8 @@ import nats
 from servotune import __version__
 from servotune.bus import subjects
 from servotune.bus.messages import ACK_HEADER, RemoteAxisInfo, RemoteLinkInfo, RigManifest
-from servotune.drivers.slap2_descriptor import slap2_descriptor
-from servotune.wire import AxisInfo, LinkInfo
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.schema import AxisInfo, LinkInfo
 
 # The fake link's status, as a rig's link publishes it.
 LINK_STATUS = {

@@ -1,7 +1,7 @@
 """The namespace, veth pair and wire-slave process for the EP7047 wire tests: they live
-in ``servotune.sim.ep7047_netns`` (the demo and the benchmark use them too)."""
+in ``servotune.devices.ep7047.sim.netns`` (the demo and the benchmark use them too)."""
 
-from servotune.sim.ep7047_netns import (
+from servotune.devices.ep7047.sim.netns import (
     SlaveProcess,
     VethPair,
     netns_problem,

@@ -18,8 +18,8 @@ import websockets
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
-from servotune.control import ControlSettings
-from servotune.sim.serial_sim import PtySimulator
+from servotune.hub.control_lock import ControlSettings
+from servotune.sim.pty import PtySimulator
 
 from .conftest import running_simulator, use_csrf_token, wait_for
 

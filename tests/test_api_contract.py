@@ -14,13 +14,13 @@ import pytest
 
 from servotune.api.app import AppConfig, create_app
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import InvalidArgumentError
-from servotune.drivers.ep7047_descriptor import ep7047_descriptor
-from servotune.drivers.slap2_descriptor import slap2_descriptor
-from servotune.drivers.validation import validate_command, validate_params
-from servotune.drivers.z1100_descriptor import z1100_descriptor
-from servotune.hub_state import UnknownAxisError
-from servotune.wire import AxisInfo
+from servotune.devices.ep7047.descriptor import ep7047_descriptor
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.devices.z1100.descriptor import z1100_descriptor
+from servotune.hub.state import UnknownAxisError
+from servotune.link.base import InvalidArgumentError
+from servotune.link.validation import validate_command, validate_params
+from servotune.schema import AxisInfo
 
 from .conftest import local_client, use_csrf_token
 

@@ -30,12 +30,12 @@ from servotune.auth.routes_table import command_permission, console_permission
 from servotune.auth.security import AUTH_DB
 from servotune.demo import z1100_demo_line
 from servotune.descriptor import UnknownConsoleLineError
-from servotune.drivers.ep7047_descriptor import ep7047_descriptor
-from servotune.drivers.slap2_descriptor import slap2_descriptor
-from servotune.drivers.z1100_descriptor import z1100_descriptor
-from servotune.protocols import ep7047 as ep7047_codec
-from servotune.protocols import z1100 as z1100_codec
-from servotune.sim.slap2 import Slap2Module
+from servotune.devices.ep7047 import codec as ep7047_codec
+from servotune.devices.ep7047.descriptor import ep7047_descriptor
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100 import codec as z1100_codec
+from servotune.devices.z1100.descriptor import z1100_descriptor
 
 from .auth_helpers import make_accounts
 from .conftest import wait_for

@@ -13,7 +13,7 @@ import httpx
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.middleware import MAX_BODY_BYTES, MAX_UPLOAD_BYTES
-from servotune.runio import MAX_IMPORT_BYTES
+from servotune.bench.files import MAX_IMPORT_BYTES
 
 from .auth_helpers import client, exposed_app, login, running
 from .conftest import local_client, use_csrf_token

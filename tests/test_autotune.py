@@ -21,25 +21,25 @@ from typing import Any
 
 import pytest
 
-from servotune.autotune import AutoTuner
-from servotune.autotune.slap2_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
+from servotune.autotune.service import AutoTuner
 from servotune.autotune.verdict import verdict
+from servotune.bench.metrics import compute_metrics, unmeasured
 from servotune.demo import SLAP2_LOADED
-from servotune.drivers.base import DeviceRefusedError
-from servotune.metrics import compute_metrics, unmeasured
-from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.sim.physics import DcMotorParams
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
-from servotune.sim.slap2_control import TICK_S
-from servotune.tuning.devices.slap2 import (
+from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.devices.slap2.gain_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
+from servotune.devices.slap2.law import (
     Gains,
     MoveSpec,
     align_identification,
     pwm_per_count,
     simulate_response,
 )
+from servotune.devices.slap2.sim.controller import TICK_S
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.base import DeviceRefusedError
+from servotune.sim.physics import DcMotorParams
+from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import fit_plant
 from servotune.tuning.loops import slap2_loop_for
 from servotune.tuning.plants import IdentifiedPlant, PlantModel, model_positions
@@ -467,9 +467,9 @@ def _summary(metrics: dict[str, Any] | None) -> str:
 
 async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) -> None:
     """The STOP button during identification: the staircase ends, the axis stays off."""
-    from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.slap2 import Slap2Module
-    from servotune.sim.slap2_bus import Slap2Bus
+    from servotune.devices.slap2.sim.line import Slap2Bus
+    from servotune.devices.slap2.sim.module import Slap2Module
+    from servotune.sim.pty import PtySimulator
 
     from .test_api import live_server
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from servotune.autotune import slap2 as slap2_tuner
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2 import tuner as slap2_tuner
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.sim.pty import PtySimulator
 
 from .test_api import live_server
 

@@ -17,22 +17,22 @@ from typing import Any
 import pytest
 
 from servotune.autotune.verdict import verdict_z1100, verdict_z1100_with_reason
-from servotune.autotune.z1100_rule import propose_kab
 from servotune.config import LinkSpec
 from servotune.demo import Z1100_LOADS_KG_M2
-from servotune.protocols import z1100 as codec
-from servotune.protocols.z1100 import Gains
-from servotune.sim.physics import DcMotorParams
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.z1100 import Z1100Chip
-from servotune.sim.z1100_servo import AxisParameters
-from servotune.tuning.devices.z1100 import (
+from servotune.devices.z1100 import codec
+from servotune.devices.z1100.codec import Gains
+from servotune.devices.z1100.gain_rule import propose_kab
+from servotune.devices.z1100.law import (
     Kab,
     MoveProfile,
     fit_plant_closed_loop,
     move_metrics,
     simulate_move,
 )
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.servo import AxisParameters
+from servotune.sim.physics import DcMotorParams
+from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import interpolate
 from servotune.tuning.plants import Z1100Plant
 

@@ -1,7 +1,7 @@
 """Bad bench runs are marked bad (``quality``), untrusted metrics are null with the reason,
 and relative moves return to their start (issue 8, point 5).
 
-The unit tests feed ``runquality.assess`` synthetic runs with known answers; the
+The unit tests feed ``bench.quality.assess`` synthetic runs with known answers; the
 simulator tests provoke each bad case on a simulated SLAP2 line."""
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import pytest
 import websockets
 from scipy import signal
 
-from servotune.metrics import compute_metrics, predict_second_order
-from servotune.runquality import (
+from servotune.bench.metrics import compute_metrics, predict_second_order
+from servotune.bench.quality import (
     MAX_OVERSHOOT_UNCERTAINTY_PP,
     MIN_INTERVAL_SAMPLES,
     MIN_RISE_SAMPLES,

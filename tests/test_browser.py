@@ -138,8 +138,8 @@ async def test_console_shows_multiline_reply(dashboard: tuple[Page, LiveServer])
 async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
     from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-    from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.z1100 import Z1100Chip
+    from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
     _z1100_flash(flash)

@@ -11,7 +11,7 @@ import pytest
 from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
-from servotune.control import ControlSettings
+from servotune.hub.control_lock import ControlSettings
 
 from .control_support import Server, control_server
 from .test_browser import ARTIFACTS, browser  # noqa: F401  (the fixture)

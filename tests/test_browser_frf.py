@@ -22,9 +22,9 @@ from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
 from servotune.config import LinkSpec
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.sim.pty import PtySimulator
 
 from .test_api import LiveServer, live_server
 from .test_browser import browser  # noqa: F401  (the fixture)

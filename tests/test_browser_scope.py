@@ -136,8 +136,8 @@ async def test_laptop_shows_every_command_of_every_device(
 ) -> None:
     from servotune.config import LinkSpec
     from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-    from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.z1100 import Z1100Chip
+    from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.sim.pty import PtySimulator
 
     await laptop_check(browser, slap2, "line-0")
     spec = LinkSpec("ep7047", "sim", "ep", 0, [1])
@@ -285,8 +285,8 @@ async def test_trigger_on_move_captures_the_move(browser: Browser, slap2: LiveSe
 async def test_z1100_gains_written_as_one_group(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
     from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-    from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.z1100 import Z1100Chip
+    from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
     _z1100_flash(flash)

@@ -55,8 +55,8 @@ async def _slap2_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]
 @contextlib.asynccontextmanager
 async def _z1100_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]:
     from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-    from servotune.sim.serial_sim import PtySimulator
-    from servotune.sim.z1100 import Z1100Chip
+    from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
     _z1100_flash(flash)

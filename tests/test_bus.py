@@ -28,12 +28,12 @@ from nats.js.errors import NotFoundError
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.principal import LOCAL_PRINCIPAL
 from servotune.bus.connection import BusSettings
-from servotune.bus.hub_side import ensure_bus_state
+from servotune.bus.lab_hub import ensure_bus_state
 from servotune.bus.subjects import RIGS_STREAM, axis_cmd, manifest, rig_cmd
 from servotune.bus.subjects import telemetry as telemetry_subject
 from servotune.config import LinkSpec
-from servotune.control import ControlSettings
-from servotune.wire import ReleaseControl, TakeControl
+from servotune.hub.control_lock import ControlSettings
+from servotune.schema import ReleaseControl, TakeControl
 
 from .conftest import local_client, use_csrf_token, wait_for
 from .control_support import WireRecorder, recorded_line, take_with_raw_client

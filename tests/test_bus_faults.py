@@ -33,13 +33,13 @@ import pytest
 from nats.errors import NoRespondersError
 from nats.js.api import DiscardPolicy, RetentionPolicy
 
-import servotune.hub_state as hub_state
+import servotune.hub.state as hub_state
 from servotune.api.app import AppConfig
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings
 from servotune.bus.messages import RigManifest
 from servotune.bus.remote import LIVE_MAX_AGE_S
-from servotune.drivers.base import Sample
+from servotune.link.base import Sample
 
 from .conftest import wait_for
 from .control_support import WireRecorder, recorded_line

@@ -32,7 +32,7 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.lane import cpu_wait_s
 from servotune.bus.subjects import presence, rig_cmd
 from servotune.config import LinkSpec
-from servotune.control import ControlSettings
+from servotune.hub.control_lock import ControlSettings
 
 from .conftest import use_csrf_token
 from .control_support import recorded_line

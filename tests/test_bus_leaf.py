@@ -29,7 +29,7 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.leaf import lab_runs_config, leaf_node_conf, rig_runs_config
 from servotune.bus.rig import RUN_RETRY_S
 from servotune.config import LinkSpec
-from servotune.control import ControlSettings
+from servotune.hub.control_lock import ControlSettings
 
 from .conftest import wait_for
 from .control_support import recorded_line

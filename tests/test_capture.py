@@ -16,22 +16,22 @@ from typing import Any
 
 import pytest
 
+from servotune.bench.metrics import compute_metrics
+from servotune.bench.quality import assess
 from servotune.demo import build_slap2_bus
-from servotune.drivers.base import Capturer, DeviceRefusedError, DriverError, capture_of
-from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.metrics import compute_metrics
-from servotune.profiles import (
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.profile import (
     COUNTS_TICK2_PER_SA,
     COUNTS_TICK_PER_SV,
     ProfileTrack,
     TrapezoidGenerator,
     firmware_setpoint,
 )
-from servotune.runquality import assess
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.base import Capturer, DeviceRefusedError, DriverError, capture_of
 from servotune.sim.process import SerialSimSpec, serial_sim_process
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialChannel, SerialConnector
 
 from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for
@@ -520,7 +520,7 @@ async def test_polls_chain_their_next_read_and_keep_the_wire_order(
 ) -> None:
     """The poll loop hands the channel the read it makes next (rp -> pe -> rss of a
     module; in a capture rp -> rp), so the port's callback can send it right after
-    the reply (drivers/slap2_wire.py, _exchange_once). What the modules receive is
+    the reply (devices/slap2/exchange.py, _exchange_once). What the modules receive is
     the same sequence as without it, no chained read is wasted while nothing else
     runs, and a STOP in between still reaches the wire."""
     chained: list[tuple[bytes, bytes]] = []

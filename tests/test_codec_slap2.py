@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from servotune.protocols import slap2 as codec
+from servotune.devices.slap2 import codec
 
 positions = st.integers(min_value=-codec.POSITION_LIMIT, max_value=codec.POSITION_LIMIT)
 

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from servotune.protocols import z1100 as codec
-from servotune.protocols.z1100 import Command, ReplyCode
+from servotune.devices.z1100 import codec
+from servotune.devices.z1100.codec import Command, ReplyCode
 
 axes = st.integers(min_value=0, max_value=2)
 gains = st.integers(min_value=0, max_value=255)

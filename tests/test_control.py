@@ -21,8 +21,8 @@ from fastapi import HTTPException
 from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
-from servotune.control import CLIENT_HEADER, ControlManager, ControlSettings
-from servotune.wire import ForceControl, TakeControl
+from servotune.hub.control_lock import CLIENT_HEADER, ControlManager, ControlSettings
+from servotune.schema import ForceControl, TakeControl
 
 from .control_support import (
     Operator,

@@ -20,7 +20,7 @@ import pytest
 import websockets
 from websockets.typing import Origin
 
-from servotune.control import ControlManager, ControlSettings
+from servotune.hub.control_lock import ControlManager, ControlSettings
 
 from .control_support import (
     RawWebsocket,

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from playwright.async_api import async_playwright, expect
 
-from servotune.bench_demo import StreamWatcher, cpu_hog, demo_server, load_average
+from servotune.perf.demo import StreamWatcher, cpu_hog, demo_server, load_average
 
 from .test_browser import CHROMIUM, CHROMIUM_ARGS
 

@@ -9,15 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.base import (
-    DeviceRefusedError,
-    DeviceTimeoutError,
-    LinkDownError,
-    ProtocolError,
-)
-from servotune.drivers.slap2 import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.protocols import slap2 as codec
-from servotune.sim.slap2 import Slap2Module
+from servotune.devices.slap2 import codec
+from servotune.devices.slap2.link import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
 from servotune.transports.serial import SerialConnector
 
 from .conftest import (
@@ -331,7 +326,7 @@ def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
     assert link.wire_busy == 1.0
 
 
-# --- a chained read that failed (drivers/slap2_wire.py, _settle_chain) ---------------
+# --- a chained read that failed (devices/slap2/exchange.py, _settle_chain) ---------------
 
 
 class _ModuleOnPty(PtyPeer):

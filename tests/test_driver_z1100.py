@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
-from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
-from servotune.protocols.z1100 import Command
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.z1100 import Z1100Chip
+from servotune.devices.z1100.codec import Command
+from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.link.base import DeviceRefusedError, InvalidArgumentError
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, use_csrf_token, wait_for
@@ -183,7 +183,7 @@ async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> 
 async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path) -> None:
     """Issue 25: a chip that answers nothing at all (power lost, cable cut) left its
     link ``connected`` at 0 Hz for 11 s (three failed poll cycles of fence timeouts);
-    the silence rule (``drivers.engine``) shows ``error`` once 3 requests in a row over
+    the silence rule (``link.engine``) shows ``error`` once 3 requests in a row over
     1 s went unanswered, and ``connected`` again with the next good poll. A host that
     stalls while the chip answers is no silence: it sent nothing and missed nothing."""
     async with chip_line(tmp_path) as line:

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import (
+from servotune.devices.ep7047 import codec
+from servotune.devices.ep7047.codec import (
     CodecError,
     DataType,
     DriveState,

@@ -17,10 +17,14 @@ import time
 
 import pytest
 
-from servotune.drivers.ep7047 import Ep7047Link, build_ep7047_link
-from servotune.drivers.ep7047_cycle import _CycleThread
-from servotune.protocols.ep7047 import StartType
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S, demo_master
+from servotune.devices.ep7047.codec import StartType
+from servotune.devices.ep7047.cycle import _CycleThread
+from servotune.devices.ep7047.link import Ep7047Link, build_ep7047_link
+from servotune.devices.ep7047.sim.slave import (
+    DEMO_COUNTS_PER_REV,
+    DEMO_SPEED_RANGE_STEPS_S,
+    demo_master,
+)
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 from .conftest import RecordingSink, wait_for

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.base import (
-    DeviceRefusedError,
-    InvalidArgumentError,
-    LinkDownError,
-    Sample,
+from servotune.devices.ep7047.codec import PosSettings, StartType
+from servotune.devices.ep7047.descriptor import (
+    INVERSION_PARAMETER,
+    PARAMETER_SDO,
+    ep7047_descriptor,
 )
-from servotune.drivers.ep7047 import (
+from servotune.devices.ep7047.link import (
     OP_STATE,
     PREOP_STATE,
     Ep7047Axis,
@@ -35,21 +35,16 @@ from servotune.drivers.ep7047 import (
     build_ep7047_link,
     raw_socket_problem,
 )
-from servotune.drivers.ep7047_descriptor import (
-    INVERSION_PARAMETER,
-    PARAMETER_SDO,
-    ep7047_descriptor,
-)
-from servotune.drivers.ep7047_jobs import STATE_ACTIVE_S
-from servotune.hub import Hub
-from servotune.protocols.ep7047 import PosSettings, StartType
-from servotune.sim.ep7047_slave import (
+from servotune.devices.ep7047.requests import STATE_ACTIVE_S
+from servotune.devices.ep7047.sim.slave import (
     DEMO_COUNTS_PER_REV,
     DEMO_SPEED_RANGE_STEPS_S,
     SimulatedEp7047Slave,
     SimulatedEthercatMaster,
     demo_master,
 )
+from servotune.hub.hub import Hub
+from servotune.link.base import DeviceRefusedError, InvalidArgumentError, LinkDownError, Sample
 from servotune.storage import Storage
 
 from .conftest import RecordingSink, wait_for

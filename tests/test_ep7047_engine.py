@@ -15,8 +15,8 @@ from typing import NamedTuple
 
 import pytest
 
-from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import (
+from servotune.devices.ep7047 import codec
+from servotune.devices.ep7047.codec import (
     CYCLE_S,
     DriveState,
     EncControl,
@@ -30,9 +30,9 @@ from servotune.protocols.ep7047 import (
     StmControl,
     StmStatus,
 )
-from servotune.protocols.ep7047_modulo import modulo_travel
-from servotune.sim.ep7047_engine import Ep7047Engine
-from servotune.sim.ep7047_plant import DriveConfig, StepperPlant
+from servotune.devices.ep7047.modulo import modulo_travel
+from servotune.devices.ep7047.sim.engine import Ep7047Engine
+from servotune.devices.ep7047.sim.plant import DriveConfig, StepperPlant
 
 # The project's copy of the manual's modulo tables (source named in the file's header):
 # tests never read anything outside the repository.

@@ -18,8 +18,8 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from servotune.drivers.ep7047 import Ep7047Link, build_ep7047_link
-from servotune.protocols.ep7047 import StartType
+from servotune.devices.ep7047.codec import StartType
+from servotune.devices.ep7047.link import Ep7047Link, build_ep7047_link
 
 from .conftest import RecordingSink, wait_for
 

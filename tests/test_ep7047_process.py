@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from servotune.sim.ep7047_process import ProcessMaster
+from servotune.devices.ep7047.sim.process import ProcessMaster
 from servotune.transports.ethercat import EthercatMailboxError
 
 

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.ep7047 import PysoemMaster
+from servotune.devices.ep7047.link import PysoemMaster
 from servotune.transports.ethercat import OP_STATE, SAFEOP_STATE
 from servotune.transports.ethercat_cycle import (
     RT_SPIN_LIMIT_S,

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from servotune.drivers.base import DeviceRefusedError, InvalidArgumentError
-from servotune.drivers.ep7047 import PysoemMaster
-from servotune.drivers.ep7047_descriptor import INVERSION_PARAMETER, PARAMETER_SDO
-from servotune.hub import Hub
-from servotune.protocols.ep7047 import DriveState, StartType
+from servotune.devices.ep7047.codec import DriveState, StartType
+from servotune.devices.ep7047.descriptor import INVERSION_PARAMETER, PARAMETER_SDO
+from servotune.devices.ep7047.link import PysoemMaster
+from servotune.hub.hub import Hub
+from servotune.link.base import DeviceRefusedError, InvalidArgumentError
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 
 from .conftest import wait_for

@@ -2,7 +2,7 @@
 driver's codec (the independent check), its SDO server, its AL state machine.
 
 The slave's layout comes from its own PDO mapping objects (written from the spec); the
-codec's from ``protocols.ep7047``. They must agree byte for byte, and a wrong bit or
+codec's from ``devices.ep7047.codec``. They must agree byte for byte, and a wrong bit or
 offset on either side fails here (``test_a_moved_field_is_caught`` proves it can).
 """
 
@@ -14,12 +14,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from servotune.protocols import ep7047 as codec
-from servotune.protocols.ep7047 import Inputs, Outputs, StartType
-from servotune.sim import ep7047_coe as coe
-from servotune.sim.ep7047_coe import ImageLayout, ObjectDictionary, SdoServer
-from servotune.sim.ep7047_engine import Ep7047Engine
-from servotune.sim.ep7047_wire import WireSlave
+from servotune.devices.ep7047 import codec
+from servotune.devices.ep7047.codec import Inputs, Outputs, StartType
+from servotune.devices.ep7047.sim import coe
+from servotune.devices.ep7047.sim.coe import ImageLayout, ObjectDictionary, SdoServer
+from servotune.devices.ep7047.sim.engine import Ep7047Engine
+from servotune.devices.ep7047.sim.wire import WireSlave
 
 u16 = st.integers(0, 0xFFFF)
 i32 = st.integers(codec.INT32_MIN, codec.INT32_MAX)
@@ -260,7 +260,7 @@ def test_the_watchdog_puts_the_slave_into_safeop_error_with_safe_outputs() -> No
 
 @pytest.mark.parametrize("code", [0x1B87_4052])
 def test_the_sii_names_the_device_in_string_one(code: int) -> None:
-    from servotune.sim.ep7047_sii import Identity, build_sii
+    from servotune.devices.ep7047.sim.sii import Identity, build_sii
 
     image = build_sii(Identity(product=code))
     assert struct.unpack_from("<I", image, 0x0A * 2)[0] == code

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from servotune.hub_state import ClientQueue
+from servotune.hub.state import ClientQueue
 
 
 async def test_full_queue_drops_oldest_telemetry_and_keeps_status() -> None:

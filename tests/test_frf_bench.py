@@ -22,13 +22,13 @@ import control
 import numpy as np
 import pytest
 
-from servotune import frfbench
+from servotune.bench import frf as frfbench
 from servotune.config import LinkSpec
-from servotune.drivers.base import InvalidArgumentError
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.base import InvalidArgumentError
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.serial_sim import HostStalls, PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band, usable_run
 from servotune.tuning.injection import Slap2Injection

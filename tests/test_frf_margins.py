@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from servotune.profiles import TICK_S
+from servotune.devices.slap2.profile import TICK_S
+from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.slap2 import Slap2Module
 from servotune.tuning import frfrun
 from servotune.tuning.frf import coherence_from_error, frf_relative_error
 from servotune.tuning.loops import slap2_loop

@@ -12,13 +12,13 @@ from typing import Any
 
 import pytest
 
-from servotune.runio import (
+from servotune.bench.files import (
     MAX_IMPORT_BYTES,
     MAX_IMPORT_JSON_BYTES,
     needs_rejudging,
     rejudge_in_process,
 )
-from servotune.runquality import SAMPLING_RULE
+from servotune.bench.quality import SAMPLING_RULE
 from servotune.storage import Storage
 
 from .conftest import running_simulator
@@ -202,7 +202,7 @@ def test_the_text_path_of_the_csv_export_writes_what_the_csv_writer_writes() -> 
     import json
     import random
 
-    from servotune.runio import csv_rows, plain_chunk_csv
+    from servotune.bench.files import csv_rows, plain_chunk_csv
     from servotune.storage import dumps_strict
 
     rng = random.Random(3)

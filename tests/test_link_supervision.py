@@ -22,15 +22,15 @@ from typing import Any
 import pytest
 
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-from servotune.drivers.base import DriverError, InvalidArgumentError, LinkDownError
-from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.drivers.z1100 import Z1100Axis, Z1100Link, Z1100LinkConfig
-from servotune.protocols import z1100 as zcodec
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100 import codec as zcodec
+from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.link.base import DriverError, InvalidArgumentError, LinkDownError
 from servotune.sim.base import SimDevice
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
-from servotune.sim.z1100 import Z1100Chip
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, local_client, use_csrf_token, wait_for
@@ -497,7 +497,7 @@ async def test_slap2_console_refuses_control_characters_and_reports_refusals(
         sent = line.tap.since(mark)
         assert b"sv0" not in sent and b"rpsv" not in sent and bytes([CTRL_X]) not in sent
         # A command the module refuses answers with the refusal, not with [""].
-        from servotune.drivers.base import DeviceRefusedError
+        from servotune.link.base import DeviceRefusedError
 
         with pytest.raises(DeviceRefusedError, match="refused"):
             await line.axis(0).console("ma100")  # needs position mode
@@ -531,8 +531,8 @@ class _FakeLink:
 async def test_hub_never_shows_a_dead_or_stalled_link_connected(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import servotune.hub_state as hub_module
-    from servotune.hub import Hub
+    import servotune.hub.state as hub_module
+    from servotune.hub.hub import Hub
     from servotune.storage import Storage
 
     monkeypatch.setattr(hub_module, "STATUS_STALE_S", 0.5)
@@ -656,8 +656,8 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
     shows it offline, the backstop for any driver that keeps an axis "ok" without
     samples. Either way its answers after the fault show it ok again (issue 8, found
     in a soak)."""
-    from servotune.drivers import slap2 as slap2_driver
-    from servotune.hub_state import AXIS_SILENT_S
+    from servotune.devices.slap2 import link as slap2_driver
+    from servotune.hub.state import AXIS_SILENT_S
 
     if rule == "hub":
         monkeypatch.setattr(slap2_driver, "MODULE_OFFLINE_FAILURES", 10**9)
@@ -803,7 +803,7 @@ def _hub_on_line(
     """(a hub over one SLAP2 link on ``path``, that link): the link reports to the
     hub, which exists only after the link, so a forwarding sink bridges the two.
     ``settings``: fields of ``Slap2LinkConfig`` to change."""
-    from servotune.hub import Hub
+    from servotune.hub.hub import Hub
     from servotune.storage import Storage
 
     holder: list[Hub] = []

@@ -6,7 +6,7 @@ The server runs in this process; the simulated SLAP2 line runs in a process of i
 step, a PWM step, a frequency response (closed loop, open loop, and closed loop after
 an identification, which adds the model to its analysis), the auto-tune's
 identification with its proposal, and its verification - the product's loop-lag meter
-(``servotune.looplag``) runs on the server's loop, a STOP goes to the other module
+(``servotune.perf.looplag``) runs on the server's loop, a STOP goes to the other module
 every 0.2 s, and the phase's analysis is fetched as the page does.
 
 Asserted, whatever the machine's load: the loop's *own* lag (what it spent running or
@@ -30,7 +30,7 @@ from typing import Any
 import pytest
 
 from servotune.config import LinkSpec
-from servotune.looplag import LoopLagMeter
+from servotune.perf.looplag import LoopLagMeter
 
 from .test_bench import finished_run, start
 from .test_loop_latency import sim_process

@@ -1,4 +1,4 @@
-"""The loop check (servotune.loopcheck) on synthetic telemetry: what is a loop that
+"""The loop check (servotune.hub.loopcheck) on synthetic telemetry: what is a loop that
 does not work, and what is one that works hard."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from servotune import loopcheck
 from servotune.descriptor import LoopSignals
-from servotune.drivers.base import Sample
+from servotune.hub import loopcheck
+from servotune.link.base import Sample
 
 SIGNALS = LoopSignals(
     position_channel="position",

@@ -12,13 +12,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from servotune.metrics import (
+from servotune.bench.metrics import (
     Metrics,
     compute_metrics,
     predict_first_order,
     predict_second_order,
 )
-from servotune.runquality import assess
+from servotune.bench.quality import assess
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "metrics.md"
 

@@ -19,13 +19,13 @@ from typing import Any
 
 import pytest
 
-import servotune.hub_state as hub_state
-from servotune.drivers.base import CommandOutcome, LinkDownError
-from servotune.drivers.slap2_descriptor import slap2_descriptor
-from servotune.hub import Hub
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+import servotune.hub.state as hub_state
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.hub.hub import Hub
+from servotune.link.base import CommandOutcome, LinkDownError
+from servotune.sim.pty import PtySimulator
 from servotune.storage import Storage
 
 from .conftest import wait_for

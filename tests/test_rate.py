@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from servotune.drivers.engine import RATE_WINDOW_S, recent_rate_hz
+from servotune.link.engine import RATE_WINDOW_S, recent_rate_hz
 
 
 @pytest.mark.parametrize("period_s", [0.002, 0.043, 0.0914, 0.5])

@@ -2,7 +2,7 @@
 one signal (issue 25): on the demo's loaded SLAP2 at factory gains, ringing around a
 fixed target, ``position + pe`` (two reads a transaction apart) swung by about ±1000
 counts. The driver gives the reconstructed profile where it knows it, ``rp + pe``
-only while pe is steady, and nothing otherwise (drivers/setpoint.py)."""
+only while pe is steady, and nothing otherwise (link/setpoint.py)."""
 
 from __future__ import annotations
 
@@ -12,12 +12,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 from servotune.demo import SLAP2_LOADED
-from servotune.drivers.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
-from servotune.drivers.slap2 import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, wait_for

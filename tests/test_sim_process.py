@@ -17,15 +17,19 @@ from pathlib import Path
 import pytest
 import serial
 
-from servotune.drivers.ep7047 import (
+from servotune.devices.ep7047.codec import StartType
+from servotune.devices.ep7047.link import (
     Ep7047Axis,
     Ep7047Link,
     EthercatUnavailableError,
     build_ep7047_link,
 )
-from servotune.protocols.ep7047 import StartType
-from servotune.sim.ep7047_process import ProcessMaster, ep7047_sim_process, is_process_address
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.devices.ep7047.sim.process import (
+    ProcessMaster,
+    ep7047_sim_process,
+    is_process_address,
+)
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
 from servotune.sim.process import SimProcess, SimProcessError
 
 from .conftest import RecordingSink, wait_for
@@ -247,7 +251,7 @@ def test_process_master_without_a_simulator_says_what_is_missing(tmp_path: Path)
 def test_binary_sdo_read_gives_what_the_json_request_gives(tmp_path: Path) -> None:
     """The cyclic SDO read is binary (``R``); it must answer exactly as the JSON request
     did: the same bytes, the same abort, and each slave's state updated."""
-    from servotune.protocols import ep7047 as codec
+    from servotune.devices.ep7047 import codec
     from servotune.transports.ethercat import EthercatSdoError
 
     with ep7047_sim_process(tmp_path / "record.json") as simulator:

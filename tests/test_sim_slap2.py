@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from servotune.devices.slap2.sim.controller import FACTORY_DEFAULTS, TICK_S
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
-from servotune.sim.slap2_control import FACTORY_DEFAULTS, TICK_S
 
 CHAR_S = 10 / 19200
 CR = b"\r"

@@ -10,11 +10,19 @@ from pathlib import Path
 
 import pytest
 
-from servotune.protocols import z1100 as codec
-from servotune.protocols.z1100 import Cab, Command, Gains, Job, ReplyCode, StartStatus, StopStatus
+from servotune.devices.z1100 import codec
+from servotune.devices.z1100.codec import (
+    Cab,
+    Command,
+    Gains,
+    Job,
+    ReplyCode,
+    StartStatus,
+    StopStatus,
+)
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.servo import AxisHardware
 from servotune.sim.base import PowerCyclable, SimDevice
-from servotune.sim.z1100 import Z1100Chip
-from servotune.sim.z1100_servo import AxisHardware
 
 BYTE_S = 10 / 9600  # one character at 9600 8N1
 HEAVY_KG_M2 = 7.6e-6  # 20 x the rotor inertia
@@ -738,7 +746,7 @@ def test_baud_changes_after_the_reply_and_resets_to_the_jumpers(bench: Bench) ->
 
 def test_through_a_pty_with_pyserial_at_9600_baud() -> None:
     serial = pytest.importorskip("serial")
-    from servotune.sim.serial_sim import PtySimulator
+    from servotune.sim.pty import PtySimulator
 
     simulator = PtySimulator(Z1100Chip(), baud=9600)
     simulator.start()
@@ -765,7 +773,7 @@ def _move_scenario(chip: Z1100Chip) -> list[tuple[object, ...]]:
     import random
     from dataclasses import replace
 
-    import servotune.sim.z1100_servo as sim
+    import servotune.devices.z1100.sim.servo as sim
 
     rng = random.Random(7)
     states: list[tuple[object, ...]] = []
@@ -819,7 +827,7 @@ def test_the_move_fast_path_gives_the_same_samples_bit_for_bit(
 ) -> None:
     fast_chip = Z1100Chip()
     fast = _move_scenario(fast_chip)
-    import servotune.sim.z1100_servo as sim
+    import servotune.devices.z1100.sim.servo as sim
 
     monkeypatch.setattr(sim._Axis, "_move_samples", lambda self, n: 0)
     slow_chip = Z1100Chip()

@@ -29,7 +29,7 @@ from typing import Any
 
 import pytest
 
-from servotune.bench_demo import (
+from servotune.perf.demo import (
     BackgroundThread,
     StreamWatcher,
     cpu_hog,
@@ -282,7 +282,7 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
 
     assert stream_error is None, f"the websocket failed for good: {stream_error}"
     # A link stuck in "error" after an internal error is issue 8 point 1 (supervision,
-    # drivers/ and hub.py, another branch): this assertion stays, whoever fixes it.
+    # drivers/ and hub/hub.py, another branch): this assertion stays, whoever fixes it.
     assert all(state == "connected" for state in states.values()), (
         f"dead link(s) {RECOVER_S:g} s after the hog stopped: {states}\n{_tail(log)}"
     )

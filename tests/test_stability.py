@@ -31,7 +31,7 @@ import control
 import numpy as np
 import pytest
 
-from servotune import frfbench
+from servotune.bench import frf as frfbench
 from servotune.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.loops import MotorModel, slap2_loop

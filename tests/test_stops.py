@@ -17,12 +17,12 @@ from typing import Any
 
 import pytest
 
-from servotune import stopbench
 from servotune.demo import SLAP2_LOADED
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.perf import stops as stopbench
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
+from servotune.sim.pty import PtySimulator
 
 from .test_api import LiveServer, live_server
 from .test_bench import finished_run, start

@@ -1,4 +1,4 @@
-"""The soak's and the benchmark's websocket reader (servotune.bench_demo.StreamWatcher):
+"""The soak's and the benchmark's websocket reader (servotune.perf.demo.StreamWatcher):
 it connects again after a drop, as the web client does, and keeps the drop."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import time
 
 from websockets.sync.server import ServerConnection, serve
 
-from servotune.bench_demo import StreamWatcher
+from servotune.perf.demo import StreamWatcher
 
 
 def _telemetry(n: int) -> str:

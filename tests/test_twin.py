@@ -17,8 +17,8 @@ import websockets
 
 from servotune.api.app import AppConfig, create_app
 from servotune.demo import demo_simulators
-from servotune.drivers.slap2_descriptor import slap2_descriptor
-from servotune.drivers.z1100_descriptor import z1100_descriptor
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.devices.z1100.descriptor import z1100_descriptor
 from servotune.twin.model import Rail, angle_rad, classify, disc_wxyz, node_slot
 from servotune.twin.scene import MIN_TURN_RAD
 
@@ -230,7 +230,7 @@ async def test_proxy_refuses_foreign_origin_and_host(tmp_path: Path) -> None:
 
 async def test_scene_lights_a_switch_and_greys_out_when_stale() -> None:
     """AxisScene on a real viser server, watched by a protocol client on viser's port."""
-    from servotune.drivers.base import Sample
+    from servotune.link.base import Sample
     from servotune.twin.model import COLOURS, SWITCH_OFF, SWITCH_ON
     from servotune.twin.scene import AxisInput, AxisScene
 

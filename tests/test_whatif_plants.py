@@ -35,14 +35,14 @@ from typing import Any
 import numpy as np
 import pytest
 
+from servotune.bench.metrics import compute_metrics
 from servotune.config import LinkSpec
 from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
-from servotune.metrics import compute_metrics
-from servotune.profiles import TrapezoidGenerator
-from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.sim.serial_sim import PtySimulator
-from servotune.sim.z1100 import Z1100Chip
-from servotune.tuning.devices.z1100 import Kab, MoveProfile, simulate_move
+from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.devices.slap2.profile import TrapezoidGenerator
+from servotune.devices.z1100.law import Kab, MoveProfile, simulate_move
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
 from servotune.tuning.whatif import loop_for, plant_from_identification

@@ -15,11 +15,11 @@ from typing import Any
 
 import pytest
 
-from servotune.drivers.base import Sample
-from servotune.drivers.ep7047 import Ep7047Axis, Ep7047Link, build_ep7047_link
-from servotune.hub import Hub
-from servotune.protocols.ep7047 import StartType
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.devices.ep7047.codec import StartType
+from servotune.devices.ep7047.link import Ep7047Axis, Ep7047Link, build_ep7047_link
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+from servotune.hub.hub import Hub
+from servotune.link.base import Sample
 from servotune.storage import Storage
 
 from .conftest import RecordingSink, wait_for

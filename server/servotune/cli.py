@@ -335,12 +335,12 @@ def cmd_hub(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from servotune.sim.serial_sim import run_pty_simulator, serve_slap2
+    from servotune.sim.pty import run_pty_simulator, serve_slap2
 
     if args.device == "ep7047":
         if args.ifname:
             return _sim_ep7047_wire(args)
-        from servotune.sim.ep7047_process import run_ep7047_simulator
+        from servotune.devices.ep7047.sim.process import run_ep7047_simulator
 
         if not args.socket:
             print(
@@ -354,7 +354,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.device == "slap2":
         serve_slap2(args.addresses, args.baud or 19200, args.state_dir, args.link)
         return 0
-    from servotune.sim.z1100 import Z1100Chip
+    from servotune.devices.z1100.sim.chip import Z1100Chip
 
     baud = args.baud or 9600
     flash = args.state_dir / "z1100_flash.json" if args.state_dir else None
@@ -364,8 +364,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _sim_ep7047_wire(args: argparse.Namespace) -> int:
-    from servotune.sim.ep7047_sii import Identity
-    from servotune.sim.ep7047_wire_loop import run_wire_simulator
+    from servotune.devices.ep7047.sim.sii import Identity
+    from servotune.devices.ep7047.sim.wire_loop import run_wire_simulator
     from servotune.transports.ethercat import raw_socket_problem
 
     problem = raw_socket_problem(args.ifname)
@@ -390,7 +390,7 @@ def _hex_int(text: str) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.device == "demo":
-        from servotune.bench_demo import run_demo_bench
+        from servotune.perf.demo import run_demo_bench
 
         return run_demo_bench(
             seconds=args.seconds if args.seconds is not None else 30.0,
@@ -399,7 +399,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             url=args.url,
             pid=args.pid,
         )
-    from servotune.bench import run_bench
+    from servotune.perf.link_rate import run_bench
 
     return run_bench(
         device=args.device,

@@ -46,9 +46,9 @@ T = TypeVar("T")
 PRELOAD = (
     "servotune.tuning.threads",  # first: one BLAS thread, set before numpy loads
     "servotune.tuning.identify",
-    "servotune.autotune.slap2_rule",
-    "servotune.autotune.z1100_rule",
-    "servotune.frfbench",
+    "servotune.devices.slap2.gain_rule",
+    "servotune.devices.z1100.gain_rule",
+    "servotune.bench.frf",
 )
 
 

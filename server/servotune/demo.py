@@ -2,7 +2,7 @@
 
 The serial simulators run on real ptys, so the driver opens them with exactly the
 code it uses for a USB adapter; only the far end of the cable is simulated. The
-EtherCAT slave runs behind the driver's master seam (``servotune.sim.ep7047_process``).
+EtherCAT slave runs behind the driver's master seam (``servotune.devices.ep7047.sim.process``).
 Each simulator is a child process of the server (``servotune.sim.process``: spawned,
 named ``sim-<device>``, stopped with the server, and ending by itself when the server
 is killed), so the simulated devices never compete with the server's event loop for
@@ -26,16 +26,16 @@ from pathlib import Path
 from typing import Any
 
 from servotune.config import LinkSpec
-from servotune.protocols.z1100 import Gains
-from servotune.sim.ep7047_netns import netns_problem, slave_process, veth_pair
-from servotune.sim.ep7047_process import ep7047_sim_process
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV
+from servotune.devices.ep7047.sim.netns import netns_problem, slave_process, veth_pair
+from servotune.devices.ep7047.sim.process import ep7047_sim_process
+from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.codec import Gains
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SerialSimSpec, serial_sim_process
-from servotune.sim.slap2 import Slap2Module
-from servotune.sim.slap2_bus import Slap2Bus
-from servotune.sim.z1100 import Z1100Chip
-from servotune.sim.z1100_servo import AxisParameters
 
 logger = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ its status flags and its commands. The UI builds every axis page from this data,
 new controller family is a new descriptor, not a new page.
 
 Layering: this module has no imports from the rest of the package; drivers build
-descriptors, the API serves them, and ``servotune.wire_ts`` turns these models into
+descriptors, the API serves them, and ``servotune.schema_ts`` turns these models into
 TypeScript types for the web client.
 """
 
@@ -195,7 +195,7 @@ class StopEffect(BaseModel):
     A motion engineer must know before pressing it whether the motor keeps its torque:
     a vertical axis whose motor goes unpowered drops. STOP brings the axis to rest in
     the shortest distance the device allows while its position loop works, then to the
-    device's safe state; where the loop is not working (``servotune.loopcheck``) it cuts
+    device's safe state; where the loop is not working (``servotune.hub.loopcheck``) it cuts
     the motor's power at once (category 0) instead (docs/control.md).
     """
 
@@ -229,7 +229,7 @@ class StopEffect(BaseModel):
 
 class LoopSignals(BaseModel):
     """Where to see whether an axis' position loop works: the data the hub's loop
-    check (``servotune.loopcheck``) reads, after a STOP, a bench run or an auto-tune
+    check (``servotune.hub.loopcheck``) reads, after a STOP, a bench run or an auto-tune
     step. Every name refers to a channel or flag of the same descriptor."""
 
     position_channel: str

@@ -5,12 +5,16 @@ from __future__ import annotations
 import functools
 
 from servotune.config import SIMULATED_NIC, LinkSpec
-from servotune.drivers.base import DriverSink, Link
-from servotune.drivers.ep7047 import build_ep7047_link
-from servotune.drivers.slap2 import Slap2Link, Slap2LinkConfig
-from servotune.drivers.z1100 import Z1100Link, Z1100LinkConfig
-from servotune.sim.ep7047_process import ADDRESS_PREFIX, ProcessMaster, is_process_address
-from servotune.sim.ep7047_slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S, demo_master
+from servotune.devices.ep7047.link import build_ep7047_link
+from servotune.devices.ep7047.sim.process import ADDRESS_PREFIX, ProcessMaster, is_process_address
+from servotune.devices.ep7047.sim.slave import (
+    DEMO_COUNTS_PER_REV,
+    DEMO_SPEED_RANGE_STEPS_S,
+    demo_master,
+)
+from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
+from servotune.devices.z1100.link import Z1100Link, Z1100LinkConfig
+from servotune.link.base import DriverSink, Link
 from servotune.transports.ethercat_cycle import CycleProcessMaster
 from servotune.transports.serial import SerialConnector
 

@@ -6,7 +6,7 @@ import type {
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
-} from "./wire.gen";
+} from "./schema.gen";
 
 export class ApiError extends Error {
   constructor(
@@ -148,7 +148,7 @@ export interface BenchTestRequest {
   confirm_open_loop?: boolean;
 }
 
-/** servotune/metrics.py ``Metrics`` (times in s after the trigger t0). */
+/** servotune/bench/metrics.py ``Metrics`` (times in s after the trigger t0). */
 export interface RunMetrics {
   step?: number;
   band?: number | null;

@@ -1,6 +1,6 @@
 // Per-axis telemetry ring: contiguous typed arrays with compaction, so any time
 // window is a plain index range. Missing samples (null) are stored as NaN.
-import type { Telemetry } from "./wire.gen";
+import type { Telemetry } from "./schema.gen";
 
 export const KEEP_SECONDS = 60;
 const INITIAL_CAPACITY = 8192;

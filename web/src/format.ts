@@ -1,5 +1,5 @@
 // Number formatting and unit conversions shared by readouts, plots and the tuning panel.
-import type { Conversion } from "./wire.gen";
+import type { Conversion } from "./schema.gen";
 
 /** A display unit: the device unit (factor 1) or one of the descriptor's conversions. */
 export interface Unit {

@@ -1,5 +1,5 @@
 // What each bench metric means: the sentences of ``Metrics.definitions`` in
-// server/servotune/metrics.py, copied here because the server does not serve them (yet).
+// server/servotune/bench/metrics.py, copied here because the server does not serve them (yet).
 // Keep in step with that file; they are the hover text of the runs table's headers.
 
 export const METRIC_DEFINITIONS: Record<string, string> = {

@@ -1,6 +1,6 @@
 // Enumerated channels (``ChannelDescriptor.value_names``): the name of a value, its id
 // as shown next to the name, and a stable colour per state for the states plot.
-import type { ChannelDescriptor } from "./wire.gen";
+import type { ChannelDescriptor } from "./schema.gen";
 
 export class StateNames {
   /** Named values, ascending. */

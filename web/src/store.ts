@@ -10,7 +10,7 @@ import type {
   MoveOutcome,
   RunUpdate,
   StorageStatus,
-} from "./wire.gen";
+} from "./schema.gen";
 import type { Incoming, WsState } from "./ws";
 
 export interface Topics {

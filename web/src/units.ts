@@ -1,7 +1,7 @@
 // The display unit chosen per channel (counts / rev / °, counts/s / rpm), shared by the
 // plots and the readouts of one device family and remembered in localStorage.
 import { type Unit, unitsOf } from "./format";
-import type { ChannelDescriptor, DeviceDescriptor } from "./wire.gen";
+import type { ChannelDescriptor, DeviceDescriptor } from "./schema.gen";
 
 export class UnitPrefs {
   private readonly chosen = new Map<string, string>();

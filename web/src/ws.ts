@@ -1,5 +1,5 @@
 // The websocket: reconnects with exponential backoff and reports its state.
-import type { ClientMessage, ControlClientMessage, ControlServerMessage, RunUpdate, ServerMessage } from "./wire.gen";
+import type { ClientMessage, ControlClientMessage, ControlServerMessage, RunUpdate, ServerMessage } from "./schema.gen";
 
 /** What the server sends. ``RunUpdate`` (bench progress) is listed on its own because the
  * generated ``ServerMessage`` union does not include it yet; once it does, this is the

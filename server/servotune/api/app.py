@@ -32,11 +32,14 @@ from servotune.api.twin_routes import router as twin_router
 from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
-from servotune.autotune import AutoTuner
+from servotune.autotune.service import AutoTuner
+from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
 from servotune.config import LinkSpec
-from servotune.control import ControlManager, ControlSettings
-from servotune.drivers.base import (
+from servotune.hub.control_lock import ControlManager, ControlSettings
+from servotune.hub.hub import Hub, NotFoundError
+from servotune.hub.state import UnknownAxisError
+from servotune.link.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -45,12 +48,9 @@ from servotune.drivers.base import (
     MeasurementError,
     ProtocolError,
 )
-from servotune.hub import Hub, NotFoundError
-from servotune.hub_state import UnknownAxisError
 from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
-from servotune.testbench import TestBench
-from servotune.twin import Twin
+from servotune.twin.service import Twin
 
 if TYPE_CHECKING:
     from servotune.bus.connection import BusSettings
@@ -148,7 +148,7 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.compute = compute
             app.state.autotuner = autotuner_cls(hub, bench, compute=compute)
             app.state.storage = storage
-            # The control lock and dead-man (servotune.control); it sends every axis a
+            # The control lock and dead-man (servotune.hub.control_lock); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
             control_cls = ControlManager
             if config.bus is not None:

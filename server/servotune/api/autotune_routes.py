@@ -14,8 +14,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 
 from servotune.api.routes import ERRORS
-from servotune.autotune import AutoTuner, IdentifyRequest
-from servotune.wire import ErrorBody
+from servotune.autotune.service import AutoTuner
+from servotune.autotune.session import IdentifyRequest
+from servotune.schema import ErrorBody
 
 TUNE_ERRORS: dict[int | str, dict[str, Any]] = {
     **ERRORS,

@@ -17,14 +17,14 @@ from starlette.datastructures import UploadFile
 
 from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
-from servotune.benchrun import BenchLimits
-from servotune.drivers.base import DriverError, InvalidArgumentError
-from servotune.hub import NotFoundError
-from servotune.metrics import Metrics
-from servotune.runio import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
+from servotune.bench.files import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
+from servotune.bench.metrics import Metrics
+from servotune.bench.runner import BenchLimits
+from servotune.bench.service import BenchTestRequest, TestBench
+from servotune.hub.hub import NotFoundError
+from servotune.link.base import DriverError, InvalidArgumentError
+from servotune.schema import ErrorBody, StorageStatus
 from servotune.storage import Storage, dumps_strict
-from servotune.testbench import BenchTestRequest, TestBench
-from servotune.wire import ErrorBody, StorageStatus
 
 STORE_ERRORS: dict[int | str, dict[str, Any]] = {
     **ERRORS,

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request, WebSocket
 
-from servotune.hub import Hub
+from servotune.hub.hub import Hub
 
 
 def get_hub(request: Request) -> Hub:

@@ -16,20 +16,20 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Request
 
-from servotune import frfbench
 from servotune.api.bench_routes import BenchDep
 from servotune.api.gains_check import GAINS, identified_model
 from servotune.api.responses import errors
-from servotune.autotune import AutoTuner
+from servotune.autotune.service import AutoTuner
+from servotune.bench import frf as frfbench
 from servotune.compute import ComputePool
-from servotune.drivers.base import DeviceRefusedError, DriverError, InvalidArgumentError
-from servotune.hub import Hub, NotFoundError
-from servotune.protocols.slap2 import (
+from servotune.devices.slap2.codec import (
     ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
     COUNTS_S_PER_SV,
     VELOCITY_MAX,
 )
+from servotune.hub.hub import Hub, NotFoundError
+from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS
 from servotune.tuning.whatif import browser_model, plant_from_identification
 

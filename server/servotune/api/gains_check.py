@@ -16,10 +16,10 @@ from typing import Any
 
 from fastapi import Request
 
-from servotune.autotune import AutoTuner
+from servotune.autotune.service import AutoTuner
 from servotune.compute import ComputePool
-from servotune.drivers.base import ConfirmationRequiredError, DriverError
-from servotune.hub import Hub
+from servotune.hub.hub import Hub
+from servotune.link.base import ConfirmationRequiredError, DriverError
 from servotune.tuning.predicted import unstable_reason
 
 GAINS: dict[str, tuple[str, ...]] = {

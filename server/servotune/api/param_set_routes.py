@@ -17,8 +17,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from servotune.api.deps import HubDep
 from servotune.api.responses import errors
 from servotune.api.routes import ERRORS
-from servotune.drivers.base import InvalidArgumentError
-from servotune.hub import NotFoundError
+from servotune.hub.hub import NotFoundError
+from servotune.link.base import InvalidArgumentError
 from servotune.storage import Storage
 
 router = APIRouter(tags=["parameter sets"])

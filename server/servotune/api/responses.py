@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from servotune.wire import ErrorBody
+from servotune.schema import ErrorBody
 
 DESCRIPTIONS: dict[int, str] = {
     401: "not logged in (exposed mode): log in or send a bearer token",

@@ -15,15 +15,10 @@ from servotune.api.deps import HubDep
 from servotune.api.gains_check import check_predicted_stable
 from servotune.api.responses import DEVICE_ERRORS, NOT_FOUND, errors
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import (
-    DeviceRefusedError,
-    DriverError,
-    InvalidArgumentError,
-    LinkDownError,
-)
-from servotune.drivers.validation import validate_params
-from servotune.hub import NotFoundError
-from servotune.wire import (
+from servotune.hub.hub import NotFoundError
+from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError, LinkDownError
+from servotune.link.validation import validate_params
+from servotune.schema import (
     AxisInfo,
     AxisState,
     CommandRequest,

@@ -1,6 +1,6 @@
 """Is the far end of a websocket demonstrably alive? Asked of the kernel, not of the page.
 
-The dead-man (``servotune.control``) must stop the axes of a tab that vanished (closed,
+The dead-man (``servotune.hub.control_lock``) must stop the axes of a tab that vanished (closed,
 a laptop asleep, a network cut) within 500 ms, but must not fire on a live tab whose
 browser is starved of CPU and sends its heartbeats late. What tells them apart is the
 client machine's TCP stack: the server streams telemetry to every tab about 30 times a

@@ -58,8 +58,7 @@ from servotune.api.ws import (
 from servotune.auth.principal import Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
-from servotune.twin import Twin
-from servotune.twin.service import SECRET_HEADER
+from servotune.twin.service import SECRET_HEADER, Twin
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
-"""The websocket ``/ws``: telemetry out, control-lock messages in (``servotune.wire``).
+"""The websocket ``/ws``: telemetry out, control-lock messages in (``servotune.schema``).
 
-Each connection is one *client* of the control lock (``servotune.control``): it learns
+Each connection is one *client* of the control lock (``servotune.hub.control_lock``): it learns
 its client id in ``welcome`` and renews its lease with ``heartbeat`` messages.
 
 Robustness: the client only ever sends small JSON text messages. A text message over
@@ -27,14 +27,14 @@ from servotune.auth.authz import REAUTH_DETAIL, password_fresh
 from servotune.auth.principal import FORCE_CONTROL, Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
-from servotune.control import ControlClient, ControlManager
-from servotune.hub import Hub
-from servotune.hub_state import ClientQueue
-from servotune.wire import ClientStats, ControlReply, Heartbeat, Ping
+from servotune.hub.control_lock import ControlClient, ControlManager
+from servotune.hub.hub import Hub
+from servotune.hub.state import ClientQueue
+from servotune.schema import ClientStats, ControlReply, Heartbeat, Ping
 
-# The same union as wire.ClientMessage | wire.ControlClientMessage, flattened so pydantic
-# can discriminate on ``type`` in one pass.
-from servotune.wire import (  # isort: skip
+# The same union as schema.ClientMessage | schema.ControlClientMessage, flattened so
+# pydantic can discriminate on ``type`` in one pass.
+from servotune.schema import (  # isort: skip
     AnswerControl,
     ForceControl,
     ReleaseControl,
@@ -97,7 +97,7 @@ class _AbuseError(Exception):
 
 @router.websocket("/ws")
 async def websocket_endpoint(websocket: WebSocket) -> None:
-    """Telemetry and state stream plus the control lock; shapes in ``servotune.wire``."""
+    """Telemetry and state stream plus the control lock; shapes in ``servotune.schema``."""
     principal = await authenticate(websocket)
     if principal is None:
         return

@@ -33,8 +33,8 @@ from servotune.auth.routes_table import (
 )
 from servotune.auth.security import CLIENT_HEADER, SecurityState
 from servotune.auth.store import AuthStore, Session
-from servotune.drivers.base import InvalidArgumentError
-from servotune.hub_state import UnknownAxisError
+from servotune.hub.state import UnknownAxisError
+from servotune.link.base import InvalidArgumentError
 
 logger = logging.getLogger(__name__)
 

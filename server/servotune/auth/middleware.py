@@ -55,7 +55,7 @@ _MAX_CAPTURE = 64 * 1024
 # Request bodies: every JSON body of the API is a few hundred bytes to a few KiB.
 MAX_BODY_BYTES = 1024 * 1024
 # The run import (multipart run.json + samples.csv) checks its own 64 MiB
-# (servotune.runio.MAX_IMPORT_BYTES); this cap leaves room for the multipart framing.
+# (servotune.bench.files.MAX_IMPORT_BYTES); this cap leaves room for the multipart framing.
 MAX_UPLOAD_BYTES = 65 * 1024 * 1024
 HSTS = b"max-age=31536000"
 _FRAME_DENY = [

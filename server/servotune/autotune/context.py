@@ -14,11 +14,11 @@ from collections.abc import Callable
 from itertools import pairwise
 from typing import Any, Final
 
+from servotune.bench.service import BenchTestRequest, TestBench
 from servotune.compute import ComputePool
-from servotune.drivers.base import BenchKind, DeviceRefusedError, DriverError, Sample
-from servotune.hub import Hub
-from servotune.hub_state import AxisEntry
-from servotune.testbench import BenchTestRequest, TestBench
+from servotune.hub.hub import Hub
+from servotune.hub.state import AxisEntry
+from servotune.link.base import BenchKind, DeviceRefusedError, DriverError, Sample
 
 # "No telemetry" means the link is down, not that a loaded host polled late: a link
 # that delivers nothing for this long is also shown down by its status.

@@ -9,11 +9,11 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
-from servotune.benchrun import _Recording, run_meta
-from servotune.drivers.base import BenchPlan, DeviceRefusedError, capture_of
-from servotune.hub_state import AxisEntry
-from servotune.testbench import TestBench
-from servotune.tuning.devices.slap2 import STAIRCASE_START_PWM
+from servotune.bench.runner import _Recording, run_meta
+from servotune.bench.service import TestBench
+from servotune.devices.slap2.law import STAIRCASE_START_PWM
+from servotune.hub.state import AxisEntry
+from servotune.link.base import BenchPlan, DeviceRefusedError, capture_of
 
 
 class IdentificationRun:

@@ -18,10 +18,15 @@ from typing import Any, Literal, Protocol
 
 from servotune.autotune.context import TuningContext
 from servotune.autotune.session import IdentifyRequest, Session, SessionState
-from servotune.autotune.slap2 import Slap2Tuner
-from servotune.autotune.z1100 import Z1100Tuner
+from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
-from servotune.drivers.base import (
+from servotune.devices.slap2.tuner import Slap2Tuner
+from servotune.devices.z1100.link import Z1100Axis
+from servotune.devices.z1100.tuner import Z1100Tuner
+from servotune.hub.hub import Hub
+from servotune.hub.state import AxisEntry
+from servotune.hub.stops import Settled, gains_of
+from servotune.link.base import (
     ConfirmationRequiredError,
     DeviceRefusedError,
     DeviceTimeoutError,
@@ -30,11 +35,6 @@ from servotune.drivers.base import (
     LinkDownError,
     MeasurementError,
 )
-from servotune.drivers.z1100 import Z1100Axis
-from servotune.hub import Hub
-from servotune.hub_state import AxisEntry
-from servotune.stops import Settled, gains_of
-from servotune.testbench import TestBench
 from servotune.tuning.predicted import unstable_reason
 
 

@@ -8,9 +8,9 @@ from typing import Any, Final, Literal
 
 from pydantic import BaseModel, Field
 
-from servotune.autotune.slap2_rule import Proposal, Response
-from servotune.drivers.base import InvalidArgumentError
-from servotune.protocols.slap2 import PWM_MAX
+from servotune.devices.slap2.codec import PWM_MAX
+from servotune.devices.slap2.gain_rule import Proposal, Response
+from servotune.link.base import InvalidArgumentError
 from servotune.tuning.targets import DEFAULT_PRESET, Preset
 
 TestKind = Literal["position_step", "move"]

@@ -23,14 +23,14 @@ from __future__ import annotations
 
 from typing import Any, Final
 
-from servotune.autotune import AutoTuner, IdentifyRequest
-from servotune.autotune.session import Session
+from servotune.autotune.service import AutoTuner
+from servotune.autotune.session import IdentifyRequest, Session
+from servotune.bench.service import TestBench
 from servotune.bus import subjects
 from servotune.bus.remote import RemoteAxis
 from servotune.compute import ComputePool
-from servotune.drivers.base import DriverError
-from servotune.hub import Hub
-from servotune.testbench import TestBench
+from servotune.hub.hub import Hub
+from servotune.link.base import DriverError
 
 AUTOTUNE_TIMEOUT_S: Final = 120.0
 

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from servotune.autotune import AutoTuner
+from servotune.autotune.service import AutoTuner
+from servotune.bench.service import TestBench
 from servotune.bus.autotune import HubAutoTuner
 from servotune.bus.connection import BusSettings
-from servotune.bus.hub_side import HubBus
+from servotune.bus.lab_hub import HubBus
 from servotune.bus.rig import RigAgent
-from servotune.control import ControlManager
-from servotune.hub import Hub
+from servotune.hub.control_lock import ControlManager
+from servotune.hub.hub import Hub
 from servotune.storage import Storage
-from servotune.testbench import TestBench
 
 
 class BusLifecycle:

@@ -1,5 +1,5 @@
 """The bus payloads, schema v1. Telemetry, status, parameters and events travel as the
-websocket's own ``servotune.wire`` models; these are what the bus adds around them.
+websocket's own ``servotune.schema`` models; these are what the bus adds around them.
 
 A change of this schema bumps ``SCHEMA`` and the subject prefix (``subjects.PREFIX``).
 """
@@ -11,7 +11,7 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 from servotune.descriptor import DeviceDescriptor
-from servotune.wire import AxisInfo, LinkInfo
+from servotune.schema import AxisInfo, LinkInfo
 
 SCHEMA = 1
 
@@ -19,7 +19,7 @@ SCHEMA = 1
 class RemoteAxisInfo(BaseModel):
     info: AxisInfo
     descriptor: DeviceDescriptor
-    # The bench tests the rig runs on this axis (``testbench.TestBench.kinds``).
+    # The bench tests the rig runs on this axis (``bench.service.TestBench.kinds``).
     bench_kinds: list[str] = Field(default_factory=list)
 
 

@@ -1,4 +1,4 @@
-"""The hub's view of a rig's links: ``drivers.base.Link``/``AxisDriver`` over NATS.
+"""The hub's view of a rig's links: ``link.base.Link``/``AxisDriver`` over NATS.
 
 Registered into the ordinary ``Hub`` (``servotune hub``), so the api, the control lock
 and the web client work unchanged: a remote axis is an axis. Every change is a NATS
@@ -44,7 +44,8 @@ from servotune.bus.lane import RigLiveness, SafetyLane
 from servotune.bus.messages import CommandReply, CommandRequest, RemoteAxisInfo, RemoteLinkInfo
 from servotune.bus.replies import Call, ReplyMux
 from servotune.descriptor import DeviceDescriptor
-from servotune.drivers.base import (
+from servotune.hub.state import StopOvertakenError
+from servotune.link.base import (
     AxisDriver,
     CommandOutcome,
     DeviceRefusedError,
@@ -56,8 +57,7 @@ from servotune.drivers.base import (
     ProtocolError,
     Sample,
 )
-from servotune.hub_state import StopOvertakenError
-from servotune.wire import LinkState, RunUpdate, Telemetry
+from servotune.schema import LinkState, RunUpdate, Telemetry
 
 logger = logging.getLogger(__name__)
 
@@ -230,12 +230,12 @@ class RemoteAxis:
         await self.stop_pressed(self._link.port.clock())
 
     async def stop_pressed(self, pressed_at: float) -> None:
-        """The STOP pressed at ``pressed_at`` (hub clock; ``hub_state.PressTimedStop``):
+        """The STOP pressed at ``pressed_at`` (hub clock; ``hub.state.PressTimedStop``):
         the rig does not send it if its axis was commanded or stopped since
         (``StopOvertakenError``)."""
         await self._request(subjects.STOP, self._body(), pressed_at=pressed_at)
 
-    # --- bench tests run on the rig (``testbench.BenchDelegate``) ----------------------
+    # --- bench tests run on the rig (``bench.service.BenchDelegate``) ----------------------
 
     def bench_kinds(self) -> list[str]:
         return list(self._bench_kinds)
@@ -567,7 +567,7 @@ class RemoteLink:
         self._sink.on_event(level, None, text)  # type: ignore[arg-type]
 
     def on_message(self, message: dict[str, object]) -> None:
-        """A status, parameter or event message of the rig (``servotune.wire`` JSON)."""
+        """A status, parameter or event message of the rig (``servotune.schema`` JSON)."""
         kind = message.get("type")
         axis_local = message.get("axis")
         axis = self._by_local.get(str(axis_local)) if axis_local is not None else None

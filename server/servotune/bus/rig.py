@@ -59,6 +59,7 @@ from servotune.auth.routes_table import (
     command_permission,
     console_permission,
 )
+from servotune.bench.service import BenchTestRequest, TestBench
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings, connect_bus
 from servotune.bus.leaf import ensure_rig_streams
@@ -74,8 +75,10 @@ from servotune.bus.messages import (
     RunRecord,
 )
 from servotune.bus.tasks import BackgroundTasks
-from servotune.control import ControlClient, ControlManager
-from servotune.drivers.base import (
+from servotune.hub.control_lock import ControlClient, ControlManager
+from servotune.hub.hub import Hub
+from servotune.hub.state import ClientQueue, StopOvertakenError, UnknownAxisError
+from servotune.link.base import (
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -83,13 +86,10 @@ from servotune.drivers.base import (
     LinkDownError,
     ProtocolError,
 )
-from servotune.hub import Hub
-from servotune.hub_state import ClientQueue, StopOvertakenError, UnknownAxisError
 from servotune.storage import Storage, StorageError
-from servotune.testbench import BenchTestRequest, TestBench
 
 if TYPE_CHECKING:
-    from servotune.autotune import AutoTuner
+    from servotune.autotune.service import AutoTuner
 
 logger = logging.getLogger(__name__)
 

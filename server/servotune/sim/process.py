@@ -28,7 +28,7 @@ pipe to it:
   device, independently of what the server believes).
 
 ``serve_serial`` is the child for a serial device (``SimDevice`` on a
-``PtySimulator``); ``servotune.sim.ep7047_process.serve_ep7047`` the one for the
+``PtySimulator``); ``servotune.devices.ep7047.sim.process.serve_ep7047`` the one for the
 EtherCAT slave.
 """
 
@@ -51,7 +51,7 @@ from types import TracebackType
 from typing import Any
 
 from servotune.sim.base import SimDevice
-from servotune.sim.serial_sim import PtySimulator
+from servotune.sim.pty import PtySimulator
 
 logger = logging.getLogger(__name__)
 

@@ -2,9 +2,9 @@
 (pysoem's names), their errors, the state-machine values and the pysoem adapter.
 
 This is the EtherCAT counterpart of ``transports/base.py``'s byte channel: the driver
-(``servotune.drivers.ep7047``, which re-exports every public name here) talks to a
-master through it, and the simulators (``servotune.sim.ep7047_slave``,
-``ep7047_process``) implement it, so they import this module and no driver code.
+(``servotune.devices.ep7047.link``, which re-exports every public name here) talks to a
+master through it, and the simulators (``servotune.devices.ep7047.sim.slave``,
+``devices.ep7047.sim.process``) implement it, so they import this module and no driver code.
 Imports: the standard library (pysoem lazily, only for real hardware).
 """
 

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from servotune.profiles import TICK_S, TrapezoidGenerator
+from servotune.devices.slap2.profile import TICK_S, TrapezoidGenerator
 from servotune.tuning import frftrust
 from servotune.tuning.frf import (
     ComplexArray,
@@ -191,7 +191,7 @@ def rebuild_input(
     latched, ...]``; a target takes effect at the first tick after its latch time (the
     acknowledgement when the latch is unknown). With ``profile = (sv, sa)`` (wire
     units, the test's overrides) the setpoint follows the firmware's trapezoid law
-    (``servotune.profiles``): at the SLAP2's maximum sv/sa a 50-count jump still takes
+    (``servotune.devices.slap2.profile``): at the SLAP2's maximum sv/sa a 50-count jump still takes
     about 10 ticks (8 ms), a delay the response must not be blamed for. Without it
     the targets are held (a device whose setpoint jumps)."""
     rebuild = InputRebuild(sent, t0_s, y0, profile, t_end_s)

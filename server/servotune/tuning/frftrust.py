@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from servotune.profiles import TICK_S
+from servotune.devices.slap2.profile import TICK_S
 from servotune.tuning.frf import ComplexArray, FloatArray, tone_fit
 
 # A latch estimate spanning more than this was stalled (a quiet host: 0.5-0.9 ms).
@@ -61,7 +61,7 @@ GAP_STALL_S = 0.004
 # Targets whose stall is bounded by a refit each; more: not bounded (run again).
 MAX_STALL_REFITS = 60
 # The capture's own check of its reconstruction allows 2 counts plus the profile's
-# motion in one tick either way (drivers/slap2_capture.py); so does this one.
+# motion in one tick either way (devices/slap2/capture.py); so does this one.
 CHECK_TOLERANCE_COUNTS = 2.0
 # The phase of the controller's tick against the host's stamps is unknown: half a
 # tick either way. (The simulator applies a target one tick sooner than the firmware

@@ -6,7 +6,7 @@
 * ``fit_closed_loop``: any closed-loop identification. A recorded trace (e.g. the
   Z1100's following error during a move with known gains) against a simulation of the
   device's loop on a first-order plant, over log gain, log tau and a delay; the device
-  supplies the simulation (``tuning.devices.z1100.fit_plant_closed_loop``).
+  supplies the simulation (``devices.z1100.law.fit_plant_closed_loop``).
 
 Why least squares on positions (not velocities): differences of positions polled
 20-60 ms apart are noisy; the model's position is exact for any spacing. Why

@@ -11,12 +11,12 @@ sample rate and the highest tone placed (``max_tone_hz``); ``split`` divides a
 requested band into the part measured and the tones left out, with the reason the
 API shows (``not_measured_hz``, ``not_measured_reason``).
 
-``Slap2Injection`` is the SLAP2's (``tuning.devices.DeviceLaw.injection``): closed
+``Slap2Injection`` is the SLAP2's (``tuning.law.DeviceLaw.injection``): closed
 loop through ``ma`` targets at the maximum profile, open loop through ``spwm``. A
 device without one (Z1100: no target or PWM can be streamed on its wire without
 leaving its own profile) gets a model-based frequency response instead.
 
-Nothing here imports drivers, hub or api (``servotune.frfbench`` builds the bench's
+Nothing here imports drivers, hub or api (``servotune.bench.frf`` builds the bench's
 plan from this).
 """
 
@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
-from servotune.protocols.slap2 import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 
 BITS_PER_CHAR: Final = 10  # start + 8 data + stop
 # Measured sample rates of injection runs are 60-80 % of the characters' limit (the
@@ -120,7 +120,7 @@ class Slap2Injection:
     """The SLAP2: a position target per step (``ma n``, ~10 characters with its echo
     and reply) and one ``rp`` sample (~16): about 26 characters, 73.8 steps/s at 19200
     baud. The maximum sv/sa for the test, so the profile generator follows the targets
-    (``servotune.profiles`` rebuilds what it does between them)."""
+    (``servotune.devices.slap2.profile`` rebuilds what it does between them)."""
 
     chars_per_step: int = 26
     overrides: Mapping[str, int] = field(

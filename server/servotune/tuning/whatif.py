@@ -1,7 +1,7 @@
 """Identified plant models as loop models, and what the bench's what-if view needs.
 
 The auto-tune's identification (``tuning.identify.fit_plant`` for the SLAP2,
-``tuning.devices.z1100.fit_plant_closed_loop`` for the Z1100) fits a first-order
+``devices.z1100.law.fit_plant_closed_loop`` for the Z1100) fits a first-order
 velocity model, ``tau dv/dt = gain u - v``, position integrating velocity. As a transfer
 function in counts per controller output unit (PWM units, full scale 255)::
 
@@ -29,8 +29,8 @@ from typing import Any
 import control
 import numpy as np
 
-from servotune.tuning.devices import Law, law_for
 from servotune.tuning.frf import FloatArray
+from servotune.tuning.law import Law, law_for
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import IdentifiedPlant
 

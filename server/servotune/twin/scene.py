@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import viser
 
 from servotune.descriptor import DeviceDescriptor, TwinDescriptor
-from servotune.drivers.base import Sample
+from servotune.link.base import Sample
 from servotune.twin.model import (
     COLOURS,
     SWITCH_OFF,

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from servotune.drivers.base import Sample
-from servotune.hub import Hub
+from servotune.hub.hub import Hub
+from servotune.link.base import Sample
 from servotune.twin.model import node_slot
 
 if TYPE_CHECKING:

@@ -19,7 +19,7 @@ import {
 } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
-import type { DeviceDescriptor } from "../wire.gen";
+import type { DeviceDescriptor } from "../schema.gen";
 import { errorText, statusLabel } from "./feedback";
 import { PRESET_HELP, marginValue, marginWarning, targetText } from "./margins";
 import { type MetricColumn, metricCell, metricHeads, num } from "./metriccols";

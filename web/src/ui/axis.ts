@@ -3,7 +3,7 @@ import { api } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
 import { UnitPrefs } from "../units";
-import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
+import type { AxisInfo, DeviceDescriptor } from "../schema.gen";
 import { BenchView } from "./bench";
 import { Controls, makeRunner } from "./commands";
 import { ConsolePanel } from "./console";

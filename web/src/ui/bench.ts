@@ -16,7 +16,7 @@ import {
 import { h, replace, setText, toggleClass } from "../dom";
 import { clock } from "../format";
 import { store } from "../store";
-import type { Conversion, DeviceDescriptor, RunUpdate } from "../wire.gen";
+import type { Conversion, DeviceDescriptor, RunUpdate } from "../schema.gen";
 import { AutoTunePanel } from "./autotune";
 import { type Target, type Trace, Overlay, plotTheme, valueAt } from "./benchplot";
 import { confirmDialog, errorText, statusLabel } from "./feedback";
@@ -24,7 +24,7 @@ import { type MetricColumn, metricCell, metricColumns, ms, num, qualityOf } from
 import { FrfPanel } from "./bode";
 import { WhatIfPanel } from "./whatif";
 
-/** The recorder arms this long before the trigger (servotune/testbench.py PRE_TRIGGER_S). */
+/** The recorder arms this long before the trigger (servotune/bench/service.py PRE_TRIGGER_S). */
 const PRE_TRIGGER_S = 0.2;
 const MAX_SELECTED = 8;
 

@@ -4,7 +4,7 @@ import { ApiError, api } from "../api";
 import type { AxisBuffer } from "../buffer";
 import { h, setText, toggleClass } from "../dom";
 import { store } from "../store";
-import type { ArgumentDescriptor, CommandDescriptor, DeviceDescriptor } from "../wire.gen";
+import type { ArgumentDescriptor, CommandDescriptor, DeviceDescriptor } from "../schema.gen";
 import { confirmDialog, errorText, showError, statusLabel } from "./feedback";
 
 /** Argument values the user typed, kept across axis switches: "axis/command/arg". */

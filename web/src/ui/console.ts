@@ -3,7 +3,7 @@ import { api } from "../api";
 import { h } from "../dom";
 import { formatClock } from "../format";
 import { store } from "../store";
-import type { DeviceDescriptor } from "../wire.gen";
+import type { DeviceDescriptor } from "../schema.gen";
 import { errorText, statusLabel } from "./feedback";
 
 /** Output and history survive switching axes (per axis). */

@@ -1,11 +1,11 @@
-// The control lock per axis (server: servotune/control.py, docs/control.md): the badge
+// The control lock per axis (server: servotune/hub/control_lock.py, docs/control.md): the badge
 // (free / yours / held by NAME) with Take / Request / Release / Force, the Allow/Deny
 // prompt, the heartbeats that keep this tab's lease, read-only controls while another
 // tab holds the axis (STOP stays live), and hold-to-run jog buttons.
 import "./control.css";
 import { api, reauthenticate, setClientId } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
-import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../wire.gen";
+import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../schema.gen";
 import { type WsClient, type WsMessage, wsUrl } from "../ws";
 import { showError } from "./feedback";
 

@@ -3,7 +3,7 @@
 import type { RunMetrics } from "../api";
 import { h, setText } from "../dom";
 import { metricHelp } from "../metrics";
-import type { DeviceDescriptor } from "../wire.gen";
+import type { DeviceDescriptor } from "../schema.gen";
 
 export interface MetricColumn {
   key: string; // testid suffix: bench-metric-{run}-{key}
@@ -21,7 +21,7 @@ export interface MetricColumn {
   slack: number;
 }
 
-/** What the server says of a finished run (servotune/runquality.py): ``bad`` runs are
+/** What the server says of a finished run (servotune/bench/quality.py): ``bad`` runs are
  * not comparable (limit switch, stall, did not move, ended outside the window, cut
  * off); ``untrusted`` names the metrics set to null and why. */
 export interface RunQuality {

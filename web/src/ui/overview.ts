@@ -5,7 +5,7 @@ import { api } from "../api";
 import { h, replace, setText } from "../dom";
 import { formatValue, nativeUnit } from "../format";
 import { store } from "../store";
-import type { AxisInfo, DeviceDescriptor } from "../wire.gen";
+import type { AxisInfo, DeviceDescriptor } from "../schema.gen";
 import { HEALTH_TEXT } from "./axis";
 import { control } from "./control";
 

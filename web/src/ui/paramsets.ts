@@ -6,7 +6,7 @@ import { ApiError, api, type ParamSet } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { clock } from "../format";
 import { store } from "../store";
-import type { CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../wire.gen";
+import type { CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../schema.gen";
 import { confirmDialog, errorText, showError, statusLabel } from "./feedback";
 
 /** The server's rule (SaveSetRequest.name): letters, digits, _ and space . , + ( ) # - */

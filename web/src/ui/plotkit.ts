@@ -8,7 +8,7 @@ import { formatValue } from "../format";
 import { StateNames } from "../states";
 import { store } from "../store";
 import type { UnitPrefs } from "../units";
-import type { FlagDescriptor, PlotDescriptor } from "../wire.gen";
+import type { FlagDescriptor, PlotDescriptor } from "../schema.gen";
 import type { Frame } from "./decimate";
 import { drawStates, laneCount, lanePos, type StatesPanel } from "./statesplot";
 import { drawTraceLayer, rastered } from "./tracelayer";

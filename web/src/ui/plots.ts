@@ -15,7 +15,7 @@ import { h, replace, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
 import { store } from "../store";
 import type { UnitPrefs } from "../units";
-import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../wire.gen";
+import type { DeviceDescriptor, FlagDescriptor, PlotDescriptor } from "../schema.gen";
 import { Cutter, FlagRunCache, GAP_PERIODS, medianPeriod, type Frame } from "./decimate";
 import { ScopeTools } from "./scopetools";
 import {

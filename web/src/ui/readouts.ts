@@ -4,7 +4,7 @@ import { h, setText, toggleClass } from "../dom";
 import { formatValue } from "../format";
 import { StateNames } from "../states";
 import type { UnitPrefs } from "../units";
-import type { DeviceDescriptor } from "../wire.gen";
+import type { DeviceDescriptor } from "../schema.gen";
 
 export class Readouts {
   readonly el: HTMLElement;

@@ -4,7 +4,7 @@
 import { AxisBuffer } from "../buffer";
 import { h } from "../dom";
 import { UnitPrefs } from "../units";
-import type { DeviceDescriptor } from "../wire.gen";
+import type { DeviceDescriptor } from "../schema.gen";
 import { PlotStack } from "./plots";
 import type { LayerCounts } from "./tracelayer";
 

@@ -3,7 +3,7 @@
 import { h, replace, setText, toggleClass } from "../dom";
 import { formatSeconds } from "../format";
 import { store } from "../store";
-import type { Event as WireEvent, LinkState } from "../wire.gen";
+import type { Event as WireEvent, LinkState } from "../schema.gen";
 import type { WsState } from "../ws";
 import { HEALTH_TEXT } from "./axis";
 

@@ -5,7 +5,7 @@ import { api } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { formatConverted } from "../format";
 import { store } from "../store";
-import type { BitDescriptor, CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../wire.gen";
+import type { BitDescriptor, CommandDescriptor, DeviceDescriptor, ParameterDescriptor } from "../schema.gen";
 import { commandWidget, makeRunner } from "./commands";
 import { errorText, showError, statusLabel } from "./feedback";
 import { ParamSetsPanel } from "./paramsets";

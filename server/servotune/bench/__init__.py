@@ -1,0 +1,1 @@
+"""The tuning test bench: tests, runs, metrics, quality, import and export."""

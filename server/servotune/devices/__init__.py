@@ -1,0 +1,1 @@
+"""The devices servotune knows, one folder each; the registry is step (b)."""

@@ -1,0 +1,518 @@
+"""The SLAP2 manual's host exchange on one RS232 line (the lower half of the driver).
+
+``Slap2Wire`` is the part of a SLAP2 link that talks to the line: the manual's
+"sstring"/"rstring" (send a character, compare its echo, the next; CR; the reply up to
+CR), module selection with ``se n`` (cached, and sent "blind" when nobody can echo),
+Ctrl-X recovery before CR, the one retry a failure before CR allows, and the latch
+time of every reply. The rules and the decisions where the manual is silent are in
+the docstring of ``devices/slap2/link.py``, which owns the modules' state.
+
+Seam: this class knows the line's selection and nothing else about the modules. It
+reports what only the link can judge through two hooks: ``_note_unsolicited`` (bytes
+that came outside any exchange: a banner means a reset) and ``_lost_selection`` (the
+selected module answered only after a blind re-selection: a weak reset cue).
+Imports: the SLAP2 codec, transports.base, drivers.base and drivers.engine.
+Imported by: devices/slap2/link.py only.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+from collections.abc import Callable
+from typing import Protocol
+
+from servotune.devices.slap2 import codec
+from servotune.link.base import DeviceTimeoutError, DriverError, DriverSink, ProtocolError
+from servotune.link.engine import LinkEngine
+from servotune.transports.base import ByteChannel, Connector, EchoResult
+
+# Commands that may run twice with the same effect: sent again after a failure that
+# came after their CR (for any other command that failure is final: it may have run).
+IDEMPOTENT_COMMANDS = frozenset({"st"})
+# Reads the poll loops chain (``_exchange_once(then=...)``): sending one for nothing
+# (the loop asked for something else after all) costs line time, never a change.
+CHAINABLE_READS = frozenset({"rp", "pe", "rss", "rve"})
+SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
+
+
+class WireTiming(Protocol):
+    """The timing settings the exchange needs (``Slap2LinkConfig`` has them)."""
+
+    @property
+    def baud(self) -> int: ...
+    @property
+    def char_timeout_s(self) -> float: ...
+    @property
+    def quiet_s(self) -> float: ...
+    @property
+    def listing_quiet_s(self) -> float: ...
+
+
+class Slap2Wire(LinkEngine):
+    """A link engine that speaks the SLAP2 exchange; subclassed by ``Slap2Link``.
+
+    Only the owner task calls these methods (``LinkEngine``'s rule). ``_transact``
+    selects and exchanges one command (retried once if abandoned before CR);
+    ``_exchange_once`` exchanges with the module already selected; ``_read_int`` and
+    ``_read_rss_after`` parse a number. Errors: ``DeviceTimeoutError`` (no echo or no
+    reply), ``ProtocolError`` (a wrong echo or reply), ``_AbandonedError`` (failed
+    before CR: nothing executed).
+    """
+
+    def __init__(
+        self,
+        link_id: str,
+        path: str,
+        timing: WireTiming,
+        connector: Connector,
+        sink: DriverSink,
+        *,
+        clock: Callable[[], float],
+        reconnect_max_s: float,
+    ) -> None:
+        super().__init__(
+            link_id,
+            path,
+            timing.baud,
+            connector,
+            sink,
+            clock=clock,
+            reconnect_max_s=reconnect_max_s,
+        )
+        self._timing = timing
+        # Chained reads the channel sent for nothing (see _exchange_once), counted
+        # per channel into the ``chained_reads_dropped`` counter.
+        self._chain_channel: ByteChannel | None = None
+        self._chain_drops_seen = 0
+        self._counters["chained_reads_dropped"] = 0
+        self._selected: int | None = None
+        # The last module we selected, kept when ``_selected`` is forgotten after an
+        # error, to tell a reset (it lost its selection) from a glitch.
+        self._believed_selected: int | None = None
+        # The address of the last ``se`` that nobody answered: that module holds the
+        # line's selection with its transmitter dark, so the next ``se`` cannot be
+        # echoed and is sent blind at once (saves a character timeout and a Ctrl-X
+        # recovery, about 0.35 s, per cycle while a module is silent).
+        self._dark_selection: int | None = None
+        self._reply_chars: dict[str, int] = {}
+        # Best estimate of when the module latched the last exchange's value (see
+        # ``_exchange_once``), and the character times all exchanges took on the wire.
+        self._last_latch_t = 0.0
+        # ... and how far before it the latch may lie: down to when the CR was written
+        # (None: not known, e.g. after the slow path of a stray echo).
+        self._last_latch_span_s: float | None = None
+        self._wire_chars = 0
+
+    def _forget_selection(self) -> None:
+        """A new session or a reset: nobody is known to be selected."""
+        self._selected = self._believed_selected = self._dark_selection = None
+
+    @abc.abstractmethod
+    def _note_unsolicited(self, data: bytes) -> None:
+        """Bytes that arrived outside any exchange (late echoes, noise, a banner)."""
+
+    @abc.abstractmethod
+    def _lost_selection(self, address: int) -> None:
+        """Module ``address`` was selected, yet answered only after a blind ``se``."""
+
+    async def _drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
+        """Read until nothing arrives for ``quiet_s`` (or ``max_s`` passed)."""
+        collected = bytearray(channel.discard_input())
+        deadline = self._clock() + max_s
+        while self._clock() < deadline:
+            data = await channel.read_available(quiet_s)
+            if not data:
+                break
+            collected += data
+        return bytes(collected)
+
+    async def _abandon(self, channel: ByteChannel, head: bytes = b"") -> None:
+        """Ctrl-X discards a half-sent command in the module; then wait for quiet.
+
+        The module echoes the Ctrl-X: wait for that echo first (up to a character
+        timeout), so it cannot arrive during the next command and pass for its echo.
+        """
+        await channel.write(bytes([codec.CTRL_X]))
+        leftover = bytearray(head)
+        deadline = self._clock() + self._timing.char_timeout_s
+        while codec.CTRL_X not in leftover:
+            remaining = deadline - self._clock()
+            if remaining <= 0:
+                break
+            data = await channel.read_available(remaining)
+            if not data:
+                break
+            leftover += data
+        leftover += await self._drain(channel, self._timing.quiet_s, 0.5)
+        stray = bytes(leftover).replace(bytes([codec.CTRL_X]), b"")
+        if stray.strip(b"\r\n"):
+            self._note_unsolicited(stray)
+
+    async def _send_echoed(
+        self, channel: ByteChannel, text: str, first: EchoResult | None = None
+    ) -> None:
+        """Send ``text`` + CR one char at a time, each after the previous echo.
+
+        ``first``: the outcome of an echoed write of the whole line already made (by
+        ``channel.transact``) that stopped early; the rest is sent from there.
+        Raises ``_AbandonedError`` for failures before CR was sent (the command was
+        abandoned with Ctrl-X and did not execute, so it may be retried).
+        """
+        payload = text.encode("ascii") + b"\r"
+        done = 0
+        while True:
+            if first is not None:
+                result, first = first, None
+            else:
+                result = await channel.write_echoed(payload[done:], self._timing.char_timeout_s)
+            done += result.echoed
+            if done == len(payload):
+                return
+            if result.got != codec.CTRL_X:
+                break
+            # A late echo of our own Ctrl-X (nothing else sends 0x18): skip it; the
+            # echo of the byte just sent is due next.
+            self._count("desyncs")
+            echo = await channel.read_byte(self._timing.char_timeout_s)
+            if echo != payload[done]:
+                result = EchoResult(result.echoed, echo)
+                break
+            done += 1
+            if done == len(payload):
+                return
+        byte = payload[done]
+        if result.got is None:
+            error: DriverError = DeviceTimeoutError(
+                f"no echo for {chr(byte)!r} of {text!r} (cable, power or address?)"
+            )
+        else:
+            error = ProtocolError(
+                f"echo mismatch in {text!r}: sent {byte:#04x}, got {result.got:#04x}"
+            )
+        if done == len(payload) - 1:  # CR was sent: it may have executed
+            raise error
+        # The wrong byte may be the head of a banner: keep it with what follows.
+        await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
+        raise _AbandonedError(error)
+
+    def _first_reply_timeout_s(self, command: codec.Command) -> float:
+        return max(
+            self._timing.char_timeout_s,
+            SLOW_COMMANDS_REPLY_S.get(command_mnemonic(command.text), 0.0),
+        )
+
+    async def _read_reply(
+        self, channel: ByteChannel, command: codec.Command, raw: bytes | None = None
+    ) -> list[str]:
+        """The reply's lines; ``raw``: its first line if already read (by ``transact``)."""
+        decoder = codec.LineDecoder()
+        if raw is None:
+            raw = await channel.read_until(
+                codec.CR, self._first_reply_timeout_s(command), self._timing.char_timeout_s
+            )
+        if raw is None:
+            raise DeviceTimeoutError(f"no reply to {command.text!r}")
+        lines = decoder.feed(raw)
+        if command.multiline:
+            # Listings are for terminals: read until the line goes quiet.
+            listing = command_mnemonic(command.text) in codec.MULTILINE_COMMANDS
+            quiet_s = self._timing.listing_quiet_s if listing else self._timing.quiet_s
+            while True:
+                data = await channel.read_available(quiet_s)
+                if not data:
+                    break
+                lines.extend(decoder.feed(data))
+            if decoder.pending:
+                lines.append(decoder.flush())
+        return lines
+
+    async def _exchange_once(
+        self, command: codec.Command, then: codec.Command | None = None
+    ) -> list[str]:
+        """One exchange with the selected module; no retry.
+
+        ``then``: the read (``CHAINABLE_READS``) the caller will most likely make
+        next on the same selection. The channel starts it from the callback that
+        completes this reply, unless a job (a STOP above all) is waiting by then:
+        at 19200 baud that takes the host's wake-up and parsing time (~50-100 us per
+        exchange on a loaded server) off the line. A later exchange that is not
+        that read first waits for it to end (one read's time, ~6 ms).
+
+        Raises ``_AbandonedError`` when it failed before CR (nothing executed),
+        ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
+        """
+        channel = self._require_channel()
+        payload = command.text.encode("ascii") + b"\r"
+        await self._settle_chain(channel, payload)
+        stray = channel.discard_input()
+        if stray:
+            self._note_unsolicited(stray)
+        try:
+            # The usual case in one channel call: the echo checked and the reply read
+            # in the receive callback, both arrival times stamped there.
+            chain = (
+                then is not None
+                and command_mnemonic(command.text) in CHAINABLE_READS
+                and command_mnemonic(then.text) in CHAINABLE_READS
+            )
+            done = await channel.transact(
+                payload,
+                codec.CR,
+                self._timing.char_timeout_s,
+                self._first_reply_timeout_s(command),
+                then=then.text.encode("ascii") + b"\r" if chain and then else b"",
+                may_chain=self._may_chain,
+            )
+            t_echo, t_reply, t_sent = done.t_echo_s, done.t_reply_s, done.t_sent_s
+            if done.echo.echoed < len(payload):
+                # A stray or missing echo: resynchronise the slow way.
+                await self._send_echoed(channel, command.text, done.echo)
+                t_echo = self._clock()
+                t_sent = None
+                raw = None
+            else:
+                raw = done.reply
+                if raw is None:
+                    raise DeviceTimeoutError(f"no reply to {command.text!r}")
+            lines = await self._read_reply(channel, command, raw)
+            if t_reply is None or raw is None or command.multiline:
+                t_reply = self._clock()
+        except _AbandonedError:
+            self._errors += 1
+            raise
+        except DeviceTimeoutError:
+            self._errors += 1
+            self._selected = None
+            await self._abandon(channel)
+            raise
+        if (
+            not command.multiline
+            and command_mnemonic(command.text) != "id"
+            and any(is_banner(x) for x in lines)
+        ):
+            # A module powered up while we waited for this reply: its banner came
+            # instead (a reset). The reply, if any, is lost.
+            self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
+            raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
+        reply_chars = sum(len(x) + 1 for x in lines)
+        self._reply_chars[command_mnemonic(command.text)] = reply_chars
+        # When the module latched the value: it acts on the CR, whose echo ends one
+        # character later, and (sent back to back) the reply ends reply_chars after
+        # that. Both clock readings can only be late (a busy host resumes this task
+        # late), so each gives an upper bound; the smaller one is the best estimate.
+        # The time the reply was parsed would bias rise and settling times by the
+        # reply length and by the host's load.
+        char_s = 10 / self._timing.baud
+        if t_echo is None:
+            t_echo = t_reply
+        self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
+        # The module cannot have acted before the CR was written: a host that ran the
+        # echo's callback late (a stall) stamps late by the stall, and this says so.
+        self._last_latch_span_s = None if t_sent is None else max(0.0, self._last_latch_t - t_sent)
+        chars = 2 * (len(command.text) + 1) + reply_chars
+        self._wire_chars += chars
+        self._wire_used(chars * char_s)
+        return lines
+
+    async def _select(self, address: int) -> None:
+        if self._selected == address:
+            return
+        channel = self._require_channel()
+        believed = self._believed_selected
+        dark = self._dark_selection
+        command = codec.make_select(address)
+        try:
+            if dark is not None:
+                # The last ``se`` reached every module and selected a silent one: no
+                # echo can come, so straight to the blind form (once: not again on its
+                # own timeout).
+                lines, blind = await self._select_blind(channel, command), True
+            else:
+                lines, blind = await self._select_echoed(channel, command)
+        except BaseException as exc:
+            # Every module saw ``se n``: whoever was selected switched its transmitter
+            # off, for a known reason; its later silence is no sign of a reset.
+            self._selected = self._believed_selected = None
+            self._dark_selection = address if isinstance(exc, DeviceTimeoutError) else None
+            raise
+        if lines != [""]:
+            raise ProtocolError(f"unexpected reply to {command.text!r}: {lines!r}")
+        self._dark_selection = None
+        self._selected = self._believed_selected = address
+        # (After a dark selection nothing is believed selected, so no cue then.)
+        if blind and believed is not None:
+            # The module we had selected stopped transmitting without an ``se``: a
+            # reset (power-on deselects every address but 0) does that, but so does
+            # one echo lost or late on a slow host. Weak evidence: the link checks it.
+            self._lost_selection(believed)
+
+    async def _select_echoed(
+        self, channel: ByteChannel, command: codec.Command
+    ) -> tuple[list[str], bool]:
+        """``se n`` the usual way; sent blind if it got no echo (perhaps nobody is
+        selected, so nobody could echo). Returns (the reply's lines, sent blind)."""
+        try:
+            return await self._exchange_once(command), False
+        except _AbandonedError as abandoned:
+            if not isinstance(abandoned.error, DeviceTimeoutError):
+                raise abandoned.error from None
+        except DeviceTimeoutError:
+            pass
+        return await self._select_blind(channel, command), True
+
+    async def _select_blind(self, channel: ByteChannel, command: codec.Command) -> list[str]:
+        """Send ``se n`` paced, without waiting for echoes, and await the new module's
+        CR: for when nobody may be able to echo (nobody selected, or the selected
+        module is silent).
+
+        Should the old module transmit after all, it echoes the line before it
+        switches off: one such echo is removed before the CR is looked for, so it
+        cannot pass for the new module's reply. Any other bytes (late echoes, noise)
+        go to ``_note_unsolicited``; a power-on banner among them means the module
+        reset and the ``se`` is lost, a ``ProtocolError``.
+        """
+        char_s = 10 / self._timing.baud
+        await self._settle_chain(channel)
+        stray = channel.discard_input()
+        if stray:
+            self._note_unsolicited(stray)
+        payload = command.text.encode("ascii") + b"\r"
+        for byte in payload:
+            await channel.write(bytes([byte]))
+            await asyncio.sleep(2 * char_s)
+        received = await self._drain(channel, self._timing.char_timeout_s, 0.5)
+        rest = received.replace(payload, b"", 1)
+        if b"\r" not in rest:
+            if rest.strip():
+                self._note_unsolicited(rest)
+            raise DeviceTimeoutError(
+                f"no module answers at address {command.text[2:]} (power, cable, address pins?)"
+            )
+        other = rest.replace(b"\r", b"", 1)
+        if other.strip(b"\r\n"):
+            self._note_unsolicited(other)
+            if is_banner(other.decode("ascii", "replace")):
+                raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
+        return [""]
+
+    async def _settle_chain(self, channel: ByteChannel, adopt: bytes = b"") -> bool:
+        """Before a new exchange: end a chained read that is not ``adopt`` (see
+        ``_exchange_once``). One that failed before its reply was complete (a wrong
+        or missing echo, no reply) may have left part of its command in the module's
+        buffer, which the next command would be glued to (``pe`` + ``st`` = ``pest``,
+        refused: a STOP lost). So Ctrl-X and drain, as after any failed exchange.
+        True when it failed so (the selection is then in doubt, like after a timeout).
+        """
+        dropped = await channel.settle(adopt)
+        self._count_dropped_chains(channel)
+        if dropped is None or dropped.reply is not None:
+            return False
+        await self._abandon(channel)
+        return True
+
+    def _count_dropped_chains(self, channel: ByteChannel) -> None:
+        if channel is not self._chain_channel:
+            self._chain_channel, self._chain_drops_seen = channel, 0
+        if channel.chains_dropped != self._chain_drops_seen:
+            self._count("chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen)
+            self._chain_drops_seen = channel.chains_dropped
+
+    def _may_chain(self) -> bool:
+        """Called from the receive callback: no job waits for the line."""
+        return not self.jobs_pending
+
+    async def _transact(
+        self, address: int, command: codec.Command, then: codec.Command | None = None
+    ) -> list[str]:
+        """Select ``address`` and exchange ``command``; retried once if abandoned.
+
+        A retry re-selects first: a missing echo may mean the module lost its
+        selection (reset), which a plain resend could not fix. ``then``: see
+        ``_exchange_once`` (not on a retry).
+        """
+        idempotent = command_mnemonic(command.text) in IDEMPOTENT_COMMANDS
+        channel = self._require_channel()
+        if await self._settle_chain(channel, command.text.encode("ascii") + b"\r"):
+            self._selected = None  # a read failed: select again, as after a timeout
+        for attempt in range(2):
+            if attempt:
+                self._count("retries")
+            await self._select(address)
+            try:
+                return await self._exchange_once(command, None if attempt else then)
+            except _AbandonedError as abandoned:
+                if isinstance(abandoned.error, DeviceTimeoutError):
+                    self._selected = None
+                if attempt == 1:
+                    raise abandoned.error from None
+            except (DeviceTimeoutError, ProtocolError):
+                # After CR: it may have run. Only a command that may run twice (st)
+                # is sent again - a STOP whose CR echo came late must still go out.
+                if not idempotent or attempt == 1:
+                    raise
+        raise AssertionError("unreachable")
+
+    async def _read_rss_after(self, command_text: str) -> int:
+        """``rss`` right after a command, on the same selection.
+
+        Its ``uc`` bit tells whether the command was refused; a re-selection would
+        spoil that (``se`` is a command too), so a failed read is repeated without
+        one. If it still fails, the outcome is unknown and the error says so.
+        """
+        for attempt in range(3):
+            try:
+                lines = await self._exchange_once(codec.make_read("rss"))
+            except _AbandonedError as abandoned:
+                if attempt < 2:
+                    self._count("retries")
+                    continue
+                error = abandoned.error
+            except (DeviceTimeoutError, ProtocolError) as exc:
+                error = exc
+            else:
+                reply = codec.parse_reply(lines[0] if lines else "")
+                if reply.kind is codec.ReplyKind.NUMBER and reply.value is not None:
+                    return reply.value
+                error = ProtocolError(f"rss answered {reply.text!r}, expected a number")
+            raise ProtocolError(
+                f"{command_text}: sent, but whether the module accepted it is unknown "
+                f"(the status read after it failed: {error})"
+            )
+        raise AssertionError("unreachable")
+
+    async def _read_int(self, address: int, mnemonic: str, then: str | None = None) -> int:
+        """``mnemonic``'s number; ``then``: the read most likely next (see
+        ``_exchange_once``)."""
+        lines = await self._transact(
+            address, codec.make_read(mnemonic), None if then is None else codec.make_read(then)
+        )
+        reply = codec.parse_reply(lines[0] if lines else "")
+        if reply.kind is not codec.ReplyKind.NUMBER or reply.value is None:
+            raise ProtocolError(f"{mnemonic} answered {reply.text!r}, expected a number")
+        return reply.value
+
+
+class _AbandonedError(Exception):
+    """A command abandoned with Ctrl-X before its CR: it did not execute."""
+
+    def __init__(self, error: DriverError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def is_banner(text: str) -> bool:
+    """A power-on banner names the module type (``SLAP2 V2205 HW3 SN10000``); late
+    echoes of servotune's own commands (``se0``, ``rss``) and noise never do."""
+    return "slap2" in text.lower()
+
+
+def command_mnemonic(text: str) -> str:
+    """The command word of a wire line: its leading letters (``sv1000`` -> ``sv``)."""
+    end = 0
+    while end < len(text) and text[end].isalpha():
+        end += 1
+    return text[:end].lower()
+
+
+__all__ = ["IDEMPOTENT_COMMANDS", "Slap2Wire", "WireTiming", "command_mnemonic", "is_banner"]

@@ -1,0 +1,1 @@
+"""The simulated SLAP2 line: firmware controller, module, line."""

@@ -1,0 +1,1 @@
+"""CNC Designer Z1100: binary serial, one chip, three motors."""

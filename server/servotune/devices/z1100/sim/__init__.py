@@ -1,0 +1,1 @@
+"""The simulated Z1100 chip and its servo loops."""

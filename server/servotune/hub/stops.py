@@ -1,0 +1,346 @@
+"""Every stop of an axis, and the watch that nothing is left oscillating after it.
+
+The hub's one way to stop an axis (``StopService.stop``), whoever asks: the STOP button
+(``kind="stop"``), every other stop (``"controlled"``: a hand-over, the dead-man, the
+end or abort of a bench run or an auto-tune step), and the explicit power-off
+(``"power_off"``, category 0). Decisions (docs/control.md, "Stops"):
+
+* Before a STOP or a controlled stop, the last ``JUDGE_S`` of telemetry are judged
+  (``servotune.hub.loopcheck``): where the position loop is *not working* (oscillating,
+  its error running away, the current limit held) the device's loop-free brake goes
+  out instead (``StopModes.brake``: SLAP2 spwm 0, else power off) - a loop that does
+  not work must not be trusted to brake or hold. Without evidence either way the
+  device's own stop goes out.
+* After a stop that leaves the axis held by its loop (``action == "hold"``) the axis is
+  watched until it is at rest (``hub.loopcheck.at_rest``), at most ``WATCH_S``: if the loop
+  oscillates, runs away or holds the current limit meanwhile, or the axis is not at
+  rest by then, it gets the brake and an error event says why.
+* A brake (``action == "brake"``) is switched off (``StopModes.power_off``) once the
+  axis is at rest, at the latest after ``BRAKE_MAX_S``.
+* A new change of the axis (any command, write, console line) ends its watch: what
+  the user does next is theirs (``cancel_watch``).
+
+Sample times are the drivers' own; the watch compares them with each other only (the
+samples after the stop are those newer than the newest one at the stop), so an
+injected hub clock does not confuse it. Imports: ``descriptor``, ``link.base``,
+``hub.loopcheck``, ``wire`` (nothing of the hub: ``hub.state`` owns one of these).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Final, Literal
+
+from servotune.descriptor import DeviceDescriptor, LoopSignals
+from servotune.hub import loopcheck
+from servotune.link.base import AxisDriver, DriverError, Sample, StopModes, StopOutcome
+from servotune.schema import EventLevel
+
+logger = logging.getLogger(__name__)
+
+# Telemetry kept per axis: the judgement before a stop looks at the last JUDGE_S.
+HISTORY_S: Final = 4.0
+JUDGE_S: Final = 1.5
+# After a stop that holds, the axis must be at rest within WATCH_S.
+WATCH_S: Final = 3.0
+# A brake is switched off once the shaft stands, at the latest after BRAKE_MAX_S.
+BRAKE_MAX_S: Final = 2.0
+# How often the watch looks at the samples.
+WATCH_PERIOD_S: Final = 0.02
+# After a bench run or an auto-tune step the axis is watched this long for a loop that
+# does not work (enough for four swings of the slowest limit cycle seen, ~3 Hz).
+SETTLE_WATCH_S: Final = 1.5
+
+StopKind = Literal["stop", "controlled", "power_off"]
+
+
+@dataclass(eq=False, slots=True)
+class _Axis:
+    driver: AxisDriver
+    loop: LoopSignals | None
+    power_off_command: str | None
+    history: deque[Sample] = field(default_factory=deque)
+    watch: asyncio.Task[None] | None = None
+    # Stops of this axis so far, and the outcome of its watches (tests, benchmark).
+    watches: int = 0
+    escalations: int = 0
+
+
+class StopService:
+    """Stops of every axis of one hub (see the module docstring)."""
+
+    def __init__(
+        self,
+        on_event: Callable[[EventLevel, str | None, str], None],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._on_event = on_event
+        self._clock = clock
+        self._axes: dict[str, _Axis] = {}
+
+    # --- what the hub feeds in ----------------------------------------------------------
+
+    def add_axis(self, axis_id: str, driver: AxisDriver, descriptor: DeviceDescriptor) -> None:
+        self._axes[axis_id] = _Axis(driver, descriptor.loop, descriptor.stop.power_off_command)
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        """Keep the last ``HISTORY_S`` of an axis with a loop to judge (cheap: called
+        for every sample)."""
+        ax = self._axes.get(axis_id)
+        if ax is None or ax.loop is None:
+            return
+        history = ax.history
+        history.append(sample)
+        while history and sample.t - history[0].t > HISTORY_S:
+            history.popleft()
+
+    def verdict(self, axis_id: str, *, window_s: float = JUDGE_S) -> loopcheck.LoopVerdict:
+        """The loop check on the axis' last ``window_s`` of telemetry."""
+        ax = self._axes[axis_id]
+        if ax.loop is None or not ax.history:
+            return loopcheck.NO_EVIDENCE
+        newest = ax.history[-1].t
+        return loopcheck.judge(ax.history, ax.loop, since=newest - window_s)
+
+    def watching(self, axis_id: str) -> bool:
+        ax = self._axes.get(axis_id)
+        return ax is not None and ax.watch is not None and not ax.watch.done()
+
+    def cancel_watch(self, axis_id: str) -> None:
+        """A new change of the axis: what follows is the user's (see the module doc)."""
+        ax = self._axes.get(axis_id)
+        if ax is not None and ax.watch is not None and ax.watch is not asyncio.current_task():
+            ax.watch.cancel()
+            ax.watch = None
+
+    async def close(self) -> None:
+        for ax in self._axes.values():
+            if ax.watch is not None:
+                ax.watch.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await ax.watch
+                ax.watch = None
+
+    # --- stopping -------------------------------------------------------------------------
+
+    async def stop(self, axis_id: str, kind: StopKind, reason: str) -> StopOutcome | None:
+        """Stop the axis (see the module docstring); returns what went out and what the
+        axis does now (None: the driver does not say, e.g. a rig's axis, which its rig
+        watches). Raises the driver's error when nothing could be sent (the caller
+        keeps a STOP pending then); the watch reports its own outcome as events."""
+        ax = self._axes[axis_id]
+        self.cancel_watch(axis_id)
+        driver = ax.driver
+        if not isinstance(driver, StopModes):
+            # A driver that stops by itself (a rig's axis: the rig judges and watches
+            # it): its STOP, or the power-off command of its descriptor.
+            if kind == "power_off" and ax.power_off_command:
+                await driver.command(ax.power_off_command, {})
+                return None
+            return await driver.stop()
+        modes = driver
+        verdict = self.verdict(axis_id) if kind != "power_off" else loopcheck.NO_EVIDENCE
+        outcome: StopOutcome | None
+        if kind == "power_off":
+            outcome = await modes.power_off()
+        elif verdict.working is False:
+            outcome = await modes.brake()
+            self._on_event(
+                "error",
+                axis_id,
+                f"{reason}: the loop is not working ({verdict.reason}): not trusted to "
+                f"brake or hold: {_describe(outcome)}",
+            )
+        elif kind == "controlled":
+            outcome = await modes.controlled_stop()
+        else:
+            outcome = await driver.stop()
+        if outcome is not None:
+            self.follow(axis_id, outcome, reason)
+        return outcome
+
+    def follow(self, axis_id: str, outcome: StopOutcome, reason: str) -> None:
+        """Watch the axis after ``outcome`` (a stop that went out some other way, e.g. a
+        stop-group command of the descriptor): see the module docstring."""
+        ax = self._axes.get(axis_id)
+        if ax is None or ax.loop is None:
+            return
+        self.cancel_watch(axis_id)
+        if outcome.action == "hold":
+            job = self._watch_hold(axis_id, ax, reason)
+        elif outcome.action == "brake":
+            job = self._watch_brake(axis_id, ax, reason)
+        else:
+            return
+        ax.watches += 1
+        ax.watch = asyncio.get_running_loop().create_task(job, name=f"stop watch of {axis_id}")
+
+    # --- after a run --------------------------------------------------------------------
+
+    async def settle_check(
+        self,
+        axis_id: str,
+        *,
+        gains_now: Mapping[str, int],
+        restore: Mapping[str, int],
+        reason: str,
+        watch_s: float = SETTLE_WATCH_S,
+    ) -> Settled | None:
+        """After a bench run or an auto-tune step: nothing the product started may be
+        left oscillating. Watches the axis until it is at rest, at most ``watch_s``
+        (unpowered and still counts as at rest too); if its loop is not working
+        (``hub.loopcheck``), brings it to rest without the loop (the brake, then power off
+        at rest), writes ``restore`` (the gains in force before the run, or the last
+        verified ones) where they differ from ``gains_now``, and holds with them, watched
+        like any hold. Returns what it found and did (None: the loop works, or there was
+        nothing to judge); says it in an error event."""
+        ax = self._axes.get(axis_id)
+        if ax is None or ax.loop is None or not isinstance(ax.driver, StopModes):
+            return None
+        modes = ax.driver
+        mark = self._start_mark(ax)
+        deadline = self._clock() + watch_s + 2.0
+        verdict = loopcheck.NO_EVIDENCE
+        while self._clock() < deadline:
+            await asyncio.sleep(WATCH_PERIOD_S * 5)
+            after = [s for s in ax.history if s.t > mark]
+            if not after:
+                continue
+            verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
+            if verdict.working is False or after[-1].t - after[0].t >= watch_s:
+                break
+            if loopcheck.at_rest(after, ax.loop, since=after[0].t):
+                return None  # at rest and holding: nothing oscillates
+        if verdict.working is not False:
+            return None
+        self.cancel_watch(axis_id)
+        outcome = await modes.brake()
+        if outcome.action == "brake":
+            await self._rest(ax, BRAKE_MAX_S)
+            await modes.power_off()
+        done = [f"brought to rest ({', '.join(outcome.sent)}, then unpowered)"]
+        wanted = {k: v for k, v in restore.items() if gains_now.get(k) != v}
+        restored: dict[str, int] | None = None
+        holds = False
+        if wanted:
+            await ax.driver.write_params(dict(restore))
+            restored = dict(restore)
+            done.append("gains " + " ".join(f"{k} {v}" for k, v in restore.items()) + " restored")
+            held = await modes.hold_here()
+            holds = True
+            done.append("holding under power")
+            self.follow(axis_id, held, reason)
+        else:
+            done.append("no other gains to restore (the ones in force oscillate): left unpowered")
+        message = f"{reason}: left the axis oscillating ({verdict.reason}); " + "; ".join(done)
+        self._on_event("error", axis_id, message)
+        return Settled(verdict.reason, message, restored, holds)
+
+    async def _rest(self, ax: _Axis, timeout_s: float) -> None:
+        assert ax.loop is not None
+        mark = self._start_mark(ax)
+        deadline = self._clock() + timeout_s
+        while self._clock() < deadline:
+            await asyncio.sleep(WATCH_PERIOD_S)
+            after = [s for s in ax.history if s.t > mark]
+            if after and loopcheck.at_rest(after, ax.loop, since=after[0].t):
+                return
+
+    # --- watches ------------------------------------------------------------------------
+
+    def _start_mark(self, ax: _Axis) -> float:
+        """Samples newer than this came after the stop went out."""
+        return ax.history[-1].t if ax.history else -float("inf")
+
+    async def _watch_hold(self, axis_id: str, ax: _Axis, reason: str) -> None:
+        assert ax.loop is not None
+        mark = self._start_mark(ax)
+        deadline = self._clock() + WATCH_S
+        why = ""
+        while True:
+            await asyncio.sleep(WATCH_PERIOD_S)
+            after = [s for s in ax.history if s.t > mark]
+            if after:
+                verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
+                if verdict.working is False:
+                    why = verdict.reason
+                    break
+                if loopcheck.at_rest(after, ax.loop, since=after[0].t):
+                    return
+                if after[-1].t - after[0].t >= WATCH_S:
+                    why = f"not at rest {WATCH_S:g} s after the stop"
+                    break
+            if self._clock() > deadline + WATCH_S:
+                return  # no telemetry (link down): nothing to judge, nothing to do
+        ax.escalations += 1
+        modes = ax.driver if isinstance(ax.driver, StopModes) else None
+        try:
+            outcome = await modes.brake() if modes is not None else await ax.driver.stop()
+        except DriverError as exc:
+            self._on_event(
+                "error", axis_id, f"{reason}: the hold failed ({why}); brake not sent: {exc}"
+            )
+            return
+        self._on_event(
+            "error",
+            axis_id,
+            f"{reason}: the loop does not hold the axis after the stop ({why}): "
+            f"{_describe(outcome)}",
+        )
+        if outcome is not None and outcome.action == "brake":
+            await self._watch_brake(axis_id, ax, reason)
+
+    async def _watch_brake(self, axis_id: str, ax: _Axis, reason: str) -> None:
+        assert ax.loop is not None
+        await self._rest(ax, BRAKE_MAX_S)
+        modes = ax.driver if isinstance(ax.driver, StopModes) else None
+        try:
+            if modes is not None:
+                await modes.power_off()
+        except DriverError as exc:
+            self._on_event(
+                "error", axis_id, f"{reason}: the brake could not be switched off: {exc}"
+            )
+            return
+        self._on_event("info", axis_id, f"{reason}: at rest, motor unpowered")
+
+
+@dataclass(frozen=True, slots=True)
+class Settled:
+    """What ``settle_check`` found and did when a loop the product set going was not
+    working after it: ``reason`` (the loop check's words), what was done (``message``,
+    a sentence for the run's quality and the event log), the gains written back
+    (``restored``, None: none) and whether the axis holds under power at the end."""
+
+    reason: str
+    message: str
+    restored: dict[str, int] | None
+    holds: bool
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "reason": self.reason,
+            "message": self.message,
+            "restored": self.restored,
+            "holds": self.holds,
+        }
+
+
+def gains_of(descriptor: DeviceDescriptor, values: Mapping[str, int]) -> dict[str, int]:
+    """The gains among ``values`` (an axis' device values): its parameters of a group
+    named "gains..." (SLAP2 kp ki kd; Z1100 KABH and KABD)."""
+    names = [p.name for p in descriptor.parameters if p.group.startswith("gains")]
+    return {name: values[name] for name in names if name in values}
+
+
+def _describe(outcome: StopOutcome | None) -> str:
+    if outcome is None:
+        return "STOP sent"
+    return f"{', '.join(outcome.sent)}: {outcome.message}" if outcome.sent else outcome.message

@@ -1,0 +1,1 @@
+"""The generic link: contracts, the owner-task engine, capture, validation."""

@@ -1,0 +1,1 @@
+"""Performance benchmarks (``servotune bench``): figures, not tests."""

@@ -1,0 +1,185 @@
+"""Benchmark: telemetry samples per second per axis against the wire limit.
+
+Runs ``servotune sim <device>`` as a separate process on a pseudo-terminal (the real
+serial path: pty, pyserial-asyncio-fast, the simulator's wire timing at the chosen
+baud) and the real driver against it, then prints what it achieved next to what the
+wire allows for the same poll set. Not a test: the figures depend on the machine.
+
+The wire limit assumes the host and the device turn around in no time. They cannot:
+the SLAP2's host algorithm (the manual's "sstring") waits for each character's echo
+before it sends the next, and the Z1100 host sends a request when the previous reply
+is in, so every such turn costs a pty hop each way, two processes' wake-ups and the
+simulator's timer on top of the wire time. The benchmark prints that cost per turn
+(``turns_per_sample``), so a figure below the target can be told apart from
+characters lost or wasted on the wire.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Callable, Coroutine, Mapping
+from typing import Any
+
+from servotune.config import DEFAULT_BAUD, LinkSpec
+from servotune.devices.slap2.link import Slap2Link
+from servotune.devices.z1100.link import Z1100Link
+from servotune.link.base import Sample
+from servotune.link.engine import LinkEngine
+from servotune.links import build_link
+from servotune.schema import AxisHealth, EventLevel, LinkState
+
+
+class _CountingSink:
+    def __init__(self) -> None:
+        self.samples: dict[str, list[float]] = defaultdict(list)
+        self.state: LinkState = "connecting"
+        self.wire_limit_hz = 0.0
+        self.errors = 0
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        self.samples[axis_id].append(sample.t)
+
+    def on_link_status(
+        self,
+        link_id: str,
+        state: LinkState,
+        message: str,
+        rate_hz: float,
+        wire_limit_hz: float,
+        errors: int,
+    ) -> None:
+        self.state, self.wire_limit_hz, self.errors = state, wire_limit_hz, errors
+
+    def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
+        pass
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None:
+        pass
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None:
+        pass
+
+
+def turns_per_sample(link: LinkEngine) -> float:
+    """Host/device turns per poll cycle, i.e. per telemetry sample of each axis: every
+    character the SLAP2 host sends waits for its echo (the reply follows the CR's echo
+    without a turn), for every module on the line; every Z1100 transaction is one."""
+    if isinstance(link, Slap2Link):
+        turns = float(sum(len(m) + 1 for m in link.config.poll_commands))
+        if link.config.rve_every:
+            turns += 4 / link.config.rve_every
+        modules = len(link.config.addresses)
+        if modules > 1:
+            turns += len("se0") + 1
+        return turns * modules
+    if isinstance(link, Z1100Link):
+        # GetEncoder + GetError of three motors, three status reads every status_every
+        return 6.0 + 3.0 / link.config.status_every
+    return 0.0
+
+
+async def _measure(
+    device: str, path: str, baud: int, addresses: list[int], duration_s: float
+) -> int:
+    sink = _CountingSink()
+    link = build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
+    assert isinstance(link, LinkEngine)
+    task = asyncio.create_task(link.run())
+    try:
+        deadline = time.monotonic() + 10
+        while link.state != "connected":
+            if time.monotonic() > deadline:
+                print("bench: the link did not connect", file=sys.stderr)
+                return 1
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.5)  # settle: learn reply lengths
+        for samples in sink.samples.values():
+            samples.clear()
+        await asyncio.sleep(duration_s)
+        wire_limit_hz = link.wire_limit_hz()
+        if isinstance(link, Slap2Link):
+            poll_set = "+".join(link.config.poll_commands)
+            print(
+                f"SLAP2 {baud} baud, {len(addresses)} module(s) on one line, poll set "
+                f"{poll_set} (+rve every {link.config.rve_every}th cycle)"
+            )
+        elif isinstance(link, Z1100Link):
+            print(
+                f"Z1100 {baud} baud, 3 axes, poll set GetEncoder+GetError per axis "
+                f"(+GetStart, GetStop, GetSwitch every {link.config.status_every}th cycle), "
+                "13 bytes per transaction"
+            )
+        print(f"wire limit for this poll set: {wire_limit_hz:.1f} samples/s per axis")
+        ratios = []
+        for axis_id, times in sorted(sink.samples.items()):
+            if len(times) < 2:
+                print(f"  {axis_id}: no samples")
+                ratios.append(0.0)
+                continue
+            rate_hz = (len(times) - 1) / (times[-1] - times[0])
+            ratio = rate_hz / wire_limit_hz
+            ratios.append(ratio)
+            print(f"  {axis_id}: {rate_hz:6.1f} samples/s = {ratio:6.1%} of the wire limit")
+        if ratios and min(ratios) > 0:
+            turns = turns_per_sample(link)
+            lost_s = 1 / (min(ratios) * wire_limit_hz) - 1 / wire_limit_hz
+            print(
+                f"time per sample beyond the wire (worst axis): {lost_s * 1e3:.2f} ms = "
+                f"{lost_s / turns * 1e6:.0f} us per host/device turn ({turns:.1f} turns)"
+            )
+        print(f"link errors during the run: {link.errors}")
+        print(f"worst axis: {min(ratios):.1%} of the wire limit (target >= 90 %)")
+        return 0
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s: float) -> int:
+    """Start the simulator process, measure, print, clean up. Returns an exit code."""
+    baud = baud or DEFAULT_BAUD[device]
+    if device == "z1100":
+        addresses = [0, 1, 2]
+    command = [
+        sys.executable,
+        "-m",
+        "servotune.cli",
+        "sim",
+        device,
+        "--baud",
+        str(baud),
+        "--addresses",
+        ",".join(map(str, addresses)),
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=os.environ.copy())
+    try:
+        assert process.stdout is not None
+        path = process.stdout.readline().strip()
+        if not path:
+            print("bench: the simulator printed no path", file=sys.stderr)
+            return 1
+        # The server runs on uvloop when it is installed (uvicorn's default), so
+        # measure on the same loop.
+        try:
+            import uvloop
+
+            runner: Callable[[Coroutine[Any, Any, int]], int] = uvloop.run
+            loop_name = "uvloop"
+        except ImportError:
+            runner, loop_name = asyncio.run, "asyncio"
+        print(f"event loop: {loop_name}")
+        return runner(_measure(device, path, baud, addresses, duration_s))
+    finally:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            process.kill()

@@ -1,0 +1,378 @@
+"""Stopping distance and time on the demo plants: STOP against the power-off alone.
+
+Each run starts one simulated device (the demo's plants, limit switches removed so that
+nothing but the stop ends the motion), its real driver on a pseudo-terminal (or the
+EtherCAT seam), and a real ``Hub``; brings one axis into a state (``top speed``, or a
+``limit cycle``: a loop whose gains oscillate around a held position); then asks the
+hub for ``STOP`` (the product's STOP, ``Hub.command(axis, "stop")``) or for the
+explicit power-off (``power_off``: SLAP2 ``st`` alone, Z1100 Job 0, EP7047 Enable off),
+and records the shaft as the simulated device sees it until it is at rest.
+
+* distance: the largest excursion of the shaft from where it was when the stop was
+  asked for, until it is at rest (counts); a limit cycle is pressed near its highest
+  speed, the same worst phase for both methods (``_near_peak_speed``);
+* time: from the request until the shaft speed stays below ``REST_COUNTS_S`` (s);
+* holds: the motor is under power at the end (held by its loop).
+
+A composition root (imports simulators, drivers and the hub); used by
+``scripts/bench_stops.py`` (the table in docs/control.md) and tests/test_stops.py
+(ratios against the power-off measured in the same test). Figures depend on the host
+only through the host's latency (a STOP's few milliseconds on the wire).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import math
+import tempfile
+import time
+from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final, Literal
+
+from servotune.config import SIMULATED_NIC, LinkSpec
+from servotune.demo import SLAP2_LOADED, Z1100_LOADS_KG_M2, _z1100_flash
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.servo import AxisHardware
+from servotune.hub.hub import Hub
+from servotune.link.base import Sample
+from servotune.links import build_link
+from servotune.sim.physics import DcMotorParams
+from servotune.sim.pty import PtySimulator
+from servotune.storage import Storage
+
+State = Literal["top speed", "limit cycle"]
+Method = Literal["STOP", "power off"]
+
+# Below this shaft speed the axis counts as at rest (counts/s), for this long.
+REST_COUNTS_S: Final = 200.0
+REST_FOR_S: Final = 0.15
+# A run ends this long after the request at the latest.
+MAX_STOP_S: Final = 8.0
+SLAP2_COUNTS_PER_RAD: Final = 2048 / (2 * math.pi)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Case:
+    """One demo plant in one state; ``setup`` are (what, args) steps for the hub."""
+
+    device: str
+    axis: str  # axis id on the bench's link
+    label: str
+    state: State
+    gains: dict[str, int]
+    speed: str  # in words, for the table
+
+
+@dataclass(slots=True)
+class Result:
+    case: Case
+    method: Method
+    speed_counts_s: float  # shaft speed when the stop was asked for
+    distance_counts: float
+    time_s: float | None  # None: not at rest within MAX_STOP_S
+    holds: bool
+    sent: list[str] = field(default_factory=list)
+    events: list[str] = field(default_factory=list)
+
+
+SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
+SLAP2_GOOD = {"kp": 600, "ki": 10, "kd": 1500}  # a stable loop on both modules
+SLAP2_FACTORY = {"kp": 40, "ki": 40, "kd": 80}
+
+# A slow sampling time stretches the chip's derivative window: with the unloaded
+# motor's K at its maximum the loop settles into a limit cycle (docs/z1100-simulator.md).
+Z1100_OSCILLATING = {"stm": 16} | {
+    f"{s}_{g}": v for s in ("kabh", "kabd") for g, v in (("k", 255), ("a", 64), ("b", 8))
+}
+SLAP2_OSCILLATING = {"kp": 2000, "ki": 0, "kd": 0}
+
+CASES: Final[tuple[Case, ...]] = (
+    Case("slap2", "bench-0", "SLAP2 #0 unloaded", "top speed", SLAP2_FACTORY, "vm sv 20000"),
+    Case("slap2", "bench-0", "SLAP2 #0 unloaded", "limit cycle", SLAP2_OSCILLATING, "±190"),
+    Case("slap2", "bench-1", "SLAP2 #1 with load", "top speed", SLAP2_GOOD, "vm sv 20000"),
+    Case("slap2", "bench-1", "SLAP2 #1 with load", "top speed", SLAP2_FACTORY, "vm sv 20000"),
+    Case("slap2", "bench-1", "SLAP2 #1 with load", "limit cycle", SLAP2_FACTORY, "±1900 @ step"),
+    Case("z1100", "bench-x", "Z1100 X unloaded", "top speed", {}, "Vmax 100 000"),
+    Case("z1100", "bench-y", "Z1100 Y 5x load", "top speed", {}, "Vmax 100 000"),
+    Case("z1100", "bench-z", "Z1100 Z 20x load", "top speed", {}, "Vmax 100 000"),
+    Case("z1100", "bench-x", "Z1100 X unloaded", "limit cycle", Z1100_OSCILLATING, "±600"),
+    Case("ep7047", "bench-1", "EP7047 stepper", "top speed", {}, "endless, 10 000 bp"),
+)  # fmt: skip
+
+
+class _Trace:
+    """A ``SimDevice`` wrapper that records the shaft (host monotonic time, position in
+    counts, speed in counts/s) of one axis every time the device is advanced."""
+
+    def __init__(self, device: Any, read: Callable[[], tuple[float, float]]) -> None:
+        self.device = device
+        self._read = read
+        self.points: list[tuple[float, float, float]] = []
+
+    def advance_to(self, t_s: float) -> bytes:
+        out: bytes = self.device.advance_to(t_s)
+        position, speed = self._read()
+        self.points.append((time.monotonic(), position, speed))
+        return out
+
+    def receive(self, byte: int) -> bytes:
+        out: bytes = self.device.receive(byte)
+        return out
+
+
+def _slap2_bus() -> Slap2Bus:
+    free = {"limit1_count": None, "limit2_count": None}
+    return Slap2Bus(
+        [
+            Slap2Module(0, params=DcMotorParams(**free)),  # type: ignore[arg-type]
+            Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),  # type: ignore[arg-type]
+        ]
+    )
+
+
+Trace = Callable[[], list[tuple[float, float, float]]]
+
+
+@contextlib.asynccontextmanager
+async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Callable[[], bool]]]:
+    """A hub with the device of ``case``; yields (hub, trace of the axis, powered?)."""
+    suffix = case.axis.rsplit("-", 1)[1]
+    address = "xyz".index(suffix) if case.device == "z1100" else int(suffix)
+    simulator: PtySimulator | None = None
+    points: list[tuple[float, float, float]] = []
+    powered: Callable[[], bool]
+    if case.device == "slap2":
+        bus = _slap2_bus()
+        module = bus.module(address)
+        trace = _Trace(
+            bus,
+            lambda: (
+                float(module.motor.count),
+                module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD,
+            ),
+        )
+        simulator = PtySimulator(trace, baud=19200)
+        spec = LinkSpec("slap2", "", "bench", 19200, [0, 1], 512)
+        points = trace.points
+        powered = lambda: bool(module.rss & 0b1100)  # noqa: E731 - pm or vm
+    elif case.device == "z1100":
+        flash = data_dir / "z1100_flash.json"
+        _z1100_flash(flash)
+        chip = Z1100Chip(
+            [
+                AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
+                for j in Z1100_LOADS_KG_M2
+            ],
+            flash_path=flash,
+            jumper_baud=9600,
+        )
+
+        def read() -> tuple[float, float]:
+            state = chip.axis_state(address)
+            return float(state.encoder_counts), float(state.speed_counts_s)
+
+        trace = _Trace(chip, read)
+        simulator = PtySimulator(trace, baud=9600)
+        spec = LinkSpec("z1100", "", "bench", 9600, [0, 1, 2], 512)
+        points = trace.points
+        powered = lambda: bool(chip.axis_state(address).powered)  # noqa: E731
+    else:
+        spec = LinkSpec("ep7047", SIMULATED_NIC, "bench", 0, [1])
+        powered = lambda: False  # noqa: E731 - replaced below
+    if simulator is not None:
+        simulator.start()
+        spec = dataclasses.replace(spec, path=simulator.path)
+    storage = Storage(data_dir / "servotune.db")
+    hub = Hub([], storage)
+    hub.add_link(build_link(spec, hub))
+    if case.device == "ep7047":
+
+        def listen(axis_id: str, sample: Sample) -> None:
+            # The EtherCAT telemetry is dense (a sample per 2 ms cycle): the speed is
+            # taken from successive positions, in counts/s like the serial devices'.
+            position = sample.channels.get("position")
+            if axis_id != case.axis or position is None:
+                return
+            speed = 0.0
+            if points and sample.t > points[-1][0]:
+                speed = (float(position) - points[-1][1]) / (sample.t - points[-1][0])
+            points.append((sample.t, float(position), speed))
+
+        hub.add_sample_listener(listen)
+        powered = lambda: bool(  # noqa: E731
+            (latest := hub.entry(case.axis).latest) and latest.flags.get("enable_out")
+        )
+    await hub.start()
+    try:
+        deadline = time.monotonic() + 20
+        while hub.entry(case.axis).latest is None or hub.link_status("bench").state != "connected":
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{case.label}: the link did not come up")
+            await asyncio.sleep(0.05)
+        yield hub, (lambda: list(points)), powered
+    finally:
+        await hub.stop()
+        await hub.stops.close()
+        if simulator is not None:
+            simulator.stop()
+
+
+async def _bring_into_state(hub: Hub, case: Case) -> None:
+    axis = case.axis
+    if case.device == "slap2":
+        await hub.command(axis, "power_off", {})
+        await hub.write_params(axis, dict(case.gains))
+        if case.state == "top speed":
+            await hub.write_params(axis, {"velocity": SLAP2_TOP_SV, "acceleration": 65535})
+            await hub.command(axis, "velocity_mode", {})
+            await asyncio.sleep(0.8)
+        else:
+            await hub.write_params(axis, {"velocity": 65535, "acceleration": 65535})
+            await hub.command(axis, "position_mode", {})
+            await hub.command(axis, "move_relative", {"distance": 2000})
+            await asyncio.sleep(1.5)  # the step's limit cycle settles in
+    elif case.device == "z1100":
+        if case.gains:
+            await hub.write_params(axis, dict(case.gains))
+        if case.state == "top speed":
+            await hub.command(axis, "constant_velocity", {"direction": 1})
+            await asyncio.sleep(1.0)
+        else:
+            position = (hub.entry(axis).latest or Sample(0, {}, {})).channels.get("position") or 0
+            await hub.command(axis, "go_to_target", {"target": int(position) + 20000})
+            await asyncio.sleep(1.5)
+    else:
+        await hub.command(axis, "enable", {})
+        await asyncio.sleep(0.3)
+        await hub.command(
+            axis,
+            "execute_move",
+            {
+                "start_type": 3,
+                "target": 0,
+                "velocity": 10000,
+                "acceleration_ms": 300,
+                "deceleration_ms": 300,
+            },
+        )
+        await asyncio.sleep(1.5)
+
+
+async def _near_peak_speed(trace: Trace) -> None:
+    """Wait (at most 2 s) until the shaft runs at 80 % or more of the highest speed of its
+    last 0.3 s: a limit cycle is pressed at the same, worst phase for every method (a
+    power cut then lets the shaft coast from near its top speed)."""
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        points = trace()
+        recent = [abs(p[2]) for p in points if p[0] >= points[-1][0] - 0.3]
+        if recent and recent[-1] >= 0.8 * max(recent) > 0:
+            return
+        await asyncio.sleep(0.001)
+
+
+def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, float]:
+    """Position and speed at host time ``t`` (the last point before it)."""
+    before = [p for p in points if p[0] <= t]
+    point = before[-1] if before else points[0]
+    return point[1], point[2]
+
+
+async def measure(case: Case, method: Method, data_dir: Path | None = None) -> Result:
+    """One stop of ``case`` by ``method`` (see the module docstring)."""
+    with tempfile.TemporaryDirectory() as scratch:
+        async with _rig(case, data_dir or Path(scratch)) as (hub, trace, powered):
+            await _bring_into_state(hub, case)
+            events_before = len(hub._events)
+            if case.state == "limit cycle":
+                await _near_peak_speed(trace)
+            asked = time.monotonic()
+            position0, speed0 = _at(trace(), asked)
+            name = "stop" if method == "STOP" else "power_off"
+            outcome = await hub.command(case.axis, name, {})
+            rest_since: float | None = None
+            rested_at: float | None = None
+            distance = 0.0
+            while time.monotonic() - asked < MAX_STOP_S:
+                await asyncio.sleep(0.05)
+                points = [p for p in trace() if p[0] >= asked]
+                if not points:
+                    continue
+                distance = max(abs(p[1] - position0) for p in points)
+                rest_since = None
+                for t, _, speed in points:
+                    if abs(speed) < REST_COUNTS_S:
+                        rest_since = t if rest_since is None else rest_since
+                    else:
+                        rest_since = None
+                if rest_since is not None and points[-1][0] - rest_since >= REST_FOR_S:
+                    rested_at = rest_since
+                    if not hub.stops.watching(case.axis):
+                        break
+            await asyncio.sleep(0.2)  # let a watch's last command land
+            events = [e.message for e in list(hub._events)[events_before:]]
+            return Result(
+                case,
+                method,
+                speed0,
+                distance,
+                None if rested_at is None else rested_at - asked,
+                powered(),
+                outcome.sent,
+                events,
+            )
+
+
+async def measure_all(
+    cases: Sequence[Case] = CASES, methods: Sequence[Method] = ("power off", "STOP")
+) -> list[Result]:
+    results = []
+    for case in cases:
+        for method in methods:
+            results.append(await measure(case, method))
+    return results
+
+
+def table(results: Sequence[Result]) -> str:
+    """A markdown table: per case, the power-off and STOP side by side."""
+    lines = [
+        "| plant | state | gains | speed at the press (counts/s) | power off alone: "
+        "distance / time | STOP: distance / time | ratio | STOP ends |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    by_case: dict[Case, dict[str, Result]] = {}
+    for result in results:
+        by_case.setdefault(result.case, {})[result.method] = result
+
+    def cell(r: Result | None) -> str:
+        if r is None:
+            return "–"
+        t = f"{r.time_s:.2f} s" if r.time_s is not None else f"> {MAX_STOP_S:g} s"
+        return f"{r.distance_counts:,.0f} counts / {t}"
+
+    for case, pair in by_case.items():
+        off, stop = pair.get("power off"), pair.get("STOP")
+        ratio = (
+            f"{stop.distance_counts / off.distance_counts:.3f}"
+            if off is not None and stop is not None and off.distance_counts > 0
+            else "–"
+        )
+        gains = " ".join(f"{k} {v}" for k, v in case.gains.items()) or "demo"
+        ends = ""
+        if stop is not None:
+            ends = ("holding: " if stop.holds else "unpowered: ") + ", ".join(stop.sent)
+            if any("not working" in e or "does not hold" in e for e in stop.events):
+                ends += " (loop not working: brake, then off)"
+        either = off or stop
+        speed = either.speed_counts_s if either is not None else 0.0
+        lines.append(
+            f"| {case.label} | {case.state} | {gains} | {abs(speed):,.0f} | {cell(off)} | "
+            f"{cell(stop)} | {ratio} | {ends} |"
+        )
+    return "\n".join(lines)

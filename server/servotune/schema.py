@@ -1,0 +1,380 @@
+"""The one schema of everything the server and the web client exchange as JSON.
+
+Every websocket message has an explicit ``type`` field (not derived from a class
+name), so the client can switch on it and the TypeScript types generated from this
+module (``python -m servotune.schema_ts``, checked in CI) stay in step with the server.
+
+Websocket ``/ws`` (server -> client):
+  ``hello`` once on connect, then ``telemetry`` batches (about 30 per second per
+  axis), ``link_status`` and ``axis_status`` when they change (and every second),
+  ``params`` after every read or write of device parameters, ``event`` for things a
+  user should see in the log (stops, refusals, resets), ``storage_status`` when saving
+  fails or works again, ``client_stats`` every second.
+Client -> server: ``ping`` (answered by ``client_stats``). Commands go over REST.
+
+Times ``t`` are seconds on the server's monotonic clock since the server started.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+LinkState = Literal["connecting", "connected", "reconnecting", "error", "disconnected"]
+# capture: "paused" while another axis of the link is captured (docs/capture.md)
+AxisHealth = Literal["ok", "reset", "offline", "paused"]
+EventLevel = Literal["info", "warning", "error"]
+
+
+class AxisInfo(BaseModel):
+    """One axis as listed by ``GET /api/axes``."""
+
+    id: str
+    device: str
+    link: str
+    address: int
+    name: str
+
+
+class LinkInfo(BaseModel):
+    id: str
+    device: str
+    path: str
+    baud: int
+
+
+class Hello(BaseModel):
+    type: Literal["hello"] = "hello"
+    server_version: str
+    axes: list[AxisInfo]
+    links: list[LinkInfo]
+    autopilot: bool
+
+
+class Telemetry(BaseModel):
+    """A batch of samples of one axis, oldest first; all lists have the length of ``t``.
+
+    ``channels`` maps a descriptor channel name to values in device units (``null``
+    where a slower channel has no sample at that time);
+    ``flags`` maps a descriptor flag name to 0/1 per sample.
+    """
+
+    type: Literal["telemetry"] = "telemetry"
+    axis: str
+    t: list[float]
+    channels: dict[str, list[float | None]]
+    flags: dict[str, list[int]]
+
+
+class LinkStatus(BaseModel):
+    type: Literal["link_status"] = "link_status"
+    link: str
+    state: LinkState
+    message: str
+    rate_hz: float = Field(description="telemetry samples per second per axis, achieved")
+    wire_limit_hz: float = Field(description="what the wire allows for the same poll set")
+    wire_busy: float | None = Field(
+        default=None,
+        description=(
+            "share (0..1) of the last 2 s the line carried this link's exchanges (polls, "
+            "commands and echoes alike); null where not measured (EtherCAT: cyclic, "
+            "rate_hz / wire_limit_hz says it) or while no channel is open"
+        ),
+    )
+    errors: int
+    counters: dict[str, int] = Field(
+        default_factory=dict,
+        description=(
+            "what the link retried, resynchronised or dropped since start instead of "
+            "alarming (retries, desyncs, dropped_bytes, restarts; EP7047: lost_frames, "
+            "overruns, watchdog_trips; Z1100: fence_timeouts)"
+        ),
+    )
+
+
+class AxisStatus(BaseModel):
+    type: Literal["axis_status"] = "axis_status"
+    axis: str
+    health: AxisHealth
+    message: str
+    operated: bool = Field(description="a user has operated this axis (autopilot is off)")
+
+
+class Params(BaseModel):
+    type: Literal["params"] = "params"
+    axis: str
+    values: dict[str, int]
+    source: Literal["read", "write", "restore", "stored"] = Field(
+        description="stored: the values the device's save command stored (non-volatile), "
+        "as far as servotune saw it save them"
+    )
+
+
+class Event(BaseModel):
+    type: Literal["event"] = "event"
+    t: float
+    level: EventLevel
+    axis: str | None
+    message: str
+
+
+class RunUpdate(BaseModel):
+    """Progress of a bench run: every browser sees runs appear, record and finish."""
+
+    type: Literal["run"] = "run"
+    axis: str
+    run_id: str
+    status: Literal["recording", "complete", "incomplete"]
+    elapsed_s: float
+    samples: int
+    message: str
+
+
+class StorageStatus(BaseModel):
+    """Whether the server can save (settings, sets, runs); sent when that changes.
+
+    ``writable`` false: "settings are not being saved" (``message`` says why)."""
+
+    type: Literal["storage_status"] = "storage_status"
+    writable: bool
+    message: str
+
+
+class ClientStats(BaseModel):
+    type: Literal["client_stats"] = "client_stats"
+    sent: int
+    dropped: int
+
+
+class MoveOutcome(BaseModel):
+    """How a user's move to a target ended (``servotune.hub.movewatch``): the command's
+    answer only said it was sent."""
+
+    type: Literal["move_outcome"] = "move_outcome"
+    axis: str
+    command: str
+    target: float
+    outcome: Literal["arrived", "short", "limit", "fault", "stopped", "timeout"]
+    position: float | None
+    message: str
+
+
+ServerMessage = Annotated[
+    Hello
+    | Telemetry
+    | LinkStatus
+    | AxisStatus
+    | Params
+    | Event
+    | RunUpdate
+    | StorageStatus
+    | ClientStats
+    | MoveOutcome,
+    Field(discriminator="type"),
+]
+
+
+class Ping(BaseModel):
+    type: Literal["ping"] = "ping"
+
+
+ClientMessage = Annotated[Ping, Field(discriminator="type")]
+
+
+# --- REST bodies ---------------------------------------------------------------------
+
+
+class AxisState(BaseModel):
+    """``GET /api/axes/{id}/state``: the latest telemetry sample."""
+
+    t: float
+    position: float
+    following_error: float
+    velocity: float
+    channels: dict[str, float]
+    flags: dict[str, bool]
+    health: AxisHealth
+    link_state: LinkState
+
+
+class CommandRequest(BaseModel, extra="allow"):
+    """``POST /api/axes/{id}/commands``: ``{"command": name, <argument>: value, ...}``.
+
+    The arguments are the command's ``arguments`` in the axis' descriptor (integers in
+    their ranges; a ``required`` one must be given, others default). The live OpenAPI
+    replaces this schema by one variant per device and command (``servotune.api.openapi``).
+    Unknown arguments answer 422 naming them.
+    """
+
+    command: str = Field(min_length=1, max_length=64)
+
+
+class CommandResult(BaseModel):
+    command: str
+    sent: list[str] = Field(description="wire lines sent, in order")
+    message: str
+    outcome_pending: bool = Field(
+        default=False,
+        description="a move to a target: the device took it; a move_outcome message says "
+        "how it ended (arrived, or where a limit switch or a STOP stopped it)",
+    )
+
+
+# A console line is printable: a control character (CR, LF, Ctrl-X, Ctrl-K, ...) inside a
+# line would reach the wire and split or abort the device's command (Ctrl-X discards the
+# SLAP2's input; a CR ends the command early). The devices' control bytes have their own
+# descriptor commands (e.g. SLAP2 ``abort_calibration`` sends Ctrl-K). At least one
+# character that is not a space: the SLAP2 driver removes spaces.
+CONSOLE_LINE_PATTERN = r"^[^\x00-\x1f\x7f]*[^\x00-\x20\x7f][^\x00-\x1f\x7f]*$"
+
+
+class ConsoleRequest(BaseModel):
+    """``POST /api/axes/{id}/console``: one printable line, no control characters."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    line: str = Field(min_length=1, max_length=64, pattern=CONSOLE_LINE_PATTERN)
+
+
+class StopResult(BaseModel):
+    """``POST /api/stop``: the axes whose stop could not be sent (each also gets an
+    ``event`` saying why and what happens next)."""
+
+    failed: list[str]
+
+
+class ConsoleReply(BaseModel):
+    line: str
+    sent: str
+    reply: list[str]
+    error: str | None
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx/5xx body: ``detail`` says what is wrong in words a user can act on."""
+
+    detail: str
+    field: str | None = None
+    kind: Literal["measurement"] | None = Field(
+        default=None,
+        description="measurement: a measurement could not support its result (too few "
+        "samples, ...); the device refused nothing",
+    )
+
+
+# --- control lock per axis (servotune.hub.control_lock; websocket /ws) -------------------------
+#
+# Client -> server: ``take_control``, ``request_control``, ``release_control``,
+# ``answer_control`` (the holder allows or denies a request), ``force_control`` (admin),
+# ``heartbeat`` (renews the holder's lease a few times a second: the dead-man).
+# Server -> client: ``welcome`` once after ``hello`` (this connection's client id, sent
+# back as the ``X-Servotune-Client`` header on REST calls), ``control_status`` per axis
+# whenever its holder or pending request changes (and in the snapshot on connect),
+# ``control_prompt`` to the holder when someone requests its axis, ``control_reply`` to
+# the sender of a control message (or a holder who lost an axis) saying what happened.
+
+ControlHolderKind = Literal["user", "autopilot", "server"]
+ControlAction = Literal["take", "request", "release", "answer", "force", "lapse", "grant", "deny"]
+
+
+class Welcome(BaseModel):
+    """This connection's identity. ``client_id`` is secret to this tab (it authorises REST
+    changes of the axes it holds); ``client_tag`` is its public name in ``control_status``."""
+
+    type: Literal["welcome"] = "welcome"
+    client_id: str
+    client_tag: str
+    user: str
+    permissions: list[str]
+    heartbeat_period_s: float = Field(description="send a heartbeat at least this often")
+    lease_s: float = Field(description="the server stops your axes this long after the last one")
+
+
+class ControlHolder(BaseModel):
+    kind: ControlHolderKind
+    user: str = Field(description="user name, 'autopilot', or 'server' (start-up stop)")
+    client_tag: str | None = Field(description="public tag of the holding connection")
+    since_s: float = Field(description="server time the hold began")
+
+
+class ControlPending(BaseModel):
+    user: str
+    client_tag: str
+    expires_s: float = Field(description="server time the request is decided without answer")
+
+
+class ControlStatus(BaseModel):
+    type: Literal["control_status"] = "control_status"
+    axis: str
+    holder: ControlHolder | None = Field(description="null: nobody holds the axis")
+    pending: ControlPending | None
+
+
+class ControlPrompt(BaseModel):
+    """To the holder: someone asks for an axis; answer with ``answer_control``."""
+
+    type: Literal["control_prompt"] = "control_prompt"
+    axis: str
+    requester: str
+    requester_tag: str
+    timeout_s: float
+    idle_grant_s: float = Field(description="no answer: granted if you were idle this long")
+
+
+class ControlReply(BaseModel):
+    """What came of a control message (or why this connection lost an axis)."""
+
+    type: Literal["control_reply"] = "control_reply"
+    axis: str | None
+    action: ControlAction
+    ok: bool
+    message: str
+
+
+ControlServerMessage = Annotated[
+    Welcome | ControlStatus | ControlPrompt | ControlReply, Field(discriminator="type")
+]
+
+
+class TakeControl(BaseModel):
+    type: Literal["take_control"] = "take_control"
+    axis: str = Field(max_length=200)
+
+
+class RequestControl(BaseModel):
+    type: Literal["request_control"] = "request_control"
+    axis: str = Field(max_length=200)
+
+
+class ReleaseControl(BaseModel):
+    type: Literal["release_control"] = "release_control"
+    axis: str = Field(max_length=200)
+
+
+class AnswerControl(BaseModel):
+    type: Literal["answer_control"] = "answer_control"
+    axis: str = Field(max_length=200)
+    allow: bool
+
+
+class ForceControl(BaseModel):
+    type: Literal["force_control"] = "force_control"
+    axis: str = Field(max_length=200)
+
+
+class Heartbeat(BaseModel):
+    """Renews the tab's lease. Sent by the tab's heartbeat worker on a socket of its own
+    (``/ws?beat=<client_id>``), so a page busy drawing does not delay it. While a
+    hold-to-run control (a jog) is engaged, ``page_age_ms`` is how long ago the page's
+    own thread last ran (a page frozen with a jog held loses its axes after
+    ``ControlSettings.frozen_page_s``: it could not release the jog); null otherwise."""
+
+    type: Literal["heartbeat"] = "heartbeat"
+    page_age_ms: int | None = Field(default=None, ge=0, le=86_400_000)
+
+
+ControlClientMessage = Annotated[
+    TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl | Heartbeat,
+    Field(discriminator="type"),
+]
