@@ -97,7 +97,8 @@ def _device_stopped(device: str, record: dict[str, Any]) -> list[str]:
     data = record["device"]
     if device == "slap2":  # STOP holds in pm where the shaft is (issue 24), or braked off
         for module in data["modules"]:
-            if module["vm"] or module["moving"] or module["pwm"]:
+            # In pm the loop drives the PWM to hold the position: only open loop must be 0.
+            if module["vm"] or module["moving"] or (module["pwm"] and not module["pm"]):
                 problems.append(f"SLAP2 module {module['address']}: {module}")
     elif device == "z1100":  # stop: decelerate to standstill
         for axis in data["axes"]:
