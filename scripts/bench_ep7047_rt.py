@@ -41,9 +41,14 @@ import tty
 from pathlib import Path
 from typing import Any
 
-from bench_ep7047_wire import CLOCK_TICKS, Sink, cpu_s, hog  # scripts/ is this script's directory
+from bench_ep7047_wire import (  # scripts/ is this script's directory
+    CLOCK_TICKS,
+    Sink,
+    cpu_s,
+    hog,
+    swing_move,
+)
 
-from servotune.devices.ep7047.codec import StartType
 from servotune.devices.ep7047.link import PysoemMaster, build_ep7047_link
 from servotune.devices.ep7047.sim.netns import netns_problem, slave_process, veth_pair
 from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
@@ -128,11 +133,7 @@ async def moves(axis: Any, sink: Sink, link: Any, stop: asyncio.Event) -> None:
                 latest = sink.latest
                 if latest is not None and not latest.flags.get("enable_out"):
                     await axis.command("enable", {})
-                await axis.command(
-                    "execute_move",
-                    {"start_type": int(StartType.ABSOLUTE), "target": target,
-                     "velocity": 3000, "acceleration_ms": 400, "deceleration_ms": 400},
-                )  # fmt: skip
+                await axis.command("execute_move", swing_move(target))
             target = -target
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(stop.wait(), 1.5)

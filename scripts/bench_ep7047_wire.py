@@ -93,6 +93,18 @@ def hog(enabled: bool) -> Iterator[None]:
             process.wait()
 
 
+def swing_move(target: int) -> dict[str, int]:
+    """The arguments of the benchmarks' back-and-forth move: absolute to ``target``
+    at 3000 with 400 ms ramps (the axis swings one turn either way)."""
+    return {
+        "start_type": int(StartType.ABSOLUTE),
+        "target": target,
+        "velocity": 3000,
+        "acceleration_ms": 400,
+        "deceleration_ms": 400,
+    }
+
+
 async def run_one(
     cycle_s: float, seconds: float, use_thread: bool, pair: Any, slave: Any
 ) -> dict[str, Any]:
@@ -135,11 +147,7 @@ async def run_one(
         target = DEMO_COUNTS_PER_REV
         while time.monotonic() - t0 < seconds:
             with contextlib.suppress(Exception):
-                await axis.command(
-                    "execute_move",
-                    {"start_type": int(StartType.ABSOLUTE), "target": target,
-                     "velocity": 3000, "acceleration_ms": 400, "deceleration_ms": 400},
-                )  # fmt: skip
+                await axis.command("execute_move", swing_move(target))
             target = -target
             await asyncio.sleep(max(0.0, min(1.5, seconds - (time.monotonic() - t0))))
             latest = sink.latest

@@ -82,6 +82,20 @@ class ScriptedRun:
         )
 
 
+class TickClock:
+    """Advances a simulated SLAP2 module to host time ``t_s``: one control tick every
+    ``TICK_S`` from t = 0, as the firmware runs beside a polling host."""
+
+    def __init__(self, module: Slap2Module) -> None:
+        self._module = module
+        self._ticks = 0
+
+    def run_until(self, t_s: float) -> None:
+        due = math.floor(t_s / TICK_S)
+        self._module.run_ticks(due - self._ticks)
+        self._ticks = due
+
+
 def _send(module: Slap2Module, line: str) -> None:
     for byte in line.encode() + b"\r":
         module.receive(byte)
@@ -108,13 +122,7 @@ def scripted_run(
     kp, ki, kd = gains
     for line in (f"kp{kp}", f"ki{ki}", f"kd{kd}", "sv65535", "sa65535", "pm", f"ma{y0}"):
         _send(module, line)
-    ticks = 0
-
-    def run_until(t_s: float) -> None:
-        nonlocal ticks
-        due = math.floor(t_s / TICK_S)
-        module.run_ticks(due - ticks)
-        ticks = due
+    run_until = TickClock(module).run_until
 
     run_until(0.5)  # at rest at y0
     module.take_output()

@@ -176,7 +176,14 @@ async def test_a_console_parameter_write_is_audited_with_before_and_after(tmp_pa
         await wait_for(lambda: bool(server.wire.since(0, 0)), 20, "the module polled")
         olga = await session_of(server, "olga")
         try:
-            before = (await olga.get("/api/axes/line-0/params")).json()["kp"]
+            # The parameters are read once the link has polled the module: wait for kp.
+            params: dict[str, Any] = {}
+            for _ in range(100):
+                params = (await olga.get("/api/axes/line-0/params")).json()
+                if "kp" in params:
+                    break
+                await asyncio.sleep(0.1)
+            before = params["kp"]
             response = await olga.post("/api/axes/line-0/console", json={"line": "KP 55"})
             assert response.status_code == 200 and response.json()["error"] is None
         finally:

@@ -27,6 +27,7 @@ from servotune.tuning import frfrun
 from servotune.tuning.frf import coherence_from_error, frf_relative_error
 from servotune.tuning.loops import slap2_loop
 
+from .frf_harness import TickClock
 from .test_frf import _motor_model
 
 NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
@@ -131,13 +132,7 @@ def _scripted_run(
     module = Slap2Module(0, params=NO_FRICTION)
     for line in ("sv65535", "sa65535", "pm"):
         _send(module, line)
-    ticks = 0
-
-    def run_until(t_s: float) -> None:
-        nonlocal ticks
-        due = math.floor(t_s / TICK_S)
-        module.run_ticks(due - ticks)
-        ticks = due
+    run_until = TickClock(module).run_until
 
     excitation = frfrun.design(float(module.setpoint), 200.0, 1.0, high_hz)
     t0 = t = 0.1
@@ -252,13 +247,7 @@ def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
     timing term in the error; see docs/frequency-response.md."""
     rng = np.random.default_rng(5)
     module = Slap2Module(0, params=NO_FRICTION)
-    ticks = 0
-
-    def run_until(t_s: float) -> None:
-        nonlocal ticks
-        due = math.floor(t_s / TICK_S)
-        module.run_ticks(due - ticks)
-        ticks = due
+    run_until = TickClock(module).run_until
 
     excitation = frfrun.design(0.0, 120.0, 1.0, 30.0, "open_loop_pwm", "pwm")
     t0 = t = 0.1
