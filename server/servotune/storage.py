@@ -299,6 +299,16 @@ class Storage:
         with self._lock:
             self._write("UPDATE runs SET status = ?, meta = ? WHERE id = ?", (status, text, run_id))
 
+    def update_run_meta(self, run_id: str, changes: dict[str, Any]) -> bool:
+        """Replace top-level keys of a stored run's metadata (False: no such run)."""
+        with self._lock:
+            row = self._db.execute("SELECT meta FROM runs WHERE id = ?", (run_id,)).fetchone()
+            if row is None:
+                return False
+            meta = loads_clean(row[0]) | changes
+            self._write("UPDATE runs SET meta = ? WHERE id = ?", (dumps_strict(meta), run_id))
+        return True
+
     def set_baseline(self, run_id: str) -> bool:
         """Mark ``run_id`` as the baseline of its axis (and no other run of it)."""
         with self._lock:

@@ -48,9 +48,10 @@ async def autotune_identify(
 ) -> dict[str, Any]:
     """Run the identification within the given limits, fit the plant model and
     propose gains: ``{model, gains, current_gains, predicted, predicted_default, rule,
-    identification_run_id, ...}``. 422 naming the limit; 409 for an axis that is
-    neither a SLAP2 module nor a Z1100 motor, or a busy, moving or disconnected one;
-    nothing moves before these checks."""
+    margins, margins_default, recommendation, identification_run_id, ...}``
+    (``recommendation``: ``{action: keep | write, reason, ...}``, see ``keep``).
+    422 naming the limit; 409 for an axis that is neither a SLAP2 module nor a Z1100
+    motor, or a busy, moving or disconnected one; nothing moves before these checks."""
     return await autotuner.identify(axis_id, body)
 
 
@@ -71,6 +72,16 @@ async def autotune_accept(
     previous gains are written back (``unverified`` true if that failed: revert).
     Other failures put the previous gains back too and answer an error."""
     return await autotuner.accept(axis_id, confirm_unstable=confirm_unstable)
+
+
+@router.post("/api/axes/{axis_id}/autotune/keep", responses=TUNE_ERRORS)
+async def autotune_keep(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
+    """Decline the proposal and keep the gains in use: nothing is written to the device.
+    The proposal's ``recommendation`` says which of keep and accept the rule advises
+    and why; either choice is recorded (``decision`` and ``history`` of the session,
+    ``autotune.decision`` and the note of the identification run). Returns the
+    decision; 409 without a proposal to decide on."""
+    return await autotuner.keep(axis_id)
 
 
 @router.post("/api/axes/{axis_id}/autotune/revert", responses=TUNE_ERRORS)

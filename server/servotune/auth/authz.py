@@ -47,6 +47,7 @@ _KEEP_AFTER = frozenset(
         ("POST", "/api/axes/{axis_id}/param-sets/{name}/restore"),
         ("PUT", "/api/axes/{axis_id}/bench/limits"),
         ("POST", "/api/axes/{axis_id}/autotune/accept"),
+        ("POST", "/api/axes/{axis_id}/autotune/keep"),
         ("POST", "/api/axes/{axis_id}/autotune/revert"),
     }
 )

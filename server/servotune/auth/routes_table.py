@@ -81,6 +81,7 @@ ROUTE_PERMISSIONS: dict[tuple[str, str], str] = {
     ("GET", "/api/axes/{axis_id}/autotune"): VIEW,
     ("POST", "/api/axes/{axis_id}/autotune/identify"): AUTOTUNE,
     ("POST", "/api/axes/{axis_id}/autotune/accept"): AUTOTUNE,
+    ("POST", "/api/axes/{axis_id}/autotune/keep"): AUTOTUNE,
     ("POST", "/api/axes/{axis_id}/autotune/revert"): AUTOTUNE,
     # --- accounts, sessions, tokens, audit (servotune/api/auth_routes.py)
     ("GET", "/api/auth/session"): PUBLIC,

@@ -17,6 +17,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, Literal, Protocol
 
 from servotune.autotune.context import TuningContext
+from servotune.autotune.recommend import Action, decision_record, decision_text, recommend
 from servotune.autotune.session import IdentifyRequest, Session, SessionState
 from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
@@ -35,6 +36,7 @@ from servotune.link.base import (
     LinkDownError,
     MeasurementError,
 )
+from servotune.storage import StorageError
 from servotune.tuning.predicted import unstable_reason
 
 
@@ -156,6 +158,8 @@ class AutoTuner:
             start = ctx.position(entry.latest)
             try:
                 body = await tuner.identify(entry, session, request, distance)
+                # the tuner's body is the session's proposal_dict: both carry it
+                body["recommendation"] = recommend(body)
             except asyncio.CancelledError:
                 await ctx.safe_stop(entry)
                 self._set(session, "failed", "cancelled: the axis was stopped")
@@ -238,6 +242,11 @@ class AutoTuner:
         entry, tuner = self._check_device(axis_id)
         lock = self._lock(axis_id)
         session = self._session(axis_id)
+        if session.state == "kept":
+            raise DeviceRefusedError(
+                "this proposal was declined (the gains in use were kept): identify again "
+                "for a new one"
+            )
         # From now on a user's STOP ends the verification (see TuningContext.command).
         self._ctx.started(entry)
         tuner.check_accept(entry, session)
@@ -254,6 +263,7 @@ class AutoTuner:
                     "braked if it oscillates, and the previous gains are put back",
                 )
         async with lock:
+            await self._decide(entry, session, "write", dict(gains or {}))
             previous = tuner.previous_gains(entry, session)
             result = await self._guarded_verify(
                 entry,
@@ -267,6 +277,60 @@ class AutoTuner:
             self._hub.verified_gains[axis_id] = dict(result.get("gains") or {})
             self._set(session, "verified", tuner.verified_message(result))
             return result
+
+    async def keep(self, axis_id: str) -> dict[str, Any]:
+        """Decline the proposal: the gains in use stay, nothing is written to the
+        device. The decision is recorded (session, history, the identification run)."""
+        entry, _tuner = self._check_device(axis_id)
+        session = self._session(axis_id)
+        async with self._lock(axis_id):
+            proposal = session.proposal_dict
+            if session.state != "proposed" or proposal is None:
+                raise DeviceRefusedError("no proposal to decide on: run identify first")
+            decision = await self._decide(
+                entry, session, "keep", dict(proposal.get("current_gains") or {})
+            )
+            self._set(session, "kept", decision_text(decision))
+            return decision
+
+    async def _decide(
+        self, entry: AxisEntry, session: Session, action: Action, gains: dict[str, int]
+    ) -> dict[str, Any]:
+        """Record the user's choice for the session's proposal: in the session (and its
+        history), as an event, and on the identification run (its ``autotune.decision``
+        and its note), so the run list shows what became of the proposal."""
+        proposal = session.proposal_dict or {}
+        run_id = session.identification_run_id
+        decision = decision_record(
+            action,
+            proposal.get("recommendation"),
+            gains,
+            at_s=time.time(),
+            identification_run_id=run_id,
+        )
+        session.decide(decision)
+        self._hub.on_event(
+            "info" if decision["followed"] else "warning",
+            entry.info.id,
+            f"auto-tune: {decision_text(decision)}",
+        )
+        if run_id is not None:
+            bench = self._ctx.bench
+            try:
+                meta = await bench.get_run_meta(run_id)
+                test = dict(meta.get("test") or {})
+                note = str(test.get("note") or "").split(" · decision: ")[0]
+                test["note"] = f"{note} · decision: {decision_text(decision)}"
+                autotune = dict(meta.get("autotune") or {}) | {"decision": decision}
+                await bench.update_run_meta(run_id, {"test": test, "autotune": autotune})
+            except (KeyError, StorageError) as exc:
+                # the decision stands (session, event); only its copy on the run is lost
+                self._hub.on_event(
+                    "warning",
+                    entry.info.id,
+                    f"auto-tune: the decision was not recorded on run {run_id}: {exc}",
+                )
+        return decision
 
     async def _guarded_verify(
         self,

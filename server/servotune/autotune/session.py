@@ -14,8 +14,9 @@ from servotune.link.base import InvalidArgumentError
 from servotune.tuning.targets import DEFAULT_PRESET, Preset
 
 TestKind = Literal["position_step", "move"]
-SessionState = Literal["idle", "identifying", "proposed", "verifying", "verified", "failed"]
+SessionState = Literal["idle", "identifying", "proposed", "kept", "verifying", "verified", "failed"]
 DEFAULT_TEST_DISTANCE: Final = 1000
+HISTORY_LENGTH: Final = 20  # decisions a session keeps (the runs keep theirs for good)
 
 
 class IdentifyRequest(BaseModel):
@@ -92,6 +93,10 @@ class Session:
     device_settings: dict[str, int] = field(default_factory=dict)
     result: dict[str, Any] | None = None
     updated_s: float = 0.0
+    # what the user chose for the current proposal (``autotune.recommend``), and the
+    # decisions on this axis' earlier proposals since the server started, newest last
+    decision: dict[str, Any] | None = None
+    history: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -103,6 +108,8 @@ class Session:
             "model": self.model,
             "proposal": self.proposal_dict,
             "result": self.result,
+            "decision": self.decision,
+            "history": list(self.history),
             "updated_s": self.updated_s,
         }
 
@@ -111,6 +118,12 @@ class Session:
         self.request = request
         self.proposal = self.proposal_dict = self.result = self.model = None
         self.identification_run_id = None
+        self.decision = None
+
+    def decide(self, decision: dict[str, Any]) -> None:
+        """Record the user's choice for the current proposal (and in the history)."""
+        self.decision = decision
+        self.history = [*self.history, decision][-HISTORY_LENGTH:]
 
     def set(self, state: SessionState, message: str) -> None:
         self.state = state

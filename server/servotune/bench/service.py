@@ -507,6 +507,12 @@ class TestBench(BenchRunner):
 
         return body()
 
+    async def update_run_meta(self, run_id: str, changes: dict[str, Any]) -> None:
+        """Replace top-level keys of a stored run's metadata (e.g. the auto-tune's
+        decision on its identification run); KeyError if there is no such run."""
+        if not await asyncio.to_thread(self._storage.update_run_meta, run_id, changes):
+            raise KeyError(run_id)
+
     async def delete_run(self, run_id: str) -> None:
         if not await asyncio.to_thread(self._storage.delete_run, run_id):
             raise KeyError(run_id)

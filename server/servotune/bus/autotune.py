@@ -2,8 +2,8 @@
 
 The hub's ``AutoTuner`` cannot tune a rig's axis itself (the tests are planned and
 recorded by the rig's bench, the rig's limits apply, and the sequence must not depend
-on the lab network between its steps). ``HubAutoTuner`` sends identify, accept and
-revert to the rig as NATS requests (``cmd.autotune_identify`` ...); the rig checks
+on the lab network between its steps). ``HubAutoTuner`` sends identify, accept, keep
+and revert to the rig as NATS requests (``cmd.autotune_identify`` ...); the rig checks
 them exactly as its REST routes do (permission, control lock, the limits against its
 bench limits and the device) and runs them with its own ``AutoTuner``. The hub
 session becomes the axis' mover on the rig, so while the tests run the rig's dead-man
@@ -84,6 +84,13 @@ class HubAutoTuner(AutoTuner):
             return await super().accept(axis_id, confirm_unstable=confirm_unstable)
         args: dict[str, object] = {"confirm_unstable": True} if confirm_unstable else {}
         result = await self._forward(axis, axis_id, subjects.AUTOTUNE_ACCEPT, args)
+        return result if isinstance(result, dict) else {}
+
+    async def keep(self, axis_id: str) -> dict[str, Any]:
+        axis = self._remote(axis_id)
+        if axis is None:
+            return await super().keep(axis_id)
+        result = await self._forward(axis, axis_id, subjects.AUTOTUNE_KEEP, {})
         return result if isinstance(result, dict) else {}
 
     async def revert(self, axis_id: str) -> dict[str, int]:

@@ -658,6 +658,8 @@ class RigAgent:
         elif verb == subjects.AUTOTUNE_ACCEPT:
             confirm = request.args.get("confirm_unstable") is True
             result = await tuner.accept(axis_id, confirm_unstable=confirm)
+        elif verb == subjects.AUTOTUNE_KEEP:
+            result = await tuner.keep(axis_id)
         else:
             result = dict(await tuner.revert(axis_id))
         return _reply(ok=True, result={"result": result, "session": tuner.session(axis_id)})
