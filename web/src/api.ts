@@ -285,6 +285,37 @@ export interface AutoTuneProposal {
   /** The proposal's and the gains in use's margins on the model, against the target. */
   margins?: MarginReport;
   margins_default?: MarginReport;
+  /** Keep the gains in use or write the proposal (server/servotune/autotune/recommend.py). */
+  recommendation?: AutoTuneRecommendation;
+}
+
+/** One side of the recommendation's comparison: margins on the model, predicted step. */
+export interface AutoTuneSide {
+  phase_margin_deg: number | null;
+  gain_margin_db: number | null;
+  stable: boolean | null;
+  meets_target: boolean | null;
+  settling_time_s: number | null;
+  overshoot_pct: number | null;
+}
+
+export interface AutoTuneRecommendation {
+  action: "keep" | "write";
+  reason: string;
+  target: MarginTarget;
+  proposal: AutoTuneSide;
+  current: AutoTuneSide;
+}
+
+/** What the user chose for a proposal (``POST .../autotune/keep`` or accept). */
+export interface AutoTuneDecision {
+  action: "keep" | "write";
+  gains: GainSet;
+  recommended: "keep" | "write" | null;
+  followed: boolean;
+  reason: string | null;
+  at_s: number;
+  identification_run_id: string | null;
 }
 
 /** ``POST .../autotune/accept``: baseline test, write, verification test. */
@@ -312,6 +343,9 @@ export interface AutoTuneSession {
   model?: Record<string, number> | null;
   proposal: AutoTuneProposal | null;
   result: AutoTuneResult | null;
+  /** The choice made for the current proposal; ``history``: this axis' decisions, newest last. */
+  decision?: AutoTuneDecision | null;
+  history?: AutoTuneDecision[];
   updated_s: number;
 }
 
@@ -349,6 +383,7 @@ export const api = {
   autotune: (id: string) => request<AutoTuneSession>("GET", `${axis(id)}/autotune`),
   autotuneIdentify: (id: string, body: AutoTuneRequest) => request<AutoTuneProposal>("POST", `${axis(id)}/autotune/identify`, body),
   autotuneAccept: (id: string) => confirmed((confirm) => request<AutoTuneResult>("POST", `${axis(id)}/autotune/accept${confirm}`)),
+  autotuneKeep: (id: string) => request<AutoTuneDecision>("POST", `${axis(id)}/autotune/keep`),
   autotuneRevert: (id: string) => request<Record<string, number>>("POST", `${axis(id)}/autotune/revert`),
 };
 

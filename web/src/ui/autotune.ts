@@ -6,8 +6,10 @@
 import {
   ApiError,
   api,
+  type AutoTuneDecision,
   type AutoTuneGoal,
   type AutoTuneProposal,
+  type AutoTuneRecommendation,
   type AutoTuneRequest,
   type AutoTuneResult,
   type AutoTuneSession,
@@ -90,7 +92,10 @@ export class AutoTunePanel {
   private limits: BenchLimits | null = null;
   private proposal: AutoTuneProposal | null = null;
   private result: AutoTuneResult | null = null;
-  private busy: "identify" | "accept" | "revert" | null = null;
+  /** The choice made for the shown proposal, and this axis' earlier ones (newest last). */
+  private decision: AutoTuneDecision | null = null;
+  private history: AutoTuneDecision[] = [];
+  private busy: "identify" | "accept" | "keep" | "revert" | null = null;
   private busySince = 0;
   private lastEvent = "";
   private timer: number | undefined;
@@ -306,6 +311,8 @@ export class AutoTunePanel {
     }
     this.proposal = session.proposal;
     this.result = session.result;
+    this.decision = session.decision ?? null;
+    this.history = session.history ?? [];
     if (session.state === "identifying" || session.state === "verifying") {
       // Running from another browser: follow it until it ends.
       setText(this.progress, `${session.state} … ${session.message}`);
@@ -343,6 +350,7 @@ export class AutoTunePanel {
       this.stop();
       this.proposal = proposal;
       this.result = null;
+      this.decision = null;
       this.el.dataset.state = "proposed";
       this.setProgress("ok", `✓ model fitted, gains proposed (${took})`);
       this.setOpen(true);
@@ -361,8 +369,10 @@ export class AutoTunePanel {
     this.clearError();
     this.start("accept");
     let result: AutoTuneResult;
+    const proposal = this.proposal;
     try {
       result = await api.autotuneAccept(this.axisId);
+      this.decided("write", proposal.gains, proposal.recommendation);
     } catch (error) {
       this.stop();
       this.showError(error);
@@ -398,6 +408,42 @@ export class AutoTunePanel {
     await this.host.showRuns([result.baseline_run_id, result.verification_run_id].filter((id): id is string => !!id));
   }
 
+  /** Decline the proposal: nothing is written, the choice is recorded by the server. */
+  private async keep(): Promise<void> {
+    if (this.busy || !this.proposal) return;
+    this.clearError();
+    this.start("keep");
+    try {
+      const decision = await api.autotuneKeep(this.axisId);
+      this.stop();
+      this.decision = decision;
+      this.history = [...this.history, decision].slice(-20);
+      this.el.dataset.state = "kept";
+      this.setProgress("ok", `✓ kept the gains in use (${gainsText(decision.gains)}): nothing written`);
+    } catch (error) {
+      this.stop();
+      this.showError(error);
+      this.setProgress("", "");
+    } finally {
+      this.render();
+    }
+  }
+
+  /** The server recorded an accept as a decision: show it as the session would. */
+  private decided(action: "keep" | "write", gains: GainSet, rec: AutoTuneRecommendation | undefined): void {
+    const decision: AutoTuneDecision = {
+      action,
+      gains,
+      recommended: rec?.action ?? null,
+      followed: !rec || rec.action === action,
+      reason: rec?.reason ?? null,
+      at_s: Date.now() / 1000,
+      identification_run_id: this.proposal?.identification_run_id ?? null,
+    };
+    this.decision = decision;
+    this.history = [...this.history, decision].slice(-20);
+  }
+
   private async revert(): Promise<void> {
     if (this.busy) return;
     this.clearError();
@@ -419,7 +465,7 @@ export class AutoTunePanel {
     }
   }
 
-  private start(kind: "identify" | "accept" | "revert"): void {
+  private start(kind: "identify" | "accept" | "keep" | "revert"): void {
     this.busy = kind;
     this.busySince = performance.now();
     this.lastEvent = "";
@@ -446,7 +492,7 @@ export class AutoTunePanel {
 
   private syncProgress(): void {
     if (!this.busy) return;
-    const what = { identify: "Identifying: test, fit, gain search", accept: "Verifying: baseline test, write, verification test", revert: "Reverting" }[this.busy];
+    const what = { identify: "Identifying: test, fit, gain search", accept: "Verifying: baseline test, write, verification test", keep: "Keeping the gains in use", revert: "Reverting" }[this.busy];
     this.setProgress("pending", `● ${what} … ${this.elapsed()}${this.lastEvent ? ` · ${this.lastEvent}` : ""}`);
   }
 
@@ -496,35 +542,87 @@ export class AutoTunePanel {
     replace(this.details, this.proposalView(p, cols, busy), this.result ? this.resultView(p, this.result, cols, busy) : null);
   }
 
-  /** The margins of the gains in use and of the proposal on the model, against the
-   * target they were designed to, with a warning under any below it. */
-  private marginsView(p: AutoTuneProposal): HTMLElement | null {
+  /** The proposal against the gains in use: margins on the model (coloured against the
+   * target they were designed to), crossover, loop and the predicted step; the warning
+   * under margins below the target. */
+  private compareView(p: AutoTuneProposal): HTMLElement | null {
     const m = p.margins;
     if (!m) return null;
     const t = m.target;
-    const row = (label: string, r: MarginReport | undefined, key: string): HTMLElement =>
+    const now = p.margins_default;
+    const ms = (v: number | null | undefined): string => (v === null || v === undefined ? "does not settle" : `${(v * 1000).toFixed(0)} ms`);
+    const pct = (v: number | null | undefined): string => (v === null || v === undefined ? "—" : `${v.toFixed(1)} %`);
+    const hz = (r: MarginReport | undefined): string => (r?.gain_crossover_hz === null || r?.gain_crossover_hz === undefined ? "—" : `${r.gain_crossover_hz.toFixed(0)} Hz`);
+    const loop = (r: MarginReport | undefined): string => (r?.stable === false ? "UNSTABLE" : r?.stable ? "stable" : "—");
+    const row = (key: string, label: string, help: string, current: HTMLElement | string, proposed: HTMLElement | string, target: string): HTMLElement =>
       h(
         "tr",
         { "data-row": key },
-        h("td", { class: "d-name" }, label),
-        h("td", { class: "d-val num" }, r ? marginValue(r.phase_margin_deg, t.phase_margin_deg, 1, "°", `at-pm-${key}`) : "—"),
-        h("td", { class: "d-val num" }, r ? marginValue(r.gain_margin_db, t.gain_margin_db, 1, "dB", `at-gm-${key}`) : "—"),
-        h("td", { class: "d-val num" }, r?.gain_crossover_hz === null || r?.gain_crossover_hz === undefined ? "—" : `${r.gain_crossover_hz.toFixed(0)} Hz`),
-        h("td", { class: "d-val", testid: `at-stable-${key}` }, r?.stable === false ? "UNSTABLE" : r?.stable ? "stable" : "—"),
+        h("td", { class: "d-name", title: help }, label),
+        h("td", { class: "d-val num", testid: `at-cmp-${key}-current` }, current),
+        h("td", { class: "d-val num", testid: `at-cmp-${key}-proposed` }, proposed),
+        h("td", { class: "d-val num at-cmp-target" }, target),
       );
+    const pm = (r: MarginReport | undefined, key: string): HTMLElement | string => (r ? marginValue(r.phase_margin_deg, t.phase_margin_deg, 1, "°", `at-pm-${key}`) : "—");
+    const gm = (r: MarginReport | undefined, key: string): HTMLElement | string => (r ? marginValue(r.gain_margin_db, t.gain_margin_db, 1, "dB", `at-gm-${key}`) : "—");
     return h(
       "div",
       { class: "at-card at-margins", testid: "at-margins-card" },
-      h("div", { class: "at-card-title" }, "Margins on the model", h("span", { class: "at-card-sub", testid: "at-margin-target" }, ` — target ${targetText(t)}`)),
+      h("div", { class: "at-card-title" }, "Proposal vs gains in use", h("span", { class: "at-card-sub", testid: "at-margin-target" }, ` — on the model; target ${targetText(t)}`)),
       h(
         "table",
-        { class: "diff-table" },
-        h("thead", null, h("tr", null, h("th", { class: "d-name" }, ""), h("th", null, "phase"), h("th", null, "gain"), h("th", null, "crossover"), h("th", null, "loop"))),
-        h("tbody", null, row("now", p.margins_default, "current"), row("proposed", m, "proposed")),
+        { class: "diff-table at-compare", testid: "at-compare" },
+        h("thead", null, h("tr", null, h("th", { class: "d-name" }, ""), h("th", null, "now"), h("th", null, "proposed"), h("th", null, "target"))),
+        h(
+          "tbody",
+          null,
+          row("pm", "phase margin", "Phase margin of the loop on the identified model", pm(now, "current"), pm(m, "proposed"), `≥ ${t.phase_margin_deg}°`),
+          row("gm", "gain margin", "Gain margin of the loop on the identified model", gm(now, "current"), gm(m, "proposed"), `≥ ${t.gain_margin_db} dB`),
+          row("crossover", "crossover", "Gain crossover frequency on the model", hz(now), hz(m), ""),
+          row("loop", "loop", "Closed-loop stability on the model (the exact discrete loop)", h("span", { testid: "at-stable-current" }, loop(now)), h("span", { testid: "at-stable-proposed" }, loop(m)), "stable"),
+          row("settling", "settling", "Settling time of the tuned-for move, predicted on the model", ms(p.predicted_default?.settling_time_s), ms(p.predicted?.settling_time_s), ""),
+          row("overshoot", "overshoot", "Overshoot of the tuned-for move, predicted on the model", pct(p.predicted_default?.overshoot_pct), pct(p.predicted?.overshoot_pct), ""),
+        ),
       ),
       marginWarning(m, "at-margin-warning"),
       m.meets_target === false ? h("div", { class: "at-sub" }, "no gains of the search reach the target on this model: these are the closest it found") : null,
     );
+  }
+
+  /** The decision taken for the shown proposal, and this axis' earlier ones. */
+  private decisionView(): HTMLElement | null {
+    const d = this.decision;
+    const line = d
+      ? h(
+          "div",
+          { class: `at-decision${d.followed ? "" : " against"}`, testid: "at-decision", "data-action": d.action, "data-followed": d.followed ? "1" : "0" },
+          h("b", null, d.action === "keep" ? `✓ Kept the gains in use (${gainsText(d.gains)}): nothing written to the device` : `Wrote the proposal (${gainsText(d.gains)})`),
+          d.recommended ? (d.followed ? " — as recommended." : ` — against the recommendation to ${d.recommended === "keep" ? "keep the gains in use" : "write the proposal"}.`) : null,
+          d.action === "keep" ? h("span", { class: "at-hint" }, " Identify again for a new proposal.") : null,
+        )
+      : null;
+    const past = this.history.slice(-5).reverse();
+    const list = past.length
+      ? h(
+          "details",
+          { class: "at-history", testid: "at-history" },
+          h("summary", null, `Decisions on this axis (${this.history.length})`),
+          h(
+            "ul",
+            null,
+            past.map((e) =>
+              h(
+                "li",
+                { "data-action": e.action, title: e.reason ?? "" },
+                `${new Date(e.at_s * 1000).toLocaleTimeString()} · ${e.action === "keep" ? "kept" : "wrote"} ${gainsText(e.gains)}`,
+                e.recommended ? (e.followed ? " · as recommended" : ` · against the recommendation (${e.recommended})`) : "",
+                e.identification_run_id ? ` · identification run #${e.identification_run_id.slice(0, 4)}` : "",
+              ),
+            ),
+          ),
+        )
+      : null;
+    return line || list ? h("div", { class: "at-decisions" }, line, list) : null;
   }
 
   private proposalView(p: AutoTuneProposal, cols: MetricColumn[], busy: boolean): HTMLElement {
@@ -643,20 +741,40 @@ export class AutoTunePanel {
       h("div", { class: "at-card-title" }, "Rule", h("span", { class: "at-card-sub" }, ` — ${p.response ? GOALS[p.response]?.label ?? p.response : ""}`)),
       ruleText,
     );
-    // A proposal is accepted once: after its verification, Identify gives a new one.
-    const acceptButton = this.result
-      ? null
-      : h(
-          "button",
-          {
-            class: "btn primary",
-            testid: "at-accept",
-            disabled: busy,
-            title: "Run a baseline test with the gains in use, write the proposed gains (validated, read back), run the same test again. The axis moves; STOP / Esc stops.",
-            onclick: () => void this.accept(),
-          },
-          "Accept and verify",
-        );
+    // A proposal is decided once (kept, or accepted and verified): Identify gives a new
+    // one. The recommended action is the primary button and comes first; the other is
+    // the explicit alternative ("Write proposal anyway" when keeping is recommended).
+    const rec = p.recommendation;
+    const keepFirst = rec?.action === "keep";
+    const writeTitle = "Run a baseline test with the gains in use, write the proposed gains (validated, read back), run the same test again. The axis moves; STOP / Esc stops.";
+    const acceptButton = h(
+      "button",
+      { class: `btn ${keepFirst ? "warn" : "primary"}`, testid: "at-accept", "data-default": keepFirst ? "0" : "1", disabled: busy, title: writeTitle, onclick: () => void this.accept() },
+      keepFirst ? "Write proposal anyway" : "Accept and verify",
+    );
+    const keepButton = h(
+      "button",
+      {
+        class: `btn ${keepFirst ? "primary" : ""}`,
+        testid: "at-keep",
+        "data-default": keepFirst ? "1" : "0",
+        disabled: busy,
+        title: "Decline the proposal: the gains in use stay, nothing is written to the device (the decision is recorded with the identification run)",
+        onclick: () => void this.keep(),
+      },
+      "Keep current gains",
+    );
+    const decided = this.result !== null || this.decision !== null;
+    const buttons = decided ? [] : keepFirst ? [keepButton, acceptButton] : [acceptButton, keepButton];
+    const recommendation =
+      rec && !decided
+        ? h(
+            "div",
+            { class: `at-recommend r-${rec.action}`, testid: "at-recommendation", "data-action": rec.action, role: "note" },
+            h("b", null, rec.action === "keep" ? "Recommended: keep the gains in use" : "Recommended: write the proposal"),
+            ` — ${rec.reason}`,
+          )
+        : null;
     const noBaseline = p.baseline_possible === false;
     const distance = p.test?.distance;
     const attempts = p.identification_run_ids?.length ?? 1;
@@ -665,23 +783,27 @@ export class AutoTunePanel {
       { class: "at-proposal", testid: "at-proposal", "data-run": p.identification_run_id },
       (p.warnings ?? []).map((w) => h("div", { class: "at-warning", testid: "at-warning", role: "note" }, h("b", null, "⚠ "), w)),
       attempts > 1 ? h("div", { class: "at-sub" }, `identified in ${attempts} attempts (runs ${(p.identification_run_ids ?? []).map((id) => `#${id.slice(0, 4)}`).join(", ")})`) : null,
-      h("div", { class: "at-grid" }, model, gains, this.marginsView(p), rule),
+      h("div", { class: "at-grid" }, model, gains, this.compareView(p), rule),
       // Once verified, the result table repeats the predictions next to the measurements.
       this.result ? null : metrics,
+      recommendation,
       h(
         "div",
         { class: "at-actions" },
-        acceptButton,
+        ...buttons,
         h(
           "span",
-          { class: `at-hint${noBaseline ? " warn" : ""}` },
+          { class: `at-hint${noBaseline && !decided ? " warn" : ""}` },
           this.result
             ? "Accepted and verified (below). Identify again for a new proposal."
+            : this.decision
+            ? ""
             : noBaseline
             ? `The gains in use are predicted to travel ${p.default_excursion ?? "?"} counts, beyond your distance limit: the baseline test is skipped, only the verification runs.`
-            : `Moves the axis: a baseline test with the gains in use, then the same test with the proposed gains${distance !== undefined ? ` (${distance} counts each)` : ""}.`,
+            : `${keepFirst ? "Writing moves" : "Moves"} the axis: a baseline test with the gains in use, then the same test with the proposed gains${distance !== undefined ? ` (${distance} counts each)` : ""}.`,
         ),
       ),
+      this.decisionView(),
     );
   }
 
