@@ -157,3 +157,22 @@ def test_a_decision_is_recorded_with_what_was_recommended() -> None:
     out = session.to_dict()
     assert out["decision"] == written
     assert [d["identification_run_id"] for d in out["history"]] == ["r1", "r2"]
+
+
+def test_a_z1100_proposal_carries_the_same_comparison() -> None:
+    """The Z1100's proposal body (KABD hold loop) is read by the same rule: on the
+    unloaded demo motor the search meets medium with more margin than the mediocre gains
+    in use, so writing is recommended, with both sides' margins and predicted step."""
+    from servotune.demo import Z1100_LOADS_KG_M2
+    from servotune.devices.z1100.gain_rule import propose_kab
+
+    from .test_autotune_z1100 import MEDIOCRE, PROFILE, _physics_plant
+
+    proposal = propose_kab(
+        _physics_plant(Z1100_LOADS_KG_M2[0]), PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE
+    ).to_dict()
+    rec = recommend(proposal)
+    assert rec["action"] == "write", rec["reason"]
+    assert rec["proposal"]["meets_target"] is True
+    assert rec["proposal"]["phase_margin_deg"] == proposal["margins"]["phase_margin_deg"]
+    assert rec["current"]["settling_time_s"] == proposal["predicted_default"]["settling_time_s"]

@@ -556,6 +556,9 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
     assert response.status_code == 422 and response.json()["field"] == "max_pwm", response.text
     assert "80" in response.json()["detail"]  # the rig's bench limit it exceeds
     assert (await client.post(f"{base}/accept")).status_code == 409
+    # keep (decline a proposal) is forwarded too: the rig has nothing to decline
+    response = await client.post(f"{base}/keep")
+    assert response.status_code == 409 and "no proposal" in response.json()["detail"]
     assert module.position == position and not module.rss & 0b1100  # no pm, no vm
     assert (await client.get(base)).json()["state"] == "idle"
     # The rig's local user holds the axis: the rig's lock refuses the hub (409 at the
@@ -615,7 +618,11 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
         print(f"steps ended by a STOP and tried again: {stopped_steps}")
     assert module.settings["kp"] == proposal["gains"]["kp"]
     assert module.settings["kd"] == proposal["gains"]["kd"]
-    assert (await client.get(base)).json()["state"] == "verified"
+    session = (await client.get(base)).json()
+    assert session["state"] == "verified"
+    # the decision, recorded by the rig, is the hub's to show
+    assert session["decision"]["action"] == "write", session["decision"]
+    assert session["decision"]["gains"] == proposal["gains"]
 
     response = await client.post(f"{base}/revert", timeout=120)
     assert response.status_code == 200, response.text
@@ -627,6 +634,7 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
     assert [v for v in agent.verbs_handled if v.startswith("autotune")] == [
         "autotune_identify",  # refused (max_pwm)
         "autotune_accept",  # refused (nothing proposed)
+        "autotune_keep",  # refused (nothing proposed)
         "autotune_identify",  # refused (the rig's local user holds the axis)
         *stopped_steps,  # ended by the dead-man and tried again
         "autotune_identify",
