@@ -4,14 +4,15 @@ Usage (from the repository root, with the project's venv):
     .venv/bin/python scripts/bench_frf_trust.py [--repeats 5] [--hog 2] [--gains 600/10/1500]
         [--gains autotune] [--port 18791] [--json out.json]
 
-Starts ``servotune demo --no-autopilot`` on a port of its own (a fresh data directory),
-and on the loaded SLAP2 axis ("SLAP2 #1 with load") writes each set of gains and runs
+Starts ``servotune demo --no-autopilot`` on a port of its own (a fresh data directory,
+``servotune.perf.demo.demo_server``), and on the loaded SLAP2 axis ("SLAP2 #1 with
+load") writes each set of gains and runs
 the bench's ``frequency_response`` test (1-10 Hz, amplitude 200, 6 s: the issue 25
 case) ``--repeats`` times through the REST API, as a user's browser does. ``autotune``
 as gains: the auto-tune's proposal, identified once on the demo (from 600/10/1500, the
 default margins) before the runs; nothing is accepted, the gains are written as any
-others. ``--hog N`` runs N busy-looping processes (``sh -c 'while :; do :; done'``)
-for the whole measurement: the loaded case.
+others. ``--hog N`` runs N busy-looping processes (``servotune.perf.demo.cpu_hog``) for
+the whole measurement: the loaded case.
 
 For every tone up to ``--top-hz`` (5) each run prints the product's |T| (dB) and
 phase, whether it is trusted and its stated bound (``error_db`` / ``error_deg``), and
@@ -23,8 +24,8 @@ the truth twice, never the product's own estimate:
   sent at every controller tick, no wire, no host).
 A tone marked trusted whose reading differs from the truth by more than its stated
 bound (against ``fit``: plus the fit's own two standard errors, printed) is listed as a
-VIOLATION (with the run id: the run stays in the demo's data
-directory, printed at the end). The load average (``/proc/loadavg``) is printed with
+VIOLATION (with the run id: the run stays in the demo's data directory, printed at
+the end; ``--from-data`` analyses its runs again). The load average is printed with
 each run. A benchmark, not a test: what it measures depends on the machine.
 """
 
@@ -34,13 +35,9 @@ import argparse
 import contextlib
 import json
 import math
-import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +50,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # the physical check's own simulator re
 from frf_harness import simulator_response  # noqa: E402
 from servotune.bench.frf import analyse_run  # noqa: E402
 from servotune.demo import SLAP2_LOADED  # noqa: E402
+from servotune.perf.demo import cpu_hog, demo_server, load_average  # noqa: E402
 from servotune.storage import Storage  # noqa: E402
 from servotune.tuning.frf import tone_fit  # noqa: E402
 from servotune.tuning.frfrun import Excitation  # noqa: E402
@@ -68,46 +66,7 @@ FRF_REQUEST = {
 
 
 def loadavg() -> str:
-    return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-
-
-@contextlib.contextmanager
-def demo(port: int, data_dir: Path) -> Iterator[str]:
-    exe = ROOT / ".venv" / "bin" / "servotune"
-    cmd = [str(exe), "demo", "--port", str(port), "--no-autopilot", "--data-dir", str(data_dir)]
-    log = open(data_dir / "demo.log", "w")  # noqa: SIM115
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{base}/api/axes", timeout=2).status_code == 200:
-                    break
-            if proc.poll() is not None:
-                raise RuntimeError(f"demo exited: see {data_dir / 'demo.log'}")
-            time.sleep(0.5)
-        else:
-            raise RuntimeError("demo did not answer in 90 s")
-        yield base
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-        log.close()
-
-
-@contextlib.contextmanager
-def hogs(n: int) -> Iterator[None]:
-    procs = [subprocess.Popen(["sh", "-c", "while :; do :; done"]) for _ in range(n)]
-    try:
-        yield
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
+    return " ".join(f"{x:.2f}" for x in load_average())
 
 
 class Api:
@@ -130,9 +89,6 @@ class Api:
 
     def write_gains(self, axis: str, gains: dict[str, int]) -> None:
         self.call("PATCH", f"/api/axes/{axis}/params?confirm_unstable=true", json=gains)
-
-    def wait_at_rest(self, axis: str, wanted_s: float = 1.0) -> None:
-        time.sleep(wanted_s)
 
     def frf_run(self, axis: str) -> tuple[dict[str, Any], dict[str, Any]]:
         for attempt in range(3):
@@ -358,11 +314,13 @@ def main() -> None:
     data_dir = Path(tempfile.mkdtemp(prefix="frf_trust_"))
     print(f"demo data: {data_dir}; hog {args.hog}; load {loadavg()}", flush=True)
     results: list[dict[str, Any]] = []
-    with demo(args.port, data_dir) as base:
-        api = Api(base)
+    with demo_server(
+        port=args.port, data_dir=data_dir, autopilot=False, log_path=data_dir / "demo.log"
+    ) as server:
+        api = Api(server.base_url)
         axis = api.axis(AXIS_NAME)
         time.sleep(2.0)
-        with hogs(args.hog):
+        with cpu_hog(args.hog) if args.hog else contextlib.nullcontext():
             for text in sets:
                 if text == "autotune":
                     gains = (

@@ -20,15 +20,12 @@ from pathlib import Path
 import pytest
 from playwright.async_api import Browser, Page, expect
 
-from servotune.api.app import WEB_DIST
-from servotune.config import LinkSpec
 from servotune.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.sim.pty import PtySimulator
 
-from .test_api import LiveServer, live_server
+from .test_api import LiveServer
 from .test_browser import browser  # noqa: F401  (the fixture)
+from .test_browser_frf import one_module_page
 
 pytestmark = pytest.mark.browser
 
@@ -42,22 +39,11 @@ async def page_and_server(
     tmp_path: Path,
     browser: Browser,  # noqa: F811
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=SLAP2_LOADED)])
-    simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
-    simulator.start()
-    try:
-        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0], 512)
-        async with live_server(
-            simulator, bus, tmp_path / "data", web_dir=WEB_DIST, spec=spec
-        ) as server:
-            page = await browser.new_page(viewport={"width": 1280, "height": 800})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            yield page, server
-            assert not errors, f"JavaScript errors: {errors}"
-            await page.close()
-    finally:
-        simulator.stop()
+    module = Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=SLAP2_LOADED)
+    async with one_module_page(
+        tmp_path, browser, module, {"width": 1280, "height": 800}
+    ) as page_server:
+        yield page_server
 
 
 async def test_a_worse_proposal_defaults_to_keeping_the_gains_in_use(

@@ -9,6 +9,7 @@ verify" runs the verification step and the prediction is compared with it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import statistics
@@ -39,12 +40,15 @@ ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.par
 RMS_TOLERANCE = 0.10
 
 
-@pytest.fixture
-async def page_and_server(
+@contextlib.asynccontextmanager
+async def one_module_page(
     tmp_path: Path,
     browser: Browser,  # noqa: F811
+    module: Slap2Module,
+    viewport: dict[str, int],
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    """One SLAP2 module on a pty behind a live server, and a page (no JavaScript errors)."""
+    bus = Slap2Bus([module])
     simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
     simulator.start()
     try:
@@ -52,7 +56,7 @@ async def page_and_server(
         async with live_server(
             simulator, bus, tmp_path / "data", web_dir=WEB_DIST, spec=spec
         ) as server:
-            page = await browser.new_page(viewport={"width": 1400, "height": 1200})
+            page = await browser.new_page(viewport=viewport)
             errors: list[str] = []
             page.on("pageerror", lambda exc: errors.append(str(exc)))
             yield page, server
@@ -60,6 +64,18 @@ async def page_and_server(
             await page.close()
     finally:
         simulator.stop()
+
+
+@pytest.fixture
+async def page_and_server(
+    tmp_path: Path,
+    browser: Browser,  # noqa: F811
+) -> AsyncIterator[tuple[Page, LiveServer]]:
+    module = Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")
+    async with one_module_page(
+        tmp_path, browser, module, {"width": 1400, "height": 1200}
+    ) as page_server:
+        yield page_server
 
 
 async def slide(page: Page, testid: str, value: int) -> None:

@@ -356,9 +356,7 @@ export class AutoTunePanel {
       this.setOpen(true);
       this.host.modelChanged();
     } catch (error) {
-      this.stop();
-      this.showError(error);
-      this.setProgress("", "");
+      this.failed(error);
     } finally {
       this.render();
     }
@@ -374,9 +372,7 @@ export class AutoTunePanel {
       result = await api.autotuneAccept(this.axisId);
       this.decided("write", proposal.gains, proposal.recommendation);
     } catch (error) {
-      this.stop();
-      this.showError(error);
-      this.setProgress("", "");
+      this.failed(error);
       this.render();
       return;
     }
@@ -416,14 +412,11 @@ export class AutoTunePanel {
     try {
       const decision = await api.autotuneKeep(this.axisId);
       this.stop();
-      this.decision = decision;
-      this.history = [...this.history, decision].slice(-20);
+      this.record(decision);
       this.el.dataset.state = "kept";
       this.setProgress("ok", `✓ kept the gains in use (${gainsText(decision.gains)}): nothing written`);
     } catch (error) {
-      this.stop();
-      this.showError(error);
-      this.setProgress("", "");
+      this.failed(error);
     } finally {
       this.render();
     }
@@ -440,8 +433,19 @@ export class AutoTunePanel {
       at_s: Date.now() / 1000,
       identification_run_id: this.proposal?.identification_run_id ?? null,
     };
+    this.record(decision);
+  }
+
+  private record(decision: AutoTuneDecision): void {
     this.decision = decision;
     this.history = [...this.history, decision].slice(-20);
+  }
+
+  /** A call failed: its error under the bar, the progress line cleared. */
+  private failed(error: unknown): void {
+    this.stop();
+    this.showError(error);
+    this.setProgress("", "");
   }
 
   private async revert(): Promise<void> {
@@ -457,9 +461,7 @@ export class AutoTunePanel {
       this.proposal = null;
       this.el.dataset.state = "idle";
     } catch (error) {
-      this.stop();
-      this.showError(error);
-      this.setProgress("", "");
+      this.failed(error);
     } finally {
       this.render();
     }
@@ -783,9 +785,9 @@ export class AutoTunePanel {
       { class: "at-proposal", testid: "at-proposal", "data-run": p.identification_run_id },
       (p.warnings ?? []).map((w) => h("div", { class: "at-warning", testid: "at-warning", role: "note" }, h("b", null, "⚠ "), w)),
       attempts > 1 ? h("div", { class: "at-sub" }, `identified in ${attempts} attempts (runs ${(p.identification_run_ids ?? []).map((id) => `#${id.slice(0, 4)}`).join(", ")})`) : null,
-      h("div", { class: "at-grid" }, model, gains, this.compareView(p), rule),
-      // Once verified, the result table repeats the predictions next to the measurements.
-      this.result ? null : metrics,
+      // The comparison, the recommendation and the buttons together (the decision's
+      // view); the full predicted metrics and the rule's text below them.
+      h("div", { class: "at-grid" }, this.compareView(p), gains, model),
       recommendation,
       h(
         "div",
@@ -804,6 +806,9 @@ export class AutoTunePanel {
         ),
       ),
       this.decisionView(),
+      // Once verified, the result table repeats the predictions next to the measurements.
+      this.result ? null : metrics,
+      h("div", { class: "at-grid" }, rule),
     );
   }
 
