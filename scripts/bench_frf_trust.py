@@ -229,15 +229,34 @@ def compare(
     return row
 
 
-def from_data(data_dir: Path, top_hz: float) -> list[dict[str, Any]]:
+def shifted(run: dict[str, Any], counts: float) -> dict[str, Any]:
+    """The run as if the axis had been held ``counts`` further: positions, setpoints,
+    the excitation's y0 and every target sent moved by the same amount (the loop is
+    the same; issue 25's bias grew with where the axis stood)."""
+    cols = run["columns"]
+    idx = [cols.index(c) for c in ("position", "setpoint") if c in cols]
+    samples = [
+        [v + counts if i in idx and v is not None else v for i, v in enumerate(row)]
+        for row in run["samples"]
+    ]
+    exc = dict(run["excitation"])
+    exc["y0"] = float(exc["y0"]) + counts
+    exc["sent"] = [[s[0], s[1] + counts, *s[2:]] for s in exc.get("sent", [])]
+    return run | {"samples": samples, "excitation": exc}
+
+
+def from_data(data_dir: Path, top_hz: float, shift: float = 0.0) -> list[dict[str, Any]]:
     """The stored frequency-response runs of a demo data directory, analysed again as
-    ``GET /api/bench/runs/{id}/frf`` does (``bench.frf.analyse_run``)."""
+    ``GET /api/bench/runs/{id}/frf`` does (``bench.frf.analyse_run``), optionally
+    ``shifted``."""
     storage = Storage(data_dir / "servotune.db")
     out = []
     for run_id in storage.run_ids():
         run = storage.get_run(run_id)
         if run is None or (run.get("test") or {}).get("kind") != "frequency_response":
             continue
+        if shift and run["status"] == "complete":
+            run = shifted(run, shift)
         params = run.get("params") or {}
         g = (int(params["kp"]), int(params["ki"]), int(params["kd"]))
         frf = analyse_run(run, None) if run["status"] == "complete" else {"measured": None}
@@ -306,9 +325,12 @@ def main() -> None:
     ap.add_argument("--port", type=int, default=18791)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--from-data", type=Path, help="analyse a data directory's runs again")
+    ap.add_argument(
+        "--shift", type=float, default=0.0, help="with --from-data: as if held this far away"
+    )
     args = ap.parse_args()
     if args.from_data:
-        report(from_data(args.from_data, args.top_hz), args.json, args.from_data)
+        report(from_data(args.from_data, args.top_hz, args.shift), args.json, args.from_data)
         return
     sets = args.gains or ["600/10/1500", "autotune"]
     data_dir = Path(tempfile.mkdtemp(prefix="frf_trust_"))
