@@ -154,6 +154,10 @@ async def test_a_worse_proposal_defaults_to_keeping_the_gains_in_use(
     await expect(decision).to_contain_text("as recommended")
     await expect(page.get_by_test_id("at-accept")).to_have_count(0)
     await expect(page.get_by_test_id("at-history")).to_contain_text("kept kp 150")
+    # the run list (re-read) shows the decision in the identification run's note
+    await expect(
+        page.locator(".bench").get_by_text("decision: kept the gains in use")
+    ).to_have_count(1, timeout=10_000)
     await decision.scroll_into_view_if_needed()
     await page.screenshot(path=str(ARTIFACTS / "autotune_kept_1280.png"))
 

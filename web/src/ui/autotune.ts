@@ -67,6 +67,8 @@ export interface AutoTuneHost {
   showRuns(ids: string[]): Promise<void>;
   /** A new identified model (and proposal) exists: views built on it reload it. */
   modelChanged(): void;
+  /** Stored runs changed (a decision recorded on the identification run): re-read them. */
+  runsChanged(): void;
 }
 
 function gainsText(g: GainSet | undefined): string {
@@ -413,6 +415,7 @@ export class AutoTunePanel {
       const decision = await api.autotuneKeep(this.axisId);
       this.stop();
       this.record(decision);
+      this.host.runsChanged();
       this.el.dataset.state = "kept";
       this.setProgress("ok", `✓ kept the gains in use (${gainsText(decision.gains)}): nothing written`);
     } catch (error) {

@@ -298,6 +298,8 @@ export class BenchView {
             showRuns: (ids) => this.showRuns(ids),
             // the what-if view is built on the identified model: reload it
             modelChanged: () => void this.whatif?.load(),
+            // a decision was written onto the identification run (its note)
+            runsChanged: () => void this.refresh(),
           },
           signal,
         )
