@@ -51,10 +51,6 @@ async def test_a_worse_proposal_defaults_to_keeping_the_gains_in_use(
     browser: Browser,  # noqa: F811
 ) -> None:
     page, server = page_and_server
-    for _ in range(200):
-        if (await server.state("line-0")).get("position") is not None:
-            break
-        await asyncio.sleep(0.05)
     written = await server.client.patch("/api/axes/line-0/params", json=GENTLE)
     assert written.status_code == 200, written.text
     await page.goto(server.base_url)

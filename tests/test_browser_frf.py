@@ -47,7 +47,8 @@ async def one_module_page(
     module: Slap2Module,
     viewport: dict[str, int],
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
-    """One SLAP2 module on a pty behind a live server, and a page (no JavaScript errors)."""
+    """One SLAP2 module on a pty behind a live server (once it reports a position), and
+    a page (no JavaScript errors at the end)."""
     bus = Slap2Bus([module])
     simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
     simulator.start()
@@ -56,6 +57,10 @@ async def one_module_page(
         async with live_server(
             simulator, bus, tmp_path / "data", web_dir=WEB_DIST, spec=spec
         ) as server:
+            for _ in range(200):  # the module polled once: it has a position
+                if (await server.state("line-0")).get("position") is not None:
+                    break
+                await asyncio.sleep(0.05)
             page = await browser.new_page(viewport=viewport)
             errors: list[str] = []
             page.on("pageerror", lambda exc: errors.append(str(exc)))
@@ -89,10 +94,6 @@ async def test_frequency_response_bode_margins_and_what_if(
     page_and_server: tuple[Page, LiveServer],
 ) -> None:
     page, server = page_and_server
-    for _ in range(200):
-        if (await server.state("line-0")).get("position") is not None:
-            break
-        await asyncio.sleep(0.05)
     # The bench page open before the identification: the what-if view has no model yet
     # and gets it live when the identification's run ends (no reload).
     await page.goto(server.base_url)
