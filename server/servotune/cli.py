@@ -287,16 +287,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
+    from servotune.devices import default_registry
 
+    devices = default_registry()
     links: list[LinkSpec] = []
     host, port = args.host, args.port
     try:
         if args.config:
-            file_config = load_config_file(Path(args.config))
+            file_config = load_config_file(Path(args.config), devices)
             links.extend(file_config.links)
             host = args.host if args.host != "127.0.0.1" else (file_config.host or host)
             port = args.port if args.port != 8000 else (file_config.port or port)
-        links.extend(parse_link_spec(spec) for spec in args.link)
+        links.extend(parse_link_spec(spec, devices) for spec in args.link)
     except ConfigError as exc:
         print(f"servotune serve: {exc}", file=sys.stderr)
         return 2
@@ -310,6 +312,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=False)
     config = AppConfig(
         links=links,
+        devices=devices,
         data_dir=server_data_dir(args),
         security=security_config_from_args(args, host),
         bus=bus,

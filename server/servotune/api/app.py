@@ -36,6 +36,7 @@ from servotune.autotune.service import AutoTuner
 from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
 from servotune.config import LinkSpec
+from servotune.devices import default_registry
 from servotune.hub.control_lock import ControlManager, ControlSettings
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.hub.state import UnknownAxisError
@@ -48,12 +49,12 @@ from servotune.link.base import (
     MeasurementError,
     ProtocolError,
 )
-from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.twin.service import Twin
 
 if TYPE_CHECKING:
     from servotune.bus.connection import BusSettings
+    from servotune.registry import Registry
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +77,8 @@ class AppConfig:
     control: ControlSettings = field(default_factory=ControlSettings)
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
+    # The devices the links may name (None: servotune.devices.default_registry()).
+    devices: Registry | None = None
 
 
 def _error(
@@ -114,6 +117,7 @@ def allowed_methods(routes: list[BaseRoute], scope: Scope) -> list[str]:
 
 def create_app(config: AppConfig) -> FastAPI:
     """Build the app; nothing is opened until the lifespan starts."""
+    devices = config.devices if config.devices is not None else default_registry()
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -124,7 +128,7 @@ def create_app(config: AppConfig) -> FastAPI:
                 specs.extend(simulators.enter_context(start_simulator()))
             hub = Hub([], storage, autopilot=config.autopilot)
             for spec in specs:
-                hub.add_link(build_link(spec, hub))
+                hub.add_link(devices.build_link(spec, hub))
             # bus: the hub registers the rigs' links before it starts (servotune.bus).
             bus = None
             if config.bus is not None:

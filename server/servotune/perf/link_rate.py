@@ -27,12 +27,13 @@ from collections import defaultdict
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 
-from servotune.config import DEFAULT_BAUD, LinkSpec
+from servotune.config import LinkSpec
+from servotune.devices import default_registry
 from servotune.devices.slap2.link import Slap2Link
 from servotune.devices.z1100.link import Z1100Link
 from servotune.link.base import Sample
 from servotune.link.engine import LinkEngine
-from servotune.links import build_link
+from servotune.registry import Registry
 from servotune.schema import AxisHealth, EventLevel, LinkState
 
 
@@ -86,10 +87,10 @@ def turns_per_sample(link: LinkEngine) -> float:
 
 
 async def _measure(
-    device: str, path: str, baud: int, addresses: list[int], duration_s: float
+    devices: Registry, device: str, path: str, baud: int, addresses: list[int], duration_s: float
 ) -> int:
     sink = _CountingSink()
-    link = build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
+    link = devices.build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
     assert isinstance(link, LinkEngine)
     task = asyncio.create_task(link.run())
     try:
@@ -145,9 +146,11 @@ async def _measure(
 
 def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s: float) -> int:
     """Start the simulator process, measure, print, clean up. Returns an exit code."""
-    baud = baud or DEFAULT_BAUD[device]
-    if device == "z1100":
-        addresses = [0, 1, 2]
+    devices = default_registry()
+    rules = devices.link_rules(device)
+    baud = baud or rules.default_baud or 0
+    if rules.addressing == "fixed":
+        addresses = list(rules.fixed_addresses)
     command = [
         sys.executable,
         "-m",
@@ -176,7 +179,7 @@ def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s
         except ImportError:
             runner, loop_name = asyncio.run, "asyncio"
         print(f"event loop: {loop_name}")
-        return runner(_measure(device, path, baud, addresses, duration_s))
+        return runner(_measure(devices, device, path, baud, addresses, duration_s))
     finally:
         process.send_signal(signal.SIGTERM)
         try:
