@@ -24,7 +24,6 @@ import pytest
 from servotune.autotune.service import AutoTuner
 from servotune.autotune.verdict import verdict
 from servotune.bench.metrics import compute_metrics, unmeasured
-from servotune.demo import SLAP2_LOADED
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
 from servotune.devices.slap2.law import (
@@ -35,6 +34,7 @@ from servotune.devices.slap2.law import (
     simulate_response,
 )
 from servotune.devices.slap2.sim.controller import TICK_S
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from servotune.demo import SLAP2_LOADED
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun, frftrust
 from servotune.tuning.loops import MotorModel, slap2_loop

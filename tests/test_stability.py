@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from servotune.bench import frf as frfbench
-from servotune.demo import SLAP2_LOADED
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.loops import MotorModel, slap2_loop
 from servotune.tuning.stability import schur_stable

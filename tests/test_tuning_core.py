@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from servotune.demo import Z1100_LOADS_KG_M2
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.law import Gains, MoveSpec, PidLaw, Staircase, simulate_response
 from servotune.devices.slap2.sim.controller import TICK_S
@@ -27,6 +26,7 @@ from servotune.devices.z1100 import codec
 from servotune.devices.z1100.codec import Gains as ChipGains
 from servotune.devices.z1100.law import Kab, KabLaw
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.tuning.identify import fit_closed_loop, fit_plant
 from servotune.tuning.law import law_for

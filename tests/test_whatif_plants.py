@@ -37,11 +37,11 @@ import pytest
 
 from servotune.bench.metrics import compute_metrics
 from servotune.config import LinkSpec
-from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.profile import TrapezoidGenerator
 from servotune.devices.z1100.law import Kab, MoveProfile, simulate_move
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
@@ -91,7 +91,7 @@ PLANTS = {
 def z1100_demo_chip(tmp_path: Path) -> Iterator[PtySimulator]:
     """The demo's Z1100 (its three loads, its flash gains and profile) on a pty."""
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)  # the demo's own flash file
+    write_demo_flash(flash)  # the demo's own flash file
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
     simulator = PtySimulator(chip, baud=Z1100_BAUD)
     simulator.start()

@@ -13,10 +13,48 @@ factory, the CLI, the benchmarks) injects a ``Registry``, which implements them 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from pathlib import Path
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
+
+
+@dataclass(frozen=True, slots=True)
+class SimArgs:
+    """The options of ``servotune sim <device>``; a simulator reads those it has."""
+
+    addresses: tuple[int, ...] = (0, 1)
+    baud: int | None = None  # None: the device's default
+    state_dir: Path | None = None  # EEPROM/flash files (None: in memory)
+    link: str | None = None  # also create this symlink to the pty
+    socket: str | None = None  # a Unix socket to serve on
+    ifname: str | None = None  # a network interface to serve on
+    control: str | None = None  # a Unix socket for fault injection
+    product: int | None = None  # another product code in the device's identity
+    realtime: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class DemoArgs:
+    """The options of ``servotune demo`` a simulator reads."""
+
+    state_dir: Path  # EEPROM/flash files and records (``sim.process.record_path``)
+    ethercat_wire: bool = False  # an EtherCAT slave on a real wire (veth) if it can
+
+
+@dataclass(frozen=True, slots=True)
+class SimulatorEntry:
+    """A device's simulator, as the CLI and the demo start it."""
+
+    # ``servotune sim <device>`` in the foreground; returns the exit code.
+    serve: Callable[[SimArgs], int]
+    # The demo's simulated device(s): started on entering (a child process stopped on
+    # leaving), yielding the link specs that reach them.
+    demo: Callable[[DemoArgs], AbstractContextManager[list[LinkSpec]]]
+    # ``serve`` puts a serial device on a pty (``servotune bench <device>`` measures it).
+    pty: bool
 
 
 @dataclass(frozen=True, slots=True)
@@ -31,6 +69,7 @@ class DeviceEntry:
     title: str  # for people: CLI help, error messages ("gräbner SLAP2")
     link_rules: LinkRules
     build_link: Callable[[LinkSpec, DriverSink], Link]
+    simulator: SimulatorEntry | None = None
 
 
 class Registry:
@@ -65,6 +104,10 @@ class Registry:
         return Registry((*self, *extra))
 
     # --- the consumers' Protocols (config.LinkRulesSource, ...)
+
+    def simulated(self, *, pty: bool = False) -> Sequence[DeviceEntry]:
+        """The devices with a simulator (``pty``: one on a pseudo-terminal)."""
+        return tuple(e for e in self if e.simulator is not None and (e.simulator.pty or not pty))
 
     def link_rules(self, device: str) -> LinkRules:
         return self.get(device).link_rules

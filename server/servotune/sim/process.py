@@ -64,6 +64,11 @@ _PR_SET_NAME = 15  # linux/prctl.h
 Handler = Callable[..., Any]
 
 
+def record_path(state_dir: Path, name: str) -> Path:
+    """Where the simulator ``name`` of the demo writes its record in ``state_dir``."""
+    return state_dir / f"{name}-record.json"
+
+
 class SimProcessError(RuntimeError):
     """A simulator process could not be started or did not answer."""
 

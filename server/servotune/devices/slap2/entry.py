@@ -1,4 +1,5 @@
-"""gräbner SLAP2's registry entry: how its link specs read and how its link is built.
+"""gräbner SLAP2's registry entry: how its link specs read, how its link is built,
+how its simulator is served and what the demo runs.
 
 Builders import their modules when called: the registry is read by every command
 (``servotune --help`` included), which must not load every device's link for it.
@@ -6,15 +7,17 @@ Builders import their modules when called: the registry is read by every command
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Final
 
 from servotune.config import LinkRules, LinkSpec
-from servotune.devices.slap2.codec import MAX_ADDRESS
+from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DeviceEntry
+from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
 
 NAME: Final = "slap2"
-DEFAULT_BAUD: Final = 19200  # the manual's 19200 8N1
 
 
 def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
@@ -32,6 +35,36 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
     return Slap2Link(config, SerialConnector(spec.path, spec.baud), sink)
 
 
+def serve(args: SimArgs) -> int:
+    from servotune.devices.slap2.sim.demo import serve_slap2
+
+    serve_slap2(list(args.addresses), args.baud or DEFAULT_BAUD, args.state_dir, args.link)
+    return 0
+
+
+@contextlib.contextmanager
+def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """Two SLAP2 modules (addresses 0 and 1) sharing one simulated RS232 line."""
+    from servotune.devices.slap2.sim.demo import DEMO_ADDRESSES, DEMO_NAMES, demo_line_process
+
+    with demo_line_process(state_dir) as simulator:
+        yield [
+            LinkSpec(
+                device=NAME,
+                path=simulator.ready["path"],
+                link_id="demo-slap2",
+                baud=DEFAULT_BAUD,
+                addresses=list(DEMO_ADDRESSES),
+                lines=512,
+                names=dict(DEMO_NAMES),
+            )
+        ]
+
+
+def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
+    return demo_line(args.state_dir)
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="gräbner SLAP2",
@@ -42,4 +75,5 @@ ENTRY: Final = DeviceEntry(
         example="slap2:/dev/ttyUSB0?addresses=0,1",
     ),
     build_link=build_link,
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
 )

@@ -1,14 +1,18 @@
-"""CNC Designer Z1100's registry entry: how its link specs read and how its link is
-built (builders import their modules when called, see ``devices/slap2/entry.py``)."""
+"""CNC Designer Z1100's registry entry: how its link specs read, how its link is built,
+how its simulator is served and what the demo runs (builders import their modules when
+called, see ``devices/slap2/entry.py``)."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DeviceEntry
+from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
 
 NAME: Final = "z1100"
 # One chip, three motors: there is nothing to address.
@@ -29,6 +33,36 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
     return Z1100Link(config, SerialConnector(spec.path, spec.baud), sink)
 
 
+def serve(args: SimArgs) -> int:
+    from servotune.devices.z1100.sim.demo import serve_z1100
+
+    serve_z1100(args.baud or DEFAULT_BAUD, args.state_dir, args.link)
+    return 0
+
+
+@contextlib.contextmanager
+def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """One simulated Z1100 chip with three differently loaded motors."""
+    from servotune.devices.z1100.sim.demo import DEMO_NAMES, demo_chip_process
+
+    with demo_chip_process(state_dir) as simulator:
+        yield [
+            LinkSpec(
+                device=NAME,
+                path=simulator.ready["path"],
+                link_id="demo-z1100",
+                baud=DEFAULT_BAUD,
+                addresses=list(AXES),
+                lines=512,
+                names=dict(DEMO_NAMES),
+            )
+        ]
+
+
+def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
+    return demo_line(args.state_dir)
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="CNC Designer Z1100",
@@ -39,4 +73,5 @@ ENTRY: Final = DeviceEntry(
         example="z1100:/dev/ttyUSB0",
     ),
     build_link=build_link,
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
 )
