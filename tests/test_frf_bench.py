@@ -24,6 +24,8 @@ import pytest
 
 from servotune.bench import frf as frfbench
 from servotune.config import LinkSpec
+from servotune.devices import default_registry
+from servotune.devices.slap2.injection import Slap2Injection
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import InvalidArgumentError
@@ -31,7 +33,6 @@ from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band, usable_run
-from servotune.tuning.injection import Slap2Injection
 from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
@@ -43,6 +44,10 @@ from servotune.tuning.whatif import (
 from .test_api import LiveServer, live_server
 from .test_bench import finished_run, start
 from .test_frf import _motor_model
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
+SLAP2_INJECTION = Slap2Injection()
 
 NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
 
@@ -163,12 +168,14 @@ def test_the_wire_plan_places_tones_where_the_capture_resolves_them() -> None:
     assert left_out[0] == 21.0 and left_out[-1] == 40.0
     assert reason is not None and "19200 baud" in reason and plan == wire.to_dict()
     assert frfbench.wire_band(inject, 38400, 1.0, 40.0)[:3] == (40.0, (), None)
-    frfbench.check_request("slap2", 200, 1.0, 40.0, 9.0, 20_000, baud=19200)  # accepted
+    frfbench.check_request(
+        "slap2", SLAP2_INJECTION, 200, 1.0, 40.0, 9.0, 20_000, baud=19200
+    )  # accepted
     with pytest.raises(InvalidArgumentError, match="wire") as refused:
-        frfbench.check_request("slap2", 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
+        frfbench.check_request("slap2", SLAP2_INJECTION, 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
     assert refused.value.field == "low_hz"
     # the Z1100 does not inject: model-based, no wire plan
-    assert frfbench.injection_for("z1100") is None and frfbench.measured("slap2")
+    assert frfbench.injection_for(LAW("z1100")) is None and frfbench.measured(LAW("slap2"))
 
 
 def test_model_margins_are_those_of_tuning_loops() -> None:
@@ -181,7 +188,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
         "params": gains,
         "plant_model": identified,
     }
-    out = frfbench.analyse_run(run, None)
+    out = frfbench.analyse_run(LAW(run["device"]), run, None)
     assert out["model_based"] and out["measured"] is None and out["model"] is not None
     plant = control.tf([90_000.0 / 255], [0.02, 1.0, 0.0])
     truth = z1100_loop_for(plant, 24, 32, 8).margins()
@@ -190,7 +197,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
     assert margins["gain_crossover_hz"] == pytest.approx(truth.gain_crossover_hz, abs=1e-3)
     assert margins["stable"] is truth.stable
     # without a model: a reason, not an error
-    out = frfbench.analyse_run(run | {"plant_model": None}, None)
+    out = frfbench.analyse_run(LAW(run["device"]), run | {"plant_model": None}, None)
     assert out["model"] is None and "Identify" in out["model_problem"]
 
 
@@ -200,7 +207,7 @@ def test_the_browser_model_reproduces_the_loop_step() -> None:
     of ``tuning.loops``."""
     plant = IdentifiedPlant(1000.0, 0.012, "test")
     gains = {"kp": 60, "ki": 20, "kd": 200}
-    model = browser_model("slap2", plant, gains)
+    model = browser_model(LAW("slap2"), plant, gains)
     num, den = np.asarray(model["plant_num"]), np.asarray(model["plant_den"])
     assert den[0] == 1.0 and num[0] == 0.0
     n = 600
@@ -218,21 +225,25 @@ def test_the_browser_model_reproduces_the_loop_step() -> None:
         y_hist = np.roll(y_hist, 1)
         u_hist[0], y_hist[0] = u, y
         y_out[k] = y
-    _, expected = loop_for("slap2", plant, gains).step(n * model["period_s"], 100.0)
+    _, expected = loop_for(LAW("slap2"), plant, gains).step(n * model["period_s"], 100.0)
     # loops' step is T's difference equation from exact polynomial products (no
     # minreal): agreement to rounding of the high-order polynomial, 1e-8 of the step.
     assert np.max(np.abs(y_out - expected[:n])) < 1e-8 * 100
 
 
 def test_identified_models_are_read_per_device() -> None:
-    slap2 = plant_from_identification("slap2", {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012})
+    slap2 = plant_from_identification(
+        LAW("slap2"), {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012}
+    )
     assert slap2.gain_counts_s_per_unit == 998.0
-    z1100 = plant_from_identification("z1100", {"gain_counts_s_per_duty": 255e3, "tau_s": 0.02})
+    z1100 = plant_from_identification(
+        LAW("z1100"), {"gain_counts_s_per_duty": 255e3, "tau_s": 0.02}
+    )
     assert z1100.gain_counts_s_per_unit == pytest.approx(1000.0)
     with pytest.raises(ValueError, match="Identify"):
-        plant_from_identification("slap2", None)
+        plant_from_identification(LAW("slap2"), None)
     with pytest.raises(ValueError, match="does not describe"):
-        plant_from_identification("slap2", {"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
+        plant_from_identification(LAW("slap2"), {"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
 
 
 # --- on the pty simulator ------------------------------------------------------------
@@ -541,8 +552,8 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             frf = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
             assert frf["model_based"] and frf["measured"] is None
             params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
-            plant = plant_from_identification("z1100", identified)
-            truth = loop_for("z1100", plant, params).margins()
+            plant = plant_from_identification(LAW("z1100"), identified)
+            truth = loop_for(LAW("z1100"), plant, params).margins()
             margins = frf["model"]["margins"]
             assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-3)
             assert margins["stable"] is truth.stable

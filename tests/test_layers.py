@@ -121,14 +121,12 @@ ALLOWED: dict[str, set[str]] = {
 # Step (a) leaves these; step (b) removes every one (the registry, laws and tuners
 # looked up, the SLAP2 serving out of sim/pty.py).
 KNOWN: set[str] = {
-    "servotune.api.frf_routes imports servotune.devices.slap2.codec",
     "servotune.autotune.recording imports servotune.devices.slap2.law",
     "servotune.autotune.service imports servotune.devices.slap2.tuner",
     "servotune.autotune.service imports servotune.devices.z1100.link",
     "servotune.autotune.service imports servotune.devices.z1100.tuner",
     "servotune.autotune.session imports servotune.devices.slap2.codec",
     "servotune.autotune.session imports servotune.devices.slap2.gain_rule",
-    "servotune.bench.frf imports servotune.devices.slap2.codec",
     "servotune.perf.link_rate imports servotune.devices.slap2.link",
     "servotune.perf.link_rate imports servotune.devices.z1100.link",
     # perf.stops builds its own rigs from the simulators (the demo's loads without
@@ -141,9 +139,6 @@ KNOWN: set[str] = {
     "servotune.perf.stops imports servotune.devices.z1100.sim.servo",
     "servotune.tuning.frfrun imports servotune.devices.slap2.profile",
     "servotune.tuning.frftrust imports servotune.devices.slap2.profile",
-    "servotune.tuning.injection imports servotune.devices.slap2.codec",
-    "servotune.tuning.law imports servotune.devices.slap2.law",
-    "servotune.tuning.law imports servotune.devices.z1100.law",
 }
 
 

@@ -16,9 +16,13 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
+
+if TYPE_CHECKING:
+    from servotune.tuning.law import DeviceLaw
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,6 +74,10 @@ class DeviceEntry:
     link_rules: LinkRules
     build_link: Callable[[LinkSpec, DriverSink], Link]
     simulator: SimulatorEntry | None = None
+    # Its controller law for the what-if, the frequency response and the gains check
+    # (None: it has none). A loader, called once per registry: a law brings numpy,
+    # scipy and python-control, which the CLI's other commands do not need.
+    law: Callable[[], DeviceLaw] | None = None
 
 
 class Registry:
@@ -85,6 +93,7 @@ class Registry:
             if entry.name in self._entries:
                 raise ValueError(f"device {entry.name!r} is registered twice")
             self._entries[entry.name] = entry
+        self._laws: dict[str, DeviceLaw] = {}
 
     def __iter__(self) -> Iterator[DeviceEntry]:
         return iter(self._entries.values())
@@ -111,6 +120,17 @@ class Registry:
 
     def link_rules(self, device: str) -> LinkRules:
         return self.get(device).link_rules
+
+    def law(self, device: str) -> DeviceLaw | None:
+        """The controller law of ``device``; None for a device without one, or one this
+        registry does not list (a stored run, a remote rig's axis)."""
+        law = self._laws.get(device)
+        if law is None:
+            entry = self._entries.get(device)
+            if entry is None or entry.law is None:
+                return None
+            law = self._laws[device] = entry.law()
+        return law
 
     def build_link(self, spec: LinkSpec, sink: DriverSink) -> Link:
         """The driver for ``spec`` with its transport injected."""

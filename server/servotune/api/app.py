@@ -138,8 +138,9 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.bus = bus
             if bus is not None:
                 await bus.prepare(hub, storage)
-            bench = TestBench(hub, storage)
+            bench = TestBench(hub, storage, devices)
             app.state.hub = hub
+            app.state.devices = devices
             app.state.bench = bench
             autotuner_cls = AutoTuner
             if config.bus is not None:

@@ -35,6 +35,7 @@ from servotune.link.base import (
     LinkDownError,
     MeasurementError,
 )
+from servotune.tuning.law import DeviceLaw
 from servotune.tuning.predicted import unstable_reason
 
 
@@ -43,6 +44,11 @@ class DeviceTuner(Protocol):
 
     @property
     def identifying_message(self) -> str: ...
+
+    @property
+    def law(self) -> DeviceLaw:
+        """The device's controller law (the proposal's predicted stability)."""
+        ...
 
     async def check_request(self, entry: AxisEntry, request: IdentifyRequest) -> int:
         """Refusals before anything moves (422/409); returns the test distance."""
@@ -244,8 +250,7 @@ class AutoTuner:
         self._ctx.check_idle(entry)
         gains = (session.proposal_dict or {}).get("gains")
         if not confirm_unstable and gains and session.model:
-            device = entry.info.device
-            why = await self._ctx.compute.run(unstable_reason, device, session.model, gains)
+            why = await self._ctx.compute.run(unstable_reason, tuner.law, session.model, gains)
             if why:
                 raise ConfirmationRequiredError(
                     "confirm_unstable",

@@ -11,10 +11,10 @@ sample rate and the highest tone placed (``max_tone_hz``); ``split`` divides a
 requested band into the part measured and the tones left out, with the reason the
 API shows (``not_measured_hz``, ``not_measured_reason``).
 
-``Slap2Injection`` is the SLAP2's (``tuning.law.DeviceLaw.injection``): closed
-loop through ``ma`` targets at the maximum profile, open loop through ``spwm``. A
-device without one (Z1100: no target or PWM can be streamed on its wire without
-leaving its own profile) gets a model-based frequency response instead.
+A device that can inject implements ``Injection`` (``tuning.law.DeviceLaw.injection``;
+the SLAP2's is ``devices/slap2/injection.py``). A device without one (Z1100: no target
+or PWM can be streamed on its wire without leaving its own profile) gets a model-based
+frequency response instead.
 
 Nothing here imports drivers, hub or api (``servotune.bench.frf`` builds the bench's
 plan from this).
@@ -23,10 +23,8 @@ plan from this).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Final, Protocol
-
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 
 BITS_PER_CHAR: Final = 10  # start + 8 data + stop
 # Measured sample rates of injection runs are 60-80 % of the characters' limit (the
@@ -114,24 +112,12 @@ class Injection(Protocol):
 
     def wire(self, baud: int) -> WirePlan: ...
 
-
-@dataclass(frozen=True, slots=True)
-class Slap2Injection:
-    """The SLAP2: a position target per step (``ma n``, ~10 characters with its echo
-    and reply) and one ``rp`` sample (~16): about 26 characters, 73.8 steps/s at 19200
-    baud. The maximum sv/sa for the test, so the profile generator follows the targets
-    (``servotune.devices.slap2.profile`` rebuilds what it does between them)."""
-
-    chars_per_step: int = 26
-    overrides: Mapping[str, int] = field(
-        default_factory=lambda: {"velocity": VELOCITY_MAX, "acceleration": ACCELERATION_MAX}
-    )
-    closed_loop: tuple[str, str] = ("move_absolute", "position")
-    open_loop: tuple[str, str] | None = ("open_loop_pwm", "pwm")
-    fault_flags: tuple[str, ...] = ("oc", "limit1", "limit2")
-
-    def wire(self, baud: int) -> WirePlan:
-        return WirePlan(baud, self.chars_per_step)
+    def test_profile(self, overrides: Mapping[str, int]) -> tuple[int, int] | None:
+        """The device's profile (velocity, acceleration) during a closed-loop test run
+        with the plan's ``overrides`` (empty for a run recorded without them), when the
+        analysis must rebuild what the profile generator did between two targets;
+        None: the targets are applied as sent."""
+        ...
 
 
 def split(

@@ -10,12 +10,15 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
 from servotune.link.base import DriverSink, Link
 from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
+
+if TYPE_CHECKING:
+    from servotune.tuning.law import DeviceLaw
 
 NAME: Final = "slap2"
 
@@ -65,6 +68,12 @@ def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
 
+def load_law() -> DeviceLaw:
+    from servotune.devices.slap2.law import Slap2Law
+
+    return Slap2Law()
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="gräbner SLAP2",
@@ -76,4 +85,5 @@ ENTRY: Final = DeviceEntry(
     ),
     build_link=build_link,
     simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
+    law=load_law,
 )

@@ -26,13 +26,16 @@ from typing import Any, Final, Literal
 
 from servotune.bench.metrics import Metrics, compute_metrics
 from servotune.devices.slap2.codec import (
+    ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
     COUNTS_S_PER_SV,
     GAIN_MAX,
     PWM_MAX,
     TICK_S,
+    VELOCITY_MAX,
 )
-from servotune.tuning.injection import Slap2Injection
+from servotune.devices.slap2.injection import Slap2Injection
+from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import LoopModel, slap2_loop_for
 from servotune.tuning.plants import FrictionMotor, IdentifiedPlant, PlantModel
 
@@ -425,7 +428,7 @@ def model_doubt(model: PlantModel, travel: float) -> str | None:
 
 
 # =====================================================================================
-# The device behind the common interface (tuning.devices.DeviceLaw)
+# The device behind the common interface (tuning.law.DeviceLaw)
 # =====================================================================================
 
 
@@ -435,6 +438,7 @@ class Slap2Law:
     device: Final = "slap2"
     law: Final[Literal["slap2_pid"]] = "slap2_pid"
     description: Final = "PID at 841.5 us"
+    gain_names: Final = ("kp", "ki", "kd")
     output_limit: Final = PWM_MAX
     # targets through ma, PWM through spwm (docs/frequency-response.md)
     injection: Final = Slap2Injection()
@@ -454,3 +458,9 @@ class Slap2Law:
 
     def loop(self, plant: IdentifiedPlant, params: Mapping[str, int]) -> LoopModel:
         return slap2_loop_for(plant.transfer_function(), params["kp"], params["ki"], params["kd"])
+
+    def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
+        """A position step at the maximum sv/sa (what the verification sets)."""
+        return VerifyProfile(
+            "position_step", VELOCITY_MAX * COUNTS_S_PER_SV, ACCELERATION_MAX * COUNTS_S2_PER_SA
+        )

@@ -25,6 +25,7 @@ from servotune.devices.slap2.law import (
     IDENT_MIN_DISTANCE,
     Gains,
     MoveSpec,
+    Slap2Law,
     Staircase,
     align_identification,
     command_tail_s,
@@ -56,6 +57,7 @@ class Slap2Tuner:
     """identify -> propose -> accept -> verify on SLAP2 axes (``autotune.DeviceTuner``)."""
 
     identifying_message: Final = "identifying the plant (open-loop PWM staircase)"
+    law: Final = Slap2Law()  # tuning.law.DeviceLaw: the proposal's stability check
 
     def __init__(self, ctx: TuningContext) -> None:
         self._ctx = ctx

@@ -7,12 +7,15 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
 from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
+
+if TYPE_CHECKING:
+    from servotune.tuning.law import DeviceLaw
 
 NAME: Final = "z1100"
 # One chip, three motors: there is nothing to address.
@@ -63,6 +66,12 @@ def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
 
+def load_law() -> DeviceLaw:
+    from servotune.devices.z1100.law import Z1100Law
+
+    return Z1100Law()
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="CNC Designer Z1100",
@@ -74,4 +83,5 @@ ENTRY: Final = DeviceEntry(
     ),
     build_link=build_link,
     simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
+    law=load_law,
 )

@@ -26,6 +26,7 @@ from typing import Any, Final, Literal
 
 from servotune.bench.metrics import Metrics, compute_metrics
 from servotune.tuning.identify import fit_closed_loop
+from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import LoopModel, z1100_loop_for
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 
@@ -283,7 +284,7 @@ def fit_plant_closed_loop(
 
 
 # =====================================================================================
-# The device behind the common interface (tuning.devices.DeviceLaw)
+# The device behind the common interface (tuning.law.DeviceLaw)
 # =====================================================================================
 
 
@@ -295,6 +296,7 @@ class Z1100Law:
     device: Final = "z1100"
     law: Final[Literal["z1100_kab"]] = "z1100_kab"
     description: Final = "KABD (hold) gains"
+    gain_names: Final = ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
     output_limit: Final = PWM_FULL_SCALE
     # go-to targets only, through the Z1100's own profile: nothing can be streamed on
     # its wire, so its frequency response is the identified model's
@@ -321,3 +323,7 @@ class Z1100Law:
             params["kabd_b"],
             max(1, params.get("stm", 1)),
         )
+
+    def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
+        """A move with the axis' own vmax/acc (counts/s, counts/s^2)."""
+        return VerifyProfile("move", float(params.get("vmax", 0)), float(params.get("acc", 0)))

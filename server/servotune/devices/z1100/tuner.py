@@ -25,6 +25,7 @@ from servotune.devices.z1100.law import (
     MAX_FIT_RMS_COUNTS,
     Kab,
     MoveProfile,
+    Z1100Law,
     fit_plant_closed_loop,
     kab_dict,
 )
@@ -59,6 +60,7 @@ class Z1100Tuner:
     """identify -> propose -> accept -> verify on Z1100 motors (``autotune.DeviceTuner``)."""
 
     identifying_message: Final = "identifying the plant (closed-loop move, gains in use)"
+    law: Final = Z1100Law()  # tuning.law.DeviceLaw: the proposal's stability check
 
     def __init__(self, ctx: TuningContext) -> None:
         self._ctx = ctx
