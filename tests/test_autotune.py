@@ -24,6 +24,7 @@ import pytest
 from servotune.autotune.service import AutoTuner
 from servotune.autotune.verdict import verdict
 from servotune.bench.metrics import compute_metrics, unmeasured
+from servotune.devices import default_registry
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
 from servotune.devices.slap2.law import (
@@ -280,8 +281,13 @@ def test_alignment_moves_stamps_to_the_device_moments() -> None:
 def test_only_slap2_axes() -> None:
     entry = SimpleNamespace(info=SimpleNamespace(id="z-0", device="z1100"))
     hub = SimpleNamespace(add_sample_listener=lambda _: None, entry=lambda _: entry)
-    tuner = AutoTuner(hub, SimpleNamespace())  # type: ignore[arg-type]
-    with pytest.raises(DeviceRefusedError, match="supports SLAP2 so far"):
+    tuner = AutoTuner(hub, SimpleNamespace(), tuners=default_registry())  # type: ignore[arg-type]
+    # a Z1100 axis that is not the chip's own (here: no Z1100Axis driver), an EP7047
+    expected = "auto-tune supports gräbner SLAP2 and CNC Designer Z1100 axes so far"
+    with pytest.raises(DeviceRefusedError, match=expected):
+        tuner.session("z-0")
+    entry.info.device = "ep7047"
+    with pytest.raises(DeviceRefusedError, match=expected):
         tuner.session("z-0")
 
 

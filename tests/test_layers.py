@@ -121,10 +121,6 @@ ALLOWED: dict[str, set[str]] = {
 # Step (a) leaves these; step (b) removes every one (the registry, laws and tuners
 # looked up, the SLAP2 serving out of sim/pty.py).
 KNOWN: set[str] = {
-    "servotune.autotune.recording imports servotune.devices.slap2.law",
-    "servotune.autotune.service imports servotune.devices.slap2.tuner",
-    "servotune.autotune.service imports servotune.devices.z1100.link",
-    "servotune.autotune.service imports servotune.devices.z1100.tuner",
     "servotune.autotune.session imports servotune.devices.slap2.codec",
     "servotune.autotune.session imports servotune.devices.slap2.gain_rule",
     "servotune.perf.link_rate imports servotune.devices.slap2.link",

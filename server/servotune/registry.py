@@ -22,6 +22,8 @@ from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
 
 if TYPE_CHECKING:
+    from servotune.autotune.context import TuningContext
+    from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
 
 
@@ -78,6 +80,10 @@ class DeviceEntry:
     # (None: it has none). A loader, called once per registry: a law brings numpy,
     # scipy and python-control, which the CLI's other commands do not need.
     law: Callable[[], DeviceLaw] | None = None
+    # Its auto-tune (None: it has none); imports the tuner when called.
+    tuner: Callable[[TuningContext], DeviceTuner] | None = None
+    # Modules whose functions its tuner runs in the compute worker (preloaded there).
+    compute_modules: tuple[str, ...] = ()
 
 
 class Registry:
@@ -131,6 +137,19 @@ class Registry:
                 return None
             law = self._laws[device] = entry.law()
         return law
+
+    def tuner(self, device: str, ctx: TuningContext) -> DeviceTuner | None:
+        """A new auto-tuner for the axes of ``device`` (None: it has none)."""
+        entry = self._entries.get(device)
+        return entry.tuner(ctx) if entry is not None and entry.tuner is not None else None
+
+    def tuned(self) -> Sequence[str]:
+        """The devices (titles) that have an auto-tune."""
+        return tuple(e.title for e in self if e.tuner is not None)
+
+    def compute_modules(self) -> tuple[str, ...]:
+        """Every device's ``compute_modules``, for the compute worker to preload."""
+        return tuple(m for e in self for m in e.compute_modules)
 
     def build_link(self, spec: LinkSpec, sink: DriverSink) -> Link:
         """The driver for ``spec`` with its transport injected."""

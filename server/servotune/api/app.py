@@ -34,7 +34,7 @@ from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune.service import AutoTuner
 from servotune.bench.service import TestBench
-from servotune.compute import ComputePool
+from servotune.compute import PRELOAD, ComputePool
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
 from servotune.hub.control_lock import ControlManager, ControlSettings
@@ -149,9 +149,9 @@ def create_app(config: AppConfig) -> FastAPI:
                 autotuner_cls = autotuner_class(config.bus)
             # Fits, gain searches and FRF analysis: in a worker process, never on the
             # loop or in a thread that holds the interpreter lock (servotune.compute).
-            compute = ComputePool()
+            compute = ComputePool(preload=(*PRELOAD, *devices.compute_modules()))
             app.state.compute = compute
-            app.state.autotuner = autotuner_cls(hub, bench, compute=compute)
+            app.state.autotuner = autotuner_cls(hub, bench, tuners=devices, compute=compute)
             app.state.storage = storage
             # The control lock and dead-man (servotune.hub.control_lock); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.

@@ -18,6 +18,8 @@ from servotune.link.base import DriverSink, Link
 from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
 
 if TYPE_CHECKING:
+    from servotune.autotune.context import TuningContext
+    from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
 
 NAME: Final = "slap2"
@@ -74,6 +76,12 @@ def load_law() -> DeviceLaw:
     return Slap2Law()
 
 
+def build_tuner(ctx: TuningContext) -> DeviceTuner:
+    from servotune.devices.slap2.tuner import Slap2Tuner
+
+    return Slap2Tuner(ctx)
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="gräbner SLAP2",
@@ -86,4 +94,6 @@ ENTRY: Final = DeviceEntry(
     build_link=build_link,
     simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
     law=load_law,
+    tuner=build_tuner,
+    compute_modules=("servotune.devices.slap2.gain_rule",),
 )

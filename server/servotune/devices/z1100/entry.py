@@ -15,6 +15,8 @@ from servotune.link.base import DriverSink, Link
 from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
 
 if TYPE_CHECKING:
+    from servotune.autotune.context import TuningContext
+    from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
 
 NAME: Final = "z1100"
@@ -72,6 +74,12 @@ def load_law() -> DeviceLaw:
     return Z1100Law()
 
 
+def build_tuner(ctx: TuningContext) -> DeviceTuner:
+    from servotune.devices.z1100.tuner import Z1100Tuner
+
+    return Z1100Tuner(ctx)
+
+
 ENTRY: Final = DeviceEntry(
     name=NAME,
     title="CNC Designer Z1100",
@@ -84,4 +92,6 @@ ENTRY: Final = DeviceEntry(
     build_link=build_link,
     simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
     law=load_law,
+    tuner=build_tuner,
+    compute_modules=("servotune.devices.z1100.gain_rule",),
 )
