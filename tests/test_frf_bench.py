@@ -25,7 +25,8 @@ import pytest
 from servotune.bench import frf as frfbench
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.devices.slap2.injection import Slap2Injection
+from servotune.devices.slap2.codec import TICK_S
+from servotune.devices.slap2.injection import Slap2Injection, TrapezoidInput
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import InvalidArgumentError
@@ -33,6 +34,7 @@ from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band, usable_run
+from servotune.tuning.injection import HeldTargets
 from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
@@ -73,7 +75,7 @@ def test_bench_analysis_recovers_a_known_loop_from_irregular_samples() -> None:
     sample_t = np.cumsum(rng.uniform(0.002, 0.0047, 4000))
     sample_t = sample_t[sample_t < duration - 0.01]
     sample_y = np.interp(sample_t, fine_t, y) + rng.normal(0, 0.5, sample_t.size)
-    result = frfrun.analyse(sample_t, sample_y, None, sent, 0.0, excitation)
+    result = frfrun.analyse(sample_t, sample_y, None, sent, 0.0, excitation, HeldTargets(TICK_S))
     assert result["input"] == "targets"
     closed = result["closed_loop"]
     f = np.asarray(closed["frequency_hz"])
@@ -109,7 +111,7 @@ def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
     sent_t = np.cumsum(rng.uniform(0.005, 0.009, 1200))
     sent_t = sent_t[sent_t < 6.0]
     sent = [[float(t) + 0.001, float(excitation.target(float(t))), float(t)] for t in sent_t]
-    _, u = frfrun.rebuild_input(sent, 0.0, 0.0, (65535, 65535), 6.0)
+    _, u = frfrun.rebuild_input(sent, 0.0, 0.0, TrapezoidInput(65535, 65535), 6.0)
     _, y = loop.response(u[: fine_t.size])
     sample_t = np.sort(sent_t + rng.uniform(0.002, 0.004, sent_t.size))[:-2]
     sample_y = np.round(np.interp(sample_t, fine_t, y))
@@ -118,7 +120,7 @@ def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
         moved = frfrun.Excitation.from_dict(excitation.to_dict() | {"y0": y0})
         shifted = [[a, target + y0, latched] for a, target, latched in sent]
         result = frfrun.analyse(
-            sample_t, sample_y + y0, None, shifted, 0.0, moved, profile=(65535, 65535)
+            sample_t, sample_y + y0, None, shifted, 0.0, moved, model=TrapezoidInput(65535, 65535)
         )
         results.append(np.asarray(result["closed_loop"]["magnitude_db"]))
         results.append(np.asarray(result["closed_loop"]["phase_deg"]))
@@ -131,7 +133,7 @@ def test_a_record_without_whole_periods_is_refused_with_a_reason() -> None:
     excitation = frfrun.design(0.0, 100.0, 1.0, 10.0)
     t = np.linspace(0.0, 1.5, 50)
     with pytest.raises(ValueError, match="whole period"):
-        frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation)
+        frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation, HeldTargets(TICK_S))
 
 
 def test_a_capture_too_sparse_for_the_fit_says_how_sparse_and_to_run_again() -> None:
@@ -141,7 +143,7 @@ def test_a_capture_too_sparse_for_the_fit_says_how_sparse_and_to_run_again() -> 
     t = np.arange(0.0, 6.0, 0.1)
     sent = [[float(x), float(excitation.target(float(x)))] for x in np.arange(0.0, 6.0, 0.004)]
     with pytest.raises(ValueError, match=r"samples in the .* per s\), too sparse to measure"):
-        frfrun.analyse(t, np.zeros(t.size), None, sent, 0.0, excitation)
+        frfrun.analyse(t, np.zeros(t.size), None, sent, 0.0, excitation, HeldTargets(TICK_S))
 
 
 def test_the_multisine_stays_within_its_amplitude() -> None:

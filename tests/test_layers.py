@@ -133,8 +133,6 @@ KNOWN: set[str] = {
     "servotune.perf.stops imports servotune.devices.z1100.sim.chip",
     "servotune.perf.stops imports servotune.devices.z1100.sim.demo",
     "servotune.perf.stops imports servotune.devices.z1100.sim.servo",
-    "servotune.tuning.frfrun imports servotune.devices.slap2.profile",
-    "servotune.tuning.frftrust imports servotune.devices.slap2.profile",
 }
 
 

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
 from servotune.link.base import BenchPlan, DeviceRefusedError, InvalidArgumentError, Sample
 from servotune.tuning import frfrun, injection
+from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.frfrun import Excitation
 from servotune.tuning.injection import Injection
 from servotune.tuning.law import DeviceLaw
@@ -301,6 +302,9 @@ def analyse_run(
         isp = columns.index("setpoint") if "setpoint" in columns else None
         spans = _sample_spans(excitation, [r[0] for r in rows])
         try:
+            inject = injection_for(law)
+            if inject is None:
+                raise ValueError(f"a {device} run cannot be measured: it takes no injection")
             if test.get("loop") == "open":
                 out["measured"] = frfrun.analyse_open(
                     [r[0] for r in rows],
@@ -308,7 +312,8 @@ def analyse_run(
                     excitation.get("sent", []),
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
-                    _gains(run),
+                    _controller(law, run),
+                    tick_s=inject.tick_s,
                     sample_spans_s=spans,
                 )
             else:
@@ -319,7 +324,7 @@ def analyse_run(
                     excitation.get("sent", []),
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
-                    profile=_test_profile(run, injection_for(law)),
+                    inject.input_model((run.get("plan") or {}).get("overrides") or {}),
                     sample_spans_s=spans,
                 )
         except ValueError as exc:
@@ -384,20 +389,26 @@ def measured_target(margins: Mapping[str, Any], target: MarginTarget) -> dict[st
     return {"target": target.to_dict(), "meets_target": meets, "warning": warning}
 
 
-def _gains(run: Mapping[str, Any]) -> tuple[int, int, int] | None:
+def _controller(
+    law: DeviceLaw | None, run: Mapping[str, Any]
+) -> Callable[[FloatArray], ComplexArray] | None:
+    """The law with the run's gains, as ``frfrun.analyse_open`` closes the loop; None
+    when the run did not record its gains (or the law has no error-only controller)."""
     params = run.get("params") or {}
+    if law is None:
+        return None
     try:
-        return int(params["kp"]), int(params["ki"]), int(params["kd"])
+        gains = {name: int(params[name]) for name in law.gain_names}
     except (KeyError, TypeError, ValueError):
         return None
 
+    def controller(frequency_hz: FloatArray) -> ComplexArray:
+        response = law.controller_response(frequency_hz, gains)
+        if response is None:
+            raise ValueError(f"the {law.device} law has no error-only controller to close")
+        return response
 
-def _test_profile(run: Mapping[str, Any], inject: Injection | None) -> tuple[int, int] | None:
-    """The profile the device ran the test with (``Injection.test_profile`` of the
-    plan's overrides)."""
-    if inject is None:
-        return None
-    return inject.test_profile((run.get("plan") or {}).get("overrides") or {})
+    return controller
 
 
 def _json_safe(value: Any) -> Any:

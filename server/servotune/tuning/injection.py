@@ -22,7 +22,7 @@ plan from this).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final, Protocol
 
@@ -112,12 +112,85 @@ class Injection(Protocol):
 
     def wire(self, baud: int) -> WirePlan: ...
 
-    def test_profile(self, overrides: Mapping[str, int]) -> tuple[int, int] | None:
-        """The device's profile (velocity, acceleration) during a closed-loop test run
-        with the plan's ``overrides`` (empty for a run recorded without them), when the
-        analysis must rebuild what the profile generator did between two targets;
-        None: the targets are applied as sent."""
+    @property
+    def tick_s(self) -> float:
+        """The controller's tick: the grid the loop's input is rebuilt on."""
         ...
+
+    def input_model(self, overrides: Mapping[str, int]) -> InputModel:
+        """How the loop's input followed the targets of a closed-loop test run with
+        the plan's ``overrides`` (empty for a run recorded without them)."""
+        ...
+
+
+class SetpointGenerator(Protocol):
+    """The loop's input on the controller's tick grid, replayed from the targets."""
+
+    def retarget(self, target: float) -> None:
+        """A target the device latched before the next tick."""
+        ...
+
+    def step(self) -> float:
+        """One tick; the input after it."""
+        ...
+
+    def state(self) -> Hashable:
+        """Everything the following ticks depend on (equal states: equal futures)."""
+        ...
+
+
+class InputModel(Protocol):
+    """How a device's loop input follows the targets of an injection
+    (``tuning.frfrun.rebuild_input``)."""
+
+    @property
+    def tick_s(self) -> float: ...
+
+    @property
+    def name(self) -> str:
+        """What the input is, for the analysis' ``input`` field: "profile" (a setpoint
+        generator between the targets) or "targets" (each target held)."""
+        ...
+
+    def start(self, y0: float) -> SetpointGenerator:
+        """At rest at ``y0``."""
+        ...
+
+    def resume(self, state: Hashable) -> SetpointGenerator:
+        """From a ``SetpointGenerator.state()``."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class HeldTargets:
+    """The input jumps to each target at the first tick after it latched and holds it
+    (a setpoint without a profile generator; an open-loop PWM)."""
+
+    tick_s: float
+    name: str = "targets"
+
+    def start(self, y0: float) -> SetpointGenerator:
+        return _Held(y0)
+
+    def resume(self, state: Hashable) -> SetpointGenerator:
+        assert isinstance(state, float)
+        return _Held(state)
+
+
+class _Held:
+    __slots__ = ("value",)
+
+    def __init__(self, value: float) -> None:
+        self.value = float(value)
+
+    def retarget(self, target: float) -> None:
+        self.value = float(target)
+
+    def step(self) -> float:
+        return self.value
+
+    def state(self) -> Hashable:
+        return self.value
 
 
 def split(

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 if TYPE_CHECKING:
+    from servotune.tuning.frf import ComplexArray, FloatArray
     from servotune.tuning.injection import Injection
     from servotune.tuning.loops import LoopModel
     from servotune.tuning.plants import IdentifiedPlant
@@ -90,6 +91,15 @@ class DeviceLaw(Protocol):
 
     def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
         """The auto-tune verification's move with these device parameters."""
+        ...
+
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """The controller from the position error to the output at ``frequency_hz``,
+        exact (the loop an open-loop measured plant would be closed with); None for a
+        law that also acts on the position itself (no single error-to-output C).
+        KeyError for a gain missing from ``params``."""
         ...
 
 

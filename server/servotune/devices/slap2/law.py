@@ -24,6 +24,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Final, Literal
 
+import numpy as np
+
 from servotune.bench.metrics import Metrics, compute_metrics
 from servotune.devices.slap2.codec import (
     ACCELERATION_MAX,
@@ -35,6 +37,7 @@ from servotune.devices.slap2.codec import (
     VELOCITY_MAX,
 )
 from servotune.devices.slap2.injection import Slap2Injection
+from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import LoopModel, slap2_loop_for
 from servotune.tuning.plants import FrictionMotor, IdentifiedPlant, PlantModel
@@ -458,6 +461,17 @@ class Slap2Law:
 
     def loop(self, plant: IdentifiedPlant, params: Mapping[str, int]) -> LoopModel:
         return slap2_loop_for(plant.transfer_function(), params["kp"], params["ki"], params["kd"])
+
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """The PID at ``z = e^{jwT}`` (T the tick), error counts -> PWM: the firmware
+        arithmetic ``(16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096`` that
+        ``tuning.loops.slap2_loop_for`` models (and the simulator runs)."""
+        kp, ki, kd = params["kp"], params["ki"], params["kd"]
+        z = np.exp(2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) * TICK_S)
+        c = (16 * kp + ki * z / (z - 1) + 32 * kd * (1 - 1 / z)) / 4096
+        return np.asarray(c, dtype=np.complex128)
 
     def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
         """A position step at the maximum sv/sa (what the verification sets)."""

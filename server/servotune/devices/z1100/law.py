@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any, Final, Literal
 
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.identify import fit_closed_loop
 from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import LoopModel, z1100_loop_for
@@ -323,6 +324,12 @@ class Z1100Law:
             params["kabd_b"],
             max(1, params.get("stm", 1)),
         )
+
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """None: K/A/B acts on the position as well as on the error (its B term)."""
+        return None
 
     def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
         """A move with the axis' own vmax/acc (counts/s, counts/s^2)."""
