@@ -33,6 +33,7 @@ from servotune.devices.slap2.law import (
     align_identification,
     pwm_per_count,
     simulate_response,
+    slap2_loop_for,
 )
 from servotune.devices.slap2.sim.controller import TICK_S
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
@@ -42,7 +43,6 @@ from servotune.link.base import DeviceRefusedError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import fit_plant
-from servotune.tuning.loops import slap2_loop_for
 from servotune.tuning.plants import IdentifiedPlant, PlantModel, model_positions
 from servotune.tuning.targets import PRESETS
 

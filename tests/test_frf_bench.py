@@ -27,15 +27,16 @@ from servotune.config import LinkSpec
 from servotune.devices import default_registry
 from servotune.devices.slap2.codec import TICK_S
 from servotune.devices.slap2.injection import Slap2Injection, TrapezoidInput
+from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.law import z1100_loop_for
 from servotune.link.base import InvalidArgumentError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band, usable_run
 from servotune.tuning.injection import HeldTargets
-from servotune.tuning.loops import slap2_loop, z1100_loop_for
 from servotune.tuning.whatif import (
     IdentifiedPlant,
     browser_model,

@@ -22,13 +22,12 @@ import numpy as np
 import pytest
 
 from servotune.devices.slap2.injection import TrapezoidInput
-from servotune.devices.slap2.law import Slap2Law
+from servotune.devices.slap2.law import Slap2Law, slap2_loop
 from servotune.devices.slap2.profile import TICK_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun
 from servotune.tuning.frf import ComplexArray, FloatArray, coherence_from_error, frf_relative_error
-from servotune.tuning.loops import slap2_loop
 
 from .frf_harness import TickClock
 from .test_frf import _motor_model

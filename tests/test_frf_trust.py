@@ -26,11 +26,12 @@ from scipy import signal
 
 from servotune.devices.slap2.codec import TICK_S
 from servotune.devices.slap2.injection import TrapezoidInput
+from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun, frftrust
 from servotune.tuning.injection import HeldTargets
-from servotune.tuning.loops import MotorModel, slap2_loop
+from servotune.tuning.loops import MotorModel
 
 from .frf_harness import Stalls, scripted_run, simulator_response
 

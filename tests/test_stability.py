@@ -33,9 +33,10 @@ import pytest
 
 from servotune.bench import frf as frfbench
 from servotune.devices import default_registry
+from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotor, DcMotorParams
-from servotune.tuning.loops import MotorModel, slap2_loop
+from servotune.tuning.loops import MotorModel
 from servotune.tuning.stability import schur_stable
 from servotune.tuning.whatif import browser_model, loop_for, plant_from_identification
 

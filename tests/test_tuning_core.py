@@ -25,17 +25,23 @@ from servotune.devices.slap2.codec import (
     COUNTS_S_PER_SV,
     VELOCITY_MAX,
 )
-from servotune.devices.slap2.law import Gains, MoveSpec, PidLaw, Staircase, simulate_response
+from servotune.devices.slap2.law import (
+    Gains,
+    MoveSpec,
+    PidLaw,
+    Staircase,
+    simulate_response,
+    slap2_loop_for,
+)
 from servotune.devices.slap2.sim.controller import TICK_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.codec import Gains as ChipGains
-from servotune.devices.z1100.law import Kab, KabLaw
+from servotune.devices.z1100.law import Kab, KabLaw, z1100_loop_for
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.tuning.identify import fit_closed_loop, fit_plant
-from servotune.tuning.loops import slap2_loop_for, z1100_loop_for
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
 
 # The devices' controller laws, looked up as the app does.
