@@ -123,8 +123,6 @@ ALLOWED: dict[str, set[str]] = {
 KNOWN: set[str] = {
     "servotune.autotune.session imports servotune.devices.slap2.codec",
     "servotune.autotune.session imports servotune.devices.slap2.gain_rule",
-    "servotune.perf.link_rate imports servotune.devices.slap2.link",
-    "servotune.perf.link_rate imports servotune.devices.z1100.link",
     # perf.stops builds its own rigs from the simulators (the demo's loads without
     # limit switches): the demo plants it reads moved from demo.py into the device folders.
     "servotune.perf.stops imports servotune.devices.slap2.sim.demo",

@@ -43,3 +43,22 @@ def test_the_cli_reads_the_registry_without_loading_links_laws_or_numpy() -> Non
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout
     assert out.strip() == "[] False", out
+
+
+def test_the_poll_sets_servotune_bench_prints() -> None:
+    from servotune.config import LinkSpec
+    from servotune.perf.link_rate import _CountingSink
+
+    def poll_set(spec: LinkSpec) -> tuple[str, float]:
+        simulator = DEVICES.get(spec.device).simulator
+        assert simulator is not None and simulator.poll_set is not None
+        found = simulator.poll_set(DEVICES.build_link(spec, _CountingSink()))
+        return found.description, found.turns_per_sample
+
+    # SLAP2: (rp + pe + rss, each character and the CR a turn) + rve every 8th cycle
+    # + the se0 re-selection between two modules, for each module
+    text, turns = poll_set(LinkSpec("slap2", "/dev/null", "line", 19200, [0, 1]))
+    assert text.startswith("SLAP2 19200 baud, 2 module(s) on one line, poll set rp+pe+rss")
+    assert turns == (10 + 4 / 8 + 4) * 2
+    text, turns = poll_set(LinkSpec("z1100", "/dev/null", "chip", 9600, [0, 1, 2]))
+    assert text.startswith("Z1100 9600 baud, 3 axes") and turns == 6 + 3 / 4

@@ -51,6 +51,14 @@ class DemoArgs:
 
 
 @dataclass(frozen=True, slots=True)
+class PollSet:
+    """What a serial link polls, for ``servotune bench <device>`` (perf.link_rate)."""
+
+    description: str  # one line for people: device, baud, axes, what each cycle reads
+    turns_per_sample: float  # host/device turns per telemetry sample of each axis
+
+
+@dataclass(frozen=True, slots=True)
 class SimulatorEntry:
     """A device's simulator, as the CLI and the demo start it."""
 
@@ -61,6 +69,8 @@ class SimulatorEntry:
     demo: Callable[[DemoArgs], AbstractContextManager[list[LinkSpec]]]
     # ``serve`` puts a serial device on a pty (``servotune bench <device>`` measures it).
     pty: bool
+    # The poll set of a link built by the entry (``servotune bench <device>``).
+    poll_set: Callable[[Link], PollSet] | None = None
 
 
 @dataclass(frozen=True, slots=True)

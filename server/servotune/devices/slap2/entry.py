@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Final
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
+from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
 
 if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
@@ -66,6 +66,26 @@ def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
         ]
 
 
+def poll_set(link: Link) -> PollSet:
+    """The poll set of a SLAP2 line: every character the host sends waits for its echo
+    (the reply follows the CR's echo without a turn), for every module on the line."""
+    from servotune.devices.slap2.link import Slap2Link
+
+    assert isinstance(link, Slap2Link)
+    config = link.config
+    turns = float(sum(len(m) + 1 for m in config.poll_commands))
+    if config.rve_every:
+        turns += 4 / config.rve_every
+    modules = len(config.addresses)
+    if modules > 1:
+        turns += len("se0") + 1
+    return PollSet(
+        f"SLAP2 {config.baud} baud, {modules} module(s) on one line, poll set "
+        f"{'+'.join(config.poll_commands)} (+rve every {config.rve_every}th cycle)",
+        turns * modules,
+    )
+
+
 def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
@@ -92,7 +112,7 @@ ENTRY: Final = DeviceEntry(
         example="slap2:/dev/ttyUSB0?addresses=0,1",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
     law=load_law,
     tuner=build_tuner,
     compute_modules=("servotune.devices.slap2.gain_rule",),

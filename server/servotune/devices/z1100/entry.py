@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Final
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
+from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
 
 if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
@@ -64,6 +64,21 @@ def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
         ]
 
 
+def poll_set(link: Link) -> PollSet:
+    """The poll set of the chip: every transaction is one host/device turn."""
+    from servotune.devices.z1100.link import Z1100Link
+
+    assert isinstance(link, Z1100Link)
+    config = link.config
+    return PollSet(
+        f"Z1100 {config.baud} baud, 3 axes, poll set GetEncoder+GetError per axis "
+        f"(+GetStart, GetStop, GetSwitch every {config.status_every}th cycle), "
+        "13 bytes per transaction",
+        # GetEncoder + GetError of three motors, three status reads every status_every
+        6.0 + 3.0 / config.status_every,
+    )
+
+
 def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
@@ -90,7 +105,7 @@ ENTRY: Final = DeviceEntry(
         example="z1100:/dev/ttyUSB0",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True),
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
     law=load_law,
     tuner=build_tuner,
     compute_modules=("servotune.devices.z1100.gain_rule",),
