@@ -28,6 +28,7 @@ import control
 import numpy as np
 
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.devices.z1100.frame import STM_TICK_S
 from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.identify import fit_closed_loop
 from servotune.tuning.law import VerifyProfile
@@ -35,7 +36,7 @@ from servotune.tuning.loops import LoopModel, MotorModel, Polynomial
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 
 # --- the law (devices/z1100/sim/servo.py; assumed, the manual gives none) --------------------
-SAMPLE_UNIT_S: Final = 32e-6  # one sample is Stm x 32 us
+SAMPLE_UNIT_S: Final = STM_TICK_S  # one sample is Stm x 32 us (the frame's fact)
 WINDOW: Final = 32  # samples of the derivative difference
 ERROR_WEIGHT: Final = 16
 OUTPUT_DIVISOR: Final = 64
