@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import json
 import logging
 import multiprocessing
@@ -209,6 +210,22 @@ def serial_sim_process(spec: SerialSimSpec) -> Iterator[SimProcess]:
     """A serial simulator in its own process; ``process.ready["path"]`` is its pty."""
     with SimProcess(spec.name, serve_serial, spec) as process:
         yield process
+
+
+def demo_serial_process(
+    name: str,
+    build: Callable[[Path], SimDevice],
+    baud: int,
+    record: Callable[[Any], dict[str, Any]],
+    state_dir: Path,
+) -> contextlib.AbstractContextManager[SimProcess]:
+    """The demo's serial simulator ``name``: ``build(state_dir)`` (a module-level
+    function) on a pty at ``baud`` in a child process, its record at
+    ``record_path(state_dir, name)``."""
+    spec = SerialSimSpec(
+        name, functools.partial(build, state_dir), baud, record, record_path(state_dir, name)
+    )
+    return serial_sim_process(spec)
 
 
 # --- the child side -------------------------------------------------------------------

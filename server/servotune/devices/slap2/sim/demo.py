@@ -5,8 +5,6 @@ loaded, in a process of its own) and ``servotune sim slap2`` (any modules on a p
 from __future__ import annotations
 
 import contextlib
-import functools
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Final
 
@@ -14,7 +12,7 @@ from servotune.devices.slap2.codec import DEFAULT_BAUD
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.process import SerialSimSpec, SimProcess, record_path, serial_sim_process
+from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
 
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead
@@ -57,18 +55,9 @@ def slap2_record(bus: Slap2Bus) -> dict[str, Any]:
     }
 
 
-@contextlib.contextmanager
-def demo_line_process(state_dir: Path) -> Iterator[SimProcess]:
+def demo_line_process(state_dir: Path) -> contextlib.AbstractContextManager[SimProcess]:
     """The demo's line in a child process; its ``ready["path"]`` is the pty to open."""
-    spec = SerialSimSpec(
-        "slap2",
-        functools.partial(build_slap2_bus, state_dir),
-        DEFAULT_BAUD,
-        slap2_record,
-        record_path(state_dir, "slap2"),
-    )
-    with serial_sim_process(spec) as simulator:
-        yield simulator
+    return demo_serial_process("slap2", build_slap2_bus, DEFAULT_BAUD, slap2_record, state_dir)
 
 
 def serve_slap2(

@@ -5,16 +5,14 @@ motors with an integrator's flash, in a process of its own) and ``servotune sim 
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Final
 
 from servotune.devices.z1100.codec import DEFAULT_BAUD, Gains
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.servo import AxisParameters
-from servotune.sim.process import SerialSimSpec, SimProcess, record_path, serial_sim_process
+from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
 
 # Three motors with different loads, so their best gains differ (see the tuning table
@@ -78,18 +76,9 @@ def z1100_record(chip: Z1100Chip) -> dict[str, Any]:
     return {"axes": axes}
 
 
-@contextlib.contextmanager
-def demo_chip_process(state_dir: Path) -> Iterator[SimProcess]:
+def demo_chip_process(state_dir: Path) -> contextlib.AbstractContextManager[SimProcess]:
     """The demo's chip in a child process; its ``ready["path"]`` is the pty to open."""
-    spec = SerialSimSpec(
-        "z1100",
-        functools.partial(build_z1100_chip, state_dir),
-        DEFAULT_BAUD,
-        z1100_record,
-        record_path(state_dir, "z1100"),
-    )
-    with serial_sim_process(spec) as simulator:
-        yield simulator
+    return demo_serial_process("z1100", build_z1100_chip, DEFAULT_BAUD, z1100_record, state_dir)
 
 
 def serve_z1100(baud: int, state_dir: Path | None, link_path: str | None) -> None:
