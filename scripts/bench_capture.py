@@ -31,10 +31,11 @@ from collections import defaultdict
 from collections.abc import Mapping
 from pathlib import Path
 
-from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash, build_slap2_bus
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.demo import build_slap2_bus
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import Sample
 from servotune.link.engine import LinkEngine
 from servotune.schema import AxisHealth, EventLevel, LinkState
@@ -47,7 +48,7 @@ Z1100_BAUD = 38400
 def build_z1100_38400(state_dir: Path) -> Z1100Chip:
     state_dir.mkdir(parents=True, exist_ok=True)
     flash = state_dir / "z1100_flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
 
 

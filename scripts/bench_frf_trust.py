@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # the physical check's own simulator re
 
 from frf_harness import simulator_response  # noqa: E402
 from servotune.bench.frf import analyse_run  # noqa: E402
-from servotune.demo import SLAP2_LOADED  # noqa: E402
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED  # noqa: E402
 from servotune.perf.demo import cpu_hog, demo_server, load_average  # noqa: E402
 from servotune.storage import Storage  # noqa: E402
 from servotune.tuning.frf import tone_fit  # noqa: E402

@@ -24,8 +24,10 @@ import time
 from pathlib import Path
 
 from servotune.config import LinkSpec
-from servotune.demo import ep7047_demo_slave, slap2_demo_line, z1100_demo_line
-from servotune.links import build_link
+from servotune.devices import default_registry
+from servotune.devices.ep7047.entry import demo_slave as ep7047_demo_slave
+from servotune.devices.slap2.entry import demo_line as slap2_demo_line
+from servotune.devices.z1100.entry import demo_line as z1100_demo_line
 from servotune.perf.link_rate import _CountingSink
 
 
@@ -40,7 +42,7 @@ def _samples(sink: _CountingSink) -> int:
 
 async def _measure(spec: LinkSpec, seconds: float) -> str:
     sink = _CountingSink()
-    link = build_link(spec, sink)
+    link = default_registry().build_link(spec, sink)
     task = asyncio.create_task(link.run())
     try:
         deadline = time.monotonic() + 60

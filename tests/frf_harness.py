@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from servotune.devices.slap2.injection import TrapezoidInput
 from servotune.devices.slap2.profile import TICK_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
@@ -76,7 +77,7 @@ class ScriptedRun:
             self.sent,
             self.t0_s,
             self.excitation,
-            profile=(65535, 65535),
+            model=TrapezoidInput(65535, 65535),
             sample_spans_s=self.spans_s,
             **kwargs,
         )
@@ -175,7 +176,9 @@ def scripted_run(
         t = stamp + float(rng.uniform(*transaction_s))
     if not setpoint_from_pe:
         # the capture's reconstruction from the same stamps: the rebuilt input
-        tick_t, u = frfrun.rebuild_input(out.sent, t0, excitation.y0, (65535, 65535), t - t0 + 0.01)
+        tick_t, u = frfrun.rebuild_input(
+            out.sent, t0, excitation.y0, TrapezoidInput(65535, 65535), t - t0 + 0.01
+        )
         out.setpoint = [float(v) for v in np.interp(np.asarray(out.t_s) - t0, tick_t, u)]
     return out
 

@@ -28,7 +28,6 @@ from servotune.api.app import AppConfig, create_app
 from servotune.auth.permissions import ROLES
 from servotune.auth.routes_table import command_permission, console_permission
 from servotune.auth.security import AUTH_DB
-from servotune.demo import z1100_demo_line
 from servotune.descriptor import UnknownConsoleLineError
 from servotune.devices.ep7047 import codec as ep7047_codec
 from servotune.devices.ep7047.descriptor import ep7047_descriptor
@@ -36,6 +35,7 @@ from servotune.devices.slap2.descriptor import slap2_descriptor
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec as z1100_codec
 from servotune.devices.z1100.descriptor import z1100_descriptor
+from servotune.devices.z1100.entry import demo_line as z1100_demo_line
 
 from .auth_helpers import make_accounts
 from .conftest import wait_for

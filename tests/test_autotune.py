@@ -24,7 +24,7 @@ import pytest
 from servotune.autotune.service import AutoTuner
 from servotune.autotune.verdict import verdict
 from servotune.bench.metrics import compute_metrics, unmeasured
-from servotune.demo import SLAP2_LOADED
+from servotune.devices import default_registry
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
 from servotune.devices.slap2.law import (
@@ -33,15 +33,16 @@ from servotune.devices.slap2.law import (
     align_identification,
     pwm_per_count,
     simulate_response,
+    slap2_loop_for,
 )
 from servotune.devices.slap2.sim.controller import TICK_S
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import fit_plant
-from servotune.tuning.loops import slap2_loop_for
 from servotune.tuning.plants import IdentifiedPlant, PlantModel, model_positions
 from servotune.tuning.targets import PRESETS
 
@@ -280,8 +281,13 @@ def test_alignment_moves_stamps_to_the_device_moments() -> None:
 def test_only_slap2_axes() -> None:
     entry = SimpleNamespace(info=SimpleNamespace(id="z-0", device="z1100"))
     hub = SimpleNamespace(add_sample_listener=lambda _: None, entry=lambda _: entry)
-    tuner = AutoTuner(hub, SimpleNamespace())  # type: ignore[arg-type]
-    with pytest.raises(DeviceRefusedError, match="supports SLAP2 so far"):
+    tuner = AutoTuner(hub, SimpleNamespace(), tuners=default_registry())  # type: ignore[arg-type]
+    # a Z1100 axis that is not the chip's own (here: no Z1100Axis driver), an EP7047
+    expected = "auto-tune supports gräbner SLAP2 and CNC Designer Z1100 axes so far"
+    with pytest.raises(DeviceRefusedError, match=expected):
+        tuner.session("z-0")
+    entry.info.device = "ep7047"
+    with pytest.raises(DeviceRefusedError, match=expected):
         tuner.session("z-0")
 
 

@@ -17,9 +17,9 @@ import pytest
 from servotune.autotune.recommend import decision_record, decision_text, recommend, share_of
 from servotune.autotune.session import IdentifyRequest, Session
 from servotune.config import LinkSpec
-from servotune.demo import SLAP2_LOADED
 from servotune.devices.slap2.gain_rule import propose_gains
 from servotune.devices.slap2.law import Gains
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
@@ -184,8 +184,8 @@ def test_a_z1100_proposal_carries_the_same_comparison() -> None:
     """The Z1100's proposal body (KABD hold loop) is read by the same rule: on the
     unloaded demo motor the search meets medium with more margin than the mediocre gains
     in use, so writing is recommended, with both sides' margins and predicted step."""
-    from servotune.demo import Z1100_LOADS_KG_M2
     from servotune.devices.z1100.gain_rule import propose_kab
+    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 
     from .test_autotune_z1100 import MEDIOCRE, PROFILE, _physics_plant
 

@@ -18,7 +18,6 @@ import pytest
 
 from servotune.autotune.verdict import verdict_z1100, verdict_z1100_with_reason
 from servotune.config import LinkSpec
-from servotune.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.codec import Gains
 from servotune.devices.z1100.gain_rule import propose_kab
@@ -30,6 +29,7 @@ from servotune.devices.z1100.law import (
     simulate_move,
 )
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator

@@ -137,12 +137,12 @@ async def test_console_shows_multiline_reply(dashboard: tuple[Page, LiveServer])
 
 async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
-    from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
     from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
     from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
     with PtySimulator(chip, baud=38400) as sim:
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])

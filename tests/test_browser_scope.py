@@ -135,8 +135,8 @@ async def test_laptop_shows_every_command_of_every_device(
     tmp_path: Path, browser: Browser, slap2: LiveServer
 ) -> None:
     from servotune.config import LinkSpec
-    from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
     from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
     from servotune.sim.pty import PtySimulator
 
     await laptop_check(browser, slap2, "line-0")
@@ -144,7 +144,7 @@ async def test_laptop_shows_every_command_of_every_device(
     async with live_server(None, None, tmp_path / "ep", web_dir=WEB_DIST, spec=spec) as server:
         await laptop_check(browser, server, "ep-1")
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
     with PtySimulator(chip, baud=38400) as sim:
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
@@ -284,12 +284,12 @@ async def test_trigger_on_move_captures_the_move(browser: Browser, slap2: LiveSe
 
 async def test_z1100_gains_written_as_one_group(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
-    from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
     from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
     from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
     with PtySimulator(chip, baud=38400) as sim:
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])

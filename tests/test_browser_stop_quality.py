@@ -54,12 +54,12 @@ async def _slap2_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]
 
 @contextlib.asynccontextmanager
 async def _z1100_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]:
-    from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
     from servotune.devices.z1100.sim.chip import Z1100Chip
+    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
     from servotune.sim.pty import PtySimulator
 
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
     with PtySimulator(chip, baud=38400) as sim:
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])

@@ -18,7 +18,6 @@ import pytest
 
 from servotune.bench.metrics import compute_metrics
 from servotune.bench.quality import assess
-from servotune.demo import build_slap2_bus
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.profile import (
     COUNTS_TICK2_PER_SA,
@@ -27,6 +26,7 @@ from servotune.devices.slap2.profile import (
     TrapezoidGenerator,
     firmware_setpoint,
 )
+from servotune.devices.slap2.sim.demo import build_slap2_bus
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import Capturer, DeviceRefusedError, DriverError, capture_of

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.devices.z1100.codec import Command
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import DeviceRefusedError, InvalidArgumentError
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
@@ -40,7 +40,7 @@ class Running:
 async def chip_line(tmp_path: Path, *, flash: bool = True) -> AsyncIterator[Running]:
     path = tmp_path / "flash.json"
     if flash:
-        _z1100_flash(path)
+        write_demo_flash(path)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
     sim = PtySimulator(chip, baud=BAUD)
     sim.start()
@@ -256,7 +256,7 @@ async def test_api_refuses_while_moving_before_sending(tmp_path: Path) -> None:
     from servotune.config import LinkSpec
 
     path = tmp_path / "flash.json"
-    _z1100_flash(path)
+    write_demo_flash(path)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
     with PtySimulator(chip, baud=BAUD) as sim:
         spec = LinkSpec("z1100", sim.path, "chip", BAUD, [0, 1, 2])

@@ -17,9 +17,12 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from servotune.devices.slap2.codec import TICK_S as SLAP2_TICK_S
+from servotune.devices.slap2.law import slap2_loop
+from servotune.devices.z1100.law import z1100_loop
 from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.frf import estimate_frf, multisine, resample_uniform, tone_grid
-from servotune.tuning.loops import SLAP2_TICK_S, LoopModel, MotorModel, slap2_loop, z1100_loop
+from servotune.tuning.loops import LoopModel, MotorModel
 
 
 def _motor_model(p: DcMotorParams) -> MotorModel:

@@ -24,15 +24,19 @@ import pytest
 
 from servotune.bench import frf as frfbench
 from servotune.config import LinkSpec
+from servotune.devices import default_registry
+from servotune.devices.slap2.codec import TICK_S
+from servotune.devices.slap2.injection import Slap2Injection, TrapezoidInput
+from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.law import z1100_loop_for
 from servotune.link.base import InvalidArgumentError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
 from servotune.tuning.frf import FrequencyResponse, usable_band, usable_run
-from servotune.tuning.injection import Slap2Injection
-from servotune.tuning.loops import slap2_loop, z1100_loop_for
+from servotune.tuning.injection import HeldTargets
 from servotune.tuning.whatif import (
     IdentifiedPlant,
     browser_model,
@@ -43,6 +47,10 @@ from servotune.tuning.whatif import (
 from .test_api import LiveServer, live_server
 from .test_bench import finished_run, start
 from .test_frf import _motor_model
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
+SLAP2_INJECTION = Slap2Injection()
 
 NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
 
@@ -68,7 +76,7 @@ def test_bench_analysis_recovers_a_known_loop_from_irregular_samples() -> None:
     sample_t = np.cumsum(rng.uniform(0.002, 0.0047, 4000))
     sample_t = sample_t[sample_t < duration - 0.01]
     sample_y = np.interp(sample_t, fine_t, y) + rng.normal(0, 0.5, sample_t.size)
-    result = frfrun.analyse(sample_t, sample_y, None, sent, 0.0, excitation)
+    result = frfrun.analyse(sample_t, sample_y, None, sent, 0.0, excitation, HeldTargets(TICK_S))
     assert result["input"] == "targets"
     closed = result["closed_loop"]
     f = np.asarray(closed["frequency_hz"])
@@ -104,7 +112,7 @@ def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
     sent_t = np.cumsum(rng.uniform(0.005, 0.009, 1200))
     sent_t = sent_t[sent_t < 6.0]
     sent = [[float(t) + 0.001, float(excitation.target(float(t))), float(t)] for t in sent_t]
-    _, u = frfrun.rebuild_input(sent, 0.0, 0.0, (65535, 65535), 6.0)
+    _, u = frfrun.rebuild_input(sent, 0.0, 0.0, TrapezoidInput(65535, 65535), 6.0)
     _, y = loop.response(u[: fine_t.size])
     sample_t = np.sort(sent_t + rng.uniform(0.002, 0.004, sent_t.size))[:-2]
     sample_y = np.round(np.interp(sample_t, fine_t, y))
@@ -113,7 +121,7 @@ def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
         moved = frfrun.Excitation.from_dict(excitation.to_dict() | {"y0": y0})
         shifted = [[a, target + y0, latched] for a, target, latched in sent]
         result = frfrun.analyse(
-            sample_t, sample_y + y0, None, shifted, 0.0, moved, profile=(65535, 65535)
+            sample_t, sample_y + y0, None, shifted, 0.0, moved, model=TrapezoidInput(65535, 65535)
         )
         results.append(np.asarray(result["closed_loop"]["magnitude_db"]))
         results.append(np.asarray(result["closed_loop"]["phase_deg"]))
@@ -126,7 +134,7 @@ def test_a_record_without_whole_periods_is_refused_with_a_reason() -> None:
     excitation = frfrun.design(0.0, 100.0, 1.0, 10.0)
     t = np.linspace(0.0, 1.5, 50)
     with pytest.raises(ValueError, match="whole period"):
-        frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation)
+        frfrun.analyse(t, np.zeros(50), None, [[0.0, 0.0]], 0.0, excitation, HeldTargets(TICK_S))
 
 
 def test_a_capture_too_sparse_for_the_fit_says_how_sparse_and_to_run_again() -> None:
@@ -136,7 +144,7 @@ def test_a_capture_too_sparse_for_the_fit_says_how_sparse_and_to_run_again() -> 
     t = np.arange(0.0, 6.0, 0.1)
     sent = [[float(x), float(excitation.target(float(x)))] for x in np.arange(0.0, 6.0, 0.004)]
     with pytest.raises(ValueError, match=r"samples in the .* per s\), too sparse to measure"):
-        frfrun.analyse(t, np.zeros(t.size), None, sent, 0.0, excitation)
+        frfrun.analyse(t, np.zeros(t.size), None, sent, 0.0, excitation, HeldTargets(TICK_S))
 
 
 def test_the_multisine_stays_within_its_amplitude() -> None:
@@ -163,12 +171,14 @@ def test_the_wire_plan_places_tones_where_the_capture_resolves_them() -> None:
     assert left_out[0] == 21.0 and left_out[-1] == 40.0
     assert reason is not None and "19200 baud" in reason and plan == wire.to_dict()
     assert frfbench.wire_band(inject, 38400, 1.0, 40.0)[:3] == (40.0, (), None)
-    frfbench.check_request("slap2", 200, 1.0, 40.0, 9.0, 20_000, baud=19200)  # accepted
+    frfbench.check_request(
+        "slap2", SLAP2_INJECTION, 200, 1.0, 40.0, 9.0, 20_000, baud=19200
+    )  # accepted
     with pytest.raises(InvalidArgumentError, match="wire") as refused:
-        frfbench.check_request("slap2", 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
+        frfbench.check_request("slap2", SLAP2_INJECTION, 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
     assert refused.value.field == "low_hz"
     # the Z1100 does not inject: model-based, no wire plan
-    assert frfbench.injection_for("z1100") is None and frfbench.measured("slap2")
+    assert frfbench.injection_for(LAW("z1100")) is None and frfbench.measured(LAW("slap2"))
 
 
 def test_model_margins_are_those_of_tuning_loops() -> None:
@@ -181,7 +191,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
         "params": gains,
         "plant_model": identified,
     }
-    out = frfbench.analyse_run(run, None)
+    out = frfbench.analyse_run(LAW(run["device"]), run, None)
     assert out["model_based"] and out["measured"] is None and out["model"] is not None
     plant = control.tf([90_000.0 / 255], [0.02, 1.0, 0.0])
     truth = z1100_loop_for(plant, 24, 32, 8).margins()
@@ -190,7 +200,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
     assert margins["gain_crossover_hz"] == pytest.approx(truth.gain_crossover_hz, abs=1e-3)
     assert margins["stable"] is truth.stable
     # without a model: a reason, not an error
-    out = frfbench.analyse_run(run | {"plant_model": None}, None)
+    out = frfbench.analyse_run(LAW(run["device"]), run | {"plant_model": None}, None)
     assert out["model"] is None and "Identify" in out["model_problem"]
 
 
@@ -200,7 +210,7 @@ def test_the_browser_model_reproduces_the_loop_step() -> None:
     of ``tuning.loops``."""
     plant = IdentifiedPlant(1000.0, 0.012, "test")
     gains = {"kp": 60, "ki": 20, "kd": 200}
-    model = browser_model("slap2", plant, gains)
+    model = browser_model(LAW("slap2"), plant, gains)
     num, den = np.asarray(model["plant_num"]), np.asarray(model["plant_den"])
     assert den[0] == 1.0 and num[0] == 0.0
     n = 600
@@ -218,21 +228,25 @@ def test_the_browser_model_reproduces_the_loop_step() -> None:
         y_hist = np.roll(y_hist, 1)
         u_hist[0], y_hist[0] = u, y
         y_out[k] = y
-    _, expected = loop_for("slap2", plant, gains).step(n * model["period_s"], 100.0)
+    _, expected = loop_for(LAW("slap2"), plant, gains).step(n * model["period_s"], 100.0)
     # loops' step is T's difference equation from exact polynomial products (no
     # minreal): agreement to rounding of the high-order polynomial, 1e-8 of the step.
     assert np.max(np.abs(y_out - expected[:n])) < 1e-8 * 100
 
 
 def test_identified_models_are_read_per_device() -> None:
-    slap2 = plant_from_identification("slap2", {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012})
+    slap2 = plant_from_identification(
+        LAW("slap2"), {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012}
+    )
     assert slap2.gain_counts_s_per_unit == 998.0
-    z1100 = plant_from_identification("z1100", {"gain_counts_s_per_duty": 255e3, "tau_s": 0.02})
+    z1100 = plant_from_identification(
+        LAW("z1100"), {"gain_counts_s_per_duty": 255e3, "tau_s": 0.02}
+    )
     assert z1100.gain_counts_s_per_unit == pytest.approx(1000.0)
     with pytest.raises(ValueError, match="Identify"):
-        plant_from_identification("slap2", None)
+        plant_from_identification(LAW("slap2"), None)
     with pytest.raises(ValueError, match="does not describe"):
-        plant_from_identification("slap2", {"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
+        plant_from_identification(LAW("slap2"), {"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
 
 
 # --- on the pty simulator ------------------------------------------------------------
@@ -541,8 +555,8 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             frf = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
             assert frf["model_based"] and frf["measured"] is None
             params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
-            plant = plant_from_identification("z1100", identified)
-            truth = loop_for("z1100", plant, params).margins()
+            plant = plant_from_identification(LAW("z1100"), identified)
+            truth = loop_for(LAW("z1100"), plant, params).margins()
             margins = frf["model"]["margins"]
             assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-3)
             assert margins["stable"] is truth.stable

@@ -15,17 +15,19 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
 
+from servotune.devices.slap2.injection import TrapezoidInput
+from servotune.devices.slap2.law import Slap2Law, slap2_loop
 from servotune.devices.slap2.profile import TICK_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun
-from servotune.tuning.frf import coherence_from_error, frf_relative_error
-from servotune.tuning.loops import slap2_loop
+from servotune.tuning.frf import ComplexArray, FloatArray, coherence_from_error, frf_relative_error
 
 from .frf_harness import TickClock
 from .test_frf import _motor_model
@@ -154,7 +156,7 @@ def _scripted_run(
         t += rng.uniform(*transaction_s)
     ts, ys = zip(*samples, strict=True)
     result = frfrun.analyse(
-        ts, ys, None, sent, t0, excitation, profile=(65535, 65535), estimator=estimator
+        ts, ys, None, sent, t0, excitation, model=TrapezoidInput(65535, 65535), estimator=estimator
     )
     return result, excitation
 
@@ -267,7 +269,7 @@ def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
         module.take_output()
         t += rng.uniform(0.005, 0.009)
     ts, ys = zip(*samples, strict=True)
-    result = frfrun.analyse_open(ts, ys, sent, t0, excitation, (40, 40, 80))
+    result = frfrun.analyse_open(ts, ys, sent, t0, excitation, _pid(40, 40, 80), tick_s=TICK_S)
     plant = result["plant"]
     f = np.asarray(plant["frequency_hz"])
     model = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
@@ -286,3 +288,15 @@ def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
     assert margins["phase_margin_deg"] is not None, margins
     assert abs(margins["phase_margin_deg"] - truth_margins.phase_margin_deg) <= 3.0, margins
     assert all(result["open_loop"]["measurable"][i] for i in np.nonzero(wanted)[0])
+
+
+def _pid(kp: int, ki: int, kd: int) -> Callable[[FloatArray], ComplexArray]:
+    """The SLAP2 PID with these gains at given frequencies (as the bench closes it)."""
+    gains = {"kp": kp, "ki": ki, "kd": kd}
+
+    def controller(frequency_hz: FloatArray) -> ComplexArray:
+        response = Slap2Law().controller_response(frequency_hz, gains)
+        assert response is not None
+        return response
+
+    return controller

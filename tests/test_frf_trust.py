@@ -24,10 +24,14 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from servotune.demo import SLAP2_LOADED
+from servotune.devices.slap2.codec import TICK_S
+from servotune.devices.slap2.injection import TrapezoidInput
+from servotune.devices.slap2.law import slap2_loop
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun, frftrust
-from servotune.tuning.loops import MotorModel, slap2_loop
+from servotune.tuning.injection import HeldTargets
+from servotune.tuning.loops import MotorModel
 
 from .frf_harness import Stalls, scripted_run, simulator_response
 
@@ -160,10 +164,14 @@ def test_the_coherence_is_the_magnitude_squared_coherence() -> None:
     b, a = signal.butter(2, 8.0, fs=rate)
     rng = np.random.default_rng(7)
     y = signal.lfilter(b, a, targets) + rng.normal(0.0, 20.0, t.size)
-    result = frfrun.analyse(t + 0.0004, y, None, sent, 0.0, excitation, estimator="tones")
+    result = frfrun.analyse(
+        t + 0.0004, y, None, sent, 0.0, excitation, HeldTargets(TICK_S), estimator="tones"
+    )
     coherence = np.asarray(result["closed_loop"]["coherence"], dtype=float)
     analysed = (t + 0.0004 >= period) & (t + 0.0004 < period * (1 + result["periods"]))
-    u_at = np.interp(t[analysed] + 0.0004, *frfrun.rebuild_input(sent, 0.0, 0.0, None, t[-1] + 1))
+    u_at = np.interp(
+        t[analysed] + 0.0004, *frfrun.rebuild_input(sent, 0.0, 0.0, HeldTargets(TICK_S), t[-1] + 1)
+    )
     f, msc = signal.coherence(
         u_at,
         y[analysed],
@@ -192,7 +200,7 @@ def test_an_input_the_capture_contradicts_is_not_trusted() -> None:
         run.sent,
         run.t0_s,
         run.excitation,
-        profile=(1000, 1000),
+        model=TrapezoidInput(1000, 1000),
         sample_spans_s=run.spans_s,
     )
     trust = wrong["trust"]
@@ -219,7 +227,7 @@ def test_late_stamped_targets_the_capture_saw_are_caught() -> None:
         run.sent[:],
         run.t0_s,
         run.excitation,
-        profile=(65535, 65535),
+        model=TrapezoidInput(65535, 65535),
     )
     trust = result["trust"]
     assert trust["spans"].startswith("recorded") or "gaps" in trust["spans"]
@@ -243,4 +251,4 @@ def test_spans_inferred_from_gaps_flag_the_exchange_that_ends_a_gap() -> None:
     assert sample_spans[40] == pytest.approx(0.06 - frftrust.GAP_STALL_S, abs=0.008)
     assert np.count_nonzero(sample_spans > frftrust.STALL_SPAN_S) == 1
     assert np.count_nonzero(command_spans > frftrust.STALL_SPAN_S) == 0
-    assert math.isfinite(frftrust.timing_s(sample_spans, command_spans))
+    assert math.isfinite(frftrust.timing_s(sample_spans, command_spans, TICK_S))

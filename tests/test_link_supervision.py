@@ -21,13 +21,13 @@ from typing import Any
 
 import pytest
 
-from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec as zcodec
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import DriverError, InvalidArgumentError, LinkDownError
 from servotune.sim.base import SimDevice
 from servotune.sim.pty import PtySimulator
@@ -128,7 +128,7 @@ class ZLine:
 @contextlib.asynccontextmanager
 async def z_line(tmp_path: Path, *, verify_period_s: float = 2.0) -> AsyncIterator[ZLine]:
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)
+    write_demo_flash(flash)
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z_BAUD)
     tap = Tap(chip)
     with PtySimulator(tap, baud=Z_BAUD) as sim:

@@ -12,8 +12,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from servotune.descriptor import LoopSignals
+from servotune.devices import default_registry
 from servotune.hub import loopcheck
 from servotune.link.base import Sample
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
 
 SIGNALS = LoopSignals(
     position_channel="position",
@@ -231,4 +235,4 @@ def test_gains_predicted_unstable_on_the_identified_plant(
 ) -> None:
     from servotune.tuning.predicted import unstable_reason
 
-    assert bool(unstable_reason("slap2", SLAP2_MODEL, gains)) is unstable
+    assert bool(unstable_reason(LAW("slap2"), SLAP2_MODEL, gains)) is unstable

@@ -43,7 +43,9 @@ from schemathesis.specs.openapi import checks as openapi_checks  # noqa: E402
 from servotune.api.app import AppConfig, create_app  # noqa: E402
 from servotune.auth.security import SecurityConfig  # noqa: E402
 from servotune.config import LinkSpec  # noqa: E402
-from servotune.demo import ep7047_demo_slave, slap2_demo_line, z1100_demo_line  # noqa: E402
+from servotune.devices.ep7047.entry import demo_slave as ep7047_demo_slave  # noqa: E402
+from servotune.devices.slap2.entry import demo_line as slap2_demo_line  # noqa: E402
+from servotune.devices.z1100.entry import demo_line as z1100_demo_line  # noqa: E402
 
 MAX_EXAMPLES = 2
 

@@ -11,9 +11,9 @@ import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-from servotune.demo import SLAP2_LOADED
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint

@@ -59,7 +59,7 @@ def _wait_gone(pid: int, timeout_s: float) -> bool:
 
 
 def test_serial_simulator_process_serves_its_pty_records_and_stops(tmp_path: Path) -> None:
-    from servotune.demo import slap2_demo_line
+    from servotune.devices.slap2.entry import demo_line as slap2_demo_line
 
     with slap2_demo_line(tmp_path) as specs:
         (spec,) = specs
@@ -110,7 +110,8 @@ def test_children_end_when_the_server_is_killed(tmp_path: Path) -> None:
         f"""
         import sys, time
         sys.path.insert(0, {str(SERVER)!r})
-        from servotune.demo import slap2_demo_line, ep7047_demo_slave
+        from servotune.devices.slap2.entry import demo_line as slap2_demo_line
+        from servotune.devices.ep7047.entry import demo_slave as ep7047_demo_slave
         from pathlib import Path
         with slap2_demo_line(Path({str(tmp_path)!r})) as a, ep7047_demo_slave(
             Path({str(tmp_path)!r})

@@ -195,7 +195,7 @@ def test_cli_entry_point_prints_the_path_first_and_stops_on_sigterm(tmp_path: Pa
     link = tmp_path / "slap"
     state_dir = tmp_path / "state"
     code = (
-        "from servotune.sim.pty import serve_slap2; from pathlib import Path; "
+        "from servotune.devices.slap2.sim.demo import serve_slap2; from pathlib import Path; "
         f"serve_slap2([0, 1], {BAUD}, Path({str(state_dir)!r}), {str(link)!r})"
     )
     command = [sys.executable, "-c", code]

@@ -32,11 +32,16 @@ import numpy as np
 import pytest
 
 from servotune.bench import frf as frfbench
-from servotune.demo import SLAP2_LOADED
+from servotune.devices import default_registry
+from servotune.devices.slap2.law import slap2_loop
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.sim.physics import DcMotor, DcMotorParams
-from servotune.tuning.loops import MotorModel, slap2_loop
+from servotune.tuning.loops import MotorModel
 from servotune.tuning.stability import schur_stable
 from servotune.tuning.whatif import browser_model, loop_for, plant_from_identification
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
 
 ROOT = Path(__file__).resolve().parents[1]
 TICK_S = 841.5e-6
@@ -192,9 +197,9 @@ def test_the_verdict_agrees_with_a_simulation_of_the_simulators_plant(tmp_path: 
 def test_ki_zero_is_not_unstable_anywhere() -> None:
     """The issue: kp/ki/kd 1676/0/1100 (the auto-tune's own proposal, measured 0.63 %
     overshoot) read "CLOSED LOOP: UNSTABLE" beside GM 10.8 dB / PM 18.1 deg."""
-    plant = plant_from_identification("slap2", IDENTIFIED["slap2"])
+    plant = plant_from_identification(LAW("slap2"), IDENTIFIED["slap2"])
     gains = {"kp": 1676, "ki": 0, "kd": 1100}
-    loop = loop_for("slap2", plant, gains)
+    loop = loop_for(LAW("slap2"), plant, gains)
     assert loop.stable
     margins = loop.margins()
     assert margins.stable and margins.gain_margin_db > 0 and margins.phase_margin_deg > 0
@@ -204,28 +209,28 @@ def test_ki_zero_is_not_unstable_anywhere() -> None:
         "params": gains,
         "plant_model": IDENTIFIED["slap2"] | {"friction_pwm": 3.6},
     }
-    model = frfbench.analyse_run(run, None)["model"]
+    model = frfbench.analyse_run(LAW(run["device"]), run, None)["model"]
     assert model["margins"]["stable"] is True
 
 
 def test_browser_and_server_agree_on_the_what_ifs_inputs(tmp_path: Path) -> None:
     cases: list[dict[str, Any]] = []
     server: list[bool] = []
-    slap2 = plant_from_identification("slap2", IDENTIFIED["slap2"])
-    slap2_model = browser_model("slap2", slap2, {})
+    slap2 = plant_from_identification(LAW("slap2"), IDENTIFIED["slap2"])
+    slap2_model = browser_model(LAW("slap2"), slap2, {})
     for kp, ki, kd in itertools.product(
         (1, 20, 100, 400, 1000, 1676, 2500, 4000), (0, 1, 10, 100, 1000), (0, 50, 300, 1100, 3000)
     ):
         gains = {"kp": kp, "ki": ki, "kd": kd}
         cases.append({"model": slap2_model, "gains": gains})
-        server.append(loop_for("slap2", slap2, gains).stable)
-    z1100 = plant_from_identification("z1100", IDENTIFIED["z1100"])
+        server.append(loop_for(LAW("slap2"), slap2, gains).stable)
+    z1100 = plant_from_identification(LAW("z1100"), IDENTIFIED["z1100"])
     for stm in (1, 4):
-        z_model = browser_model("z1100", z1100, {"stm": stm})
+        z_model = browser_model(LAW("z1100"), z1100, {"stm": stm})
         for k, a, b in itertools.product((1, 8, 32, 96, 255), (0, 16, 64, 255), (0, 8, 64)):
             gains = {"kabd_k": k, "kabd_a": a, "kabd_b": b, "stm": stm}
             cases.append({"model": z_model, "gains": gains})
-            server.append(loop_for("z1100", z1100, gains).stable)
+            server.append(loop_for(LAW("z1100"), z1100, gains).stable)
     browser = _browser_verdicts(cases, tmp_path)
     assert browser == server
     assert 0.1 < sum(server) / len(server) < 0.95
@@ -233,8 +238,8 @@ def test_browser_and_server_agree_on_the_what_ifs_inputs(tmp_path: Path) -> None
 
 @pytest.mark.parametrize("ki", [0, 10])
 def test_the_model_bode_margins_table_and_verdict_agree(ki: int) -> None:
-    plant = plant_from_identification("slap2", IDENTIFIED["slap2"])
-    loop = loop_for("slap2", plant, {"kp": 600, "ki": ki, "kd": 1500})
+    plant = plant_from_identification(LAW("slap2"), IDENTIFIED["slap2"])
+    loop = loop_for(LAW("slap2"), plant, {"kp": 600, "ki": ki, "kd": 1500})
     assert loop.margins().stable is loop.stable is True
 
 
@@ -242,8 +247,8 @@ def test_browser_and_server_read_the_same_margins(tmp_path: Path) -> None:
     """The what-if's margins (web/src/stability.ts ``modelMargins``) are the server's
     (``LoopModel.margins``: the margins table, the model Bode, the auto-tune) for the
     same plant and gains: the same grid, interpolation and rule."""
-    plant = plant_from_identification("slap2", IDENTIFIED["slap2"])
-    model = browser_model("slap2", plant, {})
+    plant = plant_from_identification(LAW("slap2"), IDENTIFIED["slap2"])
+    model = browser_model(LAW("slap2"), plant, {})
     cases = [
         {"model": model, "gains": {"kp": kp, "ki": ki, "kd": kd}}
         for kp, ki, kd in [
@@ -254,10 +259,10 @@ def test_browser_and_server_read_the_same_margins(tmp_path: Path) -> None:
             (361, 0, 2815),
         ]
     ]
-    z_plant = plant_from_identification("z1100", IDENTIFIED["z1100"])
+    z_plant = plant_from_identification(LAW("z1100"), IDENTIFIED["z1100"])
     cases += [
         {
-            "model": browser_model("z1100", z_plant, {}),
+            "model": browser_model(LAW("z1100"), z_plant, {}),
             "gains": {"kabd_k": k, "kabd_a": a, "kabd_b": b},
         }
         for k, a, b in [(24, 16, 8), (96, 64, 8)]
@@ -265,7 +270,9 @@ def test_browser_and_server_read_the_same_margins(tmp_path: Path) -> None:
     browser = _browser(cases, tmp_path, "modelMargins(c.model, c.gains)")
     for case, got in zip(cases, browser, strict=True):
         device = "slap2" if case["model"]["law"] == "slap2_pid" else "z1100"
-        truth = loop_for(device, plant if device == "slap2" else z_plant, case["gains"]).margins()
+        truth = loop_for(
+            LAW(device), plant if device == "slap2" else z_plant, case["gains"]
+        ).margins()
         for key, value in (
             ("phaseMarginDeg", truth.phase_margin_deg),
             ("gainMarginDb", truth.gain_margin_db),

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from servotune.demo import SLAP2_LOADED
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.perf import stops as stopbench

@@ -18,20 +18,34 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from servotune.demo import Z1100_LOADS_KG_M2
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.devices.slap2.law import Gains, MoveSpec, PidLaw, Staircase, simulate_response
+from servotune.devices import default_registry
+from servotune.devices.slap2.codec import (
+    ACCELERATION_MAX,
+    COUNTS_S2_PER_SA,
+    COUNTS_S_PER_SV,
+    VELOCITY_MAX,
+)
+from servotune.devices.slap2.law import (
+    Gains,
+    MoveSpec,
+    PidLaw,
+    Staircase,
+    simulate_response,
+    slap2_loop_for,
+)
 from servotune.devices.slap2.sim.controller import TICK_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.codec import Gains as ChipGains
-from servotune.devices.z1100.law import Kab, KabLaw
+from servotune.devices.z1100.law import Kab, KabLaw, z1100_loop_for
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.tuning.identify import fit_closed_loop, fit_plant
-from servotune.tuning.law import law_for
-from servotune.tuning.loops import slap2_loop_for, z1100_loop_for
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
 
 SERVER = Path(__file__).resolve().parents[1] / "server" / "servotune"
 
@@ -187,25 +201,37 @@ def test_z1100_law_is_the_chip_simulators_sample_for_sample(tmp_path: Path) -> N
 
 def test_device_laws_give_the_loops_of_tuning_loops() -> None:
     plant = IdentifiedPlant(950.0, 0.024, "test")
-    slap2 = law_for("slap2").loop(plant, {"kp": 40, "ki": 40, "kd": 80})
+    slap2 = LAW("slap2").loop(plant, {"kp": 40, "ki": 40, "kd": 80})
     direct = slap2_loop_for(plant.transfer_function(), 40, 40, 80)
     f = np.geomspace(1.0, 200.0, 50)
     assert np.allclose(slap2.open_loop_response(f).response, direct.open_loop_response(f).response)
-    assert law_for("slap2").period_s({}) == TICK_S
+    assert LAW("slap2").period_s({}) == TICK_S
     params = {"kabd_k": 12, "kabd_a": 64, "kabd_b": 4, "stm": 2}
-    z = law_for("z1100").loop(IdentifiedPlant(1000.0, 0.01, "test"), params)
+    z = LAW("z1100").loop(IdentifiedPlant(1000.0, 0.01, "test"), params)
     zdirect = z1100_loop_for(
         IdentifiedPlant(1000.0, 0.01, "test").transfer_function(), 12, 64, 4, 2
     )
     assert np.allclose(z.open_loop_response(f).response, zdirect.open_loop_response(f).response)
-    assert law_for("z1100").period_s(params) == pytest.approx(64e-6)
-    assert law_for("z1100").linear_plant({"gain_counts_s_per_duty": 255_000.0, "tau_s": 0.01}) == (
+    assert LAW("z1100").period_s(params) == pytest.approx(64e-6)
+    assert LAW("z1100").linear_plant({"gain_counts_s_per_duty": 255_000.0, "tau_s": 0.01}) == (
         IdentifiedPlant(1000.0, 0.01, "auto-tune identification")
     )
     with pytest.raises(ValueError, match="does not describe a slap2"):
-        law_for("slap2").linear_plant({"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
-    with pytest.raises(ValueError, match="no controller law for ep7047"):
-        law_for("ep7047")
+        LAW("slap2").linear_plant({"gain_counts_s_per_duty": 1.0, "tau_s": 0.01})
+    assert LAW("ep7047") is None and LAW("modbus") is None
+    # what the what-if route and the gains check read of a law (unchanged API values)
+    assert LAW("slap2").gain_names == ("kp", "ki", "kd")
+    assert LAW("z1100").gain_names == ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
+    assert LAW("slap2").verify_profile({"vmax": 1}).to_dict() == {
+        "kind": "position_step",
+        "velocity_counts_s": VELOCITY_MAX * COUNTS_S_PER_SV,
+        "acceleration_counts_s2": ACCELERATION_MAX * COUNTS_S2_PER_SA,
+    }
+    assert LAW("z1100").verify_profile({"vmax": 5000, "acc": 70_000}).to_dict() == {
+        "kind": "move",
+        "velocity_counts_s": 5000.0,
+        "acceleration_counts_s2": 70000.0,
+    }
 
 
 # --- layering ------------------------------------------------------------------------

@@ -37,11 +37,12 @@ import pytest
 
 from servotune.bench.metrics import compute_metrics
 from servotune.config import LinkSpec
-from servotune.demo import Z1100_LOADS_KG_M2, _z1100_flash
+from servotune.devices import default_registry
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.profile import TrapezoidGenerator
 from servotune.devices.z1100.law import Kab, MoveProfile, simulate_move
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
@@ -51,6 +52,9 @@ from .test_api import LiveServer, live_server
 from .test_autotune import LIMITS as SLAP2_LIMITS
 from .test_autotune import demo_line
 from .test_bench import finished_run, start
+
+# The devices' controller laws, looked up as the app does.
+LAW = default_registry().law
 
 Z1100_BAUD = 38400  # the wire the Z1100 auto-tune test uses (the demo's 9600 is sparser)
 Z1100_LIMITS = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_overshoot"}
@@ -91,7 +95,7 @@ PLANTS = {
 def z1100_demo_chip(tmp_path: Path) -> Iterator[PtySimulator]:
     """The demo's Z1100 (its three loads, its flash gains and profile) on a pty."""
     flash = tmp_path / "flash.json"
-    _z1100_flash(flash)  # the demo's own flash file
+    write_demo_flash(flash)  # the demo's own flash file
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
     simulator = PtySimulator(chip, baud=Z1100_BAUD)
     simulator.start()
@@ -199,8 +203,8 @@ async def test_whatif_predicts_the_verification_step_on_each_demo_plant(
         assert info["model"] is not None, info["problem"]
         params = (await client.get(f"/api/axes/{axis_id}/params")).json()
         session = (await client.get(f"/api/axes/{axis_id}/autotune")).json()
-        identified = plant_from_identification(device, session["model"])
-        loop = loop_for(device, identified, params)
+        identified = plant_from_identification(LAW(device), session["model"])
+        loop = loop_for(LAW(device), identified, params)
         assert loop.period_s == info["model"]["period_s"]
 
         distance = DISTANCE[device]

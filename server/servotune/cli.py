@@ -266,7 +266,9 @@ def server_data_dir(args: argparse.Namespace) -> Path:
 def cmd_demo(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
     from servotune.demo import demo_simulators, demo_state_dir
+    from servotune.devices import default_registry
 
+    devices = default_registry()
     data_dir = server_data_dir(args)
     with demo_state_dir(data_dir) as (state_dir, problem):
         if problem is not None:
@@ -278,7 +280,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         config = AppConfig(
             data_dir=data_dir,
             autopilot=not args.no_autopilot,
-            simulators=demo_simulators(data_dir, state_dir, ethercat_wire=args.ethercat_wire),
+            simulators=demo_simulators(
+                data_dir, state_dir, ethercat_wire=args.ethercat_wire, devices=devices
+            ),
+            devices=devices,
             security=security_config_from_args(args, args.host),
         )
         _run_server(config, args.host, args.port, published_on_loopback=loopback_published(args))
@@ -287,16 +292,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     from servotune.api.app import AppConfig
+    from servotune.devices import default_registry
 
+    devices = default_registry()
     links: list[LinkSpec] = []
     host, port = args.host, args.port
     try:
         if args.config:
-            file_config = load_config_file(Path(args.config))
+            file_config = load_config_file(Path(args.config), devices)
             links.extend(file_config.links)
             host = args.host if args.host != "127.0.0.1" else (file_config.host or host)
             port = args.port if args.port != 8000 else (file_config.port or port)
-        links.extend(parse_link_spec(spec) for spec in args.link)
+        links.extend(parse_link_spec(spec, devices) for spec in args.link)
     except ConfigError as exc:
         print(f"servotune serve: {exc}", file=sys.stderr)
         return 2
@@ -310,6 +317,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     bus = _bus_settings(args, hub=False)
     config = AppConfig(
         links=links,
+        devices=devices,
         data_dir=server_data_dir(args),
         security=security_config_from_args(args, host),
         bus=bus,
@@ -335,50 +343,24 @@ def cmd_hub(args: argparse.Namespace) -> int:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from servotune.sim.pty import run_pty_simulator, serve_slap2
+    from servotune.devices import default_registry
+    from servotune.registry import SimArgs
 
-    if args.device == "ep7047":
-        if args.ifname:
-            return _sim_ep7047_wire(args)
-        from servotune.devices.ep7047.sim.process import run_ep7047_simulator
-
-        if not args.socket:
-            print(
-                "servotune sim ep7047: give --ifname IF (an EtherCAT slave on a network "
-                "interface) or --socket PATH (behind the master seam, a Unix socket)"
-            )
-            return 2
-        run_ep7047_simulator(args.socket)
-        return 0
-
-    if args.device == "slap2":
-        serve_slap2(args.addresses, args.baud or 19200, args.state_dir, args.link)
-        return 0
-    from servotune.devices.z1100.sim.chip import Z1100Chip
-
-    baud = args.baud or 9600
-    flash = args.state_dir / "z1100_flash.json" if args.state_dir else None
-    chip = Z1100Chip(flash_path=flash, jumper_baud=baud)
-    run_pty_simulator(chip, baud=baud, link_path=args.link)
-    return 0
-
-
-def _sim_ep7047_wire(args: argparse.Namespace) -> int:
-    from servotune.devices.ep7047.sim.sii import Identity
-    from servotune.devices.ep7047.sim.wire_loop import run_wire_simulator
-    from servotune.transports.ethercat import raw_socket_problem
-
-    problem = raw_socket_problem(args.ifname)
-    if problem is not None:
-        print(f"servotune sim ep7047: {problem}", file=sys.stderr)
-        return 2
-    identity = Identity()
-    if args.product is not None:
-        identity = Identity(product=args.product, name=f"product 0x{args.product:08X}")
-    run_wire_simulator(
-        args.ifname, control_path=args.control, identity=identity, realtime=not args.no_rt
+    simulator = default_registry().get(args.device).simulator
+    assert simulator is not None  # argparse's choices are the simulated devices
+    return simulator.serve(
+        SimArgs(
+            addresses=tuple(args.addresses),
+            baud=args.baud,
+            state_dir=args.state_dir,
+            link=args.link,
+            socket=args.socket,
+            ifname=args.ifname,
+            control=args.control,
+            product=args.product,
+            realtime=not args.no_rt,
+        )
     )
-    return 0
 
 
 def _hex_int(text: str) -> int:
@@ -410,6 +392,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from servotune.devices import default_registry
+
+    devices = default_registry()
+    simulated = [entry.name for entry in devices.simulated()]
+    on_pty = devices.simulated(pty=True)
+    default_bauds = ", ".join(f"{e.link_rules.default_baud} ({e.name})" for e in on_pty)
     parser = argparse.ArgumentParser(prog="servotune", description=__doc__)
     parser.add_argument("--version", action="version", version=__version__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug output")
@@ -488,9 +476,9 @@ def build_parser() -> argparse.ArgumentParser:
         "socket (ep7047 --socket: link spec ep7047:sim:PATH) or a network interface "
         "(ep7047 --ifname: a real EtherCAT slave)",
     )
-    sim.add_argument("device", choices=["slap2", "z1100", "ep7047"])
+    sim.add_argument("device", choices=simulated)
     sim.add_argument("--addresses", type=_addresses, default=[0, 1], help="SLAP2 modules")
-    sim.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
+    sim.add_argument("--baud", type=int, default=None, help=default_bauds)
     sim.add_argument("--state-dir", type=Path, default=None, help="where EEPROM files live")
     sim.add_argument("--link", default=None, help="also create this symlink to the pty")
     sim.add_argument("--socket", default=None, help="ep7047: the Unix socket to serve on")
@@ -517,8 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="telemetry rate against the wire limit (one device, or the whole demo: "
         "CPU per process and every link's rate)",
     )
-    bench.add_argument("device", choices=["slap2", "z1100", "demo"])
-    bench.add_argument("--baud", type=int, default=None, help="19200 (slap2), 9600 (z1100)")
+    bench.add_argument("device", choices=[*(e.name for e in on_pty), "demo"])
+    bench.add_argument("--baud", type=int, default=None, help=default_bauds)
     bench.add_argument("--addresses", type=_addresses, default=[0])
     bench.add_argument("--seconds", type=float, default=None, help="5 (device), 30 (demo)")
     bench.add_argument(

@@ -42,12 +42,12 @@ from typing import ParamSpec, TypeVar
 P = ParamSpec("P")
 T = TypeVar("T")
 
-# Where the functions run here live: imported once in the fork server.
+# Where the functions run here live: imported once in the fork server. The devices'
+# own (their gain searches) are added by the app from the registry
+# (``DeviceEntry.compute_modules``).
 PRELOAD = (
     "servotune.tuning.threads",  # first: one BLAS thread, set before numpy loads
     "servotune.tuning.identify",
-    "servotune.devices.slap2.gain_rule",
-    "servotune.devices.z1100.gain_rule",
     "servotune.bench.frf",
 )
 

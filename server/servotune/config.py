@@ -20,16 +20,42 @@ from __future__ import annotations
 
 import re
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Protocol
 from urllib.parse import parse_qsl
 
-DEVICES = ("slap2", "z1100", "ep7047")
-DEFAULT_BAUD = {"slap2": 19200, "z1100": 9600, "ep7047": 0}
-# ``ep7047:sim`` runs the simulated slave in-process instead of a NIC (demo, trials).
-SIMULATED_NIC = "sim"
+# The standard serial rates a link spec may ask for (a device may refuse some).
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
+
+
+@dataclass(frozen=True, slots=True)
+class LinkRules:
+    """How a link spec of one device reads (its ``DeviceEntry.link_rules``).
+
+    ``addressing``: ``"modules"`` — ``addresses=`` lists modules on one line, each in
+    ``address_range``; ``"fixed"`` — the device's axes are ``fixed_addresses`` whatever
+    is asked (``addresses=`` is still checked against ``address_range``); ``"slave"`` —
+    one axis, the device's position on an EtherCAT bus (``slave=``, in ``slave_range``,
+    default its first).
+    ``default_baud`` None: not a serial device (no ``baud=``; the spec's baud is 0).
+    """
+
+    default_baud: int | None
+    addressing: Literal["modules", "fixed", "slave"] = "modules"
+    address_range: tuple[int, int] = (0, 15)
+    fixed_addresses: tuple[int, ...] = ()
+    slave_range: tuple[int, int] = (1, 65535)
+    example: str = ""  # a link spec for error messages and help
+
+
+class LinkRulesSource(Protocol):
+    """What reading a link spec needs of the registry."""
+
+    def names(self) -> Sequence[str]: ...
+
+    def link_rules(self, device: str) -> LinkRules: ...
 
 
 class ConfigError(ValueError):
@@ -41,7 +67,7 @@ class LinkSpec:
     device: str
     path: str
     link_id: str
-    baud: int = 19200
+    baud: int  # 0: not a serial link
     addresses: list[int] = field(default_factory=lambda: [0])
     lines: int = 512
     names: dict[int, str] = field(default_factory=dict)
@@ -62,31 +88,33 @@ def _int(field_name: str, text: Any, low: int, high: int) -> int:
     return value
 
 
-def link_from_mapping(data: dict[str, Any]) -> LinkSpec:
+def link_from_mapping(data: dict[str, Any], devices: LinkRulesSource) -> LinkSpec:
     """Build and check a LinkSpec from a dict (TOML table or parsed link spec)."""
     device = str(data.get("device", ""))
-    if device not in DEVICES:
-        raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {device!r}")
+    known = devices.names()
+    if device not in known:
+        raise ConfigError(f"device must be one of {', '.join(known)}, got {device!r}")
+    rules = devices.link_rules(device)
     path = str(data.get("path", ""))
     if not path:
         raise ConfigError("path is missing (e.g. /dev/ttyUSB0)")
-    if device == "ep7047":
-        baud = 0  # EtherCAT: no baud rate
+    if rules.default_baud is None:
+        baud = 0  # not a serial link: no baud rate
     else:
-        baud = _int("baud", data.get("baud", DEFAULT_BAUD[device]), 300, 1_000_000)
+        baud = _int("baud", data.get("baud", rules.default_baud), 300, 1_000_000)
         if baud not in BAUD_RATES:
             raise ConfigError(f"baud must be one of {', '.join(map(str, BAUD_RATES))}, got {baud}")
     raw_addresses = data.get("addresses", [0])
     if isinstance(raw_addresses, str):
         raw_addresses = [a for a in raw_addresses.split(",") if a.strip()]
-    addresses = [_int("addresses", a, 0, 15) for a in raw_addresses]
-    if device == "z1100":
-        addresses = [0, 1, 2]  # one chip, three motors: there is nothing to address
-    if device == "ep7047":
-        # The slave's position on the bus (1 = first slave after the master).
-        addresses = [_int("slave", data.get("slave", 1), 1, 65535)]
+    low, high = rules.address_range
+    addresses = [_int("addresses", a, low, high) for a in raw_addresses]
+    if rules.addressing == "fixed":
+        addresses = list(rules.fixed_addresses)  # nothing to address: the axes are fixed
+    elif rules.addressing == "slave":
+        addresses = [_int("slave", data.get("slave", rules.slave_range[0]), *rules.slave_range)]
     if not addresses or len(set(addresses)) != len(addresses):
-        raise ConfigError("addresses must list distinct module addresses 0..15")
+        raise ConfigError(f"addresses must list distinct module addresses {low}..{high}")
     lines = _int("lines", data.get("lines", 512), 1, 1_000_000)
     raw_names = data.get("names", [])
     if isinstance(raw_names, str):
@@ -98,13 +126,12 @@ def link_from_mapping(data: dict[str, Any]) -> LinkSpec:
     return LinkSpec(device, path, link_id, baud, addresses, lines, names)
 
 
-def parse_link_spec(spec: str) -> LinkSpec:
-    """Parse ``device:path?key=value&...``."""
+def parse_link_spec(spec: str, devices: LinkRulesSource) -> LinkSpec:
+    """Parse ``device:path?key=value&...`` for one of ``devices``."""
     device, sep, rest = spec.partition(":")
     if not sep:
-        raise ConfigError(
-            f"link spec must look like 'slap2:/dev/ttyUSB0?addresses=0,1', got {spec!r}"
-        )
+        example = devices.link_rules(devices.names()[0]).example
+        raise ConfigError(f"link spec must look like {example!r}, got {spec!r}")
     path, _, query = rest.partition("?")
     data: dict[str, Any] = {"device": device, "path": path}
     for key, value in parse_qsl(query, keep_blank_values=True, strict_parsing=False):
@@ -113,7 +140,7 @@ def parse_link_spec(spec: str) -> LinkSpec:
                 f"unknown link option {key!r} (addresses, baud, lines, name, names, slave)"
             )
         data[key] = value
-    return link_from_mapping(data)
+    return link_from_mapping(data, devices)
 
 
 @dataclass(slots=True)
@@ -123,12 +150,12 @@ class FileConfig:
     links: list[LinkSpec]
 
 
-def load_config_file(path: Path) -> FileConfig:
+def load_config_file(path: Path, devices: LinkRulesSource) -> FileConfig:
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"cannot read {path}: {exc}") from exc
-    links = [link_from_mapping(table) for table in data.get("link", [])]
+    links = [link_from_mapping(table, devices) for table in data.get("link", [])]
     port = data.get("port")
     return FileConfig(
         host=data.get("host"),

@@ -34,8 +34,9 @@ from servotune.auth.install import install_security
 from servotune.auth.security import SecurityConfig
 from servotune.autotune.service import AutoTuner
 from servotune.bench.service import TestBench
-from servotune.compute import ComputePool
+from servotune.compute import PRELOAD, ComputePool
 from servotune.config import LinkSpec
+from servotune.devices import default_registry
 from servotune.hub.control_lock import ControlManager, ControlSettings
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.hub.state import UnknownAxisError
@@ -48,12 +49,12 @@ from servotune.link.base import (
     MeasurementError,
     ProtocolError,
 )
-from servotune.links import build_link
 from servotune.storage import Storage, StorageError, default_data_dir
 from servotune.twin.service import Twin
 
 if TYPE_CHECKING:
     from servotune.bus.connection import BusSettings
+    from servotune.registry import Registry
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +77,8 @@ class AppConfig:
     control: ControlSettings = field(default_factory=ControlSettings)
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
+    # The devices the links may name (None: servotune.devices.default_registry()).
+    devices: Registry | None = None
 
 
 def _error(
@@ -114,6 +117,7 @@ def allowed_methods(routes: list[BaseRoute], scope: Scope) -> list[str]:
 
 def create_app(config: AppConfig) -> FastAPI:
     """Build the app; nothing is opened until the lifespan starts."""
+    devices = config.devices if config.devices is not None else default_registry()
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -124,7 +128,7 @@ def create_app(config: AppConfig) -> FastAPI:
                 specs.extend(simulators.enter_context(start_simulator()))
             hub = Hub([], storage, autopilot=config.autopilot)
             for spec in specs:
-                hub.add_link(build_link(spec, hub))
+                hub.add_link(devices.build_link(spec, hub))
             # bus: the hub registers the rigs' links before it starts (servotune.bus).
             bus = None
             if config.bus is not None:
@@ -134,8 +138,9 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.bus = bus
             if bus is not None:
                 await bus.prepare(hub, storage)
-            bench = TestBench(hub, storage)
+            bench = TestBench(hub, storage, devices)
             app.state.hub = hub
+            app.state.devices = devices
             app.state.bench = bench
             autotuner_cls = AutoTuner
             if config.bus is not None:
@@ -144,9 +149,9 @@ def create_app(config: AppConfig) -> FastAPI:
                 autotuner_cls = autotuner_class(config.bus)
             # Fits, gain searches and FRF analysis: in a worker process, never on the
             # loop or in a thread that holds the interpreter lock (servotune.compute).
-            compute = ComputePool()
+            compute = ComputePool(preload=(*PRELOAD, *devices.compute_modules()))
             app.state.compute = compute
-            app.state.autotuner = autotuner_cls(hub, bench, compute=compute)
+            app.state.autotuner = autotuner_cls(hub, bench, tuners=devices, compute=compute)
             app.state.storage = storage
             # The control lock and dead-man (servotune.hub.control_lock); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.

@@ -17,17 +17,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Request
 
 from servotune.api.bench_routes import BenchDep
-from servotune.api.gains_check import GAINS, identified_model
+from servotune.api.gains_check import device_law, identified_model
 from servotune.api.responses import errors
 from servotune.autotune.service import AutoTuner
 from servotune.bench import frf as frfbench
 from servotune.compute import ComputePool
-from servotune.devices.slap2.codec import (
-    ACCELERATION_MAX,
-    COUNTS_S2_PER_SA,
-    COUNTS_S_PER_SV,
-    VELOCITY_MAX,
-)
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS
@@ -93,7 +87,8 @@ async def run_frf(
     identified = identified_model(request, axis_id)
     preset = margin_preset(request, axis_id)
     # The analysis of a long run takes seconds of numpy and Python: in the worker.
-    return await compute.run(frfbench.analyse_run, run, identified, preset)
+    law = device_law(request, str(run.get("device", "")))
+    return await compute.run(frfbench.analyse_run, law, run, identified, preset)
 
 
 def _proposal_gains(request: Request, axis_id: str) -> dict[str, int] | None:
@@ -112,19 +107,20 @@ async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str,
     ``model`` is null with ``problem`` when the plant is not identified yet."""
     entry = hub.entry(axis_id)
     device = entry.info.device
-    if device not in GAINS:
+    law = device_law(request, device)
+    if law is None:
         raise DeviceRefusedError(f"no what-if view for {device} yet (no identification)")
     values = entry.device_values
     descriptor = entry.driver.descriptor
     ranges = {
         name: [descriptor.parameter(name).minimum, descriptor.parameter(name).maximum]
-        for name in GAINS[device]
+        for name in law.gain_names
     }
     preset = margin_preset(request, axis_id)
     out: dict[str, Any] = {
         "axis_id": axis_id,
         "device": device,
-        "gains": {name: values.get(name) for name in GAINS[device]},
+        "gains": {name: values.get(name) for name in law.gain_names},
         "ranges": ranges,
         "model": None,
         "problem": None,
@@ -134,22 +130,11 @@ async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str,
         "targets": {name: t.to_dict() for name, t in PRESETS.items()},
         "proposal": _proposal_gains(request, axis_id),
     }
-    if device == "slap2":
-        out["verify"] = {
-            "kind": "position_step",
-            "velocity_counts_s": VELOCITY_MAX * COUNTS_S_PER_SV,
-            "acceleration_counts_s2": ACCELERATION_MAX * COUNTS_S2_PER_SA,
-        }
-    else:
-        out["verify"] = {
-            "kind": "move",
-            "velocity_counts_s": float(values.get("vmax", 0)),
-            "acceleration_counts_s2": float(values.get("acc", 0)),
-        }
+    out["verify"] = law.verify_profile(values).to_dict()
     try:
-        plant = plant_from_identification(device, identified_model(request, axis_id))
+        plant = plant_from_identification(law, identified_model(request, axis_id))
     except ValueError as exc:
         out["problem"] = str(exc)
         return out
-    out["model"] = await asyncio.to_thread(browser_model, device, plant, values)
+    out["model"] = await asyncio.to_thread(browser_model, law, plant, values)
     return out

@@ -5,8 +5,8 @@ the gains in the write (with the axis' other gains as they are) make the auto-tu
 identified plant unstable under the device's exact law (``tuning.predicted``, in the
 compute worker), the write answers 409 naming ``confirm_unstable`` and nothing is sent;
 the same request with ``confirm_unstable=true`` writes. Also here: which parameters
-are a device's gains, and the identified model of an axis (used by the what-if and
-frequency-response routes).
+are a device's gains (its law's), and the identified model of an axis (used by the
+what-if and frequency-response routes).
 """
 
 from __future__ import annotations
@@ -20,12 +20,14 @@ from servotune.autotune.service import AutoTuner
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub
 from servotune.link.base import ConfirmationRequiredError, DriverError
+from servotune.tuning.law import DeviceLaw, DeviceLaws
 from servotune.tuning.predicted import unstable_reason
 
-GAINS: dict[str, tuple[str, ...]] = {
-    "slap2": ("kp", "ki", "kd"),
-    "z1100": ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b"),
-}
+
+def device_law(request: Request, device: str) -> DeviceLaw | None:
+    """The controller law of ``device`` (the app's registry); None: it has none."""
+    laws: DeviceLaws = request.app.state.devices
+    return laws.law(device)
 
 
 def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
@@ -48,8 +50,9 @@ async def check_predicted_stable(
     judge without an identification or without gains among ``values``."""
     hub: Hub = request.app.state.hub
     entry = hub.entry(axis_id)
-    names = GAINS.get(entry.info.device, ())
-    if confirmed or not any(name in values for name in names):
+    law = device_law(request, entry.info.device)
+    names = law.gain_names if law is not None else ()
+    if law is None or confirmed or not any(name in values for name in names):
         return
     model = identified_model(request, axis_id)
     if not model:
@@ -58,7 +61,7 @@ async def check_predicted_stable(
     gains.update({n: int(values[n]) for n in names if isinstance(values.get(n), int)})
     compute: ComputePool = request.app.state.compute
     try:
-        why = await compute.run(unstable_reason, entry.info.device, model, gains)
+        why = await compute.run(unstable_reason, law, model, gains)
     except ValueError:
         return  # an identified model that describes no such plant: nothing predicted
     if why:

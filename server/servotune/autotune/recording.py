@@ -11,7 +11,6 @@ from typing import Any
 
 from servotune.bench.runner import _Recording, run_meta
 from servotune.bench.service import TestBench
-from servotune.devices.slap2.law import STAIRCASE_START_PWM
 from servotune.hub.state import AxisEntry
 from servotune.link.base import BenchPlan, DeviceRefusedError, capture_of
 
@@ -26,12 +25,15 @@ class IdentificationRun:
     purpose, in one place: the candidate for a ``TestBench.record()`` method.
     """
 
-    def __init__(self, bench: TestBench, entry: AxisEntry, p0: float, max_pwm: int) -> None:
+    def __init__(
+        self, bench: TestBench, entry: AxisEntry, p0: float, max_pwm: int, start_pwm: int
+    ) -> None:
+        """``start_pwm``: the staircase's first step (the recording's trigger)."""
         self.bench = bench
         self.entry = entry
         plan = BenchPlan(
             setup=[],
-            trigger=[("open_loop_pwm", {"pwm": STAIRCASE_START_PWM})],
+            trigger=[("open_loop_pwm", {"pwm": start_pwm})],
             finish=[("open_loop_pwm", {"pwm": 0}), ("stop", {})],
             response="position",
             y0=p0,

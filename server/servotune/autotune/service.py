@@ -4,8 +4,9 @@ identify -> propose -> (accept) -> verify, the same API and response shapes for 
 device (docs/autotune.md). What is common lives here: the per-axis session and lock,
 the stop generation, refusals of state, the failure paths (stop the axis, return it
 to its start, put the previous gains back, say everything). What differs per device
-(excitation, fit, rule, writes) is a ``DeviceTuner``: ``Slap2Tuner`` and
-``Z1100Tuner``. Imports run one way: service -> tuners -> context/core.
+(excitation, fit, rule, writes) is a ``DeviceTuner`` (``devices/<name>/tuner.py``), which
+the registry gives (``Tuners``, injected by the app). Imports run one way: the device
+tuners import context/core, never this module's users.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from typing import Any, Literal, Protocol
 
 from servotune.autotune.context import TuningContext
@@ -21,9 +22,6 @@ from servotune.autotune.recommend import Action, decision_record, decision_text,
 from servotune.autotune.session import IdentifyRequest, Session, SessionState
 from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
-from servotune.devices.slap2.tuner import Slap2Tuner
-from servotune.devices.z1100.link import Z1100Axis
-from servotune.devices.z1100.tuner import Z1100Tuner
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.hub.stops import Settled, gains_of
@@ -37,6 +35,7 @@ from servotune.link.base import (
     MeasurementError,
 )
 from servotune.storage import StorageError
+from servotune.tuning.law import DeviceLaw
 from servotune.tuning.predicted import unstable_reason
 
 
@@ -45,6 +44,16 @@ class DeviceTuner(Protocol):
 
     @property
     def identifying_message(self) -> str: ...
+
+    @property
+    def law(self) -> DeviceLaw:
+        """The device's controller law (the proposal's predicted stability)."""
+        ...
+
+    def accepts(self, entry: AxisEntry) -> bool:
+        """Whether this tuner can drive the axis of ``entry`` (its device's own driver,
+        not e.g. a rig's axis seen through the lab bus)."""
+        ...
 
     async def check_request(self, entry: AxisEntry, request: IdentifyRequest) -> int:
         """Refusals before anything moves (422/409); returns the test distance."""
@@ -81,8 +90,21 @@ class DeviceTuner(Protocol):
         ...
 
 
+class Tuners(Protocol):
+    """What the auto-tune needs of the registry."""
+
+    def tuner(self, device: str, ctx: TuningContext) -> DeviceTuner | None:
+        """A tuner for the axes of ``device``; None: it has none."""
+        ...
+
+    def tuned(self) -> Sequence[str]:
+        """The devices (titles) that have a tuner, for the refusal of the others."""
+        ...
+
+
 class AutoTuner:
-    """identify -> propose -> accept -> verify, one session per axis (SLAP2, Z1100).
+    """identify -> propose -> accept -> verify, one session per axis of a device that
+    has a tuner (``Tuners``).
 
     Everything that changes the device goes through the hub (``write_params``,
     ``command``) or the bench (recorded tests). Refusals (limits, wrong device, busy)
@@ -95,19 +117,19 @@ class AutoTuner:
         hub: Hub,
         bench: TestBench,
         *,
+        tuners: Tuners,
         clock: Callable[[], float] = time.monotonic,
         compute: ComputePool | None = None,
     ) -> None:
-        """``compute``: the app's worker process for the fits (a pool of its own if
-        none is given; its worker starts only when a fit runs)."""
+        """``tuners``: the devices' tuners (the registry); ``compute``: the app's worker
+        process for the fits (a pool of its own if none is given; its worker starts only
+        when a fit runs)."""
         self._hub = hub
         self._ctx = TuningContext(hub, bench, clock, compute or ComputePool())
         self._sessions: dict[str, Session] = {}
         self._locks: dict[str, asyncio.Lock] = {}
-        self._tuners: dict[str, DeviceTuner] = {
-            "slap2": Slap2Tuner(self._ctx),
-            "z1100": Z1100Tuner(self._ctx),
-        }
+        self._tuner_source = tuners
+        self._tuners: dict[str, DeviceTuner | None] = {}
 
     # --- queries ----------------------------------------------------------------------
 
@@ -123,11 +145,14 @@ class AutoTuner:
 
     def _check_device(self, axis_id: str) -> tuple[AxisEntry, DeviceTuner]:
         entry = self._hub.entry(axis_id)
-        if entry.info.device == "slap2":
-            return entry, self._tuners["slap2"]
-        if entry.info.device == "z1100" and isinstance(getattr(entry, "driver", None), Z1100Axis):
-            return entry, self._tuners["z1100"]
-        raise DeviceRefusedError("auto-tune supports SLAP2 so far (and Z1100 chip axes)")
+        device = entry.info.device
+        if device not in self._tuners:
+            self._tuners[device] = self._tuner_source.tuner(device, self._ctx)
+        tuner = self._tuners[device]
+        if tuner is None or not tuner.accepts(entry):
+            tuned = " and ".join(self._tuner_source.tuned())
+            raise DeviceRefusedError(f"auto-tune supports {tuned} axes so far")
+        return entry, tuner
 
     def _lock(self, axis_id: str) -> asyncio.Lock:
         lock = self._locks.get(axis_id)
@@ -253,8 +278,7 @@ class AutoTuner:
         self._ctx.check_idle(entry)
         gains = (session.proposal_dict or {}).get("gains")
         if not confirm_unstable and gains and session.model:
-            device = entry.info.device
-            why = await self._ctx.compute.run(unstable_reason, device, session.model, gains)
+            why = await self._ctx.compute.run(unstable_reason, tuner.law, session.model, gains)
             if why:
                 raise ConfirmationRequiredError(
                     "confirm_unstable",

@@ -17,7 +17,7 @@
   law (``tuning.whatif``), stored as a run like any other and labelled model-based.
 
 Which devices inject is per device: ``tuning.law.DeviceLaw.injection`` (the
-SLAP2's ``tuning.injection.Slap2Injection``; None for the Z1100, model-based). The
+SLAP2's ``devices/slap2/injection.py``; None for the Z1100, model-based). The
 injection's ``WirePlan`` places tones only where the wire's sample rate resolves them:
 the rest of a requested band is listed as ``not_measured_hz`` with the reason. The
 planning logic lives here so that the drivers only list the kind.
@@ -27,17 +27,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.link.base import BenchPlan, DeviceRefusedError, InvalidArgumentError, Sample
 from servotune.tuning import frfrun, injection
+from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.frfrun import Excitation
 from servotune.tuning.injection import Injection
-from servotune.tuning.law import law_for
+from servotune.tuning.law import DeviceLaw
 from servotune.tuning.targets import MarginTarget, margin_report, target_for
 from servotune.tuning.whatif import loop_for, model_summary, plant_from_identification
 
@@ -46,18 +46,15 @@ LOW_HZ_RANGE = (0.2, 20.0)
 HIGH_HZ_MAX = 200.0
 
 
-def injection_for(device: str) -> Injection | None:
-    """How ``device`` takes an excitation on its wire; None: its frequency response is
-    model-based (or it has no controller law at all)."""
-    try:
-        return law_for(device).injection
-    except ValueError:
-        return None
+def injection_for(law: DeviceLaw | None) -> Injection | None:
+    """How the device of ``law`` takes an excitation on its wire; None: its frequency
+    response is model-based (or it has no controller law at all: ``law`` None)."""
+    return law.injection if law is not None else None
 
 
-def measured(device: str) -> bool:
-    """Whether a frequency response of ``device`` is measured (it can inject)."""
-    return injection_for(device) is not None
+def measured(law: DeviceLaw | None) -> bool:
+    """Whether a frequency response of the device of ``law`` is measured (it can inject)."""
+    return injection_for(law) is not None
 
 
 def wire_band(
@@ -84,6 +81,7 @@ def wire_band(
 
 def check_request(
     device: str,
+    inject: Injection | None,
     amplitude: int,
     low_hz: float,
     high_hz: float,
@@ -103,8 +101,7 @@ def check_request(
     set on both sides (``window``: the bench's min/max_position_counts) and
     ``confirm_open_loop`` true — the motor runs without position control. A band
     entirely above what the wire at ``baud`` resolves: 422 naming low_hz
-    (``wire_band``)."""
-    inject = injection_for(device)
+    (``wire_band``). ``inject``: the device's (``injection_for``)."""
     if inject is None:
         if loop != "closed":
             raise InvalidArgumentError(
@@ -266,11 +263,13 @@ def model_grid_hz(low_hz: float, period_s: float, count: int = 400) -> np.ndarra
 
 
 def analyse_run(
+    law: DeviceLaw | None,
     run: Mapping[str, Any],
     identified: Mapping[str, Any] | None,
     preset: str | None = None,
 ) -> dict[str, Any]:
-    """Everything the Bode view shows for one stored run (runs in the compute worker).
+    """Everything the Bode view shows for one stored run (runs in the compute worker),
+    ``law`` the controller law of the run's device (None: it has none).
 
     ``measured``: from the samples (SLAP2 runs); ``model``: the identified plant under
     the exact law with the run's gains (``identified`` is the auto-tune's model, or the
@@ -286,7 +285,7 @@ def analyse_run(
     out: dict[str, Any] = {
         "run_id": run.get("id"),
         "device": device,
-        "model_based": not measured(device),
+        "model_based": not measured(law),
         "loop": str(test.get("loop") or "closed"),
         "low_hz": low,
         "high_hz": high,
@@ -303,6 +302,9 @@ def analyse_run(
         isp = columns.index("setpoint") if "setpoint" in columns else None
         spans = _sample_spans(excitation, [r[0] for r in rows])
         try:
+            inject = injection_for(law)
+            if inject is None:
+                raise ValueError(f"a {device} run cannot be measured: it takes no injection")
             if test.get("loop") == "open":
                 out["measured"] = frfrun.analyse_open(
                     [r[0] for r in rows],
@@ -310,7 +312,8 @@ def analyse_run(
                     excitation.get("sent", []),
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
-                    _gains(run),
+                    _controller(law, run),
+                    tick_s=inject.tick_s,
                     sample_spans_s=spans,
                 )
             else:
@@ -321,7 +324,7 @@ def analyse_run(
                     excitation.get("sent", []),
                     float(run.get("t0_s") or 0.0),
                     Excitation.from_dict(excitation),
-                    profile=_test_profile(run),
+                    inject.input_model((run.get("plan") or {}).get("overrides") or {}),
                     sample_spans_s=spans,
                 )
         except ValueError as exc:
@@ -330,12 +333,14 @@ def analyse_run(
             out["measured"]["margins"] = out["measured"]["margins"] | measured_target(
                 out["measured"]["margins"], target
             )
-    elif measured(device):
+    elif measured(law):
         out["measured_problem"] = "the run recorded no excitation"
     model = run.get("plant_model") or identified
     try:
-        plant = plant_from_identification(device, model)
-        loop = loop_for(device, plant, run.get("params") or {})
+        if law is None:
+            raise ValueError(f"no controller law for {device}")
+        plant = plant_from_identification(law, model)
+        loop = loop_for(law, plant, run.get("params") or {})
         summary = model_summary(loop, model_grid_hz(low, loop.period_s))
         summary["margins"] = margin_report(loop.margins(), target)
         out["model"] = summary | {
@@ -344,7 +349,7 @@ def analyse_run(
                 "tau_s": plant.tau_s,
                 "source": plant.source,
             },
-            "law": "KABD (hold) gains" if device == "z1100" else "PID at 841.5 us",
+            "law": law.description,
         }
     except (ValueError, KeyError) as exc:
         out["model_problem"] = (
@@ -384,24 +389,26 @@ def measured_target(margins: Mapping[str, Any], target: MarginTarget) -> dict[st
     return {"target": target.to_dict(), "meets_target": meets, "warning": warning}
 
 
-def _gains(run: Mapping[str, Any]) -> tuple[int, int, int] | None:
+def _controller(
+    law: DeviceLaw | None, run: Mapping[str, Any]
+) -> Callable[[FloatArray], ComplexArray] | None:
+    """The law with the run's gains, as ``frfrun.analyse_open`` closes the loop; None
+    when the run did not record its gains (or the law has no error-only controller)."""
     params = run.get("params") or {}
+    if law is None:
+        return None
     try:
-        return int(params["kp"]), int(params["ki"]), int(params["kd"])
+        gains = {name: int(params[name]) for name in law.gain_names}
     except (KeyError, TypeError, ValueError):
         return None
 
+    def controller(frequency_hz: FloatArray) -> ComplexArray:
+        response = law.controller_response(frequency_hz, gains)
+        if response is None:
+            raise ValueError(f"the {law.device} law has no error-only controller to close")
+        return response
 
-def _test_profile(run: Mapping[str, Any]) -> tuple[int, int] | None:
-    """The sv/sa the SLAP2 ran the test with (the plan's overrides; runs from before
-    they were recorded: the maximum the plan always sets)."""
-    if str(run.get("device", "")) != "slap2":
-        return None
-    overrides = (run.get("plan") or {}).get("overrides") or {}
-    return (
-        int(overrides.get("velocity", VELOCITY_MAX)),
-        int(overrides.get("acceleration", ACCELERATION_MAX)),
-    )
+    return controller
 
 
 def _json_safe(value: Any) -> Any:

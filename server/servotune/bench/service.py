@@ -60,6 +60,7 @@ from servotune.link.validation import validate_command, validate_params
 from servotune.schema import StorageStatus
 from servotune.storage import Storage, StorageError
 from servotune.tuning.frfrun import Excitation
+from servotune.tuning.law import DeviceLaws
 
 logger = logging.getLogger(__name__)
 
@@ -110,9 +111,14 @@ class TestBench(BenchRunner):
 
     __test__ = False  # not a pytest class
 
-    def __init__(self, hub: Hub, storage: Storage, clock: Any = time.monotonic) -> None:
+    def __init__(
+        self, hub: Hub, storage: Storage, laws: DeviceLaws, clock: Any = time.monotonic
+    ) -> None:
+        """``laws``: the devices' controller laws (the registry): which axes take a
+        measured frequency response, and the model of the others."""
         self._hub = hub
         self._storage = storage
+        self.laws = laws
         self._clock = clock
         self._active: dict[str, _Recording] = {}
         self._claimed: set[str] = set()
@@ -246,8 +252,10 @@ class TestBench(BenchRunner):
         limits = await self.limits(axis_id)
         self._check_limits(request, limits)
         if request.kind == frfbench.KIND:
+            inject = frfbench.injection_for(self.laws.law(entry.info.device))
             frfbench.check_request(
                 entry.info.device,
+                inject,
                 request.amplitude,
                 request.low_hz,
                 request.high_hz,
@@ -260,7 +268,7 @@ class TestBench(BenchRunner):
                 window=(limits.min_position_counts, limits.max_position_counts),
                 baud=entry.link.baud,
             )
-            if not frfbench.measured(entry.info.device) and not identified:
+            if inject is None and not identified:
                 raise DeviceRefusedError(
                     f"a {entry.info.device} frequency response is model-based: identify the "
                     "plant first (auto-tune, Identify)"
@@ -298,7 +306,7 @@ class TestBench(BenchRunner):
         )
         excitation: Excitation | None = None
         model_based = False
-        inject = frfbench.injection_for(entry.info.device)
+        inject = frfbench.injection_for(self.laws.law(entry.info.device))
         if test.kind == frfbench.KIND:
             if inject is not None and request.loop == "open":
                 plan, excitation = frfbench.plan_open(

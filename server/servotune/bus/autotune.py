@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any, Final
 
-from servotune.autotune.service import AutoTuner
+from servotune.autotune.service import AutoTuner, Tuners
 from servotune.autotune.session import IdentifyRequest, Session
 from servotune.bench.service import TestBench
 from servotune.bus import subjects
@@ -38,8 +38,10 @@ AUTOTUNE_TIMEOUT_S: Final = 120.0
 class HubAutoTuner(AutoTuner):
     """``AutoTuner`` for the hub: a rig's axis is tuned by the rig; others as usual."""
 
-    def __init__(self, hub: Hub, bench: TestBench, *, compute: ComputePool | None = None) -> None:
-        super().__init__(hub, bench, compute=compute)
+    def __init__(
+        self, hub: Hub, bench: TestBench, *, tuners: Tuners, compute: ComputePool | None = None
+    ) -> None:
+        super().__init__(hub, bench, tuners=tuners, compute=compute)
         # The session each rig sent with its last auto-tune reply, by the hub's axis id.
         self._remote_sessions: dict[str, dict[str, Any]] = {}
 

@@ -10,8 +10,8 @@ the SLAP2's host algorithm (the manual's "sstring") waits for each character's e
 before it sends the next, and the Z1100 host sends a request when the previous reply
 is in, so every such turn costs a pty hop each way, two processes' wake-ups and the
 simulator's timer on top of the wire time. The benchmark prints that cost per turn
-(``turns_per_sample``), so a figure below the target can be told apart from
-characters lost or wasted on the wire.
+(``registry.PollSet.turns_per_sample``, from the device's entry), so a figure below the
+target can be told apart from characters lost or wasted on the wire.
 """
 
 from __future__ import annotations
@@ -27,12 +27,11 @@ from collections import defaultdict
 from collections.abc import Callable, Coroutine, Mapping
 from typing import Any
 
-from servotune.config import DEFAULT_BAUD, LinkSpec
-from servotune.devices.slap2.link import Slap2Link
-from servotune.devices.z1100.link import Z1100Link
+from servotune.config import LinkSpec
+from servotune.devices import default_registry
 from servotune.link.base import Sample
 from servotune.link.engine import LinkEngine
-from servotune.links import build_link
+from servotune.registry import PollSet, Registry
 from servotune.schema import AxisHealth, EventLevel, LinkState
 
 
@@ -67,29 +66,11 @@ class _CountingSink:
         pass
 
 
-def turns_per_sample(link: LinkEngine) -> float:
-    """Host/device turns per poll cycle, i.e. per telemetry sample of each axis: every
-    character the SLAP2 host sends waits for its echo (the reply follows the CR's echo
-    without a turn), for every module on the line; every Z1100 transaction is one."""
-    if isinstance(link, Slap2Link):
-        turns = float(sum(len(m) + 1 for m in link.config.poll_commands))
-        if link.config.rve_every:
-            turns += 4 / link.config.rve_every
-        modules = len(link.config.addresses)
-        if modules > 1:
-            turns += len("se0") + 1
-        return turns * modules
-    if isinstance(link, Z1100Link):
-        # GetEncoder + GetError of three motors, three status reads every status_every
-        return 6.0 + 3.0 / link.config.status_every
-    return 0.0
-
-
 async def _measure(
-    device: str, path: str, baud: int, addresses: list[int], duration_s: float
+    devices: Registry, device: str, path: str, baud: int, addresses: list[int], duration_s: float
 ) -> int:
     sink = _CountingSink()
-    link = build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
+    link = devices.build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
     assert isinstance(link, LinkEngine)
     task = asyncio.create_task(link.run())
     try:
@@ -104,18 +85,11 @@ async def _measure(
             samples.clear()
         await asyncio.sleep(duration_s)
         wire_limit_hz = link.wire_limit_hz()
-        if isinstance(link, Slap2Link):
-            poll_set = "+".join(link.config.poll_commands)
-            print(
-                f"SLAP2 {baud} baud, {len(addresses)} module(s) on one line, poll set "
-                f"{poll_set} (+rve every {link.config.rve_every}th cycle)"
-            )
-        elif isinstance(link, Z1100Link):
-            print(
-                f"Z1100 {baud} baud, 3 axes, poll set GetEncoder+GetError per axis "
-                f"(+GetStart, GetStop, GetSwitch every {link.config.status_every}th cycle), "
-                "13 bytes per transaction"
-            )
+        simulator = devices.get(device).simulator
+        describe = simulator.poll_set if simulator is not None else None
+        poll_set = describe(link) if describe is not None else PollSet("", 0.0)
+        if poll_set.description:
+            print(poll_set.description)
         print(f"wire limit for this poll set: {wire_limit_hz:.1f} samples/s per axis")
         ratios = []
         for axis_id, times in sorted(sink.samples.items()):
@@ -127,8 +101,8 @@ async def _measure(
             ratio = rate_hz / wire_limit_hz
             ratios.append(ratio)
             print(f"  {axis_id}: {rate_hz:6.1f} samples/s = {ratio:6.1%} of the wire limit")
-        if ratios and min(ratios) > 0:
-            turns = turns_per_sample(link)
+        if ratios and min(ratios) > 0 and poll_set.turns_per_sample > 0:
+            turns = poll_set.turns_per_sample
             lost_s = 1 / (min(ratios) * wire_limit_hz) - 1 / wire_limit_hz
             print(
                 f"time per sample beyond the wire (worst axis): {lost_s * 1e3:.2f} ms = "
@@ -145,9 +119,11 @@ async def _measure(
 
 def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s: float) -> int:
     """Start the simulator process, measure, print, clean up. Returns an exit code."""
-    baud = baud or DEFAULT_BAUD[device]
-    if device == "z1100":
-        addresses = [0, 1, 2]
+    devices = default_registry()
+    rules = devices.link_rules(device)
+    baud = baud or rules.default_baud or 0
+    if rules.addressing == "fixed":
+        addresses = list(rules.fixed_addresses)
     command = [
         sys.executable,
         "-m",
@@ -176,7 +152,7 @@ def run_bench(*, device: str, baud: int | None, addresses: list[int], duration_s
         except ImportError:
             runner, loop_name = asyncio.run, "asyncio"
         print(f"event loop: {loop_name}")
-        return runner(_measure(device, path, baud, addresses, duration_s))
+        return runner(_measure(devices, device, path, baud, addresses, duration_s))
     finally:
         process.send_signal(signal.SIGTERM)
         try:

@@ -33,15 +33,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, Literal
 
-from servotune.config import SIMULATED_NIC, LinkSpec
-from servotune.demo import SLAP2_LOADED, Z1100_LOADS_KG_M2, _z1100_flash
+from servotune.config import LinkSpec
+from servotune.devices import default_registry
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.devices.z1100.sim.servo import AxisHardware
 from servotune.hub.hub import Hub
 from servotune.link.base import Sample
-from servotune.links import build_link
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.storage import Storage
@@ -163,7 +164,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Ca
         powered = lambda: bool(module.rss & 0b1100)  # noqa: E731 - pm or vm
     elif case.device == "z1100":
         flash = data_dir / "z1100_flash.json"
-        _z1100_flash(flash)
+        write_demo_flash(flash)
         chip = Z1100Chip(
             [
                 AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
@@ -183,14 +184,14 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Ca
         points = trace.points
         powered = lambda: bool(chip.axis_state(address).powered)  # noqa: E731
     else:
-        spec = LinkSpec("ep7047", SIMULATED_NIC, "bench", 0, [1])
+        spec = LinkSpec("ep7047", "sim", "bench", 0, [1])  # the simulated slave in-process
         powered = lambda: False  # noqa: E731 - replaced below
     if simulator is not None:
         simulator.start()
         spec = dataclasses.replace(spec, path=simulator.path)
     storage = Storage(data_dir / "servotune.db")
     hub = Hub([], storage)
-    hub.add_link(build_link(spec, hub))
+    hub.add_link(default_registry().build_link(spec, hub))
     if case.device == "ep7047":
 
         def listen(axis_id: str, sample: Sample) -> None:

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import json
 import logging
 import multiprocessing
@@ -62,6 +63,11 @@ REQUEST_TIMEOUT_S = 10.0
 _PR_SET_NAME = 15  # linux/prctl.h
 
 Handler = Callable[..., Any]
+
+
+def record_path(state_dir: Path, name: str) -> Path:
+    """Where the simulator ``name`` of the demo writes its record in ``state_dir``."""
+    return state_dir / f"{name}-record.json"
 
 
 class SimProcessError(RuntimeError):
@@ -204,6 +210,22 @@ def serial_sim_process(spec: SerialSimSpec) -> Iterator[SimProcess]:
     """A serial simulator in its own process; ``process.ready["path"]`` is its pty."""
     with SimProcess(spec.name, serve_serial, spec) as process:
         yield process
+
+
+def demo_serial_process(
+    name: str,
+    build: Callable[[Path], SimDevice],
+    baud: int,
+    record: Callable[[Any], dict[str, Any]],
+    state_dir: Path,
+) -> contextlib.AbstractContextManager[SimProcess]:
+    """The demo's serial simulator ``name``: ``build(state_dir)`` (a module-level
+    function) on a pty at ``baud`` in a child process, its record at
+    ``record_path(state_dir, name)``."""
+    spec = SerialSimSpec(
+        name, functools.partial(build, state_dir), baud, record, record_path(state_dir, name)
+    )
+    return serial_sim_process(spec)
 
 
 # --- the child side -------------------------------------------------------------------

@@ -45,7 +45,6 @@ from pathlib import Path
 from types import FrameType, TracebackType
 from typing import TypeVar, cast
 
-from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.sim.base import PowerCyclable, SimDevice
 
 logger = logging.getLogger(__name__)
@@ -478,18 +477,3 @@ def run_pty_simulator(
         simulator.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-def serve_slap2(
-    addresses: list[int], baud: int, state_dir: Path | None, link_path: str | None
-) -> None:
-    """``servotune sim slap2``: modules at ``addresses`` on one pty line.
-
-    ``state_dir`` holds one EEPROM file per module (``slap2_<address>.json``); without
-    it the EEPROMs live in memory. Blocks until SIGINT/SIGTERM (see
-    ``run_pty_simulator``).
-    """
-    if state_dir is not None:
-        state_dir.mkdir(parents=True, exist_ok=True)
-    bus = Slap2Bus.with_addresses(addresses, state_dir=state_dir)
-    run_pty_simulator(bus, baud=baud, link_path=link_path)

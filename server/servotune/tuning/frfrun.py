@@ -35,14 +35,13 @@ measurable: near T = 1 the division amplifies T's error (``measured_margins``).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from servotune.devices.slap2.profile import TICK_S, TrapezoidGenerator
 from servotune.tuning import frftrust
 from servotune.tuning.frf import (
     ComplexArray,
@@ -52,6 +51,7 @@ from servotune.tuning.frf import (
     tone_fit,
     usable_run,
 )
+from servotune.tuning.injection import HeldTargets, InputModel, SetpointGenerator
 from servotune.tuning.whatif import bode_dict, margins_dict
 
 MAX_TONES = 24
@@ -181,24 +181,19 @@ def rebuild_input(
     sent: Sequence[Sequence[float]],
     t0_s: float,
     y0: float,
-    profile: tuple[int, int] | None,
+    model: InputModel,
     t_end_s: float,
 ) -> tuple[FloatArray, FloatArray]:
-    """The loop's input (the position setpoint) on the controller's tick grid, from
-    the targets sent: ``(t_s, setpoint)`` with t from ``t0_s``.
+    """The loop's input (the position setpoint) on the controller's tick grid
+    (``model.tick_s``), from the targets sent: ``(t_s, setpoint)`` with t from ``t0_s``.
 
     Each row of ``sent`` is ``[acknowledged, target]`` or ``[acknowledged, target,
     latched, ...]``; a target takes effect at the first tick after its latch time (the
-    acknowledgement when the latch is unknown). With ``profile = (sv, sa)`` (wire
-    units, the test's overrides) the setpoint follows the firmware's trapezoid law
-    (``servotune.devices.slap2.profile``): at the SLAP2's maximum sv/sa a 50-count jump still takes
-    about 10 ticks (8 ms), a delay the response must not be blamed for. Without it
-    the targets are held (a device whose setpoint jumps)."""
-    rebuild = InputRebuild(sent, t0_s, y0, profile, t_end_s)
+    acknowledgement when the latch is unknown), and the input follows it as ``model``
+    says: through the device's profile generator (the injection's ``input_model``), or
+    held (``tuning.injection.HeldTargets``)."""
+    rebuild = InputRebuild(sent, t0_s, y0, model, t_end_s)
     return rebuild.t, rebuild.u
-
-
-_State = tuple[float, float, float, float, float, bool]  # the generator's fields
 
 
 class InputRebuild:
@@ -211,7 +206,7 @@ class InputRebuild:
         sent: Sequence[Sequence[float]],
         t0_s: float,
         y0: float,
-        profile: tuple[int, int] | None,
+        model: InputModel,
         t_end_s: float,
     ) -> None:
         latched = [float(r[2] if len(r) > 2 else r[0]) - t0_s for r in sent]
@@ -219,54 +214,39 @@ class InputRebuild:
             raise ValueError("no excitation was sent")
         self._targets = [float(r[1]) for r in sent]
         self._latched = latched
-        self._profile = profile
+        self._model = model
         self._y0 = y0
         start = min(min(latched), 0.0)
-        n = int((t_end_s - start) / TICK_S) + 2
-        self.t = np.asarray(start + np.arange(n) * TICK_S, dtype=np.float64)
+        tick_s = model.tick_s
+        n = int((t_end_s - start) / tick_s) + 2
+        self.t = np.asarray(start + np.arange(n) * tick_s, dtype=np.float64)
         self.u = np.empty(n)
-        self._states: list[_State] = []
+        self._states: list[Hashable] = []
         order = sorted(range(len(latched)), key=lambda i: latched[i])
-        self._play(order, 0, self._initial(), 0, self.u, self._states, None)
-
-    def _initial(self) -> _State:
-        return (self._y0, self._y0, 1.0, 1.0, 0.0, False)
+        self._play(order, 0, model.start(y0), 0, self.u, self._states, None)
 
     def _play(
         self,
         order: list[int],
         i0: int,
-        state: _State,
+        generator: SetpointGenerator,
         j0: int,
         out: FloatArray,
-        states: list[_State] | None,
+        states: list[Hashable] | None,
         settle_after: int | None,
     ) -> int:
-        """Run ticks from ``i0`` (generator ``state``, rows ``order[j0:]`` still to
-        come) into ``out``; with ``settle_after``, stop once past that tick the state
-        equals the recorded one. Returns the first tick not written."""
-        profile = self._profile
+        """Run ticks from ``i0`` (``generator`` in the state before it, rows
+        ``order[j0:]`` still to come) into ``out``; with ``settle_after``, stop once past
+        that tick the state equals the recorded one. Returns the first tick not written."""
         t, latched, targets = self.t, self._latched, self._targets
-        setpoint, target, vmax, acc, velocity, moving = state
-        generator = TrapezoidGenerator(setpoint, target, vmax, acc, velocity, moving)
+        step, state = generator.step, generator.state
         j = j0
         for i in range(i0, t.size):
             while j < len(order) and latched[order[j]] <= t[i]:
-                value = targets[order[j]]
-                if profile is not None:
-                    generator.replan(value, *profile)
-                else:
-                    generator = TrapezoidGenerator(value, value, 1.0, 1.0, 0.0, False)
+                generator.retarget(targets[order[j]])
                 j += 1
-            out[i] = generator.step()
-            now = (
-                generator.setpoint,
-                generator.target,
-                generator.vmax,
-                generator.acceleration,
-                generator.velocity,
-                generator.moving,
-            )
+            out[i] = step()
+            now = state()
             if states is not None:
                 states.append(now)
             elif settle_after is not None and i > settle_after and now == self._states[i]:
@@ -279,7 +259,8 @@ class InputRebuild:
         old, latched[index] = latched[index], latched_s
         first = min(old, latched_s)
         i0 = max(0, int(np.searchsorted(self.t, first, side="left")) - 1)
-        state = self._states[i0 - 1] if i0 > 0 else self._initial()
+        model = self._model
+        generator = model.resume(self._states[i0 - 1]) if i0 > 0 else model.start(self._y0)
         saved = self._latched
         self._latched = latched
         try:
@@ -288,7 +269,7 @@ class InputRebuild:
             j0 = sum(1 for i in order if latched[i] <= t_before)
             out = self.u.copy()
             last = int(np.searchsorted(self.t, max(old, latched_s), side="right"))
-            self._play(order, i0, state, j0, out, None, last)
+            self._play(order, i0, generator, j0, out, None, last)
         finally:
             self._latched = saved
         return out
@@ -387,6 +368,7 @@ def _impulse_estimate(
     start: float,
     period_s: float,
     periods: int,
+    tick_s: float,
 ) -> tuple[ComplexArray, FloatArray]:
     """The closed loop at the tones from an impulse response fitted at the sample
     times against the input on the tick grid (``tuning.frf.impulse_fit``, see there
@@ -395,14 +377,14 @@ def _impulse_estimate(
     lead = IMPULSE_TAPS * IMPULSE_BOX_TICKS
     # the input before the grid: the first value held (the position the test held)
     u = np.concatenate([np.full(lead, u_ticks[0]), u_ticks])
-    grid_t0 = float(tick_t[0]) - lead * TICK_S
+    grid_t0 = float(tick_t[0]) - lead * tick_s
 
     def fit(t: FloatArray, y: FloatArray) -> ImpulseFit:
         return impulse_fit(
             t,
             y,
             grid_t0,
-            TICK_S,
+            tick_s,
             u,
             taps=IMPULSE_TAPS,
             box_steps=IMPULSE_BOX_TICKS,
@@ -432,7 +414,7 @@ def _measure(
     sent: Sequence[Sequence[float]],
     t0_s: float,
     excitation: Excitation,
-    profile: tuple[int, int] | None,
+    model: InputModel,
     *,
     differenced: bool = False,
     estimator: str = "tones",
@@ -478,7 +460,8 @@ def _measure(
     kept_t = t[keep]
     rate_measured = float(1.0 / np.median(np.diff(kept_t))) if kept_t.size > 1 else 0.0
     tones = np.asarray(excitation.tones_hz, dtype=np.float64)
-    rebuild = InputRebuild(sent, t0_s, excitation.y0, profile, end + TICK_S)
+    tick_s = model.tick_s
+    rebuild = InputRebuild(sent, t0_s, excitation.y0, model, end + tick_s)
     tick_t, u_ticks = rebuild.t, rebuild.u
     on_ticks = (tick_t >= start) & (tick_t < end)
     t_mid = 0.5 * (start + end)
@@ -488,7 +471,7 @@ def _measure(
     ) -> tuple[ComplexArray, FloatArray]:
         if estimator == "impulse":
             return _impulse_estimate(
-                t_k, y_k, ticks, u, tones, start, excitation.period_s, jackknife
+                t_k, y_k, ticks, u, tones, start, excitation.period_s, jackknife, tick_s
             )
         on = (ticks >= start) & (ticks < end)
         return _tone_estimate(
@@ -520,12 +503,12 @@ def _measure(
         return estimate(tick_t, u, 1)[0], u
 
     # only targets that reach the analysed samples matter
-    reach = IMPULSE_TAPS * IMPULSE_BOX_TICKS * TICK_S if estimator == "impulse" else 0.0
+    reach = IMPULSE_TAPS * IMPULSE_BOX_TICKS * tick_s if estimator == "impulse" else 0.0
     relevant = (latched >= start - reach - excitation.period_s) & (latched < end)
     stall_bias, stalled_targets, input_unknown = frftrust.command_stall_bias(
         latched, np.where(relevant, command_spans, 0.0), respond, response, t_k, tick_t, u_ticks
     )
-    timing = frftrust.timing_s(spans[use], command_spans[relevant])
+    timing = frftrust.timing_s(spans[use], command_spans[relevant], tick_s)
     random = _nan_inf(fit_error)
     input_amplitude = tone_fit(tick_t[on_ticks], u_ticks[on_ticks], tones, t_mid).amplitude
     # where a stalled target leaves the input unknown, neither the check nor the
@@ -533,7 +516,7 @@ def _measure(
     known = ~input_unknown
     sp = frftrust.nan_array(setpoint, t.size)[use]
     check = frftrust.input_check(
-        t_k[known], sp[known], tick_t, u_ticks, tones, t_mid, input_amplitude
+        t_k[known], sp[known], tick_t, u_ticks, tones, t_mid, input_amplitude, tick_s
     )
     coherence = frftrust.period_coherence(
         t_k[known],
@@ -625,7 +608,7 @@ def analyse(
     sent: Sequence[Sequence[float]],
     t0_s: float,
     excitation: Excitation,
-    profile: tuple[int, int] | None = None,
+    model: InputModel,
     *,
     estimator: str = "impulse",
     sample_spans_s: Sequence[float | None] | None = None,
@@ -652,7 +635,7 @@ def analyse(
         sent,
         t0_s,
         excitation,
-        profile,
+        model,
         estimator=estimator,
         sample_spans_s=sample_spans_s,
     )
@@ -664,19 +647,10 @@ def analyse(
         "open_loop": open_loop["bode"],
         "nyquist": open_loop["nyquist"],
         "margins": open_loop["margins"],
-        "input": "profile" if profile else "targets",
+        "input": model.name,
         **common,
         **_bandwidth(m.tones_hz[good], np.abs(m.response[good])),
     }
-
-
-def slap2_controller(frequency_hz: FloatArray, kp: int, ki: int, kd: int) -> ComplexArray:
-    """The SLAP2 PID at ``z = e^{jwT}`` (T = 841.5 us), error counts -> PWM: the
-    firmware arithmetic ``(16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096`` that
-    ``tuning.loops.slap2_loop_for`` models (and the simulator runs)."""
-    z = np.exp(2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) * TICK_S)
-    c = (16 * kp + ki * z / (z - 1) + 32 * kd * (1 - 1 / z)) / 4096
-    return np.asarray(c, dtype=np.complex128)
 
 
 def analyse_open(
@@ -685,16 +659,19 @@ def analyse_open(
     sent: Sequence[Sequence[float]],
     t0_s: float,
     excitation: Excitation,
-    gains: tuple[int, int, int] | None,
+    controller: Callable[[FloatArray], ComplexArray] | None,
     *,
+    tick_s: float,
     sample_spans_s: Sequence[float | None] | None = None,
 ) -> dict[str, Any]:
-    """An open-loop run (PWM through ``spwm``, no controller): the plant ``P`` =
-    position / PWM at the tones, measured; with the run's gains the loop the PID would
-    close, ``L = C P`` (C the firmware law, exact) and ``T = L / (1 + L)``, margins
-    from the tones where P is coherent. Here L's relative error is P's (C is exact),
-    so no tone is lost near T = 1; T's error is ``e_P / |1 + L|``. ValueError
-    without gains (a run that did not record them)."""
+    """An open-loop run (PWM held by the device between the values sent, on its tick
+    ``tick_s``, no controller): the plant ``P`` = position / PWM at the tones,
+    measured; with ``controller`` (the device's law with the run's gains at given
+    frequencies: ``DeviceLaw.controller_response``) the loop it would close,
+    ``L = C P`` (C exact) and ``T = L / (1 + L)``, margins from the tones where P is
+    coherent. Here L's relative error is P's (C is exact), so no tone is lost near
+    T = 1; T's error is ``e_P / |1 + L|``. ValueError without a controller (a run that
+    did not record its gains)."""
     # the position integrates the PWM: fitted on its increments (tone_fit)
     m = _measure(
         t_s,
@@ -703,16 +680,16 @@ def analyse_open(
         sent,
         t0_s,
         excitation,
-        None,
+        HeldTargets(tick_s),
         differenced=True,
         sample_spans_s=sample_spans_s,
     )
     common, good = _common(m, excitation)
     plant = _bode(m.tones_hz, m.response) | m.tone_fields()
     out: dict[str, Any] = {"loop": "open", "plant": plant, "input": "pwm", **common}
-    if gains is None:
+    if controller is None:
         raise ValueError("the run's PID gains are not recorded: no loop to close around the plant")
-    loop = slap2_controller(m.tones_hz, *gains) * m.response
+    loop = controller(m.tones_hz) * m.response
     closed = loop / (1.0 + loop)
     measurable = good & (ERROR_COVERAGE * m.relative_error <= MAX_LOOP_ERROR)
     with np.errstate(divide="ignore", invalid="ignore"):

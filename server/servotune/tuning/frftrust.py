@@ -50,7 +50,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from servotune.devices.slap2.profile import TICK_S
 from servotune.tuning.frf import ComplexArray, FloatArray, tone_fit
 
 # A latch estimate spanning more than this was stalled (a quiet host: 0.5-0.9 ms).
@@ -63,11 +62,6 @@ MAX_STALL_REFITS = 60
 # The capture's own check of its reconstruction allows 2 counts plus the profile's
 # motion in one tick either way (devices/slap2/capture.py); so does this one.
 CHECK_TOLERANCE_COUNTS = 2.0
-# The phase of the controller's tick against the host's stamps is unknown: half a
-# tick either way. (The simulator applies a target one tick sooner than the firmware
-# law the rebuild follows: measured on it, T leads by up to a tick more,
-# docs/frequency-response.md; the tests compare with that.)
-TIMING_UNCERTAINTY_S = TICK_S / 2
 TRUST_COVERAGE = 2.0
 MAX_TRUSTED_DB = 0.5
 MAX_TRUSTED_DEG = 5.0
@@ -107,15 +101,20 @@ def spans_from_gaps(sample_t: FloatArray, command_t: FloatArray) -> tuple[FloatA
     return spans[: sample_t.size], spans[sample_t.size :]
 
 
-def timing_s(sample_spans: FloatArray, command_spans_s: FloatArray) -> float:
-    """The timing uncertainty of the kept stamps: ``TIMING_UNCERTAINTY_S`` and half
-    the spread of their spans (stamps late by a common amount cancel in ``Y / U``;
-    what differs between them does not)."""
+def timing_s(sample_spans: FloatArray, command_spans_s: FloatArray, tick_s: float) -> float:
+    """The timing uncertainty of the kept stamps: half a controller tick ``tick_s`` and
+    half the spread of their spans (stamps late by a common amount cancel in ``Y / U``;
+    what differs between them does not).
+
+    Half a tick: the phase of the controller's tick against the host's stamps is
+    unknown, half a tick either way. (The SLAP2 simulator applies a target one tick
+    sooner than the firmware law the rebuild follows: measured on it, T leads by up to
+    a tick more, docs/frequency-response.md; the tests compare with that.)"""
     spans = np.concatenate([sample_spans, command_spans_s])
     kept = spans[spans <= STALL_SPAN_S]
     kept = kept[np.isfinite(kept)]
     spread = float(np.quantile(kept, 0.9)) if kept.size else 0.0
-    return TIMING_UNCERTAINTY_S + 0.5 * spread
+    return tick_s / 2 + 0.5 * spread
 
 
 def command_stall_bias(
@@ -177,15 +176,17 @@ def input_check(
     tones: FloatArray,
     t_ref: float,
     input_amplitude: ComplexArray,
+    tick_s: float,
 ) -> InputCheck:
-    """See the module docstring; no setpoint column: nothing checked (bias 0)."""
+    """See the module docstring (``tick_s``: the controller's tick, the grid of
+    ``tick_t``); no setpoint column: nothing checked (bias 0)."""
     ok = np.isfinite(setpoint_k)
     if not ok.any():
         return InputCheck(None, None, 0, np.zeros(tones.size))
     t = t_k[ok]
     rebuilt = np.interp(t, tick_t, u_ticks)
     difference = setpoint_k[ok] - rebuilt
-    motion = np.abs(np.interp(t + TICK_S, tick_t, u_ticks) - np.interp(t - TICK_S, tick_t, u_ticks))
+    motion = np.abs(np.interp(t + tick_s, tick_t, u_ticks) - np.interp(t - tick_s, tick_t, u_ticks))
     tolerance = CHECK_TOLERANCE_COUNTS + motion
     excess = np.sign(difference) * np.maximum(0.0, np.abs(difference) - tolerance)
     over = int(np.count_nonzero(excess))

@@ -11,10 +11,10 @@ sample rate and the highest tone placed (``max_tone_hz``); ``split`` divides a
 requested band into the part measured and the tones left out, with the reason the
 API shows (``not_measured_hz``, ``not_measured_reason``).
 
-``Slap2Injection`` is the SLAP2's (``tuning.law.DeviceLaw.injection``): closed
-loop through ``ma`` targets at the maximum profile, open loop through ``spwm``. A
-device without one (Z1100: no target or PWM can be streamed on its wire without
-leaving its own profile) gets a model-based frequency response instead.
+A device that can inject implements ``Injection`` (``tuning.law.DeviceLaw.injection``;
+the SLAP2's is ``devices/slap2/injection.py``). A device without one (Z1100: no target
+or PWM can be streamed on its wire without leaving its own profile) gets a model-based
+frequency response instead.
 
 Nothing here imports drivers, hub or api (``servotune.bench.frf`` builds the bench's
 plan from this).
@@ -22,11 +22,9 @@ plan from this).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Hashable, Mapping
+from dataclasses import dataclass
 from typing import Any, Final, Protocol
-
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 
 BITS_PER_CHAR: Final = 10  # start + 8 data + stop
 # Measured sample rates of injection runs are 60-80 % of the characters' limit (the
@@ -114,24 +112,85 @@ class Injection(Protocol):
 
     def wire(self, baud: int) -> WirePlan: ...
 
+    @property
+    def tick_s(self) -> float:
+        """The controller's tick: the grid the loop's input is rebuilt on."""
+        ...
+
+    def input_model(self, overrides: Mapping[str, int]) -> InputModel:
+        """How the loop's input followed the targets of a closed-loop test run with
+        the plan's ``overrides`` (empty for a run recorded without them)."""
+        ...
+
+
+class SetpointGenerator(Protocol):
+    """The loop's input on the controller's tick grid, replayed from the targets."""
+
+    def retarget(self, target: float) -> None:
+        """A target the device latched before the next tick."""
+        ...
+
+    def step(self) -> float:
+        """One tick; the input after it."""
+        ...
+
+    def state(self) -> Hashable:
+        """Everything the following ticks depend on (equal states: equal futures)."""
+        ...
+
+
+class InputModel(Protocol):
+    """How a device's loop input follows the targets of an injection
+    (``tuning.frfrun.rebuild_input``)."""
+
+    @property
+    def tick_s(self) -> float: ...
+
+    @property
+    def name(self) -> str:
+        """What the input is, for the analysis' ``input`` field: "profile" (a setpoint
+        generator between the targets) or "targets" (each target held)."""
+        ...
+
+    def start(self, y0: float) -> SetpointGenerator:
+        """At rest at ``y0``."""
+        ...
+
+    def resume(self, state: Hashable) -> SetpointGenerator:
+        """From a ``SetpointGenerator.state()``."""
+        ...
+
 
 @dataclass(frozen=True, slots=True)
-class Slap2Injection:
-    """The SLAP2: a position target per step (``ma n``, ~10 characters with its echo
-    and reply) and one ``rp`` sample (~16): about 26 characters, 73.8 steps/s at 19200
-    baud. The maximum sv/sa for the test, so the profile generator follows the targets
-    (``servotune.devices.slap2.profile`` rebuilds what it does between them)."""
+class HeldTargets:
+    """The input jumps to each target at the first tick after it latched and holds it
+    (a setpoint without a profile generator; an open-loop PWM)."""
 
-    chars_per_step: int = 26
-    overrides: Mapping[str, int] = field(
-        default_factory=lambda: {"velocity": VELOCITY_MAX, "acceleration": ACCELERATION_MAX}
-    )
-    closed_loop: tuple[str, str] = ("move_absolute", "position")
-    open_loop: tuple[str, str] | None = ("open_loop_pwm", "pwm")
-    fault_flags: tuple[str, ...] = ("oc", "limit1", "limit2")
+    tick_s: float
+    name: str = "targets"
 
-    def wire(self, baud: int) -> WirePlan:
-        return WirePlan(baud, self.chars_per_step)
+    def start(self, y0: float) -> SetpointGenerator:
+        return _Held(y0)
+
+    def resume(self, state: Hashable) -> SetpointGenerator:
+        assert isinstance(state, float)
+        return _Held(state)
+
+
+class _Held:
+    __slots__ = ("value",)
+
+    def __init__(self, value: float) -> None:
+        self.value = float(value)
+
+    def retarget(self, target: float) -> None:
+        self.value = float(target)
+
+    def step(self) -> float:
+        return self.value
+
+    def state(self) -> Hashable:
+        return self.value
 
 
 def split(

@@ -1,30 +1,47 @@
 """The device-specific parts of tuning, behind one small interface per device.
 
-Each device module holds its controller law (the exact integer arithmetic, tick by
-tick, and its simulation on the identified plant), the identification's excitation
-and its limits: ``slap2`` (PID at 841.5 us, open-loop PWM staircase) and ``z1100``
-(K/A/B every Stm x 32 us, closed-loop move). What the frequency response and the
-what-if view need from a device (its law, and how it takes an injected excitation:
-``tuning.injection``) is ``DeviceLaw``; ``law_for`` picks it. The auto-tune's
-sessions (``servotune.autotune``) use the modules directly.
+Each device's folder holds its controller law (the exact integer arithmetic, tick by
+tick, and its simulation on the identified plant), the identification's excitation and
+its limits: ``devices/slap2/law.py`` (PID at the SLAP2 tick, open-loop PWM staircase)
+and ``devices/z1100/law.py`` (K/A/B every Stm x 32 us, closed-loop move). What the
+frequency response, the what-if view and the gains check need from a device (its law,
+and how it takes an injected excitation: ``tuning.injection``) is ``DeviceLaw``; a
+device's registry entry gives it, and generic code asks a ``DeviceLaws`` (the registry,
+injected by the composition root) for it.
 
-Layering: device modules import ``tuning.plants``, ``tuning.identify`` and
-``tuning.loops``; nothing in ``tuning`` imports ``servotune.autotune``, drivers, hub
+Layering: nothing in ``tuning`` imports a device, ``servotune.autotune``, drivers, hub
 or api.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, Literal, Protocol
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
-from servotune.devices.slap2.law import Slap2Law
-from servotune.devices.z1100.law import Z1100Law
-from servotune.tuning.injection import Injection
-from servotune.tuning.loops import LoopModel
-from servotune.tuning.plants import IdentifiedPlant
+if TYPE_CHECKING:
+    from servotune.tuning.frf import ComplexArray, FloatArray
+    from servotune.tuning.injection import Injection
+    from servotune.tuning.loops import LoopModel
+    from servotune.tuning.plants import IdentifiedPlant
 
 Law = Literal["slap2_pid", "z1100_kab"]
+
+
+@dataclass(frozen=True, slots=True)
+class VerifyProfile:
+    """The move of an auto-tune verification step, as the what-if view replays it."""
+
+    kind: Literal["position_step", "move"]
+    velocity_counts_s: float
+    acceleration_counts_s2: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "velocity_counts_s": self.velocity_counts_s,
+            "acceleration_counts_s2": self.acceleration_counts_s2,
+        }
 
 
 class DeviceLaw(Protocol):
@@ -39,6 +56,11 @@ class DeviceLaw(Protocol):
     @property
     def description(self) -> str:
         """The law in a few words, shown next to a model-based Bode plot."""
+        ...
+
+    @property
+    def gain_names(self) -> tuple[str, ...]:
+        """The device parameters that are the law's gains."""
         ...
 
     @property
@@ -67,13 +89,23 @@ class DeviceLaw(Protocol):
         (KeyError for a gain missing from ``params``)."""
         ...
 
+    def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
+        """The auto-tune verification's move with these device parameters."""
+        ...
 
-_LAWS: dict[str, DeviceLaw] = {"slap2": Slap2Law(), "z1100": Z1100Law()}
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """The controller from the position error to the output at ``frequency_hz``,
+        exact (the loop an open-loop measured plant would be closed with); None for a
+        law that also acts on the position itself (no single error-to-output C).
+        KeyError for a gain missing from ``params``."""
+        ...
 
 
-def law_for(device: str) -> DeviceLaw:
-    """The law of ``device``; ValueError when servotune has none for it."""
-    try:
-        return _LAWS[device]
-    except KeyError:
-        raise ValueError(f"no controller law for {device}") from None
+class DeviceLaws(Protocol):
+    """What the bench, the what-if and the gains check need of the registry."""
+
+    def law(self, device: str) -> DeviceLaw | None:
+        """The law of ``device``; None when servotune has none for it."""
+        ...

@@ -1,4 +1,4 @@
-"""The devices' exact discrete controller laws around a linear DC-motor plant.
+"""Exact discrete controller laws around a linear DC-motor plant (``LoopModel``).
 
 A ``LoopModel`` holds the plant discretised with a zero-order hold at the
 controller's period (python-control ``c2d``) and the controller as the transfer
@@ -15,17 +15,12 @@ i.e. the DC motor of ``servotune.sim.physics`` without its two nonlinear parts,
 Coulomb friction and the PWM/current limits; predictions hold for moves small enough
 that the controller does not saturate (the bench checks the PWM it saw).
 
-Controller laws (the simulators implement the same arithmetic; see
-docs/simulator.md and docs/z1100-simulator.md):
-
-* SLAP2, every 841.5 us: ``u = (16 kp e + ki S + 32 kd (e - e_prev)) / 4096`` with
-  ``S`` the running sum of ``e`` including this tick, so
-  ``C(z) = (16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096``; ``e = setpoint - count``.
-* Z1100, every Stm x 32 us: ``u = (K (16 e + A (e - e[-32])) - B (y - y[-32])) / 64``:
-  a forward path ``Cf(z) = K (16 + A (1 - z^-32)) / 64`` on the error and velocity
-  feedback ``Cb(z) = B (1 - z^-32) / 64`` on the position. The loop seen at the
-  plant input is ``L = (Cf + Cb) P``; the closed loop from setpoint to position is
-  ``T = Cf P / (1 + L)``.
+A device's law gives the controller as polynomials in z: a forward path ``Cf`` on the
+error and a feedback path ``Cb`` on the position (``ZERO`` where there is none). The
+loop seen at the plant input is ``L = (Cf + Cb) P``; the closed loop from setpoint to
+position is ``T = Cf P / (1 + L)``. The devices' laws live in their folders
+(``devices/slap2/law.py``, ``devices/z1100/law.py``); the simulators implement the same
+arithmetic independently (docs/simulator.md, docs/z1100-simulator.md).
 """
 
 from __future__ import annotations
@@ -41,8 +36,6 @@ import scipy.signal
 from servotune.tuning.frf import FloatArray, FrequencyResponse
 from servotune.tuning.stability import loop_margins, margin_grid, schur_stable
 
-SLAP2_TICK_S = 841.5e-6
-Z1100_TICK_S = 32e-6
 PWM_FULL_SCALE = 255
 
 
@@ -259,73 +252,4 @@ def _model_response(
     )
 
 
-def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
-    """The SLAP2 PID (firmware arithmetic, see the module docstring) around ``motor``."""
-    return slap2_loop_for(motor.plant(), kp, ki, kd)
-
-
-def slap2_loop_for(plant: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
-    """The SLAP2 PID around a continuous plant (counts per controller output unit)."""
-    return slap2_loop_on(control.c2d(plant, SLAP2_TICK_S, "zoh"), kp, ki, kd)
-
-
-def slap2_loop_on(plant_d: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
-    """The SLAP2 PID around a plant already discretised at its tick (a gain search
-    discretises once)."""
-    ts = SLAP2_TICK_S
-    forward = control.tf(*slap2_pid_polynomials(kp, ki, kd), ts)
-    zero = control.tf(*ZERO, ts)
-    return LoopModel(forward, zero, plant_d, ts)
-
-
-ZERO: Polynomial = (np.zeros(1), np.ones(1))
-
-
-def slap2_pid_polynomials(kp: int, ki: int, kd: int) -> Polynomial:
-    """The SLAP2 PID ``C(z) = (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096``."""
-    if ki:
-        # over the common denominator z (z-1)
-        num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
-        den = [4096.0, -4096.0, 0.0]
-    else:
-        # ki = 0: the running sum is multiplied by 0, there is no integrator - and no
-        # factor z - 1 in numerator and denominator to read as a pole on the circle
-        num = [16 * kp + 32 * kd, -32 * kd]
-        den = [4096.0, 0.0]
-    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
-
-
-def z1100_loop(
-    motor: MotorModel, k: int, a: int, b: int, stm: int = 1, window: int = 32
-) -> LoopModel:
-    """The Z1100 K/A/B law (see the module docstring) sampled every ``stm`` x 32 us."""
-    return z1100_loop_for(motor.plant(), k, a, b, stm, window)
-
-
-def z1100_loop_for(
-    plant: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
-) -> LoopModel:
-    """The Z1100 K/A/B law around a continuous plant (counts per PWM unit)."""
-    plant_d = control.c2d(plant, max(1, stm) * Z1100_TICK_S, "zoh")
-    return z1100_loop_on(plant_d, k, a, b, stm, window)
-
-
-def z1100_loop_on(
-    plant_d: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
-) -> LoopModel:
-    """The Z1100 law around a plant already discretised at Stm x 32 us."""
-    ts = max(1, stm) * Z1100_TICK_S
-    forward, feedback = z1100_kab_polynomials(k, a, b, window)
-    return LoopModel(control.tf(*forward, ts), control.tf(*feedback, ts), plant_d, ts)
-
-
-def z1100_kab_polynomials(
-    k: int, a: int, b: int, window: int = 32
-) -> tuple[Polynomial, Polynomial]:
-    """The Z1100 law: ``Cf = K (16 + A (1 - z^-w)) / 64``, ``Cb = B (1 - z^-w) / 64``."""
-    shift = np.zeros(window + 1)
-    shift[0] = 1.0  # z^window
-    delta = shift.copy()
-    delta[-1] = -1.0  # z^window - 1: (1 - z^-window) over z^window
-    den = shift * 64.0
-    return (k * (16 * shift + a * delta), den), (b * delta, den.copy())
+ZERO: Polynomial = (np.zeros(1), np.ones(1))  # a controller path that is not there

@@ -22,6 +22,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from servotune.tuning.law import DeviceLaw
 from servotune.tuning.whatif import loop_for, plant_from_identification
 
 DURATION_S: Final = 3.0
@@ -29,10 +30,11 @@ DURATION_S: Final = 3.0
 SETTLED: Final = 0.02
 
 
-def unstable_reason(device: str, model: Mapping[str, Any], gains: Mapping[str, int]) -> str:
-    """Why ``gains`` are predicted unstable on ``model`` ("" when they settle)."""
-    plant = plant_from_identification(device, model)
-    _, y = loop_for(device, plant, gains).step(DURATION_S)
+def unstable_reason(law: DeviceLaw, model: Mapping[str, Any], gains: Mapping[str, int]) -> str:
+    """Why ``gains`` are predicted unstable on ``model`` under ``law`` ("" when they
+    settle)."""
+    plant = plant_from_identification(law, model)
+    _, y = loop_for(law, plant, gains).step(DURATION_S)
     if not np.all(np.isfinite(y)) or float(np.max(np.abs(y))) > 100.0:
         return "the predicted step response grows without bound (identified plant, exact law)"
     error = np.abs(1.0 - y)

@@ -30,7 +30,7 @@ import control
 import numpy as np
 
 from servotune.tuning.frf import FloatArray
-from servotune.tuning.law import Law, law_for
+from servotune.tuning.law import DeviceLaw, Law
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import IdentifiedPlant
 
@@ -39,7 +39,6 @@ __all__ = [
     "Law",
     "bode_dict",
     "browser_model",
-    "law_of",
     "loop_for",
     "margins_dict",
     "model_summary",
@@ -47,37 +46,34 @@ __all__ = [
 ]
 
 
-def plant_from_identification(device: str, model: Mapping[str, Any] | None) -> IdentifiedPlant:
+def plant_from_identification(law: DeviceLaw, model: Mapping[str, Any] | None) -> IdentifiedPlant:
     """The plant of an auto-tune identification (``session.model``); ValueError when
-    there is none or it lacks the fields of ``device``'s fit."""
+    there is none or it lacks the fields of the fit of ``law``'s device."""
     if not model:
         raise ValueError("no identified plant model: run the auto-tune's Identify first")
     try:
-        plant = law_for(device).linear_plant(model)
+        plant = law.linear_plant(model)
     except ValueError:
-        raise ValueError(f"the identified model does not describe a {device} plant") from None
+        raise ValueError(f"the identified model does not describe a {law.device} plant") from None
     gain, tau = plant.gain_counts_s_per_unit, plant.tau_s
     if not (gain > 0 and tau > 0 and math.isfinite(gain) and math.isfinite(tau)):
         raise ValueError(f"implausible identified model: gain {gain}, tau {tau} s")
     return plant
 
 
-def loop_for(device: str, plant: IdentifiedPlant, gains: Mapping[str, int]) -> LoopModel:
+def loop_for(law: DeviceLaw, plant: IdentifiedPlant, gains: Mapping[str, int]) -> LoopModel:
     """The device's exact discrete law with ``gains`` (device parameter names) around
     ``plant`` (``DeviceLaw.loop``: the Z1100 with its hold gains, KABD)."""
-    return law_for(device).loop(plant, gains)
+    return law.loop(plant, gains)
 
 
-def law_of(device: str) -> Law:
-    return law_for(device).law
-
-
-def browser_model(device: str, plant: IdentifiedPlant, params: Mapping[str, int]) -> dict[str, Any]:
+def browser_model(
+    law: DeviceLaw, plant: IdentifiedPlant, params: Mapping[str, int]
+) -> dict[str, Any]:
     """The discrete plant and the law for the what-if view (see the module docstring).
 
     ``plant_num``/``plant_den``: ``y[n] = sum(num[i] u[n-i]) - sum(den[i] y[n-i], i>=1)``
     with ``den[0] == 1``."""
-    law = law_for(device)
     period = law.period_s(params)
     pd = control.c2d(plant.transfer_function(), period, "zoh")
     num, den = (np.asarray(c[0][0], dtype=np.float64) for c in control.tfdata(pd))
@@ -86,7 +82,7 @@ def browser_model(device: str, plant: IdentifiedPlant, params: Mapping[str, int]
     num = np.concatenate([np.zeros(den.size - num.size), num])
     scale = den[0]
     return {
-        "device": device,
+        "device": law.device,
         "law": law.law,
         "period_s": period,
         "plant_num": (num / scale).tolist(),

@@ -26,8 +26,9 @@ from servotune.devices.slap2.law import (
     MoveSpec,
     pwm_per_count,
     simulate_response,
+    slap2_pid_polynomials,
 )
-from servotune.tuning.loops import ZERO, Margins, MarginSearch, slap2_pid_polynomials
+from servotune.tuning.loops import ZERO, Margins, MarginSearch
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
 

@@ -11,7 +11,7 @@ against the simulator tick for tick). ``simulate_response`` runs it inlined (it 
 some 10^6 ticks per gain search) together with the trapezoid generator, the
 in-position logic, count quantisation and ``FrictionMotor``: it is nonlinear (integer
 arithmetic, clamps, stiction), so a linear simulation (``scipy.signal.dlsim``) cannot
-replace it; the linear view of the same law is ``tuning.loops.slap2_loop_for``
+replace it; the linear view of the same law is ``slap2_loop_for`` (below)
 (margins, Bode, linear step), which ``Slap2Law.loop`` uses.
 
 Units: counts, counts/s, PWM -255..255, seconds.
@@ -24,16 +24,23 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Final, Literal
 
+import control
+import numpy as np
+
 from servotune.bench.metrics import Metrics, compute_metrics
 from servotune.devices.slap2.codec import (
+    ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
     COUNTS_S_PER_SV,
     GAIN_MAX,
     PWM_MAX,
     TICK_S,
+    VELOCITY_MAX,
 )
-from servotune.tuning.injection import Slap2Injection
-from servotune.tuning.loops import LoopModel, slap2_loop_for
+from servotune.devices.slap2.injection import Slap2Injection
+from servotune.tuning.frf import ComplexArray, FloatArray
+from servotune.tuning.law import VerifyProfile
+from servotune.tuning.loops import ZERO, LoopModel, MotorModel, Polynomial
 from servotune.tuning.plants import FrictionMotor, IdentifiedPlant, PlantModel
 
 __all__ = [
@@ -425,7 +432,7 @@ def model_doubt(model: PlantModel, travel: float) -> str | None:
 
 
 # =====================================================================================
-# The device behind the common interface (tuning.devices.DeviceLaw)
+# The device behind the common interface (tuning.law.DeviceLaw)
 # =====================================================================================
 
 
@@ -435,6 +442,7 @@ class Slap2Law:
     device: Final = "slap2"
     law: Final[Literal["slap2_pid"]] = "slap2_pid"
     description: Final = "PID at 841.5 us"
+    gain_names: Final = ("kp", "ki", "kd")
     output_limit: Final = PWM_MAX
     # targets through ma, PWM through spwm (docs/frequency-response.md)
     injection: Final = Slap2Injection()
@@ -454,3 +462,61 @@ class Slap2Law:
 
     def loop(self, plant: IdentifiedPlant, params: Mapping[str, int]) -> LoopModel:
         return slap2_loop_for(plant.transfer_function(), params["kp"], params["ki"], params["kd"])
+
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """The PID at ``z = e^{jwT}`` (T the tick), error counts -> PWM: the firmware
+        arithmetic ``(16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096`` that
+        ``slap2_loop_for`` (below) models (and the simulator runs)."""
+        kp, ki, kd = params["kp"], params["ki"], params["kd"]
+        z = np.exp(2j * np.pi * np.asarray(frequency_hz, dtype=np.float64) * TICK_S)
+        c = (16 * kp + ki * z / (z - 1) + 32 * kd * (1 - 1 / z)) / 4096
+        return np.asarray(c, dtype=np.complex128)
+
+    def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
+        """A position step at the maximum sv/sa (what the verification sets)."""
+        return VerifyProfile(
+            "position_step", VELOCITY_MAX * COUNTS_S_PER_SV, ACCELERATION_MAX * COUNTS_S2_PER_SA
+        )
+
+
+# =====================================================================================
+# The law as a linear loop (tuning.loops.LoopModel): every 841.5 us
+# ``u = (16 kp e + ki S + 32 kd (e - e_prev)) / 4096`` with ``S`` the running sum of ``e``
+# including this tick, so ``C(z) = (16 kp + ki z/(z-1) + 32 kd (1 - 1/z)) / 4096``;
+# ``e = setpoint - count``.
+# =====================================================================================
+
+
+def slap2_loop(motor: MotorModel, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID (firmware arithmetic, above) around ``motor``."""
+    return slap2_loop_for(motor.plant(), kp, ki, kd)
+
+
+def slap2_loop_for(plant: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID around a continuous plant (counts per controller output unit)."""
+    return slap2_loop_on(control.c2d(plant, TICK_S, "zoh"), kp, ki, kd)
+
+
+def slap2_loop_on(plant_d: control.TransferFunction, kp: int, ki: int, kd: int) -> LoopModel:
+    """The SLAP2 PID around a plant already discretised at its tick (a gain search
+    discretises once)."""
+    ts = TICK_S
+    forward = control.tf(*slap2_pid_polynomials(kp, ki, kd), ts)
+    zero = control.tf(*ZERO, ts)
+    return LoopModel(forward, zero, plant_d, ts)
+
+
+def slap2_pid_polynomials(kp: int, ki: int, kd: int) -> Polynomial:
+    """The SLAP2 PID ``C(z) = (16 kp + ki z/(z-1) + 32 kd (z-1)/z) / 4096``."""
+    if ki:
+        # over the common denominator z (z-1)
+        num = [16 * kp + ki + 32 * kd, -16 * kp - 64 * kd, 32 * kd]
+        den = [4096.0, -4096.0, 0.0]
+    else:
+        # ki = 0: the running sum is multiplied by 0, there is no integrator - and no
+        # factor z - 1 in numerator and denominator to read as a pole on the circle
+        num = [16 * kp + 32 * kd, -32 * kd]
+        den = [4096.0, 0.0]
+    return np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)

@@ -1,6 +1,6 @@
 """The SLAP2 firmware's trapezoid profile law, as a pure function of what was commanded.
 
-Pure (no I/O, no clock, no imports from the rest of servotune), so both the driver
+Pure (no I/O, no clock; only the codec's constants imported), so both the driver
 (which reconstructs the setpoint of a captured axis from the ``ma``/``mr`` it sent and
 the ``sv``/``sa`` in force) and the simulator may use it without breaking the layering.
 The law is the one ``devices/slap2/sim/controller.py`` implements tick by tick (``_move_tick`` and
@@ -28,9 +28,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-TICK_S = 841.5e-6
-COUNTS_S_PER_SV = 140.417 * 4 / 60
-COUNTS_S2_PER_SA = 35946.7 * 4 / 3600
+# The manual's facts, one home (the codec); re-exported for the profile's users.
+from servotune.devices.slap2.codec import COUNTS_S2_PER_SA as COUNTS_S2_PER_SA
+from servotune.devices.slap2.codec import COUNTS_S_PER_SV as COUNTS_S_PER_SV
+from servotune.devices.slap2.codec import TICK_S as TICK_S
+
 COUNTS_TICK_PER_SV = COUNTS_S_PER_SV * TICK_S
 COUNTS_TICK2_PER_SA = COUNTS_S2_PER_SA * TICK_S * TICK_S
 

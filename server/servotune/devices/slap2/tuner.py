@@ -23,8 +23,10 @@ from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import Proposal, propose_gains, settles
 from servotune.devices.slap2.law import (
     IDENT_MIN_DISTANCE,
+    STAIRCASE_START_PWM,
     Gains,
     MoveSpec,
+    Slap2Law,
     Staircase,
     align_identification,
     command_tail_s,
@@ -56,9 +58,13 @@ class Slap2Tuner:
     """identify -> propose -> accept -> verify on SLAP2 axes (``autotune.DeviceTuner``)."""
 
     identifying_message: Final = "identifying the plant (open-loop PWM staircase)"
+    law: Final = Slap2Law()  # tuning.law.DeviceLaw: the proposal's stability check
 
     def __init__(self, ctx: TuningContext) -> None:
         self._ctx = ctx
+
+    def accepts(self, entry: AxisEntry) -> bool:
+        return True  # any SLAP2 axis the hub has
 
     # --- checks before anything moves -------------------------------------------------
 
@@ -176,7 +182,7 @@ class Slap2Tuner:
             slowdown = min(MAX_SLOWDOWN, max(1.0, ratio))
         baud = entry.link.baud or 19200
         rss_check = not entry.device_values.get("syscon", 0) & UCON_BIT
-        run = IdentificationRun(ctx.bench, entry, start, request.max_pwm)
+        run = IdentificationRun(ctx.bench, entry, start, request.max_pwm, STAIRCASE_START_PWM)
         await run.open(ctx.clock)
         status, message = "incomplete", "identification failed"
         extra: dict[str, Any] = {"timing": {"baud": baud, "slowdown": slowdown}}

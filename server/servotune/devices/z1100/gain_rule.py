@@ -25,8 +25,9 @@ from servotune.devices.z1100.law import (
     kab_dict,
     move_metrics,
     simulate_move,
+    z1100_kab_polynomials,
 )
-from servotune.tuning.loops import Margins, MarginSearch, z1100_kab_polynomials
+from servotune.tuning.loops import Margins, MarginSearch
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
 

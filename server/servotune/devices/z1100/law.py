@@ -12,7 +12,7 @@ for sample). ``simulate_move`` runs it at a coarser step (``COARSE`` samples, th
 32-sample window becoming 32/COARSE steps) on ``Z1100Plant``, inlined: like the
 SLAP2's loop it is nonlinear (integer arithmetic, clamps, the gain switch at the
 profile's end), so a linear simulation cannot replace it; its linear view is
-``tuning.loops.z1100_loop_for``, which ``Z1100Law.loop`` uses.
+``z1100_loop_for`` (below), which ``Z1100Law.loop`` uses.
 
 Units: counts, counts/s, duty -1..1, seconds.
 """
@@ -24,13 +24,19 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final, Literal
 
+import control
+import numpy as np
+
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.devices.z1100.frame import STM_TICK_S
+from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.identify import fit_closed_loop
-from servotune.tuning.loops import LoopModel, z1100_loop_for
+from servotune.tuning.law import VerifyProfile
+from servotune.tuning.loops import LoopModel, MotorModel, Polynomial
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 
 # --- the law (devices/z1100/sim/servo.py; assumed, the manual gives none) --------------------
-SAMPLE_UNIT_S: Final = 32e-6  # one sample is Stm x 32 us
+SAMPLE_UNIT_S: Final = STM_TICK_S  # one sample is Stm x 32 us (the frame's fact)
 WINDOW: Final = 32  # samples of the derivative difference
 ERROR_WEIGHT: Final = 16
 OUTPUT_DIVISOR: Final = 64
@@ -283,7 +289,7 @@ def fit_plant_closed_loop(
 
 
 # =====================================================================================
-# The device behind the common interface (tuning.devices.DeviceLaw)
+# The device behind the common interface (tuning.law.DeviceLaw)
 # =====================================================================================
 
 
@@ -295,6 +301,7 @@ class Z1100Law:
     device: Final = "z1100"
     law: Final[Literal["z1100_kab"]] = "z1100_kab"
     description: Final = "KABD (hold) gains"
+    gain_names: Final = ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
     output_limit: Final = PWM_FULL_SCALE
     # go-to targets only, through the Z1100's own profile: nothing can be streamed on
     # its wire, so its frequency response is the identified model's
@@ -321,3 +328,57 @@ class Z1100Law:
             params["kabd_b"],
             max(1, params.get("stm", 1)),
         )
+
+    def controller_response(
+        self, frequency_hz: FloatArray, params: Mapping[str, int]
+    ) -> ComplexArray | None:
+        """None: K/A/B acts on the position as well as on the error (its B term)."""
+        return None
+
+    def verify_profile(self, params: Mapping[str, int]) -> VerifyProfile:
+        """A move with the axis' own vmax/acc (counts/s, counts/s^2)."""
+        return VerifyProfile("move", float(params.get("vmax", 0)), float(params.get("acc", 0)))
+
+
+# =====================================================================================
+# The law as a linear loop (tuning.loops.LoopModel): every Stm x 32 us
+# ``u = (K (16 e + A (e - e[-32])) - B (y - y[-32])) / 64``: a forward path
+# ``Cf(z) = K (16 + A (1 - z^-32)) / 64`` on the error and velocity feedback
+# ``Cb(z) = B (1 - z^-32) / 64`` on the position.
+# =====================================================================================
+
+
+def z1100_loop(
+    motor: MotorModel, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 K/A/B law (above) sampled every ``stm`` x 32 us."""
+    return z1100_loop_for(motor.plant(), k, a, b, stm, window)
+
+
+def z1100_loop_for(
+    plant: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 K/A/B law around a continuous plant (counts per PWM unit)."""
+    plant_d = control.c2d(plant, max(1, stm) * SAMPLE_UNIT_S, "zoh")
+    return z1100_loop_on(plant_d, k, a, b, stm, window)
+
+
+def z1100_loop_on(
+    plant_d: control.TransferFunction, k: int, a: int, b: int, stm: int = 1, window: int = 32
+) -> LoopModel:
+    """The Z1100 law around a plant already discretised at Stm x 32 us."""
+    ts = max(1, stm) * SAMPLE_UNIT_S
+    forward, feedback = z1100_kab_polynomials(k, a, b, window)
+    return LoopModel(control.tf(*forward, ts), control.tf(*feedback, ts), plant_d, ts)
+
+
+def z1100_kab_polynomials(
+    k: int, a: int, b: int, window: int = 32
+) -> tuple[Polynomial, Polynomial]:
+    """The Z1100 law: ``Cf = K (16 + A (1 - z^-w)) / 64``, ``Cb = B (1 - z^-w) / 64``."""
+    shift = np.zeros(window + 1)
+    shift[0] = 1.0  # z^window
+    delta = shift.copy()
+    delta[-1] = -1.0  # z^window - 1: (1 - z^-window) over z^window
+    den = shift * 64.0
+    return (k * (16 * shift + a * delta), den), (b * delta, den.copy())

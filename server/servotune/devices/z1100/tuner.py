@@ -25,9 +25,11 @@ from servotune.devices.z1100.law import (
     MAX_FIT_RMS_COUNTS,
     Kab,
     MoveProfile,
+    Z1100Law,
     fit_plant_closed_loop,
     kab_dict,
 )
+from servotune.devices.z1100.link import Z1100Axis
 from servotune.hub.state import AxisEntry
 from servotune.link.base import DeviceRefusedError, DriverError, MeasurementError
 from servotune.tuning.targets import target_for
@@ -59,10 +61,15 @@ class Z1100Tuner:
     """identify -> propose -> accept -> verify on Z1100 motors (``autotune.DeviceTuner``)."""
 
     identifying_message: Final = "identifying the plant (closed-loop move, gains in use)"
+    law: Final = Z1100Law()  # tuning.law.DeviceLaw: the proposal's stability check
 
     def __init__(self, ctx: TuningContext) -> None:
         self._ctx = ctx
         self._proposals: dict[str, Z1100Proposal] = {}
+
+    def accepts(self, entry: AxisEntry) -> bool:
+        """The chip's own axes (``Z1100Axis``), not a rig's seen through the bus."""
+        return isinstance(getattr(entry, "driver", None), Z1100Axis)
 
     @staticmethod
     def _profile(entry: AxisEntry, distance: int) -> MoveProfile:

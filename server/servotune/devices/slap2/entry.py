@@ -1,0 +1,119 @@
+"""gräbner SLAP2's registry entry: how its link specs read, how its link is built,
+how its simulator is served and what the demo runs.
+
+Builders import their modules when called: the registry is read by every command
+(``servotune --help`` included), which must not load every device's link for it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Final
+
+from servotune.config import LinkRules, LinkSpec
+from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
+from servotune.link.base import DriverSink, Link
+from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
+
+if TYPE_CHECKING:
+    from servotune.autotune.context import TuningContext
+    from servotune.autotune.service import DeviceTuner
+    from servotune.tuning.law import DeviceLaw
+
+NAME: Final = "slap2"
+
+
+def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
+    from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
+    from servotune.transports.serial import SerialConnector
+
+    config = Slap2LinkConfig(
+        link_id=spec.link_id,
+        path=spec.path,
+        addresses=list(spec.addresses),
+        baud=spec.baud,
+        lines=spec.lines,
+        names=dict(spec.names),
+    )
+    return Slap2Link(config, SerialConnector(spec.path, spec.baud), sink)
+
+
+def serve(args: SimArgs) -> int:
+    from servotune.devices.slap2.sim.demo import serve_slap2
+
+    serve_slap2(list(args.addresses), args.baud or DEFAULT_BAUD, args.state_dir, args.link)
+    return 0
+
+
+@contextlib.contextmanager
+def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """Two SLAP2 modules (addresses 0 and 1) sharing one simulated RS232 line."""
+    from servotune.devices.slap2.sim.demo import DEMO_ADDRESSES, DEMO_NAMES, demo_line_process
+
+    with demo_line_process(state_dir) as simulator:
+        yield [
+            LinkSpec(
+                device=NAME,
+                path=simulator.ready["path"],
+                link_id="demo-slap2",
+                baud=DEFAULT_BAUD,
+                addresses=list(DEMO_ADDRESSES),
+                lines=512,
+                names=dict(DEMO_NAMES),
+            )
+        ]
+
+
+def poll_set(link: Link) -> PollSet:
+    """The poll set of a SLAP2 line: every character the host sends waits for its echo
+    (the reply follows the CR's echo without a turn), for every module on the line."""
+    from servotune.devices.slap2.link import Slap2Link
+
+    assert isinstance(link, Slap2Link)
+    config = link.config
+    turns = float(sum(len(m) + 1 for m in config.poll_commands))
+    if config.rve_every:
+        turns += 4 / config.rve_every
+    modules = len(config.addresses)
+    if modules > 1:
+        turns += len("se0") + 1
+    return PollSet(
+        f"SLAP2 {config.baud} baud, {modules} module(s) on one line, poll set "
+        f"{'+'.join(config.poll_commands)} (+rve every {config.rve_every}th cycle)",
+        turns * modules,
+    )
+
+
+def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
+    return demo_line(args.state_dir)
+
+
+def load_law() -> DeviceLaw:
+    from servotune.devices.slap2.law import Slap2Law
+
+    return Slap2Law()
+
+
+def build_tuner(ctx: TuningContext) -> DeviceTuner:
+    from servotune.devices.slap2.tuner import Slap2Tuner
+
+    return Slap2Tuner(ctx)
+
+
+ENTRY: Final = DeviceEntry(
+    name=NAME,
+    title="gräbner SLAP2",
+    link_rules=LinkRules(
+        default_baud=DEFAULT_BAUD,
+        addressing="modules",
+        address_range=(0, MAX_ADDRESS),
+        example="slap2:/dev/ttyUSB0?addresses=0,1",
+    ),
+    build_link=build_link,
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
+    law=load_law,
+    tuner=build_tuner,
+    compute_modules=("servotune.devices.slap2.gain_rule",),
+)

@@ -1,0 +1,112 @@
+"""CNC Designer Z1100's registry entry: how its link specs read, how its link is built,
+how its simulator is served and what the demo runs (builders import their modules when
+called, see ``devices/slap2/entry.py``)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Final
+
+from servotune.config import LinkRules, LinkSpec
+from servotune.devices.z1100.codec import DEFAULT_BAUD
+from servotune.link.base import DriverSink, Link
+from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
+
+if TYPE_CHECKING:
+    from servotune.autotune.context import TuningContext
+    from servotune.autotune.service import DeviceTuner
+    from servotune.tuning.law import DeviceLaw
+
+NAME: Final = "z1100"
+# One chip, three motors: there is nothing to address.
+AXES: Final = (0, 1, 2)
+
+
+def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
+    from servotune.devices.z1100.link import Z1100Link, Z1100LinkConfig
+    from servotune.transports.serial import SerialConnector
+
+    config = Z1100LinkConfig(
+        link_id=spec.link_id,
+        path=spec.path,
+        baud=spec.baud,
+        lines=spec.lines,
+        names=dict(spec.names),
+    )
+    return Z1100Link(config, SerialConnector(spec.path, spec.baud), sink)
+
+
+def serve(args: SimArgs) -> int:
+    from servotune.devices.z1100.sim.demo import serve_z1100
+
+    serve_z1100(args.baud or DEFAULT_BAUD, args.state_dir, args.link)
+    return 0
+
+
+@contextlib.contextmanager
+def demo_line(state_dir: Path) -> Iterator[list[LinkSpec]]:
+    """One simulated Z1100 chip with three differently loaded motors."""
+    from servotune.devices.z1100.sim.demo import DEMO_NAMES, demo_chip_process
+
+    with demo_chip_process(state_dir) as simulator:
+        yield [
+            LinkSpec(
+                device=NAME,
+                path=simulator.ready["path"],
+                link_id="demo-z1100",
+                baud=DEFAULT_BAUD,
+                addresses=list(AXES),
+                lines=512,
+                names=dict(DEMO_NAMES),
+            )
+        ]
+
+
+def poll_set(link: Link) -> PollSet:
+    """The poll set of the chip: every transaction is one host/device turn."""
+    from servotune.devices.z1100.link import Z1100Link
+
+    assert isinstance(link, Z1100Link)
+    config = link.config
+    return PollSet(
+        f"Z1100 {config.baud} baud, 3 axes, poll set GetEncoder+GetError per axis "
+        f"(+GetStart, GetStop, GetSwitch every {config.status_every}th cycle), "
+        "13 bytes per transaction",
+        # GetEncoder + GetError of three motors, three status reads every status_every
+        6.0 + 3.0 / config.status_every,
+    )
+
+
+def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
+    return demo_line(args.state_dir)
+
+
+def load_law() -> DeviceLaw:
+    from servotune.devices.z1100.law import Z1100Law
+
+    return Z1100Law()
+
+
+def build_tuner(ctx: TuningContext) -> DeviceTuner:
+    from servotune.devices.z1100.tuner import Z1100Tuner
+
+    return Z1100Tuner(ctx)
+
+
+ENTRY: Final = DeviceEntry(
+    name=NAME,
+    title="CNC Designer Z1100",
+    link_rules=LinkRules(
+        default_baud=DEFAULT_BAUD,
+        addressing="fixed",
+        fixed_addresses=AXES,
+        example="z1100:/dev/ttyUSB0",
+    ),
+    build_link=build_link,
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
+    law=load_law,
+    tuner=build_tuner,
+    compute_modules=("servotune.devices.z1100.gain_rule",),
+)
