@@ -149,6 +149,7 @@ class ControlClient:
     lapsing: bool = False
     connected: bool = True
     beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
+    heartbeats: int = 0  # every heartbeat heard, from the page or its worker
     # How long ago the tab's machine last acknowledged this connection's data (None:
     # cannot be told, e.g. behind a reverse proxy): see ControlSettings.alive_grace_s.
     alive: Callable[[], float | None] | None = None
@@ -222,6 +223,9 @@ class ControlManager:
         self._watchdog_task: asyncio.Task[None] | None = None
         # Lapses seen and how late each was detected after the lease ran out (benchmark).
         self.lapses = 0
+        # Passes of the watchdog begun (a test that steps the clock waits for two: one
+        # whole pass then ran on the new time).
+        self.watchdog_passes = 0
         hub.autopilot_gate = self
         for info in hub.axes_info():
             # The autopilot starts paused: it may move only once the start-up stop is out.
@@ -359,6 +363,7 @@ class ControlManager:
         """
         if _can_control(client.principal):
             self._heard(client)
+            client.heartbeats += 1
             client.page_age_s = (page_age_ms or 0) / 1000
 
     def client(self, client_id: str) -> ControlClient | None:
@@ -694,6 +699,7 @@ class ControlManager:
         period = self.settings.watchdog_period_s
         while True:
             await asyncio.sleep(period)
+            self.watchdog_passes += 1
             self._probe_late_clients()
             suspects = self._silent_clients()
             if not suspects:

@@ -71,7 +71,12 @@ from servotune.devices.slap2.capture import (
     ProfileState,
 )
 from servotune.devices.slap2.descriptor import PARAM_SETTERS, slap2_descriptor
-from servotune.devices.slap2.exchange import Slap2Wire, command_mnemonic, is_banner
+from servotune.devices.slap2.exchange import (
+    ReplyTimeoutError,
+    Slap2Wire,
+    command_mnemonic,
+    is_banner,
+)
 from servotune.devices.slap2.profile import TICK_S, ProfileTrack, firmware_setpoint
 from servotune.link.base import (
     DeviceRefusedError,
@@ -106,8 +111,10 @@ UCON_ATTEMPTS = 3
 # answered. Three, like the line's own rule: one or two failures are a slow host.
 MODULE_OFFLINE_FAILURES = 3
 # The line's rule: ``error`` after LINE_ERROR_FAILURES failed exchanges in a row. When
-# bytes came back in that run (a wrong echo, an odd reply, a refusal: any failure but
-# a timeout), the line is alive, and the run must also span LINE_ERROR_SPAN_S.
+# bytes came back in that run (a wrong echo, an odd reply, a refusal, or a reply that
+# did not come after the whole command was echoed: any failure but a silent line), the
+# line is alive, and the run must also span LINE_ERROR_SPAN_S. (One missing reply is
+# never an error: the next poll reads again - every poll is a read, safe to repeat.)
 # Measured in the soak under a CPU hog: one stall held a reply past the character
 # timeout, its late bytes spoiled the next two echoes, three failures within ~0.6 s,
 # then an answer 24 ms later; that is counted (desyncs, dropped bytes), not shown as
@@ -669,7 +676,9 @@ class Slap2Link(Slap2Wire):
             self._first_failure_t = now
             self._failures_saw_bytes = False
         self._consecutive_failures += 1
-        self._failures_saw_bytes |= not isinstance(exc, DeviceTimeoutError)
+        self._failures_saw_bytes |= isinstance(exc, ReplyTimeoutError) or not isinstance(
+            exc, DeviceTimeoutError
+        )
         if self._consecutive_failures >= LINE_ERROR_FAILURES and (
             not self._failures_saw_bytes or now - self._first_failure_t >= LINE_ERROR_SPAN_S
         ):
