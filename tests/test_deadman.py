@@ -290,6 +290,29 @@ async def test_a_live_connection_forgives_late_heartbeats_within_the_grace(
     await main.close_quietly()
 
 
+async def test_a_live_connection_is_forgiven_for_the_grace_only(
+    server: Server, clock: StepClock
+) -> None:
+    """A tab whose machine acknowledges everything but whose browser sends no heartbeat
+    at all (the whole renderer stuck): forgiven for ``alive_grace_s`` at most on the
+    server's clock, then the dead-man stops it, and says that its machine is alive
+    (not "cannot be checked", as the 60 s soak's false stop read)."""
+    main, client_id, beat_task = await take_with_raw_client(server, "line-0")
+    beat_task.cancel()
+    await send_beat(server, main, client_id)
+    heard_t, lapses = client_of(server, client_id).heard_s, manager(server).lapses
+    period = SETTINGS.watchdog_period_s
+    clock.pace()
+    while manager(server).lapses == lapses:
+        assert clock.t - heard_t <= SETTINGS.alive_grace_s + period + 1e-6, "kept past the grace"
+        await clock.step(server, period)
+    reply = await main.wait_for(lambda m: m["type"] == "control_reply" and m["action"] == "lapse")
+    assert "acknowledged" in reply["message"], reply["message"]
+    if clock.t - heard_t > SETTINGS.alive_grace_s:
+        assert "forgiven 2 s only" in reply["message"], reply["message"]
+    await main.close_quietly()
+
+
 async def test_heartbeats_of_the_page_itself_late_within_the_lease_do_not_trip(
     server: Server, clock: StepClock
 ) -> None:

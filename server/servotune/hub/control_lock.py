@@ -718,10 +718,18 @@ class ControlManager:
                         source = "its worker" if client.beats else "the page itself"
                         why = f"no heartbeat for {silent_ms} ms (from {source}"
                         ack_s = client.alive_cache[1]
+                        grace_s = self.settings.alive_grace_s
+                        if client.alive is not None and silent_ms > 1000 * grace_s:
+                            # Not asked by _forgiven past the grace: ask now, for the
+                            # message (a live machine past the grace is not "unknown").
+                            ack_s = client.alive()
                         if client.alive is None or ack_s is None:
                             why += "; its connection cannot be checked)"
                         else:
-                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago)"
+                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago"
+                            if silent_ms > 1000 * grace_s:
+                                why += f", but a live connection is forgiven {grace_s:g} s only"
+                            why += ")"
                     else:
                         frozen = client.page_age_s + now - client.heard_s
                         why = f"the page has not run for {frozen:.1f} s (frozen)"
