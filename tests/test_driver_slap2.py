@@ -311,6 +311,38 @@ def test_replies_late_after_a_whole_echo_are_not_an_error_within_the_span() -> N
     assert sink.states[-1][0] == "error" and "no reply to 'pe'" in sink.states[-1][1]
 
 
+class _StalledHostChannel:
+    """Only what the line's rule asks of a channel: how late its timeouts were noticed."""
+
+    def __init__(self) -> None:
+        self.late_s = 0.0
+
+    def take_timeout_late_s(self) -> float:
+        late_s, self.late_s = self.late_s, 0.0
+        return late_s
+
+
+def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
+    """The server stalled (seen under a CPU hog: its loop away for seconds, the kernel's
+    tty worker with it) longer than the 150 ms it listens for an echo: those timeouts
+    are no evidence against the device, counted as host stalls; the same timeouts
+    noticed on time are an error at the third."""
+    link, sink, now = _rule_link()
+    module = link.module_state(0)
+    channel = _StalledHostChannel()
+    link._channel = channel  # type: ignore[assignment]
+    for t in (100.0, 100.2, 100.4):
+        now.append(t)
+        channel.late_s = 0.4
+        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+    assert not sink.states and link.counters["host_stalls"] == 3
+    for t in (101.0, 101.2, 101.4):
+        now.append(t)
+        channel.late_s = 0.01
+        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+    assert sink.states[-1][0] == "error"
+
+
 def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:
     """Nothing comes back (a cut cable): three timeouts in a row are an error at once,
     however close together (after a dark selection each costs only a character

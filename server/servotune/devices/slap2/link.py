@@ -619,6 +619,8 @@ class Slap2Link(Slap2Wire):
 
     def _module_answered(self, module: _ModuleState) -> None:
         """An exchange with ``module`` succeeded: the line works, and so does it."""
+        if self._channel is not None:
+            self._channel.take_timeout_late_s()  # timeouts before it excuse no later one
         self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0
@@ -633,7 +635,11 @@ class Slap2Link(Slap2Wire):
         line's answer count decides "another module answered" (this module's own
         answer would have reset its count), so a line that is down, or has one
         module, is left to the line's rule (_poll_failed): never shown connected
-        with its only module offline."""
+        with its only module offline. A timeout the host noticed later than it had
+        listened (``_host_stalled``) counts for neither: the host was away."""
+        if isinstance(exc, DeviceTimeoutError) and self._host_stalled(self.config.char_timeout_s):
+            self._count("desyncs")
+            return
         self._poll_failed(exc)
         if module.failures == 0:
             module.answers_at_first_failure = self._answers
