@@ -300,8 +300,10 @@ def serve_lifeline(
 
 def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
     """Child: the device on a pty until the lifeline says stop (or ends)."""
-    logger.info("%s", device_scheduling(f"the simulated {spec.name}", own_session=True))
     device = spec.build()
+    # Before the simulator's thread starts (it inherits the policy), after the build
+    # (which runs without blocking: no reason to do it at real-time priority).
+    logger.info("%s", device_scheduling(f"the simulated {spec.name}", own_session=True))
     simulator = PtySimulator(device, baud=spec.baud)
     simulator.start()
     started = time.monotonic()

@@ -466,11 +466,9 @@ def device_scheduling(what: str, *, own_session: bool = False) -> str:
     from the process's main thread before it starts the simulator's thread (which
     inherits the policy).
 
-    Measured (docs/simulator.md, "Under load"): at normal priority, even in a
-    scheduling group of its own, a mostly idle process on the loaded 2-core host woke
-    up to 565 ms late (7 wake-ups in 60 s over 150 ms, the driver's character
-    timeout), and a simulator that late makes the link show an error no wire would;
-    at real-time priority the worst was 1.5 ms. So: real-time (SCHED_FIFO
+    At normal priority a loaded host wakes a simulator late by more than a driver's
+    character timeout now and then, and the link shows an error no wire would
+    (figures: docs/simulator.md, "Under load"). So: real-time (SCHED_FIFO
     ``SIM_RT_PRIORITY``) with the spin guard armed (``guard_realtime``: a simulator
     that runs 0.2 s without blocking drops back to normal priority). Where that is
     refused: nice ``SIM_NICE`` where granted. ``own_session``: also a session - on
