@@ -340,9 +340,11 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
             if case.state == "limit cycle":
                 await _near_peak_speed(trace)
             asked = time.monotonic()
-            position0, speed0 = _at(await trace(), asked)
             name = "stop" if method == "STOP" else "power_off"
+            # The command first: the trace keeps its stamped points, and reading it
+            # (a request to the simulator's process) must not delay the press.
             outcome = await hub.command(case.axis, name, {})
+            position0, speed0 = _at(await trace(), asked)
             rest_since: float | None = None
             rested_at: float | None = None
             distance = 0.0
