@@ -40,6 +40,7 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from tests.conftest import use_csrf_token
 from tests.control_support import (
     RawWebsocket,
     can_cut_the_network,
@@ -78,6 +79,7 @@ async def server_process(tmp: Path, tty: str, port: int, pythonpath: str | None)
                         break
                 await asyncio.sleep(0.05)
             await asyncio.sleep(1.0)  # start-up stop out, link settled
+            await use_csrf_token(client)  # local mode still wants the token on writes
             yield process, client
     finally:
         process.terminate()

@@ -126,8 +126,10 @@ async def control_server(
     ws_max_size: int | None = None,
     web_dir: Path | None = None,
     addresses: list[int] | None = None,
+    clock: Callable[[], float] = time.monotonic,
 ) -> AsyncIterator[Server]:
-    """A real uvicorn server on a free port, on a recorded simulated SLAP2 line."""
+    """A real uvicorn server on a free port, on a recorded simulated SLAP2 line;
+    ``clock``: the control lock's (see ``StepClock``)."""
     addresses = addresses or [0, 1]
     with recorded_line(tmp_path, addresses) as (simulator, wire):
         spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
@@ -137,6 +139,7 @@ async def control_server(
             web_dir=web_dir or tmp_path / "no-web",
             autopilot=autopilot,
             control=settings or ControlSettings(),
+            control_clock=clock,
         )
         app = create_app(config)
         port = free_port()

@@ -40,7 +40,12 @@ EXPORTS_MIN_S = 1.5  # the exports phase lasts at least this (see the test)
 
 @contextlib.contextmanager
 def sim_process(tmp_path: Path) -> Iterator[str]:
-    """``servotune sim slap2`` (one module) in a child process; yields its pty path."""
+    """``servotune sim slap2`` (modules 0 and 1) in a child process; yields its pty path.
+
+    In a session of its own, as a device on a wire would be: on Linux a scheduling
+    group (autogroup) of its own, so this test's own work (the server in this process)
+    cannot starve it into late echoes (``servotune.sim.process.own_scheduling_group``
+    does the same for the demo's simulators)."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     process = subprocess.Popen(
         [
@@ -57,6 +62,7 @@ def sim_process(tmp_path: Path) -> Iterator[str]:
         stdout=subprocess.PIPE,
         text=True,
         env=os.environ.copy(),
+        start_new_session=True,
     )
     try:
         assert process.stdout is not None

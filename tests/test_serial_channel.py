@@ -223,3 +223,21 @@ async def test_a_cancelled_wait_leaves_the_chain_to_the_next_call(
         assert await _transact(channel, b"st\r") == b"st=ok\r"
     finally:
         device.stop()
+
+
+async def test_a_timeout_the_stalled_host_noticed_late_is_reported_once(
+    line: tuple[int, SerialChannel],
+) -> None:
+    """The loop is blocked (an injected stall: a callback that does not return) across a
+    read's deadline: the channel reports how late its timeout was noticed, once."""
+    _, channel = line
+    loop = asyncio.get_running_loop()
+    channel.take_timeout_late_s()
+    for read in (
+        lambda: channel.read_until(0x0D, 0.05, 0.05),  # the exchange path (its timer)
+        lambda: channel.read_available(0.05),  # the plain wait
+    ):
+        loop.call_later(0.01, time.sleep, 0.4)  # the host stalls for 0.4 s
+        assert not await read()
+        assert channel.take_timeout_late_s() >= 0.3
+        assert channel.take_timeout_late_s() == 0.0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -15,9 +16,8 @@ from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
-from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
-from servotune.sim.pty import PtySimulator
+from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.transports.serial import SerialConnector
 
 from .conftest import RecordingSink, wait_for
@@ -39,19 +39,22 @@ def test_the_sum_of_two_reads_is_a_setpoint_only_while_the_error_is_steady() -> 
 
 
 @contextlib.asynccontextmanager
-async def loaded_line(tmp_path: Path) -> AsyncIterator[tuple[Slap2Axis, RecordingSink, Slap2Bus]]:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "e.json", params=SLAP2_LOADED)])
-    with PtySimulator(bus, baud=19200) as sim:
+async def loaded_line(tmp_path: Path) -> AsyncIterator[tuple[Slap2Axis, RecordingSink]]:
+    """The demo's loaded SLAP2 module on a pty, simulated in a process of its own (as the
+    demo runs it): this test's own work cannot starve it into late echoes."""
+    build = functools.partial(Slap2Bus.with_addresses, [0], state_dir=tmp_path, params=SLAP2_LOADED)
+    with serial_sim_process(SerialSimSpec("setpoint", build, 19200)) as sim:
+        path = sim.ready["path"]
         sink = RecordingSink()
-        config = Slap2LinkConfig(link_id="line", path=sim.path, addresses=[0])
-        link = Slap2Link(config, SerialConnector(sim.path, 19200), sink)
+        config = Slap2LinkConfig(link_id="line", path=path, addresses=[0])
+        link = Slap2Link(config, SerialConnector(path, 19200), sink)
         task = asyncio.create_task(link.run())
         try:
             await wait_for(lambda: link.state == "connected", 10, "the link")
             await wait_for(lambda: len(sink.samples["line-0"]) > 3, 10, "samples")
             axis = link.axes[0]
             assert isinstance(axis, Slap2Axis)
-            yield axis, sink, bus
+            yield axis, sink
         finally:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -93,7 +96,7 @@ async def _ring(axis: Slap2Axis, sink: RecordingSink, console: bool) -> tuple[li
 
 
 async def test_a_ringing_axis_shows_no_false_setpoint(tmp_path: Path) -> None:
-    async with loaded_line(tmp_path) as (axis, sink, _):
+    async with loaded_line(tmp_path) as (axis, sink):
         # A move the driver commanded: the reconstructed profile, the target once the
         # profile has ended, whatever the shaft does.
         offsets, n = await _ring(axis, sink, console=False)

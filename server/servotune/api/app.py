@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,6 +76,10 @@ class AppConfig:
     # Local or exposed mode, TLS, reverse proxy (servotune.auth.security).
     security: SecurityConfig = field(default_factory=SecurityConfig)
     control: ControlSettings = field(default_factory=ControlSettings)
+    # The control lock's clock (its leases, the dead-man): tests inject one they step,
+    # so the dead-man's rule is checked on the server's own time, not on how fast a
+    # loaded machine runs the test.
+    control_clock: Callable[[], float] = time.monotonic
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
     # The devices the links may name (None: servotune.devices.default_registry()).
@@ -161,7 +166,10 @@ def create_app(config: AppConfig) -> FastAPI:
 
                 control_cls = control_class(config.bus)
             control = control_cls(
-                hub, config.control, audit=lambda: getattr(app.state, "audit", None)
+                hub,
+                config.control,
+                audit=lambda: getattr(app.state, "audit", None),
+                clock=config.control_clock,
             )
             app.state.control = control
             await hub.start()

@@ -149,6 +149,7 @@ class ControlClient:
     lapsing: bool = False
     connected: bool = True
     beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
+    heartbeats: int = 0  # every heartbeat heard, from the page or its worker
     # How long ago the tab's machine last acknowledged this connection's data (None:
     # cannot be told, e.g. behind a reverse proxy): see ControlSettings.alive_grace_s.
     alive: Callable[[], float | None] | None = None
@@ -222,6 +223,9 @@ class ControlManager:
         self._watchdog_task: asyncio.Task[None] | None = None
         # Lapses seen and how late each was detected after the lease ran out (benchmark).
         self.lapses = 0
+        # Passes of the watchdog begun (a test that steps the clock waits for two: one
+        # whole pass then ran on the new time).
+        self.watchdog_passes = 0
         hub.autopilot_gate = self
         for info in hub.axes_info():
             # The autopilot starts paused: it may move only once the start-up stop is out.
@@ -359,6 +363,7 @@ class ControlManager:
         """
         if _can_control(client.principal):
             self._heard(client)
+            client.heartbeats += 1
             client.page_age_s = (page_age_ms or 0) / 1000
 
     def client(self, client_id: str) -> ControlClient | None:
@@ -694,6 +699,7 @@ class ControlManager:
         period = self.settings.watchdog_period_s
         while True:
             await asyncio.sleep(period)
+            self.watchdog_passes += 1
             self._probe_late_clients()
             suspects = self._silent_clients()
             if not suspects:
@@ -712,10 +718,18 @@ class ControlManager:
                         source = "its worker" if client.beats else "the page itself"
                         why = f"no heartbeat for {silent_ms} ms (from {source}"
                         ack_s = client.alive_cache[1]
+                        grace_s = self.settings.alive_grace_s
+                        if client.alive is not None and silent_ms > 1000 * grace_s:
+                            # Not asked by _forgiven past the grace: ask now, for the
+                            # message (a live machine past the grace is not "unknown").
+                            ack_s = client.alive()
                         if client.alive is None or ack_s is None:
                             why += "; its connection cannot be checked)"
                         else:
-                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago)"
+                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago"
+                            if silent_ms > 1000 * grace_s:
+                                why += f", but a live connection is forgiven {grace_s:g} s only"
+                            why += ")"
                     else:
                         frozen = client.page_age_s + now - client.heard_s
                         why = f"the page has not run for {frozen:.1f} s (frozen)"

@@ -243,10 +243,36 @@ class LinkEngine(abc.ABC):
         self._last_answer_t = self._clock()
         self._unanswered = 0
 
-    def _unanswered_request(self) -> None:
-        """A request got no answer at all within its timeout."""
+    def _unanswered_request(self, waited_s: float | None = None) -> None:
+        """A request got no answer at all within its timeout (``waited_s``: that
+        timeout; a host that stalled longer than that does not count it, see
+        ``_host_stalled``)."""
+        if waited_s is not None and self._host_stalled(waited_s):
+            return
         self._unanswered += 1
         self._check_silent()
+
+    def _host_stalled(self, waited_s: float) -> bool:
+        """A read that timed out since the last check (``take_timeout_late_s``) was
+        noticed more than ``waited_s`` (the time a request listens) after its deadline:
+        the host itself was away for longer than it
+        listened, so the silence is no evidence against the device - its answer may
+        be held up in the host's tty layer, starved along with the host (measured:
+        docs/simulator.md, "Under load"). Counted (``host_stalls``) and logged, never
+        an alarm: a line that is really down shows at its next timeouts noticed on
+        time (the server's own stalls are shown by the hub's status watch)."""
+        channel = self._channel
+        late_s = 0.0 if channel is None else channel.take_timeout_late_s()
+        if late_s <= waited_s:
+            return False
+        self._count("host_stalls")
+        logger.info(
+            "link %s: a timeout noticed %.0f ms late (the host stalled): not counted "
+            "against the device",
+            self.id,
+            1000 * late_s,
+        )
+        return True
 
     def _check_silent(self) -> None:
         if self._channel is None or self._state not in ("connected", "error"):

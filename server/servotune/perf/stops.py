@@ -1,8 +1,10 @@
 """Stopping distance and time on the demo plants: STOP against the power-off alone.
 
 Each run starts one simulated device (the demo's plants, limit switches removed so that
-nothing but the stop ends the motion), its real driver on a pseudo-terminal (or the
-EtherCAT seam), and a real ``Hub``; brings one axis into a state (``top speed``, or a
+nothing but the stop ends the motion) in a process of its own (as the demo runs it:
+``servotune.sim.process``, so a busy host process cannot starve the device and make
+its echoes late), its real driver on a pseudo-terminal (or the EtherCAT seam), and a
+real ``Hub``; brings one axis into a state (``top speed``, or a
 ``limit cycle``: a loop whose gains oscillate around a held position); then asks the
 hub for ``STOP`` (the product's STOP, ``Hub.command(axis, "stop")``) or for the
 explicit power-off (``power_off``: SLAP2 ``st`` alone, Z1100 Job 0, EP7047 Enable off),
@@ -25,10 +27,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import math
 import tempfile
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, Literal
@@ -44,7 +47,7 @@ from servotune.devices.z1100.sim.servo import AxisHardware
 from servotune.hub.hub import Hub
 from servotune.link.base import Sample
 from servotune.sim.physics import DcMotorParams
-from servotune.sim.pty import PtySimulator
+from servotune.sim.process import SerialSimSpec, SimProcess, serve_serial
 from servotune.storage import Storage
 
 State = Literal["top speed", "limit cycle"]
@@ -109,12 +112,27 @@ CASES: Final[tuple[Case, ...]] = (
 
 class _Trace:
     """A ``SimDevice`` wrapper that records the shaft (host monotonic time, position in
-    counts, speed in counts/s) of one axis every time the device is advanced."""
+    counts, speed in counts/s) of one axis every time the device is advanced. It runs
+    in the simulator's process; the bench reads it with ``points_since`` and
+    ``powered`` (``SimProcess.request("device", ...)``). The monotonic clock is the
+    host's, the same in every process."""
 
-    def __init__(self, device: Any, read: Callable[[], tuple[float, float]]) -> None:
+    def __init__(
+        self,
+        device: Any,
+        read: Callable[[], tuple[float, float]],
+        powered: Callable[[], bool],
+    ) -> None:
         self.device = device
         self._read = read
+        self._powered = powered
         self.points: list[tuple[float, float, float]] = []
+
+    def points_since(self, start: int) -> list[tuple[float, float, float]]:
+        return self.points[start:]
+
+    def powered(self) -> bool:
+        return self._powered()
 
     def advance_to(self, t_s: float) -> bytes:
         out: bytes = self.device.advance_to(t_s)
@@ -137,58 +155,81 @@ def _slap2_bus() -> Slap2Bus:
     )
 
 
-Trace = Callable[[], list[tuple[float, float, float]]]
+Trace = Callable[[], Awaitable[list[tuple[float, float, float]]]]
+Powered = Callable[[], Awaitable[bool]]
+
+
+def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
+    """The demo plant of a serial ``device`` with a trace of axis ``address`` (built in
+    the simulator's process: a module-level function, picklable with its arguments)."""
+    if device == "slap2":
+        bus = _slap2_bus()
+        module = bus.module(address)
+        return _Trace(
+            bus,
+            lambda: (float(module.motor.count), module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD),
+            lambda: bool(module.rss & 0b1100),  # pm or vm
+        )
+    flash = data_dir / "z1100_flash.json"
+    write_demo_flash(flash)
+    chip = Z1100Chip(
+        [
+            AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
+            for j in Z1100_LOADS_KG_M2
+        ],
+        flash_path=flash,
+        jumper_baud=9600,
+    )
+
+    def read() -> tuple[float, float]:
+        state = chip.axis_state(address)
+        return float(state.encoder_counts), float(state.speed_counts_s)
+
+    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered))
+
+
+class _RemoteTrace:
+    """The bench's side of a ``_Trace`` in the simulator's process: the points so far
+    (fetched incrementally), and whether the motor is powered."""
+
+    def __init__(self, process: SimProcess) -> None:
+        self._process = process
+        self.points: list[tuple[float, float, float]] = []
+
+    async def trace(self) -> list[tuple[float, float, float]]:
+        new = await asyncio.to_thread(
+            self._process.request, "device", method="points_since", start=len(self.points)
+        )
+        self.points.extend(tuple(p) for p in new)
+        return list(self.points)
+
+    async def powered(self) -> bool:
+        return bool(await asyncio.to_thread(self._process.request, "device", method="powered"))
 
 
 @contextlib.asynccontextmanager
-async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Callable[[], bool]]]:
+async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Powered]]:
     """A hub with the device of ``case``; yields (hub, trace of the axis, powered?)."""
     suffix = case.axis.rsplit("-", 1)[1]
     address = "xyz".index(suffix) if case.device == "z1100" else int(suffix)
-    simulator: PtySimulator | None = None
+    process: SimProcess | None = None
     points: list[tuple[float, float, float]] = []
-    powered: Callable[[], bool]
-    if case.device == "slap2":
-        bus = _slap2_bus()
-        module = bus.module(address)
-        trace = _Trace(
-            bus,
-            lambda: (
-                float(module.motor.count),
-                module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD,
-            ),
+    trace: Trace
+    powered: Powered
+    if case.device in ("slap2", "z1100"):
+        baud, addresses = (19200, [0, 1]) if case.device == "slap2" else (9600, [0, 1, 2])
+        sim = SerialSimSpec(
+            f"stops-{case.device}",
+            functools.partial(_traced_device, case.device, address, data_dir),
+            baud,
         )
-        simulator = PtySimulator(trace, baud=19200)
-        spec = LinkSpec("slap2", "", "bench", 19200, [0, 1], 512)
-        points = trace.points
-        powered = lambda: bool(module.rss & 0b1100)  # noqa: E731 - pm or vm
-    elif case.device == "z1100":
-        flash = data_dir / "z1100_flash.json"
-        write_demo_flash(flash)
-        chip = Z1100Chip(
-            [
-                AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
-                for j in Z1100_LOADS_KG_M2
-            ],
-            flash_path=flash,
-            jumper_baud=9600,
-        )
-
-        def read() -> tuple[float, float]:
-            state = chip.axis_state(address)
-            return float(state.encoder_counts), float(state.speed_counts_s)
-
-        trace = _Trace(chip, read)
-        simulator = PtySimulator(trace, baud=9600)
-        spec = LinkSpec("z1100", "", "bench", 9600, [0, 1, 2], 512)
-        points = trace.points
-        powered = lambda: bool(chip.axis_state(address).powered)  # noqa: E731
+        process = SimProcess(sim.name, serve_serial, sim)
+        await asyncio.to_thread(process.start)
+        remote = _RemoteTrace(process)
+        trace, powered = remote.trace, remote.powered
+        spec = LinkSpec(case.device, process.ready["path"], "bench", baud, addresses, 512)
     else:
         spec = LinkSpec("ep7047", "sim", "bench", 0, [1])  # the simulated slave in-process
-        powered = lambda: False  # noqa: E731 - replaced below
-    if simulator is not None:
-        simulator.start()
-        spec = dataclasses.replace(spec, path=simulator.path)
     storage = Storage(data_dir / "servotune.db")
     hub = Hub([], storage)
     hub.add_link(default_registry().build_link(spec, hub))
@@ -206,9 +247,15 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Ca
             points.append((sample.t, float(position), speed))
 
         hub.add_sample_listener(listen)
-        powered = lambda: bool(  # noqa: E731
-            (latest := hub.entry(case.axis).latest) and latest.flags.get("enable_out")
-        )
+
+        async def local_trace() -> list[tuple[float, float, float]]:
+            return list(points)
+
+        async def enabled() -> bool:
+            latest = hub.entry(case.axis).latest
+            return bool(latest and latest.flags.get("enable_out"))
+
+        trace, powered = local_trace, enabled
     await hub.start()
     try:
         deadline = time.monotonic() + 20
@@ -216,12 +263,12 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Ca
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{case.label}: the link did not come up")
             await asyncio.sleep(0.05)
-        yield hub, (lambda: list(points)), powered
+        yield hub, trace, powered
     finally:
         await hub.stop()
         await hub.stops.close()
-        if simulator is not None:
-            simulator.stop()
+        if process is not None:
+            await asyncio.to_thread(process.stop)
 
 
 async def _bring_into_state(hub: Hub, case: Case) -> None:
@@ -271,7 +318,7 @@ async def _near_peak_speed(trace: Trace) -> None:
     power cut then lets the shaft coast from near its top speed)."""
     deadline = time.monotonic() + 2.0
     while time.monotonic() < deadline:
-        points = trace()
+        points = await trace()
         recent = [abs(p[2]) for p in points if p[0] >= points[-1][0] - 0.3]
         if recent and recent[-1] >= 0.8 * max(recent) > 0:
             return
@@ -294,15 +341,17 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
             if case.state == "limit cycle":
                 await _near_peak_speed(trace)
             asked = time.monotonic()
-            position0, speed0 = _at(trace(), asked)
             name = "stop" if method == "STOP" else "power_off"
+            # The command first: the trace keeps its stamped points, and reading it
+            # (a request to the simulator's process) must not delay the press.
             outcome = await hub.command(case.axis, name, {})
+            position0, speed0 = _at(await trace(), asked)
             rest_since: float | None = None
             rested_at: float | None = None
             distance = 0.0
             while time.monotonic() - asked < MAX_STOP_S:
                 await asyncio.sleep(0.05)
-                points = [p for p in trace() if p[0] >= asked]
+                points = [p for p in await trace() if p[0] >= asked]
                 if not points:
                     continue
                 distance = max(abs(p[1] - position0) for p in points)
@@ -324,7 +373,7 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 speed0,
                 distance,
                 None if rested_at is None else rested_at - asked,
-                powered(),
+                await powered(),
                 outcome.sent,
                 events,
             )

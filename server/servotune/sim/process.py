@@ -12,7 +12,8 @@ pipe to it:
 
 * the child reports ``ready`` with what the host must open (a pty path, or the
   ``sim:`` address of the EtherCAT simulator) and then serves small requests on the
-  pipe (``stop``, ``record``, fault injection);
+  pipe (``stop``, ``record``, fault injection; a serial device's own methods with
+  ``device``, for measurements that watch the device itself);
 * the child watches the pipe: when the parent ends for whatever reason - a normal
   shutdown, a crash, SIGKILL - its end of the pipe is closed by the kernel, the child
   reads end-of-file and shuts down (closes its pty or socket) within
@@ -52,7 +53,7 @@ from types import TracebackType
 from typing import Any
 
 from servotune.sim.base import SimDevice
-from servotune.sim.pty import PtySimulator
+from servotune.sim.pty import PtySimulator, device_scheduling
 
 logger = logging.getLogger(__name__)
 
@@ -322,6 +323,9 @@ def serve_lifeline(
 def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
     """Child: the device on a pty until the lifeline says stop (or ends)."""
     device = spec.build()
+    # Before the simulator's thread starts (it inherits the policy), after the build
+    # (which runs without blocking: no reason to do it at real-time priority).
+    logger.info("%s", device_scheduling(f"the simulated {spec.name}", own_session=True))
     simulator = PtySimulator(device, baud=spec.baud)
     simulator.start()
     started = time.monotonic()
@@ -358,9 +362,19 @@ def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
         def power_cycle(address: int | None = None) -> None:
             simulator.power_cycle(address)
 
+        def call_device(method: str, **args: Any) -> Any:
+            # A measurement's own view of the device (e.g. a shaft trace), read between
+            # two wire events on the simulator's thread.
+            return simulator.call(lambda: getattr(device, method)(**args))
+
         serve_lifeline(
             conn,
-            {"record": record, "power_cycle": power_cycle, "set_silent": simulator.set_silent},
+            {
+                "record": record,
+                "power_cycle": power_cycle,
+                "set_silent": simulator.set_silent,
+                "device": call_device,
+            },
             tick=tick,
         )
     finally:

@@ -46,6 +46,7 @@ from types import FrameType, TracebackType
 from typing import TypeVar, cast
 
 from servotune.sim.base import PowerCyclable, SimDevice
+from servotune.transports.ethercat_cycle import guard_realtime
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +56,12 @@ IDLE_ADVANCE_S = 0.005
 _REQUEST_TIMEOUT_S = 5.0
 _READ_CHUNK = 4096
 _PR_SET_TIMERSLACK = 29  # linux/prctl.h
+# Real-time priority of a simulator process where the OS grants it (root or
+# CAP_SYS_NICE): below the EtherCAT cycle process (50) and its simulated wire slave
+# (60), whose 2 ms deadlines are stricter than an RS232 character's.
+SIM_RT_PRIORITY = 40
+# Otherwise: this nice value (of its own scheduling group, or of the process).
+SIM_NICE = -10
 
 
 class _Request:
@@ -452,6 +459,51 @@ def _reduce_timer_slack() -> None:
         logger.debug("could not reduce the timer slack", exc_info=True)
 
 
+def device_scheduling(what: str, *, own_session: bool = False) -> str:
+    """Schedule this simulator process like the hardware it stands in for, which answers
+    at once whatever the host does; returns what was granted (for the log). Call it
+    from the process's main thread before it starts the simulator's thread (which
+    inherits the policy).
+
+    At normal priority a loaded host wakes a simulator late by more than a driver's
+    character timeout now and then, and the link shows an error no wire would
+    (figures: docs/simulator.md, "Under load"). So: real-time (SCHED_FIFO
+    ``SIM_RT_PRIORITY``) with the spin guard armed (``guard_realtime``: a simulator
+    that runs 0.2 s without blocking drops back to normal priority). Where that is
+    refused: nice ``SIM_NICE`` where granted. ``own_session``: also a session - on
+    Linux a scheduling group (autogroup) - of its own first, so that without any
+    privilege it is at least not one more thread of a busy server's group (a child
+    process that ignores SIGINT and ends with its lifeline loses nothing by leaving
+    the terminal's session).
+    """
+    if not sys.platform.startswith("linux"):
+        return f"{what}: default scheduling (not Linux)"
+    group = ""
+    if own_session:
+        try:
+            os.setsid()
+            group = " in a scheduling group of its own"
+        except OSError as exc:
+            group = f" (no session of its own: {exc})"
+    try:
+        guard_realtime(what)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SIM_RT_PRIORITY))
+    except (OSError, AttributeError, ValueError) as refused:
+        try:
+            if own_session and group.startswith(" in"):
+                with open("/proc/self/autogroup", "w", encoding="ascii") as autogroup:
+                    autogroup.write(str(SIM_NICE))
+            else:
+                os.setpriority(os.PRIO_PROCESS, 0, SIM_NICE)
+        except OSError as exc:
+            return (
+                f"{what}{group} at normal priority (real-time refused: {refused}; nice "
+                f"{SIM_NICE} refused: {exc}): a loaded host may delay its answers"
+            )
+        return f"{what}{group} at nice {SIM_NICE} (real-time refused: {refused})"
+    return f"{what}{group} at real-time priority (SCHED_FIFO {SIM_RT_PRIORITY})"
+
+
 def run_pty_simulator(
     device: SimDevice, *, baud: int = 19200, link_path: str | None = None
 ) -> None:
@@ -466,6 +518,7 @@ def run_pty_simulator(
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    logger.info("%s", device_scheduling("the simulated device"))
     simulator = PtySimulator(device, baud=baud, link_path=link_path)
     try:
         simulator.start()

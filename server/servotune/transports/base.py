@@ -115,6 +115,14 @@ class ByteChannel(Protocol):
         when nothing is chained, or when it is ``adopt`` (left to be taken over)."""
         ...
 
+    def take_timeout_late_s(self) -> float:
+        """The longest any read that timed out since the last call was noticed after
+        its deadline (0: all on time); resets it. More than a read listened: the host
+        itself did not run for longer than it listened, so that silence is no evidence
+        against the device (its bytes may be held up in the host's tty layer, which a
+        starved host starves too)."""
+        ...
+
     @property
     def chains_dropped(self) -> int:
         """Exchanges started with ``transact(then=...)`` that the caller did not

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import errno
 import functools
 import os
@@ -77,6 +76,7 @@ class _Exchange:
             self.future.set_result(result)
 
     def on_timeout(self) -> None:
+        self.protocol.note_late(self.loop.time() - self.deadline)
         if self.echo is None:
             self.echo = EchoResult(self.index, None)
             self.finish(self.echo)
@@ -165,6 +165,11 @@ class _SerialProtocol(asyncio.Protocol):
         # A follow-up started from the receive callback (``_Exchange.then``) that no
         # ``transact`` has taken over yet; it may still be running (``exchange``).
         self.chained: _Exchange | None = None
+        # The latest any read that timed out was noticed (SerialChannel.take_timeout_late_s).
+        self.timeout_late_s = 0.0
+
+    def note_late(self, late_s: float) -> None:
+        self.timeout_late_s = max(self.timeout_late_s, late_s)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -205,6 +210,10 @@ class SerialChannel(ByteChannel):
     @property
     def chains_dropped(self) -> int:
         return self._chains_dropped
+
+    def take_timeout_late_s(self) -> float:
+        late_s, self._protocol.timeout_late_s = self._protocol.timeout_late_s, 0.0
+        return late_s
 
     async def settle(self, adopt: bytes = b"") -> Transaction | None:
         """End an exchange chained with ``transact(then=...)`` that is not ``adopt``:
@@ -262,9 +271,13 @@ class SerialChannel(ByteChannel):
         if protocol.buffer or protocol.is_closed:
             return
         protocol.data_event.clear()
-        with contextlib.suppress(TimeoutError):
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        try:
             async with asyncio.timeout(timeout_s):
                 await protocol.data_event.wait()
+        except TimeoutError:
+            protocol.note_late(loop.time() - deadline)
 
     async def read_byte(self, timeout_s: float) -> int | None:
         await self._settle()

@@ -212,7 +212,7 @@ class Slap2Wire(LinkEngine):
                 codec.CR, self._first_reply_timeout_s(command), self._timing.char_timeout_s
             )
         if raw is None:
-            raise DeviceTimeoutError(f"no reply to {command.text!r}")
+            raise ReplyTimeoutError(f"no reply to {command.text!r}")
         lines = decoder.feed(raw)
         if command.multiline:
             # Listings are for terminals: read until the line goes quiet.
@@ -274,7 +274,7 @@ class Slap2Wire(LinkEngine):
             else:
                 raw = done.reply
                 if raw is None:
-                    raise DeviceTimeoutError(f"no reply to {command.text!r}")
+                    raise ReplyTimeoutError(f"no reply to {command.text!r}")
             lines = await self._read_reply(channel, command, raw)
             if t_reply is None or raw is None or command.multiline:
                 t_reply = self._clock()
@@ -386,7 +386,10 @@ class Slap2Wire(LinkEngine):
         if b"\r" not in rest:
             if rest.strip():
                 self._note_unsolicited(rest)
-            raise DeviceTimeoutError(
+            # The previous module echoed the line: the line is alive, only the new
+            # module's CR is missing (late, or that module is absent).
+            error = ReplyTimeoutError if received.strip() else DeviceTimeoutError
+            raise error(
                 f"no module answers at address {command.text[2:]} (power, cable, address pins?)"
             )
         other = rest.replace(b"\r", b"", 1)
@@ -493,6 +496,13 @@ class Slap2Wire(LinkEngine):
         return reply.value
 
 
+class ReplyTimeoutError(DeviceTimeoutError):
+    """The line answered but the reply did not come in time: every character of the
+    command was echoed, CR included (or, for a blind ``se``, the previous module echoed
+    the line) and the reply (the new module's CR) is missing. A late reply, not a dead
+    line: the link's error rule treats it like any failure that brought bytes back."""
+
+
 class _AbandonedError(Exception):
     """A command abandoned with Ctrl-X before its CR: it did not execute."""
 
@@ -515,4 +525,11 @@ def command_mnemonic(text: str) -> str:
     return text[:end].lower()
 
 
-__all__ = ["IDEMPOTENT_COMMANDS", "Slap2Wire", "WireTiming", "command_mnemonic", "is_banner"]
+__all__ = [
+    "IDEMPOTENT_COMMANDS",
+    "ReplyTimeoutError",
+    "Slap2Wire",
+    "WireTiming",
+    "command_mnemonic",
+    "is_banner",
+]

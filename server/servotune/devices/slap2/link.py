@@ -71,7 +71,12 @@ from servotune.devices.slap2.capture import (
     ProfileState,
 )
 from servotune.devices.slap2.descriptor import PARAM_SETTERS, slap2_descriptor
-from servotune.devices.slap2.exchange import Slap2Wire, command_mnemonic, is_banner
+from servotune.devices.slap2.exchange import (
+    ReplyTimeoutError,
+    Slap2Wire,
+    command_mnemonic,
+    is_banner,
+)
 from servotune.devices.slap2.profile import TICK_S, ProfileTrack, firmware_setpoint
 from servotune.link.base import (
     DeviceRefusedError,
@@ -106,8 +111,10 @@ UCON_ATTEMPTS = 3
 # answered. Three, like the line's own rule: one or two failures are a slow host.
 MODULE_OFFLINE_FAILURES = 3
 # The line's rule: ``error`` after LINE_ERROR_FAILURES failed exchanges in a row. When
-# bytes came back in that run (a wrong echo, an odd reply, a refusal: any failure but
-# a timeout), the line is alive, and the run must also span LINE_ERROR_SPAN_S.
+# bytes came back in that run (a wrong echo, an odd reply, a refusal, or a reply that
+# did not come after the whole command was echoed: any failure but a silent line), the
+# line is alive, and the run must also span LINE_ERROR_SPAN_S. (One missing reply is
+# never an error: the next poll reads again - every poll is a read, safe to repeat.)
 # Measured in the soak under a CPU hog: one stall held a reply past the character
 # timeout, its late bytes spoiled the next two echoes, three failures within ~0.6 s,
 # then an answer 24 ms later; that is counted (desyncs, dropped bytes), not shown as
@@ -612,6 +619,8 @@ class Slap2Link(Slap2Wire):
 
     def _module_answered(self, module: _ModuleState) -> None:
         """An exchange with ``module`` succeeded: the line works, and so does it."""
+        if self._channel is not None:
+            self._channel.take_timeout_late_s()  # timeouts before it excuse no later one
         self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0
@@ -626,7 +635,11 @@ class Slap2Link(Slap2Wire):
         line's answer count decides "another module answered" (this module's own
         answer would have reset its count), so a line that is down, or has one
         module, is left to the line's rule (_poll_failed): never shown connected
-        with its only module offline."""
+        with its only module offline. A timeout the host noticed later than it had
+        listened (``_host_stalled``) counts for neither: the host was away."""
+        if isinstance(exc, DeviceTimeoutError) and self._host_stalled(self.config.char_timeout_s):
+            self._count("desyncs")
+            return
         self._poll_failed(exc)
         if module.failures == 0:
             module.answers_at_first_failure = self._answers
@@ -669,7 +682,9 @@ class Slap2Link(Slap2Wire):
             self._first_failure_t = now
             self._failures_saw_bytes = False
         self._consecutive_failures += 1
-        self._failures_saw_bytes |= not isinstance(exc, DeviceTimeoutError)
+        self._failures_saw_bytes |= isinstance(exc, ReplyTimeoutError) or not isinstance(
+            exc, DeviceTimeoutError
+        )
         if self._consecutive_failures >= LINE_ERROR_FAILURES and (
             not self._failures_saw_bytes or now - self._first_failure_t >= LINE_ERROR_SPAN_S
         ):

@@ -222,6 +222,7 @@ class Z1100Link(LinkEngine):
                 # in the link's counters, not an event each time.
                 self._errors += 1
                 self._count("dropped_bytes", len(stray))
+            channel.take_timeout_late_s()  # only this attempt's own timeout may excuse it
             written = self._clock()
             await channel.write(packet)
             got = await self._read_reply(channel)
@@ -232,7 +233,7 @@ class Z1100Link(LinkEngine):
             if got is None:
                 self._errors += 1
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
-                self._unanswered_request()
+                self._unanswered_request(self.config.reply_timeout_s)
                 continue
             reply, reply_t = got
             self._answered()
