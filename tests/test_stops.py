@@ -73,8 +73,9 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
     if plant.device == "ep7047":  # the rig sees the exchange that carried the stop
         assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
         assert stop.wire_latency_s is not None and off.wire_latency_s is not None
-        stop_s = stop.wire_distance_counts / abs(stop.speed_counts_s)
-        off_s = off.wire_distance_counts / abs(off.speed_counts_s)
+        assert stop.wire_speed_counts_s and off.wire_speed_counts_s
+        stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
+        off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
         assert stop.time_s - stop.wire_latency_s <= off.time_s - off.wire_latency_s
     else:
         assert stop.time_s <= off.time_s, (stop, off)

@@ -94,6 +94,7 @@ class Result:
     # out: what the method itself does); None where the rig cannot see it (serial).
     wire_latency_s: float | None = None
     wire_distance_counts: float | None = None
+    wire_speed_counts_s: float | None = None
 
 
 SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
@@ -347,19 +348,13 @@ async def _near_peak_speed(trace: Trace) -> None:
 
 
 def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, float]:
-    """Position and speed at host time ``t``: from the last point before it, carried on
-    at the speed of the last 50 ms before that point. The EtherCAT telemetry reaches the
-    hub in bursts on a loaded host: the last point before the press can be 0.2 s old,
-    thousands of counts behind a shaft at top speed (the serial devices are traced at
-    every step of their simulator, where this changes nothing)."""
+    """Position and speed at host time ``t``: the last point before it, carried on at
+    its own speed to ``t`` (every rig records the shaft's exact speed with the point;
+    a point can be old when the bench's thread was held on a loaded host)."""
     before = [p for p in points if p[0] <= t]
     if not before:
         return points[0][1], points[0][2]
     t1, x1, v1 = before[-1]
-    earlier = [p for p in before if p[0] <= t1 - 0.05]
-    if earlier and t1 > earlier[-1][0]:
-        t0, x0, _ = earlier[-1]
-        v1 = (x1 - x0) / (t1 - t0)
     return x1 + v1 * (t - t1), v1
 
 
@@ -409,11 +404,13 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 events,
             )
             on_wire = reached(method, asked)
-            if on_wire is not None:
-                position1, _ = _at(trace(), on_wire)
-                after = [p[1] for p in trace() if p[0] >= on_wire]
+            after = [p for p in trace() if on_wire is not None and p[0] >= on_wire]
+            if on_wire is not None and after:
+                # The first point after that exchange: the shaft as the stop found it
+                # (the drive acts on new outputs from the exchange on).
+                _, position1, result.wire_speed_counts_s = after[0]
                 result.wire_latency_s = on_wire - asked
-                result.wire_distance_counts = max(abs(p - position1) for p in after)
+                result.wire_distance_counts = max(abs(p[1] - position1) for p in after)
             return result
 
 
@@ -448,7 +445,8 @@ def table(results: Sequence[Result]) -> str:
         text = f"{r.distance_counts:,.0f} counts / {t}"
         if r.wire_distance_counts is not None and r.wire_latency_s is not None:
             text += (
-                f" ({r.wire_distance_counts:,.0f} from the wire, "
+                f" ({r.wire_distance_counts:,.0f} from the wire at "
+                f"{abs(r.wire_speed_counts_s or 0):,.0f} counts/s, "
                 f"{r.wire_latency_s * 1000:.0f} ms after the press)"
             )
         return text
