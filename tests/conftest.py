@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 # One BLAS thread (servotune.tuning.threads): set before anything loads numpy.
 import servotune.tuning.threads  # noqa: F401
@@ -23,6 +24,12 @@ from servotune.link.base import Sample
 from servotune.schema import AxisHealth, EventLevel, LinkState
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
+
+# No per-example deadline for hypothesis anywhere: its 200 ms default is a machine-speed
+# limit, and on a loaded host a 24-byte codec round trip took 1.1 s once (a false
+# failure, not a slow codec). Tests that measure speed are benchmarks, not examples.
+settings.register_profile("servotune", deadline=None)
+settings.load_profile("servotune")
 
 
 @pytest.fixture(autouse=True)

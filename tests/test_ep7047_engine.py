@@ -7,6 +7,7 @@ two decimals, all multiples of 0.1°) become exact integers: 90.90° = 909 count
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Callable
 from dataclasses import replace
 from decimal import Decimal
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import pytest
+from scipy.integrate import solve_ivp
 
 from servotune.devices.ep7047 import codec
 from servotune.devices.ep7047.codec import (
@@ -32,7 +34,8 @@ from servotune.devices.ep7047.codec import (
 )
 from servotune.devices.ep7047.modulo import modulo_travel
 from servotune.devices.ep7047.sim.engine import Ep7047Engine
-from servotune.devices.ep7047.sim.plant import DriveConfig, StepperPlant
+from servotune.devices.ep7047.sim.plant import DEMO_MECHANICS, DriveConfig, Mechanics, StepperPlant
+from servotune.devices.ep7047.sim.slave import DEMO_FULL_STEPS_PER_REV, DEMO_SETTINGS
 
 # The project's copy of the manual's modulo tables (source named in the file's header):
 # tests never read anything outside the repository.
@@ -43,6 +46,11 @@ TURN = 3600  # counts per 360°
 MODULO_CONFIG = DriveConfig(speed_range_steps_s=4000, counts_per_full_step=18)
 # For the manual's examples in raw counts: 10000 bp = 256000 counts/s.
 FAST_CONFIG = DriveConfig(speed_range_steps_s=4000, counts_per_full_step=64)
+# The demo's drive: 2000 full steps/s, 200 steps and 4096 encoder counts a turn.
+DEMO_CONFIG = DriveConfig(
+    speed_range_steps_s=2000,
+    counts_per_full_step=DEMO_MECHANICS.counts_per_rev / DEMO_FULL_STEPS_PER_REV,
+)
 
 
 class Sample(NamedTuple):
@@ -857,14 +865,19 @@ def _engine_state(engine: Ep7047Engine) -> dict[str, object]:
         engine.plant.shaft_counts,
         engine.plant.counter_shift_counts,
         engine.plant.encoder_offset_counts,
+        engine.plant.speed_counts_s,
     )
     return fields
 
 
 def _demo_like_engine() -> Ep7047Engine:
-    # The demo's mechanics: a C-track pulse every turn (4096 counts), a cam.
+    # The demo's mechanics: a C-track pulse every turn (4096 counts), a cam, the rotor
+    # and load that coast unpowered.
     plant = StepperPlant(
-        cam_counts=(6000.0, 6800.0), sync_period_counts=4096.0, sync_phase_counts=1024.0
+        cam_counts=(6000.0, 6800.0),
+        sync_period_counts=4096.0,
+        sync_phase_counts=1024.0,
+        mechanics=DEMO_MECHANICS,
     )
     settings = PosSettings(velocity_min_bp=50, target_window_counts=10)
     config = DriveConfig(speed_range_steps_s=2000, counts_per_full_step=4096 / 200)
@@ -913,6 +926,10 @@ def test_run_cruising_equals_stepping_field_by_field(chunk: int) -> None:
         (outputs(StartType.ENDLESS_MINUS, 0, 5000), 3000),
         (outputs(StartType.ENDLESS_MINUS, 0, 5000, run_bits | PosControl.EMERGENCY_STOP), 2000),
         (idle, 100),
+        (outputs(StartType.ENDLESS_PLUS, 0, 8000, PosControl.NONE), 1),
+        (outputs(StartType.ENDLESS_PLUS, 0, 8000), 3000),
+        (Outputs(enc_control=EncControl.ENABLE_LATCH_C), 2000),  # unpowered: the coast
+        (idle, 100),
     ]
     stepped, chunked = _demo_like_engine(), _demo_like_engine()
     latches = 0
@@ -926,9 +943,138 @@ def test_run_cruising_equals_stepping_field_by_field(chunk: int) -> None:
             assert chunked.run(out, n) == expected
             assert _engine_state(chunked) == _engine_state(stepped)
             left -= n
-    # The script went through what the cruise has to stop for.
+    # The script went through what the cruise has to stop for, and a coast.
     assert latches > 0
     assert stepped.plant.shaft_counts != 0
+    assert stepped.plant.speed_counts_s == 0.0
+
+
+# --- unpowered: the rotor and load coast ------------------------------------------------
+
+
+def _coast_reference(
+    mechanics: Mechanics, speed_counts_s: float, until_s: float = 60.0
+) -> tuple[float, float | None]:
+    """(distance, time) to standstill - or the distance at ``until_s`` and None if it
+    turns still - integrated numerically (scipy) from the equation of motion,
+    independent of the closed form in ``Mechanics.coast``."""
+    counts_per_rad = mechanics.counts_per_rev / (2 * math.pi)
+    j, tc, b = mechanics.inertia_kg_m2, mechanics.friction_nm, mechanics.viscous_nm_s_per_rad
+
+    def motion(t: float, y: list[float]) -> list[float]:
+        return [y[1], -(tc * math.copysign(1.0, y[1]) + b * y[1]) / j]
+
+    def stopped(t: float, y: list[float]) -> float:
+        return y[1]
+
+    stopped.terminal = True  # type: ignore[attr-defined]
+    solution = solve_ivp(
+        motion, (0, until_s), [0.0, speed_counts_s / counts_per_rad], events=stopped,
+        rtol=1e-10, atol=1e-12,
+    )  # fmt: skip
+    if len(solution.t_events[0]) == 0:
+        return float(solution.y[0][-1]) * counts_per_rad, None
+    return float(solution.y_events[0][0][0]) * counts_per_rad, float(solution.t_events[0][0])
+
+
+@pytest.mark.parametrize("speed", [40_960.0, -12_000.0, 300.0])
+@pytest.mark.parametrize(
+    "mechanics",
+    [
+        DEMO_MECHANICS,
+        Mechanics(
+            inertia_kg_m2=1e-3, friction_nm=0, viscous_nm_s_per_rad=2e-3, counts_per_rev=1000
+        ),
+        Mechanics(
+            inertia_kg_m2=1e-4, friction_nm=0.02, viscous_nm_s_per_rad=0, counts_per_rev=4096
+        ),
+    ],
+    ids=["demo", "viscous-only", "coulomb-only"],
+)
+def test_the_coast_follows_the_equation_of_motion(mechanics: Mechanics, speed: float) -> None:
+    cycles = 8000  # 2 s
+    distance, t_stop = _coast_reference(mechanics, speed, cycles * CYCLE_S)
+    travelled, v, moving = 0.0, speed, 0
+    for _ in range(cycles):
+        step, v = mechanics.coast(v, CYCLE_S)
+        travelled += step
+        if v:
+            moving += 1
+            assert abs(v) < abs(speed) and v * speed > 0  # slows down, never reverses
+    assert travelled == pytest.approx(distance, rel=1e-6, abs=1e-6)
+    if t_stop is None:  # viscous friction alone never quite stops it
+        assert v != 0.0 and mechanics.friction_nm == 0
+    else:
+        assert v == 0.0 and (moving + 1) * CYCLE_S == pytest.approx(t_stop, abs=CYCLE_S)
+
+
+def test_mechanics_refuse_values_without_meaning() -> None:
+    with pytest.raises(ValueError, match="inertia"):
+        Mechanics(inertia_kg_m2=0, friction_nm=0.1, viscous_nm_s_per_rad=0, counts_per_rev=1)
+    with pytest.raises(ValueError, match="never stop"):
+        Mechanics(inertia_kg_m2=1, friction_nm=0, viscous_nm_s_per_rad=0, counts_per_rev=1)
+
+
+def _at_top_speed(plant: StepperPlant) -> tuple[Ep7047Engine, list[Sample]]:
+    engine = Ep7047Engine(DEMO_SETTINGS, DEMO_CONFIG, plant)
+    endless = command(StartType.ENDLESS_PLUS, velocity_bp=10_000, acceleration_ms=400)
+    engine.step(IDLE)
+    trace = run(engine, endless, until=lambda s: s.state == DriveState.CONST)
+    return engine, trace
+
+
+def test_enable_off_at_speed_lets_the_shaft_coast_and_the_encoder_counts_it() -> None:
+    engine, trace = _at_top_speed(StepperPlant(mechanics=DEMO_MECHANICS))
+    speed = engine.velocity_counts_s
+    assert speed == pytest.approx(DEMO_CONFIG.full_scale_counts_s)
+    start = trace[-1].position
+    coast: list[Sample] = []
+    for _ in range(4000):  # 1 s unpowered
+        inputs = engine.step(Outputs())
+        coast.append(Sample(inputs, engine.state, engine.diag, engine.plant.shaft_counts))
+    distance, t_stop = _coast_reference(DEMO_MECHANICS, speed)
+    assert t_stop is not None
+    # The encoder counts the shaft's coast: the distance the equation of motion gives.
+    assert coast[-1].position - start == pytest.approx(distance, abs=2)
+    moving = [s for s in coast if s.position != coast[-1].position]
+    assert len(moving) * CYCLE_S == pytest.approx(t_stop, abs=2 * CYCLE_S)
+    positions = [s.position for s in coast]
+    assert positions == sorted(positions)  # slows down, never turns back
+    # Decision: the drive's own velocity and direction bits are its trajectory's, which
+    # ends with the output stage: 0 at once, while the shaft coasts on.
+    assert all(s.velocity_bp == 0 for s in coast)
+    assert not coast[0].inputs.stm_status & (StmStatus.MOVING_POSITIVE | StmStatus.READY)
+    assert coast[-1].has(PosStatus.ERROR)  # the move failed (as before)
+
+
+def test_an_ideal_plant_stops_dead_and_an_internal_counter_misses_the_coast() -> None:
+    engine, _ = _at_top_speed(StepperPlant())  # no mechanics: massless
+    engine.step(Outputs())
+    shaft = engine.plant.shaft_counts
+    engine.run(Outputs(), 4000)
+    assert engine.plant.shaft_counts == shaft
+    # Without an encoder the counter is the drive's step count: the shaft coasts on, the
+    # counter stands where the steps stopped (the position is lost, as on a real drive).
+    engine, _ = _at_top_speed(StepperPlant(mechanics=DEMO_MECHANICS, encoder=False))
+    first = engine.step(Outputs())
+    shaft = engine.plant.shaft_counts
+    last = engine.run(Outputs(), 4000)
+    assert last.actual_position_counts == first.actual_position_counts
+    assert engine.plant.shaft_counts - shaft > 1000
+
+
+def test_enable_again_while_coasting_catches_the_shaft_where_it_is() -> None:
+    engine, _ = _at_top_speed(StepperPlant(mechanics=DEMO_MECHANICS))
+    engine.run(Outputs(), 200)  # 50 ms unpowered: still turning
+    assert engine.plant.speed_counts_s > 1000
+    caught = engine.plant.actual_counts
+    held = [engine.step(IDLE).actual_position_counts for _ in range(400)]
+    # Held where it was caught (no jump back to where the trajectory ended), and a
+    # relative move then starts from there.
+    assert set(held) == {round(caught)}
+    reset = Outputs(stm_control=StmControl.ENABLE | StmControl.RESET)
+    engine.step(reset)
+    assert_clean_arrival(move(engine, command(StartType.RELATIVE, 1000)), round(caught) + 1000)
 
 
 def test_run_skips_a_quiet_stretch_in_one_go() -> None:

@@ -19,7 +19,10 @@ from servotune.devices.ep7047.codec import Inputs, Outputs, StartType
 from servotune.devices.ep7047.sim import coe
 from servotune.devices.ep7047.sim.coe import ImageLayout, ObjectDictionary, SdoServer
 from servotune.devices.ep7047.sim.engine import Ep7047Engine
+from servotune.devices.ep7047.sim.plant import DEMO_MECHANICS
+from servotune.devices.ep7047.sim.slave import demo_slave
 from servotune.devices.ep7047.sim.wire import WireSlave
+from servotune.devices.ep7047.sim.wire_loop import demo_wire_slave
 
 u16 = st.integers(0, 0xFFFF)
 i32 = st.integers(codec.INT32_MIN, codec.INT32_MAX)
@@ -270,3 +273,27 @@ def test_the_sii_names_the_device_in_string_one(code: int) -> None:
     )
     count, length = image[0x84], image[0x85]
     assert count >= 1 and image[0x86 : 0x86 + length] == b"EP7047-1032"
+
+
+def test_the_wire_slave_drives_the_demo_mechanics_which_coast_when_outputs_go_safe() -> None:
+    """The slave on the wire runs the demo's drive with its rotor and load: when its
+    outputs go safe (Enable off: the watchdog, a pulled cable) at speed, the shaft
+    coasts and the counter (an encoder) counts it."""
+    assert demo_wire_slave().engine.plant.mechanics is DEMO_MECHANICS
+    clock = _Clock()
+    slave = WireSlave(demo_slave().engine, clock_ns=clock)
+    endless = Outputs(
+        stm_control=codec.StmControl.ENABLE,
+        pos_control=codec.PosControl.EXECUTE,
+        velocity_bp=10_000,
+        start_type=StartType.ENDLESS_PLUS,
+        acceleration_ms=400,
+    )
+    slave.engine.run(Outputs(stm_control=codec.StmControl.ENABLE), 4)
+    slave.engine.run(endless, 4000)  # 1 s: at top speed (10 turns/s)
+    before = slave.record()["actual_counts"]
+    clock.ns = 500_000_000
+    slave.advance(clock.ns)  # 0.5 s with the slave's safe outputs
+    coasted = slave.record()["actual_counts"] - before
+    assert 4000 < coasted < 5500, coasted  # ~1.2 turns: the equation of motion's 4760
+    assert slave.engine.plant.speed_counts_s == 0.0

@@ -126,6 +126,9 @@ KNOWN: set[str] = {
     # perf.stops builds its own rigs from the simulators (the demo's loads without
     # limit switches): the demo plants it reads moved from demo.py into the device folders.
     "servotune.perf.stops imports servotune.devices.slap2.sim.demo",
+    "servotune.perf.stops imports servotune.devices.ep7047.codec",
+    "servotune.perf.stops imports servotune.devices.ep7047.link",
+    "servotune.perf.stops imports servotune.devices.ep7047.sim.slave",
     "servotune.perf.stops imports servotune.devices.slap2.sim.line",
     "servotune.perf.stops imports servotune.devices.slap2.sim.module",
     "servotune.perf.stops imports servotune.devices.z1100.sim.chip",

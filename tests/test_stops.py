@@ -49,8 +49,13 @@ def case(label: str, state: str, gains: dict[str, int] | None = None) -> stopben
         (case("SLAP2 #1 with load", "limit cycle"), 0.35),
         # The Z1100's Estop holds; Job 0 lets the loaded motor coast for seconds.
         (case("Z1100 Y 5x load", "top speed"), 0.35),
+        # The EP7047's emergency ramp (0x8020:07, the demo's 100 ms from full speed:
+        # 2048 counts from 10 turns/s) against Enable off, where rotor and load coast
+        # (~4760 counts on the demo's mechanics): 0.43, from the exchange that carried
+        # each (the host's latency left out: it is not the method's).
+        (case("EP7047 stepper", "top speed"), 0.6),
     ],
-    ids=["slap2-loaded-top-speed", "slap2-loaded-limit-cycle", "z1100-5x-top-speed"],
+    ids=["slap2-loaded-top-speed", "slap2-loaded-limit-cycle", "z1100-5x-top-speed", "ep7047"],
 )
 async def test_stop_is_far_shorter_than_the_power_off_alone(
     plant: stopbench.Case, ratio: float
@@ -64,14 +69,25 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
     # that friction ends, so the comparison never favours the STOP).
     stop_s = stop.distance_counts / abs(stop.speed_counts_s)
     off_s = off.distance_counts / abs(off.speed_counts_s)
-    assert stop_s <= ratio * off_s, (stop, off)
     assert stop.time_s is not None and off.time_s is not None
-    assert stop.time_s <= off.time_s, (stop, off)
+    if plant.device == "ep7047":  # the rig sees the exchange that carried the stop
+        assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
+        assert stop.wire_latency_s is not None and off.wire_latency_s is not None
+        assert stop.wire_speed_counts_s and off.wire_speed_counts_s
+        stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
+        off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
+        assert stop.time_s - stop.wire_latency_s <= off.time_s - off.wire_latency_s
+    else:
+        assert stop.time_s <= off.time_s, (stop, off)
+    assert stop_s <= ratio * off_s, (stop, off)
     if plant.state == "limit cycle":
         # Not trusted to hold: braked, then unpowered once at rest.
         assert not stop.holds and any(
             "not working" in e or "does not hold" in e for e in stop.events
         )
+    elif plant.device == "ep7047":
+        # Its safe state is Enable off (no holding torque), reached at standstill.
+        assert not stop.holds and "Enable off at standstill" in stop.sent, stop
     else:
         assert stop.holds, stop  # and it keeps the axis under power
 

@@ -38,6 +38,15 @@ from typing import Any, Final, Literal
 
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
+from servotune.devices.ep7047.codec import PosControl, StmControl
+from servotune.devices.ep7047.link import build_ep7047_link
+from servotune.devices.ep7047.sim.slave import (
+    DEMO_COUNTS_PER_REV,
+    DEMO_SPEED_RANGE_STEPS_S,
+    SimulatedEp7047Slave,
+    SimulatedEthercatMaster,
+    demo_slave,
+)
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
@@ -58,6 +67,8 @@ REST_COUNTS_S: Final = 200.0
 REST_FOR_S: Final = 0.15
 # A run ends this long after the request at the latest.
 MAX_STOP_S: Final = 8.0
+# The simulated EP7047's and its driver's process-data watchdog in this bench (see _rig).
+EP7047_BENCH_WATCHDOG_S: Final = 1.0
 SLAP2_COUNTS_PER_RAD: Final = 2048 / (2 * math.pi)
 
 
@@ -83,6 +94,11 @@ class Result:
     holds: bool
     sent: list[str] = field(default_factory=list)
     events: list[str] = field(default_factory=list)
+    # From the exchange that carried the stop to the drive (the host's latency left
+    # out: what the method itself does); None where the rig cannot see it (serial).
+    wire_latency_s: float | None = None
+    wire_distance_counts: float | None = None
+    wire_speed_counts_s: float | None = None
 
 
 SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
@@ -108,6 +124,24 @@ CASES: Final[tuple[Case, ...]] = (
     Case("z1100", "bench-x", "Z1100 X unloaded", "limit cycle", Z1100_OSCILLATING, "±600"),
     Case("ep7047", "bench-1", "EP7047 stepper", "top speed", {}, "endless, 10 000 bp"),
 )  # fmt: skip
+
+
+class _TracedMaster(SimulatedEthercatMaster):
+    """The simulated EtherCAT master, recording the shaft (host monotonic time, counts,
+    counts/s) after every exchange, as :class:`_Trace` does for the serial devices."""
+
+    def __init__(
+        self, slaves: Sequence[SimulatedEp7047Slave], read: Callable[[], tuple[float, float]]
+    ) -> None:
+        super().__init__(slaves)
+        self._read = read
+        self.points: list[tuple[float, float, float]] = []
+
+    def receive_processdata(self, timeout: int = 2000) -> int:
+        wkc = super().receive_processdata(timeout)
+        position, speed = self._read()
+        self.points.append((time.monotonic(), position, speed))
+        return wkc
 
 
 class _Trace:
@@ -157,6 +191,7 @@ def _slap2_bus() -> Slap2Bus:
 
 Trace = Callable[[], Awaitable[list[tuple[float, float, float]]]]
 Powered = Callable[[], Awaitable[bool]]
+Reached = Callable[[Method, float], "float | None"]
 
 
 def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
@@ -208,14 +243,16 @@ class _RemoteTrace:
 
 
 @contextlib.asynccontextmanager
-async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Powered]]:
-    """A hub with the device of ``case``; yields (hub, trace of the axis, powered?)."""
+async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Powered, Reached]]:
+    """A hub with the device of ``case``; yields (hub, trace of the axis, powered?, when
+    a stop reached the device)."""
     suffix = case.axis.rsplit("-", 1)[1]
     address = "xyz".index(suffix) if case.device == "z1100" else int(suffix)
     process: SimProcess | None = None
-    points: list[tuple[float, float, float]] = []
+    master: _TracedMaster | None = None
     trace: Trace
     powered: Powered
+    reached: Reached = lambda method, since: None  # noqa: E731
     if case.device in ("slap2", "z1100"):
         baud, addresses = (19200, [0, 1]) if case.device == "slap2" else (9600, [0, 1, 2])
         sim = SerialSimSpec(
@@ -229,33 +266,55 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
         trace, powered = remote.trace, remote.powered
         spec = LinkSpec(case.device, process.ready["path"], "bench", baud, addresses, 512)
     else:
+        drive = demo_slave()
+        # The host is what stalls here, not the drive: the bench's own thread cycles the
+        # in-process drive, and on a loaded host it was held past the 100 ms watchdog
+        # (a trip mid-measurement is a coast, not the stop being measured). At 1 s a
+        # stall is latency, as it is for the serial devices.
+        drive.watchdog_s = EP7047_BENCH_WATCHDOG_S
+        plant = drive.engine.plant
+        master = _TracedMaster([drive], lambda: (plant.shaft_counts, plant.speed_counts_s))
+        traced = master
+
+        def reached_on_wire(method: Method, since: float) -> float | None:
+            for exchange in list(drive.history):
+                if exchange.t < since:
+                    continue
+                outputs = exchange.outputs
+                if method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP:
+                    return exchange.t
+                if method == "power off" and not outputs.stm_control & StmControl.ENABLE:
+                    return exchange.t
+            return None
+
+        async def local_trace() -> list[tuple[float, float, float]]:
+            return list(traced.points)
+
+        reached = reached_on_wire
+        trace = local_trace
         spec = LinkSpec("ep7047", "sim", "bench", 0, [1])  # the simulated slave in-process
     storage = Storage(data_dir / "servotune.db")
     hub = Hub([], storage)
-    hub.add_link(default_registry().build_link(spec, hub))
-    if case.device == "ep7047":
+    if master is not None:
+        hub.add_link(
+            build_ep7047_link(
+                spec.link_id,
+                spec.path,
+                spec.addresses[0],
+                hub,
+                master=master,
+                speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+                counts_per_rev=DEMO_COUNTS_PER_REV,
+                watchdog_s=EP7047_BENCH_WATCHDOG_S,
+            )
+        )
 
-        def listen(axis_id: str, sample: Sample) -> None:
-            # The EtherCAT telemetry is dense (a sample per 2 ms cycle): the speed is
-            # taken from successive positions, in counts/s like the serial devices'.
-            position = sample.channels.get("position")
-            if axis_id != case.axis or position is None:
-                return
-            speed = 0.0
-            if points and sample.t > points[-1][0]:
-                speed = (float(position) - points[-1][1]) / (sample.t - points[-1][0])
-            points.append((sample.t, float(position), speed))
+        async def ready() -> bool:
+            return _flag(hub, case.axis, "stm_ready")
 
-        hub.add_sample_listener(listen)
-
-        async def local_trace() -> list[tuple[float, float, float]]:
-            return list(points)
-
-        async def enabled() -> bool:
-            latest = hub.entry(case.axis).latest
-            return bool(latest and latest.flags.get("enable_out"))
-
-        trace, powered = local_trace, enabled
+        powered = ready
+    else:
+        hub.add_link(default_registry().build_link(spec, hub))
     await hub.start()
     try:
         deadline = time.monotonic() + 20
@@ -263,7 +322,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{case.label}: the link did not come up")
             await asyncio.sleep(0.05)
-        yield hub, trace, powered
+        yield hub, trace, powered, reached
     finally:
         await hub.stop()
         await hub.stops.close()
@@ -297,7 +356,13 @@ async def _bring_into_state(hub: Hub, case: Case) -> None:
             await asyncio.sleep(1.5)
     else:
         await hub.command(axis, "enable", {})
-        await asyncio.sleep(0.3)
+        # Until the drive says Ready to execute (a fixed wait was too short on a loaded
+        # host: the start was then refused with "not enabled").
+        deadline = time.monotonic() + 10
+        while not _flag(hub, axis, "ready_to_execute"):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{case.label}: the drive did not become ready")
+            await asyncio.sleep(0.02)
         await hub.command(
             axis,
             "execute_move",
@@ -325,17 +390,26 @@ async def _near_peak_speed(trace: Trace) -> None:
         await asyncio.sleep(0.001)
 
 
+def _flag(hub: Hub, axis: str, name: str) -> bool:
+    latest = hub.entry(axis).latest
+    return bool(latest is not None and latest.flags.get(name))
+
+
 def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, float]:
-    """Position and speed at host time ``t`` (the last point before it)."""
+    """Position and speed at host time ``t``: the last point before it, carried on at
+    its own speed to ``t`` (every rig records the shaft's exact speed with the point;
+    a point can be old when the bench's thread was held on a loaded host)."""
     before = [p for p in points if p[0] <= t]
-    point = before[-1] if before else points[0]
-    return point[1], point[2]
+    if not before:
+        return points[0][1], points[0][2]
+    t1, x1, v1 = before[-1]
+    return x1 + v1 * (t - t1), v1
 
 
 async def measure(case: Case, method: Method, data_dir: Path | None = None) -> Result:
     """One stop of ``case`` by ``method`` (see the module docstring)."""
     with tempfile.TemporaryDirectory() as scratch:
-        async with _rig(case, data_dir or Path(scratch)) as (hub, trace, powered):
+        async with _rig(case, data_dir or Path(scratch)) as (hub, trace, powered, reached):
             await _bring_into_state(hub, case)
             events_before = len(hub._events)
             if case.state == "limit cycle":
@@ -351,7 +425,10 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
             distance = 0.0
             while time.monotonic() - asked < MAX_STOP_S:
                 await asyncio.sleep(0.05)
-                points = [p for p in await trace() if p[0] >= asked]
+                everything = await trace()
+                # The points up to the press may arrive after it (see _at).
+                position0, speed0 = _at(everything, asked)
+                points = [p for p in everything if p[0] >= asked]
                 if not points:
                     continue
                 distance = max(abs(p[1] - position0) for p in points)
@@ -367,7 +444,7 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                         break
             await asyncio.sleep(0.2)  # let a watch's last command land
             events = [e.message for e in list(hub._events)[events_before:]]
-            return Result(
+            result = Result(
                 case,
                 method,
                 speed0,
@@ -377,6 +454,15 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 outcome.sent,
                 events,
             )
+            on_wire = reached(method, asked)
+            after = [p for p in await trace() if on_wire is not None and p[0] >= on_wire]
+            if on_wire is not None and after:
+                # The first point after that exchange: the shaft as the stop found it
+                # (the drive acts on new outputs from the exchange on).
+                _, position1, result.wire_speed_counts_s = after[0]
+                result.wire_latency_s = on_wire - asked
+                result.wire_distance_counts = max(abs(p[1] - position1) for p in after)
+            return result
 
 
 async def measure_all(
@@ -390,23 +476,33 @@ async def measure_all(
 
 
 def table(results: Sequence[Result]) -> str:
-    """A markdown table: per case, the power-off and STOP side by side."""
+    """A markdown table: per case, the power-off and STOP side by side (one row per
+    round: the n-th power-off of a case beside its n-th STOP)."""
     lines = [
         "| plant | state | gains | speed at the press (counts/s) | power off alone: "
         "distance / time | STOP: distance / time | ratio | STOP ends |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    by_case: dict[Case, dict[str, Result]] = {}
+    rounds: dict[tuple[Case, str], int] = {}
+    by_case: dict[tuple[Case, int], dict[str, Result]] = {}
     for result in results:
-        by_case.setdefault(result.case, {})[result.method] = result
+        n = rounds[result.case, result.method] = rounds.get((result.case, result.method), -1) + 1
+        by_case.setdefault((result.case, n), {})[result.method] = result
 
     def cell(r: Result | None) -> str:
         if r is None:
             return "–"
         t = f"{r.time_s:.2f} s" if r.time_s is not None else f"> {MAX_STOP_S:g} s"
-        return f"{r.distance_counts:,.0f} counts / {t}"
+        text = f"{r.distance_counts:,.0f} counts / {t}"
+        if r.wire_distance_counts is not None and r.wire_latency_s is not None:
+            text += (
+                f" ({r.wire_distance_counts:,.0f} from the wire at "
+                f"{abs(r.wire_speed_counts_s or 0):,.0f} counts/s, "
+                f"{r.wire_latency_s * 1000:.0f} ms after the press)"
+            )
+        return text
 
-    for case, pair in by_case.items():
+    for (case, _), pair in by_case.items():
         off, stop = pair.get("power off"), pair.get("STOP")
         ratio = (
             f"{stop.distance_counts / off.distance_counts:.3f}"

@@ -81,6 +81,8 @@ logger = logging.getLogger(__name__)
 SERVER_SILENCE_S: Final = 10.0
 SILENCE_LOGGED_S: Final = 0.5  # a silence this long is logged when it ends
 REQUEST_HELD_LOGGED_S: Final = 0.02  # a request that holds the cycle this long is logged
+LATE_LOGGED_S: Final = 0.02  # an exchange this late (the host held the cycle) is logged
+LOST_RUN_LOGGED: Final = 5  # lost exchanges in a row this many or more are logged
 REQUEST_TIMEOUT_S: Final = 5.0
 CYCLE_REPLY_TIMEOUT_S: Final = 1.0
 START_TIMEOUT_S: Final = 30.0
@@ -123,6 +125,9 @@ def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
             )
         return False, f"{what} at nice -10: real-time scheduling was refused ({exc})"
     text = f"{what} at real-time priority (SCHED_FIFO {priority})"
+    problem = lock_memory()
+    if problem is not None:
+        text += f"; its memory is not locked ({problem}): a page fault may still delay it"
     runtime_us = rt_runtime_us()
     if runtime_us is not None and runtime_us < 0:
         text += (
@@ -130,6 +135,29 @@ def raise_priority(what: str, priority: int = RT_PRIORITY) -> tuple[bool, str]:
             "the spin guard stands between a stuck real-time process and the host"
         )
     return True, text
+
+
+_MCL_CURRENT: Final = 1  # sys/mman.h
+
+
+def lock_memory() -> str | None:
+    """Lock every page this process has mapped now (its interpreter, libraries, heap)
+    into RAM: a real-time loop must not wait for a page to be read back from disk
+    after the kernel dropped it from the page cache on a busy host (the usual first
+    step of a real-time process, beside its priority). Only the current pages: locking
+    future ones too would make a later allocation fail where the lock limit is low.
+    None when done, else why not."""
+    if not sys.platform.startswith("linux"):
+        return "not Linux"
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(_MCL_CURRENT) != 0:
+            return (
+                os.strerror(ctypes.get_errno()) + " (needs CAP_IPC_LOCK or a higher RLIMIT_MEMLOCK)"
+            )
+    except (OSError, AttributeError) as exc:
+        return str(exc)
+    return None
 
 
 def raise_weight(what: str, nice: int) -> str:
@@ -252,6 +280,7 @@ class _Child:
         self.out_seq = 0
         self.seq = 0
         self.lost = 0
+        self.lost_run = 0
         self.last_good_t = 0.0
         self.heard_t = time.monotonic()
 
@@ -269,6 +298,11 @@ class _Child:
                     self.cyclic = False
                     continue
                 self._take_outputs()
+                late = time.monotonic() - deadline
+                if late > LATE_LOGGED_S:
+                    logger.warning(
+                        "an exchange went out %.0f ms late (the host held the cycle)", late * 1000
+                    )
                 self._exchange()
                 deadline += period
                 delay = deadline - time.monotonic()
@@ -333,9 +367,17 @@ class _Child:
             wkc = -1
         self.seq += 1
         if wkc == master.expected_wkc:
+            if self.lost_run >= LOST_RUN_LOGGED:
+                logger.warning(
+                    "%d exchanges in a row got no valid answer (%.0f ms without good process data)",
+                    self.lost_run,
+                    (sent_t - self.last_good_t) * 1000,
+                )
+            self.lost_run = 0
             self.last_good_t = sent_t
         else:
             self.lost += 1
+            self.lost_run += 1
         inputs = b"".join(slave.input for slave in master.slaves)[:_INPUTS_MAX]
         # Seqlock: odd while writing; a reader retries until it reads one even value.
         self.lock_count += 1
@@ -385,6 +427,8 @@ class _Child:
             self._close()
             self.master = self.spec.factory()
             self.master.open(str(args[0]))
+            if self.spec.realtime:
+                lock_memory()  # again: the master's library is mapped only now
             return None
         master = self.master
         if master is None:

@@ -717,7 +717,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             label="Power off",
             description=(
                 "Enable off at once, whatever the axis does (stop category 0): the motor "
-                "is unpowered, a moving axis stops abruptly and may lose steps."
+                "is unpowered and a moving axis coasts to a stop on its load, unbraked "
+                "(STOP ramps it down first: shorter)."
             ),
             group="stop",
         ),
@@ -754,8 +755,8 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
             name="disable",
             label="Disable",
             description=(
-                "Drop Enable: the motor is unpowered (no holding torque). While moving it "
-                "stops at once and may lose steps (Error)."
+                "Drop Enable: the motor is unpowered (no holding torque). While moving, "
+                "the move ends with Error and the axis coasts to a stop on its load."
             ),
             group="mode",
         ),

@@ -4,9 +4,9 @@ Source: ``shared/spec/ep7047.md`` and the vendor manual. :class:`Ep7047Engine` i
 sits behind the "Positioning interface" process data: ``step(outputs) -> inputs``
 advances it by one 250 us controller cycle. It is pure and deterministic (no clock, no
 randomness), so a simulator can drive it from any loop and tests can replay it exactly.
-:class:`~servotune.devices.ep7047.sim.plant.StepperPlant` is the minimal mechanics it moves: an
-ideal stepper that follows the setpoint, with an optional encoder offset, a calibration
-cam and a C-track pulse.
+:class:`~servotune.devices.ep7047.sim.plant.StepperPlant` is the minimal mechanics it moves: a
+stepper that follows the setpoint while Enable is on and coasts on its load's inertia
+when it is off, with an optional encoder offset, a calibration cam and a C-track pulse.
 
 The engine is split in three modules. This one is the drive's face: the cycle (edges of
 the outputs, :meth:`Ep7047Engine.step`/:meth:`Ep7047Engine.run` and their fast paths),
@@ -410,6 +410,7 @@ class Ep7047Engine(_Positioning):
         if (
             self._mode is not _Mode.IDLE
             or self._velocity != 0.0
+            or self.plant.speed_counts_s != 0.0  # a shaft coasting unpowered
             or self._label is not None
             or self._phase is not _Phase.NONE
             or self._last_phase is not _Phase.NONE
@@ -447,7 +448,8 @@ class Ep7047Engine(_Positioning):
             if self.settings.start_type == StartType.SET_CALIBRATION_AUTO:
                 self._calibrated = True
         if not enable and self.busy and self._mode is not _Mode.FINISH:
-            # The driver stage switches off: the motor stops where it is, the move fails.
+            # The driver stage switches off: the move fails, the trajectory is gone (the
+            # shaft coasts on by itself, below).
             self._velocity = 0.0
             self._diag |= PosDiag.COMMAND_ABORTED
             self._error = True
@@ -478,7 +480,16 @@ class Ep7047Engine(_Positioning):
 
         if not started:
             self._advance_motion()
-        pulse = self.plant.follow(self._setpoint)
+        plant = self.plant
+        if enable:
+            pulse = plant.follow(self._setpoint)
+            plant.speed_counts_s = self._velocity
+        else:
+            # Unpowered: nothing holds the shaft; it coasts on its own inertia and the
+            # setpoint follows it, so that Enable takes it over where it is (decision:
+            # the drive catches a shaft that still turns without a jump).
+            pulse = plant.coast(CYCLE_S)
+            self._setpoint = plant.commanded_counts
         if pulse is not None:
             self._pulse_seen = True
             if latch_enabled and self._latch is None:

@@ -24,8 +24,8 @@ Each ``SimulatedEp7047Slave`` has:
   The outputs of an exchange take effect from that exchange on; the inputs it returns
   are those of the last cycle before it (one exchange of latency, as on the wire);
 * the SyncManager watchdog: when no process data arrives for more than ``watchdog_s``
-  (100 ms) the slave runs on with all-zero outputs (Enable off: a moving motor stops at
-  once); the AL state stays OP, like a Beckhoff terminal. More than 1 s
+  (100 ms) the slave runs on with all-zero outputs (Enable off: a moving motor coasts
+  to a stop on its load's inertia); the AL state stays OP, like a Beckhoff terminal. More than 1 s
   without an exchange is skipped rather than computed (the watchdog has long stopped
   the motor by then).
 
@@ -60,7 +60,7 @@ from servotune.devices.ep7047.codec import (
     SdoObject,
 )
 from servotune.devices.ep7047.sim.engine import Ep7047Engine
-from servotune.devices.ep7047.sim.plant import DriveConfig, StepperPlant
+from servotune.devices.ep7047.sim.plant import DEMO_MECHANICS, DriveConfig, StepperPlant
 from servotune.transports.ethercat import (
     INIT_STATE,
     OP_STATE,
@@ -692,7 +692,9 @@ DEMO_SETTINGS: Final = PosSettings(
 
 def demo_slave() -> SimulatedEp7047Slave:
     """A stepper (200 steps/rev) with a 1024-line encoder, a cam a turn and a half away
-    (digital input 1, 6000..6800 counts) and a C-track pulse once a turn."""
+    (digital input 1, 6000..6800 counts) and a C-track pulse once a turn; its rotor and
+    load (``DEMO_MECHANICS``) coast when the output stage is switched off at speed, and
+    the encoder counts the coast."""
     config = DriveConfig(
         speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
         counts_per_full_step=DEMO_COUNTS_PER_REV / DEMO_FULL_STEPS_PER_REV,
@@ -701,6 +703,7 @@ def demo_slave() -> SimulatedEp7047Slave:
         cam_counts=(6000.0, 6800.0),
         sync_period_counts=float(DEMO_COUNTS_PER_REV),
         sync_phase_counts=1024.0,
+        mechanics=DEMO_MECHANICS,
     )
     speed_code = next(
         code

@@ -535,13 +535,23 @@ class WireSlave:
 
     def _watchdog_trip(self) -> None:
         self.stats.watchdog_trips += 1
+        # Why it tripped, for a soak's post-mortem: no process-data frame came (the
+        # master, or the host between it and this loop, stalled), or frames came that
+        # did not write the outputs.
+        now_ns = self._clock_ns()
+        last = self._last_frame_ns
+        since_frame = "none in OP" if last is None else f"{(now_ns - last) / 1e6:.1f} ms ago"
         self._latched = SAFE_OUTPUTS
         self._latched_raw = None
         self.esc.watchdog_expired()
         self.esc.arm_watchdog(False)
         self._enter(AL_SAFEOP)
         self._refuse(AL_WATCHDOG)
-        logger.warning("process-data watchdog expired: outputs safe, SAFE-OP + ERROR 0x001B")
+        logger.warning(
+            "process-data watchdog expired: outputs safe, SAFE-OP + ERROR 0x001B (the last "
+            "process-data frame in OP: %s)",
+            since_frame,
+        )
 
     # --- frames ----------------------------------------------------------------------------
 
