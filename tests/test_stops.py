@@ -156,6 +156,38 @@ async def test_jog_runs_both_ways_and_the_release_decelerates_and_holds(
         assert abs(module.motor.speed_rad_s) * COUNTS_PER_RAD < 200
 
 
+async def test_a_jog_whose_profile_was_dropped_still_decelerates_on_release(
+    demo_line: LiveServer,
+) -> None:
+    """The link drops a reconstructed profile that disagrees with rp + pe (a command whose
+    latch time was uncertain: a starved host). The release then plans from the last poll:
+    one ``ma`` ahead of the shaft, reached decelerating with sa, and held there."""
+    module = demo_line.bus.module(0)
+    link = demo_line.app.state.hub.entry("line-0").link
+    await demo_line.client.patch(
+        "/api/axes/line-0/params", json={"velocity": 3000, "acceleration": 500}
+    )
+    await command(demo_line, "line-0", "jog", direction=1)
+    await asyncio.sleep(0.6)
+    state = link.module_state(0)
+    for _ in range(100):  # a poll that saw the jog running
+        if state.rss is not None and state.rss & MOVE and (state.velocity or 0) > 10_000:
+            break
+        await asyncio.sleep(0.02)
+    state.profile.clear()  # what the link does with a profile it no longer trusts
+    released = await command(demo_line, "line-0", "jog_stop")
+    (sent,) = released["sent"]
+    assert sent.startswith("ma"), released
+    target = int(sent[2:])
+    assert 0 < target - module.position < 20_000, (target, module.position)
+    for _ in range(200):
+        if module.rss & PM and not module.rss & MOVE and module.motor.speed_rad_s == 0:
+            break
+        await asyncio.sleep(0.02)
+    assert module.rss & PM and not module.moving, "the release did not hold the axis"
+    assert abs(module.position - target) <= 20
+
+
 async def test_a_negative_sv_is_refused_with_its_range(demo_line: LiveServer) -> None:
     before = demo_line.bus.module(0).settings["sv"]
     response = await demo_line.client.patch("/api/axes/line-0/params", json={"velocity": -500})

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 from servotune.devices.slap2 import codec
+from servotune.devices.slap2.profile import ProfileTrack, TrapezoidGenerator
 from servotune.link.base import (
     AxisDriver,
     BenchKind,
@@ -48,6 +49,8 @@ class Slap2Axis(EngineAxis, AxisDriver):
     """One SLAP2 module: the axis the user tunes. All I/O goes through its link."""
 
     _link: Slap2Link
+    # The direction of the jog servotune started last (0: none since the last release).
+    _jog_direction: int = 0
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:
         """Build the wire commands for a descriptor command (pure; no I/O)."""
@@ -185,13 +188,49 @@ class Slap2Axis(EngineAxis, AxisDriver):
     async def _jog(self, direction: int) -> CommandOutcome:
         commands = self.jog_commands(direction, self.mode())
         sent = await self._link.op_execute(self._address, commands)
+        self._jog_direction = 1 if direction > 0 else -1
         return CommandOutcome(sent, "jogging: release to stop")
+
+    def _polled_jog_track(self) -> ProfileTrack | None:
+        """The running jog as the last poll saw it, when its reconstruction was dropped
+        (the link drops a profile that disagrees with rp + pe, e.g. after a command
+        whose latch time is uncertain): from the polled setpoint at the poll's time, at
+        the measured speed (at most sv) towards the jog's end. None unless a jog of ours
+        runs in pm and the poll knows position, error, sv and sa."""
+        direction = self._jog_direction
+        module = self._link.module_state(self._address)
+        flags = codec.decode_rss(module.rss or 0)
+        sv = module.known.get("velocity")
+        sa = module.known.get("acceleration")
+        if (
+            direction == 0
+            or not flags["pm"]
+            or not flags["move"]
+            or module.position is None
+            or module.position_t is None
+            or module.following_error is None
+            or not sv
+            or not sa
+        ):
+            return None
+        generator = TrapezoidGenerator.from_wire(
+            module.position + module.following_error, direction * JOG_TARGET, sv, sa
+        )
+        # The measured speed (counts/s) in the jog's direction, at most sv: a jog still
+        # accelerating is not taken for one at full speed.
+        measured_counts_tick = abs(module.velocity or 0.0) * codec.TICK_S
+        generator.velocity = direction * min(generator.vmax, measured_counts_tick)
+        generator.moving = True
+        return ProfileTrack(module.position_t, generator)
 
     def jog_stop_target(self, now_s: float) -> int | None:
         """Where the running move's profile comes to rest decelerating with its own sa,
         if the ``ma`` went out now (pure: the reconstructed profile of the move the
-        driver sent, ``devices.slap2.capture``); None when no profile is known."""
+        driver sent, ``devices.slap2.capture``, or else a jog of ours as last polled);
+        None when neither is known."""
         track = self._link.module_state(self._address).profile.track
+        if track is None:
+            track = self._polled_jog_track()
         if track is None:
             return None
         state = track.state_at(now_s + _JOG_STOP_LEAD_S)
@@ -208,13 +247,13 @@ class Slap2Axis(EngineAxis, AxisDriver):
         """Release of a jog: the running move decelerates with sa and holds where it
         comes to rest (a new ma replans from the generator's state); without a known
         profile (a move typed in the console) the controlled stop."""
-        if self.mode() == "pm":
-            target = self.jog_stop_target(self._link.now())
-            if target is not None:
-                sent = await self._link.op_execute(
-                    self._address, [codec.make_move_absolute(target)], urgent=True, stop=True
-                )
-                return StopOutcome(sent, "hold", f"decelerating with sa to {target}, then holding")
+        target = self.jog_stop_target(self._link.now()) if self.mode() == "pm" else None
+        self._jog_direction = 0
+        if target is not None:
+            sent = await self._link.op_execute(
+                self._address, [codec.make_move_absolute(target)], urgent=True, stop=True
+            )
+            return StopOutcome(sent, "hold", f"decelerating with sa to {target}, then holding")
         return await self.controlled_stop()
 
     async def _hold(self) -> CommandOutcome:
