@@ -4,13 +4,13 @@ CSV file (the samples), checked completely on the way in, streamed on the way ou
 Everything here is synchronous. An import of tens of megabytes parses for seconds of
 pure Python, and it must never hold the event loop (a STOP must reach the wire
 meanwhile): a worker *thread* is not enough, because it competes with the loop for
-the interpreter (measured: a 16 MB import in a thread held STOPs for up to 2.3 s on
-this 2-core host). So the server writes the upload to a temporary file and runs
-``import_in_process`` in a separate process that opens the database itself (WAL: the
-server keeps reading and writing meanwhile) and exits afterwards, which also gives
-its memory back. The CSV is read row by row (never held whole as Python objects) and
-stored in chunks of ``IMPORT_CHUNK_ROWS`` rows, so the memory an import needs is its
-body plus one chunk. Exports read one stored chunk per worker-thread call.
+the interpreter (docs/bench.md has the figures). So the server writes the upload to a
+temporary file and runs ``import_in_process`` in a separate process that opens the
+database itself (WAL: the server keeps reading and writing meanwhile) and exits
+afterwards, which also gives its memory back. The CSV is read row by row (never held
+whole as Python objects) and stored in chunks of ``IMPORT_CHUNK_ROWS`` rows, so the
+memory an import needs is its body plus one chunk. Exports read one stored chunk per
+worker-thread call.
 
 Validation is complete: the JSON is parsed by a pydantic model with strict types
 (a number is a JSON number, not a string) and finite floats only (NaN, infinities and
