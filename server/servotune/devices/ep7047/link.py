@@ -630,8 +630,8 @@ def build_ep7047_link(
     ``master`` None uses the real pysoem master (created when the link runs, so a missing
     pysoem shows as the link's error state, not as a crash), in a cycle process of its
     own (``transports.ethercat_cycle``; ``cycle_process=False``: in the driver's thread,
-    as before - kept for comparison). ``settings``, when given, are
-    written over CoE at every bring-up; otherwise the drive's own values are read.
+    for comparison). ``settings``, when given, are written over CoE at every bring-up;
+    otherwise the drive's own values are read.
     ``watchdog_s`` is the slave's SyncManager watchdog time (the device default, 100 ms):
     a longer gap in the process data makes the driver drop Enable.
     """
