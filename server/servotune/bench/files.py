@@ -420,9 +420,9 @@ def import_in_process(
 
     The process first lowers its own priority (``IMPORT_NICE``): on a 2-core host it
     otherwise takes a whole core from the server while the server's event loop and
-    the EtherCAT cycle thread have work to do (measured: STOPs answered after a median
-    0.2-0.4 s, 1.8 s at worst, under load ~22). At nice 10 the kernel gives the server
-    the CPU whenever it is runnable; the import only takes longer."""
+    the EtherCAT cycle thread have work to do, and STOPs wait (docs/bench.md). At
+    nice 10 the kernel gives the server the CPU whenever it is runnable; the import
+    only takes longer."""
     _lower_priority()
     storage = Storage(Path(db_path))
     try:
@@ -517,7 +517,7 @@ def chunk_csv(storage: Storage, run_id: str, seq: int) -> str:
 
     Runs in a worker thread of the server, where every millisecond of Python holds
     the interpreter the event loop needs: so the common case is text work, not a
-    parse and a ``repr`` per value (measured: several times faster)."""
+    parse and a ``repr`` per value."""
     text = storage.chunk_text(run_id, seq)
     fast = plain_chunk_csv(text)
     return fast if fast is not None else csv_rows(json.loads(text))
