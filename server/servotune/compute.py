@@ -4,10 +4,8 @@ Why a process and not a thread: these functions are mostly Python bytecode (scip
 optimisers call a Python residual thousands of times, the gain searches simulate
 the discrete loop per candidate), so a worker *thread* holds the interpreter lock
 most of the time. The event loop then waits for the lock after every system call
-it makes. Measured with ``tests/test_loop_latency.py`` on the 2-core VM (load < 1),
-during an auto-tune identification and its fit: with threads, STOP answers max
-89-170 ms, telemetry gaps max 91-164 ms, event-loop lag max 33-49 ms (three runs);
-with this pool, 21-32 ms, 68 ms and 2-3 ms. Issue 8's targets are 50 ms and 100 ms.
+it makes, and STOP answers and telemetry wait with it. ``tests/test_loop_latency.py``
+measures both (figures in docs/architecture.md, "Heavy work").
 
 Contract of ``ComputePool.run(fn, *args, **kwargs)``: ``fn`` is a module-level
 function whose arguments and result pickle; exceptions it raises are raised to the
@@ -22,9 +20,8 @@ that has numpy and scipy imported (the import costs ~1.5 s of CPU once per
 process, not once per app: the test suite builds hundreds of apps); ``spawn``
 elsewhere.
 
-Imports: the standard library only (the modules named in ``PRELOAD`` are imported
-by the fork server and the worker, never here). Used by the auto-tune
-(``autotune.context``) and the frequency-response routes.
+The modules named in ``PRELOAD`` are imported by the fork server and the worker,
+never here: importing this module costs nothing.
 """
 
 from __future__ import annotations

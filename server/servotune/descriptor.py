@@ -5,9 +5,8 @@ persist them, and the wire commands that set and read them), its telemetry chann
 its status flags and its commands. The UI builds every axis page from this data, so a
 new controller family is a new descriptor, not a new page.
 
-Layering: this module has no imports from the rest of the package; drivers build
-descriptors, the API serves them, and ``servotune.schema_ts`` turns these models into
-TypeScript types for the web client.
+Drivers build descriptors, the API serves them, and ``servotune.schema_ts`` turns these
+models into TypeScript types for the web client.
 """
 
 from __future__ import annotations

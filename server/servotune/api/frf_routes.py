@@ -1,4 +1,4 @@
-"""REST resources of the frequency response and the what-if view (issue 9, parts 2-3).
+"""REST resources of the frequency response and the what-if view.
 
 * ``GET /api/bench/runs/{run_id}/frf``: the Bode/Nyquist data of a frequency-response
   run (measured FRF with coherence and the open loop's margins; the identified model

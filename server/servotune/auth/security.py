@@ -261,8 +261,8 @@ class SecurityState:
     async def db(self, fn: Callable[P, R], *args: P.args, **kwargs: P.kwargs) -> R:
         """Run a short accounts-database call in the threads reserved for it.
 
-        Never the shared default pool: there a queue of other work (hashes used to
-        run there) delayed the caller resolution of every request, STOP's included.
+        Never the shared default pool: a queue of other work there would delay the
+        caller resolution of every request, STOP's included.
         """
         if self._db_pool is None:
             raise RuntimeError("security state used before the app's lifespan started")

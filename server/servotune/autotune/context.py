@@ -28,7 +28,7 @@ RUN_GRACE_S: Final = 10.0  # a recorded test may finish this much after its dura
 # REST_SAMPLES samples) must stay within REST_SPREAD_COUNTS. An axis ringing in a limit
 # cycle shows no move flag (the profile has ended) and may read no velocity at the
 # sample that happens to fall on a turning point; an identification started on it
-# fitted the ring and reported "the shaft did not move" (issue 25).
+# would fit the ring and report "the shaft did not move".
 REST_WINDOW_S: Final = 0.3
 REST_SAMPLES: Final = 3
 REST_SPREAD_COUNTS: Final = 20.0

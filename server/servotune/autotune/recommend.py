@@ -1,4 +1,4 @@
-"""Write the proposal or keep the gains in use? The auto-tune's recommendation (issue 25).
+"""Write the proposal or keep the gains in use? The auto-tune's recommendation.
 
 A proposal is designed to a margin target on the identified model; when the search
 cannot reach the target (a poor model, a loaded host during the identification) it

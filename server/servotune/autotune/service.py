@@ -5,8 +5,7 @@ device (docs/autotune.md). What is common lives here: the per-axis session and l
 the stop generation, refusals of state, the failure paths (stop the axis, return it
 to its start, put the previous gains back, say everything). What differs per device
 (excitation, fit, rule, writes) is a ``DeviceTuner`` (``devices/<name>/tuner.py``), which
-the registry gives (``Tuners``, injected by the app). Imports run one way: the device
-tuners import context/core, never this module's users.
+the registry gives (``Tuners``, injected by the app).
 """
 
 from __future__ import annotations

@@ -4,13 +4,13 @@ CSV file (the samples), checked completely on the way in, streamed on the way ou
 Everything here is synchronous. An import of tens of megabytes parses for seconds of
 pure Python, and it must never hold the event loop (a STOP must reach the wire
 meanwhile): a worker *thread* is not enough, because it competes with the loop for
-the interpreter (measured: a 16 MB import in a thread held STOPs for up to 2.3 s on
-this 2-core host). So the server writes the upload to a temporary file and runs
-``import_in_process`` in a separate process that opens the database itself (WAL: the
-server keeps reading and writing meanwhile) and exits afterwards, which also gives
-its memory back. The CSV is read row by row (never held whole as Python objects) and
-stored in chunks of ``IMPORT_CHUNK_ROWS`` rows, so the memory an import needs is its
-body plus one chunk. Exports read one stored chunk per worker-thread call.
+the interpreter (docs/bench.md has the figures). So the server writes the upload to a
+temporary file and runs ``import_in_process`` in a separate process that opens the
+database itself (WAL: the server keeps reading and writing meanwhile) and exits
+afterwards, which also gives its memory back. The CSV is read row by row (never held
+whole as Python objects) and stored in chunks of ``IMPORT_CHUNK_ROWS`` rows, so the
+memory an import needs is its body plus one chunk. Exports read one stored chunk per
+worker-thread call.
 
 Validation is complete: the JSON is parsed by a pydantic model with strict types
 (a number is a JSON number, not a string) and finite floats only (NaN, infinities and
@@ -420,9 +420,9 @@ def import_in_process(
 
     The process first lowers its own priority (``IMPORT_NICE``): on a 2-core host it
     otherwise takes a whole core from the server while the server's event loop and
-    the EtherCAT cycle thread have work to do (measured: STOPs answered after a median
-    0.2-0.4 s, 1.8 s at worst, under load ~22). At nice 10 the kernel gives the server
-    the CPU whenever it is runnable; the import only takes longer."""
+    the EtherCAT cycle thread have work to do, and STOPs wait (docs/bench.md). At
+    nice 10 the kernel gives the server the CPU whenever it is runnable; the import
+    only takes longer."""
     _lower_priority()
     storage = Storage(Path(db_path))
     try:
@@ -517,7 +517,7 @@ def chunk_csv(storage: Storage, run_id: str, seq: int) -> str:
 
     Runs in a worker thread of the server, where every millisecond of Python holds
     the interpreter the event loop needs: so the common case is text work, not a
-    parse and a ``repr`` per value (measured: several times faster)."""
+    parse and a ``repr`` per value."""
     text = storage.chunk_text(run_id, seq)
     fast = plain_chunk_csv(text)
     return fast if fast is not None else csv_rows(json.loads(text))

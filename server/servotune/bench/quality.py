@@ -59,13 +59,13 @@ itself is located to one bracketing gap, never wider than the quantity."""
 MOVED_FRACTION: Final = 0.1  # less travel than this fraction of the step: did not move
 PWM_MOVED_COUNTS: Final = 2.0
 MAX_OVERSHOOT_UNCERTAINTY_PP: Final = 0.5
-"""Half of issue 9's repeatability bound (1 pp between identical runs): two runs each
-within it of the truth agree within the bound."""
+"""Half of the repeatability bound (1 pp between identical runs): two runs each within
+it of the truth agree within the bound."""
 MAX_PEAK_GAP_RATIO: Final = 1.9
-"""Measured on 50 steps of the demo SLAP2 (22 % overshoot, 6 ms spacing) at load 10:
-every overshoot off by more than 0.5 pp from the median had a gap next to its highest
-sample of 1.94..5.1 times the median spacing (peak low by 0.7..7 pp); with gaps up to
-1.9 (the capture's interleaved ``rss`` makes 1.6..1.8) all were within 0.44 pp."""
+"""The widest gap next to the highest sample, in median spacings, that still trusts
+the overshoot: wider gaps can hide the peak between samples by more than
+``MAX_OVERSHOOT_UNCERTAINTY_PP``, and the capture's interleaved ``rss`` reads must stay
+below it (docs/bench.md, "Quality", has the measurement)."""
 SAMPLING_RULE: Final = 3
 """The version of the sampling rule (``_sampling_trust``) stored with a run's quality
 (``quality.sampling_rule``): a stored or imported run judged by an older one is judged

@@ -16,10 +16,7 @@ this module is what happens after the desk has said yes. ``BenchRunner`` is a mi
 ``TestBench`` and needs only the attributes it declares (the hub, the store, the clock,
 the table of active recordings and ``limits()``).
 
-Imports: the hub, the store, the drivers' bench contract, ``metrics``, ``bench.quality``,
-``bench.frf`` and ``tuning.frfrun`` — never ``servotune.bench.service``. Imported by
-``servotune.bench.service`` and ``servotune.autotune.recording`` (which records the
-identification with the bench's own recorder).
+``servotune.autotune.recording`` records the identification with this recorder too.
 """
 
 from __future__ import annotations

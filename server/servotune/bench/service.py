@@ -17,10 +17,6 @@ the stored run, then the stored runs (list, read, export, import). What happens 
 test has started (the recorder, the test's sequence, the checks while it runs, the
 metrics) is ``servotune.bench.runner``, whose ``BenchRunner`` this class mixes in.
 
-Imports: ``servotune.bench.runner`` and everything below it (hub, store, drivers,
-``bench.frf``, ``bench.files``). Imported by the API (``api.app``, ``api.bench_routes``), the
-lab bus (``bus.rig``, ``bus.autotune``, ``bus.lifecycle``) and the auto-tune
-(``autotune.*``); ``servotune.bench.runner`` and the layers below never import it.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ NATS connection and an event loop of their own, in a thread of their own.
 Why a thread: the hub's event loop also takes in every rig's telemetry, fans it out
 to the browsers and serves the api; a rig that floods telemetry (or a busy moment of
 the hub) delayed the keep-alives past a rig's dead-man lease and stopped a move the
-hub had started, and delayed presence until rigs were shown offline (issue 29: 509 ms
-keep-alive gaps at 5,000 samples/s from another rig, lease 350 ms). NATS has no
+hub had started, and delayed presence until rigs were shown offline (keep-alive gaps
+longer than a 350 ms lease under another rig's 5,000 samples/s). NATS has no
 priorities and one connection is one FIFO: the lane's connection carries nothing but
 this traffic, and its loop runs nothing but it, so a backlog elsewhere in the hub
 cannot hold it back (the interpreter lock is handed over every few milliseconds).

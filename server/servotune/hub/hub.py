@@ -3,9 +3,10 @@
 Every command that changes a device goes through ``Hub.write_params``,
 ``Hub.command``, ``Hub.console`` or ``stop_all`` (in ``HubState``, beside the
 delivery of a STOP that could not be sent at once, which shares it): one path where input is checked
-against the device descriptor before anything is sent, where the axis is marked as
-operated (which switches the demo autopilot off for it), and where a later control
-lock, authentication and audit log will sit.
+against the device descriptor before anything is sent and where the axis is marked as
+operated (which switches the demo autopilot off for it). Who may call it is decided
+before, in the api: the user's role (``servotune.auth``) and the axis's control lock
+(``hub.control_lock``); ``auth.audit`` records what was done.
 
 What lives here (the upper half of the hub): ``Hub``, with what drives the devices:
 its lifecycle (the links' owner tasks, restarted with backoff), the command path but
@@ -13,10 +14,6 @@ for the STOP, and the demo autopilot. What the hub knows of its links and axes (
 side, supervision, events, queries) and the fan-out to clients are in
 ``servotune.hub.state`` (``HubState``, which ``Hub`` extends); the seam is the
 direction, see there.
-
-May import: ``servotune.hub.state`` and what it may import, ``link.validation``.
-Imported by: the api, autotune, bench, bus, control and twin (never by
-``servotune.hub.state`` or a driver).
 """
 
 from __future__ import annotations

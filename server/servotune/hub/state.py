@@ -1,6 +1,6 @@
 """The hub's state and its fan-out: what it knows of every link and axis, and what it tells clients.
 
-What lives here (the lower half of the hub, split from ``hub/hub.py``): the per-link and
+What lives here (the lower half of the hub): the per-link and
 per-axis records (``LinkEntry``, ``AxisEntry``), ``HubState`` with the ``DriverSink``
 callbacks that keep them (samples, link status, axis health, params, with the compare
 against the last applied settings and their saving), the hub's own judgement of a link
@@ -15,11 +15,6 @@ The seam is the direction: this half takes in what the drivers report and sends 
 out to clients; ``hub/hub.py`` sends what users ask for to the devices. The one
 exception is the STOP, which lives here because its retry is set off by what the
 drivers report. Nothing here calls into ``hub/hub.py``.
-
-May import: ``descriptor``, ``link.base``, ``storage``, ``wire`` and the package's
-``__version__`` (never ``servotune.hub.hub``, the api or a driver implementation).
-Imported by: ``servotune.hub.hub``, and whoever needs the records, ``UnknownAxisError`` or
-the client queue (api, auth, autotune, bench, bus, control).
 
 Fan-out: samples are batched per axis about 30 times a second and serialised once;
 every websocket client has its own bounded queue. A slow client loses its oldest
@@ -87,11 +82,11 @@ STOP_RETRIES_CONNECTED = 10
 # after it: a pending STOP is dropped by any command that reached the axis since, by a
 # STOP that reached it since (the dead-man's, a hand-over's), and after this long. A
 # STOP delivered 30 s late would cut whatever whoever stands at the machine started
-# meanwhile (seen in the lab, issue 29: 14 s after a network cut ended); after 10 s the
+# meanwhile (a network cut that ends late delivers it late); after 10 s the
 # user is told it was not sent, and checks the axis.
 PENDING_STOP_MAX_S: Final = 10.0
 # An axis shown "ok" whose link is up (connected, or error while it still polls) and
-# that sent no telemetry sample for this long is shown offline (issue 8). A module on a
+# that sent no telemetry sample for this long is shown offline. A module on a
 # shared line can stop answering its polls while the others answer: the link then
 # stays connected, the driver counts desyncs but never sees 3 failures in a row, and
 # without this rule the silent axis would be shown "ok" forever. 3 s is many poll

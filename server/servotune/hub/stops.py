@@ -22,8 +22,8 @@ end or abort of a bench run or an auto-tune step), and the explicit power-off
 
 Sample times are the drivers' own; the watch compares them with each other only (the
 samples after the stop are those newer than the newest one at the stop), so an
-injected hub clock does not confuse it. Imports: ``descriptor``, ``link.base``,
-``hub.loopcheck``, ``wire`` (nothing of the hub: ``hub.state`` owns one of these).
+injected hub clock does not confuse it. ``hub.state`` owns one of these, so nothing
+here knows the hub.
 """
 
 from __future__ import annotations

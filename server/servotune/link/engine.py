@@ -78,10 +78,9 @@ def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WI
     span extended to *now* as soon as the newest sample is older than one mean
     interval: a link that stops delivering shows its rate falling within one
     sample interval, and to 0 within ``window_s``, instead of keeping the rate of
-    its last burst. Counting always to *now* (as before issue 8's figures were
-    checked) read a steady link low by the time since its newest sample: up to one
-    interval per window, 2.8 % on average for the Z1100's ~11 Hz and 14 % for a
-    2 Hz link (tests/test_rate.py).
+    its last burst. Counting always to *now* would read a steady link low by the time
+    since its newest sample: up to one interval per window, 2.8 % on average for the
+    Z1100's ~11 Hz and 14 % for a 2 Hz link (tests/test_rate.py).
     """
     recent = [t for t in times if 0.0 <= now - t <= window_s]
     if len(recent) < 2:

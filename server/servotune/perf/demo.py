@@ -15,8 +15,8 @@ connected, then for ``seconds`` samples:
 * the websocket stream: events by level and axis health changes to ``reset``;
 * the load average before and after.
 
-``--hog`` runs one busy process per CPU core during the measurement (the "CPU hog on
-both cores" of issue 8). Linux only (``/proc``). Not a test: the figures depend on the
+``--hog`` runs one busy process per CPU core during the measurement (a CPU hog on
+both cores). Linux only (``/proc``). Not a test: the figures depend on the
 machine; ``tests/test_soak.py`` asserts the truths and prints the same figures.
 """
 

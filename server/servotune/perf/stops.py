@@ -268,7 +268,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
     else:
         drive = demo_slave()
         # The host is what stalls here, not the drive: the bench's own thread cycles the
-        # in-process drive, and on a loaded host it was held past the 100 ms watchdog
+        # in-process drive, and on a loaded host it can be held past the 100 ms watchdog
         # (a trip mid-measurement is a coast, not the stop being measured). At 1 s a
         # stall is latency, as it is for the serial devices.
         drive.watchdog_s = EP7047_BENCH_WATCHDOG_S

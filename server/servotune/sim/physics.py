@@ -13,8 +13,7 @@ at most ``max_step_s``, 1 ms by default, so a SLAP2 tick is one step):
   no integration error, whatever the ratio of ``h`` to the electrical time constant
   (~80 us, far shorter than a controller tick of 841.5 us, where explicit Euler would
   blow up) or the mechanical one. One step per tick is what makes the plant fast
-  (>= 100x real time per axis; the earlier four Euler-coupled sub-steps per tick gave
-  ~38x on a loaded host).
+  (docs/simulator.md has the speed).
 * Driver: ``V = duty * supply`` with ``duty`` saturated to -1..1 (PWM cannot exceed
   the supply). With a current limit the driver chops: when the current at the end of
   the step would exceed the limit the applied voltage is lowered (down to -supply) so
@@ -342,7 +341,7 @@ class DcMotor:
             # next). The angle keeps the exact travel up to about that turn. Without
             # friction nothing stops it: the motor is then the linear plant of
             # tuning.loops (a reversal within a tick - a loop oscillating near its
-            # Nyquist frequency - used to be damped here; tests/test_stability.py).
+            # Nyquist frequency - is not damped here; tests/test_stability.py).
             w_new = 0.0
         self.angle_rad += d_angle
         self.speed_rad_s = w_new

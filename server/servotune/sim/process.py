@@ -288,8 +288,8 @@ def serve_lifeline(
     """The child's loop: answer requests on ``conn`` until ``stop`` or end-of-file.
 
     ``tick`` runs every ``LIFELINE_POLL_S`` (records, health checks); an exception
-    from it ends the loop (and with it the child), so a dead simulator is not kept
-    alive as an empty shell.
+    from it ends the loop (and with it the child), so a dead simulator does not live
+    on as an empty shell.
     """
     while True:
         try:

@@ -305,10 +305,10 @@ class PtySimulator:
 
     def _loop(self) -> None:
         last_advance_s = -IDLE_ADVANCE_S
-        # Timed wake-ups come late by a fairly constant amount (~40 us on a VM even
-        # with minimal timer slack). Without correction every byte would leave that
-        # much after its wire time, a systematic modelling error of ~8 % per echoed
-        # character at 19200 baud. So the thread wakes early by the measured median
+        # Timed wake-ups come late by a fairly constant amount, even with minimal timer
+        # slack (docs/simulator.md). Without correction every byte would leave that
+        # much after its wire time, a systematic modelling error of a fixed share of
+        # every echoed character. So the thread wakes early by the measured median
         # lateness (a running estimate, capped at a quarter character) and writes
         # what is due within that margin: bytes leave at their wire time on average.
         lateness_s = 0.0

@@ -5,7 +5,7 @@ This is the EtherCAT counterpart of ``transports/base.py``'s byte channel: the d
 (``servotune.devices.ep7047.link``, which re-exports every public name here) talks to a
 master through it, and the simulators (``servotune.devices.ep7047.sim.slave``,
 ``devices.ep7047.sim.process``) implement it, so they import this module and no driver code.
-Imports: the standard library (pysoem lazily, only for real hardware).
+pysoem is imported lazily, only for real hardware.
 """
 
 from __future__ import annotations

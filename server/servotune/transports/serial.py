@@ -435,7 +435,7 @@ class _DirectSerial(serial.Serial):  # type: ignore[misc]  # pyserial has no typ
     ``write`` with both timeouts 0. pyserial's versions then run a ``select`` of their
     own before every read and build timeout objects for every call: at 19200 baud the
     SLAP2 line is one byte each way per round trip, so that sat on the critical path
-    of every echo (measured with scripts/bench_slap2_timing.py). Here they are one
+    of every echo. Here they are one
     system call each, with pyserial's semantics: no data -> ``b""``; a readable port
     that yields nothing (a vanished adapter, a closed pty) or any other error ->
     ``SerialException``; a full output buffer -> ``BlockingIOError``, which the

@@ -22,9 +22,8 @@ onto the tones; a per-tone fit of input and output (``tuning.frf.tone_fit``, sti
 used open loop, where the input is PWM held by the firmware) counts them as response.
 The relative error is the fit's standard error, the jackknife over periods when
 larger, and the host's timing uncertainty; the coherence is the one equivalent to
-that error. (The first version interpolated the samples onto a uniform grid and took
-Welch spectra against the targets stamped when acknowledged: 1.1-1.7 dB off the
-simulator's plant at coherence >= 0.9; docs/frequency-response.md says why.)
+that error. Welch spectra of samples interpolated onto a uniform grid, against the
+targets stamped when acknowledged, are biased (docs/frequency-response.md says why).
 
 Open loop from the measurement: for a loop whose controller acts on the error only
 (the SLAP2, ``Cb = 0``), ``L = T / (1 - T)`` exactly, so margins and crossover come
@@ -772,8 +771,8 @@ def measured_margins(
 
     Why: near T = 1 (below the crossover, where a PID's integrator makes |L| large and
     its phase close to -180 deg) ``L = T / (1 - T)`` divides by a small difference, so
-    a 1-2 dB error of T swings L's phase across -180 deg by chance (a measured GM of
-    -8.9 dB at 5.7 Hz was seen against the model's +28.6 dB at 288 Hz). A first-order
+    a 1-2 dB error of T swings L's phase across -180 deg by chance and reads a gain
+    margin far from the model's (docs/frequency-response.md). A first-order
     propagation gives L's relative error ``e_L = e_T |T| / |1 - T|``; L is measurable
     at a tone with good coherence where ``ERROR_COVERAGE * e_L <= MAX_LOOP_ERROR``.
     Crossings are interpolated linearly in log f (dB for |L|, degrees for its phase);

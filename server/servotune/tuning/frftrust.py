@@ -52,7 +52,8 @@ import numpy.typing as npt
 
 from servotune.tuning.frf import ComplexArray, FloatArray, tone_fit
 
-# A latch estimate spanning more than this was stalled (a quiet host: 0.5-0.9 ms).
+# A latch estimate spanning more than this was stalled (well above a quiet host's spans,
+# docs/frequency-response.md).
 STALL_SPAN_S = 0.002
 # Without recorded spans: a gap longer than the 90th percentile of the gaps by more
 # than this is a stall of the exchange that ends it.

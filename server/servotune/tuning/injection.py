@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from typing import Any, Final, Protocol
 
 BITS_PER_CHAR: Final = 10  # start + 8 data + stop
-# Measured sample rates of injection runs are 60-80 % of the characters' limit (the
-# host's turnaround between commands, the status read after a refused-or-not check,
-# gaps when the host is loaded): plan with 70 %.
+# Injection runs sample below the characters' limit (the host's turnaround between
+# commands, the status read after a refused-or-not check, gaps when the host is
+# loaded; docs/frequency-response.md has the measured share): plan with 70 %.
 EXPECTED_FRACTION: Final = 0.7
 # Tones up to 80 % of the expected Nyquist frequency: a run that gets somewhat fewer
 # samples than expected still resolves every tone it sent.

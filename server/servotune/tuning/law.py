@@ -8,9 +8,6 @@ frequency response, the what-if view and the gains check need from a device (its
 and how it takes an injected excitation: ``tuning.injection``) is ``DeviceLaw``; a
 device's registry entry gives it, and generic code asks a ``DeviceLaws`` (the registry,
 injected by the composition root) for it.
-
-Layering: nothing in ``tuning`` imports a device, ``servotune.autotune``, drivers, hub
-or api.
 """
 
 from __future__ import annotations

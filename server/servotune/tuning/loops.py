@@ -154,8 +154,8 @@ class LoopModel:
         # T's own difference equation (lfilter), not control.forced_response: that
         # realises T in state space and scipy's dlsim keeps every state at every tick
         # (python-control a second copy), so a Z1100 loop (T of order 34, from the
-        # 32-sample window) over a few seconds of 32 us ticks took gigabytes (a test
-        # was killed at 17 GB); this keeps the output array only. Same output from rest.
+        # 32-sample window) over a few seconds of 32 us ticks would take gigabytes; this
+        # keeps the output array only. Same output from rest.
         num, den = self._closed_loop_polynomials()
         num = np.concatenate([np.zeros(den.size - num.size), num])  # powers of z^-1
         y = scipy.signal.lfilter(num / den[0], den / den[0], u)

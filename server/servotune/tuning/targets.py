@@ -1,5 +1,5 @@
 """Margin targets: the presets a proposal is designed to, and how a set of gains reads
-against one (issue 25).
+against one.
 
 Drive tools tune to margins as well as to the step: Kollmorgen WorkBench's auto-tuner
 defaults to GM 8 dB / PM 45 deg (softer presets up to 65 deg / 35 dB), TwinCAT offers

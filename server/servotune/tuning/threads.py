@@ -2,8 +2,7 @@
 
 The fits are small (hundreds of rows, tens of columns): threads gain nothing there,
 and on a loaded 2-core host OpenBLAS's threads spin against each other and against
-the event loop. Measured on the 2-core VM at load ~15: a 520 x 82 least-squares
-solve took 170 ms with OpenBLAS's default threads and 11 ms with one. Effective only
+the event loop (docs/architecture.md, "Heavy work", has the measurement). Effective only
 when imported before numpy (the compute worker's fork server imports it first,
 ``servotune.compute.PRELOAD``); a value already set in the environment is kept.
 """

@@ -25,13 +25,13 @@ The owner: one cycle thread
     ``loop.call_soon_threadsafe``. Every cycle's sample is delivered, in batches of
     ``SAMPLE_BATCH_S`` (one loop wake-up per batch, not per cycle).
 
-Modules (one layer each, every one using only those before it; this module re-exports
-the public names): ``transports.ethercat`` the library seam (protocols, errors, state values,
-pysoem adapter); ``devices.ep7047.requests`` requests, the cycle state and ``_LinkCore`` (status,
-posts from the thread to the loop, sample batches); ``devices.ep7047.handshakes``
-``_CommandCycle`` (the command handshakes); ``devices.ep7047.cycle`` ``_CycleThread`` (bring-up,
-exchange, SDO slots, samples, shutdown); here ``Ep7047Link`` (the event-loop side),
-``Ep7047Axis`` (parameters, commands, console, bench planner) and the glue.
+Modules (this one re-exports their public names): ``transports.ethercat`` the library
+seam (protocols, errors, state values, pysoem adapter); ``devices.ep7047.requests``
+requests, the cycle state and ``_LinkCore`` (status, posts from the thread to the loop,
+sample batches); ``devices.ep7047.handshakes`` ``_CommandCycle`` (the command
+handshakes); ``devices.ep7047.cycle`` ``_CycleThread`` (bring-up, exchange, SDO slots,
+samples, shutdown); here ``Ep7047Link`` (the event-loop side), ``Ep7047Axis``
+(parameters, commands, console, bench planner) and the glue.
 
 Each cycle: (1) urgent requests (STOP, emergency stop, Halt) go into the outputs of this
 very exchange; (2) the next user request, one at a time (an SDO transfer, or a command
@@ -630,8 +630,8 @@ def build_ep7047_link(
     ``master`` None uses the real pysoem master (created when the link runs, so a missing
     pysoem shows as the link's error state, not as a crash), in a cycle process of its
     own (``transports.ethercat_cycle``; ``cycle_process=False``: in the driver's thread,
-    as before - kept for comparison). ``settings``, when given, are
-    written over CoE at every bring-up; otherwise the drive's own values are read.
+    for comparison). ``settings``, when given, are written over CoE at every bring-up;
+    otherwise the drive's own values are read.
     ``watchdog_s`` is the slave's SyncManager watchdog time (the device default, 100 ms):
     a longer gap in the process data makes the driver drop Enable.
     """

@@ -5,7 +5,6 @@ and their _EXT forms, manual "Positioning interface"): how far and in which dire
 the drive moves. The simulator (devices/ep7047/sim/positioning.py) moves by it and the driver
 (devices/ep7047/handshakes.py) previews a start with it, so both live on one rule; it
 sits beside the codec because it is the device's law, not either side's code.
-Imports: protocols.ep7047 only.
 """
 
 from __future__ import annotations

@@ -41,9 +41,8 @@ SAMPLE_BATCH_S: Final = 0.02
 """Samples of the cycle thread go to the event loop in batches, one
 ``call_soon_threadsafe`` each ``SAMPLE_BATCH_S`` (10 samples at the 2 ms default
 cycle) instead of one per cycle: every wake-up of the loop costs a self-pipe write,
-an epoll round and a callback (measured: the per-sample wake-ups were the largest
-single cost of the demo server; one post to an otherwise idle loop costs it ~70 us
-of CPU, so 10 ms batches still cost it ~7 ms/s, 20 ms ones ~4.7). 20 ms stays below
+an epoll round and a callback (docs/ep7047-driver.md, "CPU": the per-sample wake-ups
+were the largest single cost of the demo server). 20 ms stays below
 the hub's telemetry batch (``hub.state.BATCH_PERIOD_S``, 1/30 s), so every telemetry
 message still carries new samples of this axis and the plots see no added delay
 worth the name; every sample is still delivered, in order, with its own time.

@@ -1,4 +1,4 @@
-"""The SLAP2 axis driver: one module as the user tunes it (split from devices/slap2/link.py).
+"""The SLAP2 axis driver: one module as the user tunes it.
 
 Descriptor commands become wire commands here (pure), and every exchange goes through
 the module's ``Slap2Link`` (devices/slap2/link.py), which owns the line. Also the demo

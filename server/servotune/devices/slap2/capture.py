@@ -62,8 +62,8 @@ RSS_ARRIVAL_PERIOD_S = 0.025
 ARRIVAL_WATCH_S = 3.0
 # After a move command only rp for this long: the rise and the first peak of a step
 # are what the metrics need densest, and any other read there is a gap of one more
-# transaction right where the response is fastest (a 20 % overshoot measured 18-21 %
-# with rss and pe interleaved). The firmware, not the host, acts on a limit switch.
+# transaction right where the response is fastest (docs/capture.md: interleaved reads
+# misread the overshoot). The firmware, not the host, acts on a limit switch.
 QUIET_AFTER_MOVE_S = 0.2
 PE_CHECK_PERIOD_S = 0.1
 PE_FIRST_CHECKS = 3

@@ -187,8 +187,9 @@ def decode_bits(value: int, bits: type[enum.IntEnum]) -> dict[str, bool]:
     dict per call).
 
     The enum's (name, bit) pairs are looked up once: iterating an enum and reading its
-    members' properties cost 9 us per call, and a capture decodes ``rss`` several
-    times per sample at ~150 samples/s, between two transactions on the wire."""
+    members' properties per call is slow (docs/capture.md), and a capture decodes
+    ``rss`` several times per sample at ~150 samples/s, between two transactions on
+    the wire."""
     return {name: bool(value >> bit & 1) for name, bit in _bit_table(bits)}
 
 

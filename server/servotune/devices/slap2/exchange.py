@@ -11,8 +11,6 @@ Seam: this class knows the line's selection and nothing else about the modules. 
 reports what only the link can judge through two hooks: ``_note_unsolicited`` (bytes
 that came outside any exchange: a banner means a reset) and ``_lost_selection`` (the
 selected module answered only after a blind re-selection: a weak reset cue).
-Imports: the SLAP2 codec, transports.base, drivers.base and drivers.engine.
-Imported by: devices/slap2/link.py only.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ two wire transactions the owner takes, in this order: a stop job, a user job, th
 next poll transaction. A stop therefore waits at most for the one transaction in
 flight (a few ms at 19200 baud), never for queued polls or commands.
 
-Layers: ``Slap2Wire`` (devices/slap2/exchange.py) does the exchange on the line; this
+The split: ``Slap2Wire`` (devices/slap2/exchange.py) does the exchange on the line; this
 module owns what is known of each module (online, reset evidence, parameters, the
 profile of its last move), the session loop, polling and capture scheduling.
 
@@ -115,12 +115,12 @@ MODULE_OFFLINE_FAILURES = 3
 # did not come after the whole command was echoed: any failure but a silent line), the
 # line is alive, and the run must also span LINE_ERROR_SPAN_S. (One missing reply is
 # never an error: the next poll reads again - every poll is a read, safe to repeat.)
-# Measured in the soak under a CPU hog: one stall held a reply past the character
-# timeout, its late bytes spoiled the next two echoes, three failures within ~0.6 s,
-# then an answer 24 ms later; that is counted (desyncs, dropped bytes), not shown as
-# an error. A dead line sends nothing back (timeouts only): its verdict comes as fast
-# as before (1.0-1.15 s after the cut, measured on a pty; with the span for timeouts
-# too it was 1.3-1.8 s). Wrong baud or noise (only wrong bytes) shows after the span.
+# Under a CPU hog one stall can hold a reply past the character timeout and its late
+# bytes spoil the next two echoes: three failures within well under the span, then an
+# answer; that is counted (desyncs, dropped bytes), not shown as an error. A dead line
+# sends nothing back (timeouts only): the span does not apply to it, so its verdict is
+# not delayed (figures in docs/architecture.md). Wrong baud or noise (only wrong
+# bytes) shows after the span.
 LINE_ERROR_FAILURES = 3
 LINE_ERROR_SPAN_S = 0.9
 REFUSAL_HINTS = {
@@ -850,7 +850,7 @@ class Slap2Link(Slap2Wire):
             elif module.address not in captured and module.capture is not None:
                 # The rate counts the samples of the last 2 s against the limit of the
                 # poll set in force: the capture's dense samples, counted against the
-                # normal poll set's limit, read above 100 % of the wire (issue 25).
+                # normal poll set's limit, would read above 100 % of the wire.
                 module.samples.clear()
                 stats = module.capture.stats
                 stats.ended_s = now

@@ -24,8 +24,8 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
   (``codec.make_fence``), which it answers in order with reply bit 1. Every reply that
   arrives before that answer was late and is dropped; once it is in, the line is in
   step. Waiting for a quiet line instead proves nothing on a starved host, where late
-  replies trickle in behind their requests (issue 8: a GetError 0 read late was taken
-  for a reset witness). A fence unanswered within ``fence_timeout_s`` is counted
+  replies trickle in behind their requests (a GetError 0 read late would be taken for
+  a reset witness). A fence unanswered within ``fence_timeout_s`` is counted
   (``fence_timeouts``) and the line is then left to go quiet for a reply timeout.
 * A poll that still fails after its retries is counted and the poll goes on; the
   link shows ``error`` only after three failed poll cycles in a row and turns
@@ -488,7 +488,7 @@ class Z1100Link(LinkEngine):
                 motor.last_capture, motor.capture = motor.capture, None
                 # The rate counts the samples of the last 2 s against the limit of the
                 # poll set in force: the capture's dense samples, counted against the
-                # normal poll set's limit, read 131 % of the wire (issue 25).
+                # normal poll set's limit, would read above 100 % of the wire.
                 motor.samples.clear()
             paused = bool(captured) and motor.axis not in captured
             if paused != motor.paused:
@@ -639,10 +639,9 @@ class Z1100Link(LinkEngine):
     async def _confirm_zero(self, read: Callable[[], Awaitable[int]]) -> bool:
         """A zero read once is confirmed only by reading zero again after a fence (late
         replies to earlier requests are dropped first): the reset cue must survive a
-        slow host (issue 8: no false alarms). A fence that went unanswered confirms
-        nothing: the line may still be out of step (seen in a soak on a starved
-        machine: 16 fence timeouts, then "chip reset detected (job 0)" although the
-        simulated chip never reset and its job read 2 at the end)."""
+        slow host without a false alarm. A fence that went unanswered confirms
+        nothing: the line may still be out of step (a starved host can leave a late
+        zero in the line after the fence timed out)."""
         if not await self._resync(self._require_channel()):
             return False
         return await read() == 0

@@ -13,8 +13,6 @@ the outputs, :meth:`Ep7047Engine.step`/:meth:`Ep7047Engine.run` and their fast p
 the read-outs, the SDO objects and the inputs image. What a command does and how the
 setpoint moves is ``servotune.devices.ep7047.sim.positioning`` (the base class
 ``_Positioning``); the mechanics and the scale are ``servotune.devices.ep7047.sim.plant``.
-Imports: those two and ``servotune.devices.ep7047.codec``. Imported by:
-``servotune.devices.ep7047.sim.slave`` and the tests.
 
 Decisions where the spec and the manual are silent are written next to the code and
 listed in ``docs/ep7047.md``.
@@ -314,7 +312,7 @@ class Ep7047Engine(_Positioning):
         constants of the stretch), the arrival. The same float additions in the same
         order, so the setpoint comes out bit for bit. Why: the demo's axis moves most
         of the time, and eight full cycles per 2 ms exchange were most of the
-        simulator's CPU (profiled: ~9 us each against ~1 us here).
+        simulator's CPU (docs/ep7047.md has the profile).
         """
         mode = self._mode
         velocity = self._velocity

@@ -10,10 +10,6 @@ Why this seam: the plant is not the drive. It has no modes, takes no commands an
 knows nothing of the process data; the engine only calls :meth:`StepperPlant.follow`
 (output stage on), :meth:`StepperPlant.coast` (off) and :meth:`StepperPlant.set_counter`
 and reads the counter, the cam and the pulses.
-
-Imports: the standard library only. Imported by: ``servotune.devices.ep7047.sim.positioning``,
-``servotune.devices.ep7047.sim.engine``, ``servotune.devices.ep7047.sim.slave`` (builds the demo's
-plant) and the tests.
 """
 
 from __future__ import annotations

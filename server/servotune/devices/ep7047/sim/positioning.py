@@ -12,10 +12,6 @@ cycle and its fast paths, the SDO objects and the inputs image - and calls in he
 nothing here reads the outputs' control bits, the edge memory or the inputs. The two
 are one object (the engine inherits this class), so the state the methods share is
 declared below and set by ``Ep7047Engine.__init__``.
-
-Imports: ``servotune.devices.ep7047.codec``, ``servotune.devices.ep7047.modulo`` and
-``servotune.devices.ep7047.sim.plant`` only, never ``devices.ep7047.sim.engine``. Imported by:
-``servotune.devices.ep7047.sim.engine`` and the tests.
 """
 
 from __future__ import annotations

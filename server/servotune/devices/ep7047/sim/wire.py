@@ -1,7 +1,7 @@
 """A SIMULATED EP7047-1032 on a real Ethernet interface: an EtherCAT slave that a real
 master (SOEM through pysoem) brings up and drives.
 
-Layers: ``sim.ethercat_esc`` (the slave controller: registers, datagrams, SyncManagers,
+The parts: ``sim.ethercat_esc`` (the slave controller: registers, datagrams, SyncManagers,
 FMMUs, EEPROM, watchdog), ``devices.ep7047.sim.coe`` (object dictionary, PDO mapping, SDO server,
 written from the spec and the manual), here the application that joins them to the
 existing drive simulation (``Ep7047Engine`` and ``StepperPlant``): the AL state machine

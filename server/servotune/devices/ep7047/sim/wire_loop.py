@@ -37,7 +37,7 @@ PACKET_OUTGOING: Final = 4
 # Real-time, above the cycle process (50): this stands in for hardware, which answers a
 # frame at once whatever the host does; below the cycle (SOEM answers its own frames in
 # between) or at normal priority under a CPU hog it answered late enough for SOEM to
-# count a lost frame no wire lost (soaks 1-3 of issue 27: 113-180 per 30 min at 40).
+# count a lost frame no wire lost (docs/ep7047-wire.md, the soaks).
 # It never spins: the loop sleeps in select() until a frame, a control request or the
 # watchdog's deadline (at least WAIT_MIN_S away); tests/test_ep7047_rt.py measures it.
 RT_PRIORITY: Final = 60

@@ -8,13 +8,9 @@ ticks of a fixed point. ``devices/slap2/sim/module.py`` is the host interface on
 (``Slap2Module``: line parser, command table, replies, EEPROM, reset), and
 ``devices/slap2/sim/line.py`` the multi-drop line on top of that (``Slap2Bus``).
 
-Imports: the plant (``sim/physics.py``) and the standard library only; never
-``devices/slap2/sim/module.py`` or ``devices/slap2/sim/line.py``. Imported by:
-``devices/slap2/sim/module.py``
-(``Slap2Module`` subclasses ``Slap2Controller`` and shares its private state and the
-underscore constants below: that is the whole contract between the two), and by
-whoever needs the manual's constants (``devices/slap2/sim/line.py`` and tests: ``TICK_S``,
-``FACTORY_DEFAULTS`` ...).
+``Slap2Module`` subclasses ``Slap2Controller`` and shares its private state and the
+underscore constants below: that is the whole contract between the two. The manual's
+constants (``TICK_S``, ``FACTORY_DEFAULTS`` ...) are public for the line and tests.
 
 Sans-IO: nothing here reads a clock or touches a file descriptor.
 

@@ -17,8 +17,8 @@ from servotune.sim.pty import run_pty_simulator
 
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead
 # screw carriage). With the manual's default gains it still settles, but overshoots
-# and rings visibly (measured: ~35 counts over on a 2000-count move; at 2x rotor
-# inertia with less friction the defaults no longer settle), so its best gains differ
+# and rings visibly (docs/simulator.md; at 2x rotor inertia with less friction the
+# defaults no longer settle), so its best gains differ
 # from the unloaded module 0 and tuning it shows on the plots.
 SLAP2_LOADED: Final = DcMotorParams(load_inertia_kg_m2=6.5e-7, coulomb_friction_nm=0.5e-3)
 DEMO_ADDRESSES: Final = (0, 1)

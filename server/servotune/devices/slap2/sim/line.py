@@ -6,10 +6,6 @@ line in front of them - every host byte to every module, their transmissions mer
 line order, simulation time advanced in whole controller ticks on all modules - and the
 ``SimDevice`` that ``PtySimulator`` (``sim/pty.py``) puts on a pseudo-terminal. Sans-IO:
 no clock, no file descriptor (the modules' optional EEPROM files aside).
-
-Imports: ``devices/slap2/sim/module.py``, ``devices/slap2/sim/controller.py``,
-``sim/physics.py``, the standard library. Imported by: ``sim/pty.py``, the demo, tests,
-scripts; never by the module or the controller.
 """
 
 from __future__ import annotations

@@ -9,10 +9,6 @@ reset and banner. ``Slap2Module`` subclasses ``Slap2Controller`` and drives it t
 its private state (the contract is in that class's docstring). The RS232 line the
 modules share, ``Slap2Bus``, is in ``devices/slap2/sim/line.py`` on top of this one.
 
-Imports: ``devices/slap2/sim/controller.py``, ``sim/physics.py``, the standard library.
-Imported by: ``devices/slap2/sim/line.py``, the demo, tests, scripts; never by
-``devices/slap2/sim/controller.py``.
-
 Sans-IO: nothing here reads a clock or touches a file descriptor (except the optional
 EEPROM file). The modules are driven in simulation time by ``Slap2Bus`` through the
 ``SimDevice`` contract (``advance_to`` / ``receive``); ``PtySimulator`` puts the bus on a

@@ -10,9 +10,7 @@ The seam: this module is the chip *around* the axes - packet framing and its
 timeout, the command interpreter (Get/Set, the "forbidden while moving" refusals,
 Start/Stop/Zero), the flash file, resets and fault injections. One axis's servo law,
 profiles and motor live in ``servotune.devices.z1100.sim.servo`` (the module docstring there
-has the law); this module imports it and ``servotune.devices.z1100.codec``, never the
-other way round. Imported by the carriers and callers that run a chip (cli, demo,
-scripts, tests).
+has the law); the servo knows nothing of the chip.
 
 Decisions where the spec is silent are listed in docs/z1100-simulator.md and repeated
 next to the code that implements them.

@@ -8,11 +8,9 @@ axis's parameters and mode and calls :meth:`_Axis.run_until`; nothing here knows
 about packets, replies or the flash file (``AxisParameters.to_json``/``from_json``
 is the flash's entry format, kept on the data it describes).
 
-Imports: ``servotune.devices.z1100.codec`` (constants, ``Gains``, ``Cab``, ``Job``) and
-``servotune.sim.physics`` only. Imported by ``servotune.devices.z1100.sim.chip`` (which uses the
-package-private ``_Axis``, ``_positive`` and the mode/phase constants) and by callers
-that build or inspect a chip (``AxisHardware``, ``AxisParameters``, ``AxisState``).
-It must never import ``servotune.devices.z1100.sim.chip``.
+The chip uses the package-private ``_Axis``, ``_positive`` and the mode/phase
+constants; callers that build or inspect a chip use ``AxisHardware``,
+``AxisParameters`` and ``AxisState``.
 
 Each axis is a ``DcMotor`` (``servotune.sim.physics``) under a servo law stepped at
 the axis's own sampling time, Stm x 32 us. The manual gives no equations; the law
