@@ -121,8 +121,6 @@ ALLOWED: dict[str, set[str]] = {
 # Step (a) leaves these; step (b) removes every one (the registry, laws and tuners
 # looked up, the SLAP2 serving out of sim/pty.py).
 KNOWN: set[str] = {
-    "servotune.autotune.session imports servotune.devices.slap2.codec",
-    "servotune.autotune.session imports servotune.devices.slap2.gain_rule",
     # perf.stops builds its own rigs from the simulators (the demo's loads without
     # limit switches): the demo plants it reads moved from demo.py into the device folders.
     "servotune.perf.stops imports servotune.devices.slap2.sim.demo",

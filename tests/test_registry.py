@@ -6,8 +6,15 @@ import importlib
 import subprocess
 import sys
 
+import pytest
+from pydantic import ValidationError
+
+from servotune.autotune.session import IdentifyRequest
 from servotune.config import parse_link_spec
 from servotune.devices import default_registry
+from servotune.devices.slap2.codec import PWM_MAX as SLAP2_PWM_MAX
+from servotune.devices.z1100.law import PWM_FULL_SCALE as Z1100_PWM_FULL_SCALE
+from servotune.tuning.plants import OUTPUT_FULL_SCALE
 
 DEVICES = default_registry()
 
@@ -28,6 +35,15 @@ def test_each_entry_is_consistent() -> None:
     assert [e.name for e in DEVICES.simulated(pty=True)] == ["slap2", "z1100"]
     assert [e.name for e in DEVICES.simulated()] == ["slap2", "z1100", "ep7047"]
     assert DEVICES.tuned() == ("gräbner SLAP2", "CNC Designer Z1100")
+
+
+def test_the_auto_tunes_pwm_bound_is_each_tuned_devices_full_scale() -> None:
+    """``max_pwm`` is bounded by the generic ``OUTPUT_FULL_SCALE``: the PWM full scale
+    of both tuned devices, so the API accepts exactly what either device can apply."""
+    assert OUTPUT_FULL_SCALE == SLAP2_PWM_MAX == Z1100_PWM_FULL_SCALE
+    IdentifyRequest(max_pwm=OUTPUT_FULL_SCALE, max_distance_counts=4000)
+    with pytest.raises(ValidationError, match="max_pwm"):
+        IdentifyRequest(max_pwm=OUTPUT_FULL_SCALE + 1, max_distance_counts=4000)
 
 
 def test_the_cli_reads_the_registry_without_loading_links_laws_or_numpy() -> None:

@@ -8,9 +8,9 @@ from typing import Any, Final, Literal
 
 from pydantic import BaseModel, Field
 
-from servotune.devices.slap2.codec import PWM_MAX
-from servotune.devices.slap2.gain_rule import Proposal, Response
+from servotune.autotune.proposal import Proposal, Response
 from servotune.link.base import InvalidArgumentError
+from servotune.tuning.plants import OUTPUT_FULL_SCALE
 from servotune.tuning.targets import DEFAULT_PRESET, Preset
 
 TestKind = Literal["position_step", "move"]
@@ -22,7 +22,9 @@ HISTORY_LENGTH: Final = 20  # decisions a session keeps (the runs keep theirs fo
 class IdentifyRequest(BaseModel):
     """``POST /api/axes/{id}/autotune/identify``: the user's limits and the goal."""
 
-    max_pwm: int = Field(ge=1, le=PWM_MAX, description="largest open-loop PWM (-255..255)")
+    max_pwm: int = Field(
+        ge=1, le=OUTPUT_FULL_SCALE, description="largest open-loop PWM (-255..255)"
+    )
     max_distance_counts: int = Field(
         ge=1,
         le=1 << 24,

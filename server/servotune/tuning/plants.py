@@ -21,8 +21,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Final
 
 import control
+
+# The controller output's full scale, in the units every model here takes (PWM: the
+# SLAP2 and the Z1100 drive -255..255).
+OUTPUT_FULL_SCALE: Final = 255
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Final, Literal
+from typing import Any, Final
 
 import control
 
+from servotune.autotune.proposal import Response
 from servotune.bench.metrics import Metrics
 from servotune.devices.slap2.law import (
     D_MUL,
@@ -31,8 +32,6 @@ from servotune.devices.slap2.law import (
 from servotune.tuning.loops import ZERO, Margins, MarginSearch
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
-
-Response = Literal["no_overshoot", "fast"]
 
 OVERSHOOT_LIMIT_PCT: Final[dict[str, float]] = {"no_overshoot": 1.0, "fast": 10.0}
 ROBUST_GAIN_FACTORS: Final = (0.75, 1.33)  # the plant gain K may be off by this much ...
@@ -151,7 +150,7 @@ RULE_TEXT: Final = (
 
 
 @dataclass(frozen=True, slots=True)
-class Proposal:
+class Slap2Proposal:
     """What ``propose_gains`` returns: the gains and everything the user is shown."""
 
     model: PlantModel
@@ -201,7 +200,7 @@ def propose_gains(
     *,
     max_excursion: int | None = None,
     target: MarginTarget = PRESETS[DEFAULT_PRESET],
-) -> Proposal:
+) -> Slap2Proposal:
     """Search gains by the rule (``RULE_TEXT``, docs/autotune.md) for ``spec`` on ``model``.
 
     Candidates: ``candidate_grid``, then ``_neighbours`` of the ``FINE_SEEDS`` fastest
@@ -405,7 +404,7 @@ def propose_gains(
     }
     predicted_run = simulate_response(model, best, spec)
     default_run = simulate_response(model, current, spec)
-    return Proposal(
+    return Slap2Proposal(
         model=model,
         spec=spec,
         response=response,

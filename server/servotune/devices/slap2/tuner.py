@@ -20,7 +20,7 @@ from servotune.autotune.session import IdentifyRequest, Session, TestKind
 from servotune.autotune.verdict import verdict_with_reason
 from servotune.bench.metrics import unmeasured
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
-from servotune.devices.slap2.gain_rule import Proposal, propose_gains, settles
+from servotune.devices.slap2.gain_rule import Slap2Proposal, propose_gains, settles
 from servotune.devices.slap2.law import (
     IDENT_MIN_DISTANCE,
     STAIRCASE_START_PWM,
@@ -352,8 +352,7 @@ class Slap2Tuner:
 
     @staticmethod
     def previous_gains(entry: AxisEntry, session: Session) -> dict[str, int]:
-        assert session.proposal is not None
-        return session.proposal.current_gains.to_dict()
+        return _proposal(session).current_gains.to_dict()
 
     async def restore(self, entry: AxisEntry, previous: dict[str, int]) -> dict[str, int]:
         return await self._ctx.hub.write_params(entry.info.id, previous)
@@ -361,8 +360,8 @@ class Slap2Tuner:
     async def verify(self, entry: AxisEntry, session: Session) -> dict[str, Any]:
         """Baseline test (previous gains), write the proposal, verification test."""
         ctx = self._ctx
-        proposal: Proposal | None = session.proposal
-        assert session.request is not None and proposal is not None
+        proposal = _proposal(session)
+        assert session.request is not None
         axis_id = entry.info.id
         kind = session.request.test
         spec = proposal.spec
@@ -459,7 +458,13 @@ class Slap2Tuner:
 
     async def revert(self, entry: AxisEntry, session: Session) -> tuple[dict[str, int], str]:
         """Write the gains that were in use before the accepted proposal."""
-        assert session.proposal is not None
-        gains = session.proposal.current_gains.to_dict()
+        gains = _proposal(session).current_gains.to_dict()
         written = await self._ctx.hub.write_params(entry.info.id, gains)
         return written, f"reverted to kp={gains['kp']} ki={gains['ki']} kd={gains['kd']}"
+
+
+def _proposal(session: Session) -> Slap2Proposal:
+    """The session's proposal, which this tuner made (``identify``)."""
+    proposal = session.proposal
+    assert isinstance(proposal, Slap2Proposal), "no SLAP2 proposal in this session"
+    return proposal
