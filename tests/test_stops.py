@@ -123,6 +123,17 @@ async def command(server: LiveServer, axis: str, name: str, **args: int) -> dict
     return body
 
 
+async def comes_to_rest_holding(module: Slap2Module, target: int) -> None:
+    """Waits (at most 4 s) for the simulated module to stand in pm; asserts it holds
+    within 20 counts of ``target``."""
+    for _ in range(200):
+        if module.rss & PM and not module.rss & MOVE and module.motor.speed_rad_s == 0:
+            break
+        await asyncio.sleep(0.02)
+    assert module.rss & PM and not module.moving, "the release did not hold the axis"
+    assert abs(module.position - target) <= 20
+
+
 async def test_jog_runs_both_ways_and_the_release_decelerates_and_holds(
     demo_line: LiveServer,
 ) -> None:
@@ -147,12 +158,7 @@ async def test_jog_runs_both_ways_and_the_release_decelerates_and_holds(
         # Decelerating with sa from ~28 000 counts/s: the stop point is ahead, not behind
         # (no return), and not further than the profile's braking distance allows.
         assert 0 < (target - module.position) * direction < 20_000, (target, module.position)
-        for _ in range(200):
-            if module.rss & PM and not module.rss & MOVE and module.motor.speed_rad_s == 0:
-                break
-            await asyncio.sleep(0.02)
-        assert module.rss & PM and not module.moving, "the release did not hold the axis"
-        assert abs(module.position - target) <= 20
+        await comes_to_rest_holding(module, target)
         assert abs(module.motor.speed_rad_s) * COUNTS_PER_RAD < 200
 
 
@@ -180,12 +186,7 @@ async def test_a_jog_whose_profile_was_dropped_still_decelerates_on_release(
     assert sent.startswith("ma"), released
     target = int(sent[2:])
     assert 0 < target - module.position < 20_000, (target, module.position)
-    for _ in range(200):
-        if module.rss & PM and not module.rss & MOVE and module.motor.speed_rad_s == 0:
-            break
-        await asyncio.sleep(0.02)
-    assert module.rss & PM and not module.moving, "the release did not hold the axis"
-    assert abs(module.position - target) <= 20
+    await comes_to_rest_holding(module, target)
 
 
 async def test_a_negative_sv_is_refused_with_its_range(demo_line: LiveServer) -> None:
