@@ -330,7 +330,7 @@ def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
     link, sink, now = _rule_link()
     module = link.module_state(0)
     channel = _StalledHostChannel()
-    link._channel = channel  # type: ignore[assignment]
+    link.engine._channel = channel  # type: ignore[assignment]
     for t in (100.0, 100.2, 100.4):
         now.append(t)
         channel.late_s = 0.4
@@ -363,18 +363,18 @@ def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
     exchange that began before the window counts whole)."""
     link, _, now = _rule_link()
     assert link.wire_busy is None  # no channel
-    link._channel = object()  # type: ignore[assignment]
-    link._opened_at = 100.0
+    link.engine._channel = object()  # type: ignore[assignment]
+    link.engine._opened_at = 100.0
     for i in range(100):  # 5 ms exchanges back to back for 0.5 s, then 0.5 s idle
         now.append(100.005 + 0.005 * i)
-        link._wire_used(0.005)
+        link.engine.wire_used(0.005)
     now.append(101.0)
     assert link.wire_busy == pytest.approx(0.5)
     now.append(102.0)  # a 2 s window now: 0.5 s of 2 s
     assert link.wire_busy == pytest.approx(0.25)
     now.append(103.0)  # all of them ended more than 2 s ago
     assert link.wire_busy == 0
-    link._wire_used(5.0)
+    link.engine.wire_used(5.0)
     assert link.wire_busy == 1.0
 
 
@@ -416,22 +416,22 @@ async def test_a_stop_after_a_chained_read_that_failed_is_not_glued_to_it(
         SerialConnector(path, 19200),
         sink,
     )
-    link._channel = await SerialConnector(path, 19200).open()
+    link.engine._channel = await SerialConnector(path, 19200).open()
     await asyncio.sleep(0.01)  # the transport is handed to the protocol from the loop
     # bytes 1-3 "pm\r", 4-6 "rp\r", then the chained "pe\r": 'e' is byte 8
     peer = _ModuleOnPty(master, module, garble_at=8)
     try:
-        link._selected = 0  # address 0 is selected at power-on
-        await link._transact(0, codec.make_simple("pm"))
-        assert await link._read_int(0, "rp", then="pe") == module.position
+        link.exchange._selected = 0  # address 0 is selected at power-on
+        await link.exchange.transact(0, codec.make_simple("pm"))
+        assert await link.exchange.read_int(0, "rp", then="pe") == module.position
         await asyncio.sleep(0.3)  # the chained pe has failed by now
-        await link._transact(0, codec.make_simple("st"))
-        flags = codec.decode_rss(await link._read_int(0, "rss"))
+        await link.exchange.transact(0, codec.make_simple("st"))
+        flags = codec.decode_rss(await link.exchange.read_int(0, "rss"))
         assert not flags["uc"] and not flags["pm"], flags  # st was taken, and as st
         assert b"pest" not in peer.received and codec.CTRL_X in peer.received
         assert link.counters["chained_reads_dropped"] == 1
     finally:
         peer.stop()
-        await link._require_channel().close()
+        await link.engine.require_channel().close()
         os.close(master)
         os.close(slave)

@@ -1,4 +1,4 @@
-"""SLAP2 link engine and axis driver.
+"""The SLAP2 link: one RS232 line and what is known of its modules.
 
 One ``Slap2Link`` owns one RS232 line with up to 16 modules (multi-drop). Its owner
 task is the only code that touches the port; everything else submits *jobs*. Between
@@ -6,9 +6,11 @@ two wire transactions the owner takes, in this order: a stop job, a user job, th
 next poll transaction. A stop therefore waits at most for the one transaction in
 flight (a few ms at 19200 baud), never for queued polls or commands.
 
-The split: ``Slap2Wire`` (devices/slap2/exchange.py) does the exchange on the line; this
-module owns what is known of each module (online, reset evidence, parameters, the
-profile of its last move), the session loop, polling and capture scheduling.
+The split: the link *has* a ``LinkEngine`` (link/engine.py: owner task, job queues,
+reconnects, status), for which it is the ``LinkSession``, and a ``Slap2Exchange``
+(devices/slap2/exchange.py), which does the exchange on the line. This module owns
+what is known of each module (online, reset evidence, parameters, the profile of its
+last move), the session loop, polling and capture scheduling.
 
 The exchange follows the manual's host algorithm exactly ("sstring"/"rstring"): send
 one character, wait for its echo and compare it, then the next; after the last one
@@ -59,6 +61,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+from servotune.descriptor import DeviceDescriptor
 from servotune.devices.slap2 import codec
 from servotune.devices.slap2.axis import Slap2Axis
 from servotune.devices.slap2.capture import (
@@ -73,12 +76,13 @@ from servotune.devices.slap2.capture import (
 from servotune.devices.slap2.descriptor import PARAM_SETTERS, slap2_descriptor
 from servotune.devices.slap2.exchange import (
     ReplyTimeoutError,
-    Slap2Wire,
+    Slap2Exchange,
     command_mnemonic,
     is_banner,
 )
 from servotune.devices.slap2.profile import TICK_S, ProfileTrack, firmware_setpoint
 from servotune.link.base import (
+    AxisDriver,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -89,9 +93,9 @@ from servotune.link.base import (
     check_console_line,
 )
 from servotune.link.capture import CaptureRegistry, CaptureStats
-from servotune.link.engine import recent_rate_hz
+from servotune.link.engine import LinkEngine, recent_rate_hz
 from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
-from servotune.schema import AxisHealth
+from servotune.schema import AxisHealth, LinkState
 from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
@@ -207,8 +211,11 @@ class _ModuleState:
     ucon_failures: int = 0
 
 
-class Slap2Link(Slap2Wire):
-    """Owner of one SLAP2 RS232 line; see the module docstring for the protocol rules."""
+class Slap2Link:
+    """Owner of one SLAP2 RS232 line; see the module docstring for the protocol rules.
+
+    ``link.base.Link``; the ``LinkSession`` of its ``engine`` and the
+    ``ExchangeEvents`` of its ``exchange``; the link each ``Slap2Axis`` talks to."""
 
     device = "slap2"
 
@@ -222,19 +229,24 @@ class Slap2Link(Slap2Wire):
     ) -> None:
         if not config.addresses:
             raise ValueError("a SLAP2 link needs at least one module address")
-        super().__init__(
+        self._engine = LinkEngine(
             config.link_id,
             config.path,
-            config,
+            config.baud,
             connector,
             sink,
+            self,
             clock=clock,
             reconnect_max_s=config.reconnect_max_s,
         )
+        self._exchange = Slap2Exchange(config, self._engine, self)
+        self._connector = connector
+        self._sink = sink
+        self._clock = clock
         self.config = config
         self._descriptor = slap2_descriptor(config.lines)
         self._modules = {a: _ModuleState(a) for a in config.addresses}
-        self._axes = [Slap2Axis(self, a) for a in config.addresses]
+        self._axes: list[AxisDriver] = [Slap2Axis(self, a) for a in config.addresses]
         self._poll_index = 0
         self._last_verify_t = 0.0
         self._consecutive_failures = 0
@@ -248,6 +260,66 @@ class Slap2Link(Slap2Wire):
         self._captures = CaptureRegistry(self._capture_changed)
         self._capture_index = 0
 
+    # --- link.base.Link, delegated to the engine ----------------------------------------
+
+    @property
+    def engine(self) -> LinkEngine:
+        """The owner task, job queues and status of this line."""
+        return self._engine
+
+    @property
+    def exchange(self) -> Slap2Exchange:
+        """The manual's exchange on this line (owner task only)."""
+        return self._exchange
+
+    @property
+    def id(self) -> str:
+        return self._engine.id
+
+    @property
+    def path(self) -> str:
+        return self._engine.path
+
+    @property
+    def baud(self) -> int:
+        return self._engine.baud
+
+    @property
+    def state(self) -> LinkState:
+        return self._engine.state
+
+    @property
+    def axes(self) -> list[AxisDriver]:
+        return list(self._axes)
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        """The descriptor all axes of this line share."""
+        return self._descriptor
+
+    @property
+    def errors(self) -> int:
+        """Wire errors since start (``LinkEngine.errors``)."""
+        return self._engine.errors
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """``LinkEngine.counters``."""
+        return self._engine.counters
+
+    @property
+    def wire_busy(self) -> float | None:
+        """``LinkEngine.wire_busy``."""
+        return self._engine.wire_busy
+
+    def now(self) -> float:
+        """The link's clock (the times of its samples and latches)."""
+        return self._clock()
+
+    async def run(self) -> None:
+        """``LinkEngine.run``: connect, run sessions, reconnect until cancelled."""
+        await self._engine.run()
+
     def axis_id(self, address: int) -> str:
         return f"{self.config.link_id}-{address}"
 
@@ -257,7 +329,7 @@ class Slap2Link(Slap2Wire):
     def module_state(self, address: int) -> _ModuleState:
         return self._modules[address]
 
-    def _on_link_down(self) -> None:
+    def link_down(self) -> None:
         for module in self._modules.values():
             module.profile.clear()
             module.ucon_failures = 0
@@ -269,27 +341,29 @@ class Slap2Link(Slap2Wire):
 
     # --- session ---------------------------------------------------------------------
 
-    async def _session(self, channel: ByteChannel) -> None:
-        self._forget_selection()
-        self._set_state("connecting", f"draining power-on output on {self.path}")
-        banner = await self._drain(channel, self.config.banner_quiet_s, self.config.banner_max_s)
+    async def run_session(self, channel: ByteChannel) -> None:
+        self._exchange.forget_selection()
+        self._engine.set_state("connecting", f"draining power-on output on {self.path}")
+        banner = await self._exchange.drain(
+            channel, self.config.banner_quiet_s, self.config.banner_max_s
+        )
         if banner.strip():
             text = codec.LineDecoder().feed(banner + b"\r")
             self._sink.on_event("info", None, f"{self.id}: power-on banner: {' | '.join(text)}")
         for module in self._modules.values():
             await self._probe(module)
-        self._connected_once = True
-        self._set_state("connected", self._connector.description)
+        self._engine.connected_once = True
+        self._engine.set_state("connected", self._connector.description)
         while True:
-            job = self._take_job()
+            job = self._engine.take_job()
             if job is not None:
-                await self._run_job(job)
+                await self._engine.run_job(job)
                 continue
             now = self._clock()
             online = [m for m in self._modules.values() if m.online]
             if not online:
-                await self._wait_job_or(self.config.offline_retry_s)
-                if not self.jobs_pending:
+                await self._engine.wait_job_or(self.config.offline_retry_s)
+                if not self._engine.jobs_pending:
                     for module in self._modules.values():
                         await self._probe(module)
                 continue
@@ -317,7 +391,7 @@ class Slap2Link(Slap2Wire):
                 continue
             await self._poll_step(online)
             due = [m for m in self._modules.values() if not m.online and now >= m.next_probe_t]
-            if due and not self.jobs_pending:
+            if due and not self._engine.jobs_pending:
                 # Retry absent modules with a growing interval: each try holds the line
                 # for a few character timeouts, which must not starve the others or
                 # delay a STOP more than once in a while.
@@ -333,10 +407,10 @@ class Slap2Link(Slap2Wire):
         axis_id = self.axis_id(module.address)
         try:
             values = await self._read_params(module)
-            rss = await self._read_int(module.address, "rss")
-            rss_t = self._last_latch_t
+            rss = await self._exchange.read_int(module.address, "rss")
+            rss_t = self._exchange.last_latch_t
         except DriverError as exc:
-            if module.online or not self._connected_once:
+            if module.online or not self._engine.connected_once:
                 self._sink.on_event("warning", axis_id, f"module {module.address}: {exc}")
             module.online = False
             if module.silent_since_s is not None:
@@ -372,14 +446,14 @@ class Slap2Link(Slap2Wire):
         self._sink.on_params(axis_id, values, "read")
         self._sink.on_axis_health(axis_id, *self._resumed_health(module))
 
-    # --- unsolicited bytes and reset evidence (the wire's hooks) -----------------------
+    # --- unsolicited bytes and reset evidence (ExchangeEvents) -----------------------
 
-    def _note_unsolicited(self, data: bytes) -> None:
+    def note_unsolicited(self, data: bytes) -> None:
         text = " ".join(codec.LineDecoder().feed(data + b"\r")).strip()
-        self._errors += 1
-        if self._connected_once and is_banner(text):
+        self._engine.add_error()
+        if self._engine.connected_once and is_banner(text):
             # Only address 0 sends a banner after power-on; all modules lose selection.
-            self._forget_selection()
+            self._exchange.forget_selection()
             message = f"power-on banner received ({text!r}): module reset"
             self._sink.on_event("warning", None, f"{self.id}: {message}")
             if 0 in self._modules:
@@ -388,7 +462,7 @@ class Slap2Link(Slap2Wire):
                 )
         else:
             # Late echoes and noise: counted (shown with the link status), not alarmed.
-            self._count("dropped_bytes", len(data))
+            self._engine.count("dropped_bytes", len(data))
             logger.info("%s: %d unsolicited byte(s) dropped: %r", self.id, len(data), data[:16])
 
     def _mark_reset(self, module: _ModuleState, message: str) -> None:
@@ -402,7 +476,7 @@ class Slap2Link(Slap2Wire):
         self._sink.on_axis_health(self.axis_id(module.address), "reset", message)
         self._sink.on_event("warning", self.axis_id(module.address), message)
 
-    def _lost_selection(self, address: int) -> None:
+    def lost_selection(self, address: int) -> None:
         if address in self._modules:
             self._suspect(self._modules[address], "it answered only after a blind re-selection")
 
@@ -416,8 +490,8 @@ class Slap2Link(Slap2Wire):
         """Look for reset evidence that a slow host cannot fake (module docstring)."""
         cue = module.suspect
         try:
-            rss = await self._read_int(module.address, "rss")
-            rss_t = self._last_latch_t
+            rss = await self._exchange.read_int(module.address, "rss")
+            rss_t = self._exchange.last_latch_t
             evidence = self._rss_evidence(module, rss)
             if not evidence:
                 evidence = await self._settings_evidence(module)
@@ -438,7 +512,7 @@ class Slap2Link(Slap2Wire):
             )
             module.expected_mode = "off"
         else:
-            self._count("desyncs")
+            self._engine.count("desyncs")
             logger.info("%s: module %d: %s, but no reset evidence", self.id, module.address, cue)
         module.rss, module.rss_t = rss, rss_t
         module.cal_seen = module.cal_seen and codec.decode_rss(rss)["cal"]
@@ -458,7 +532,7 @@ class Slap2Link(Slap2Wire):
             expected = module.known.get(parameter.name)
             if expected is None or expected == parameter.default:
                 continue
-            value = await self._read_int(module.address, parameter.read_command)
+            value = await self._exchange.read_int(module.address, parameter.read_command)
             if value != expected:
                 module.known[parameter.name] = value
                 if parameter.name == "syscon":
@@ -479,16 +553,16 @@ class Slap2Link(Slap2Wire):
             # the start of a move replanned on top of it (kept aside for that).
             previous = module.profile.track
             module.profile.clear()
-        lines = await self._transact(module.address, command)
-        latched = module.last_command_latch_s = self._last_latch_t
-        module.last_command_latch_span_s = self._last_latch_span_s
+        lines = await self._exchange.transact(module.address, command)
+        latched = module.last_command_latch_s = self._exchange.last_latch_t
+        module.last_command_latch_span_s = self._exchange.last_latch_span_s
         reply = codec.parse_reply(lines[0] if lines else "")
         hint = REFUSAL_HINTS.get(mnemonic, "the module did not accept the command (uc)")
         if reply.kind is codec.ReplyKind.REFUSED:
             raise DeviceRefusedError(f"{command.text}: refused with -1UC: {hint}")
         if command.changes_device and not module.ucon:
-            rss = await self._read_rss_after(command.text)
-            module.rss, module.rss_t = rss, self._last_latch_t
+            rss = await self._exchange.read_rss_after(command.text)
+            module.rss, module.rss_t = rss, self._exchange.last_latch_t
             if codec.decode_rss(rss)["uc"]:
                 raise DeviceRefusedError(f"{command.text}: refused (uc flag set): {hint}")
         if mnemonic in MOVE_MNEMONICS:
@@ -538,8 +612,10 @@ class Slap2Link(Slap2Wire):
     async def _read_params(self, module: _ModuleState) -> dict[str, int]:
         values: dict[str, int] = {}
         for parameter in self._descriptor.parameters:
-            await self._let_stops_pass()
-            values[parameter.name] = await self._read_int(module.address, parameter.read_command)
+            await self._engine.let_stops_pass()
+            values[parameter.name] = await self._exchange.read_int(
+                module.address, parameter.read_command
+            )
         self._learn_syscon(module, values.get("syscon"))
         module.known.update(values)
         return values
@@ -556,14 +632,14 @@ class Slap2Link(Slap2Wire):
     ) -> dict[str, int]:
         readback: dict[str, int] = {}
         for name, value in values.items():
-            await self._let_stops_pass()
+            await self._engine.let_stops_pass()
             parameter = self._descriptor.parameter(name)
             command = codec.make_set(command_mnemonic(parameter.set_command), value)
             try:
                 await self._execute(module, command)
             except DeviceRefusedError as exc:
                 raise DeviceRefusedError(f"{name}: {exc}") from exc
-            readback[name] = await self._read_int(module.address, parameter.read_command)
+            readback[name] = await self._exchange.read_int(module.address, parameter.read_command)
             module.known[name] = readback[name]
             if name == "syscon":
                 self._learn_syscon(module, readback[name])
@@ -586,7 +662,7 @@ class Slap2Link(Slap2Wire):
         module.verify_index += 1
         parameter = self._descriptor.parameter(name)
         try:
-            value = await self._read_int(module.address, parameter.read_command)
+            value = await self._exchange.read_int(module.address, parameter.read_command)
         except (DeviceTimeoutError, ProtocolError) as exc:
             self._module_failed(module, exc)
             return
@@ -619,8 +695,9 @@ class Slap2Link(Slap2Wire):
 
     def _module_answered(self, module: _ModuleState) -> None:
         """An exchange with ``module`` succeeded: the line works, and so does it."""
-        if self._channel is not None:
-            self._channel.take_timeout_late_s()  # timeouts before it excuse no later one
+        channel = self._engine.channel
+        if channel is not None:
+            channel.take_timeout_late_s()  # timeouts before it excuse no later one
         self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0
@@ -636,9 +713,11 @@ class Slap2Link(Slap2Wire):
         answer would have reset its count), so a line that is down, or has one
         module, is left to the line's rule (_poll_failed): never shown connected
         with its only module offline. A timeout the host noticed later than it had
-        listened (``_host_stalled``) counts for neither: the host was away."""
-        if isinstance(exc, DeviceTimeoutError) and self._host_stalled(self.config.char_timeout_s):
-            self._count("desyncs")
+        listened (``LinkEngine.host_stalled``) counts for neither: the host was away."""
+        if isinstance(exc, DeviceTimeoutError) and self._engine.host_stalled(
+            self.config.char_timeout_s
+        ):
+            self._engine.count("desyncs")
             return
         self._poll_failed(exc)
         if module.failures == 0:
@@ -676,7 +755,7 @@ class Slap2Link(Slap2Wire):
         # LINE_ERROR_SPAN_S if bytes came back) and the line shows ``error``. An odd
         # reply to a poll is a desynchronisation, never the end of the session:
         # counted, the next poll resynchronises (select, echo check).
-        self._count("desyncs")
+        self._engine.count("desyncs")
         now = self._clock()
         if self._consecutive_failures == 0:
             self._first_failure_t = now
@@ -688,9 +767,9 @@ class Slap2Link(Slap2Wire):
         if self._consecutive_failures >= LINE_ERROR_FAILURES and (
             not self._failures_saw_bytes or now - self._first_failure_t >= LINE_ERROR_SPAN_S
         ):
-            if self._state != "error":
+            if self._engine.state != "error":
                 self._sink.on_event("error", None, f"{self.id}: {exc}")
-            self._set_state("error", str(exc))
+            self._engine.set_state("error", str(exc))
             if self._consecutive_failures >= 3 * len(self._modules):
                 for m in self._modules.values():
                     m.online = False
@@ -707,23 +786,23 @@ class Slap2Link(Slap2Wire):
         rve_due = bool(self.config.rve_every and (module.cycles + 1) % self.config.rve_every == 0)
         sequence = [*self.config.poll_commands, *(["rve"] if rve_due else [])]
         for index, mnemonic in enumerate(sequence[: len(self.config.poll_commands)]):
-            if self.urgent_pending:
+            if self._engine.urgent_pending:
                 # A stop is waiting: give the line up now, finish the sample later.
                 return
             then = sequence[index + 1] if index + 1 < len(sequence) else None
-            value = await self._read_int(address, mnemonic, then)
+            value = await self._exchange.read_int(address, mnemonic, then)
             if mnemonic == "rp":
-                position, t_position = value, self._last_latch_t
+                position, t_position = value, self._exchange.last_latch_t
             elif mnemonic == "pe":
                 following_error = value
             elif mnemonic == "rss":
-                rss, rss_t = value, self._last_latch_t
+                rss, rss_t = value, self._exchange.last_latch_t
         measured: float | None = None
         module.cycles += 1
         if rve_due:
-            measured = await self._read_int(address, "rve") * codec.COUNTS_S_PER_SV
-        if self._state == "error":
-            self._set_state("connected", self._connector.description)
+            measured = await self._exchange.read_int(address, "rve") * codec.COUNTS_S_PER_SV
+        if self._engine.state == "error":
+            self._engine.set_state("connected", self._connector.description)
         self._emit_sample(module, position, t_position, following_error, rss, rss_t, measured)
 
     def _emit_sample(
@@ -802,7 +881,7 @@ class Slap2Link(Slap2Wire):
             return reconstructed
         module.live_misses = 0
         module.profile.clear()
-        self._count("setpoint_mismatches")
+        self._engine.count("setpoint_mismatches")
         logger.info(
             "%s: module %d: rp + pe %.0f, the reconstructed setpoint %.0f: dropped",
             self.id,
@@ -876,7 +955,7 @@ class Slap2Link(Slap2Wire):
                         "paused" if paused else "ok",
                         f"paused: capture on {on}" if paused else "",
                     )
-        self._wakeup.set()
+        self._engine.wake()
 
     async def _capture_step(self, captured: list[_ModuleState]) -> None:
         """One sample of a captured module: ``rp``, and ``pe``/``rss`` when due."""
@@ -889,10 +968,10 @@ class Slap2Link(Slap2Wire):
             # (A module that keeps failing it is captured without: rss after moves.)
             await self._switch_ucon(module, on=True)
             return
-        chars_before = self._wire_chars
+        chars_before = self._exchange.wire_chars
         fresh_pe: int | None = None
         # The step's reads are planned before its rp, so that each can be chained from
-        # the reply before it (see _exchange_once): pe and rss if due now, then the
+        # the reply before it (see Slap2Exchange.exchange_once): pe and rss if due now, then the
         # next step's rp when that is this module's again. (Decided after the rp,
         # a pe or rss would come one step later at most.)
         alone = len(captured) == 1
@@ -916,37 +995,37 @@ class Slap2Link(Slap2Wire):
         after_rss = "rp" if alone else None
         after_pe = "rss" if rss_due else after_rss
         try:
-            position = await self._read_int(address, "rp", "pe" if pe_due else after_pe)
-            t, t_span = self._last_latch_t, self._last_latch_span_s
+            position = await self._exchange.read_int(address, "rp", "pe" if pe_due else after_pe)
+            t, t_span = self._exchange.last_latch_t, self._exchange.last_latch_span_s
             why = capture.resolve(module.profile, t, position)
             if why:
-                self._count("setpoint_mismatches")
+                self._engine.count("setpoint_mismatches")
                 logger.info("%s: module %d: %s", self.id, address, why)
             flags = codec.decode_rss(module.rss or 0)
-            if not self.urgent_pending and pe_due:
-                fresh_pe = await self._read_int(address, "pe", after_pe)
-                capture.pending = (self._last_latch_t, fresh_pe)
-                capture.last_pe_s = self._last_latch_t
+            if not self._engine.urgent_pending and pe_due:
+                fresh_pe = await self._exchange.read_int(address, "pe", after_pe)
+                capture.pending = (self._exchange.last_latch_t, fresh_pe)
+                capture.last_pe_s = self._exchange.last_latch_t
                 capture.samples_since_pe = 0
                 module.following_error = fresh_pe
                 capture.note_rest(module.profile, flags, t, position + fresh_pe)
             else:
                 capture.samples_since_pe += 1
-            if not self.urgent_pending and rss_due:
-                rss = await self._read_int(address, "rss", after_rss)
-                capture.last_rss_s = self._last_latch_t
+            if not self._engine.urgent_pending and rss_due:
+                rss = await self._exchange.read_int(address, "rss", after_rss)
+                capture.last_rss_s = self._exchange.last_latch_t
                 self._check_rss(module, rss)
-                module.rss, module.rss_t = rss, self._last_latch_t
+                module.rss, module.rss_t = rss, self._exchange.last_latch_t
             self._module_answered(module)
         except DriverError as exc:
-            capture.stats.wire_chars += self._wire_chars - chars_before
+            capture.stats.wire_chars += self._exchange.wire_chars - chars_before
             self._poll_failed(exc)
             return
-        capture.stats.wire_chars += self._wire_chars - chars_before
+        capture.stats.wire_chars += self._exchange.wire_chars - chars_before
         capture.stats.samples += 1
         capture.previous = (t, position)
-        if self._state == "error":
-            self._set_state("connected", self._connector.description)
+        if self._engine.state == "error":
+            self._engine.set_state("connected", self._connector.description)
         self._emit_captured(module, t, position, fresh_pe, t_span)
 
     async def _switch_ucon(self, module: _ModuleState, *, on: bool) -> None:
@@ -960,10 +1039,10 @@ class Slap2Link(Slap2Wire):
         """
         bit = codec.SysconBit.ucon.value
         try:
-            syscon = await self._read_int(module.address, "rsyscon")
+            syscon = await self._exchange.read_int(module.address, "rsyscon")
             if codec.decode_syscon(syscon)["ucon"] != on:
                 await self._execute(module, codec.make_set("ssb" if on else "rsb", bit))
-                syscon = await self._read_int(module.address, "rsyscon")
+                syscon = await self._exchange.read_int(module.address, "rsyscon")
                 module.ucon_restore = on
         except DriverError as exc:
             self._poll_failed(exc)
@@ -1045,14 +1124,14 @@ class Slap2Link(Slap2Wire):
             chars = sum(c.stats.wire_chars for c in captures)
             if samples and chars:
                 return samples / len(captures) / (chars * char_s)
-            return 1 / ((2 * 3 + self._reply_chars.get("rp", 2)) * char_s * len(captures))
+            return 1 / ((2 * 3 + self._exchange.reply_chars.get("rp", 2)) * char_s * len(captures))
         online = [m for m in self._modules.values() if m.online] or list(self._modules.values())
         per_module = 0.0
         for mnemonic in self.config.poll_commands:
-            reply = self._reply_chars.get(mnemonic, 2)
+            reply = self._exchange.reply_chars.get(mnemonic, 2)
             per_module += 2 * (len(mnemonic) + 1) + reply
         if self.config.rve_every:
-            per_module += (2 * 4 + self._reply_chars.get("rve", 2)) / self.config.rve_every
+            per_module += (2 * 4 + self._exchange.reply_chars.get("rve", 2)) / self.config.rve_every
         if len(online) > 1:
             per_module += 2 * (len(f"se{online[0].address}") + 1) + 1
         cycle_s = per_module * char_s * len(online)
@@ -1073,7 +1152,7 @@ class Slap2Link(Slap2Wire):
         async def job() -> dict[str, int]:
             return await self._read_params(module)
 
-        values = await self.submit(job)
+        values = await self._engine.submit(job)
         self._sink.on_params(self.axis_id(address), values, "read")
         return values
 
@@ -1085,7 +1164,7 @@ class Slap2Link(Slap2Wire):
         async def job() -> dict[str, int]:
             return await self._write_params(module, values)
 
-        readback = await self.submit(job)
+        readback = await self._engine.submit(job)
         self._sink.on_params(self.axis_id(address), readback, source)
         return readback
 
@@ -1111,20 +1190,22 @@ class Slap2Link(Slap2Wire):
             return sent
 
         is_stop = any(c.text == "st" for c in commands) if stop is None else stop
-        return await self.submit(job, urgent=urgent, axis=address, motion=True, stop=is_stop)
+        return await self._engine.submit(
+            job, urgent=urgent, axis=address, motion=True, stop=is_stop
+        )
 
     async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None:
         """Send one control character (Ctrl-K) to a module and drain its echo."""
 
         async def job() -> None:
-            channel = self._require_channel()
-            if await self._settle_chain(channel):
-                self._selected = None
-            await self._select(address)
+            channel = self._engine.require_channel()
+            if await self._exchange.settle_chain(channel):
+                self._exchange.deselect()
+            await self._exchange.select(address)
             await channel.write(bytes([byte]))
-            await self._drain(channel, self.config.quiet_s, 0.2)
+            await self._exchange.drain(channel, self.config.quiet_s, 0.2)
 
-        await self.submit(job, urgent=urgent)
+        await self._engine.submit(job, urgent=urgent)
 
     async def op_console(self, address: int, line: str) -> tuple[str, list[str]]:
         module = self._modules[address]
@@ -1143,12 +1224,12 @@ class Slap2Link(Slap2Wire):
         async def job() -> list[str]:
             if mnemonic in MOVE_MNEMONICS:
                 module.profile.clear()  # a console move is not reconstructed
-            lines = await self._transact(address, command)
+            lines = await self._exchange.transact(address, command)
             if lines and codec.parse_reply(lines[0]).kind is codec.ReplyKind.REFUSED:
                 raise DeviceRefusedError(f"{text}: refused by the module (-1UC)")
             if not module.ucon and mnemonic not in ("rss", "ss", "rrss"):
                 # Without ucon a refusal is a bare CR: the uc flag tells (rss leaves it).
-                rss = await self._read_rss_after(text)
+                rss = await self._exchange.read_rss_after(text)
                 if codec.decode_rss(rss)["uc"]:
                     raise DeviceRefusedError(
                         f"{text}: refused by the module (uc flag set: unknown command, "
@@ -1158,11 +1239,13 @@ class Slap2Link(Slap2Wire):
             if mnemonic == "ssyscon" or mnemonic in ("ssb", "rsb"):
                 module.known.pop("syscon", None)
                 module.ucon_restore = False  # the user's setting now: nothing to restore
-                self._learn_syscon(module, await self._read_int(address, "rsyscon"))
+                self._learn_syscon(module, await self._exchange.read_int(address, "rsyscon"))
             return lines
 
         # A raw line may move the axis (vm, ma, spwm ...): a STOP discards it too.
-        return text, await self.submit(job, axis=address, motion=True, stop=mnemonic == "st")
+        return text, await self._engine.submit(
+            job, axis=address, motion=True, stop=mnemonic == "st"
+        )
 
     def _track_mode(self, module: _ModuleState, text: str) -> None:
         mnemonic = command_mnemonic(text)
