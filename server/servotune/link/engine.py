@@ -45,11 +45,10 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from servotune.descriptor import DeviceDescriptor
 from servotune.link.base import DeviceRefusedError, DriverSink, LinkDownError
 from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector, LinkClosedError
@@ -488,53 +487,3 @@ class LinkEngine:
             self._session.wire_limit_hz(),
             self._errors,
         )
-
-
-class EngineAxis:
-    """The plumbing every axis of a ``LinkEngine`` device shares: identity, descriptor
-    and parameter I/O delegated to its link (which must offer ``axis_id``,
-    ``axis_name``, ``descriptor``, ``op_read_params`` and ``op_write_params``).
-    Device axes add their commands on top."""
-
-    def __init__(self, link: _AxisLink, address: int) -> None:
-        self._link = link
-        self._address = address
-
-    @property
-    def id(self) -> str:
-        return self._link.axis_id(self._address)
-
-    @property
-    def name(self) -> str:
-        return self._link.axis_name(self._address)
-
-    @property
-    def address(self) -> int:
-        return self._address
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._link.descriptor
-
-    async def read_params(self) -> dict[str, int]:
-        return await self._link.op_read_params(self._address)
-
-    async def write_params(
-        self, values: Mapping[str, int], source: str = "write"
-    ) -> dict[str, int]:
-        return await self._link.op_write_params(self._address, values, source)
-
-
-class _AxisLink(Protocol):
-    @property
-    def descriptor(self) -> DeviceDescriptor: ...
-
-    def axis_id(self, address: int) -> str: ...
-
-    def axis_name(self, address: int) -> str: ...
-
-    async def op_read_params(self, address: int) -> dict[str, int]: ...
-
-    async def op_write_params(
-        self, address: int, values: Mapping[str, int], source: str
-    ) -> dict[str, int]: ...
