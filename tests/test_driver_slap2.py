@@ -11,7 +11,8 @@ import pytest
 
 from servotune.devices.slap2 import codec
 from servotune.devices.slap2.exchange import ReplyTimeoutError
-from servotune.devices.slap2.link import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.modules import LINE_ERROR_SPAN_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
 from servotune.transports.serial import SerialConnector
@@ -254,7 +255,7 @@ async def test_absent_module_does_not_flag_the_present_one_or_delay_stop(
 
 def _rule_link() -> tuple[Slap2Link, RecordingSink, list[float]]:
     """A link that is never connected, for the line's error rule alone: its clock is
-    the list's last value (``_poll_failed`` and ``_module_answered`` are the owner
+    the list's last value (``ModuleBook.line_failed`` and ``.answered`` are the owner
     loop's calls after each failed or answered exchange)."""
     sink = RecordingSink()
     now = [100.0]
@@ -278,17 +279,17 @@ def test_a_burst_of_wrong_bytes_after_a_stall_is_counted_not_an_error() -> None:
     ]
     for t, exc in zip((100.0, 100.3, 100.6), failures, strict=True):
         now.append(t)
-        link._module_failed(module, exc)
+        link.modules.failed(module, exc)
     assert not sink.states and not [e for e in sink.events if e[0] == "error"]
     assert link.counters["desyncs"] == 3
-    link._module_answered(module)
+    link.modules.answered(module)
     # Wrong bytes that persist: the fourth failure comes after the span.
     for t in (101.0, 101.3, 101.6):
         now.append(t)
-        link._module_failed(module, failures[1])
+        link.modules.failed(module, failures[1])
     assert not sink.states
     now.append(101.0 + LINE_ERROR_SPAN_S)
-    link._module_failed(module, failures[2])
+    link.modules.failed(module, failures[2])
     assert sink.states[-1][0] == "error" and "echo mismatch" in sink.states[-1][1]
 
 
@@ -302,12 +303,12 @@ def test_replies_late_after_a_whole_echo_are_not_an_error_within_the_span() -> N
     module = link.module_state(0)
     for t, read in zip((100.0, 100.3, 100.6), ("rp", "pe", "rss"), strict=True):
         now.append(t)
-        link._module_failed(module, ReplyTimeoutError(f"no reply to {read!r}"))
+        link.modules.failed(module, ReplyTimeoutError(f"no reply to {read!r}"))
     assert not sink.states and not [e for e in sink.events if e[0] == "error"]
-    link._module_answered(module)
+    link.modules.answered(module)
     for t in (101.0, 101.3, 101.0 + LINE_ERROR_SPAN_S):
         now.append(t)
-        link._module_failed(module, ReplyTimeoutError("no reply to 'pe'"))
+        link.modules.failed(module, ReplyTimeoutError("no reply to 'pe'"))
     assert sink.states[-1][0] == "error" and "no reply to 'pe'" in sink.states[-1][1]
 
 
@@ -334,12 +335,12 @@ def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
     for t in (100.0, 100.2, 100.4):
         now.append(t)
         channel.late_s = 0.4
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert not sink.states and link.counters["host_stalls"] == 3
     for t in (101.0, 101.2, 101.4):
         now.append(t)
         channel.late_s = 0.01
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
 
 
@@ -351,7 +352,7 @@ def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:
     module = link.module_state(0)
     for t in (100.0, 100.2, 100.4):
         now.append(t)
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
     assert [e for e in sink.events if e[0] == "error"]
 

@@ -4,8 +4,33 @@
 "sstring"/"rstring" (send a character, compare its echo, the next; CR; the reply up to
 CR), module selection with ``se n`` (cached, and sent "blind" when nobody can echo),
 Ctrl-X recovery before CR, the one retry a failure before CR allows, and the latch
-time of every reply. The rules and the decisions where the manual is silent are in
-the docstring of ``devices/slap2/link.py``, which owns the modules' state.
+time of every reply.
+
+The exchange follows the manual's host algorithm exactly ("sstring"/"rstring"): send
+one character, wait for its echo and compare it, then the next; after the last one
+send CR and wait for its echo; then collect the reply (chars > 31) up to CR. Decisions
+where the manual is silent (also in docs/slap2.md):
+
+* Echo mismatch or echo timeout before CR was sent: send Ctrl-X (the module discards
+  its input buffer, so nothing executes), drain the line until it is quiet, and retry
+  the command once. After CR a failure is not retried: the module may have executed
+  it (``mr`` is not idempotent).
+* Selection (``se n``) is cached. If no module is selected nobody echoes, so when
+  the first character of ``se`` gets no echo the driver sends Ctrl-X and then the
+  ``se`` line "blind", paced at two character times per character, and waits for the
+  CR reply of the newly selected module. That is the only time a character is sent
+  without waiting for the previous echo.
+* Bytes that arrive while no transaction runs are unsolicited: late echoes of our
+  own commands (a slow host let a timeout pass before they came), line noise, or a
+  power-on banner. Only a line naming the module type (``SLAP2 ...``, what address 0
+  sends after power-on) counts as a banner: that module was reset. Anything else is
+  dropped and counted (``dropped_bytes``), never an alarm — the driver's own ``se0``
+  or ``rss`` echo arriving late has letters too.
+* Ctrl-X is echoed like every byte. ``abandon`` waits for that echo before it
+  drains the line; an echo of Ctrl-X that comes even later is recognised where it
+  lands (no command servotune sends contains 0x18: console lines with control
+  characters are refused) and skipped, instead of being taken for the echo of the
+  next command.
 
 Seam: this class knows the line's selection and nothing else about the modules. The
 link *has* one, beside its ``LinkEngine`` (whose channel, counters and job queues the
