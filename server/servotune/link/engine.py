@@ -93,6 +93,8 @@ def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WI
 
 @dataclass(slots=True)
 class Job:
+    """A submitted coroutine, its submitter's future, and what it may move (``submit``)."""
+
     run: Callable[[], Awaitable[object]]
     future: asyncio.Future[object]
     axis: int | None = None
