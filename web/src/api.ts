@@ -1,5 +1,6 @@
 // REST calls. Every 4xx/5xx body is {detail, field}; ApiError carries both.
 import type {
+  BenchField,
   AxisInfo,
   AxisState,
   CommandResult,
@@ -131,6 +132,15 @@ export interface BenchLimits {
 export interface BenchInfo {
   kinds: BenchKind[];
   limits: BenchLimits;
+  /** How each metric is computed. */
+  definitions: Record<string, string>;
+  /** The form's fields (distance, velocity, pwm): unit, conversions, the parameter set. */
+  fields: Record<string, BenchField>;
+  /** The device has a law: the what-if view works. */
+  whatif: boolean;
+  /** measured: a multisine around the held position; model: the identified plant under
+   * the law; null: no frequency_response test. */
+  frequency_response: "measured" | "model" | null;
 }
 
 export interface BenchTestRequest {

@@ -53,7 +53,7 @@ const KINDS: Record<BenchKind, { label: string; short: string; field: FieldName;
     label: "Frequency response",
     short: "FRF",
     field: "distance",
-    help: "A multisine around the held position (SLAP2), or the identified model (others): see the Frequency response panel.",
+    help: "A multisine around the held position where the device takes one, else the identified model: see the Frequency response panel.",
   },
   pwm_step: {
     label: "PWM step",
@@ -62,10 +62,6 @@ const KINDS: Record<BenchKind, { label: string; short: string; field: FieldName;
     help: "Open-loop PWM (no controller) at the duty, then stop — the plant's raw velocity response, no target.",
   },
 };
-
-/** The device parameter a velocity test sets, for its unit and conversions. The bench
- * API does not serve field units yet; the fallback is the device's own unit. */
-const VELOCITY_PARAMETER: Record<string, string> = { slap2: "velocity", z1100: "vmax" };
 
 interface FormValues {
   kind: BenchKind | null;
@@ -143,8 +139,9 @@ export class BenchView {
   private runs: BenchRun[] = [];
   private readonly descriptor: DeviceDescriptor;
   private readonly form: FormValues;
-  private readonly units: Record<FieldName, string>;
-  private readonly conversions: Record<FieldName, Conversion[]>;
+  // the device's channels until the bench info (``fields``) says what each field sets
+  private units: Record<FieldName, string>;
+  private conversions: Record<FieldName, Conversion[]>;
   private readonly formHost: HTMLElement;
   private readonly fieldWraps = new Map<string, HTMLElement>();
   private readonly inputs = new Map<string, HTMLInputElement | HTMLSelectElement>();
@@ -180,7 +177,7 @@ export class BenchView {
   private drawToken = 0;
   // Issue 9: the frequency-response and what-if panels (ui/bode.ts, ui/whatif.ts).
   private frf: FrfPanel | null = null;
-  private readonly whatif: WhatIfPanel | null;
+  private whatif: WhatIfPanel | null = null;
   private readonly extras: HTMLElement;
 
   constructor(
@@ -192,17 +189,16 @@ export class BenchView {
     this.form = forms.get(axisId) ?? { kind: null, distance: "4000", velocity: "2000", pwm: "30", duration: "2", note: "" };
     forms.set(axisId, this.form);
     const position = descriptor.channels.find((c) => c.name === "position");
-    const velocityParam = descriptor.parameters.find((p) => p.name === VELOCITY_PARAMETER[descriptor.device]);
     const velocityChannel = descriptor.channels.find((c) => c.name === "velocity");
     const pwmArg = descriptor.commands.flatMap((c) => c.arguments).find((a) => a.name === "pwm");
     this.units = {
       distance: position?.unit ?? "counts",
-      velocity: velocityParam?.unit ?? velocityChannel?.unit ?? "",
+      velocity: velocityChannel?.unit ?? "",
       pwm: pwmArg?.unit ?? "",
     };
     this.conversions = {
       distance: position?.conversions ?? [],
-      velocity: velocityParam?.conversions ?? velocityChannel?.conversions ?? [],
+      velocity: velocityChannel?.conversions ?? [],
       pwm: [],
     };
     if (pwmArg && !this.form.pwm) this.form.pwm = String(pwmArg.default);
@@ -305,15 +301,7 @@ export class BenchView {
         )
       : null;
     this.storageBanner = h("div", { class: "banner-slot", testid: "storage-banner-slot" });
-    this.whatif = ["slap2", "z1100"].includes(descriptor.device)
-      ? new WhatIfPanel(axisId, async (distance, kind) => {
-          const run = await api.startRun(axisId, { kind, distance, velocity: 0, pwm: 0, duration_s: 2, note: "what-if verification" });
-          this.finished.add(run.id);
-          await this.refresh();
-          return run.id;
-        })
-      : null;
-    this.extras = h("div", { class: "bench-extras" }, ...(this.whatif ? [this.whatif.el] : []));
+    this.extras = h("div", { class: "bench-extras" });
     // The runs right below their overlay: they are what the overlay draws.
     this.el = h("div", { class: "bench", "data-axis": axisId }, this.storageBanner, this.formHost, ...(this.autotune ? [this.autotune.el] : []), plots, runsPane, this.extras);
     store.on("storage", (msg) => this.showStorage(msg.writable, msg.message), signal);
@@ -354,10 +342,25 @@ export class BenchView {
       return;
     }
     if (this.signal.aborted) return;
+    for (const [name, field] of Object.entries(this.info.fields)) {
+      if (!(name in this.units)) continue;
+      this.units[name as FieldName] = field.unit;
+      this.conversions[name as FieldName] = field.conversions;
+    }
     this.renderForm();
     this.autotune?.setLimits(this.info.limits);
-    if (this.info.kinds.includes("frequency_response") && !this.frf) {
-      this.frf = new FrfPanel(this.axisId, this.descriptor.device === "slap2", (id) => {
+    if (this.info.whatif && !this.whatif) {
+      const axisId = this.axisId;
+      this.whatif = new WhatIfPanel(axisId, async (distance, kind) => {
+        const run = await api.startRun(axisId, { kind, distance, velocity: 0, pwm: 0, duration_s: 2, note: "what-if verification" });
+        this.finished.add(run.id);
+        await this.refresh();
+        return run.id;
+      });
+      this.extras.append(this.whatif.el);
+    }
+    if (this.info.frequency_response && !this.frf) {
+      this.frf = new FrfPanel(this.axisId, this.info.frequency_response === "measured", (id) => {
         this.finished.add(id);
         void this.refresh();
       });
