@@ -71,6 +71,14 @@ export async function confirmed<T>(call: (confirm: string) => Promise<T>): Promi
   }
 }
 
+/** The headers a state-changing call sends that ``request`` does not build itself (a
+ * multipart upload): the CSRF token and this tab's client id. */
+export async function writeHeaders(): Promise<Record<string, string>> {
+  const headers: Record<string, string> = { "X-CSRF-Token": await csrf() };
+  if (clientId) headers["X-Servotune-Client"] = clientId;
+  return headers;
+}
+
 export async function request<T>(method: string, path: string, body?: unknown, retried = false): Promise<T> {
   let response: Response;
   const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };

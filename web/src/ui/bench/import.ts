@@ -1,6 +1,6 @@
 // Importing a run exported from servotune: its .json and .csv, picked together or one
 // after the other.
-import { ApiError } from "../../api";
+import { ApiError, writeHeaders } from "../../api";
 import { h, setText } from "../../dom";
 import { errorText, statusLabel } from "../feedback";
 import { shortId } from "./kinds";
@@ -83,7 +83,8 @@ async function importRunFiles(axisId: string, json: File, csv: File): Promise<{ 
   form.append("csv", csv, csv.name);
   let response: Response;
   try {
-    response = await fetch(`/api/axes/${encodeURIComponent(axisId)}/bench/runs/import`, { method: "POST", body: form });
+    const headers = await writeHeaders();
+    response = await fetch(`/api/axes/${encodeURIComponent(axisId)}/bench/runs/import`, { method: "POST", body: form, headers, credentials: "same-origin" });
   } catch (error) {
     throw new ApiError(0, `server unreachable: ${(error as Error).message}`, null);
   }
