@@ -11,9 +11,10 @@ from typing import Any, Final
 
 from servotune.devices.z1100.codec import DEFAULT_BAUD, Gains
 from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.servo import AxisParameters
+from servotune.devices.z1100.sim.servo import AxisHardware, AxisParameters
 from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
+from servotune.sim.trace import TracedDevice
 
 # Three motors with different loads, so their best gains differ (see the tuning table
 # in docs/z1100-simulator.md): unloaded, 5x and 20x the rotor inertia.
@@ -54,6 +55,27 @@ def build_z1100_chip(state_dir: Path) -> Z1100Chip:
     flash = state_dir / "z1100_flash.json"
     write_demo_flash(flash)
     return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=DEFAULT_BAUD)
+
+
+def stop_plant(address: int, state_dir: Path) -> TracedDevice:
+    """The demo's chip without home switches (nothing but a stop ends a motion), its
+    flash in ``state_dir``, tracing motor ``address``'s shaft (``perf.stops``)."""
+    flash = state_dir / "z1100_flash.json"
+    write_demo_flash(flash)
+    chip = Z1100Chip(
+        [
+            AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
+            for j in Z1100_LOADS_KG_M2
+        ],
+        flash_path=flash,
+        jumper_baud=DEFAULT_BAUD,
+    )
+
+    def read() -> tuple[float, float]:
+        state = chip.axis_state(address)
+        return float(state.encoder_counts), float(state.speed_counts_s)
+
+    return TracedDevice(chip, read, lambda: bool(chip.axis_state(address).powered))
 
 
 def z1100_record(chip: Z1100Chip) -> dict[str, Any]:
