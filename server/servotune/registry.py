@@ -84,9 +84,10 @@ class StopRig:
     trace: Callable[[], Awaitable[list[ShaftPoint]]]
     # The traced motor is under power (held by its loop, or driven).
     powered: Callable[[], Awaitable[bool]]
-    # When (host monotonic time) the stop asked for at ``since`` reached the device on
-    # its wire; None where the rig cannot see it (a serial device in its own process).
-    reached: Callable[[StopMethod, float], float | None] = lambda method, since: None
+    # (method, asked at, the commands it sent) -> the shaft point (host monotonic time,
+    # counts, counts/s) when the stop reached the device on its wire; None where the
+    # rig did not see it arrive.
+    reached: Callable[[StopMethod, float, list[str]], Awaitable[ShaftPoint | None]]
 
 
 @dataclass(frozen=True, slots=True)

@@ -73,8 +73,8 @@ class Result:
     holds: bool
     sent: list[str] = field(default_factory=list)
     events: list[str] = field(default_factory=list)
-    # From the exchange that carried the stop to the drive (the host's latency left
-    # out: what the method itself does); None where the rig cannot see it (serial).
+    # From the stop's arrival at the device (the host's latency left out: what the
+    # method itself does); None where the rig did not see it on the wire.
     wire_latency_s: float | None = None
     wire_distance_counts: float | None = None
     wire_speed_counts_s: float | None = None
@@ -107,7 +107,8 @@ CASES: Final[tuple[Case, ...]] = (
 
 Trace = Callable[[], Awaitable[list[ShaftPoint]]]
 Powered = Callable[[], Awaitable[bool]]
-Reached = Callable[[Method, float], "float | None"]
+# (method, asked at, the commands it sent) -> (time, position, speed) at its arrival
+Reached = Callable[[Method, float, list[str]], Awaitable["ShaftPoint | None"]]
 
 
 @contextlib.asynccontextmanager
@@ -268,14 +269,14 @@ async def measure(
                 outcome.sent,
                 events,
             )
-            on_wire = reached(method, asked)
-            after = [p for p in await trace() if on_wire is not None and p[0] >= on_wire]
-            if on_wire is not None and after:
-                # The first point after that exchange: the shaft as the stop found it
-                # (the drive acts on new outputs from the exchange on).
-                _, position1, result.wire_speed_counts_s = after[0]
-                result.wire_latency_s = on_wire - asked
-                result.wire_distance_counts = max(abs(p[1] - position1) for p in after)
+            on_wire = await reached(method, asked, outcome.sent)
+            if on_wire is not None:
+                t1, position1, result.wire_speed_counts_s = on_wire
+                after = [p for p in await trace() if p[0] >= t1]
+                result.wire_latency_s = t1 - asked
+                result.wire_distance_counts = max(
+                    (abs(p[1] - position1) for p in after), default=0.0
+                )
             return result
 
 

@@ -110,7 +110,8 @@ async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
     build = functools.partial(stop_plant, address, args.data_dir)
     async with traced_serial_process("stops-slap2", build, DEFAULT_BAUD) as (path, remote):
         spec = LinkSpec(NAME, path, args.link_id, DEFAULT_BAUD, list(DEMO_ADDRESSES), 512)
-        yield StopRig(functools.partial(build_link, spec), remote.trace, remote.powered)
+        link = functools.partial(build_link, spec)
+        yield StopRig(link, remote.trace, remote.powered, remote.reached)
 
 
 def load_law() -> DeviceLaw:

@@ -58,15 +58,18 @@ class StopPlant:
         history = self.drive.history
         return bool(history and history[-1].inputs.stm_status & StmStatus.READY)
 
-    def reached(self, method: str, since: float) -> float | None:
-        """When (host monotonic time) the first exchange at or after ``since`` carried
-        ``method`` to the drive: STOP the emergency stop bit, "power off" Enable off."""
+    async def reached(self, method: str, since: float, sent: list[str]) -> ShaftPoint | None:
+        """The shaft when the first exchange at or after ``since`` carried ``method`` to
+        the drive (STOP: the emergency stop bit; "power off": Enable off), with the
+        position and speed of the first point after it (the drive acts on new outputs
+        from that exchange on)."""
         for exchange in list(self.drive.history):
             if exchange.t < since:
                 continue
             outputs = exchange.outputs
-            if method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP:
-                return exchange.t
-            if method == "power off" and not outputs.stm_control & StmControl.ENABLE:
-                return exchange.t
+            if (method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP) or (
+                method == "power off" and not outputs.stm_control & StmControl.ENABLE
+            ):
+                after = [p for p in self.master.points if p[0] >= exchange.t]
+                return (exchange.t, after[0][1], after[0][2]) if after else None
         return None
