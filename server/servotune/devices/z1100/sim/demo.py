@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -30,21 +31,25 @@ Z1100_DEMO_FLASH: Final = [
 DEMO_NAMES: Final = {0: "Z1100 X unloaded", 1: "Z1100 Y 5x load", 2: "Z1100 Z 20x load"}
 
 
-def write_demo_flash(path: Path) -> None:
-    """The demo's flash (``Z1100_DEMO_FLASH``) at ``path``, unless a flash is there."""
+def write_demo_flash(
+    path: Path, gains: Sequence[Mapping[str, Sequence[int]]] = Z1100_DEMO_FLASH
+) -> None:
+    """A flash at ``path`` as the demo's integrator leaves it, unless a flash is there:
+    each axis's ``gains`` (``{"kabh": (k, a, b), "kabd": (k, a, b)}``, the demo's
+    ``Z1100_DEMO_FLASH`` by default) with the demo's profile (moves of about 3000 rpm)."""
     if path.exists():
         return
     axes = [
         AxisParameters(
-            kabh=Gains(*gains["kabh"]),
-            kabd=Gains(*gains["kabd"]),
+            kabh=Gains(*axis["kabh"]),
+            kabd=Gains(*axis["kabd"]),
             vmax_counts_s=100_000,
             acc_counts_s2=1_000_000,
             limit_counts=4000,
             hvm_counts_s=20_000,
             hac_counts_s2=200_000,
         ).to_json()
-        for gains in Z1100_DEMO_FLASH
+        for axis in gains
     ]
     path.write_text(json.dumps({"axes": axes}))
 
