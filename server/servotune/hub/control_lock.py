@@ -789,7 +789,7 @@ class ControlManager:
         ack_s += now - checked_at  # as old as it is now
         return ack_s <= min(self.settings.lease_s, silent_s - ACK_AFTER_HEARTBEAT_S)
 
-    # --- demo autopilot (hub.state.AutopilotGate) ---------------------------------------
+    # --- demo autopilot (hub.autopilot.AutopilotGate) ---------------------------------------
 
     def autopilot_paused(self, axis_id: str) -> None:
         """The autopilot stopped driving the axis (a user acted, or STOP)."""
