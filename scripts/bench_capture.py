@@ -37,7 +37,6 @@ from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import Sample
-from servotune.link.engine import LinkEngine
 from servotune.schema import AxisHealth, EventLevel, LinkState
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.transports.serial import SerialConnector
@@ -81,7 +80,7 @@ def rate(times: list[float], t_from: float, t_to: float) -> float:
     return n / (t_to - t_from)
 
 
-async def run(link: LinkEngine, sink: Sink, seconds: float) -> None:
+async def run(link: Slap2Link | Z1100Link, sink: Sink, seconds: float) -> None:
     await wait(lambda: link.state == "connected", 60)
     await asyncio.sleep(1.0)
     t = time.monotonic()

@@ -11,7 +11,8 @@ import pytest
 
 from servotune.devices.slap2 import codec
 from servotune.devices.slap2.exchange import ReplyTimeoutError
-from servotune.devices.slap2.link import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
+from servotune.devices.slap2.modules import LINE_ERROR_SPAN_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
 from servotune.transports.serial import SerialConnector
@@ -254,7 +255,7 @@ async def test_absent_module_does_not_flag_the_present_one_or_delay_stop(
 
 def _rule_link() -> tuple[Slap2Link, RecordingSink, list[float]]:
     """A link that is never connected, for the line's error rule alone: its clock is
-    the list's last value (``_poll_failed`` and ``_module_answered`` are the owner
+    the list's last value (``ModuleBook.line_failed`` and ``.answered`` are the owner
     loop's calls after each failed or answered exchange)."""
     sink = RecordingSink()
     now = [100.0]
@@ -278,17 +279,17 @@ def test_a_burst_of_wrong_bytes_after_a_stall_is_counted_not_an_error() -> None:
     ]
     for t, exc in zip((100.0, 100.3, 100.6), failures, strict=True):
         now.append(t)
-        link._module_failed(module, exc)
+        link.modules.failed(module, exc)
     assert not sink.states and not [e for e in sink.events if e[0] == "error"]
     assert link.counters["desyncs"] == 3
-    link._module_answered(module)
+    link.modules.answered(module)
     # Wrong bytes that persist: the fourth failure comes after the span.
     for t in (101.0, 101.3, 101.6):
         now.append(t)
-        link._module_failed(module, failures[1])
+        link.modules.failed(module, failures[1])
     assert not sink.states
     now.append(101.0 + LINE_ERROR_SPAN_S)
-    link._module_failed(module, failures[2])
+    link.modules.failed(module, failures[2])
     assert sink.states[-1][0] == "error" and "echo mismatch" in sink.states[-1][1]
 
 
@@ -302,12 +303,12 @@ def test_replies_late_after_a_whole_echo_are_not_an_error_within_the_span() -> N
     module = link.module_state(0)
     for t, read in zip((100.0, 100.3, 100.6), ("rp", "pe", "rss"), strict=True):
         now.append(t)
-        link._module_failed(module, ReplyTimeoutError(f"no reply to {read!r}"))
+        link.modules.failed(module, ReplyTimeoutError(f"no reply to {read!r}"))
     assert not sink.states and not [e for e in sink.events if e[0] == "error"]
-    link._module_answered(module)
+    link.modules.answered(module)
     for t in (101.0, 101.3, 101.0 + LINE_ERROR_SPAN_S):
         now.append(t)
-        link._module_failed(module, ReplyTimeoutError("no reply to 'pe'"))
+        link.modules.failed(module, ReplyTimeoutError("no reply to 'pe'"))
     assert sink.states[-1][0] == "error" and "no reply to 'pe'" in sink.states[-1][1]
 
 
@@ -330,16 +331,16 @@ def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
     link, sink, now = _rule_link()
     module = link.module_state(0)
     channel = _StalledHostChannel()
-    link._channel = channel  # type: ignore[assignment]
+    link.engine._channel = channel  # type: ignore[assignment]
     for t in (100.0, 100.2, 100.4):
         now.append(t)
         channel.late_s = 0.4
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert not sink.states and link.counters["host_stalls"] == 3
     for t in (101.0, 101.2, 101.4):
         now.append(t)
         channel.late_s = 0.01
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
 
 
@@ -351,7 +352,7 @@ def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:
     module = link.module_state(0)
     for t in (100.0, 100.2, 100.4):
         now.append(t)
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
     assert [e for e in sink.events if e[0] == "error"]
 
@@ -363,18 +364,18 @@ def test_wire_busy_is_the_share_of_the_window_its_exchanges_took() -> None:
     exchange that began before the window counts whole)."""
     link, _, now = _rule_link()
     assert link.wire_busy is None  # no channel
-    link._channel = object()  # type: ignore[assignment]
-    link._opened_at = 100.0
+    link.engine._channel = object()  # type: ignore[assignment]
+    link.engine._opened_at = 100.0
     for i in range(100):  # 5 ms exchanges back to back for 0.5 s, then 0.5 s idle
         now.append(100.005 + 0.005 * i)
-        link._wire_used(0.005)
+        link.engine.wire_used(0.005)
     now.append(101.0)
     assert link.wire_busy == pytest.approx(0.5)
     now.append(102.0)  # a 2 s window now: 0.5 s of 2 s
     assert link.wire_busy == pytest.approx(0.25)
     now.append(103.0)  # all of them ended more than 2 s ago
     assert link.wire_busy == 0
-    link._wire_used(5.0)
+    link.engine.wire_used(5.0)
     assert link.wire_busy == 1.0
 
 
@@ -416,22 +417,22 @@ async def test_a_stop_after_a_chained_read_that_failed_is_not_glued_to_it(
         SerialConnector(path, 19200),
         sink,
     )
-    link._channel = await SerialConnector(path, 19200).open()
+    link.engine._channel = await SerialConnector(path, 19200).open()
     await asyncio.sleep(0.01)  # the transport is handed to the protocol from the loop
     # bytes 1-3 "pm\r", 4-6 "rp\r", then the chained "pe\r": 'e' is byte 8
     peer = _ModuleOnPty(master, module, garble_at=8)
     try:
-        link._selected = 0  # address 0 is selected at power-on
-        await link._transact(0, codec.make_simple("pm"))
-        assert await link._read_int(0, "rp", then="pe") == module.position
+        link.exchange._selected = 0  # address 0 is selected at power-on
+        await link.exchange.transact(0, codec.make_simple("pm"))
+        assert await link.exchange.read_int(0, "rp", then="pe") == module.position
         await asyncio.sleep(0.3)  # the chained pe has failed by now
-        await link._transact(0, codec.make_simple("st"))
-        flags = codec.decode_rss(await link._read_int(0, "rss"))
+        await link.exchange.transact(0, codec.make_simple("st"))
+        flags = codec.decode_rss(await link.exchange.read_int(0, "rss"))
         assert not flags["uc"] and not flags["pm"], flags  # st was taken, and as st
         assert b"pest" not in peer.received and codec.CTRL_X in peer.received
         assert link.counters["chained_reads_dropped"] == 1
     finally:
         peer.stop()
-        await link._require_channel().close()
+        await link.engine.require_channel().close()
         os.close(master)
         os.close(slave)

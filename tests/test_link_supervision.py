@@ -656,11 +656,11 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
     shows it offline, the backstop for any driver that keeps an axis "ok" without
     samples. Either way its answers after the fault show it ok again (issue 8, found
     in a soak)."""
-    from servotune.devices.slap2 import link as slap2_driver
+    from servotune.devices.slap2 import modules as slap2_modules
     from servotune.hub.state import AXIS_SILENT_S
 
     if rule == "hub":
-        monkeypatch.setattr(slap2_driver, "MODULE_OFFLINE_FAILURES", 10**9)
+        monkeypatch.setattr(slap2_modules, "MODULE_OFFLINE_FAILURES", 10**9)
     bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     tap = Tap(bus)
     muted = threading.Event()

@@ -304,6 +304,17 @@ class HasWireBusy(Protocol):
     def wire_busy(self) -> float | None: ...
 
 
+@runtime_checkable
+class WireStats(Protocol):
+    """Optional for a link (a polled serial line): the telemetry samples/s per axis its
+    wire allows for the current poll set, and its wire errors since start."""
+
+    def wire_limit_hz(self) -> float: ...
+
+    @property
+    def errors(self) -> int: ...
+
+
 class Link(Protocol):
     """One physical connection and its owner task."""
 

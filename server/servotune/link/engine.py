@@ -1,7 +1,9 @@
 """The device-independent part of every link: owner task, job queues, reconnects.
 
-A ``LinkEngine`` subclass implements ``_session`` (what happens on an open channel:
-probe, then poll forever) and the wire exchange of its device. The engine provides:
+A device's link *has* a ``LinkEngine`` and implements ``LinkSession``, the small
+Protocol the engine calls back through: ``run_session`` (what happens on an open
+channel: probe, then poll until the channel fails), ``link_down`` (mark every axis
+offline) and the two rates of its status. The engine provides:
 
 * ``run()``: open the channel through the injected ``Connector``, run the session,
   and on a lost port report it and reopen with backoff (0.25 s doubling to
@@ -16,18 +18,18 @@ probe, then poll forever) and the wire exchange of its device. The engine provid
 * ``counters``: what was retried, resynchronised or dropped (shown with the link
   status) — a slow host makes a few of these, which are counted, not alarmed;
 * ``wire_busy``: the share of the last ``RATE_WINDOW_S`` the line carried the link's
-  characters (subclasses report each exchange's wire time with ``_wire_used``):
+  characters (the device reports each exchange's wire time with ``wire_used``):
   polls, commands and echoes alike, so it tells a link that keeps its wire full
   while it also carries commands from one that loses time between exchanges;
 * ``submit(job, urgent=...)``: run a coroutine on the owner task with exclusive use of
-  the line. ``_take_job`` hands out urgent jobs (stops) before user jobs; the session
+  the line. ``take_job`` hands out urgent jobs (stops) before user jobs; the session
   calls it between two wire transactions, so a stop waits at most for the one
   transaction in flight, never for queued polls. Jobs are refused at once while the
   link is down: a motion command must never be replayed later;
 * link state and status publishing through the ``DriverSink``;
 * the silence rule: a device that answers none of the requests sent to it is not shown
-  ``connected``. A subclass reports each request that got no answer
-  (``_unanswered_request``) and each valid answer (``_answered``); once
+  ``connected``. The device reports each request that got no answer
+  (``unanswered_request``) and each valid answer (``answered``); once
   ``SILENT_REQUESTS`` requests in a row went unanswered over at least ``SILENT_S``,
   the link shows ``error`` ("no answer from the device for ...") with an error event,
   checked at each unanswered request and by the status ticker (a session blocked in
@@ -38,18 +40,16 @@ probe, then poll forever) and the wire exchange of its device. The engine provid
 
 from __future__ import annotations
 
-import abc
 import asyncio
 import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
-from servotune.descriptor import DeviceDescriptor
-from servotune.link.base import AxisDriver, DeviceRefusedError, DriverSink, LinkDownError
+from servotune.link.base import DeviceRefusedError, DriverSink, LinkDownError
 from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector, LinkClosedError
 
@@ -92,17 +92,35 @@ def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WI
 
 
 @dataclass(slots=True)
-class _Job:
+class Job:
+    """A submitted coroutine, its submitter's future, and what it may move (``submit``)."""
+
     run: Callable[[], Awaitable[object]]
     future: asyncio.Future[object]
     axis: int | None = None
     motion: bool = False
 
 
-class LinkEngine(abc.ABC):
-    """Base of every link driver; see the module docstring."""
+class LinkSession(Protocol):
+    """What a device's link does for its ``LinkEngine`` (the engine calls these)."""
 
-    device: str = ""
+    async def run_session(self, channel: ByteChannel) -> None:
+        """Probe the devices, then serve jobs and poll until the channel fails."""
+
+    def link_down(self) -> None:
+        """Mark every axis offline (called after a session ended)."""
+
+    def wire_limit_hz(self) -> float:
+        """Telemetry samples/s per axis the wire allows for the current poll set."""
+
+    def achieved_rate_hz(self) -> float:
+        """Telemetry samples/s per axis achieved recently."""
+
+
+class LinkEngine:
+    """The owner task, job queues, reconnects and status of one link; see the module
+    docstring. Its device's link owns it and is its ``LinkSession``; only the owner
+    task (inside ``run_session``) calls the members that touch the line."""
 
     def __init__(
         self,
@@ -111,6 +129,7 @@ class LinkEngine(abc.ABC):
         baud: int,
         connector: Connector,
         sink: DriverSink,
+        session: LinkSession,
         *,
         clock: Callable[[], float] = time.monotonic,
         reconnect_max_s: float = 5.0,
@@ -118,18 +137,21 @@ class LinkEngine(abc.ABC):
         self._link_id = link_id
         self._path = path
         self._baud = baud
-        self._connector = connector
-        self._sink = sink
-        self._clock = clock
+        self.connector = connector
+        self.sink = sink
+        self._session = session
+        self.clock = clock
         self._reconnect_max_s = reconnect_max_s
         self._channel: ByteChannel | None = None
         self._state: LinkState = "connecting"
         self._message = ""
         self._errors = 0
-        self._urgent: deque[_Job] = deque()
-        self._normal: deque[_Job] = deque()
+        self._urgent: deque[Job] = deque()
+        self._normal: deque[Job] = deque()
         self._wakeup = asyncio.Event()
-        self._connected_once = False
+        # A session reached ``connected`` since start (the device's link sets it):
+        # a later outage shows ``disconnected``, not ``error``.
+        self.connected_once = False
         self._counters: dict[str, int] = dict.fromkeys(COUNTER_NAMES, 0)
         # (when an exchange ended, the wire time it took), the last RATE_WINDOW_S of
         # them, and when the current session's channel opened (see ``wire_busy``).
@@ -138,8 +160,6 @@ class LinkEngine(abc.ABC):
         # The silence rule: when the device last answered, and the requests since.
         self._last_answer_t: float | None = None
         self._unanswered = 0
-        self._axes: list[AxisDriver] = []
-        self._descriptor: DeviceDescriptor
 
     # --- Link protocol ----------------------------------------------------------------
 
@@ -160,18 +180,18 @@ class LinkEngine(abc.ABC):
         return self._state
 
     @property
-    def axes(self) -> list[AxisDriver]:
-        """The link's axes; a subclass fills ``_axes`` in its constructor."""
-        return list(self._axes)
+    def message(self) -> str:
+        """What the state says (the port, the error)."""
+        return self._message
 
     @property
-    def descriptor(self) -> DeviceDescriptor:
-        """The descriptor all axes of this link share (set as ``_descriptor``)."""
-        return self._descriptor
+    def channel(self) -> ByteChannel | None:
+        """The open channel while a session runs, else None."""
+        return self._channel
 
     def now(self) -> float:
         """The link's clock (the times of its samples and latches)."""
-        return self._clock()
+        return self.clock()
 
     @property
     def errors(self) -> int:
@@ -183,13 +203,18 @@ class LinkEngine(abc.ABC):
         """Retried, resynchronised and dropped things since start (see COUNTER_NAMES)."""
         return dict(self._counters)
 
-    def _count(self, name: str, n: int = 1) -> None:
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``name`` (``n`` 0 declares it)."""
         self._counters[name] = self._counters.get(name, 0) + n
 
-    def _wire_used(self, busy_s: float) -> None:
+    def add_error(self) -> None:
+        """One more wire error (see ``errors``)."""
+        self._errors += 1
+
+    def wire_used(self, busy_s: float) -> None:
         """An exchange just ended that kept the line busy for ``busy_s`` (its characters
         at 10 bit times each, both directions as the device's protocol serialises them)."""
-        now = self._clock()
+        now = self.clock()
         log = self._wire_log
         log.append((now, busy_s))
         while log and now - log[0][0] > RATE_WINDOW_S:
@@ -208,7 +233,7 @@ class LinkEngine(abc.ABC):
         """
         if self._channel is None or self._opened_at is None:
             return None
-        now = self._clock()
+        now = self.clock()
         span_s = min(RATE_WINDOW_S, now - self._opened_at)
         if span_s <= 0:
             return None
@@ -237,21 +262,21 @@ class LinkEngine(abc.ABC):
 
     # --- the silence rule (module docstring) -------------------------------------------
 
-    def _answered(self) -> None:
+    def answered(self) -> None:
         """The device answered a request validly."""
-        self._last_answer_t = self._clock()
+        self._last_answer_t = self.clock()
         self._unanswered = 0
 
-    def _unanswered_request(self, waited_s: float | None = None) -> None:
+    def unanswered_request(self, waited_s: float | None = None) -> None:
         """A request got no answer at all within its timeout (``waited_s``: that
         timeout; a host that stalled longer than that does not count it, see
-        ``_host_stalled``)."""
-        if waited_s is not None and self._host_stalled(waited_s):
+        ``host_stalled``)."""
+        if waited_s is not None and self.host_stalled(waited_s):
             return
         self._unanswered += 1
         self._check_silent()
 
-    def _host_stalled(self, waited_s: float) -> bool:
+    def host_stalled(self, waited_s: float) -> bool:
         """A read that timed out since the last check (``take_timeout_late_s``) was
         noticed more than ``waited_s`` (the time a request listens) after its deadline:
         the host itself was away for longer than it
@@ -264,7 +289,7 @@ class LinkEngine(abc.ABC):
         late_s = 0.0 if channel is None else channel.take_timeout_late_s()
         if late_s <= waited_s:
             return False
-        self._count("host_stalls")
+        self.count("host_stalls")
         logger.info(
             "link %s: a timeout noticed %.0f ms late (the host stalled): not counted "
             "against the device",
@@ -279,7 +304,7 @@ class LinkEngine(abc.ABC):
         since = self._last_answer_t if self._last_answer_t is not None else self._opened_at
         if since is None or self._unanswered < SILENT_REQUESTS:
             return
-        silent_s = self._clock() - since
+        silent_s = self.clock() - since
         if silent_s < SILENT_S:
             return
         message = (
@@ -287,68 +312,52 @@ class LinkEngine(abc.ABC):
             "unanswered): is it powered, is the cable in?"
         )
         if self._state == "connected":
-            self._sink.on_event("error", None, f"{self.id}: {message}")
-            self._set_state("error", message)
+            self.sink.on_event("error", None, f"{self.id}: {message}")
+            self.set_state("error", message)
         elif self._message.startswith(_SILENT_PREFIX):
-            self._set_state("error", message)  # the same error, its time brought up
+            self.set_state("error", message)  # the same error, its time brought up
 
     async def _supervise(self) -> None:
         backoff_s = 0.25
         while True:
             try:
-                channel = await self._connector.open()
+                channel = await self.connector.open()
             except LinkClosedError as exc:
-                self._set_state("disconnected" if self._connected_once else "error", str(exc))
+                self.set_state("disconnected" if self.connected_once else "error", str(exc))
                 self._fail_jobs(LinkDownError(f"link {self.id} is down"))
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, self._reconnect_max_s)
                 continue
-            self._opened_at = opened_at = self._clock()
+            self._opened_at = opened_at = self.clock()
             self._channel = channel
             self._wire_log.clear()
             self._last_answer_t, self._unanswered = None, 0
             try:
-                await self._session(channel)
+                await self._session.run_session(channel)
             except LinkClosedError as exc:
-                self._sink.on_event("error", None, f"{self.id}: link lost: {exc}")
-                self._set_state("reconnecting", f"link lost: {exc}")
+                self.sink.on_event("error", None, f"{self.id}: link lost: {exc}")
+                self.set_state("reconnecting", f"link lost: {exc}")
             except Exception as exc:
                 # Supervision: whatever escaped the session (a bug, a reply nobody
                 # foresaw) must neither kill the link nor leave it shown as connected.
                 logger.exception("link %s: session ended by an internal error", self.id)
-                self._count("restarts")
+                self.count("restarts")
                 message = f"internal error: {type(exc).__name__}: {exc}; reconnecting"
-                self._sink.on_event("error", None, f"{self.id}: {message}")
-                self._set_state("error", message)
+                self.sink.on_event("error", None, f"{self.id}: {message}")
+                self.set_state("error", message)
             finally:
                 self._channel = None
                 self._fail_jobs(LinkDownError(f"link {self.id} is down"))
-                self._on_link_down()
+                self._session.link_down()
                 with contextlib.suppress(Exception):
                     await channel.close()
             # A port that opens and fails at once (an adapter that enumerates, then
             # errors) must not make this loop spin: back off unless the session ran.
-            if self._clock() - opened_at < 5.0:
+            if self.clock() - opened_at < 5.0:
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, self._reconnect_max_s)
             else:
                 backoff_s = 0.25
-
-    @abc.abstractmethod
-    async def _session(self, channel: ByteChannel) -> None:
-        """Probe the devices, then serve jobs and poll until the channel fails."""
-
-    @abc.abstractmethod
-    def _on_link_down(self) -> None:
-        """Mark every axis offline (called after a session ended)."""
-
-    @abc.abstractmethod
-    def wire_limit_hz(self) -> float:
-        """Telemetry samples/s per axis the wire allows for the current poll set."""
-
-    @abc.abstractmethod
-    def achieved_rate_hz(self) -> float:
-        """Telemetry samples/s per axis achieved recently."""
 
     # --- jobs -------------------------------------------------------------------------
 
@@ -374,19 +383,19 @@ class LinkEngine(abc.ABC):
             urgent = True
             self._cancel_motion(axis)
         future: asyncio.Future[object] = asyncio.get_running_loop().create_future()
-        job = _Job(run, future, axis, motion)
+        job = Job(run, future, axis, motion)
         (self._urgent if urgent else self._normal).append(job)
         self._wakeup.set()
         result = await future
         return result  # type: ignore[return-value]
 
-    async def _let_stops_pass(self) -> None:
+    async def let_stops_pass(self) -> None:
         """Run the urgent jobs (STOPs) waiting now, inside a long job that has no motion
         of its own (a write or read of several parameters), between two of its
         exchanges: a STOP then waits for one exchange, not for the whole job. The job
         goes on afterwards (its exchanges select their module again as needed)."""
         while self._urgent:
-            await self._run_job(self._urgent.popleft())
+            await self.run_job(self._urgent.popleft())
 
     @property
     def urgent_pending(self) -> bool:
@@ -397,7 +406,8 @@ class LinkEngine(abc.ABC):
     def jobs_pending(self) -> bool:
         return bool(self._urgent or self._normal)
 
-    def _take_job(self) -> _Job | None:
+    def take_job(self) -> Job | None:
+        """The next job: an urgent one (a stop) first, else a user job, else None."""
         if self._urgent:
             return self._urgent.popleft()
         if self._normal:
@@ -405,7 +415,7 @@ class LinkEngine(abc.ABC):
         return None
 
     def _cancel_motion(self, axis: int | None) -> None:
-        kept: deque[_Job] = deque()
+        kept: deque[Job] = deque()
         for job in self._normal:
             if job.motion and (axis is None or job.axis == axis):
                 if not job.future.done():
@@ -423,7 +433,8 @@ class LinkEngine(abc.ABC):
                 if not job.future.done():
                     job.future.set_exception(error)
 
-    async def _run_job(self, job: _Job) -> None:
+    async def run_job(self, job: Job) -> None:
+        """Run ``job`` and deliver its result or error to its submitter."""
         if job.future.done():  # the caller gave up (cancelled)
             return
         try:
@@ -438,7 +449,7 @@ class LinkEngine(abc.ABC):
             if not job.future.done():
                 job.future.set_result(result)
 
-    async def _wait_job_or(self, timeout_s: float) -> None:
+    async def wait_job_or(self, timeout_s: float) -> None:
         """Sleep until a job is submitted or ``timeout_s`` passed."""
         self._wakeup.clear()
         if self.jobs_pending:
@@ -447,14 +458,20 @@ class LinkEngine(abc.ABC):
             async with asyncio.timeout(timeout_s):
                 await self._wakeup.wait()
 
-    def _require_channel(self) -> ByteChannel:
+    def wake(self) -> None:
+        """Wake a session waiting in ``wait_job_or`` (something it polls changed)."""
+        self._wakeup.set()
+
+    def require_channel(self) -> ByteChannel:
+        """The open channel; ``LinkClosedError`` when none is."""
         if self._channel is None:
             raise LinkClosedError(f"link {self.id} is not open")
         return self._channel
 
     # --- status -----------------------------------------------------------------------
 
-    def _set_state(self, state: LinkState, message: str) -> None:
+    def set_state(self, state: LinkState, message: str) -> None:
+        """Show the link ``state`` with ``message``; published when either changed."""
         changed = state != self._state or message != self._message
         self._state, self._message = state, message
         if changed:
@@ -464,61 +481,11 @@ class LinkEngine(abc.ABC):
         if self._channel is None and self._state == "connected":
             # Never shown connected without an open channel (the session has ended).
             self._state = "reconnecting"
-        self._sink.on_link_status(
+        self.sink.on_link_status(
             self.id,
             self._state,
             self._message,
-            self.achieved_rate_hz(),
-            self.wire_limit_hz(),
+            self._session.achieved_rate_hz(),
+            self._session.wire_limit_hz(),
             self._errors,
         )
-
-
-class EngineAxis:
-    """The plumbing every axis of a ``LinkEngine`` device shares: identity, descriptor
-    and parameter I/O delegated to its link (which must offer ``axis_id``,
-    ``axis_name``, ``descriptor``, ``op_read_params`` and ``op_write_params``).
-    Device axes add their commands on top."""
-
-    def __init__(self, link: _AxisLink, address: int) -> None:
-        self._link = link
-        self._address = address
-
-    @property
-    def id(self) -> str:
-        return self._link.axis_id(self._address)
-
-    @property
-    def name(self) -> str:
-        return self._link.axis_name(self._address)
-
-    @property
-    def address(self) -> int:
-        return self._address
-
-    @property
-    def descriptor(self) -> DeviceDescriptor:
-        return self._link.descriptor
-
-    async def read_params(self) -> dict[str, int]:
-        return await self._link.op_read_params(self._address)
-
-    async def write_params(
-        self, values: Mapping[str, int], source: str = "write"
-    ) -> dict[str, int]:
-        return await self._link.op_write_params(self._address, values, source)
-
-
-class _AxisLink(Protocol):
-    @property
-    def descriptor(self) -> DeviceDescriptor: ...
-
-    def axis_id(self, address: int) -> str: ...
-
-    def axis_name(self, address: int) -> str: ...
-
-    async def op_read_params(self, address: int) -> dict[str, int]: ...
-
-    async def op_write_params(
-        self, address: int, values: Mapping[str, int], source: str
-    ) -> dict[str, int]: ...

@@ -29,8 +29,7 @@ from typing import Any
 
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.link.base import Sample
-from servotune.link.engine import LinkEngine
+from servotune.link.base import Sample, WireStats
 from servotune.registry import PollSet, Registry
 from servotune.schema import AxisHealth, EventLevel, LinkState
 
@@ -71,7 +70,7 @@ async def _measure(
 ) -> int:
     sink = _CountingSink()
     link = devices.build_link(LinkSpec(device, path, "bench", baud, addresses), sink)
-    assert isinstance(link, LinkEngine)
+    assert isinstance(link, WireStats)
     task = asyncio.create_task(link.run())
     try:
         deadline = time.monotonic() + 10

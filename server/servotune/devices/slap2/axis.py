@@ -1,8 +1,9 @@
 """The SLAP2 axis driver: one module as the user tunes it.
 
 Descriptor commands become wire commands here (pure), and every exchange goes through
-the module's ``Slap2Link`` (devices/slap2/link.py), which owns the line. Also the demo
-autopilot, the bench plans and the capture capability of a SLAP2 axis.
+the module's link (``Slap2AxisLink``, declared here; ``devices/slap2/link.Slap2Link``
+implements it), which owns the line. Also the demo autopilot, the bench plans and the
+capture capability of a SLAP2 axis.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+from servotune.descriptor import DeviceDescriptor
 from servotune.devices.slap2 import codec
+from servotune.devices.slap2.capture import ProfileState
 from servotune.devices.slap2.profile import ProfileTrack, TrapezoidGenerator
 from servotune.link.base import (
     AxisDriver,
@@ -25,7 +28,6 @@ from servotune.link.base import (
     Sample,
     StopOutcome,
 )
-from servotune.link.engine import EngineAxis
 
 # The stop commands go out back to back: a uc check (rss) between st and pm would let
 # the shaft coast for one more exchange. Whether pm took is seen in the next poll.
@@ -41,16 +43,104 @@ JOG_TARGET = codec.POSITION_LIMIT
 # profile's state is read (the exchange itself, the selection, a poll in flight).
 _JOG_STOP_LEAD_S = 0.012
 
-if TYPE_CHECKING:
-    from servotune.devices.slap2.link import Slap2Link
+
+class Slap2ModuleView(Protocol):
+    """What the axis reads of its module's state as the link knows it (owner task's
+    values: the last poll, and the commands sent since)."""
+
+    @property
+    def rss(self) -> int | None: ...
+    @property
+    def expected_mode(self) -> str: ...
+    @property
+    def position(self) -> int | None: ...
+    @property
+    def position_t(self) -> float | None: ...
+    @property
+    def following_error(self) -> int | None: ...
+    @property
+    def velocity(self) -> float | None: ...
+    @property
+    def known(self) -> Mapping[str, int]: ...
+    @property
+    def profile(self) -> ProfileState: ...
+    @property
+    def last_command_latch_s(self) -> float | None: ...
+    @property
+    def last_command_latch_span_s(self) -> float | None: ...
 
 
-class Slap2Axis(EngineAxis, AxisDriver):
+class Slap2AxisLink(Protocol):
+    """What a ``Slap2Axis`` needs of its link (``Slap2Link``): identity, the module's
+    state, and the operations that run as jobs on the line's owner task."""
+
+    @property
+    def descriptor(self) -> DeviceDescriptor: ...
+
+    def axis_id(self, address: int) -> str: ...
+
+    def axis_name(self, address: int) -> str: ...
+
+    def now(self) -> float: ...
+
+    def module_state(self, address: int) -> Slap2ModuleView: ...
+
+    async def op_read_params(self, address: int) -> dict[str, int]: ...
+
+    async def op_write_params(
+        self, address: int, values: Mapping[str, int], source: str
+    ) -> dict[str, int]: ...
+
+    async def op_execute(
+        self,
+        address: int,
+        commands: list[codec.Command],
+        *,
+        urgent: bool = False,
+        stop: bool | None = None,
+    ) -> list[str]: ...
+
+    async def op_raw_byte(self, address: int, byte: int, *, urgent: bool = False) -> None: ...
+
+    async def op_console(self, address: int, line: str) -> tuple[str, list[str]]: ...
+
+    def capture(
+        self, address: int, reason: str
+    ) -> contextlib.AbstractAsyncContextManager[None]: ...
+
+
+class Slap2Axis(AxisDriver):
     """One SLAP2 module: the axis the user tunes. All I/O goes through its link."""
 
-    _link: Slap2Link
-    # The direction of the jog servotune started last (0: none since the last release).
-    _jog_direction: int = 0
+    def __init__(self, link: Slap2AxisLink, address: int) -> None:
+        self._link = link
+        self._address = address
+        # The direction of the jog servotune started last (0: none since the last release).
+        self._jog_direction = 0
+
+    @property
+    def id(self) -> str:
+        return self._link.axis_id(self._address)
+
+    @property
+    def name(self) -> str:
+        return self._link.axis_name(self._address)
+
+    @property
+    def address(self) -> int:
+        return self._address
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._link.descriptor
+
+    async def read_params(self) -> dict[str, int]:
+        return await self._link.op_read_params(self._address)
+
+    async def write_params(
+        self, values: Mapping[str, int], source: str = "write"
+    ) -> dict[str, int]:
+        return await self._link.op_write_params(self._address, values, source)
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Command]:
         """Build the wire commands for a descriptor command (pure; no I/O)."""

@@ -1,34 +1,59 @@
 """The SLAP2 manual's host exchange on one RS232 line (the lower half of the driver).
 
-``Slap2Wire`` is the part of a SLAP2 link that talks to the line: the manual's
+``Slap2Exchange`` is the part of a SLAP2 link that talks to the line: the manual's
 "sstring"/"rstring" (send a character, compare its echo, the next; CR; the reply up to
 CR), module selection with ``se n`` (cached, and sent "blind" when nobody can echo),
 Ctrl-X recovery before CR, the one retry a failure before CR allows, and the latch
-time of every reply. The rules and the decisions where the manual is silent are in
-the docstring of ``devices/slap2/link.py``, which owns the modules' state.
+time of every reply.
 
-Seam: this class knows the line's selection and nothing else about the modules. It
-reports what only the link can judge through two hooks: ``_note_unsolicited`` (bytes
-that came outside any exchange: a banner means a reset) and ``_lost_selection`` (the
-selected module answered only after a blind re-selection: a weak reset cue).
+The exchange follows the manual's host algorithm exactly ("sstring"/"rstring"): send
+one character, wait for its echo and compare it, then the next; after the last one
+send CR and wait for its echo; then collect the reply (chars > 31) up to CR. Decisions
+where the manual is silent (also in docs/slap2.md):
+
+* Echo mismatch or echo timeout before CR was sent: send Ctrl-X (the module discards
+  its input buffer, so nothing executes), drain the line until it is quiet, and retry
+  the command once. After CR a failure is not retried: the module may have executed
+  it (``mr`` is not idempotent).
+* Selection (``se n``) is cached. If no module is selected nobody echoes, so when
+  the first character of ``se`` gets no echo the driver sends Ctrl-X and then the
+  ``se`` line "blind", paced at two character times per character, and waits for the
+  CR reply of the newly selected module. That is the only time a character is sent
+  without waiting for the previous echo.
+* Bytes that arrive while no transaction runs are unsolicited: late echoes of our
+  own commands (a slow host let a timeout pass before they came), line noise, or a
+  power-on banner. Only a line naming the module type (``SLAP2 ...``, what address 0
+  sends after power-on) counts as a banner: that module was reset. Anything else is
+  dropped and counted (``dropped_bytes``), never an alarm — the driver's own ``se0``
+  or ``rss`` echo arriving late has letters too.
+* Ctrl-X is echoed like every byte. ``abandon`` waits for that echo before it
+  drains the line; an echo of Ctrl-X that comes even later is recognised where it
+  lands (no command servotune sends contains 0x18: console lines with control
+  characters are refused) and skipped, instead of being taken for the echo of the
+  next command.
+
+Seam: this class knows the line's selection and nothing else about the modules. The
+link *has* one, beside its ``LinkEngine`` (whose channel, counters and job queues the
+exchange uses), and hears what only it can judge through ``ExchangeEvents``:
+``note_unsolicited`` (bytes that came outside any exchange: a banner means a reset) and
+``lost_selection`` (the selected module answered only after a blind re-selection: a
+weak reset cue).
 """
 
 from __future__ import annotations
 
-import abc
 import asyncio
-from collections.abc import Callable
 from typing import Protocol
 
 from servotune.devices.slap2 import codec
-from servotune.link.base import DeviceTimeoutError, DriverError, DriverSink, ProtocolError
+from servotune.link.base import DeviceTimeoutError, DriverError, ProtocolError
 from servotune.link.engine import LinkEngine
-from servotune.transports.base import ByteChannel, Connector, EchoResult
+from servotune.transports.base import ByteChannel, EchoResult
 
 # Commands that may run twice with the same effect: sent again after a failure that
 # came after their CR (for any other command that failure is final: it may have run).
 IDEMPOTENT_COMMANDS = frozenset({"st"})
-# Reads the poll loops chain (``_exchange_once(then=...)``): sending one for nothing
+# Reads the poll loops chain (``exchange_once(then=...)``): sending one for nothing
 # (the loop asked for something else after all) costs line time, never a change.
 CHAINABLE_READS = frozenset({"rp", "pe", "rss", "rve"})
 SLOW_COMMANDS_REPLY_S = {"pg": 1.0, "de": 1.0, "rep": 0.5, "rrss": 0.5, "rrsyscon": 0.5}
@@ -47,43 +72,39 @@ class WireTiming(Protocol):
     def listing_quiet_s(self) -> float: ...
 
 
-class Slap2Wire(LinkEngine):
-    """A link engine that speaks the SLAP2 exchange; subclassed by ``Slap2Link``.
+class ExchangeEvents(Protocol):
+    """What the exchange reports that only the link can judge (the link implements it)."""
 
-    Only the owner task calls these methods (``LinkEngine``'s rule). ``_transact``
+    def note_unsolicited(self, data: bytes) -> None:
+        """Bytes that arrived outside any exchange (late echoes, noise, a banner)."""
+
+    def lost_selection(self, address: int) -> None:
+        """Module ``address`` was selected, yet answered only after a blind ``se``."""
+
+
+class Slap2Exchange:
+    """The SLAP2 exchange on the channel of ``engine``'s current session.
+
+    Only the owner task calls these methods (``LinkEngine``'s rule). ``transact``
     selects and exchanges one command (retried once if abandoned before CR);
-    ``_exchange_once`` exchanges with the module already selected; ``_read_int`` and
-    ``_read_rss_after`` parse a number. Errors: ``DeviceTimeoutError`` (no echo or no
+    ``exchange_once`` exchanges with the module already selected; ``read_int`` and
+    ``read_rss_after`` parse a number. Errors: ``DeviceTimeoutError`` (no echo or no
     reply), ``ProtocolError`` (a wrong echo or reply), ``_AbandonedError`` (failed
-    before CR: nothing executed).
+    before CR: nothing executed). ``last_latch_t`` / ``last_latch_span_s``: when the
+    module latched the last exchange's value and how far before that it may lie;
+    ``wire_chars``: the characters all exchanges took on the wire.
     """
 
-    def __init__(
-        self,
-        link_id: str,
-        path: str,
-        timing: WireTiming,
-        connector: Connector,
-        sink: DriverSink,
-        *,
-        clock: Callable[[], float],
-        reconnect_max_s: float,
-    ) -> None:
-        super().__init__(
-            link_id,
-            path,
-            timing.baud,
-            connector,
-            sink,
-            clock=clock,
-            reconnect_max_s=reconnect_max_s,
-        )
+    def __init__(self, timing: WireTiming, engine: LinkEngine, events: ExchangeEvents) -> None:
         self._timing = timing
-        # Chained reads the channel sent for nothing (see _exchange_once), counted
+        self._engine = engine
+        self._events = events
+        self._clock = engine.clock
+        # Chained reads the channel sent for nothing (see exchange_once), counted
         # per channel into the ``chained_reads_dropped`` counter.
         self._chain_channel: ByteChannel | None = None
         self._chain_drops_seen = 0
-        self._counters["chained_reads_dropped"] = 0
+        engine.count("chained_reads_dropped", 0)
         self._selected: int | None = None
         # The last module we selected, kept when ``_selected`` is forgotten after an
         # error, to tell a reset (it lost its selection) from a glitch.
@@ -93,28 +114,26 @@ class Slap2Wire(LinkEngine):
         # echoed and is sent blind at once (saves a character timeout and a Ctrl-X
         # recovery, about 0.35 s, per cycle while a module is silent).
         self._dark_selection: int | None = None
-        self._reply_chars: dict[str, int] = {}
+        # The reply length last seen per mnemonic (the link's wire limit counts them).
+        self.reply_chars: dict[str, int] = {}
         # Best estimate of when the module latched the last exchange's value (see
-        # ``_exchange_once``), and the character times all exchanges took on the wire.
-        self._last_latch_t = 0.0
+        # ``exchange_once``), and the character times all exchanges took on the wire.
+        self.last_latch_t = 0.0
         # ... and how far before it the latch may lie: down to when the CR was written
         # (None: not known, e.g. after the slow path of a stray echo).
-        self._last_latch_span_s: float | None = None
-        self._wire_chars = 0
+        self.last_latch_span_s: float | None = None
+        self.wire_chars = 0
 
-    def _forget_selection(self) -> None:
+    def forget_selection(self) -> None:
         """A new session or a reset: nobody is known to be selected."""
         self._selected = self._believed_selected = self._dark_selection = None
 
-    @abc.abstractmethod
-    def _note_unsolicited(self, data: bytes) -> None:
-        """Bytes that arrived outside any exchange (late echoes, noise, a banner)."""
+    def deselect(self) -> None:
+        """An exchange failed so that the selection is in doubt: select again before the
+        next command (the module believed selected is kept, to tell a reset later)."""
+        self._selected = None
 
-    @abc.abstractmethod
-    def _lost_selection(self, address: int) -> None:
-        """Module ``address`` was selected, yet answered only after a blind ``se``."""
-
-    async def _drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
+    async def drain(self, channel: ByteChannel, quiet_s: float, max_s: float) -> bytes:
         """Read until nothing arrives for ``quiet_s`` (or ``max_s`` passed)."""
         collected = bytearray(channel.discard_input())
         deadline = self._clock() + max_s
@@ -125,7 +144,7 @@ class Slap2Wire(LinkEngine):
             collected += data
         return bytes(collected)
 
-    async def _abandon(self, channel: ByteChannel, head: bytes = b"") -> None:
+    async def abandon(self, channel: ByteChannel, head: bytes = b"") -> None:
         """Ctrl-X discards a half-sent command in the module; then wait for quiet.
 
         The module echoes the Ctrl-X: wait for that echo first (up to a character
@@ -142,10 +161,10 @@ class Slap2Wire(LinkEngine):
             if not data:
                 break
             leftover += data
-        leftover += await self._drain(channel, self._timing.quiet_s, 0.5)
+        leftover += await self.drain(channel, self._timing.quiet_s, 0.5)
         stray = bytes(leftover).replace(bytes([codec.CTRL_X]), b"")
         if stray.strip(b"\r\n"):
-            self._note_unsolicited(stray)
+            self._events.note_unsolicited(stray)
 
     async def _send_echoed(
         self, channel: ByteChannel, text: str, first: EchoResult | None = None
@@ -171,7 +190,7 @@ class Slap2Wire(LinkEngine):
                 break
             # A late echo of our own Ctrl-X (nothing else sends 0x18): skip it; the
             # echo of the byte just sent is due next.
-            self._count("desyncs")
+            self._engine.count("desyncs")
             echo = await channel.read_byte(self._timing.char_timeout_s)
             if echo != payload[done]:
                 result = EchoResult(result.echoed, echo)
@@ -191,7 +210,7 @@ class Slap2Wire(LinkEngine):
         if done == len(payload) - 1:  # CR was sent: it may have executed
             raise error
         # The wrong byte may be the head of a banner: keep it with what follows.
-        await self._abandon(channel, b"" if result.got is None else bytes([result.got]))
+        await self.abandon(channel, b"" if result.got is None else bytes([result.got]))
         raise _AbandonedError(error)
 
     def _first_reply_timeout_s(self, command: codec.Command) -> float:
@@ -225,7 +244,7 @@ class Slap2Wire(LinkEngine):
                 lines.append(decoder.flush())
         return lines
 
-    async def _exchange_once(
+    async def exchange_once(
         self, command: codec.Command, then: codec.Command | None = None
     ) -> list[str]:
         """One exchange with the selected module; no retry.
@@ -240,12 +259,12 @@ class Slap2Wire(LinkEngine):
         Raises ``_AbandonedError`` when it failed before CR (nothing executed),
         ``DeviceTimeoutError``/``ProtocolError`` when it failed after CR.
         """
-        channel = self._require_channel()
+        channel = self._engine.require_channel()
         payload = command.text.encode("ascii") + b"\r"
-        await self._settle_chain(channel, payload)
+        await self.settle_chain(channel, payload)
         stray = channel.discard_input()
         if stray:
-            self._note_unsolicited(stray)
+            self._events.note_unsolicited(stray)
         try:
             # The usual case in one channel call: the echo checked and the reply read
             # in the receive callback, both arrival times stamped there.
@@ -277,12 +296,12 @@ class Slap2Wire(LinkEngine):
             if t_reply is None or raw is None or command.multiline:
                 t_reply = self._clock()
         except _AbandonedError:
-            self._errors += 1
+            self._engine.add_error()
             raise
         except DeviceTimeoutError:
-            self._errors += 1
+            self._engine.add_error()
             self._selected = None
-            await self._abandon(channel)
+            await self.abandon(channel)
             raise
         if (
             not command.multiline
@@ -291,10 +310,10 @@ class Slap2Wire(LinkEngine):
         ):
             # A module powered up while we waited for this reply: its banner came
             # instead (a reset). The reply, if any, is lost.
-            self._note_unsolicited("\r".join(lines).encode("ascii", "replace"))
+            self._events.note_unsolicited("\r".join(lines).encode("ascii", "replace"))
             raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
         reply_chars = sum(len(x) + 1 for x in lines)
-        self._reply_chars[command_mnemonic(command.text)] = reply_chars
+        self.reply_chars[command_mnemonic(command.text)] = reply_chars
         # When the module latched the value: it acts on the CR, whose echo ends one
         # character later, and (sent back to back) the reply ends reply_chars after
         # that. Both clock readings can only be late (a busy host resumes this task
@@ -304,19 +323,19 @@ class Slap2Wire(LinkEngine):
         char_s = 10 / self._timing.baud
         if t_echo is None:
             t_echo = t_reply
-        self._last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
+        self.last_latch_t = min(t_echo - char_s, t_reply - (reply_chars + 1) * char_s)
         # The module cannot have acted before the CR was written: a host that ran the
         # echo's callback late (a stall) stamps late by the stall, and this says so.
-        self._last_latch_span_s = None if t_sent is None else max(0.0, self._last_latch_t - t_sent)
+        self.last_latch_span_s = None if t_sent is None else max(0.0, self.last_latch_t - t_sent)
         chars = 2 * (len(command.text) + 1) + reply_chars
-        self._wire_chars += chars
-        self._wire_used(chars * char_s)
+        self.wire_chars += chars
+        self._engine.wire_used(chars * char_s)
         return lines
 
-    async def _select(self, address: int) -> None:
+    async def select(self, address: int) -> None:
         if self._selected == address:
             return
-        channel = self._require_channel()
+        channel = self._engine.require_channel()
         believed = self._believed_selected
         dark = self._dark_selection
         command = codec.make_select(address)
@@ -343,7 +362,7 @@ class Slap2Wire(LinkEngine):
             # The module we had selected stopped transmitting without an ``se``: a
             # reset (power-on deselects every address but 0) does that, but so does
             # one echo lost or late on a slow host. Weak evidence: the link checks it.
-            self._lost_selection(believed)
+            self._events.lost_selection(believed)
 
     async def _select_echoed(
         self, channel: ByteChannel, command: codec.Command
@@ -351,7 +370,7 @@ class Slap2Wire(LinkEngine):
         """``se n`` the usual way; sent blind if it got no echo (perhaps nobody is
         selected, so nobody could echo). Returns (the reply's lines, sent blind)."""
         try:
-            return await self._exchange_once(command), False
+            return await self.exchange_once(command), False
         except _AbandonedError as abandoned:
             if not isinstance(abandoned.error, DeviceTimeoutError):
                 raise abandoned.error from None
@@ -367,23 +386,23 @@ class Slap2Wire(LinkEngine):
         Should the old module transmit after all, it echoes the line before it
         switches off: one such echo is removed before the CR is looked for, so it
         cannot pass for the new module's reply. Any other bytes (late echoes, noise)
-        go to ``_note_unsolicited``; a power-on banner among them means the module
+        go to ``ExchangeEvents.note_unsolicited``; a power-on banner among them means the module
         reset and the ``se`` is lost, a ``ProtocolError``.
         """
         char_s = 10 / self._timing.baud
-        await self._settle_chain(channel)
+        await self.settle_chain(channel)
         stray = channel.discard_input()
         if stray:
-            self._note_unsolicited(stray)
+            self._events.note_unsolicited(stray)
         payload = command.text.encode("ascii") + b"\r"
         for byte in payload:
             await channel.write(bytes([byte]))
             await asyncio.sleep(2 * char_s)
-        received = await self._drain(channel, self._timing.char_timeout_s, 0.5)
+        received = await self.drain(channel, self._timing.char_timeout_s, 0.5)
         rest = received.replace(payload, b"", 1)
         if b"\r" not in rest:
             if rest.strip():
-                self._note_unsolicited(rest)
+                self._events.note_unsolicited(rest)
             # The previous module echoed the line: the line is alive, only the new
             # module's CR is missing (late, or that module is absent).
             error = ReplyTimeoutError if received.strip() else DeviceTimeoutError
@@ -392,14 +411,14 @@ class Slap2Wire(LinkEngine):
             )
         other = rest.replace(b"\r", b"", 1)
         if other.strip(b"\r\n"):
-            self._note_unsolicited(other)
+            self._events.note_unsolicited(other)
             if is_banner(other.decode("ascii", "replace")):
                 raise ProtocolError(f"power-on banner instead of the reply to {command.text!r}")
         return [""]
 
-    async def _settle_chain(self, channel: ByteChannel, adopt: bytes = b"") -> bool:
+    async def settle_chain(self, channel: ByteChannel, adopt: bytes = b"") -> bool:
         """Before a new exchange: end a chained read that is not ``adopt`` (see
-        ``_exchange_once``). One that failed before its reply was complete (a wrong
+        ``exchange_once``). One that failed before its reply was complete (a wrong
         or missing echo, no reply) may have left part of its command in the module's
         buffer, which the next command would be glued to (``pe`` + ``st`` = ``pest``,
         refused: a STOP lost). So Ctrl-X and drain, as after any failed exchange.
@@ -409,39 +428,41 @@ class Slap2Wire(LinkEngine):
         self._count_dropped_chains(channel)
         if dropped is None or dropped.reply is not None:
             return False
-        await self._abandon(channel)
+        await self.abandon(channel)
         return True
 
     def _count_dropped_chains(self, channel: ByteChannel) -> None:
         if channel is not self._chain_channel:
             self._chain_channel, self._chain_drops_seen = channel, 0
         if channel.chains_dropped != self._chain_drops_seen:
-            self._count("chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen)
+            self._engine.count(
+                "chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen
+            )
             self._chain_drops_seen = channel.chains_dropped
 
     def _may_chain(self) -> bool:
         """Called from the receive callback: no job waits for the line."""
-        return not self.jobs_pending
+        return not self._engine.jobs_pending
 
-    async def _transact(
+    async def transact(
         self, address: int, command: codec.Command, then: codec.Command | None = None
     ) -> list[str]:
         """Select ``address`` and exchange ``command``; retried once if abandoned.
 
         A retry re-selects first: a missing echo may mean the module lost its
         selection (reset), which a plain resend could not fix. ``then``: see
-        ``_exchange_once`` (not on a retry).
+        ``exchange_once`` (not on a retry).
         """
         idempotent = command_mnemonic(command.text) in IDEMPOTENT_COMMANDS
-        channel = self._require_channel()
-        if await self._settle_chain(channel, command.text.encode("ascii") + b"\r"):
+        channel = self._engine.require_channel()
+        if await self.settle_chain(channel, command.text.encode("ascii") + b"\r"):
             self._selected = None  # a read failed: select again, as after a timeout
         for attempt in range(2):
             if attempt:
-                self._count("retries")
-            await self._select(address)
+                self._engine.count("retries")
+            await self.select(address)
             try:
-                return await self._exchange_once(command, None if attempt else then)
+                return await self.exchange_once(command, None if attempt else then)
             except _AbandonedError as abandoned:
                 if isinstance(abandoned.error, DeviceTimeoutError):
                     self._selected = None
@@ -454,7 +475,7 @@ class Slap2Wire(LinkEngine):
                     raise
         raise AssertionError("unreachable")
 
-    async def _read_rss_after(self, command_text: str) -> int:
+    async def read_rss_after(self, command_text: str) -> int:
         """``rss`` right after a command, on the same selection.
 
         Its ``uc`` bit tells whether the command was refused; a re-selection would
@@ -463,10 +484,10 @@ class Slap2Wire(LinkEngine):
         """
         for attempt in range(3):
             try:
-                lines = await self._exchange_once(codec.make_read("rss"))
+                lines = await self.exchange_once(codec.make_read("rss"))
             except _AbandonedError as abandoned:
                 if attempt < 2:
-                    self._count("retries")
+                    self._engine.count("retries")
                     continue
                 error = abandoned.error
             except (DeviceTimeoutError, ProtocolError) as exc:
@@ -482,10 +503,10 @@ class Slap2Wire(LinkEngine):
             )
         raise AssertionError("unreachable")
 
-    async def _read_int(self, address: int, mnemonic: str, then: str | None = None) -> int:
+    async def read_int(self, address: int, mnemonic: str, then: str | None = None) -> int:
         """``mnemonic``'s number; ``then``: the read most likely next (see
-        ``_exchange_once``)."""
-        lines = await self._transact(
+        ``exchange_once``)."""
+        lines = await self.transact(
             address, codec.make_read(mnemonic), None if then is None else codec.make_read(then)
         )
         reply = codec.parse_reply(lines[0] if lines else "")
@@ -525,8 +546,9 @@ def command_mnemonic(text: str) -> str:
 
 __all__ = [
     "IDEMPOTENT_COMMANDS",
+    "ExchangeEvents",
     "ReplyTimeoutError",
-    "Slap2Wire",
+    "Slap2Exchange",
     "WireTiming",
     "command_mnemonic",
     "is_banner",

@@ -2,16 +2,17 @@
 
 The link (``devices.z1100.link.Z1100Link``) owns the line; a ``Z1100Axis`` turns descriptor
 commands, the bench's plans and the demo autopilot's moves into requests and hands
-them to the link. Split from ``devices.z1100.link`` along that seam (the link imports this
-module; this one names the link's type only for the type checker).
+them to the link through ``Z1100AxisLink``, the Protocol declared here (the link imports
+this module, never the other way).
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+from servotune.descriptor import DeviceDescriptor
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.descriptor import MOVING_COMMANDS
 from servotune.link.base import (
@@ -25,10 +26,6 @@ from servotune.link.base import (
     Sample,
     StopOutcome,
 )
-from servotune.link.engine import EngineAxis
-
-if TYPE_CHECKING:
-    from servotune.devices.z1100.link import Z1100Link
 
 
 def request_name(request: codec.Request) -> str:
@@ -93,14 +90,83 @@ def describe_reply(request: codec.Request, reply: codec.Reply) -> list[str]:
     return lines
 
 
-class Z1100Axis(EngineAxis, AxisDriver):
+class Z1100MotorView(Protocol):
+    """What the axis reads of its motor's state as the link knows it."""
+
+    @property
+    def running(self) -> bool: ...
+    @property
+    def stall(self) -> bool: ...
+    @property
+    def job(self) -> int: ...
+    @property
+    def known(self) -> Mapping[str, int]: ...
+
+
+class Z1100AxisLink(Protocol):
+    """What a ``Z1100Axis`` needs of its link (``Z1100Link``): identity, the motor's
+    state, and the operations that run as jobs on the line's owner task."""
+
+    @property
+    def descriptor(self) -> DeviceDescriptor: ...
+
+    def axis_id(self, axis: int) -> str: ...
+
+    def axis_name(self, axis: int) -> str: ...
+
+    def motor(self, axis: int) -> Z1100MotorView: ...
+
+    async def op_read_params(self, axis: int) -> dict[str, int]: ...
+
+    async def op_write_params(
+        self, axis: int, values: Mapping[str, int], source: str
+    ) -> dict[str, int]: ...
+
+    async def op_requests(
+        self,
+        axis: int,
+        requests: list[codec.Request],
+        *,
+        urgent: bool = False,
+        starts: bool = False,
+        stop: bool | None = None,
+    ) -> list[str]: ...
+
+    async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]: ...
+
+    def capture(self, axis: int, reason: str) -> contextlib.AbstractAsyncContextManager[None]: ...
+
+
+class Z1100Axis(AxisDriver):
     """One motor of a Z1100 chip."""
 
-    _link: Z1100Link
-
-    def __init__(self, link: Z1100Link, axis: int) -> None:
-        super().__init__(link, axis)
+    def __init__(self, link: Z1100AxisLink, axis: int) -> None:
+        self._link = link
         self._axis = axis
+
+    @property
+    def id(self) -> str:
+        return self._link.axis_id(self._axis)
+
+    @property
+    def name(self) -> str:
+        return self._link.axis_name(self._axis)
+
+    @property
+    def address(self) -> int:
+        return self._axis
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._link.descriptor
+
+    async def read_params(self) -> dict[str, int]:
+        return await self._link.op_read_params(self._axis)
+
+    async def write_params(
+        self, values: Mapping[str, int], source: str = "write"
+    ) -> dict[str, int]:
+        return await self._link.op_write_params(self._axis, values, source)
 
     def make_command(self, name: str, args: Mapping[str, int]) -> list[codec.Request]:
         """Build the requests of a descriptor command (pure; no I/O)."""

@@ -1,5 +1,6 @@
-"""Z1100 link engine: one chip, three motors, one request per reply (the axis driver
-is in ``devices.z1100.axis``).
+"""The Z1100 link: one chip, three motors, one request per reply (the axis driver is
+in ``devices.z1100.axis``). The link *has* a ``LinkEngine`` (owner task, job queues,
+reconnects, status) and is its ``LinkSession``.
 
 Rules (``shared/spec/z1100.md``), and decisions where it is silent:
 
@@ -57,10 +58,12 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 
+from servotune.descriptor import DeviceDescriptor
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.axis import Z1100Axis, describe_reply, parse_console_line, request_name
 from servotune.devices.z1100.descriptor import FORBIDDEN_WHILE_MOVING, z1100_descriptor
 from servotune.link.base import (
+    AxisDriver,
     DeviceRefusedError,
     DeviceTimeoutError,
     DriverError,
@@ -73,6 +76,7 @@ from servotune.link.base import (
 from servotune.link.capture import CaptureRegistry, CaptureStats
 from servotune.link.engine import LinkEngine, recent_rate_hz
 from servotune.link.setpoint import SkewedSetpoint
+from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
@@ -142,8 +146,9 @@ class _MotorState:
     skewed: SkewedSetpoint = field(default_factory=SkewedSetpoint)
 
 
-class Z1100Link(LinkEngine):
-    """Owner of the serial line to one Z1100 chip (three axes)."""
+class Z1100Link:
+    """Owner of the serial line to one Z1100 chip (three axes): ``link.base.Link``, the
+    ``LinkSession`` of its ``engine``, the link each ``Z1100Axis`` talks to."""
 
     device = "z1100"
 
@@ -155,19 +160,23 @@ class Z1100Link(LinkEngine):
         *,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        super().__init__(
+        self._engine = LinkEngine(
             config.link_id,
             config.path,
             config.baud,
             connector,
             sink,
+            self,
             clock=clock,
             reconnect_max_s=config.reconnect_max_s,
         )
+        self._connector = connector
+        self._sink = sink
+        self._clock = clock
         self.config = config
         self._descriptor = z1100_descriptor(4 * config.lines)
         self._motors = [_MotorState(axis) for axis in range(codec.AXES)]
-        self._axes = [Z1100Axis(self, axis) for axis in range(codec.AXES)]
+        self._axes: list[AxisDriver] = [Z1100Axis(self, axis) for axis in range(codec.AXES)]
         self._online = False
         self._cycle = 0
         self._verify_index = 0
@@ -181,7 +190,62 @@ class Z1100Link(LinkEngine):
         self._flags_t: float | None = None  # when the flags were last read (GetStart)
         self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
-        self._counters["fence_timeouts"] = 0
+        self._engine.count("fence_timeouts", 0)
+
+    # --- link.base.Link, delegated to the engine ----------------------------------------
+
+    @property
+    def engine(self) -> LinkEngine:
+        """The owner task, job queues and status of this line."""
+        return self._engine
+
+    @property
+    def id(self) -> str:
+        return self._engine.id
+
+    @property
+    def path(self) -> str:
+        return self._engine.path
+
+    @property
+    def baud(self) -> int:
+        return self._engine.baud
+
+    @property
+    def state(self) -> LinkState:
+        return self._engine.state
+
+    @property
+    def axes(self) -> list[AxisDriver]:
+        return list(self._axes)
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        """The descriptor the chip's three axes share."""
+        return self._descriptor
+
+    @property
+    def errors(self) -> int:
+        """Wire errors since start (``LinkEngine.errors``)."""
+        return self._engine.errors
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """``LinkEngine.counters``."""
+        return self._engine.counters
+
+    @property
+    def wire_busy(self) -> float | None:
+        """``LinkEngine.wire_busy``."""
+        return self._engine.wire_busy
+
+    def now(self) -> float:
+        """The link's clock (the times of its samples and latches)."""
+        return self._clock()
+
+    async def run(self) -> None:
+        """``LinkEngine.run``: connect, run sessions, reconnect until cancelled."""
+        await self._engine.run()
 
     # --- identity ---------------------------------------------------------------------
 
@@ -194,7 +258,7 @@ class Z1100Link(LinkEngine):
     def motor(self, axis: int) -> _MotorState:
         return self._motors[axis]
 
-    def _on_link_down(self) -> None:
+    def link_down(self) -> None:
         self._online = False
         for motor in self._motors:
             self._sink.on_axis_health(self.axis_id(motor.axis), "offline", "link down")
@@ -203,7 +267,7 @@ class Z1100Link(LinkEngine):
 
     async def _request(self, request: codec.Request) -> codec.Reply:
         """Send one request and return its reply; retries per the module docstring."""
-        channel = self._require_channel()
+        channel = self._engine.require_channel()
         packet = request.encode()
         name = request_name(request)
         last_problem = "no reply"
@@ -214,14 +278,14 @@ class Z1100Link(LinkEngine):
                 # well: a late reply to the failed attempt, or its tail plus the head
                 # of the next reply, would decode as a wrong but "valid" reply. So
                 # before a retry the line is brought back in step with a fence.
-                self._count("retries")
+                self._engine.count("retries")
                 await self._resync(channel)
             stray = channel.discard_input()
             if stray:
                 # Late bytes (of a reply that timed out, or noise): counted and shown
                 # in the link's counters, not an event each time.
-                self._errors += 1
-                self._count("dropped_bytes", len(stray))
+                self._engine.add_error()
+                self._engine.count("dropped_bytes", len(stray))
             channel.take_timeout_late_s()  # only this attempt's own timeout may excuse it
             written = self._clock()
             await channel.write(packet)
@@ -229,25 +293,25 @@ class Z1100Link(LinkEngine):
             self._transactions += 1
             char_s = 10 / self.config.baud
             # The request's characters, and the reply's if one came (wire_busy).
-            self._wire_used((TRANSACTION_CHARS if got else codec.REQUEST_SIZE) * char_s)
+            self._engine.wire_used((TRANSACTION_CHARS if got else codec.REQUEST_SIZE) * char_s)
             if got is None:
-                self._errors += 1
+                self._engine.add_error()
                 last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
-                self._unanswered_request(self.config.reply_timeout_s)
+                self._engine.unanswered_request(self.config.reply_timeout_s)
                 continue
             reply, reply_t = got
-            self._answered()
+            self._engine.answered()
             self._last_latch_t = min(
                 written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
             )
             if reply.code & RETRYABLE:
-                self._errors += 1
+                self._engine.add_error()
                 last_problem = codec.error_message(reply.code) or "rejected"
                 continue
             if is_get and reply.code & (codec.ReplyCode.UNKNOWN_COMMAND | MOVING_BITS):
                 # Impossible for a Get: this reply answered another request.
-                self._errors += 1
-                self._count("desyncs")
+                self._engine.add_error()
+                self._engine.count("desyncs")
                 last_problem = (
                     f"reply 0x{int(reply.code):02X} belongs to another request "
                     f"({codec.error_message(reply.code) or 'unknown command'})"
@@ -259,8 +323,8 @@ class Z1100Link(LinkEngine):
                 # Every known command is known to the chip: this is the (late) answer
                 # to a fence, and the Set's own reply is still to come. Not executed
                 # as far as we know: retried after a resynchronisation.
-                self._errors += 1
-                self._count("desyncs")
+                self._engine.add_error()
+                self._engine.count("desyncs")
                 last_problem = "the reply to a fence came instead of this command's"
                 continue
             if reply.code & MOVING_BITS:
@@ -280,8 +344,8 @@ class Z1100Link(LinkEngine):
         ``fence_timeout_s``: False, and a late reply may still be on its way."""
         stray = channel.discard_input()
         if stray:
-            self._errors += 1
-            self._count("dropped_bytes", len(stray))
+            self._engine.add_error()
+            self._engine.count("dropped_bytes", len(stray))
         await channel.write(codec.make_fence().encode())
         decoder = codec.ReplyDecoder()
         deadline = self._clock() + self.config.fence_timeout_s
@@ -295,17 +359,17 @@ class Z1100Link(LinkEngine):
             for reply in decoder.feed(data):
                 if codec.is_fence_reply(reply):
                     if decoder.pending:  # bytes after the answer: noise, dropped
-                        self._count("dropped_bytes", decoder.pending)
-                    self._answered()
+                        self._engine.count("dropped_bytes", decoder.pending)
+                    self._engine.answered()
                     return True
-                self._errors += 1
-                self._count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
+                self._engine.add_error()
+                self._engine.count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
             if remaining <= 0:
                 break
-        self._errors += 1
-        self._count("fence_timeouts")
+        self._engine.add_error()
+        self._engine.count("fence_timeouts")
         if not heard:
-            self._unanswered_request()
+            self._engine.unanswered_request()
         await self._drain_quiet(channel)
         return False
 
@@ -315,8 +379,8 @@ class Z1100Link(LinkEngine):
             data = await channel.read_available(self.config.reply_timeout_s)
             if not data:
                 return
-            self._errors += 1
-            self._count("dropped_bytes", len(data))
+            self._engine.add_error()
+            self._engine.count("dropped_bytes", len(data))
 
     async def _read_reply(self, channel: ByteChannel) -> tuple[codec.Reply, float] | None:
         """The first valid reply within the reply timeout and the moment its last byte
@@ -351,21 +415,21 @@ class Z1100Link(LinkEngine):
 
     # --- session ----------------------------------------------------------------------
 
-    async def _session(self, channel: ByteChannel) -> None:
-        self._set_state("connecting", f"probing the chip on {self.path}")
+    async def run_session(self, channel: ByteChannel) -> None:
+        self._engine.set_state("connecting", f"probing the chip on {self.path}")
         channel.discard_input()
         await self._probe()
-        self._connected_once = True
-        self._set_state("connected", self._connector.description)
+        self._engine.connected_once = True
+        self._engine.set_state("connected", self._connector.description)
         while True:
-            job = self._take_job()
+            job = self._engine.take_job()
             if job is not None:
-                await self._run_job(job)
+                await self._engine.run_job(job)
                 continue
             now = self._clock()
             if not self._online:
-                await self._wait_job_or(1.0)
-                if not self.jobs_pending:
+                await self._engine.wait_job_or(1.0)
+                if not self._engine.jobs_pending:
                     await self._probe()
                 continue
             try:
@@ -384,18 +448,18 @@ class Z1100Link(LinkEngine):
                 await self._poll_failed(channel, exc)
             else:
                 self._failed_cycles = 0
-                if self._state == "error":
-                    self._set_state("connected", self._connector.description)
+                if self._engine.state == "error":
+                    self._engine.set_state("connected", self._connector.description)
 
     async def _poll_failed(self, channel: ByteChannel, exc: DriverError) -> None:
         self._failed_cycles += 1
-        self._count("desyncs")
+        self._engine.count("desyncs")
         logger.info("%s: poll failed (%s), resynchronising", self.id, exc)
         await self._resync(channel)
         if self._failed_cycles >= self.config.error_after_failures:
-            if self._state != "error":
+            if self._engine.state != "error":
                 self._sink.on_event("error", None, f"{self.id}: {exc}")
-            self._set_state("error", str(exc))
+            self._engine.set_state("error", str(exc))
 
     async def _probe(self) -> None:
         try:
@@ -407,7 +471,7 @@ class Z1100Link(LinkEngine):
                 self._sink.on_params(self.axis_id(motor.axis), values, "read")
             await self._read_status()
         except DriverError as exc:
-            if self._online or not self._connected_once:
+            if self._online or not self._engine.connected_once:
                 self._sink.on_event("warning", None, f"{self.id}: {exc}")
             self._online = False
             for motor in self._motors:
@@ -426,7 +490,7 @@ class Z1100Link(LinkEngine):
     async def _poll_cycle(self) -> None:
         self._cycle += 1
         for motor in self._motors:
-            if self.urgent_pending:
+            if self._engine.urgent_pending:
                 return
             position = codec.unpack_int32(
                 (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
@@ -500,7 +564,7 @@ class Z1100Link(LinkEngine):
                         "paused" if paused else "ok",
                         f"paused: capture on {on}" if paused else "",
                     )
-        self._wakeup.set()
+        self._engine.wake()
 
     async def _capture_step(self, captured: list[_MotorState]) -> None:
         """One sample of a captured motor: GetEncoder, GetError/GetStart when due."""
@@ -517,10 +581,10 @@ class Z1100Link(LinkEngine):
             error: int | None = None
             motor.since_error += 1
             every = CAPTURE_ERROR_EVERY_RUNNING if motor.running else CAPTURE_ERROR_EVERY
-            if not self.urgent_pending and motor.since_error >= every:
+            if not self._engine.urgent_pending and motor.since_error >= every:
                 error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
                 motor.since_error = 0
-            if not self.urgent_pending and (
+            if not self._engine.urgent_pending and (
                 self._stall_noted or t - self._last_status_t >= CAPTURE_STATUS_PERIOD_S
             ):
                 self._last_status_t = t
@@ -528,8 +592,8 @@ class Z1100Link(LinkEngine):
         finally:
             stats.wire_chars += (self._transactions - before) * TRANSACTION_CHARS
         self._failed_cycles = 0
-        if self._state == "error":
-            self._set_state("connected", self._connector.description)
+        if self._engine.state == "error":
+            self._engine.set_state("connected", self._connector.description)
         stats.samples += 1
         if motor.position is not None and motor.position_t is not None and t > motor.position_t:
             motor.velocity = (position - motor.position) / (t - motor.position_t)
@@ -621,7 +685,7 @@ class Z1100Link(LinkEngine):
         # land after its request timed out) must not wipe the state. A fence that went
         # unanswered leaves the line out of step: no verdict now, the next check asks
         # again.
-        if not await self._resync(self._require_channel()):
+        if not await self._resync(self._engine.require_channel()):
             return
         zeros = [w for w in RESET_WITNESSES if await self._read_witness(motor.axis, w) == 0]
         if len(zeros) >= 2:
@@ -642,7 +706,7 @@ class Z1100Link(LinkEngine):
         slow host without a false alarm. A fence that went unanswered confirms
         nothing: the line may still be out of step (a starved host can leave a late
         zero in the line after the fence timed out)."""
-        if not await self._resync(self._require_channel()):
+        if not await self._resync(self._engine.require_channel()):
             return False
         return await read() == 0
 
@@ -655,7 +719,7 @@ class Z1100Link(LinkEngine):
 
     async def _probe_params_only(self) -> None:
         for motor in self._motors:
-            if self.urgent_pending:
+            if self._engine.urgent_pending:
                 return  # a STOP first; the next verify step reads again
             values = await self._read_params(motor.axis)
             self._sink.on_params(self.axis_id(motor.axis), values, "read")
@@ -669,7 +733,7 @@ class Z1100Link(LinkEngine):
             assert isinstance(gains, codec.Gains)
             values.update({f"{prefix}_k": gains.k, f"{prefix}_a": gains.a, f"{prefix}_b": gains.b})
         for name, (_, getter) in _SCALAR_PARAMS.items():
-            await self._let_stops_pass()
+            await self._engine.let_stops_pass()
             values[name] = int(await self._get_int(getter, axis))
         self._motors[axis].known.update(values)
         return values
@@ -690,7 +754,7 @@ class Z1100Link(LinkEngine):
             if not any(n in values for n in names):
                 continue
             k, a, b = (values.get(n, motor.known.get(n, 0)) for n in names)
-            await self._let_stops_pass()
+            await self._engine.let_stops_pass()
             await self._request(codec.make_set_kab(axis, k, a, b, moving=moving))
             for read_prefix, command in (
                 ("kabh", codec.Command.GET_KABH),
@@ -709,7 +773,7 @@ class Z1100Link(LinkEngine):
             if name not in _SCALAR_PARAMS:
                 continue
             setter, getter = _SCALAR_PARAMS[name]
-            await self._let_stops_pass()
+            await self._engine.let_stops_pass()
             await self._request(codec.Request(setter + axis, int(value)))
             readback[name] = await self._get_int(getter, axis)
         motor.known.update(readback)
@@ -721,7 +785,7 @@ class Z1100Link(LinkEngine):
         async def job() -> dict[str, int]:
             return await self._read_params(axis)
 
-        values = await self.submit(job)
+        values = await self._engine.submit(job)
         self._sink.on_params(self.axis_id(axis), values, "read")
         return values
 
@@ -731,7 +795,7 @@ class Z1100Link(LinkEngine):
         async def job() -> dict[str, int]:
             return await self._write_params(axis, values)
 
-        readback = await self.submit(job)
+        readback = await self._engine.submit(job)
         self._sink.on_params(self.axis_id(axis), readback, source)
         return readback
 
@@ -764,7 +828,7 @@ class Z1100Link(LinkEngine):
         is_stop = (
             any(r.command is codec.Command.SET_ESTOP for r in requests) if stop is None else stop
         )
-        return await self.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
+        return await self._engine.submit(job, urgent=urgent, axis=axis, motion=True, stop=is_stop)
 
     async def op_console(self, axis: int, line: str) -> tuple[str, list[str]]:
         check_console_line(line)
@@ -774,7 +838,7 @@ class Z1100Link(LinkEngine):
             reply = await self._request(request)
             return describe_reply(request, reply)
 
-        return request_name(request), await self.submit(job, axis=axis, motion=True)
+        return request_name(request), await self._engine.submit(job, axis=axis, motion=True)
 
     def wire_limit_hz(self) -> float:
         """Samples/s per axis the wire allows: 13 bytes per transaction at 10 bits.
