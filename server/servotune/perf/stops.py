@@ -14,7 +14,12 @@ and records the shaft as the simulated device sees it until it is at rest.
   asked for, until it is at rest (counts); a limit cycle is pressed near its highest
   speed, the same worst phase for both methods (``_near_peak_speed``);
 * time: from the request until the shaft speed stays below ``REST_COUNTS_S`` (s);
-* holds: the motor is under power at the end (held by its loop).
+* holds: the motor is under power at the end (held by its loop);
+* on the wire (``wire_*``): the same from the moment the stop's first command reached
+  the simulated device, with the shaft's position and speed at that moment, as the
+  device's own process (or, for the EP7047, the exchange that carried it) recorded
+  them: what the method itself does, the host's latency left out; that latency is
+  ``wire_latency_s``.
 
 A composition root (imports simulators, drivers and the hub); used by
 ``scripts/bench_stops.py`` (the table in docs/control.md) and tests/test_stops.py
@@ -50,6 +55,8 @@ from servotune.devices.ep7047.sim.slave import (
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.axis import request_name
+from servotune.devices.z1100.codec import BadRequest, RequestDecoder
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.devices.z1100.sim.servo import AxisHardware
@@ -94,11 +101,12 @@ class Result:
     holds: bool
     sent: list[str] = field(default_factory=list)
     events: list[str] = field(default_factory=list)
-    # From the exchange that carried the stop to the drive (the host's latency left
-    # out: what the method itself does); None where the rig cannot see it (serial).
+    # From the stop's arrival at the device (the host's latency left out: what the
+    # method itself does); None where the stop was not seen on the wire.
     wire_latency_s: float | None = None
     wire_distance_counts: float | None = None
     wire_speed_counts_s: float | None = None
+    wire_time_s: float | None = None  # from the arrival until at rest
 
 
 SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
@@ -144,26 +152,45 @@ class _TracedMaster(SimulatedEthercatMaster):
         return wkc
 
 
+def _wire_text(text: str) -> str:
+    """A command as the trace compares it: no spaces, lower case."""
+    return text.replace(" ", "").lower()
+
+
 class _Trace:
     """A ``SimDevice`` wrapper that records the shaft (host monotonic time, position in
-    counts, speed in counts/s) of one axis every time the device is advanced. It runs
-    in the simulator's process; the bench reads it with ``points_since`` and
-    ``powered`` (``SimProcess.request("device", ...)``). The monotonic clock is the
-    host's, the same in every process."""
+    counts, speed in counts/s) of one axis every time the device is advanced, and every
+    command the host sent (``decode`` turns host bytes into the driver's own text of
+    each completed command) with the time it reached the device and the shaft there.
+    It runs in the simulator's process; the bench reads it with ``points_since``,
+    ``arrival`` and ``powered`` (``SimProcess.request("device", ...)``). The monotonic
+    clock is the host's, the same in every process."""
 
     def __init__(
         self,
         device: Any,
         read: Callable[[], tuple[float, float]],
         powered: Callable[[], bool],
+        decode: Callable[[int], list[str]],
     ) -> None:
         self.device = device
         self._read = read
         self._powered = powered
+        self._decode = decode
         self.points: list[tuple[float, float, float]] = []
+        self.commands: list[tuple[float, str, float, float]] = []
 
     def points_since(self, start: int) -> list[tuple[float, float, float]]:
         return self.points[start:]
+
+    def arrival(self, texts: list[str], since: float) -> tuple[float, float, float] | None:
+        """(time, position, speed) when the first of ``texts`` reached the device at or
+        after ``since``; None if none did."""
+        wanted = {_wire_text(text) for text in texts}
+        for t, text, position, speed in self.commands:
+            if t >= since and text in wanted:
+                return t, position, speed
+        return None
 
     def powered(self) -> bool:
         return self._powered()
@@ -175,8 +202,45 @@ class _Trace:
         return out
 
     def receive(self, byte: int) -> bytes:
+        texts = self._decode(byte)
+        if texts:
+            # The device has been advanced to this byte's arrival: the shaft as the
+            # command finds it, before the device acts on it.
+            position, speed = self._read()
+            t = time.monotonic()
+            self.commands.extend((t, _wire_text(text), position, speed) for text in texts)
         out: bytes = self.device.receive(byte)
         return out
+
+
+class _Slap2Lines:
+    """The host's SLAP2 command lines, as the module reads them (CR ends a line, Ctrl-X
+    discards it)."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+
+    def __call__(self, byte: int) -> list[str]:
+        if byte == 0x0D:
+            line = self._buffer.decode("latin-1")
+            self._buffer.clear()
+            return [line]
+        if byte == 0x18:
+            self._buffer.clear()
+        elif byte >= 0x20:
+            self._buffer.append(byte)
+        return []
+
+
+class _Z1100Requests:
+    """The host's Z1100 requests, named as the driver names what it sent."""
+
+    def __init__(self) -> None:
+        self._decoder = RequestDecoder()
+
+    def __call__(self, byte: int) -> list[str]:
+        events = self._decoder.feed(bytes((byte,)))
+        return [request_name(e) for e in events if not isinstance(e, BadRequest)]
 
 
 def _slap2_bus() -> Slap2Bus:
@@ -191,7 +255,8 @@ def _slap2_bus() -> Slap2Bus:
 
 Trace = Callable[[], Awaitable[list[tuple[float, float, float]]]]
 Powered = Callable[[], Awaitable[bool]]
-Reached = Callable[[Method, float], "float | None"]
+# (method, asked at, the commands it sent) -> (time, position, speed) at its arrival
+Reached = Callable[[Method, float, list[str]], Awaitable["tuple[float, float, float] | None"]]
 
 
 def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
@@ -204,6 +269,7 @@ def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
             bus,
             lambda: (float(module.motor.count), module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD),
             lambda: bool(module.rss & 0b1100),  # pm or vm
+            _Slap2Lines(),
         )
     flash = data_dir / "z1100_flash.json"
     write_demo_flash(flash)
@@ -220,7 +286,7 @@ def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
         state = chip.axis_state(address)
         return float(state.encoder_counts), float(state.speed_counts_s)
 
-    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered))
+    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered), _Z1100Requests())
 
 
 class _RemoteTrace:
@@ -241,6 +307,14 @@ class _RemoteTrace:
     async def powered(self) -> bool:
         return bool(await asyncio.to_thread(self._process.request, "device", method="powered"))
 
+    async def reached(
+        self, method: Method, since: float, sent: list[str]
+    ) -> tuple[float, float, float] | None:
+        found = await asyncio.to_thread(
+            self._process.request, "device", method="arrival", texts=sent, since=since
+        )
+        return None if found is None else (found[0], found[1], found[2])
+
 
 @contextlib.asynccontextmanager
 async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Powered, Reached]]:
@@ -252,7 +326,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
     master: _TracedMaster | None = None
     trace: Trace
     powered: Powered
-    reached: Reached = lambda method, since: None  # noqa: E731
+    reached: Reached
     if case.device in ("slap2", "z1100"):
         baud, addresses = (19200, [0, 1]) if case.device == "slap2" else (9600, [0, 1, 2])
         sim = SerialSimSpec(
@@ -263,7 +337,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
         process = SimProcess(sim.name, serve_serial, sim)
         await asyncio.to_thread(process.start)
         remote = _RemoteTrace(process)
-        trace, powered = remote.trace, remote.powered
+        trace, powered, reached = remote.trace, remote.powered, remote.reached
         spec = LinkSpec(case.device, process.ready["path"], "bench", baud, addresses, 512)
     else:
         drive = demo_slave()
@@ -276,15 +350,20 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
         master = _TracedMaster([drive], lambda: (plant.shaft_counts, plant.speed_counts_s))
         traced = master
 
-        def reached_on_wire(method: Method, since: float) -> float | None:
+        async def reached_on_wire(
+            method: Method, since: float, sent: list[str]
+        ) -> tuple[float, float, float] | None:
             for exchange in list(drive.history):
                 if exchange.t < since:
                     continue
                 outputs = exchange.outputs
-                if method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP:
-                    return exchange.t
-                if method == "power off" and not outputs.stm_control & StmControl.ENABLE:
-                    return exchange.t
+                if (method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP) or (
+                    method == "power off" and not outputs.stm_control & StmControl.ENABLE
+                ):
+                    # The first point after that exchange: the shaft as the stop found
+                    # it (the drive acts on new outputs from the exchange on).
+                    after = [p for p in traced.points if p[0] >= exchange.t]
+                    return (exchange.t, after[0][1], after[0][2]) if after else None
             return None
 
         async def local_trace() -> list[tuple[float, float, float]]:
@@ -454,14 +533,16 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 outcome.sent,
                 events,
             )
-            on_wire = reached(method, asked)
-            after = [p for p in await trace() if on_wire is not None and p[0] >= on_wire]
-            if on_wire is not None and after:
-                # The first point after that exchange: the shaft as the stop found it
-                # (the drive acts on new outputs from the exchange on).
-                _, position1, result.wire_speed_counts_s = after[0]
-                result.wire_latency_s = on_wire - asked
-                result.wire_distance_counts = max(abs(p[1] - position1) for p in after)
+            on_wire = await reached(method, asked, outcome.sent)
+            if on_wire is not None:
+                t1, position1, result.wire_speed_counts_s = on_wire
+                after = [p for p in await trace() if p[0] >= t1]
+                result.wire_latency_s = t1 - asked
+                result.wire_distance_counts = max(
+                    (abs(p[1] - position1) for p in after), default=0.0
+                )
+                if rested_at is not None:
+                    result.wire_time_s = max(rested_at, t1) - t1
             return result
 
 
