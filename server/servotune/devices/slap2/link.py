@@ -621,6 +621,7 @@ class Slap2Link(Slap2Wire):
         """An exchange with ``module`` succeeded: the line works, and so does it."""
         if self._channel is not None:
             self._channel.take_timeout_late_s()  # timeouts before it excuse no later one
+        self._device_answered()
         self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0
