@@ -62,25 +62,33 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
 ) -> None:
     off = await stopbench.measure(plant, "power off")
     stop = await stopbench.measure(plant, "STOP")
-    # Each stop is taken from its arrival at the device, with the shaft's state there, as
-    # the device's own process recorded it: the host's latency (this test process runs
-    # the hub, beside whatever else loads the machine) is not the method's distance.
     for trial in (off, stop):
         assert trial.wire_latency_s is not None, f"the stop never reached the device: {trial}"
-        assert trial.wire_latency_s >= 0 and trial.wire_distance_counts is not None, trial
-        assert trial.wire_speed_counts_s is not None and trial.wire_time_s is not None, trial
+        assert trial.wire_distance_counts is not None and trial.wire_time_s is not None, trial
         assert trial.time_s is not None, f"not at rest within {stopbench.MAX_STOP_S} s: {trial}"
-        assert abs(trial.wire_speed_counts_s) > 20_000, trial
-    assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
-    assert stop.wire_speed_counts_s and off.wire_speed_counts_s
-    assert stop.wire_time_s is not None and off.wire_time_s is not None
-    # Two trials never reach the device at quite the same speed: the distance per unit of
-    # starting speed is compared (a stopping time: the same at any speed for a damped
-    # stop, shorter for a coast that friction ends, so the comparison never favours the
-    # STOP).
-    stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
-    off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
-    assert stop.wire_time_s <= off.wire_time_s, (stop, off)
+    # Two trials never start at quite the same speed: the distance per unit of starting
+    # speed is compared (a stopping time: the same at any speed for a damped stop,
+    # shorter for a coast that friction ends, so the comparison never favours the STOP).
+    if plant.state == "top speed":
+        # From the stop's arrival at the device, with the shaft's state there, as the
+        # device's own process recorded it: the host's latency (this test process runs
+        # the hub, beside whatever else loads the machine) is not the method's distance.
+        assert stop.wire_speed_counts_s and off.wire_speed_counts_s
+        assert min(abs(off.wire_speed_counts_s), abs(stop.wire_speed_counts_s)) > 20_000
+        assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
+        stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
+        off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
+        assert stop.wire_time_s is not None and off.wire_time_s is not None
+        assert stop.wire_time_s <= off.wire_time_s, (stop, off)
+    else:
+        # A limit cycle is pressed near its peak speed as the host sees it; where the
+        # cycle is when the stop arrives is the host's latency's (a standstill at a
+        # reversal, now and then, on a loaded host), so it is compared from the press,
+        # with the speed aimed at: the latency moves the shaft within the cycle only.
+        assert min(abs(off.speed_counts_s), abs(stop.speed_counts_s)) > 20_000, (off, stop)
+        stop_s = stop.distance_counts / abs(stop.speed_counts_s)
+        off_s = off.distance_counts / abs(off.speed_counts_s)
+        assert stop.time_s <= off.time_s, (stop, off)
     assert stop_s <= ratio * off_s, (stop, off)
     if plant.state == "limit cycle":
         # Not trusted to hold: braked, then unpowered once at rest.

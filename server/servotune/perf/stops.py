@@ -15,11 +15,11 @@ and records the shaft as the simulated device sees it until it is at rest.
   speed, the same worst phase for both methods (``_near_peak_speed``);
 * time: from the request until the shaft speed stays below ``REST_COUNTS_S`` (s);
 * holds: the motor is under power at the end (held by its loop);
-* on the wire (``wire_*``): the same from the moment the stop's first command reached
-  the simulated device, with the shaft's position and speed at that moment, as the
-  device's own process (or, for the EP7047, the exchange that carried it) recorded
-  them: what the method itself does, the host's latency left out; that latency is
-  ``wire_latency_s``.
+* on the wire (``wire_*``): the same from the moment the stop reached the simulated
+  device (the host byte that changed what the axis does, or for the EP7047 the
+  exchange that carried it), with the shaft's position and speed at that moment, as
+  the device's own process recorded them: what the method itself does, the host's
+  latency left out; that latency is ``wire_latency_s``.
 
 A composition root (imports simulators, drivers and the hub); used by
 ``scripts/bench_stops.py`` (the table in docs/control.md) and tests/test_stops.py
@@ -55,8 +55,6 @@ from servotune.devices.ep7047.sim.slave import (
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.devices.z1100.axis import request_name
-from servotune.devices.z1100.codec import BadRequest, RequestDecoder
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.devices.z1100.sim.servo import AxisHardware
@@ -152,45 +150,36 @@ class _TracedMaster(SimulatedEthercatMaster):
         return wkc
 
 
-def _wire_text(text: str) -> str:
-    """A command as the trace compares it: no spaces, lower case."""
-    return text.replace(" ", "").lower()
-
-
 class _Trace:
     """A ``SimDevice`` wrapper that records the shaft (host monotonic time, position in
     counts, speed in counts/s) of one axis every time the device is advanced, and every
-    command the host sent (``decode`` turns host bytes into the driver's own text of
-    each completed command) with the time it reached the device and the shaft there.
-    It runs in the simulator's process; the bench reads it with ``points_since``,
-    ``arrival`` and ``powered`` (``SimProcess.request("device", ...)``). The monotonic
-    clock is the host's, the same in every process."""
+    change of the axis' ``mode`` (what it was told to do: powered, held, braked...) that
+    a host byte caused, with the time that byte reached the device and the shaft there:
+    where a stop arrived. It runs in the simulator's process; the bench reads it with
+    ``points_since``, ``arrival`` and ``powered`` (``SimProcess.request("device",
+    ...)``). The monotonic clock is the host's, the same in every process."""
 
     def __init__(
         self,
         device: Any,
         read: Callable[[], tuple[float, float]],
         powered: Callable[[], bool],
-        decode: Callable[[int], list[str]],
+        mode: Callable[[], object],
     ) -> None:
         self.device = device
         self._read = read
         self._powered = powered
-        self._decode = decode
+        self._mode = mode
         self.points: list[tuple[float, float, float]] = []
-        self.commands: list[tuple[float, str, float, float]] = []
+        self.changes: list[tuple[float, float, float]] = []
 
     def points_since(self, start: int) -> list[tuple[float, float, float]]:
         return self.points[start:]
 
-    def arrival(self, texts: list[str], since: float) -> tuple[float, float, float] | None:
-        """(time, position, speed) when the first of ``texts`` reached the device at or
-        after ``since``; None if none did."""
-        wanted = {_wire_text(text) for text in texts}
-        for t, text, position, speed in self.commands:
-            if t >= since and text in wanted:
-                return t, position, speed
-        return None
+    def arrival(self, since: float) -> tuple[float, float, float] | None:
+        """(time, position, speed) of the first change of mode at or after ``since``;
+        None if there was none."""
+        return next((change for change in self.changes if change[0] >= since), None)
 
     def powered(self) -> bool:
         return self._powered()
@@ -202,45 +191,14 @@ class _Trace:
         return out
 
     def receive(self, byte: int) -> bytes:
-        texts = self._decode(byte)
-        if texts:
-            # The device has been advanced to this byte's arrival: the shaft as the
-            # command finds it, before the device acts on it.
-            position, speed = self._read()
-            t = time.monotonic()
-            self.commands.extend((t, _wire_text(text), position, speed) for text in texts)
+        before = self._mode()
         out: bytes = self.device.receive(byte)
+        if self._mode() != before:
+            # The device had been advanced to this byte's arrival and acts on it at
+            # once: the shaft as the command found it.
+            position, speed = self._read()
+            self.changes.append((time.monotonic(), position, speed))
         return out
-
-
-class _Slap2Lines:
-    """The host's SLAP2 command lines, as the module reads them (CR ends a line, Ctrl-X
-    discards it)."""
-
-    def __init__(self) -> None:
-        self._buffer = bytearray()
-
-    def __call__(self, byte: int) -> list[str]:
-        if byte == 0x0D:
-            line = self._buffer.decode("latin-1")
-            self._buffer.clear()
-            return [line]
-        if byte == 0x18:
-            self._buffer.clear()
-        elif byte >= 0x20:
-            self._buffer.append(byte)
-        return []
-
-
-class _Z1100Requests:
-    """The host's Z1100 requests, named as the driver names what it sent."""
-
-    def __init__(self) -> None:
-        self._decoder = RequestDecoder()
-
-    def __call__(self, byte: int) -> list[str]:
-        events = self._decoder.feed(bytes((byte,)))
-        return [request_name(e) for e in events if not isinstance(e, BadRequest)]
 
 
 def _slap2_bus() -> Slap2Bus:
@@ -256,7 +214,7 @@ def _slap2_bus() -> Slap2Bus:
 Trace = Callable[[], Awaitable[list[tuple[float, float, float]]]]
 Powered = Callable[[], Awaitable[bool]]
 # (method, asked at, the commands it sent) -> (time, position, speed) at its arrival
-Reached = Callable[[Method, float, list[str]], Awaitable["tuple[float, float, float] | None"]]
+Reached = Callable[[Method, float], Awaitable["tuple[float, float, float] | None"]]
 
 
 def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
@@ -269,7 +227,7 @@ def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
             bus,
             lambda: (float(module.motor.count), module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD),
             lambda: bool(module.rss & 0b1100),  # pm or vm
-            _Slap2Lines(),
+            lambda: module.rss & 0b1100,  # pm, vm, or neither (off or pwm)
         )
     flash = data_dir / "z1100_flash.json"
     write_demo_flash(flash)
@@ -286,7 +244,11 @@ def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
         state = chip.axis_state(address)
         return float(state.encoder_counts), float(state.speed_counts_s)
 
-    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered), _Z1100Requests())
+    def mode() -> tuple[bool, bool, int]:
+        state = chip.axis_state(address)
+        return state.powered, state.stopped_by_command, state.job
+
+    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered), mode)
 
 
 class _RemoteTrace:
@@ -307,11 +269,9 @@ class _RemoteTrace:
     async def powered(self) -> bool:
         return bool(await asyncio.to_thread(self._process.request, "device", method="powered"))
 
-    async def reached(
-        self, method: Method, since: float, sent: list[str]
-    ) -> tuple[float, float, float] | None:
+    async def reached(self, method: Method, since: float) -> tuple[float, float, float] | None:
         found = await asyncio.to_thread(
-            self._process.request, "device", method="arrival", texts=sent, since=since
+            self._process.request, "device", method="arrival", since=since
         )
         return None if found is None else (found[0], found[1], found[2])
 
@@ -351,7 +311,7 @@ async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Po
         traced = master
 
         async def reached_on_wire(
-            method: Method, since: float, sent: list[str]
+            method: Method, since: float
         ) -> tuple[float, float, float] | None:
             for exchange in list(drive.history):
                 if exchange.t < since:
@@ -533,7 +493,7 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 outcome.sent,
                 events,
             )
-            on_wire = await reached(method, asked, outcome.sent)
+            on_wire = await reached(method, asked)
             if on_wire is not None:
                 t1, position1, result.wire_speed_counts_s = on_wire
                 after = [p for p in await trace() if p[0] >= t1]
