@@ -9,7 +9,6 @@ table of every demo plant is ``scripts/bench_stops.py`` (docs/control.md).
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import math
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -17,13 +16,11 @@ from typing import Any
 
 import pytest
 
-from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.perf import stops as stopbench
-from servotune.sim.physics import DcMotorParams
-from servotune.sim.pty import PtySimulator
 
+from . import sim_lines
+from .conftest import simulator_process
 from .test_api import LiveServer, live_server
 from .test_bench import finished_run, start
 
@@ -107,21 +104,11 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
 
 @pytest.fixture
 async def demo_line(tmp_path: Path) -> AsyncIterator[LiveServer]:
-    """The demo's SLAP2 line (module 1 carries the load), without limit switches."""
-    free: dict[str, Any] = {"limit1_count": None, "limit2_count": None}
-    bus = Slap2Bus(
-        [
-            Slap2Module(0, params=DcMotorParams(**free)),
-            Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),
-        ]
-    )
-    simulator = PtySimulator(bus, baud=19200)
-    simulator.start()
-    try:
+    """The demo's SLAP2 line (module 1 carries the load), without limit switches, in a
+    simulator process of its own."""
+    with simulator_process("slap2-demo", sim_lines.demo_bus, 19200) as (simulator, bus):
         async with live_server(simulator, bus, tmp_path / "data") as server:
             yield server
-    finally:
-        simulator.stop()
 
 
 async def command(server: LiveServer, axis: str, name: str, **args: int) -> dict[str, Any]:
