@@ -8,7 +8,6 @@ Every axis starts from deliberately mediocre gains (KABH = KABD = K 8, A 16, B 8
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +18,6 @@ import pytest
 from servotune.autotune.verdict import verdict_z1100, verdict_z1100_with_reason
 from servotune.config import LinkSpec
 from servotune.devices.z1100 import codec
-from servotune.devices.z1100.codec import Gains
 from servotune.devices.z1100.gain_rule import propose_kab
 from servotune.devices.z1100.law import (
     Kab,
@@ -29,8 +27,7 @@ from servotune.devices.z1100.law import (
     simulate_move,
 )
 from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
-from servotune.devices.z1100.sim.servo import AxisParameters
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import interpolate
@@ -72,17 +69,8 @@ def _physics_plant(load_kg_m2: float) -> Z1100Plant:
 def _chip_move(axis: int, gains: Kab, tmp_path: Path) -> tuple[list[float], list[float]]:
     """Following error every 1 ms of a 10 000-count move on the sans-IO chip."""
     flash = tmp_path / f"flash_{axis}.json"
-    g = Gains(gains.k, gains.a, gains.b)
-    params = AxisParameters(
-        kabh=g,
-        kabd=g,
-        vmax_counts_s=100_000,
-        acc_counts_s2=1_000_000,
-        limit_counts=4000,
-        hvm_counts_s=20_000,
-        hac_counts_s2=200_000,
-    )
-    flash.write_text(json.dumps({"axes": [params.to_json()] * 3}))
+    kab = (gains.k, gains.a, gains.b)
+    write_demo_flash(flash, [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2))
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash)
     t = 0.0
     requests = (
@@ -151,19 +139,8 @@ def test_verdict() -> None:
 @contextlib.contextmanager
 def chip_line(tmp_path: Path) -> Iterator[PtySimulator]:
     flash = tmp_path / "flash.json"
-    axes = [
-        AxisParameters(
-            kabh=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            kabd=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            vmax_counts_s=100_000,
-            acc_counts_s2=1_000_000,
-            limit_counts=4000,
-            hvm_counts_s=20_000,
-            hac_counts_s2=200_000,
-        ).to_json()
-        for _ in Z1100_LOADS_KG_M2
-    ]
-    flash.write_text(json.dumps({"axes": axes}))
+    kab = (MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b)
+    write_demo_flash(flash, [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2))
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=BAUD)
     simulator = PtySimulator(chip, baud=BAUD)
     simulator.start()
