@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
+import multiprocessing
 import threading
 import time
 from collections import defaultdict
@@ -19,11 +21,14 @@ from hypothesis import settings
 import servotune.tuning.threads  # noqa: F401
 from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.line import Slap2Bus
-from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import Sample
 from servotune.schema import AxisHealth, EventLevel, LinkState
+from servotune.sim.base import SimDevice
+from servotune.sim.process import Remote, SerialSimSpec, SimProcess, serve_serial
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
+
+from . import sim_lines
 
 # No per-example deadline for hypothesis anywhere: its 200 ms default is a machine-speed
 # limit, and on a loaded host a 24-byte codec round trip took 1.1 s once (a false
@@ -99,17 +104,35 @@ async def wait_for(
         await asyncio.sleep(0.02)
 
 
+# The test simulators' processes are forks of multiprocessing's fork server (started
+# clean once per session), which has the simulators imported already.
+multiprocessing.set_forkserver_preload(["servotune.sim.process", sim_lines.__name__])
+
+
+@contextlib.contextmanager
+def simulator_process(
+    name: str, build: Callable[[], SimDevice], baud: int, link_path: str | None = None
+) -> Iterator[tuple[Remote, Remote]]:
+    """``build()`` (picklable) on a pty in a process of its own, scheduled as the demo's
+    simulators are (its own session, real-time priority where granted), so that a
+    loaded test process cannot starve the device. Yields (its ``PtySimulator``, the
+    device), both as :class:`Remote` views read through the process' lifeline."""
+    spec = SerialSimSpec(name, build, baud, link_path=link_path)
+    with SimProcess(name, serve_serial, spec, start_method="forkserver") as process:
+        yield Remote(process, "simulator"), Remote(process, "device")
+
+
 @contextlib.contextmanager
 def running_simulator(
     addresses: list[int], tmp_path: Path, *, baud: int = 19200, link_path: str | None = None
-) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
-    simulator = PtySimulator(bus, baud=baud, link_path=link_path)
-    simulator.start()
-    try:
-        yield simulator, bus
-    finally:
-        simulator.stop()
+) -> Iterator[tuple[Remote, Remote]]:
+    """SLAP2 modules at ``addresses`` on a pty, in a process of their own
+    (``simulator_process``): its ``PtySimulator`` and ``Slap2Bus`` as ``Remote`` views.
+    A test that must reach into a simulator's internals (a closure on its thread, a
+    patched method) runs a ``PtySimulator`` of its own."""
+    build = functools.partial(sim_lines.slap2_bus, addresses, tmp_path)
+    with simulator_process("slap2-line", build, baud, link_path) as pair:
+        yield pair
 
 
 @pytest.fixture

@@ -1,8 +1,8 @@
 """Helpers for the control-lock tests and ``scripts/bench_deadman.py``.
 
-``WireRecorder`` wraps a simulated SLAP2 bus and records every line the host sent, with
-the wall-clock time it reached the simulated device and the module selected then: the
-simulated device's own record of the wire. ``RawWebsocket`` is a minimal websocket
+``recorded_line``: a simulated SLAP2 line behind a ``WireRecorder`` (``sim_lines``: every
+line the host sent, with the time it reached the simulated device and the module
+selected then), in a simulator process of its own. ``RawWebsocket`` is a minimal websocket
 client on a raw TCP socket, so a test can vanish without a close frame (RST via
 SO_LINGER 0) or simply go silent. ``Operator`` is a well-behaved tab (heartbeats).
 """
@@ -12,13 +12,13 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import functools
 import json
 import os
 import shutil
 import socket
 import struct
 import subprocess
-import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
@@ -33,67 +33,24 @@ from websockets.typing import Origin
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Bus
-from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.hub.control_lock import CLIENT_HEADER, ControlSettings
-from servotune.sim.pty import PtySimulator
+from servotune.sim.process import Remote
 
-from .conftest import use_csrf_token
+from .conftest import simulator_process, use_csrf_token
+from .sim_lines import WireRecorder, recorded_bus
 
 CR = 0x0D
 CTRL_X = 0x18
 
 
-class WireRecorder:
-    """A ``SimDevice`` that passes everything to a ``Slap2Bus`` and records host lines."""
-
-    def __init__(self, bus: Slap2Bus) -> None:
-        self.bus = bus
-        self.lines: list[tuple[float, int | None, str]] = []
-        self._buffer = bytearray()
-        self._selected: int | None = None
-        self._lock = threading.Lock()
-
-    def advance_to(self, t_s: float) -> bytes:
-        return self.bus.advance_to(t_s)
-
-    def receive(self, byte: int) -> bytes:
-        if byte == CR:
-            line = self._buffer.decode("latin-1").replace(" ", "").lower()
-            self._buffer.clear()
-            if line.startswith("se") and line[2:].isdigit():
-                self._selected = int(line[2:])
-            with self._lock:
-                self.lines.append((time.monotonic(), self._selected, line))
-        elif byte == CTRL_X:
-            self._buffer.clear()  # the module discards the line typed so far, so do we
-        elif byte >= 0x20:
-            self._buffer.append(byte)
-        return self.bus.receive(byte)
-
-    def since(self, t: float, address: int | None = None) -> list[tuple[float, str]]:
-        with self._lock:
-            lines = list(self.lines)
-        return [(at, line) for at, sel, line in lines if at >= t and address in (None, sel)]
-
-    def first(self, line: str, address: int, after: float) -> float | None:
-        for at, sent in self.since(after, address):
-            if sent == line:
-                return at
-        return None
-
-
 @contextlib.contextmanager
-def recorded_line(
-    tmp_path: Path, addresses: list[int]
-) -> Iterator[tuple[PtySimulator, WireRecorder]]:
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
-    recorder = WireRecorder(bus)
-    simulator = PtySimulator(recorder, baud=19200, link_path=str(tmp_path / "tty"))
-    simulator.start()
-    try:
-        yield simulator, recorder
-    finally:
-        simulator.stop()
+def recorded_line(tmp_path: Path, addresses: list[int]) -> Iterator[tuple[Remote, Remote]]:
+    """SLAP2 modules at ``addresses`` behind a ``WireRecorder``, in a simulator process
+    of their own (``conftest.simulator_process``): its ``PtySimulator`` and the
+    recorder as ``Remote`` views."""
+    build = functools.partial(recorded_bus, addresses, tmp_path)
+    with simulator_process("slap2-recorded", build, 19200, str(tmp_path / "tty")) as pair:
+        yield pair
 
 
 @dataclass

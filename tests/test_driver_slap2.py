@@ -15,6 +15,7 @@ from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.modules import LINE_ERROR_SPAN_S
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
+from servotune.link.engine import HOST_STALL_EXCUSE_S
 from servotune.transports.serial import SerialConnector
 
 from .conftest import (
@@ -342,6 +343,33 @@ def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
         channel.late_s = 0.01
         link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
     assert sink.states[-1][0] == "error"
+
+
+def test_a_host_stalled_all_the_time_still_shows_a_cut_line() -> None:
+    """Every timeout noticed late (a host that never stops stalling) and no answer: the
+    stalls excuse the failures for HOST_STALL_EXCUSE_S from the first of them, then they
+    count and the line shows ``error``; an answer starts a new excuse."""
+    link, sink, now = _rule_link()
+    module = link.module_state(0)
+    channel = _StalledHostChannel()
+    link._channel = channel  # type: ignore[assignment]
+
+    def timeout_at(t: float) -> None:
+        now.append(t)
+        channel.late_s = 0.4
+        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+
+    for t in (100.0, 100.5, 101.0, 101.5, 101.9):
+        timeout_at(t)
+    assert not sink.states and link.counters["host_stalls"] == 5
+    link._module_answered(module)  # the device answered: a new excuse from the next
+    for t in (102.0, 102.5, 103.0, 103.5, 103.9):
+        timeout_at(t)
+    assert not sink.states and link.counters["host_stalls"] == 10
+    for t in (102.0 + HOST_STALL_EXCUSE_S, 104.2, 104.4):
+        timeout_at(t)
+    assert sink.states[-1][0] == "error", sink.states
+    assert link.counters["host_stalls"] == 10
 
 
 def test_a_dead_line_is_an_error_at_its_third_timeout() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import os
 import signal
 import subprocess
@@ -32,7 +33,8 @@ from servotune.devices.ep7047.sim.process import (
 from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
 from servotune.sim.process import SimProcess, SimProcessError
 
-from .conftest import RecordingSink, wait_for
+from . import sim_lines
+from .conftest import RecordingSink, simulator_process, wait_for
 
 SERVER = Path(__file__).resolve().parents[1] / "server"
 
@@ -281,3 +283,19 @@ def test_binary_sdo_read_gives_what_the_json_request_gives(tmp_path: Path) -> No
             assert binary_abort.value.abort_code == json_abort.value.abort_code != 0
         finally:
             master.close()
+
+
+def test_a_remote_reads_the_device_in_its_process_and_refuses_to_write_a_copy(
+    tmp_path: Path,
+) -> None:
+    build = functools.partial(sim_lines.slap2_bus, [0], tmp_path)
+    with simulator_process("remote", build, 19200) as (simulator, bus):
+        assert simulator.baud == 19200 and simulator.path.startswith("/dev/")
+        module = bus.module(0)
+        assert module.settings["kp"] == 40 and module.rss == bus.module(0).rss
+        with pytest.raises(TypeError):
+            module.settings["kp"] = 1  # a copy: refused, not silently lost
+        module.motor.external_torque_nm = 0.01  # set in the device itself
+        assert module.motor.external_torque_nm == 0.01
+        with pytest.raises(SimProcessError, match="no_such_thing"):
+            _ = bus.no_such_thing

@@ -14,7 +14,12 @@ and records the shaft as the simulated device sees it until it is at rest.
   asked for, until it is at rest (counts); a limit cycle is pressed near its highest
   speed, the same worst phase for both methods (``_near_peak_speed``);
 * time: from the request until the shaft speed stays below ``REST_COUNTS_S`` (s);
-* holds: the motor is under power at the end (held by its loop).
+* holds: the motor is under power at the end (held by its loop);
+* on the wire (``wire_*``): the same from the moment the stop's first command reached
+  the simulated device, with the shaft's position and speed at that moment, as the
+  device's own process (or, for the EP7047, the exchange that carried it) recorded
+  them: what the method itself does, the host's latency left out; that latency is
+  ``wire_latency_s``.
 
 A composition root: the hub is built here, each device's plant, link and shaft trace
 come from its registry entry (``SimulatorEntry.stop_rig``); used by
@@ -78,6 +83,7 @@ class Result:
     wire_latency_s: float | None = None
     wire_distance_counts: float | None = None
     wire_speed_counts_s: float | None = None
+    wire_time_s: float | None = None  # from the arrival until at rest
 
 
 SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
@@ -277,6 +283,8 @@ async def measure(
                 result.wire_distance_counts = max(
                     (abs(p[1] - position1) for p in after), default=0.0
                 )
+                if rested_at is not None:
+                    result.wire_time_s = max(rested_at, t1) - t1
             return result
 
 

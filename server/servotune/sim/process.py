@@ -13,7 +13,9 @@ pipe to it:
 * the child reports ``ready`` with what the host must open (a pty path, or the
   ``sim:`` address of the EtherCAT simulator) and then serves small requests on the
   pipe (``stop``, ``record``, fault injection; a serial device's own methods with
-  ``device``, for measurements that watch the device itself);
+  ``device``, for measurements that watch the device itself; any attribute or method
+  of the device or of its ``PtySimulator`` with ``inspect``, which :class:`Remote`
+  wraps so that a test reads the device as if it ran in its own process);
 * the child watches the pipe: when the parent ends for whatever reason - a normal
   shutdown, a crash, SIGKILL - its end of the pipe is closed by the kernel, the child
   reads end-of-file and shuts down (closes its pty or socket) within
@@ -44,13 +46,14 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import TracebackType
-from typing import Any
+from types import MappingProxyType, TracebackType
+from typing import Any, Literal
 
 from servotune.sim.base import SimDevice
 from servotune.sim.pty import PtySimulator, device_scheduling
@@ -79,13 +82,15 @@ class SimProcessError(RuntimeError):
 class SerialSimSpec:
     """What ``serve_serial`` runs: ``build()`` makes the device (it must be picklable:
     a module-level function or a ``functools.partial`` of one), on a pty at ``baud``.
-    ``record`` turns the device into the JSON record (see the module docstring)."""
+    ``record`` turns the device into the JSON record (see the module docstring);
+    ``link_path``: a stable symlink to the pty (``PtySimulator``)."""
 
     name: str
     build: Callable[[], SimDevice]
     baud: int
     record: Callable[[Any], dict[str, Any]] | None = None
     record_path: Path | None = None
+    link_path: str | None = None
 
 
 class SimProcess:
@@ -93,15 +98,29 @@ class SimProcess:
 
     ``target(spec, conn)`` runs in the child (module-level, picklable); it must send
     one ``{"ready": ...}`` dict on ``conn`` and then call :func:`serve_lifeline`.
-    Use as a context manager, or ``start()`` / ``stop()``.
+    Use as a context manager, or ``start()`` / ``stop()``. ``start_method``:
+    ``spawn`` (a fresh interpreter), or ``forkserver`` (a fork of multiprocessing's fork
+    server, which starts clean once and imports what ``set_forkserver_preload`` names:
+    for many short-lived simulators, e.g. one per test).
     """
 
-    def __init__(self, name: str, target: Callable[[Any, Connection], None], spec: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        target: Callable[[Any, Connection], None],
+        spec: Any,
+        *,
+        start_method: Literal["spawn", "forkserver"] = "spawn",
+    ) -> None:
         self.name = name
         self._target = target
         self._spec = spec
+        self._start_method = start_method
         self._process: multiprocessing.process.BaseProcess | None = None
         self._conn: Connection | None = None
+        # One request at a time on the pipe (callers may be on several threads).
+        self._lock = threading.Lock()
+        self._sent = 0
         self.ready: dict[str, Any] = {}
 
     @property
@@ -116,7 +135,11 @@ class SimProcess:
         """Spawn the child and wait for its ``ready`` message (returned)."""
         if self._process is not None:
             raise RuntimeError(f"simulator {self.name} already started")
-        context = multiprocessing.get_context("spawn")
+        context: multiprocessing.context.SpawnContext | multiprocessing.context.ForkServerContext
+        if self._start_method == "forkserver":
+            context = multiprocessing.get_context("forkserver")
+        else:
+            context = multiprocessing.get_context("spawn")
         parent_conn, child_conn = context.Pipe()
         process = context.Process(
             target=_child_main,
@@ -150,16 +173,23 @@ class SimProcess:
 
     def request(self, op: str, timeout_s: float = REQUEST_TIMEOUT_S, **args: Any) -> Any:
         """Run ``op`` in the child (its handlers); returns the result or raises."""
-        conn = self._conn
-        if conn is None or not self.alive:
-            raise SimProcessError(f"simulator {self.name} is not running")
-        try:
-            conn.send({"op": op, "args": args})
-            if not conn.poll(timeout_s):
-                raise SimProcessError(f"simulator {self.name} did not answer {op!r}")
-            reply = conn.recv()
-        except (EOFError, OSError) as exc:
-            raise SimProcessError(f"simulator {self.name} went away: {exc!r}") from exc
+        with self._lock:
+            conn = self._conn
+            if conn is None or not self.alive:
+                raise SimProcessError(f"simulator {self.name} is not running")
+            self._sent += 1
+            try:
+                conn.send({"op": op, "args": args, "id": self._sent})
+                deadline = time.monotonic() + timeout_s
+                while True:
+                    if not conn.poll(max(0.0, deadline - time.monotonic())):
+                        raise SimProcessError(f"simulator {self.name} did not answer {op!r}")
+                    reply = conn.recv()
+                    # An answer to an earlier request that timed out is dropped.
+                    if reply.get("id", self._sent) == self._sent:
+                        break
+            except (EOFError, OSError) as exc:
+                raise SimProcessError(f"simulator {self.name} went away: {exc!r}") from exc
         if "error" in reply:
             raise SimProcessError(f"simulator {self.name}: {op} failed: {reply['error']}")
         return reply.get("ok")
@@ -227,6 +257,117 @@ def demo_serial_process(
         name, functools.partial(build, state_dir), baud, record, record_path(state_dir, name)
     )
     return serial_sim_process(spec)
+
+
+Root = Literal["device", "simulator"]
+# A path from the root: ("attr", name), ("item", key) or ("call", (args, kwargs)).
+Step = tuple[str, Any]
+
+
+class Remote:
+    """An object in a serial simulator's process (``serve_serial``), reached on its
+    lifeline: ``Remote(process, "device")`` is the simulated device,
+    ``Remote(process, "simulator")`` its ``PtySimulator``.
+
+    An attribute, an item or a call that yields plain data (None, numbers, strings,
+    bytes, and lists, tuples and dicts of them) returns that data, read on the device's
+    thread between two wire events; a dict comes read-only and a list as a tuple (a
+    copy: writing to it would change nothing in the device). Anything else comes back
+    as another ``Remote``; setting an attribute sets it in the device. The path is
+    walked again on every access, so the calls on the way must be look-ups (e.g.
+    ``bus.module(0).rss``); arguments must be picklable (no closures).
+    """
+
+    __slots__ = ("_path", "_process", "_root")
+
+    def __init__(self, process: SimProcess, root: Root, path: tuple[Step, ...] = ()) -> None:
+        object.__setattr__(self, "_process", process)
+        object.__setattr__(self, "_root", root)
+        object.__setattr__(self, "_path", path)
+
+    def _fetch(self, path: tuple[Step, ...]) -> Any:
+        reply = self._process.request("inspect", root=self._root, path=path)
+        if "value" not in reply:
+            return Remote(self._process, self._root, path)
+        value = reply["value"]
+        if isinstance(value, dict):
+            return MappingProxyType(value)
+        if isinstance(value, list):
+            return tuple(value)
+        return value
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return self._fetch((*self._path, ("attr", name)))
+
+    def __getitem__(self, key: Any) -> Any:
+        return self._fetch((*self._path, ("item", key)))
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._fetch((*self._path, ("call", (args, kwargs))))
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        self._process.request(
+            "inspect", root=self._root, path=self._path, set_name=name, value=value
+        )
+
+    def __repr__(self) -> str:
+        return f"Remote({self._process.name}:{self._root}{_describe_path(self._path)})"
+
+
+def _describe_path(path: tuple[Step, ...]) -> str:
+    text = ""
+    for kind, arg in path:
+        if kind == "attr":
+            text += f".{arg}"
+        elif kind == "item":
+            text += f"[{arg!r}]"
+        else:
+            args, kwargs = arg
+            text += (
+                "("
+                + ", ".join([*map(repr, args), *(f"{k}={v!r}" for k, v in kwargs.items())])
+                + ")"
+            )
+    return text
+
+
+_PLAIN = (type(None), bool, int, float, str, bytes)
+
+
+def _is_plain(value: Any) -> bool:
+    if isinstance(value, _PLAIN):
+        return True
+    if isinstance(value, (list, tuple)):
+        return all(_is_plain(v) for v in value)
+    if isinstance(value, dict):
+        return all(isinstance(k, _PLAIN) and _is_plain(v) for k, v in value.items())
+    return False
+
+
+def _inspect(
+    root: Any, path: tuple[Step, ...], set_name: str | None = None, value: Any = None
+) -> dict[str, Any]:
+    """The child's side of :class:`Remote`: walk ``path`` from ``root``; then set
+    ``set_name`` to ``value`` there, or describe what was found."""
+    target = root
+    for kind, arg in path:
+        if kind == "attr":
+            target = getattr(target, arg)
+        elif kind == "item":
+            target = target[arg]
+        elif kind == "call":
+            args, kwargs = arg
+            target = target(*args, **kwargs)
+        else:
+            raise ValueError(f"unknown step {kind!r}")
+    if set_name is not None:
+        setattr(target, set_name, value)
+        return {"value": None}
+    if _is_plain(target):
+        return {"value": target}
+    return {"object": type(target).__name__}
 
 
 # --- the child side -------------------------------------------------------------------
@@ -314,6 +455,8 @@ def serve_lifeline(
             reply = {"ok": handler(**args)}
         except Exception as exc:  # the parent gets it as a SimProcessError
             reply = {"error": repr(exc)}
+        if "id" in message:
+            reply["id"] = message["id"]
         try:
             conn.send(reply)
         except OSError:
@@ -326,11 +469,11 @@ def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
     # Before the simulator's thread starts (it inherits the policy), after the build
     # (which runs without blocking: no reason to do it at real-time priority).
     logger.info("%s", device_scheduling(f"the simulated {spec.name}", own_session=True))
-    simulator = PtySimulator(device, baud=spec.baud)
+    simulator = PtySimulator(device, baud=spec.baud, link_path=spec.link_path)
     simulator.start()
     started = time.monotonic()
     try:
-        conn.send({"ready": {"path": simulator.path, "pid": os.getpid()}})
+        conn.send({"ready": {"path": simulator.path, "pid": os.getpid(), "baud": spec.baud}})
 
         def record() -> dict[str, Any]:
             def snapshot() -> dict[str, Any]:
@@ -367,6 +510,11 @@ def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
             # two wire events on the simulator's thread.
             return simulator.call(lambda: getattr(device, method)(**args))
 
+        def inspect(root: Root, path: tuple[Step, ...], **change: Any) -> dict[str, Any]:
+            if root == "simulator":  # its public methods may be called from any thread
+                return _inspect(simulator, path, **change)
+            return simulator.call(lambda: _inspect(device, path, **change))
+
         serve_lifeline(
             conn,
             {
@@ -374,6 +522,7 @@ def serve_serial(spec: SerialSimSpec, conn: Connection) -> None:
                 "power_cycle": power_cycle,
                 "set_silent": simulator.set_silent,
                 "device": call_device,
+                "inspect": inspect,
             },
             tick=tick,
         )

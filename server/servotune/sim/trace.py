@@ -81,6 +81,28 @@ class TracedDevice:
         return self.device.receive(byte)
 
 
+class LineCommands:
+    """A ``decode`` for a line protocol: the host's lines as a device reads them (``end``
+    completes a line, ``cancel`` discards the line typed so far, control characters
+    are not part of it)."""
+
+    def __init__(self, end: int = 0x0D, cancel: int | None = None) -> None:
+        self._end = end
+        self._cancel = cancel
+        self._buffer = bytearray()
+
+    def __call__(self, byte: int) -> list[str]:
+        if byte == self._end:
+            line = self._buffer.decode("latin-1")
+            self._buffer.clear()
+            return [line]
+        if byte == self._cancel:
+            self._buffer.clear()
+        elif byte >= 0x20:
+            self._buffer.append(byte)
+        return []
+
+
 class RemoteTrace:
     """The measuring side of a ``TracedDevice`` in a simulator's process."""
 

@@ -419,6 +419,7 @@ class ModuleBook:
         channel = self._engine.channel
         if channel is not None:
             channel.take_timeout_late_s()  # timeouts before it excuse no later one
+        self._engine.device_answered()
         self._consecutive_failures = 0
         self._answers += 1
         module.failures = 0

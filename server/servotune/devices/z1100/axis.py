@@ -27,17 +27,7 @@ from servotune.link.base import (
     StopOutcome,
 )
 
-
-def request_name(request: codec.Request) -> str:
-    command = request.command
-    if command is None:
-        return f"0x{request.command_byte:02X}"
-    info = codec.COMMANDS[command]
-    axis = request.axis
-    suffix = f"[motor {axis + 1}]" if axis is not None else ""
-    data = f" {request.data}" if not command.is_get and info.request is not codec.Field.NONE else ""
-    return f"{info.name}{suffix}{data}"
-
+request_name = codec.request_name
 
 _BY_NAME = {info.name.lower(): info for info in codec.COMMANDS.values()}
 

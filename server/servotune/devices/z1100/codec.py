@@ -125,6 +125,7 @@ __all__ = [
     "pack_limit",
     "pack_start",
     "pack_stop",
+    "request_name",
     "sample_time_s",
     "stm_for",
     "unpack_axes",
@@ -508,6 +509,19 @@ def make_set_baud(baud: int) -> Request:
 def make_flash() -> Request:
     """SetFlash: write the parameters to flash (loaded at power-on)."""
     return Request(Command.SET_FLASH)
+
+
+def request_name(request: Request) -> str:
+    """A request as the driver reports what it sent, e.g. ``SetEstop 2``,
+    ``SetJob[motor 1] 0``, ``GetEncoder[motor 3]``."""
+    command = request.command
+    if command is None:
+        return f"0x{request.command_byte:02X}"
+    info = COMMANDS[command]
+    axis = request.axis
+    suffix = f"[motor {axis + 1}]" if axis is not None else ""
+    data = f" {request.data}" if not command.is_get and info.request is not Field.NONE else ""
+    return f"{info.name}{suffix}{data}"
 
 
 def make_get(command: Command, axis: int | None = None) -> Request:

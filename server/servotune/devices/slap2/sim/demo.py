@@ -16,7 +16,7 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
-from servotune.sim.trace import TracedDevice
+from servotune.sim.trace import LineCommands, TracedDevice
 
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead
 # screw carriage). With the manual's default gains it still settles, but overshoots
@@ -56,6 +56,7 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
         bus,
         lambda: (float(module.motor.count), module.motor.speed_rad_s * counts_per_rad),
         lambda: bool(module.rss & 0b1100),  # pm or vm
+        LineCommands(cancel=0x18),  # CR ends a line, Ctrl-X discards it
     )
 
 

@@ -10,7 +10,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from servotune.devices.z1100.codec import DEFAULT_BAUD, Gains
+from servotune.devices.z1100.codec import (
+    DEFAULT_BAUD,
+    BadRequest,
+    Gains,
+    RequestDecoder,
+    request_name,
+)
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.servo import AxisHardware, AxisParameters
 from servotune.sim.process import SimProcess, demo_serial_process
@@ -80,7 +86,14 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
         state = chip.axis_state(address)
         return float(state.encoder_counts), float(state.speed_counts_s)
 
-    return TracedDevice(chip, read, lambda: bool(chip.axis_state(address).powered))
+    decoder = RequestDecoder()
+
+    def decode(byte: int) -> list[str]:
+        # The host's requests, named as the driver names what it sent.
+        events = decoder.feed(bytes((byte,)))
+        return [request_name(e) for e in events if not isinstance(e, BadRequest)]
+
+    return TracedDevice(chip, read, lambda: bool(chip.axis_state(address).powered), decode)
 
 
 def z1100_record(chip: Z1100Chip) -> dict[str, Any]:

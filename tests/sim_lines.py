@@ -1,0 +1,86 @@
+"""Simulated SLAP2 lines for tests, built in a simulator process of their own.
+
+The builders are module-level functions (picklable) in a module that imports only the
+simulators, so a spawned simulator process starts without the test machinery.
+``WireRecorder`` wraps a simulated SLAP2 bus and records every line the host sent, with
+the wall-clock time it reached the simulated device and the module selected then: the
+simulated device's own record of the wire.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from servotune.devices.slap2.sim.demo import SLAP2_LOADED
+from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.sim.physics import DcMotorParams
+
+CR = 0x0D
+CTRL_X = 0x18
+
+
+def slap2_bus(addresses: list[int], eeprom_dir: Path) -> Slap2Bus:
+    """Modules at ``addresses`` with their EEPROMs in ``eeprom_dir``."""
+    return Slap2Bus(
+        [Slap2Module(a, eeprom_path=eeprom_dir / f"eeprom_{a}.json") for a in addresses]
+    )
+
+
+def recorded_bus(addresses: list[int], eeprom_dir: Path) -> WireRecorder:
+    """``slap2_bus`` with a ``WireRecorder`` in front."""
+    return WireRecorder(slap2_bus(addresses, eeprom_dir))
+
+
+class WireRecorder:
+    """A ``SimDevice`` that passes everything to a ``Slap2Bus`` and records host lines."""
+
+    def __init__(self, bus: Slap2Bus) -> None:
+        self.bus = bus
+        self.lines: list[tuple[float, int | None, str]] = []
+        self._buffer = bytearray()
+        self._selected: int | None = None
+        self._lock = threading.Lock()
+
+    def advance_to(self, t_s: float) -> bytes:
+        return self.bus.advance_to(t_s)
+
+    def receive(self, byte: int) -> bytes:
+        if byte == CR:
+            line = self._buffer.decode("latin-1").replace(" ", "").lower()
+            self._buffer.clear()
+            if line.startswith("se") and line[2:].isdigit():
+                self._selected = int(line[2:])
+            with self._lock:
+                self.lines.append((time.monotonic(), self._selected, line))
+        elif byte == CTRL_X:
+            self._buffer.clear()  # the module discards the line typed so far, so do we
+        elif byte >= 0x20:
+            self._buffer.append(byte)
+        return self.bus.receive(byte)
+
+    def since(self, t: float, address: int | None = None) -> list[tuple[float, str]]:
+        with self._lock:
+            lines = list(self.lines)
+        return [(at, line) for at, sel, line in lines if at >= t and address in (None, sel)]
+
+    def first(self, line: str, address: int, after: float) -> float | None:
+        for at, sent in self.since(after, address):
+            if sent == line:
+                return at
+        return None
+
+
+def demo_bus() -> Slap2Bus:
+    """The demo's SLAP2 line (module 1 carries the load), without limit switches."""
+    free: dict[str, Any] = {"limit1_count": None, "limit2_count": None}
+    return Slap2Bus(
+        [
+            Slap2Module(0, params=DcMotorParams(**free)),
+            Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),
+        ]
+    )
