@@ -352,17 +352,17 @@ def test_a_host_stalled_all_the_time_still_shows_a_cut_line() -> None:
     link, sink, now = _rule_link()
     module = link.module_state(0)
     channel = _StalledHostChannel()
-    link._channel = channel  # type: ignore[assignment]
+    link.engine._channel = channel  # type: ignore[assignment]
 
     def timeout_at(t: float) -> None:
         now.append(t)
         channel.late_s = 0.4
-        link._module_failed(module, DeviceTimeoutError("no module answers at address 0"))
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 0"))
 
     for t in (100.0, 100.5, 101.0, 101.5, 101.9):
         timeout_at(t)
     assert not sink.states and link.counters["host_stalls"] == 5
-    link._module_answered(module)  # the device answered: a new excuse from the next
+    link.modules.answered(module)  # the device answered: a new excuse from the next
     for t in (102.0, 102.5, 103.0, 103.5, 103.9):
         timeout_at(t)
     assert not sink.states and link.counters["host_stalls"] == 10
