@@ -314,15 +314,32 @@ class Slap2Axis(AxisDriver):
         return ProfileTrack(module.position_t, generator)
 
     def jog_stop_target(self, now_s: float) -> int | None:
-        """Where the running move's profile comes to rest decelerating with its own sa,
-        if the ``ma`` went out now (pure: the reconstructed profile of the move the
-        driver sent, ``devices.slap2.capture``, or else a jog of ours as last polled);
-        None when neither is known."""
-        track = self._link.module_state(self._address).profile.track
-        if track is None:
-            track = self._polled_jog_track()
-        if track is None:
+        """Where the running move comes to rest decelerating with its own sa, if the
+        ``ma`` went out now (pure), or None when nothing is known of it.
+
+        Two estimates: the reconstructed profile of the move the driver sent
+        (``devices.slap2.capture``) and, for a jog of ours, the last poll (polled
+        setpoint, measured speed). A jog's shaft only moves towards the jog's end, so
+        the estimate further along that way is taken: a profile whose latch time a
+        starved host stamped late lags the shaft, and planning from it would send the
+        axis back the way it came."""
+        estimates = [
+            self._rest_point(track, now_s)
+            for track in (
+                self._link.module_state(self._address).profile.track,
+                self._polled_jog_track(),
+            )
+            if track is not None
+        ]
+        if not estimates:
             return None
+        direction = self._jog_direction
+        return max(estimates, key=lambda target: target * direction) if direction else estimates[0]
+
+    @staticmethod
+    def _rest_point(track: ProfileTrack, now_s: float) -> int:
+        """Where ``track`` comes to rest decelerating with its own acceleration from the
+        state it has ``_JOG_STOP_LEAD_S`` after ``now_s``."""
         state = track.state_at(now_s + _JOG_STOP_LEAD_S)
         if not state.moving or state.acceleration <= 0:
             return round(state.setpoint)
