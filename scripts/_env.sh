@@ -39,7 +39,7 @@ ensure_chromium() {
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq chromium >/dev/null
 }
 
-ensure_nats() {  # the bus tests start nats-server themselves (tests/nats_support.py)
+ensure_nats() {  # the bus tests start nats-server themselves (tests/support/nats.py)
   if command -v nats-server >/dev/null || [ -x /usr/sbin/nats-server ]; then return; fi
   echo "==> installing Debian's nats-server for the bus tests"
   local sudo=""

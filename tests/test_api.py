@@ -3,94 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import socket
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
-import uvicorn
 import websockets
 
-from servotune.api.app import AppConfig, create_app
-from servotune.config import LinkSpec
-from servotune.hub.control_lock import ControlSettings
-from servotune.sim.pty import PtySimulator
-
-from .conftest import running_simulator, use_csrf_token, wait_for
-
-
-@dataclass
-class LiveServer:
-    base_url: str
-    ws_url: str
-    client: httpx.AsyncClient
-    simulator: Any
-    bus: Any
-    app: Any = None
-
-    async def state(self, axis_id: str) -> dict[str, Any]:
-        response = await self.client.get(f"/api/axes/{axis_id}/state")
-        assert response.status_code == 200, response.text
-        result: dict[str, Any] = response.json()
-        return result
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
-@contextlib.asynccontextmanager
-async def live_server(
-    simulator: PtySimulator | None,
-    bus: Any,
-    data_dir: Path,
-    *,
-    web_dir: Path | None = None,
-    spec: LinkSpec | None = None,
-) -> AsyncIterator[LiveServer]:
-    if spec is None:
-        assert simulator is not None
-        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0, 1], 512)
-    # A page that changes an axis takes it and must heartbeat; a browser starved of CPU on
-    # a loaded machine sends heartbeats seconds apart, which would stop these tests' moves
-    # (correctly). The dead-man's timing is tested in test_control.py.
-    config = AppConfig(
-        links=[spec],
-        data_dir=data_dir,
-        web_dir=web_dir or data_dir / "no-web",
-        control=ControlSettings(lease_s=10.0),
-    )
-    app = create_app(config)
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
-    )
-    task = asyncio.create_task(server.serve())
-    try:
-        await wait_for(lambda: server.started, 10, "the server to start")
-        base = f"http://127.0.0.1:{port}"
-        async with httpx.AsyncClient(base_url=base, timeout=10) as client:
-            await use_csrf_token(client)
-            live = LiveServer(base, f"ws://127.0.0.1:{port}/ws", client, simulator, bus, app)
-            for axis in (await client.get("/api/axes")).json():
-                axis_id = axis["id"]
-                for _ in range(250):
-                    response = await client.get(f"/api/axes/{axis_id}/state")
-                    if response.status_code == 200:
-                        break
-                    await asyncio.sleep(0.02)
-            yield live
-    finally:
-        server.should_exit = True
-        await task
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 
 @pytest.fixture

@@ -21,8 +21,7 @@ from servotune.hub.state import UnknownAxisError
 from servotune.link.base import InvalidArgumentError
 from servotune.link.validation import validate_command, validate_params
 from servotune.schema import AxisInfo
-
-from .conftest import local_client, use_csrf_token
+from tests.support.servers import local_client, use_csrf_token
 
 EP7047 = ep7047_descriptor(speed_range_steps_s=2000, counts_per_rev=4096)
 SLAP2 = slap2_descriptor(512)

@@ -22,9 +22,10 @@ from servotune.api.app import AppConfig, create_app
 from servotune.auth.audit import AuditLog, AuditQuery, scrub
 from servotune.auth.principal import Principal
 from servotune.config import LinkSpec
-
-from .auth_helpers import client, exposed_config, login, make_accounts, running
-from .conftest import running_simulator, use_csrf_token, wait_for
+from tests.support.auth import client, exposed_config, login, make_accounts, running
+from tests.support.servers import use_csrf_token
+from tests.support.sim_lines import running_simulator
+from tests.support.waiting import wait_for
 
 
 @dataclass

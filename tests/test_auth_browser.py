@@ -14,11 +14,11 @@ from playwright.async_api import Browser, Page, expect
 from servotune.api.app import WEB_DIST, AppConfig, create_app
 from servotune.auth.security import SecurityConfig
 from servotune.config import LinkSpec
-
-from .auth_helpers import PASSWORDS, make_accounts
-from .conftest import running_simulator, wait_for
-from .test_api import free_port
-from .test_browser import ARTIFACTS, browser  # noqa: F401 - the browser fixture
+from tests.support.auth import PASSWORDS, make_accounts
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import free_port
+from tests.support.sim_lines import running_simulator
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.browser
 # Argon2id makes a login cost ~0.1-0.5 s on purpose; on a loaded machine a login plus
@@ -59,7 +59,7 @@ async def log_in(page: Page, base: str, user: str, password: str) -> None:
 
 async def test_login_page_viewer_and_admin_audit(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811 - pytest fixture
+    browser: Browser,
 ) -> None:
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     async with exposed_server(tmp_path) as base:

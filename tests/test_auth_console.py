@@ -36,16 +36,15 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec as z1100_codec
 from servotune.devices.z1100.descriptor import z1100_descriptor
 from servotune.devices.z1100.entry import demo_line as z1100_demo_line
-
-from .auth_helpers import make_accounts
-from .conftest import wait_for
-from .control_support import (
+from tests.support.auth import make_accounts
+from tests.support.control import (
     ExposedServer,
     exposed_line_server,
     exposed_security,
     served,
     session_of,
 )
+from tests.support.waiting import wait_for
 
 SLAP2 = slap2_descriptor(512)
 Z1100 = z1100_descriptor(2048)

@@ -21,8 +21,9 @@ from pathlib import Path
 
 import httpx
 
-from .conftest import wait_for
-from .control_support import WireRecorder, exposed_line_server, session_of
+from tests.support.control import WireRecorder, exposed_line_server, session_of
+from tests.support.paths import SUPPORT
+from tests.support.waiting import wait_for
 
 FLOOD_ADDRESS = "198.51.100.66"
 VIEWER_ADDRESS = "192.0.2.5"
@@ -49,7 +50,7 @@ async def timed_stop(http: httpx.AsyncClient, wire: WireRecorder) -> tuple[float
 @dataclass
 class Flood:
     """``count`` concurrent logins with unknown names from one address, sent by another
-    process (``tests/login_flood.py``): the test process only times STOP."""
+    process (``tests/support/login_flood.py``): the test process only times STOP."""
 
     base_url: str
     count: int
@@ -60,7 +61,7 @@ class Flood:
     async def start(self) -> None:
         self.process = await asyncio.create_subprocess_exec(
             sys.executable,
-            str(Path(__file__).with_name("login_flood.py")),
+            str(SUPPORT / "login_flood.py"),
             self.base_url,
             str(self.count),
             FLOOD_ADDRESS,

@@ -14,9 +14,8 @@ import httpx
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.middleware import MAX_BODY_BYTES, MAX_UPLOAD_BYTES
 from servotune.bench.files import MAX_IMPORT_BYTES
-
-from .auth_helpers import client, exposed_app, login, running
-from .conftest import local_client, use_csrf_token
+from tests.support.auth import client, exposed_app, login, running
+from tests.support.servers import local_client, use_csrf_token
 
 PAGES = ["/", "/api/axes", "/api/auth/session", "/openapi.json", "/nope", "/twin/"]
 

@@ -20,8 +20,7 @@ from servotune.api.app import AppConfig, create_app
 from servotune.auth.permissions import ROLES
 from servotune.auth.routes_table import COMMAND, CONSOLE_LINE, PUBLIC, ROUTE_PERMISSIONS
 from servotune.auth.security import AUTH_DB, SecurityConfig, SecurityConfigError
-
-from .auth_helpers import (
+from tests.support.auth import (
     LAB,
     PASSWORDS,
     client,

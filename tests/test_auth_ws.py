@@ -23,10 +23,9 @@ import websockets
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import AUTH_DB, SecurityConfig
-
-from .auth_helpers import PASSWORDS, make_accounts
-from .conftest import use_csrf_token, wait_for
-from .test_api import free_port
+from tests.support.auth import PASSWORDS, make_accounts
+from tests.support.servers import free_port, use_csrf_token
+from tests.support.waiting import wait_for
 
 
 @dataclass

@@ -10,10 +10,8 @@ run settles into the in-position window and the baseline does not, or settles la
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import random
-from collections.abc import Iterator
 from dataclasses import astuple
 from pathlib import Path
 from types import SimpleNamespace
@@ -25,7 +23,6 @@ from servotune.autotune.service import AutoTuner
 from servotune.autotune.verdict import verdict
 from servotune.bench.metrics import compute_metrics, unmeasured
 from servotune.devices import default_registry
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import MAX_PWM_PER_COUNT, OVERSHOOT_LIMIT_PCT, propose_gains
 from servotune.devices.slap2.law import (
     Gains,
@@ -43,30 +40,16 @@ from servotune.link.base import DeviceRefusedError
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import fit_plant
-from servotune.tuning.plants import IdentifiedPlant, PlantModel, model_positions
+from servotune.tuning.plants import IdentifiedPlant, model_positions
 from servotune.tuning.targets import PRESETS
-
-from .test_api import live_server
+from tests.support.autotune import LIMITS, STEP, plant_model
+from tests.support.servers import live_server
+from tests.support.sim_lines import demo_line
 
 DEFAULTS = Gains(40, 40, 80)
 UNLOADED = DcMotorParams()
 PLANTS = {"unloaded": UNLOADED, "loaded": SLAP2_LOADED}
-STEP = MoveSpec(1000, VELOCITY_MAX, ACCELERATION_MAX, latency_s=0.01)
 MOVE = MoveSpec(2000, 2000, 1000)
-
-
-def plant_model(params: DcMotorParams) -> PlantModel:
-    """The first-order model that physics.py's motor reduces to (electrical pole ~80 us
-    neglected): PWM -> counts/s gain, mechanical time constant, friction as PWM."""
-    kt, r = params.torque_constant_nm_per_a, params.resistance_ohm
-    b = params.viscous_friction_nm_s_per_rad
-    volts_per_pwm = params.supply_v / 255
-    counts_per_rad = params.counts_per_rev / (2 * math.pi)
-    return PlantModel(
-        gain=kt / (kt * kt + b * r) * volts_per_pwm * counts_per_rad,
-        tau_s=params.inertia_kg_m2 * r / (kt * kt + b * r),
-        friction_pwm=params.coulomb_friction_nm * r / kt / volts_per_pwm,
-    )
 
 
 def staircase() -> list[tuple[float, float]]:
@@ -294,26 +277,6 @@ def test_only_slap2_axes() -> None:
 # --- end to end on the demo's plants --------------------------------------------------
 
 
-@contextlib.contextmanager
-def demo_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
-    """The demo's SLAP2 line: module 0 unloaded, module 1 with SLAP2_LOADED."""
-    bus = Slap2Bus(
-        [
-            Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json"),
-            Slap2Module(1, eeprom_path=tmp_path / "eeprom_1.json", params=SLAP2_LOADED),
-        ]
-    )
-    simulator = PtySimulator(bus, baud=19200)
-    simulator.start()
-    try:
-        yield simulator, bus
-    finally:
-        simulator.stop()
-
-
-LIMITS = {"max_pwm": 80, "max_distance_counts": 8000, "response": "no_overshoot"}
-
-
 @pytest.mark.parametrize("address", [0, 1], ids=["unloaded", "loaded"])
 async def test_assistant_beats_the_defaults_on_each_demo_plant(
     tmp_path: Path, address: int
@@ -476,8 +439,7 @@ async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) 
     from servotune.devices.slap2.sim.line import Slap2Bus
     from servotune.devices.slap2.sim.module import Slap2Module
     from servotune.sim.pty import PtySimulator
-
-    from .test_api import live_server
+    from tests.support.servers import live_server
 
     bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
     with PtySimulator(bus, baud=19200) as sim:

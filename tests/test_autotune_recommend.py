@@ -25,25 +25,10 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import Margins
 from servotune.tuning.targets import PRESETS, margin_report
-
-from .test_api import live_server
-from .test_autotune import STEP, plant_model
+from tests.support.autotune import STEP, again, plant_model
+from tests.support.servers import live_server
 
 MEDIUM = PRESETS["medium"]
-
-
-def again(response: Any) -> bool:
-    """Whether a failed identification (a test's precondition) is worth one more try,
-    as a user would: the link lost the starved pty simulator mid-staircase ("no module
-    answers": the link's supervision, devices/slap2/link.py), or the product said the
-    measurement could not support a model (409 ``kind: measurement``, e.g. no gains
-    meet the rule on a model fitted from a stalled record). Anything else fails."""
-    if response.status_code == 200:
-        return False
-    text = response.text
-    return "no module answers" in text or (
-        response.status_code == 409 and response.json().get("kind") == "measurement"
-    )
 
 
 def report(pm: float, gm: float, *, stable: bool = True, preset: str = "medium") -> dict[str, Any]:
@@ -186,11 +171,10 @@ def test_a_z1100_proposal_carries_the_same_comparison() -> None:
     in use, so writing is recommended, with both sides' margins and predicted step."""
     from servotune.devices.z1100.gain_rule import propose_kab
     from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
-
-    from .test_autotune_z1100 import MEDIOCRE, PROFILE, _physics_plant
+    from tests.support.autotune import MEDIOCRE, PROFILE, physics_plant
 
     proposal = propose_kab(
-        _physics_plant(Z1100_LOADS_KG_M2[0]), PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE
+        physics_plant(Z1100_LOADS_KG_M2[0]), PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE
     ).to_dict()
     rec = recommend(proposal)
     assert rec["action"] == "write", rec["reason"]

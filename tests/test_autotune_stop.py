@@ -13,8 +13,7 @@ from servotune.devices.slap2 import tuner as slap2_tuner
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
-
-from .test_api import live_server
+from tests.support.servers import live_server
 
 LIMITS = {"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"}
 

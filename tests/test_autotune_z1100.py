@@ -7,10 +7,8 @@ Every axis starts from deliberately mediocre gains (KABH = KABD = K 8, A 16, B 8
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +21,6 @@ from servotune.devices.z1100.codec import Gains
 from servotune.devices.z1100.gain_rule import propose_kab
 from servotune.devices.z1100.law import (
     Kab,
-    MoveProfile,
     fit_plant_closed_loop,
     move_metrics,
     simulate_move,
@@ -31,16 +28,11 @@ from servotune.devices.z1100.law import (
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
-from servotune.sim.physics import DcMotorParams
-from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import interpolate
 from servotune.tuning.plants import Z1100Plant
-
-from .test_api import live_server
-
-BAUD = 38400
-MEDIOCRE = Kab(8, 16, 8)
-PROFILE = MoveProfile(10_000, 100_000, 1_000_000)
+from tests.support.autotune import MEDIOCRE, PROFILE, physics_plant
+from tests.support.servers import live_server
+from tests.support.sim_lines import Z1100_BAUD, mediocre_chip_line
 
 
 def test_simulated_law_fit_and_rule_are_consistent() -> None:
@@ -56,17 +48,6 @@ def test_simulated_law_fit_and_rule_are_consistent() -> None:
     default = move_metrics(sim, PROFILE.distance)
     assert default.peak_following_error is not None
     assert proposal.gains.kabd().k == round(proposal.gains.k * 0.75)
-
-
-def _physics_plant(load_kg_m2: float) -> Z1100Plant:
-    """The first-order model physics.py's motor reduces to (electrical pole neglected)."""
-    p = DcMotorParams(load_inertia_kg_m2=load_kg_m2)
-    kt, r, b = p.torque_constant_nm_per_a, p.resistance_ohm, p.viscous_friction_nm_s_per_rad
-    counts_per_rad = p.counts_per_rev / (2 * math.pi)
-    return Z1100Plant(
-        kt / (kt * kt + b * r) * p.supply_v * counts_per_rad,
-        p.inertia_kg_m2 * r / (kt * kt + b * r),
-    )
 
 
 def _chip_move(axis: int, gains: Kab, tmp_path: Path) -> tuple[list[float], list[float]]:
@@ -116,7 +97,7 @@ def test_coarse_simulation_matches_the_chip(tmp_path: Path, axis: int, gains: Ka
     against the chip simulator (32 us samples, full motor model): the following error
     agrees within a few counts, as well as exact 32 us stepping does."""
     times, errors = _chip_move(axis, gains, tmp_path)
-    plant = _physics_plant(Z1100_LOADS_KG_M2[axis])
+    plant = physics_plant(Z1100_LOADS_KG_M2[axis])
     rms = {}
     for coarse in (1, 4):
         sim = simulate_move(plant, gains, gains, PROFILE, coarse=coarse, record_every=1)
@@ -148,37 +129,12 @@ def test_verdict() -> None:
     assert verdict_z1100(run(0.3, None), run(0.31, 10)) == "unknown"
 
 
-@contextlib.contextmanager
-def chip_line(tmp_path: Path) -> Iterator[PtySimulator]:
-    flash = tmp_path / "flash.json"
-    axes = [
-        AxisParameters(
-            kabh=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            kabd=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            vmax_counts_s=100_000,
-            acc_counts_s2=1_000_000,
-            limit_counts=4000,
-            hvm_counts_s=20_000,
-            hac_counts_s2=200_000,
-        ).to_json()
-        for _ in Z1100_LOADS_KG_M2
-    ]
-    flash.write_text(json.dumps({"axes": axes}))
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=BAUD)
-    simulator = PtySimulator(chip, baud=BAUD)
-    simulator.start()
-    try:
-        yield simulator
-    finally:
-        simulator.stop()
-
-
 @pytest.mark.parametrize("axis", ["x", "y", "z"], ids=["unloaded", "5x", "20x"])
 async def test_assistant_beats_mediocre_gains_on_each_demo_plant(tmp_path: Path, axis: str) -> None:
     axis_id = f"line-{axis}"
     base = f"/api/axes/{axis_id}/autotune"
-    with chip_line(tmp_path) as simulator:
-        spec = LinkSpec("z1100", simulator.path, "line", BAUD, [0, 1, 2], 512)
+    with mediocre_chip_line(tmp_path) as simulator:
+        spec = LinkSpec("z1100", simulator.path, "line", Z1100_BAUD, [0, 1, 2], 512)
         async with live_server(simulator, None, tmp_path / "data", spec=spec) as server:
             client = server.client
             limits = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_overshoot"}
@@ -245,7 +201,7 @@ def test_proposals_meet_the_margin_target_on_each_demo_motor(axis: int) -> None:
     """The rule designs to the default target (medium: PM 45 deg / GM 8 dB) on the hold
     loop (KABD): met on each demo motor's model, and the report says so; the gains in
     use are read against the same target."""
-    plant = _physics_plant(Z1100_LOADS_KG_M2[axis])
+    plant = physics_plant(Z1100_LOADS_KG_M2[axis])
     proposal = propose_kab(plant, PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE)
     margins = proposal.margins
     assert margins["target"] == {

@@ -9,27 +9,9 @@ from typing import Any
 import pytest
 
 from servotune.storage import Storage
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
-
-
-async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[str, Any]:
-    for _ in range(400):
-        runs = (await server.client.get(f"/api/axes/{axis_id}/bench/runs")).json()
-        run = next(r for r in runs if r["id"] == run_id)
-        if run["status"] != "recording":
-            full: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
-            return full
-        await asyncio.sleep(0.05)
-    pytest.fail(f"run {run_id} never finished")
-
-
-async def start(server: LiveServer, axis_id: str, **test: Any) -> str:
-    response = await server.client.post(f"/api/axes/{axis_id}/bench/runs", json=test)
-    assert response.status_code == 202, response.text
-    run_id: str = response.json()["id"]
-    return run_id
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 
 @pytest.fixture

@@ -26,10 +26,9 @@ from servotune.bench.quality import (
     SAMPLING_RULE,
     assess,
 )
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
-from .test_bench import finished_run, start
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 COLUMNS = ["t_s", "position", "following_error", "flags_t_s"]
 FLAGS = ["limit1", "limit2", "oc", "inpos", "move"]

@@ -3,55 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-import os
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
-from playwright.async_api import Browser, Page, async_playwright, expect
+from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import LiveServer, live_server
 
 pytestmark = pytest.mark.browser
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
-ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
-
-
-@pytest.fixture
-async def browser() -> AsyncIterator[Browser]:
-    assert Path(CHROMIUM).exists(), "install Debian's chromium (scripts/test.sh does)"
-    assert (WEB_DIST / "index.html").exists(), "build the web bundle (scripts/test.sh does)"
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield browser
-        finally:
-            await browser.close()
-
-
-@pytest.fixture
-async def dashboard(tmp_path: Path, browser: Browser) -> AsyncIterator[tuple[Page, LiveServer]]:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data", web_dir=WEB_DIST) as server:
-            page = await browser.new_page(viewport={"width": 1400, "height": 900})
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            await page.goto(server.base_url)
-            yield page, server
-            assert not errors, f"JavaScript errors: {errors}"
-            await page.close()
 
 
 async def samples_received(page: Page, axis_id: str) -> int:

@@ -13,7 +13,6 @@ Screenshots at 390, 1280 and 2560 px wide go to the artifacts directory.
 from __future__ import annotations
 
 import asyncio
-import os
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -22,15 +21,13 @@ from playwright.async_api import Browser, Page, expect
 
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.module import Slap2Module
-
-from .test_api import LiveServer
-from .test_autotune_recommend import again
-from .test_browser import browser  # noqa: F401  (the fixture)
-from .test_browser_frf import one_module_page
+from tests.support.autotune import again
+from tests.support.browser import one_module_page
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import LiveServer
 
 pytestmark = pytest.mark.browser
 
-ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
 GENTLE = {"kp": 150, "ki": 0, "kd": 1500}
 SIZES = [(390, 844), (1280, 800), (2560, 1440)]
 
@@ -38,7 +35,7 @@ SIZES = [(390, 844), (1280, 800), (2560, 1440)]
 @pytest.fixture
 async def page_and_server(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
     module = Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=SLAP2_LOADED)
     async with one_module_page(
@@ -49,7 +46,7 @@ async def page_and_server(
 
 async def test_a_worse_proposal_defaults_to_keeping_the_gains_in_use(
     page_and_server: tuple[Page, LiveServer],
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     page, server = page_and_server
     written = await server.client.patch("/api/axes/line-0/params", json=GENTLE)

@@ -12,9 +12,8 @@ from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
 from servotune.hub.control_lock import ControlSettings
-
-from .control_support import Server, control_server
-from .test_browser import ARTIFACTS, browser  # noqa: F401  (the fixture)
+from tests.support.control import Server, control_server
+from tests.support.paths import ARTIFACTS
 
 pytestmark = pytest.mark.browser
 
@@ -25,7 +24,7 @@ PM = 1 << 3
 @pytest.fixture
 async def two_tabs(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> AsyncIterator[tuple[Page, Page, Server]]:
     # This test checks the hand-over in the UI, not the dead-man's timing (test_control
     # does, with a client whose timing the test controls): a browser starved of CPU on a

@@ -11,14 +11,14 @@ import asyncio
 import pytest
 from playwright.async_api import Page, Request, expect
 
-from .test_api import LiveServer
-from .test_browser import ARTIFACTS, browser, dashboard  # noqa: F401  (the fixtures)
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import LiveServer
 
 pytestmark = pytest.mark.browser
 
 
 async def test_console_says_no_reply_and_shows_the_refusal(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     page, _ = dashboard
     await page.get_by_test_id("axis-link-line-0").click()
@@ -42,7 +42,7 @@ async def test_console_says_no_reply_and_shows_the_refusal(
 
 
 async def test_arrow_keys_on_a_gain_slider_write_once_when_they_rest(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     page, server = dashboard
     await page.get_by_test_id("axis-link-line-0").click()
@@ -67,7 +67,7 @@ async def test_arrow_keys_on_a_gain_slider_write_once_when_they_rest(
 
 
 async def test_an_overview_tile_opens_its_axis(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     page, _ = dashboard
     await page.get_by_test_id("nav-overview").click()
@@ -89,13 +89,13 @@ async def test_an_overview_tile_opens_its_axis(
 
 
 async def test_the_live_plot_of_a_captured_axis_gets_every_captured_sample(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     """Issue 9, 1: "the live plots of a captured axis show the dense data". A bench step
     captures the axis (the line devoted to it); the page open on that axis receives at
     least every sample the run recorded: the fan-out thins nothing. (A count, not a
     rate: what the host manages to poll does not matter.)"""
-    from .test_bench import finished_run, start
+    from tests.support.bench import finished_run, start
 
     page, server = dashboard
     await page.get_by_test_id("axis-link-line-0").click()

@@ -9,9 +9,7 @@ verify" runs the verification step and the prediction is compared with it.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import os
 import statistics
 import time
 from collections.abc import AsyncIterator
@@ -21,18 +19,13 @@ from typing import Any
 import pytest
 from playwright.async_api import Browser, Page, expect
 
-from servotune.api.app import WEB_DIST
-from servotune.config import LinkSpec
-from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.sim.pty import PtySimulator
-
-from .test_api import LiveServer, live_server
-from .test_browser import browser  # noqa: F401  (the fixture)
+from tests.support.browser import one_module_page
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import LiveServer
 
 pytestmark = pytest.mark.browser
 
-ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
 # What-if prediction against the measured verification step: RMS over the record of
 # measured - predicted, as a fraction of the step. The prediction is linear (no
 # friction) and today's samples carry the time they were parsed, not latched (tens of
@@ -40,41 +33,10 @@ ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.par
 RMS_TOLERANCE = 0.10
 
 
-@contextlib.asynccontextmanager
-async def one_module_page(
-    tmp_path: Path,
-    browser: Browser,  # noqa: F811
-    module: Slap2Module,
-    viewport: dict[str, int],
-) -> AsyncIterator[tuple[Page, LiveServer]]:
-    """One SLAP2 module on a pty behind a live server (once it reports a position), and
-    a page (no JavaScript errors at the end)."""
-    bus = Slap2Bus([module])
-    simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
-    simulator.start()
-    try:
-        spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, [0], 512)
-        async with live_server(
-            simulator, bus, tmp_path / "data", web_dir=WEB_DIST, spec=spec
-        ) as server:
-            for _ in range(200):  # the module polled once: it has a position
-                if (await server.state("line-0")).get("position") is not None:
-                    break
-                await asyncio.sleep(0.05)
-            page = await browser.new_page(viewport=viewport)
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            yield page, server
-            assert not errors, f"JavaScript errors: {errors}"
-            await page.close()
-    finally:
-        simulator.stop()
-
-
 @pytest.fixture
 async def page_and_server(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
     module = Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")
     async with one_module_page(

@@ -9,20 +9,18 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from playwright.async_api import Browser, Page, async_playwright, expect
 
 from servotune.api.app import WEB_DIST
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
-from .test_browser import CHROMIUM
+from tests.support.browser import CHROMIUM, open_page
+from tests.support.paths import SUPPORT
+from tests.support.servers import LiveServer, live_server
 
 pytestmark = pytest.mark.browser
 
-CONTRAST_JS = (Path(__file__).parent / "contrast.js").read_text()
+CONTRAST_JS = (SUPPORT / "contrast.js").read_text()
 
 # Every command button of the axis page inside the viewport, and no horizontal scroll.
 OFFSCREEN_JS = """() => {
@@ -50,26 +48,6 @@ async def browser() -> AsyncIterator[Browser]:
             yield browser
         finally:
             await browser.close()
-
-
-@pytest.fixture
-async def slap2(tmp_path: Path) -> AsyncIterator[LiveServer]:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data", web_dir=WEB_DIST) as server:
-            yield server
-
-
-async def open_page(
-    browser: Browser, server: LiveServer, width: int, height: int, scheme: Any = "dark"
-) -> tuple[Page, list[str]]:
-    context = await browser.new_context(
-        viewport={"width": width, "height": height}, color_scheme=scheme
-    )
-    page = await context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda exc: errors.append(str(exc)))
-    await page.goto(server.base_url)
-    return page, errors
 
 
 async def in_viewport(page: Page, testid: str) -> bool:

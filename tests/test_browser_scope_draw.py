@@ -11,9 +11,8 @@ from __future__ import annotations
 import pytest
 from playwright.async_api import Browser, Page, expect
 
-from .test_api import LiveServer
-from .test_browser import browser  # noqa: F401  (the fixture)
-from .test_browser_scope import open_page, slap2  # noqa: F401  (slap2: the fixture)
+from tests.support.browser import open_page
+from tests.support.servers import LiveServer
 
 pytestmark = pytest.mark.browser
 
@@ -72,8 +71,8 @@ async def lab(page: Page, samples: int, period_s: float) -> None:
 
 
 async def test_dense_trace_keeps_extremes_in_their_columns(
-    browser: Browser,  # noqa: F811
-    slap2: LiveServer,  # noqa: F811
+    browser: Browser,
+    slap2: LiveServer,
 ) -> None:
     page, errors = await open_page(browser, slap2, 1280, 800)
     await lab(page, 20000, 0.0005)
@@ -104,8 +103,8 @@ async def test_dense_trace_keeps_extremes_in_their_columns(
 
 
 async def test_gap_stays_empty_and_sparse_samples_get_markers(
-    browser: Browser,  # noqa: F811
-    slap2: LiveServer,  # noqa: F811
+    browser: Browser,
+    slap2: LiveServer,
 ) -> None:
     page, errors = await open_page(browser, slap2, 1280, 800)
     await lab(page, 20000, 0.0005)
@@ -178,8 +177,8 @@ AREA = """() => {
 
 
 async def test_rolling_redraw_by_shift_equals_a_whole_redraw(
-    browser: Browser,  # noqa: F811
-    slap2: LiveServer,  # noqa: F811
+    browser: Browser,
+    slap2: LiveServer,
 ) -> None:
     page, errors = await open_page(browser, slap2, 1280, 800)
     await lab(page, 20000, 0.0005)

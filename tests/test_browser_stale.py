@@ -16,20 +16,16 @@ import pytest
 from playwright.async_api import Browser, WebSocketRoute, expect
 
 from servotune.api.app import WEB_DIST
-
-from .conftest import running_simulator
-from .test_api import live_server
-from .test_browser import (
-    ARTIFACTS,
-    browser,  # noqa: F401  (the fixture)
-)
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import live_server
+from tests.support.sim_lines import running_simulator
 
 pytestmark = pytest.mark.browser
 
 
 async def test_a_cut_connection_shows_no_axis_as_ok(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     routes: list[WebSocketRoute] = []
     cut = False

@@ -17,7 +17,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -28,15 +27,13 @@ from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
 from servotune.config import LinkSpec
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
-from .test_bench import finished_run, start
-from .test_browser import browser, dashboard  # noqa: F401  (the fixtures)
+from tests.support.bench import finished_run, start
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 pytestmark = pytest.mark.browser
 
-ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", Path(__file__).parent.parent / "artifacts"))
 VM = 0b0100  # the SLAP2's rss bit of velocity mode
 PM = 0b1000  # the SLAP2's rss bit of position mode
 
@@ -84,7 +81,7 @@ SERVERS: dict[str, Callable[[Path], contextlib.AbstractAsyncContextManager[Any]]
 @pytest.mark.parametrize("device", list(SERVERS))
 async def test_each_axis_page_shows_what_its_stop_does_next_to_stop(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
     device: str,
 ) -> None:
     async with SERVERS[device](tmp_path) as (server, axis_id):
@@ -166,7 +163,7 @@ class StopEvents:
 
 
 async def test_escape_in_a_dialog_closes_it_and_sends_no_stop(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     page, server = dashboard
     stops = StopEvents()
@@ -216,7 +213,7 @@ async def test_escape_in_a_dialog_closes_it_and_sends_no_stop(
 
 
 async def test_a_run_the_server_judges_bad_has_no_check_mark_and_shows_why(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     page, server = dashboard
     # PWM 1 does not overcome the simulated motor's friction: the server says bad. First,
@@ -262,7 +259,7 @@ async def test_a_run_the_server_judges_bad_has_no_check_mark_and_shows_why(
 
 
 async def test_an_imported_bad_run_is_not_coloured_against_the_baseline(
-    dashboard: tuple[Page, LiveServer],  # noqa: F811
+    dashboard: tuple[Page, LiveServer],
 ) -> None:
     """A run exported by a server that judged it bad keeps that verdict on import, and
     its metrics are not coloured against the baseline; the same metrics in a run judged

@@ -40,24 +40,20 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.messages import RigManifest
 from servotune.bus.remote import LIVE_MAX_AGE_S
 from servotune.link.base import Sample
-
-from .conftest import wait_for
-from .control_support import WireRecorder, recorded_line
-from .nats_support import Lab, child_process, free_port, nats_lab, rig_request
-from .test_bus import (
+from tests.support.bus_lab import (
     VM,
     App,
     LabRun,
     create_bus_state,
     hub_nats,
-    lab,  # noqa: F401 (the fixture)
     rig_app,
     start_app,
     stop_app,
     wait_for_manifest,
 )
-
-ROOT = Path(__file__).resolve().parent.parent
+from tests.support.control import WireRecorder, recorded_line
+from tests.support.nats import Lab, child_process, free_port, nats_lab, rig_request
+from tests.support.waiting import wait_for
 
 
 def _events(app: App) -> list[str]:
@@ -232,7 +228,7 @@ def _ran(response: httpx.Response) -> None:
 
 
 async def test_what_a_hub_session_the_dead_man_ended_sent_is_not_run(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
 ) -> None:
     """A hub session moves an axis, its keep-alives stop, the rig's dead-man stops the
     axis: whatever that session sends afterwards (within its deadline) is not run, its
@@ -285,7 +281,7 @@ async def test_what_a_hub_session_the_dead_man_ended_sent_is_not_run(
 # --- 2. a STOP never acts on motion started after it --------------------------------------
 
 
-async def _stop_all_while_cut(lab: LabRun, rig: str) -> App:  # noqa: F811
+async def _stop_all_while_cut(lab: LabRun, rig: str) -> App:
     """``rig``'s lab network cut, shown offline at the hub, STOP all pressed there:
     the hub (its STOPs to ``rig``'s axes pending)."""
     assert lab.hub is not None
@@ -299,7 +295,7 @@ async def _stop_all_while_cut(lab: LabRun, rig: str) -> App:  # noqa: F811
 
 
 async def test_a_stop_pressed_during_a_cut_does_not_cut_the_local_users_move(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
 ) -> None:
     """Issue 29 finding 2: STOP all at the hub while rig-a is cut off; rig-a's local
     user starts a velocity move on axis 0 meanwhile. When rig-a is back, the hub's STOP
@@ -338,7 +334,7 @@ async def test_a_stop_pressed_during_a_cut_does_not_cut_the_local_users_move(
 
 
 async def test_a_stop_pending_longer_than_its_limit_is_not_sent_when_the_rig_is_back(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A rig that rejoined after a long time got the hub's old STOP (issue 29): a
@@ -373,7 +369,7 @@ def _record_samples(app: App, axis_id: str) -> list[tuple[float, Sample]]:
     return shown
 
 
-async def test_a_batch_sampled_19_s_ago_is_not_shown_live(lab: LabRun) -> None:  # noqa: F811
+async def test_a_batch_sampled_19_s_ago_is_not_shown_live(lab: LabRun) -> None:
     """What a rig's client buffered through an outage (issue 29: 2,263 samples ~19 s
     old shown as current): published on rig-a's own subject with rig-a's credentials,
     sampled 19 s ago by rig-a's clock. The hub shows a fresh batch, not the old one."""
@@ -411,7 +407,7 @@ async def test_a_batch_sampled_19_s_ago_is_not_shown_live(lab: LabRun) -> None: 
 
 
 async def test_after_the_lab_servers_restart_the_live_view_resumes_from_fresh_samples(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
 ) -> None:
     """The lab's nats-server is down 5 s and restarts (its memory presence stream with
     it): the rigs are offline at the hub meanwhile, the presence stream is created
@@ -461,7 +457,7 @@ async def test_after_the_lab_servers_restart_the_live_view_resumes_from_fresh_sa
 # --- 5. no-responders ---------------------------------------------------------------------
 
 
-async def test_nobody_answering_is_refused_at_once(lab: LabRun) -> None:  # noqa: F811
+async def test_nobody_answering_is_refused_at_once(lab: LabRun) -> None:
     """Issue 29 finding 5: the hub's own subscription matched every command subject,
     so nats-server never said "no responders". Now a request to a rig nobody serves is
     refused at once, and the hub's view user may not subscribe to commands at all."""
@@ -504,7 +500,7 @@ async def test_nobody_answering_is_refused_at_once(lab: LabRun) -> None:  # noqa
 
 
 async def test_a_rig_cannot_file_a_run_a_manifest_or_telemetry_as_another(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """Issue 29 finding 6: rig-b, with its own credentials on its own subjects, filed a
@@ -557,7 +553,7 @@ async def test_a_rig_cannot_file_a_run_a_manifest_or_telemetry_as_another(
 
 
 async def test_the_runs_stream_is_bounded_and_keeps_a_run_until_the_hub_stored_it(
-    lab: LabRun,  # noqa: F811
+    lab: LabRun,
 ) -> None:
     assert lab.hub is not None
     nc = await hub_nats(lab)

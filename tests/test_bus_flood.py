@@ -4,7 +4,7 @@ A rig publishing 5,000 telemetry samples a second on its own subjects (one sampl
 message, the hardest case for the hub) delayed the hub's keep-alives to another rig to
 509 ms (lease 350 ms), and that rig's dead-man stopped a move the hub had started. Here:
 the hub in a process of its own (``servotune hub``), the flooding rig in another
-(tests/fake_rig.py, with rig-b's credentials), rig-a an in-process app on a simulated
+(tests/support/fake_rig.py, with rig-b's credentials), rig-a an in-process app on a simulated
 SLAP2 line whose axis the hub set moving. Through the flood, rig-a's keep-alives keep
 coming within its lease, its dead-man does not fire, it stays online at the hub, and
 the hub sheds the flooding rig's oldest telemetry (its per-rig limit) while still
@@ -33,13 +33,12 @@ from servotune.bus.lane import cpu_wait_s
 from servotune.bus.subjects import presence, rig_cmd
 from servotune.config import LinkSpec
 from servotune.hub.control_lock import ControlSettings
+from tests.support.bus_lab import VM, create_bus_state, start_app, stop_app, wait_for_manifest
+from tests.support.control import recorded_line
+from tests.support.nats import Lab, child_process, free_port, hub_command, nats_lab
+from tests.support.paths import REPO as ROOT
+from tests.support.servers import use_csrf_token
 
-from .conftest import use_csrf_token
-from .control_support import recorded_line
-from .nats_support import Lab, child_process, free_port, hub_command, nats_lab
-from .test_bus import VM, create_bus_state, start_app, stop_app, wait_for_manifest
-
-ROOT = Path(__file__).resolve().parent.parent
 FLOOD_SAMPLES_PER_S = 5000.0
 FLOOD_S = 10.0
 
@@ -134,7 +133,7 @@ async def _flood(lab: Lab, tmp_path: Path, rig: object, wire: object) -> None:
     flood_args = [
         sys.executable,
         "-m",
-        "tests.fake_rig",
+        "tests.support.fake_rig",
         "--url",
         lab.url,
         "--credentials",

@@ -30,11 +30,10 @@ from servotune.bus.leaf import lab_runs_config, leaf_node_conf, rig_runs_config
 from servotune.bus.rig import RUN_RETRY_S
 from servotune.config import LinkSpec
 from servotune.hub.control_lock import ControlSettings
-
-from .conftest import wait_for
-from .control_support import recorded_line
-from .nats_support import ServerProcess, TcpProxy, free_port, require_nats_server
-from .test_bus import VM, App, Rig, start_app, stop_app
+from tests.support.bus_lab import VM, App, Rig, start_app, stop_app
+from tests.support.control import recorded_line
+from tests.support.nats import ServerProcess, TcpProxy, free_port, require_nats_server
+from tests.support.waiting import wait_for
 
 RIG = "rig-a"
 

@@ -28,12 +28,20 @@ from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import SecurityConfig
 from servotune.bus.connection import BusSettings
 from servotune.bus.subjects import axis_cmd, rig_cmd
-
-from .auth_helpers import LAB, client, login, make_accounts
-from .conftest import use_csrf_token, wait_for
-from .control_support import recorded_line
-from .nats_support import free_port, nats_lab
-from .test_bus import RIGS, LabRun, Rig, create_bus_state, start_rig, stop_app, wait_for_manifest
+from tests.support.auth import LAB, client, login, make_accounts
+from tests.support.bus_lab import (
+    RIGS,
+    LabRun,
+    Rig,
+    create_bus_state,
+    start_rig,
+    stop_app,
+    wait_for_manifest,
+)
+from tests.support.control import recorded_line
+from tests.support.nats import free_port, nats_lab
+from tests.support.servers import use_csrf_token
+from tests.support.waiting import wait_for
 
 VM = 1 << 2  # SLAP2 rss bit: velocity mode
 

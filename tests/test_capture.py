@@ -33,9 +33,9 @@ from servotune.link.base import Capturer, DeviceRefusedError, DriverError, captu
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialChannel, SerialConnector
-
-from .conftest import RecordingSink, RunningLink, run_link, running_simulator, wait_for
-from .test_driver_z1100 import chip_line
+from tests.support.sim_lines import RunningLink, chip_line, run_link, running_simulator
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 
 def _send(module: Slap2Module, line: str) -> None:

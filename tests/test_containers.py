@@ -29,10 +29,9 @@ from packaging.requirements import Requirement
 
 from servotune.auth.cli import account_data_dir
 from servotune.cli import build_parser, local_bind_refusal, main
+from tests.support.control import free_port
+from tests.support.paths import REPO as ROOT
 
-from .control_support import free_port
-
-ROOT = Path(__file__).resolve().parents[1]
 ACCOUNT_ACTIONS = {
     "users": [
         ["list"],

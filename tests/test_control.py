@@ -23,8 +23,7 @@ from websockets.typing import Origin
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
 from servotune.hub.control_lock import CLIENT_HEADER, ControlManager, ControlSettings
 from servotune.schema import ForceControl, TakeControl
-
-from .control_support import (
+from tests.support.control import (
     Operator,
     Server,
     can_cut_the_network,

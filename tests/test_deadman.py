@@ -30,8 +30,7 @@ import websockets
 from websockets.typing import Origin
 
 from servotune.hub.control_lock import ControlClient, ControlManager, ControlSettings
-
-from .control_support import (
+from tests.support.control import (
     RawWebsocket,
     Server,
     can_cut_the_network,

@@ -23,8 +23,7 @@ import pytest
 from playwright.async_api import async_playwright, expect
 
 from servotune.perf.demo import StreamWatcher, cpu_hog, demo_server, load_average
-
-from .test_browser import CHROMIUM, CHROMIUM_ARGS
+from tests.support.browser import CHROMIUM, CHROMIUM_ARGS
 
 # A soak, run on purpose (SERVOTUNE_DEADMAN_SOAK_S=1800, the 30 minutes): a CPU
 # hog on every core for that long is no part of the suite. In the suite a 60 s run had one

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "server" / "servotune"
+from tests.support.paths import PACKAGE
 
 ISSUE_REF = re.compile(r"\b[Ii]ssue \d+|\bissue #\d")
 IMPORT_MAP = re.compile(r"\bImports\s*:|\bImported by\b|\bMay import\b")

@@ -15,16 +15,10 @@ from servotune.devices.slap2.link import LINE_ERROR_SPAN_S, Slap2Axis, Slap2Link
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
 from servotune.transports.serial import SerialConnector
-
-from .conftest import (
-    RecordingSink,
-    RunningLink,
-    gather_in_order,
-    run_link,
-    running_simulator,
-    wait_for,
-)
-from .pty_peer import PtyPeer
+from tests.support.pty_peer import PtyPeer
+from tests.support.sim_lines import RunningLink, run_link, running_simulator
+from tests.support.sink import RecordingSink
+from tests.support.waiting import gather_in_order, wait_for
 
 
 def axis(line: RunningLink, address: int) -> Slap2Axis:

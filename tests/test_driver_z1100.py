@@ -3,63 +3,19 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
 
 from servotune.devices.z1100.codec import Command
-from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import DeviceRefusedError, InvalidArgumentError
 from servotune.sim.pty import PtySimulator
-from servotune.transports.serial import SerialConnector
-
-from .conftest import RecordingSink, use_csrf_token, wait_for
-
-BAUD = 38400  # the fastest jumper setting keeps the tests short
-
-
-class Running:
-    def __init__(self, link: Z1100Link, sink: RecordingSink, sim: PtySimulator, chip: Z1100Chip):
-        self.link, self.sink, self.sim, self.chip = link, sink, sim, chip
-
-    def axis(self, index: int) -> Z1100Axis:
-        axis = self.link.axes[index]
-        assert isinstance(axis, Z1100Axis)
-        return axis
-
-    def samples(self, index: int) -> list[float | None]:
-        return [s.channels["position"] for s in self.sink.samples[self.link.axis_id(index)]]
-
-
-@contextlib.asynccontextmanager
-async def chip_line(tmp_path: Path, *, flash: bool = True) -> AsyncIterator[Running]:
-    path = tmp_path / "flash.json"
-    if flash:
-        write_demo_flash(path)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
-    sim = PtySimulator(chip, baud=BAUD)
-    sim.start()
-    sink = RecordingSink()
-    config = Z1100LinkConfig(link_id="chip", path=sim.path, baud=BAUD, verify_period_s=0.3)
-    link = Z1100Link(config, SerialConnector(sim.path, BAUD), sink)
-    task = asyncio.create_task(link.run())
-    try:
-        await wait_for(lambda: link.state == "connected", 5, "the chip link")
-        # Tests look at the latest sample of every axis: wait for the first ones.
-        await wait_for(
-            lambda: all(sink.samples[link.axis_id(i)] for i in range(3)), 5, "first samples"
-        )
-        yield Running(link, sink, sim, chip)
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-        sim.stop()
+from tests.support.servers import use_csrf_token
+from tests.support.sim_lines import Z1100_BAUD, chip_line
+from tests.support.waiting import wait_for
 
 
 async def test_three_axes_stream_and_read_flash_parameters(tmp_path: Path) -> None:
@@ -257,9 +213,9 @@ async def test_api_refuses_while_moving_before_sending(tmp_path: Path) -> None:
 
     path = tmp_path / "flash.json"
     write_demo_flash(path)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=BAUD)
-    with PtySimulator(chip, baud=BAUD) as sim:
-        spec = LinkSpec("z1100", sim.path, "chip", BAUD, [0, 1, 2])
+    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=path, jumper_baud=Z1100_BAUD)
+    with PtySimulator(chip, baud=Z1100_BAUD) as sim:
+        spec = LinkSpec("z1100", sim.path, "chip", Z1100_BAUD, [0, 1, 2])
         app = create_app(AppConfig(links=[spec], data_dir=tmp_path / "data"))
         async with app.router.lifespan_context(app):
             hub = app.state.hub

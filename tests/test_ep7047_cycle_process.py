@@ -26,8 +26,8 @@ from servotune.devices.ep7047.sim.slave import (
     demo_master,
 )
 from servotune.transports.ethercat_cycle import CycleProcessMaster
-
-from .conftest import RecordingSink, wait_for
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 
 async def test_a_held_server_thread_does_not_hold_the_cycle(

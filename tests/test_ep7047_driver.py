@@ -46,8 +46,8 @@ from servotune.devices.ep7047.sim.slave import (
 from servotune.hub.hub import Hub
 from servotune.link.base import DeviceRefusedError, InvalidArgumentError, LinkDownError, Sample
 from servotune.storage import Storage
-
-from .conftest import RecordingSink, wait_for
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 TURN = DEMO_COUNTS_PER_REV  # the demo slave's modulo factor: one turn
 TOLERANT_WATCHDOG_S = 0.5

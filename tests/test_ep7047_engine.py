@@ -6,12 +6,9 @@ two decimals, all multiples of 0.1°) become exact integers: 90.90° = 909 count
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable
 from dataclasses import replace
-from decimal import Decimal
-from pathlib import Path
 from typing import NamedTuple
 
 import pytest
@@ -36,10 +33,8 @@ from servotune.devices.ep7047.modulo import modulo_travel
 from servotune.devices.ep7047.sim.engine import Ep7047Engine
 from servotune.devices.ep7047.sim.plant import DEMO_MECHANICS, DriveConfig, Mechanics, StepperPlant
 from servotune.devices.ep7047.sim.slave import DEMO_FULL_STEPS_PER_REV, DEMO_SETTINGS
+from tests.support.ep7047_cases import ModuloCase, load_cases
 
-# The project's copy of the manual's modulo tables (source named in the file's header):
-# tests never read anything outside the repository.
-CASES_CSV = Path(__file__).resolve().parent / "data" / "ep7047_modulo_cases.csv"
 TURN = 3600  # counts per 360°
 # 4000 full steps/s speed range (the spec's example) at 18 counts per full step
 # (a 200-step motor with 3600 counts per turn): 10000 bp = 72000 counts/s.
@@ -152,39 +147,6 @@ def assert_clean_arrival(trace: list[Sample], position: int) -> None:
 
 
 # --- modulo: the manual's tables ------------------------------------------------------------
-
-
-def counts(degrees: str) -> int:
-    value = Decimal(degrees) * 10
-    assert value == value.to_integral_value(), degrees
-    return int(value)
-
-
-class ModuloCase(NamedTuple):
-    start_type: StartType
-    window: int
-    start: int
-    target: int
-    relative: int
-    abs_end: int
-    mod_end: int
-
-
-def load_cases() -> list[ModuloCase]:
-    with CASES_CSV.open(newline="") as file:
-        rows = [line for line in file if not line.startswith("#")]
-    return [
-        ModuloCase(
-            StartType[row["start_type"]],
-            counts(row["window"]),
-            counts(row["start"]),
-            counts(row["target"]),
-            counts(row["relative"]),
-            counts(row["abs_end"]),
-            counts(row["mod_end"]),
-        )
-        for row in csv.DictReader(rows)
-    ]
 
 
 CASES = load_cases()

@@ -20,8 +20,8 @@ import pytest
 
 from servotune.devices.ep7047.codec import StartType
 from servotune.devices.ep7047.link import Ep7047Link, build_ep7047_link
-
-from .conftest import RecordingSink, wait_for
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 IFNAME = os.environ.get("SERVOTUNE_EP7047_IFNAME", "")
 pytestmark = pytest.mark.skipif(

@@ -49,8 +49,7 @@ from servotune.transports.ethercat_cycle import (
     CycleProcessMaster,
     raise_priority,
 )
-
-from .wire_support import Wire, wire_setup
+from tests.support.ep7047_wire import Wire, wire_setup
 
 pytestmark = pytest.mark.slow
 

@@ -24,10 +24,9 @@ from servotune.devices.ep7047.link import PysoemMaster
 from servotune.hub.hub import Hub
 from servotune.link.base import DeviceRefusedError, InvalidArgumentError
 from servotune.transports.ethercat_cycle import CycleProcessMaster
-
-from .conftest import wait_for
-from .test_ep7047_engine import load_cases
-from .wire_support import Wire, WireRun, start_endless, wire_hub, wire_link, wire_setup
+from tests.support.ep7047_cases import load_cases
+from tests.support.ep7047_wire import Wire, WireRun, start_endless, wire_hub, wire_link, wire_setup
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.slow
 

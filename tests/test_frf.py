@@ -22,19 +22,8 @@ from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.z1100.law import z1100_loop
 from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.frf import estimate_frf, multisine, resample_uniform, tone_grid
-from servotune.tuning.loops import LoopModel, MotorModel
-
-
-def _motor_model(p: DcMotorParams) -> MotorModel:
-    return MotorModel(
-        resistance_ohm=p.resistance_ohm,
-        inductance_h=p.inductance_h,
-        torque_constant_nm_per_a=p.torque_constant_nm_per_a,
-        inertia_kg_m2=p.inertia_kg_m2,
-        viscous_friction_nm_s_per_rad=p.viscous_friction_nm_s_per_rad,
-        supply_v=p.supply_v,
-        counts_per_rev=p.counts_per_rev,
-    )
+from servotune.tuning.loops import LoopModel
+from tests.support.plants import motor_model
 
 
 def test_h1_estimate_of_a_known_second_order_system_with_noise() -> None:
@@ -109,7 +98,7 @@ def test_margins_of_a_discrete_integrator_loop_match_the_hand_calculation() -> N
 
 
 def test_a_loop_with_too_much_gain_is_reported_unstable() -> None:
-    motor = _motor_model(DcMotorParams())
+    motor = motor_model(DcMotorParams())
     assert slap2_loop(motor, 40, 40, 80).margins().stable
     assert not slap2_loop(motor, 4000, 40, 0).margins().stable
 
@@ -155,7 +144,7 @@ def test_slap2_model_matches_the_simulated_plant_where_coherence_is_high(
     _, excitation = multisine(tones, 150.0, 5 * segment / fs, fs)
     measured = _simulate_slap2_pid(params, *gains, excitation)
     frf = estimate_frf(excitation, measured, fs, segment_samples=segment).at_tones(tones)
-    model = slap2_loop(_motor_model(params), *gains).closed_loop_response(frf.frequency_hz)
+    model = slap2_loop(motor_model(params), *gains).closed_loop_response(frf.frequency_hz)
     good = frf.coherence >= 0.9
     assert good.sum() >= 20, "the excitation band must be measurable"
     mag_err = np.abs(frf.magnitude_db[good] - model.magnitude_db[good])
@@ -165,7 +154,7 @@ def test_slap2_model_matches_the_simulated_plant_where_coherence_is_high(
 
 
 def test_z1100_model_closed_loop_follows_a_slow_setpoint_and_reports_margins() -> None:
-    motor = _motor_model(DcMotorParams())
+    motor = motor_model(DcMotorParams())
     loop = z1100_loop(motor, 32, 16, 8)
     response = loop.closed_loop_response([0.5, 1.0])
     np.testing.assert_allclose(np.abs(response.response), 1.0, atol=0.01)
@@ -183,7 +172,7 @@ def test_z1100_step_prediction_over_a_long_horizon_keeps_memory_bounded() -> Non
     for a few thousand seconds was killed at 17 GB). It settles at the setpoint."""
     import tracemalloc
 
-    loop = z1100_loop(_motor_model(DcMotorParams()), 32, 16, 8)
+    loop = z1100_loop(motor_model(DcMotorParams()), 32, 16, 8)
     ticks = 1_000_000
     tracemalloc.start()
     try:

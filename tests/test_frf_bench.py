@@ -43,10 +43,9 @@ from servotune.tuning.whatif import (
     loop_for,
     plant_from_identification,
 )
-
-from .test_api import LiveServer, live_server
-from .test_bench import finished_run, start
-from .test_frf import _motor_model
+from tests.support.bench import finished_run, start
+from tests.support.plants import motor_model
+from tests.support.servers import LiveServer, live_server
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law
@@ -62,7 +61,7 @@ def test_bench_analysis_recovers_a_known_loop_from_irregular_samples() -> None:
     """A SLAP2 loop (model) driven by the run's multisine, sampled with jitter at about
     300 samples/s as a polled line would: T within 1 dB / 10 deg at the tones with
     coherence >= 0.9, and the margins of the measured L = T/(1-T) close to the model's."""
-    loop = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    loop = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80)
     excitation = frfrun.design(0.0, 200.0, 1.0, 40.0)
     duration = 6.0
     fine_t = np.arange(0.0, duration, loop.period_s)
@@ -105,7 +104,7 @@ def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
     SLAP2 a run at 0 read 0.0 dB / +0.6 deg at 1 Hz; the same samples at 20000 counts
     -6.3 dB / +13.5 deg, at -2200 (where the autopilot had left it) -0.7 dB / -7 deg
     at 5 Hz, with coherence 0.98-0.998 throughout."""
-    loop = slap2_loop(_motor_model(NO_FRICTION), 600, 10, 1500)
+    loop = slap2_loop(motor_model(NO_FRICTION), 600, 10, 1500)
     excitation = frfrun.design(0.0, 200.0, 1.0, 10.0)
     rng = np.random.default_rng(4)
     fine_t = np.arange(0.0, 6.0, loop.period_s)
@@ -319,7 +318,7 @@ def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any]) -> None:
     closed = measured["closed_loop"]
     f = np.asarray(closed["frequency_hz"])
     p = run["params"]
-    model = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
+    model = slap2_loop(motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
     truth = model.closed_loop_response(f).response * np.exp(2j * np.pi * f * model.period_s)
     _check_accuracy(f, closed, truth, np.asarray(closed["trusted"]), measured)
 
@@ -430,7 +429,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     # null because no two neighbouring tones that measure L bracket it - which the test
     # checks against the model, so "not measurable" is never a free pass
     p = run["params"]
-    expected = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).margins()
+    expected = slap2_loop(motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).margins()
     if margins["phase_margin_deg"] is not None:
         assert abs(margins["phase_margin_deg"] - expected.phase_margin_deg) <= 5.0, margins
     else:
@@ -450,7 +449,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     # the figures of docs/frequency-response.md (pytest -s)
     closed = measured["closed_loop"]
     f = np.asarray(closed["frequency_hz"])
-    loop = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
+    loop = slap2_loop(motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"])
     truth = loop.closed_loop_response(f).response * np.exp(2j * np.pi * f * loop.period_s)
     good = np.asarray(closed["trusted"])
     db = np.abs(np.asarray(closed["magnitude_db"]) - 20 * np.log10(np.abs(truth)))[good]
@@ -517,7 +516,7 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
     f = np.asarray(closed["frequency_hz"])
     trusted = np.asarray(closed["trusted"])
     p = run["params"]
-    truth = slap2_loop(_motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).closed_loop_response(f)
+    truth = slap2_loop(motor_model(NO_FRICTION), p["kp"], p["ki"], p["kd"]).closed_loop_response(f)
     db = np.abs(np.asarray(closed["magnitude_db"]) - truth.magnitude_db)
     deg = np.abs((np.asarray(closed["phase_deg"]) - truth.phase_deg + 180) % 360 - 180)
     assert (db[trusted] <= 0.5).all() and (deg[trusted] <= 5.0).all(), (f[trusted], trust)
@@ -532,10 +531,10 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
 
 
 async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_path: Path) -> None:
-    from .test_autotune_z1100 import BAUD, chip_line
+    from tests.support.sim_lines import Z1100_BAUD, mediocre_chip_line
 
-    with chip_line(tmp_path) as simulator:
-        spec = LinkSpec("z1100", simulator.path, "line", BAUD, [0, 1, 2], 512)
+    with mediocre_chip_line(tmp_path) as simulator:
+        spec = LinkSpec("z1100", simulator.path, "line", Z1100_BAUD, [0, 1, 2], 512)
         async with live_server(simulator, None, tmp_path / "data", spec=spec) as server:
             client = server.client
             body = {"kind": "frequency_response", "low_hz": 1.0, "high_hz": 100.0}

@@ -28,9 +28,8 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun
 from servotune.tuning.frf import ComplexArray, FloatArray, coherence_from_error, frf_relative_error
-
-from .frf_harness import TickClock
-from .test_frf import _motor_model
+from tests.support.frf_harness import TickClock
+from tests.support.plants import motor_model
 
 NO_FRICTION = DcMotorParams(coulomb_friction_nm=0.0)
 
@@ -72,7 +71,7 @@ def test_the_error_bound_and_its_coherence_are_inverses() -> None:
 
 def _slap2_tones() -> tuple[np.ndarray, np.ndarray]:
     f = np.asarray(frfrun.design(0.0, 200.0, 1.0, 40.0).tones_hz)
-    loop = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    loop = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80)
     return f, loop.closed_loop_response(f).response
 
 
@@ -100,7 +99,7 @@ def test_an_error_of_t_near_one_gives_no_margin_rather_than_a_wrong_one() -> Non
     assert margins["gain_margin_problem"].startswith("not measurable from this run")
     assert "|1 - T| is too small" in margins["gain_margin_problem"]
     assert not out["bode"]["measurable"][i]
-    truth = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80).margins()
+    truth = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80).margins()
     assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=2.0)
     assert margins["phase_margin_error_deg"] > 0
 
@@ -167,7 +166,7 @@ def _errors(result: dict[str, object]) -> tuple[np.ndarray, np.ndarray, np.ndarr
     closed = result["closed_loop"]
     assert isinstance(closed, dict)
     f = np.asarray(closed["frequency_hz"])
-    truth = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80).closed_loop_response(f)
+    truth = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80).closed_loop_response(f)
     wanted = (np.asarray(closed["coherence"]) >= 0.9) & (f <= float(result["nyquist_hz"]))  # type: ignore[arg-type]
     db = np.abs(np.asarray(closed["magnitude_db"]) - truth.magnitude_db)
     deg = np.abs((np.asarray(closed["phase_deg"]) - truth.phase_deg + 180) % 360 - 180)
@@ -209,7 +208,7 @@ def test_measured_frf_and_margins_on_the_scripted_simulator() -> None:
     assert isinstance(closed, dict)
     f = np.asarray(closed["frequency_hz"])
     coherence = np.asarray(closed["coherence"])
-    model = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    model = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80)
     truth = model.closed_loop_response(f)
     wanted = (coherence >= 0.9) & (f <= float(result["nyquist_hz"]))  # type: ignore[arg-type]
     assert wanted.sum() >= 12, (f, coherence)
@@ -272,7 +271,7 @@ def test_open_loop_plant_and_loop_on_the_scripted_simulator() -> None:
     result = frfrun.analyse_open(ts, ys, sent, t0, excitation, _pid(40, 40, 80), tick_s=TICK_S)
     plant = result["plant"]
     f = np.asarray(plant["frequency_hz"])
-    model = slap2_loop(_motor_model(NO_FRICTION), 40, 40, 80)
+    model = slap2_loop(motor_model(NO_FRICTION), 40, 40, 80)
     z = np.exp(2j * np.pi * f * model.period_s)
     expected = np.asarray([complex(model.plant_d(zk)) for zk in z])
     coherence = np.asarray(plant["coherence"])

@@ -2,7 +2,7 @@
 
 * The physical check: on every demo SLAP2 plant (the unloaded module; the loaded one,
   with its Coulomb friction) with stable gains, a run of the bench (1-10 Hz, 200
-  counts, 6 s, the SLAP2 firmware simulator on a scripted wire: ``frf_harness``)
+  counts, 6 s, the SLAP2 firmware simulator on a scripted wire: ``tests/support/frf_harness.py``)
   reads, at every tone it marks trusted, the simulator's closed loop within 0.5 dB
   and 5 deg, and 0 dB / 0 deg within the same where the loop follows its input (the
   model's T within 0.1 dB and 2 deg of 1: well below the bandwidth) - quiet, and with
@@ -32,8 +32,7 @@ from servotune.sim.physics import DcMotorParams
 from servotune.tuning import frfrun, frftrust
 from servotune.tuning.injection import HeldTargets
 from servotune.tuning.loops import MotorModel
-
-from .frf_harness import Stalls, scripted_run, simulator_response
+from tests.support.frf_harness import Stalls, scripted_run, simulator_response
 
 PLANTS = {"unloaded": DcMotorParams(), "loaded": SLAP2_LOADED}
 # stable gains on each demo plant (the model's margins): the factory set where it is

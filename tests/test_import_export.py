@@ -20,10 +20,9 @@ from servotune.bench.files import (
 )
 from servotune.bench.quality import SAMPLING_RULE
 from servotune.storage import Storage
-
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
-from .test_bench import finished_run, start
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 
 @pytest.fixture

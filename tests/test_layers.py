@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "server" / "servotune"
+from tests.support.paths import PACKAGE
 
 CODEC_FILES = {"codec", "frame", "modulo"}
 TOP_ROLES = {

@@ -17,7 +17,6 @@ import re
 import threading
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -29,76 +28,15 @@ from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.link.base import DriverError, InvalidArgumentError, LinkDownError
-from servotune.sim.base import SimDevice
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
-
-from .conftest import RecordingSink, local_client, use_csrf_token, wait_for
+from tests.support.servers import local_client, use_csrf_token
+from tests.support.sink import RecordingSink
+from tests.support.supervision import Tap, hub_on_line
+from tests.support.waiting import wait_for
 
 Z_BAUD = 38400
 CTRL_X = 0x18
-
-
-class Tap:
-    """A SimDevice between the pty and a device: records what the device received and
-    lets a test rewrite what it sends (called on the simulator's thread)."""
-
-    def __init__(self, device: SimDevice) -> None:
-        self.device = device
-        self.received = bytearray()
-        self._lock = threading.Lock()
-        # (received byte, device output) -> what goes on the wire instead
-        self.rewrite: Callable[[int, bytes], bytes] | None = None
-        self._late: list[tuple[float, bytes]] = []
-        self._in_order = False
-        self._now = 0.0
-
-    def power_cycle(self, address: int | None = None) -> None:
-        self.device.power_cycle(address)  # type: ignore[attr-defined]
-
-    def send_late(self, data: bytes, delay_s: float, *, in_order: bool = False) -> None:
-        """Put ``data`` on the wire ``delay_s`` after the current simulation time.
-
-        ``in_order``: a device that is slow to answer, as on a real line: whatever it
-        sends later waits behind ``data`` (and is due no earlier than it). Without it,
-        later output overtakes ``data``, which no single serial device can do."""
-        due = self._now + delay_s
-        if in_order and self._late:
-            due = max(due, self._late[-1][0])
-        self._late.append((due, data))
-        self._in_order = in_order
-
-    def _hold_behind_late(self, out: bytes) -> bytes:
-        # Output of a device answering late in order queues behind what is held back.
-        if out and self._late and self._in_order:
-            self._late.append((self._late[-1][0], out))
-            return b""
-        return out
-
-    def advance_to(self, t_s: float) -> bytes:
-        self._now = max(self._now, t_s)
-        out = self._hold_behind_late(self.device.advance_to(t_s))
-        due = [item for item in self._late if item[0] <= t_s]
-        if due:
-            self._late = [item for item in self._late if item[0] > t_s]
-            out += b"".join(data for _, data in due)
-        return out
-
-    def receive(self, byte: int) -> bytes:
-        with self._lock:
-            self.received.append(byte)
-        out = self.device.receive(byte)
-        if self.rewrite is not None:
-            out = self.rewrite(byte, out)
-        return self._hold_behind_late(out)
-
-    def mark(self) -> int:
-        with self._lock:
-            return len(self.received)
-
-    def since(self, mark: int) -> bytes:
-        with self._lock:
-            return bytes(self.received[mark:])
 
 
 def states_after(sink: RecordingSink, index: int) -> list[str]:
@@ -562,7 +500,7 @@ async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) ->
     bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
-        hub, link = _hub_on_line(sim.path, [0], tmp_path)
+        hub, link = hub_on_line(sim.path, [0], tmp_path)
         await hub.start()
         try:
             await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")
@@ -667,7 +605,7 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
     # Module 1 is selected but its transmitter stays dark: no echo, no reply.
     tap.rewrite = lambda byte, out: b"" if muted.is_set() and bus.module(1).transmitting else out
     with PtySimulator(tap, baud=19200) as sim:
-        hub, link = _hub_on_line(sim.path, [0, 1], tmp_path)
+        hub, link = hub_on_line(sim.path, [0, 1], tmp_path)
         await hub.start()
         try:
             await wait_for(
@@ -746,7 +684,7 @@ async def test_a_line_whose_every_module_falls_silent_is_shown_in_error(
     muted = threading.Event()
     tap.rewrite = lambda byte, out: b"" if muted.is_set() else out
     with PtySimulator(tap, baud=19200) as sim:
-        hub, link = _hub_on_line(sim.path, addresses, tmp_path, verify_period_s=0.05)
+        hub, link = hub_on_line(sim.path, addresses, tmp_path, verify_period_s=0.05)
         await hub.start()
         try:
             axes = [f"line-{a}" for a in addresses]
@@ -779,7 +717,7 @@ async def test_a_line_that_answers_only_wrong_bytes_is_shown_in_error_and_back(
     garbled = threading.Event()
     tap.rewrite = lambda byte, out: bytes(b ^ 0x01 for b in out) if garbled.is_set() else out
     with PtySimulator(tap, baud=19200) as sim:
-        hub, _ = _hub_on_line(sim.path, [0, 1], tmp_path)
+        hub, _ = hub_on_line(sim.path, [0, 1], tmp_path)
         await hub.start()
         try:
             await wait_for(lambda: hub.entry("line-0").latest is not None, 10, "samples")
@@ -795,28 +733,6 @@ async def test_a_line_that_answers_only_wrong_bytes_is_shown_in_error_and_back(
             await wait_for(lambda: hub.entry("line-0").last_sample_at > before, 10, "samples")
         finally:
             await hub.stop()
-
-
-def _hub_on_line(
-    path: str, addresses: list[int], tmp_path: Path, **settings: Any
-) -> tuple[Any, Slap2Link]:
-    """(a hub over one SLAP2 link on ``path``, that link): the link reports to the
-    hub, which exists only after the link, so a forwarding sink bridges the two.
-    ``settings``: fields of ``Slap2LinkConfig`` to change."""
-    from servotune.hub.hub import Hub
-    from servotune.storage import Storage
-
-    holder: list[Hub] = []
-
-    class Forward:
-        def __getattr__(self, name: str) -> object:
-            return getattr(holder[0], name)
-
-    config = Slap2LinkConfig(link_id="line", path=path, addresses=addresses, **settings)
-    link = Slap2Link(config, SerialConnector(path, 19200), Forward())  # type: ignore[arg-type]
-    hub = Hub([link], Storage(tmp_path / "db.sqlite"))
-    holder.append(hub)
-    return hub, link
 
 
 class _MuteCrOf:
@@ -862,7 +778,7 @@ async def test_a_command_whose_cr_echo_failed_is_not_sent_again_a_stop_is(
     mute = _MuteCrOf()
     tap.rewrite = mute
     with PtySimulator(tap, baud=19200) as sim:
-        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
+        hub, _ = hub_on_line(sim.path, [0], tmp_path)
         await hub.start()
         try:
             await wait_for(lambda: hub.entry("line-0").latest is not None, 10, "samples")

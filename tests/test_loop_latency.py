@@ -13,16 +13,11 @@ phase are printed (targets on a quiet machine: STOP 50 ms, telemetry gap 100 ms)
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import json
 import os
-import signal
 import statistics
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -30,54 +25,11 @@ from typing import Any
 import websockets
 
 from servotune.config import LinkSpec
-
-from .test_bench import finished_run, start
-from .test_storage_errors import _origin, serve
+from tests.support.bench import finished_run, start
+from tests.support.servers import origin, serve, sim_process
 
 IMPORT_ROWS = 250_000  # about 16 MB of CSV
 EXPORTS_MIN_S = 1.5  # the exports phase lasts at least this (see the test)
-
-
-@contextlib.contextmanager
-def sim_process(tmp_path: Path) -> Iterator[str]:
-    """``servotune sim slap2`` (modules 0 and 1) in a child process; yields its pty path.
-
-    In a session of its own, as a device on a wire would be: on Linux a scheduling
-    group (autogroup) of its own, so this test's own work (the server in this process)
-    cannot starve it into late echoes (``servotune.sim.process.own_scheduling_group``
-    does the same for the demo's simulators)."""
-    tmp_path.mkdir(parents=True, exist_ok=True)
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "servotune.cli",
-            "sim",
-            "slap2",
-            "--addresses",
-            "0,1",
-            "--state-dir",
-            str(tmp_path),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-        env=os.environ.copy(),
-        start_new_session=True,
-    )
-    try:
-        assert process.stdout is not None
-        path = process.stdout.readline().strip()
-        assert path, "the simulator printed no path"
-        yield path
-    finally:
-        process.send_signal(signal.SIGTERM)
-        try:
-            process.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-        if process.stdout is not None:
-            process.stdout.close()
 
 
 def _big_csv(meta: dict[str, Any]) -> bytes:
@@ -115,7 +67,7 @@ async def test_stop_and_telemetry_are_not_held_back_by_import_export_and_fit(
             done = asyncio.Event()
 
             async def watch_telemetry() -> None:
-                async with websockets.connect(ws_url, max_size=None, origin=_origin(ws_url)) as ws:
+                async with websockets.connect(ws_url, max_size=None, origin=origin(ws_url)) as ws:
                     while not done.is_set():
                         try:
                             text = await asyncio.wait_for(ws.recv(), 0.5)

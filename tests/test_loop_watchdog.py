@@ -31,10 +31,8 @@ import pytest
 
 from servotune.config import LinkSpec
 from servotune.perf.looplag import LoopLagMeter
-
-from .test_bench import finished_run, start
-from .test_loop_latency import sim_process
-from .test_storage_errors import serve
+from tests.support.bench import finished_run, start
+from tests.support.servers import serve, sim_process
 
 pytestmark = pytest.mark.slow
 

@@ -6,7 +6,6 @@ import dataclasses
 import math
 import random
 import re
-from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -19,8 +18,9 @@ from servotune.bench.metrics import (
     predict_second_order,
 )
 from servotune.bench.quality import assess
+from tests.support.paths import DOCS
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "metrics.md"
+METRICS_MD = DOCS / "metrics.md"
 
 DENSE = (0.0005, 0.0015)  # s between samples: jittered around 1 ms
 POLLED_20MS = (0.015, 0.025)  # about 20 ms
@@ -663,7 +663,7 @@ def test_predict_second_order_is_continuous_through_critical_damping() -> None:
 def test_every_field_has_a_definition_repeated_in_the_docs() -> None:
     names = {f.name for f in dataclasses.fields(Metrics)}
     assert set(Metrics.definitions) == names
-    docs = " ".join(DOCS.read_text(encoding="utf-8").split())
+    docs = " ".join(METRICS_MD.read_text(encoding="utf-8").split())
     for name, sentence in Metrics.definitions.items():
         assert sentence.endswith("."), name
         assert " ".join(sentence.split()) in docs, f"docs/metrics.md lacks the definition of {name}"

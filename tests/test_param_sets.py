@@ -8,8 +8,8 @@ from urllib.parse import quote
 
 import pytest
 
-from .conftest import running_simulator
-from .test_api import LiveServer, live_server
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import running_simulator
 
 
 @pytest.fixture

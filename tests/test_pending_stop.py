@@ -27,9 +27,8 @@ from servotune.hub.hub import Hub
 from servotune.link.base import CommandOutcome, LinkDownError
 from servotune.sim.pty import PtySimulator
 from servotune.storage import Storage
-
-from .conftest import wait_for
-from .test_link_supervision import Tap, _hub_on_line
+from tests.support.supervision import Tap, hub_on_line
+from tests.support.waiting import wait_for
 
 
 class FlakyStopAxis:
@@ -176,7 +175,7 @@ async def _stop_while_unplugged(tmp_path: Path) -> AsyncIterator[tuple[Hub, Any,
     bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
-        hub, _ = _hub_on_line(sim.path, [0], tmp_path)
+        hub, _ = hub_on_line(sim.path, [0], tmp_path)
         await hub.start()
         try:
             await wait_for(lambda: hub.link_status("line").state == "connected", 10, "link")

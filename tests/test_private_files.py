@@ -9,9 +9,8 @@ import stat
 from pathlib import Path
 
 from servotune.api.app import AppConfig, create_app
-
-from .auth_helpers import running
-from .conftest import local_client, use_csrf_token
+from tests.support.auth import running
+from tests.support.servers import local_client, use_csrf_token
 
 
 def _mode(path: Path) -> int:

@@ -2,8 +2,8 @@
 
 README.md, docs/*.md, and the comments of docker-compose.yml, the Dockerfile and lab/'s
 files are searched for servotune, docker and docker-compose commands
-(tests/doc_commands.py); each recipe is then run as its user would, in order, through
-the CLI's own argparse parser and against docker-compose.yml (tests/recipe_check.py):
+(tests/support/doc_commands.py); each recipe is then run as its user would, in order, through
+the CLI's own argparse parser and against docker-compose.yml (tests/support/recipe_check.py):
 no Docker needed. The checks are proven to fail on the recipes issue 30 found broken.
 """
 
@@ -11,8 +11,16 @@ from __future__ import annotations
 
 import pytest
 
-from .doc_commands import ROOT, Printed, Recipe, all_printed, comments, markdown, split_command
-from .recipe_check import RecipeError, compose_file, run_command, run_recipe, services
+from tests.support.doc_commands import (
+    ROOT,
+    Printed,
+    Recipe,
+    all_printed,
+    comments,
+    markdown,
+    split_command,
+)
+from tests.support.recipe_check import RecipeError, compose_file, run_command, run_recipe, services
 
 RECIPES, INLINE = all_printed()
 
@@ -49,7 +57,7 @@ def test_each_service_of_the_image_runs_a_command_the_cli_accepts() -> None:
     """docker-compose.yml's servotune services (and the image's CMD), as their container
     would start them; the demo's local mode on 0.0.0.0 passes the bind rule only with
     the loopback statement and a loopback-only publish."""
-    from .recipe_check import check_bind_rule, image_environment, service_server_args
+    from tests.support.recipe_check import check_bind_rule, image_environment, service_server_args
 
     checked = []
     for name, service in services(compose_file()).items():

@@ -262,8 +262,7 @@ def test_live_openapi_contract_as_an_operator_in_exposed_mode(tmp_path: Path) ->
     403, which every route documents; nothing answers 500."""
     from servotune.auth.security import AUTH_DB
     from servotune.auth.store import AuthStore
-
-    from .auth_helpers import make_accounts
+    from tests.support.auth import make_accounts
 
     make_accounts(tmp_path)
     store = AuthStore(tmp_path / AUTH_DB)

@@ -17,8 +17,7 @@ import pytest
 
 from servotune.transports.base import LinkClosedError
 from servotune.transports.serial import SerialChannel, SerialConnector
-
-from .pty_peer import PtyPeer
+from tests.support.pty_peer import PtyPeer
 
 
 @pytest.fixture

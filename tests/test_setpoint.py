@@ -19,8 +19,8 @@ from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.transports.serial import SerialConnector
-
-from .conftest import RecordingSink, wait_for
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 
 def test_the_sum_of_two_reads_is_a_setpoint_only_while_the_error_is_steady() -> None:

@@ -31,10 +31,9 @@ from servotune.devices.ep7047.sim.process import (
 )
 from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
 from servotune.sim.process import SimProcess, SimProcessError
-
-from .conftest import RecordingSink, wait_for
-
-SERVER = Path(__file__).resolve().parents[1] / "server"
+from tests.support.paths import SERVER
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 
 def _alive(pid: int) -> bool:

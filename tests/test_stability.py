@@ -39,11 +39,11 @@ from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.loops import MotorModel
 from servotune.tuning.stability import schur_stable
 from servotune.tuning.whatif import browser_model, loop_for, plant_from_identification
+from tests.support.paths import REPO as ROOT
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law
 
-ROOT = Path(__file__).resolve().parents[1]
 TICK_S = 841.5e-6
 PLANTS = {"unloaded": DcMotorParams(), "loaded": SLAP2_LOADED}
 GRID = list(itertools.product((10, 150, 600, 2000, 3000), (0, 40, 3000), (0, 80, 600, 2000)))

@@ -23,9 +23,8 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.perf import stops as stopbench
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
-
-from .test_api import LiveServer, live_server
-from .test_bench import finished_run, start
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
 
 VM, PM, MOVE = 1 << 2, 1 << 3, 1 << 4  # rss bits
 COUNTS_PER_RAD = 2048 / (2 * math.pi)

@@ -5,58 +5,20 @@ traceback, and settings applied meanwhile are saved once the database works agai
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import sqlite3
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
-import uvicorn
 import websockets
 from websockets.typing import Origin
 
-from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.storage import Storage
-
-from .conftest import running_simulator, use_csrf_token, wait_for
-from .test_api import free_port
-
-
-def _origin(ws_url: str) -> Origin:
-    """The dashboard's own origin (the websocket refuses any other)."""
-    return Origin(ws_url.replace("ws://", "http://").removesuffix("/ws"))
-
-
-@contextlib.asynccontextmanager
-async def serve(
-    spec: LinkSpec | list[LinkSpec], data_dir: Path
-) -> AsyncIterator[tuple[Any, httpx.AsyncClient, str]]:
-    """A live server on ``spec`` (one link or several): (app, client, websocket url)."""
-    specs = spec if isinstance(spec, list) else [spec]
-    app = create_app(AppConfig(links=specs, data_dir=data_dir, web_dir=data_dir / "no-web"))
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
-    )
-    task = asyncio.create_task(server.serve())
-    try:
-        await wait_for(lambda: server.started, 10, "the server to start")
-        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
-            await use_csrf_token(client)
-            for axis in (await client.get("/api/axes")).json():
-                for _ in range(250):
-                    if (await client.get(f"/api/axes/{axis['id']}/state")).status_code == 200:
-                        break
-                    await asyncio.sleep(0.02)
-            yield app, client, f"ws://127.0.0.1:{port}/ws"
-    finally:
-        server.should_exit = True
-        await task
+from tests.support.servers import serve
+from tests.support.sim_lines import running_simulator
 
 
 def _break(storage: Storage) -> sqlite3.Connection:

@@ -43,11 +43,11 @@ from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
 from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.tuning.identify import fit_closed_loop, fit_plant
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
+from tests.support.paths import PACKAGE as SERVER
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law
 
-SERVER = Path(__file__).resolve().parents[1] / "server" / "servotune"
 
 # --- fits ----------------------------------------------------------------------------
 

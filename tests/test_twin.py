@@ -5,26 +5,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-from collections.abc import AsyncIterator
-from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
 import pytest
-import uvicorn
 import viser
 import websockets
 
-from servotune.api.app import AppConfig, create_app
-from servotune.demo import demo_simulators
 from servotune.devices.slap2.descriptor import slap2_descriptor
 from servotune.devices.z1100.descriptor import z1100_descriptor
 from servotune.twin.model import Rail, angle_rad, classify, disc_wxyz, node_slot
 from servotune.twin.scene import MIN_TURN_RAD
-
-from .conftest import use_csrf_token, wait_for
-from .test_api import free_port
-from .twin_client import angle_of, same_angle, until, viser_session
+from tests.support.servers import demo_server
+from tests.support.twin_client import angle_of, same_angle, until, viser_session
 
 SLAP2 = slap2_descriptor(512)
 Z1100 = z1100_descriptor(2048)
@@ -70,39 +62,6 @@ def test_angle_convention_and_rail() -> None:
     rail.observe(-3000, [True, False])  # E1 seen on at -3000 counts: learned
     assert rail.switch_known(0) and rail.place(-3000) == rail.switch_place(0, 2)
     assert 0.0 < rail.place(-3000) < rail.place(0) < 1.0
-
-
-@dataclass
-class Demo:
-    base_url: str
-    ws_url: str
-    client: httpx.AsyncClient
-
-
-@contextlib.asynccontextmanager
-async def demo_server(tmp_path: Path, web_dir: Path | None = None) -> AsyncIterator[Demo]:
-    """The demo app (2 SLAP2, 3 Z1100 axes, 1 EP7047), without the autopilot."""
-    data_dir = tmp_path / "data"
-    config = AppConfig(
-        data_dir=data_dir,
-        simulators=demo_simulators(data_dir),
-        web_dir=web_dir or tmp_path / "no-web",
-    )
-    app = create_app(config)
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
-    )
-    task = asyncio.create_task(server.serve())
-    try:
-        await wait_for(lambda: server.started, 30, "the server to start")
-        base = f"http://127.0.0.1:{port}"
-        async with httpx.AsyncClient(base_url=base, timeout=20) as client:
-            await use_csrf_token(client)
-            yield Demo(base, f"ws://127.0.0.1:{port}/twin", client)
-    finally:
-        server.should_exit = True
-        await task
 
 
 async def raw_handshake(port: int, host: str, origin: str | None) -> str:

@@ -17,9 +17,8 @@ from PIL import Image
 from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
-
-from .test_browser import ARTIFACTS, browser  # noqa: F401  (the fixture)
-from .test_twin import demo_server
+from tests.support.paths import ARTIFACTS
+from tests.support.servers import demo_server
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -60,7 +59,7 @@ async def scene_drawn(page: Page, iframe: str) -> bytes:
 
 async def test_axis_page_3d_beside_the_plots_and_the_rig(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     async with demo_server(tmp_path, web_dir=WEB_DIST) as demo:
         page = await browser.new_page(viewport={"width": 1400, "height": 900})

@@ -2,7 +2,7 @@
 
 A real exposed server on a recorded simulated SLAP2 line with the twin on. viser's
 client messages are msgpack maps with a ``type``; the tests speak that format as
-viser's browser client does (``tests/twin_client.py``).
+viser's browser client does (``tests/support/twin_client.py``).
 """
 
 from __future__ import annotations
@@ -26,10 +26,9 @@ from websockets.typing import Origin, Subprotocol
 from servotune.auth.audit import AuditQuery
 from servotune.auth.security import AUTH_DB
 from servotune.twin.service import SECRET_HEADER
-
-from .conftest import wait_for
-from .control_support import ExposedServer, exposed_line_server, session_of
-from .twin_client import ViserScene, until, viser_session
+from tests.support.control import ExposedServer, exposed_line_server, session_of
+from tests.support.twin_client import ViserScene, until, viser_session
+from tests.support.waiting import wait_for
 
 SUBPROTOCOL = Subprotocol(f"viser-v{viser.__version__}")
 CAMERA = {

@@ -47,11 +47,10 @@ from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
 from servotune.tuning.whatif import loop_for, plant_from_identification
-
-from .test_api import LiveServer, live_server
-from .test_autotune import LIMITS as SLAP2_LIMITS
-from .test_autotune import demo_line
-from .test_bench import finished_run, start
+from tests.support.autotune import LIMITS as SLAP2_LIMITS
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import demo_line
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law

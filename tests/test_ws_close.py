@@ -16,8 +16,7 @@ import websockets
 from websockets.typing import Origin
 
 from servotune.auth.ws_auth import close_websockets
-
-from .control_support import control_server
+from tests.support.control import control_server
 
 
 class _Records(logging.Handler):

@@ -1,4 +1,4 @@
-"""Checks a printed command (tests/doc_commands.py) as the user would run it.
+"""Checks a printed command (tests/support/doc_commands.py) as the user would run it.
 
 ``servotune ...`` goes through the CLI's own argparse parser (``servotune.cli.
 build_parser``): strictly for a code block or a comment, and for an inline span in prose
@@ -32,8 +32,7 @@ import yaml
 
 from servotune.auth.cli import account_data_dir
 from servotune.cli import build_parser, local_bind_refusal, loopback_published, server_data_dir
-
-from .doc_commands import ROOT, Printed, Recipe
+from tests.support.doc_commands import ROOT, Printed, Recipe
 
 IMAGE = "servotune:demo"
 SERVER_COMMANDS = frozenset({"demo", "serve", "hub"})

@@ -36,8 +36,7 @@ from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.hub.control_lock import CLIENT_HEADER, ControlSettings
 from servotune.sim.pty import PtySimulator
-
-from .conftest import use_csrf_token
+from tests.support.servers import use_csrf_token
 
 CR = 0x0D
 CTRL_X = 0x18
@@ -223,9 +222,9 @@ def exposed_security() -> Any:
 async def exposed_line_server(
     tmp_path: Path, addresses: list[int], *, twin: bool = False
 ) -> AsyncIterator[ExposedServer]:
-    """A real server in exposed mode (the accounts of ``tests/auth_helpers``) on a
+    """A real server in exposed mode (the accounts of ``tests/support/auth.py``) on a
     recorded simulated SLAP2 line (``exposed_security``, ``served``)."""
-    from .auth_helpers import make_accounts
+    from tests.support.auth import make_accounts
 
     make_accounts(tmp_path / "data")
     with recorded_line(tmp_path, addresses) as (simulator, wire):
@@ -244,8 +243,8 @@ async def exposed_line_server(
 async def session_of(
     server: ExposedServer, user: str, address: str = "192.0.2.10"
 ) -> httpx.AsyncClient:
-    """A logged-in client of ``user`` (tests/auth_helpers' passwords) from ``address``."""
-    from .auth_helpers import PASSWORDS
+    """A logged-in client of ``user`` (tests/support/auth.py's passwords) from ``address``."""
+    from tests.support.auth import PASSWORDS
 
     http = httpx.AsyncClient(
         base_url=server.base_url, timeout=60, headers={"X-Forwarded-For": address}

@@ -3,7 +3,7 @@ agent's protocol (manifest, presence, clock answers, snapshot, command answers, 
 telemetry at a chosen rate) without a device behind it. Used by the flood test
 (tests/test_bus_faults.py, in a process of its own) and scripts/bench_bus_lab.py.
 
-    python -m tests.fake_rig --url nats://... --credentials rig-b.cred --rig rig-b \\
+    python -m tests.support.fake_rig --url nats://... --credentials rig-b.cred --rig rig-b \\
         --axes 1 --samples-per-s 5000 --batch 1 --seconds 20
 
 A sample's ``position`` channel is the wall clock when it was made and ``velocity`` a

@@ -1,6 +1,6 @@
 """Shared by the EP7047 wire tests: a namespace + veth pair with the simulated slave on
 one end (``servotune sim ep7047 --ifname``), and the real driver over pysoem on the
-other. See ``tests/netns_support.py`` for the namespace and the slave process.
+other. See ``tests/support/netns.py`` for the namespace and the slave process.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_R
 from servotune.hub.hub import Hub
 from servotune.link.base import Sample
 from servotune.storage import Storage
-
-from .conftest import RecordingSink, wait_for
-from .netns_support import SlaveProcess, VethPair, netns_problem, slave_process, veth_pair
+from tests.support.netns import SlaveProcess, VethPair, netns_problem, slave_process, veth_pair
+from tests.support.sink import RecordingSink
+from tests.support.waiting import wait_for
 
 
 def require_netns() -> None:

@@ -6,7 +6,7 @@ and in the comments of docker-compose.yml, the Dockerfile and lab/'s configurati
 print them). Only ``servotune``, ``docker`` and ``docker-compose`` commands are kept;
 environment assignments, ``sudo``, a trailing ``&`` and comments are dropped, and lines
 ending in a backslash are joined. The commands of one code block (or one paragraph of a
-comment) form one recipe: tests/recipe_check.py runs them in order.
+comment) form one recipe: tests/support/recipe_check.py runs them in order.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.paths import REPO as ROOT
+
 COMMANDS = frozenset({"servotune", "docker", "docker-compose"})
 # Block-drawing characters: a code block with them is a diagram, not commands.
 _DIAGRAM = re.compile(r"[─│┌┐└┘├┤┬┴┼]")

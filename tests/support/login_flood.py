@@ -1,6 +1,6 @@
 """A login flood from a process of its own (``tests/test_auth_flood.py`` starts it).
 
-``python tests/login_flood.py BASE_URL COUNT ADDRESS``: COUNT concurrent
+``python tests/support/login_flood.py BASE_URL COUNT ADDRESS``: COUNT concurrent
 ``POST /api/auth/login`` with unknown names, each sent as from ADDRESS (the server
 trusts ``X-Forwarded-For`` from 127.0.0.1 in the test). Prints ``started`` once every
 request is on its way, then one status code per line as the answers come in.
