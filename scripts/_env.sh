@@ -48,7 +48,7 @@ ensure_nats() {  # the bus tests start nats-server themselves (tests/support/nat
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq nats-server >/dev/null
 }
 
-ensure_caddy() {  # tests/test_containers.py adapts the lab's Caddyfiles with the real caddy
+ensure_caddy() {  # tests/integration/deploy/test_containers.py adapts the lab's Caddyfiles with the real caddy
   if command -v caddy >/dev/null; then return; fi
   echo "==> installing Debian's caddy for the Caddyfile tests"
   local sudo=""

@@ -11,7 +11,7 @@ from tests.support.paths import TESTS
 
 # The project's copy of the manual's modulo tables (source named in the file's header):
 # tests never read anything outside the repository.
-CASES_CSV = TESTS / "data" / "ep7047_modulo_cases.csv"
+CASES_CSV = TESTS / "device" / "ep7047" / "data" / "ep7047_modulo_cases.csv"
 
 
 class ModuloCase(NamedTuple):

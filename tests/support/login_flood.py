@@ -1,4 +1,5 @@
-"""A login flood from a process of its own (``tests/test_auth_flood.py`` starts it).
+"""A login flood from a process of its own (``test_auth_flood.py`` in tests/integration/auth/
+starts it).
 
 ``python tests/support/login_flood.py BASE_URL COUNT ADDRESS``: COUNT concurrent
 ``POST /api/auth/login`` with unknown names, each sent as from ADDRESS (the server

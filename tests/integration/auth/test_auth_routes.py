@@ -131,7 +131,8 @@ async def test_role_cannot_call_what_it_lacks(tmp_path: Path, user: str) -> None
             if needed == COMMAND:
                 needed = "move"  # a move command (stop is tested below)
             elif needed == CONSOLE_LINE:
-                needed = "console"  # and then what the line is (tests/test_auth_console.py)
+                # and then what the line is (tests/integration/auth/test_auth_console.py)
+                needed = "console"
             if needed == PUBLIC or needed in allowed:
                 continue
             body = _bodies(template) if method in ("POST", "PUT", "PATCH") else None

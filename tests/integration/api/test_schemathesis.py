@@ -52,7 +52,7 @@ MAX_EXAMPLES = 2
 # Operations not generated at all, each with its reason.
 EXCLUDED: dict[str, str] = {
     # Each call moves the axis for 2-8 s (staircase, fit, verification moves): a
-    # bounded run cannot afford them, and tests/test_autotune*.py cover them (the body
+    # bounded run cannot afford them, and the test_autotune*.py modules cover them (the body
     # that once gave a 500 there: test_identify_with_the_body_schemathesis_found_a_500_with).
     "POST /api/axes/{axis_id}/autotune/identify": "slow: moves the axis for seconds",
     "POST /api/axes/{axis_id}/autotune/accept": "slow: two recorded tests per call",

@@ -3,7 +3,7 @@
 Two rules a scan can hold, checked on the source (nothing is imported): no issue numbers
 (the rule an issue asked for is written out instead; the issue is in git and docs/),
 and no hand-kept import maps (``Imports:``, ``Imported by``, ``May import``): the
-layer test (``tests/test_layers.py``) is the import map, and a copy in prose goes
+layer test (``tests/unit/test_layers.py``) is the import map, and a copy in prose goes
 stale. Docstrings are every triple-quoted string, comments every ``#`` token.
 """
 

@@ -311,7 +311,7 @@ def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any]) -> None:
     """Measured T against the simulator's plant under the firmware PID with the run's
     gains (the ZOH model with the simulator's one-tick lead, docs/frequency-response.md):
     within 0.5 dB and 5 deg at every tone the run trusts. How many it trusts depends on
-    the host (a loaded one stalls the capture: docs); ``tests/test_frf_trust.py``
+    the host (a loaded one stalls the capture: docs); ``tests/integration/bench/test_frf_trust.py``
     checks the coverage on a deterministic wire."""
     measured = frf["measured"]
     assert measured is not None, frf["measured_problem"]
