@@ -1,7 +1,7 @@
 // The one stability verdict of a discrete loop, in the browser: the same steps as
 // server/servotune/tuning/stability.py (Schur-Cohn on the characteristic polynomial
 // built from the exact controller and plant polynomials), checked against the same
-// cases in tests/test_stability.py (this file is compiled and run under node there).
+// cases in tests/unit/tuning/test_stability.py (this file is compiled and run under node there).
 // No imports: it must compile on its own.
 
 /** Whether every root of a0 z^n + ... + an lies strictly inside the unit circle:

@@ -17,7 +17,7 @@ and records the shaft as the simulated device sees it until it is at rest.
 * holds: the motor is under power at the end (held by its loop).
 
 A composition root (imports simulators, drivers and the hub); used by
-``scripts/bench_stops.py`` (the table in docs/control.md) and tests/test_stops.py
+``scripts/bench_stops.py`` (the table in docs/control.md) and tests/integration/hub/test_stops.py
 (ratios against the power-off measured in the same test). Figures depend on the host
 only through the host's latency (a STOP's few milliseconds on the wire).
 """
