@@ -7,14 +7,13 @@ a trigger on ``move``, Δ cursors on a known data set, the KABH+KABD write group
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
-from playwright.async_api import Browser, Page, async_playwright, expect
+from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
-from tests.support.browser import CHROMIUM, open_page
+from tests.support.browser import open_page
 from tests.support.paths import SUPPORT
 from tests.support.servers import LiveServer, live_server
 
@@ -34,20 +33,6 @@ OFFSCREEN_JS = """() => {
   return { bad, count: document.querySelectorAll('.controls button').length,
            scroll: document.documentElement.scrollWidth - vw };
 }"""
-
-
-@pytest.fixture
-async def browser() -> AsyncIterator[Browser]:
-    assert Path(CHROMIUM).exists(), "install Debian's chromium (scripts/test.sh does)"
-    assert (WEB_DIST / "index.html").exists(), "build the web bundle (scripts/test.sh does)"
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(
-            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu", "--no-first-run"]
-        )
-        try:
-            yield browser
-        finally:
-            await browser.close()
 
 
 async def in_viewport(page: Page, testid: str) -> bool:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -13,13 +12,6 @@ import websockets
 
 from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import running_simulator
-
-
-@pytest.fixture
-async def api(tmp_path: Path) -> AsyncIterator[LiveServer]:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data") as server:
-            yield server
 
 
 async def test_axes_descriptor_and_params(api: LiveServer) -> None:

@@ -2,21 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any
 from urllib.parse import quote
 
-import pytest
-
-from tests.support.servers import LiveServer, live_server
-from tests.support.sim_lines import running_simulator
-
-
-@pytest.fixture
-async def api(tmp_path: Path) -> Any:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data") as server:
-            yield server
+from tests.support.servers import LiveServer
 
 
 async def test_save_compare_restore(api: LiveServer) -> None:

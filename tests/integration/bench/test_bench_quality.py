@@ -10,7 +10,6 @@ import asyncio
 import json
 import math
 from dataclasses import asdict
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,8 +26,7 @@ from servotune.bench.quality import (
     assess,
 )
 from tests.support.bench import finished_run, start
-from tests.support.servers import LiveServer, live_server
-from tests.support.sim_lines import running_simulator
+from tests.support.servers import LiveServer
 
 COLUMNS = ["t_s", "position", "following_error", "flags_t_s"]
 FLAGS = ["limit1", "limit2", "oc", "inpos", "move"]
@@ -378,13 +376,6 @@ def test_fewer_than_ten_samples_is_doubtful() -> None:
 
 
 # --- on the simulated SLAP2 line -------------------------------------------------------
-
-
-@pytest.fixture
-async def api(tmp_path: Path) -> Any:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data") as server:
-            yield server
 
 
 async def test_sim_runs_hitting_the_switch_not_moving_or_cut_short_are_bad(

@@ -263,7 +263,9 @@ def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
 
 
 @pytest.fixture
-async def api(tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]) -> AsyncIterator[Any]:
+async def one_module_api(
+    tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]
+) -> AsyncIterator[Any]:
     sim, bus = one_module
     spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0], 512)
     async with live_server(sim, bus, tmp_path / "data", spec=spec) as server:
@@ -277,7 +279,7 @@ async def api(tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]) -> Asyn
 
 
 async def test_bad_frequency_response_requests_are_refused_before_anything_moves(
-    api: LiveServer,
+    one_module_api: LiveServer,
 ) -> None:
     base = {"kind": "frequency_response", "amplitude": 200, "low_hz": 1.0, "high_hz": 40.0}
     cases = [
@@ -289,22 +291,24 @@ async def test_bad_frequency_response_requests_are_refused_before_anything_moves
         ({"duration_s": 2.0}, "duration_s", "at least 4 s"),
     ]
     for change, field, text in cases:
-        response = await api.client.post(
+        response = await one_module_api.client.post(
             "/api/axes/line-0/bench/runs", json={"duration_s": 5.0, **base, **change}
         )
         assert response.status_code == 422, (change, response.text)
         assert response.json()["field"] == field, response.json()
         assert text in response.json()["detail"], response.json()
-    position = api.bus.module(0).position
+    position = one_module_api.bus.module(0).position
     limits = {"min_position_counts": position - 100, "max_position_counts": position + 1000}
-    assert (await api.client.put("/api/axes/line-0/bench/limits", json=limits)).status_code == 200
-    response = await api.client.post(
+    assert (
+        await one_module_api.client.put("/api/axes/line-0/bench/limits", json=limits)
+    ).status_code == 200
+    response = await one_module_api.client.post(
         "/api/axes/line-0/bench/runs", json={"duration_s": 5.0, **base}
     )
     assert response.status_code == 422 and response.json()["field"] == "amplitude"
     assert "travel window" in response.json()["detail"] or "below" in response.json()["detail"]
-    assert not api.bus.module(0).rss & 0b1100  # neither pm nor vm: nothing moved
-    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
+    assert not one_module_api.bus.module(0).rss & 0b1100  # neither pm nor vm: nothing moved
+    assert (await one_module_api.client.get("/api/axes/line-0/bench/runs")).json() == []
 
 
 def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any]) -> None:
@@ -323,12 +327,14 @@ def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any]) -> None:
     _check_accuracy(f, closed, truth, np.asarray(closed["trusted"]), measured)
 
 
-async def _measured_run(api: LiveServer, **request: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+async def _measured_run(
+    one_module_api: LiveServer, **request: Any
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """A frequency-response run and its analysis, checked against the simulator."""
     reasons: list[str] = []
     for _ in range(3):
-        run_id = await start(api, "line-0", kind="frequency_response", **request)
-        run = await finished_run(api, "line-0", run_id)
+        run_id = await start(one_module_api, "line-0", kind="frequency_response", **request)
+        run = await finished_run(one_module_api, "line-0", run_id)
         message = run["message"] or ""
         # a character timeout of the pty under host load ends the test (the driver's
         # safety, not the measurement under test)
@@ -338,7 +344,7 @@ async def _measured_run(api: LiveServer, **request: Any) -> tuple[dict[str, Any]
             continue
         assert run["status"] == "complete", message
         # the analysis runs in the compute worker: seconds on a loaded host
-        frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
+        frf = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
         _check_against_simulator(frf, run)
         return run, frf
     raise AssertionError(f"every run ended on a wire timeout: {reasons}")
@@ -365,12 +371,14 @@ def _check_accuracy(
     )
 
 
-async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveServer) -> None:
+async def test_frequency_response_on_the_simulator_matches_its_plant(
+    one_module_api: LiveServer,
+) -> None:
     """0.5-3 Hz: the band today's poll rate (about 10-20 samples/s of one module)
     resolves; tones up to 2 Hz are checked (Nyquist stays above 2 Hz at 4 samples/s)."""
     amplitude = 300
     run, frf = await _measured_run(
-        api, amplitude=amplitude, low_hz=0.5, high_hz=3.0, duration_s=10.0
+        one_module_api, amplitude=amplitude, low_hz=0.5, high_hz=3.0, duration_s=10.0
     )
     run_id = run["id"]
     y0 = run["plan"]["y0"]
@@ -379,25 +387,27 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(api: LiveSe
     # latched, then acked; the latch span the driver recorded
     assert all(len(row) == 4 and row[2] <= row[0] and row[3] >= 0 for row in sent)
     assert run["params"]["velocity"] != 65535  # the test's max profile was restored
-    assert abs(api.bus.module(0).position - y0) <= 2 * run["plan"]["band"] + 1
+    assert abs(one_module_api.bus.module(0).position - y0) <= 2 * run["plan"]["band"] + 1
     # Stored like a step run: listed, exported as CSV and JSON (with the excitation).
-    meta = (await api.client.get(f"/api/bench/runs/{run_id}/run.json")).json()
+    meta = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/run.json")).json()
     assert meta["excitation"]["sent"] == sent
-    csv_text = (await api.client.get(f"/api/bench/runs/{run_id}/samples.csv")).text
+    csv_text = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/samples.csv")).text
     assert csv_text.count("\n") >= len(run["samples"])
-    response = await api.client.post(
+    response = await one_module_api.client.post(
         "/api/axes/line-0/bench/runs/import", json={"meta": meta, "csv": csv_text}
     )
     assert response.status_code == 201, response.text
     imported_id = response.json()["id"]
-    imported = (await api.client.get(f"/api/bench/runs/{imported_id}")).json()
+    imported = (await one_module_api.client.get(f"/api/bench/runs/{imported_id}")).json()
     for key in ("test", "excitation", "params", "plan", "samples"):
         assert imported[key] == run[key], key
-    again = (await api.client.get(f"/api/bench/runs/{imported_id}/frf")).json()
+    again = (await one_module_api.client.get(f"/api/bench/runs/{imported_id}/frf")).json()
     assert again["measured"] == frf["measured"]
 
 
-async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServer) -> None:
+async def test_frequency_response_1_to_40_hz_matches_the_simulator(
+    one_module_api: LiveServer,
+) -> None:
     """1-40 Hz asked at 19200 baud: one ``ma`` target and one ``rp`` sample share the
     wire (~26 characters, 73.8 per second at most, ~52/s expected: Nyquist ~26 Hz), so
     the tones are sent up to 20 Hz (``tuning.injection.WirePlan``: 0.8 x the expected
@@ -407,7 +417,9 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
     is an impulse response fitted at the sample times against the input replayed from
     the latched targets (docs/frequency-response.md)."""
     began = time.monotonic()
-    run, frf = await _measured_run(api, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0)
+    run, frf = await _measured_run(
+        one_module_api, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0
+    )
     measured = frf["measured"]
     requested = frfrun.design(0.0, 1.0, 1.0, 40.0).tones_hz
     assert measured["not_measured_hz"] == [f for f in requested if f > 20.68]
@@ -463,7 +475,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(api: LiveServ
 
 
 async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
-    api: LiveServer, one_module: tuple[PtySimulator, Slap2Bus]
+    one_module_api: LiveServer, one_module: tuple[PtySimulator, Slap2Bus]
 ) -> None:
     """Host stalls injected into the capture (``PtySimulator.stall_host``: after one CR
     in fifteen the echo and the reply reach the host 15-50 ms late, as when the host runs
@@ -479,7 +491,7 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
         sim.stall_host(stalls)
         try:
             run_id = await start(
-                api,
+                one_module_api,
                 "line-0",
                 kind="frequency_response",
                 amplitude=200,
@@ -487,7 +499,7 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
                 high_hz=10.0,
                 duration_s=9.0,
             )
-            run = await finished_run(api, "line-0", run_id)
+            run = await finished_run(one_module_api, "line-0", run_id)
         finally:
             sim.stall_host(None)
         # a stall plus the loaded test process' own delay can pass the 150 ms
@@ -505,7 +517,7 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
     spans = [span for _, span in run["excitation"]["spans"]] + [row[3] for row in sent]
     assert min(spans) >= 0.0 and max(spans) >= 0.015, max(spans)
     began = time.monotonic()
-    frf = (await api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
+    frf = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
     analysed_s = time.monotonic() - began
     measured = frf["measured"]
     assert measured is not None, frf["measured_problem"]
@@ -584,7 +596,7 @@ def test_usable_band_is_one_definition_the_longest_coherent_run_below_nyquist() 
 
 
 async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_the_window(
-    api: LiveServer,
+    one_module_api: LiveServer,
 ) -> None:
     """Open loop through spwm: 422 naming the field without a travel window on both
     sides, without confirmation, or with a PWM above the bench's max_pwm — nothing
@@ -599,32 +611,34 @@ async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_
         "high_hz": 10.0,
         "duration_s": 6.0,
     }
-    response = await api.client.post(
+    response = await one_module_api.client.post(
         "/api/axes/line-0/bench/runs", json=base | {"confirm_open_loop": True}
     )
     assert response.status_code == 422 and response.json()["field"] == "loop", response.text
     assert "travel window" in response.json()["detail"]
-    position = api.bus.module(0).position
+    position = one_module_api.bus.module(0).position
     limits = {
         "min_position_counts": position - 300,
         "max_position_counts": position + 300,
         "max_pwm": 80,
     }
-    assert (await api.client.put("/api/axes/line-0/bench/limits", json=limits)).status_code == 200
-    response = await api.client.post("/api/axes/line-0/bench/runs", json=base)
+    assert (
+        await one_module_api.client.put("/api/axes/line-0/bench/limits", json=limits)
+    ).status_code == 200
+    response = await one_module_api.client.post("/api/axes/line-0/bench/runs", json=base)
     assert response.status_code == 422, response.text
     assert response.json()["field"] == "confirm_open_loop"
-    response = await api.client.post(
+    response = await one_module_api.client.post(
         "/api/axes/line-0/bench/runs", json=base | {"pwm": 120, "confirm_open_loop": True}
     )
     assert response.status_code == 422 and response.json()["field"] == "pwm", response.text
-    assert api.bus.module(0).pwm == 0
-    assert (await api.client.get("/api/axes/line-0/bench/runs")).json() == []
-    run_id = await start(api, "line-0", **base, confirm_open_loop=True)
-    run = await finished_run(api, "line-0", run_id)
+    assert one_module_api.bus.module(0).pwm == 0
+    assert (await one_module_api.client.get("/api/axes/line-0/bench/runs")).json() == []
+    run_id = await start(one_module_api, "line-0", **base, confirm_open_loop=True)
+    run = await finished_run(one_module_api, "line-0", run_id)
     assert run["status"] == "incomplete", run
     assert "left your travel window" in run["message"], run["message"]
-    module = api.bus.module(0)
+    module = one_module_api.bus.module(0)
     # Stopped: no PWM, held in pm where it is (a run's abort holds, issue 24), not vm.
     assert module.pwm == 0 and module.rss & 0b1100 == 0b1000
     sent = run["excitation"]["sent"]

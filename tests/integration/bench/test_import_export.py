@@ -10,8 +10,6 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
-import pytest
-
 from servotune.bench.files import (
     MAX_IMPORT_BYTES,
     MAX_IMPORT_JSON_BYTES,
@@ -23,13 +21,6 @@ from servotune.storage import Storage
 from tests.support.bench import finished_run, start
 from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import running_simulator
-
-
-@pytest.fixture
-async def api(tmp_path: Path) -> Any:
-    with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "tty")) as (sim, bus):
-        async with live_server(sim, bus, tmp_path / "data") as server:
-            yield server
 
 
 async def _exported(api: LiveServer) -> tuple[dict[str, Any], dict[str, Any], str]:
