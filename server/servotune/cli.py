@@ -16,7 +16,13 @@ from servotune.auth.cli import (
     add_security_arguments,
     security_config_from_args,
 )
-from servotune.config import ConfigError, LinkSpec, load_config_file, parse_link_spec
+from servotune.config import (
+    ConfigError,
+    LinkRulesSource,
+    LinkSpec,
+    load_config_file,
+    parse_link_spec,
+)
 from servotune.storage import default_data_dir
 
 if TYPE_CHECKING:
@@ -24,13 +30,24 @@ if TYPE_CHECKING:
 
 
 def _addresses(text: str) -> list[int]:
+    """``--addresses 0,1``, parsed only: the device's range is checked once the device
+    is known (``_address_problem``)."""
     try:
-        values = [int(a) for a in text.split(",") if a.strip()]
+        return [int(a) for a in text.split(",") if a.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"addresses must be like 0,1 (got {text!r})") from None
-    if not values or any(not 0 <= a <= 15 for a in values) or len(set(values)) != len(values):
-        raise argparse.ArgumentTypeError("addresses must be distinct numbers 0..15")
-    return values
+
+
+def _address_problem(args: argparse.Namespace, devices: LinkRulesSource) -> str | None:
+    """What is wrong with ``args.addresses`` for ``args.device`` (its link rules'
+    ``address_range``), as argparse words it; None when nothing is."""
+    values = getattr(args, "addresses", None)
+    if values is None or args.device not in devices.names():
+        return None  # no addresses here, or not a device (``servotune bench demo``)
+    low, high = devices.link_rules(args.device).address_range
+    if not values or any(not low <= a <= high for a in values) or len(set(values)) != len(values):
+        return f"argument --addresses: addresses must be distinct numbers {low}..{high}"
+    return None
 
 
 # Seconds uvicorn waits for open requests at shutdown before it cancels them.
@@ -498,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="ep7047 --ifname: another product code in the SII (identity tests)",
     )
     sim.add_argument("--no-rt", action="store_true", help="ep7047 --ifname: no real-time priority")
-    sim.set_defaults(func=cmd_sim)
+    sim.set_defaults(func=cmd_sim, subparser=sim)
 
     bench = sub.add_parser(
         "bench",
@@ -518,13 +535,18 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--port", type=int, default=None, help="demo: port (default: a free one)")
     bench.add_argument("--url", default=None, help="demo: measure this running server instead")
     bench.add_argument("--pid", type=int, default=None, help="demo: process id of --url's server")
-    bench.set_defaults(func=cmd_bench)
+    bench.set_defaults(func=cmd_bench, subparser=bench)
     add_account_commands(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    from servotune.devices import default_registry
+
     args = build_parser().parse_args(argv)
+    problem = _address_problem(args, default_registry())
+    if problem is not None:
+        args.subparser.error(problem)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -12,11 +12,11 @@ factory, the CLI, the benchmarks) injects a ``Registry``, which implements them 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import AbstractContextManager
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Sequence
+from contextlib import AbstractAsyncContextManager, AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, TypeAlias
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
@@ -24,7 +24,11 @@ from servotune.link.base import DriverSink, Link
 if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
     from servotune.autotune.service import DeviceTuner
+    from servotune.sim.trace import ShaftPoint
     from servotune.tuning.law import DeviceLaw
+
+# How perf.stops ends a motion: the product's STOP, or the device's power-off alone.
+StopMethod: TypeAlias = Literal["STOP", "power off"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +63,34 @@ class PollSet:
 
 
 @dataclass(frozen=True, slots=True)
+class StopRigArgs:
+    """What ``perf.stops`` asks a stop rig for: the link it will build and the axis on
+    it whose shaft to trace (``<link_id>-<the device's axis suffix>``)."""
+
+    link_id: str
+    axis: str
+    data_dir: Path  # scratch files (a flash, an EEPROM) for this rig's lifetime
+
+
+@dataclass(frozen=True, slots=True)
+class StopRig:
+    """A device's demo plant set up to measure a stop on (``perf.stops``): limit
+    switches removed, so that nothing but the stop ends a motion, and the shaft traced
+    as the simulated device sees it."""
+
+    # The device's link to the simulated plant (spec'd for ``StopRigArgs.link_id``).
+    build_link: Callable[[DriverSink], Link]
+    # Every shaft point so far, oldest first.
+    trace: Callable[[], Awaitable[list[ShaftPoint]]]
+    # The traced motor is under power (held by its loop, or driven).
+    powered: Callable[[], Awaitable[bool]]
+    # (method, asked at, the commands it sent) -> the shaft point (host monotonic time,
+    # counts, counts/s) when the stop reached the device on its wire; None where the
+    # rig did not see it arrive.
+    reached: Callable[[StopMethod, float, list[str]], Awaitable[ShaftPoint | None]]
+
+
+@dataclass(frozen=True, slots=True)
 class SimulatorEntry:
     """A device's simulator, as the CLI and the demo start it."""
 
@@ -71,6 +103,9 @@ class SimulatorEntry:
     pty: bool
     # The poll set of a link built by the entry (``servotune bench <device>``).
     poll_set: Callable[[Link], PollSet] | None = None
+    # The demo plant as ``perf.stops`` measures a stop on it: entered, it has started
+    # the simulated device; leaving it (after the link was stopped) powers it off.
+    stop_rig: Callable[[StopRigArgs], AbstractAsyncContextManager[StopRig]] | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,11 +12,9 @@ from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.devices.z1100.codec import Gains
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-from servotune.devices.z1100.sim.servo import AxisParameters
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
 from tests.support.autotune import MEDIOCRE
@@ -93,19 +90,8 @@ Z1100_BAUD = 38400  # the fastest jumper setting keeps the tests short
 @contextlib.contextmanager
 def mediocre_chip_line(tmp_path: Path) -> Iterator[PtySimulator]:
     flash = tmp_path / "flash.json"
-    axes = [
-        AxisParameters(
-            kabh=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            kabd=Gains(MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b),
-            vmax_counts_s=100_000,
-            acc_counts_s2=1_000_000,
-            limit_counts=4000,
-            hvm_counts_s=20_000,
-            hac_counts_s2=200_000,
-        ).to_json()
-        for _ in Z1100_LOADS_KG_M2
-    ]
-    flash.write_text(json.dumps({"axes": axes}))
+    kab = (MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b)
+    write_demo_flash(flash, [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2))
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
     simulator = PtySimulator(chip, baud=Z1100_BAUD)
     simulator.start()

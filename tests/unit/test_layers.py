@@ -8,8 +8,8 @@ their ``entry``. Imports inside functions count too: they break a cycle at run t
 not the layering. Module-level imports form no cycle, and a package's ``__init__`` imports
 nothing (a re-export runs the package on every import of one of its modules).
 
-``KNOWN`` lists today's violations that a later step removes (issue 28, step (b)); a
-listed violation that no longer exists fails too, so the list only shrinks.
+``KNOWN`` lists violations a later change removes (empty now); a listed violation that
+no longer exists fails too, so the list only shrinks.
 """
 
 from __future__ import annotations
@@ -118,21 +118,8 @@ ALLOWED: dict[str, set[str]] = {
     | {"package"},
 }
 
-# Step (a) leaves these; step (b) removes every one (the registry, laws and tuners
-# looked up, the SLAP2 serving out of sim/pty.py).
-KNOWN: set[str] = {
-    # perf.stops builds its own rigs from the simulators (the demo's loads without
-    # limit switches): the demo plants it reads moved from demo.py into the device folders.
-    "servotune.perf.stops imports servotune.devices.slap2.sim.demo",
-    "servotune.perf.stops imports servotune.devices.ep7047.codec",
-    "servotune.perf.stops imports servotune.devices.ep7047.link",
-    "servotune.perf.stops imports servotune.devices.ep7047.sim.slave",
-    "servotune.perf.stops imports servotune.devices.slap2.sim.line",
-    "servotune.perf.stops imports servotune.devices.slap2.sim.module",
-    "servotune.perf.stops imports servotune.devices.z1100.sim.chip",
-    "servotune.perf.stops imports servotune.devices.z1100.sim.demo",
-    "servotune.perf.stops imports servotune.devices.z1100.sim.servo",
-}
+# Violations a later step removes; a listed violation that no longer exists fails too.
+KNOWN: set[str] = set()
 
 
 def role(module: str) -> str:
@@ -232,6 +219,8 @@ def test_every_module_imports_only_what_its_role_may() -> None:
         ("servotune.devices.slap2.sim.fake", "from servotune.link.base import Sample", True),
         ("servotune.devices.slap2.fake", "from servotune.devices.slap2.sim import line", True),
         ("servotune.tuning.fake", "from servotune.bench.metrics import Metrics", True),
+        ("servotune.perf.fake", "from servotune.devices.z1100.sim.demo import stop_plant", True),
+        ("servotune.perf.fake", "from servotune.registry import StopRig", False),
         ("servotune.devices.slap2.sim.fake", "from servotune.devices.slap2 import codec", False),
         ("servotune.devices.slap2.fake", "from servotune.bench.metrics import Metrics", False),
     ],

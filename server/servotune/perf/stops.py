@@ -16,7 +16,8 @@ and records the shaft as the simulated device sees it until it is at rest.
 * time: from the request until the shaft speed stays below ``REST_COUNTS_S`` (s);
 * holds: the motor is under power at the end (held by its loop).
 
-A composition root (imports simulators, drivers and the hub); used by
+A composition root: the hub is built here, each device's plant, link and shaft trace
+come from its registry entry (``SimulatorEntry.stop_rig``); used by
 ``scripts/bench_stops.py`` (the table in docs/control.md) and tests/integration/hub/test_stops.py
 (ratios against the power-off measured in the same test). Figures depend on the host
 only through the host's latency (a STOP's few milliseconds on the wire).
@@ -26,50 +27,28 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
-import functools
-import math
 import tempfile
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import Final, Literal
 
-from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.devices.ep7047.codec import PosControl, StmControl
-from servotune.devices.ep7047.link import build_ep7047_link
-from servotune.devices.ep7047.sim.slave import (
-    DEMO_COUNTS_PER_REV,
-    DEMO_SPEED_RANGE_STEPS_S,
-    SimulatedEp7047Slave,
-    SimulatedEthercatMaster,
-    demo_slave,
-)
-from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
-from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-from servotune.devices.z1100.sim.servo import AxisHardware
 from servotune.hub.hub import Hub
 from servotune.link.base import Sample
-from servotune.sim.physics import DcMotorParams
-from servotune.sim.process import SerialSimSpec, SimProcess, serve_serial
+from servotune.registry import Registry, StopMethod, StopRigArgs
+from servotune.sim.trace import ShaftPoint
 from servotune.storage import Storage
 
 State = Literal["top speed", "limit cycle"]
-Method = Literal["STOP", "power off"]
+Method = StopMethod
 
 # Below this shaft speed the axis counts as at rest (counts/s), for this long.
 REST_COUNTS_S: Final = 200.0
 REST_FOR_S: Final = 0.15
 # A run ends this long after the request at the latest.
 MAX_STOP_S: Final = 8.0
-# The simulated EP7047's and its driver's process-data watchdog in this bench (see _rig).
-EP7047_BENCH_WATCHDOG_S: Final = 1.0
-SLAP2_COUNTS_PER_RAD: Final = 2048 / (2 * math.pi)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -94,8 +73,8 @@ class Result:
     holds: bool
     sent: list[str] = field(default_factory=list)
     events: list[str] = field(default_factory=list)
-    # From the exchange that carried the stop to the drive (the host's latency left
-    # out: what the method itself does); None where the rig cannot see it (serial).
+    # From the stop's arrival at the device (the host's latency left out: what the
+    # method itself does); None where the rig did not see it on the wire.
     wire_latency_s: float | None = None
     wire_distance_counts: float | None = None
     wire_speed_counts_s: float | None = None
@@ -126,208 +105,40 @@ CASES: Final[tuple[Case, ...]] = (
 )  # fmt: skip
 
 
-class _TracedMaster(SimulatedEthercatMaster):
-    """The simulated EtherCAT master, recording the shaft (host monotonic time, counts,
-    counts/s) after every exchange, as :class:`_Trace` does for the serial devices."""
-
-    def __init__(
-        self, slaves: Sequence[SimulatedEp7047Slave], read: Callable[[], tuple[float, float]]
-    ) -> None:
-        super().__init__(slaves)
-        self._read = read
-        self.points: list[tuple[float, float, float]] = []
-
-    def receive_processdata(self, timeout: int = 2000) -> int:
-        wkc = super().receive_processdata(timeout)
-        position, speed = self._read()
-        self.points.append((time.monotonic(), position, speed))
-        return wkc
-
-
-class _Trace:
-    """A ``SimDevice`` wrapper that records the shaft (host monotonic time, position in
-    counts, speed in counts/s) of one axis every time the device is advanced. It runs
-    in the simulator's process; the bench reads it with ``points_since`` and
-    ``powered`` (``SimProcess.request("device", ...)``). The monotonic clock is the
-    host's, the same in every process."""
-
-    def __init__(
-        self,
-        device: Any,
-        read: Callable[[], tuple[float, float]],
-        powered: Callable[[], bool],
-    ) -> None:
-        self.device = device
-        self._read = read
-        self._powered = powered
-        self.points: list[tuple[float, float, float]] = []
-
-    def points_since(self, start: int) -> list[tuple[float, float, float]]:
-        return self.points[start:]
-
-    def powered(self) -> bool:
-        return self._powered()
-
-    def advance_to(self, t_s: float) -> bytes:
-        out: bytes = self.device.advance_to(t_s)
-        position, speed = self._read()
-        self.points.append((time.monotonic(), position, speed))
-        return out
-
-    def receive(self, byte: int) -> bytes:
-        out: bytes = self.device.receive(byte)
-        return out
-
-
-def _slap2_bus() -> Slap2Bus:
-    free = {"limit1_count": None, "limit2_count": None}
-    return Slap2Bus(
-        [
-            Slap2Module(0, params=DcMotorParams(**free)),  # type: ignore[arg-type]
-            Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),  # type: ignore[arg-type]
-        ]
-    )
-
-
-Trace = Callable[[], Awaitable[list[tuple[float, float, float]]]]
+Trace = Callable[[], Awaitable[list[ShaftPoint]]]
 Powered = Callable[[], Awaitable[bool]]
-Reached = Callable[[Method, float], "float | None"]
-
-
-def _traced_device(device: str, address: int, data_dir: Path) -> _Trace:
-    """The demo plant of a serial ``device`` with a trace of axis ``address`` (built in
-    the simulator's process: a module-level function, picklable with its arguments)."""
-    if device == "slap2":
-        bus = _slap2_bus()
-        module = bus.module(address)
-        return _Trace(
-            bus,
-            lambda: (float(module.motor.count), module.motor.speed_rad_s * SLAP2_COUNTS_PER_RAD),
-            lambda: bool(module.rss & 0b1100),  # pm or vm
-        )
-    flash = data_dir / "z1100_flash.json"
-    write_demo_flash(flash)
-    chip = Z1100Chip(
-        [
-            AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
-            for j in Z1100_LOADS_KG_M2
-        ],
-        flash_path=flash,
-        jumper_baud=9600,
-    )
-
-    def read() -> tuple[float, float]:
-        state = chip.axis_state(address)
-        return float(state.encoder_counts), float(state.speed_counts_s)
-
-    return _Trace(chip, read, lambda: bool(chip.axis_state(address).powered))
-
-
-class _RemoteTrace:
-    """The bench's side of a ``_Trace`` in the simulator's process: the points so far
-    (fetched incrementally), and whether the motor is powered."""
-
-    def __init__(self, process: SimProcess) -> None:
-        self._process = process
-        self.points: list[tuple[float, float, float]] = []
-
-    async def trace(self) -> list[tuple[float, float, float]]:
-        new = await asyncio.to_thread(
-            self._process.request, "device", method="points_since", start=len(self.points)
-        )
-        self.points.extend(tuple(p) for p in new)
-        return list(self.points)
-
-    async def powered(self) -> bool:
-        return bool(await asyncio.to_thread(self._process.request, "device", method="powered"))
+# (method, asked at, the commands it sent) -> (time, position, speed) at its arrival
+Reached = Callable[[Method, float, list[str]], Awaitable["ShaftPoint | None"]]
 
 
 @contextlib.asynccontextmanager
-async def _rig(case: Case, data_dir: Path) -> AsyncIterator[tuple[Hub, Trace, Powered, Reached]]:
-    """A hub with the device of ``case``; yields (hub, trace of the axis, powered?, when
-    a stop reached the device)."""
-    suffix = case.axis.rsplit("-", 1)[1]
-    address = "xyz".index(suffix) if case.device == "z1100" else int(suffix)
-    process: SimProcess | None = None
-    master: _TracedMaster | None = None
-    trace: Trace
-    powered: Powered
-    reached: Reached = lambda method, since: None  # noqa: E731
-    if case.device in ("slap2", "z1100"):
-        baud, addresses = (19200, [0, 1]) if case.device == "slap2" else (9600, [0, 1, 2])
-        sim = SerialSimSpec(
-            f"stops-{case.device}",
-            functools.partial(_traced_device, case.device, address, data_dir),
-            baud,
-        )
-        process = SimProcess(sim.name, serve_serial, sim)
-        await asyncio.to_thread(process.start)
-        remote = _RemoteTrace(process)
-        trace, powered = remote.trace, remote.powered
-        spec = LinkSpec(case.device, process.ready["path"], "bench", baud, addresses, 512)
-    else:
-        drive = demo_slave()
-        # The host is what stalls here, not the drive: the bench's own thread cycles the
-        # in-process drive, and on a loaded host it can be held past the 100 ms watchdog
-        # (a trip mid-measurement is a coast, not the stop being measured). At 1 s a
-        # stall is latency, as it is for the serial devices.
-        drive.watchdog_s = EP7047_BENCH_WATCHDOG_S
-        plant = drive.engine.plant
-        master = _TracedMaster([drive], lambda: (plant.shaft_counts, plant.speed_counts_s))
-        traced = master
-
-        def reached_on_wire(method: Method, since: float) -> float | None:
-            for exchange in list(drive.history):
-                if exchange.t < since:
-                    continue
-                outputs = exchange.outputs
-                if method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP:
-                    return exchange.t
-                if method == "power off" and not outputs.stm_control & StmControl.ENABLE:
-                    return exchange.t
-            return None
-
-        async def local_trace() -> list[tuple[float, float, float]]:
-            return list(traced.points)
-
-        reached = reached_on_wire
-        trace = local_trace
-        spec = LinkSpec("ep7047", "sim", "bench", 0, [1])  # the simulated slave in-process
-    storage = Storage(data_dir / "servotune.db")
-    hub = Hub([], storage)
-    if master is not None:
-        hub.add_link(
-            build_ep7047_link(
-                spec.link_id,
-                spec.path,
-                spec.addresses[0],
-                hub,
-                master=master,
-                speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
-                counts_per_rev=DEMO_COUNTS_PER_REV,
-                watchdog_s=EP7047_BENCH_WATCHDOG_S,
-            )
-        )
-
-        async def ready() -> bool:
-            return _flag(hub, case.axis, "stm_ready")
-
-        powered = ready
-    else:
-        hub.add_link(default_registry().build_link(spec, hub))
-    await hub.start()
-    try:
-        deadline = time.monotonic() + 20
-        while hub.entry(case.axis).latest is None or hub.link_status("bench").state != "connected":
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"{case.label}: the link did not come up")
-            await asyncio.sleep(0.05)
-        yield hub, trace, powered, reached
-    finally:
-        await hub.stop()
-        await hub.stops.close()
-        if process is not None:
-            await asyncio.to_thread(process.stop)
+async def _rig(
+    case: Case, data_dir: Path, registry: Registry | None = None
+) -> AsyncIterator[tuple[Hub, Trace, Powered, Reached]]:
+    """A hub with the device of ``case`` on the device's stop rig (its registry entry's
+    ``simulator.stop_rig``); yields (hub, trace of the axis, powered?, when a stop
+    reached the device)."""
+    entry = (registry or default_registry()).get(case.device)
+    if entry.simulator is None or entry.simulator.stop_rig is None:
+        raise ValueError(f"{entry.title} has no stop rig")
+    link_id = case.axis.rsplit("-", 1)[0]
+    async with entry.simulator.stop_rig(StopRigArgs(link_id, case.axis, data_dir)) as rig:
+        storage = Storage(data_dir / "servotune.db")
+        hub = Hub([], storage)
+        hub.add_link(rig.build_link(hub))
+        await hub.start()
+        try:
+            deadline = time.monotonic() + 20
+            while (
+                hub.entry(case.axis).latest is None or hub.link_status(link_id).state != "connected"
+            ):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{case.label}: the link did not come up")
+                await asyncio.sleep(0.05)
+            yield hub, rig.trace, rig.powered, rig.reached
+        finally:
+            await hub.stop()
+            await hub.stops.close()
 
 
 async def _bring_into_state(hub: Hub, case: Case) -> None:
@@ -406,10 +217,14 @@ def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, 
     return x1 + v1 * (t - t1), v1
 
 
-async def measure(case: Case, method: Method, data_dir: Path | None = None) -> Result:
-    """One stop of ``case`` by ``method`` (see the module docstring)."""
+async def measure(
+    case: Case, method: Method, data_dir: Path | None = None, registry: Registry | None = None
+) -> Result:
+    """One stop of ``case`` by ``method`` (see the module docstring) on the stop rig of
+    ``case.device`` in ``registry`` (default: ``default_registry()``)."""
     with tempfile.TemporaryDirectory() as scratch:
-        async with _rig(case, data_dir or Path(scratch)) as (hub, trace, powered, reached):
+        rig = _rig(case, data_dir or Path(scratch), registry)
+        async with rig as (hub, trace, powered, reached):
             await _bring_into_state(hub, case)
             events_before = len(hub._events)
             if case.state == "limit cycle":
@@ -454,14 +269,14 @@ async def measure(case: Case, method: Method, data_dir: Path | None = None) -> R
                 outcome.sent,
                 events,
             )
-            on_wire = reached(method, asked)
-            after = [p for p in await trace() if on_wire is not None and p[0] >= on_wire]
-            if on_wire is not None and after:
-                # The first point after that exchange: the shaft as the stop found it
-                # (the drive acts on new outputs from the exchange on).
-                _, position1, result.wire_speed_counts_s = after[0]
-                result.wire_latency_s = on_wire - asked
-                result.wire_distance_counts = max(abs(p[1] - position1) for p in after)
+            on_wire = await reached(method, asked, outcome.sent)
+            if on_wire is not None:
+                t1, position1, result.wire_speed_counts_s = on_wire
+                after = [p for p in await trace() if p[0] >= t1]
+                result.wire_latency_s = t1 - asked
+                result.wire_distance_counts = max(
+                    (abs(p[1] - position1) for p in after), default=0.0
+                )
             return result
 
 

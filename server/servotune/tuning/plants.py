@@ -104,21 +104,24 @@ class IdentifiedPlant:
 class FrictionMotor:
     """Exact integration of ``PlantModel`` over intervals with a constant PWM.
 
-    ``tick_s`` is the step ``tick`` advances by (the controller period of the loop it
-    runs in); ``advance`` takes any interval.
+    ``tick_s`` is the step ``tick`` advances by: the controller period of the loop it
+    runs in, the device's fact, given by the caller; None for a motor only ``advance``d
+    by given intervals (its ``tick`` raises AttributeError). ``advance`` takes any
+    interval.
     """
 
     __slots__ = ("_tick_decay", "_tick_lag", "_tick_s", "gain", "tau", "uc", "v", "x")
 
-    def __init__(self, model: PlantModel, x: float = 0.0, *, tick_s: float = 841.5e-6) -> None:
+    def __init__(self, model: PlantModel, x: float = 0.0, *, tick_s: float | None) -> None:
         self.gain = model.gain
         self.tau = model.tau_s
         self.uc = model.friction_pwm
         self.x = x
         self.v = 0.0
-        self._tick_s = tick_s
-        self._tick_decay = -math.expm1(-tick_s / self.tau)
-        self._tick_lag = self.tau * self._tick_decay
+        if tick_s is not None:  # left unset otherwise: ``tick`` cannot run by mistake
+            self._tick_s = tick_s
+            self._tick_decay = -math.expm1(-tick_s / self.tau)
+            self._tick_lag = self.tau * self._tick_decay
 
     def tick(self, u: float) -> None:
         """``advance(u, tick_s)``, with the common case (moving on, no stop) inlined:
@@ -172,7 +175,7 @@ def model_positions(
 
     Before the first step the PWM is 0 and the shaft at rest at ``x0``.
     """
-    motor = FrictionMotor(model, x0)
+    motor = FrictionMotor(model, x0, tick_s=None)
     events = sorted(schedule)
     out: list[float] = []
     now = min(events[0][0], times[0]) if events and times else 0.0

@@ -7,7 +7,6 @@ Every axis starts from deliberately mediocre gains (KABH = KABD = K 8, A 16, B 8
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -17,7 +16,6 @@ import pytest
 from servotune.autotune.verdict import verdict_z1100, verdict_z1100_with_reason
 from servotune.config import LinkSpec
 from servotune.devices.z1100 import codec
-from servotune.devices.z1100.codec import Gains
 from servotune.devices.z1100.gain_rule import propose_kab
 from servotune.devices.z1100.law import (
     Kab,
@@ -26,8 +24,7 @@ from servotune.devices.z1100.law import (
     simulate_move,
 )
 from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2
-from servotune.devices.z1100.sim.servo import AxisParameters
+from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.tuning.identify import interpolate
 from servotune.tuning.plants import Z1100Plant
 from tests.support.autotune import MEDIOCRE, PROFILE, physics_plant
@@ -53,17 +50,8 @@ def test_simulated_law_fit_and_rule_are_consistent() -> None:
 def _chip_move(axis: int, gains: Kab, tmp_path: Path) -> tuple[list[float], list[float]]:
     """Following error every 1 ms of a 10 000-count move on the sans-IO chip."""
     flash = tmp_path / f"flash_{axis}.json"
-    g = Gains(gains.k, gains.a, gains.b)
-    params = AxisParameters(
-        kabh=g,
-        kabd=g,
-        vmax_counts_s=100_000,
-        acc_counts_s2=1_000_000,
-        limit_counts=4000,
-        hvm_counts_s=20_000,
-        hac_counts_s2=200_000,
-    )
-    flash.write_text(json.dumps({"axes": [params.to_json()] * 3}))
+    kab = (gains.k, gains.a, gains.b)
+    write_demo_flash(flash, [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2))
     chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash)
     t = 0.0
     requests = (

@@ -13,15 +13,23 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DemoArgs, DeviceEntry, SimArgs, SimulatorEntry
+from servotune.registry import (
+    DemoArgs,
+    DeviceEntry,
+    SimArgs,
+    SimulatorEntry,
+    StopRig,
+    StopRigArgs,
+)
 
 if TYPE_CHECKING:
+    from servotune.sim.trace import ShaftPoint
     from servotune.transports.ethercat import EthercatMaster
 
 logger = logging.getLogger(__name__)
@@ -173,6 +181,39 @@ def wire_demo_slave(state_dir: Path) -> Iterator[list[LinkSpec]]:
         ]
 
 
+@contextlib.asynccontextmanager
+async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
+    """The demo's drive in-process (``ep7047:sim``) behind a master tracing its shaft;
+    ``args.axis`` is ``<link>-<slave>``. The link and the drive use the rig's watchdog
+    (``STOP_PLANT_WATCHDOG_S``)."""
+    from servotune.devices.ep7047.link import build_ep7047_link
+    from servotune.devices.ep7047.sim.slave import DEMO_COUNTS_PER_REV, DEMO_SPEED_RANGE_STEPS_S
+    from servotune.devices.ep7047.sim.stop_plant import STOP_PLANT_WATCHDOG_S, StopPlant
+
+    slave = int(args.axis.rsplit("-", 1)[1])
+    plant = StopPlant()
+
+    def link(sink: DriverSink) -> Link:
+        return build_ep7047_link(
+            args.link_id,
+            SIMULATED_NIC,
+            slave,
+            sink,
+            master=plant.master,
+            speed_range_steps_s=DEMO_SPEED_RANGE_STEPS_S,
+            counts_per_rev=DEMO_COUNTS_PER_REV,
+            watchdog_s=STOP_PLANT_WATCHDOG_S,
+        )
+
+    async def trace() -> list[ShaftPoint]:
+        return list(plant.master.points)
+
+    async def powered() -> bool:
+        return plant.powered()
+
+    yield StopRig(link, trace, powered, plant.reached)
+
+
 def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     if args.ethercat_wire:
         return wire_demo_slave(args.state_dir)
@@ -189,5 +230,5 @@ ENTRY: Final = DeviceEntry(
         example="ep7047:eth0?slave=1",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=False),
+    simulator=SimulatorEntry(serve=serve, demo=demo, pty=False, stop_rig=stop_rig),
 )

@@ -8,14 +8,23 @@ Builders import their modules when called: the registry is read by every command
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import functools
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
+from servotune.registry import (
+    DemoArgs,
+    DeviceEntry,
+    PollSet,
+    SimArgs,
+    SimulatorEntry,
+    StopRig,
+    StopRigArgs,
+)
 
 if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
@@ -90,6 +99,21 @@ def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
 
+@contextlib.asynccontextmanager
+async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
+    """The demo's line without limit switches in a process of its own, tracing the
+    module of ``args.axis`` (``<link>-<address>``)."""
+    from servotune.devices.slap2.sim.demo import DEMO_ADDRESSES, stop_plant
+    from servotune.sim.trace import traced_serial_process
+
+    address = int(args.axis.rsplit("-", 1)[1])
+    build = functools.partial(stop_plant, address, args.data_dir)
+    async with traced_serial_process("stops-slap2", build, DEFAULT_BAUD) as (path, remote):
+        spec = LinkSpec(NAME, path, args.link_id, DEFAULT_BAUD, list(DEMO_ADDRESSES), 512)
+        link = functools.partial(build_link, spec)
+        yield StopRig(link, remote.trace, remote.powered, remote.reached)
+
+
 def load_law() -> DeviceLaw:
     from servotune.devices.slap2.law import Slap2Law
 
@@ -112,7 +136,9 @@ ENTRY: Final = DeviceEntry(
         example="slap2:/dev/ttyUSB0?addresses=0,1",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
+    simulator=SimulatorEntry(
+        serve=serve, demo=demo, pty=True, poll_set=poll_set, stop_rig=stop_rig
+    ),
     law=load_law,
     tuner=build_tuner,
     compute_modules=("servotune.devices.slap2.gain_rule",),

@@ -5,14 +5,23 @@ called, see ``devices/slap2/entry.py``)."""
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import functools
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
-from servotune.registry import DemoArgs, DeviceEntry, PollSet, SimArgs, SimulatorEntry
+from servotune.registry import (
+    DemoArgs,
+    DeviceEntry,
+    PollSet,
+    SimArgs,
+    SimulatorEntry,
+    StopRig,
+    StopRigArgs,
+)
 
 if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
@@ -83,6 +92,21 @@ def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
     return demo_line(args.state_dir)
 
 
+@contextlib.asynccontextmanager
+async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
+    """The demo's chip without home switches in a process of its own, tracing the
+    motor of ``args.axis`` (``<link>-x|y|z``, as the link names them)."""
+    from servotune.devices.z1100.sim.demo import stop_plant
+    from servotune.sim.trace import traced_serial_process
+
+    address = "xyz".index(args.axis.rsplit("-", 1)[1])
+    build = functools.partial(stop_plant, address, args.data_dir)
+    async with traced_serial_process("stops-z1100", build, DEFAULT_BAUD) as (path, remote):
+        spec = LinkSpec(NAME, path, args.link_id, DEFAULT_BAUD, list(AXES), 512)
+        link = functools.partial(build_link, spec)
+        yield StopRig(link, remote.trace, remote.powered, remote.reached)
+
+
 def load_law() -> DeviceLaw:
     from servotune.devices.z1100.law import Z1100Law
 
@@ -105,7 +129,9 @@ ENTRY: Final = DeviceEntry(
         example="z1100:/dev/ttyUSB0",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=True, poll_set=poll_set),
+    simulator=SimulatorEntry(
+        serve=serve, demo=demo, pty=True, poll_set=poll_set, stop_rig=stop_rig
+    ),
     law=load_law,
     tuner=build_tuner,
     compute_modules=("servotune.devices.z1100.gain_rule",),

@@ -26,18 +26,26 @@ from __future__ import annotations
 import math
 from typing import Final
 
+from servotune.devices.slap2.codec import (
+    ACCELERATION_MAX,
+    CURRENT_LIMIT_MAX_MA,
+    GAIN_MAX,
+    VELOCITY_MAX,
+    WINDOW_MAX,
+)
+from servotune.devices.slap2.codec import COUNTS_S2_PER_SA as COUNTS_S2_PER_SA
+from servotune.devices.slap2.codec import COUNTS_S_PER_SV as COUNTS_S_PER_SV
+from servotune.devices.slap2.codec import PWM_MAX as PWM_MAX
+from servotune.devices.slap2.codec import TICK_S as TICK_S
 from servotune.sim.physics import DcMotor
 
-# The simulator keeps its own copy of the manual's constants instead of importing the
-# driver's codec: it is the test oracle for that codec, so a shared mistake would hide.
-TICK_S: Final = 841.5e-6
+# The manual's constants come from the codec, their one home (re-exported here for the
+# line and tests). The simulator stays the codec's and the driver's test oracle through
+# its behaviour - its own parser, replies, profile generator and PID - which share no
+# code with them; a number copied from the same manual would catch nothing.
 
-COUNTS_S_PER_SV: Final = 140.417 * 4 / 60
-COUNTS_S2_PER_SA: Final = 35946.7 * 4 / 3600
 _COUNTS_TICK_PER_SV: Final = COUNTS_S_PER_SV * TICK_S
 _COUNTS_TICK2_PER_SA: Final = COUNTS_S2_PER_SA * TICK_S * TICK_S
-
-PWM_MAX: Final = 255
 
 # Settings stored by ``pg`` and their factory (EEPROM) defaults, straight from the manual.
 FACTORY_DEFAULTS: Final[dict[str, int]] = {
@@ -54,22 +62,22 @@ FACTORY_DEFAULTS: Final[dict[str, int]] = {
     "sa": 1000,
 }
 # Accepted ranges. The manual gives none for sv/sa/scv/sca/sipw/sipt: 16 bits, the
-# decision shared with the driver's codec. sv is a speed without a sign: the manual
+# codec's decision (its constants). sv is a speed without a sign: the manual
 # defines it as the maximum travel velocity / motor speed (an rpm by its formula) and
 # never shows a negative one; its own way to drive towards E1 is pm + ma -8000000. So
 # a negative sv is refused (uc) and velocity mode turns towards positive counts.
 SETTING_RANGES: Final[dict[str, tuple[int, int]]] = {
-    "kp": (0, 32767),
-    "ki": (0, 32767),
-    "kd": (0, 32767),
-    "sipw": (0, 65535),
-    "sipt": (0, 65535),
-    "scv": (0, 65535),
-    "sca": (0, 65535),
-    "scl": (0, 2000),
+    "kp": (0, GAIN_MAX),
+    "ki": (0, GAIN_MAX),
+    "kd": (0, GAIN_MAX),
+    "sipw": (0, WINDOW_MAX),
+    "sipt": (0, WINDOW_MAX),
+    "scv": (0, VELOCITY_MAX),
+    "sca": (0, ACCELERATION_MAX),
+    "scl": (0, CURRENT_LIMIT_MAX_MA),
     "syscon": (0, 63),
-    "sv": (0, 65535),
-    "sa": (0, 65535),
+    "sv": (0, VELOCITY_MAX),
+    "sa": (0, ACCELERATION_MAX),
 }
 
 # syscon bits

@@ -5,6 +5,8 @@ loaded, in a process of its own) and ``servotune sim slap2`` (any modules on a p
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import math
 from pathlib import Path
 from typing import Any, Final
 
@@ -14,6 +16,7 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
+from servotune.sim.trace import TracedDevice
 
 # Module 1 carries a load of 1.7x the rotor inertia and more friction (a small lead
 # screw carriage). With the manual's default gains it still settles, but overshoots
@@ -33,6 +36,26 @@ def build_slap2_bus(state_dir: Path) -> Slap2Bus:
             Slap2Module(0, eeprom_path=state_dir / "slap2_0.json"),
             Slap2Module(1, eeprom_path=state_dir / "slap2_1.json", params=SLAP2_LOADED),
         ]
+    )
+
+
+def stop_plant(address: int, state_dir: Path) -> TracedDevice:
+    """The demo's line without limit switches (nothing but a stop ends a motion), EEPROMs
+    in memory, tracing module ``address``'s shaft; powered while in pm or vm
+    (``perf.stops``; ``state_dir`` is unused: nothing is kept)."""
+    free = {"limit1_count": None, "limit2_count": None}
+    bus = Slap2Bus(
+        [
+            Slap2Module(0, params=DcMotorParams(**free)),  # type: ignore[arg-type]
+            Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),  # type: ignore[arg-type]
+        ]
+    )
+    module = bus.module(address)
+    counts_per_rad = module.motor.params.counts_per_rev / (2 * math.pi)
+    return TracedDevice(
+        bus,
+        lambda: (float(module.motor.count), module.motor.speed_rad_s * counts_per_rad),
+        lambda: bool(module.rss & 0b1100),  # pm or vm
     )
 
 

@@ -26,6 +26,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Final
 
+# The manual's constants from the codec, their one home (devices/slap2/sim/controller.py
+# says why the simulator stays an independent oracle all the same).
+from servotune.devices.slap2.codec import (
+    CR,
+    CTRL_K,
+    CTRL_X,
+    MAX_ADDRESS,
+    POSITION_LIMIT,
+    REFUSED_REPLY,
+)
 from servotune.devices.slap2.sim.controller import (
     _CAL_BACKOFF,
     _CAL_INDEX,
@@ -52,19 +62,11 @@ from servotune.sim.physics import DcMotor, DcMotorParams
 
 logger = logging.getLogger(__name__)
 
-# Own copies of the manual's constants, as in devices/slap2/sim/controller.py (why: there).
-CR: Final = 0x0D
-LF: Final = 0x0A
-CTRL_X: Final = 0x18
-CTRL_K: Final = 0x0B
 SPACE: Final = 0x20
 
-POSITION_LIMIT: Final = 1 << 24
-MAX_ADDRESS: Final = 15
 SOFTWARE_VERSION: Final = 2205
 HARDWARE_VERSION: Final = 2209
 DEFAULT_SERIAL_BASE: Final = 10000  # default serial number = base + address
-REFUSED_REPLY: Final = "-1UC"
 _MAX_LINE_CHARS: Final = 40  # longer input is refused at CR (a real buffer is finite)
 
 SYSCON_NAMES: Final = ("l1on", "l2on", "inv1", "inv2", "hex", "ucon")

@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import contextlib
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
 from servotune.devices.z1100.codec import DEFAULT_BAUD, Gains
 from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.servo import AxisParameters
+from servotune.devices.z1100.sim.servo import AxisHardware, AxisParameters
 from servotune.sim.process import SimProcess, demo_serial_process
 from servotune.sim.pty import run_pty_simulator
+from servotune.sim.trace import TracedDevice
 
 # Three motors with different loads, so their best gains differ (see the tuning table
 # in docs/z1100-simulator.md): unloaded, 5x and 20x the rotor inertia.
@@ -29,21 +31,25 @@ Z1100_DEMO_FLASH: Final = [
 DEMO_NAMES: Final = {0: "Z1100 X unloaded", 1: "Z1100 Y 5x load", 2: "Z1100 Z 20x load"}
 
 
-def write_demo_flash(path: Path) -> None:
-    """The demo's flash (``Z1100_DEMO_FLASH``) at ``path``, unless a flash is there."""
+def write_demo_flash(
+    path: Path, gains: Sequence[Mapping[str, Sequence[int]]] = Z1100_DEMO_FLASH
+) -> None:
+    """A flash at ``path`` as the demo's integrator leaves it, unless a flash is there:
+    each axis's ``gains`` (``{"kabh": (k, a, b), "kabd": (k, a, b)}``, the demo's
+    ``Z1100_DEMO_FLASH`` by default) with the demo's profile (moves of about 3000 rpm)."""
     if path.exists():
         return
     axes = [
         AxisParameters(
-            kabh=Gains(*gains["kabh"]),
-            kabd=Gains(*gains["kabd"]),
+            kabh=Gains(*axis["kabh"]),
+            kabd=Gains(*axis["kabd"]),
             vmax_counts_s=100_000,
             acc_counts_s2=1_000_000,
             limit_counts=4000,
             hvm_counts_s=20_000,
             hac_counts_s2=200_000,
         ).to_json()
-        for gains in Z1100_DEMO_FLASH
+        for axis in gains
     ]
     path.write_text(json.dumps({"axes": axes}))
 
@@ -54,6 +60,27 @@ def build_z1100_chip(state_dir: Path) -> Z1100Chip:
     flash = state_dir / "z1100_flash.json"
     write_demo_flash(flash)
     return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=DEFAULT_BAUD)
+
+
+def stop_plant(address: int, state_dir: Path) -> TracedDevice:
+    """The demo's chip without home switches (nothing but a stop ends a motion), its
+    flash in ``state_dir``, tracing motor ``address``'s shaft (``perf.stops``)."""
+    flash = state_dir / "z1100_flash.json"
+    write_demo_flash(flash)
+    chip = Z1100Chip(
+        [
+            AxisHardware(load_inertia_kg_m2=j, home_switch_counts=-(10**9))
+            for j in Z1100_LOADS_KG_M2
+        ],
+        flash_path=flash,
+        jumper_baud=DEFAULT_BAUD,
+    )
+
+    def read() -> tuple[float, float]:
+        state = chip.axis_state(address)
+        return float(state.encoder_counts), float(state.speed_counts_s)
+
+    return TracedDevice(chip, read, lambda: bool(chip.axis_state(address).powered))
 
 
 def z1100_record(chip: Z1100Chip) -> dict[str, Any]:

@@ -1,0 +1,75 @@
+"""The demo's EP7047 as ``perf.stops`` measures a stop on it: the simulated drive
+in-process behind a master that records the shaft after every exchange, and the
+exchange that carried a stop to the drive."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Final
+
+from servotune.devices.ep7047.codec import PosControl, StmControl, StmStatus
+from servotune.devices.ep7047.sim.slave import (
+    SimulatedEp7047Slave,
+    SimulatedEthercatMaster,
+    demo_slave,
+)
+from servotune.sim.trace import ShaftPoint
+
+# The drive's and its driver's process-data watchdog on this rig: the host is what
+# stalls here, not the drive (the measuring host's own thread cycles the in-process
+# drive, and on a loaded host it can be held past the device's 100 ms; a trip
+# mid-measurement is a coast, not the stop being measured). At 1 s a stall is latency,
+# as it is for the serial devices.
+STOP_PLANT_WATCHDOG_S: Final = 1.0
+
+
+class TracedMaster(SimulatedEthercatMaster):
+    """The simulated master, recording the shaft (host monotonic time, counts, counts/s)
+    after every exchange, as ``sim.trace.TracedDevice`` does for a serial device."""
+
+    def __init__(
+        self, slaves: Sequence[SimulatedEp7047Slave], read: Callable[[], tuple[float, float]]
+    ) -> None:
+        super().__init__(slaves)
+        self._read = read
+        self.points: list[ShaftPoint] = []
+
+    def receive_processdata(self, timeout: int = 2000) -> int:
+        wkc = super().receive_processdata(timeout)
+        position, speed = self._read()
+        self.points.append((time.monotonic(), position, speed))
+        return wkc
+
+
+class StopPlant:
+    """The demo's drive (``demo_slave``) with ``STOP_PLANT_WATCHDOG_S``, behind a
+    ``TracedMaster``."""
+
+    def __init__(self) -> None:
+        self.drive = demo_slave()
+        self.drive.watchdog_s = STOP_PLANT_WATCHDOG_S
+        plant = self.drive.engine.plant
+        self.master = TracedMaster([self.drive], lambda: (plant.shaft_counts, plant.speed_counts_s))
+
+    def powered(self) -> bool:
+        """The drive reports its output stage ready (enabled, powered) in its last
+        exchange."""
+        history = self.drive.history
+        return bool(history and history[-1].inputs.stm_status & StmStatus.READY)
+
+    async def reached(self, method: str, since: float, sent: list[str]) -> ShaftPoint | None:
+        """The shaft when the first exchange at or after ``since`` carried ``method`` to
+        the drive (STOP: the emergency stop bit; "power off": Enable off), with the
+        position and speed of the first point after it (the drive acts on new outputs
+        from that exchange on)."""
+        for exchange in list(self.drive.history):
+            if exchange.t < since:
+                continue
+            outputs = exchange.outputs
+            if (method == "STOP" and outputs.pos_control & PosControl.EMERGENCY_STOP) or (
+                method == "power off" and not outputs.stm_control & StmControl.ENABLE
+            ):
+                after = [p for p in self.master.points if p[0] >= exchange.t]
+                return (exchange.t, after[0][1], after[0][2]) if after else None
+        return None
