@@ -46,7 +46,7 @@ CHROMIUM_ARGS = [
     "--disable-sync",
     "--no-first-run",
 ]
-ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", HERE.parents[1] / "artifacts"))
+ARTIFACTS = Path(os.environ.get("SERVOTUNE_ARTIFACTS", HERE.parents[2] / "artifacts"))
 
 
 def registry() -> Registry:

@@ -24,7 +24,7 @@ def fake_descriptor() -> DeviceDescriptor:
         device=NAME,
         model="FS-1",
         title="Fake servo (test)",
-        summary="A fake position servo on a line protocol of its own (tests/fake_device).",
+        summary="A fake position servo on a line protocol of its own (tests/device/fake).",
         parameters=[
             ParameterDescriptor(
                 name="speed",
