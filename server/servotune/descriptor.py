@@ -443,6 +443,11 @@ class DeviceDescriptor(BaseModel):
         description="the auto-tune assistant supports this device (the UI shows its panel "
         "only then)",
     )
+    bench_velocity_parameter: str | None = Field(
+        default=None,
+        description="the parameter a velocity_step bench test sets (the test's velocity is "
+        "in its unit); null: the velocity channel's unit",
+    )
 
     def parameter(self, name: str) -> ParameterDescriptor:
         """Return the parameter called ``name``; KeyError if the device has none."""

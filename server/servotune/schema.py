@@ -21,6 +21,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from servotune.descriptor import Conversion
+
 LinkState = Literal["connecting", "connected", "reconnecting", "error", "disconnected"]
 # capture: "paused" while another axis of the link is captured (docs/capture.md)
 AxisHealth = Literal["ok", "reset", "offline", "paused"]
@@ -219,6 +221,52 @@ class CommandResult(BaseModel):
         description="a move to a target: the device took it; a move_outcome message says "
         "how it ended (arrived, or where a limit switch or a STOP stopped it)",
     )
+
+
+class BenchField(BaseModel):
+    """A field of the bench's test form (``GET /api/axes/{id}/bench``: ``fields``): the
+    unit its number is in, and what it reads as in other units."""
+
+    parameter: str | None = Field(
+        description="the device parameter the test sets to this value (its unit and "
+        "conversions are the field's); null: the field is not a device parameter"
+    )
+    unit: str
+    conversions: list[Conversion]
+
+
+class LawTerm(BaseModel):
+    """One term of a controller law: ``coefficient x product(gains) x signal[n - delay]``."""
+
+    coefficient: float
+    gains: list[str] = Field(
+        description="gain names, each read as the law's gain set prefix + name"
+    )
+    signal: Literal["error", "error_sum", "position"] = Field(
+        description="error: target - position (counts); error_sum: the running sum of the "
+        "error including this tick; position: the measured position (counts)"
+    )
+    delay: int = Field(default=0, ge=0, description="ticks")
+
+
+class LawGainSet(BaseModel):
+    """Which device parameters a law's gains are while the target moves or holds."""
+
+    when: Literal["moving", "holding", "always"]
+    prefix: str = Field(description="prepended to a term's gain names (e.g. 'kabh_')")
+
+
+class ControllerLaw(BaseModel):
+    """A device's controller law as data, every tick (the what-if view evaluates it):
+    ``u = round(sum(terms) / divisor)``, clamped to the output limit. A linear analysis
+    uses the holding gain set (else the one for always)."""
+
+    terms: list[LawTerm]
+    divisor: float
+    rounding: Literal["none", "trunc"] = Field(
+        description="none: u is the exact quotient; trunc: rounded towards zero"
+    )
+    gain_sets: list[LawGainSet]
 
 
 # A console line is printable: a control character (CR, LF, Ctrl-X, Ctrl-K, ...) inside a

@@ -58,6 +58,10 @@ MODELS: list[type[BaseModel]] = [
     wire.ConsoleRequest,
     wire.ConsoleReply,
     wire.ErrorBody,
+    wire.BenchField,
+    wire.LawTerm,
+    wire.LawGainSet,
+    wire.ControllerLaw,
     # control lock (one block, servotune.hub.control_lock)
     wire.Welcome,
     wire.ControlHolder,

@@ -1,5 +1,6 @@
 // REST calls. Every 4xx/5xx body is {detail, field}; ApiError carries both.
 import type {
+  BenchField,
   AxisInfo,
   AxisState,
   CommandResult,
@@ -70,6 +71,14 @@ export async function confirmed<T>(call: (confirm: string) => Promise<T>): Promi
   }
 }
 
+/** The headers a state-changing call sends that ``request`` does not build itself (a
+ * multipart upload): the CSRF token and this tab's client id. */
+export async function writeHeaders(): Promise<Record<string, string>> {
+  const headers: Record<string, string> = { "X-CSRF-Token": await csrf() };
+  if (clientId) headers["X-Servotune-Client"] = clientId;
+  return headers;
+}
+
 export async function request<T>(method: string, path: string, body?: unknown, retried = false): Promise<T> {
   let response: Response;
   const headers: Record<string, string> = body === undefined ? {} : { "Content-Type": "application/json" };
@@ -131,6 +140,15 @@ export interface BenchLimits {
 export interface BenchInfo {
   kinds: BenchKind[];
   limits: BenchLimits;
+  /** How each metric is computed. */
+  definitions: Record<string, string>;
+  /** The form's fields (distance, velocity, pwm): unit, conversions, the parameter set. */
+  fields: Record<string, BenchField>;
+  /** The device has a law: the what-if view works. */
+  whatif: boolean;
+  /** measured: a multisine around the held position; model: the identified plant under
+   * the law; null: no frequency_response test. */
+  frequency_response: "measured" | "model" | null;
 }
 
 export interface BenchTestRequest {

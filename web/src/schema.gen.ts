@@ -188,6 +188,7 @@ export interface DeviceDescriptor {
   loop: LoopSignals | null;
   jog: JogDescriptor | null;
   autotune: boolean;
+  bench_velocity_parameter: string | null;
 }
 
 export interface AxisInfo {
@@ -329,6 +330,31 @@ export interface ErrorBody {
   detail: string;
   field: string | null;
   kind: "measurement" | null;
+}
+
+export interface BenchField {
+  parameter: string | null;
+  unit: string;
+  conversions: Conversion[];
+}
+
+export interface LawTerm {
+  coefficient: number;
+  gains: string[];
+  signal: "error" | "error_sum" | "position";
+  delay: number;
+}
+
+export interface LawGainSet {
+  when: "moving" | "holding" | "always";
+  prefix: string;
+}
+
+export interface ControllerLaw {
+  terms: LawTerm[];
+  divisor: number;
+  rounding: "none" | "trunc";
+  gain_sets: LawGainSet[];
 }
 
 export interface Welcome {

@@ -8,22 +8,24 @@ import shutil
 import tempfile
 from collections.abc import Awaitable, Callable, MutableMapping
 from pathlib import Path
-from typing import IO, Annotated, Any
+from typing import IO, Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 
+from servotune.api.gains_check import device_law
 from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
 from servotune.bench.files import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
 from servotune.bench.metrics import Metrics
 from servotune.bench.runner import BenchLimits
 from servotune.bench.service import BenchTestRequest, TestBench
-from servotune.hub.hub import NotFoundError
+from servotune.descriptor import DeviceDescriptor
+from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DriverError, InvalidArgumentError
-from servotune.schema import ErrorBody, StorageStatus
+from servotune.schema import BenchField, ErrorBody, StorageStatus
 from servotune.storage import Storage, dumps_strict
 
 STORE_ERRORS: dict[int | str, dict[str, Any]] = {
@@ -46,6 +48,44 @@ class BenchInfo(BaseModel):
     kinds: list[str]
     limits: BenchLimits
     definitions: dict[str, str] = Field(description="how each metric is computed")
+    fields: dict[str, BenchField] = Field(
+        default_factory=dict,
+        description="the test form's fields (distance, velocity, pwm): unit, conversions "
+        "and the device parameter a field sets",
+    )
+    whatif: bool = Field(
+        default=False, description="the what-if view works here (the device has a law)"
+    )
+    frequency_response: Literal["measured", "model"] | None = Field(
+        default=None,
+        description="measured: a multisine injected around the held position; model: the "
+        "identified plant under the device's law; null: no frequency_response test",
+    )
+
+
+def bench_fields(descriptor: DeviceDescriptor) -> dict[str, BenchField]:
+    """The units of the bench form's fields, from the axis' descriptor: the distance in
+    the position channel's, the velocity in the parameter a velocity step sets (else the
+    velocity channel's), the PWM in its command argument's."""
+    channels = {c.name: c for c in descriptor.channels}
+    position = channels.get("position")
+    parameters = {p.name: p for p in descriptor.parameters}
+    velocity_parameter = parameters.get(descriptor.bench_velocity_parameter or "")
+    velocity = velocity_parameter or channels.get("velocity")
+    pwm = next((a for c in descriptor.commands for a in c.arguments if a.name == "pwm"), None)
+    return {
+        "distance": BenchField(
+            parameter=None,
+            unit=position.unit if position else "counts",
+            conversions=list(position.conversions) if position else [],
+        ),
+        "velocity": BenchField(
+            parameter=velocity_parameter.name if velocity_parameter else None,
+            unit=velocity.unit if velocity else "",
+            conversions=list(velocity.conversions) if velocity else [],
+        ),
+        "pwm": BenchField(parameter=None, unit=pwm.unit if pwm else "", conversions=[]),
+    }
 
 
 class _BodyTooLargeError(Exception):
@@ -109,12 +149,23 @@ def _copy_to(source: IO[bytes], path: Path) -> None:
 
 
 @router.get("/api/axes/{axis_id}/bench", response_model=BenchInfo, responses=ERRORS)
-async def bench_info(axis_id: str, bench: BenchDep) -> BenchInfo:
-    """The tests this axis' device can run, and the user's limits for them."""
+async def bench_info(axis_id: str, bench: BenchDep, request: Request) -> BenchInfo:
+    """The tests this axis' device can run, the user's limits for them, the form's
+    units, and whether the what-if view and a measured frequency response work here."""
+    kinds = bench.kinds(axis_id)
+    hub: Hub = request.app.state.hub
+    entry = hub.entry(axis_id)
+    law = device_law(request, entry.info.device)
+    frequency_response: Literal["measured", "model"] | None = None
+    if "frequency_response" in kinds:
+        frequency_response = "measured" if law is not None and law.injection else "model"
     return BenchInfo(
-        kinds=bench.kinds(axis_id),
+        kinds=kinds,
         limits=await bench.limits(axis_id),
         definitions=dict(Metrics.definitions),
+        fields=bench_fields(entry.driver.descriptor),
+        whatif=law is not None,
+        frequency_response=frequency_response,
     )
 
 

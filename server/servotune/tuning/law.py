@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 if TYPE_CHECKING:
+    from servotune.schema import ControllerLaw
     from servotune.tuning.frf import ComplexArray, FloatArray
     from servotune.tuning.injection import Injection
     from servotune.tuning.loops import LoopModel
@@ -58,6 +59,12 @@ class DeviceLaw(Protocol):
     @property
     def gain_names(self) -> tuple[str, ...]:
         """The device parameters that are the law's gains."""
+        ...
+
+    @property
+    def controller(self) -> ControllerLaw:
+        """The law as data (terms, divisor, rounding, gain sets): what the what-if view
+        evaluates; ``tuning.loops.law_polynomials`` is its linear view."""
         ...
 
     @property

@@ -26,6 +26,7 @@ arithmetic independently (docs/simulator.md, docs/z1100-simulator.md).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import control
@@ -33,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.signal
 
+from servotune.schema import ControllerLaw
 from servotune.tuning.frf import FloatArray, FrequencyResponse
 from servotune.tuning.stability import loop_margins, margin_grid, schur_stable
 
@@ -253,3 +255,52 @@ def _model_response(
 
 
 ZERO: Polynomial = (np.zeros(1), np.ones(1))  # a controller path that is not there
+
+
+def linear_gain_prefix(controller: ControllerLaw) -> str:
+    """The gain set a linear analysis uses: the holding one, else the one for always
+    (a frequency response is taken around a held position)."""
+    for when in ("holding", "always"):
+        for gain_set in controller.gain_sets:
+            if gain_set.when == when:
+                return gain_set.prefix
+    raise ValueError("the law has no holding gain set")
+
+
+def law_polynomials(
+    controller: ControllerLaw, gains: Mapping[str, int]
+) -> tuple[Polynomial, Polynomial]:
+    """The law's linear view, ``u = Cf e - Cb y``: (forward ``Cf``, feedback ``Cb``) in
+    descending powers of z with the holding gains (``linear_gain_prefix``), as the
+    devices' own polynomials. An error_sum term with a zero gain adds no integrator.
+    KeyError for a gain missing from ``gains``."""
+    prefix = linear_gain_prefix(controller)
+    size = 1 + max(term.delay for term in controller.terms)
+    paths = {name: np.zeros(size) for name in ("error", "error_sum", "position")}
+    for term in controller.terms:
+        value = term.coefficient * math.prod(gains[prefix + g] for g in term.gains)
+        paths[term.signal][term.delay] += value
+    one = np.ones(1)
+    if paths["error_sum"].any():
+        # (E + S / (1 - z^-1)) / d  =  (E (1 - z^-1) + S) / (d (1 - z^-1))
+        integrator = np.array([1.0, -1.0])
+        num = np.convolve(paths["error"], integrator)
+        num[:size] += paths["error_sum"]  # coefficients of z^-k: aligned at k = 0
+        forward = (num, integrator)
+    else:
+        forward = (paths["error"], one)
+    feedback = (-paths["position"], one)
+    return _descending(forward, controller.divisor), _descending(feedback, controller.divisor)
+
+
+def _descending(ratio: tuple[FloatArray, FloatArray], divisor: float) -> Polynomial:
+    """``num(z^-1) / (divisor den(z^-1))`` as coefficients of descending powers of z."""
+    num, den = np.trim_zeros(ratio[0], "b"), ratio[1] * divisor
+    if num.size == 0:
+        return ZERO
+    size = max(num.size, den.size)
+
+    def pad(c: FloatArray) -> FloatArray:
+        return np.asarray(np.concatenate([c, np.zeros(size - c.size)]), dtype=np.float64)
+
+    return pad(num), pad(den)

@@ -14,10 +14,10 @@ PWM limit (``whatif.ts``) and the docs say what friction does (docs/frequency-re
 
 ``browser_model`` is what the server sends the what-if view: the plant discretised
 with a zero-order hold at the controller period, as difference-equation coefficients
-in powers of z^-1, and the law's name and period. The browser runs the exact
-controller arithmetic on it at every slider move (a few hundred to a few thousand
-ticks: well under a millisecond) and evaluates the open loop on a frequency grid for
-the margins, so no request is needed per update.
+in powers of z^-1, the law's name and period, and the law as data (``controller``:
+``schema.ControllerLaw`` terms). The browser evaluates those terms at every slider
+move (a few hundred to a few thousand ticks: well under a millisecond) and the open
+loop on a frequency grid for the margins, so no request is needed per update.
 """
 
 from __future__ import annotations
@@ -84,6 +84,7 @@ def browser_model(
     return {
         "device": law.device,
         "law": law.law,
+        "controller": law.controller.model_dump(),
         "period_s": period,
         "plant_num": (num / scale).tolist(),
         "plant_den": (den / scale).tolist(),

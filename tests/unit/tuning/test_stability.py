@@ -174,7 +174,11 @@ def test_the_verdict_agrees_with_a_simulation_of_the_simulators_plant(tmp_path: 
                 {
                     "plant": name,
                     "gains": dict(zip(("kp", "ki", "kd"), gains, strict=True)),
-                    "model": {"law": "slap2_pid", "plant_num": num, "plant_den": den},
+                    "model": {
+                        "controller": LAW("slap2").controller.model_dump(),
+                        "plant_num": num,
+                        "plant_den": den,
+                    },
                 }
             )
             simulated.append(_simulate(params, gains))

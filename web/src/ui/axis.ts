@@ -4,7 +4,7 @@ import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
 import { UnitPrefs } from "../units";
 import type { AxisInfo, DeviceDescriptor } from "../schema.gen";
-import { BenchView } from "./bench";
+import { BenchView } from "./bench/view";
 import { Controls, makeRunner } from "./commands";
 import { ConsolePanel } from "./console";
 import { controlStrip } from "./control";

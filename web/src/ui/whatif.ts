@@ -8,14 +8,17 @@
 import uPlot from "uplot";
 import { api, type MarginTarget, request } from "../api";
 import { h, replace, setText } from "../dom";
-import { loopStable, modelMargins, type LoopMargins } from "../stability";
+import { loopStable, modelMargins, predictStep, type LoopMargins, type Prediction } from "../stability";
+import type { ControllerLaw } from "../schema.gen";
 import { errorText } from "./feedback";
 import { plotTheme } from "./benchplot";
 import { marginValue, shortfall, targetText } from "./margins";
 
 export interface WhatIfModel {
   device: string;
-  law: "slap2_pid" | "z1100_kab";
+  /** The device's controller law as data: the terms the prediction and the margins
+   * evaluate (web/src/stability.ts). */
+  controller: ControllerLaw;
   period_s: number;
   plant_num: number[];
   plant_den: number[];
@@ -38,111 +41,8 @@ export interface WhatIfInfo {
   proposal: Record<string, number> | null;
 }
 
-export interface Prediction {
-  t: number[];
-  y: number[];
-  overshootPct: number;
-  settlingS: number | null;
-  peakPwm: number;
-}
-
-export type { LoopMargins };
-
-/** The trapezoid of the profile generators (the simulators' per-sample rule): speed
- * min(v + a, vmax, sqrt(2 a d)) per sample, so a short move never reaches vmax. */
-function profile(distance: number, vmaxPerTick: number, accPerTick: number, ticks: number): Float64Array {
-  const ref = new Float64Array(ticks);
-  let r = 0;
-  let v = 0;
-  const goal = Math.abs(distance);
-  const sign = Math.sign(distance);
-  for (let n = 0; n < ticks; n++) {
-    const d = goal - r;
-    if (d > 0) {
-      const speed = Math.min(v + accPerTick, vmaxPerTick, Math.sqrt(2 * accPerTick * d));
-      if (speed >= d) {
-        r = goal;
-        v = 0;
-      } else {
-        r += speed;
-        v = speed;
-      }
-    }
-    ref[n] = sign * r;
-  }
-  return ref;
-}
-
-/** Predicted response to the verification step: the exact law on the discrete plant,
- * the PWM clamped at its limit (friction is not modelled: see docs/frequency-response.md). */
-export function predictStep(model: WhatIfModel, gains: Record<string, number>, distance: number, verify: WhatIfInfo["verify"], horizonS: number, band: number): Prediction {
-  const ts = model.period_s;
-  const ticks = Math.max(2, Math.round(horizonS / ts));
-  const ref = profile(distance, verify.velocity_counts_s * ts, verify.acceleration_counts_s2 * ts * ts, ticks);
-  const num = model.plant_num;
-  const den = model.plant_den;
-  const order = den.length - 1;
-  const uHist = new Float64Array(order + 1);
-  const yHist = new Float64Array(order + 1);
-  const window = 32;
-  const eWin = new Float64Array(window);
-  const yWin = new Float64Array(window);
-  let wi = 0;
-  let sum = 0;
-  let ePrev = 0;
-  let peakPwm = 0;
-  const every = Math.max(1, Math.floor(ticks / 1500));
-  const t: number[] = [];
-  const y: number[] = [];
-  let moving = true;
-  for (let n = 0; n < ticks; n++) {
-    // plant output at tick n from past inputs and outputs (num[0] = 0: strictly proper)
-    let yn = 0;
-    for (let i = 1; i <= order; i++) yn += (num[i] ?? 0) * (uHist[i - 1] ?? 0) - (den[i] ?? 0) * (yHist[i - 1] ?? 0);
-    const counts = Math.round(yn);
-    const target = Math.floor((ref[n] as number) + 0.5);
-    const e = target - counts;
-    let u: number;
-    if (model.law === "slap2_pid") {
-      sum += e;
-      u = (16 * (gains.kp ?? 0) * e + (gains.ki ?? 0) * sum + 32 * (gains.kd ?? 0) * (e - ePrev)) / 4096;
-      ePrev = e;
-    } else {
-      if (moving && n > 0 && ref[n] === distance && ref[n - 1] === distance) moving = false;
-      const p = moving ? "kabh" : "kabd";
-      const de = e - (eWin[wi] as number);
-      const dy = counts - (yWin[wi] as number);
-      eWin[wi] = e;
-      yWin[wi] = counts;
-      wi = (wi + 1) % window;
-      u = Math.trunc(((gains[`${p}_k`] ?? 0) * (16 * e + (gains[`${p}_a`] ?? 0) * de) - (gains[`${p}_b`] ?? 0) * dy) / 64);
-    }
-    u = Math.max(-model.pwm_limit, Math.min(model.pwm_limit, u));
-    peakPwm = Math.max(peakPwm, Math.abs(u));
-    for (let i = order; i > 0; i--) {
-      uHist[i] = uHist[i - 1] as number;
-      yHist[i] = yHist[i - 1] as number;
-    }
-    uHist[0] = u;
-    yHist[0] = yn;
-    if (n % every === 0) {
-      t.push(n * ts);
-      y.push(yn);
-    }
-  }
-  const sign = Math.sign(distance) || 1;
-  const peak = Math.max(...y.map((v) => v * sign));
-  const overshootPct = Math.max(0, ((peak - Math.abs(distance)) / Math.abs(distance)) * 100);
-  let settlingS: number | null = null;
-  for (let i = y.length - 1; i >= 0; i--) {
-    if (Math.abs((y[i] as number) - distance) > band) {
-      settlingS = i + 1 < t.length ? (t[i + 1] as number) : null;
-      break;
-    }
-    if (i === 0) settlingS = 0;
-  }
-  return { t, y, overshootPct, settlingS, peakPwm };
-}
+export type { LoopMargins, Prediction };
+export { predictStep };
 
 /** Gain and phase margins of the law around the plant, by the one rule the server
  * uses (web/src/stability.ts, tuning.stability.loop_margins). */

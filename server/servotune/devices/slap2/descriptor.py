@@ -711,6 +711,8 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             title="Hold to run at sv (pm + ma); release decelerates with sa and holds",
         ),
         autotune=True,
+        # the velocity step writes it for the test (axis.py bench_plan)
+        bench_velocity_parameter="velocity",
         twin=TwinDescriptor(
             counts_per_rev=counts_per_rev,
             setpoint_channel="setpoint",

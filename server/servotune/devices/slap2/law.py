@@ -38,6 +38,7 @@ from servotune.devices.slap2.codec import (
     VELOCITY_MAX,
 )
 from servotune.devices.slap2.injection import Slap2Injection
+from servotune.schema import ControllerLaw, LawGainSet, LawTerm
 from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import ZERO, LoopModel, MotorModel, Polynomial
@@ -64,6 +65,20 @@ P_MUL: Final = 16
 D_MUL: Final = 32
 PID_SHIFT: Final = 12
 I_TERM_MAX: Final = PWM_MAX << PID_SHIFT
+# The same law as data, for the what-if view (``tuning.law.DeviceLaw.controller``):
+# u = (16 kp e + ki S + 32 kd e - 32 kd e[-1]) / 4096, without the integer shift (the
+# linear view, as ``slap2_pid_polynomials``).
+CONTROLLER: Final = ControllerLaw(
+    terms=[
+        LawTerm(coefficient=P_MUL, gains=["kp"], signal="error"),
+        LawTerm(coefficient=1, gains=["ki"], signal="error_sum"),
+        LawTerm(coefficient=D_MUL, gains=["kd"], signal="error"),
+        LawTerm(coefficient=-D_MUL, gains=["kd"], signal="error", delay=1),
+    ],
+    divisor=1 << PID_SHIFT,
+    rounding="none",
+    gain_sets=[LawGainSet(when="always", prefix="")],
+)
 SETTLED_HOLD_S: Final = 0.25  # a response counts as settled if it stays in band this long
 
 # --- limits ----------------------------------------------------------------------------
@@ -444,6 +459,7 @@ class Slap2Law:
     description: Final = "PID at 841.5 us"
     gain_names: Final = ("kp", "ki", "kd")
     output_limit: Final = PWM_MAX
+    controller: Final = CONTROLLER
     # targets through ma, PWM through spwm (docs/frequency-response.md)
     injection: Final = Slap2Injection()
 

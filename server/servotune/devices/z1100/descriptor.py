@@ -504,6 +504,8 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
             title="Hold to run at Vmax; release decelerates with Acc and holds",
         ),
         autotune=True,
+        # the velocity step writes it for the test (axis.py bench_plan)
+        bench_velocity_parameter="vmax",
         twin=TwinDescriptor(
             counts_per_rev=counts_per_rev,
             setpoint_channel="setpoint",

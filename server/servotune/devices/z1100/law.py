@@ -29,6 +29,7 @@ import numpy as np
 
 from servotune.bench.metrics import Metrics, compute_metrics
 from servotune.devices.z1100.frame import STM_TICK_S
+from servotune.schema import ControllerLaw, LawGainSet, LawTerm
 from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.identify import fit_closed_loop
 from servotune.tuning.law import VerifyProfile
@@ -41,6 +42,23 @@ WINDOW: Final = 32  # samples of the derivative difference
 ERROR_WEIGHT: Final = 16
 OUTPUT_DIVISOR: Final = 64
 PWM_FULL_SCALE: Final = 255
+# The same law as data, for the what-if view (``tuning.law.DeviceLaw.controller``):
+# u = 16 K e + K A e - K A e[-32] - B y + B y[-32], pwm = trunc(u / 64).
+CONTROLLER: Final = ControllerLaw(
+    terms=[
+        LawTerm(coefficient=ERROR_WEIGHT, gains=["k"], signal="error"),
+        LawTerm(coefficient=1, gains=["k", "a"], signal="error"),
+        LawTerm(coefficient=-1, gains=["k", "a"], signal="error", delay=WINDOW),
+        LawTerm(coefficient=-1, gains=["b"], signal="position"),
+        LawTerm(coefficient=1, gains=["b"], signal="position", delay=WINDOW),
+    ],
+    divisor=OUTPUT_DIVISOR,
+    rounding="trunc",
+    gain_sets=[
+        LawGainSet(when="moving", prefix="kabh_"),
+        LawGainSet(when="holding", prefix="kabd_"),
+    ],
+)
 COARSE: Final = 4  # chip samples per simulation step (window 32 -> 8 steps)
 KABD_FRACTION: Final = 0.75  # KABD = KABH with K x 3/4 (as the demo's integrator did)
 HOLD_S: Final = 0.1  # simulated after the profile's end
@@ -303,6 +321,7 @@ class Z1100Law:
     description: Final = "KABD (hold) gains"
     gain_names: Final = ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
     output_limit: Final = PWM_FULL_SCALE
+    controller: Final = CONTROLLER
     # go-to targets only, through the Z1100's own profile: nothing can be streamed on
     # its wire, so its frequency response is the identified model's
     injection: Final = None
