@@ -38,7 +38,7 @@ from servotune.bench.service import TestBench
 from servotune.compute import PRELOAD, ComputePool
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.hub.control_lock import ControlManager, ControlSettings
+from servotune.hub.control_lock import AuditSink, ControlManager, ControlSettings
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.hub.state import UnknownAxisError
 from servotune.link.base import (
@@ -147,30 +147,33 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.hub = hub
             app.state.devices = devices
             app.state.bench = bench
-            autotuner_cls = AutoTuner
-            if config.bus is not None:
-                from servotune.bus.lifecycle import autotuner_class  # the hub forwards
-
-                autotuner_cls = autotuner_class(config.bus)
             # Fits, gain searches and FRF analysis: in a worker process, never on the
             # loop or in a thread that holds the interpreter lock (servotune.compute).
             compute = ComputePool(preload=(*PRELOAD, *devices.compute_modules()))
             app.state.compute = compute
-            app.state.autotuner = autotuner_cls(hub, bench, tuners=devices, compute=compute)
+            autotuner = AutoTuner(hub, bench, tuners=devices, compute=compute)
+            app.state.autotuner = autotuner
+            if config.bus is not None:
+                from servotune.bus.lifecycle import make_autotuner  # the hub forwards
+
+                app.state.autotuner = make_autotuner(config.bus, autotuner, hub)
             app.state.storage = storage
+
             # The control lock and dead-man (servotune.hub.control_lock); it sends every axis a
             # STOP first thing when its link is up, and again at shutdown.
-            control_cls = ControlManager
-            if config.bus is not None:
-                from servotune.bus.lifecycle import control_class  # bus: no start-up STOP
+            def audit() -> AuditSink | None:
+                return getattr(app.state, "audit", None)
 
-                control_cls = control_class(config.bus)
-            control = control_cls(
-                hub,
-                config.control,
-                audit=lambda: getattr(app.state, "audit", None),
-                clock=config.control_clock,
-            )
+            if config.bus is not None:
+                from servotune.bus.lifecycle import make_control  # lab hub: no start-up STOP
+
+                control = make_control(
+                    config.bus, hub, config.control, audit=audit, clock=config.control_clock
+                )
+            else:
+                control = ControlManager(
+                    hub, config.control, audit=audit, clock=config.control_clock
+                )
             app.state.control = control
             await hub.start()
             await control.start()

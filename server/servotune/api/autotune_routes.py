@@ -14,7 +14,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Query, Request
 
 from servotune.api.routes import ERRORS
-from servotune.autotune.service import AutoTuner
+from servotune.autotune.service import AutoTuning
 from servotune.autotune.session import IdentifyRequest
 from servotune.schema import ErrorBody
 
@@ -27,12 +27,12 @@ TUNE_ERRORS: dict[int | str, dict[str, Any]] = {
 router = APIRouter(tags=["autotune"])
 
 
-def get_autotuner(request: Request) -> AutoTuner:
-    autotuner: AutoTuner = request.app.state.autotuner
+def get_autotuner(request: Request) -> AutoTuning:
+    autotuner: AutoTuning = request.app.state.autotuner
     return autotuner
 
 
-AutoTunerDep = Annotated[AutoTuner, Depends(get_autotuner)]
+AutoTunerDep = Annotated[AutoTuning, Depends(get_autotuner)]
 
 
 @router.get("/api/axes/{axis_id}/autotune", responses=TUNE_ERRORS)

@@ -19,7 +19,7 @@ from fastapi import APIRouter, Depends, Request
 from servotune.api.bench_routes import BenchDep
 from servotune.api.gains_check import device_law, identified_model
 from servotune.api.responses import errors
-from servotune.autotune.service import AutoTuner
+from servotune.autotune.service import AutoTuning
 from servotune.bench import frf as frfbench
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub, NotFoundError
@@ -31,7 +31,7 @@ router = APIRouter(tags=["bench"])
 
 
 def _session(request: Request, axis_id: str) -> dict[str, Any]:
-    autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
+    autotuner: AutoTuning | None = getattr(request.app.state, "autotuner", None)
     if autotuner is None:
         return {}
     try:

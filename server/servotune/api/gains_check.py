@@ -16,7 +16,7 @@ from typing import Any
 
 from fastapi import Request
 
-from servotune.autotune.service import AutoTuner
+from servotune.autotune.service import AutoTuning
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub
 from servotune.link.base import ConfirmationRequiredError, DriverError
@@ -32,7 +32,7 @@ def device_law(request: Request, device: str) -> DeviceLaw | None:
 
 def identified_model(request: Request, axis_id: str) -> dict[str, Any] | None:
     """The auto-tune's identified plant of the axis in this server's session, if any."""
-    autotuner: AutoTuner | None = getattr(request.app.state, "autotuner", None)
+    autotuner: AutoTuning | None = getattr(request.app.state, "autotuner", None)
     if autotuner is None:
         return None
     try:

@@ -125,7 +125,7 @@ class TuningContext:
     # --- checks and tests -------------------------------------------------------------
 
     def test_running(self, entry: AxisEntry) -> bool:
-        return entry.info.id in self.bench._active
+        return self.bench.test_running(entry.info.id)
 
     def connected(self, entry: AxisEntry) -> bool:
         return entry.latest is not None and self.hub.link_status(entry.link.id).state == "connected"

@@ -2,28 +2,20 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import time
-import uuid
 from collections.abc import Callable
 from typing import Any
 
-from servotune.bench.runner import _Recording, run_meta
+from servotune.bench.runner import ExternalRecording
 from servotune.bench.service import TestBench
 from servotune.hub.state import AxisEntry
-from servotune.link.base import BenchPlan, DeviceRefusedError, capture_of
+from servotune.link.base import BenchPlan, capture_of
 
 
 class IdentificationRun:
-    """The identification recorded as a bench run, with the bench's own recorder.
-
-    ``TestBench`` has no public way to record a sequence it does not drive itself, so
-    this registers a recording in the bench's table of active runs (which also makes
-    the bench refuse other tests on the axis meanwhile), stores it like any run and
-    reports it with the bench's ``run`` messages. It uses TestBench internals on
-    purpose, in one place: the candidate for a ``TestBench.record()`` method.
-    """
+    """The identification recorded as a bench run, with the bench's own recorder
+    (``TestBench.record``): stored like any run, reported with the bench's ``run``
+    messages, and the bench refuses other tests on the axis meanwhile."""
 
     def __init__(
         self, bench: TestBench, entry: AxisEntry, p0: float, max_pwm: int, start_pwm: int
@@ -31,7 +23,7 @@ class IdentificationRun:
         """``start_pwm``: the staircase's first step (the recording's trigger)."""
         self.bench = bench
         self.entry = entry
-        plan = BenchPlan(
+        self._plan = BenchPlan(
             setup=[],
             trigger=[("open_loop_pwm", {"pwm": start_pwm})],
             finish=[("open_loop_pwm", {"pwm": 0}), ("stop", {})],
@@ -40,8 +32,7 @@ class IdentificationRun:
             y_final=p0,
             band=None,
         )
-        self.run_id = uuid.uuid4().hex[:12]
-        test = {
+        self._test: dict[str, Any] = {
             "kind": "pwm_step",
             "distance": 0,
             "velocity": 0,
@@ -49,58 +40,41 @@ class IdentificationRun:
             "duration_s": 0.0,
             "note": "auto-tune identification: open-loop PWM staircase",
         }
-        self.meta: dict[str, Any] = run_meta(entry, test, plan)
-        self.recording = _Recording(
-            self.run_id, entry, plan, self.meta["columns"], self.meta["flags"]
-        )
+        self._run: ExternalRecording | None = None
         # The link polls this axis only while the run records (docs/capture.md).
         self._capture = contextlib.AsyncExitStack()
 
     @property
+    def run(self) -> ExternalRecording:
+        if self._run is None:
+            raise RuntimeError("the identification run is not open")
+        return self._run
+
+    @property
+    def run_id(self) -> str:
+        return self.run.run_id
+
+    @property
     def samples(self) -> list[list[Any]]:
-        return self.recording.samples
+        return self.run.samples
 
     @property
     def columns(self) -> list[str]:
-        return self.recording.columns
+        return self.run.columns
 
     async def open(self, clock: Callable[[], float]) -> None:
-        axis_id = self.entry.info.id
-        if axis_id in self.bench._active:
-            raise DeviceRefusedError("a test is already running on this axis")
-        self.bench._active[axis_id] = self.recording  # the bench refuses tests from now
-        try:
-            await asyncio.to_thread(
-                self.bench._storage.create_run,
-                self.run_id,
-                self.entry.storage_key,
-                axis_id,
-                time.time(),
-                self.meta,
-            )
-        except BaseException:
-            self.bench._active.pop(axis_id, None)
-            raise
+        """409 if a test already records on the axis."""
+        self._run = await self.bench.record(self.entry, self._test, self._plan)
         await self._capture.enter_async_context(
             capture_of(self.entry.driver, reason="auto-tune identification")
         )
-        self.recording.t0 = clock()
-        self.bench._update(self.recording, "recording", "auto-tune identification")
+        self._run.begin(clock(), "auto-tune identification")
 
     def progress(self, message: str) -> None:
-        self.bench._update(self.recording, "recording", message)
+        self.run.progress(message)
 
     async def close(self, status: str, message: str, extra: dict[str, Any]) -> None:
         try:
             await self._capture.aclose()
-            await self.bench._flush(self.recording)
         finally:
-            self.bench._active.pop(self.entry.info.id, None)
-            self.meta["message"] = message
-            self.meta["autotune"] = extra
-            if self.recording.t0 is not None:
-                self.meta["test"]["duration_s"] = round(
-                    self.samples[-1][0] - self.recording.t0 if self.samples else 0.0, 3
-                )
-            await asyncio.to_thread(self.bench._storage.finish_run, self.run_id, status, self.meta)
-            self.bench._update(self.recording, status, message or "done")
+            await self.run.finish(status, message, {"autotune": extra})

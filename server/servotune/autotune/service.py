@@ -101,6 +101,21 @@ class Tuners(Protocol):
         ...
 
 
+class AutoTuning(Protocol):
+    """What the API asks of the auto-tune (``AutoTuner``, or at the lab hub
+    ``bus.autotune.HubAutoTuner``, which forwards a rig's axis to the rig)."""
+
+    def session(self, axis_id: str) -> dict[str, Any]: ...
+
+    async def identify(self, axis_id: str, request: IdentifyRequest) -> dict[str, Any]: ...
+
+    async def accept(self, axis_id: str, *, confirm_unstable: bool = False) -> dict[str, Any]: ...
+
+    async def keep(self, axis_id: str) -> dict[str, Any]: ...
+
+    async def revert(self, axis_id: str) -> dict[str, int]: ...
+
+
 class AutoTuner:
     """identify -> propose -> accept -> verify, one session per axis of a device that
     has a tuner (``Tuners``).

@@ -2,21 +2,21 @@
 
 What lives here is everything between "the test is planned and stored" and "the run is
 finished in the store": the recording of every sample the link delivers
-(``_Recording``, ``BenchRunner._on_sample``), the chunks flushed to SQLite every half
+(``Recording``, ``Runner.on_sample``), the chunks flushed to SQLite every half
 second, the sequence of one test (overrides written, setup, trigger, the record until
 the duration is over or the axis has settled, the multisine of a frequency response,
 finish, the return to the start, the overrides restored), the checks that stop a test
 while it runs (link down, STOP, travel window, distance), its metrics and quality, and
-the ``run`` messages. The limits the run is held to (``BenchLimits``) live here too,
-because both the run and the checks before it use them.
+the ``run`` messages. The limits the run is held to are ``servotune.bench.limits``
+(``BenchLimits`` is importable from here too).
 
 The seam: ``servotune.bench.service`` is the bench's front desk (refusals before anything
-moves, planning, the stored runs, export and import, the per-axis limits in storage);
-this module is what happens after the desk has said yes. ``BenchRunner`` is a mixin of
-``TestBench`` and needs only the attributes it declares (the hub, the store, the clock,
-the table of active recordings and ``limits()``).
+moves, planning, the stored runs, export and import); this module is what happens after
+the desk has said yes. ``TestBench`` has one ``Runner``, the ``ActiveRuns`` it shares
+with it (which axis records what) and the ``LimitsStore`` both read.
 
-``servotune.autotune.recording`` records the identification with this recorder too.
+``ExternalRecording`` records with this recorder a sequence its caller drives itself
+(the auto-tune's identification, through ``TestBench.record``).
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
-
-from pydantic import BaseModel, Field, model_validator
+from typing import Any
 
 from servotune.bench import frf as frfbench
+from servotune.bench.limits import BenchLimits as BenchLimits  # importable from here too
+from servotune.bench.limits import LimitsStore
 from servotune.bench.metrics import compute_metrics
 from servotune.bench.quality import POSITION_KINDS, assess
 from servotune.hub.hub import Hub
@@ -61,40 +61,10 @@ SETTLED_HOLD_S = 0.3
 RETURN_TIMEOUT_S = 5.0  # after the return move's profile time
 
 
-class BenchLimits(BaseModel):
-    """What the user allows the bench to do on one axis (checked before every test)."""
-
-    max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
-    max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
-    max_pwm: int = Field(default=80, ge=1, le=255)
-    max_duration_s: float = Field(default=10.0, gt=0, le=60)
-    min_position_counts: int | None = Field(
-        default=None,
-        ge=-(1 << 31),
-        le=(1 << 31) - 1,
-        description="travel window: no test starts outside it, targets a position outside "
-        "it or travels out of it (counts, with max_position_counts; null: no window)",
-    )
-    max_position_counts: int | None = Field(default=None, ge=-(1 << 31), le=(1 << 31) - 1)
-
-    @model_validator(mode="after")
-    def _window(self) -> BenchLimits:
-        low, high = self.min_position_counts, self.max_position_counts
-        if low is not None and high is not None and low >= high:
-            raise ValueError(f"min_position_counts {low} must be below max_position_counts {high}")
-        return self
-
-    def outside(self, position: float) -> str | None:
-        """Why ``position`` is outside the travel window, or None."""
-        if self.min_position_counts is not None and position < self.min_position_counts:
-            return f"{position:.0f} is below your min_position_counts {self.min_position_counts}"
-        if self.max_position_counts is not None and position > self.max_position_counts:
-            return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
-        return None
-
-
 @dataclass(slots=True)
-class _Recording:
+class Recording:
+    """One run while it records: its plan, its samples and how it went."""
+
     run_id: str
     entry: AxisEntry
     plan: BenchPlan
@@ -158,25 +128,71 @@ def _value(x: float | None) -> float | None:
     return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
 
 
-class BenchRunner:
-    """Runs one planned test on its axis and records it (a mixin of ``TestBench``).
+class ActiveRuns:
+    """Which axis records which run: one test at a time per axis.
 
-    ``_run`` is the whole test, started as a task once the run is stored; it always
+    An axis is *running* from the moment its recording is registered until the run is
+    finished in the store; it is *busy* also while a start is being checked and planned
+    (claimed before the first await, so a second request cannot slip in)."""
+
+    def __init__(self) -> None:
+        self._recordings: dict[str, Recording] = {}
+        self._claimed: set[str] = set()
+
+    def running(self, axis_id: str) -> bool:
+        return axis_id in self._recordings
+
+    def busy(self, axis_id: str) -> bool:
+        return axis_id in self._recordings or axis_id in self._claimed
+
+    def get(self, axis_id: str) -> Recording | None:
+        return self._recordings.get(axis_id)
+
+    def add(self, axis_id: str, recording: Recording) -> None:
+        self._recordings[axis_id] = recording
+
+    def discard(self, axis_id: str) -> None:
+        self._recordings.pop(axis_id, None)
+
+    @contextlib.contextmanager
+    def claim(self, axis_id: str) -> Iterator[None]:
+        """Hold ``axis_id`` busy for the block (the caller checked ``busy`` first)."""
+        self._claimed.add(axis_id)
+        try:
+            yield
+        finally:
+            self._claimed.discard(axis_id)
+
+
+class Runner:
+    """Runs one planned test on its axis and records it.
+
+    ``run`` is the whole test, started as a task once the run is stored; it always
     finishes the run in the store (complete or incomplete, with its metrics) and leaves
     the axis stopped (or to be stopped when its link is back) if anything went wrong.
-    The attributes below are the mixin's whole dependency on the class that uses it."""
+    ``on_sample`` is the hub's sample listener that feeds every running recording."""
 
-    _hub: Hub
-    _storage: Storage
-    _clock: Any  # () -> float, monotonic seconds
-    _active: dict[str, _Recording]  # axis id -> its recording; written by the bench too
+    def __init__(
+        self,
+        hub: Hub,
+        storage: Storage,
+        clock: Callable[[], float],
+        active: ActiveRuns,
+        limits: LimitsStore,
+    ) -> None:
+        """``clock``: monotonic seconds; ``limits``: the user's limits of each axis (a
+        run reads them after the trigger, the exciter when it starts)."""
+        self._hub = hub
+        self._storage = storage
+        self._clock = clock
+        self._active = active
+        self._limits = limits
 
-    if TYPE_CHECKING:
-        # Provided by ``TestBench``: the user's limits of the axis, read from the store
-        # (the run reads them after the trigger, the exciter when it starts).
-        async def limits(self, axis_id: str) -> BenchLimits: ...
+    @property
+    def storage(self) -> Storage:
+        return self._storage
 
-    async def _excite(self, recording: _Recording) -> None:
+    async def _excite(self, recording: Recording) -> None:
         """Stream the multisine as position targets for the whole record.
 
         One ``ma`` per changed target, as fast as the wire takes them (each command
@@ -188,7 +204,7 @@ class BenchRunner:
         assert excitation is not None and t0 is not None
         last: int | None = None
         axis = recording.entry.info.id
-        limits = await self.limits(axis)
+        limits = await self._limits.get(axis)
         open_loop = excitation.command != "move_absolute"
         while not recording.ended:
             target = excitation.target(self._clock() - t0)
@@ -225,7 +241,7 @@ class BenchRunner:
             )
             last = target
 
-    def _on_sample(self, axis_id: str, sample: Sample) -> None:
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
         recording = self._active.get(axis_id)
         if recording is None or recording.ended:
             return
@@ -241,7 +257,7 @@ class BenchRunner:
         if recording.excitation is not None and sample.t_span_s is not None:
             recording.spans.append([row[0], round(sample.t_span_s, 6)])
 
-    async def _flush(self, recording: _Recording) -> None:
+    async def flush(self, recording: Recording) -> None:
         rows = recording.samples[recording.flushed :]
         if not rows:
             return
@@ -250,7 +266,7 @@ class BenchRunner:
         recording.chunk_seq += 1
         await asyncio.to_thread(self._storage.append_samples, recording.run_id, seq, rows)
 
-    async def _send(self, recording: _Recording, steps: list[tuple[str, dict[str, int]]]) -> None:
+    async def _send(self, recording: Recording, steps: list[tuple[str, dict[str, int]]]) -> None:
         for name, args in steps:
             await self._hub.command(
                 recording.entry.info.id,
@@ -260,7 +276,7 @@ class BenchRunner:
                 stop_generation=recording.stop_generation,
             )
 
-    async def _run(self, recording: _Recording, test: BenchTest, meta: dict[str, Any]) -> None:
+    async def run(self, recording: Recording, test: BenchTest, meta: dict[str, Any]) -> None:
         entry, plan = recording.entry, recording.plan
         status, message = "complete", ""
         saved: dict[str, int] = {}
@@ -281,8 +297,8 @@ class BenchRunner:
                 await self._send(recording, plan.trigger)
                 if plan.trigger:
                     recording.trigger_acked = self._clock()
-                self._update(recording, "recording", "triggered")
-                limits = await self.limits(entry.info.id)
+                self.update(recording, "recording", "triggered")
+                limits = await self._limits.get(entry.info.id)
                 exciter = (
                     asyncio.create_task(self._excite(recording))
                     if recording.excitation is not None
@@ -337,10 +353,10 @@ class BenchRunner:
                     except DriverError:
                         changed = ", ".join(f"{k}={v}" for k, v in saved.items())
                         message += f"; could not restore {changed}: re-apply them"
-                await self._flush(recording)
+                await self.flush(recording)
                 settled = await self._settle(recording, gains_before)
             finally:
-                self._active.pop(entry.info.id, None)
+                self._active.discard(entry.info.id)
                 if recording.returned is not None:
                     meta["return"] = recording.returned
                     if not recording.returned["ok"]:
@@ -363,9 +379,9 @@ class BenchRunner:
                     meta["left_oscillating"] = settled.as_dict()
                     meta["quality"] = left_oscillating(meta["quality"], settled)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
-                self._update(recording, status, message or "done")
+                self.update(recording, status, message or "done")
 
-    async def _settle(self, recording: _Recording, gains_before: dict[str, int]) -> Settled | None:
+    async def _settle(self, recording: Recording, gains_before: dict[str, int]) -> Settled | None:
         """Nothing the bench started is left oscillating (``StopService.settle_check``):
         unless the user's STOP ended the run (its own watch follows it) or the link is
         down. The gains put back: the caller's, else those in force before the run, else
@@ -404,13 +420,13 @@ class BenchRunner:
                     raise
                 await asyncio.sleep(0.25)
 
-    async def _record(self, recording: _Recording, test: BenchTest, limits: BenchLimits) -> None:
+    async def _record(self, recording: Recording, test: BenchTest, limits: BenchLimits) -> None:
         # capture: whatever records an axis has its link devoted to it (docs/capture.md)
         async with capture_of(recording.entry.driver, reason="bench recording"):
             await self._record_samples(recording, test, limits)
 
     async def _record_samples(
-        self, recording: _Recording, test: BenchTest, limits: BenchLimits
+        self, recording: Recording, test: BenchTest, limits: BenchLimits
     ) -> None:
         plan = recording.plan
         assert recording.t0 is not None
@@ -424,8 +440,8 @@ class BenchRunner:
             now = self._clock()
             if now - last_flush >= FLUSH_PERIOD_S:
                 last_flush = now
-                await self._flush(recording)
-                self._update(recording, "recording", f"{now - start:.1f} s")
+                await self.flush(recording)
+                self.update(recording, "recording", f"{now - start:.1f} s")
             if self._hub.link_status(recording.entry.link.id).state != "connected":
                 raise DriverError("the link went down during the test")
             if recording.abort is not None:
@@ -458,7 +474,7 @@ class BenchRunner:
                     settled_since = None
 
     def _metrics(
-        self, recording: _Recording, test: BenchTest, status: str, message: str
+        self, recording: Recording, test: BenchTest, status: str, message: str
     ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
         """The run's metrics (untrusted ones null) and its quality (``bench.quality``)."""
         plan = recording.plan
@@ -516,7 +532,7 @@ class BenchRunner:
 
     async def _wait_settled(
         self,
-        recording: _Recording,
+        recording: Recording,
         timeout_s: float,
         target: float | None = None,
         tolerance: float = 0.0,
@@ -553,7 +569,7 @@ class BenchRunner:
             await asyncio.sleep(0.05)
         return False
 
-    async def _return_to_start(self, recording: _Recording, limits: BenchLimits) -> dict[str, Any]:
+    async def _return_to_start(self, recording: Recording, limits: BenchLimits) -> dict[str, Any]:
         """Move back to where the test started (a relative test must not walk the axis
         towards an end switch run by run), with the axis' own profile. Returns what
         happened: ``{"ok", "to", "error", "message"}``."""
@@ -595,7 +611,7 @@ class BenchRunner:
             }
         for name, args in (*way_back.setup, *way_back.trigger):
             validate_command(entry.driver.descriptor, name, args)
-        self._update(recording, "recording", "returning to the start")
+        self.update(recording, "recording", "returning to the start")
         await self._send(recording, way_back.setup)
         await self._send(recording, way_back.trigger)
         tolerance = max(plan.band or 0.0, 1.0) * 2
@@ -613,7 +629,7 @@ class BenchRunner:
             }
         return {"ok": True, "to": plan.y0, "error": round(error, 3), "message": ""}
 
-    def _update(self, recording: _Recording, status: str, message: str) -> None:
+    def update(self, recording: Recording, status: str, message: str) -> None:
         elapsed = self._clock() - recording.t0 if recording.t0 is not None else 0.0
         self._hub.broadcast_model(
             RunUpdate(
@@ -625,3 +641,55 @@ class BenchRunner:
                 message=message,
             )
         )
+
+
+class ExternalRecording:
+    """A run recorded by the bench's recorder while its caller drives the axis.
+
+    Made by ``TestBench.record``: the run is stored and the axis counts as running (the
+    bench refuses other tests on it) from then until ``finish``. The caller stamps the
+    start with ``begin``, reports with ``progress`` and always calls ``finish``."""
+
+    def __init__(
+        self, runner: Runner, active: ActiveRuns, recording: Recording, meta: dict[str, Any]
+    ) -> None:
+        self._runner = runner
+        self._active = active
+        self.recording = recording
+        self.meta = meta
+
+    @property
+    def run_id(self) -> str:
+        return self.recording.run_id
+
+    @property
+    def samples(self) -> list[list[Any]]:
+        return self.recording.samples
+
+    @property
+    def columns(self) -> list[str]:
+        return self.recording.columns
+
+    def begin(self, t0: float, message: str) -> None:
+        """The record starts at ``t0`` (the runner's clock)."""
+        self.recording.t0 = t0
+        self._runner.update(self.recording, "recording", message)
+
+    def progress(self, message: str) -> None:
+        self._runner.update(self.recording, "recording", message)
+
+    async def finish(self, status: str, message: str, meta: Mapping[str, Any]) -> None:
+        """Flush the samples, free the axis and finish the run in the store with
+        ``meta`` added to its metadata; the test's duration becomes the recorded span."""
+        try:
+            await self._runner.flush(self.recording)
+        finally:
+            self._active.discard(self.recording.entry.info.id)
+            self.meta["message"] = message
+            self.meta.update(meta)
+            if self.recording.t0 is not None:
+                self.meta["test"]["duration_s"] = round(
+                    self.samples[-1][0] - self.recording.t0 if self.samples else 0.0, 3
+                )
+            await asyncio.to_thread(self._runner.storage.finish_run, self.run_id, status, self.meta)
+            self._runner.update(self.recording, status, message or "done")

@@ -12,10 +12,11 @@ Refusals happen before anything moves: a test beyond the user's limits (422 nami
 the limit), a kind the device cannot run or an axis already under test (409).
 
 The seam: this module is the bench's front desk — what the API and the hub's peers
-call: the request model, the per-axis limits in storage, the refusals, the plan and
-the stored run, then the stored runs (list, read, export, import). What happens once a
-test has started (the recorder, the test's sequence, the checks while it runs, the
-metrics) is ``servotune.bench.runner``, whose ``BenchRunner`` this class mixes in.
+call: the request model, the refusals, the plan and the stored run, then the stored
+runs (list, read, export, import). ``TestBench`` has the parts: a ``LimitsStore``
+(``servotune.bench.limits``, the per-axis limits in storage), the ``ActiveRuns`` table and
+the ``Runner`` (``servotune.bench.runner``: what happens once a test has started — the
+recorder, the test's sequence, the checks while it runs, the metrics).
 
 """
 
@@ -38,8 +39,9 @@ from pydantic import BaseModel, Field
 
 from servotune.bench import files as runio
 from servotune.bench import frf as frfbench
+from servotune.bench.limits import BenchLimits, LimitsStore
 from servotune.bench.quality import POSITION_KINDS
-from servotune.bench.runner import BenchLimits, BenchRunner, _Recording, run_meta
+from servotune.bench.runner import ActiveRuns, ExternalRecording, Recording, Runner, run_meta
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.link.base import (
@@ -102,7 +104,7 @@ class BenchTestRequest(BaseModel):
     note: str = Field(default="", max_length=200)
 
 
-class TestBench(BenchRunner):
+class TestBench:
     """Runs bench tests on the hub's axes; one test at a time per axis."""
 
     __test__ = False  # not a pytest class
@@ -116,11 +118,12 @@ class TestBench(BenchRunner):
         self._storage = storage
         self.laws = laws
         self._clock = clock
-        self._active: dict[str, _Recording] = {}
-        self._claimed: set[str] = set()
+        self._active = ActiveRuns()
+        self._limits = LimitsStore(hub, storage)
+        self._runner = Runner(hub, storage, clock, self._active, self._limits)
         self._tasks: set[asyncio.Task[None]] = set()
         self._pool: ProcessPoolExecutor | None = None
-        hub.add_sample_listener(self._on_sample)
+        hub.add_sample_listener(self._runner.on_sample)
 
     async def start(self) -> None:
         if self._storage.problem:
@@ -193,20 +196,11 @@ class TestBench(BenchRunner):
 
     # --- limits -----------------------------------------------------------------------
 
-    def _limits_key(self, entry: AxisEntry) -> str:
-        return f"bench-limits:{entry.storage_key}"
-
     async def limits(self, axis_id: str) -> BenchLimits:
-        entry = self._hub.entry(axis_id)
-        stored = await asyncio.to_thread(self._storage.get_meta, self._limits_key(entry))
-        return BenchLimits.model_validate(stored) if stored else BenchLimits()
+        return await self._limits.get(axis_id)
 
     async def set_limits(self, axis_id: str, limits: BenchLimits) -> BenchLimits:
-        entry = self._hub.entry(axis_id)
-        await asyncio.to_thread(
-            self._storage.set_meta, self._limits_key(entry), limits.model_dump()
-        )
-        return limits
+        return await self._limits.set(axis_id, limits)
 
     # --- runs -------------------------------------------------------------------------
 
@@ -233,7 +227,7 @@ class TestBench(BenchRunner):
         ``identified``: the auto-tune's plant model of the axis, which a model-based
         frequency response (a device the bench cannot inject into) is computed from.
         ``restore_gains``: what to write back if the run leaves the axis oscillating
-        (default: the gains in force when it started; ``BenchRunner._settle``)."""
+        (default: the gains in force when it started; ``Runner._settle``)."""
         entry = self._hub.entry(axis_id)
         driver = entry.driver
         if isinstance(driver, BenchDelegate):
@@ -269,16 +263,13 @@ class TestBench(BenchRunner):
                     f"a {entry.info.device} frequency response is model-based: identify the "
                     "plant first (auto-tune, Identify)"
                 )
-        if axis_id in self._active or axis_id in self._claimed:
+        if self._active.busy(axis_id):
             raise DeviceRefusedError("a test is already running on this axis")
         # Claimed before the first await, so a second request cannot slip in.
-        self._claimed.add(axis_id)
-        try:
+        with self._active.claim(axis_id):
             return await self._start_claimed(
                 axis_id, entry, driver, request, limits, identified, restore_gains
             )
-        finally:
-            self._claimed.discard(axis_id)
 
     async def _start_claimed(
         self,
@@ -354,7 +345,7 @@ class TestBench(BenchRunner):
         await asyncio.to_thread(
             self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
         )
-        recording = _Recording(
+        recording = Recording(
             run_id,
             entry,
             plan,
@@ -364,11 +355,11 @@ class TestBench(BenchRunner):
             excitation=excitation,
             restore_gains=dict(restore_gains) if restore_gains else None,
         )
-        self._active[axis_id] = recording
-        task = asyncio.create_task(self._run(recording, test, meta))
+        self._active.add(axis_id, recording)
+        task = asyncio.create_task(self._runner.run(recording, test, meta))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-        self._update(recording, "recording", "armed")
+        self._runner.update(recording, "recording", "armed")
         return {
             "id": run_id,
             "axis_id": axis_id,
@@ -376,6 +367,37 @@ class TestBench(BenchRunner):
             "status": "recording",
             **meta,
         }
+
+    def test_running(self, axis_id: str) -> bool:
+        """Whether a run records on the axis (a bench test or a ``record``)."""
+        return self._active.running(axis_id)
+
+    async def record(
+        self, entry: AxisEntry, test: dict[str, Any], plan: BenchPlan
+    ) -> ExternalRecording:
+        """Store a run of ``test`` on the axis that the caller drives itself, recorded
+        by the bench's recorder and reported with its ``run`` messages; the bench
+        refuses other tests on the axis until the recording is finished (409 if a test
+        already records there)."""
+        axis_id = entry.info.id
+        meta = run_meta(entry, test, plan)
+        recording = Recording(uuid.uuid4().hex[:12], entry, plan, meta["columns"], meta["flags"])
+        if self._active.running(axis_id):
+            raise DeviceRefusedError("a test is already running on this axis")
+        self._active.add(axis_id, recording)
+        try:
+            await asyncio.to_thread(
+                self._storage.create_run,
+                recording.run_id,
+                entry.storage_key,
+                axis_id,
+                time.time(),
+                meta,
+            )
+        except BaseException:
+            self._active.discard(axis_id)
+            raise
+        return ExternalRecording(self._runner, self._active, recording, meta)
 
     async def _model_run(
         self,

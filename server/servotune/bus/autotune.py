@@ -23,25 +23,23 @@ from __future__ import annotations
 
 from typing import Any, Final
 
-from servotune.autotune.service import AutoTuner, Tuners
+from servotune.autotune.service import AutoTuner
 from servotune.autotune.session import IdentifyRequest, Session
-from servotune.bench.service import TestBench
 from servotune.bus import subjects
 from servotune.bus.remote import RemoteAxis
-from servotune.compute import ComputePool
 from servotune.hub.hub import Hub
 from servotune.link.base import DriverError
 
 AUTOTUNE_TIMEOUT_S: Final = 120.0
 
 
-class HubAutoTuner(AutoTuner):
-    """``AutoTuner`` for the hub: a rig's axis is tuned by the rig; others as usual."""
+class HubAutoTuner:
+    """The auto-tune at the lab hub (``AutoTuning``): a rig's axis is tuned by the rig,
+    every other axis by ``local``."""
 
-    def __init__(
-        self, hub: Hub, bench: TestBench, *, tuners: Tuners, compute: ComputePool | None = None
-    ) -> None:
-        super().__init__(hub, bench, tuners=tuners, compute=compute)
+    def __init__(self, hub: Hub, local: AutoTuner) -> None:
+        self._hub = hub
+        self.local = local
         # The session each rig sent with its last auto-tune reply, by the hub's axis id.
         self._remote_sessions: dict[str, dict[str, Any]] = {}
 
@@ -51,7 +49,7 @@ class HubAutoTuner(AutoTuner):
 
     def session(self, axis_id: str) -> dict[str, Any]:
         if self._remote(axis_id) is None:
-            return super().session(axis_id)
+            return self.local.session(axis_id)
         known = self._remote_sessions.get(axis_id)
         return dict(known) if known is not None else Session(axis_id).to_dict()
 
@@ -74,7 +72,7 @@ class HubAutoTuner(AutoTuner):
     async def identify(self, axis_id: str, request: IdentifyRequest) -> dict[str, Any]:
         axis = self._remote(axis_id)
         if axis is None:
-            return await super().identify(axis_id, request)
+            return await self.local.identify(axis_id, request)
         result = await self._forward(
             axis, axis_id, subjects.AUTOTUNE_IDENTIFY, request.model_dump(exclude_none=True)
         )
@@ -83,7 +81,7 @@ class HubAutoTuner(AutoTuner):
     async def accept(self, axis_id: str, *, confirm_unstable: bool = False) -> dict[str, Any]:
         axis = self._remote(axis_id)
         if axis is None:
-            return await super().accept(axis_id, confirm_unstable=confirm_unstable)
+            return await self.local.accept(axis_id, confirm_unstable=confirm_unstable)
         args: dict[str, object] = {"confirm_unstable": True} if confirm_unstable else {}
         result = await self._forward(axis, axis_id, subjects.AUTOTUNE_ACCEPT, args)
         return result if isinstance(result, dict) else {}
@@ -91,14 +89,14 @@ class HubAutoTuner(AutoTuner):
     async def keep(self, axis_id: str) -> dict[str, Any]:
         axis = self._remote(axis_id)
         if axis is None:
-            return await super().keep(axis_id)
+            return await self.local.keep(axis_id)
         result = await self._forward(axis, axis_id, subjects.AUTOTUNE_KEEP, {})
         return result if isinstance(result, dict) else {}
 
     async def revert(self, axis_id: str) -> dict[str, int]:
         axis = self._remote(axis_id)
         if axis is None:
-            return await super().revert(axis_id)
+            return await self.local.revert(axis_id)
         result = await self._forward(axis, axis_id, subjects.AUTOTUNE_REVERT, {})
         if not isinstance(result, dict):
             return {}

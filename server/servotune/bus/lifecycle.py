@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from servotune.autotune.service import AutoTuner
+import time
+from collections.abc import Callable
+
+from servotune.autotune.service import AutoTuner, AutoTuning
 from servotune.bench.service import TestBench
 from servotune.bus.autotune import HubAutoTuner
 from servotune.bus.connection import BusSettings
 from servotune.bus.lab_hub import HubBus
 from servotune.bus.rig import RigAgent
-from servotune.hub.control_lock import ControlManager
+from servotune.hub.control_lock import AuditSink, ControlManager, ControlSettings
 from servotune.hub.hub import Hub
 from servotune.storage import Storage
 
@@ -51,29 +54,36 @@ class BusLifecycle:
             await self.hub.stop()
 
 
-class HubControlManager(ControlManager):
-    """The hub's control lock: as for local axes, except the start-up and shutdown STOPs.
+def make_control(
+    bus: BusSettings | None,
+    hub: Hub,
+    settings: ControlSettings | None = None,
+    *,
+    audit: Callable[[], AuditSink | None] = lambda: None,
+    clock: Callable[[], float] = time.monotonic,
+) -> ControlManager:
+    """The control lock the app runs; at the lab hub (``servotune hub``) without the
+    start-up and shutdown STOPs.
 
     A rig's server sent its own axes their start-up STOP when it started; the hub
     starting (or restarting, or finding a rig that joined later) must not stop an axis
     a rig's local user is driving: the hub is not on the rigs' control path for their
     local users (docs/lab.md). Every other rule holds at the hub: its tabs' locks,
-    leases and lapses, whose STOPs go to the rig.
-    """
-
-    startup_stop = False
-    shutdown_stop = False
-
-
-def control_class(settings: BusSettings | None) -> type[ControlManager]:
-    """The control lock the app runs: the hub's for ``servotune hub``, else the usual."""
-    if settings is not None and settings.hub is not None:
-        return HubControlManager
-    return ControlManager
+    leases and lapses, whose STOPs go to the rig."""
+    at_lab_hub = bus is not None and bus.hub is not None
+    return ControlManager(
+        hub,
+        settings,
+        audit=audit,
+        clock=clock,
+        startup_stop=not at_lab_hub,
+        shutdown_stop=not at_lab_hub,
+    )
 
 
-def autotuner_class(settings: BusSettings | None) -> type[AutoTuner]:
-    """The hub forwards a rig's auto-tune to the rig (``bus.autotune``)."""
-    if settings is not None and settings.hub is not None:
-        return HubAutoTuner
-    return AutoTuner
+def make_autotuner(bus: BusSettings | None, local: AutoTuner, hub: Hub) -> AutoTuning:
+    """The auto-tune the API uses: ``local``, or at the lab hub ``local`` behind
+    ``HubAutoTuner``, which forwards a rig's axis to the rig (``bus.autotune``)."""
+    if bus is not None and bus.hub is not None:
+        return HubAutoTuner(hub, local)
+    return local

@@ -230,7 +230,7 @@ class RemoteAxis:
         await self.stop_pressed(self._link.port.clock())
 
     async def stop_pressed(self, pressed_at: float) -> None:
-        """The STOP pressed at ``pressed_at`` (hub clock; ``hub.state.PressTimedStop``):
+        """The STOP pressed at ``pressed_at`` (hub clock; ``hub.stops.PressTimedStop``):
         the rig does not send it if its axis was commanded or stopped since
         (``StopOvertakenError``)."""
         await self._request(subjects.STOP, self._body(), pressed_at=pressed_at)

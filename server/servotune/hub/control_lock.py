@@ -196,15 +196,6 @@ def _can_control(principal: Principal) -> bool:
 class ControlManager:
     """The lock of every axis of ``hub``; lives for the app's lifespan (``app.state.control``)."""
 
-    # Send every axis the start-up STOP (``start``, ``add_link``)? False only for a
-    # server whose axes are another server's (the lab's hub, ``servotune.bus``): that
-    # server sent its own; the axes are free at once and nothing is sent.
-    startup_stop: bool = True
-    # STOP every axis when the server stops (``shutdown``)? False likewise for the lab's
-    # hub: a rig's local user may be driving its axes, and what the hub's own sessions
-    # set in motion is stopped by the rig's dead-man when their keep-alives end.
-    shutdown_stop: bool = True
-
     def __init__(
         self,
         hub: Hub,
@@ -212,7 +203,18 @@ class ControlManager:
         *,
         audit: Callable[[], AuditSink | None] = lambda: None,
         clock: Callable[[], float] = time.monotonic,
+        startup_stop: bool = True,
+        shutdown_stop: bool = True,
     ) -> None:
+        """``startup_stop``: send every axis the start-up STOP (``start``, ``add_link``);
+        False only for a server whose axes are another server's (the lab hub,
+        ``servotune.bus``): that server sent its own; the axes are free at once and
+        nothing is sent. ``shutdown_stop``: STOP every axis when the server stops
+        (``shutdown``); False likewise for the lab hub: a rig's local user may be
+        driving its axes, and what the hub's own sessions set in motion is stopped by
+        the rig's dead-man when their keep-alives end."""
+        self.startup_stop = startup_stop
+        self.shutdown_stop = shutdown_stop
         self._hub = hub
         self.settings = settings or ControlSettings()
         self._audit = audit
@@ -787,7 +789,7 @@ class ControlManager:
         ack_s += now - checked_at  # as old as it is now
         return ack_s <= min(self.settings.lease_s, silent_s - ACK_AFTER_HEARTBEAT_S)
 
-    # --- demo autopilot (hub.state.AutopilotGate) ---------------------------------------
+    # --- demo autopilot (hub.autopilot.AutopilotGate) ---------------------------------------
 
     def autopilot_paused(self, axis_id: str) -> None:
         """The autopilot stopped driving the axis (a user acted, or STOP)."""

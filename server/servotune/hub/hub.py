@@ -1,19 +1,24 @@
 """The hub: owns the links, validates every change, and fans telemetry out to clients.
 
 Every command that changes a device goes through ``Hub.write_params``,
-``Hub.command``, ``Hub.console`` or ``stop_all`` (in ``HubState``, beside the
-delivery of a STOP that could not be sent at once, which shares it): one path where input is checked
+``Hub.command``, ``Hub.console`` or ``Hub.stop_all``: one path where input is checked
 against the device descriptor before anything is sent and where the axis is marked as
 operated (which switches the demo autopilot off for it). Who may call it is decided
 before, in the api: the user's role (``servotune.auth``) and the axis's control lock
 (``hub.control_lock``); ``auth.audit`` records what was done.
 
-What lives here (the upper half of the hub): ``Hub``, with what drives the devices:
-its lifecycle (the links' owner tasks, restarted with backoff), the command path but
-for the STOP, and the demo autopilot. What the hub knows of its links and axes (the ``DriverSink``
-side, supervision, events, queries) and the fan-out to clients are in
-``servotune.hub.state`` (``HubState``, which ``Hub`` extends); the seam is the
-direction, see there.
+``Hub`` is a facade over its parts, each a concrete class it has:
+
+* ``state`` (``hub.state.HubState``): the records of links and axes kept from what the
+  drivers report (``DriverSink``), supervision, events, queries; it has the stop
+  service (``stops``) and the delivery of pending STOPs (``delivery``, ``hub.stops``);
+* ``fanout`` (``hub.fanout.FanOut``): the websocket clients' queues and the loop that
+  batches telemetry;
+* the demo autopilot (``hub.autopilot.DemoAutopilot``).
+
+What stays here: the lifecycle (the links' owner tasks, restarted with backoff), the
+command path, and explicit delegating methods for the surface the api, auth, bus,
+control lock, twin, bench and auto-tune use, so they need not know the parts.
 """
 
 from __future__ import annotations
@@ -21,10 +26,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Mapping
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
 
+from pydantic import BaseModel
+
+from servotune.descriptor import DeviceDescriptor
+from servotune.hub.autopilot import AutopilotGate, DemoAutopilot
+from servotune.hub.fanout import ClientQueue, FanOut
 from servotune.hub.movewatch import MovePlan, plan_move, watch_move
-from servotune.hub.state import AxisEntry, HubState, LinkEntry
+from servotune.hub.records import AxisEntry, LinkEntry
+from servotune.hub.state import HubState
 from servotune.hub.stops import StopKind
 from servotune.link.base import (
     Autopilot,
@@ -33,11 +46,25 @@ from servotune.link.base import (
     DriverError,
     InvalidArgumentError,
     Link,
+    Sample,
     StopOutcome,
     check_console_line,
 )
 from servotune.link.validation import validate_command, validate_params
-from servotune.schema import EventLevel, MoveOutcome, Params
+from servotune.schema import (
+    AxisHealth,
+    AxisInfo,
+    AxisState,
+    Event,
+    EventLevel,
+    Hello,
+    LinkInfo,
+    LinkState,
+    LinkStatus,
+    MoveOutcome,
+    Params,
+)
+from servotune.storage import Storage
 
 logger = logging.getLogger(__name__)
 
@@ -52,26 +79,55 @@ class NotFoundError(LookupError):
         self.field = field
 
 
-class Hub(HubState):
-    """Owns links and their tasks for the lifetime of the app (see ``api.app``)."""
+class Hub:
+    """Owns links and their tasks for the lifetime of the app (see ``api.app``); the
+    ``DriverSink`` its links report to."""
+
+    def __init__(
+        self,
+        links: list[Link],
+        storage: Storage,
+        *,
+        autopilot: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._clock = clock
+        self._storage = storage
+        self.fanout = FanOut(clock)
+        self.state = HubState(storage, self.fanout, autopilot=autopilot, clock=clock)
+        # Every stop of an axis goes through it (servotune.hub.stops).
+        self.stops = self.state.stops
+        self.delivery = self.state.delivery
+        self._pilot = DemoAutopilot(self, clock)
+        # Set by servotune.hub.control_lock: the autopilot yields to a holder and resumes later.
+        self.autopilot_gate: AutopilotGate | None = None
+        # The last gains an auto-tune verified per axis (what the bench puts back when a
+        # run leaves the axis oscillating with the gains that were in force before it).
+        self.verified_gains: dict[str, dict[str, int]] = {}
+        # The links' owner tasks, the fan-out and the autopilot (``start``).
+        self._tasks: list[asyncio.Task[None]] = []
+        # The watch of each axis' last move to a target (servotune.hub.movewatch).
+        self._move_watches: dict[str, asyncio.Task[None]] = {}
+        for link in links:
+            self.add_link(link)
 
     # --- lifecycle --------------------------------------------------------------------
 
     async def start(self) -> None:
         """Load stored settings and start every link's owner task and the fan-out."""
-        for entry in self._axes.values():
+        for entry in self.state.entries():
             entry.last_known = await asyncio.to_thread(self._storage.last_params, entry.storage_key)
-        for link_entry in self._links.values():
+        for link_entry in self.state.link_entries():
             link_entry.updated_at = self._clock()
             self._tasks.append(asyncio.create_task(self._run_link(link_entry)))
-        self._tasks.append(asyncio.create_task(self._fan_out()))
+        self._tasks.append(asyncio.create_task(self.fanout.run(self.state)))
         if self.autopilot:
-            for entry in self._axes.values():
-                self._tasks.append(asyncio.create_task(self._autopilot(entry)))
+            for entry in self.state.entries():
+                self._tasks.append(asyncio.create_task(self._pilot.run(entry)))
 
     async def stop(self) -> None:
         """Cancel every task; the links close their ports."""
-        tasks = [*self._tasks, *self._move_watches.values()]
+        tasks = [*self._tasks, *self.state.tasks, *self._move_watches.values()]
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -105,7 +161,7 @@ class Hub(HubState):
                 backoff_s = 0.25
             message = f"link task stopped ({problem}); restarting in {backoff_s:g} s"
             self.on_event("error", None, f"link {link.id}: {message}")
-            self._show_link_down(link_entry, message)
+            self.state.show_link_down(link_entry, message)
             await asyncio.sleep(backoff_s)
             backoff_s = min(backoff_s * 2, LINK_RESTART_MAX_S)
 
@@ -135,7 +191,7 @@ class Hub(HubState):
         self.stops.cancel_watch(entry.info.id)
         if not entry.operated:
             entry.operated = True
-            self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+            self.state.show_status(entry)
 
     async def read_params(self, axis_id: str) -> dict[str, int]:
         entry = self.entry(axis_id)
@@ -204,7 +260,7 @@ class Hub(HubState):
         except DriverError as exc:
             if name == "stop" and not isinstance(exc, DeviceRefusedError):
                 # The stop could not reach the axis: deliver it as soon as it can go.
-                self._schedule_stop(entry, exc, pressed_at)
+                self.delivery.schedule(entry, exc, pressed_at)
             raise
         if group == "stop":
             # STOP, or a stop that holds or unpowers the axis: a pending STOP has
@@ -231,7 +287,7 @@ class Hub(HubState):
         the stored ones (of this axis, or of every axis of its link)."""
         axes = [
             e
-            for e in self._axes.values()
+            for e in self.state.entries()
             if e is entry or (scope == "link" and e.link is entry.link)
         ]
         for each in axes:
@@ -278,7 +334,7 @@ class Hub(HubState):
         self.note_commanded(entry, "stored settings re-applied")
         entry.health, entry.health_message = "ok", ""
         entry.silent, entry.last_sample_at = False, self._clock()
-        self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
+        self.state.show_status(entry)
         self.on_event("info", entry.info.id, f"re-applied {len(readback)} stored settings")
         return CommandOutcome([f"{k}={v}" for k, v in readback.items()], "settings re-applied")
 
@@ -306,61 +362,6 @@ class Hub(HubState):
         self.on_event("info", axis_id, f"console {sent!r} -> {shown!r}")
         return sent, reply
 
-    # --- demo autopilot ---------------------------------------------------------------
-
-    async def _autopilot(self, entry: AxisEntry) -> None:
-        """Gentle repeating moves while nobody else operates the axis (demo only).
-
-        ``entry.operated`` means "the autopilot is not driving this axis now": a user
-        change sets it. With an ``autopilot_gate`` (the control lock) the autopilot
-        waits and resumes when the gate lets it; without one it stops for good.
-        The moves come from the driver's ``autopilot_commands`` / ``autopilot_settled``
-        (see ``link.base.Autopilot``); axes whose driver has none stay still.
-        """
-        driver = entry.driver
-        if not isinstance(driver, Autopilot):
-            return
-        amplitude = driver.autopilot_amplitude()
-        direction = 1
-        paused = False
-        while True:
-            if entry.operated:
-                gate = self.autopilot_gate
-                if gate is None:
-                    return
-                if not paused:
-                    paused = True
-                    gate.autopilot_paused(entry.info.id)
-                await asyncio.sleep(0.5)
-                if entry.operated and gate.autopilot_may_resume(entry.info.id):
-                    paused = False
-                    entry.operated = False
-                    self._broadcast(self._axis_status(entry).model_dump_json(), droppable=False)
-                continue
-            await asyncio.sleep(0.5)
-            link_state = self._links[entry.link.id].status.state
-            sample = entry.latest
-            if link_state != "connected" or entry.health == "offline" or sample is None:
-                continue
-            try:
-                for name, args in driver.autopilot_commands(sample, direction * amplitude):
-                    if entry.operated:
-                        break
-                    await driver.command(name, args)
-                    await asyncio.sleep(0.05)
-                direction = -direction
-                deadline = self._clock() + 8.0
-                await asyncio.sleep(0.3)
-                while not entry.operated and self._clock() < deadline:
-                    latest = entry.latest
-                    if latest is not None and driver.autopilot_settled(latest):
-                        break
-                    await asyncio.sleep(0.05)
-                await asyncio.sleep(0.8)
-            except DriverError as exc:
-                logger.info("autopilot on %s: %s", entry.info.id, exc)
-                await asyncio.sleep(1.0)
-
     # --- links registered while the hub runs (servotune.bus) ---------------------------
 
     async def add_running_link(self, link: Link) -> None:
@@ -370,10 +371,143 @@ class Hub(HubState):
         navigation from it, as after a reconnect). ValueError for a duplicate id."""
         self.add_link(link)
         for axis in link.axes:
-            entry = self._axes[axis.id]
+            entry = self.state.entry(axis.id)
             entry.last_known = await asyncio.to_thread(self._storage.last_params, entry.storage_key)
         if self._tasks:  # started: the link needs its owner task (else ``start`` does it)
-            link_entry = self._links[link.id]
+            link_entry = self.state.link_entry(link.id)
             link_entry.updated_at = self._clock()
             self._tasks.append(asyncio.create_task(self._run_link(link_entry)))
-        self._broadcast(self.hello().model_dump_json(), droppable=False)
+        self.fanout.broadcast(self.hello().model_dump_json(), droppable=False)
+
+    # --- the parts' surface (explicit delegation) ---------------------------------------
+
+    @property
+    def autopilot(self) -> bool:
+        """The demo autopilot drives the axes nobody operates (``--autopilot``)."""
+        return self.state.autopilot
+
+    def add_link(self, link: Link) -> None:
+        """Register ``link`` and its axes (before ``start``; see ``add_running_link``).
+        ValueError for a duplicate id."""
+        self.state.add_link(link)
+
+    def now(self) -> float:
+        return self.state.now()
+
+    def clock_at(self, now_s: float) -> float:
+        return self.state.clock_at(now_s)
+
+    def axes_info(self) -> list[AxisInfo]:
+        return self.state.axes_info()
+
+    def links_info(self) -> list[LinkInfo]:
+        return self.state.links_info()
+
+    def entry(self, axis_id: str) -> AxisEntry:
+        """UnknownAxisError for an axis that does not exist."""
+        return self.state.entry(axis_id)
+
+    def descriptor(self, axis_id: str) -> DeviceDescriptor:
+        return self.state.descriptor(axis_id)
+
+    def link_status(self, link_id: str) -> LinkStatus:
+        return self.state.link_status(link_id)
+
+    def link_state(self, link_id: str) -> LinkState:
+        """The link's state as last published (the autopilot's ``AutopilotHost``)."""
+        return self.state.link_entry(link_id).status.state
+
+    def axis_state(self, axis_id: str) -> AxisState | None:
+        return self.state.axis_state(axis_id)
+
+    def hello(self) -> Hello:
+        return self.state.hello()
+
+    def snapshot_messages(self) -> list[str]:
+        return self.state.snapshot_messages()
+
+    def show_status(self, entry: AxisEntry) -> None:
+        self.state.show_status(entry)
+
+    # DriverSink: what the links report.
+
+    def on_sample(self, axis_id: str, sample: Sample) -> None:
+        self.state.on_sample(axis_id, sample)
+
+    def on_link_status(
+        self,
+        link_id: str,
+        state: LinkState,
+        message: str,
+        rate_hz: float,
+        wire_limit_hz: float,
+        errors: int,
+    ) -> None:
+        self.state.on_link_status(link_id, state, message, rate_hz, wire_limit_hz, errors)
+
+    def on_axis_health(self, axis_id: str, health: AxisHealth, message: str) -> None:
+        self.state.on_axis_health(axis_id, health, message)
+
+    def on_params(self, axis_id: str, values: Mapping[str, int], source: str) -> None:
+        self.state.on_params(axis_id, values, source)
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None:
+        self.state.on_event(level, axis_id, message)
+
+    def add_sample_listener(self, listener: Callable[[str, Sample], None]) -> None:
+        """Call ``listener`` with every sample of every axis (the bench's recorder)."""
+        self.state.add_sample_listener(listener)
+
+    # Clients.
+
+    def subscribe(self) -> ClientQueue:
+        return self.fanout.subscribe()
+
+    def unsubscribe(self, queue: ClientQueue) -> None:
+        self.fanout.unsubscribe(queue)
+
+    def broadcast_model(self, message: BaseModel) -> None:
+        """Send a message to every client (never dropped for slowness)."""
+        self.fanout.broadcast_model(message)
+
+    def _broadcast(self, text: str, *, droppable: bool) -> None:
+        self.fanout.broadcast(text, droppable=droppable)
+
+    @property
+    def _events(self) -> deque[Event]:
+        """The recent events (tests and the stop benchmark read them)."""
+        return self.state.events
+
+    # STOPs.
+
+    async def stop_all(self) -> list[str]:
+        """STOP every axis at once; returns the ids of axes whose stop failed."""
+        return await self.delivery.stop_all()
+
+    async def stop_axis(self, entry: AxisEntry, kind: StopKind, reason: str) -> StopOutcome | None:
+        """Stop one axis through the stop service (``servotune.hub.stops``): the STOP
+        button (``"stop"``), every other stop (``"controlled"``: hand-over, dead-man,
+        bench and auto-tune ends) or the power-off (``"power_off"``). Bumps the stop
+        generation (ends a bench or auto-tune sequence); raises the driver's error when
+        nothing could be sent."""
+        entry.stop_generation += 1
+        return await self.stops.stop(entry.info.id, kind, reason)
+
+    def pend_stop(self, entry: AxisEntry, pressed_at: float | None = None) -> None:
+        """Keep a STOP that could not reach the axis, pressed at ``pressed_at`` (now if
+        None), for the axis' return (the control lock's dead-man uses this too)."""
+        self.delivery.pend(entry, pressed_at)
+
+    def note_stopped(self, entry: AxisEntry) -> None:
+        """A STOP reached the axis: a STOP pressed before it has nothing left to stop."""
+        self.delivery.note_stopped(entry)
+
+    def note_commanded(self, entry: AxisEntry, what: str) -> None:
+        """A command reached the axis: a STOP pressed before it must not act on the
+        motion it may have started."""
+        self.delivery.note_commanded(entry, what)
+
+    def stop_overtaken(self, axis_id: str, pressed_at: float) -> str | None:
+        """Why a STOP pressed at ``pressed_at`` (this hub's clock) must not be sent any
+        more (the axis was commanded or stopped since), or None: send it."""
+        return self.delivery.overtaken(self.state.entry(axis_id), pressed_at)

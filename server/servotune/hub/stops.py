@@ -24,6 +24,10 @@ Sample times are the drivers' own; the watch compares them with each other only 
 samples after the stop are those newer than the newest one at the stop), so an
 injected hub clock does not confuse it. ``hub.state`` owns one of these, so nothing
 here knows the hub.
+
+``StopDelivery`` is STOP all and the delivery of a STOP that could not be sent at once
+(kept pending until the axis is back, ``PENDING_STOP_MAX_S``); it reads and keeps the
+hub's axis records and asks the hub's state through ``StopTarget``.
 """
 
 from __future__ import annotations
@@ -33,14 +37,23 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
-from typing import Final, Literal
+from typing import Any, Final, Literal, Protocol, runtime_checkable
 
 from servotune.descriptor import DeviceDescriptor, LoopSignals
 from servotune.hub import loopcheck
-from servotune.link.base import AxisDriver, DriverError, Sample, StopModes, StopOutcome
-from servotune.schema import EventLevel
+from servotune.hub.records import AxisEntry
+from servotune.link.base import (
+    AxisDriver,
+    DeviceRefusedError,
+    DriverError,
+    LinkDownError,
+    Sample,
+    StopModes,
+    StopOutcome,
+)
+from servotune.schema import EventLevel, LinkStatus
 
 logger = logging.getLogger(__name__)
 
@@ -344,3 +357,258 @@ def _describe(outcome: StopOutcome | None) -> str:
     if outcome is None:
         return "STOP sent"
     return f"{', '.join(outcome.sent)}: {outcome.message}" if outcome.sent else outcome.message
+
+
+# --- a STOP that could not be sent at once, and STOP all --------------------------------
+
+# A STOP that could not be sent is sent again once the link and axis are back; while the
+# link is connected it is tried this many times before the user is told to press again.
+STOP_RETRIES_CONNECTED = 10
+# A STOP acts on the motion the user saw when pressing it, never on motion started
+# after it: a pending STOP is dropped by any command that reached the axis since, by a
+# STOP that reached it since (the dead-man's, a hand-over's), and after this long. A
+# STOP delivered 30 s late would cut whatever whoever stands at the machine started
+# meanwhile (a network cut that ends late delivers it late); after 10 s the
+# user is told it was not sent, and checks the axis.
+PENDING_STOP_MAX_S: Final = 10.0
+
+
+class StopOvertakenError(DeviceRefusedError):
+    """A STOP not sent because the axis was commanded or stopped after it was pressed."""
+
+
+@runtime_checkable
+class PressTimedStop(Protocol):
+    """A driver whose STOP carries when it was pressed, so that the far end (a rig,
+    ``servotune.bus``) can refuse it if its axis was commanded since
+    (``StopOvertakenError``). ``pressed_at``: the hub's clock."""
+
+    async def stop_pressed(self, pressed_at: float) -> None: ...
+
+
+class StopTarget(Protocol):
+    """What ``StopDelivery`` asks of the hub's state (``HubState``)."""
+
+    def entries(self) -> list[AxisEntry]: ...
+
+    def entry(self, axis_id: str) -> AxisEntry: ...
+
+    def link_status(self, link_id: str) -> LinkStatus: ...
+
+    def on_event(self, level: EventLevel, axis_id: str | None, message: str) -> None: ...
+
+    def show_status(self, entry: AxisEntry) -> None:
+        """Send every client the axis' status."""
+        ...
+
+    def spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        """Run ``coro`` as a task the hub keeps, cancels at its stop and reports if it fails."""
+        ...
+
+
+class StopDelivery:
+    """STOP all, and a STOP that could not reach its axis: kept pending (on the axis'
+    record), sent the moment its link and axis are back, dropped - and told - when the
+    axis was commanded or stopped since or after ``PENDING_STOP_MAX_S``."""
+
+    def __init__(
+        self, target: StopTarget, stops: StopService, *, clock: Callable[[], float]
+    ) -> None:
+        self._target = target
+        self._stops = stops
+        self._clock = clock
+
+    async def stop_all(self) -> list[str]:
+        """STOP every axis at once; returns the ids of axes whose stop failed."""
+        target = self._target
+        entries = target.entries()
+        pressed_at = self._clock()
+        for entry in entries:
+            entry.operated = True
+            entry.stopped("STOP was pressed")
+        results = await asyncio.gather(
+            *(self.send_stop(e, pressed_at) for e in entries), return_exceptions=True
+        )
+        failed = []
+        for entry, result in zip(entries, results, strict=True):
+            if isinstance(result, StopOvertakenError):
+                target.on_event("info", entry.info.id, f"STOP not sent: {result}")
+            elif isinstance(result, BaseException):
+                failed.append(entry.info.id)
+                if isinstance(result, Exception):
+                    self.schedule(entry, result, pressed_at)
+                else:
+                    raise result
+            else:
+                self.note_stopped(entry)
+                said = f": {', '.join(result.sent)}: {result.message}" if result else ""
+                target.on_event("warning", entry.info.id, f"STOP{said}")
+        for entry in entries:
+            target.show_status(entry)
+        return failed
+
+    async def send_stop(self, entry: AxisEntry, pressed_at: float) -> StopOutcome | None:
+        """The axis' STOP: a driver that can (a rig's axis, whose rig judges the stop)
+        is told when it was pressed; every other goes through the stop service (the
+        shortest safe stop, watched to rest)."""
+        driver = entry.driver
+        if isinstance(driver, PressTimedStop):
+            self._stops.cancel_watch(entry.info.id)
+            await driver.stop_pressed(pressed_at)
+            return None
+        return await self._stops.stop(entry.info.id, "stop", "STOP")
+
+    def schedule(self, entry: AxisEntry, error: Exception, pressed_at: float) -> None:
+        """A STOP pressed at ``pressed_at`` failed: say why and what happens next."""
+        link_state = self._target.link_status(entry.link.id).state
+        self.pend(entry, pressed_at)
+        if isinstance(error, LinkDownError) or link_state != "connected":
+            plan = (
+                f"link {entry.link.id} is {link_state}: the STOP will be sent the moment "
+                f"the link and the axis are back, unless the axis is commanded or stopped "
+                f"before, and not after {PENDING_STOP_MAX_S:g} s"
+            )
+        else:
+            plan = "the STOP is being sent again now"
+        self._target.on_event("error", entry.info.id, f"STOP not delivered: {error}; {plan}")
+        if link_state == "connected":
+            self.ensure_task(entry)
+
+    def pend(self, entry: AxisEntry, pressed_at: float | None = None) -> None:
+        """Keep a STOP that could not reach the axis, pressed at ``pressed_at`` (now if
+        None), for the axis' return (the control lock's dead-man uses this too)."""
+        entry.stop_on_reconnect = True
+        entry.stop_pressed_at = self._clock() if pressed_at is None else pressed_at
+        entry.stop_pressed_wall = time.time() - (self._clock() - entry.stop_pressed_at)
+
+    def note_stopped(self, entry: AxisEntry) -> None:
+        """A STOP reached the axis (any: a user's, STOP all, the dead-man's, a
+        hand-over's): a STOP pressed before it has nothing left to stop."""
+        entry.stopped_at = self._clock()
+        if entry.stop_on_reconnect:
+            self._drop(entry, "the axis was stopped since")
+
+    def note_commanded(self, entry: AxisEntry, what: str) -> None:
+        """A command reached the axis: a STOP pressed before it must not act on the
+        motion it may have started."""
+        entry.commanded_at = self._clock()
+        if entry.stop_on_reconnect:
+            self._drop(entry, f"the axis was commanded since ({what})")
+
+    def overtaken(self, entry: AxisEntry, pressed_at: float) -> str | None:
+        """Why a STOP pressed at ``pressed_at`` (this hub's clock) must not be sent any
+        more (the axis was commanded or stopped since), or None: send it."""
+        axis_id = entry.info.id
+        if entry.commanded_at > pressed_at:
+            ago = self._clock() - entry.commanded_at
+            return (
+                f"{axis_id} was commanded {ago:.1f} s ago, "
+                f"{entry.commanded_at - pressed_at:.1f} s after this STOP was pressed"
+            )
+        if entry.stopped_at > pressed_at:
+            ago = self._clock() - entry.stopped_at
+            return f"{axis_id} was already stopped {ago:.1f} s ago, after this STOP was pressed"
+        return None
+
+    def tick(self, entry: AxisEntry) -> None:
+        """The status tick: expire the axis' pending STOP, or deliver it if the axis is
+        back (its link may have come back without a change of its health)."""
+        pending = entry.stop_on_reconnect and not self.expire(entry)
+        if pending and entry.health != "offline":
+            self.ensure_task(entry)
+
+    def _pressed_text(self, entry: AxisEntry) -> str:
+        pressed = entry.stop_pressed_at if entry.stop_pressed_at is not None else self._clock()
+        wall = time.strftime("%H:%M:%S", time.localtime(entry.stop_pressed_wall))
+        return f"pressed at {wall}, {self._clock() - pressed:.1f} s ago"
+
+    def _drop(self, entry: AxisEntry, why: str) -> None:
+        self._target.on_event(
+            "info", entry.info.id, f"STOP ({self._pressed_text(entry)}) not sent: {why}"
+        )
+        self._cancel(entry)
+
+    def expire(self, entry: AxisEntry) -> bool:
+        """Drop a pending STOP older than PENDING_STOP_MAX_S (told); True if it was."""
+        if entry.stop_pressed_at is None:
+            self.pend(entry)  # set by someone who did not say when: from now
+        assert entry.stop_pressed_at is not None
+        if self._clock() - entry.stop_pressed_at <= PENDING_STOP_MAX_S:
+            return False
+        self._target.on_event(
+            "error",
+            entry.info.id,
+            f"STOP ({self._pressed_text(entry)}) was never delivered and is no longer "
+            f"pending (after {PENDING_STOP_MAX_S:g} s it could stop motion started later): "
+            "check the axis and press STOP again if it moves",
+        )
+        self._cancel(entry)
+        return True
+
+    def _cancel(self, entry: AxisEntry) -> None:
+        entry.stop_on_reconnect = False
+        entry.stop_pressed_at = None
+        task, entry.stop_task = entry.stop_task, None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+
+    def ensure_task(self, entry: AxisEntry) -> None:
+        """Deliver the axis' pending STOP in a task of its own (one at a time)."""
+        if entry.stop_task is not None and not entry.stop_task.done():
+            return
+        entry.stop_task = self._target.spawn(
+            self._deliver(entry), f"delivering a STOP to {entry.info.id}"
+        )
+
+    async def _deliver(self, entry: AxisEntry) -> None:
+        """Send the pending STOP as soon as the link is connected and the axis online;
+        retried while the link stays connected, until it is on the wire. A link that
+        goes down again keeps the STOP pending for its next return. Dropped, and
+        told, when it expires or is overtaken (``PENDING_STOP_MAX_S``)."""
+        target = self._target
+        tries = 0
+        while entry.stop_on_reconnect:
+            if self.expire(entry):
+                return
+            link_state = target.link_status(entry.link.id).state
+            if link_state != "connected" or entry.health == "offline":
+                # Health turns ok while the link still probes its other axes.
+                await asyncio.sleep(0.05)
+                continue
+            pressed_at = entry.stop_pressed_at
+            assert pressed_at is not None
+            why = self.overtaken(entry, pressed_at)
+            if why is not None:
+                self._drop(entry, why)
+                return
+            try:
+                await self.send_stop(entry, pressed_at)
+            except StopOvertakenError as exc:
+                # The far end (a rig) knows its axis better: commanded or stopped since.
+                self._drop(entry, str(exc))
+                return
+            except LinkDownError:
+                await asyncio.sleep(0.05)
+                continue
+            except DriverError as exc:
+                tries += 1
+                if tries >= STOP_RETRIES_CONNECTED:
+                    entry.stop_on_reconnect = False
+                    target.on_event(
+                        "error",
+                        entry.info.id,
+                        f"STOP could not be delivered after {tries} tries: {exc} — "
+                        "check the axis and press STOP again",
+                    )
+                    return
+                await asyncio.sleep(0.1)
+                continue
+            pressed = self._pressed_text(entry)
+            entry.stop_on_reconnect = False
+            entry.stop_pressed_at = None
+            entry.stopped_at = self._clock()
+            target.on_event(
+                "warning", entry.info.id, f"STOP sent ({pressed}; it could not go out before)"
+            )
+            target.show_status(entry)
+            return

@@ -822,7 +822,10 @@ def test_run_equals_stepping_cycle_by_cycle() -> None:
 
 def _engine_state(engine: Ep7047Engine) -> dict[str, object]:
     """Every field of the engine and its plant (what a cycle may change)."""
-    fields = {k: v for k, v in vars(engine).items() if k not in ("plant", "settings", "config")}
+    every = vars(engine) | vars(engine.positioning)
+    fields = {
+        k: v for k, v in every.items() if k not in ("positioning", "plant", "settings", "config")
+    }
     fields["plant"] = (
         engine.plant.shaft_counts,
         engine.plant.counter_shift_counts,

@@ -33,7 +33,7 @@ import pytest
 from nats.errors import NoRespondersError
 from nats.js.api import DiscardPolicy, RetentionPolicy
 
-import servotune.hub.state as hub_state
+import servotune.hub.stops as hub_stops
 from servotune.api.app import AppConfig
 from servotune.bus import subjects
 from servotune.bus.connection import BusSettings
@@ -339,7 +339,7 @@ async def test_a_stop_pending_longer_than_its_limit_is_not_sent_when_the_rig_is_
 ) -> None:
     """A rig that rejoined after a long time got the hub's old STOP (issue 29): a
     pending STOP expires, told, and never goes out."""
-    monkeypatch.setattr(hub_state, "PENDING_STOP_MAX_S", 1.5)
+    monkeypatch.setattr(hub_stops, "PENDING_STOP_MAX_S", 1.5)
     hub = await _stop_all_while_cut(lab, "rig-b")
     wire = lab.rigs["rig-b"].wire
     proxy = lab.lab.proxies["rig-b"]

@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-import servotune.hub.state as hub_state
+import servotune.hub.stops as hub_stops
 from servotune.devices.slap2.descriptor import slap2_descriptor
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
@@ -138,7 +138,7 @@ async def test_a_pending_stop_expires_told_and_unsent(tmp_path: Path) -> None:
     now = [1000.0]
     hub, axis = await _hub(tmp_path, now)
     await hub.stop_all()
-    now.append(1000.0 + hub_state.PENDING_STOP_MAX_S + 0.5)
+    now.append(1000.0 + hub_stops.PENDING_STOP_MAX_S + 0.5)
     await wait_for(lambda: not hub.entry("ax").stop_on_reconnect, 2, "the STOP expired")
     expired = [m for m in _messages(hub) if "never delivered" in m]
     assert expired and "press STOP again" in expired[0] and "pressed at" in expired[0]
@@ -190,7 +190,7 @@ async def _stop_while_unplugged(tmp_path: Path) -> AsyncIterator[tuple[Hub, Any,
 async def test_a_stop_pending_too_long_is_not_sent_when_the_line_is_back(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(hub_state, "PENDING_STOP_MAX_S", 1.0)
+    monkeypatch.setattr(hub_stops, "PENDING_STOP_MAX_S", 1.0)
     async with _stop_while_unplugged(tmp_path) as (hub, sim, tap):
         await wait_for(lambda: any("never delivered" in m for m in _messages(hub)), 5, "expiry")
         mark = tap.mark()

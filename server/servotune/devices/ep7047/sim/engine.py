@@ -11,8 +11,8 @@ when it is off, with an optional encoder offset, a calibration cam and a C-track
 The engine is split in three modules. This one is the drive's face: the cycle (edges of
 the outputs, :meth:`Ep7047Engine.step`/:meth:`Ep7047Engine.run` and their fast paths),
 the read-outs, the SDO objects and the inputs image. What a command does and how the
-setpoint moves is ``servotune.devices.ep7047.sim.positioning`` (the base class
-``_Positioning``); the mechanics and the scale are ``servotune.devices.ep7047.sim.plant``.
+setpoint moves is ``servotune.devices.ep7047.sim.positioning`` (the engine has a
+``Positioning``); the mechanics and the scale are ``servotune.devices.ep7047.sim.plant``.
 
 Decisions where the spec and the manual are silent are written next to the code and
 listed in ``docs/ep7047.md``.
@@ -46,7 +46,6 @@ from servotune.devices.ep7047.codec import (
     PosSettings,
     PosStatus,
     SdoObject,
-    StartType,
     StmControl,
     StmStatus,
     enc_status_of,
@@ -59,9 +58,10 @@ from servotune.devices.ep7047.sim.plant import DriveConfig, StepperPlant
 from servotune.devices.ep7047.sim.positioning import (
     _CALIBRATION_SEARCH,
     _EPS_COUNTS,
+    _NOT_BUSY,
+    Positioning,
     _Mode,
     _Phase,
-    _Positioning,
     _sign,
 )
 
@@ -95,7 +95,6 @@ _ENABLE_LATCH_C = int(EncControl.ENABLE_LATCH_C)
 
 # Tuples, not sets: ``in`` a tuple compares by identity first, ``in`` a set hashes the
 # member with Enum.__hash__, a Python-level call (several per 250 us cycle).
-_NOT_BUSY = (_Mode.IDLE, _Mode.INIT, _Mode.END)
 _SETTING_NAMES = {obj: name for name, obj in POS_SETTINGS_SDO.items()}
 _MODE_STATE = {
     _Mode.IDLE: DriveState.IDLE,
@@ -124,7 +123,7 @@ _DIAG_SDO = {
 }
 
 
-class Ep7047Engine(_Positioning):
+class Ep7047Engine:
     """The positioning interface of one EP7047-1032, stepped one 250 us cycle at a time.
 
     Contract: ``step(outputs)`` takes the decoded outputs the master wrote for this
@@ -151,40 +150,14 @@ class Ep7047Engine(_Positioning):
         config: DriveConfig | None = None,
         plant: StepperPlant | None = None,
     ) -> None:
-        self.settings = settings if settings is not None else PosSettings()
-        self.config = config if config is not None else DriveConfig()
-        self.plant = plant if plant is not None else StepperPlant()
+        config = config if config is not None else DriveConfig()
+        plant = plant if plant is not None else StepperPlant()
+        self.config = config
+        self.plant = plant
+        self.positioning = Positioning(
+            settings if settings is not None else PosSettings(), config, plant
+        )
         self.cycles = 0
-        self._setpoint = self.plant.commanded_counts
-        self._velocity = 0.0  # counts/s, signed
-        self._mode = _Mode.INIT
-        self._finish_state = DriveState.END
-        self._finish_shown = False
-        self._label: DriveState | None = None
-        self._phase = _Phase.NONE
-        self._last_phase = _Phase.NONE
-        # the running move
-        self._target = self._setpoint
-        self._cruise = 0.0
-        self._acc_ms = 0
-        self._dec_ms = 0
-        self._margin = 0.0
-        self._braking = False
-        self._endless_direction = 0
-        self._has_target = True  # False while ENDLESS: nothing for ADDITIVE to add to
-        self._taken: tuple[int, int, int, int, int] | None = None
-        self._start_cycle = 0
-        self._timer_cycle = 0
-        self._cali_sync = False
-        self._cali_pulse: float | None = None
-        # remembered across moves
-        self._last_target = round(self.plant.actual_counts)
-        self._last_direction = 1  # decision: MODULO_CURRENT before any move goes positive
-        self._drive_time_ms = 0
-        self._in_target = False
-        self._error = False
-        self._calibrated = False
-        self._diag = PosDiag.NONE
         self._latch: float | None = None
         self._counter_set = False
         self._pulse_seen = False
@@ -201,6 +174,15 @@ class Ep7047Engine(_Positioning):
     # --- public read-outs ---------------------------------------------------------------
 
     @property
+    def settings(self) -> PosSettings:
+        """0x8020/0x8021 as in force (``Positioning.settings``)."""
+        return self.positioning.settings
+
+    @settings.setter
+    def settings(self, settings: PosSettings) -> None:
+        self.positioning.settings = settings
+
+    @property
     def time_s(self) -> float:
         """Controller time: cycles stepped so far times 250 us."""
         return self.cycles * CYCLE_S
@@ -208,31 +190,32 @@ class Ep7047Engine(_Positioning):
     @property
     def state(self) -> DriveState:
         """0x9020:03 as of the last step."""
-        if self._label is not None:
-            return self._label
-        if self._mode is _Mode.FINISH:
-            return self._finish_state
-        if self._mode in (_Mode.MOVE, _Mode.ENDLESS, _Mode.HALT):
-            return _PHASE_STATE[self._phase]
-        return _MODE_STATE[self._mode]
+        pos = self.positioning
+        if pos.label is not None:
+            return pos.label
+        if pos.mode is _Mode.FINISH:
+            return pos.finish_state
+        if pos.mode in (_Mode.MOVE, _Mode.ENDLESS, _Mode.HALT):
+            return _PHASE_STATE[pos.phase]
+        return _MODE_STATE[pos.mode]
 
     @property
     def diag(self) -> PosDiag:
         """0x9020:01 (= 0xA020:01..03)."""
-        return self._diag
+        return self.positioning.diag
 
     @property
     def setpoint_counts(self) -> float:
-        return self._setpoint
+        return self.positioning.setpoint
 
     @property
     def velocity_counts_s(self) -> float:
         """Setpoint velocity of the last cycle, signed."""
-        return self._velocity
+        return self.positioning.velocity
 
     @property
     def busy(self) -> bool:
-        return self._mode not in _NOT_BUSY
+        return self.positioning.mode not in _NOT_BUSY
 
     def read_sdo(self, obj: SdoObject) -> int:
         """The value of a 0x8020/0x8021 setting or a 0x9020/0xA020 entry.
@@ -243,11 +226,11 @@ class Ep7047Engine(_Positioning):
         if name is not None:
             return int(getattr(self.settings, name))
         if obj == POS_STATUS_WORD:
-            return int(self._diag)
+            return int(self.positioning.diag)
         if obj == DRIVE_STATE:
             return int(self.state)
         if obj in _DIAG_SDO:
-            return int(bool(self._diag & _DIAG_SDO[obj]))
+            return int(bool(self.positioning.diag & _DIAG_SDO[obj]))
         raise KeyError(f"0x{obj.index:04X}:{obj.subindex:02X} is not held by the engine")
 
     def write_sdo(self, obj: SdoObject, value: int) -> None:
@@ -314,16 +297,17 @@ class Ep7047Engine(_Positioning):
         of the time, and eight full cycles per 2 ms exchange were most of the
         simulator's CPU (docs/ep7047.md has the profile).
         """
-        mode = self._mode
-        velocity = self._velocity
+        pos = self.positioning
+        mode = pos.mode
+        velocity = pos.velocity
         if (
             (mode is not _Mode.ENDLESS and mode is not _Mode.MOVE)
             or velocity == 0.0
-            or abs(velocity) != self._cruise
-            or self._phase is not _Phase.CONST
-            or self._label is not None
+            or abs(velocity) != pos.cruise
+            or pos.phase is not _Phase.CONST
+            or pos.label is not None
             or self._pulse_seen
-            or self._braking
+            or pos.braking
         ):
             return 0
         previous = self._prev_outputs
@@ -333,12 +317,12 @@ class Ep7047Engine(_Positioning):
             not int(outputs.pos_control) & _EXECUTE
             or not int(outputs.stm_control) & _ENABLE
             or self._emergency
-            or self._is_new_change(outputs)
+            or pos.is_new_change(outputs)
         ):
             return 0
         speed = abs(velocity)
         direction = _sign(velocity)
-        if mode is _Mode.ENDLESS and direction != self._endless_direction:
+        if mode is _Mode.ENDLESS and direction != pos.endless_direction:
             return 0
         step = velocity * CYCLE_S
         plant = self.plant
@@ -356,7 +340,7 @@ class Ep7047Engine(_Positioning):
         else:
             pulse_ahead = math.inf * direction
         reach = 2 * abs(step)
-        setpoint = self._setpoint
+        setpoint = pos.setpoint
         done = 0
         if mode is _Mode.ENDLESS:
             while done < limit:
@@ -365,10 +349,10 @@ class Ep7047Engine(_Positioning):
                 setpoint += step
                 done += 1
         else:
-            target = self._target
-            creep = self._creep()
-            _, dec = self._rates(direction)
-            margin = self._margin
+            target = pos.target
+            creep = pos.creep()
+            _, dec = pos.rates(direction)
+            margin = pos.margin
             braking_distance = (speed * speed - creep * creep) / (2 * dec)
             arrive_speed = max(creep, dec * CYCLE_S)
             while done < limit:
@@ -387,8 +371,7 @@ class Ep7047Engine(_Positioning):
                 done += 1
         if done:
             self.cycles += done
-            self._setpoint = setpoint
-            self._last_phase = _Phase.CONST
+            pos.cruised(setpoint)
             self._prev_outputs = outputs
             plant.shaft_counts = setpoint - shift
         return done
@@ -405,100 +388,92 @@ class Ep7047Engine(_Positioning):
         The one thing a skipped cycle would alter, the TxPDO toggle bit, follows
         ``cycles`` and comes out right in the cycle that is computed.
         """
+        pos = self.positioning
         if (
-            self._mode is not _Mode.IDLE
-            or self._velocity != 0.0
+            pos.mode is not _Mode.IDLE
+            or pos.velocity != 0.0
             or self.plant.speed_counts_s != 0.0  # a shaft coasting unpowered
-            or self._label is not None
-            or self._phase is not _Phase.NONE
-            or self._last_phase is not _Phase.NONE
+            or pos.label is not None
+            or pos.phase is not _Phase.NONE
+            or pos.last_phase is not _Phase.NONE
             or self._pulse_seen
         ):
             return False
         previous = self._prev_outputs
         if previous is None or (previous is not outputs and previous != outputs):
             return False
-        return not (int(outputs.pos_control) & _EXECUTE and self._is_new_change(outputs))
+        return not (int(outputs.pos_control) & _EXECUTE and pos.is_new_change(outputs))
 
     def _cycle(self, outputs: Outputs) -> None:
         """One 250 us cycle with ``outputs`` applied (the inputs are computed apart)."""
+        pos = self.positioning
         self.cycles += 1
-        self._label = None
-        self._last_phase = self._phase
-        self._phase = _Phase.NONE
+        cycle = self.cycles
         self._pulse_seen = False
-        self._advance_transient()
+        pos.begin_cycle()
 
         # Plain ints for the bit tests: IntFlag operators cost microseconds each.
         stm = int(outputs.stm_control)
-        pos = int(outputs.pos_control)
+        posc = int(outputs.pos_control)
         enc = int(outputs.enc_control)
         enable = bool(stm & _ENABLE)
         reset = bool(stm & _RESET)
-        execute = bool(pos & _EXECUTE)
-        self._emergency = bool(pos & _EMERGENCY_STOP)
+        execute = bool(posc & _EXECUTE)
+        self._emergency = bool(posc & _EMERGENCY_STOP)
         set_counter = bool(enc & _SET_COUNTER)
         latch_enabled = bool(enc & _ENABLE_LATCH_C)
         self._enabled = enable
 
         if enable and not self._prev_enable and not self._enable_seen:
             self._enable_seen = True
-            if self.settings.start_type == StartType.SET_CALIBRATION_AUTO:
-                self._calibrated = True
-        if not enable and self.busy and self._mode is not _Mode.FINISH:
+            pos.enable_seen()
+        if not enable and pos.busy and pos.mode is not _Mode.FINISH:
             # The driver stage switches off: the move fails, the trajectory is gone (the
             # shaft coasts on by itself, below).
-            self._velocity = 0.0
-            self._diag |= PosDiag.COMMAND_ABORTED
-            self._error = True
-            self._finish(DriveState.ERROR)
-        if reset and not self._prev_reset and not self.busy:
-            self._clear_flags()
-        if set_counter and not self._prev_set_counter and not self.busy:
-            self._set_counter(outputs.set_counter_counts)
+            pos.driver_off()
+        if reset and not self._prev_reset and not pos.busy:
+            pos.clear_flags()
+        if set_counter and not self._prev_set_counter and not pos.busy:
+            pos.set_counter(outputs.set_counter_counts)
             self._counter_set = True
         elif not set_counter:
             self._counter_set = False
         if not latch_enabled:
             self._latch = None
-        if self._emergency and self.busy and self._mode not in (_Mode.FINISH, _Mode.EMCY):
-            self._diag |= PosDiag.COMMAND_ABORTED
-            self._mode = _Mode.EMCY
+        if self._emergency:
+            pos.emergency_stop()
 
         started = False
         if execute and not self._prev_execute:
-            if not self.busy:
-                self._start(outputs)
+            if not pos.busy:
+                pos.start(outputs, cycle, enabled=enable, emergency=self._emergency)
                 started = True
             # Decision: a rising edge while Busy is ignored; the PLC waits for Busy = 0.
         elif not execute and self._prev_execute:
-            self._abort_by_execute()
-        elif execute and self._is_new_change(outputs):
-            self._change(outputs)
+            pos.abort_by_execute()
+        elif execute and pos.is_new_change(outputs):
+            pos.change(outputs)
 
         if not started:
-            self._advance_motion()
+            pos.advance_motion(cycle)
         plant = self.plant
         if enable:
-            pulse = plant.follow(self._setpoint)
-            plant.speed_counts_s = self._velocity
+            pulse = plant.follow(pos.setpoint)
+            plant.speed_counts_s = pos.velocity
         else:
             # Unpowered: nothing holds the shaft; it coasts on its own inertia and the
             # setpoint follows it, so that Enable takes it over where it is (decision:
             # the drive catches a shaft that still turns without a jump).
             pulse = plant.coast(CYCLE_S)
-            self._setpoint = plant.commanded_counts
+            pos.follow_shaft()
         if pulse is not None:
             self._pulse_seen = True
             if latch_enabled and self._latch is None:
                 self._latch = pulse
-        if self._mode in _CALIBRATION_SEARCH:  # the only modes it acts in
-            self._watch_calibration_sensors(pulse)
+        if pos.mode in _CALIBRATION_SEARCH:  # the only modes it acts in
+            pos.watch_calibration_sensors(pulse, cycle)
 
-        if self.busy:
-            self._drive_time_ms = int((self.cycles - self._start_cycle) * CYCLE_S * 1000)
-        if self._mode is _Mode.FINISH and self._label is None:
-            self._finish_shown = True
+        pos.end_cycle(cycle)
         self._prev_execute = execute
         self._prev_enable = enable
         self._prev_reset = reset
@@ -508,21 +483,22 @@ class Ep7047Engine(_Positioning):
     # --- inputs -------------------------------------------------------------------------
 
     def _inputs(self, outputs: Outputs) -> Inputs:
-        busy = self.busy
+        part = self.positioning
+        busy = part.mode not in _NOT_BUSY
         pos = 0
         if busy:
             pos |= _POS_BUSY
-        if self._in_target:
+        if part.in_target:
             pos |= _POS_IN_TARGET
-        if self._diag:
+        if part.diag:
             pos |= _POS_WARNING
-        if self._error:
+        if part.error:
             pos |= _POS_ERROR
-        if self._calibrated:
+        if part.calibrated:
             pos |= _POS_CALIBRATED
-        if self._phase is _Phase.ACCEL:
+        if part.phase is _Phase.ACCEL:
             pos |= _POS_ACCELERATE
-        elif self._phase is _Phase.DECEL:
+        elif part.phase is _Phase.DECEL:
             pos |= _POS_DECELERATE
         if self._enabled and not busy and not self._emergency:
             pos |= _POS_READY_TO_EXECUTE
@@ -533,9 +509,10 @@ class Ep7047Engine(_Positioning):
             stm |= _STM_READY
             if int(outputs.stm_control) & _REDUCE_TORQUE:
                 stm |= _STM_TORQUE_REDUCED
-        if self._velocity > 0:
+        velocity = part.velocity
+        if velocity > 0:
             stm |= _STM_MOVING_POSITIVE
-        elif self._velocity < 0:
+        elif velocity < 0:
             stm |= _STM_MOVING_NEGATIVE
         if self.plant.cam_on:
             stm |= _STM_DIGITAL_INPUT_1
@@ -554,7 +531,7 @@ class Ep7047Engine(_Positioning):
 
         position = wrap_int32(round(self.plant.actual_counts))
         scale = SPEED_RANGE_FULL_SCALE_BP / self.config.full_scale_counts_s
-        velocity_bp = max(INT16_MIN, min(INT16_MAX, round(self._velocity * scale)))
+        velocity_bp = max(INT16_MIN, min(INT16_MAX, round(velocity * scale)))
         return Inputs(
             enc_status=enc_status_of(enc),  # memoised: the plain call costs microseconds
             counter_counts=position,
@@ -563,5 +540,5 @@ class Ep7047Engine(_Positioning):
             pos_status=pos_status_of(pos),
             actual_position_counts=position,
             actual_velocity_bp=velocity_bp,
-            actual_drive_time_ms=self._drive_time_ms,
+            actual_drive_time_ms=part.drive_time_ms,
         )

@@ -1,17 +1,16 @@
 """The positioning state machine of the EP7047 engine: commands, motion, calibration.
 
-What lives here: :class:`_Positioning`, the half of ``Ep7047Engine`` that decides what
+What lives here: :class:`Positioning`, the part of ``Ep7047Engine`` that decides what
 the drive does - what a start type, a _CHANGE or a falling Execute does to the running
 move (commands), how the setpoint moves each cycle (the trapezoid planned online,
 ENDLESS, the halt and emergency ramps, settling into In-Target) and the calibration
-runs - and the modes and phases both halves use. The modulo rule itself
-(``modulo_travel``) is in ``servotune.devices.ep7047.modulo``, shared with the driver.
+runs - and the modes and phases both use. The modulo rule itself (``modulo_travel``)
+is in ``servotune.devices.ep7047.modulo``, shared with the driver.
 
-Why this seam: ``devices.ep7047.sim.engine`` is the drive's face - the edges of the outputs, the
-cycle and its fast paths, the SDO objects and the inputs image - and calls in here;
-nothing here reads the outputs' control bits, the edge memory or the inputs. The two
-are one object (the engine inherits this class), so the state the methods share is
-declared below and set by ``Ep7047Engine.__init__``.
+Why this seam: ``devices.ep7047.sim.engine`` is the drive's face - the edges of the
+outputs, the cycle and its fast paths, the SDO objects and the inputs image - and has a
+``Positioning`` it calls into; nothing here reads the outputs' control bits, the edge
+memory or the inputs.
 """
 
 from __future__ import annotations
@@ -66,6 +65,7 @@ _DRIVING = (
     _Mode.CALI_GO_SYNC,
 )
 _CALIBRATION_SEARCH = (_Mode.CALI_GO_CAM, _Mode.CALI_LEAVE_CAM, _Mode.CALI_GO_SYNC)
+_NOT_BUSY = (_Mode.IDLE, _Mode.INIT, _Mode.END)
 
 
 class _Phase(enum.Enum):
@@ -79,68 +79,125 @@ def _sign(value: float) -> int:
     return (value > 0) - (value < 0)
 
 
-class _Positioning:
-    """Commands, motion and calibration of
-    :class:`~servotune.devices.ep7047.sim.engine.Ep7047Engine`.
+class Positioning:
+    """Commands, motion and calibration of one drive (the state machine behind
+    :class:`~servotune.devices.ep7047.sim.engine.Ep7047Engine`).
 
-    Contract: a mixin, not usable on its own; every attribute below is set by
-    ``Ep7047Engine.__init__``. Its methods are called from the engine's cycle (and
-    each other) and call nothing of the engine's own.
+    Contract: the engine has one and calls it from its cycle: ``begin_cycle`` first,
+    then what the outputs' edges and levels ask (``start``, ``change``,
+    ``abort_by_execute``, ``emergency_stop``, ``driver_off``, ``clear_flags``,
+    ``set_counter``), ``advance_motion``, ``watch_calibration_sensors``, and
+    ``end_cycle`` last. The public attributes are the state the engine reports (and
+    reads for its fast paths); only these methods change them. ``settings`` may be
+    replaced between cycles and is read live; ``cycle`` arguments are the engine's
+    cycle count. Nothing here reads the outputs' control bits, keeps edges or builds
+    the inputs.
     """
 
-    settings: PosSettings
-    config: DriveConfig
-    plant: StepperPlant
-    cycles: int
-    _setpoint: float
-    _velocity: float  # counts/s, signed
-    _mode: _Mode
-    _finish_state: DriveState
-    _finish_shown: bool
-    _label: DriveState | None
-    _phase: _Phase
-    _last_phase: _Phase
-    # the running move
-    _target: float
-    _cruise: float
-    _acc_ms: int
-    _dec_ms: int
-    _margin: float
-    _braking: bool
-    _endless_direction: int
-    _has_target: bool
-    _taken: tuple[int, int, int, int, int] | None
-    _start_cycle: int
-    _timer_cycle: int
-    _cali_sync: bool
-    _cali_pulse: float | None
-    # remembered across moves
-    _last_target: int
-    _last_direction: int
-    _drive_time_ms: int
-    _in_target: bool
-    _error: bool
-    _calibrated: bool
-    _diag: PosDiag
-    # levels of this cycle's outputs
-    _enabled: bool
-    _emergency: bool
+    def __init__(self, settings: PosSettings, config: DriveConfig, plant: StepperPlant) -> None:
+        self.settings = settings
+        self.config = config
+        self.plant = plant
+        self.setpoint = plant.commanded_counts
+        self.velocity = 0.0  # counts/s, signed
+        self.mode = _Mode.INIT
+        self.finish_state = DriveState.END
+        self.finish_shown = False
+        self.label: DriveState | None = None
+        self.phase = _Phase.NONE
+        self.last_phase = _Phase.NONE
+        # the running move
+        self.target = self.setpoint
+        self.cruise = 0.0
+        self._acc_ms = 0
+        self._dec_ms = 0
+        self.margin = 0.0
+        self.braking = False
+        self.endless_direction = 0
+        self._has_target = True  # False while ENDLESS: nothing for ADDITIVE to add to
+        self._taken: tuple[int, int, int, int, int] | None = None
+        self.start_cycle = 0
+        self._timer_cycle = 0
+        self._cali_sync = False
+        self._cali_pulse: float | None = None
+        # remembered across moves
+        self._last_target = round(plant.actual_counts)
+        self._last_direction = 1  # decision: MODULO_CURRENT before any move goes positive
+        self.drive_time_ms = 0
+        self.in_target = False
+        self.error = False
+        self.calibrated = False
+        self.diag = PosDiag.NONE
+
+    @property
+    def busy(self) -> bool:
+        return self.mode not in _NOT_BUSY
+
+    # --- the cycle's frame --------------------------------------------------------------
+
+    def begin_cycle(self) -> None:
+        """A new cycle: no label yet, the phase of the last one remembered, and the
+        finishing states advanced (``_advance_transient``)."""
+        self.label = None
+        self.last_phase = self.phase
+        self.phase = _Phase.NONE
+        self._advance_transient()
+
+    def end_cycle(self, cycle: int) -> None:
+        """The cycle is over: the drive time of a busy move, and a finishing state
+        shown for the cycle it was reported in."""
+        if self.mode not in _NOT_BUSY:
+            self.drive_time_ms = int((cycle - self.start_cycle) * CYCLE_S * 1000)
+        if self.mode is _Mode.FINISH and self.label is None:
+            self.finish_shown = True
+
+    def enable_seen(self) -> None:
+        """The first rising Enable: SET_CALIBRATION_AUTO as the default start type
+        calibrates the drive."""
+        if self.settings.start_type == StartType.SET_CALIBRATION_AUTO:
+            self.calibrated = True
+
+    def driver_off(self) -> None:
+        """Enable fell during a move: the move fails, the trajectory is gone (the shaft
+        coasts on by itself)."""
+        self.velocity = 0.0
+        self.diag |= PosDiag.COMMAND_ABORTED
+        self.error = True
+        self._finish(DriveState.ERROR)
+
+    def emergency_stop(self) -> None:
+        """Emergency stop held: a busy move ramps down with the emergency deceleration."""
+        if self.mode not in _NOT_BUSY and self.mode not in (_Mode.FINISH, _Mode.EMCY):
+            self.diag |= PosDiag.COMMAND_ABORTED
+            self.mode = _Mode.EMCY
+
+    def follow_shaft(self) -> None:
+        """Unpowered: the setpoint follows the coasting shaft, so that Enable takes it
+        over where it is."""
+        self.setpoint = self.plant.commanded_counts
+
+    def cruised(self, setpoint: float) -> None:
+        """The engine's fast path ran cycles at cruise velocity up to ``setpoint``."""
+        self.setpoint = setpoint
+        self.last_phase = _Phase.CONST
 
     # --- commands -----------------------------------------------------------------------
 
-    def _start(self, outputs: Outputs) -> None:
-        self._clear_flags()
-        self._start_cycle = self.cycles
-        self._drive_time_ms = 0
+    def start(self, outputs: Outputs, cycle: int, *, enabled: bool, emergency: bool) -> None:
+        """A rising Execute while not busy: the start type in ``outputs`` (0: the
+        default, 0x8021:01); ``enabled``/``emergency``: the levels of this cycle."""
+        self.clear_flags()
+        self.start_cycle = cycle
+        self.drive_time_ms = 0
         self._taken = self._signature(outputs)
-        self._label = DriveState.START
+        self.label = DriveState.START
         code = int(outputs.start_type) or self.settings.start_type
-        if not self._enabled:
+        if not enabled:
             self._fail()  # decision: a start without Enable is an error, nothing moves
             return
-        if self._emergency:
-            self._diag |= PosDiag.COMMAND_ABORTED
-            self._mode = _Mode.EMCY
+        if emergency:
+            self.diag |= PosDiag.COMMAND_ABORTED
+            self.mode = _Mode.EMCY
             return
         try:
             start_type = StartType(code)
@@ -149,16 +206,16 @@ class _Positioning:
             return
         if start_type in CHANGE_START_TYPES:
             # At standstill a plain start is expected (manual).
-            self._diag |= PosDiag.COMMAND_REJECTED
+            self.diag |= PosDiag.COMMAND_REJECTED
             self._finish(DriveState.WARNING)
             return
         if start_type in (StartType.SET_CALIBRATION, StartType.SET_CALIBRATION_AUTO):
             # Decision: SET_CALIBRATION_AUTO sent through the PDO acts like SET_CALIBRATION.
-            self._calibrated = True
+            self.calibrated = True
             self._finish(DriveState.CALIBRATED)
             return
         if start_type is StartType.CLEAR_CALIBRATION:
-            self._calibrated = False
+            self.calibrated = False
             self._finish(DriveState.NOT_CALIBRATED)
             return
         if start_type in (StartType.CALI_PLC_CAM, StartType.CALI_HW_SYNC):
@@ -173,10 +230,10 @@ class _Positioning:
         actual = round(self.plant.actual_counts)
         operand = outputs.target_position_counts
         if start_type in (StartType.ENDLESS_PLUS, StartType.ENDLESS_MINUS):
-            self._endless_direction = 1 if start_type is StartType.ENDLESS_PLUS else -1
-            self._last_direction = self._endless_direction
+            self.endless_direction = 1 if start_type is StartType.ENDLESS_PLUS else -1
+            self._last_direction = self.endless_direction
             self._has_target = False
-            self._mode = _Mode.ENDLESS
+            self.mode = _Mode.ENDLESS
             return
         if start_type is StartType.ABSOLUTE:
             target = operand
@@ -205,15 +262,15 @@ class _Positioning:
         self._begin_move(target)
 
     def _begin_move(self, target: float) -> None:
-        self._target = target
+        self.target = target
         self._has_target = True
         self._last_target = round(target)
-        self._margin = EARLY_BRAKING_FRACTION * abs(target - self._setpoint)
-        self._braking = False
-        self._mode = _Mode.MOVE
+        self.margin = EARLY_BRAKING_FRACTION * abs(target - self.setpoint)
+        self.braking = False
+        self.mode = _Mode.MOVE
 
     def _set_dynamics(self, outputs: Outputs, velocity_bp: int) -> None:
-        self._cruise = velocity_bp / SPEED_RANGE_FULL_SCALE_BP * self.config.full_scale_counts_s
+        self.cruise = velocity_bp / SPEED_RANGE_FULL_SCALE_BP * self.config.full_scale_counts_s
         self._acc_ms = outputs.acceleration_ms
         self._dec_ms = outputs.deceleration_ms
 
@@ -227,7 +284,7 @@ class _Positioning:
             outputs.deceleration_ms,
         )
 
-    def _is_new_change(self, outputs: Outputs) -> bool:
+    def is_new_change(self, outputs: Outputs) -> bool:
         # Decision: with Execute high, a change is taken when the outputs hold a _CHANGE
         # start type and differ from the command last taken; the same values again are
         # not a new command (so repeat an ADDITIVE_CHANGE by altering something).
@@ -236,22 +293,22 @@ class _Positioning:
             and self._signature(outputs) != self._taken
         )
 
-    def _change(self, outputs: Outputs) -> None:
+    def change(self, outputs: Outputs) -> None:
         self._taken = self._signature(outputs)
         code = StartType(int(outputs.start_type))
         velocity_bp = min(abs(outputs.velocity_bp), self.settings.velocity_max_bp)
-        moving = self._mode in (_Mode.MOVE, _Mode.ENDLESS) and self._velocity != 0.0
+        moving = self.mode in (_Mode.MOVE, _Mode.ENDLESS) and self.velocity != 0.0
         # Rejected at standstill and while accelerating (the braking point is not known
         # yet); decision: also for velocity 0 and, for ADDITIVE_CHANGE, during an
         # ENDLESS move, which has no active target to add to.
         if (
             not moving
-            or self._last_phase is _Phase.ACCEL
+            or self.last_phase is _Phase.ACCEL
             or velocity_bp <= 0
-            or (code is StartType.ADDITIVE_CHANGE and self._mode is _Mode.ENDLESS)
+            or (code is StartType.ADDITIVE_CHANGE and self.mode is _Mode.ENDLESS)
         ):
-            self._diag |= PosDiag.COMMAND_REJECTED
-            self._label = DriveState.WARNING
+            self.diag |= PosDiag.COMMAND_REJECTED
+            self.label = DriveState.WARNING
             return
         operand = outputs.target_position_counts
         if code is StartType.ABSOLUTE_CHANGE:
@@ -259,66 +316,66 @@ class _Positioning:
         elif code is StartType.RELATIVE_CHANGE:
             target = round(self.plant.actual_counts) + operand
         else:
-            target = self._target + operand
+            target = self.target + operand
         self._set_dynamics(outputs, velocity_bp)
         self._begin_move(target)
-        if target != self._setpoint:
-            self._last_direction = _sign(target - self._setpoint)
+        if target != self.setpoint:
+            self._last_direction = _sign(target - self.setpoint)
         if self._needs_reversal():
-            self._diag |= PosDiag.TARGET_OVERRUN
-        self._label = DriveState.TARGET_RESTART
+            self.diag |= PosDiag.TARGET_OVERRUN
+        self.label = DriveState.TARGET_RESTART
 
     def _needs_reversal(self) -> bool:
         """True when the new target cannot be reached without passing it and coming back."""
-        direction = _sign(self._velocity)
-        remaining = self._target - self._setpoint
-        speed = abs(self._velocity)
-        _, dec = self._rates(direction)
-        creep = self._creep()
+        direction = _sign(self.velocity)
+        remaining = self.target - self.setpoint
+        speed = abs(self.velocity)
+        _, dec = self.rates(direction)
+        creep = self.creep()
         if remaining * direction <= 0:
             return not (abs(remaining) <= _EPS_COUNTS and speed <= max(creep, dec * CYCLE_S))
         return speed > creep and (speed * speed - creep * creep) / (2 * dec) > abs(remaining)
 
-    def _abort_by_execute(self) -> None:
-        if self._mode in _DRIVING and self._mode is not _Mode.HALT:
-            if self._mode is not _Mode.ENDLESS:
-                self._diag |= PosDiag.COMMAND_ABORTED
-            self._mode = _Mode.HALT
-        elif self._mode in (_Mode.PRE_TARGET, _Mode.CALI_STOP):
-            self._diag |= PosDiag.COMMAND_ABORTED
+    def abort_by_execute(self) -> None:
+        if self.mode in _DRIVING and self.mode is not _Mode.HALT:
+            if self.mode is not _Mode.ENDLESS:
+                self.diag |= PosDiag.COMMAND_ABORTED
+            self.mode = _Mode.HALT
+        elif self.mode in (_Mode.PRE_TARGET, _Mode.CALI_STOP):
+            self.diag |= PosDiag.COMMAND_ABORTED
             self._finish(DriveState.STOP)
 
     def _start_calibration(self, *, sync: bool) -> None:
-        self._label = DriveState.CALI_START
-        self._calibrated = False
+        self.label = DriveState.CALI_START
+        self.calibrated = False
         self._cali_sync = sync
         self._cali_pulse = None
         self._acc_ms = self._dec_ms = 0  # an aborted calibration ramps with 0x8020 values
         # Decision: starting on the cam skips the search for it.
-        self._mode = _Mode.CALI_LEAVE_CAM if self.plant.cam_on else _Mode.CALI_GO_CAM
+        self.mode = _Mode.CALI_LEAVE_CAM if self.plant.cam_on else _Mode.CALI_GO_CAM
 
     def _fail(self) -> None:
-        self._error = True
+        self.error = True
         self._finish(DriveState.ERROR)
 
     def _finish(self, state: DriveState) -> None:
-        self._mode = _Mode.FINISH
-        self._finish_state = state
-        self._finish_shown = False
+        self.mode = _Mode.FINISH
+        self.finish_state = state
+        self.finish_shown = False
         if not self._has_target:
             # Decision: after an ENDLESS move, ADDITIVE adds to where it stopped.
             self._last_target = round(self.plant.actual_counts)
             self._has_target = True
 
-    def _clear_flags(self) -> None:
-        self._diag = PosDiag.NONE
-        self._error = False
-        self._in_target = False
+    def clear_flags(self) -> None:
+        self.diag = PosDiag.NONE
+        self.error = False
+        self.in_target = False
 
-    def _set_counter(self, value_counts: float) -> None:
+    def set_counter(self, value_counts: float) -> None:
         self.plant.set_counter(value_counts)
-        self._setpoint = self.plant.commanded_counts
-        self._target = self._setpoint
+        self.setpoint = self.plant.commanded_counts
+        self.target = self.setpoint
         # Decision: after the counter is set, ADDITIVE counts from the new position.
         self._last_target = round(self.plant.actual_counts)
 
@@ -327,31 +384,31 @@ class _Positioning:
     def _advance_transient(self) -> None:
         # The finishing state (TARGET, STOP, ERROR, ...) is shown for one cycle of its
         # own, also when it was entered in a cycle that reported START.
-        if self._mode is _Mode.FINISH:
-            if self._finish_shown:
-                self._mode = _Mode.END
-        elif self._mode is _Mode.END:
-            self._mode = _Mode.INIT
-        elif self._mode is _Mode.INIT:
-            self._mode = _Mode.IDLE
+        if self.mode is _Mode.FINISH:
+            if self.finish_shown:
+                self.mode = _Mode.END
+        elif self.mode is _Mode.END:
+            self.mode = _Mode.INIT
+        elif self.mode is _Mode.INIT:
+            self.mode = _Mode.IDLE
 
-    def _advance_motion(self) -> None:
-        mode = self._mode
+    def advance_motion(self, cycle: int) -> None:
+        mode = self.mode
         if mode is _Mode.MOVE:
-            self._advance_move()
+            self._advance_move(cycle)
         elif mode is _Mode.ENDLESS:
             self._advance_endless()
         elif mode is _Mode.HALT:
-            _, dec = self._rates(_sign(self._velocity))
+            _, dec = self.rates(_sign(self.velocity))
             self._ramp_to_standstill(dec)
         elif mode is _Mode.EMCY:
             self._ramp_to_standstill(self._rate(self.settings.emergency_deceleration_ms))
         elif mode is _Mode.PRE_TARGET:
-            self._settle()
+            self._settle(cycle)
         elif mode in _CALIBRATION_SEARCH:
             self._advance_calibration()
         elif mode is _Mode.CALI_STOP:
-            self._finish_calibration()
+            self._finish_calibration(cycle)
 
     def _rate(self, ramp_ms: int) -> float:
         """counts/s^2 of a ramp that takes ``ramp_ms`` for 100 % of the speed range."""
@@ -359,7 +416,7 @@ class _Positioning:
             return math.inf
         return self.config.full_scale_counts_s / (ramp_ms / 1000)
 
-    def _rates(self, direction: int) -> tuple[float, float]:
+    def rates(self, direction: int) -> tuple[float, float]:
         """(acceleration, deceleration) in counts/s^2 for travel in ``direction``.
 
         Decision (spec silent on how the PDO ramps and the 0x8020 ramps combine): the
@@ -372,25 +429,25 @@ class _Positioning:
         dec_ms = self._dec_ms or (s.deceleration_neg_ms if direction < 0 else s.deceleration_pos_ms)
         return self._rate(acc_ms), self._rate(dec_ms)
 
-    def _creep(self) -> float:
+    def creep(self) -> float:
         # Decision: Velocity min. 0 creeps at 1 bp, or a move braked 0.5 % early would
         # never arrive; a move slower than Velocity min. creeps at its own velocity.
         velocity_min_bp = max(self.settings.velocity_min_bp, 1)
         creep = velocity_min_bp / SPEED_RANGE_FULL_SCALE_BP * self.config.full_scale_counts_s
-        return min(creep, self._cruise) if self._cruise > 0 else creep
+        return min(creep, self.cruise) if self.cruise > 0 else creep
 
     def _set_velocity(self, velocity: float) -> None:
-        old, new = abs(self._velocity), abs(velocity)
+        old, new = abs(self.velocity), abs(velocity)
         if new > old:
-            self._phase = _Phase.ACCEL
+            self.phase = _Phase.ACCEL
         elif new < old:
-            self._phase = _Phase.DECEL
+            self.phase = _Phase.DECEL
         else:
-            self._phase = _Phase.CONST
-        self._velocity = velocity
-        self._setpoint += velocity * CYCLE_S
+            self.phase = _Phase.CONST
+        self.velocity = velocity
+        self.setpoint += velocity * CYCLE_S
 
-    def _advance_move(self) -> None:
+    def _advance_move(self, cycle: int) -> None:
         """One cycle of a positioning move towards ``_target``.
 
         Trapezoid planned online, so changes and reversals need no special profile:
@@ -399,25 +456,25 @@ class _Positioning:
         accelerate again (no hunting between the two). After the ramp the remaining
         margin is crept at Velocity min., from which the motor may stop abruptly.
         """
-        remaining = self._target - self._setpoint
-        speed = abs(self._velocity)
-        moving = _sign(self._velocity)
-        creep = self._creep()
+        remaining = self.target - self.setpoint
+        speed = abs(self.velocity)
+        moving = _sign(self.velocity)
+        creep = self.creep()
         if abs(remaining) <= _EPS_COUNTS:
-            _, dec = self._rates(moving)
+            _, dec = self.rates(moving)
             if speed <= max(creep, dec * CYCLE_S):
-                self._arrive()
+                self._arrive(cycle)
                 return
         direction = _sign(remaining)
         if moving and moving != direction:
             # Past the target (a late change): brake to a standstill, then turn round.
-            _, dec = self._rates(moving)
-            self._braking = False
+            _, dec = self.rates(moving)
+            self.braking = False
             self._set_velocity(moving * max(speed - dec * CYCLE_S, 0.0))
             return
-        acc, dec = self._rates(direction)
+        acc, dec = self.rates(direction)
         distance = abs(remaining)
-        margin = self._margin
+        margin = self.margin
 
         def fits(candidate: float) -> bool:
             if candidate <= creep:
@@ -425,64 +482,65 @@ class _Positioning:
             braking_distance = (candidate * candidate - creep * creep) / (2 * dec)
             return distance - candidate * CYCLE_S - margin >= braking_distance
 
-        if self._braking:
+        if self.braking:
             new_speed = max(speed - dec * CYCLE_S, creep)
-        elif speed > self._cruise:
+        elif speed > self.cruise:
             # a change lowered the velocity: ramp down to it, or brake if that is due
-            new_speed = max(speed - dec * CYCLE_S, self._cruise)
+            new_speed = max(speed - dec * CYCLE_S, self.cruise)
             if not fits(new_speed):
-                self._braking = True
+                self.braking = True
                 new_speed = max(speed - dec * CYCLE_S, creep)
         else:
-            accelerated = min(speed + acc * CYCLE_S, self._cruise)
+            accelerated = min(speed + acc * CYCLE_S, self.cruise)
             if accelerated > speed and fits(accelerated):
                 new_speed = accelerated
             elif speed >= creep and fits(speed):
                 new_speed = speed
             else:
-                self._braking = speed > creep
+                self.braking = speed > creep
                 new_speed = max(speed - dec * CYCLE_S, creep)
         if new_speed * CYCLE_S >= distance and new_speed <= max(creep, dec * CYCLE_S):
-            self._arrive()
+            self._arrive(cycle)
             return
         self._set_velocity(direction * new_speed)
 
-    def _arrive(self) -> None:
-        self._setpoint = self._target
-        self._velocity = 0.0
-        self._mode = _Mode.PRE_TARGET
-        self._timer_cycle = self.cycles
+    def _arrive(self, cycle: int) -> None:
+        self.setpoint = self.target
+        self.velocity = 0.0
+        self.mode = _Mode.PRE_TARGET
+        self._timer_cycle = cycle
 
-    def _settle(self) -> None:
+    def _settle(self, cycle: int) -> None:
         # "In-Target" needs the actual position in the window within the timeout
         # (the ideal plant is at standstill as soon as the setpoint is).
-        error = abs(self.plant.actual_counts - self._target)
+        error = abs(self.plant.actual_counts - self.target)
         if error <= self.settings.target_window_counts:
-            self._in_target = True
+            self.in_target = True
             self._finish(DriveState.TARGET)
-        elif self._elapsed_ms(self._timer_cycle) >= self.settings.in_target_timeout_ms:
-            self._mode = _Mode.END  # only the falling Busy tells (manual)
+        elif self._elapsed_ms(self._timer_cycle, cycle) >= self.settings.in_target_timeout_ms:
+            self.mode = _Mode.END  # only the falling Busy tells (manual)
 
     def _advance_endless(self) -> None:
-        direction = self._endless_direction
-        speed = abs(self._velocity)
-        acc, dec = self._rates(direction)
-        if speed < self._cruise:
-            new_speed = min(speed + acc * CYCLE_S, self._cruise)
+        direction = self.endless_direction
+        speed = abs(self.velocity)
+        acc, dec = self.rates(direction)
+        if speed < self.cruise:
+            new_speed = min(speed + acc * CYCLE_S, self.cruise)
         else:
-            new_speed = max(speed - dec * CYCLE_S, self._cruise)
+            new_speed = max(speed - dec * CYCLE_S, self.cruise)
         self._set_velocity(direction * new_speed)
 
     def _ramp_to_standstill(self, dec: float) -> None:
-        if self._velocity == 0.0:
+        if self.velocity == 0.0:
             self._finish(DriveState.STOP)
-            self._target = self._setpoint
+            self.target = self.setpoint
             return
-        moving = _sign(self._velocity)
-        self._set_velocity(moving * max(abs(self._velocity) - dec * CYCLE_S, 0.0))
+        moving = _sign(self.velocity)
+        self._set_velocity(moving * max(abs(self.velocity) - dec * CYCLE_S, 0.0))
 
-    def _elapsed_ms(self, since_cycle: int) -> float:
-        return (self.cycles - since_cycle) * CYCLE_S * 1000
+    @staticmethod
+    def _elapsed_ms(since_cycle: int, cycle: int) -> float:
+        return (cycle - since_cycle) * CYCLE_S * 1000
 
     # --- calibration --------------------------------------------------------------------
 
@@ -491,38 +549,38 @@ class _Positioning:
         # are meant to be slow enough to start and stop abruptly, like Velocity min.
         s = self.settings
         scale = self.config.full_scale_counts_s / SPEED_RANGE_FULL_SCALE_BP
-        if self._mode is _Mode.CALI_GO_CAM:
+        if self.mode is _Mode.CALI_GO_CAM:
             direction = -1 if s.invert_calibration_cam_search else 1
             speed = abs(s.calibration_velocity_towards_cam_bp) * scale
         else:
             direction = -1 if s.invert_sync_impulse_search else 1
             speed = abs(s.calibration_velocity_off_cam_bp) * scale
-        self._velocity = direction * speed
-        self._setpoint += self._velocity * CYCLE_S
+        self.velocity = direction * speed
+        self.setpoint += self.velocity * CYCLE_S
 
-    def _watch_calibration_sensors(self, pulse: float | None) -> None:
+    def watch_calibration_sensors(self, pulse: float | None, cycle: int) -> None:
         # The cam input is polled once a cycle (the manual's systematic error); the
         # C-track pulse position comes latched by hardware.
-        if self._mode is _Mode.CALI_GO_CAM and self.plant.cam_on:
-            self._mode = _Mode.CALI_LEAVE_CAM
-            self._label = DriveState.CALI_ON_CAM
-        elif self._mode is _Mode.CALI_LEAVE_CAM and not self.plant.cam_on:
+        if self.mode is _Mode.CALI_GO_CAM and self.plant.cam_on:
+            self.mode = _Mode.CALI_LEAVE_CAM
+            self.label = DriveState.CALI_ON_CAM
+        elif self.mode is _Mode.CALI_LEAVE_CAM and not self.plant.cam_on:
             if self._cali_sync:
-                self._mode = _Mode.CALI_GO_SYNC
+                self.mode = _Mode.CALI_GO_SYNC
             else:
-                self._stop_calibration_drive()
-        elif self._mode is _Mode.CALI_GO_SYNC and pulse is not None:
+                self._stop_calibration_drive(cycle)
+        elif self.mode is _Mode.CALI_GO_SYNC and pulse is not None:
             self._cali_pulse = pulse
-            self._stop_calibration_drive()
+            self._stop_calibration_drive(cycle)
 
-    def _stop_calibration_drive(self) -> None:
-        self._velocity = 0.0
-        self._mode = _Mode.CALI_STOP
-        self._timer_cycle = self.cycles
+    def _stop_calibration_drive(self, cycle: int) -> None:
+        self.velocity = 0.0
+        self.mode = _Mode.CALI_STOP
+        self._timer_cycle = cycle
 
-    def _finish_calibration(self) -> None:
-        self._velocity = 0.0
-        if self._elapsed_ms(self._timer_cycle) < self.settings.in_target_timeout_ms:
+    def _finish_calibration(self, cycle: int) -> None:
+        self.velocity = 0.0
+        if self._elapsed_ms(self._timer_cycle, cycle) < self.settings.in_target_timeout_ms:
             return
         value = float(self.settings.calibration_position_counts)
         if self._cali_pulse is not None:
@@ -530,6 +588,6 @@ class _Positioning:
             # itself, not to where the motor came to rest a fraction of a cycle later;
             # that is what makes this calibration the accurate one.
             value += self.plant.actual_counts - self._cali_pulse
-        self._set_counter(value)
-        self._calibrated = True
+        self.set_counter(value)
+        self.calibrated = True
         self._finish(DriveState.CALIBRATED)

@@ -8,9 +8,14 @@ ticks of a fixed point. ``devices/slap2/sim/module.py`` is the host interface on
 (``Slap2Module``: line parser, command table, replies, EEPROM, reset), and
 ``devices/slap2/sim/line.py`` the multi-drop line on top of that (``Slap2Bus``).
 
-``Slap2Module`` subclasses ``Slap2Controller`` and shares its private state and the
-underscore constants below: that is the whole contract between the two. The manual's
-constants (``TICK_S``, ``FACTORY_DEFAULTS`` ...) are public for the line and tests.
+``Slap2Module`` has a ``Slap2Controller`` and commands it through its public methods
+(the "host side" section of the class): the settings, the modes, moves, the counter,
+calibration, reset. The manual's constants (``TICK_S``, ``FACTORY_DEFAULTS`` ...) are
+public for the module, the line and tests.
+
+This is the firmware oracle: ``devices/slap2/law.py`` computes the same PID law apart,
+and ``devices/slap2/profile.py`` the same profile, on purpose (a shared mistake would
+hide); the tests compare them tick for tick.
 
 Sans-IO: nothing here reads a clock or touches a file descriptor.
 
@@ -120,20 +125,19 @@ class Slap2Controller:
       ``run_ticks(n)`` is ``n`` of them, the ticks of a fixed point skipped.
     * The read-only properties (``position``, ``in_position``, ``pwm`` ...) observe the
       controller without going through the wire.
-    * It has no host side of its own. ``Slap2Module`` (``devices/slap2/sim/module.py``, the only
-      subclass) writes the mode, the targets and the settings into its private state,
-      calls ``_apply_settings`` after a setting changed, ``_engage`` to switch the
-      control loop on, ``_wake`` before it changes anything ``tick`` reads (that ends
-      the idle fast path), and resets all of it in ``power_cycle``. The controller
-      never calls the host side.
+    * It has no host interface of its own: ``Slap2Module`` (``devices/slap2/sim/module.py``)
+      decides what a command may do (the refusals) and then commands the controller
+      through the methods of the "host side" section, which apply the settings, leave
+      the idle fast path where needed and keep the controller's state consistent;
+      ``wake`` before anything else changes what ``tick`` reads (the motor, a setting).
+      The controller never calls the host side.
     """
 
     def __init__(self, motor: DcMotor) -> None:
         """``motor`` is the plant, prepared here for the tick length."""
         self.motor = motor
         self.motor.prepare(TICK_S)
-        # Everything below is (re)initialised by Slap2Module.power_cycle(); listed for
-        # clarity.
+        # Everything below is (re)initialised by reset(); listed for clarity.
         self._settings: dict[str, int] = dict(FACTORY_DEFAULTS)
         self._mode = _MODE_OFF
         self._pwm = 0
@@ -216,6 +220,160 @@ class Slap2Controller:
         """The PWM value applied during the last tick (-255..255, 0 when unpowered)."""
         return self._pwm_out
 
+    @property
+    def limit1_level(self) -> bool:
+        """Limit switch 1 as the firmware sees it (after ``inv1``)."""
+        return self._level1
+
+    @property
+    def limit2_level(self) -> bool:
+        """Limit switch 2 as the firmware sees it (after ``inv2``)."""
+        return self._level2
+
+    @property
+    def position_mode(self) -> bool:
+        """``pm`` (also while a calibration runs)."""
+        return self._mode == _MODE_PM
+
+    @property
+    def velocity_mode(self) -> bool:
+        return self._mode == _MODE_VM
+
+    @property
+    def decelerating(self) -> bool:
+        """The profile generator slows down (the ``ss`` byte's bit 5)."""
+        return self._decel
+
+    @property
+    def target(self) -> int:
+        """The profile generator's target in counter units."""
+        return self._target - self._offset
+
+    @property
+    def settings(self) -> dict[str, int]:
+        """A copy of the RAM settings (the ``pg`` set)."""
+        return dict(self._settings)
+
+    def setting(self, name: str) -> int:
+        return self._settings[name]
+
+    def measured_velocity_sv(self) -> int:
+        """``rve``: the filtered velocity in ``sv`` units."""
+        return round(self._vel_filt / _COUNTS_TICK_PER_SV)
+
+    # --- host side: what the module commands --------------------------------------------
+    # Each method applies a command the module has already accepted; none refuses.
+
+    def reset(self, settings: dict[str, int]) -> None:
+        """Power-on: ``settings`` in RAM, modes off, cal flag 0, the counter 0 wherever
+        the shaft is, the bridge off."""
+        self._settings = dict(settings)
+        self._apply_settings()
+        self._mode = _MODE_OFF
+        self._pwm = self._pwm_out = 0
+        self._moving = self._decel = False
+        self._cal_phase = _CAL_NONE
+        self._calibrated = False
+        self._oc = False
+        self._inpos = False
+        self._inpos_timer = 0
+        count = self.motor.count
+        self._offset = count  # the counter starts at 0 wherever the shaft is
+        self._sp = float(count)
+        self._sp_vel = 0.0
+        self._target = count
+        self._integral = self._e_prev = 0
+        self._last_count = count
+        self._vel_filt = 0.0
+        self.motor.current_a = 0.0  # the bridge was off
+        self._update_levels()
+        self.wake()
+
+    def set_setting(self, name: str, value: int) -> None:
+        """Write one RAM setting (checked by the caller) and apply it."""
+        self._settings[name] = value
+        self._apply_settings()
+
+    def engage_position_mode(self) -> None:
+        """``pm``: hold the current position (a controller already in pm is left alone)."""
+        if self._mode != _MODE_PM:
+            self._engage(hold=True)
+            self._mode = _MODE_PM
+
+    def engage_velocity_mode(self) -> None:
+        """``vm``: turn at ``sv``; from pm the generator keeps its state, so the speed
+        changes smoothly."""
+        if self._mode in (_MODE_OFF, _MODE_PWM):
+            self._engage(hold=True)
+        self._mode = _MODE_VM
+        self._moving = False
+        self._inpos = False
+        self._inpos_timer = 0
+
+    def open_loop(self, pwm: int) -> None:
+        """``spwm``: the bridge at ``pwm`` (-255..255), no control loop."""
+        self._pwm = pwm
+        self._cal_phase = _CAL_NONE
+        self._mode = _MODE_PWM
+        self._moving = self._decel = self._inpos = False
+
+    def stop(self) -> None:
+        """``st``: the bridge off."""
+        self._mode = _MODE_OFF
+        self._cal_phase = _CAL_NONE
+        self._moving = self._decel = self._inpos = False
+        self._sp_vel = 0.0
+
+    def move_to(self, target: int) -> None:
+        """``ma``/``mr`` in pm: a profile to ``target`` (counter units) with ``sv`` and
+        ``sa``, replanned from the generator's current position and velocity (no jump)."""
+        self._target = target + self._offset
+        self._move_vmax = abs(self._settings["sv"]) * _COUNTS_TICK_PER_SV
+        self._move_acc = self._settings["sa"] * _COUNTS_TICK2_PER_SA
+        self._moving = True
+        self._inpos = False
+        self._inpos_timer = 0
+
+    def set_position(self, position: int) -> None:
+        """``sp``: the counter reads ``position`` here. Setpoint and target live in
+        physical counts, so only the offset changes and a running move or the held
+        position is not disturbed."""
+        self._offset = self.motor.count - position
+
+    def start_calibration(
+        self, cal_mode: int, direction: int, speed: int, acceleration: int
+    ) -> None:
+        """``cal``/``ca``: run calibration ``cal_mode`` (0..5) towards ``direction``
+        (-1: limit 1, +1: limit 2) at ``speed`` (sv units) and ``acceleration`` (sa
+        units), in pm. In pm the generator keeps its velocity: a cal during a move
+        ramps smoothly."""
+        if self._mode != _MODE_PM:
+            self._engage(hold=True)
+        self._mode = _MODE_PM
+        self._cal_mode = cal_mode
+        self._cal_dir = direction
+        self._cal_vmax = speed * _COUNTS_TICK_PER_SV
+        self._cal_acc = acceleration * _COUNTS_TICK2_PER_SA
+        self._calibrated = False  # stays 0 unless this calibration succeeds
+        self._moving = True
+        self._inpos = False
+        self._inpos_timer = 0
+        self._update_levels()
+        reference = self._level1 if direction < 0 else self._level2
+        if cal_mode >= 4:
+            self._cal_phase = _CAL_INDEX
+        elif reference:
+            self._cal_phase = _CAL_BACKOFF  # already standing in the switch: drive out
+        else:
+            self._cal_phase = _CAL_SEEK
+        self._cal_index_armed = False
+
+    def abort_calibration(self) -> None:
+        """Ctrl-K: stop at once, stay in pm holding, cal flag stays 0."""
+        self._stop_here(self.motor.count)
+        self._cal_phase = _CAL_NONE
+        self._calibrated = False
+
     # --- settings and engaging --------------------------------------------------------
 
     def _apply_settings(self) -> None:
@@ -248,9 +406,6 @@ class Slap2Controller:
         self._moving = self._decel = False
         self._inpos = False
         self._inpos_timer = 0
-
-    def _measured_velocity_sv(self) -> int:
-        return round(self._vel_filt / _COUNTS_TICK_PER_SV)
 
     # --- the 841.5 us cycle -----------------------------------------------------------
 
@@ -334,7 +489,8 @@ class Slap2Controller:
             motor.external_torque_nm, motor.params, motor.current_limited, motor.index_crossed,
         )  # fmt: skip
 
-    def _wake(self) -> None:
+    def wake(self) -> None:
+        """Leave the idle fast path: something ``tick`` reads may change."""
         self._frozen = None
         self._last_fingerprint = None
 
@@ -346,7 +502,7 @@ class Slap2Controller:
             if n > 0 and self._fingerprint() == frozen:
                 self._skip_ticks(n)
                 return
-            self._wake()
+            self.wake()
         while n > 0:
             self.tick()
             n -= 1
@@ -485,9 +641,3 @@ class Slap2Controller:
         self._stop_here(stop_count)
         self._cal_phase = _CAL_NONE
         self._calibrated = True
-
-    def _fail_calibration(self) -> None:
-        """Ctrl-K: stop at once, stay in pm holding, cal flag stays 0."""
-        self._stop_here(self.motor.count)
-        self._cal_phase = _CAL_NONE
-        self._calibrated = False

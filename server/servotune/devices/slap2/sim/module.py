@@ -5,9 +5,10 @@ controller (the 841.5 us tick: profile generator, PID, in-position, limit switch
 calibration, idle fast path) and the manual's constants it runs on are in
 ``devices/slap2/sim/controller.py`` (``Slap2Controller``). Here is the host interface on top - line
 parser (echo, Ctrl-X, Ctrl-K, ``se``), command table, replies, EEPROM file, power-on
-reset and banner. ``Slap2Module`` subclasses ``Slap2Controller`` and drives it through
-its private state (the contract is in that class's docstring). The RS232 line the
-modules share, ``Slap2Bus``, is in ``devices/slap2/sim/line.py`` on top of this one.
+reset and banner. ``Slap2Module`` has a ``Slap2Controller`` (``controller``): it decides
+what a command may do (the refusals, ``uc``) and commands the controller through that
+class's public methods. The RS232 line the modules share, ``Slap2Bus``, is in
+``devices/slap2/sim/line.py`` on top of this one.
 
 Sans-IO: nothing here reads a clock or touches a file descriptor (except the optional
 EEPROM file). The modules are driven in simulation time by ``Slap2Bus`` through the
@@ -37,16 +38,6 @@ from servotune.devices.slap2.codec import (
     REFUSED_REPLY,
 )
 from servotune.devices.slap2.sim.controller import (
-    _CAL_BACKOFF,
-    _CAL_INDEX,
-    _CAL_NONE,
-    _CAL_SEEK,
-    _COUNTS_TICK2_PER_SA,
-    _COUNTS_TICK_PER_SV,
-    _MODE_OFF,
-    _MODE_PM,
-    _MODE_PWM,
-    _MODE_VM,
     FACTORY_DEFAULTS,
     HEX,
     INV1,
@@ -114,7 +105,7 @@ def _no_argument(value: int | None) -> None:
         raise _RefusedError
 
 
-class Slap2Module(Slap2Controller):
+class Slap2Module:
     """Firmware of one SLAP2 module driving one simulated motor.
 
     Contract:
@@ -123,8 +114,8 @@ class Slap2Module(Slap2Controller):
       (echo, reply); a module whose transmitter is off still parses every line so it
       can react to ``se``.
     * ``tick()`` runs one 841.5 us controller cycle (profile generator, PID, inpos,
-      limit switches, calibration) and integrates the motor over the cycle (inherited
-      from ``Slap2Controller``).
+      limit switches, calibration) and integrates the motor over the cycle
+      (``controller.tick``); ``run_ticks(n)`` is ``n`` of them.
     * ``take_output()`` returns unsolicited bytes (the power-on banner of address 0).
     * ``power_cycle()`` is a reset: RAM settings from the EEPROM, counter 0, modes off,
       cal flag 0. The motor shaft keeps its physical angle.
@@ -155,7 +146,7 @@ class Slap2Module(Slap2Controller):
         )
         self.eeprom_path = eeprom_path
         self._memory_eeprom: dict[str, int] | None = None
-        super().__init__(motor if motor is not None else DcMotor(params))
+        self.controller = Slap2Controller(motor if motor is not None else DcMotor(params))
         self._commands = self._command_table()
         # Everything below is (re)initialised by power_cycle(); listed for clarity.
         self._buffer = bytearray()
@@ -165,7 +156,61 @@ class Slap2Module(Slap2Controller):
         self._uc = False
         self.power_cycle()
 
+    # --- the controller -----------------------------------------------------------
+
+    @property
+    def motor(self) -> DcMotor:
+        return self.controller.motor
+
+    def tick(self) -> None:
+        """One 841.5 us controller cycle (``Slap2Controller.tick``)."""
+        self.controller.tick()
+
+    def run_ticks(self, n: int) -> None:
+        """``n`` controller cycles (``Slap2Controller.run_ticks``)."""
+        self.controller.run_ticks(n)
+
     # --- observation ----------------------------------------------------------------
+
+    @property
+    def position(self) -> int:
+        """The position counter as ``rp`` reports it."""
+        return self.controller.position
+
+    @property
+    def setpoint(self) -> int:
+        """The profile generator's setpoint in counter units."""
+        return self.controller.setpoint
+
+    @property
+    def following_error(self) -> int:
+        """``pe``: setpoint minus actual position."""
+        return self.controller.following_error
+
+    @property
+    def in_position(self) -> bool:
+        return self.controller.in_position
+
+    @property
+    def moving(self) -> bool:
+        return self.controller.moving
+
+    @property
+    def calibrated(self) -> bool:
+        return self.controller.calibrated
+
+    @property
+    def calibrating(self) -> bool:
+        return self.controller.calibrating
+
+    @property
+    def current_limited(self) -> bool:
+        return self.controller.current_limited
+
+    @property
+    def pwm(self) -> int:
+        """The PWM value applied during the last tick (-255..255, 0 when unpowered)."""
+        return self.controller.pwm
 
     @property
     def transmitting(self) -> bool:
@@ -175,34 +220,36 @@ class Slap2Module(Slap2Controller):
     @property
     def settings(self) -> dict[str, int]:
         """A copy of the RAM settings (the ``pg`` set)."""
-        return dict(self._settings)
+        return self.controller.settings
 
     @property
     def rss(self) -> int:
         """The ``rss`` status word as it would be read now."""
+        c = self.controller
         return (
-            self._level1
-            | self._level2 << 1
-            | (self._mode == _MODE_VM) << 2
-            | (self._mode == _MODE_PM) << 3
-            | self._moving << 4
-            | self._inpos << 5
-            | self._calibrated << 6
-            | self._oc << 7
+            c.limit1_level
+            | c.limit2_level << 1
+            | c.velocity_mode << 2
+            | c.position_mode << 3
+            | c.moving << 4
+            | c.in_position << 5
+            | c.calibrated << 6
+            | c.current_limited << 7
             | self._uc << 8
         )
 
     @property
     def ss(self) -> int:
         """The legacy ``ss`` status byte as it would be read now."""
-        syscon = self._settings["syscon"]
+        c = self.controller
+        syscon = c.setting("syscon")
         return (
-            self._level1
-            | self._level2 << 1
-            | (self._mode == _MODE_VM) << 2
-            | (self._mode == _MODE_PM) << 3
-            | self._moving << 4
-            | self._decel << 5
+            c.limit1_level
+            | c.limit2_level << 1
+            | c.velocity_mode << 2
+            | c.position_mode << 3
+            | c.moving << 4
+            | c.decelerating << 5
             | ((syscon & (L1ON | L2ON)) == (L1ON | L2ON)) << 6
             | self._uc << 7
         )
@@ -220,33 +267,14 @@ class Slap2Module(Slap2Controller):
 
     def power_cycle(self) -> None:
         """Reset as at power-on (see the class docstring)."""
-        self._settings = self._read_eeprom()
-        self._apply_settings()
+        self.controller.reset(self._read_eeprom())
         self._buffer.clear()
         self._overflow = False
         self._pending.clear()
         self._transmitting = self.address == 0
         if self.address == 0:
             self._pending += self.banner()
-        self._mode = _MODE_OFF
-        self._pwm = self._pwm_out = 0
-        self._moving = self._decel = False
-        self._cal_phase = _CAL_NONE
-        self._calibrated = False
-        self._uc = self._oc = False
-        self._inpos = False
-        self._inpos_timer = 0
-        count = self.motor.count
-        self._offset = count  # the counter starts at 0 wherever the shaft is
-        self._sp = float(count)
-        self._sp_vel = 0.0
-        self._target = count
-        self._integral = self._e_prev = 0
-        self._last_count = count
-        self._vel_filt = 0.0
-        self.motor.current_a = 0.0  # the bridge was off
-        self._update_levels()
-        self._wake()
+        self._uc = False
 
     def _read_eeprom(self) -> dict[str, int]:
         stored: object = None
@@ -301,7 +329,7 @@ class Slap2Module(Slap2Controller):
 
     def receive(self, byte: int) -> bytes:
         """One host byte arrived; returns this module's transmission (see class doc)."""
-        self._wake()  # a command may change anything the controller reads
+        self.controller.wake()  # a command may change anything the controller reads
         out = bytearray(self._pending)
         self._pending.clear()
         if self._transmitting:
@@ -319,8 +347,8 @@ class Slap2Module(Slap2Controller):
             self._buffer.clear()
             self._overflow = False
         elif byte == CTRL_K:
-            if self._transmitting and self._cal_phase != _CAL_NONE:
-                self._fail_calibration()
+            if self._transmitting and self.controller.calibrating:
+                self.controller.abort_calibration()
         elif byte == SPACE or byte < SPACE:
             pass  # spaces are filtered on reception; so are LF and other controls
         elif len(self._buffer) < _MAX_LINE_CHARS:
@@ -353,7 +381,7 @@ class Slap2Module(Slap2Controller):
             reply = handler(_parse_argument(argument_text))
         except _RefusedError:
             self._uc = True
-            if self._settings["syscon"] & UCON:
+            if self.controller.setting("syscon") & UCON:
                 return REFUSED_REPLY.encode("ascii") + b"\r"
             return b"\r"
         if mnemonic not in ("rss", "ss", "rrss"):
@@ -366,7 +394,7 @@ class Slap2Module(Slap2Controller):
         if reply is None:
             return b"\r"
         if isinstance(reply, int):
-            hex_mode = bool(self._settings["syscon"] & HEX)
+            hex_mode = bool(self.controller.setting("syscon") & HEX)
             return format_number(reply, hex_mode).encode("ascii") + b"\r"
         if isinstance(reply, str):
             return reply.encode("ascii") + b"\r"
@@ -389,18 +417,18 @@ class Slap2Module(Slap2Controller):
             "sp": self._cmd_sp,
             "zp": self._cmd_zp,
             "pe": self._reader(lambda: self.following_error),
-            "rve": self._reader(self._measured_velocity_sv),
+            "rve": self._reader(self.controller.measured_velocity_sv),
             "rss": self._cmd_rss,
             "ss": self._cmd_ss,
             "rrss": self._cmd_rrss,
             "sc": self._cmd_sc,
-            "rc": self._reader(lambda: round(self._settings["scl"] * 15 / 2000)),
+            "rc": self._reader(lambda: round(self.controller.setting("scl") * 15 / 2000)),
             "ssb": lambda n: self._cmd_syscon_bit(n, True),
             "rsb": lambda n: self._cmd_syscon_bit(n, False),
             "rrsyscon": self._cmd_rrsyscon,
             "li": self._cmd_li,
             "il": self._cmd_il,
-            "ql": self._reader(lambda: self._settings["syscon"] >> 2 & 3),
+            "ql": self._reader(lambda: self.controller.setting("syscon") >> 2 & 3),
             "id": self._reader(self.identification),
             "pg": self._cmd_pg,
             "de": self._cmd_de,
@@ -444,14 +472,13 @@ class Slap2Module(Slap2Controller):
         minimum, maximum = SETTING_RANGES[name]
 
         def handler(value: int | None) -> _Reply:
-            self._settings[name] = _in_range(value, minimum, maximum)
-            self._apply_settings()
+            self.controller.set_setting(name, _in_range(value, minimum, maximum))
             return None
 
         return handler
 
     def _getter(self, name: str) -> Callable[[int | None], _Reply]:
-        return self._reader(lambda: self._settings[name])
+        return self._reader(lambda: self.controller.setting(name))
 
     @staticmethod
     def _reader(read: Callable[[], int | str]) -> Callable[[int | None], _Reply]:
@@ -470,69 +497,45 @@ class Slap2Module(Slap2Controller):
 
     def _cmd_pm(self, value: int | None) -> _Reply:
         _no_argument(value)
-        if self._cal_phase != _CAL_NONE:
+        if self.controller.calibrating:
             raise _RefusedError  # calibration running: st or Ctrl-K first
-        if self._mode != _MODE_PM:
-            self._engage(hold=True)
-            self._mode = _MODE_PM
+        self.controller.engage_position_mode()
         return None
 
     def _cmd_vm(self, value: int | None) -> _Reply:
         _no_argument(value)
-        if self._cal_phase != _CAL_NONE or self._settings["sa"] == 0:
+        if self.controller.calibrating or self.controller.setting("sa") == 0:
             raise _RefusedError
-        if self._mode in (_MODE_OFF, _MODE_PWM):
-            self._engage(hold=True)
-        # from pm the generator keeps its state, so the speed changes smoothly
-        self._mode = _MODE_VM
-        self._moving = False
-        self._inpos = False
-        self._inpos_timer = 0
+        self.controller.engage_velocity_mode()
         return None
 
     def _cmd_spwm(self, value: int | None) -> _Reply:
-        self._pwm = _in_range(value, -PWM_MAX, PWM_MAX)
-        self._cal_phase = _CAL_NONE
-        self._mode = _MODE_PWM
-        self._moving = self._decel = self._inpos = False
+        self.controller.open_loop(_in_range(value, -PWM_MAX, PWM_MAX))
         return None
 
     def _cmd_st(self, value: int | None) -> _Reply:
         _no_argument(value)
-        self._mode = _MODE_OFF
-        self._cal_phase = _CAL_NONE
-        self._moving = self._decel = self._inpos = False
-        self._sp_vel = 0.0
+        self.controller.stop()
         return None
 
     def _cmd_move(self, value: int | None, *, relative: bool) -> _Reply:
         if value is None:
             raise _RefusedError
-        if self._mode != _MODE_PM or self._cal_phase != _CAL_NONE:
+        controller = self.controller
+        if not controller.position_mode or controller.calibrating:
             raise _RefusedError  # ma/mr need pm (and no calibration running)
-        sv, sa = abs(self._settings["sv"]), self._settings["sa"]
-        if sv == 0 or sa == 0:
+        if controller.setting("sv") == 0 or controller.setting("sa") == 0:
             raise _RefusedError  # a profile without speed or acceleration never ends
         if relative:
             _in_range(value, -2 * POSITION_LIMIT, 2 * POSITION_LIMIT)
-            target = self._target - self._offset + value
+            target = controller.target + value
         else:
             target = value
-        _in_range(target, -POSITION_LIMIT, POSITION_LIMIT)
-        # Replan from the generator's current position and velocity: no jump.
-        self._target = target + self._offset
-        self._move_vmax = sv * _COUNTS_TICK_PER_SV
-        self._move_acc = sa * _COUNTS_TICK2_PER_SA
-        self._moving = True
-        self._inpos = False
-        self._inpos_timer = 0
+        controller.move_to(_in_range(target, -POSITION_LIMIT, POSITION_LIMIT))
         return None
 
     def _cmd_sp(self, value: int | None) -> _Reply:
-        position = _in_range(value, -POSITION_LIMIT, POSITION_LIMIT)
-        # Setpoint and target live in physical counts, so only the offset changes and
-        # a running move or the held position is not disturbed.
-        self._offset = self.motor.count - position
+        self.controller.set_position(_in_range(value, -POSITION_LIMIT, POSITION_LIMIT))
         return None
 
     def _cmd_zp(self, value: int | None) -> _Reply:
@@ -559,49 +562,44 @@ class Slap2Module(Slap2Controller):
 
     def _cmd_rrsyscon(self, value: int | None) -> _Reply:
         _no_argument(value)
-        syscon = self._settings["syscon"]
+        syscon = self.controller.setting("syscon")
         return [f"{name}: {syscon >> bit & 1}" for bit, name in enumerate(SYSCON_NAMES)]
 
     def _cmd_rep(self, value: int | None) -> _Reply:
         _no_argument(value)
         lines = [self.identification(), f"address: {self.address}"]
-        lines += [f"{name}: {self._settings[name]}" for name in FACTORY_DEFAULTS]
+        lines += [f"{name}: {self.controller.setting(name)}" for name in FACTORY_DEFAULTS]
         return lines
 
     def _cmd_sc(self, value: int | None) -> _Reply:
         steps = _in_range(value, 0, 15)
-        self._settings["scl"] = steps * 2000 // 15
-        self._apply_settings()
+        self.controller.set_setting("scl", steps * 2000 // 15)
         return None
 
     def _cmd_syscon_bit(self, value: int | None, set_bit: bool) -> _Reply:
         bit = _in_range(value, 0, len(SYSCON_NAMES) - 1)
-        if set_bit:
-            self._settings["syscon"] |= 1 << bit
-        else:
-            self._settings["syscon"] &= ~(1 << bit)
-        self._apply_settings()
+        syscon = self.controller.setting("syscon")
+        syscon = syscon | 1 << bit if set_bit else syscon & ~(1 << bit)
+        self.controller.set_setting("syscon", syscon)
         return None
 
     def _cmd_li(self, value: int | None) -> _Reply:
         enable = _in_range(value, 0, 1)
-        syscon = self._settings["syscon"] & ~(L1ON | L2ON)
-        self._settings["syscon"] = syscon | (L1ON | L2ON if enable else 0)
-        self._apply_settings()
+        syscon = self.controller.setting("syscon") & ~(L1ON | L2ON)
+        self.controller.set_setting("syscon", syscon | (L1ON | L2ON if enable else 0))
         return None
 
     def _cmd_il(self, value: int | None) -> _Reply:
         inversion = _in_range(value, 0, 3)
-        syscon = self._settings["syscon"] & ~(INV1 | INV2)
-        self._settings["syscon"] = syscon | inversion << 2
-        self._apply_settings()
+        syscon = self.controller.setting("syscon") & ~(INV1 | INV2)
+        self.controller.set_setting("syscon", syscon | inversion << 2)
         return None
 
     def _cmd_pg(self, value: int | None) -> _Reply:
         _no_argument(value)
-        if self._mode in (_MODE_PM, _MODE_VM):
+        if self.controller.position_mode or self.controller.velocity_mode:
             raise _RefusedError  # the manual: not while pm or vm (calibration runs in pm)
-        self._store(self._settings)
+        self._store(self.controller.settings)
         return None
 
     def _cmd_de(self, value: int | None) -> _Reply:
@@ -621,34 +619,18 @@ class Slap2Module(Slap2Controller):
 
     def _cmd_cal(self, value: int | None, *, legacy: bool) -> _Reply:
         cal_mode = _in_range(value, 0, 5)
-        if self._cal_phase != _CAL_NONE:
+        controller = self.controller
+        if controller.calibrating:
             raise _RefusedError
-        s = self._settings
-        speed, acceleration = (abs(s["sv"]), s["sa"]) if legacy else (s["scv"], s["sca"])
+        if legacy:
+            speed, acceleration = abs(controller.setting("sv")), controller.setting("sa")
+        else:
+            speed, acceleration = controller.setting("scv"), controller.setting("sca")
         if speed == 0 or acceleration == 0:
             raise _RefusedError
         direction = -1 if cal_mode % 2 == 0 else 1
-        if cal_mode < 4 and not (self._l1on if direction < 0 else self._l2on):
+        syscon = controller.setting("syscon")
+        if cal_mode < 4 and not syscon & (L1ON if direction < 0 else L2ON):
             raise _RefusedError  # the reference switch is disabled in syscon
-        if self._mode != _MODE_PM:
-            self._engage(hold=True)
-        # In pm the generator keeps its velocity: a cal during a move ramps smoothly.
-        self._mode = _MODE_PM
-        self._cal_mode = cal_mode
-        self._cal_dir = direction
-        self._cal_vmax = speed * _COUNTS_TICK_PER_SV
-        self._cal_acc = acceleration * _COUNTS_TICK2_PER_SA
-        self._calibrated = False  # stays 0 unless this calibration succeeds
-        self._moving = True
-        self._inpos = False
-        self._inpos_timer = 0
-        self._update_levels()
-        reference = self._level1 if direction < 0 else self._level2
-        if cal_mode >= 4:
-            self._cal_phase = _CAL_INDEX
-        elif reference:
-            self._cal_phase = _CAL_BACKOFF  # already standing in the switch: drive out
-        else:
-            self._cal_phase = _CAL_SEEK
-        self._cal_index_armed = False
+        controller.start_calibration(cal_mode, direction, speed, acceleration)
         return None
