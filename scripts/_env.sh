@@ -39,7 +39,7 @@ ensure_chromium() {
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq chromium >/dev/null
 }
 
-ensure_nats() {  # the bus tests start nats-server themselves (tests/nats_support.py)
+ensure_nats() {  # the bus tests start nats-server themselves (tests/support/nats.py)
   if command -v nats-server >/dev/null || [ -x /usr/sbin/nats-server ]; then return; fi
   echo "==> installing Debian's nats-server for the bus tests"
   local sudo=""
@@ -48,7 +48,7 @@ ensure_nats() {  # the bus tests start nats-server themselves (tests/nats_suppor
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq nats-server >/dev/null
 }
 
-ensure_caddy() {  # tests/test_containers.py adapts the lab's Caddyfiles with the real caddy
+ensure_caddy() {  # tests/integration/deploy/test_containers.py adapts the lab's Caddyfiles with the real caddy
   if command -v caddy >/dev/null; then return; fi
   echo "==> installing Debian's caddy for the Caddyfile tests"
   local sudo=""

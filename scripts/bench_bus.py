@@ -2,7 +2,7 @@
 """Benchmark of the lab bus (docs/lab.md): telemetry latency rig -> bus -> hub, and the
 command round trip hub -> rig -> device read-back.
 
-Starts nats-server (tests/nats_support.py: free ports, a temporary account), N rigs
+Starts nats-server (tests/support/nats.py: free ports, a temporary account), N rigs
 in-process (each a whole servotune app on its own simulated SLAP2 line on a pty, as in
 the tests) and a hub, all in this process. Then, for ``--seconds``:
 
@@ -35,9 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tests.control_support import recorded_line  # noqa: E402
-from tests.nats_support import nats_lab  # noqa: E402
-from tests.test_bus import (  # noqa: E402  (the tests' own fixtures, as a script)
+from tests.support.bus_lab import (  # noqa: E402  (the tests' own fixtures, as a script)
     RIGS,
     LabRun,
     Rig,
@@ -47,6 +45,8 @@ from tests.test_bus import (  # noqa: E402  (the tests' own fixtures, as a scrip
     stop_app,
     wait_for_manifest,
 )
+from tests.support.control import recorded_line  # noqa: E402
+from tests.support.nats import nats_lab  # noqa: E402
 
 
 def percentiles(values: list[float]) -> str:

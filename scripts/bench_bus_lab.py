@@ -4,11 +4,11 @@ telemetry batches/s per axis, through nats-server and ``servotune hub`` to webso
 viewers. Reports latency sample -> viewer (p50/p99), gaps at the viewers, the hub's CPU
 and the bus throughput.
 
-* nats-server: started as in the tests (tests/nats_support.py: free ports, the accounts
+* nats-server: started as in the tests (tests/support/nats.py: free ports, the accounts
   of ``servotune bus-accounts``).
 * the hub: ``servotune hub`` in a process of its own (port ``--port``), so its CPU is
   its own (``/proc/<pid>/stat``: user + system time over the measuring window).
-* the rigs: fake rigs (tests/fake_rig.py), in-process clients of the bus with each
+* the rigs: fake rigs (tests/support/fake_rig.py), in-process clients of the bus with each
   rig's own credentials, speaking the rig agent's protocol (manifest, presence every
   0.5 s with the rig's clock, clock answers, telemetry batches, snapshot and command
   answers). NOT whole servotune apps: 20 of those on simulated lines would not fit on
@@ -43,9 +43,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from tests.fake_rig import FakeRig  # noqa: E402
-from tests.nats_support import free_port, hub_command, nats_lab  # noqa: E402
-from tests.test_bus import create_bus_state  # noqa: E402
+from tests.support.bus_lab import create_bus_state  # noqa: E402
+from tests.support.fake_rig import FakeRig  # noqa: E402
+from tests.support.nats import free_port, hub_command, nats_lab  # noqa: E402
 
 BATCH_PERIOD_S = 1 / 30
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")

@@ -40,8 +40,7 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from tests.conftest import use_csrf_token
-from tests.control_support import (
+from tests.support.control import (
     RawWebsocket,
     can_cut_the_network,
     cut_network,
@@ -49,6 +48,7 @@ from tests.control_support import (
     recorded_line,
     take_with_raw_client,
 )
+from tests.support.servers import use_csrf_token
 
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 

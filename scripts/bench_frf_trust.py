@@ -20,7 +20,7 @@ the truth twice, never the product's own estimate:
 * ``fit``: a per-tone least-squares fit (``tuning.frf.tone_fit``) of the run's own
   position column against its own setpoint column over the analysed whole periods;
 * ``sim``: the simulated module's own closed loop at the same tones with the same gains
-  and the demo's loaded plant (``tests/frf_harness.simulator_response``: the multisine
+  and the demo's loaded plant (``tests/support/frf_harness.simulator_response``: the multisine
   sent at every controller tick, no wire, no host).
 A tone marked trusted whose reading differs from the truth by more than its stated
 bound (against ``fit``: plus the fit's own two standard errors, printed) is listed as a
@@ -45,9 +45,10 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # the physical check's own simulator response
+sys.path.insert(0, str(ROOT))  # the physical check's own simulator response (tests/support)
 
-from frf_harness import simulator_response  # noqa: E402
+from tests.support.frf_harness import simulator_response  # noqa: E402
+
 from servotune.bench.frf import analyse_run  # noqa: E402
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED  # noqa: E402
 from servotune.perf.demo import cpu_hog, demo_server, load_average  # noqa: E402

@@ -16,7 +16,7 @@ and, from this process (a client like a browser, not sharing the server's loop):
 
 Run: ``PYTHONPATH=server python scripts/bench_stop_latency.py [--rows 250000] [--hog]``.
 The figures depend on the machine (its load average is printed); compare runs made on
-the same machine state. Not a test: ``tests/test_loop_latency.py`` asserts the truths.
+the same machine state. Not a test: ``tests/integration/perf/test_loop_latency.py`` asserts the truths.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@
 #
 #   bash scripts/lock-deps.sh        # after changing pyproject.toml's dependencies
 #
-# tests/test_containers.py checks that every dependency is pinned and satisfies
+# tests/integration/deploy/test_containers.py checks that every dependency is pinned and satisfies
 # pyproject.toml.
 source "$(dirname "${BASH_SOURCE[0]}")/_env.sh"
 ensure_venv "[dev]"

@@ -4,8 +4,9 @@ Why a process and not a thread: these functions are mostly Python bytecode (scip
 optimisers call a Python residual thousands of times, the gain searches simulate
 the discrete loop per candidate), so a worker *thread* holds the interpreter lock
 most of the time. The event loop then waits for the lock after every system call
-it makes, and STOP answers and telemetry wait with it. ``tests/test_loop_latency.py``
-measures both (figures in docs/architecture.md, "Heavy work").
+it makes, and STOP answers and telemetry wait with it.
+``tests/integration/perf/test_loop_latency.py`` measures both (figures in
+docs/architecture.md, "Heavy work").
 
 Contract of ``ComputePool.run(fn, *args, **kwargs)``: ``fn`` is a module-level
 function whose arguments and result pickle; exceptions it raises are raised to the

@@ -3,7 +3,7 @@
 // transfer function, and the one stability verdict and margin rule of the server
 // (server/servotune/tuning/stability.py: Schur-Cohn on the characteristic polynomial
 // built from the law's and the plant's polynomials), checked against the same cases in
-// tests/test_stability.py (this file is compiled and run under node there).
+// tests/unit/tuning/test_stability.py (this file is compiled and run under node there).
 // No imports: it must compile on its own.
 
 /** Whether every root of a0 z^n + ... + an lies strictly inside the unit circle:

@@ -85,7 +85,7 @@ def recent_rate_hz(times: Iterable[float], now: float, window_s: float = RATE_WI
     sample interval, and to 0 within ``window_s``, instead of keeping the rate of
     its last burst. Counting always to *now* would read a steady link low by the time
     since its newest sample: up to one interval per window, 2.8 % on average for the
-    Z1100's ~11 Hz and 14 % for a 2 Hz link (tests/test_rate.py).
+    Z1100's ~11 Hz and 14 % for a 2 Hz link (tests/unit/link/test_rate.py).
     """
     recent = [t for t in times if 0.0 <= now - t <= window_s]
     if len(recent) < 2:

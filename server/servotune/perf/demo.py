@@ -17,7 +17,7 @@ connected, then for ``seconds`` samples:
 
 ``--hog`` runs one busy process per CPU core during the measurement (a CPU hog on
 both cores). Linux only (``/proc``). Not a test: the figures depend on the
-machine; ``tests/test_soak.py`` asserts the truths and prints the same figures.
+machine; ``tests/integration/perf/test_soak.py`` asserts the truths and prints the same figures.
 """
 
 from __future__ import annotations

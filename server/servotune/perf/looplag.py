@@ -10,8 +10,8 @@ call, the interpreter lock held by another thread). ``own`` is what the product
 answers for; it does not grow with the load of other processes. Where schedstat is
 missing the whole lag counts as own (the strict reading).
 
-Used by the test suite's loop-lag watchdog (tests/test_loop_watchdog.py) around bench
-runs and auto-tune steps, and by ``scripts/bench_stops.py``-style tools; pure asyncio
+Used by the test suite's loop-lag watchdog (tests/integration/perf/test_loop_watchdog.py)
+around bench runs and auto-tune steps, and by ``scripts/bench_stops.py``-style tools; pure asyncio
 and the standard library.
 """
 

@@ -341,7 +341,7 @@ class DcMotor:
             # next). The angle keeps the exact travel up to about that turn. Without
             # friction nothing stops it: the motor is then the linear plant of
             # tuning.loops (a reversal within a tick - a loop oscillating near its
-            # Nyquist frequency - is not damped here; tests/test_stability.py).
+            # Nyquist frequency - is not damped here; tests/unit/tuning/test_stability.py).
             w_new = 0.0
         self.angle_rad += d_angle
         self.speed_rad_s = w_new

@@ -5,7 +5,7 @@ and its gain and phase margins, read one way (``loop_margins``).
 Why a test on the coefficients and not ``numpy.roots``: the verdict must be the same
 wherever it is shown - the margins table and the model Bode (server), the what-if view
 (``web/src/stability.ts``, the same steps in TypeScript, checked against the same cases
-in tests/test_stability.py) and the auto-tune's proposals - and a root finder's error
+in tests/unit/tuning/test_stability.py) and the auto-tune's proposals - and a root finder's error
 near the unit circle (the slow mode of a small integral gain sits at |z| = 0.9999)
 would make "stable" depend on round-off. The step-down needs nothing but arithmetic.
 

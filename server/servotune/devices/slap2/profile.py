@@ -4,7 +4,7 @@ Pure (no I/O, no clock; only the codec's constants imported), so both the driver
 (which reconstructs the setpoint of a captured axis from the ``ma``/``mr`` it sent and
 the ``sv``/``sa`` in force) and the simulator may use it without breaking the layering.
 The law is the one ``devices/slap2/sim/controller.py`` implements tick by tick (``_move_tick`` and
-``_ramp``); tests/test_capture.py checks this copy against the simulator's
+``_ramp``); tests/device/slap2/test_capture.py checks this copy against the simulator's
 firmware on the same commands, tick for tick, so the two cannot drift apart silently.
 
 Law, per 841.5 us controller tick, in counts and counts/tick (``TICK_S``):

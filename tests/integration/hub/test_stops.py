@@ -1,0 +1,255 @@
+"""Stops that stop (issue 24): STOP against the power-off alone on the demo plants,
+jog both ways, and no axis left oscillating after a bench run.
+
+The stopping distances are compared with the power-off measured in the same test on
+the same plant (a ratio: the host's speed only adds its latency to both). The
+table of every demo plant is ``scripts/bench_stops.py`` (docs/control.md).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.perf import stops as stopbench
+from tests.support import sim_builders
+from tests.support.bench import finished_run, start
+from tests.support.servers import LiveServer, live_server
+from tests.support.sim_lines import simulator_process
+
+VM, PM, MOVE = 1 << 2, 1 << 3, 1 << 4  # rss bits
+COUNTS_PER_RAD = 2048 / (2 * math.pi)
+
+
+def case(label: str, state: str, gains: dict[str, int] | None = None) -> stopbench.Case:
+    return next(
+        c
+        for c in stopbench.CASES
+        if c.label == label and c.state == state and (gains is None or c.gains == gains)
+    )
+
+
+@pytest.mark.parametrize(
+    ("plant", "ratio"),
+    [
+        # The loop works: pm where the shaft is against st (coasting): far shorter.
+        (case("SLAP2 #1 with load", "top speed", stopbench.SLAP2_GOOD), 0.2),
+        # The loop oscillates (factory gains, loaded, after a position step): the brake
+        # (spwm 0) against st: still far shorter.
+        (case("SLAP2 #1 with load", "limit cycle"), 0.35),
+        # The Z1100's Estop holds; Job 0 lets the loaded motor coast for seconds.
+        (case("Z1100 Y 5x load", "top speed"), 0.35),
+        # The EP7047's emergency ramp (0x8020:07, the demo's 100 ms from full speed:
+        # 2048 counts from 10 turns/s) against Enable off, where rotor and load coast
+        # (~4760 counts on the demo's mechanics): 0.43, from the exchange that carried
+        # each (the host's latency left out: it is not the method's).
+        (case("EP7047 stepper", "top speed"), 0.6),
+    ],
+    ids=["slap2-loaded-top-speed", "slap2-loaded-limit-cycle", "z1100-5x-top-speed", "ep7047"],
+)
+async def test_stop_is_far_shorter_than_the_power_off_alone(
+    plant: stopbench.Case, ratio: float
+) -> None:
+    off = await stopbench.measure(plant, "power off")
+    stop = await stopbench.measure(plant, "STOP")
+    for trial in (off, stop):
+        assert trial.wire_latency_s is not None, f"the stop never reached the device: {trial}"
+        assert trial.wire_distance_counts is not None and trial.wire_time_s is not None, trial
+        assert trial.time_s is not None, f"not at rest within {stopbench.MAX_STOP_S} s: {trial}"
+    # Two trials never start at quite the same speed: the distance per unit of starting
+    # speed is compared (a stopping time: the same at any speed for a damped stop,
+    # shorter for a coast that friction ends, so the comparison never favours the STOP).
+    if plant.state == "top speed":
+        # From the stop's arrival at the device, with the shaft's state there, as the
+        # device's own process recorded it: the host's latency (this test process runs
+        # the hub, beside whatever else loads the machine) is not the method's distance.
+        assert stop.wire_speed_counts_s and off.wire_speed_counts_s
+        assert min(abs(off.wire_speed_counts_s), abs(stop.wire_speed_counts_s)) > 20_000
+        assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
+        stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
+        off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
+        assert stop.wire_time_s is not None and off.wire_time_s is not None
+        assert stop.wire_time_s <= off.wire_time_s, (stop, off)
+    else:
+        # A limit cycle is pressed near its peak speed as the host sees it; where the
+        # cycle is when the stop arrives is the host's latency's (a standstill at a
+        # reversal, now and then, on a loaded host), so it is compared from the press,
+        # with the speed aimed at: the latency moves the shaft within the cycle only.
+        assert min(abs(off.speed_counts_s), abs(stop.speed_counts_s)) > 20_000, (off, stop)
+        stop_s = stop.distance_counts / abs(stop.speed_counts_s)
+        off_s = off.distance_counts / abs(off.speed_counts_s)
+        assert stop.time_s <= off.time_s, (stop, off)
+    assert stop_s <= ratio * off_s, (stop, off)
+    if plant.state == "limit cycle":
+        # Not trusted to hold: braked, then unpowered once at rest.
+        assert not stop.holds and any(
+            "not working" in e or "does not hold" in e for e in stop.events
+        )
+    elif plant.device == "ep7047":
+        # Its safe state is Enable off (no holding torque), reached at standstill.
+        assert not stop.holds and "Enable off at standstill" in stop.sent, stop
+    else:
+        assert stop.holds, stop  # and it keeps the axis under power
+
+
+# --- jog both ways (SLAP2: pm + ma to the end of the range; release decelerates) ------
+
+
+@pytest.fixture
+async def demo_line(tmp_path: Path) -> AsyncIterator[LiveServer]:
+    """The demo's SLAP2 line (module 1 carries the load), without limit switches, in a
+    simulator process of its own."""
+    with simulator_process("slap2-demo", sim_builders.demo_bus, 19200) as (simulator, bus):
+        async with live_server(simulator, bus, tmp_path / "data") as server:
+            yield server
+
+
+async def command(server: LiveServer, axis: str, name: str, **args: int) -> dict[str, Any]:
+    response = await server.client.post(
+        f"/api/axes/{axis}/commands", json={"command": name, **args}
+    )
+    assert response.status_code == 200, response.text
+    body: dict[str, Any] = response.json()
+    return body
+
+
+async def comes_to_rest_holding(module: Slap2Module, target: int) -> None:
+    """Waits (at most 4 s) for the simulated module to stand in pm; asserts it holds
+    within 20 counts of ``target``."""
+    for _ in range(200):
+        if module.rss & PM and not module.rss & MOVE and module.motor.speed_rad_s == 0:
+            break
+        await asyncio.sleep(0.02)
+    assert module.rss & PM and not module.moving, "the release did not hold the axis"
+    assert abs(module.position - target) <= 20
+
+
+async def test_jog_runs_both_ways_and_the_release_decelerates_and_holds(
+    demo_line: LiveServer,
+) -> None:
+    module = demo_line.bus.module(0)
+    await demo_line.client.patch(
+        "/api/axes/line-0/params", json={"velocity": 3000, "acceleration": 500}
+    )
+    descriptor = (await demo_line.client.get("/api/axes/line-0/descriptor")).json()
+    assert descriptor["jog"]["minus"] == {"command": "jog", "args": {"direction": -1}}
+    assert descriptor["jog"]["release"] == "jog_stop"
+    for direction in (-1, 1):
+        start = module.position
+        pressed = await command(demo_line, "line-0", "jog", direction=direction)
+        assert pressed["sent"][-1] == f"ma{direction * (1 << 24)}"
+        await asyncio.sleep(0.5)
+        moving = module.position
+        assert (moving - start) * direction > 2000, (start, moving)
+        released = await command(demo_line, "line-0", "jog_stop")
+        (sent,) = released["sent"]
+        assert sent.startswith("ma")
+        target = int(sent[2:])
+        # Decelerating with sa from ~28 000 counts/s: the stop point is ahead, not behind
+        # (no return), and not further than the profile's braking distance allows.
+        assert 0 < (target - module.position) * direction < 20_000, (target, module.position)
+        await comes_to_rest_holding(module, target)
+        assert abs(module.motor.speed_rad_s) * COUNTS_PER_RAD < 200
+
+
+async def test_a_jog_whose_profile_was_dropped_still_decelerates_on_release(
+    demo_line: LiveServer,
+) -> None:
+    """The link drops a reconstructed profile that disagrees with rp + pe (a command whose
+    latch time was uncertain: a starved host). The release then plans from the last poll:
+    one ``ma`` ahead of the shaft, reached decelerating with sa, and held there."""
+    module = demo_line.bus.module(0)
+    link = demo_line.app.state.hub.entry("line-0").link
+    await demo_line.client.patch(
+        "/api/axes/line-0/params", json={"velocity": 3000, "acceleration": 500}
+    )
+    await command(demo_line, "line-0", "jog", direction=1)
+    await asyncio.sleep(0.6)
+    state = link.module_state(0)
+    for _ in range(100):  # a poll that saw the jog running
+        if state.rss is not None and state.rss & MOVE and (state.velocity or 0) > 10_000:
+            break
+        await asyncio.sleep(0.02)
+    state.profile.clear()  # what the link does with a profile it no longer trusts
+    released = await command(demo_line, "line-0", "jog_stop")
+    (sent,) = released["sent"]
+    assert sent.startswith("ma"), released
+    target = int(sent[2:])
+    assert 0 < target - module.position < 20_000, (target, module.position)
+    await comes_to_rest_holding(module, target)
+
+
+async def test_a_negative_sv_is_refused_with_its_range(demo_line: LiveServer) -> None:
+    before = demo_line.bus.module(0).settings["sv"]
+    response = await demo_line.client.patch("/api/axes/line-0/params", json={"velocity": -500})
+    assert response.status_code == 422
+    body = response.json()
+    assert body["field"] == "velocity" and "0" in body["detail"] and "65535" in body["detail"]
+    assert demo_line.bus.module(0).settings["sv"] == before  # nothing was sent
+    response = await demo_line.client.post(
+        "/api/axes/line-0/bench/runs", json={"kind": "velocity_step", "velocity": -500}
+    )
+    assert response.status_code == 422 and response.json()["field"] == "velocity"
+
+
+# --- nothing left oscillating after a bench run -----------------------------------------
+
+
+async def test_a_run_that_leaves_the_axis_oscillating_restores_gains_and_holds(
+    demo_line: LiveServer,
+) -> None:
+    module = demo_line.bus.module(1)
+    good = {"kp": 600, "ki": 10, "kd": 1500}
+    hub = demo_line.app.state.hub
+    hub.verified_gains["line-1"] = good  # the last gains an auto-tune verified
+    # The loaded module with its factory gains: a position step throws it into a limit
+    # cycle of about ±1900 counts at ~10 Hz (the issue's report).
+    assert module.settings["kp"] == 40
+    run_id = await start(demo_line, "line-1", kind="position_step", distance=2000)
+    run = await finished_run(demo_line, "line-1", run_id)
+    left = run.get("left_oscillating")
+    assert left, run["quality"]
+    assert run["quality"]["status"] == "bad"
+    assert run["quality"]["reasons"][0]["code"] == "left_oscillating"
+    assert left["restored"] == good and left["holds"] is True
+    assert {k: module.settings[k] for k in good} == good
+    # At rest and holding with the restored gains, and it stays so.
+    for _ in range(200):
+        if module.rss & PM and abs(module.motor.speed_rad_s) * COUNTS_PER_RAD < 200:
+            break
+        await asyncio.sleep(0.02)
+    positions = []
+    for _ in range(20):
+        positions.append(module.position)
+        await asyncio.sleep(0.05)
+    assert module.rss & PM and not module.rss & VM
+    assert max(positions) - min(positions) <= 10, positions
+    events = [e.message for e in hub._events]
+    assert any("left the axis oscillating" in e for e in events), events
+
+
+async def test_gains_predicted_unstable_are_written_only_when_confirmed(
+    demo_line: LiveServer,
+) -> None:
+    module = demo_line.bus.module(0)
+    # The auto-tune identified this axis' plant (the unloaded module's fit).
+    tuner = demo_line.app.state.autotuner
+    tuner._session("line-0").model = {"gain_counts_s_per_pwm": 998.0, "tau_s": 0.012}
+    url = "/api/axes/line-0/params"
+    unstable = {"kp": 2000, "ki": 0, "kd": 0}
+    response = await demo_line.client.patch(url, json=unstable)
+    assert response.status_code == 409, response.text
+    assert response.json()["field"] == "confirm_unstable"
+    assert "predicted" in response.json()["detail"]
+    assert module.settings["kp"] == 40  # nothing was written
+    response = await demo_line.client.patch(url, json={"kp": 600, "kd": 1500})
+    assert response.status_code == 200, response.text  # predicted to settle: no question
+    response = await demo_line.client.patch(f"{url}?confirm_unstable=true", json=unstable)
+    assert response.status_code == 200, response.text
+    assert module.settings["kp"] == 2000

@@ -1,0 +1,1 @@
+"""Support code for the tests: helpers and fixtures shared by test modules."""

@@ -1,0 +1,276 @@
+"""The one-way layers by role, checked on the source (no import is executed).
+
+Every module has a role (``role``); ``ALLOWED`` says which roles a role may import.
+Besides the roles: a device imports no other device, a device's non-``sim`` code does
+not import its own simulator (only its ``entry`` does, to wire the demo and ``servotune
+sim``), and only the registry (``servotune.devices``) imports device folders, and only
+their ``entry``. Imports inside functions count too: they break a cycle at run time but
+not the layering. Module-level imports form no cycle, and a package's ``__init__`` imports
+nothing (a re-export runs the package on every import of one of its modules).
+
+``KNOWN`` lists violations a later change removes (empty now); a listed violation that
+no longer exists fails too, so the list only shrinks.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Mapping
+from pathlib import Path
+
+import pytest
+
+from tests.support.paths import PACKAGE
+
+CODEC_FILES = {"codec", "frame", "modulo"}
+TOP_ROLES = {
+    "": "package",
+    "schema": "schema",
+    "descriptor": "schema",
+    "schema_ts": "tool",
+    "storage": "storage",
+    "private_files": "storage",
+    "compute": "compute",
+    "config": "config",
+    "registry": "registry",
+    "transports": "transport",
+    "link": "link",
+    "sim": "sim",
+    "tuning": "tuning",
+    "hub": "hub",
+    "bench": "bench",
+    "autotune": "autotune",
+    "auth": "auth",
+    "twin": "twin",
+    "bus": "bus",
+    "api": "api",
+    "cli": "root",
+    "demo": "root",
+    "perf": "root",
+    "__main__": "root",
+}
+GENERIC_BELOW_DEVICES = {
+    "schema",
+    "storage",
+    "compute",
+    "config",
+    "transport",
+    "link",
+    "sim",
+    "tuning",
+    "hub",
+    "bench",
+    "autotune",
+    "identity",
+}
+ALLOWED: dict[str, set[str]] = {
+    "package": set(),
+    "schema": {"schema"},
+    "tool": {"schema", "package"},
+    "storage": {"storage"},
+    "compute": set(),
+    "config": set(),
+    "identity": set(),
+    "transport": {"transport"},
+    "device-codec": {"device-codec"},
+    "link": {"link", "transport", "schema"},
+    "sim": {"sim", "transport"},
+    "device-sim": {"device-sim", "device-codec", "sim", "transport"},
+    "tuning": {"tuning", "schema"},
+    "hub": {"hub", "link", "schema", "storage", "identity", "package"},
+    "bench": {"bench", "hub", "link", "tuning", "schema", "storage", "identity", "package"},
+    "autotune": {
+        "autotune",
+        "bench",
+        "hub",
+        "link",
+        "tuning",
+        "schema",
+        "storage",
+        "compute",
+        "identity",
+    },
+    "device": {"device", "device-codec"} | GENERIC_BELOW_DEVICES | {"package"},
+    "device-entry": {"device", "device-codec", "device-sim", "device-entry", "registry"}
+    | GENERIC_BELOW_DEVICES,
+    "registry": {"device-entry", "registry"} | GENERIC_BELOW_DEVICES,
+    # compute: password hashing runs in the compute worker, off the event loop
+    "auth": {"auth", "identity", "hub", "link", "schema", "storage", "compute", "package"},
+    "twin": {"twin", "hub", "link", "schema"},
+    "bus": {
+        "bus",
+        "hub",
+        "bench",
+        "autotune",
+        "link",
+        "tuning",
+        "schema",
+        "storage",
+        "compute",
+        "config",
+        "identity",
+        "auth",
+        "package",
+    },
+    "api": {"api", "auth", "bus", "twin", "registry"} | GENERIC_BELOW_DEVICES | {"package"},
+    "root": {"api", "auth", "bus", "twin", "registry", "root", "tool"}
+    | GENERIC_BELOW_DEVICES
+    | {"package"},
+}
+
+# Violations a later step removes; a listed violation that no longer exists fails too.
+KNOWN: set[str] = set()
+
+
+def role(module: str) -> str:
+    parts = module.split(".")
+    if parts[1:2] == ["devices"]:
+        if len(parts) == 2:
+            return "registry"
+        if len(parts) >= 4 and parts[3] == "sim":
+            return "device-sim"
+        if len(parts) == 4 and parts[3] in CODEC_FILES:
+            return "device-codec"
+        if len(parts) == 4 and parts[3] == "entry":
+            return "device-entry"
+        return "device"
+    if module == "servotune.auth.principal":
+        return "identity"
+    return TOP_ROLES[parts[1] if len(parts) > 1 else ""]
+
+
+def device_of(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[2] if parts[1:2] == ["devices"] and len(parts) > 2 else None
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(tree: ast.AST, *, top_level_only: bool) -> set[str]:
+    """The servotune modules ``tree`` imports (``from a import b`` gives ``a`` and,
+    when ``a.b`` is a module, ``a.b`` instead)."""
+    nodes = tree.body if top_level_only and isinstance(tree, ast.Module) else ast.walk(tree)
+    found: set[str] = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                candidate = f"{node.module}.{alias.name}"
+                base = PACKAGE.parent / Path(*candidate.split("."))
+                if base.with_suffix(".py").exists() or (base / "__init__.py").exists():
+                    found.add(candidate)
+                else:
+                    found.add(node.module)
+    return {name for name in found if name == "servotune" or name.startswith("servotune.")}
+
+
+SOURCES = {
+    _module_name(path): ast.parse(path.read_text(encoding="utf-8"))
+    for path in sorted(PACKAGE.rglob("*.py"))
+}
+
+
+def violations(sources: Mapping[str, ast.AST]) -> set[str]:
+    """Every import that breaks a rule of the module docstring, as 'a imports b'."""
+    wrong: set[str] = set()
+    for module, tree in sources.items():
+        mine, my_device = role(module), device_of(module)
+        for target in _imports(tree, top_level_only=False):
+            theirs, their_device = role(target), device_of(target)
+            bad = theirs not in ALLOWED[mine] and not (
+                mine == "registry" and target == "servotune.devices"
+            )
+            if their_device and my_device and their_device != my_device:
+                bad = True  # a device imports another device
+            if their_device and not my_device and theirs != "device-entry":
+                bad = bad or mine != "registry" or theirs != "device-entry"
+            if theirs == "device-sim" and mine not in ("device-sim", "device-entry"):
+                bad = True
+            if bad:
+                wrong.add(f"{module} imports {target}")
+    return wrong
+
+
+def test_the_source_tree_was_found() -> None:
+    # A wrong path would make every check below pass vacuously; every role is used.
+    assert "servotune.devices.slap2.link" in SOURCES and "servotune.hub.hub" in SOURCES
+    used = {role(m) for m in SOURCES}
+    assert used >= set(ALLOWED) - {"device-entry", "registry", "identity", "tool"}, used
+
+
+def test_every_module_imports_only_what_its_role_may() -> None:
+    wrong = violations(SOURCES)
+    assert not wrong - KNOWN, "\n".join(sorted(wrong - KNOWN))
+    assert not KNOWN - wrong, f"fixed, remove from KNOWN: {sorted(KNOWN - wrong)}"
+
+
+@pytest.mark.parametrize(
+    ("module", "source", "expected"),
+    [
+        ("servotune.hub.fake", "from servotune.devices.slap2.link import Slap2Link", True),
+        ("servotune.bench.fake", "import servotune.devices.z1100.codec", True),
+        ("servotune.devices.slap2.fake", "from servotune.devices.z1100 import codec", True),
+        ("servotune.devices.slap2.sim.fake", "from servotune.link.base import Sample", True),
+        ("servotune.devices.slap2.fake", "from servotune.devices.slap2.sim import line", True),
+        ("servotune.tuning.fake", "from servotune.bench.metrics import Metrics", True),
+        ("servotune.perf.fake", "from servotune.devices.z1100.sim.demo import stop_plant", True),
+        ("servotune.perf.fake", "from servotune.registry import StopRig", False),
+        ("servotune.devices.slap2.sim.fake", "from servotune.devices.slap2 import codec", False),
+        ("servotune.devices.slap2.fake", "from servotune.bench.metrics import Metrics", False),
+    ],
+)
+def test_the_checker_finds_an_injected_violation(module: str, source: str, expected: bool) -> None:
+    # The checker's self-check: a rule that never fires proves nothing.
+    assert bool(violations({module: ast.parse(source)})) is expected
+
+
+def test_package_inits_import_nothing() -> None:
+    # servotune.devices is the registry's list: its imports are inside
+    # default_registry(), so importing a device module does not run them.
+    wrong = sorted(
+        m
+        for m, tree in SOURCES.items()
+        if m != "servotune"
+        and (PACKAGE.parent / Path(*m.split(".")) / "__init__.py").exists()
+        and _imports(tree, top_level_only=m == "servotune.devices")
+    )
+    assert not wrong, wrong
+
+
+def _on_or_behind_a_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """Modules that cannot be ordered (Kahn's algorithm): on a cycle or importing one."""
+    pending = {module: len(targets) for module, targets in graph.items()}
+    users: dict[str, set[str]] = {module: set() for module in graph}
+    for module, targets in graph.items():
+        for target in targets:
+            users[target].add(module)
+    ready = [module for module, count in pending.items() if count == 0]
+    while ready:
+        done = ready.pop()
+        for user in users[done]:
+            pending[user] -= 1
+            if pending[user] == 0:
+                ready.append(user)
+    return sorted(module for module, count in pending.items() if count > 0)
+
+
+def test_the_cycle_check_finds_a_cycle() -> None:
+    graph = {"a": {"b"}, "b": {"a"}, "c": {"a"}, "d": set(), "e": {"d"}}
+    assert _on_or_behind_a_cycle(graph) == ["a", "b", "c"]
+
+
+def test_module_level_imports_form_no_cycle() -> None:
+    # A module imports its package's __init__ too (Python runs it first).
+    graph = {
+        module: {t for t in _imports(tree, top_level_only=True) if t in SOURCES and t != module}
+        | {p for p in (module.rsplit(".", 1)[0],) if p in SOURCES and p != module}
+        for module, tree in SOURCES.items()
+    }
+    stuck = _on_or_behind_a_cycle(graph)
+    assert not stuck, f"import cycle among: {stuck}"
