@@ -74,9 +74,8 @@ from servotune.link.base import (
     check_console_line,
 )
 from servotune.link.capture import CaptureRegistry, CaptureStats
-from servotune.link.engine import LinkEngine, recent_rate_hz
+from servotune.link.engine import LinkEngine, engine_face, recent_rate_hz
 from servotune.link.setpoint import SkewedSetpoint
-from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
@@ -192,28 +191,12 @@ class Z1100Link:
         # Fences whose answer did not come (a line worse than merely late).
         self._engine.count("fence_timeouts", 0)
 
-    # --- link.base.Link, delegated to the engine ----------------------------------------
+    # --- its parts, its axes -----------------------------------------------------------
 
     @property
     def engine(self) -> LinkEngine:
         """The owner task, job queues and status of this line."""
         return self._engine
-
-    @property
-    def id(self) -> str:
-        return self._engine.id
-
-    @property
-    def path(self) -> str:
-        return self._engine.path
-
-    @property
-    def baud(self) -> int:
-        return self._engine.baud
-
-    @property
-    def state(self) -> LinkState:
-        return self._engine.state
 
     @property
     def axes(self) -> list[AxisDriver]:
@@ -224,28 +207,8 @@ class Z1100Link:
         """The descriptor the chip's three axes share."""
         return self._descriptor
 
-    @property
-    def errors(self) -> int:
-        """Wire errors since start (``LinkEngine.errors``)."""
-        return self._engine.errors
-
-    @property
-    def counters(self) -> dict[str, int]:
-        """``LinkEngine.counters``."""
-        return self._engine.counters
-
-    @property
-    def wire_busy(self) -> float | None:
-        """``LinkEngine.wire_busy``."""
-        return self._engine.wire_busy
-
-    def now(self) -> float:
-        """The link's clock (the times of its samples and latches)."""
-        return self._clock()
-
-    async def run(self) -> None:
-        """``LinkEngine.run``: connect, run sessions, reconnect until cancelled."""
-        await self._engine.run()
+    # link.base.Link (with HasCounters, HasWireBusy, WireStats): the engine's members.
+    id, path, baud, state, errors, counters, wire_busy, now, run = engine_face()
 
     # --- identity ---------------------------------------------------------------------
 
