@@ -86,6 +86,11 @@ REST_RESPONSES: list[type[BaseModel]] = [
     wire.SavedSet,
     wire.ParamSet,
     wire.ParamSetComparison,
+    wire.MarginTarget,
+    wire.VerifyProfile,
+    wire.WhatIfPlant,
+    wire.WhatIfModel,
+    wire.WhatIfInfo,
 ]
 REST_REQUESTS: list[type[BaseModel]] = [
     wire.BenchTestRequest,
@@ -93,6 +98,7 @@ REST_REQUESTS: list[type[BaseModel]] = [
 ]
 ALIASES = {
     "BenchKind": wire.BenchKind,
+    "MarginPreset": wire.MarginPreset,
     "LinkState": wire.LinkState,
     "AxisHealth": wire.AxisHealth,
     "EventLevel": wire.EventLevel,
@@ -136,7 +142,10 @@ def ts_type(annotation: object) -> str:
     if origin is typing.Literal:
         return " | ".join(f'"{a}"' if isinstance(a, str) else str(a) for a in args)
     if origin in (typing.Union, types.UnionType):
-        return " | ".join(ts_type(a) for a in args)
+        # int | float is one TypeScript number
+        return " | ".join(dict.fromkeys(ts_type(a) for a in args))
+    if origin is tuple:
+        return f"[{', '.join(ts_type(a) for a in args)}]"
     if origin is list:
         inner = ts_type(args[0])
         return f"({inner})[]" if "|" in inner else f"{inner}[]"

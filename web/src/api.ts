@@ -9,6 +9,8 @@ import type {
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
+  MarginPreset,
+  MarginTarget,
   ParamSet,
   ParamSetComparison,
   SavedSet,
@@ -16,7 +18,17 @@ import type {
 } from "./schema.gen";
 
 // REST bodies generated from server/servotune/schema.py, re-exported for the views.
-export type { BenchInfo, BenchKind, BenchLimits, BenchTestRequest, ParamSet, ParamSetComparison, SavedSet } from "./schema.gen";
+export type {
+  BenchInfo,
+  BenchKind,
+  BenchLimits,
+  BenchTestRequest,
+  MarginPreset,
+  MarginTarget,
+  ParamSet,
+  ParamSetComparison,
+  SavedSet,
+} from "./schema.gen";
 
 export class ApiError extends Error {
   constructor(
@@ -195,13 +207,6 @@ export interface BenchRunDetail extends BenchRun {
 
 export type AutoTuneGoal = "no_overshoot" | "fast";
 
-/** Margin targets (server/servotune/tuning/targets.py). */
-export type MarginPreset = "stiff" | "medium" | "soft";
-export interface MarginTarget {
-  preset: MarginPreset;
-  phase_margin_deg: number;
-  gain_margin_db: number;
-}
 
 /** A set of gains' margins on the model against a target (``tuning.targets``). */
 export interface MarginReport {

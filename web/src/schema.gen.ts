@@ -2,6 +2,7 @@
 // descriptor.py. Do not edit: change the Python models and regenerate.
 
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
+export type MarginPreset = "stiff" | "medium" | "soft";
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline" | "paused";
 export type EventLevel = "info" | "warning" | "error";
@@ -472,6 +473,48 @@ export interface ParamSetComparison {
   device: Record<string, number>;
   saved: Record<string, number>;
   differing: string[];
+}
+
+export interface MarginTarget {
+  preset: MarginPreset;
+  phase_margin_deg: number;
+  gain_margin_db: number;
+}
+
+export interface VerifyProfile {
+  kind: "position_step" | "move";
+  velocity_counts_s: number;
+  acceleration_counts_s2: number;
+}
+
+export interface WhatIfPlant {
+  gain_counts_s_per_unit: number;
+  tau_s: number;
+  source: string;
+}
+
+export interface WhatIfModel {
+  device: string;
+  law: string;
+  controller: ControllerLaw;
+  period_s: number;
+  plant_num: number[];
+  plant_den: number[];
+  pwm_limit: number;
+  plant: WhatIfPlant;
+}
+
+export interface WhatIfInfo {
+  axis_id: string;
+  device: string;
+  gains: Record<string, number | null>;
+  ranges: Record<string, [number, number]>;
+  model: WhatIfModel | null;
+  problem: string | null;
+  target: MarginTarget;
+  targets: Record<string, MarginTarget>;
+  proposal: Record<string, number> | null;
+  verify: VerifyProfile;
 }
 
 export interface BenchTestRequest {
