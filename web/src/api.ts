@@ -15,6 +15,7 @@ import type {
   ParamSetComparison,
   SavedSet,
   SaveSetRequest,
+  StopResult,
 } from "./schema.gen";
 
 // REST bodies generated from server/servotune/schema.py, re-exported for the views.
@@ -342,7 +343,7 @@ export const api = {
   command: (id: string, command: string, args: Record<string, number>) =>
     request<CommandResult>("POST", `${axis(id)}/commands`, { command, ...args }),
   console: (id: string, line: string) => request<ConsoleReply>("POST", `${axis(id)}/console`, { line }),
-  stopAll: () => request<{ failed: string[] }>("POST", "/api/stop"),
+  stopAll: () => request<StopResult>("POST", "/api/stop"),
   bench: (id: string) => request<BenchInfo>("GET", `${axis(id)}/bench`),
   setBenchLimits: (id: string, limits: BenchLimits) => request<BenchLimits>("PUT", `${axis(id)}/bench/limits`, limits),
   startRun: (id: string, test: BenchTestRequest) => request<BenchRun>("POST", `${axis(id)}/bench/runs`, test),
