@@ -9,6 +9,7 @@ from pydantic import BaseModel, Field, model_validator
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.storage import Storage
+from servotune.tuning.plants import OUTPUT_FULL_SCALE
 
 
 class BenchLimits(BaseModel):
@@ -16,7 +17,7 @@ class BenchLimits(BaseModel):
 
     max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
     max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
-    max_pwm: int = Field(default=80, ge=1, le=255)
+    max_pwm: int = Field(default=80, ge=1, le=OUTPUT_FULL_SCALE)
     max_duration_s: float = Field(default=10.0, gt=0, le=60)
     min_position_counts: int | None = Field(
         default=None,

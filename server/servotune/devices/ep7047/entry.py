@@ -226,6 +226,9 @@ ENTRY: Final = DeviceEntry(
     link_rules=LinkRules(
         default_baud=None,
         addressing="slave",
+        # addresses= is ignored (the axis is the slave= position); still accepted in
+        # 0..15, as link specs always took it, so configs that list it keep loading.
+        address_range=(0, 15),
         slave_range=(1, 65535),
         example="ep7047:eth0?slave=1",
     ),

@@ -126,6 +126,9 @@ ENTRY: Final = DeviceEntry(
         default_baud=DEFAULT_BAUD,
         addressing="fixed",
         fixed_addresses=AXES,
+        # addresses= is ignored (the chip's axes are fixed); it is still accepted in
+        # 0..15, as link specs always took it, so configs that list it keep loading.
+        address_range=(0, 15),
         example="z1100:/dev/ttyUSB0",
     ),
     build_link=build_link,

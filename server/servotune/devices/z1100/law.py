@@ -285,7 +285,8 @@ def fit_plant_closed_loop(
         raise ValueError("no following error recorded: cannot identify the plant")
     peak_v = min(abs(profile.vmax), math.sqrt(abs(profile.acc) * abs(profile.distance)))
     window_counts = peak_v * WINDOW * max(1, profile.stm) * SAMPLE_UNIT_S
-    duty0 = (kabh.k * ERROR_WEIGHT * peak_e - kabh.b * window_counts) / OUTPUT_DIVISOR / 255
+    u0 = kabh.k * ERROR_WEIGHT * peak_e - kabh.b * window_counts
+    duty0 = u0 / OUTPUT_DIVISOR / PWM_FULL_SCALE
     gain0 = peak_v / min(1.0, max(duty0, 0.02))
     horizon = max(times) + 0.02
     hold = max(0.02, horizon - profile.time_s())
