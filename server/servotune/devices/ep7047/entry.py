@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
+from servotune.devices.ep7047 import NAME
 from servotune.link.base import DriverSink, Link
 from servotune.registry import (
     DemoArgs,
@@ -34,7 +35,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-NAME: Final = "ep7047"
 # ``ep7047:sim`` runs the simulated slave in-process instead of a NIC.
 SIMULATED_NIC: Final = "sim"
 

@@ -28,7 +28,7 @@ from servotune.descriptor import (
     StopEffect,
     TwinDescriptor,
 )
-from servotune.devices.slap2 import codec
+from servotune.devices.slap2 import NAME, codec
 
 POSITION_LIMIT = codec.POSITION_LIMIT
 
@@ -662,7 +662,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
         ),
     ]
     return DeviceDescriptor(
-        device="slap2",
+        device=NAME,
         model="gräbner SLAP2",
         title="SLAP2 DC servo module",
         summary=(

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
+from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
 from servotune.registry import (
@@ -28,7 +29,6 @@ if TYPE_CHECKING:
     from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
 
-NAME: Final = "z1100"
 # One chip, three motors: there is nothing to address.
 AXES: Final = (0, 1, 2)
 

@@ -28,6 +28,7 @@ import control
 import numpy as np
 
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.frame import STM_TICK_S
 from servotune.schema import ControllerLaw, LawGainSet, LawTerm
 from servotune.tuning.frf import ComplexArray, FloatArray
@@ -317,7 +318,7 @@ class Z1100Law:
     with its hold gains (KABD): the set in force when the axis stands, which is where
     a frequency response around a held position is."""
 
-    device: Final = "z1100"
+    device: Final = NAME
     law: Final[Literal["z1100_kab"]] = "z1100_kab"
     description: Final = "KABD (hold) gains"
     gain_names: Final = ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
