@@ -13,8 +13,8 @@ them), the driver in this process:
   (``CaptureStats.wire_chars``: every character sent, echoed and replied, at 10 bit
   times each) - i.e. the share of the time the wire was busy with the capture.
 
-Targets (issue 9): SLAP2 >= 120 samples/s and >= 90 % of the focused wire limit,
-Z1100 >= 200 samples/s; issue 8: normal polling >= 90 % of the wire limit quietly.
+Targets: SLAP2 >= 120 samples/s and >= 90 % of the focused wire limit,
+Z1100 >= 200 samples/s; normal polling >= 90 % of the wire limit quietly.
 Machine-dependent by nature (a benchmark, not a test): the load average is printed.
 """
 

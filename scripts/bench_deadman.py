@@ -1,4 +1,4 @@
-"""Benchmark of the dead-man and of the telemetry fan-out (issue 10, "Measure").
+"""Benchmark of the dead-man and of the telemetry fan-out.
 
     PYTHONPATH=server python scripts/bench_deadman.py [--trials 20] [--viewers 20]
     PYTHONPATH=server python scripts/bench_deadman.py --fanout-only \

@@ -7,8 +7,8 @@ Usage (from the repository root, with the project's venv):
 Starts ``servotune demo --no-autopilot`` on a port of its own (a fresh data directory,
 ``servotune.perf.demo.demo_server``), and on the loaded SLAP2 axis ("SLAP2 #1 with
 load") writes each set of gains and runs
-the bench's ``frequency_response`` test (1-10 Hz, amplitude 200, 6 s: the issue 25
-case) ``--repeats`` times through the REST API, as a user's browser does. ``autotune``
+the bench's ``frequency_response`` test (1-10 Hz, amplitude 200, 6 s: the case that
+showed the bias) ``--repeats`` times through the REST API, as a user's browser does. ``autotune``
 as gains: the auto-tune's proposal, identified once on the demo (from 600/10/1500, the
 default margins) before the runs; nothing is accepted, the gains are written as any
 others. ``--hog N`` runs N busy-looping processes (``servotune.perf.demo.cpu_hog``) for
@@ -233,7 +233,7 @@ def compare(
 def shifted(run: dict[str, Any], counts: float) -> dict[str, Any]:
     """The run as if the axis had been held ``counts`` further: positions, setpoints,
     the excitation's y0 and every target sent moved by the same amount (the loop is
-    the same; issue 25's bias grew with where the axis stood)."""
+    the same; a bias once grew with where the axis stood)."""
     cols = run["columns"]
     idx = [cols.index(c) for c in ("position", "setpoint") if c in cols]
     samples = [

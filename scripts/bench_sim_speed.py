@@ -1,6 +1,6 @@
 """How fast the simulated SLAP2 plant runs: simulated seconds per CPU second, per axis.
 
-Issue 8 asks for >= 100x real time per axis (so 16 modules on one line would still
+The target is >= 100x real time per axis (so 16 modules on one line would still
 leave the host most of a core). Measured with ``time.process_time`` around
 ``Slap2Bus.advance_to`` only (the firmware, the PID at 841.5 us and the motor model;
 no pty, no I/O), for one module in each of these states:

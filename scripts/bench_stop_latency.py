@@ -1,6 +1,6 @@
 """STOP latency and telemetry gaps of the demo while a large run is imported and exported.
 
-Issue 8, point 7: a STOP must be answered (and on the wire) within 50 ms and the
+The rule: a STOP must be answered (and on the wire) within 50 ms and the
 telemetry must not pause for more than 100 ms while any API request runs. This starts
 ``servotune demo`` (autopilot off, so STOPs do not fight the moves) as a child process
 and, from this process (a client like a browser, not sharing the server's loop):

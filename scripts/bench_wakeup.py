@@ -1,5 +1,5 @@
 """How late the host wakes a mostly idle process, and what a pty round trip adds
-(issue 24: a simulated device must answer like hardware; docs/simulator.md, "Under load").
+(a simulated device must answer like hardware: docs/simulator.md, "Under load").
 
     .venv/bin/python scripts/bench_wakeup.py --seconds 60 sleep normal
     setsid .venv/bin/python scripts/bench_wakeup.py --seconds 60 sleep normal  # own group

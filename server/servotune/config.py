@@ -30,7 +30,7 @@ from urllib.parse import parse_qsl
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
 class LinkRules:
     """How a link spec of one device reads (its ``DeviceEntry.link_rules``).
 
@@ -40,11 +40,13 @@ class LinkRules:
     one axis, the device's position on an EtherCAT bus (``slave=``, in ``slave_range``,
     default its first).
     ``default_baud`` None: not a serial device (no ``baud=``; the spec's baud is 0).
+    ``address_range``: the values ``addresses=`` (and the CLI's ``--addresses``) accept;
+    a device fact, so each device states it.
     """
 
     default_baud: int | None
+    address_range: tuple[int, int]
     addressing: Literal["modules", "fixed", "slave"] = "modules"
-    address_range: tuple[int, int] = (0, 15)
     fixed_addresses: tuple[int, ...] = ()
     slave_range: tuple[int, int] = (1, 65535)
     example: str = ""  # a link spec for error messages and help

@@ -442,6 +442,8 @@ class BenchLimits(BaseModel):
 
     max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
     max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
+    # le: tuning.plants.OUTPUT_FULL_SCALE (the schema imports no tuning; a unit test
+    # holds the two equal).
     max_pwm: int = Field(default=80, ge=1, le=255)
     max_duration_s: float = Field(default=10.0, gt=0, le=60)
     min_position_counts: int | None = Field(

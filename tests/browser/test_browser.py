@@ -55,7 +55,7 @@ async def test_tune_kp_and_stop_in_the_browser(dashboard: tuple[Page, LiveServer
             break
         await asyncio.sleep(0.02)
     await page.get_by_test_id("stop-all").click()
-    # STOP holds the shaft in pm where it is (issue 24): pm on, vm off, no move running.
+    # STOP holds the shaft in pm where it is (docs/control.md): pm on, vm off, no move running.
     module = server.bus.module(0)
     for _ in range(100):
         if module.rss & 0b1100 == 0b1000 and not module.moving:
@@ -78,7 +78,7 @@ async def test_escape_key_stops_every_axis(dashboard: tuple[Page, LiveServer]) -
     assert server.bus.module(1).rss & 0b0100, "velocity mode did not start"
     await page.get_by_test_id("console-input").focus()
     await page.keyboard.press("Escape")
-    for _ in range(100):  # STOP from vm holds in pm (issue 24)
+    for _ in range(100):  # STOP from vm holds in pm
         if server.bus.module(1).rss & 0b1100 == 0b1000:
             break
         await asyncio.sleep(0.02)

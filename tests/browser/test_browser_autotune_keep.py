@@ -1,4 +1,4 @@
-"""Keep the gains in use when the proposal is worse, in headless Chromium (issue 25).
+"""Keep the gains in use when the proposal is worse, in headless Chromium.
 
 The loaded demo SLAP2 module on a pty, gentle gains in use (150/0/1500: PM ~67 deg /
 GM ~15 dB on the model) and the "soft" margin target (PM 60 deg / GM 12 dB; identified

@@ -1,4 +1,4 @@
-"""Details of issue 11 a user meets on a SLAP2 line, in headless Chromium: the console's
+"""Details a user meets on a SLAP2 line, in headless Chromium: the console's
 answer to a command without a reply and to one the device refused (7), a gain slider
 moved by arrow keys writes once when the keys rest, not once per step (6), and a
 tile of the rig overview opens its axis (5).
@@ -91,7 +91,7 @@ async def test_an_overview_tile_opens_its_axis(
 async def test_the_live_plot_of_a_captured_axis_gets_every_captured_sample(
     dashboard: tuple[Page, LiveServer],
 ) -> None:
-    """Issue 9, 1: "the live plots of a captured axis show the dense data". A bench step
+    """The live plots of a captured axis show the dense data. A bench step
     captures the axis (the line devoted to it); the page open on that axis receives at
     least every sample the run recorded: the fan-out thins nothing. (A count, not a
     rate: what the host manages to poll does not matter.)"""

@@ -1,4 +1,4 @@
-"""The frequency response and the what-if view in headless Chromium (issue 9).
+"""The frequency response and the what-if view in headless Chromium.
 
 A SLAP2 on the pty simulator: identify the plant (auto-tune), run a frequency response
 from the bench page and see its Bode plot, Nyquist plot and margins; the what-if view's
@@ -29,7 +29,7 @@ pytestmark = pytest.mark.browser
 # What-if prediction against the measured verification step: RMS over the record of
 # measured - predicted, as a fraction of the step. The prediction is linear (no
 # friction) and today's samples carry the time they were parsed, not latched (tens of
-# ms late during the rise: issue 9 part 1): 10 % of the step is what both allow.
+# ms late during the rise): 10 % of the step is what both allow.
 RMS_TOLERANCE = 0.10
 
 

@@ -1,4 +1,4 @@
-"""Issue 11 in headless Chromium: every screen, an honest scope, coupled Z1100 gains.
+"""In headless Chromium: every screen, an honest scope, coupled Z1100 gains.
 
 Phone STOP, laptop command strips, contrast in both themes, markers on sparse data,
 a trigger on ``move``, Δ cursors on a known data set, the KABH+KABD write group.
@@ -62,7 +62,7 @@ async def test_phone_stop_is_on_screen_and_stops(browser: Browser, slap2: LiveSe
     await page.evaluate("window.scrollTo(0, document.body.scrollHeight)")
     assert await in_viewport(page, "stop-all")
     await page.get_by_test_id("stop-all").click()
-    for _ in range(100):  # STOP from vm holds in pm (issue 24)
+    for _ in range(100):  # STOP from vm holds in pm
         if slap2.bus.module(1).rss & 0b1100 == 0b1000:
             break
         await asyncio.sleep(0.02)
@@ -219,7 +219,7 @@ async def test_trigger_on_move_captures_the_move(browser: Browser, slap2: LiveSe
     # Single: the display stays frozen on that capture.
     await asyncio.sleep(0.5)
     assert await page.evaluate("window.__servotune.scope().shown[0]") == lo
-    # Issue 25: the capture is kept until re-armed or cleared, whatever the live ring
+    # The capture is kept until re-armed or cleared, whatever the live ring
     # drops (it keeps 60 s: after that the plot went blank, the CSV had only its
     # header, and the state still said "captured"). Empty the ring as those 60 s would.
     kept = await page.evaluate(

@@ -1,5 +1,5 @@
-"""Without the server, the page claims no state (issue 11, 1: stale data after a
-disconnect is dimmed and the status says so; issue 8, 2: a state is never shown that
+"""Without the server, the page claims no state (stale data after a
+disconnect is dimmed and the status says so; a state is never shown that
 nobody knows).
 
 The websocket is cut between the page and a live server (Playwright's websocket route:

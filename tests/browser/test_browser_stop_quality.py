@@ -1,4 +1,4 @@
-"""Issue 8 in headless Chromium: STOP says what it does (item 10) and bad bench runs are
+"""In headless Chromium: STOP says what it does and bad bench runs are
 not shown as good (item 5).
 
 * On the axis page of each device family (SLAP2, Z1100, EP7047) the stop effect the
@@ -194,7 +194,7 @@ async def test_escape_in_a_dialog_closes_it_and_sends_no_stop(
         await page.keyboard.press("Escape")
         await expect(page.get_by_test_id("stop-note")).to_have_text("STOPPED (Esc)")
         await stops.wait_for(2)
-        # STOP from velocity mode holds the shaft in pm where it is (issue 24).
+        # STOP from velocity mode holds the shaft in pm where it is.
         for _ in range(250):
             if server.bus.module(1).rss & 0b1100 == PM:
                 break

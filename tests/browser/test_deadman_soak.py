@@ -1,5 +1,5 @@
 """Soak: a held, idle page in headless Chromium under a CPU hog on every core must keep
-its axis (issue 24: no false dead-man stops under load).
+its axis (no false dead-man stops under load).
 
 ``python -m servotune demo`` runs as a subprocess (autopilot on for the other axes:
 their plots keep the page drawing), a page holds one SLAP2 axis (Take control) and

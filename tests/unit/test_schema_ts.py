@@ -48,3 +48,13 @@ def test_shapes_of_rest_bodies() -> None:
 def test_checked_in_file_is_current() -> None:
     path = REPO / "web" / "src" / "schema.gen.ts"
     assert schema_ts.main(["--check", str(path)]) == 0
+
+
+def test_the_bench_pwm_bound_is_the_models_output_full_scale() -> None:
+    """``BenchLimits.max_pwm``'s upper bound is written as a number in the schema (which
+    imports no tuning); it must be the output full scale the models use."""
+    from servotune.schema import BenchLimits
+    from servotune.tuning.plants import OUTPUT_FULL_SCALE
+
+    bound = next(m.le for m in BenchLimits.model_fields["max_pwm"].metadata if hasattr(m, "le"))
+    assert bound == OUTPUT_FULL_SCALE

@@ -82,7 +82,7 @@ def shadowed_fixtures(sources: Mapping[str, str]) -> set[tuple[str, str]]:
 # Shadowing left on purpose, with the reason; an entry that no longer holds fails too.
 KNOWN_SHADOWS = {
     # An echo peer on a bare pty, not the SLAP2 link of conftest's ``line``; the module's
-    # echo/transact cases move to the SLAP2 exchange's tests (issue 28 step c2).
+    # echo/transact cases move to the SLAP2 exchange's tests.
     ("line", "unit/transports/test_serial_channel.py"),
 }
 

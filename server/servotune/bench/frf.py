@@ -38,6 +38,7 @@ from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.frfrun import Excitation
 from servotune.tuning.injection import Injection
 from servotune.tuning.law import DeviceLaw
+from servotune.tuning.plants import OUTPUT_FULL_SCALE
 from servotune.tuning.targets import MarginTarget, margin_report, target_for
 from servotune.tuning.whatif import loop_for, model_summary, plant_from_identification
 
@@ -90,7 +91,7 @@ def check_request(
     *,
     loop: str = "closed",
     pwm: int = 0,
-    max_pwm: int = 255,
+    max_pwm: int = OUTPUT_FULL_SCALE,
     confirm_open_loop: bool = False,
     window: tuple[int | None, int | None] = (None, None),
     baud: int | None = None,

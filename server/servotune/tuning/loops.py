@@ -36,9 +36,8 @@ import scipy.signal
 
 from servotune.schema import ControllerLaw
 from servotune.tuning.frf import FloatArray, FrequencyResponse
+from servotune.tuning.plants import OUTPUT_FULL_SCALE
 from servotune.tuning.stability import loop_margins, margin_grid, schur_stable
-
-PWM_FULL_SCALE = 255
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,7 +60,7 @@ class MotorModel:
             self.inertia_kg_m2,
             self.viscous_friction_nm_s_per_rad,
         )
-        gain = (self.supply_v / PWM_FULL_SCALE) * self.counts_per_rev / (2.0 * math.pi)
+        gain = (self.supply_v / OUTPUT_FULL_SCALE) * self.counts_per_rev / (2.0 * math.pi)
         # s ((L s + R)(J s + b) + kt^2) = L J s^3 + (L b + R J) s^2 + (R b + kt^2) s
         den = [ind * j, ind * b + r * j, r * b + kt * kt, 0.0]
         return control.tf([gain * kt], den)

@@ -324,7 +324,7 @@ def test_state_ids_are_the_manuals() -> None:
     assert DataType.BIT2.maximum == 3
 
 
-# --- fast paths (issue 8: the cycle thread and the simulator call these every frame) ------
+# --- fast paths (the cycle thread and the simulator call these every frame) ---------------
 
 _MEMOISED = [
     (codec.enc_control_of, EncControl),

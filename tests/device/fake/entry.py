@@ -22,7 +22,11 @@ ENTRY = DeviceEntry(
     name=NAME,
     title="Fake servo (test)",
     link_rules=LinkRules(
-        default_baud=9600, addressing="fixed", fixed_addresses=(0,), example="fake:/dev/ttyUSB0"
+        default_baud=9600,
+        addressing="fixed",
+        fixed_addresses=(0,),
+        address_range=(0, 0),
+        example="fake:/dev/ttyUSB0",
     ),
     build_link=build_link,
 )

@@ -467,7 +467,7 @@ async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) 
 
 
 async def test_identification_is_refused_while_the_axis_moves(tmp_path: Path) -> None:
-    """Issue 25: an identification started on an axis spinning at 56,000 counts/s
+    """An identification started on an axis spinning at 56,000 counts/s
     with no move flag (a limit cycle after the profile ended) fitted the motion and
     reported "the shaft did not move: raise max_pwm". Refused now, before anything is
     sent, with what it saw; the motor kept what it was doing (nothing was written)."""
@@ -492,7 +492,7 @@ async def test_identification_is_refused_while_the_axis_moves(tmp_path: Path) ->
 
 
 async def test_identify_with_the_body_schemathesis_found_a_500_with(tmp_path: Path) -> None:
-    """Issue 8, 8: this body once answered 500 (schemathesis, demo's loaded module).
+    """This body once answered 500 (schemathesis, demo's loaded module).
     ``distance`` 381.0 is an integral float: taken as 381 counts, as everywhere in the
     API (identify is excluded from the bounded schemathesis run: too slow per call)."""
     body = {"response": "no_overshoot", "max_pwm": 80, "max_distance_counts": 20000}

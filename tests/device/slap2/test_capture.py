@@ -159,7 +159,7 @@ async def test_stop_during_capture_goes_first(tmp_path: Path) -> None:
                 done = sum(1 for job in queued if job.done())
                 assert done <= 1
                 await asyncio.gather(*queued)
-                # The stop reached it: STOP in pm is st + pm (issue 24), so the module
+                # The stop reached it: STOP in pm is st + pm, so the module
                 # was switched off and holds again where the shaft stood.
                 assert bus.module(1).rss & (1 << 3) and not bus.module(1).rss & (1 << 4)
 

@@ -290,7 +290,7 @@ def test_a_burst_of_wrong_bytes_after_a_stall_is_counted_not_an_error() -> None:
 
 def test_replies_late_after_a_whole_echo_are_not_an_error_within_the_span() -> None:
     """A module that echoed every character of the command (CR included) is there, only
-    its reply was late (a starved simulator, issue 24: the demo's link showed "error -
+    its reply was late (a starved simulator: the demo's link showed "error -
     no reply to 'pe'" under a CPU hog). Three such misses within 0.6 s, then an answer:
     counted, not an error. The same misses spread over LINE_ERROR_SPAN_S are one (a
     module that echoes and never answers is broken)."""

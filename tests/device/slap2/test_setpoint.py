@@ -1,5 +1,5 @@
 """The live setpoint is never drawn from reads taken at different times as if they were
-one signal (issue 25): on the demo's loaded SLAP2 at factory gains, ringing around a
+one signal: on the demo's loaded SLAP2 at factory gains, ringing around a
 fixed target, ``position + pe`` (two reads a transaction apart) swung by about ±1000
 counts. The driver gives the reconstructed profile where it knows it, ``rp + pe``
 only while pe is steady, and nothing otherwise (link/setpoint.py)."""

@@ -122,7 +122,7 @@ def test_decode_rejects_wrong_length_header_and_sum() -> None:
 
 @given(replies, st.integers(min_value=1, max_value=255))
 def test_a_reply_with_a_corrupt_code_byte_is_rejected(reply: codec.Reply, flip: int) -> None:
-    """Pinned rule (issue 25): the code byte is covered by the checksum. A flipped bit
+    """Pinned rule: the code byte is covered by the checksum. A flipped bit
     there would turn an OK into a refusal ("forbidden while moving"), a stall or a
     checksum complaint: such a reply is no reply, for both decoders."""
     packet = bytearray(reply.encode())

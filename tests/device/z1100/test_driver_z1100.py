@@ -122,7 +122,7 @@ async def test_noise_reply_and_console(tmp_path: Path) -> None:
 
 
 async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> None:
-    """Pinned rule (issue 25): a reply whose code byte was corrupted on the wire (its
+    """Pinned rule: a reply whose code byte was corrupted on the wire (its
     checksum no longer adds up) is rejected and the request asked again, never taken
     for the refusal its bits would spell ("forbidden while motor 1 is moving")."""
     async with chip_line(tmp_path) as line:
@@ -137,7 +137,7 @@ async def test_a_reply_with_a_corrupt_code_byte_is_not_taken(tmp_path: Path) -> 
 
 
 async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path) -> None:
-    """Issue 25: a chip that answers nothing at all (power lost, cable cut) left its
+    """A chip that answers nothing at all (power lost, cable cut) left its
     link ``connected`` at 0 Hz for 11 s (three failed poll cycles of fence timeouts);
     the silence rule (``link.engine``) shows ``error`` once 3 requests in a row over
     1 s went unanswered, and ``connected`` again with the next good poll. A host that
@@ -178,7 +178,7 @@ async def test_a_chip_that_stops_answering_is_not_shown_connected(tmp_path: Path
 
 
 async def test_the_rate_never_exceeds_the_wire_limit_after_a_capture(tmp_path: Path) -> None:
-    """Issue 25: after a capture the link's rate counted the capture's dense samples
+    """After a capture the link's rate counted the capture's dense samples
     of the last 2 s against the normal poll set's wire limit: "131 % of wire". The
     rate restarts with the poll set, so it never reads above the limit."""
     async with chip_line(tmp_path) as line:

@@ -166,7 +166,7 @@ async def test_settings_survive_a_server_restart(tmp_path: Path) -> None:
 
 
 async def test_saved_means_stored_by_the_save_command(api: LiveServer) -> None:
-    """Issue 25: every SLAP2 parameter carried a "saved" badge meaning "can be stored".
+    """Every SLAP2 parameter once carried a "saved" badge meaning "can be stored".
     The server now says which values the device's save command stored (``params``
     with source ``stored``, after a save it saw succeed, and in the snapshot of a new
     client); nothing before a save (not known). The UI marks a value saved only while

@@ -89,7 +89,7 @@ def test_enumerated_parameter_accepts_only_its_codes() -> None:
 
 
 def test_every_device_names_its_stop_effect() -> None:
-    # STOP is the shortest safe stop (issue 24): the servos hold under power (cat. 2),
+    # STOP is the shortest safe stop: the servos hold under power (cat. 2),
     # the stepper ramps and drops Enable (cat. 1); cutting power is a command of its own.
     assert SLAP2.stop.motor_powered is True and "holds" in SLAP2.stop.summary
     assert SLAP2.stop.category == 2 and "spwm 0" in (SLAP2.stop.loop_failed or "")

@@ -1,4 +1,4 @@
-"""The data directory is 0700 and its databases 0600 (issue 26, finding 7: the data dir
+"""The data directory is 0700 and its databases 0600 (the data dir
 was 0755 and servotune.db 0644 on a shared lab machine)."""
 
 from __future__ import annotations

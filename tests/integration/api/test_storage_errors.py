@@ -1,4 +1,4 @@
-"""An unwritable database is told, never silent (issue 8, point 9): clear JSON errors
+"""An unwritable database is told, never silent: clear JSON errors
 (507), an event and a ``storage_status`` message, the server starts without a
 traceback, and settings applied meanwhile are saved once the database works again."""
 

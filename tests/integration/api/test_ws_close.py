@@ -1,4 +1,4 @@
-"""The server closing a websocket is an end, not an error (issue 26, finding 7: uvicorn
+"""The server closing a websocket is an end, not an error (uvicorn
 logged "Exception in ASGI application" when the server closed a /ws).
 
 When logout, revocation or the session re-check closes a socket (from another task)

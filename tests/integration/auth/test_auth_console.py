@@ -1,4 +1,4 @@
-"""One permission table for every path (issue 26, findings 4, 5 and 7): a console line
+"""One permission table for every path: a console line
 is checked as the command it is, ``hold`` (which powers a motor) needs ``move`` and the
 lock while every stop stays open to every role, and the websocket's forced hand-over
 asks for the password again like a dangerous REST call.

@@ -1,5 +1,5 @@
 """A login flood against the exposed mode: STOP does not wait behind it, and the throttle
-holds under concurrency (issue 26, finding 1).
+holds under concurrency.
 
 The server is a real uvicorn on a recorded simulated SLAP2 line, in exposed mode behind
 a "proxy" on 127.0.0.1, so ``X-Forwarded-For`` gives each client its address. STOP is

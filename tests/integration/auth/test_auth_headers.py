@@ -1,4 +1,4 @@
-"""Frames, HSTS and body caps (issue 26, findings 6 and 7).
+"""Frames, HSTS and body caps.
 
 A foreign page framed the local dashboard at opacity 0.0001 over a decoy button: one
 click sent ``vm``. Every page now forbids framing by another site; a 50 MB JSON body

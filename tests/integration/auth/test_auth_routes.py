@@ -198,7 +198,7 @@ async def test_cookie_mutation_needs_the_csrf_token(tmp_path: Path) -> None:
 
 
 async def test_only_a_bearer_authorization_skips_the_csrf_check(tmp_path: Path) -> None:
-    """Pinned rule (issue 25): a browser never attaches ``Authorization: Bearer`` on its
+    """Pinned rule: a browser never attaches ``Authorization: Bearer`` on its
     own, so a bearer call needs no CSRF token; it does attach ``Basic`` credentials it
     has cached (a proxy's, a page's), so a ``Basic`` header proves nothing and the
     logged-in session still needs its token."""

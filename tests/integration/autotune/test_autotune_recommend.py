@@ -1,4 +1,4 @@
-"""Keep the gains in use or write the proposal: the auto-tune's recommendation (issue 25).
+"""Keep the gains in use or write the proposal: the auto-tune's recommendation.
 
 The rule (``servotune.autotune.recommend``) on margin reports of the one margin rule
 (``tuning.targets.margin_report``) and on real proposals of the SLAP2 search for the

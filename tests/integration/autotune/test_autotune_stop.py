@@ -1,4 +1,4 @@
-"""Auto-tune failure paths (issue 8, points 5 and 9): a STOP during ``accept`` answers
+"""Auto-tune failure paths: a STOP during ``accept`` answers
 normally and leaves the previous gains in force; a failed identification returns the
 axis to its start and answers its whole message."""
 

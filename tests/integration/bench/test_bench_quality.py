@@ -1,5 +1,5 @@
 """Bad bench runs are marked bad (``quality``), untrusted metrics are null with the reason,
-and relative moves return to their start (issue 8, point 5).
+and relative moves return to their start.
 
 The unit tests feed ``bench.quality.assess`` synthetic runs with known answers; the
 simulator tests provoke each bad case on a simulated SLAP2 line."""
@@ -145,7 +145,7 @@ def test_ending_outside_the_window_is_bad() -> None:
 
 
 def test_a_run_that_only_ended_outside_the_window_keeps_rise_overshoot_and_oscillations() -> None:
-    # Pinned rule (issue 25): poor gains make a limit cycle that never enters the
+    # Pinned rule: poor gains make a limit cycle that never enters the
     # window. The run is bad (not comparable), but its rise, overshoot and oscillation
     # count are true measurements of that cycle and stay; only what assumes a settled
     # end (steady-state error, settling) goes.
@@ -188,7 +188,7 @@ def test_sparse_samples_null_the_rise_and_times_shorter_than_their_gaps() -> Non
     assert "rise_time_s" not in quality["untrusted"]
 
 
-# --- issue 25: one rule for every metric (runquality._unresolved) ---------------------
+# --- one rule for every metric (bench.quality._unresolved) ----------------------------
 
 
 def test_a_rise_interpolated_across_a_gap_wider_than_itself_is_null() -> None:
@@ -417,7 +417,7 @@ async def test_sim_position_step_rise_is_too_fast_for_the_telemetry(api: LiveSer
 async def test_a_move_stopped_by_a_limit_switch_is_a_warning_with_where_it_stopped(
     api: LiveServer,
 ) -> None:
-    """Issue 25: "Move to 30000" showed a green ✓ although the E2 switch stopped the
+    """Seen once: "Move to 30000" showed a green ✓ although the E2 switch stopped the
     axis at 20012 and no event said so. The command's answer now says only that the
     move was sent (``outcome_pending``); a ``move_outcome`` message and a warning event
     say where the switch stopped it. A move that arrives says so, without an event."""

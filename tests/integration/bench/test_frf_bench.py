@@ -1,4 +1,4 @@
-"""The bench's frequency response and the what-if model (issue 9 parts 2 and 3).
+"""The bench's frequency response and the what-if model.
 
 * The estimator path of a bench run (``tuning.frfrun``) on a known loop sampled
   irregularly: closed loop within 1 dB / 10 deg, margins of ``L = T / (1 - T)`` against
@@ -98,7 +98,7 @@ def test_bench_analysis_recovers_a_known_loop_from_irregular_samples() -> None:
 
 
 def test_the_analysis_does_not_depend_on_where_the_axis_stands() -> None:
-    """Issue 25: the same run analysed around a held position of 0 and of 20000 counts
+    """The same run analysed around a held position of 0 and of 20000 counts
     gives the same response. The impulse fit's ridge was relative to the mean diagonal
     of its normal matrix, which the held position's DC dominated: on the loaded demo
     SLAP2 a run at 0 read 0.0 dB / +0.6 deg at 1 Hz; the same samples at 20000 counts
@@ -639,7 +639,7 @@ async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_
     assert run["status"] == "incomplete", run
     assert "left your travel window" in run["message"], run["message"]
     module = one_module_api.bus.module(0)
-    # Stopped: no PWM, held in pm where it is (a run's abort holds, issue 24), not vm.
+    # Stopped: no PWM, held in pm where it is (a run's abort holds), not vm.
     assert module.pwm == 0 and module.rss & 0b1100 == 0b1000
     sent = run["excitation"]["sent"]
     assert sent and all(abs(row[1]) <= 60 for row in sent)

@@ -1,4 +1,4 @@
-"""A measured frequency response is right where it says it is trusted (issue 25).
+"""A measured frequency response is right where it says it is trusted.
 
 * The physical check: on every demo SLAP2 plant (the unloaded module; the loaded one,
   with its Coulomb friction) with stable gains, a run of the bench (1-10 Hz, 200

@@ -1,6 +1,6 @@
 """Export and import of bench runs: complete validation (422 naming the field), finite
 numbers everywhere, body limits (413), multipart for big runs, stored garbage readable
-(issue 8, points 7 and 9)."""
+(nothing holds a STOP back, errors are told)."""
 
 from __future__ import annotations
 
@@ -230,7 +230,7 @@ def test_the_text_path_of_the_csv_export_writes_what_the_csv_writer_writes() -> 
 async def test_a_run_judged_by_an_older_rule_is_judged_again_when_imported_or_stored(
     api: LiveServer, tmp_path: Path
 ) -> None:
-    """Issue 25: one rule for every run on the page, wherever it was recorded. A run
+    """One rule for every run on the page, wherever it was recorded. A run
     exported (or stored) by an older version keeps the metrics it was judged with: a
     peak time of 1 ms "trusted" that no 3 samples resolve. Imported, and at a server's
     start-up for the runs in its database (runio.rejudge_in_process), it is judged by

@@ -188,7 +188,7 @@ async def test_motion_started_from_the_hub_stops_when_the_rigs_network_is_cut(
     await wait_for(lambda: bool(wire.bus.module(0).rss & VM), 2, "velocity mode on rig-a")
     await lab.lab.proxies["rig-a"].cut()
     cut = time.monotonic()
-    # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+    # The dead-man's stop holds: from vm the rig sends pm.
     await wait_for(lambda: wire.first("pm", 0, cut) is not None, 3, "pm on rig-a's wire")
     stopped_at = wire.first("pm", 0, cut)
     assert stopped_at is not None
@@ -362,7 +362,7 @@ async def test_the_hub_tab_vanishing_stops_the_rigs_axis(lab: LabRun) -> None:
         beat.cancel()
         gone = time.monotonic()  # the last heartbeat left at most 100 ms before this
         raw.drop()
-        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        # The dead-man's stop holds: from vm the rig sends pm.
         await wait_for(lambda: wire.first("pm", 0, gone) is not None, 3, "pm on rig-a's wire")
         stopped_at = wire.first("pm", 0, gone)
         assert stopped_at is not None and not wire.bus.module(0).rss & VM
@@ -439,7 +439,7 @@ async def test_auto_tune_from_the_hub_runs_on_the_rig(lab: LabRun) -> None:
     # this one process longer than the dead-man timeout (seen in CI: both rigs lost
     # presence at once, then "STOP (dead-man: hub, no heartbeat for 1691 ms)") stops
     # the axis and the step with it. Then, as a user would, once more from identify;
-    # a STOPped accept must keep its contract (issue 8: a normal answer, the previous
+    # a STOPped accept must keep its contract (a normal answer, the previous
     # gains in force).
     stopped_steps: list[str] = []
     for _ in range(3):

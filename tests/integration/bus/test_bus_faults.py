@@ -1,4 +1,4 @@
-"""The lab on NATS under faults (issue 29), each finding against a real nats-server.
+"""The lab on NATS under faults, each against a real nats-server.
 
 1. A command the hub reported failed never runs: a rig *process* stopped with SIGSTOP
    while the hub sends it every mutating verb, resumed after the hub answered.
@@ -144,7 +144,7 @@ def _mutating_lines(wire: WireRecorder, since: float) -> list[str]:
 async def test_a_command_the_hub_reported_failed_never_runs_after_sigstop(
     tmp_path: Path,
 ) -> None:
-    """Issue 29 finding 1: SIGSTOP a rig, send it every mutating verb from the hub,
+    """SIGSTOP a rig, send it every mutating verb from the hub,
     SIGCONT after the hub answered: nothing reaches the device, and the rig says it
     dropped each (the hub shows that too)."""
     (tmp_path / "line").mkdir()
@@ -252,7 +252,7 @@ async def test_what_a_hub_session_the_dead_man_ended_sent_is_not_run(
         assert taken and reply["ok"], reply
         assert wire.bus.module(0).rss & VM
         silent = time.monotonic()  # no keep-alive from now on: the dead-man's lease
-        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        # The dead-man's stop holds: from vm the rig sends pm.
         await wait_for(lambda: wire.first("pm", 0, silent) is not None, 3, "the dead-man's STOP")
         await keepalive()  # too late: does not revive the session
         t0 = time.monotonic()
@@ -297,7 +297,7 @@ async def _stop_all_while_cut(lab: LabRun, rig: str) -> App:
 async def test_a_stop_pressed_during_a_cut_does_not_cut_the_local_users_move(
     lab: LabRun,
 ) -> None:
-    """Issue 29 finding 2: STOP all at the hub while rig-a is cut off; rig-a's local
+    """STOP all at the hub while rig-a is cut off; rig-a's local
     user starts a velocity move on axis 0 meanwhile. When rig-a is back, the hub's STOP
     does not cut that move; axis 1, which nobody touched, gets it (and it says when it
     was pressed)."""
@@ -337,7 +337,7 @@ async def test_a_stop_pending_longer_than_its_limit_is_not_sent_when_the_rig_is_
     lab: LabRun,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A rig that rejoined after a long time got the hub's old STOP (issue 29): a
+    """A rig that rejoined after a long time got the hub's old STOP: a
     pending STOP expires, told, and never goes out."""
     monkeypatch.setattr(hub_stops, "PENDING_STOP_MAX_S", 1.5)
     hub = await _stop_all_while_cut(lab, "rig-b")
@@ -370,7 +370,7 @@ def _record_samples(app: App, axis_id: str) -> list[tuple[float, Sample]]:
 
 
 async def test_a_batch_sampled_19_s_ago_is_not_shown_live(lab: LabRun) -> None:
-    """What a rig's client buffered through an outage (issue 29: 2,263 samples ~19 s
+    """What a rig's client buffered through an outage (seen: 2,263 samples ~19 s
     old shown as current): published on rig-a's own subject with rig-a's credentials,
     sampled 19 s ago by rig-a's clock. The hub shows a fresh batch, not the old one."""
     assert lab.hub is not None
@@ -458,7 +458,7 @@ async def test_after_the_lab_servers_restart_the_live_view_resumes_from_fresh_sa
 
 
 async def test_nobody_answering_is_refused_at_once(lab: LabRun) -> None:
-    """Issue 29 finding 5: the hub's own subscription matched every command subject,
+    """The hub's own subscription matched every command subject,
     so nats-server never said "no responders". Now a request to a rig nobody serves is
     refused at once, and the hub's view user may not subscribe to commands at all."""
     nc = await hub_nats(lab)
@@ -503,7 +503,7 @@ async def test_a_rig_cannot_file_a_run_a_manifest_or_telemetry_as_another(
     lab: LabRun,
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """Issue 29 finding 6: rig-b, with its own credentials on its own subjects, filed a
+    """Rig-b, with its own credentials on its own subjects, filed a
     run as rig-a's. Runs, manifests and telemetry are attributed by the subject."""
     assert lab.hub is not None
     bus = lab.hub.app.state.bus.hub

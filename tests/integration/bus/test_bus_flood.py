@@ -1,4 +1,4 @@
-"""One rig cannot disturb another (issue 29 finding 4).
+"""One rig cannot disturb another.
 
 A rig publishing 5,000 telemetry samples a second on its own subjects (one sample per
 message, the hardest case for the hub) delayed the hub's keep-alives to another rig to

@@ -288,7 +288,7 @@ async def test_motion_started_from_the_hub_stops_when_the_leaf_link_is_cut(
         assert agent.connected
         await leaf.proxy.cut()
         cut = time.monotonic()
-        # The dead-man's stop holds (issue 24): from vm the rig sends pm.
+        # The dead-man's stop holds: from vm the rig sends pm.
         await wait_for(lambda: wire.first("pm", 0, cut) is not None, 3, "pm on rig-a's wire")
         stopped_at = wire.first("pm", 0, cut)
         assert stopped_at is not None

@@ -214,7 +214,7 @@ async def test_a_rig_joining_a_running_hub_is_listed_live_and_goes_offline(
         assert response.status_code == 423, response.text
         assert not [line for _, line in rig_b.wire.since(t1, 0) if line.startswith("kp")]
 
-        # Joining, rig-b was never announced offline (issue 29: every joining rig was
+        # Joining, rig-b was never announced offline (seen before: every joining rig was
         # first announced "is offline" right after "joined").
         told = [e.message for e in hub.hub._events]
         assert not [m for m in told if "rig-b.line: disconnected" in m], told

@@ -1,4 +1,4 @@
-"""The container build and the compose lab as a user runs them (issue 30).
+"""The container build and the compose lab as a user runs them.
 
 Without Docker: the CLI behaviours the containers rely on (``--data-dir`` after a
 ``users``/``tokens`` action, the bind rule of local mode, a demo on a data directory it

@@ -1,10 +1,10 @@
-"""Every command the project prints for its users works as printed (issue 30).
+"""Every command the project prints for its users works as printed.
 
 README.md, docs/*.md, and the comments of docker-compose.yml, the Dockerfile and lab/'s
 files are searched for servotune, docker and docker-compose commands
 (tests/support/doc_commands.py); each recipe is then run as its user would, in order, through
 the CLI's own argparse parser and against docker-compose.yml (tests/support/recipe_check.py):
-no Docker needed. The checks are proven to fail on the recipes issue 30 found broken.
+no Docker needed. The checks are proven to fail on recipes that were once printed broken.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def test_each_service_of_the_image_runs_a_command_the_cli_accepts() -> None:
     assert {"servotune-demo", "servotune-lab", "servotune-hub", "rig-1", "rig-2"} <= set(checked)
 
 
-# --- the checks can fail: the recipes issue 30 found broken, and other wrong ones ------
+# --- the checks can fail: recipes once printed broken, and other wrong ones ------------
 
 
 def _recipe(*lines: str, where: str = "example.md:1") -> Recipe:

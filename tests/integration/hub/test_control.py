@@ -191,7 +191,7 @@ async def test_unanswered_request_granted_when_the_holder_is_idle(server: Server
 
 
 async def test_a_request_carrying_another_users_client_id_is_refused(server: Server) -> None:
-    """Pinned rule (issue 25): a client id is a connection's secret, but a secret can
+    """Pinned rule: a client id is a connection's secret, but a secret can
     leak (a log, a shared screen); it authorises only its own user. Olga's tab holds
     line-0; a request of another user carrying Olga's client id is refused (423) and
     nothing is written, while Olga herself may change the axis."""
@@ -293,7 +293,7 @@ async def test_dead_man_stops_the_axis_within_500_ms(server: Server, how: str, t
 
 
 async def test_a_bench_run_ended_by_the_dead_man_says_so(server: Server) -> None:
-    """Issue 25: the cause of a stop is recorded as it was. A run the dead-man ended
+    """The cause of a stop is recorded as it was. A run the dead-man ended
     read "STOP was pressed during the test"; it names the dead-man now, and a run the
     user's STOP ended still says STOP."""
     raw, client_id, beat = await take_with_raw_client(server, "line-0", take=True)

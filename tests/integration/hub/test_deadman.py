@@ -1,4 +1,4 @@
-"""The dead-man under load (issue 24): it keeps its promise for a vanished client and
+"""The dead-man under load: it keeps its promise for a vanished client and
 does not fire on a live, busy one (docs/control.md, "The dead-man").
 
 A tab's heartbeats come from a worker on a socket of their own (``/ws?beat=<id>``),

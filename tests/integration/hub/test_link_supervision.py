@@ -1,4 +1,4 @@
-"""Links that never die and never lie: fault injection on the real drivers (issue 8).
+"""Links that never die and never lie: fault injection on the real drivers.
 
 Each fault is injected in the simulated device, between the device and the pty (a
 ``Tap`` that records every byte the device received and can hold back, drop or
@@ -592,8 +592,8 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
     rate again instead of waiting out the silent one's timeouts every cycle.
     ``hub`` (the driver's rule switched off): the hub's silence rule (AXIS_SILENT_S)
     shows it offline, the backstop for any driver that keeps an axis "ok" without
-    samples. Either way its answers after the fault show it ok again (issue 8, found
-    in a soak)."""
+    samples. Either way its answers after the fault show it ok again (found in a
+    soak)."""
     from servotune.devices.slap2 import modules as slap2_modules
     from servotune.hub.state import AXIS_SILENT_S
 
@@ -769,7 +769,7 @@ def _lines(received: bytes) -> list[str]:
 async def test_a_command_whose_cr_echo_failed_is_not_sent_again_a_stop_is(
     tmp_path: Path,
 ) -> None:
-    """Pinned rule (issue 25): once CR has gone out the module may have executed the
+    """Pinned rule: once CR has gone out the module may have executed the
     line, so a command whose CR echo (and reply) never came is not sent again: ``mr``
     twice would move the axis twice as far. ``st`` may run twice and must reach the
     module: a STOP whose CR echo was lost is sent again."""

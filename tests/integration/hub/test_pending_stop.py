@@ -1,4 +1,4 @@
-"""A STOP that could not go out never acts on motion started after it (issue 29).
+"""A STOP that could not go out never acts on motion started after it.
 
 The hub keeps a STOP that failed (link down) and sends it "the moment the link and
 the axis are back" (README) — but only while it still means what the user meant: it is

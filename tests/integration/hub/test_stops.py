@@ -1,4 +1,4 @@
-"""Stops that stop (issue 24): STOP against the power-off alone on the demo plants,
+"""Stops that stop: STOP against the power-off alone on the demo plants,
 jog both ways, and no axis left oscillating after a bench run.
 
 The stopping distances are compared with the power-off measured in the same test on

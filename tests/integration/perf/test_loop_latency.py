@@ -1,4 +1,4 @@
-"""Nothing holds a STOP back (issue 8, point 7): a large import, its exports and an
+"""Nothing holds a STOP back: a large import, its exports and an
 auto-tune identification with its fit run while STOPs are sent and telemetry flows.
 
 Before the fix a 6.66 MB import held a STOP for 2.5-3.3 s and a 39.8 MB one for 14 s:

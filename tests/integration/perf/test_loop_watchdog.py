@@ -1,4 +1,4 @@
-"""Nothing holds STOP back (issue 24, point 6): a loop-lag watchdog around every bench
+"""Nothing holds STOP back: a loop-lag watchdog around every bench
 test kind and every auto-tune step.
 
 The server runs in this process; the simulated SLAP2 line runs in a process of its own

@@ -44,7 +44,7 @@ from servotune.perf.demo import (
 
 pytestmark = pytest.mark.slow
 
-SOAK_S = 180.0  # "several minutes" (issue 8): three, the CI run can afford that
+SOAK_S = 180.0  # "several minutes": three, the CI run can afford that
 POLL_S = 1.0
 STALE_S = 5.0  # a connected link goes no longer than this without a sample
 RECOVER_S = 30.0
@@ -95,7 +95,7 @@ def _device_stopped(device: str, record: dict[str, Any]) -> list[str]:
     """What in a simulator's record says the device is not (yet) stopped."""
     problems: list[str] = []
     data = record["device"]
-    if device == "slap2":  # STOP holds in pm where the shaft is (issue 24), or braked off
+    if device == "slap2":  # STOP holds in pm where the shaft is, or braked off
         for module in data["modules"]:
             # In pm the loop drives the PWM to hold the position: only open loop must be 0.
             if module["vm"] or module["moving"] or (module["pwm"] and not module["pm"]):
@@ -282,7 +282,7 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
     print("\n" + "\n".join(report))
 
     assert stream_error is None, f"the websocket failed for good: {stream_error}"
-    # A link stuck in "error" after an internal error is issue 8 point 1 (supervision,
+    # A link stuck in "error" after an internal error is a supervision bug (supervision,
     # drivers/ and hub/hub.py, another branch): this assertion stays, whoever fixes it.
     assert all(state == "connected" for state in states.values()), (
         f"dead link(s) {RECOVER_S:g} s after the hog stopped: {states}\n{_tail(log)}"
@@ -299,7 +299,7 @@ def test_soak_demo_under_a_cpu_hog(tmp_path: Path) -> None:
                 flag,
                 flags.get(axis["id"]),
             )
-    # Needs the false-alarm fixes of issue 8 point 4 (drivers/, another branch): a slow
+    # Needs the drivers' false-alarm rules (docs/architecture.md, Supervision): a slow
     # host alone must not produce "reset - settings may be lost". Nothing resets here.
     assert sum(resets.values()) == 0, f"reset banner(s) without a reset: {dict(resets)}"
 

@@ -1,4 +1,4 @@
-"""The 3D twin is no side door (issue 26, findings 2, 3 and 7).
+"""The 3D twin is no side door.
 
 A real exposed server on a recorded simulated SLAP2 line with the twin on. viser's
 client messages are msgpack maps with a ``type``; the tests speak that format as

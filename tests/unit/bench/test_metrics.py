@@ -191,7 +191,7 @@ def test_settling_needs_the_end_inside_the_band() -> None:
 
 
 def test_a_band_edge_hit_exactly_by_integer_counts_is_inside_the_band() -> None:
-    # Pinned rule (issue 25): positions are integer counts and the in-position window
+    # Pinned rule: positions are integer counts and the in-position window
     # an integer, so a response that comes to rest exactly on the window's edge is
     # common (5 counts off a ±5 window). The band is closed: |e| <= band is inside.
     t = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
@@ -443,7 +443,7 @@ def test_time_to_arrival_flag(
 
 
 def test_flags_held_between_status_polls_are_timed_by_their_reads() -> None:
-    # Issue 25: the position is read every 10 ms, the flags every 200 ms (SLAP2 rss in
+    # The position is read every 10 ms, the flags every 200 ms (SLAP2 rss in
     # a capture); every sample carries the last read. The axis arrives at 90 ms.
     # Timed at the first *sample* that shows it, in-position read 200+ ms; timed by
     # its reads it is 100 ms ± 100 (between the clear read at 0 and the set read at

@@ -2,7 +2,7 @@
 
 A presence counts from when it was *sent*, dated with the rig's clock as estimated from
 round trips (never guessed from how late it seems): one that arrives older than
-``offline_after_s`` is old news, whatever the reason (issue 29: after a 20 s outage a
+``offline_after_s`` is old news, whatever the reason (seen: after a 20 s outage a
 rig's client delivered presences ~19 s old and the hub, taking them for a rebooted
 clock, showed the rig present). Seen in CI before: a hub that showed a cut-off rig
 offline took in the rig's last presence late and showed it present again. A new run
@@ -87,7 +87,7 @@ def test_a_late_presence_counts_from_when_it_was_sent() -> None:
 
 
 def test_presences_buffered_through_an_outage_are_old_news() -> None:
-    """Issue 29: the rig's client buffered presences through a 20 s outage and
+    """The rig's client buffered presences through a 20 s outage and
     delivered them at once; the hub showed the rig present on presences ~19 s old."""
     now = [100.0]
     live = _live(now)

@@ -5,7 +5,7 @@
 * the SLAP2 loop model against a direct simulation of the simulator's own plant
   (``sim.physics.DcMotor``, Coulomb friction off) under the firmware's integer PID
   arithmetic, excited with a multisine around a held position: within 1 dB and 10
-  degrees wherever the coherence is at least 0.9 (issue 9's check, without the wire).
+  degrees wherever the coherence is at least 0.9 (the bench's check, without the wire).
 """
 
 from __future__ import annotations

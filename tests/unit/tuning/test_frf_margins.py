@@ -1,4 +1,4 @@
-"""Measured open-loop margins (issue 9): read only where ``L = T / (1 - T)`` is known.
+"""Measured open-loop margins: read only where ``L = T / (1 - T)`` is known.
 
 * A case computed by hand: ``L(s) = 4 / (s + 1)^3``.
 * The defect seen on the demo: a 1.5 dB error of T at a tone where T ~ 1 swings L's

@@ -1,4 +1,4 @@
-"""One stability verdict (issue 25), the same on the server and in the browser, and
+"""One stability verdict, the same on the server and in the browser, and
 true of the simulator's plant.
 
 * The verdict (``tuning.stability.schur_stable`` on the closed loop's characteristic

@@ -1,4 +1,4 @@
-// The bench's frequency response (issue 9): a form that starts a "frequency_response"
+// The bench's frequency response: a form that starts a "frequency_response"
 // run, and for the selected runs of that kind a Bode plot (magnitude dB and phase deg
 // over log frequency; measured points shaded by coherence, the band beyond the usable
 // one greyed; the identified model as a dashed line), the margins/bandwidth readouts

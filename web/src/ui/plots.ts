@@ -320,7 +320,7 @@ export class PlotStack implements PlotHost {
     let lines = 0;
     const fixedPx = (p: Panel): number | null =>
       this.single ? null : p.plot.kind === "flags" ? p.plot.series.length * lanePx(p.plot.series.length) + 8 : p.states ? statesPx(p.states) : null;
-    // A phone wraps a legend that does not fit next to the title (issue 25: two of
+    // A phone wraps a legend that does not fit next to the title (seen: two of
     // three traces were hidden behind a sideways scroll): the headers are measured
     // where the layout is fresh, their last height reused otherwise.
     if (measure) {

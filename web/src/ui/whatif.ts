@@ -1,4 +1,4 @@
-// What-if gains (issue 9 part 3): move a gain slider BEFORE writing it and see the
+// What-if gains: move a gain slider BEFORE writing it and see the
 // predicted step response and margins, from the identified plant and the device's exact
 // controller arithmetic, next to the last measured run; "Apply" writes the gains and
 // runs the verification step. The model comes once from GET /api/axes/{id}/whatif

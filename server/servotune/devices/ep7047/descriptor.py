@@ -35,10 +35,9 @@ from servotune.descriptor import (
     StopEffect,
     TwinDescriptor,
 )
-from servotune.devices.ep7047 import codec
+from servotune.devices.ep7047 import NAME, codec
 from servotune.devices.ep7047.codec import PosDiag, PosStatus, SdoObject, StartType, StmStatus
 
-DEVICE: Final = "ep7047"
 MODEL: Final = "Beckhoff EP7047-1032"
 
 # --- parameters <-> CoE -------------------------------------------------------------------
@@ -862,7 +861,7 @@ def ep7047_descriptor(speed_range_steps_s: int, counts_per_rev: int) -> DeviceDe
     ]
 
     return DeviceDescriptor(
-        device=DEVICE,
+        device=NAME,
         model=MODEL,
         title="EP7047-1032 stepper drive (positioning interface)",
         summary=(

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
+from servotune.devices.ep7047 import NAME
 from servotune.link.base import DriverSink, Link
 from servotune.registry import (
     DemoArgs,
@@ -34,7 +35,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-NAME: Final = "ep7047"
 # ``ep7047:sim`` runs the simulated slave in-process instead of a NIC.
 SIMULATED_NIC: Final = "sim"
 
@@ -226,6 +226,9 @@ ENTRY: Final = DeviceEntry(
     link_rules=LinkRules(
         default_baud=None,
         addressing="slave",
+        # addresses= is ignored (the axis is the slave= position); still accepted in
+        # 0..15, as link specs always took it, so configs that list it keep loading.
+        address_range=(0, 15),
         slave_range=(1, 65535),
         example="ep7047:eth0?slave=1",
     ),

@@ -28,7 +28,7 @@ from servotune.descriptor import (
     StopEffect,
     TwinDescriptor,
 )
-from servotune.devices.slap2 import codec
+from servotune.devices.slap2 import NAME, codec
 
 POSITION_LIMIT = codec.POSITION_LIMIT
 
@@ -225,7 +225,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
                 "Profile velocity of moves, and the speed of velocity mode (may change "
                 "while running). A speed, never negative (the manual gives it no sign): "
                 "to turn the other way, move or jog to lower positions. "
-                "rpm = SV x 140.417 / lines."
+                f"rpm = SV x {codec.RPM_PER_SV_LINE} / lines."
             ),
             set_command="sv{value}",
             read_command="rv",
@@ -246,7 +246,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             group="profile",
             description=(
                 "Acceleration and deceleration of moves and of velocity mode. "
-                "rpm/min = SA x 35946.7 / lines."
+                f"rpm/min = SA x {codec.RPM_PER_MIN_PER_SA_LINE} / lines."
             ),
             set_command="sa{value}",
             read_command="ra",
@@ -283,7 +283,8 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
             persisted=True,
             group="in-position",
             description=(
-                "Ticks of 841.5 µs the motor must stay inside the window before inpos "
+                f"Ticks of {codec.TICK_S * 1e6:.1f} µs the motor must stay inside the window "
+                "before inpos "
                 "goes high (50 ≈ 42 ms)."
             ),
             set_command="sipt{value}",
@@ -412,7 +413,8 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
         ),
         "inpos": (
             "inpos",
-            "Motor in position: within ±sipw of the target for sipt ticks (841.5 µs "
+            "Motor in position: within ±sipw of the target for sipt ticks "
+            f"({codec.TICK_S * 1e6:.1f} µs "
             "each). Goes low at the start of every move.",
             "info",
         ),
@@ -660,7 +662,7 @@ def slap2_descriptor(lines: int) -> DeviceDescriptor:
         ),
     ]
     return DeviceDescriptor(
-        device="slap2",
+        device=NAME,
         model="gräbner SLAP2",
         title="SLAP2 DC servo module",
         summary=(

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
+from servotune.devices.slap2 import NAME
 from servotune.devices.slap2.codec import DEFAULT_BAUD, MAX_ADDRESS
 from servotune.link.base import DriverSink, Link
 from servotune.registry import (
@@ -30,8 +31,6 @@ if TYPE_CHECKING:
     from servotune.autotune.context import TuningContext
     from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
-
-NAME: Final = "slap2"
 
 
 def build_link(spec: LinkSpec, sink: DriverSink) -> Link:

@@ -134,7 +134,8 @@ def _neighbours(gains: Gains) -> list[Gains]:
 
 RULE_TEXT: Final = (
     "Gains by simulation, to margin targets: the SLAP2 firmware's discrete loop "
-    "(841.5 us tick, integer PID law, anti-windup, PWM saturation, count quantisation, "
+    f"({TICK_S * 1e6:.1f} us tick, integer PID law, anti-windup, PWM saturation, "
+    "count quantisation, "
     "the same profile generator) runs the test on the identified model for each "
     "candidate of a kp/kd/ki grid (coarse, then finer around the best). A candidate "
     "qualifies if it settles into the in-position window and stays there, overshoots "

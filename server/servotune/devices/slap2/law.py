@@ -28,6 +28,7 @@ import control
 import numpy as np
 
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.devices.slap2 import NAME
 from servotune.devices.slap2.codec import (
     ACCELERATION_MAX,
     COUNTS_S2_PER_SA,
@@ -452,11 +453,11 @@ def model_doubt(model: PlantModel, travel: float) -> str | None:
 
 
 class Slap2Law:
-    """The SLAP2 as ``tuning.law.DeviceLaw``: the PID at 841.5 us."""
+    """The SLAP2 as ``tuning.law.DeviceLaw``: the PID at the firmware's tick."""
 
-    device: Final = "slap2"
+    device: Final = NAME
     law: Final[Literal["slap2_pid"]] = "slap2_pid"
-    description: Final = "PID at 841.5 us"
+    description: Final = f"PID at {TICK_S * 1e6:.1f} us"
     gain_names: Final = ("kp", "ki", "kd")
     output_limit: Final = PWM_MAX
     controller: Final = CONTROLLER

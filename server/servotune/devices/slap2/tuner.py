@@ -19,7 +19,7 @@ from servotune.autotune.recording import IdentificationRun
 from servotune.autotune.session import IdentifyRequest, Session, TestKind
 from servotune.autotune.verdict import verdict_with_reason
 from servotune.bench.metrics import unmeasured
-from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
+from servotune.devices.slap2.codec import ACCELERATION_MAX, DEFAULT_BAUD, VELOCITY_MAX
 from servotune.devices.slap2.gain_rule import Slap2Proposal, propose_gains, settles
 from servotune.devices.slap2.law import (
     IDENT_MIN_DISTANCE,
@@ -180,7 +180,7 @@ class Slap2Tuner:
         if status_now.rate_hz > 0 and status_now.wire_limit_hz > 0:
             ratio = status_now.wire_limit_hz / status_now.rate_hz
             slowdown = min(MAX_SLOWDOWN, max(1.0, ratio))
-        baud = entry.link.baud or 19200
+        baud = entry.link.baud or DEFAULT_BAUD
         rss_check = not entry.device_values.get("syscon", 0) & UCON_BIT
         run = IdentificationRun(ctx.bench, entry, start, request.max_pwm, STAIRCASE_START_PWM)
         await run.open(ctx.clock)

@@ -27,7 +27,7 @@ from servotune.descriptor import (
     StopEffect,
     TwinDescriptor,
 )
-from servotune.devices.z1100 import codec
+from servotune.devices.z1100 import NAME, codec
 
 GAINS = {
     "k": (
@@ -453,7 +453,7 @@ def z1100_descriptor(counts_per_rev: int) -> DeviceDescriptor:
         ),
     ]
     return DeviceDescriptor(
-        device="z1100",
+        device=NAME,
         model="CNC Designer Z1100",
         title="Z1100 three-axis DC servo chip",
         summary=(

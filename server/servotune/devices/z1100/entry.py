@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from servotune.config import LinkRules, LinkSpec
+from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.codec import DEFAULT_BAUD
 from servotune.link.base import DriverSink, Link
 from servotune.registry import (
@@ -28,7 +29,6 @@ if TYPE_CHECKING:
     from servotune.autotune.service import DeviceTuner
     from servotune.tuning.law import DeviceLaw
 
-NAME: Final = "z1100"
 # One chip, three motors: there is nothing to address.
 AXES: Final = (0, 1, 2)
 
@@ -126,6 +126,9 @@ ENTRY: Final = DeviceEntry(
         default_baud=DEFAULT_BAUD,
         addressing="fixed",
         fixed_addresses=AXES,
+        # addresses= is ignored (the chip's axes are fixed); it is still accepted in
+        # 0..15, as link specs always took it, so configs that list it keep loading.
+        address_range=(0, 15),
         example="z1100:/dev/ttyUSB0",
     ),
     build_link=build_link,

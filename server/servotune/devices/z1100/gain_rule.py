@@ -15,6 +15,7 @@ from typing import Any, Final
 import control
 
 from servotune.bench.metrics import Metrics
+from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.law import (
     BAND_COUNTS,
     KABD_FRACTION,
@@ -72,7 +73,7 @@ class Z1100Proposal:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "device": "z1100",
+            "device": NAME,
             "model": self.plant.to_dict(),
             "gains": self.gains_dict(),
             "current_gains": kab_dict(self.current, self.current_kabd),

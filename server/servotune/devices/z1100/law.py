@@ -28,6 +28,7 @@ import control
 import numpy as np
 
 from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.frame import STM_TICK_S
 from servotune.schema import ControllerLaw, LawGainSet, LawTerm
 from servotune.tuning.frf import ComplexArray, FloatArray
@@ -285,7 +286,8 @@ def fit_plant_closed_loop(
         raise ValueError("no following error recorded: cannot identify the plant")
     peak_v = min(abs(profile.vmax), math.sqrt(abs(profile.acc) * abs(profile.distance)))
     window_counts = peak_v * WINDOW * max(1, profile.stm) * SAMPLE_UNIT_S
-    duty0 = (kabh.k * ERROR_WEIGHT * peak_e - kabh.b * window_counts) / OUTPUT_DIVISOR / 255
+    u0 = kabh.k * ERROR_WEIGHT * peak_e - kabh.b * window_counts
+    duty0 = u0 / OUTPUT_DIVISOR / PWM_FULL_SCALE
     gain0 = peak_v / min(1.0, max(duty0, 0.02))
     horizon = max(times) + 0.02
     hold = max(0.02, horizon - profile.time_s())
@@ -316,7 +318,7 @@ class Z1100Law:
     with its hold gains (KABD): the set in force when the axis stands, which is where
     a frequency response around a held position is."""
 
-    device: Final = "z1100"
+    device: Final = NAME
     law: Final[Literal["z1100_kab"]] = "z1100_kab"
     description: Final = "KABD (hold) gains"
     gain_names: Final = ("kabh_k", "kabh_a", "kabh_b", "kabd_k", "kabd_a", "kabd_b")
