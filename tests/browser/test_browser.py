@@ -98,14 +98,9 @@ async def test_console_shows_multiline_reply(dashboard: tuple[Page, LiveServer])
 
 async def test_z1100_axis_renders_and_k_reads_back(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
-    from servotune.devices.z1100.sim.chip import Z1100Chip
-    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-    from servotune.sim.pty import PtySimulator
+    from tests.support.sim_lines import z1100_chip_process
 
-    flash = tmp_path / "flash.json"
-    write_demo_flash(flash)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
-    with PtySimulator(chip, baud=38400) as sim:
+    with z1100_chip_process(tmp_path) as (sim, chip):
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
         async with live_server(sim, chip, tmp_path / "data", web_dir=WEB_DIST, spec=spec) as server:
             page = await browser.new_page(viewport={"width": 1400, "height": 900})

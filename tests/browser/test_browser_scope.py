@@ -98,18 +98,13 @@ async def test_laptop_shows_every_command_of_every_device(
     tmp_path: Path, browser: Browser, slap2: LiveServer
 ) -> None:
     from servotune.config import LinkSpec
-    from servotune.devices.z1100.sim.chip import Z1100Chip
-    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-    from servotune.sim.pty import PtySimulator
+    from tests.support.sim_lines import z1100_chip_process
 
     await laptop_check(browser, slap2, "line-0")
     spec = LinkSpec("ep7047", "sim", "ep", 0, [1])
     async with live_server(None, None, tmp_path / "ep", web_dir=WEB_DIST, spec=spec) as server:
         await laptop_check(browser, server, "ep-1")
-    flash = tmp_path / "flash.json"
-    write_demo_flash(flash)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
-    with PtySimulator(chip, baud=38400) as sim:
+    with z1100_chip_process(tmp_path) as (sim, chip):
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
         async with live_server(sim, chip, tmp_path / "z", web_dir=WEB_DIST, spec=spec) as server:
             await laptop_check(browser, server, "chip-x")
@@ -247,14 +242,9 @@ async def test_trigger_on_move_captures_the_move(browser: Browser, slap2: LiveSe
 
 async def test_z1100_gains_written_as_one_group(tmp_path: Path, browser: Browser) -> None:
     from servotune.config import LinkSpec
-    from servotune.devices.z1100.sim.chip import Z1100Chip
-    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-    from servotune.sim.pty import PtySimulator
+    from tests.support.sim_lines import z1100_chip_process
 
-    flash = tmp_path / "flash.json"
-    write_demo_flash(flash)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
-    with PtySimulator(chip, baud=38400) as sim:
+    with z1100_chip_process(tmp_path) as (sim, chip):
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
         async with live_server(sim, chip, tmp_path / "data", web_dir=WEB_DIST, spec=spec) as server:
             page, errors = await open_page(browser, server, 1400, 900)

@@ -51,14 +51,9 @@ async def _slap2_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]
 
 @contextlib.asynccontextmanager
 async def _z1100_server(tmp_path: Path) -> AsyncIterator[tuple[LiveServer, str]]:
-    from servotune.devices.z1100.sim.chip import Z1100Chip
-    from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-    from servotune.sim.pty import PtySimulator
+    from tests.support.sim_lines import z1100_chip_process
 
-    flash = tmp_path / "flash.json"
-    write_demo_flash(flash)
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=38400)
-    with PtySimulator(chip, baud=38400) as sim:
+    with z1100_chip_process(tmp_path) as (sim, chip):
         spec = LinkSpec("z1100", sim.path, "chip", 38400, [0, 1, 2])
         async with live_server(sim, chip, tmp_path / "data", web_dir=WEB_DIST, spec=spec) as s:
             yield s, "chip-y"

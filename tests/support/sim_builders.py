@@ -1,4 +1,5 @@
-"""Simulated SLAP2 lines for tests, built in a simulator process of their own.
+"""Simulated device lines for tests (SLAP2 buses, Z1100 chips), built in a simulator
+process of their own.
 
 The builders are module-level functions (picklable) in a module that imports only the
 simulators, so a spawned simulator process starts without the test machinery.
@@ -18,6 +19,8 @@ from typing import Any
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Bus
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.devices.z1100.sim.chip import Z1100Chip
+from servotune.devices.z1100.sim.demo import Z1100_DEMO_FLASH, Z1100_LOADS_KG_M2, write_demo_flash
 from servotune.sim.physics import DcMotorParams
 
 CR = 0x0D
@@ -84,3 +87,16 @@ def demo_bus() -> Slap2Bus:
             Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),
         ]
     )
+
+
+def z1100_chip(
+    flash_path: Path, jumper_baud: int, kab: tuple[int, int, int] | None = None
+) -> Z1100Chip:
+    """The demo's Z1100 (its three loads, its profile) with its flash at ``flash_path``
+    (written unless there): the demo's flash gains, or ``kab`` as KABH and KABD of every
+    motor."""
+    gains = Z1100_DEMO_FLASH
+    if kab is not None:
+        gains = [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2)
+    write_demo_flash(flash_path, gains)
+    return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash_path, jumper_baud=jumper_baud)

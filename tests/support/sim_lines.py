@@ -110,17 +110,23 @@ Z1100_BAUD = 38400  # the fastest jumper setting keeps the tests short
 
 
 @contextlib.contextmanager
-def mediocre_chip_line(tmp_path: Path) -> Iterator[PtySimulator]:
-    flash = tmp_path / "flash.json"
-    kab = (MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b)
-    write_demo_flash(flash, [{"kabh": kab, "kabd": kab}] * len(Z1100_LOADS_KG_M2))
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
-    simulator = PtySimulator(chip, baud=Z1100_BAUD)
-    simulator.start()
-    try:
+def mediocre_chip_line(tmp_path: Path) -> Iterator[Remote]:
+    """The demo's Z1100 with every motor at the ``MEDIOCRE`` gains, in a process of its
+    own (``z1100_chip_process``): its ``PtySimulator`` as a ``Remote`` view."""
+    with z1100_chip_process(tmp_path, (MEDIOCRE.k, MEDIOCRE.a, MEDIOCRE.b)) as (simulator, _):
         yield simulator
-    finally:
-        simulator.stop()
+
+
+@contextlib.contextmanager
+def z1100_chip_process(
+    tmp_path: Path, kab: tuple[int, int, int] | None = None
+) -> Iterator[tuple[Remote, Remote]]:
+    """The demo's Z1100 (``sim_builders.z1100_chip``: the demo's flash gains, or ``kab``
+    on every motor) at ``Z1100_BAUD`` on a pty, in a process of its own
+    (``simulator_process``): its ``PtySimulator`` and chip as ``Remote`` views."""
+    build = functools.partial(sim_builders.z1100_chip, tmp_path / "flash.json", Z1100_BAUD, kab)
+    with simulator_process("z1100-chip", build, Z1100_BAUD) as pair:
+        yield pair
 
 
 class Z1100Run:

@@ -2,22 +2,25 @@
 
 ``check_predicted_stable`` is asked before ``PATCH /api/axes/{id}/params`` writes: if
 the gains in the write (with the axis' other gains as they are) make the auto-tune's
-identified plant unstable under the device's exact law (``tuning.predicted``, in the
-compute worker), the write answers 409 naming ``confirm_unstable`` and nothing is sent;
-the same request with ``confirm_unstable=true`` writes. Also here: which parameters
-are a device's gains (its law's), and the identified model of an axis (used by the
-what-if and frequency-response routes).
+identified plant unstable under the device's exact law (``tuning.predicted``), the write
+answers 409 naming ``confirm_unstable`` and nothing is sent; the same request with
+``confirm_unstable=true`` writes. The prediction is one short simulation of the
+discrete loop: it runs in a thread beside the event loop, not in the compute worker,
+so that a gains write answers at once instead of waiting for the worker's start (its
+imports) or for a fit or gain search queued in it. Also here: which parameters are a
+device's gains (its law's), and the identified model of an axis (used by the what-if
+and frequency-response routes).
 """
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Mapping
 from typing import Any
 
 from fastapi import Request
 
 from servotune.autotune.service import AutoTuning
-from servotune.compute import ComputePool
 from servotune.hub.hub import Hub
 from servotune.link.base import ConfirmationRequiredError, DriverError
 from servotune.tuning.law import DeviceLaw, DeviceLaws
@@ -59,9 +62,8 @@ async def check_predicted_stable(
         return
     gains = {n: entry.device_values.get(n, 0) for n in names}
     gains.update({n: int(values[n]) for n in names if isinstance(values.get(n), int)})
-    compute: ComputePool = request.app.state.compute
     try:
-        why = await compute.run(unstable_reason, law, model, gains)
+        why = await asyncio.to_thread(unstable_reason, law, model, gains)
     except ValueError:
         return  # an identified model that describes no such plant: nothing predicted
     if why:

@@ -12,7 +12,8 @@ decreases its error and passes.
 
 A what-if or a proposal predicted unstable is never written without the user's
 explicit confirmation (``PATCH /api/axes/{id}/params?confirm_unstable=true``, the
-auto-tune's accept with ``confirm_unstable``). Pure; runs in the compute worker.
+auto-tune's accept with ``confirm_unstable``). Pure and cheap (one short simulation of
+the discrete loop): a thread beside the event loop runs it.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -41,21 +41,17 @@ from servotune.devices import default_registry
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.profile import TrapezoidGenerator
 from servotune.devices.z1100.law import Kab, MoveProfile, simulate_move
-from servotune.devices.z1100.sim.chip import Z1100Chip
-from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
-from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import LoopModel
 from servotune.tuning.plants import Z1100Plant
 from servotune.tuning.whatif import loop_for, plant_from_identification
 from tests.support.autotune import LIMITS as SLAP2_LIMITS
 from tests.support.bench import finished_run, start
 from tests.support.servers import LiveServer, live_server
-from tests.support.sim_lines import demo_line
+from tests.support.sim_lines import Z1100_BAUD, demo_line, z1100_chip_process
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law
 
-Z1100_BAUD = 38400  # the wire the Z1100 auto-tune test uses (the demo's 9600 is sparser)
 Z1100_LIMITS = {"max_pwm": 80, "max_distance_counts": 20_000, "response": "no_overshoot"}
 DISTANCE = {"slap2": 2000, "z1100": 2000}  # the what-if view's default step
 RETAKES = 2  # a run whose overshoot or settling the bench nulls as untrusted
@@ -90,20 +86,6 @@ PLANTS = {
 }
 
 
-@contextlib.contextmanager
-def z1100_demo_chip(tmp_path: Path) -> Iterator[PtySimulator]:
-    """The demo's Z1100 (its three loads, its flash gains and profile) on a pty."""
-    flash = tmp_path / "flash.json"
-    write_demo_flash(flash)  # the demo's own flash file
-    chip = Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=Z1100_BAUD)
-    simulator = PtySimulator(chip, baud=Z1100_BAUD)
-    simulator.start()
-    try:
-        yield simulator
-    finally:
-        simulator.stop()
-
-
 @contextlib.asynccontextmanager
 async def demo_server(tmp_path: Path, device: str) -> AsyncIterator[LiveServer]:
     if device == "slap2":
@@ -111,7 +93,7 @@ async def demo_server(tmp_path: Path, device: str) -> AsyncIterator[LiveServer]:
             async with live_server(simulator, bus, tmp_path / "data") as server:
                 yield server
     else:
-        with z1100_demo_chip(tmp_path) as simulator:
+        with z1100_chip_process(tmp_path) as (simulator, _):
             spec = LinkSpec("z1100", simulator.path, "line", Z1100_BAUD, [0, 1, 2], 512)
             async with live_server(simulator, None, tmp_path / "data", spec=spec) as server:
                 yield server
