@@ -1,7 +1,7 @@
 """The control lock per axis and the dead-man: who may change an axis, and what happens
 when they vanish.
 
-Sits between the hub and the api: the api asks ``ControlManager.require`` before every
+Sits between the hub and the api: the api asks ``ControlLock.require`` before every
 change of an axis, the websocket endpoint feeds it the control messages of its
 connection (``servotune.schema``: take / request / release / answer / force / heartbeat).
 The hub knows nothing of it except the small ``AutopilotGate`` hook.
@@ -22,7 +22,7 @@ Rules (docs/control.md has the reasoning):
   takes the axis. A change without a client id (scripts, the test suite) changes
   nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
-  rest (``ControlManager._safe_stop``: a controlled stop that holds); the new holder starts
+  rest (``ControlLock._safe_stop``: a controlled stop that holds); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
 * Dead-man: a holder renews its lease with heartbeats (``heartbeat_period_s``); when no
   heartbeat came for ``lease_s`` of time in which the server was listening, or the
@@ -193,7 +193,7 @@ def _can_control(principal: Principal) -> bool:
     return CONTROL in principal.permissions or FORCE_CONTROL in principal.permissions
 
 
-class ControlManager:
+class ControlLock:
     """The lock of every axis of ``hub``; lives for the app's lifespan (``app.state.control``)."""
 
     def __init__(
@@ -375,7 +375,7 @@ class ControlManager:
     # --- control messages -------------------------------------------------------------
 
     def submit(self, client: ControlClient, message: ControlMessage) -> None:
-        """Handle ``message`` in a task of the manager's (see ``handle``)."""
+        """Handle ``message`` in a task of the lock's (see ``handle``)."""
         self._spawn(self.handle(client, message), f"{message.type} from {client.tag}")
 
     async def handle(self, client: ControlClient, message: ControlMessage) -> None:

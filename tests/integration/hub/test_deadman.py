@@ -29,7 +29,7 @@ import pytest
 import websockets
 from websockets.typing import Origin
 
-from servotune.hub.control_lock import ControlClient, ControlManager, ControlSettings
+from servotune.hub.control_lock import ControlClient, ControlLock, ControlSettings
 from tests.support.control import (
     RawWebsocket,
     Server,
@@ -86,8 +86,8 @@ async def server(tmp_path: Path, clock: StepClock) -> AsyncIterator[Server]:
         yield live
 
 
-def manager(server: Server) -> ControlManager:
-    control: ControlManager = server.app.state.control
+def manager(server: Server) -> ControlLock:
+    control: ControlLock = server.app.state.control
     return control
 
 
@@ -97,7 +97,7 @@ def client_of(server: Server, client_id: str) -> ControlClient:
     return client
 
 
-async def until(server: Server, done: Callable[[ControlManager], Any], what: str = "") -> None:
+async def until(server: Server, done: Callable[[ControlLock], Any], what: str = "") -> None:
     deadline = time.monotonic() + LIVENESS_S
     while not done(manager(server)):
         assert time.monotonic() < deadline, f"not within {LIVENESS_S} s: {what or done}"
