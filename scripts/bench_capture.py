@@ -32,7 +32,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.devices.slap2.sim.demo import build_slap2_bus
+from servotune.devices.slap2.sim.demo import build_slap2_line
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
@@ -104,7 +104,7 @@ async def wait(condition: object, timeout_s: float) -> None:
 
 
 async def bench_slap2(state: Path, seconds: float) -> None:
-    spec = SerialSimSpec("slap2", functools.partial(build_slap2_bus, state / "slap2"), 19200)
+    spec = SerialSimSpec("slap2", functools.partial(build_slap2_line, state / "slap2"), 19200)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
         sink = Sink()

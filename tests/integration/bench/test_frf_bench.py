@@ -28,7 +28,7 @@ from servotune.devices import default_registry
 from servotune.devices.slap2.codec import TICK_S
 from servotune.devices.slap2.injection import Slap2Injection, TrapezoidInput
 from servotune.devices.slap2.law import slap2_loop
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.law import z1100_loop_for
 from servotune.link.base import InvalidArgumentError
@@ -252,8 +252,8 @@ def test_identified_models_are_read_per_device() -> None:
 
 
 @pytest.fixture
-def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=NO_FRICTION)])
+def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Line]]:
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=NO_FRICTION)])
     simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
     simulator.start()
     try:
@@ -264,7 +264,7 @@ def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
 
 @pytest.fixture
 async def one_module_api(
-    tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]
+    tmp_path: Path, one_module: tuple[PtySimulator, Slap2Line]
 ) -> AsyncIterator[Any]:
     sim, bus = one_module
     spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0], 512)
@@ -475,7 +475,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(
 
 
 async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
-    one_module_api: LiveServer, one_module: tuple[PtySimulator, Slap2Bus]
+    one_module_api: LiveServer, one_module: tuple[PtySimulator, Slap2Line]
 ) -> None:
     """Host stalls injected into the capture (``PtySimulator.stall_host``: after one CR
     in fifteen the echo and the reply reach the host 15-50 ms late, as when the host runs
