@@ -1,4 +1,4 @@
-"""Helpers for the control-lock tests and ``scripts/bench_deadman.py``.
+"""Helpers for the control-lock tests and ``scripts/perf_deadman.py``.
 
 ``recorded_line``: a simulated SLAP2 line behind a ``WireRecorder`` (``sim_lines``: every
 line the host sent, with the time it reached the simulated device and the module

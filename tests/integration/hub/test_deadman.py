@@ -13,7 +13,7 @@ server's time - no trip while a client is heard within the lease, a trip in the 
 watchdog pass after it, a frozen page after ``frozen_page_s`` - whatever the load on
 the machine. How long the whole chain takes in real time (the lapse, the STOP on the
 wire: the 500 ms promise) is a figure of the machine, measured by
-``scripts/bench_deadman.py`` (docs/control.md).
+``scripts/perf_deadman.py`` (docs/control.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ jog both ways, and no axis left oscillating after a bench run.
 
 The stopping distances are compared with the power-off measured in the same test on
 the same plant (a ratio: the host's speed only adds its latency to both). The
-table of every demo plant is ``scripts/bench_stops.py`` (docs/control.md).
+table of every demo plant is ``scripts/perf_stops.py`` (docs/control.md).
 """
 
 from __future__ import annotations

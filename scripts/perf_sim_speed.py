@@ -11,7 +11,7 @@ no pty, no I/O), for one module in each of these states:
   rarely rests and never reaches a limit switch: the dearest case, no idle fast path);
 * ``holding``: pm at rest (the idle fast path skips the ticks).
 
-Run: ``PYTHONPATH=server python scripts/bench_sim_speed.py [--seconds 10]``. The figure
+Run: ``PYTHONPATH=server python scripts/perf_sim_speed.py [--seconds 10]``. The figure
 depends on the machine and its load (printed); CPU time is far less sensitive to
 load than wall time, but a loaded host still inflates it (caches, hyperthreads).
 """
