@@ -469,11 +469,10 @@ class _FakeLink:
 async def test_hub_never_shows_a_dead_or_stalled_link_connected(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import servotune.hub.state as hub_module
     from servotune.hub.hub import Hub
     from servotune.storage import Storage
 
-    monkeypatch.setattr(hub_module, "STATUS_STALE_S", 0.5)
+    monkeypatch.setattr("servotune.hub.state.STATUS_STALE_S", 0.5)
     holder: list[Hub] = []
     crash = _FakeLink(lambda: holder[0], "crash")
     hub = Hub([crash], Storage(tmp_path / "db.sqlite"))  # type: ignore[list-item]
