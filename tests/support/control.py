@@ -33,7 +33,7 @@ from websockets.typing import Origin
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Line
-from servotune.hub.control_lock import CLIENT_HEADER, ControlSettings
+from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
 from servotune.sim.process import Remote
 from tests.support.servers import use_csrf_token
 from tests.support.sim_builders import WireRecorder, recorded_slap2_line

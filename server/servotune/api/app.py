@@ -38,7 +38,8 @@ from servotune.bench.service import TestBench
 from servotune.compute import PRELOAD, ComputePool
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.hub.control_lock import AuditSink, ControlLock, ControlSettings
+from servotune.hub.control_client import AuditSink, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.hub.state import UnknownAxisError
 from servotune.link.base import (

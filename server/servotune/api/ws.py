@@ -27,7 +27,8 @@ from servotune.auth.authz import REAUTH_DETAIL, password_fresh
 from servotune.auth.principal import FORCE_CONTROL, Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
-from servotune.hub.control_lock import ControlClient, ControlLock
+from servotune.hub.control_client import ControlClient
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.hub.state import ClientQueue
 from servotune.schema import ClientStats, ControlReply, Heartbeat, Ping

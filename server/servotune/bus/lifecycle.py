@@ -11,7 +11,8 @@ from servotune.bus.autotune import HubAutoTuner
 from servotune.bus.connection import BusSettings
 from servotune.bus.lab_hub import HubBus
 from servotune.bus.rig import RigAgent
-from servotune.hub.control_lock import AuditSink, ControlLock, ControlSettings
+from servotune.hub.control_client import AuditSink, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.storage import Storage
 

@@ -75,7 +75,8 @@ from servotune.bus.messages import (
     RunRecord,
 )
 from servotune.bus.tasks import BackgroundTasks
-from servotune.hub.control_lock import ControlClient, ControlLock
+from servotune.hub.control_client import ControlClient
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.hub.state import ClientQueue, StopOvertakenError, UnknownAxisError
 from servotune.link.base import (

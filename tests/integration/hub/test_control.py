@@ -21,7 +21,8 @@ from fastapi import HTTPException
 from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
-from servotune.hub.control_lock import CLIENT_HEADER, ControlLock, ControlSettings
+from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.schema import ForceControl, TakeControl
 from tests.support.control import (
     Operator,

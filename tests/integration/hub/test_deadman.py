@@ -29,7 +29,8 @@ import pytest
 import websockets
 from websockets.typing import Origin
 
-from servotune.hub.control_lock import ControlClient, ControlLock, ControlSettings
+from servotune.hub.control_client import ControlClient, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from tests.support.control import (
     RawWebsocket,
     Server,
