@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from servotune.descriptor import Conversion
 
@@ -426,3 +426,212 @@ ControlClientMessage = Annotated[
     TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl | Heartbeat,
     Field(discriminator="type"),
 ]
+
+
+# --- REST bodies (server/servotune/api) -------------------------------------------------------
+#
+# Request and response bodies of the REST routes the web client calls. The TypeScript of
+# these is generated beside the websocket types. A request model's field with a default
+# may be left out by the client; a response model's fields are all sent.
+
+BenchKind = Literal["move", "position_step", "velocity_step", "pwm_step", "frequency_response"]
+
+
+class BenchLimits(BaseModel):
+    """What the user allows the bench to do on one axis (checked before every test)."""
+
+    max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
+    max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
+    max_pwm: int = Field(default=80, ge=1, le=255)
+    max_duration_s: float = Field(default=10.0, gt=0, le=60)
+    min_position_counts: int | None = Field(
+        default=None,
+        ge=-(1 << 31),
+        le=(1 << 31) - 1,
+        description="travel window: no test starts outside it, targets a position outside "
+        "it or travels out of it (counts, with max_position_counts; null: no window)",
+    )
+    max_position_counts: int | None = Field(default=None, ge=-(1 << 31), le=(1 << 31) - 1)
+
+    @model_validator(mode="after")
+    def _window(self) -> BenchLimits:
+        low, high = self.min_position_counts, self.max_position_counts
+        if low is not None and high is not None and low >= high:
+            raise ValueError(f"min_position_counts {low} must be below max_position_counts {high}")
+        return self
+
+    def outside(self, position: float) -> str | None:
+        """Why ``position`` is outside the travel window, or None."""
+        if self.min_position_counts is not None and position < self.min_position_counts:
+            return f"{position:.0f} is below your min_position_counts {self.min_position_counts}"
+        if self.max_position_counts is not None and position > self.max_position_counts:
+            return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
+        return None
+
+
+class BenchTestRequest(BaseModel):
+    """``POST /api/axes/{id}/bench/runs``: what to run (units are the device's)."""
+
+    kind: BenchKind = Field(
+        description="move | position_step | velocity_step | pwm_step | frequency_response"
+    )
+    distance: int = 0
+    velocity: int = 0
+    pwm: int = 0
+    duration_s: float = Field(default=2.0, gt=0)
+    amplitude: int = Field(
+        default=0,
+        description="frequency_response: peak of the multisine around the held "
+        "position, counts (1..max_distance_counts)",
+    )
+    low_hz: float = Field(default=1.0, description="frequency_response: lowest tone, Hz")
+    high_hz: float = Field(default=40.0, description="frequency_response: highest tone, Hz")
+    loop: Literal["closed", "open"] = Field(
+        default="closed",
+        description="frequency_response: closed (position targets, ma) or open (PWM "
+        "through spwm, peak `pwm`; SLAP2 only, needs a travel window and confirmation)",
+    )
+    confirm_open_loop: bool = Field(
+        default=False, description="frequency_response, loop open: the user confirmed"
+    )
+    note: str = Field(default="", max_length=200)
+
+
+class BenchInfo(BaseModel):
+    """``GET /api/axes/{id}/bench``: the tests, limits and form fields of one axis."""
+
+    kinds: list[str]
+    limits: BenchLimits
+    definitions: dict[str, str] = Field(description="how each metric is computed")
+    fields: dict[str, BenchField] = Field(
+        default_factory=dict,
+        description="the test form's fields (distance, velocity, pwm): unit, conversions "
+        "and the device parameter a field sets",
+    )
+    whatif: bool = Field(
+        default=False, description="the what-if view works here (the device has a law)"
+    )
+    frequency_response: Literal["measured", "model"] | None = Field(
+        default=None,
+        description="measured: a multisine injected around the held position; model: the "
+        "identified plant under the device's law; null: no frequency_response test",
+    )
+
+
+# A parameter set's name is a path segment of its URL: no "/", no leading or trailing
+# space, and at least one character that is neither a dot nor a space, so "." and ".."
+# (which a browser folds away when it normalises the URL) and " " can never be saved.
+# Letters, digits, "_", spaces inside and . , + ( ) # - are allowed ("#" is sent as %23).
+SET_NAME_PATTERN = r"^(?:[\w.,+()#-][\w .,+()#-]*)?[\w,+()#-](?:[\w .,+()#-]*[\w.,+()#-])?$"
+SET_NAME_MAX = 60
+
+
+class SaveSetRequest(BaseModel):
+    """``POST .../param-sets``: the set's name (see ``SET_NAME_PATTERN``) and a note."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=SET_NAME_MAX, pattern=SET_NAME_PATTERN)
+    note: str = Field(default="", max_length=200)
+
+
+class SavedSet(BaseModel):
+    """``POST .../param-sets``: the name saved and the values read from the device."""
+
+    name: str
+    params: dict[str, int]
+
+
+class ParamSet(BaseModel):
+    """A named set of parameter values as read from the device when it was saved."""
+
+    name: str
+    created_s: float = Field(description="unix seconds")
+    device: str
+    params: dict[str, int]
+    note: str
+
+
+class ParamSetComparison(BaseModel):
+    """``device`` (read now) against the set; ``differing`` names the parameters whose
+    values differ (the UI adds its own unsaved values as the third column)."""
+
+    name: str
+    device: dict[str, int]
+    saved: dict[str, int]
+    differing: list[str]
+
+
+# --- what-if view (GET /api/axes/{id}/whatif) -------------------------------------------------
+# Numbers the server computes may be sent as integers: ``int | float`` keeps each as sent.
+
+Number = int | float
+MarginPreset = Literal["stiff", "medium", "soft"]
+
+
+class MarginTarget(BaseModel):
+    """The phase and gain margins a set of gains is designed to (a preset)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    preset: MarginPreset
+    phase_margin_deg: Number
+    gain_margin_db: Number
+
+
+class VerifyProfile(BaseModel):
+    """The move of an auto-tune verification step, as the what-if view replays it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["position_step", "move"]
+    velocity_counts_s: Number
+    acceleration_counts_s2: Number
+
+
+class WhatIfPlant(BaseModel):
+    """The identified velocity plant ``g / (s (tau s + 1))`` and where it comes from."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gain_counts_s_per_unit: Number
+    tau_s: Number
+    source: str
+
+
+class WhatIfModel(BaseModel):
+    """The plant discretised at the controller period and the device's law as data.
+
+    ``plant_num``/``plant_den``: ``y[n] = sum(num[i] u[n-i]) - sum(den[i] y[n-i], i>=1)``
+    with ``den[0] == 1``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: str
+    law: str
+    controller: ControllerLaw
+    period_s: Number
+    plant_num: list[float]
+    plant_den: list[float]
+    pwm_limit: Number
+    plant: WhatIfPlant
+
+
+class WhatIfInfo(BaseModel):
+    """``GET /api/axes/{id}/whatif``: the gains now and their ranges, the margin targets,
+    the verification move and the model (null with ``problem`` until identified)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    axis_id: str
+    device: str
+    gains: dict[str, Number | None]
+    ranges: dict[str, tuple[Number, Number]]
+    model: WhatIfModel | None
+    problem: str | None
+    target: MarginTarget = Field(description="what the margins are read against")
+    targets: dict[str, MarginTarget]
+    proposal: dict[str, Number] | None = Field(
+        description="the auto-tune's proposed gains, if there is a proposal"
+    )
+    verify: VerifyProfile

@@ -1,4 +1,5 @@
-"""Generate ``web/src/schema.gen.ts`` from the wire schema and the descriptor models.
+"""Generate ``web/src/schema.gen.ts`` from the wire schema, the descriptor models and
+the REST bodies.
 
 ``python -m servotune.schema_ts > web/src/schema.gen.ts`` writes it;
 ``python -m servotune.schema_ts --check web/src/schema.gen.ts`` fails (exit 1) when the
@@ -76,7 +77,28 @@ MODELS: list[type[BaseModel]] = [
     wire.ForceControl,
     wire.Heartbeat,
 ]
+# REST bodies. A response model's fields are all sent (like the websocket messages'); a
+# request model's field with a default is optional in TypeScript (the client may leave it
+# out). A model that is both (a PUT that answers with what it stored) is a response.
+REST_RESPONSES: list[type[BaseModel]] = [
+    wire.BenchLimits,
+    wire.BenchInfo,
+    wire.SavedSet,
+    wire.ParamSet,
+    wire.ParamSetComparison,
+    wire.MarginTarget,
+    wire.VerifyProfile,
+    wire.WhatIfPlant,
+    wire.WhatIfModel,
+    wire.WhatIfInfo,
+]
+REST_REQUESTS: list[type[BaseModel]] = [
+    wire.BenchTestRequest,
+    wire.SaveSetRequest,
+]
 ALIASES = {
+    "BenchKind": wire.BenchKind,
+    "MarginPreset": wire.MarginPreset,
     "LinkState": wire.LinkState,
     "AxisHealth": wire.AxisHealth,
     "EventLevel": wire.EventLevel,
@@ -120,7 +142,10 @@ def ts_type(annotation: object) -> str:
     if origin is typing.Literal:
         return " | ".join(f'"{a}"' if isinstance(a, str) else str(a) for a in args)
     if origin in (typing.Union, types.UnionType):
-        return " | ".join(ts_type(a) for a in args)
+        # int | float is one TypeScript number
+        return " | ".join(dict.fromkeys(ts_type(a) for a in args))
+    if origin is tuple:
+        return f"[{', '.join(ts_type(a) for a in args)}]"
     if origin is list:
         inner = ts_type(args[0])
         return f"({inner})[]" if "|" in inner else f"{inner}[]"
@@ -138,18 +163,27 @@ def render() -> str:
     for alias, target in ALIASES.items():
         lines.append(f"export type {alias} = {_literal_of(target)};")
     lines.append("")
-    for model in MODELS:
-        hints = typing.get_type_hints(model)
-        lines.append(f"export interface {model.__name__} {{")
-        # Every field is required: the server always sends every field.
-        for name in model.model_fields:
-            lines.append(f"  {name}: {ts_type(hints[name])};")
-        lines.append("}")
-        lines.append("")
+    for model in [*MODELS, *REST_RESPONSES]:
+        lines.extend(_interface(model, optional_defaults=False))
+    for model in REST_REQUESTS:
+        lines.extend(_interface(model, optional_defaults=True))
     for union, members in UNIONS.items():
         lines.append(f"export type {union} = {' | '.join(m.__name__ for m in members)};")
     lines.append("")
     return "\n".join(lines)
+
+
+def _interface(model: type[BaseModel], *, optional_defaults: bool) -> list[str]:
+    """``model`` as a TypeScript interface; with ``optional_defaults`` a field that has a
+    default is optional (``name?: T``), otherwise every field is required."""
+    hints = typing.get_type_hints(model)
+    lines = [f"export interface {model.__name__} {{"]
+    for name, field in model.model_fields.items():
+        mark = "?" if optional_defaults and not field.is_required() else ""
+        lines.append(f"  {name}{mark}: {ts_type(hints[name])};")
+    lines.append("}")
+    lines.append("")
+    return lines
 
 
 def _literal_of(target: object) -> str:

@@ -212,3 +212,25 @@ async def test_bench_overlays_two_runs_with_different_kp(
     await expect(page.get_by_test_id("bench-param-diff")).to_contain_text("kp")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     await page.screenshot(path=str(ARTIFACTS / "bench-overlay.png"), full_page=True)
+
+
+async def test_saving_limits_on_the_page_keeps_the_travel_window(
+    dashboard: tuple[Page, LiveServer],
+) -> None:
+    """The page has no travel-window fields: saving the other limits sends the window
+    back as the server holds it instead of clearing it."""
+    page, server = dashboard
+    window = {"min_position_counts": -50_000, "max_position_counts": 50_000}
+    limits = {"max_distance_counts": 20_000, "max_velocity": 20_000, "max_pwm": 80}
+    response = await server.client.put(
+        "/api/axes/line-0/bench/limits", json={**limits, "max_duration_s": 10, **window}
+    )
+    assert response.status_code == 200
+    await page.get_by_test_id("axis-link-line-0").click()
+    await page.get_by_test_id("bench-toggle").click()
+    await page.get_by_test_id("bench-limit-max_pwm").fill("70")
+    await page.get_by_test_id("bench-limits-save").click()
+    await expect(page.locator(".bench-limits-status")).to_contain_text("saved")
+    saved = (await server.client.get("/api/axes/line-0/bench")).json()["limits"]
+    assert saved["max_pwm"] == 70
+    assert {k: saved[k] for k in window} == window

@@ -1,12 +1,34 @@
 // REST calls. Every 4xx/5xx body is {detail, field}; ApiError carries both.
 import type {
-  BenchField,
   AxisInfo,
   AxisState,
+  BenchInfo,
+  BenchLimits,
+  BenchTestRequest,
   CommandResult,
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
+  MarginPreset,
+  MarginTarget,
+  ParamSet,
+  ParamSetComparison,
+  SavedSet,
+  SaveSetRequest,
+  StopResult,
+} from "./schema.gen";
+
+// REST bodies generated from server/servotune/schema.py, re-exported for the views.
+export type {
+  BenchInfo,
+  BenchKind,
+  BenchLimits,
+  BenchTestRequest,
+  MarginPreset,
+  MarginTarget,
+  ParamSet,
+  ParamSetComparison,
+  SavedSet,
 } from "./schema.gen";
 
 export class ApiError extends Error {
@@ -126,45 +148,7 @@ export async function reauthenticate(): Promise<boolean> {
   return reauthHandler ? reauthHandler() : false;
 }
 
-// --- test bench (server/servotune/api/bench_routes.py; not in the generated wire types) ---
-
-export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
-
-export interface BenchLimits {
-  max_distance_counts: number;
-  max_velocity: number;
-  max_pwm: number;
-  max_duration_s: number;
-}
-
-export interface BenchInfo {
-  kinds: BenchKind[];
-  limits: BenchLimits;
-  /** How each metric is computed. */
-  definitions: Record<string, string>;
-  /** The form's fields (distance, velocity, pwm): unit, conversions, the parameter set. */
-  fields: Record<string, BenchField>;
-  /** The device has a law: the what-if view works. */
-  whatif: boolean;
-  /** measured: a multisine around the held position; model: the identified plant under
-   * the law; null: no frequency_response test. */
-  frequency_response: "measured" | "model" | null;
-}
-
-export interface BenchTestRequest {
-  kind: BenchKind;
-  distance: number;
-  velocity: number;
-  pwm: number;
-  duration_s: number;
-  note: string;
-  // frequency_response only (ui/bode.ts)
-  amplitude?: number;
-  low_hz?: number;
-  high_hz?: number;
-  loop?: "closed" | "open"; // open: PWM through spwm (peak `pwm`), SLAP2 only
-  confirm_open_loop?: boolean;
-}
+// --- test bench (server/servotune/api/bench_routes.py) ---
 
 /** servotune/bench/metrics.py ``Metrics`` (times in s after the trigger t0). */
 export interface RunMetrics {
@@ -200,7 +184,8 @@ export interface BenchRun {
   device: string;
   model: string;
   identity?: Record<string, unknown>;
-  test: Omit<BenchTestRequest, "kind"> & { kind: BenchKind };
+  /** The request as recorded: the size fields and note are always there. */
+  test: BenchTestRequest & Required<Pick<BenchTestRequest, "distance" | "velocity" | "pwm" | "duration_s" | "note">>;
   params: Record<string, number>;
   plan: { response: string; y0: number; y_final: number; band: number | null; overrides: Record<string, number> };
   columns: string[]; // columns[0] == "t_s"
@@ -219,34 +204,10 @@ export interface BenchRunDetail extends BenchRun {
 
 // --- parameter sets (server/servotune/api/param_set_routes.py) ---
 
-/** A named set of parameter values as read from the device when it was saved. */
-export interface ParamSet {
-  name: string;
-  created_s: number; // unix seconds
-  device: string;
-  params: Record<string, number>;
-  note: string;
-}
-
-/** ``device`` read now against the set; ``differing``: parameters whose values differ. */
-export interface ParamSetComparison {
-  name: string;
-  device: Record<string, number>;
-  saved: Record<string, number>;
-  differing: string[];
-}
-
 // --- auto-tune (server/servotune/api/autotune_routes.py, servotune/autotune.py) ---
 
 export type AutoTuneGoal = "no_overshoot" | "fast";
 
-/** Margin targets (server/servotune/tuning/targets.py). */
-export type MarginPreset = "stiff" | "medium" | "soft";
-export interface MarginTarget {
-  preset: MarginPreset;
-  phase_margin_deg: number;
-  gain_margin_db: number;
-}
 
 /** A set of gains' margins on the model against a target (``tuning.targets``). */
 export interface MarginReport {
@@ -382,7 +343,7 @@ export const api = {
   command: (id: string, command: string, args: Record<string, number>) =>
     request<CommandResult>("POST", `${axis(id)}/commands`, { command, ...args }),
   console: (id: string, line: string) => request<ConsoleReply>("POST", `${axis(id)}/console`, { line }),
-  stopAll: () => request<{ failed: string[] }>("POST", "/api/stop"),
+  stopAll: () => request<StopResult>("POST", "/api/stop"),
   bench: (id: string) => request<BenchInfo>("GET", `${axis(id)}/bench`),
   setBenchLimits: (id: string, limits: BenchLimits) => request<BenchLimits>("PUT", `${axis(id)}/bench/limits`, limits),
   startRun: (id: string, test: BenchTestRequest) => request<BenchRun>("POST", `${axis(id)}/bench/runs`, test),
@@ -394,7 +355,7 @@ export const api = {
     request<{ id: string }>("POST", `${axis(id)}/bench/runs/import`, { meta, csv }),
   paramSets: (id: string) => request<ParamSet[]>("GET", `${axis(id)}/param-sets`),
   saveParamSet: (id: string, name: string, note: string) =>
-    request<{ name: string; params: Record<string, number> }>("POST", `${axis(id)}/param-sets`, { name, note }),
+    request<SavedSet>("POST", `${axis(id)}/param-sets`, { name, note } satisfies SaveSetRequest),
   compareParamSet: (id: string, name: string) => request<ParamSetComparison>("GET", `${paramSet(id, name)}/compare`),
   restoreParamSet: (id: string, name: string) => request<Record<string, number>>("POST", `${paramSet(id, name)}/restore`),
   deleteParamSet: (id: string, name: string) => request<null>("DELETE", paramSet(id, name)),

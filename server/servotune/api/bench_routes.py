@@ -12,7 +12,6 @@ from typing import IO, Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
-from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 
 from servotune.api.gains_check import device_law
@@ -25,7 +24,7 @@ from servotune.bench.service import BenchTestRequest, TestBench
 from servotune.descriptor import DeviceDescriptor
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DriverError, InvalidArgumentError
-from servotune.schema import BenchField, ErrorBody, StorageStatus
+from servotune.schema import BenchField, BenchInfo, ErrorBody, StorageStatus
 from servotune.storage import Storage, dumps_strict
 
 STORE_ERRORS: dict[int | str, dict[str, Any]] = {
@@ -42,25 +41,6 @@ def get_bench(request: Request) -> TestBench:
 
 
 BenchDep = Annotated[TestBench, Depends(get_bench)]
-
-
-class BenchInfo(BaseModel):
-    kinds: list[str]
-    limits: BenchLimits
-    definitions: dict[str, str] = Field(description="how each metric is computed")
-    fields: dict[str, BenchField] = Field(
-        default_factory=dict,
-        description="the test form's fields (distance, velocity, pwm): unit, conversions "
-        "and the device parameter a field sets",
-    )
-    whatif: bool = Field(
-        default=False, description="the what-if view works here (the device has a law)"
-    )
-    frequency_response: Literal["measured", "model"] | None = Field(
-        default=None,
-        description="measured: a multisine injected around the held position; model: the "
-        "identified plant under the device's law; null: no frequency_response test",
-    )
 
 
 def bench_fields(descriptor: DeviceDescriptor) -> dict[str, BenchField]:

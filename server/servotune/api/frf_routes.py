@@ -24,6 +24,7 @@ from servotune.bench import frf
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError
+from servotune.schema import WhatIfInfo
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS
 from servotune.tuning.whatif import browser_model, plant_from_identification
 
@@ -99,7 +100,9 @@ def _proposal_gains(request: Request, axis_id: str) -> dict[str, int] | None:
     return dict(gains) if isinstance(gains, dict) else None
 
 
-@router.get("/api/axes/{axis_id}/whatif", responses=errors(404, 409, 422))
+@router.get(
+    "/api/axes/{axis_id}/whatif", response_model=WhatIfInfo, responses=errors(404, 409, 422)
+)
 async def whatif_model(axis_id: str, request: Request, hub: HubDep) -> dict[str, Any]:
     """The what-if view's model: the identified plant discretised at the controller
     period (difference-equation coefficients in z^-1), the law, the gains now and

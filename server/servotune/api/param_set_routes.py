@@ -12,13 +12,20 @@ import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Request
-from pydantic import BaseModel, ConfigDict, Field
 
 from servotune.api.deps import HubDep
 from servotune.api.responses import errors
 from servotune.api.routes import ERRORS
 from servotune.hub.hub import NotFoundError
 from servotune.link.base import InvalidArgumentError
+from servotune.schema import (
+    SET_NAME_MAX,
+    SET_NAME_PATTERN,
+    ParamSet,
+    ParamSetComparison,
+    SavedSet,
+    SaveSetRequest,
+)
 from servotune.storage import Storage
 
 router = APIRouter(tags=["parameter sets"])
@@ -31,14 +38,6 @@ def get_storage(request: Request) -> Storage:
 
 StorageDep = Annotated[Storage, Depends(get_storage)]
 
-
-# A set's name is a path segment of its URL: no "/", no leading or trailing space, and
-# at least one character that is neither a dot nor a space, so "." and ".." (which a
-# browser folds away when it normalises the URL) and " " can never be saved. Letters,
-# digits, "_", spaces inside and . , + ( ) # - are allowed (a "#" must be sent as %23).
-SET_NAME_PATTERN = r"^(?:[\w.,+()#-][\w .,+()#-]*)?[\w,+()#-](?:[\w .,+()#-]*[\w.,+()#-])?$"
-SET_NAME_MAX = 60
-
 SetName = Annotated[
     str,
     Path(
@@ -50,32 +49,17 @@ SetName = Annotated[
 ]
 
 
-class SaveSetRequest(BaseModel):
-    """``POST .../param-sets``: the set's name (see ``SET_NAME_PATTERN``) and a note."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    name: str = Field(min_length=1, max_length=SET_NAME_MAX, pattern=SET_NAME_PATTERN)
-    note: str = Field(default="", max_length=200)
-
-
-class ParamSetComparison(BaseModel):
-    """``device`` (read now) against the set; ``differing`` names the parameters whose
-    values differ (the UI adds its own unsaved values as the third column)."""
-
-    name: str
-    device: dict[str, int]
-    saved: dict[str, int]
-    differing: list[str]
-
-
-@router.get("/api/axes/{axis_id}/param-sets", responses=errors(404, 422))
+@router.get(
+    "/api/axes/{axis_id}/param-sets", response_model=list[ParamSet], responses=errors(404, 422)
+)
 async def list_sets(axis_id: str, hub: HubDep, storage: StorageDep) -> list[dict[str, Any]]:
     entry = hub.entry(axis_id)
     return await asyncio.to_thread(storage.list_param_sets, entry.storage_key)
 
 
-@router.post("/api/axes/{axis_id}/param-sets", status_code=201, responses=ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/param-sets", status_code=201, response_model=SavedSet, responses=ERRORS
+)
 async def save_set(
     axis_id: str, body: SaveSetRequest, hub: HubDep, storage: StorageDep
 ) -> dict[str, Any]:

@@ -4,43 +4,10 @@ from __future__ import annotations
 
 import asyncio
 
-from pydantic import BaseModel, Field, model_validator
-
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
+from servotune.schema import BenchLimits as BenchLimits  # importable from here too
 from servotune.storage import Storage
-
-
-class BenchLimits(BaseModel):
-    """What the user allows the bench to do on one axis (checked before every test)."""
-
-    max_distance_counts: int = Field(default=20_000, ge=1, le=1 << 25)
-    max_velocity: int = Field(default=20_000, ge=1, le=1 << 31)
-    max_pwm: int = Field(default=80, ge=1, le=255)
-    max_duration_s: float = Field(default=10.0, gt=0, le=60)
-    min_position_counts: int | None = Field(
-        default=None,
-        ge=-(1 << 31),
-        le=(1 << 31) - 1,
-        description="travel window: no test starts outside it, targets a position outside "
-        "it or travels out of it (counts, with max_position_counts; null: no window)",
-    )
-    max_position_counts: int | None = Field(default=None, ge=-(1 << 31), le=(1 << 31) - 1)
-
-    @model_validator(mode="after")
-    def _window(self) -> BenchLimits:
-        low, high = self.min_position_counts, self.max_position_counts
-        if low is not None and high is not None and low >= high:
-            raise ValueError(f"min_position_counts {low} must be below max_position_counts {high}")
-        return self
-
-    def outside(self, position: float) -> str | None:
-        """Why ``position`` is outside the travel window, or None."""
-        if self.min_position_counts is not None and position < self.min_position_counts:
-            return f"{position:.0f} is below your min_position_counts {self.min_position_counts}"
-        if self.max_position_counts is not None and position > self.max_position_counts:
-            return f"{position:.0f} is above your max_position_counts {self.max_position_counts}"
-        return None
 
 
 class LimitsStore:

@@ -33,9 +33,7 @@ from collections.abc import AsyncIterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Literal, Protocol, runtime_checkable
-
-from pydantic import BaseModel, Field
+from typing import Any, Protocol, runtime_checkable
 
 from servotune.bench import files, frf
 from servotune.bench.limits import BenchLimits, LimitsStore
@@ -44,7 +42,6 @@ from servotune.bench.runner import ActiveRuns, ExternalRecording, Recording, Run
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.link.base import (
-    BenchKind,
     BenchPlan,
     BenchPlanner,
     BenchTest,
@@ -54,6 +51,7 @@ from servotune.link.base import (
     Sample,
 )
 from servotune.link.validation import validate_command, validate_params
+from servotune.schema import BenchTestRequest as BenchTestRequest  # importable from here too
 from servotune.schema import StorageStatus
 from servotune.storage import Storage, StorageError
 from servotune.tuning.frfrun import Excitation
@@ -73,34 +71,6 @@ class BenchDelegate(Protocol):
     async def bench_start(self, request: Mapping[str, Any]) -> dict[str, Any]: ...
 
     async def bench_runs(self) -> list[dict[str, Any]]: ...
-
-
-class BenchTestRequest(BaseModel):
-    """``POST /api/axes/{id}/bench/runs``: what to run (units are the device's)."""
-
-    kind: BenchKind = Field(
-        description="move | position_step | velocity_step | pwm_step | frequency_response"
-    )
-    distance: int = 0
-    velocity: int = 0
-    pwm: int = 0
-    duration_s: float = Field(default=2.0, gt=0)
-    amplitude: int = Field(
-        default=0,
-        description="frequency_response: peak of the multisine around the held "
-        "position, counts (1..max_distance_counts)",
-    )
-    low_hz: float = Field(default=1.0, description="frequency_response: lowest tone, Hz")
-    high_hz: float = Field(default=40.0, description="frequency_response: highest tone, Hz")
-    loop: Literal["closed", "open"] = Field(
-        default="closed",
-        description="frequency_response: closed (position targets, ma) or open (PWM "
-        "through spwm, peak `pwm`; SLAP2 only, needs a travel window and confirmation)",
-    )
-    confirm_open_loop: bool = Field(
-        default=False, description="frequency_response, loop open: the user confirmed"
-    )
-    note: str = Field(default="", max_length=200)
 
 
 class TestBench:

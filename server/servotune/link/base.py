@@ -15,6 +15,7 @@ from typing import Literal, Protocol, runtime_checkable
 
 from servotune.descriptor import DeviceDescriptor
 from servotune.schema import AxisHealth, EventLevel, LinkState
+from servotune.schema import BenchKind as BenchKind  # importable from here too
 
 
 class DriverError(Exception):
@@ -236,9 +237,6 @@ class Autopilot(Protocol):
     def autopilot_settled(self, latest: Sample) -> bool:
         """The move has ended and the axis is at rest."""
         ...
-
-
-BenchKind = Literal["move", "position_step", "velocity_step", "pwm_step", "frequency_response"]
 
 
 @dataclass(frozen=True, slots=True)

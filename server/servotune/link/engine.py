@@ -45,9 +45,9 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar, overload
 
 from servotune.link.base import DeviceRefusedError, DriverSink, LinkDownError
 from servotune.schema import LinkState
@@ -120,6 +120,67 @@ class LinkSession(Protocol):
 
     def achieved_rate_hz(self) -> float:
         """Telemetry samples/s per axis achieved recently."""
+
+
+class HasEngine(Protocol):
+    """A device link that has a ``LinkEngine``."""
+
+    @property
+    def engine(self) -> LinkEngine: ...
+
+
+class FromEngine(Generic[T]):
+    """A read-only member of a device link that is the member of the same name of its
+    ``engine``, read each time (``engine_face``)."""
+
+    def __init__(self, name: str, read: Callable[[LinkEngine], T]) -> None:
+        self._name = name
+        self._read = read
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        if name != self._name:
+            raise TypeError(f"{owner.__name__}.{name} would read the engine's {self._name}")
+
+    @overload
+    def __get__(self, link: None, owner: type) -> FromEngine[T]: ...
+
+    @overload
+    def __get__(self, link: HasEngine, owner: type | None = None) -> T: ...
+
+    def __get__(self, link: HasEngine | None, owner: type | None = None) -> T | FromEngine[T]:
+        if link is None:
+            return self
+        return self._read(link.engine)
+
+
+def engine_face() -> tuple[
+    FromEngine[str],
+    FromEngine[str],
+    FromEngine[int],
+    FromEngine[LinkState],
+    FromEngine[int],
+    FromEngine[dict[str, int]],
+    FromEngine[float | None],
+    FromEngine[Callable[[], float]],
+    FromEngine[Callable[[], Coroutine[Any, Any, None]]],
+]:
+    """The members of ``link.base.Link`` (and ``HasCounters``, ``HasWireBusy``,
+    ``WireStats``) that a serial link takes from its engine, in this order:
+    ``id, path, baud, state, errors, counters, wire_busy, now, run = engine_face()`` in
+    the link's class body (``HasEngine``). The device link writes only what differs
+    (``device``, ``axes``, its rates); no forwarding property per member, no base class.
+    A name out of order fails when the class is defined."""
+    return (
+        FromEngine("id", lambda engine: engine.id),
+        FromEngine("path", lambda engine: engine.path),
+        FromEngine("baud", lambda engine: engine.baud),
+        FromEngine("state", lambda engine: engine.state),
+        FromEngine("errors", lambda engine: engine.errors),
+        FromEngine("counters", lambda engine: engine.counters),
+        FromEngine("wire_busy", lambda engine: engine.wire_busy),
+        FromEngine("now", lambda engine: engine.now),
+        FromEngine("run", lambda engine: engine.run),
+    )
 
 
 class LinkEngine:

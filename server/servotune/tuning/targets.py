@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Final, Literal
+from typing import Any, Final
 
+from servotune.schema import MarginPreset
 from servotune.tuning.loops import Margins
 
-Preset = Literal["stiff", "medium", "soft"]
+Preset = MarginPreset
 
 
 @dataclass(frozen=True, slots=True)

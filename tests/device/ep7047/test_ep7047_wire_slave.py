@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from servotune.devices.ep7047 import codec
 from servotune.devices.ep7047.codec import Inputs, Outputs, StartType
-from servotune.devices.ep7047.sim import coe
+from servotune.devices.ep7047.sim import coe, process_image
 from servotune.devices.ep7047.sim.coe import ImageLayout, ObjectDictionary, SdoServer
 from servotune.devices.ep7047.sim.engine import Ep7047Engine
 from servotune.devices.ep7047.sim.plant import DEMO_MECHANICS
@@ -67,8 +67,8 @@ def test_outputs_codec_and_slave_agree(
     )
     wire = codec.encode_outputs(outputs)
     # The slave decodes the driver's bytes with its own mapping, into the same outputs.
-    assert WireSlave._outputs_from(RX.unpack(wire)) == outputs
-    assert RX.pack(WireSlave._output_values(outputs)) == wire
+    assert process_image.outputs_from(RX.unpack(wire)) == outputs
+    assert RX.pack(process_image.output_values(outputs)) == wire
 
 
 @given(
@@ -97,7 +97,7 @@ def test_inputs_codec_and_slave_agree(
         actual_drive_time_ms=drive_time,
     )
     # What the slave puts on the wire is what the driver's codec reads.
-    assert codec.decode_inputs(TX.pack(WireSlave._input_values(inputs))) == inputs
+    assert codec.decode_inputs(TX.pack(process_image.input_values(inputs))) == inputs
 
 
 def test_a_moved_field_is_caught() -> None:
@@ -109,8 +109,8 @@ def test_a_moved_field_is_caught() -> None:
     maps = {**coe.RXPDO_MAPS, 0x1606: (name, tuple(swapped))}
     wrong = ImageLayout.of(maps, coe.POSITIONING_RX)
     outputs = Outputs(velocity_bp=3000, start_type=StartType.ABSOLUTE)
-    assert wrong.pack(WireSlave._output_values(outputs)) != codec.encode_outputs(outputs)
-    assert codec.decode_outputs(wrong.pack(WireSlave._output_values(outputs))) != outputs
+    assert wrong.pack(process_image.output_values(outputs)) != codec.encode_outputs(outputs)
+    assert codec.decode_outputs(wrong.pack(process_image.output_values(outputs))) != outputs
 
 
 def test_every_coe_setting_of_the_codec_is_in_the_slave_with_its_size() -> None:

@@ -6,40 +6,13 @@
 // the controller period); every update is computed here, in a few hundred
 // microseconds to a few milliseconds, with no request.
 import uPlot from "uplot";
-import { api, type MarginTarget, request } from "../api";
+import { api, request } from "../api";
 import { h, replace, setText } from "../dom";
 import { loopStable, modelMargins, predictStep, type LoopMargins, type Prediction } from "../stability";
-import type { ControllerLaw } from "../schema.gen";
+import type { MarginTarget, WhatIfInfo, WhatIfModel } from "../schema.gen";
 import { errorText } from "./feedback";
 import { plotTheme } from "./benchplot";
 import { marginValue, shortfall, targetText } from "./margins";
-
-export interface WhatIfModel {
-  device: string;
-  /** The device's controller law as data: the terms the prediction and the margins
-   * evaluate (web/src/stability.ts). */
-  controller: ControllerLaw;
-  period_s: number;
-  plant_num: number[];
-  plant_den: number[];
-  pwm_limit: number;
-  plant: { gain_counts_s_per_unit: number; tau_s: number; source: string };
-}
-
-export interface WhatIfInfo {
-  axis_id: string;
-  device: string;
-  gains: Record<string, number | null>;
-  ranges: Record<string, [number, number]>;
-  verify: { kind: "position_step" | "move"; velocity_counts_s: number; acceleration_counts_s2: number };
-  model: WhatIfModel | null;
-  problem: string | null;
-  /** What the margins are read against (the auto-tune session's preset). */
-  target: MarginTarget;
-  targets: Record<string, MarginTarget>;
-  /** The auto-tune's proposed gains, if there is a proposal. */
-  proposal: Record<string, number> | null;
-}
 
 export type { LoopMargins, Prediction };
 export { predictStep };

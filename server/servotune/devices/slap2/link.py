@@ -59,9 +59,8 @@ from servotune.link.base import (
     check_console_line,
 )
 from servotune.link.capture import CaptureRegistry, CaptureStats
-from servotune.link.engine import LinkEngine, recent_rate_hz
+from servotune.link.engine import LinkEngine, engine_face, recent_rate_hz
 from servotune.link.setpoint import STEADY_ERROR_COUNTS
-from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
@@ -152,7 +151,7 @@ class Slap2Link:
         self._last_verify_t = 0.0
         self._capture_index = 0
 
-    # --- link.base.Link, delegated to the engine ----------------------------------------
+    # --- its parts, its axes -----------------------------------------------------------
 
     @property
     def engine(self) -> LinkEngine:
@@ -165,22 +164,6 @@ class Slap2Link:
         return self._exchange
 
     @property
-    def id(self) -> str:
-        return self._engine.id
-
-    @property
-    def path(self) -> str:
-        return self._engine.path
-
-    @property
-    def baud(self) -> int:
-        return self._engine.baud
-
-    @property
-    def state(self) -> LinkState:
-        return self._engine.state
-
-    @property
     def axes(self) -> list[AxisDriver]:
         return list(self._axes)
 
@@ -189,28 +172,8 @@ class Slap2Link:
         """The descriptor all axes of this line share."""
         return self._descriptor
 
-    @property
-    def errors(self) -> int:
-        """Wire errors since start (``LinkEngine.errors``)."""
-        return self._engine.errors
-
-    @property
-    def counters(self) -> dict[str, int]:
-        """``LinkEngine.counters``."""
-        return self._engine.counters
-
-    @property
-    def wire_busy(self) -> float | None:
-        """``LinkEngine.wire_busy``."""
-        return self._engine.wire_busy
-
-    def now(self) -> float:
-        """The link's clock (the times of its samples and latches)."""
-        return self._clock()
-
-    async def run(self) -> None:
-        """``LinkEngine.run``: connect, run sessions, reconnect until cancelled."""
-        await self._engine.run()
+    # link.base.Link (with HasCounters, HasWireBusy, WireStats): the engine's members.
+    id, path, baud, state, errors, counters, wire_busy, now, run = engine_face()
 
     @property
     def modules(self) -> ModuleBook:

@@ -1,33 +1,11 @@
 """The Z1100 link: one chip, three motors, one request per reply (the axis driver is
 in ``devices.z1100.axis``). The link *has* a ``LinkEngine`` (owner task, job queues,
-reconnects, status) and is its ``LinkSession``.
+reconnects, status), for which it is the ``LinkSession``, and a ``Z1100Exchange``
+(``devices.z1100.exchange``: one request, one reply, retries and fences; its rules are
+there).
 
 Rules (``shared/spec/z1100.md``), and decisions where it is silent:
 
-* One request, one reply, 100 ms reply timeout. Stale input is flushed before every
-  request (line noise can make the chip send a reply nobody asked for; it is counted
-  and logged). A reply with a bad checksum is skipped by the decoder, so it ends as a
-  timeout; a timeout, or a reply with bit 0 (the chip saw a bad checksum), bit 2
-  (packet incomplete) or bit 3 (line noise) is retried, up to ``retries`` attempts.
-* Bit 7 (stall) rides on valid data: the reply is used and a stall is noted; the next
-  GetStop says which motor.
-* Bits 4..6 (forbidden while motor n moves) become a ``DeviceRefusedError`` with the
-  chip's reason. The server refuses first when it knows the axis moves (GetStart).
-  A Start whose reply was lost and whose retry is refused as "moving" did start: the
-  retry is taken as success.
-* A Get can never be "forbidden while moving", nor unknown to the chip: a reply with
-  those bits to a Get is the reply to *another* request (a late one: replies have no
-  header). Nor is a known Set ever "unknown". Either is a desynchronisation: counted
-  (``desyncs``) and retried after a resynchronisation. Never a refusal, never the end
-  of a session.
-* Resynchronisation (before every retry, after a failed poll, and before a reset cue is
-  confirmed) is a *fence*: a command byte the chip does not know
-  (``codec.make_fence``), which it answers in order with reply bit 1. Every reply that
-  arrives before that answer was late and is dropped; once it is in, the line is in
-  step. Waiting for a quiet line instead proves nothing on a starved host, where late
-  replies trickle in behind their requests (a GetError 0 read late would be taken for
-  a reset witness). A fence unanswered within ``fence_timeout_s`` is counted
-  (``fence_timeouts``) and the line is then left to go quiet for a reply timeout.
 * A poll that still fails after its retries is counted and the poll goes on; the
   link shows ``error`` only after three failed poll cycles in a row and turns
   ``connected`` again with the next good one.
@@ -43,10 +21,6 @@ Rules (``shared/spec/z1100.md``), and decisions where it is silent:
   between its reads), GetStart every ``CAPTURE_STATUS_PERIOD_S`` (the running bits of
   all motors in one transaction), GetStop only after a stall bit, no GetSwitch and no
   verify reads; the other motors pause ("paused: capture on ...").
-* Every sample is stamped with the moment the chip latched it: it answers a request
-  once the request is complete, so the latch is the write time plus the request's 7
-  characters on the wire (bounded by the reply's arrival less its 6 characters), not
-  the time the reply was parsed.
 """
 
 from __future__ import annotations
@@ -62,34 +36,29 @@ from servotune.descriptor import DeviceDescriptor
 from servotune.devices.z1100 import codec
 from servotune.devices.z1100.axis import Z1100Axis, describe_reply, parse_console_line, request_name
 from servotune.devices.z1100.descriptor import FORBIDDEN_WHILE_MOVING, z1100_descriptor
+from servotune.devices.z1100.exchange import TRANSACTION_CHARS, Z1100Exchange
 from servotune.link.base import (
     AxisDriver,
     DeviceRefusedError,
-    DeviceTimeoutError,
     DriverError,
     DriverSink,
     InvalidArgumentError,
-    ProtocolError,
     Sample,
     check_console_line,
 )
 from servotune.link.capture import CaptureRegistry, CaptureStats
-from servotune.link.engine import LinkEngine, recent_rate_hz
+from servotune.link.engine import LinkEngine, engine_face, recent_rate_hz
 from servotune.link.setpoint import SkewedSetpoint
-from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector
 
 logger = logging.getLogger(__name__)
 
-RETRYABLE = codec.ReplyCode.CHECKSUM | codec.ReplyCode.TIMEOUT | codec.ReplyCode.COMMUNICATION
-MOVING_BITS = codec.ReplyCode.MOVING_1 | codec.ReplyCode.MOVING_2 | codec.ReplyCode.MOVING_3
 RESET_WITNESSES = ("kabh_k", "vmax", "acc")
 # GetError in a capture: every 3rd sample while the motor runs (the following error is
 # what the Z1100 identification fits, and the verdict's peak), every 6th at rest.
 CAPTURE_ERROR_EVERY_RUNNING = 3
 CAPTURE_ERROR_EVERY = 6
 CAPTURE_STATUS_PERIOD_S = 0.1
-TRANSACTION_CHARS = codec.REQUEST_SIZE + codec.REPLY_SIZE
 _SCALAR_PARAMS: dict[str, tuple[codec.Command, codec.Command]] = {
     "vmax": (codec.Command.SET_VMAX, codec.Command.GET_VMAX),
     "acc": (codec.Command.SET_ACC, codec.Command.GET_ACC),
@@ -170,6 +139,7 @@ class Z1100Link:
             clock=clock,
             reconnect_max_s=config.reconnect_max_s,
         )
+        self._exchange = Z1100Exchange(config, self._engine, clock)
         self._connector = connector
         self._sink = sink
         self._clock = clock
@@ -181,39 +151,20 @@ class Z1100Link:
         self._cycle = 0
         self._verify_index = 0
         self._last_verify_t = 0.0
-        self._stall_noted = False
         self._failed_cycles = 0
         self._captures = CaptureRegistry(self._capture_changed)
         self._capture_index = 0
         self._last_status_t = 0.0
-        self._last_latch_t = 0.0
         self._flags_t: float | None = None  # when the flags were last read (GetStart)
-        self._transactions = 0
         # Fences whose answer did not come (a line worse than merely late).
         self._engine.count("fence_timeouts", 0)
 
-    # --- link.base.Link, delegated to the engine ----------------------------------------
+    # --- its parts, its axes -----------------------------------------------------------
 
     @property
     def engine(self) -> LinkEngine:
         """The owner task, job queues and status of this line."""
         return self._engine
-
-    @property
-    def id(self) -> str:
-        return self._engine.id
-
-    @property
-    def path(self) -> str:
-        return self._engine.path
-
-    @property
-    def baud(self) -> int:
-        return self._engine.baud
-
-    @property
-    def state(self) -> LinkState:
-        return self._engine.state
 
     @property
     def axes(self) -> list[AxisDriver]:
@@ -224,28 +175,8 @@ class Z1100Link:
         """The descriptor the chip's three axes share."""
         return self._descriptor
 
-    @property
-    def errors(self) -> int:
-        """Wire errors since start (``LinkEngine.errors``)."""
-        return self._engine.errors
-
-    @property
-    def counters(self) -> dict[str, int]:
-        """``LinkEngine.counters``."""
-        return self._engine.counters
-
-    @property
-    def wire_busy(self) -> float | None:
-        """``LinkEngine.wire_busy``."""
-        return self._engine.wire_busy
-
-    def now(self) -> float:
-        """The link's clock (the times of its samples and latches)."""
-        return self._clock()
-
-    async def run(self) -> None:
-        """``LinkEngine.run``: connect, run sessions, reconnect until cancelled."""
-        await self._engine.run()
+    # link.base.Link (with HasCounters, HasWireBusy, WireStats): the engine's members.
+    id, path, baud, state, errors, counters, wire_busy, now, run = engine_face()
 
     # --- identity ---------------------------------------------------------------------
 
@@ -263,155 +194,9 @@ class Z1100Link:
         for motor in self._motors:
             self._sink.on_axis_health(self.axis_id(motor.axis), "offline", "link down")
 
-    # --- the exchange -----------------------------------------------------------------
-
-    async def _request(self, request: codec.Request) -> codec.Reply:
-        """Send one request and return its reply; retries per the module docstring."""
-        channel = self._engine.require_channel()
-        packet = request.encode()
-        name = request_name(request)
-        last_problem = "no reply"
-        is_get = request.command is not None and request.command.is_get
-        for attempt in range(self.config.retries):
-            if attempt:
-                # Replies have no header, and a rotation of a valid reply sums to 0 as
-                # well: a late reply to the failed attempt, or its tail plus the head
-                # of the next reply, would decode as a wrong but "valid" reply. So
-                # before a retry the line is brought back in step with a fence.
-                self._engine.count("retries")
-                await self._resync(channel)
-            stray = channel.discard_input()
-            if stray:
-                # Late bytes (of a reply that timed out, or noise): counted and shown
-                # in the link's counters, not an event each time.
-                self._engine.add_error()
-                self._engine.count("dropped_bytes", len(stray))
-            channel.take_timeout_late_s()  # only this attempt's own timeout may excuse it
-            written = self._clock()
-            await channel.write(packet)
-            got = await self._read_reply(channel)
-            self._transactions += 1
-            char_s = 10 / self.config.baud
-            # The request's characters, and the reply's if one came (wire_busy).
-            self._engine.wire_used((TRANSACTION_CHARS if got else codec.REQUEST_SIZE) * char_s)
-            if got is None:
-                self._engine.add_error()
-                last_problem = f"no valid reply within {self.config.reply_timeout_s * 1000:.0f} ms"
-                self._engine.unanswered_request(self.config.reply_timeout_s)
-                continue
-            reply, reply_t = got
-            self._engine.answered()
-            self._last_latch_t = min(
-                written + codec.REQUEST_SIZE * char_s, reply_t - codec.REPLY_SIZE * char_s
-            )
-            if reply.code & RETRYABLE:
-                self._engine.add_error()
-                last_problem = codec.error_message(reply.code) or "rejected"
-                continue
-            if is_get and reply.code & (codec.ReplyCode.UNKNOWN_COMMAND | MOVING_BITS):
-                # Impossible for a Get: this reply answered another request.
-                self._engine.add_error()
-                self._engine.count("desyncs")
-                last_problem = (
-                    f"reply 0x{int(reply.code):02X} belongs to another request "
-                    f"({codec.error_message(reply.code) or 'unknown command'})"
-                )
-                continue
-            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND and request.command is None:
-                raise ProtocolError(f"{name}: the chip does not know this command")
-            if reply.code & codec.ReplyCode.UNKNOWN_COMMAND:
-                # Every known command is known to the chip: this is the (late) answer
-                # to a fence, and the Set's own reply is still to come. Not executed
-                # as far as we know: retried after a resynchronisation.
-                self._engine.add_error()
-                self._engine.count("desyncs")
-                last_problem = "the reply to a fence came instead of this command's"
-                continue
-            if reply.code & MOVING_BITS:
-                if attempt > 0 and request.command is codec.Command.SET_START:
-                    return codec.Reply(codec.ReplyCode.OK)  # the lost first Start ran
-                raise DeviceRefusedError(f"{name}: refused, {codec.error_message(reply.code)}")
-            if reply.stall:
-                self._stall_noted = True
-            return reply
-        raise DeviceTimeoutError(f"{name}: {last_problem} after {self.config.retries} tries")
-
     async def _resync(self, channel: ByteChannel) -> bool:
-        """Bring the line back in step: send a fence and drop every reply that arrives
-        before its answer (those answered earlier requests). The chip answers in order,
-        so after the fence's answer nothing late is left on the line: True. Falls back
-        to a quiet line when the fence itself goes unanswered within
-        ``fence_timeout_s``: False, and a late reply may still be on its way."""
-        stray = channel.discard_input()
-        if stray:
-            self._engine.add_error()
-            self._engine.count("dropped_bytes", len(stray))
-        await channel.write(codec.make_fence().encode())
-        decoder = codec.ReplyDecoder()
-        deadline = self._clock() + self.config.fence_timeout_s
-        heard = False  # any byte at all: the chip is alive, only late or noisy
-        while True:
-            remaining = max(deadline - self._clock(), 0.0)
-            data = await channel.read_available(remaining)
-            if not data:
-                break
-            heard = True
-            for reply in decoder.feed(data):
-                if codec.is_fence_reply(reply):
-                    if decoder.pending:  # bytes after the answer: noise, dropped
-                        self._engine.count("dropped_bytes", decoder.pending)
-                    self._engine.answered()
-                    return True
-                self._engine.add_error()
-                self._engine.count("dropped_bytes", codec.REPLY_SIZE)  # a late reply
-            if remaining <= 0:
-                break
-        self._engine.add_error()
-        self._engine.count("fence_timeouts")
-        if not heard:
-            self._engine.unanswered_request()
-        await self._drain_quiet(channel)
-        return False
-
-    async def _drain_quiet(self, channel: ByteChannel) -> None:
-        deadline = self._clock() + 1.0
-        while self._clock() < deadline:
-            data = await channel.read_available(self.config.reply_timeout_s)
-            if not data:
-                return
-            self._engine.add_error()
-            self._engine.count("dropped_bytes", len(data))
-
-    async def _read_reply(self, channel: ByteChannel) -> tuple[codec.Reply, float] | None:
-        """The first valid reply within the reply timeout and the moment its last byte
-        came (stamped in the receive callback where the channel can, else when this
-        task resumed), or ``None``."""
-        decoder = codec.ReplyDecoder()
-        deadline = self._clock() + self.config.reply_timeout_s
-        while True:
-            # Past the deadline, still take what is already buffered (once): on a host
-            # that was stalled the reply may have arrived while nobody looked.
-            remaining = max(deadline - self._clock(), 0.0)
-            # Wait for a whole reply's worth in one wake-up (the line delivers it a
-            # character at a time: 6 wake-ups per reply cost more than the rest).
-            need = max(codec.REPLY_SIZE - decoder.pending, 1)
-            data, t_s = await channel.read_at_least(need, remaining)
-            if not data:
-                return None
-            replies = decoder.feed(data)
-            if replies:
-                return replies[0], self._clock() if t_s is None else t_s
-            if remaining <= 0:
-                return None
-
-    async def _get(self, command: codec.Command, axis: int | None = None) -> codec.GetValue:
-        reply = await self._request(codec.make_get(command, axis))
-        return codec.decode_get(command, reply.data)
-
-    async def _get_int(self, command: codec.Command, axis: int | None = None) -> int:
-        value = await self._get(command, axis)
-        assert isinstance(value, int)
-        return int(value)
+        """``Z1100Exchange.resync`` (the fence) for the link's own checks."""
+        return await self._exchange.resync(channel)
 
     # --- session ----------------------------------------------------------------------
 
@@ -466,7 +251,11 @@ class Z1100Link:
             for motor in self._motors:
                 values = await self._read_params(motor.axis)
                 motor.target = codec.unpack_int32(
-                    (await self._request(codec.make_get(codec.Command.GET_TARGET, motor.axis))).data
+                    (
+                        await self._exchange.request(
+                            codec.make_get(codec.Command.GET_TARGET, motor.axis)
+                        )
+                    ).data
                 )
                 self._sink.on_params(self.axis_id(motor.axis), values, "read")
             await self._read_status()
@@ -493,25 +282,29 @@ class Z1100Link:
             if self._engine.urgent_pending:
                 return
             position = codec.unpack_int32(
-                (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
+                (
+                    await self._exchange.request(
+                        codec.make_get(codec.Command.GET_ENCODER, motor.axis)
+                    )
+                ).data
             )
-            t = self._last_latch_t
-            error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
+            t = self._exchange.last_latch_t
+            error = await self._exchange.get_int(codec.Command.GET_ERROR, motor.axis)
             if motor.position is not None and motor.position_t is not None and t > motor.position_t:
                 motor.velocity = (position - motor.position) / (t - motor.position_t)
             motor.position, motor.position_t, motor.following_error = position, t, error
             self._emit(motor, t)
-        if self._stall_noted or self._cycle % self.config.status_every == 0:
-            self._stall_noted = False
+        if self._exchange.stall_noted or self._cycle % self.config.status_every == 0:
+            self._exchange.stall_noted = False
             await self._read_status()
 
     async def _read_status(self) -> None:
-        start = await self._get(codec.Command.GET_START)
-        self._flags_t = self._last_latch_t
-        stop = await self._get(codec.Command.GET_STOP)
+        start = await self._exchange.get(codec.Command.GET_START)
+        self._flags_t = self._exchange.last_latch_t
+        stop = await self._exchange.get(codec.Command.GET_STOP)
         assert isinstance(start, codec.StartStatus) and isinstance(stop, codec.StopStatus)
         axis = self._cycle % codec.AXES
-        switch = await self._get(codec.Command.GET_SWITCH, axis)
+        switch = await self._exchange.get(codec.Command.GET_SWITCH, axis)
         self._motors[axis].switch = bool(switch)
         for motor in self._motors:
             was_stalled = motor.stall
@@ -572,25 +365,29 @@ class Z1100Link:
         self._capture_index += 1
         stats = motor.capture
         assert stats is not None
-        before = self._transactions
+        before = self._exchange.transactions
         try:
             position = codec.unpack_int32(
-                (await self._request(codec.make_get(codec.Command.GET_ENCODER, motor.axis))).data
+                (
+                    await self._exchange.request(
+                        codec.make_get(codec.Command.GET_ENCODER, motor.axis)
+                    )
+                ).data
             )
-            t = self._last_latch_t
+            t = self._exchange.last_latch_t
             error: int | None = None
             motor.since_error += 1
             every = CAPTURE_ERROR_EVERY_RUNNING if motor.running else CAPTURE_ERROR_EVERY
             if not self._engine.urgent_pending and motor.since_error >= every:
-                error = await self._get_int(codec.Command.GET_ERROR, motor.axis)
+                error = await self._exchange.get_int(codec.Command.GET_ERROR, motor.axis)
                 motor.since_error = 0
             if not self._engine.urgent_pending and (
-                self._stall_noted or t - self._last_status_t >= CAPTURE_STATUS_PERIOD_S
+                self._exchange.stall_noted or t - self._last_status_t >= CAPTURE_STATUS_PERIOD_S
             ):
                 self._last_status_t = t
                 await self._read_capture_status()
         finally:
-            stats.wire_chars += (self._transactions - before) * TRANSACTION_CHARS
+            stats.wire_chars += (self._exchange.transactions - before) * TRANSACTION_CHARS
         self._failed_cycles = 0
         if self._engine.state == "error":
             self._engine.set_state("connected", self._connector.description)
@@ -604,15 +401,15 @@ class Z1100Link:
 
     async def _read_capture_status(self) -> None:
         """GetStart (running bits of all motors); GetStop only after a stall bit."""
-        start = await self._get(codec.Command.GET_START)
-        self._flags_t = self._last_latch_t
+        start = await self._exchange.get(codec.Command.GET_START)
+        self._flags_t = self._exchange.last_latch_t
         assert isinstance(start, codec.StartStatus)
         for motor in self._motors:
             motor.running = motor.axis in start.running
             motor.positive = motor.axis in start.positive
-        if self._stall_noted:
-            self._stall_noted = False
-            stop = await self._get(codec.Command.GET_STOP)
+        if self._exchange.stall_noted:
+            self._exchange.stall_noted = False
+            stop = await self._exchange.get(codec.Command.GET_STOP)
             assert isinstance(stop, codec.StopStatus)
             for motor in self._motors:
                 was_stalled = motor.stall
@@ -657,9 +454,9 @@ class Z1100Link:
         if motor.job in (codec.Job.TARGET, codec.Job.VELOCITY) and not motor.running:
             # Parameters stored with SetFlash come back after a reset, so the 0-reads
             # miss it; the job does not survive a reset (it powers up as 0, free shaft).
-            job = await self._get(codec.Command.GET_JOB, motor.axis)
+            job = await self._exchange.get(codec.Command.GET_JOB, motor.axis)
             if job == codec.Job.FREE and await self._confirm_zero(
-                lambda: self._get_int(codec.Command.GET_JOB, motor.axis)
+                lambda: self._exchange.get_int(codec.Command.GET_JOB, motor.axis)
             ):
                 motor.job = codec.Job.FREE
                 for each in self._motors:
@@ -712,10 +509,10 @@ class Z1100Link:
 
     async def _read_witness(self, axis: int, witness: str) -> int:
         if witness == "kabh_k":
-            gains = await self._get(codec.Command.GET_KABH, axis)
+            gains = await self._exchange.get(codec.Command.GET_KABH, axis)
             assert isinstance(gains, codec.Gains)
             return gains.k
-        return await self._get_int(_SCALAR_PARAMS[witness][1], axis)
+        return await self._exchange.get_int(_SCALAR_PARAMS[witness][1], axis)
 
     async def _probe_params_only(self) -> None:
         for motor in self._motors:
@@ -729,12 +526,12 @@ class Z1100Link:
     async def _read_params(self, axis: int) -> dict[str, int]:
         values: dict[str, int] = {}
         for prefix, command in (("kabh", codec.Command.GET_KABH), ("kabd", codec.Command.GET_KABD)):
-            gains = await self._get(command, axis)
+            gains = await self._exchange.get(command, axis)
             assert isinstance(gains, codec.Gains)
             values.update({f"{prefix}_k": gains.k, f"{prefix}_a": gains.a, f"{prefix}_b": gains.b})
         for name, (_, getter) in _SCALAR_PARAMS.items():
             await self._engine.let_stops_pass()
-            values[name] = int(await self._get_int(getter, axis))
+            values[name] = int(await self._exchange.get_int(getter, axis))
         self._motors[axis].known.update(values)
         return values
 
@@ -755,12 +552,12 @@ class Z1100Link:
                 continue
             k, a, b = (values.get(n, motor.known.get(n, 0)) for n in names)
             await self._engine.let_stops_pass()
-            await self._request(codec.make_set_kab(axis, k, a, b, moving=moving))
+            await self._exchange.request(codec.make_set_kab(axis, k, a, b, moving=moving))
             for read_prefix, command in (
                 ("kabh", codec.Command.GET_KABH),
                 ("kabd", codec.Command.GET_KABD),
             ):
-                gains = await self._get(command, axis)
+                gains = await self._exchange.get(command, axis)
                 assert isinstance(gains, codec.Gains)
                 readback.update(
                     {
@@ -774,8 +571,8 @@ class Z1100Link:
                 continue
             setter, getter = _SCALAR_PARAMS[name]
             await self._engine.let_stops_pass()
-            await self._request(codec.Request(setter + axis, int(value)))
-            readback[name] = await self._get_int(getter, axis)
+            await self._exchange.request(codec.Request(setter + axis, int(value)))
+            readback[name] = await self._exchange.get_int(getter, axis)
         motor.known.update(readback)
         return readback
 
@@ -814,7 +611,7 @@ class Z1100Link:
         async def job() -> list[str]:
             sent = []
             for request in requests:
-                reply = await self._request(request)
+                reply = await self._exchange.request(request)
                 sent.append(request_name(request))
                 if request.command is codec.Command.SET_TARGET:
                     self._motors[axis].target = codec.unpack_int32(request.data)
@@ -835,7 +632,7 @@ class Z1100Link:
         request = parse_console_line(line, axis)
 
         async def job() -> list[str]:
-            reply = await self._request(request)
+            reply = await self._exchange.request(request)
             return describe_reply(request, reply)
 
         return request_name(request), await self._engine.submit(job, axis=axis, motion=True)

@@ -95,7 +95,7 @@ export class BenchForm {
       return;
     }
     // The frequency response has its own form (ui/bode.ts).
-    const formKinds: BenchKind[] = info.kinds.filter((k) => k !== "frequency_response");
+    const formKinds = info.kinds.filter((k): k is BenchKind => k in KINDS && k !== "frequency_response");
     if (!this.form.kind || !formKinds.includes(this.form.kind)) this.form.kind = formKinds[0] as BenchKind;
     const kind = h(
       "select",

@@ -83,15 +83,18 @@ export class LimitsEditor {
 
   private read(): BenchLimits {
     const current = (this.host.info() as BenchInfo).limits;
-    const value = (key: keyof BenchLimits): number => {
+    const value = (key: "max_distance_counts" | "max_velocity" | "max_pwm" | "max_duration_s"): number => {
       const input = this.inputs.get(key);
       return input ? Number(input.value) : current[key];
     };
+    // The travel window has no field here: it is sent back as the server holds it.
     return {
       max_distance_counts: value("max_distance_counts"),
       max_velocity: value("max_velocity"),
       max_pwm: value("max_pwm"),
       max_duration_s: value("max_duration_s"),
+      min_position_counts: current.min_position_counts,
+      max_position_counts: current.max_position_counts,
     };
   }
 
