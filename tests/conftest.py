@@ -17,7 +17,7 @@ from hypothesis import settings
 
 # One BLAS thread (servotune.tuning.threads): set before anything loads numpy.
 import servotune.tuning.threads  # noqa: F401
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.sim.pty import PtySimulator
 from tests.support.sim_lines import RunningLink, run_link, running_simulator
 
@@ -51,14 +51,14 @@ def no_leaked_threads() -> Iterator[None]:
 
 
 @pytest.fixture
-def sim_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
+def sim_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Line]]:
     """Two simulated modules (0 and 1) on one line, behind a stable symlink."""
     with running_simulator([0, 1], tmp_path, link_path=str(tmp_path / "ttySLAP2")) as pair:
         yield pair
 
 
 @pytest.fixture
-async def line(sim_line: tuple[PtySimulator, Slap2Bus]) -> AsyncIterator[RunningLink]:
+async def line(sim_line: tuple[PtySimulator, Slap2Line]) -> AsyncIterator[RunningLink]:
     """A connected Slap2Link on the two-module simulated line."""
     simulator, bus = sim_line
     async with run_link(simulator, bus, [0, 1]) as running:

@@ -1,4 +1,4 @@
-"""The ``servotune`` command: demo, serve, hub, sim, bench, users, tokens."""
+"""The ``servotune`` command: demo, serve, hub, sim, perf (also ``bench``), users, tokens."""
 
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def _address_problem(args: argparse.Namespace, devices: LinkRulesSource) -> str 
     ``address_range``), as argparse words it; None when nothing is."""
     values = getattr(args, "addresses", None)
     if values is None or args.device not in devices.names():
-        return None  # no addresses here, or not a device (``servotune bench demo``)
+        return None  # no addresses here, or not a device (``servotune perf demo``)
     low, high = devices.link_rules(args.device).address_range
     if not values or any(not low <= a <= high for a in values) or len(set(values)) != len(values):
         return f"argument --addresses: addresses must be distinct numbers {low}..{high}"
@@ -387,7 +387,7 @@ def _hex_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
+def cmd_perf(args: argparse.Namespace) -> int:
     if args.device == "demo":
         from servotune.perf.demo import run_demo_bench
 
@@ -517,25 +517,29 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-rt", action="store_true", help="ep7047 --ifname: no real-time priority")
     sim.set_defaults(func=cmd_sim, subparser=sim)
 
-    bench = sub.add_parser(
-        "bench",
-        help="telemetry rate against the wire limit (one device, or the whole demo: "
-        "CPU per process and every link's rate)",
+    # ``perf`` is the command's name; ``bench`` stays for the scripts that call it so.
+    perf_help = (
+        "telemetry rate against the wire limit (one device, or the whole demo: "
+        "CPU per process and every link's rate)"
     )
-    bench.add_argument("device", choices=[*(e.name for e in on_pty), "demo"])
-    bench.add_argument("--baud", type=int, default=None, help=default_bauds)
-    bench.add_argument("--addresses", type=_addresses, default=[0])
-    bench.add_argument("--seconds", type=float, default=None, help="5 (device), 30 (demo)")
-    bench.add_argument(
-        "--hog",
-        choices=["off", "on", "both"],
-        default="both",
-        help="demo: measure without, with, or without and then with a CPU hog on every core",
-    )
-    bench.add_argument("--port", type=int, default=None, help="demo: port (default: a free one)")
-    bench.add_argument("--url", default=None, help="demo: measure this running server instead")
-    bench.add_argument("--pid", type=int, default=None, help="demo: process id of --url's server")
-    bench.set_defaults(func=cmd_bench, subparser=bench)
+    for name, help_text in (("perf", perf_help), ("bench", "the same as perf")):
+        perf = sub.add_parser(name, help=help_text)
+        perf.add_argument("device", choices=[*(e.name for e in on_pty), "demo"])
+        perf.add_argument("--baud", type=int, default=None, help=default_bauds)
+        perf.add_argument("--addresses", type=_addresses, default=[0])
+        perf.add_argument("--seconds", type=float, default=None, help="5 (device), 30 (demo)")
+        perf.add_argument(
+            "--hog",
+            choices=["off", "on", "both"],
+            default="both",
+            help="demo: measure without, with, or without and then with a CPU hog on every core",
+        )
+        perf.add_argument("--port", type=int, default=None, help="demo: port (default: a free one)")
+        perf.add_argument("--url", default=None, help="demo: measure this running server instead")
+        perf.add_argument(
+            "--pid", type=int, default=None, help="demo: process id of --url's server"
+        )
+        perf.set_defaults(func=cmd_perf, subparser=perf)
     add_account_commands(sub)
     return parser
 

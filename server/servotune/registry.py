@@ -56,7 +56,7 @@ class DemoArgs:
 
 @dataclass(frozen=True, slots=True)
 class PollSet:
-    """What a serial link polls, for ``servotune bench <device>`` (perf.link_rate)."""
+    """What a serial link polls, for ``servotune perf <device>`` (perf.link_rate)."""
 
     description: str  # one line for people: device, baud, axes, what each cycle reads
     turns_per_sample: float  # host/device turns per telemetry sample of each axis
@@ -99,9 +99,9 @@ class SimulatorEntry:
     # The demo's simulated device(s): started on entering (a child process stopped on
     # leaving), yielding the link specs that reach them.
     demo: Callable[[DemoArgs], AbstractContextManager[list[LinkSpec]]]
-    # ``serve`` puts a serial device on a pty (``servotune bench <device>`` measures it).
+    # ``serve`` puts a serial device on a pty (``servotune perf <device>`` measures it).
     pty: bool
-    # The poll set of a link built by the entry (``servotune bench <device>``).
+    # The poll set of a link built by the entry (``servotune perf <device>``).
     poll_set: Callable[[Link], PollSet] | None = None
     # The demo plant as ``perf.stops`` measures a stop on it: entered, it has started
     # the simulated device; leaving it (after the link was stopped) powers it off.

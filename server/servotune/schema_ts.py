@@ -17,8 +17,7 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from servotune import descriptor
-from servotune import schema as wire
+from servotune import descriptor, schema
 
 MODELS: list[type[BaseModel]] = [
     descriptor.Conversion,
@@ -40,70 +39,70 @@ MODELS: list[type[BaseModel]] = [
     descriptor.ParameterConstraint,
     descriptor.TwinDescriptor,
     descriptor.DeviceDescriptor,
-    wire.AxisInfo,
-    wire.LinkInfo,
-    wire.Hello,
-    wire.Telemetry,
-    wire.LinkStatus,
-    wire.AxisStatus,
-    wire.Params,
-    wire.Event,
-    wire.RunUpdate,
-    wire.StorageStatus,
-    wire.ClientStats,
-    wire.MoveOutcome,
-    wire.Ping,
-    wire.AxisState,
-    wire.CommandResult,
-    wire.StopResult,
-    wire.ConsoleRequest,
-    wire.ConsoleReply,
-    wire.ErrorBody,
-    wire.BenchField,
-    wire.LawTerm,
-    wire.LawGainSet,
-    wire.ControllerLaw,
+    schema.AxisInfo,
+    schema.LinkInfo,
+    schema.Hello,
+    schema.Telemetry,
+    schema.LinkStatus,
+    schema.AxisStatus,
+    schema.Params,
+    schema.Event,
+    schema.RunUpdate,
+    schema.StorageStatus,
+    schema.ClientStats,
+    schema.MoveOutcome,
+    schema.Ping,
+    schema.AxisState,
+    schema.CommandResult,
+    schema.StopResult,
+    schema.ConsoleRequest,
+    schema.ConsoleReply,
+    schema.ErrorBody,
+    schema.BenchField,
+    schema.LawTerm,
+    schema.LawGainSet,
+    schema.ControllerLaw,
     # control lock (one block, servotune.hub.control_lock)
-    wire.Welcome,
-    wire.ControlHolder,
-    wire.ControlPending,
-    wire.ControlStatus,
-    wire.ControlPrompt,
-    wire.ControlReply,
-    wire.TakeControl,
-    wire.RequestControl,
-    wire.ReleaseControl,
-    wire.AnswerControl,
-    wire.ForceControl,
-    wire.Heartbeat,
+    schema.Welcome,
+    schema.ControlHolder,
+    schema.ControlPending,
+    schema.ControlStatus,
+    schema.ControlPrompt,
+    schema.ControlReply,
+    schema.TakeControl,
+    schema.RequestControl,
+    schema.ReleaseControl,
+    schema.AnswerControl,
+    schema.ForceControl,
+    schema.Heartbeat,
 ]
 # REST bodies. A response model's fields are all sent (like the websocket messages'); a
 # request model's field with a default is optional in TypeScript (the client may leave it
 # out). A model that is both (a PUT that answers with what it stored) is a response.
 REST_RESPONSES: list[type[BaseModel]] = [
-    wire.BenchLimits,
-    wire.BenchInfo,
-    wire.SavedSet,
-    wire.ParamSet,
-    wire.ParamSetComparison,
-    wire.MarginTarget,
-    wire.VerifyProfile,
-    wire.WhatIfPlant,
-    wire.WhatIfModel,
-    wire.WhatIfInfo,
+    schema.BenchLimits,
+    schema.BenchInfo,
+    schema.SavedSet,
+    schema.ParamSet,
+    schema.ParamSetComparison,
+    schema.MarginTarget,
+    schema.VerifyProfile,
+    schema.WhatIfPlant,
+    schema.WhatIfModel,
+    schema.WhatIfInfo,
 ]
 REST_REQUESTS: list[type[BaseModel]] = [
-    wire.BenchTestRequest,
-    wire.SaveSetRequest,
+    schema.BenchTestRequest,
+    schema.SaveSetRequest,
 ]
 ALIASES = {
-    "BenchKind": wire.BenchKind,
-    "MarginPreset": wire.MarginPreset,
-    "LinkState": wire.LinkState,
-    "AxisHealth": wire.AxisHealth,
-    "EventLevel": wire.EventLevel,
-    "ControlHolderKind": wire.ControlHolderKind,
-    "ControlAction": wire.ControlAction,
+    "BenchKind": schema.BenchKind,
+    "MarginPreset": schema.MarginPreset,
+    "LinkState": schema.LinkState,
+    "AxisHealth": schema.AxisHealth,
+    "EventLevel": schema.EventLevel,
+    "ControlHolderKind": schema.ControlHolderKind,
+    "ControlAction": schema.ControlAction,
 }
 
 
@@ -115,10 +114,10 @@ def _members(annotated: object) -> list[type[BaseModel]]:
 
 # Derived from the schema itself, so a new message type cannot be forgotten here.
 UNIONS: dict[str, list[type[BaseModel]]] = {
-    "ServerMessage": _members(wire.ServerMessage),
-    "ClientMessage": _members(wire.ClientMessage),
-    "ControlServerMessage": _members(wire.ControlServerMessage),
-    "ControlClientMessage": _members(wire.ControlClientMessage),
+    "ServerMessage": _members(schema.ServerMessage),
+    "ClientMessage": _members(schema.ClientMessage),
+    "ControlServerMessage": _members(schema.ControlServerMessage),
+    "ControlClientMessage": _members(schema.ControlClientMessage),
 }
 
 

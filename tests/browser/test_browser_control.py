@@ -11,7 +11,7 @@ import pytest
 from playwright.async_api import Browser, Page, expect
 
 from servotune.api.app import WEB_DIST
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from tests.support.control import Server, control_server
 from tests.support.paths import ARTIFACTS
 

@@ -13,7 +13,7 @@ from playwright.async_api import Browser, Page, async_playwright
 
 from servotune.api.app import WEB_DIST
 from servotune.config import LinkSpec
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
 from tests.support.servers import LiveServer, live_server
@@ -86,7 +86,7 @@ async def one_module_page(
 ) -> AsyncIterator[tuple[Page, LiveServer]]:
     """One SLAP2 module on a pty behind a live server (once it reports a position), and
     a page (no JavaScript errors at the end)."""
-    bus = Slap2Bus([module])
+    bus = Slap2Line([module])
     simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
     simulator.start()
     try:

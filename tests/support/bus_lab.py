@@ -21,7 +21,7 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.lab_hub import ensure_bus_state
 from servotune.bus.subjects import RIGS_STREAM, manifest
 from servotune.config import LinkSpec
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from tests.support.control import WireRecorder, recorded_line
 from tests.support.nats import Lab, nats_lab
 from tests.support.servers import local_client, use_csrf_token

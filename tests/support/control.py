@@ -1,4 +1,4 @@
-"""Helpers for the control-lock tests and ``scripts/bench_deadman.py``.
+"""Helpers for the control-lock tests and ``scripts/perf_deadman.py``.
 
 ``recorded_line``: a simulated SLAP2 line behind a ``WireRecorder`` (``sim_lines``: every
 line the host sent, with the time it reached the simulated device and the module
@@ -32,11 +32,11 @@ from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
-from servotune.devices.slap2.sim.line import Slap2Bus
-from servotune.hub.control_lock import CLIENT_HEADER, ControlSettings
+from servotune.devices.slap2.sim.line import Slap2Line
+from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
 from servotune.sim.process import Remote
 from tests.support.servers import use_csrf_token
-from tests.support.sim_builders import WireRecorder, recorded_bus
+from tests.support.sim_builders import WireRecorder, recorded_slap2_line
 from tests.support.sim_lines import simulator_process
 
 CR = 0x0D
@@ -48,7 +48,7 @@ def recorded_line(tmp_path: Path, addresses: list[int]) -> Iterator[tuple[Remote
     """SLAP2 modules at ``addresses`` behind a ``WireRecorder``, in a simulator process
     of their own (``tests.support.sim_lines.simulator_process``): its ``PtySimulator`` and the
     recorder as ``Remote`` views."""
-    build = functools.partial(recorded_bus, addresses, tmp_path)
+    build = functools.partial(recorded_slap2_line, addresses, tmp_path)
     with simulator_process("slap2-recorded", build, 19200, str(tmp_path / "tty")) as pair:
         yield pair
 
@@ -63,7 +63,7 @@ class Server:
     client: httpx.AsyncClient
 
     @property
-    def bus(self) -> Slap2Bus:
+    def bus(self) -> Slap2Line:
         return self.wire.bus
 
 

@@ -21,7 +21,7 @@ from websockets.typing import Origin
 from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.demo import demo_simulators
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from servotune.sim.pty import PtySimulator
 from tests.support.waiting import wait_for
 

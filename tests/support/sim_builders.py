@@ -3,7 +3,7 @@ process of their own.
 
 The builders are module-level functions (picklable) in a module that imports only the
 simulators, so a spawned simulator process starts without the test machinery.
-``WireRecorder`` wraps a simulated SLAP2 bus and records every line the host sent, with
+``WireRecorder`` wraps a simulated SLAP2 line and records every line the host sent, with
 the wall-clock time it reached the simulated device and the module selected then: the
 simulated device's own record of the wire.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_DEMO_FLASH, Z1100_LOADS_KG_M2, write_demo_flash
@@ -27,22 +27,22 @@ CR = 0x0D
 CTRL_X = 0x18
 
 
-def slap2_bus(addresses: list[int], eeprom_dir: Path) -> Slap2Bus:
+def slap2_line(addresses: list[int], eeprom_dir: Path) -> Slap2Line:
     """Modules at ``addresses`` with their EEPROMs in ``eeprom_dir``."""
-    return Slap2Bus(
+    return Slap2Line(
         [Slap2Module(a, eeprom_path=eeprom_dir / f"eeprom_{a}.json") for a in addresses]
     )
 
 
-def recorded_bus(addresses: list[int], eeprom_dir: Path) -> WireRecorder:
-    """``slap2_bus`` with a ``WireRecorder`` in front."""
-    return WireRecorder(slap2_bus(addresses, eeprom_dir))
+def recorded_slap2_line(addresses: list[int], eeprom_dir: Path) -> WireRecorder:
+    """``slap2_line`` with a ``WireRecorder`` in front."""
+    return WireRecorder(slap2_line(addresses, eeprom_dir))
 
 
 class WireRecorder:
-    """A ``SimDevice`` that passes everything to a ``Slap2Bus`` and records host lines."""
+    """A ``SimDevice`` that passes everything to a ``Slap2Line`` and records host lines."""
 
-    def __init__(self, bus: Slap2Bus) -> None:
+    def __init__(self, bus: Slap2Line) -> None:
         self.bus = bus
         self.lines: list[tuple[float, int | None, str]] = []
         self._buffer = bytearray()
@@ -78,10 +78,10 @@ class WireRecorder:
         return None
 
 
-def demo_bus() -> Slap2Bus:
+def demo_slap2_line() -> Slap2Line:
     """The demo's SLAP2 line (module 1 carries the load), without limit switches."""
     free: dict[str, Any] = {"limit1_count": None, "limit2_count": None}
-    return Slap2Bus(
+    return Slap2Line(
         [
             Slap2Module(0, params=DcMotorParams(**free)),
             Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),

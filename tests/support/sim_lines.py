@@ -12,7 +12,7 @@ from pathlib import Path
 
 from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
@@ -49,10 +49,10 @@ def running_simulator(
     addresses: list[int], tmp_path: Path, *, baud: int = 19200, link_path: str | None = None
 ) -> Iterator[tuple[Remote, Remote]]:
     """SLAP2 modules at ``addresses`` on a pty, in a process of their own
-    (``simulator_process``): its ``PtySimulator`` and ``Slap2Bus`` as ``Remote`` views.
+    (``simulator_process``): its ``PtySimulator`` and ``Slap2Line`` as ``Remote`` views.
     A test that must reach into a simulator's internals (a closure on its thread, a
     patched method) runs a ``PtySimulator`` of its own."""
-    build = functools.partial(sim_builders.slap2_bus, addresses, tmp_path)
+    build = functools.partial(sim_builders.slap2_line, addresses, tmp_path)
     with simulator_process("slap2-line", build, baud, link_path) as pair:
         yield pair
 
@@ -62,7 +62,7 @@ class RunningLink:
     link: Slap2Link
     sink: RecordingSink
     simulator: PtySimulator
-    bus: Slap2Bus
+    bus: Slap2Line
 
     async def until(self, condition: Callable[[], bool], what: str, timeout_s: float = 5) -> None:
         await wait_for(condition, timeout_s, what)
@@ -73,7 +73,7 @@ class RunningLink:
 
 @contextlib.asynccontextmanager
 async def run_link(
-    simulator: PtySimulator, bus: Slap2Bus, addresses: list[int], **config: object
+    simulator: PtySimulator, bus: Slap2Line, addresses: list[int], **config: object
 ) -> AsyncIterator[RunningLink]:
     sink = RecordingSink()
     link_config = Slap2LinkConfig(
@@ -90,9 +90,9 @@ async def run_link(
 
 
 @contextlib.contextmanager
-def demo_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
+def demo_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Line]]:
     """The demo's SLAP2 line: module 0 unloaded, module 1 with SLAP2_LOADED."""
-    bus = Slap2Bus(
+    bus = Slap2Line(
         [
             Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json"),
             Slap2Module(1, eeprom_path=tmp_path / "eeprom_1.json", params=SLAP2_LOADED),

@@ -5,7 +5,7 @@ import { api } from "./api";
 import { h, replace, setText } from "./dom";
 import { store } from "./store";
 import { AxisView } from "./ui/axis";
-import { control } from "./ui/control";
+import { control } from "./ui/controllock";
 import { mountToast, showError } from "./ui/feedback";
 import { authGate } from "./ui/login";
 import { mountUserMenu } from "./ui/usermenu";

@@ -5,7 +5,7 @@ import type { ClientMessage, ControlClientMessage, ControlServerMessage, RunUpda
  * generated ``ServerMessage`` union does not include it yet; once it does, this is the
  * same type (a repeated member of a union is harmless). */
 export type Incoming = ServerMessage | RunUpdate;
-/** Everything on the socket: the store's messages plus the control lock's (ui/control.ts). */
+/** Everything on the socket: the store's messages plus the control lock's (ui/controllock.ts). */
 export type WsMessage = Incoming | ControlServerMessage;
 
 export type WsState =

@@ -38,7 +38,8 @@ from servotune.bench.service import TestBench
 from servotune.compute import PRELOAD, ComputePool
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
-from servotune.hub.control_lock import AuditSink, ControlManager, ControlSettings
+from servotune.hub.control_client import AuditSink, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.hub.state import UnknownAxisError
 from servotune.link.base import (
@@ -171,9 +172,7 @@ def create_app(config: AppConfig) -> FastAPI:
                     config.bus, hub, config.control, audit=audit, clock=config.control_clock
                 )
             else:
-                control = ControlManager(
-                    hub, config.control, audit=audit, clock=config.control_clock
-                )
+                control = ControlLock(hub, config.control, audit=audit, clock=config.control_clock)
             app.state.control = control
             await hub.start()
             await control.start()

@@ -20,7 +20,7 @@ from servotune.api.bench_routes import BenchDep
 from servotune.api.gains_check import device_law, identified_model
 from servotune.api.responses import errors
 from servotune.autotune.service import AutoTuning
-from servotune.bench import frf as frfbench
+from servotune.bench import frf
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError
@@ -82,14 +82,14 @@ async def run_frf(
         run = await bench.get_run(run_id)
     except KeyError:
         raise NotFoundError("run", f"no run {run_id!r}") from None
-    if (run.get("test") or {}).get("kind") != frfbench.KIND:
+    if (run.get("test") or {}).get("kind") != frf.KIND:
         raise InvalidArgumentError("run_id", f"run {run_id} is not a frequency_response run")
     axis_id = str(run.get("axis_id", ""))
     identified = identified_model(request, axis_id)
     preset = margin_preset(request, axis_id)
     # The analysis of a long run takes seconds of numpy and Python: in the worker.
     law = device_law(request, str(run.get("device", "")))
-    return await compute.run(frfbench.analyse_run, law, run, identified, preset)
+    return await compute.run(frf.analyse_run, law, run, identified, preset)
 
 
 def _proposal_gains(request: Request, axis_id: str) -> dict[str, int] | None:

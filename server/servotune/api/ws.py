@@ -27,7 +27,8 @@ from servotune.auth.authz import REAUTH_DETAIL, password_fresh
 from servotune.auth.principal import FORCE_CONTROL, Principal
 from servotune.auth.security import SecurityState
 from servotune.auth.ws_auth import authenticate_websocket, register_ws, unregister_ws
-from servotune.hub.control_lock import ControlClient, ControlManager
+from servotune.hub.control_client import ControlClient
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.hub.state import ClientQueue
 from servotune.schema import ClientStats, ControlReply, Heartbeat, Ping
@@ -101,7 +102,7 @@ async def websocket_endpoint(websocket: WebSocket) -> None:
     principal = await authenticate(websocket)
     if principal is None:
         return
-    control: ControlManager = websocket.app.state.control
+    control: ControlLock = websocket.app.state.control
     beat = websocket.query_params.get("beat")
     if beat is not None:
         await _heartbeat_socket(websocket, control, principal, beat)
@@ -189,7 +190,7 @@ def _liveness(websocket: WebSocket) -> Callable[[], float | None] | None:
 
 
 async def _heartbeat_socket(
-    websocket: WebSocket, control: ControlManager, principal: Principal, client_id: str
+    websocket: WebSocket, control: ControlLock, principal: Principal, client_id: str
 ) -> None:
     """``/ws?beat=<client_id>``: the heartbeats of a tab's worker, on a socket of their own
     (docs/control.md, "The dead-man"). Only the same user's open tab can be beaten for;
@@ -230,7 +231,7 @@ async def _heartbeat_socket(
 
 
 async def _serve(
-    websocket: WebSocket, queue: ClientQueue, control: ControlManager, client: ControlClient
+    websocket: WebSocket, queue: ClientQueue, control: ControlLock, client: ControlClient
 ) -> None:
     async def sender() -> None:
         while True:
@@ -275,7 +276,7 @@ async def _serve(
                 queue.put(reply.model_dump_json(), droppable=False)
             else:
                 # Not awaited here: a hand-over waits for a STOP, and heartbeats must keep
-                # being read meanwhile. The control manager owns the task (it finishes
+                # being read meanwhile. The control lock owns the task (it finishes
                 # even if this socket closes).
                 control.submit(client, parsed)
                 await _active(websocket, client.principal)

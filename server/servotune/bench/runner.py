@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from servotune.bench import frf as frfbench
+from servotune.bench import frf
 from servotune.bench.limits import BenchLimits as BenchLimits  # importable from here too
 from servotune.bench.limits import LimitsStore
 from servotune.bench.metrics import compute_metrics
@@ -479,7 +479,7 @@ class Runner:
         """The run's metrics (untrusted ones null) and its quality (``bench.quality``)."""
         plan = recording.plan
         raw: dict[str, Any] | None = None
-        if test.kind != frfbench.KIND and recording.t0 is not None and recording.samples:
+        if test.kind != frf.KIND and recording.t0 is not None and recording.samples:
             index = recording.columns.index(plan.response)
             rows = [r for r in recording.samples if r[index] is not None]
             if len(rows) >= 3:

@@ -35,8 +35,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
-from servotune.bench import files as runio
-from servotune.bench import frf as frfbench
+from servotune.bench import files, frf
 from servotune.bench.limits import BenchLimits, LimitsStore
 from servotune.bench.quality import POSITION_KINDS
 from servotune.bench.runner import ActiveRuns, ExternalRecording, Recording, Runner, run_meta
@@ -126,7 +125,7 @@ class TestBench:
         if not await asyncio.to_thread(self._any_to_rejudge):
             return
         changed = await asyncio.get_running_loop().run_in_executor(
-            self._import_pool(), runio.rejudge_in_process, str(self._storage.path)
+            self._import_pool(), files.rejudge_in_process, str(self._storage.path)
         )
         if changed:
             self._hub.on_event(
@@ -139,7 +138,7 @@ class TestBench:
     def _any_to_rejudge(self) -> bool:
         for run_id in self._storage.run_ids():
             run = self._storage.get_run_meta(run_id)
-            if run is not None and runio.needs_rejudging(run):
+            if run is not None and files.needs_rejudging(run):
                 return True
         return False
 
@@ -211,9 +210,9 @@ class TestBench:
             )
         limits = await self.limits(axis_id)
         self._check_limits(request, limits)
-        if request.kind == frfbench.KIND:
-            inject = frfbench.injection_for(self.laws.law(entry.info.device))
-            frfbench.check_request(
+        if request.kind == frf.KIND:
+            inject = frf.injection_for(self.laws.law(entry.info.device))
+            frf.check_request(
                 entry.info.device,
                 inject,
                 request.amplitude,
@@ -263,10 +262,10 @@ class TestBench:
         )
         excitation: Excitation | None = None
         model_based = False
-        inject = frfbench.injection_for(self.laws.law(entry.info.device))
-        if test.kind == frfbench.KIND:
+        inject = frf.injection_for(self.laws.law(entry.info.device))
+        if test.kind == frf.KIND:
             if inject is not None and request.loop == "open":
-                plan, excitation = frfbench.plan_open(
+                plan, excitation = frf.plan_open(
                     inject,
                     entry.latest,
                     request.pwm,
@@ -275,7 +274,7 @@ class TestBench:
                     entry.link.baud,
                 )
             elif inject is not None:
-                plan, excitation = frfbench.plan_closed(
+                plan, excitation = frf.plan_closed(
                     inject,
                     entry.latest,
                     entry.device_values,
@@ -286,7 +285,7 @@ class TestBench:
                 )
                 self._check_excursion(plan.y0, request.amplitude, limits)
             else:
-                plan, model_based = frfbench.model_plan(entry.latest), True
+                plan, model_based = frf.model_plan(entry.latest), True
         else:
             plan = driver.bench_plan(test, entry.latest, entry.device_values)
         self._check_window(test, plan, entry.latest, limits)
@@ -299,7 +298,7 @@ class TestBench:
         self._hub.mark_operated(entry)
         run_id = uuid.uuid4().hex[:12]
         test_dict = asdict(test) | {"note": request.note}
-        if test.kind == frfbench.KIND:
+        if test.kind == frf.KIND:
             test_dict |= {
                 "amplitude": request.amplitude,
                 "low_hz": request.low_hz,
@@ -479,10 +478,10 @@ class TestBench:
         seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
 
         async def body() -> AsyncIterator[bytes]:
-            yield (await asyncio.to_thread(runio.run_json_head, run)).encode()
+            yield (await asyncio.to_thread(files.run_json_head, run)).encode()
             first = True
             for seq in seqs:
-                rows = await asyncio.to_thread(runio.chunk_rows_text, self._storage, run_id, seq)
+                rows = await asyncio.to_thread(files.chunk_rows_text, self._storage, run_id, seq)
                 if rows:
                     yield (rows if first else "," + rows).encode()
                     first = False
@@ -496,9 +495,9 @@ class TestBench:
         seqs = await asyncio.to_thread(self._storage.chunk_seqs, run_id)
 
         async def body() -> AsyncIterator[bytes]:
-            yield runio.csv_header(run).encode()
+            yield files.csv_header(run).encode()
             for seq in seqs:
-                text = await asyncio.to_thread(runio.chunk_csv, self._storage, run_id, seq)
+                text = await asyncio.to_thread(files.chunk_csv, self._storage, run_id, seq)
                 yield text.encode()
 
         return body()
@@ -529,7 +528,7 @@ class TestBench:
         outcome = await asyncio.get_running_loop().run_in_executor(
             self._import_pool(),
             functools.partial(
-                runio.import_in_process,
+                files.import_in_process,
                 str(self._storage.path),
                 entry.storage_key,
                 axis_id,

@@ -4,7 +4,7 @@ their ``RemoteLink``s, keeps its session alive on every rig, and collects their 
 * Rigs come from the rigs stream (last manifest per rig) at start-up (a rig that was
   ever on the bus is listed, offline until its presence says otherwise), and at run
   time from the manifests rigs publish when they join: a new rig's links are
-  registered live (``Hub.add_running_link``, ``ControlManager.add_link``) and every
+  registered live (``Hub.add_running_link``, ``ControlLock.add_link``) and every
   web client gets a new ``hello``, so its navigation lists the rig at once.
 * Connections, one per kind of traffic, each its own NATS user with its own
   permissions (``accounts``): ``view`` (telemetry and events, one subscription per
@@ -55,7 +55,7 @@ from servotune.bus.remote import LIVE_MAX_AGE_S, BusPort, RemoteLink, hub_id
 from servotune.bus.replies import ReplyMux
 from servotune.bus.streams import ensure_bus_state
 from servotune.bus.tasks import BackgroundTasks
-from servotune.hub.control_lock import ControlManager
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.storage import Storage, StorageError
 
@@ -94,7 +94,7 @@ class HubBus:
         self.lane = SafetyLane(settings, self.name, self._on_unknown_rig)
         self._port: BusPort | None = None
         self._hub: Hub | None = None
-        self._control: ControlManager | None = None
+        self._control: ControlLock | None = None
         self._storage: Storage | None = None
         # Rigs are added by the manifest callback and at start: one at a time.
         self._adding = asyncio.Lock()
@@ -267,7 +267,7 @@ class HubBus:
         finally:
             self._asking.discard(rig)
 
-    async def start(self, control: ControlManager) -> None:
+    async def start(self, control: ControlLock) -> None:
         """Listen to the rigs, collect the runs (the lane keeps the session alive)."""
         assert self._view_nc is not None
         self._control = control

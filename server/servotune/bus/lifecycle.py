@@ -11,7 +11,8 @@ from servotune.bus.autotune import HubAutoTuner
 from servotune.bus.connection import BusSettings
 from servotune.bus.lab_hub import HubBus
 from servotune.bus.rig import RigAgent
-from servotune.hub.control_lock import AuditSink, ControlManager, ControlSettings
+from servotune.hub.control_client import AuditSink, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.storage import Storage
 
@@ -34,7 +35,7 @@ class BusLifecycle:
     async def start(
         self,
         hub: Hub,
-        control: ControlManager,
+        control: ControlLock,
         storage: Storage,
         bench: TestBench | None = None,
         autotuner: AutoTuner | None = None,
@@ -61,7 +62,7 @@ def make_control(
     *,
     audit: Callable[[], AuditSink | None] = lambda: None,
     clock: Callable[[], float] = time.monotonic,
-) -> ControlManager:
+) -> ControlLock:
     """The control lock the app runs; at the lab hub (``servotune hub``) without the
     start-up and shutdown STOPs.
 
@@ -71,7 +72,7 @@ def make_control(
     local users (docs/lab.md). Every other rule holds at the hub: its tabs' locks,
     leases and lapses, whose STOPs go to the rig."""
     at_lab_hub = bus is not None and bus.hub is not None
-    return ControlManager(
+    return ControlLock(
         hub,
         settings,
         audit=audit,

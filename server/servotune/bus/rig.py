@@ -12,7 +12,7 @@ What it does, beside everything the rig's server does anyway:
 * answers ``...<axis>.cmd.<verb>`` requests (``write_params``, ``read_params``,
   ``console``, a descriptor command) through the SAME path as a local REST request:
   the permission of the verb (``auth.routes_table.command_permission``), the rig's
-  control lock (``ControlManager.require``), the hub's validation against the
+  control lock (``ControlLock.require``), the hub's validation against the
   descriptor (422-equivalent reply naming the field, nothing sent);
 * answers STOP (``cmd.stop``, ``cmd.stop_all``), the hub sessions' keep-alives and the
   hub's clock probes (``cmd.clock``) on a connection of their own: NATS has no
@@ -25,7 +25,7 @@ What it does, beside everything the rig's server does anyway:
   outcome". A hub STOP that was pressed before the axis was commanded or stopped again
   is not sent (``Hub.stop_overtaken``);
 * keeps the dead-man on the rig: each hub session is a ``ControlClient`` of the rig's
-  own ``ControlManager`` whose heartbeats are the session's keep-alives over the bus;
+  own ``ControlLock`` whose heartbeats are the session's keep-alives over the bus;
   when they stop (hub dead, leaf link cut) for the rig's lease, the axes that session
   moved or held are stopped by the rig;
 * publishes every finished run to the ``SERVOTUNE_RUNS`` stream (deduplicated by
@@ -75,7 +75,8 @@ from servotune.bus.messages import (
     RunRecord,
 )
 from servotune.bus.tasks import BackgroundTasks
-from servotune.hub.control_lock import ControlClient, ControlManager
+from servotune.hub.control_client import ControlClient
+from servotune.hub.control_lock import ControlLock
 from servotune.hub.hub import Hub
 from servotune.hub.state import ClientQueue, StopOvertakenError, UnknownAxisError
 from servotune.link.base import (
@@ -152,7 +153,7 @@ class RigAgent:
         self,
         settings: BusSettings,
         hub: Hub,
-        control: ControlManager,
+        control: ControlLock,
         storage: Storage,
         bench: TestBench | None = None,
         autotuner: AutoTuner | None = None,

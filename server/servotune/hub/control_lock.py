@@ -1,10 +1,13 @@
 """The control lock per axis and the dead-man: who may change an axis, and what happens
 when they vanish.
 
-Sits between the hub and the api: the api asks ``ControlManager.require`` before every
+Sits between the hub and the api: the api asks ``ControlLock.require`` before every
 change of an axis, the websocket endpoint feeds it the control messages of its
 connection (``servotune.schema``: take / request / release / answer / force / heartbeat).
 The hub knows nothing of it except the small ``AutopilotGate`` hook.
+The dead-man's judgement (who went silent, who is forgiven, why) is ``hub/deadman.py``;
+the client, settings and audit types the api and the lab bus share are
+``hub/control_client.py``.
 
 Rules (docs/control.md has the reasoning):
 
@@ -22,7 +25,7 @@ Rules (docs/control.md has the reasoning):
   takes the axis. A change without a client id (scripts, the test suite) changes
   nothing of that. The autopilot yields to any change.
 * Every transfer of an axis (take, grant, force, release, lapse) first brings it to its
-  rest (``ControlManager._safe_stop``: a controlled stop that holds); the new holder starts
+  rest (``ControlLock._safe_stop``: a controlled stop that holds); the new holder starts
   with nothing moving. While that stop runs the axis answers 423 "being handed over".
 * Dead-man: a holder renews its lease with heartbeats (``heartbeat_period_s``); when no
   heartbeat came for ``lease_s`` of time in which the server was listening, or the
@@ -39,12 +42,13 @@ import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from fastapi import HTTPException
 from pydantic import BaseModel
 
 from servotune.auth.principal import CONTROL, FORCE_CONTROL, Principal
+from servotune.hub.control_client import AuditSink, ControlClient, ControlSettings
+from servotune.hub.deadman import DeadMan
 from servotune.hub.hub import Hub
 from servotune.hub.state import UnknownAxisError
 from servotune.hub.stops import StopKind
@@ -67,101 +71,13 @@ from servotune.schema import (
 
 logger = logging.getLogger(__name__)
 
-CLIENT_HEADER = "X-Servotune-Client"
 # Event-loop turns the watchdog yields before it confirms a lapse: enough for a frame
 # already in the socket to reach ``heartbeat`` (transport -> websocket -> endpoint).
 _READ_TURNS = 10
 # A STOP garbled on the wire (echo mismatch, no answer) is sent again, at once.
 _STOP_ATTEMPTS = 3
-# A tab whose heartbeat is this late gets a small message every PROBE_PERIOD_S, so that
-# its machine has something to acknowledge by the time its lease runs out.
-PROBE_AFTER_S = 0.2
-PROBE_PERIOD_S = 0.1
-# An acknowledgement counts as "after the last heartbeat" when it came this much later.
-ACK_AFTER_HEARTBEAT_S = 0.05
 
 ControlMessage = TakeControl | RequestControl | ReleaseControl | AnswerControl | ForceControl
-
-
-@dataclass(frozen=True, slots=True)
-class ControlSettings:
-    """Timings of the lock and the dead-man (tests shorten the hand-over ones).
-
-    ``lease_s`` + ``watchdog_period_s`` + the time of the device's STOP on its wire is
-    the dead-man's worst case after the last heartbeat: 350 + 25 + a few ms (target:
-    500 ms). The client sends a heartbeat every ``heartbeat_period_s`` (100 ms), so a
-    browser on a loaded machine may be up to 250 ms late before its lease lapses.
-    """
-
-    heartbeat_period_s: float = 0.1
-    lease_s: float = 0.35
-    # A page that holds a jog and whose own thread has not run for this long (its
-    # heartbeat worker says so) loses its axes too: a frozen page cannot release the jog
-    # (docs/control.md). Without a jog held the worker reports no page age.
-    frozen_page_s: float = 2.0
-    # Heartbeats late beyond the lease are forgiven this long while the tab's connection
-    # is demonstrably alive (its machine's TCP stack acknowledges the telemetry: a busy
-    # browser, not a vanished one; ``api.tcp_alive``).
-    alive_grace_s: float = 2.0
-    watchdog_period_s: float = 0.025
-    request_timeout_s: float = 30.0
-    idle_grant_s: float = 60.0
-    autopilot_resume_s: float = 20.0
-    stop_timeout_s: float = 2.0
-    startup_wait_s: float = 3.0
-
-
-class AuditSink(Protocol):
-    """``servotune.auth.audit``'s ``record`` (set as ``app.state.audit`` by the auth code)."""
-
-    def record(
-        self,
-        *,
-        who: str,
-        action: str,
-        axis: str | None = None,
-        address: str | None = None,
-        before: object = None,
-        after: object = None,
-        result: str = "ok",
-        detail: str = "",
-    ) -> None: ...
-
-
-@dataclass(eq=False, slots=True)
-class ControlClient:
-    """One websocket connection. ``client_id`` is its secret (only it learns it, in
-    ``welcome``); ``tag`` is its public name in ``control_status``."""
-
-    client_id: str
-    tag: str
-    principal: Principal
-    address: str
-    send: Callable[[str], None]
-    # When the server last heard from the client (heartbeat, or a change / hold), and how
-    # long the page's own thread had not run by then (its heartbeat worker's report).
-    heard_s: float = 0.0
-    page_age_s: float = 0.0
-    # The longest the server went without hearing from the client while it held or
-    # moved an axis (how near its lease came to lapsing); logged when it grows.
-    worst_gap_s: float = 0.0
-    held_when_heard: bool = False
-    lapsing: bool = False
-    connected: bool = True
-    beats: int = 0  # heartbeats on the worker's socket (0: the page sends its own)
-    heartbeats: int = 0  # every heartbeat heard, from the page or its worker
-    # How long ago the tab's machine last acknowledged this connection's data (None:
-    # cannot be told, e.g. behind a reverse proxy): see ControlSettings.alive_grace_s.
-    alive: Callable[[], float | None] | None = None
-    alive_cache: tuple[float, float | None] = (-math.inf, None)
-    # Sends the tab something small, so that its machine has something to acknowledge
-    # while its heartbeats are late (``alive`` needs a busy line to prove anything).
-    probe: Callable[[], None] | None = None
-    probed_s: float = -math.inf
-
-    @property
-    def user(self) -> str:
-        return self.principal.user
 
 
 @dataclass(eq=False, slots=True)
@@ -193,7 +109,7 @@ def _can_control(principal: Principal) -> bool:
     return CONTROL in principal.permissions or FORCE_CONTROL in principal.permissions
 
 
-class ControlManager:
+class ControlLock:
     """The lock of every axis of ``hub``; lives for the app's lifespan (``app.state.control``)."""
 
     def __init__(
@@ -223,6 +139,12 @@ class ControlManager:
         self._clients: dict[str, ControlClient] = {}
         self._tasks: set[asyncio.Task[None]] = set()
         self._watchdog_task: asyncio.Task[None] | None = None
+        self._deadman = DeadMan(
+            lambda: self.settings,
+            clock,
+            self._clients.values,
+            lambda client: bool(self._responsible(client)),
+        )
         # Lapses seen and how late each was detected after the lease ran out (benchmark).
         self.lapses = 0
         # Passes of the watchdog begun (a test that steps the clock waits for two: one
@@ -375,7 +297,7 @@ class ControlManager:
     # --- control messages -------------------------------------------------------------
 
     def submit(self, client: ControlClient, message: ControlMessage) -> None:
-        """Handle ``message`` in a task of the manager's (see ``handle``)."""
+        """Handle ``message`` in a task of the lock's (see ``handle``)."""
         self._spawn(self.handle(client, message), f"{message.type} from {client.tag}")
 
     async def handle(self, client: ControlClient, message: ControlMessage) -> None:
@@ -702,92 +624,20 @@ class ControlManager:
         while True:
             await asyncio.sleep(period)
             self.watchdog_passes += 1
-            self._probe_late_clients()
-            suspects = self._silent_clients()
+            self._deadman.probe_late_clients()
+            suspects = self._deadman.silent_clients()
             if not suspects:
                 continue
             for _ in range(_READ_TURNS):
                 await asyncio.sleep(0)
             for client in suspects:
                 client.alive_cache = (-math.inf, None)  # ask afresh: a probe may be acked
-            confirmed = set(self._silent_clients())
+            confirmed = set(self._deadman.silent_clients())
             for client in suspects:
                 if client in confirmed:
                     client.lapsing = True  # once; a heartbeat or a new hold resets it
-                    now = self._clock()
-                    silent_ms = round(1000 * (now - client.heard_s))
-                    if silent_ms > 1000 * self.settings.lease_s:
-                        source = "its worker" if client.beats else "the page itself"
-                        why = f"no heartbeat for {silent_ms} ms (from {source}"
-                        ack_s = client.alive_cache[1]
-                        grace_s = self.settings.alive_grace_s
-                        if client.alive is not None and silent_ms > 1000 * grace_s:
-                            # Not asked by _forgiven past the grace: ask now, for the
-                            # message (a live machine past the grace is not "unknown").
-                            ack_s = client.alive()
-                        if client.alive is None or ack_s is None:
-                            why += "; its connection cannot be checked)"
-                        else:
-                            why += f"; its machine last acknowledged {1000 * ack_s:.0f} ms ago"
-                            if silent_ms > 1000 * grace_s:
-                                why += f", but a live connection is forgiven {grace_s:g} s only"
-                            why += ")"
-                    else:
-                        frozen = client.page_age_s + now - client.heard_s
-                        why = f"the page has not run for {frozen:.1f} s (frozen)"
+                    why = self._deadman.lapse_reason(client, self._clock())
                     self._spawn(self._lapse(client, why), f"lapse of {client.tag}")
-
-    def _silent_clients(self) -> list[ControlClient]:
-        """Clients with axes that went silent (no heartbeat for ``lease_s``: a closed
-        tab, a sleeping laptop, a cut network) or whose page froze (its worker still
-        beats, the page has not run for ``frozen_page_s``)."""
-        now = self._clock()
-        deadline = now - self.settings.lease_s
-        frozen = self.settings.frozen_page_s
-        return [
-            c
-            for c in list(self._clients.values())
-            if (
-                (c.heard_s < deadline and not self._forgiven(c, now))
-                or c.page_age_s + now - c.heard_s > frozen
-            )
-            and not c.lapsing
-            and self._responsible(c)
-        ]
-
-    def _probe_late_clients(self) -> None:
-        """Write to every tab whose heartbeat is late (after ``PROBE_AFTER_S``), every
-        ``PROBE_PERIOD_S``: by the time its lease runs out its machine has had data to
-        acknowledge, or not (``_forgiven``)."""
-        now = self._clock()
-        for client in list(self._clients.values()):
-            if (
-                client.probe is not None
-                and now - client.heard_s > PROBE_AFTER_S
-                and now - client.probed_s >= PROBE_PERIOD_S
-                and not client.lapsing
-                and self._responsible(client)
-            ):
-                client.probed_s = now
-                client.probe()
-
-    def _forgiven(self, client: ControlClient, now: float) -> bool:
-        """A late client whose connection is demonstrably alive, within the grace: its
-        machine acknowledged data after its last heartbeat arrived (a cut network or a
-        sleeping laptop acknowledges nothing from the moment it goes), and within the
-        lease (so a cut after that heartbeat is seen within the lease too)."""
-        silent_s = now - client.heard_s
-        if client.alive is None or silent_s > self.settings.alive_grace_s:
-            return False
-        checked_at, ack_s = client.alive_cache
-        if now - checked_at > 0.05:
-            ack_s = client.alive()
-            client.alive_cache = (now, ack_s)
-            checked_at = now
-        if ack_s is None:
-            return False
-        ack_s += now - checked_at  # as old as it is now
-        return ack_s <= min(self.settings.lease_s, silent_s - ACK_AFTER_HEARTBEAT_S)
 
     # --- demo autopilot (hub.autopilot.AutopilotGate) ---------------------------------------
 

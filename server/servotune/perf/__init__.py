@@ -1,1 +1,1 @@
-"""Performance benchmarks (``servotune bench``): figures, not tests."""
+"""Performance benchmarks (``servotune perf``): figures, not tests."""

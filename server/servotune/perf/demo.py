@@ -1,4 +1,4 @@
-"""``servotune bench demo``: CPU per process and link rates of the whole demo.
+"""``servotune perf demo``: CPU per process and link rates of the whole demo.
 
 Starts ``python -m servotune demo`` (autopilot on) on a free port as a child process
 (or measures one already running, ``--url`` and ``--pid``), waits until every link is
@@ -507,7 +507,7 @@ def run_demo_bench(
     pid: int | None,
     warm_up_s: float = 5.0,
 ) -> int:
-    """The ``servotune bench demo`` command; ``hog`` is ``off``, ``on`` or ``both``."""
+    """The ``servotune perf demo`` command; ``hog`` is ``off``, ``on`` or ``both``."""
     phases = {"off": [False], "on": [True], "both": [False, True]}[hog]
     with contextlib.ExitStack() as stack:
         if url is None:
@@ -515,7 +515,7 @@ def run_demo_bench(
             server = stack.enter_context(demo_server(port=port))
             url, pid = server.base_url, server.pid
         elif pid is None:
-            print("servotune bench demo: --url needs --pid (the server's process id)")
+            print("servotune perf demo: --url needs --pid (the server's process id)")
             return 2
         assert pid is not None
         time.sleep(warm_up_s)

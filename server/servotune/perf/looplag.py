@@ -11,7 +11,7 @@ answers for; it does not grow with the load of other processes. Where schedstat 
 missing the whole lag counts as own (the strict reading).
 
 Used by the test suite's loop-lag watchdog (tests/integration/perf/test_loop_watchdog.py)
-around bench runs and auto-tune steps, and by ``scripts/bench_stops.py``-style tools; pure asyncio
+around bench runs and auto-tune steps, and by ``scripts/perf_stops.py``-style tools; pure asyncio
 and the standard library.
 """
 

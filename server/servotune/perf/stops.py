@@ -23,7 +23,7 @@ and records the shaft as the simulated device sees it until it is at rest.
 
 A composition root: the hub is built here, each device's plant, link and shaft trace
 come from its registry entry (``SimulatorEntry.stop_rig``); used by
-``scripts/bench_stops.py`` (the table in docs/control.md) and tests/integration/hub/test_stops.py
+``scripts/perf_stops.py`` (the table in docs/control.md) and tests/integration/hub/test_stops.py
 (ratios against the power-off measured in the same test). Figures depend on the host
 only through the host's latency (a STOP's few milliseconds on the wire).
 """

@@ -275,7 +275,7 @@ class Remote:
     copy: writing to it would change nothing in the device). Anything else comes back
     as another ``Remote``; setting an attribute sets it in the device. The path is
     walked again on every access, so the calls on the way must be look-ups (e.g.
-    ``bus.module(0).rss``); arguments must be picklable (no closures).
+    ``line.module(0).rss``); arguments must be picklable (no closures).
     """
 
     __slots__ = ("_path", "_process", "_root")

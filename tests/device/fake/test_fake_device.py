@@ -27,7 +27,7 @@ from websockets.typing import Origin
 from servotune.api.app import WEB_DIST, AppConfig, create_app
 from servotune.config import ConfigError, LinkSpec, parse_link_spec
 from servotune.devices import default_registry
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from servotune.registry import Registry
 from servotune.sim.pty import PtySimulator
 

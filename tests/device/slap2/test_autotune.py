@@ -34,7 +34,7 @@ from servotune.devices.slap2.law import (
 )
 from servotune.devices.slap2.sim.controller import TICK_S
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError
 from servotune.sim.physics import DcMotorParams
@@ -436,12 +436,12 @@ def _summary(metrics: dict[str, Any] | None) -> str:
 
 async def test_stop_ends_identification_and_nothing_moves_after(tmp_path: Path) -> None:
     """The STOP button during identification: the staircase ends, the axis stays off."""
-    from servotune.devices.slap2.sim.line import Slap2Bus
+    from servotune.devices.slap2.sim.line import Slap2Line
     from servotune.devices.slap2.sim.module import Slap2Module
     from servotune.sim.pty import PtySimulator
     from tests.support.servers import live_server
 
-    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    bus = Slap2Line([Slap2Module(0), Slap2Module(1)])
     with PtySimulator(bus, baud=19200) as sim:
         async with live_server(sim, bus, tmp_path / "data") as server:
             identify = asyncio.ensure_future(
@@ -471,7 +471,7 @@ async def test_identification_is_refused_while_the_axis_moves(tmp_path: Path) ->
     with no move flag (a limit cycle after the profile ended) fitted the motion and
     reported "the shaft did not move: raise max_pwm". Refused now, before anything is
     sent, with what it saw; the motor kept what it was doing (nothing was written)."""
-    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    bus = Slap2Line([Slap2Module(0), Slap2Module(1)])
     with PtySimulator(bus, baud=19200) as sim:
         async with live_server(sim, bus, tmp_path / "data") as server:
             spin = await server.client.post(

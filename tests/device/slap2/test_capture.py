@@ -26,8 +26,8 @@ from servotune.devices.slap2.profile import (
     TrapezoidGenerator,
     firmware_setpoint,
 )
-from servotune.devices.slap2.sim.demo import build_slap2_bus
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.demo import build_slap2_line
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import Capturer, DeviceRefusedError, DriverError, capture_of
 from servotune.sim.process import SerialSimSpec, serial_sim_process
@@ -211,7 +211,7 @@ class _LineClock:
     host sends, the simulation time its CR reached the modules: when they act on it
     (the simulator delivers each byte at its arrival time)."""
 
-    def __init__(self, device: Slap2Bus) -> None:
+    def __init__(self, device: Slap2Line) -> None:
         self.device = device
         self.t_s = 0.0
         self.pending = bytearray()
@@ -231,9 +231,9 @@ class _LineClock:
 
 
 @contextlib.contextmanager
-def _recorded_line(tmp_path: Path) -> Iterator[tuple[_LineClock, PtySimulator, Slap2Bus]]:
+def _recorded_line(tmp_path: Path) -> Iterator[tuple[_LineClock, PtySimulator, Slap2Line]]:
     """Two simulated modules on a pty behind a ``_LineClock`` that records every line."""
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     clock = _LineClock(bus)
     simulator = PtySimulator(clock, baud=19200)
     simulator.start()
@@ -292,7 +292,7 @@ async def test_capture_switches_ucon_on_and_restores_it(tmp_path: Path) -> None:
     the module's own setting (off) is back when the capture ends, and after a reset
     during the capture (syscon back from the EEPROM) ucon is switched on again."""
     ucon = 1 << 5
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     clock = _LineClock(bus)
     simulator = PtySimulator(clock, baud=19200)
     simulator.start()
@@ -338,7 +338,7 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
     metrics no longer depend on which sample caught the peak. The simulator runs in a
     process of its own, as in the demo (in this process it would share the interpreter
     with the driver: host stalls, not the measurement)."""
-    spec = SerialSimSpec("slap2", functools.partial(build_slap2_bus, tmp_path), 19200)
+    spec = SerialSimSpec("slap2", functools.partial(build_slap2_line, tmp_path), 19200)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
         sink = RecordingSink()

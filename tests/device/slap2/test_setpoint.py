@@ -15,7 +15,7 @@ from pathlib import Path
 from servotune.devices.slap2.codec import ACCELERATION_MAX, VELOCITY_MAX
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.link.setpoint import STEADY_ERROR_COUNTS, SkewedSetpoint
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.transports.serial import SerialConnector
@@ -42,7 +42,9 @@ def test_the_sum_of_two_reads_is_a_setpoint_only_while_the_error_is_steady() -> 
 async def loaded_line(tmp_path: Path) -> AsyncIterator[tuple[Slap2Axis, RecordingSink]]:
     """The demo's loaded SLAP2 module on a pty, simulated in a process of its own (as the
     demo runs it): this test's own work cannot starve it into late echoes."""
-    build = functools.partial(Slap2Bus.with_addresses, [0], state_dir=tmp_path, params=SLAP2_LOADED)
+    build = functools.partial(
+        Slap2Line.with_addresses, [0], state_dir=tmp_path, params=SLAP2_LOADED
+    )
     with serial_sim_process(SerialSimSpec("setpoint", build, 19200)) as sim:
         path = sim.ready["path"]
         sink = RecordingSink()

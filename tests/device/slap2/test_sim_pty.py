@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import serial
 
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.sim.pty import PtySimulator
 
 BAUD = 19200
@@ -22,7 +22,7 @@ CHAR_S = 10 / BAUD
 
 @pytest.fixture
 def simulator(tmp_path: Path) -> Iterator[PtySimulator]:
-    sim = PtySimulator(Slap2Bus.with_addresses([0, 1]), baud=BAUD, link_path=str(tmp_path / "tty"))
+    sim = PtySimulator(Slap2Line.with_addresses([0, 1]), baud=BAUD, link_path=str(tmp_path / "tty"))
     sim.start()
     try:
         yield sim
@@ -166,7 +166,7 @@ def test_unplug_and_replug(simulator: PtySimulator) -> None:
 
 def test_stop_removes_the_link(tmp_path: Path) -> None:
     link = tmp_path / "tty"
-    sim = PtySimulator(Slap2Bus.with_addresses([0]), link_path=str(link))
+    sim = PtySimulator(Slap2Line.with_addresses([0]), link_path=str(link))
     sim.start()
     assert link.is_symlink()
     sim.stop()

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from servotune.devices.slap2.sim.controller import FACTORY_DEFAULTS, TICK_S
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 
@@ -35,7 +35,7 @@ RSS_UC = 1 << 8
 
 
 class Wire:
-    def __init__(self, bus: Slap2Bus) -> None:
+    def __init__(self, bus: Slap2Line) -> None:
         self.bus = bus
         self.t = 0.0
         self.unsolicited = bus.advance_to(0.0)
@@ -75,9 +75,9 @@ class Wire:
         self.bus.advance_to(self.t)
 
 
-def make(*addresses: int, **plant: int | float | None) -> tuple[Slap2Bus, Wire]:
+def make(*addresses: int, **plant: int | float | None) -> tuple[Slap2Line, Wire]:
     params = DcMotorParams(**plant) if plant else None  # type: ignore[arg-type]
-    bus = Slap2Bus(Slap2Module(a, params=params) for a in addresses or (0,))
+    bus = Slap2Line(Slap2Module(a, params=params) for a in addresses or (0,))
     return bus, Wire(bus)
 
 
@@ -570,7 +570,7 @@ def test_current_limit_sets_oc_only_when_reached() -> None:
 E1, E2, INDEX = -3000, 3000, 300
 
 
-def calibrate(mode: int, *, start: int = 0) -> tuple[Slap2Bus, Wire]:
+def calibrate(mode: int, *, start: int = 0) -> tuple[Slap2Line, Wire]:
     bus, wire = make(limit1_count=E1, limit2_count=E2, index_count=INDEX)
     bus.module(0).motor.set_count(start)
     wire.ask("sp 0")
@@ -654,7 +654,7 @@ def test_ctrl_k_aborts_calibration_and_cal_stays_0() -> None:
 
 def test_pg_persists_and_de_erases(tmp_path: Path) -> None:
     path = tmp_path / "slap2_0.json"
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=path, serial_number=4711)])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=path, serial_number=4711)])
     wire = Wire(bus)
     wire.ask("kp 55")
     wire.ask("sv 3000")
@@ -678,7 +678,7 @@ def test_pg_persists_and_de_erases(tmp_path: Path) -> None:
 
 
 def test_pg_is_refused_in_pm_and_vm() -> None:
-    bus = Slap2Bus([Slap2Module(0)])
+    bus = Slap2Line([Slap2Module(0)])
     wire = Wire(bus)
     wire.ask("ssb 5")
     wire.ask("kp 55")
@@ -709,7 +709,7 @@ def test_power_cycle_resets_ram_counter_modes_and_cal_flag() -> None:
 def test_corrupt_eeprom_file_means_defaults(tmp_path: Path) -> None:
     path = tmp_path / "slap2_0.json"
     path.write_text("{not json")
-    wire = Wire(Slap2Bus([Slap2Module(0, eeprom_path=path)]))
+    wire = Wire(Slap2Line([Slap2Module(0, eeprom_path=path)]))
     assert wire.ask("qp") == "40"
 
 

@@ -20,7 +20,7 @@ from servotune.config import LinkSpec
 from servotune.devices.slap2.gain_rule import propose_gains
 from servotune.devices.slap2.law import Gains
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import Margins
@@ -190,7 +190,7 @@ async def test_keep_writes_nothing_and_the_declined_proposal_cannot_be_accepted(
     the search cannot reach there: keep is recommended; POST keep answers the decision,
     writes nothing; an accept of the declined proposal and a second keep are refused."""
     gentle = {"kp": 150, "ki": 0, "kd": 1500}
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=SLAP2_LOADED)])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=SLAP2_LOADED)])
     module = bus.module(0)
     with PtySimulator(bus, baud=19200) as sim:
         spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0], 512)

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from servotune.devices.slap2 import tuner as slap2_tuner
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.pty import PtySimulator
 from tests.support.servers import live_server
@@ -21,7 +21,7 @@ LIMITS = {"max_pwm": 60, "max_distance_counts": 4000, "response": "no_overshoot"
 async def test_stop_during_accept_answers_normally_and_restores_the_previous_gains(
     tmp_path: Path,
 ) -> None:
-    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    bus = Slap2Line([Slap2Module(0), Slap2Module(1)])
     module = bus.module(0)
     with PtySimulator(bus, baud=19200) as sim:
         async with live_server(sim, bus, tmp_path / "data") as server:
@@ -64,7 +64,7 @@ async def test_a_failed_identification_returns_the_axis_and_says_everything(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(slap2_tuner, "fit_plant", failing_fit)
-    bus = Slap2Bus([Slap2Module(0), Slap2Module(1)])
+    bus = Slap2Line([Slap2Module(0), Slap2Module(1)])
     module = bus.module(0)
     with PtySimulator(bus, baud=19200) as sim:
         async with live_server(sim, bus, tmp_path / "data") as server:

@@ -22,13 +22,13 @@ import control
 import numpy as np
 import pytest
 
-from servotune.bench import frf as frfbench
+from servotune.bench import frf
 from servotune.config import LinkSpec
 from servotune.devices import default_registry
 from servotune.devices.slap2.codec import TICK_S
 from servotune.devices.slap2.injection import Slap2Injection, TrapezoidInput
 from servotune.devices.slap2.law import slap2_loop
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.law import z1100_loop_for
 from servotune.link.base import InvalidArgumentError
@@ -165,19 +165,17 @@ def test_the_wire_plan_places_tones_where_the_capture_resolves_them() -> None:
     assert wire.steps_per_s_limit == pytest.approx(19200 / 10 / 26)
     assert wire.max_tone_hz == pytest.approx(0.8 * 0.7 * 19200 / 10 / 26 / 2)
     requested = frfrun.design(0.0, 1.0, 1.0, 40.0).tones_hz
-    high, left_out, reason, plan = frfbench.wire_band(inject, 19200, 1.0, 40.0)
+    high, left_out, reason, plan = frf.wire_band(inject, 19200, 1.0, 40.0)
     assert high == 20.0 and left_out == tuple(f for f in requested if f > 20.68)
     assert left_out[0] == 21.0 and left_out[-1] == 40.0
     assert reason is not None and "19200 baud" in reason and plan == wire.to_dict()
-    assert frfbench.wire_band(inject, 38400, 1.0, 40.0)[:3] == (40.0, (), None)
-    frfbench.check_request(
-        "slap2", SLAP2_INJECTION, 200, 1.0, 40.0, 9.0, 20_000, baud=19200
-    )  # accepted
+    assert frf.wire_band(inject, 38400, 1.0, 40.0)[:3] == (40.0, (), None)
+    frf.check_request("slap2", SLAP2_INJECTION, 200, 1.0, 40.0, 9.0, 20_000, baud=19200)  # accepted
     with pytest.raises(InvalidArgumentError, match="wire") as refused:
-        frfbench.check_request("slap2", SLAP2_INJECTION, 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
+        frf.check_request("slap2", SLAP2_INJECTION, 200, 15.0, 40.0, 9.0, 20_000, baud=9600)
     assert refused.value.field == "low_hz"
     # the Z1100 does not inject: model-based, no wire plan
-    assert frfbench.injection_for(LAW("z1100")) is None and frfbench.measured(LAW("slap2"))
+    assert frf.injection_for(LAW("z1100")) is None and frf.measured(LAW("slap2"))
 
 
 def test_model_margins_are_those_of_tuning_loops() -> None:
@@ -190,7 +188,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
         "params": gains,
         "plant_model": identified,
     }
-    out = frfbench.analyse_run(LAW(run["device"]), run, None)
+    out = frf.analyse_run(LAW(run["device"]), run, None)
     assert out["model_based"] and out["measured"] is None and out["model"] is not None
     plant = control.tf([90_000.0 / 255], [0.02, 1.0, 0.0])
     truth = z1100_loop_for(plant, 24, 32, 8).margins()
@@ -199,7 +197,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
     assert margins["gain_crossover_hz"] == pytest.approx(truth.gain_crossover_hz, abs=1e-3)
     assert margins["stable"] is truth.stable
     # without a model: a reason, not an error
-    out = frfbench.analyse_run(LAW(run["device"]), run | {"plant_model": None}, None)
+    out = frf.analyse_run(LAW(run["device"]), run | {"plant_model": None}, None)
     assert out["model"] is None and "Identify" in out["model_problem"]
 
 
@@ -252,8 +250,8 @@ def test_identified_models_are_read_per_device() -> None:
 
 
 @pytest.fixture
-def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=NO_FRICTION)])
+def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Line]]:
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json", params=NO_FRICTION)])
     simulator = PtySimulator(bus, baud=19200, link_path=str(tmp_path / "tty"))
     simulator.start()
     try:
@@ -264,7 +262,7 @@ def one_module(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Bus]]:
 
 @pytest.fixture
 async def one_module_api(
-    tmp_path: Path, one_module: tuple[PtySimulator, Slap2Bus]
+    tmp_path: Path, one_module: tuple[PtySimulator, Slap2Line]
 ) -> AsyncIterator[Any]:
     sim, bus = one_module
     spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0], 512)
@@ -311,14 +309,14 @@ async def test_bad_frequency_response_requests_are_refused_before_anything_moves
     assert (await one_module_api.client.get("/api/axes/line-0/bench/runs")).json() == []
 
 
-def _check_against_simulator(frf: dict[str, Any], run: dict[str, Any]) -> None:
+def _check_against_simulator(analysis: dict[str, Any], run: dict[str, Any]) -> None:
     """Measured T against the simulator's plant under the firmware PID with the run's
     gains (the ZOH model with the simulator's one-tick lead, docs/frequency-response.md):
     within 0.5 dB and 5 deg at every tone the run trusts. How many it trusts depends on
     the host (a loaded one stalls the capture: docs); ``tests/integration/bench/test_frf_trust.py``
     checks the coverage on a deterministic wire."""
-    measured = frf["measured"]
-    assert measured is not None, frf["measured_problem"]
+    measured = analysis["measured"]
+    assert measured is not None, analysis["measured_problem"]
     closed = measured["closed_loop"]
     f = np.asarray(closed["frequency_hz"])
     p = run["params"]
@@ -344,9 +342,11 @@ async def _measured_run(
             continue
         assert run["status"] == "complete", message
         # the analysis runs in the compute worker: seconds on a loaded host
-        frf = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
-        _check_against_simulator(frf, run)
-        return run, frf
+        analysis = (
+            await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)
+        ).json()
+        _check_against_simulator(analysis, run)
+        return run, analysis
     raise AssertionError(f"every run ended on a wire timeout: {reasons}")
 
 
@@ -377,7 +377,7 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(
     """0.5-3 Hz: the band today's poll rate (about 10-20 samples/s of one module)
     resolves; tones up to 2 Hz are checked (Nyquist stays above 2 Hz at 4 samples/s)."""
     amplitude = 300
-    run, frf = await _measured_run(
+    run, analysis = await _measured_run(
         one_module_api, amplitude=amplitude, low_hz=0.5, high_hz=3.0, duration_s=10.0
     )
     run_id = run["id"]
@@ -402,7 +402,7 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(
     for key in ("test", "excitation", "params", "plan", "samples"):
         assert imported[key] == run[key], key
     again = (await one_module_api.client.get(f"/api/bench/runs/{imported_id}/frf")).json()
-    assert again["measured"] == frf["measured"]
+    assert again["measured"] == analysis["measured"]
 
 
 async def test_frequency_response_1_to_40_hz_matches_the_simulator(
@@ -417,10 +417,10 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(
     is an impulse response fitted at the sample times against the input replayed from
     the latched targets (docs/frequency-response.md)."""
     began = time.monotonic()
-    run, frf = await _measured_run(
+    run, analysis = await _measured_run(
         one_module_api, amplitude=200, low_hz=1.0, high_hz=40.0, duration_s=9.0
     )
-    measured = frf["measured"]
+    measured = analysis["measured"]
     requested = frfrun.design(0.0, 1.0, 1.0, 40.0).tones_hz
     assert measured["not_measured_hz"] == [f for f in requested if f > 20.68]
     assert measured["not_measured_hz"][0] == 21.0 and measured["not_measured_hz"][-1] == 40.0
@@ -429,7 +429,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(
     assert max(measured["closed_loop"]["frequency_hz"]) == 20.0
     assert run["excitation"]["not_measured_hz"] == measured["not_measured_hz"]
     assert run["excitation"]["wire"] == measured["wire"]
-    margins = frf["measured"]["margins"]
+    margins = analysis["measured"]["margins"]
     # a margin is a number or null with the reason, never both
     for key in ("gain_margin", "phase_margin"):
         value = margins[f"{key}_db" if key == "gain_margin" else f"{key}_deg"]
@@ -475,7 +475,7 @@ async def test_frequency_response_1_to_40_hz_matches_the_simulator(
 
 
 async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
-    one_module_api: LiveServer, one_module: tuple[PtySimulator, Slap2Bus]
+    one_module_api: LiveServer, one_module: tuple[PtySimulator, Slap2Line]
 ) -> None:
     """Host stalls injected into the capture (``PtySimulator.stall_host``: after one CR
     in fifteen the echo and the reply reach the host 15-50 ms late, as when the host runs
@@ -517,10 +517,10 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
     spans = [span for _, span in run["excitation"]["spans"]] + [row[3] for row in sent]
     assert min(spans) >= 0.0 and max(spans) >= 0.015, max(spans)
     began = time.monotonic()
-    frf = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
+    analysis = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
     analysed_s = time.monotonic() - began
-    measured = frf["measured"]
-    assert measured is not None, frf["measured_problem"]
+    measured = analysis["measured"]
+    assert measured is not None, analysis["measured_problem"]
     trust = measured["trust"]
     assert trust["spans"] == "recorded by the driver", trust
     assert trust["stalled_samples_left_out"] + trust["stalled_targets_bounded"] >= 1, trust
@@ -563,12 +563,12 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             assert response.status_code == 202, response.text
             run = response.json()
             assert run["status"] == "complete" and run["test"]["model_based"] is True
-            frf = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
-            assert frf["model_based"] and frf["measured"] is None
+            analysis = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
+            assert analysis["model_based"] and analysis["measured"] is None
             params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
             plant = plant_from_identification(LAW("z1100"), identified)
             truth = loop_for(LAW("z1100"), plant, params).margins()
-            margins = frf["model"]["margins"]
+            margins = analysis["model"]["margins"]
             assert margins["phase_margin_deg"] == pytest.approx(truth.phase_margin_deg, abs=1e-3)
             assert margins["stable"] is truth.stable
             whatif = (await client.get("/api/axes/line-x/whatif")).json()

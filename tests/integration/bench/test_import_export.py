@@ -233,7 +233,7 @@ async def test_a_run_judged_by_an_older_rule_is_judged_again_when_imported_or_st
     """One rule for every run on the page, wherever it was recorded. A run
     exported (or stored) by an older version keeps the metrics it was judged with: a
     peak time of 1 ms "trusted" that no 3 samples resolve. Imported, and at a server's
-    start-up for the runs in its database (runio.rejudge_in_process), it is judged by
+    start-up for the runs in its database (bench.files.rejudge_in_process), it is judged by
     today's sampling rule; a run judged by it already is left as it is."""
     run, meta, csv_text = await _exported(api)
     assert meta["quality"]["sampling_rule"] == SAMPLING_RULE

@@ -32,7 +32,7 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.lane import cpu_wait_s
 from servotune.bus.subjects import presence, rig_cmd
 from servotune.config import LinkSpec
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from tests.support.bus_lab import VM, create_bus_state, start_app, stop_app, wait_for_manifest
 from tests.support.control import recorded_line
 from tests.support.nats import Lab, child_process, free_port, hub_command, nats_lab

@@ -29,7 +29,7 @@ from servotune.bus.connection import BusSettings
 from servotune.bus.leaf import lab_runs_config, leaf_node_conf, rig_runs_config
 from servotune.bus.rig import RUN_RETRY_S
 from servotune.config import LinkSpec
-from servotune.hub.control_lock import ControlSettings
+from servotune.hub.control_client import ControlSettings
 from tests.support.bus_lab import VM, App, Rig, start_app, stop_app
 from tests.support.control import recorded_line
 from tests.support.nats import ServerProcess, TcpProxy, free_port, require_nats_server

@@ -21,7 +21,8 @@ from fastapi import HTTPException
 from websockets.typing import Origin
 
 from servotune.auth.principal import CONTROL, MOVE, STOP, VIEW, Principal
-from servotune.hub.control_lock import CLIENT_HEADER, ControlManager, ControlSettings
+from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from servotune.schema import ForceControl, TakeControl
 from tests.support.control import (
     Operator,
@@ -44,8 +45,8 @@ async def server(tmp_path: Path) -> AsyncIterator[Server]:
         yield live
 
 
-def control(server: Server) -> ControlManager:
-    manager: ControlManager = server.app.state.control
+def control(server: Server) -> ControlLock:
+    manager: ControlLock = server.app.state.control
     return manager
 
 

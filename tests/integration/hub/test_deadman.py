@@ -13,7 +13,7 @@ server's time - no trip while a client is heard within the lease, a trip in the 
 watchdog pass after it, a frozen page after ``frozen_page_s`` - whatever the load on
 the machine. How long the whole chain takes in real time (the lapse, the STOP on the
 wire: the 500 ms promise) is a figure of the machine, measured by
-``scripts/bench_deadman.py`` (docs/control.md).
+``scripts/perf_deadman.py`` (docs/control.md).
 """
 
 from __future__ import annotations
@@ -29,7 +29,8 @@ import pytest
 import websockets
 from websockets.typing import Origin
 
-from servotune.hub.control_lock import ControlClient, ControlManager, ControlSettings
+from servotune.hub.control_client import ControlClient, ControlSettings
+from servotune.hub.control_lock import ControlLock
 from tests.support.control import (
     RawWebsocket,
     Server,
@@ -86,8 +87,8 @@ async def server(tmp_path: Path, clock: StepClock) -> AsyncIterator[Server]:
         yield live
 
 
-def manager(server: Server) -> ControlManager:
-    control: ControlManager = server.app.state.control
+def manager(server: Server) -> ControlLock:
+    control: ControlLock = server.app.state.control
     return control
 
 
@@ -97,7 +98,7 @@ def client_of(server: Server, client_id: str) -> ControlClient:
     return client
 
 
-async def until(server: Server, done: Callable[[ControlManager], Any], what: str = "") -> None:
+async def until(server: Server, done: Callable[[ControlLock], Any], what: str = "") -> None:
     deadline = time.monotonic() + LIVENESS_S
     while not done(manager(server)):
         assert time.monotonic() < deadline, f"not within {LIVENESS_S} s: {what or done}"

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec as zcodec
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
@@ -88,7 +88,7 @@ async def z_line(tmp_path: Path, *, verify_period_s: float = 2.0) -> AsyncIterat
 
 
 class SLine:
-    def __init__(self, link: Slap2Link, sink: RecordingSink, tap: Tap, bus: Slap2Bus) -> None:
+    def __init__(self, link: Slap2Link, sink: RecordingSink, tap: Tap, bus: Slap2Line) -> None:
         self.link, self.sink, self.tap, self.bus = link, sink, tap, bus
 
     def axis(self, address: int) -> Slap2Axis:
@@ -105,7 +105,7 @@ class SLine:
 
 @contextlib.asynccontextmanager
 async def s_line(tmp_path: Path, addresses: tuple[int, ...] = (0, 1)) -> AsyncIterator[SLine]:
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200) as sim:
         sink = RecordingSink()
@@ -469,11 +469,10 @@ class _FakeLink:
 async def test_hub_never_shows_a_dead_or_stalled_link_connected(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import servotune.hub.state as hub_module
     from servotune.hub.hub import Hub
     from servotune.storage import Storage
 
-    monkeypatch.setattr(hub_module, "STATUS_STALE_S", 0.5)
+    monkeypatch.setattr("servotune.hub.state.STATUS_STALE_S", 0.5)
     holder: list[Hub] = []
     crash = _FakeLink(lambda: holder[0], "crash")
     hub = Hub([crash], Storage(tmp_path / "db.sqlite"))  # type: ignore[list-item]
@@ -497,7 +496,7 @@ async def test_hub_stop_during_outage_is_sent_after_reconnect(tmp_path: Path) ->
     """STOP while the line is unplugged: it says it was not sent and that it will be
     sent on reconnect, and it is (the simulator receives ``st``)."""
 
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
         hub, link = hub_on_line(sim.path, [0], tmp_path)
@@ -529,7 +528,7 @@ async def test_api_console_refuses_control_characters_and_logs_lines(tmp_path: P
     from servotune.api.app import AppConfig, create_app
     from servotune.config import LinkSpec
 
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200) as sim:
         spec = LinkSpec("slap2", sim.path, "line", 19200, [0])
@@ -599,7 +598,7 @@ async def test_a_silent_module_of_a_connected_line_is_shown_offline_and_back(
 
     if rule == "hub":
         monkeypatch.setattr(slap2_modules, "MODULE_OFFLINE_FAILURES", 10**9)
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     tap = Tap(bus)
     muted = threading.Event()
     # Module 1 is selected but its transmitter stays dark: no echo, no reply.
@@ -679,7 +678,7 @@ async def test_a_line_whose_every_module_falls_silent_is_shown_in_error(
     (``verify_period_s`` short), so failed verify reads fall between failed polls:
     counting them as "another module answered", the first version of the rule took
     a one-module line's module offline and left the link connected (review)."""
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in addresses])
     tap = Tap(bus)
     muted = threading.Event()
     tap.rewrite = lambda byte, out: b"" if muted.is_set() else out
@@ -712,7 +711,7 @@ async def test_a_line_that_answers_only_wrong_bytes_is_shown_in_error_and_back(
     come back, so the line's rule waits out LINE_ERROR_SPAN_S (a burst after one
     stall is no error), but wrong bytes that persist are: ``error`` naming the echo
     mismatch, and connected again with samples once the bytes are right."""
-    bus = Slap2Bus([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
     tap = Tap(bus)
     garbled = threading.Event()
     tap.rewrite = lambda byte, out: bytes(b ^ 0x01 for b in out) if garbled.is_set() else out
@@ -773,7 +772,7 @@ async def test_a_command_whose_cr_echo_failed_is_not_sent_again_a_stop_is(
     line, so a command whose CR echo (and reply) never came is not sent again: ``mr``
     twice would move the axis twice as far. ``st`` may run twice and must reach the
     module: a STOP whose CR echo was lost is sent again."""
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     mute = _MuteCrOf()
     tap.rewrite = mute

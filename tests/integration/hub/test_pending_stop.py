@@ -21,7 +21,7 @@ import pytest
 
 import servotune.hub.stops as hub_stops
 from servotune.devices.slap2.descriptor import slap2_descriptor
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.hub.hub import Hub
 from servotune.link.base import CommandOutcome, LinkDownError
@@ -172,7 +172,7 @@ async def test_the_stop_overtaken_rule(tmp_path: Path) -> None:
 async def _stop_while_unplugged(tmp_path: Path) -> AsyncIterator[tuple[Hub, Any, Tap]]:
     """A hub on a real pty line whose cable is pulled, and STOP all pressed then:
     (the hub, the simulator to plug back, the device's record of what it received)."""
-    bus = Slap2Bus([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
+    bus = Slap2Line([Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json")])
     tap = Tap(bus)
     with PtySimulator(tap, baud=19200, link_path=str(tmp_path / "tty")) as sim:
         hub, _ = hub_on_line(sim.path, [0], tmp_path)

@@ -3,7 +3,7 @@ jog both ways, and no axis left oscillating after a bench run.
 
 The stopping distances are compared with the power-off measured in the same test on
 the same plant (a ratio: the host's speed only adds its latency to both). The
-table of every demo plant is ``scripts/bench_stops.py`` (docs/control.md).
+table of every demo plant is ``scripts/perf_stops.py`` (docs/control.md).
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
 async def demo_line(tmp_path: Path) -> AsyncIterator[LiveServer]:
     """The demo's SLAP2 line (module 1 carries the load), without limit switches, in a
     simulator process of its own."""
-    with simulator_process("slap2-demo", sim_builders.demo_bus, 19200) as (simulator, bus):
+    with simulator_process("slap2-demo", sim_builders.demo_slap2_line, 19200) as (simulator, bus):
         async with live_server(simulator, bus, tmp_path / "data") as server:
             yield server
 

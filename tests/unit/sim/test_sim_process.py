@@ -288,7 +288,7 @@ def test_binary_sdo_read_gives_what_the_json_request_gives(tmp_path: Path) -> No
 def test_a_remote_reads_the_device_in_its_process_and_refuses_to_write_a_copy(
     tmp_path: Path,
 ) -> None:
-    build = functools.partial(sim_builders.slap2_bus, [0], tmp_path)
+    build = functools.partial(sim_builders.slap2_line, [0], tmp_path)
     with simulator_process("remote", build, 19200) as (simulator, bus):
         assert simulator.baud == 19200 and simulator.path.startswith("/dev/")
         module = bus.module(0)

@@ -31,7 +31,7 @@ import control
 import numpy as np
 import pytest
 
-from servotune.bench import frf as frfbench
+from servotune.bench import frf
 from servotune.devices import default_registry
 from servotune.devices.slap2.law import slap2_loop
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
@@ -213,7 +213,7 @@ def test_ki_zero_is_not_unstable_anywhere() -> None:
         "params": gains,
         "plant_model": IDENTIFIED["slap2"] | {"friction_pwm": 3.6},
     }
-    model = frfbench.analyse_run(LAW(run["device"]), run, None)["model"]
+    model = frf.analyse_run(LAW(run["device"]), run, None)["model"]
     assert model["margins"]["stable"] is True
 
 

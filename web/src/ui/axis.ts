@@ -7,7 +7,7 @@ import type { AxisInfo, DeviceDescriptor } from "../schema.gen";
 import { BenchView } from "./bench/view";
 import { Controls, makeRunner } from "./commands";
 import { ConsolePanel } from "./console";
-import { controlStrip } from "./control";
+import { controlStrip } from "./controllock";
 import { PlotStack } from "./plots";
 import { Readouts } from "./readouts";
 import { TuningPanel } from "./tuning";

@@ -7,7 +7,7 @@ import { formatValue, nativeUnit } from "../format";
 import { store } from "../store";
 import type { AxisInfo, DeviceDescriptor } from "../schema.gen";
 import { HEALTH_TEXT } from "./axis";
-import { control } from "./control";
+import { control } from "./controllock";
 
 /** Who holds the control lock of ``axisId`` (from the server's control_status messages). */
 export function holderText(axisId: string): { text: string; state: "mine" | "held" | "autopilot" | "free" | "unknown" } {

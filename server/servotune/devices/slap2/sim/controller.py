@@ -6,7 +6,7 @@ and every 841.5 us tick: profile generator (ma/mr, vm), integer PID, in-position
 timer, limit switches, the calibration phases, and the idle fast path that skips the
 ticks of a fixed point. ``devices/slap2/sim/module.py`` is the host interface on top of it
 (``Slap2Module``: line parser, command table, replies, EEPROM, reset), and
-``devices/slap2/sim/line.py`` the multi-drop line on top of that (``Slap2Bus``).
+``devices/slap2/sim/line.py`` the multi-drop line on top of that (``Slap2Line``).
 
 ``Slap2Module`` has a ``Slap2Controller`` and commands it through its public methods
 (the "host side" section of the class): the settings, the modes, moves, the counter,

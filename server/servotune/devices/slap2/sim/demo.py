@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from servotune.devices.slap2.codec import DEFAULT_BAUD
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.process import SimProcess, demo_serial_process
@@ -28,10 +28,10 @@ DEMO_ADDRESSES: Final = (0, 1)
 DEMO_NAMES: Final = {0: "SLAP2 #0 unloaded", 1: "SLAP2 #1 with load"}
 
 
-def build_slap2_bus(state_dir: Path) -> Slap2Bus:
+def build_slap2_line(state_dir: Path) -> Slap2Line:
     """The demo's SLAP2 line: modules 0 (unloaded) and 1 (loaded), EEPROMs in files."""
     state_dir.mkdir(parents=True, exist_ok=True)
-    return Slap2Bus(
+    return Slap2Line(
         [
             Slap2Module(0, eeprom_path=state_dir / "slap2_0.json"),
             Slap2Module(1, eeprom_path=state_dir / "slap2_1.json", params=SLAP2_LOADED),
@@ -44,23 +44,23 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
     in memory, tracing module ``address``'s shaft; powered while in pm or vm
     (``perf.stops``; ``state_dir`` is unused: nothing is kept)."""
     free = {"limit1_count": None, "limit2_count": None}
-    bus = Slap2Bus(
+    line = Slap2Line(
         [
             Slap2Module(0, params=DcMotorParams(**free)),  # type: ignore[arg-type]
             Slap2Module(1, params=dataclasses.replace(SLAP2_LOADED, **free)),  # type: ignore[arg-type]
         ]
     )
-    module = bus.module(address)
+    module = line.module(address)
     counts_per_rad = module.motor.params.counts_per_rev / (2 * math.pi)
     return TracedDevice(
-        bus,
+        line,
         lambda: (float(module.motor.count), module.motor.speed_rad_s * counts_per_rad),
         lambda: bool(module.rss & 0b1100),  # pm or vm
         LineCommands(cancel=0x18),  # CR ends a line, Ctrl-X discards it
     )
 
 
-def slap2_record(bus: Slap2Bus) -> dict[str, Any]:
+def slap2_record(line: Slap2Line) -> dict[str, Any]:
     """Each module as its firmware sees it: status word, position, PWM, shaft speed."""
     return {
         "modules": [
@@ -74,14 +74,14 @@ def slap2_record(bus: Slap2Bus) -> dict[str, Any]:
                 "pwm": m.pwm,
                 "speed_rad_s": m.motor.speed_rad_s,
             }
-            for m in bus.modules
+            for m in line.modules
         ]
     }
 
 
 def demo_line_process(state_dir: Path) -> contextlib.AbstractContextManager[SimProcess]:
     """The demo's line in a child process; its ``ready["path"]`` is the pty to open."""
-    return demo_serial_process("slap2", build_slap2_bus, DEFAULT_BAUD, slap2_record, state_dir)
+    return demo_serial_process("slap2", build_slap2_line, DEFAULT_BAUD, slap2_record, state_dir)
 
 
 def serve_slap2(
@@ -95,5 +95,5 @@ def serve_slap2(
     """
     if state_dir is not None:
         state_dir.mkdir(parents=True, exist_ok=True)
-    bus = Slap2Bus.with_addresses(addresses, state_dir=state_dir)
-    run_pty_simulator(bus, baud=baud, link_path=link_path)
+    line = Slap2Line.with_addresses(addresses, state_dir=state_dir)
+    run_pty_simulator(line, baud=baud, link_path=link_path)

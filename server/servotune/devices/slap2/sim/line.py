@@ -1,4 +1,4 @@
-"""SLAP2 simulation, top layer: the RS232 line several modules share (``Slap2Bus``).
+"""SLAP2 simulation, top layer: the RS232 line several modules share (``Slap2Line``).
 
 The seam: ``devices/slap2/sim/module.py`` is the firmware of one module (``Slap2Module``,
 on top of the controller in ``devices/slap2/sim/controller.py``); this is the multi-drop
@@ -19,7 +19,7 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.sim.physics import DcMotorParams
 
 
-class Slap2Bus:
+class Slap2Line:
     """Several SLAP2 modules on one RS232 line; implements ``SimDevice``.
 
     Every host byte goes to every module; the bytes of all modules whose transmitter is
@@ -32,7 +32,7 @@ class Slap2Bus:
     def __init__(self, modules: Iterable[Slap2Module]) -> None:
         self._modules: list[Slap2Module] = list(modules)
         if not self._modules:
-            raise ValueError("a bus needs at least one module")
+            raise ValueError("a line needs at least one module")
         addresses = [m.address for m in self._modules]
         if len(set(addresses)) != len(addresses):
             raise ValueError(f"duplicate module addresses: {addresses}")
@@ -47,7 +47,7 @@ class Slap2Bus:
         *,
         state_dir: Path | None = None,
         params: DcMotorParams | None = None,
-    ) -> Slap2Bus:
+    ) -> Slap2Line:
         """Modules with default serial numbers; EEPROM files ``slap2_<addr>.json``."""
         modules = []
         for address in addresses:

@@ -7,12 +7,12 @@ calibration, idle fast path) and the manual's constants it runs on are in
 parser (echo, Ctrl-X, Ctrl-K, ``se``), command table, replies, EEPROM file, power-on
 reset and banner. ``Slap2Module`` has a ``Slap2Controller`` (``controller``): it decides
 what a command may do (the refusals, ``uc``) and commands the controller through that
-class's public methods. The RS232 line the modules share, ``Slap2Bus``, is in
+class's public methods. The RS232 line the modules share, ``Slap2Line``, is in
 ``devices/slap2/sim/line.py`` on top of this one.
 
 Sans-IO: nothing here reads a clock or touches a file descriptor (except the optional
-EEPROM file). The modules are driven in simulation time by ``Slap2Bus`` through the
-``SimDevice`` contract (``advance_to`` / ``receive``); ``PtySimulator`` puts the bus on a
+EEPROM file). The modules are driven in simulation time by ``Slap2Line`` through the
+``SimDevice`` contract (``advance_to`` / ``receive``); ``PtySimulator`` puts the line on a
 real pseudo-terminal with wire timing. Every decision where the manual is silent is
 listed in docs/simulator.md; the important ones are repeated next to the code that
 implements them. Units: see ``devices/slap2/sim/controller.py``.

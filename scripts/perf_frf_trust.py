@@ -1,7 +1,7 @@
 """FRF closed-loop bias at the low tones against the truth, and how many tones are trusted.
 
 Usage (from the repository root, with the project's venv):
-    .venv/bin/python scripts/bench_frf_trust.py [--repeats 5] [--hog 2] [--gains 600/10/1500]
+    .venv/bin/python scripts/perf_frf_trust.py [--repeats 5] [--hog 2] [--gains 600/10/1500]
         [--gains autotune] [--port 18791] [--json out.json]
 
 Starts ``servotune demo --no-autopilot`` on a port of its own (a fresh data directory,

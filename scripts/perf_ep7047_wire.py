@@ -19,7 +19,7 @@ moves of +/- one turn, as the demo autopilot does), and reports per cycle time:
 runs the cycle in the driver's thread instead of the cycle process (the old way), for
 comparison. ``--soak S`` runs one cycle time for S seconds and prints the same.
 
-Run as root: ``.venv/bin/python scripts/bench_ep7047_wire.py [--cycles 1,2,4]
+Run as root: ``.venv/bin/python scripts/perf_ep7047_wire.py [--cycles 1,2,4]
 [--seconds 20] [--hog] [--thread] [--soak 1800]``.
 """
 

@@ -16,7 +16,7 @@ the tests) and a hub, all in this process. Then, for ``--seconds``:
 * commands: ``--writes`` parameter writes (``kp``) through the hub's REST API, each
   answered after the rig wrote the device and read it back.
 
-    PYTHONPATH=server .venv/bin/python scripts/bench_bus.py --rigs 2 --seconds 10
+    PYTHONPATH=server .venv/bin/python scripts/perf_bus.py --rigs 2 --seconds 10
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ async def run(rigs: int, seconds: float, writes: int) -> None:
     import nats
 
     names = [f"rig-{i}" for i in range(1, rigs + 1)] if rigs != 2 else list(RIGS)
-    with tempfile.TemporaryDirectory(prefix="bench-bus-") as tmp_name:
+    with tempfile.TemporaryDirectory(prefix="perf-bus-") as tmp_name:
         tmp = Path(tmp_name)
         async with nats_lab(tmp / "nats", names) as lab:
             run_ = LabRun(lab, tmp)

@@ -1,7 +1,7 @@
 """Frame rate, long tasks and CPU of the live dashboard pages (headless Chromium).
 
 Usage:
-    python scripts/bench_fps.py BASE [seconds] [--pages ep7047,slap2] [--windows 10,60]
+    python scripts/perf_fps.py BASE [seconds] [--pages ep7047,slap2] [--windows 10,60]
                                 [--ab OTHER_BASE] [--rounds N] [--warm S] [--no-draw] [--profile]
 
 For each page (SLAP2, Z1100, EP7047 live pages, the rig overview, the EP7047 bench) at

@@ -14,9 +14,10 @@ and, from this process (a client like a browser, not sharing the server's loop):
    imported run, its CSV export. Per phase: STOP count, median, 95th percentile and
    maximum; the largest telemetry gap.
 
-Run: ``PYTHONPATH=server python scripts/bench_stop_latency.py [--rows 250000] [--hog]``.
+Run: ``PYTHONPATH=server python scripts/perf_stop_latency.py [--rows 250000] [--hog]``.
 The figures depend on the machine (its load average is printed); compare runs made on
-the same machine state. Not a test: ``tests/integration/perf/test_loop_latency.py`` asserts the truths.
+the same machine state. Not a test: ``tests/integration/perf/test_loop_latency.py``
+asserts the truths.
 """
 
 from __future__ import annotations

@@ -1,10 +1,10 @@
 """How late the host wakes a mostly idle process, and what a pty round trip adds
 (a simulated device must answer like hardware: docs/simulator.md, "Under load").
 
-    .venv/bin/python scripts/bench_wakeup.py --seconds 60 sleep normal
-    setsid .venv/bin/python scripts/bench_wakeup.py --seconds 60 sleep normal  # own group
-    .venv/bin/python scripts/bench_wakeup.py --seconds 60 sleep fifo  # root/CAP_SYS_NICE
-    .venv/bin/python scripts/bench_wakeup.py --seconds 60 pty fifo
+    .venv/bin/python scripts/perf_wakeup.py --seconds 60 sleep normal
+    setsid .venv/bin/python scripts/perf_wakeup.py --seconds 60 sleep normal  # own group
+    .venv/bin/python scripts/perf_wakeup.py --seconds 60 sleep fifo  # root/CAP_SYS_NICE
+    .venv/bin/python scripts/perf_wakeup.py --seconds 60 pty fifo
 
 ``sleep``: sleeps of 1 ms in a loop (cyclictest's idea); prints the lateness of the
 wake-ups. ``pty``: one byte written to a pty's slave side, echoed by a forked process on

@@ -1,7 +1,7 @@
 """Draw time of the live scope: 4 plots x 50k points, redraw plus raster (headless Chromium).
 
 Usage:
-    python scripts/bench_draw.py DIST_OR_URL [--ab OTHER_DIST_OR_URL] [--rounds N] [--runs N]
+    python scripts/perf_draw.py DIST_OR_URL [--ab OTHER_DIST_OR_URL] [--rounds N] [--runs N]
                                 [--width 1200] [--height 800]
 
 DIST_OR_URL is a built client (a directory such as server/servotune/web_dist, served
@@ -168,7 +168,7 @@ def cpu_times(events: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     return out
 
 
-async def bench(browser: Browser, base: str, runs: int, size: tuple[int, int]) -> Any:
+async def measure(browser: Browser, base: str, runs: int, size: tuple[int, int]) -> Any:
     page = await browser.new_page(viewport={"width": 1600, "height": 1000})
     try:
         await page.goto(f"{base}/#/overview")
@@ -219,7 +219,7 @@ async def main() -> None:
             )
             for r in range(rounds):
                 for label, base in bases:
-                    res = await bench(browser, base, runs, size)
+                    res = await measure(browser, base, runs, size)
                     results.setdefault(label, []).append(res)
                     print(f"[{r + 1}] {label} load {load()}  {json.dumps(res)}", flush=True)
             await browser.close()

@@ -1,6 +1,6 @@
 """Stopping distance and time on every demo plant: STOP against the power-off alone.
 
-    .venv/bin/python scripts/bench_stops.py [--only slap2|z1100|ep7047] [--rounds N]
+    .venv/bin/python scripts/perf_stops.py [--only slap2|z1100|ep7047] [--rounds N]
 
 Starts each simulated device with its real driver and a real hub (one fresh rig per
 run, see ``servotune.perf.stops``), brings one axis to top speed or into a limit cycle,

@@ -19,7 +19,7 @@ and the bus throughput.
 * viewers: ``--viewers`` websocket clients of the hub that read everything (healthy),
   each in a process of its own, measuring over the same wall-clock window.
 
-    PYTHONPATH=server .venv/bin/python scripts/bench_bus_lab.py --rigs 20 --axes 6 --seconds 20
+    PYTHONPATH=server .venv/bin/python scripts/perf_bus_lab.py --rigs 20 --axes 6 --seconds 20
 """
 
 from __future__ import annotations
@@ -123,7 +123,7 @@ class Viewer:
 
 
 def viewer_process(port: int, window: Any, ready: Any, results: Any) -> None:
-    """A viewer in a process of its own (the bench's rigs must not slow it down)."""
+    """A viewer in a process of its own (the benchmark's rigs must not slow it down)."""
     viewer = Viewer(window, ready)
     try:
         asyncio.run(viewer.run(port))
@@ -141,7 +141,7 @@ def viewer_process(port: int, window: Any, ready: Any, results: Any) -> None:
 
 async def run(args: argparse.Namespace) -> None:
     names = [f"rig-{i:02d}" for i in range(1, args.rigs + 1)]
-    with tempfile.TemporaryDirectory(prefix="bench-bus-lab-") as tmp_name:
+    with tempfile.TemporaryDirectory(prefix="perf-bus-lab-") as tmp_name:
         tmp = Path(tmp_name)
         async with nats_lab(tmp / "nats", names) as lab:
             await create_bus_state(lab)

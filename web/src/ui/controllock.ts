@@ -2,7 +2,7 @@
 // (free / yours / held by NAME) with Take / Request / Release / Force, the Allow/Deny
 // prompt, the heartbeats that keep this tab's lease, read-only controls while another
 // tab holds the axis (STOP stays live), and hold-to-run jog buttons.
-import "./control.css";
+import "./controllock.css";
 import { api, reauthenticate, setClientId } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import type { ControlPrompt, ControlServerMessage, ControlStatus, DeviceDescriptor, Welcome } from "../schema.gen";

@@ -8,7 +8,7 @@ demo (``servotune.demo``). Per-sample CPU is far less sensitive to other work on
 machine than a rate, so it is the figure to compare between two versions (alternate
 them, ``PYTHONPATH=<the other tree>/server``); a loaded host still inflates it.
 
-Run: ``PYTHONPATH=server python scripts/bench_host_cost.py [--seconds 10]``. Linux
+Run: ``PYTHONPATH=server python scripts/perf_host_cost.py [--seconds 10]``. Linux
 only (``/proc``).
 """
 

@@ -1,7 +1,7 @@
 """Benchmark of the dead-man and of the telemetry fan-out.
 
-    PYTHONPATH=server python scripts/bench_deadman.py [--trials 20] [--viewers 20]
-    PYTHONPATH=server python scripts/bench_deadman.py --fanout-only \
+    PYTHONPATH=server python scripts/perf_deadman.py [--trials 20] [--viewers 20]
+    PYTHONPATH=server python scripts/perf_deadman.py --fanout-only \
         --server-pythonpath /tmp/old/server        # "before": a server without the lock
 
 The server runs as its own process (``python -m servotune serve``) on a simulated SLAP2

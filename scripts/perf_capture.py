@@ -1,6 +1,6 @@
 """Capture rate per device: samples/s of the axis under test and the ratio to the wire limit.
 
-Usage: PYTHONPATH=server python scripts/bench_capture.py [seconds]
+Usage: PYTHONPATH=server python scripts/perf_capture.py [seconds]
 
 For the SLAP2 (19200 baud, two modules on one line, as in the demo) and the Z1100
 (38400 baud, three motors), each simulator in a process of its own (as the demo runs
@@ -32,7 +32,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
-from servotune.devices.slap2.sim.demo import build_slap2_bus
+from servotune.devices.slap2.sim.demo import build_slap2_line
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
@@ -103,8 +103,8 @@ async def wait(condition: object, timeout_s: float) -> None:
         await asyncio.sleep(0.05)
 
 
-async def bench_slap2(state: Path, seconds: float) -> None:
-    spec = SerialSimSpec("slap2", functools.partial(build_slap2_bus, state / "slap2"), 19200)
+async def measure_slap2(state: Path, seconds: float) -> None:
+    spec = SerialSimSpec("slap2", functools.partial(build_slap2_line, state / "slap2"), 19200)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
         sink = Sink()
@@ -144,7 +144,7 @@ async def bench_slap2(state: Path, seconds: float) -> None:
                 await task
 
 
-async def bench_z1100(state: Path, seconds: float) -> None:
+async def measure_z1100(state: Path, seconds: float) -> None:
     spec = SerialSimSpec("z1100", functools.partial(build_z1100_38400, state / "z1100"), Z1100_BAUD)
     with serial_sim_process(spec) as simulator:
         path = simulator.ready["path"]
@@ -177,8 +177,8 @@ async def bench_z1100(state: Path, seconds: float) -> None:
 async def main(seconds: float) -> None:
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     with tempfile.TemporaryDirectory() as directory:
-        await bench_slap2(Path(directory), seconds)
-        await bench_z1100(Path(directory), seconds)
+        await measure_slap2(Path(directory), seconds)
+        await measure_z1100(Path(directory), seconds)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

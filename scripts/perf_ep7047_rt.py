@@ -4,7 +4,7 @@ The cycle process runs at real-time priority: whatever it burns there, every pro
 of normal priority (the server, the simulators, the kernel's own workers - among them
 the one that moves pty data, ``flush_to_ldisc``) gets only what is left. This runs the
 driver (pysoem, the cycle process) against the software EP7047-1032 on a veth pair, as
-``bench_ep7047_wire.py`` does, and walks the wire through its states, one window each:
+``perf_ep7047_wire.py`` does, and walks the wire through its states, one window each:
 
 * ``op``: in OP, the axis enabled and moving +/- one turn;
 * ``slow``: the slave answers every frame ``--delay-us`` late (its ``delay`` knob);
@@ -15,11 +15,11 @@ Per window: the CPU of the cycle process (cores, from /proc), the share of sampl
 which it was at SCHED_FIFO, the CPU of the server side (this process) and the slave, a
 pty round trip measured meanwhile by a probe of normal priority (a byte to a pty and
 its echo back from a second process: two passes through the kernel's pty workers, as
-every SLAP2/Z1100 link makes), the SLAP2 link's sample rate (``servotune bench slap2``
+every SLAP2/Z1100 link makes), the SLAP2 link's sample rate (``servotune perf slap2``
 on a pty, run during the window) and any kernel message about a workqueue lockup, a
 hung task, an RCU stall or RT throttling that appeared meanwhile.
 
-Run as root: ``.venv/bin/python scripts/bench_ep7047_rt.py [--cycle-ms 2] [--window 10]
+Run as root: ``.venv/bin/python scripts/perf_ep7047_rt.py [--cycle-ms 2] [--window 10]
 [--hog on] [--delay-us 1500] [--phases op,slow,pulled,killed]``.
 """
 
@@ -41,7 +41,7 @@ import tty
 from pathlib import Path
 from typing import Any
 
-from bench_ep7047_wire import (  # scripts/ is this script's directory
+from perf_ep7047_wire import (  # scripts/ is this script's directory
     CLOCK_TICKS,
     Sink,
     cpu_s,
@@ -117,7 +117,7 @@ def rtts_between(path: Path, t0: float, t1: float) -> list[float]:
 
 async def slap2_rate(seconds: float) -> str:
     process = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "servotune", "bench", "slap2", "--seconds", f"{seconds:g}",
+        sys.executable, "-m", "servotune", "perf", "slap2", "--seconds", f"{seconds:g}",
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
     )  # fmt: skip
     out, _ = await process.communicate()

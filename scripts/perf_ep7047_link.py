@@ -12,7 +12,7 @@ counting sink stands in for the hub.
 It also prints the cycle thread's share and the simulator process's CPU (``/proc``,
 Linux), per second and per sample: the simulator pays for every exchange too.
 
-Run: ``PYTHONPATH=server python scripts/bench_ep7047_link.py [--seconds 10] [--moves
+Run: ``PYTHONPATH=server python scripts/perf_ep7047_link.py [--seconds 10] [--moves
 demo]``. Compare two versions on the same machine state (alternate them; a loaded host
 lowers the rate but the CPU per sample much less).
 """
@@ -83,7 +83,7 @@ async def demo_moves(axis: Any, sink: CountingSink) -> None:
 
 
 async def measure(seconds: float, moves: str) -> None:
-    with tempfile.TemporaryDirectory(prefix="bench-ep7047-") as scratch:
+    with tempfile.TemporaryDirectory(prefix="perf-ep7047-") as scratch:
         simulator = ep7047_sim_process(Path(scratch) / "record.json")
         await asyncio.to_thread(simulator.start)
         try:

@@ -2,7 +2,7 @@
 
 The target is >= 100x real time per axis (so 16 modules on one line would still
 leave the host most of a core). Measured with ``time.process_time`` around
-``Slap2Bus.advance_to`` only (the firmware, the PID at 841.5 us and the motor model;
+``Slap2Line.advance_to`` only (the firmware, the PID at 841.5 us and the motor model;
 no pty, no I/O), for one module in each of these states:
 
 * ``moving``: back-to-back 2000-count ``ma`` moves (sv 2000, sa 1000), one per
@@ -11,7 +11,7 @@ no pty, no I/O), for one module in each of these states:
   rarely rests and never reaches a limit switch: the dearest case, no idle fast path);
 * ``holding``: pm at rest (the idle fast path skips the ticks).
 
-Run: ``PYTHONPATH=server python scripts/bench_sim_speed.py [--seconds 10]``. The figure
+Run: ``PYTHONPATH=server python scripts/perf_sim_speed.py [--seconds 10]``. The figure
 depends on the machine and its load (printed); CPU time is far less sensitive to
 load than wall time, but a loaded host still inflates it (caches, hyperthreads).
 """
@@ -23,18 +23,18 @@ import os
 import sys
 import time
 
-from servotune.devices.slap2.sim.line import Slap2Bus
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 
 
-def _send(bus: Slap2Bus, text: str) -> None:
+def _send(bus: Slap2Line, text: str) -> None:
     for byte in (text + "\r").encode("ascii"):
         bus.receive(byte)
 
 
 def speed(kind: str, seconds: float) -> float:
     """Simulated seconds per CPU second for one module doing ``kind``."""
-    bus = Slap2Bus([Slap2Module(0)])
+    bus = Slap2Line([Slap2Module(0)])
     t = 0.5
     bus.advance_to(t)  # the banner
     _send(bus, "pm")
