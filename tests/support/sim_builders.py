@@ -89,6 +89,17 @@ def demo_slap2_line() -> Slap2Line:
     )
 
 
+def demo_slap2_line_with_eeproms(eeprom_dir: Path) -> Slap2Line:
+    """The demo's SLAP2 line as the demo runs it: module 0 unloaded, module 1 with
+    ``SLAP2_LOADED`` (its limit switches included), EEPROMs in ``eeprom_dir``."""
+    return Slap2Line(
+        [
+            Slap2Module(0, eeprom_path=eeprom_dir / "eeprom_0.json"),
+            Slap2Module(1, eeprom_path=eeprom_dir / "eeprom_1.json", params=SLAP2_LOADED),
+        ]
+    )
+
+
 def z1100_chip(
     flash_path: Path, jumper_baud: int, kab: tuple[int, int, int] | None = None
 ) -> Z1100Chip:

@@ -11,9 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
-from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Line
-from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
@@ -90,20 +88,13 @@ async def run_link(
 
 
 @contextlib.contextmanager
-def demo_line(tmp_path: Path) -> Iterator[tuple[PtySimulator, Slap2Line]]:
-    """The demo's SLAP2 line: module 0 unloaded, module 1 with SLAP2_LOADED."""
-    bus = Slap2Line(
-        [
-            Slap2Module(0, eeprom_path=tmp_path / "eeprom_0.json"),
-            Slap2Module(1, eeprom_path=tmp_path / "eeprom_1.json", params=SLAP2_LOADED),
-        ]
-    )
-    simulator = PtySimulator(bus, baud=19200)
-    simulator.start()
-    try:
-        yield simulator, bus
-    finally:
-        simulator.stop()
+def demo_line(tmp_path: Path) -> Iterator[tuple[Remote, Remote]]:
+    """The demo's SLAP2 line (``sim_builders.demo_slap2_line_with_eeproms``) on a pty, in a
+    process of its own (``simulator_process``): its ``PtySimulator`` and ``Slap2Line`` as
+    ``Remote`` views."""
+    build = functools.partial(sim_builders.demo_slap2_line_with_eeproms, tmp_path)
+    with simulator_process("slap2-demo", build, 19200) as pair:
+        yield pair
 
 
 Z1100_BAUD = 38400  # the fastest jumper setting keeps the tests short
