@@ -35,7 +35,10 @@ holds, must be seen dying out in samples that resolve it (at least
 ``RESOLVED_SAMPLES`` samples per swing): a steady limit cycle sampled about as fast
 as it swings (a starved host polling slowly) aliases into swings of any size, which
 can look like a dying ring. Short of that the verdict is ``working`` None with
-``sparse`` set (the caller chooses the stop that is safe either way: hub.stops). A
+``sparse`` set (the caller chooses the stop that is safe either way: hub.stops) -
+except where the samples are dense and the loop simply came on less than
+``EVIDENCE_S`` ago: not judged yet, ``sparse`` False (the device's normal stop, watched:
+no hole in the telemetry, so nothing says the host missed a swing). A
 fault seen in sparse samples is still a fault. With the loop off there is no loop to
 judge: ``working`` None, ``sparse`` False, and the caller keeps the device's normal
 stop. The thresholds are the descriptor's
@@ -99,6 +102,7 @@ class _Series:
     reference: list[float]
     limited: list[bool]
     held_from: int | None  # from this index on no moving flag is on (None: not known)
+    loop_came_on: bool = False  # a sample with the loop off came right before the first
 
 
 def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _Series | None:
@@ -107,6 +111,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
     stretch: before it the error was not the loop's); None when the newest sample has
     the loop off."""
     stretch: list[Sample] = []
+    came_on = False
     for sample in reversed(samples):
         if sample.t < since:
             break
@@ -115,6 +120,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
         ):
             if not stretch:
                 return None
+            came_on = True
             break
         stretch.append(sample)
     t: list[float] = []
@@ -137,7 +143,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
         limited.append(bool(sample.flags.get(flag)) if flag else False)
         if held_from is not None and any(sample.flags.get(n) for n in signals.moving_flags):
             held_from = len(t)
-    return _Series(t, position, error, reference, limited, held_from)
+    return _Series(t, position, error, reference, limited, held_from, came_on)
 
 
 def swings(values: Sequence[float], hysteresis: float) -> list[tuple[int, float]]:
@@ -276,24 +282,25 @@ def _current_limit(series: _Series) -> str:
     return ""
 
 
-def _coverage(series: _Series, age_s: float) -> str:
+def _coverage(series: _Series, since: float, age_s: float) -> tuple[str, bool]:
     """Why the newest samples do not cover ``EVIDENCE_S`` densely up to the judgement
-    (``age_s`` after the newest), or "" when they do."""
+    (``age_s`` after the newest), and whether for holes in the telemetry (True) or
+    because the loop came on too recently to tell (False); ("", False) when they do."""
     if age_s > MAX_GAP_S:
-        return f"no telemetry for the last {age_s:.2f} s"
+        return f"no telemetry for the last {age_s:.2f} s", True
     t = series.t
     start = len(t) - 1
     while start > 0 and t[start] - t[start - 1] <= MAX_GAP_S:
         start -= 1
     covered = t[-1] - t[start]
     if covered >= EVIDENCE_S:
-        return ""
+        return "", False
     if start > 0:
-        return (
-            f"a gap of {t[start] - t[start - 1]:.2f} s in the telemetry "
-            f"{t[-1] - t[start]:.2f} s before its newest sample"
-        )
-    return f"the loop's telemetry covers {covered:.2f} s only"
+        gap = t[start] - t[start - 1]
+        return f"a gap of {gap:.2f} s in the telemetry {covered:.2f} s before its newest", True
+    if not series.loop_came_on and t[0] - since > MAX_GAP_S:
+        return f"no telemetry for {t[0] - since:.2f} s before {covered:.2f} s of it", True
+    return f"the loop has been on for {covered:.2f} s only", False
 
 
 def _unresolved(series: _Series, signals: LoopSignals) -> str:
@@ -339,9 +346,13 @@ def judge(
         ):
             if reason:
                 return LoopVerdict(False, fault, reason)  # type: ignore[arg-type]
-    missing = _coverage(series, age_s) or _unresolved(series, signals)
-    if missing:
+    missing, sparse = _coverage(series, since, age_s)
+    if not missing:
+        missing, sparse = _unresolved(series, signals), True
+    if missing and sparse:
         return LoopVerdict(None, None, f"telemetry too sparse to judge the loop: {missing}", True)
+    if missing:
+        return LoopVerdict(None, None, f"not judged yet: {missing}")
     return LoopVerdict(True)
 
 

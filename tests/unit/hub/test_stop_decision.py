@@ -138,6 +138,13 @@ async def test_a_loop_the_telemetry_cannot_judge_gets_the_stop_safe_either_way(
     assert controlled == ["controlled_stop"]
 
 
-async def test_a_quiet_loop_seen_too_briefly_is_not_judged_working() -> None:
-    asked, _ = await stop_after(quiet([0.0, 0.04, 0.08, 0.12]))
+async def test_a_quiet_loop_seen_with_a_hole_is_not_judged_working() -> None:
+    asked, _ = await stop_after(quiet([*every(0.04, 0.6), *[0.9 + t for t in every(0.04, 0.6)]]))
     assert asked == ["unjudged_stop"]
+
+
+async def test_a_stop_after_an_outage_is_the_stop_safe_either_way() -> None:
+    # A pending STOP delivered when the link is back, the loop last seen on and quiet
+    # 3 s ago: what it does now is unknown.
+    asked, events = await stop_after(quiet(every(0.04)), late_s=3.0)
+    assert asked == ["unjudged_stop"] and "no telemetry for the last 3.00 s" in events[0]
