@@ -25,8 +25,23 @@ A loop is *not working* when, over the samples judged, with the loop on:
 * **current limit held**: the current-limit flag is on in every sample of the last
   ``CURRENT_LIMIT_HELD_S`` (a jam, a stall, a loop that saturates for good).
 
-With too few samples, or the loop off, there is no evidence: ``working`` is None and
-the caller keeps the device's normal stop. The thresholds are the descriptor's
+"Working" needs evidence, judged on the samples' own timestamps, not on their count:
+the newest stretch with the loop on must cover ``EVIDENCE_S`` (two cycles of the
+slowest limit cycle seen) with no gap longer than ``MAX_GAP_S`` between two samples,
+nor between the newest sample and the judgement (``age_s``: telemetry that stopped
+coming says nothing about now), and an error that still swings by
+``oscillation_counts`` or more in the newer half of that stretch, while the reference
+holds, must be seen dying out in samples that resolve it (at least
+``RESOLVED_SAMPLES`` samples per swing): a steady limit cycle sampled about as fast
+as it swings (a starved host polling slowly) aliases into swings of any size, which
+can look like a dying ring. Short of that the verdict is ``working`` None with
+``sparse`` set (the caller chooses the stop that is safe either way: hub.stops) -
+except where the samples are dense and the loop simply came on less than
+``EVIDENCE_S`` ago: not judged yet, ``sparse`` False (the device's normal stop, watched:
+no hole in the telemetry, so nothing says the host missed a swing). A
+fault seen in sparse samples is still a fault. With the loop off there is no loop to
+judge: ``working`` None, ``sparse`` False, and the caller keeps the device's normal
+stop. The thresholds are the descriptor's
 (``oscillation_counts``, ``rest_velocity``); how they were chosen per device is in
 docs/control.md next to the measured stops.
 """
@@ -51,6 +66,13 @@ MOVING_ERROR_SWINGS: Final = 20.0
 CURRENT_LIMIT_HELD_S: Final = 0.3
 # At rest: position still (below rest_velocity) and the error small for this long.
 REST_S: Final = 0.25
+# Evidence that a loop works: samples covering this long (four swings, i.e. two cycles,
+# of the slowest limit cycle seen, ~3 Hz) without a gap longer than MAX_GAP_S (about
+# a half cycle of it: a longer gap can hide a whole swing); a swinging error must be
+# resolved by this many samples per swing, on average, to be seen dying out.
+EVIDENCE_S: Final = 0.7
+MAX_GAP_S: Final = 0.2
+RESOLVED_SAMPLES: Final = 3.0
 
 LoopFault = Literal["oscillation", "diverging", "current_limit"]
 
@@ -58,11 +80,15 @@ LoopFault = Literal["oscillation", "diverging", "current_limit"]
 @dataclass(frozen=True, slots=True)
 class LoopVerdict:
     """``working``: True (judged, fine), False (not working: ``fault`` and ``reason``
-    say why, in words for the event log), None (no evidence either way)."""
+    say why, in words for the event log), None (no evidence either way). ``sparse``:
+    None because the loop is on but the telemetry is too sparse or too late to tell
+    (``reason`` says what was missing); False with None: the loop is off (or no
+    telemetry at all), nothing to judge."""
 
     working: bool | None
     fault: LoopFault | None = None
     reason: str = ""
+    sparse: bool = False
 
 
 NO_EVIDENCE: Final = LoopVerdict(None, None, "")
@@ -76,6 +102,7 @@ class _Series:
     reference: list[float]
     limited: list[bool]
     held_from: int | None  # from this index on no moving flag is on (None: not known)
+    loop_came_on: bool = False  # a sample with the loop off came right before the first
 
 
 def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _Series | None:
@@ -84,6 +111,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
     stretch: before it the error was not the loop's); None when the newest sample has
     the loop off."""
     stretch: list[Sample] = []
+    came_on = False
     for sample in reversed(samples):
         if sample.t < since:
             break
@@ -92,6 +120,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
         ):
             if not stretch:
                 return None
+            came_on = True
             break
         stretch.append(sample)
     t: list[float] = []
@@ -114,7 +143,7 @@ def _series(samples: Sequence[Sample], signals: LoopSignals, since: float) -> _S
         limited.append(bool(sample.flags.get(flag)) if flag else False)
         if held_from is not None and any(sample.flags.get(n) for n in signals.moving_flags):
             held_from = len(t)
-    return _Series(t, position, error, reference, limited, held_from)
+    return _Series(t, position, error, reference, limited, held_from, came_on)
 
 
 def swings(values: Sequence[float], hysteresis: float) -> list[tuple[int, float]]:
@@ -253,18 +282,77 @@ def _current_limit(series: _Series) -> str:
     return ""
 
 
-def judge(samples: Sequence[Sample], signals: LoopSignals, *, since: float) -> LoopVerdict:
-    """The verdict on the samples at or after ``since`` (see the module docstring)."""
+def _coverage(series: _Series, since: float, age_s: float) -> tuple[str, bool]:
+    """Why the newest samples do not cover ``EVIDENCE_S`` densely up to the judgement
+    (``age_s`` after the newest), and whether for holes in the telemetry (True) or
+    because the loop came on too recently to tell (False); ("", False) when they do."""
+    if age_s > MAX_GAP_S:
+        return f"no telemetry for the last {age_s:.2f} s", True
+    t = series.t
+    start = len(t) - 1
+    while start > 0 and t[start] - t[start - 1] <= MAX_GAP_S:
+        start -= 1
+    covered = t[-1] - t[start]
+    if covered >= EVIDENCE_S:
+        return "", False
+    if start > 0:
+        gap = t[start] - t[start - 1]
+        return f"a gap of {gap:.2f} s in the telemetry {covered:.2f} s before its newest", True
+    if not series.loop_came_on and t[0] - since > MAX_GAP_S:
+        return f"no telemetry for {t[0] - since:.2f} s before {covered:.2f} s of it", True
+    return f"the loop has been on for {covered:.2f} s only", False
+
+
+def _unresolved(series: _Series, signals: LoopSignals) -> str:
+    """Why a swinging error cannot be seen dying out (see the module docstring), or ""
+    when it does not swing in the newer half of the stretch (by time), or the
+    reference swings with it (a loop following it), or the samples resolve it."""
+    h = signals.oscillation_counts
+    t = series.t
+    middle = t[-1] - (t[-1] - t[0]) / 2
+    newer = next(i for i, ti in enumerate(t) if ti >= middle)
+    tail = series.error[newer:]
+    if not tail or max(tail) - min(tail) < h:
+        return ""  # quiet by the end: died out, or never swung
+    extremes = swings(series.error, h)
+    if len(extremes) < 2:
+        return ""  # one excursion (a step's transient), not a swinging error
+    amplitude = max(tail) - min(tail)
+    if len(swings(series.reference[newer:], 0.5 * amplitude)) >= 2:
+        return ""  # the reference goes back and forth: the loop follows it
+    per_swing = (extremes[-1][0] - extremes[0][0]) / (len(extremes) - 1)
+    if per_swing >= RESOLVED_SAMPLES:
+        return ""
+    return (
+        f"the following error still swings by {amplitude:.0f} counts with "
+        f"{per_swing:.1f} samples per swing: too few to tell a dying ring from a "
+        f"limit cycle"
+    )
+
+
+def judge(
+    samples: Sequence[Sample], signals: LoopSignals, *, since: float, age_s: float = 0.0
+) -> LoopVerdict:
+    """The verdict on the samples at or after ``since`` (see the module docstring);
+    ``age_s``: how long before the judgement the newest sample came (0: just now)."""
     series = _series(samples, signals, since)
-    if series is None or len(series.t) < 3:
+    if series is None or not series.t:
         return NO_EVIDENCE
-    for fault, reason in (
-        ("current_limit", _current_limit(series)),
-        ("oscillation", _oscillation(series, signals)),
-        ("diverging", _diverging(series, signals)),
-    ):
-        if reason:
-            return LoopVerdict(False, fault, reason)  # type: ignore[arg-type]
+    if len(series.t) >= 3:
+        for fault, reason in (
+            ("current_limit", _current_limit(series)),
+            ("oscillation", _oscillation(series, signals)),
+            ("diverging", _diverging(series, signals)),
+        ):
+            if reason:
+                return LoopVerdict(False, fault, reason)  # type: ignore[arg-type]
+    missing, sparse = _coverage(series, since, age_s)
+    if not missing:
+        missing, sparse = _unresolved(series, signals), True
+    if missing and sparse:
+        return LoopVerdict(None, None, f"telemetry too sparse to judge the loop: {missing}", True)
+    if missing:
+        return LoopVerdict(None, None, f"not judged yet: {missing}")
     return LoopVerdict(True)
 
 

@@ -52,6 +52,7 @@ from servotune.link.base import (
     Sample,
     StopModes,
     StopOutcome,
+    UnjudgedStop,
 )
 from servotune.schema import EventLevel, LinkStatus
 
@@ -79,6 +80,7 @@ class _Axis:
     loop: LoopSignals | None
     power_off_command: str | None
     history: deque[Sample] = field(default_factory=deque)
+    arrived: float = 0.0  # the service's clock when the newest sample came
     watch: asyncio.Task[None] | None = None
     # Stops of this axis so far, and the outcome of its watches (tests, benchmark).
     watches: int = 0
@@ -111,16 +113,19 @@ class StopService:
             return
         history = ax.history
         history.append(sample)
+        ax.arrived = self._clock()
         while history and sample.t - history[0].t > HISTORY_S:
             history.popleft()
 
     def verdict(self, axis_id: str, *, window_s: float = JUDGE_S) -> loopcheck.LoopVerdict:
-        """The loop check on the axis' last ``window_s`` of telemetry."""
+        """The loop check on the axis' last ``window_s`` of telemetry, judged now (how
+        long ago the newest sample came counts against the evidence)."""
         ax = self._axes[axis_id]
         if ax.loop is None or not ax.history:
             return loopcheck.NO_EVIDENCE
         newest = ax.history[-1].t
-        return loopcheck.judge(ax.history, ax.loop, since=newest - window_s)
+        age_s = max(0.0, self._clock() - ax.arrived)
+        return loopcheck.judge(ax.history, ax.loop, since=newest - window_s, age_s=age_s)
 
     def watching(self, axis_id: str) -> bool:
         ax = self._axes.get(axis_id)
@@ -173,6 +178,9 @@ class StopService:
             )
         elif kind == "controlled":
             outcome = await modes.controlled_stop()
+        elif verdict.sparse and isinstance(driver, UnjudgedStop):
+            outcome = await driver.unjudged_stop()
+            self._on_event("warning", axis_id, f"{reason}: {verdict.reason}: {_describe(outcome)}")
         else:
             outcome = await driver.stop()
         if outcome is not None:

@@ -223,6 +223,18 @@ class StopModes(Protocol):
 
 
 @runtime_checkable
+class UnjudgedStop(Protocol):
+    """Optional beside ``StopModes``: the STOP for an axis whose loop is on but whose
+    telemetry is too sparse to tell whether it works (docs/control.md, "Stops")."""
+
+    async def unjudged_stop(self) -> StopOutcome:
+        """Stop in a way that is safe whether the loop works or not: never longer than
+        the power-off, and short where the loop works. A device without such a stop
+        does not implement this (its STOP goes out, watched)."""
+        ...
+
+
+@runtime_checkable
 class Autopilot(Protocol):
     """Optional: how the demo autopilot moves an axis of this device back and forth."""
 

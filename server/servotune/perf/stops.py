@@ -155,7 +155,8 @@ async def _bring_into_state(hub: Hub, case: Case) -> None:
         if case.state == "top speed":
             await hub.write_params(axis, {"velocity": SLAP2_TOP_SV, "acceleration": 65535})
             await hub.command(axis, "velocity_mode", {})
-            await asyncio.sleep(0.8)
+            # Long enough for the loop check to see the loop work (loopcheck.EVIDENCE_S).
+            await asyncio.sleep(1.2)
         else:
             await hub.write_params(axis, {"velocity": 65535, "acceleration": 65535})
             await hub.command(axis, "position_mode", {})

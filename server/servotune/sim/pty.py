@@ -146,6 +146,8 @@ class PtySimulator:
         self._last_arrival_s = 0.0
         self._line_free_s = 0.0  # when the device-to-host wire is free again
         self._drop_pending = 0
+        self._garble: tuple[int, int] | None = None  # (line's first byte, its echo)
+        self._host_line_start = True
         self._silent = False
         self._stalls: HostStalls | None = None
         self.overflow_bytes = 0  # device bytes lost because the host did not read
@@ -220,6 +222,15 @@ class PtySimulator:
 
         def request() -> None:
             self._drop_pending += n
+
+        self._call(request)
+
+    def garble_line_echo(self, first: int, instead: int) -> None:
+        """The echo of the first byte of the next host line that begins with ``first``
+        comes back as ``instead`` (one character of line noise, e.g. on a selection)."""
+
+        def request() -> None:
+            self._garble = (first, instead)
 
         self._call(request)
 
@@ -375,7 +386,12 @@ class PtySimulator:
             # wake-up, with its latency, to every echo round trip.
             self._schedule_output(device.advance_to(arrival), arrival)
             held = self._stalls.delay(byte) if self._stalls is not None else 0.0
-            self._schedule_output(device.receive(byte), arrival + held)
+            out = device.receive(byte)
+            garble = self._garble
+            if garble and self._host_line_start and byte == garble[0] and out[:1] == bytes([byte]):
+                out, self._garble = bytes([garble[1]]) + out[1:], None
+            self._host_line_start = byte in (0x0D, 0x18)  # after CR or Ctrl-X
+            self._schedule_output(out, arrival + held)
         self._last_arrival_s = arrival
 
     def _schedule_output(self, data: bytes, ready_s: float, *, faults: bool = True) -> None:

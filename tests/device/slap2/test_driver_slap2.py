@@ -131,6 +131,23 @@ async def test_dropped_echo_is_retried_after_ctrl_x(line: RunningLink) -> None:
     assert line.link.errors > errors_before
 
 
+async def test_a_garbled_echo_of_a_selection_is_selected_again_once(line: RunningLink) -> None:
+    # Two modules polled in turn: the line re-selects all the time. The next ``se``'s
+    # first echo comes back as "0" (seen under load: "echo mismatch in 'se1': sent
+    # 0x73, got 0x30"): selecting has no side effect, so it is sent again and counted,
+    # and nobody - a poll or a caller - sees an error.
+    retries = line.link.counters.get("retries", 0)
+    desyncs = line.link.counters.get("desyncs", 0)
+    line.simulator.garble_line_echo(ord("s"), ord("0"))
+    readback = await axis(line, 1).write_params({"kd": 97})
+    assert readback == {"kd": 97}
+    await line.until(lambda: line.link.counters.get("retries", 0) > retries, "the re-selection")
+    assert line.link.counters.get("retries", 0) == retries + 1
+    # (The wrong byte itself is a wire error, counted in ``errors``; no failure is.)
+    assert line.link.counters.get("desyncs", 0) == desyncs and line.link.state == "connected"
+    assert not [e for e in line.sink.events if "mismatch" in str(e)], line.sink.events
+
+
 async def test_garbage_on_the_line_is_survived(line: RunningLink) -> None:
     line.simulator.inject_garbage(b"\x00\xff#?%\r\n")
     await asyncio.sleep(0.1)

@@ -114,9 +114,12 @@ async def test_link_loss_keeps_samples_marks_incomplete_and_stops(api: LiveServe
         if not module.rss & VM:
             break
         await asyncio.sleep(0.05)
-    # Stopped the moment the link was back: out of velocity mode, held in pm.
+    # Stopped the moment the link was back: out of velocity mode. Its loop was last
+    # seen a second or more before, so the STOP is the one safe whether the loop works
+    # or not (docs/control.md, "Stops"): the brake, then unpowered at rest.
     assert not module.rss & VM, "the axis was not stopped after the link came back"
-    assert module.rss & PM, "the stop after the link came back was not a controlled one"
+    events = [e.message for e in api.app.state.hub._events if e.axis == "line-0"]
+    assert any("STOP: telemetry too sparse" in e and "spwm0" in e for e in events), events
 
 
 async def test_runs_survive_restart_and_cut_runs_become_incomplete(tmp_path: Path) -> None:

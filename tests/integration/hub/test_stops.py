@@ -95,7 +95,11 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
         # Its safe state is Enable off (no holding torque), reached at standstill.
         assert not stop.holds and "Enable off at standstill" in stop.sent, stop
     else:
-        assert stop.holds, stop  # and it keeps the axis under power
+        # It keeps the axis under power - unless a loaded host's telemetry was too
+        # sparse to show that the loop works: then the stop safe either way went out
+        # (SLAP2: the brake; the distance ratio above holds for it too).
+        sparse = any("telemetry too sparse" in e for e in stop.events)
+        assert stop.holds or (plant.device == "slap2" and sparse), stop
 
 
 # --- jog both ways (SLAP2: pm + ma to the end of the range; release decelerates) ------

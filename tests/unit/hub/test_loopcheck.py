@@ -117,7 +117,9 @@ def test_a_current_limit_held_is_a_fault_a_short_one_is_not() -> None:
 def test_no_evidence_with_the_loop_off_or_too_few_samples() -> None:
     off = samples(1.5, 25.6, lambda t: 0.0, lambda t: 1900 * math.sin(60 * t), pm=False)
     assert judge(off) == loopcheck.NO_EVIDENCE
-    assert judge(samples(1.5, 25.6, lambda t: 0.0, lambda t: 0.0)[:2]) == loopcheck.NO_EVIDENCE
+    few = samples(1.5, 25.6, lambda t: 0.0, lambda t: 0.0)[:2]
+    assert judge(few).working is None
+    assert loopcheck.judge(few, SIGNALS, since=few[0].t - 1.0).sparse  # 1 s unseen
 
 
 def test_at_rest() -> None:
@@ -171,10 +173,80 @@ def test_only_the_newest_stretch_with_the_loop_on_is_judged() -> None:
     ]
     quiet = [
         Sample(1.2 + i / 25.6, {"position": 0, "following_error": 2}, {"pm": True})
-        for i in range(10)
+        for i in range(20)
     ]
     assert judge([*before, *off, *quiet]).working is True
     assert judge([*before, *off]) == loopcheck.NO_EVIDENCE
+    # A loop switched on 0.35 s ago has not shown yet that it works; densely sampled,
+    # nothing says a swing was missed: not judged yet, not "too sparse".
+    short = judge([*before, *off, *quiet[:10]])
+    assert short.working is None and not short.sparse and "0.35 s" in short.reason, short
+
+
+# --- evidence: the samples' own timestamps, not their count ---------------------------
+
+# The loaded demo SLAP2's limit cycle (factory gains, ±1 960 counts around a held
+# setpoint of 2 000) as a starved host polled it at ~13 samples/s: recorded from the
+# stop rig at load ~8 (time from the newest sample, following error). Aliased, its
+# swings scatter and the newer ones look smaller: the check had called it "working".
+ALIASED_LIMIT_CYCLE = [
+    (-1.498, -1965), (-1.399, -933), (-1.328, -1909), (-1.267, -404), (-1.197, 1404),
+    (-1.125, 1969), (-1.049, 1764), (-0.971, 1356), (-0.904, -828), (-0.843, -1759),
+    (-0.787, 1625), (-0.715, 1970), (-0.650, 18), (-0.577, -1227), (-0.492, -933),
+    (-0.406, -485), (-0.338, -1877), (-0.264, -1903), (-0.189, -1248), (-0.091, -1953),
+    (0.000, -1227),
+]  # fmt: skip
+
+
+def held(points: list[tuple[float, float]], setpoint: float = 2000.0) -> list[Sample]:
+    return [
+        Sample(
+            t=t,
+            channels={"position": setpoint - e, "following_error": e, "setpoint": setpoint},
+            flags={"pm": True, "vm": False, "move": False, "oc": False},
+        )
+        for t, e in points
+    ]
+
+
+SLAP2 = SIGNALS.model_copy(update={"moving_flags": ["move", "vm"], "reference_channel": "setpoint"})
+
+
+def test_a_limit_cycle_sampled_about_as_fast_as_it_swings_is_never_called_working() -> None:
+    verdict = loopcheck.judge(held(ALIASED_LIMIT_CYCLE), SLAP2, since=-1.5)
+    assert verdict.working is not True, verdict
+    assert verdict.working is False or verdict.sparse, verdict
+
+
+def sparse_limit_cycle(gaps_s: list[float], hz: float = 9.7) -> list[Sample]:
+    t, points = -sum(gaps_s), []
+    for gap in [0.0, *gaps_s]:
+        t += gap
+        points.append((t, 1900 * math.sin(2 * math.pi * hz * t)))
+    return held(points)
+
+
+@pytest.mark.parametrize(
+    "gaps_s",
+    [
+        [0.3, 0.25, 0.35, 0.3, 0.3],  # a starved host: ~3 samples/s
+        [0.05] * 6 + [0.45] + [0.05] * 4,  # one long stall in the window
+    ],
+    ids=["slow-polls", "one-stall"],
+)
+def test_sparse_telemetry_is_no_evidence_that_the_loop_works(gaps_s: list[float]) -> None:
+    data = sparse_limit_cycle(gaps_s)
+    verdict = loopcheck.judge(data, SLAP2, since=data[-1].t - 1.5)
+    assert verdict.working is not True and verdict.sparse, verdict
+    assert "telemetry too sparse" in verdict.reason
+
+
+def test_late_telemetry_is_no_evidence_of_now() -> None:
+    # A loop that works, densely sampled - but the newest sample is 0.4 s old.
+    data = held([(-1.5 + i / 25.6, 3.0) for i in range(39)])
+    assert loopcheck.judge(data, SLAP2, since=-1.5).working is True
+    late = loopcheck.judge(data, SLAP2, since=-1.5, age_s=0.4)
+    assert late.working is None and late.sparse and "0.40 s" in late.reason, late
 
 
 HELD = SIGNALS.model_copy(update={"moving_flags": ["move", "vm"]})

@@ -263,6 +263,14 @@ class Slap2Axis(AxisDriver):
         sent = await self._link.op_execute(self._address, [_BRAKE], urgent=True, stop=True)
         return StopOutcome(sent, "brake", "braking: winding shorted (spwm 0); st once at rest")
 
+    async def unjudged_stop(self) -> StopOutcome:
+        """The brake (``brake``): it needs no loop and no encoder, and back-EMF plus
+        friction stops the shaft sooner than friction alone, so it is never longer than
+        st; where the loop works it is longer than the hold in pm but of the same order,
+        where it oscillates far shorter than a hold that the watch brakes later
+        (docs/control.md). Ends unpowered once at rest."""
+        return await self.brake()
+
     async def hold_here(self) -> StopOutcome:
         sent = await self._link.op_execute(self._address, [codec.make_simple("pm")])
         return StopOutcome(sent, "hold", "holding the position under power (pm)")

@@ -346,7 +346,15 @@ class Slap2Exchange:
                 # own timeout).
                 lines, blind = await self._select_blind(channel, command), True
             else:
-                lines, blind = await self._select_echoed(channel, command)
+                try:
+                    lines, blind = await self._select_echoed(channel, command)
+                except ProtocolError:
+                    # A wrong echo of ``se`` (one garbled character on a loaded line):
+                    # selecting has no effect but the selection, and a second ``se n``
+                    # leaves n selected whether the first ran or not, so it is sent
+                    # once more (counted). Commands that move are never resent.
+                    self._engine.count("retries")
+                    lines, blind = await self._select_echoed(channel, command)
         except BaseException as exc:
             # Every module saw ``se n``: whoever was selected switched its transmitter
             # off, for a known reason; its later silence is no sign of a reset.

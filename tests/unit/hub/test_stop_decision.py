@@ -1,0 +1,150 @@
+"""What STOP sends, from the loop check's verdict (servotune.hub.stops.StopService), on a
+driver that records the stops it is asked for and telemetry injected with its own
+timestamps and arrival times (an injected clock: nothing depends on the host's speed)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from servotune.devices.slap2.descriptor import slap2_descriptor
+from servotune.hub.stops import StopService
+from servotune.link.base import Sample, StopOutcome
+
+
+class Recorder:
+    """A driver with the stop modes and no stop for an unjudged loop (a Z1100-like one):
+    its stops say what they are and send nothing."""
+
+    def __init__(self) -> None:
+        self.asked: list[str] = []
+
+    async def _say(self, name: str, action: str) -> StopOutcome:
+        self.asked.append(name)
+        return StopOutcome([name], action, name)  # type: ignore[arg-type]
+
+    async def stop(self) -> StopOutcome:
+        return await self._say("stop", "hold")
+
+    async def controlled_stop(self) -> StopOutcome:
+        return await self._say("controlled_stop", "hold")
+
+    async def power_off(self) -> StopOutcome:
+        return await self._say("power_off", "power_off")
+
+    async def brake(self) -> StopOutcome:
+        return await self._say("brake", "brake")
+
+    async def hold_here(self) -> StopOutcome:
+        return await self._say("hold_here", "hold")
+
+
+class Slap2Like(Recorder):
+    """... and one with it (a SLAP2-like one: its brake)."""
+
+    async def unjudged_stop(self) -> StopOutcome:
+        return await self._say("unjudged_stop", "brake")
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def limit_cycle(times: list[float]) -> list[Sample]:
+    """The loaded SLAP2's limit cycle (±1900 counts at 9.7 Hz around a held setpoint)."""
+    out = []
+    for t in times:
+        e = 1900 * math.sin(2 * math.pi * 9.7 * t)
+        out.append(
+            Sample(
+                t,
+                {"position": 2000 - e, "following_error": e, "setpoint": 2000.0},
+                {"pm": True, "vm": False, "move": False, "oc": False},
+            )
+        )
+    return out
+
+
+def quiet(times: list[float]) -> list[Sample]:
+    return [
+        Sample(
+            t,
+            {"position": 2000.0, "following_error": 3.0, "setpoint": 2003.0},
+            {"pm": True, "vm": False, "move": False, "oc": False},
+        )
+        for t in times
+    ]
+
+
+async def stop_after(
+    samples: list[Sample], *, kind: str = "stop", unjudged: bool = True, late_s: float = 0.0
+) -> tuple[list[str], list[str]]:
+    """Feed ``samples`` as they would arrive (the service's clock follows their own
+    timestamps, then ``late_s`` more), STOP, and return (what the driver was asked for,
+    the events)."""
+    clock = Clock()
+    events: list[str] = []
+    service = StopService(lambda level, axis, message: events.append(message), clock=clock)
+    driver = Slap2Like() if unjudged else Recorder()
+    service.add_axis("a", driver, slap2_descriptor(1))  # type: ignore[arg-type]
+    for sample in samples:
+        clock.now = 100.0 + sample.t
+        service.on_sample("a", sample)
+    clock.now += late_s
+    await service.stop("a", kind, "STOP")  # type: ignore[arg-type]
+    await service.close()
+    return driver.asked, events
+
+
+def every(gap_s: float, span_s: float = 1.5) -> list[float]:
+    return [i * gap_s for i in range(int(span_s / gap_s) + 1)]
+
+
+async def test_a_limit_cycle_densely_seen_gets_the_brake() -> None:
+    asked, events = await stop_after(limit_cycle(every(1 / 68)))
+    assert asked == ["brake"] and "not working" in events[0], (asked, events)
+
+
+async def test_a_working_loop_densely_seen_holds() -> None:
+    asked, _ = await stop_after(quiet(every(0.04)))
+    assert asked == ["stop"]
+
+
+@pytest.mark.parametrize(
+    ("samples", "late_s"),
+    [
+        # A starved host polled every ~0.3 s: six samples of the limit cycle.
+        (limit_cycle([0.0, 0.3, 0.55, 0.9, 1.2, 1.5]), 0.0),
+        # A quiet loop densely seen - but the telemetry stopped 0.5 s before the STOP.
+        (quiet(every(0.04)), 0.5),
+    ],
+    ids=["sparse", "late"],
+)
+async def test_a_loop_the_telemetry_cannot_judge_gets_the_stop_safe_either_way(
+    samples: list[Sample], late_s: float
+) -> None:
+    asked, events = await stop_after(samples, late_s=late_s)
+    assert asked == ["unjudged_stop"], (asked, events)
+    assert "telemetry too sparse" in events[0]
+    # A device without such a stop gets its STOP (watched), and every other stop holds
+    # as asked (it must keep a vertical axis up).
+    assert (await stop_after(samples, late_s=late_s, unjudged=False))[0] == ["stop"]
+    controlled, _ = await stop_after(samples, late_s=late_s, kind="controlled")
+    assert controlled == ["controlled_stop"]
+
+
+async def test_a_quiet_loop_seen_with_a_hole_is_not_judged_working() -> None:
+    asked, _ = await stop_after(quiet([*every(0.04, 0.6), *[0.9 + t for t in every(0.04, 0.6)]]))
+    assert asked == ["unjudged_stop"]
+
+
+async def test_a_stop_after_an_outage_is_the_stop_safe_either_way() -> None:
+    # A pending STOP delivered when the link is back, the loop last seen on and quiet
+    # 3 s ago: what it does now is unknown.
+    asked, events = await stop_after(quiet(every(0.04)), late_s=3.0)
+    assert asked == ["unjudged_stop"] and "no telemetry for the last 3.00 s" in events[0]
