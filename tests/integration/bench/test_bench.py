@@ -10,6 +10,7 @@ from servotune.storage import Storage
 from tests.support.bench import finished_run, start
 from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import running_simulator
+from tests.support.waiting import wait_for
 
 VM, PM = 1 << 2, 1 << 3  # rss bits
 
@@ -118,8 +119,17 @@ async def test_link_loss_keeps_samples_marks_incomplete_and_stops(api: LiveServe
     # seen a second or more before, so the STOP is the one safe whether the loop works
     # or not (docs/control.md, "Stops"): the brake, then unpowered at rest.
     assert not module.rss & VM, "the axis was not stopped after the link came back"
-    events = [e.message for e in api.app.state.hub._events if e.axis == "line-0"]
-    assert any("STOP: telemetry too sparse" in e and "spwm0" in e for e in events), events
+
+    def events() -> list[str]:
+        return [e.message for e in api.app.state.hub._events if e.axis == "line-0"]
+
+    # The hub records the STOP's event when the device's reply is in, which can be just
+    # after the module left vm.
+    await wait_for(
+        lambda: any("STOP: telemetry too sparse" in e and "spwm0" in e for e in events()),
+        5,
+        f"the STOP's event (events so far: {events()})",
+    )
 
 
 async def test_runs_survive_restart_and_cut_runs_become_incomplete(tmp_path: Path) -> None:
