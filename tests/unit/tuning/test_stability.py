@@ -20,10 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import json
 import math
-import shutil
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +36,7 @@ from servotune.sim.physics import DcMotor, DcMotorParams
 from servotune.tuning.loops import MotorModel
 from servotune.tuning.stability import schur_stable
 from servotune.tuning.whatif import browser_model, loop_for, plant_from_identification
-from tests.support.paths import REPO as ROOT
+from tests.support import stability_ts
 
 # The devices' controller laws, looked up as the app does.
 LAW = default_registry().law
@@ -103,42 +100,9 @@ def _browser_plant(plant_d: control.TransferFunction) -> tuple[list[float], list
 
 
 def _browser_verdicts(cases: list[dict[str, Any]], tmp_path: Path) -> list[bool]:
-    """``loopStable`` of web/src/stability.ts for each case (see ``_browser``)."""
-    verdicts: list[bool] = _browser(cases, tmp_path, "loopStable(c.model, c.gains)")
+    """``loopStable`` of web/src/stability.ts for each case (``stability_ts.evaluate``)."""
+    verdicts: list[bool] = stability_ts.evaluate(cases, tmp_path, "loopStable(c.model, c.gains)")
     return verdicts
-
-
-def _browser(cases: list[dict[str, Any]], tmp_path: Path, expression: str) -> list[Any]:
-    """``expression`` (of ``c``, a case) with web/src/stability.ts's exports for each
-    case, compiled with the web client's TypeScript and run under node."""
-    tsc = ROOT / "web" / "node_modules" / ".bin" / "tsc"
-    node = shutil.which("node")
-    assert tsc.exists() and node, "the web client's packages and node are needed (scripts/test.sh)"
-    out = tmp_path / "stability"
-    source = str(ROOT / "web" / "src" / "stability.ts")
-    arguments = ["--target", "es2022", "--module", "es2022", "--outDir", str(out), source]
-    subprocess.run([str(tsc), *arguments], check=True)
-    module = out / "stability.mjs"
-    (out / "stability.js").rename(module)
-    script = (
-        f"import * as s from {json.dumps(str(module))};"
-        "const { loopStable, modelMargins } = s;"
-        "let text = '';"
-        "process.stdin.on('data', (d) => (text += d));"
-        "process.stdin.on('end', () => {"
-        "  const cases = JSON.parse(text);"
-        f"  process.stdout.write(JSON.stringify(cases.map((c) => {expression})));"
-        "});"
-    )
-    result = subprocess.run(
-        [node, "--input-type=module", "-e", script],
-        input=json.dumps(cases),
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    values: list[Any] = json.loads(result.stdout)
-    return values
 
 
 def test_schur_cohn_agrees_with_the_roots() -> None:
@@ -271,7 +235,7 @@ def test_browser_and_server_read_the_same_margins(tmp_path: Path) -> None:
         }
         for k, a, b in [(24, 16, 8), (96, 64, 8)]
     ]
-    browser = _browser(cases, tmp_path, "modelMargins(c.model, c.gains)")
+    browser = stability_ts.evaluate(cases, tmp_path, "modelMargins(c.model, c.gains)")
     for case, got in zip(cases, browser, strict=True):
         device = "slap2" if case["model"]["law"] == "slap2_pid" else "z1100"
         truth = loop_for(

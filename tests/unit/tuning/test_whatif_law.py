@@ -17,9 +17,6 @@ is the law the server computes with, in Python and in the browser.
 
 from __future__ import annotations
 
-import json
-import shutil
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +37,7 @@ from servotune.devices.z1100.law import Kab, KabLaw, z1100_kab_polynomials
 from servotune.link.base import BenchPlanner, BenchTest, Sample
 from servotune.tuning.loops import law_polynomials
 from servotune.tuning.whatif import browser_model, loop_for, plant_from_identification
-from tests.support.paths import REPO as ROOT
+from tests.support import stability_ts
 
 LAW = default_registry().law
 IDENTIFIED = {
@@ -83,38 +80,6 @@ def test_the_z1100_terms_are_its_kab_law_with_the_hold_gains(gains: tuple[int, i
         assert np.max(np.abs(_response(got, z) - want)) <= 1e-12 * max(1.0, np.max(np.abs(want)))
 
 
-def _node(cases: list[dict[str, Any]], tmp_path: Path, expression: str) -> list[Any]:
-    """``expression`` (of ``c``, a case, with web/src/stability.ts's exports in scope as
-    ``s``) for each case, compiled with the web client's TypeScript and run under node."""
-    tsc = ROOT / "web" / "node_modules" / ".bin" / "tsc"
-    node = shutil.which("node")
-    assert tsc.exists() and node, "the web client's packages and node are needed (scripts/test.sh)"
-    out = tmp_path / "law"
-    source = str(ROOT / "web" / "src" / "stability.ts")
-    arguments = ["--target", "es2022", "--module", "es2022", "--outDir", str(out), source]
-    subprocess.run([str(tsc), *arguments], check=True)
-    module = out / "stability.mjs"
-    (out / "stability.js").rename(module)
-    script = (
-        f"import * as s from {json.dumps(str(module))};"
-        "let text = '';"
-        "process.stdin.on('data', (d) => (text += d));"
-        "process.stdin.on('end', () => {"
-        f"  const out = JSON.parse(text).map((c) => {expression});"
-        "  process.stdout.write(JSON.stringify(out));"
-        "});"
-    )
-    result = subprocess.run(
-        [node, "--input-type=module", "-e", script],
-        input=json.dumps(cases),
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    values: list[Any] = json.loads(result.stdout)
-    return values
-
-
 def _server_open_loop(device: str, gains: dict[str, int], f: np.ndarray) -> np.ndarray:
     """The server's open loop ``(Cf + Cb) P`` of the device's law around the identified
     plant, python-control's transfer functions evaluated at ``e^{jwT}``."""
@@ -147,7 +112,7 @@ def test_the_browser_open_loop_is_the_servers(tmp_path: Path) -> None:
                 f = np.geomspace(0.5, 0.45 / model["period_s"], 9)
                 cases.append({"model": model, "gains": params, "f": f.tolist()})
                 truths.append(_server_open_loop(device, params, f))
-    got = _node(cases, tmp_path, "c.f.map((f) => s.openLoop(c.model, c.gains, f))")
+    got = stability_ts.evaluate(cases, tmp_path, "c.f.map((f) => s.openLoop(c.model, c.gains, f))")
     for case, values, truth in zip(cases, got, truths, strict=True):
         browser = np.array([v["re"] + 1j * v["im"] for v in values])
         error = np.abs(browser - truth) / np.abs(truth)
@@ -171,7 +136,7 @@ def _runner_outputs(cases: list[dict[str, Any]], tmp_path: Path) -> list[list[fl
         "(() => { const r = new s.LawRunner(c.controller, c.gains);"
         " return c.sequence.map(([e, y, moving]) => r.step(e, y, moving)); })()"
     )
-    outputs: list[list[float]] = _node(cases, tmp_path, expression)
+    outputs: list[list[float]] = stability_ts.evaluate(cases, tmp_path, expression)
     return outputs
 
 
