@@ -38,14 +38,13 @@ sys.path.insert(0, str(ROOT))
 from tests.support.bus_lab import (  # noqa: E402  (the tests' own fixtures, as a script)
     RIGS,
     LabRun,
-    Rig,
+    add_rig_lines,
     create_bus_state,
     start_hub,
     start_rig,
     stop_app,
     wait_for_manifest,
 )
-from tests.support.control import recorded_line  # noqa: E402
 from tests.support.nats import nats_lab  # noqa: E402
 
 
@@ -66,11 +65,7 @@ async def run(rigs: int, seconds: float, writes: int) -> None:
         async with nats_lab(tmp / "nats", names) as lab:
             run_ = LabRun(lab, tmp)
             with contextlib.ExitStack() as lines:
-                for name in names:
-                    directory = tmp / name
-                    directory.mkdir()
-                    simulator, wire = lines.enter_context(recorded_line(directory, [0, 1]))
-                    run_.rigs[name] = Rig(name, wire, simulator.path, directory / "data")
+                add_rig_lines(run_, names, lines)
                 try:
                     await create_bus_state(lab)
                     for rig in run_.rigs.values():

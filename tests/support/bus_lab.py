@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -103,6 +103,16 @@ async def start_hub(run: LabRun) -> None:
     run.hub = await start_app(config)
 
 
+def add_rig_lines(run: LabRun, names: Iterable[str], lines: contextlib.ExitStack) -> None:
+    """A recorded SLAP2 line (modules 0 and 1) per rig in ``names``, entered on
+    ``lines``, and the rig's record in ``run.rigs`` (its files under ``run.tmp``)."""
+    for name in names:
+        directory = run.tmp / name
+        directory.mkdir()
+        simulator, wire = lines.enter_context(recorded_line(directory, [0, 1]))
+        run.rigs[name] = Rig(name, wire, simulator.path, directory / "data")
+
+
 async def stop_app(app: App | None) -> None:
     if app is not None:
         await app.stack.aclose()
@@ -113,11 +123,7 @@ async def lab(tmp_path: Path) -> AsyncIterator[LabRun]:
     async with nats_lab(tmp_path / "nats", RIGS) as nats_lab_:
         run = LabRun(nats_lab_, tmp_path)
         with contextlib.ExitStack() as lines:
-            for name in RIGS:
-                directory = tmp_path / name
-                directory.mkdir()
-                simulator, wire = lines.enter_context(recorded_line(directory, [0, 1]))
-                run.rigs[name] = Rig(name, wire, simulator.path, directory / "data")
+            add_rig_lines(run, RIGS, lines)
             try:
                 await create_bus_state(nats_lab_)
                 for rig in run.rigs.values():

@@ -32,13 +32,12 @@ from tests.support.auth import LAB, client, login, make_accounts
 from tests.support.bus_lab import (
     RIGS,
     LabRun,
-    Rig,
+    add_rig_lines,
     create_bus_state,
     start_rig,
     stop_app,
     wait_for_manifest,
 )
-from tests.support.control import recorded_line
 from tests.support.nats import free_port, nats_lab
 from tests.support.servers import use_csrf_token
 from tests.support.waiting import wait_for
@@ -94,11 +93,7 @@ async def half_lab(tmp_path: Path) -> AsyncIterator[LabRun]:
     async with nats_lab(tmp_path / "nats", RIGS) as nats_lab_:
         run = LabRun(nats_lab_, tmp_path)
         with contextlib.ExitStack() as lines:
-            for name in RIGS:
-                directory = tmp_path / name
-                directory.mkdir()
-                simulator, wire = lines.enter_context(recorded_line(directory, [0, 1]))
-                run.rigs[name] = Rig(name, wire, simulator.path, directory / "data")
+            add_rig_lines(run, RIGS, lines)
             try:
                 await create_bus_state(nats_lab_)
                 await start_rig(run, run.rigs["rig-a"])
