@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import pytest
 
@@ -21,7 +22,7 @@ from servotune.devices.ep7047.codec import (
     StmStatus,
 )
 from servotune.devices.ep7047.handshakes import Handshakes
-from servotune.devices.ep7047.requests import CycleCounters, RequestQueue, _Kind, _Request
+from servotune.devices.ep7047.requests import CycleCounters, RequestQueue, _Exec, _Kind, _Request
 from servotune.link.base import DeviceRefusedError
 from servotune.schema import EventLevel
 
@@ -56,8 +57,8 @@ class Bench:
     counters: CycleCounters
     loop: asyncio.AbstractEventLoop
 
-    def request(self, kind: _Kind, **values: object) -> _Request:
-        request = _Request(kind, self.loop.create_future(), **values)  # type: ignore[arg-type]
+    def request(self, kind: _Kind, **values: Any) -> _Request:
+        request = _Request(kind, self.loop.create_future(), **values)
         self.queue.put(request)
         return request
 
@@ -67,7 +68,7 @@ class Bench:
         if self.queue.urgent:
             hs.take_urgent(now)
         cs = hs.state
-        if cs.pending is not None or cs.exec_state.name == "ARMING":
+        if cs.pending is not None or cs.exec_state is _Exec.ARMING:
             hs.before_exchange(now)
         if cs.pending is None and cs.sdo_job is None and self.queue.normal:
             hs.take_normal(now)
