@@ -1,7 +1,7 @@
 """The event-loop side of the EP7047-1032 cycle: the link's status, the sample batches
 and the results of requests, posted from the cycle thread to the event loop.
 
-``LoopBridge`` implements ``devices.ep7047.cycle.CycleReports``: the cycle thread calls
+``EventLoopBridge`` implements ``devices.ep7047.cycle.CycleReports``: the cycle thread calls
 its ``post_*``/``resolve``/``reject`` methods, and each becomes one callback on the
 loop (``loop.call_soon_threadsafe``), in the order the thread made them. Samples go in
 batches (``SAMPLE_BATCH_S``); anything else first flushes the batch so far. Within a
@@ -39,7 +39,7 @@ SAMPLE_BATCH_MAX: Final = 32
 or a test clock that does not advance)."""
 
 
-class LoopBridge:
+class EventLoopBridge:
     """The link's status and the posts from the cycle thread to the event loop.
 
     Loop side: ``attach`` (the running loop), ``state``/``message``/``set_state``,

@@ -82,7 +82,7 @@ _STM_SHOWN: Final = 0xFFFF & ~int(StmStatus.TXPDO_TOGGLE)
 
 
 class CycleReports(HandshakeReports, Protocol):
-    """What the cycle tells the event loop (``devices.ep7047.bridge.LoopBridge``
+    """What the cycle tells the event loop (``devices.ep7047.bridge.EventLoopBridge``
     implements it). Calls come from the cycle thread, in order; each post is delivered
     after the samples posted before it."""
 

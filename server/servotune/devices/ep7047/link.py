@@ -28,7 +28,7 @@ The owner: one cycle thread
 Parts (this module re-exports their public names): ``transports.ethercat`` the library
 seam (protocols, errors, state values, pysoem adapter); ``devices.ep7047.requests`` the
 requests, their queue, the cycle state and counters (data); here ``Ep7047Link``, which
-*has* a ``devices.ep7047.bridge.LoopBridge`` (status, the posts from the thread to the
+*has* a ``devices.ep7047.bridge.EventLoopBridge`` (status, the posts from the thread to the
 loop, sample batches) and a ``devices.ep7047.cycle.Cycle`` (bring-up, exchange, SDO
 slots, samples, shutdown; it reports through ``CycleReports``, which the bridge
 implements), which *has* the ``devices.ep7047.handshakes.Handshakes`` (the command
@@ -91,7 +91,7 @@ from typing import Any
 
 from servotune.descriptor import DeviceDescriptor
 from servotune.devices.ep7047.axis import Ep7047Axis
-from servotune.devices.ep7047.bridge import LoopBridge
+from servotune.devices.ep7047.bridge import EventLoopBridge
 from servotune.devices.ep7047.codec import PosSettings, SdoObject
 from servotune.devices.ep7047.cycle import Cycle
 from servotune.devices.ep7047.descriptor import ep7047_descriptor
@@ -140,7 +140,7 @@ logger = logging.getLogger(__name__)
 class Ep7047Link:
     """One EtherCAT network interface with one EP7047-1032 slave; see the module docstring.
 
-    It has a ``LoopBridge`` (status, samples and results on the event loop) and a
+    It has an ``EventLoopBridge`` (status, samples and results on the event loop) and a
     ``Cycle`` (the thread that owns the master, with the command handshakes); requests
     go to the cycle through a ``RequestQueue``.
     """
@@ -184,7 +184,7 @@ class Ep7047Link:
         self._axis_name = name or f"EP7047-1032 #{slave}"
         self._counters = CycleCounters()
         self._queue = RequestQueue()
-        self.bridge = LoopBridge(
+        self.bridge = EventLoopBridge(
             link_id,
             self.axis_id,
             sink,

@@ -1,5 +1,5 @@
 """The EP7047-1032 driver's requests, the queue that hands them to the cycle, the cycle's
-state and counters: data shared by the link (``devices.ep7047.link``), its loop bridge
+state and counters: data shared by the link (``devices.ep7047.link``), its event-loop bridge
 (``devices.ep7047.bridge``), the cycle (``devices.ep7047.cycle``) and the command
 handshakes (``devices.ep7047.handshakes``). See ``servotune.devices.ep7047.link`` for the
 design.
