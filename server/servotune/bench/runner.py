@@ -90,9 +90,16 @@ class Recording:
 
 
 def left_oscillating(quality: dict[str, Any], settled: Settled) -> dict[str, Any]:
-    """The run's quality with the reason that it left the axis oscillating first."""
-    reason = {"code": "left_oscillating", "message": settled.message}
-    return {**quality, "status": "bad", "reasons": [reason, *quality.get("reasons", [])]}
+    """The run's quality with what the check after it found first: the axis left
+    oscillating (``bad``), or its loop not verified (``loop_unverified``: at least
+    ``doubtful``)."""
+    if settled.found == "oscillating":
+        code, status = "left_oscillating", "bad"
+    else:
+        code = "loop_unverified"
+        status = "bad" if quality.get("status") == "bad" else "doubtful"
+    reason = {"code": code, "message": settled.message}
+    return {**quality, "status": status, "reasons": [reason, *quality.get("reasons", [])]}
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -376,7 +383,10 @@ class Runner:
                     }
                 meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
                 if settled is not None:
-                    meta["left_oscillating"] = settled.as_dict()
+                    key = (
+                        "left_oscillating" if settled.found == "oscillating" else "loop_unverified"
+                    )
+                    meta[key] = settled.as_dict()
                     meta["quality"] = left_oscillating(meta["quality"], settled)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self.update(recording, status, message or "done")
