@@ -67,6 +67,12 @@ STATUS_STALE_S = 3.5
 # to STATUS_STALE_S, the hub's horizon for a link that stopped reporting, so a short
 # hold-up of a busy host does not trip it.
 AXIS_SILENT_S: Final = 3.0
+# ... unless its link excused timeouts because the host itself held the bytes back
+# (``host_stalls`` grew within the last HOST_HELD_RECENT_S): the device answers, the
+# host delays it. Judged again then, for at most HOST_HELD_GRACE_S more (the link's own
+# bound on that excuse, ``link.engine.TTY_STALL_EXCUSE_S``).
+HOST_HELD_RECENT_S: Final = 2.0
+HOST_HELD_GRACE_S: Final = 5.0
 
 
 class UnknownAxisError(KeyError):
@@ -285,6 +291,10 @@ class HubState:
         if link_entry.restarts:
             counters["restarts"] = counters.get("restarts", 0) + link_entry.restarts
         link_entry.updated_at = self._clock()
+        host_stalls = counters.get("host_stalls", 0)
+        if host_stalls > link_entry.host_stalls:
+            link_entry.host_stalled_at = link_entry.updated_at
+        link_entry.host_stalls = host_stalls
         link_entry.status = LinkStatus(
             link=link_id,
             state=state,
@@ -469,14 +479,24 @@ class HubState:
         that got no sample for ``AXIS_SILENT_S``: its device does not answer its polls
         although the line works. Its next sample shows it ok again (``on_sample``).
         Axes paused, offline or reset and links connecting or disconnected are not
-        judged: no telemetry is expected from them."""
+        judged: no telemetry is expected from them. A link that excused timeouts
+        because the host held its bytes back (``HOST_HELD_RECENT_S``) gets
+        ``HOST_HELD_GRACE_S`` more: the device answers, its bytes are late."""
         for entry in self._axes.values():
             if entry.health != "ok" or entry.silent:
                 continue
-            if self._links[entry.link.id].status.state not in ("connected", "error"):
+            link_entry = self._links[entry.link.id]
+            if link_entry.status.state not in ("connected", "error"):
                 continue
             silent_s = now - entry.last_sample_at
             if silent_s < AXIS_SILENT_S:
+                continue
+            held_at = link_entry.host_stalled_at
+            if (
+                held_at is not None
+                and now - held_at < HOST_HELD_RECENT_S
+                and silent_s < AXIS_SILENT_S + HOST_HELD_GRACE_S
+            ):
                 continue
             entry.silent = True
             entry.health = "offline"
