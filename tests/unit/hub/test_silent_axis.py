@@ -70,3 +70,32 @@ def test_an_axis_whose_bytes_the_host_holds_gets_the_grace(tmp_path: Path) -> No
     assert offline_after(judged(tmp_path, host_stalls_from=1001.0)) == (
         AXIS_SILENT_S + HOST_HELD_GRACE_S
     )
+
+
+def test_a_stall_of_the_whole_server_is_not_a_stalled_link(tmp_path: Path) -> None:
+    """The server's loop did not run for 5 s (seen under a CPU hog: all three demo links
+    shown "no status from the link for 5 s: its task is stalled" at once). Its links did
+    not publish because nothing ran: said once, as the server's stall, and the links
+    are judged from the loop's return - a link that stays silent after it is stalled."""
+    now = [1000.0]
+    state = HubState(Storage(tmp_path / "db.sqlite"), FanOut(), clock=lambda: now[-1])
+    state.add_link(Line())  # type: ignore[arg-type]
+    state.link_entry("line").running = True
+    state.on_link_status("line", "connected", "", 10.0, 20.0, 0)
+    state.on_axis_health("ax", "ok", "")
+    state.on_sample("ax", Sample(1000.0, {"position": 0.0}, {}))
+    state.take_telemetry(False)
+    now.append(1005.0)  # nothing ran for 5 s; a queued status query is served first
+    assert state.link_status("line").state == "connected"
+    state.take_telemetry(False)  # the fan-out's heartbeat: the stall is seen
+    state.status_tick(now[-1])
+    assert state.link_status("line").state == "connected"
+    assert state.entry("ax").health == "ok"  # its axis' silence was the server's too
+    assert [e.message for e in state.events if "did not run for 5.0 s" in e.message]
+    # The loop runs again (beats every 0.5 s), the link's status never comes.
+    for t in range(1, 9):
+        now.append(1005.0 + t / 2)
+        state.take_telemetry(False)
+        state.status_tick(now[-1])
+    status = state.link_status("line")
+    assert status.state == "error" and "its task is stalled" in status.message
