@@ -15,8 +15,16 @@ end or abort of a bench run or an auto-tune step), and the explicit power-off
   watched until it is at rest (``hub.loopcheck.at_rest``), at most ``WATCH_S``: if the loop
   oscillates, runs away or holds the current limit meanwhile, or the axis is not at
   rest by then, it gets the brake and an error event says why.
+* A watch whose telemetry stops for ``WATCH_SILENT_S`` (a link down, a device that
+  stopped answering its polls) says so in a warning event: the hold is *not verified*.
+  Nothing is sent on no evidence (a brake or a power-off would drop a vertical axis that
+  may well be holding). The watch goes on until telemetry returns and then judges the
+  samples after the gap afresh, as after the stop itself: at rest is told (an info
+  event), a loop that does not work gets the brake. It never ends silently without a
+  verdict; only a new change of the axis or the hub's stop ends it.
 * A brake (``action == "brake"``) is switched off (``StopModes.power_off``) once the
-  axis is at rest, at the latest after ``BRAKE_MAX_S``.
+  axis is at rest, at the latest after ``BRAKE_MAX_S``; the event says whether it was
+  seen at rest or switched off on the time limit.
 * A new change of the axis (any command, write, console line) ends its watch: what
   the user does next is theirs (``cancel_watch``).
 
@@ -67,6 +75,10 @@ WATCH_S: Final = 3.0
 BRAKE_MAX_S: Final = 2.0
 # How often the watch looks at the samples.
 WATCH_PERIOD_S: Final = 0.02
+# A watch without a new sample for this long says the hold is not verified (as long as
+# the hub's own horizon for an axis that sent no sample, ``hub.state.AXIS_SILENT_S``:
+# a short hold-up of a busy host is not an outage).
+WATCH_SILENT_S: Final = 3.0
 # After a bench run or an auto-tune step the axis is watched this long for a loop that
 # does not work (enough for four swings of the slowest limit cycle seen, ~3 Hz).
 SETTLE_WATCH_S: Final = 1.5
@@ -88,6 +100,8 @@ class _Axis:
     # Stops of this axis so far, and the outcome of its watches (tests, benchmark).
     watches: int = 0
     escalations: int = 0
+    # The running watch has had no telemetry for WATCH_SILENT_S: its hold is not verified.
+    unverified: bool = False
 
 
 class StopService:
@@ -136,6 +150,12 @@ class StopService:
     def watching(self, axis_id: str) -> bool:
         ax = self._axes.get(axis_id)
         return ax is not None and ax.watch is not None and not ax.watch.done()
+
+    def unverified(self, axis_id: str) -> bool:
+        """The axis' watch after a stop has had no telemetry for ``WATCH_SILENT_S`` and
+        waits for it: whether the axis rests and holds is not known."""
+        ax = self._axes.get(axis_id)
+        return ax is not None and ax.unverified and self.watching(axis_id)
 
     def cancel_watch(self, axis_id: str) -> None:
         """A new change of the axis: what follows is the user's (see the module doc)."""
@@ -330,15 +350,22 @@ class StopService:
         done.append("holding under power")
         self.follow(axis_id, held, reason)
 
-    async def _rest(self, ax: _Axis, timeout_s: float) -> None:
+    async def _rest(self, ax: _Axis, timeout_s: float) -> str:
+        """Wait until the axis is seen at rest, ``timeout_s`` at most: "" when it was,
+        else why not (for the event that follows)."""
         assert ax.loop is not None
         mark = self._start_mark(ax)
         deadline = self._clock() + timeout_s
+        seen = False
         while self._clock() < deadline:
-            await asyncio.sleep(WATCH_PERIOD_S)
+            await self._sleep(WATCH_PERIOD_S)
             after = [s for s in ax.history if s.t > mark]
+            seen = seen or bool(after)
             if after and loopcheck.at_rest(after, ax.loop, since=after[0].t):
-                return
+                return ""
+        if not seen:
+            return f"no telemetry in {timeout_s:g} s: not seen at rest"
+        return f"not seen at rest within {timeout_s:g} s"
 
     # --- watches ------------------------------------------------------------------------
 
@@ -347,25 +374,13 @@ class StopService:
         return ax.history[-1].t if ax.history else -float("inf")
 
     async def _watch_hold(self, axis_id: str, ax: _Axis, reason: str) -> None:
-        assert ax.loop is not None
-        mark = self._start_mark(ax)
-        deadline = self._clock() + WATCH_S
-        why = ""
-        while True:
-            await asyncio.sleep(WATCH_PERIOD_S)
-            after = [s for s in ax.history if s.t > mark]
-            if after:
-                verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
-                if verdict.working is False:
-                    why = verdict.reason
-                    break
-                if loopcheck.at_rest(after, ax.loop, since=after[0].t):
-                    return
-                if after[-1].t - after[0].t >= WATCH_S:
-                    why = f"not at rest {WATCH_S:g} s after the stop"
-                    break
-            if self._clock() > deadline + WATCH_S:
-                return  # no telemetry (link down): nothing to judge, nothing to do
+        ax.unverified = False
+        try:
+            why = await self._hold_verdict(axis_id, ax, reason)
+        finally:
+            ax.unverified = False
+        if not why:
+            return
         ax.escalations += 1
         modes = ax.driver if isinstance(ax.driver, StopModes) else None
         try:
@@ -384,9 +399,58 @@ class StopService:
         if outcome is not None and outcome.action == "brake":
             await self._watch_brake(axis_id, ax, reason)
 
+    async def _hold_verdict(self, axis_id: str, ax: _Axis, reason: str) -> str:
+        """Watch a hold until a verdict: "" at rest, else why the loop does not hold.
+        Telemetry that stops for ``WATCH_SILENT_S`` is told (not verified) and waited
+        for; the samples after such a gap are judged afresh (module docstring)."""
+        assert ax.loop is not None
+        mark = self._start_mark(ax)
+        started = self._clock()
+        gap_s: float | None = None  # the last gap told, how long (the service's clock)
+        silent_since = started
+        while True:
+            await self._sleep(WATCH_PERIOD_S)
+            heard = max(started, ax.arrived)
+            silent_s = self._clock() - heard
+            if silent_s >= WATCH_SILENT_S:
+                if not ax.unverified:
+                    silent_since = heard
+                    ax.unverified = True
+                    mark = max(mark, self._start_mark(ax))
+                    self._on_event(
+                        "warning",
+                        axis_id,
+                        f"{reason}: no telemetry for {silent_s:.0f} s after the stop: the "
+                        "hold is not verified (nothing sent on no evidence); the axis is "
+                        "judged again when its telemetry returns",
+                    )
+                continue
+            if ax.unverified:
+                # Telemetry is back: what came after the gap is judged afresh.
+                ax.unverified = False
+                gap_s = heard - silent_since
+            after = [s for s in ax.history if s.t > mark]
+            if not after:
+                continue
+            verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
+            if verdict.working is False:
+                return verdict.reason
+            if loopcheck.at_rest(after, ax.loop, since=after[0].t):
+                if gap_s is not None:
+                    self._on_event(
+                        "info",
+                        axis_id,
+                        f"{reason}: telemetry back after {gap_s:.1f} s without: the axis "
+                        "is at rest and holding",
+                    )
+                return ""
+            if after[-1].t - after[0].t >= WATCH_S:
+                since = "its telemetry returned" if gap_s is not None else "the stop"
+                return f"not at rest {WATCH_S:g} s after {since}"
+
     async def _watch_brake(self, axis_id: str, ax: _Axis, reason: str) -> None:
         assert ax.loop is not None
-        await self._rest(ax, BRAKE_MAX_S)
+        not_rested = await self._rest(ax, BRAKE_MAX_S)
         modes = ax.driver if isinstance(ax.driver, StopModes) else None
         try:
             if modes is not None:
@@ -396,7 +460,14 @@ class StopService:
                 "error", axis_id, f"{reason}: the brake could not be switched off: {exc}"
             )
             return
-        self._on_event("info", axis_id, f"{reason}: at rest, motor unpowered")
+        if not_rested:
+            self._on_event(
+                "warning",
+                axis_id,
+                f"{reason}: motor unpowered after {BRAKE_MAX_S:g} s of brake ({not_rested})",
+            )
+        else:
+            self._on_event("info", axis_id, f"{reason}: at rest, motor unpowered")
 
 
 @dataclass(frozen=True, slots=True)
