@@ -90,6 +90,13 @@ REST_RESPONSES: list[type[BaseModel]] = [
     schema.WhatIfPlant,
     schema.WhatIfModel,
     schema.WhatIfInfo,
+    schema.SessionInfo,
+    schema.TicketReply,
+    schema.TokenInfo,
+    schema.NewToken,
+    schema.UserInfo,
+    schema.UserChanged,
+    schema.AuditEntry,
 ]
 REST_REQUESTS: list[type[BaseModel]] = [
     schema.BenchTestRequest,

@@ -15,6 +15,7 @@ import type {
   ParamSetComparison,
   SavedSet,
   SaveSetRequest,
+  SessionInfo,
   StopResult,
 } from "./schema.gen";
 
@@ -68,7 +69,7 @@ export function setCsrfToken(token: string): void {
 async function csrf(): Promise<string> {
   if (csrfToken === null) {
     const response = await fetch("/api/auth/session", { credentials: "same-origin" });
-    csrfToken = ((await response.json()) as { csrf_token: string }).csrf_token;
+    csrfToken = ((await response.json()) as SessionInfo).csrf_token;
   }
   return csrfToken;
 }

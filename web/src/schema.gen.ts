@@ -517,6 +517,66 @@ export interface WhatIfInfo {
   verify: VerifyProfile;
 }
 
+export interface SessionInfo {
+  mode: "local" | "exposed";
+  user: string | null;
+  role: string | null;
+  permissions: string[];
+  csrf_token: string;
+  via: string | null;
+  roles: string[];
+}
+
+export interface TicketReply {
+  ticket: string;
+  expires_in_s: number;
+}
+
+export interface TokenInfo {
+  id: string;
+  user: string;
+  name: string;
+  role: string;
+  created_s: number;
+  expires_s: number;
+  last_used_s: number | null;
+}
+
+export interface NewToken {
+  id: string;
+  user: string;
+  name: string;
+  role: string;
+  created_s: number;
+  expires_s: number;
+  last_used_s: number | null;
+  token: string;
+}
+
+export interface UserInfo {
+  name: string;
+  role: string;
+  created_s: number;
+}
+
+export interface UserChanged {
+  name: string;
+  role: string;
+}
+
+export interface AuditEntry {
+  id: number;
+  t_s: number;
+  who: string;
+  action: string;
+  axis: string | null;
+  address: string | null;
+  before: string | null;
+  after: string | null;
+  result: string;
+  detail: string;
+}
+
 export interface BenchTestRequest {
   kind: BenchKind;
   distance?: number;
