@@ -102,8 +102,22 @@ REST_REQUESTS: list[type[BaseModel]] = [
     schema.BenchTestRequest,
     schema.SaveSetRequest,
 ]
+# Response bodies the server builds as dicts (the route documents the model): a field with
+# a default may be absent, so it is optional in TypeScript like a request's.
+REST_SHAPES: list[type[BaseModel]] = [
+    schema.RunIdentity,
+    schema.RunTest,
+    schema.RunPlan,
+    schema.RunMetrics,
+    schema.RunReason,
+    schema.RunQuality,
+    schema.RunReturn,
+    schema.BenchRun,
+    schema.BenchRunDetail,
+]
 ALIASES = {
     "BenchKind": schema.BenchKind,
+    "RunStatus": schema.RunStatus,
     "MarginPreset": schema.MarginPreset,
     "LinkState": schema.LinkState,
     "AxisHealth": schema.AxisHealth,
@@ -135,6 +149,8 @@ def ts_type(annotation: object) -> str:
             return alias
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
+    if annotation is typing.Any:
+        return "unknown"
     if annotation is str:
         return "string"
     if annotation in (int, float):
@@ -171,7 +187,7 @@ def render() -> str:
     lines.append("")
     for model in [*MODELS, *REST_RESPONSES]:
         lines.extend(_interface(model, optional_defaults=False))
-    for model in REST_REQUESTS:
+    for model in [*REST_REQUESTS, *REST_SHAPES]:
         lines.extend(_interface(model, optional_defaults=True))
     for union, members in UNIONS.items():
         lines.append(f"export type {union} = {' | '.join(m.__name__ for m in members)};")
@@ -186,7 +202,7 @@ def _interface(model: type[BaseModel], *, optional_defaults: bool) -> list[str]:
     lines = [f"export interface {model.__name__} {{"]
     for name, field in model.model_fields.items():
         mark = "?" if optional_defaults and not field.is_required() else ""
-        lines.append(f"  {name}{mark}: {ts_type(hints[name])};")
+        lines.append(f"  {field.alias or name}{mark}: {ts_type(hints[name])};")
     lines.append("}")
     lines.append("")
     return lines

@@ -1,4 +1,8 @@
-"""Bench runs through the API: start one, wait for it to finish."""
+"""Bench runs through the API: start one, wait for it to finish.
+
+Every run body read here is checked against its documented shape (``schema.BenchRun``,
+``schema.BenchRunDetail``: no key the shape does not name, the types it states), so
+the generated TypeScript the web client reads runs with stays true."""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ from typing import Any
 
 import pytest
 
+from servotune.schema import BenchRun, BenchRunDetail
 from tests.support.servers import LiveServer
 
 
@@ -14,8 +19,10 @@ async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[st
     for _ in range(400):
         runs = (await server.client.get(f"/api/axes/{axis_id}/bench/runs")).json()
         run = next(r for r in runs if r["id"] == run_id)
+        BenchRun.model_validate(run, strict=True)
         if run["status"] != "recording":
             full: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+            BenchRunDetail.model_validate(full, strict=True)
             return full
         await asyncio.sleep(0.05)
     pytest.fail(f"run {run_id} never finished")
@@ -24,5 +31,6 @@ async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[st
 async def start(server: LiveServer, axis_id: str, **test: Any) -> str:
     response = await server.client.post(f"/api/axes/{axis_id}/bench/runs", json=test)
     assert response.status_code == 202, response.text
+    BenchRun.model_validate(response.json(), strict=True)
     run_id: str = response.json()["id"]
     return run_id

@@ -1,6 +1,7 @@
 """The generated TypeScript of the wire schema: every model of ``servotune.schema`` is
 rendered, a REST request's defaulted field is optional, a response's fields are all
-sent, and the checked-in ``web/src/schema.gen.ts`` is current."""
+sent, a documented shape's defaulted field may be absent, and the checked-in
+``web/src/schema.gen.ts`` is current."""
 
 from __future__ import annotations
 
@@ -13,12 +14,19 @@ from tests.support.paths import REPO
 
 # Models of the schema that are not bodies the web client reads or sends: the command
 # request is free-form (its fields come from the descriptor).
-NOT_RENDERED = {"CommandRequest"}
+# ``_Shape`` is the base of the documented shapes, not a body.
+NOT_RENDERED = {"CommandRequest", "_Shape"}
 
 
 def test_every_schema_model_is_rendered() -> None:
     rendered = {
-        m.__name__ for m in [*schema_ts.MODELS, *schema_ts.REST_RESPONSES, *schema_ts.REST_REQUESTS]
+        m.__name__
+        for m in [
+            *schema_ts.MODELS,
+            *schema_ts.REST_RESPONSES,
+            *schema_ts.REST_REQUESTS,
+            *schema_ts.REST_SHAPES,
+        ]
     }
     declared = {
         name
@@ -38,6 +46,18 @@ def test_request_defaults_are_optional_and_responses_are_complete() -> None:
     response = text.split("export interface BenchLimits {", 1)[1].split("}", 1)[0]
     assert "  min_position_counts: number | null;" in response
     assert "?" not in response
+
+
+def test_a_shapes_defaulted_field_may_be_absent() -> None:
+    """A body built as a dict (a bench run) leaves out what a run does not have."""
+    text = schema_ts.render()
+    run = text.split("export interface BenchRun {", 1)[1].split("}", 1)[0]
+    assert "  metrics: RunMetrics | null;" in run  # always there, null when not computed
+    assert "  quality?: RunQuality | null;" in run  # absent on runs stored without one
+    assert "  return?: RunReturn | null;" in run  # the JSON key, not the Python name
+    assert "  autotune?: Record<string, unknown> | null;" in run
+    detail = text.split("export interface BenchRunDetail {", 1)[1].split("}", 1)[0]
+    assert "  samples: ((number | number[] | null)[])[];" in detail
 
 
 def test_shapes_of_rest_bodies() -> None:

@@ -3,6 +3,8 @@ import type {
   AxisInfo,
   AxisState,
   BenchInfo,
+  BenchRun,
+  BenchRunDetail,
   BenchLimits,
   BenchTestRequest,
   CommandResult,
@@ -13,6 +15,7 @@ import type {
   MarginTarget,
   ParamSet,
   ParamSetComparison,
+  RunMetrics,
   SavedSet,
   SaveSetRequest,
   SessionInfo,
@@ -23,12 +26,17 @@ import type {
 export type {
   BenchInfo,
   BenchKind,
+  BenchRun,
+  BenchRunDetail,
   BenchLimits,
   BenchTestRequest,
   MarginPreset,
   MarginTarget,
   ParamSet,
   ParamSetComparison,
+  RunMetrics,
+  RunQuality,
+  RunStatus,
   SavedSet,
 } from "./schema.gen";
 
@@ -151,57 +159,7 @@ export async function reauthenticate(): Promise<boolean> {
 
 // --- test bench (server/servotune/api/bench_routes.py) ---
 
-/** servotune/bench/metrics.py ``Metrics`` (times in s after the trigger t0). */
-export interface RunMetrics {
-  step?: number;
-  band?: number | null;
-  samples?: number;
-  max_sample_gap_s?: number | null;
-  rise_time_s: number | null;
-  overshoot_pct: number | null;
-  peak_time_s: number | null;
-  peak_value: number | null;
-  settling_time_s: number | null;
-  steady_state_error: number | null;
-  oscillations: number | null;
-  peak_following_error: number | null;
-  rms_following_error: number | null;
-  time_to_flag_s: Record<string, number | null>;
-  time_in_flag_s: Record<string, number>;
-  /** ± of the flag times: flags are polled (runs recorded before this have none). */
-  time_to_flag_resolution_s?: Record<string, number | null>;
-  time_in_flag_resolution_s?: Record<string, number>;
-}
-
-export type RunStatus = "recording" | "complete" | "incomplete";
-
-/** A stored run without its samples (``GET /api/axes/{id}/bench/runs``). */
-export interface BenchRun {
-  id: string;
-  axis_id: string;
-  created_s: number; // unix seconds
-  status: RunStatus;
-  baseline: boolean;
-  device: string;
-  model: string;
-  identity?: Record<string, unknown>;
-  /** The request as recorded: the size fields and note are always there. */
-  test: BenchTestRequest & Required<Pick<BenchTestRequest, "distance" | "velocity" | "pwm" | "duration_s" | "note">>;
-  params: Record<string, number>;
-  plan: { response: string; y0: number; y_final: number; band: number | null; overrides: Record<string, number> };
-  columns: string[]; // columns[0] == "t_s"
-  flags: string[];
-  metrics: RunMetrics | null;
-  message: string;
-  imported_from?: string | null;
-}
-
-/** A sample row: [t_s, one value per columns[1..], [flag 0/1 in flags order]]. */
-export type RunSample = [number, ...(number | null | number[])[]];
-
-export interface BenchRunDetail extends BenchRun {
-  samples: RunSample[];
-}
+// BenchRun, BenchRunDetail, RunMetrics: generated (schema.gen.ts, servotune/schema.py).
 
 // --- parameter sets (server/servotune/api/param_set_routes.py) ---
 

@@ -2,6 +2,7 @@
 // descriptor.py. Do not edit: change the Python models and regenerate.
 
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
+export type RunStatus = "recording" | "complete" | "incomplete";
 export type MarginPreset = "stiff" | "medium" | "soft";
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline" | "paused";
@@ -263,7 +264,7 @@ export interface RunUpdate {
   type: "run";
   axis: string;
   run_id: string;
-  status: "recording" | "complete" | "incomplete";
+  status: RunStatus;
   elapsed_s: number;
   samples: number;
   message: string;
@@ -594,6 +595,131 @@ export interface BenchTestRequest {
 export interface SaveSetRequest {
   name: string;
   note?: string;
+}
+
+export interface RunIdentity {
+  link: string;
+  path: string;
+  address: number;
+  name: string;
+}
+
+export interface RunTest {
+  kind: BenchKind;
+  distance: number;
+  velocity: number;
+  pwm: number;
+  duration_s: number;
+  note: string;
+  amplitude?: number | null;
+  low_hz?: number | null;
+  high_hz?: number | null;
+  model_based?: boolean | null;
+  loop?: "closed" | "open" | null;
+}
+
+export interface RunPlan {
+  response: string;
+  y0: number;
+  y_final: number;
+  band: number | null;
+  overrides: Record<string, number>;
+}
+
+export interface RunMetrics {
+  step: number;
+  band: number | null;
+  samples: number;
+  max_sample_gap_s: number | null;
+  rise_time_s: number | null;
+  overshoot_pct: number | null;
+  peak_time_s: number | null;
+  peak_value: number | null;
+  settling_time_s: number | null;
+  steady_state_error: number | null;
+  oscillations: number | null;
+  peak_following_error: number | null;
+  rms_following_error: number | null;
+  time_to_flag_s: Record<string, number | null>;
+  time_in_flag_s: Record<string, number>;
+  time_to_flag_resolution_s?: Record<string, number | null>;
+  time_in_flag_resolution_s?: Record<string, number>;
+}
+
+export interface RunReason {
+  code: string;
+  message: string;
+}
+
+export interface RunQuality {
+  status: "good" | "doubtful" | "bad";
+  reasons: RunReason[];
+  untrusted?: Record<string, string>;
+  sampling_rule?: number | null;
+}
+
+export interface RunReturn {
+  ok: boolean;
+  to: number;
+  error: number | null;
+  message: string;
+}
+
+export interface BenchRun {
+  id: string;
+  axis_id: string;
+  created_s: number | null;
+  status: RunStatus;
+  baseline?: boolean;
+  axis_key: string;
+  device: string;
+  model: string;
+  identity?: RunIdentity | null;
+  test: RunTest;
+  params: Record<string, number>;
+  plan: RunPlan;
+  columns: string[];
+  flags: string[];
+  metrics: RunMetrics | null;
+  quality?: RunQuality | null;
+  message: string;
+  t0_s?: number | null;
+  imported_from?: string | null;
+  autotune?: Record<string, unknown> | null;
+  excitation?: Record<string, unknown> | null;
+  plant_model?: Record<string, unknown> | null;
+  trigger_latency_s?: number | null;
+  left_oscillating?: Record<string, unknown> | null;
+  return?: RunReturn | null;
+}
+
+export interface BenchRunDetail {
+  id: string;
+  axis_id: string;
+  created_s: number | null;
+  status: RunStatus;
+  baseline?: boolean;
+  axis_key: string;
+  device: string;
+  model: string;
+  identity?: RunIdentity | null;
+  test: RunTest;
+  params: Record<string, number>;
+  plan: RunPlan;
+  columns: string[];
+  flags: string[];
+  metrics: RunMetrics | null;
+  quality?: RunQuality | null;
+  message: string;
+  t0_s?: number | null;
+  imported_from?: string | null;
+  autotune?: Record<string, unknown> | null;
+  excitation?: Record<string, unknown> | null;
+  plant_model?: Record<string, unknown> | null;
+  trigger_latency_s?: number | null;
+  left_oscillating?: Record<string, unknown> | null;
+  return?: RunReturn | null;
+  samples: ((number | number[] | null)[])[];
 }
 
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;
