@@ -862,3 +862,59 @@ class BenchRunDetail(BenchRun):
     per columns[1..], [a 0/1 per flag, in flags order]]``."""
 
     samples: list[list[float | list[int] | None]]
+
+
+# --- auto-tune (server/servotune/api/autotune_routes.py) --------------------------------------
+#
+# Parts of the auto-tune's bodies that every device builds alike (``tuning.targets``,
+# ``autotune.recommend``); documented shapes like the bench runs'.
+
+AutoTuneAction = Literal["keep", "write"]
+
+
+class MarginReport(_Shape):
+    """A set of gains' margins on the identified model against a target: null margins
+    where there is no crossover; ``warning`` says what misses the target."""
+
+    gain_margin_db: Number | None
+    phase_margin_deg: Number | None
+    gain_crossover_hz: Number | None
+    phase_crossover_hz: Number | None
+    stable: bool | None
+    target: MarginTarget
+    meets_target: bool | None = Field(description="null: a margin could not be measured")
+    warning: str | None
+
+
+class AutoTuneSide(_Shape):
+    """One side of the recommendation's comparison: margins on the model, predicted step."""
+
+    phase_margin_deg: Number | None
+    gain_margin_db: Number | None
+    stable: bool | None
+    meets_target: bool | None
+    settling_time_s: Number | None
+    overshoot_pct: Number | None
+
+
+class AutoTuneRecommendation(_Shape):
+    """Keep the gains in use or write the proposal, and why (``autotune.recommend``)."""
+
+    action: AutoTuneAction
+    reason: str
+    target: MarginTarget
+    proposal: AutoTuneSide
+    current: AutoTuneSide
+
+
+class AutoTuneDecision(_Shape):
+    """What the user chose for a proposal (``POST .../autotune/keep`` answers it; the
+    session's ``decision`` and ``history`` keep it)."""
+
+    action: AutoTuneAction
+    gains: dict[str, int]
+    recommended: AutoTuneAction | None
+    followed: bool
+    reason: str | None
+    at_s: Number = Field(description="unix seconds")
+    identification_run_id: str | None

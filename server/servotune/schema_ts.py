@@ -114,10 +114,15 @@ REST_SHAPES: list[type[BaseModel]] = [
     schema.RunReturn,
     schema.BenchRun,
     schema.BenchRunDetail,
+    schema.MarginReport,
+    schema.AutoTuneSide,
+    schema.AutoTuneRecommendation,
+    schema.AutoTuneDecision,
 ]
 ALIASES = {
     "BenchKind": schema.BenchKind,
     "RunStatus": schema.RunStatus,
+    "AutoTuneAction": schema.AutoTuneAction,
     "MarginPreset": schema.MarginPreset,
     "LinkState": schema.LinkState,
     "AxisHealth": schema.AxisHealth,

@@ -7,12 +7,14 @@ import type {
   BenchRunDetail,
   BenchLimits,
   BenchTestRequest,
+  AutoTuneDecision,
+  AutoTuneRecommendation,
   CommandResult,
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
   MarginPreset,
-  MarginTarget,
+  MarginReport,
   ParamSet,
   ParamSetComparison,
   RunMetrics,
@@ -24,6 +26,10 @@ import type {
 
 // REST bodies generated from server/servotune/schema.py, re-exported for the views.
 export type {
+  AutoTuneDecision,
+  AutoTuneRecommendation,
+  AutoTuneSide,
+  MarginReport,
   BenchInfo,
   BenchKind,
   BenchRun,
@@ -168,19 +174,6 @@ export async function reauthenticate(): Promise<boolean> {
 export type AutoTuneGoal = "no_overshoot" | "fast";
 
 
-/** A set of gains' margins on the model against a target (``tuning.targets``). */
-export interface MarginReport {
-  gain_margin_db: number | null;
-  phase_margin_deg: number | null;
-  gain_crossover_hz: number | null;
-  phase_crossover_hz: number | null;
-  stable: boolean | null;
-  target: MarginTarget;
-  /** null: a margin could not be measured (measured runs). */
-  meets_target: boolean | null;
-  warning: string | null;
-}
-
 /** ``POST .../autotune/identify``: the user's limits and the goal. */
 export interface AutoTuneRequest {
   max_pwm: number;
@@ -225,35 +218,6 @@ export interface AutoTuneProposal {
   margins_default?: MarginReport;
   /** Keep the gains in use or write the proposal (server/servotune/autotune/recommend.py). */
   recommendation?: AutoTuneRecommendation;
-}
-
-/** One side of the recommendation's comparison: margins on the model, predicted step. */
-export interface AutoTuneSide {
-  phase_margin_deg: number | null;
-  gain_margin_db: number | null;
-  stable: boolean | null;
-  meets_target: boolean | null;
-  settling_time_s: number | null;
-  overshoot_pct: number | null;
-}
-
-export interface AutoTuneRecommendation {
-  action: "keep" | "write";
-  reason: string;
-  target: MarginTarget;
-  proposal: AutoTuneSide;
-  current: AutoTuneSide;
-}
-
-/** What the user chose for a proposal (``POST .../autotune/keep`` or accept). */
-export interface AutoTuneDecision {
-  action: "keep" | "write";
-  gains: GainSet;
-  recommended: "keep" | "write" | null;
-  followed: boolean;
-  reason: string | null;
-  at_s: number;
-  identification_run_id: string | null;
 }
 
 /** ``POST .../autotune/accept``: baseline test, write, verification test. */

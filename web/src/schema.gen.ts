@@ -3,6 +3,7 @@
 
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
 export type RunStatus = "recording" | "complete" | "incomplete";
+export type AutoTuneAction = "keep" | "write";
 export type MarginPreset = "stiff" | "medium" | "soft";
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline" | "paused";
@@ -720,6 +721,44 @@ export interface BenchRunDetail {
   left_oscillating?: Record<string, unknown> | null;
   return?: RunReturn | null;
   samples: ((number | number[] | null)[])[];
+}
+
+export interface MarginReport {
+  gain_margin_db: number | null;
+  phase_margin_deg: number | null;
+  gain_crossover_hz: number | null;
+  phase_crossover_hz: number | null;
+  stable: boolean | null;
+  target: MarginTarget;
+  meets_target: boolean | null;
+  warning: string | null;
+}
+
+export interface AutoTuneSide {
+  phase_margin_deg: number | null;
+  gain_margin_db: number | null;
+  stable: boolean | null;
+  meets_target: boolean | null;
+  settling_time_s: number | null;
+  overshoot_pct: number | null;
+}
+
+export interface AutoTuneRecommendation {
+  action: AutoTuneAction;
+  reason: string;
+  target: MarginTarget;
+  proposal: AutoTuneSide;
+  current: AutoTuneSide;
+}
+
+export interface AutoTuneDecision {
+  action: AutoTuneAction;
+  gains: Record<string, number>;
+  recommended: AutoTuneAction | null;
+  followed: boolean;
+  reason: string | null;
+  at_s: number;
+  identification_run_id: string | null;
 }
 
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;
