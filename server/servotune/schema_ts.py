@@ -147,6 +147,9 @@ UNIONS: dict[str, list[type[BaseModel]]] = {
 }
 
 
+_RENDERED = {*MODELS, *REST_RESPONSES, *REST_REQUESTS, *REST_SHAPES}
+
+
 def ts_type(annotation: object) -> str:
     """The TypeScript spelling of a Python annotation."""
     for alias, target in ALIASES.items():
@@ -204,8 +207,16 @@ def _interface(model: type[BaseModel], *, optional_defaults: bool) -> list[str]:
     """``model`` as a TypeScript interface; with ``optional_defaults`` a field that has a
     default is optional (``name?: T``), otherwise every field is required."""
     hints = typing.get_type_hints(model)
-    lines = [f"export interface {model.__name__} {{"]
+    # A subclass of a rendered model extends it and lists only the fields it adds.
+    parent = next((b for b in model.__bases__ if b in _RENDERED), None)
+    inherited = parent.model_fields if parent is not None else {}
+    extends = f" extends {parent.__name__}" if parent is not None else ""
+    lines = [f"export interface {model.__name__}{extends} {{"]
     for name, field in model.model_fields.items():
+        if name in inherited:
+            if inherited[name].annotation != field.annotation:
+                raise TypeError(f"{model.__name__}.{name} changes its parent's type")
+            continue
         mark = "?" if optional_defaults and not field.is_required() else ""
         lines.append(f"  {field.alias or name}{mark}: {ts_type(hints[name])};")
     lines.append("}")

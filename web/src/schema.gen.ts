@@ -544,14 +544,7 @@ export interface TokenInfo {
   last_used_s: number | null;
 }
 
-export interface NewToken {
-  id: string;
-  user: string;
-  name: string;
-  role: string;
-  created_s: number;
-  expires_s: number;
-  last_used_s: number | null;
+export interface NewToken extends TokenInfo {
   token: string;
 }
 
@@ -694,32 +687,7 @@ export interface BenchRun {
   return?: RunReturn | null;
 }
 
-export interface BenchRunDetail {
-  id: string;
-  axis_id: string;
-  created_s: number | null;
-  status: RunStatus;
-  baseline?: boolean;
-  axis_key: string;
-  device: string;
-  model: string;
-  identity?: RunIdentity | null;
-  test: RunTest;
-  params: Record<string, number>;
-  plan: RunPlan;
-  columns: string[];
-  flags: string[];
-  metrics: RunMetrics | null;
-  quality?: RunQuality | null;
-  message: string;
-  t0_s?: number | null;
-  imported_from?: string | null;
-  autotune?: Record<string, unknown> | null;
-  excitation?: Record<string, unknown> | null;
-  plant_model?: Record<string, unknown> | null;
-  trigger_latency_s?: number | null;
-  left_oscillating?: Record<string, unknown> | null;
-  return?: RunReturn | null;
+export interface BenchRunDetail extends BenchRun {
   samples: ((number | number[] | null)[])[];
 }
 
