@@ -118,6 +118,13 @@ REST_SHAPES: list[type[BaseModel]] = [
     schema.AutoTuneSide,
     schema.AutoTuneRecommendation,
     schema.AutoTuneDecision,
+    schema.FrfBode,
+    schema.FrfNyquist,
+    schema.FrfMargins,
+    schema.FrfTrust,
+    schema.FrfModel,
+    schema.FrfMeasured,
+    schema.FrfData,
 ]
 ALIASES = {
     "BenchKind": schema.BenchKind,

@@ -1,8 +1,10 @@
-"""Bench runs through the API: start one, wait for it to finish.
+"""Bench runs through the API: start one, wait for it to finish, read its frequency
+response.
 
-Every run body read here is checked against its documented shape (``schema.BenchRun``,
-``schema.BenchRunDetail``: no key the shape does not name, the types it states), so
-the generated TypeScript the web client reads runs with stays true."""
+Every body read here is checked against its documented shape (``schema.BenchRun``,
+``schema.BenchRunDetail``, ``schema.FrfData``: no key the shape does not name, the
+types it states), so the generated TypeScript the web client reads them with stays
+true."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from servotune.schema import BenchRun, BenchRunDetail
+from servotune.schema import BenchRun, BenchRunDetail, FrfData
 from tests.support.servers import LiveServer
 
 
@@ -34,3 +36,13 @@ async def start(server: LiveServer, axis_id: str, **test: Any) -> str:
     BenchRun.model_validate(response.json(), strict=True)
     run_id: str = response.json()["id"]
     return run_id
+
+
+async def frf_analysis(client: Any, run_id: str) -> dict[str, Any]:
+    """``GET /api/bench/runs/{run_id}/frf`` (the analysis runs in the compute worker:
+    seconds on a loaded host), checked against ``schema.FrfData``."""
+    response = await client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)
+    assert response.status_code == 200, response.text
+    analysis: dict[str, Any] = response.json()
+    FrfData.model_validate(analysis, strict=True)
+    return analysis

@@ -729,6 +729,99 @@ export interface AutoTuneDecision {
   identification_run_id: string | null;
 }
 
+export interface FrfBode {
+  frequency_hz: (number | null)[];
+  magnitude_db: (number | null)[];
+  phase_deg: (number | null)[];
+  coherence?: (number | null)[];
+  relative_error?: (number | null)[];
+  error_db?: (number | null)[];
+  error_deg?: (number | null)[];
+  trusted?: boolean[];
+  not_trusted_because?: (string | null)[];
+  measurable?: boolean[];
+}
+
+export interface FrfNyquist {
+  frequency_hz: (number | null)[];
+  re: (number | null)[];
+  im: (number | null)[];
+  measurable?: boolean[];
+}
+
+export interface FrfMargins extends MarginReport {
+  gain_margin_problem?: string | null;
+  phase_margin_problem?: string | null;
+  gain_margin_error_db?: number | null;
+  phase_margin_error_deg?: number | null;
+}
+
+export interface FrfTrust {
+  trusted_tones: number;
+  tones: number;
+  max_error_db: number;
+  max_error_deg: number;
+  coverage: number;
+  not_trusted: string[];
+  input_check_counts: number | null;
+  input_check_excess_counts: number | null;
+  input_check_samples_over: number;
+  stalled_samples_left_out: number;
+  stalled_targets_bounded: number;
+  max_latch_span_ms: number | null;
+  spans: string;
+  max_gap_ms: number | null;
+  gaps_over_50_ms: number;
+}
+
+export interface FrfModel {
+  margins: MarginReport;
+  bandwidth_hz: number | null;
+  resonance_db: number | null;
+  closed_loop: FrfBode;
+  open_loop: FrfBode;
+  nyquist: FrfNyquist;
+  plant: WhatIfPlant;
+  law: string;
+}
+
+export interface FrfMeasured {
+  loop: "closed" | "open";
+  closed_loop: FrfBode;
+  open_loop: FrfBode;
+  plant?: FrfBode | null;
+  nyquist: FrfNyquist;
+  margins: FrfMargins;
+  input: string;
+  usable_from_hz: number | null;
+  usable_until_hz: number | null;
+  sample_rate_hz: number | null;
+  nyquist_hz: number | null;
+  periods: number;
+  samples: number;
+  input_check_counts: number | null;
+  trust: FrfTrust;
+  estimator: string;
+  not_measured_hz: (number | null)[];
+  not_measured_reason: string | null;
+  wire: Record<string, unknown> | null;
+  bandwidth_hz: number | null;
+  resonance_db: number | null;
+}
+
+export interface FrfData {
+  run_id: string | null;
+  device: string;
+  model_based: boolean;
+  loop: string;
+  low_hz: number;
+  high_hz: number;
+  measured: FrfMeasured | null;
+  measured_problem: string | null;
+  model: FrfModel | null;
+  model_problem: string | null;
+}
+
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;
 export type ClientMessage = Ping;
 export type ControlServerMessage = Welcome | ControlStatus | ControlPrompt | ControlReply;
