@@ -37,7 +37,7 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final, Literal, Protocol, runtime_checkable
 
@@ -70,6 +70,9 @@ WATCH_PERIOD_S: Final = 0.02
 # After a bench run or an auto-tune step the axis is watched this long for a loop that
 # does not work (enough for four swings of the slowest limit cycle seen, ~3 Hz).
 SETTLE_WATCH_S: Final = 1.5
+# Telemetry too sparse to judge the loop by then (a starved host, a hole in it): the
+# check waits this much longer for evidence before it treats the loop as not working.
+SETTLE_EVIDENCE_S: Final = 3.5
 
 StopKind = Literal["stop", "controlled", "power_off"]
 
@@ -95,9 +98,12 @@ class StopService:
         on_event: Callable[[EventLevel, str | None, str], None],
         *,
         clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
     ) -> None:
         self._on_event = on_event
         self._clock = clock
+        # The watches' pause between two looks (tests inject one that moves their clock).
+        self._sleep = sleep
         self._axes: dict[str, _Axis] = {}
 
     # --- what the hub feeds in ----------------------------------------------------------
@@ -215,54 +221,114 @@ class StopService:
         watch_s: float = SETTLE_WATCH_S,
     ) -> Settled | None:
         """After a bench run or an auto-tune step: nothing the product started may be
-        left oscillating. Watches the axis until it is at rest, at most ``watch_s``
-        (unpowered and still counts as at rest too); if its loop is not working
-        (``hub.loopcheck``), brings it to rest without the loop (the brake, then power off
-        at rest), writes ``restore`` (the gains in force before the run, or the last
-        verified ones) where they differ from ``gains_now``, and holds with them, watched
-        like any hold. Returns what it found and did (None: the loop works, or there was
-        nothing to judge); says it in an error event."""
+        left oscillating. Watches the axis until it is at rest, at most ``watch_s`` of
+        its telemetry (unpowered and still counts as at rest too). Returns None only on
+        evidence: at rest in telemetry dense enough to judge the loop, a loop judged
+        working (``hub.loopcheck``), or the loop off.
+
+        If the loop is not working, brings the axis to rest without the loop (the brake,
+        then power off at rest), writes ``restore`` (the gains in force before the run,
+        or the last verified ones) where they differ from ``gains_now``, and holds with
+        them, watched like any hold; with no other gains to go back to (the ones in
+        force oscillate) it is left unpowered. Says it in an error event.
+
+        If the telemetry stays too sparse (or absent) to judge, even ``SETTLE_EVIDENCE_S``
+        longer, the loop is not verified and is treated as not working, except that the
+        axis holds again in the end: brought to rest without the loop, ``restore`` written
+        where it differs, held (watched) - with the gains in force before the run, which
+        nothing showed to oscillate. Says it in a warning event. Returns what it found
+        (``Settled.found``) and did."""
         ax = self._axes.get(axis_id)
         if ax is None or ax.loop is None or not isinstance(ax.driver, StopModes):
             return None
-        modes = ax.driver
         mark = self._start_mark(ax)
-        deadline = self._clock() + watch_s + 2.0
-        verdict = loopcheck.NO_EVIDENCE
+        deadline = self._clock() + watch_s + SETTLE_EVIDENCE_S
+        verdict: loopcheck.LoopVerdict | None = None  # None: no sample since the run
         while self._clock() < deadline:
-            await asyncio.sleep(WATCH_PERIOD_S * 5)
+            await self._sleep(WATCH_PERIOD_S * 5)
             after = [s for s in ax.history if s.t > mark]
             if not after:
                 continue
-            verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
-            if verdict.working is False or after[-1].t - after[0].t >= watch_s:
+            age_s = max(0.0, self._clock() - ax.arrived)
+            verdict = loopcheck.judge(after, ax.loop, since=after[0].t, age_s=age_s)
+            if verdict.working is False:
                 break
+            if verdict.sparse:
+                continue  # holes in the telemetry hide a swing as well as rest
             if loopcheck.at_rest(after, ax.loop, since=after[0].t):
                 return None  # at rest and holding: nothing oscillates
-        if verdict.working is not False:
+            if after[-1].t - after[0].t >= watch_s and (
+                verdict.working or verdict == loopcheck.NO_EVIDENCE
+            ):
+                return None  # a loop judged working, or the loop off: none to oscillate
+        if verdict is not None and verdict.working is False:
+            return await self._left_oscillating(ax, axis_id, verdict, gains_now, restore, reason)
+        if verdict is not None and (verdict.working or verdict == loopcheck.NO_EVIDENCE):
             return None
+        why = verdict.reason if verdict is not None else "no telemetry came after it"
+        return await self._unverified(ax, axis_id, why, gains_now, restore, reason)
+
+    async def _left_oscillating(
+        self,
+        ax: _Axis,
+        axis_id: str,
+        verdict: loopcheck.LoopVerdict,
+        gains_now: Mapping[str, int],
+        restore: Mapping[str, int],
+        reason: str,
+    ) -> Settled:
+        done, restored = await self._to_rest_and_restore(ax, axis_id, gains_now, restore)
+        holds = restored is not None
+        if holds:
+            await self._hold_again(ax, axis_id, reason, done)
+        else:
+            done.append("no other gains to restore (the ones in force oscillate): left unpowered")
+        message = f"{reason}: left the axis oscillating ({verdict.reason}); " + "; ".join(done)
+        self._on_event("error", axis_id, message)
+        return Settled(verdict.reason, message, restored, holds)
+
+    async def _unverified(
+        self,
+        ax: _Axis,
+        axis_id: str,
+        why: str,
+        gains_now: Mapping[str, int],
+        restore: Mapping[str, int],
+        reason: str,
+    ) -> Settled:
+        done, restored = await self._to_rest_and_restore(ax, axis_id, gains_now, restore)
+        await self._hold_again(ax, axis_id, reason, done)
+        message = (
+            f"{reason}: could not verify that the loop works after it ({why}); treated as "
+            "not working: " + "; ".join(done)
+        )
+        self._on_event("warning", axis_id, message)
+        return Settled(why, message, restored, True, found="unverified")
+
+    async def _to_rest_and_restore(
+        self, ax: _Axis, axis_id: str, gains_now: Mapping[str, int], restore: Mapping[str, int]
+    ) -> tuple[list[str], dict[str, int] | None]:
+        """The brake, power off at rest, ``restore`` written where it differs from
+        ``gains_now``: what was done (words) and the gains written (None: none)."""
+        assert isinstance(ax.driver, StopModes)
+        modes = ax.driver
         self.cancel_watch(axis_id)
         outcome = await modes.brake()
         if outcome.action == "brake":
             await self._rest(ax, BRAKE_MAX_S)
             await modes.power_off()
         done = [f"brought to rest ({', '.join(outcome.sent)}, then unpowered)"]
-        wanted = {k: v for k, v in restore.items() if gains_now.get(k) != v}
-        restored: dict[str, int] | None = None
-        holds = False
-        if wanted:
-            await ax.driver.write_params(dict(restore))
-            restored = dict(restore)
-            done.append("gains " + " ".join(f"{k} {v}" for k, v in restore.items()) + " restored")
-            held = await modes.hold_here()
-            holds = True
-            done.append("holding under power")
-            self.follow(axis_id, held, reason)
-        else:
-            done.append("no other gains to restore (the ones in force oscillate): left unpowered")
-        message = f"{reason}: left the axis oscillating ({verdict.reason}); " + "; ".join(done)
-        self._on_event("error", axis_id, message)
-        return Settled(verdict.reason, message, restored, holds)
+        if not {k: v for k, v in restore.items() if gains_now.get(k) != v}:
+            return done, None
+        await ax.driver.write_params(dict(restore))
+        done.append("gains " + " ".join(f"{k} {v}" for k, v in restore.items()) + " restored")
+        return done, dict(restore)
+
+    async def _hold_again(self, ax: _Axis, axis_id: str, reason: str, done: list[str]) -> None:
+        assert isinstance(ax.driver, StopModes)
+        held = await ax.driver.hold_here()
+        done.append("holding under power")
+        self.follow(axis_id, held, reason)
 
     async def _rest(self, ax: _Axis, timeout_s: float) -> None:
         assert ax.loop is not None
@@ -336,14 +402,17 @@ class StopService:
 @dataclass(frozen=True, slots=True)
 class Settled:
     """What ``settle_check`` found and did when a loop the product set going was not
-    working after it: ``reason`` (the loop check's words), what was done (``message``,
-    a sentence for the run's quality and the event log), the gains written back
-    (``restored``, None: none) and whether the axis holds under power at the end."""
+    working after it (``found`` "oscillating"), or could not be verified to work
+    (``found`` "unverified": the telemetry too sparse to tell): ``reason`` (the loop
+    check's words), what was done (``message``, a sentence for the run's quality and
+    the event log), the gains written back (``restored``, None: none) and whether the
+    axis holds under power at the end."""
 
     reason: str
     message: str
     restored: dict[str, int] | None
     holds: bool
+    found: Literal["oscillating", "unverified"] = "oscillating"
 
     def as_dict(self) -> dict[str, object]:
         return {
