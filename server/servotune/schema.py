@@ -854,6 +854,11 @@ class BenchRun(_Shape):
     left_oscillating: dict[str, Any] | None = Field(
         default=None, description="the run left the axis oscillating: what was done"
     )
+    loop_unverified: dict[str, Any] | None = Field(
+        default=None,
+        description="the check after the run could not tell whether the loop is at rest "
+        "(telemetry too sparse): what was done",
+    )
     return_: RunReturn | None = Field(default=None, alias="return")
 
 

@@ -684,6 +684,7 @@ export interface BenchRun {
   plant_model?: Record<string, unknown> | null;
   trigger_latency_s?: number | null;
   left_oscillating?: Record<string, unknown> | null;
+  loop_unverified?: Record<string, unknown> | null;
   return?: RunReturn | null;
 }
 
