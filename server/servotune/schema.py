@@ -17,7 +17,7 @@ Times ``t`` are seconds on the server's monotonic clock since the server started
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -637,3 +637,416 @@ class WhatIfInfo(BaseModel):
         description="the auto-tune's proposed gains, if there is a proposal"
     )
     verify: VerifyProfile
+
+
+# --- accounts (server/servotune/api/auth_routes.py) -------------------------------------------
+
+
+class SessionInfo(BaseModel):
+    """``GET /api/auth/session`` and ``POST /api/auth/login``: who the caller is (``user``
+    null: nobody), how, and the CSRF token every state-changing call sends."""
+
+    mode: Literal["local", "exposed"]
+    user: str | None
+    role: str | None
+    permissions: list[str]
+    csrf_token: str
+    via: str | None = Field(
+        default=None, description="session, token or local; null when nobody is logged in"
+    )
+    roles: list[str] = Field(description="every role, least privileged first")
+
+
+class TicketReply(BaseModel):
+    """``POST /api/auth/ws-ticket``: a single-use websocket ticket."""
+
+    ticket: str
+    expires_in_s: float
+
+
+class TokenInfo(BaseModel):
+    """An API token as listed (``GET /api/auth/tokens``): never its secret."""
+
+    id: str
+    user: str
+    name: str
+    role: str
+    created_s: float = Field(description="unix seconds")
+    expires_s: float = Field(description="unix seconds")
+    last_used_s: float | None = Field(description="unix seconds; null: never used")
+
+
+class NewToken(TokenInfo):
+    """``POST /api/auth/tokens``: the new token with its secret, shown this once."""
+
+    token: str
+
+
+class UserInfo(BaseModel):
+    """An account (``GET /api/users``, ``POST /api/users``)."""
+
+    name: str
+    role: str
+    created_s: float = Field(description="unix seconds")
+
+
+class UserChanged(BaseModel):
+    """``PATCH /api/users/{name}``: the account's role after the change."""
+
+    name: str
+    role: str
+
+
+class AuditEntry(BaseModel):
+    """One entry of the audit log (``GET /api/audit``), newest first."""
+
+    id: int
+    t_s: float = Field(description="unix seconds")
+    who: str
+    action: str
+    axis: str | None
+    address: str | None
+    before: str | None = Field(description="JSON of the state before, if recorded")
+    after: str | None = Field(description="JSON of the state after, if recorded")
+    result: str
+    detail: str
+
+
+# --- bench runs (GET /api/axes/{id}/bench/runs, GET /api/bench/runs/{id}) ---------------------
+#
+# These bodies are built by the bench from the stored run, not serialised through a model:
+# the models below state their shape (the routes document them, tests check real runs
+# against them). A field with a default may be absent from a body; every other one is there.
+
+RunStatus = Literal["recording", "complete", "incomplete"]
+
+
+class _Shape(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class RunIdentity(_Shape):
+    """Where the run was recorded: the link, its device path, the axis' address and name."""
+
+    link: str
+    path: str
+    address: int
+    name: str
+
+
+class RunTest(_Shape):
+    """The test as recorded (units are the device's); the frequency-response fields only
+    on a ``frequency_response`` run."""
+
+    kind: BenchKind
+    distance: int
+    velocity: int
+    pwm: int
+    duration_s: float
+    note: str
+    amplitude: int | None = None
+    low_hz: float | None = None
+    high_hz: float | None = None
+    model_based: bool | None = Field(
+        default=None, description="computed from the identified plant, nothing was sent"
+    )
+    loop: Literal["closed", "open"] | None = None
+
+
+class RunPlan(_Shape):
+    """What the metrics are computed on: the response column, its start and final
+    values, the settling band (null: 2 % of the step) and the parameters the test set."""
+
+    response: str
+    y0: float
+    y_final: float
+    band: float | None
+    overrides: dict[str, int]
+
+
+class RunMetrics(_Shape):
+    """``servotune.bench.metrics.Metrics``: times in s after the trigger t0; null where
+    not defined, not reached or not trusted (``RunQuality.untrusted`` says why)."""
+
+    step: float
+    band: float | None
+    samples: int
+    max_sample_gap_s: float | None
+    rise_time_s: float | None
+    overshoot_pct: float | None
+    peak_time_s: float | None
+    peak_value: float | None
+    settling_time_s: float | None
+    steady_state_error: float | None
+    oscillations: int | None
+    peak_following_error: float | None
+    rms_following_error: float | None
+    time_to_flag_s: dict[str, float | None]
+    time_in_flag_s: dict[str, float]
+    time_to_flag_resolution_s: dict[str, float | None] = Field(
+        default_factory=dict,
+        description="the ± of the flag times (flags are polled); absent on older runs",
+    )
+    time_in_flag_resolution_s: dict[str, float] = Field(default_factory=dict)
+
+
+class RunReason(_Shape):
+    code: str
+    message: str
+
+
+class RunQuality(_Shape):
+    """How far the run's metrics can be trusted (``servotune.bench.quality``): ``bad`` runs
+    are not comparable; ``untrusted`` names the metrics set to null and why."""
+
+    status: Literal["good", "doubtful", "bad"]
+    reasons: list[RunReason]
+    untrusted: dict[str, str] = Field(default_factory=dict)
+    sampling_rule: int | None = Field(
+        default=None, description="the version of the sampling rule that judged the run"
+    )
+
+
+class RunReturn(_Shape):
+    """The move back to where the test started, after the record."""
+
+    ok: bool
+    to: float
+    error: float | None
+    message: str
+
+
+class BenchRun(_Shape):
+    """A stored run without its samples (``GET /api/axes/{id}/bench/runs``; ``POST`` there
+    answers the new run, without ``baseline``). ``columns[0]`` is ``t_s``."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    id: str
+    axis_id: str
+    created_s: float | None = Field(description="unix seconds")
+    status: RunStatus
+    baseline: bool = False
+    axis_key: str
+    device: str
+    model: str
+    identity: RunIdentity | None = None
+    test: RunTest
+    params: dict[str, int]
+    plan: RunPlan
+    columns: list[str]
+    flags: list[str]
+    metrics: RunMetrics | None
+    quality: RunQuality | None = None
+    message: str
+    t0_s: float | None = Field(default=None, description="the trigger, server clock")
+    imported_from: str | None = None
+    autotune: dict[str, Any] | None = Field(
+        default=None, description="what the auto-tune recorded with its runs"
+    )
+    excitation: dict[str, Any] | None = Field(
+        default=None, description="frequency_response: the multisine and the targets sent"
+    )
+    plant_model: dict[str, Any] | None = Field(
+        default=None, description="model-based frequency_response: the identified plant"
+    )
+    trigger_latency_s: float | None = None
+    left_oscillating: dict[str, Any] | None = Field(
+        default=None, description="the run left the axis oscillating: what was done"
+    )
+    loop_unverified: dict[str, Any] | None = Field(
+        default=None,
+        description="the check after the run could not tell whether the loop is at rest "
+        "(telemetry too sparse): what was done",
+    )
+    return_: RunReturn | None = Field(default=None, alias="return")
+
+
+class BenchRunDetail(BenchRun):
+    """``GET /api/bench/runs/{id}``: the run with its sample rows, each ``[t_s, one value
+    per columns[1..], [a 0/1 per flag, in flags order]]``."""
+
+    samples: list[list[float | list[int] | None]]
+
+
+# --- auto-tune (server/servotune/api/autotune_routes.py) --------------------------------------
+#
+# Parts of the auto-tune's bodies that every device builds alike (``tuning.targets``,
+# ``autotune.recommend``); documented shapes like the bench runs'.
+
+AutoTuneAction = Literal["keep", "write"]
+
+
+class MarginReport(_Shape):
+    """A set of gains' margins on the identified model against a target: null margins
+    where there is no crossover; ``warning`` says what misses the target."""
+
+    gain_margin_db: Number | None
+    phase_margin_deg: Number | None
+    gain_crossover_hz: Number | None
+    phase_crossover_hz: Number | None
+    stable: bool | None
+    target: MarginTarget
+    meets_target: bool | None = Field(description="null: a margin could not be measured")
+    warning: str | None
+
+
+class AutoTuneSide(_Shape):
+    """One side of the recommendation's comparison: margins on the model, predicted step."""
+
+    phase_margin_deg: Number | None
+    gain_margin_db: Number | None
+    stable: bool | None
+    meets_target: bool | None
+    settling_time_s: Number | None
+    overshoot_pct: Number | None
+
+
+class AutoTuneRecommendation(_Shape):
+    """Keep the gains in use or write the proposal, and why (``autotune.recommend``)."""
+
+    action: AutoTuneAction
+    reason: str
+    target: MarginTarget
+    proposal: AutoTuneSide
+    current: AutoTuneSide
+
+
+class AutoTuneDecision(_Shape):
+    """What the user chose for a proposal (``POST .../autotune/keep`` answers it; the
+    session's ``decision`` and ``history`` keep it)."""
+
+    action: AutoTuneAction
+    gains: dict[str, int]
+    recommended: AutoTuneAction | None
+    followed: bool
+    reason: str | None
+    at_s: Number = Field(description="unix seconds")
+    identification_run_id: str | None
+
+
+# --- frequency response (GET /api/bench/runs/{id}/frf) ----------------------------------------
+#
+# Built in the compute worker by ``servotune.bench.frf.analyse_run`` (measured: from the
+# run's samples; model: the identified plant under the device's law); documented shapes.
+# Every non-finite number is sent as null.
+
+
+class FrfBode(_Shape):
+    """A Bode curve: magnitude (dB) and phase (deg) over frequency; the per-tone lists
+    only on measured curves."""
+
+    frequency_hz: list[float | None]
+    magnitude_db: list[float | None]
+    phase_deg: list[float | None]
+    coherence: list[float | None] = Field(
+        default_factory=list, description="magnitude-squared coherence over the periods"
+    )
+    relative_error: list[float | None] = Field(default_factory=list)
+    error_db: list[float | None] = Field(
+        default_factory=list, description="error bounds (about 95 %)"
+    )
+    error_deg: list[float | None] = Field(default_factory=list)
+    trusted: list[bool] = Field(
+        default_factory=list, description="known within the instrument's limits"
+    )
+    not_trusted_because: list[str | None] = Field(default_factory=list)
+    measurable: list[bool] = Field(
+        default_factory=list, description="open loop: L is known at the tone"
+    )
+
+
+class FrfNyquist(_Shape):
+    """The open loop in the complex plane."""
+
+    frequency_hz: list[float | None]
+    re: list[float | None]
+    im: list[float | None]
+    measurable: list[bool] = Field(default_factory=list)
+
+
+class FrfMargins(MarginReport):
+    """Margins of the open loop against the target; a measured run says why a margin is
+    null (``*_problem``) and how uncertain it is (``*_error_*``, about 95 %)."""
+
+    gain_margin_problem: str | None = None
+    phase_margin_problem: str | None = None
+    gain_margin_error_db: Number | None = None
+    phase_margin_error_deg: Number | None = None
+
+
+class FrfTrust(_Shape):
+    """Why a measured run's tones are (not) trusted (``servotune.tuning.frftrust``)."""
+
+    trusted_tones: int
+    tones: int
+    max_error_db: Number
+    max_error_deg: Number
+    coverage: Number
+    not_trusted: list[str]
+    input_check_counts: Number | None
+    input_check_excess_counts: Number | None
+    input_check_samples_over: int
+    stalled_samples_left_out: int
+    stalled_targets_bounded: int
+    max_latch_span_ms: Number | None
+    spans: str
+    max_gap_ms: Number | None
+    gaps_over_50_ms: int
+
+
+class FrfModel(_Shape):
+    """The identified plant under the device's exact law with the run's gains."""
+
+    margins: MarginReport
+    bandwidth_hz: Number | None
+    resonance_db: Number | None
+    closed_loop: FrfBode
+    open_loop: FrfBode
+    nyquist: FrfNyquist
+    plant: WhatIfPlant
+    law: str
+
+
+class FrfMeasured(_Shape):
+    """The response measured from the run's samples at its tones: closed loop (targets
+    injected) or open loop (``plant`` measured, the loop closed with the run's gains)."""
+
+    loop: Literal["closed", "open"]
+    closed_loop: FrfBode
+    open_loop: FrfBode
+    plant: FrfBode | None = Field(default=None, description="open loop: the plant measured")
+    nyquist: FrfNyquist
+    margins: FrfMargins
+    input: str = Field(description="pwm (open loop), or the input model of the targets")
+    usable_from_hz: Number | None
+    usable_until_hz: Number | None
+    sample_rate_hz: Number | None
+    nyquist_hz: Number | None
+    periods: int
+    samples: int
+    input_check_counts: Number | None
+    trust: FrfTrust
+    estimator: str
+    not_measured_hz: list[Number | None] = Field(
+        description="requested tones the wire cannot resolve: not sent, not measured"
+    )
+    not_measured_reason: str | None
+    wire: dict[str, Any] | None = Field(description="the wire plan of the tones")
+    bandwidth_hz: Number | None
+    resonance_db: Number | None
+
+
+class FrfData(_Shape):
+    """``GET /api/bench/runs/{id}/frf``: either part may be null with a ``*_problem``."""
+
+    run_id: str | None
+    device: str
+    model_based: bool
+    loop: str
+    low_hz: Number
+    high_hz: Number
+    measured: FrfMeasured | None
+    measured_problem: str | None
+    model: FrfModel | None
+    model_problem: str | None

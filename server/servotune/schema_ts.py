@@ -90,13 +90,46 @@ REST_RESPONSES: list[type[BaseModel]] = [
     schema.WhatIfPlant,
     schema.WhatIfModel,
     schema.WhatIfInfo,
+    schema.SessionInfo,
+    schema.TicketReply,
+    schema.TokenInfo,
+    schema.NewToken,
+    schema.UserInfo,
+    schema.UserChanged,
+    schema.AuditEntry,
 ]
 REST_REQUESTS: list[type[BaseModel]] = [
     schema.BenchTestRequest,
     schema.SaveSetRequest,
 ]
+# Response bodies the server builds as dicts (the route documents the model): a field with
+# a default may be absent, so it is optional in TypeScript like a request's.
+REST_SHAPES: list[type[BaseModel]] = [
+    schema.RunIdentity,
+    schema.RunTest,
+    schema.RunPlan,
+    schema.RunMetrics,
+    schema.RunReason,
+    schema.RunQuality,
+    schema.RunReturn,
+    schema.BenchRun,
+    schema.BenchRunDetail,
+    schema.MarginReport,
+    schema.AutoTuneSide,
+    schema.AutoTuneRecommendation,
+    schema.AutoTuneDecision,
+    schema.FrfBode,
+    schema.FrfNyquist,
+    schema.FrfMargins,
+    schema.FrfTrust,
+    schema.FrfModel,
+    schema.FrfMeasured,
+    schema.FrfData,
+]
 ALIASES = {
     "BenchKind": schema.BenchKind,
+    "RunStatus": schema.RunStatus,
+    "AutoTuneAction": schema.AutoTuneAction,
     "MarginPreset": schema.MarginPreset,
     "LinkState": schema.LinkState,
     "AxisHealth": schema.AxisHealth,
@@ -121,6 +154,9 @@ UNIONS: dict[str, list[type[BaseModel]]] = {
 }
 
 
+_RENDERED = {*MODELS, *REST_RESPONSES, *REST_REQUESTS, *REST_SHAPES}
+
+
 def ts_type(annotation: object) -> str:
     """The TypeScript spelling of a Python annotation."""
     for alias, target in ALIASES.items():
@@ -128,6 +164,8 @@ def ts_type(annotation: object) -> str:
             return alias
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
+    if annotation is typing.Any:
+        return "unknown"
     if annotation is str:
         return "string"
     if annotation in (int, float):
@@ -164,7 +202,7 @@ def render() -> str:
     lines.append("")
     for model in [*MODELS, *REST_RESPONSES]:
         lines.extend(_interface(model, optional_defaults=False))
-    for model in REST_REQUESTS:
+    for model in [*REST_REQUESTS, *REST_SHAPES]:
         lines.extend(_interface(model, optional_defaults=True))
     for union, members in UNIONS.items():
         lines.append(f"export type {union} = {' | '.join(m.__name__ for m in members)};")
@@ -176,10 +214,18 @@ def _interface(model: type[BaseModel], *, optional_defaults: bool) -> list[str]:
     """``model`` as a TypeScript interface; with ``optional_defaults`` a field that has a
     default is optional (``name?: T``), otherwise every field is required."""
     hints = typing.get_type_hints(model)
-    lines = [f"export interface {model.__name__} {{"]
+    # A subclass of a rendered model extends it and lists only the fields it adds.
+    parent = next((b for b in model.__bases__ if b in _RENDERED), None)
+    inherited = parent.model_fields if parent is not None else {}
+    extends = f" extends {parent.__name__}" if parent is not None else ""
+    lines = [f"export interface {model.__name__}{extends} {{"]
     for name, field in model.model_fields.items():
+        if name in inherited:
+            if inherited[name].annotation != field.annotation:
+                raise TypeError(f"{model.__name__}.{name} changes its parent's type")
+            continue
         mark = "?" if optional_defaults and not field.is_required() else ""
-        lines.append(f"  {name}{mark}: {ts_type(hints[name])};")
+        lines.append(f"  {field.alias or name}{mark}: {ts_type(hints[name])};")
     lines.append("}")
     lines.append("")
     return lines

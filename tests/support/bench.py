@@ -1,4 +1,10 @@
-"""Bench runs through the API: start one, wait for it to finish."""
+"""Bench runs through the API: start one, wait for it to finish, read its frequency
+response.
+
+Every body read here is checked against its documented shape (``schema.BenchRun``,
+``schema.BenchRunDetail``, ``schema.FrfData``: no key the shape does not name, the
+types it states), so the generated TypeScript the web client reads them with stays
+true."""
 
 from __future__ import annotations
 
@@ -7,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from servotune.schema import BenchRun, BenchRunDetail, FrfData
 from tests.support.servers import LiveServer
 
 
@@ -14,8 +21,10 @@ async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[st
     for _ in range(400):
         runs = (await server.client.get(f"/api/axes/{axis_id}/bench/runs")).json()
         run = next(r for r in runs if r["id"] == run_id)
+        BenchRun.model_validate(run, strict=True)
         if run["status"] != "recording":
             full: dict[str, Any] = (await server.client.get(f"/api/bench/runs/{run_id}")).json()
+            BenchRunDetail.model_validate(full, strict=True)
             return full
         await asyncio.sleep(0.05)
     pytest.fail(f"run {run_id} never finished")
@@ -24,5 +33,16 @@ async def finished_run(server: LiveServer, axis_id: str, run_id: str) -> dict[st
 async def start(server: LiveServer, axis_id: str, **test: Any) -> str:
     response = await server.client.post(f"/api/axes/{axis_id}/bench/runs", json=test)
     assert response.status_code == 202, response.text
+    BenchRun.model_validate(response.json(), strict=True)
     run_id: str = response.json()["id"]
     return run_id
+
+
+async def frf_analysis(client: Any, run_id: str) -> dict[str, Any]:
+    """``GET /api/bench/runs/{run_id}/frf`` (the analysis runs in the compute worker:
+    seconds on a loaded host), checked against ``schema.FrfData``."""
+    response = await client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)
+    assert response.status_code == 200, response.text
+    analysis: dict[str, Any] = response.json()
+    FrfData.model_validate(analysis, strict=True)
+    return analysis

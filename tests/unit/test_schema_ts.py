@@ -1,6 +1,7 @@
 """The generated TypeScript of the wire schema: every model of ``servotune.schema`` is
 rendered, a REST request's defaulted field is optional, a response's fields are all
-sent, and the checked-in ``web/src/schema.gen.ts`` is current."""
+sent, a documented shape's defaulted field may be absent, and the checked-in
+``web/src/schema.gen.ts`` is current."""
 
 from __future__ import annotations
 
@@ -13,12 +14,19 @@ from tests.support.paths import REPO
 
 # Models of the schema that are not bodies the web client reads or sends: the command
 # request is free-form (its fields come from the descriptor).
-NOT_RENDERED = {"CommandRequest"}
+# ``_Shape`` is the base of the documented shapes, not a body.
+NOT_RENDERED = {"CommandRequest", "_Shape"}
 
 
 def test_every_schema_model_is_rendered() -> None:
     rendered = {
-        m.__name__ for m in [*schema_ts.MODELS, *schema_ts.REST_RESPONSES, *schema_ts.REST_REQUESTS]
+        m.__name__
+        for m in [
+            *schema_ts.MODELS,
+            *schema_ts.REST_RESPONSES,
+            *schema_ts.REST_REQUESTS,
+            *schema_ts.REST_SHAPES,
+        ]
     }
     declared = {
         name
@@ -40,6 +48,16 @@ def test_request_defaults_are_optional_and_responses_are_complete() -> None:
     assert "?" not in response
 
 
+def test_a_shapes_defaulted_field_may_be_absent() -> None:
+    """A body built as a dict (a bench run) leaves out what a run does not have."""
+    text = schema_ts.render()
+    run = text.split("export interface BenchRun {", 1)[1].split("}", 1)[0]
+    assert "  metrics: RunMetrics | null;" in run  # always there, null when not computed
+    assert "  quality?: RunQuality | null;" in run  # absent on runs stored without one
+    assert "  return?: RunReturn | null;" in run  # the JSON key, not the Python name
+    assert "  autotune?: Record<string, unknown> | null;" in run
+
+
 def test_shapes_of_rest_bodies() -> None:
     assert schema_ts.ts_type(tuple[int | float, int | float]) == "[number, number]"
     assert schema_ts.ts_type(dict[str, int | float | None]) == "Record<string, number | null>"
@@ -58,3 +76,30 @@ def test_the_bench_pwm_bound_is_the_models_output_full_scale() -> None:
 
     bound = next(m.le for m in BenchLimits.model_fields["max_pwm"].metadata if hasattr(m, "le"))
     assert bound == OUTPUT_FULL_SCALE
+
+
+def test_a_subclass_extends_its_rendered_parent() -> None:
+    text = schema_ts.render()
+    detail = text.split("export interface BenchRunDetail extends BenchRun {", 1)[1]
+    assert detail.split("}", 1)[0].strip() == "samples: ((number | number[] | null)[])[];"
+
+
+def test_the_run_shapes_name_the_fields_the_bench_stores() -> None:
+    """``RunMetrics`` is ``bench.metrics.Metrics`` as JSON and the run export the import
+    takes (``bench.files.RunExport``) is the run as listed: the same field names, so the
+    documented shape and the TypeScript cannot drift from what the bench writes."""
+    import dataclasses
+
+    from servotune.bench.files import ImportMetrics, RunExport
+    from servotune.bench.metrics import Metrics
+
+    metrics = [f.name for f in dataclasses.fields(Metrics)]
+    assert list(schema.RunMetrics.model_fields) == metrics
+    assert list(ImportMetrics.model_fields) == metrics
+    listed = {f.alias or name for name, f in schema.BenchRun.model_fields.items()}
+    exported = {f.alias or name for name, f in RunExport.model_fields.items()}
+    # left_oscillating, loop_unverified: stored with a run whose after-check found the
+    # loop oscillating or could not tell, which the import's model does not name (bench
+    # area: such an export is refused on import).
+    assert listed - exported == {"left_oscillating", "loop_unverified"}
+    assert exported - listed == set()

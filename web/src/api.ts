@@ -3,31 +3,46 @@ import type {
   AxisInfo,
   AxisState,
   BenchInfo,
+  BenchRun,
+  BenchRunDetail,
   BenchLimits,
   BenchTestRequest,
+  AutoTuneDecision,
+  AutoTuneRecommendation,
   CommandResult,
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
   MarginPreset,
-  MarginTarget,
+  MarginReport,
   ParamSet,
   ParamSetComparison,
+  RunMetrics,
   SavedSet,
   SaveSetRequest,
+  SessionInfo,
   StopResult,
 } from "./schema.gen";
 
 // REST bodies generated from server/servotune/schema.py, re-exported for the views.
 export type {
+  AutoTuneDecision,
+  AutoTuneRecommendation,
+  AutoTuneSide,
+  MarginReport,
   BenchInfo,
   BenchKind,
+  BenchRun,
+  BenchRunDetail,
   BenchLimits,
   BenchTestRequest,
   MarginPreset,
   MarginTarget,
   ParamSet,
   ParamSetComparison,
+  RunMetrics,
+  RunQuality,
+  RunStatus,
   SavedSet,
 } from "./schema.gen";
 
@@ -68,7 +83,7 @@ export function setCsrfToken(token: string): void {
 async function csrf(): Promise<string> {
   if (csrfToken === null) {
     const response = await fetch("/api/auth/session", { credentials: "same-origin" });
-    csrfToken = ((await response.json()) as { csrf_token: string }).csrf_token;
+    csrfToken = ((await response.json()) as SessionInfo).csrf_token;
   }
   return csrfToken;
 }
@@ -150,57 +165,7 @@ export async function reauthenticate(): Promise<boolean> {
 
 // --- test bench (server/servotune/api/bench_routes.py) ---
 
-/** servotune/bench/metrics.py ``Metrics`` (times in s after the trigger t0). */
-export interface RunMetrics {
-  step?: number;
-  band?: number | null;
-  samples?: number;
-  max_sample_gap_s?: number | null;
-  rise_time_s: number | null;
-  overshoot_pct: number | null;
-  peak_time_s: number | null;
-  peak_value: number | null;
-  settling_time_s: number | null;
-  steady_state_error: number | null;
-  oscillations: number | null;
-  peak_following_error: number | null;
-  rms_following_error: number | null;
-  time_to_flag_s: Record<string, number | null>;
-  time_in_flag_s: Record<string, number>;
-  /** ± of the flag times: flags are polled (runs recorded before this have none). */
-  time_to_flag_resolution_s?: Record<string, number | null>;
-  time_in_flag_resolution_s?: Record<string, number>;
-}
-
-export type RunStatus = "recording" | "complete" | "incomplete";
-
-/** A stored run without its samples (``GET /api/axes/{id}/bench/runs``). */
-export interface BenchRun {
-  id: string;
-  axis_id: string;
-  created_s: number; // unix seconds
-  status: RunStatus;
-  baseline: boolean;
-  device: string;
-  model: string;
-  identity?: Record<string, unknown>;
-  /** The request as recorded: the size fields and note are always there. */
-  test: BenchTestRequest & Required<Pick<BenchTestRequest, "distance" | "velocity" | "pwm" | "duration_s" | "note">>;
-  params: Record<string, number>;
-  plan: { response: string; y0: number; y_final: number; band: number | null; overrides: Record<string, number> };
-  columns: string[]; // columns[0] == "t_s"
-  flags: string[];
-  metrics: RunMetrics | null;
-  message: string;
-  imported_from?: string | null;
-}
-
-/** A sample row: [t_s, one value per columns[1..], [flag 0/1 in flags order]]. */
-export type RunSample = [number, ...(number | null | number[])[]];
-
-export interface BenchRunDetail extends BenchRun {
-  samples: RunSample[];
-}
+// BenchRun, BenchRunDetail, RunMetrics: generated (schema.gen.ts, servotune/schema.py).
 
 // --- parameter sets (server/servotune/api/param_set_routes.py) ---
 
@@ -208,19 +173,6 @@ export interface BenchRunDetail extends BenchRun {
 
 export type AutoTuneGoal = "no_overshoot" | "fast";
 
-
-/** A set of gains' margins on the model against a target (``tuning.targets``). */
-export interface MarginReport {
-  gain_margin_db: number | null;
-  phase_margin_deg: number | null;
-  gain_crossover_hz: number | null;
-  phase_crossover_hz: number | null;
-  stable: boolean | null;
-  target: MarginTarget;
-  /** null: a margin could not be measured (measured runs). */
-  meets_target: boolean | null;
-  warning: string | null;
-}
 
 /** ``POST .../autotune/identify``: the user's limits and the goal. */
 export interface AutoTuneRequest {
@@ -266,35 +218,6 @@ export interface AutoTuneProposal {
   margins_default?: MarginReport;
   /** Keep the gains in use or write the proposal (server/servotune/autotune/recommend.py). */
   recommendation?: AutoTuneRecommendation;
-}
-
-/** One side of the recommendation's comparison: margins on the model, predicted step. */
-export interface AutoTuneSide {
-  phase_margin_deg: number | null;
-  gain_margin_db: number | null;
-  stable: boolean | null;
-  meets_target: boolean | null;
-  settling_time_s: number | null;
-  overshoot_pct: number | null;
-}
-
-export interface AutoTuneRecommendation {
-  action: "keep" | "write";
-  reason: string;
-  target: MarginTarget;
-  proposal: AutoTuneSide;
-  current: AutoTuneSide;
-}
-
-/** What the user chose for a proposal (``POST .../autotune/keep`` or accept). */
-export interface AutoTuneDecision {
-  action: "keep" | "write";
-  gains: GainSet;
-  recommended: "keep" | "write" | null;
-  followed: boolean;
-  reason: string | null;
-  at_s: number;
-  identification_run_id: string | null;
 }
 
 /** ``POST .../autotune/accept``: baseline test, write, verification test. */

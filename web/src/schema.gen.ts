@@ -2,6 +2,8 @@
 // descriptor.py. Do not edit: change the Python models and regenerate.
 
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
+export type RunStatus = "recording" | "complete" | "incomplete";
+export type AutoTuneAction = "keep" | "write";
 export type MarginPreset = "stiff" | "medium" | "soft";
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline" | "paused";
@@ -263,7 +265,7 @@ export interface RunUpdate {
   type: "run";
   axis: string;
   run_id: string;
-  status: "recording" | "complete" | "incomplete";
+  status: RunStatus;
   elapsed_s: number;
   samples: number;
   message: string;
@@ -517,6 +519,59 @@ export interface WhatIfInfo {
   verify: VerifyProfile;
 }
 
+export interface SessionInfo {
+  mode: "local" | "exposed";
+  user: string | null;
+  role: string | null;
+  permissions: string[];
+  csrf_token: string;
+  via: string | null;
+  roles: string[];
+}
+
+export interface TicketReply {
+  ticket: string;
+  expires_in_s: number;
+}
+
+export interface TokenInfo {
+  id: string;
+  user: string;
+  name: string;
+  role: string;
+  created_s: number;
+  expires_s: number;
+  last_used_s: number | null;
+}
+
+export interface NewToken extends TokenInfo {
+  token: string;
+}
+
+export interface UserInfo {
+  name: string;
+  role: string;
+  created_s: number;
+}
+
+export interface UserChanged {
+  name: string;
+  role: string;
+}
+
+export interface AuditEntry {
+  id: number;
+  t_s: number;
+  who: string;
+  action: string;
+  axis: string | null;
+  address: string | null;
+  before: string | null;
+  after: string | null;
+  result: string;
+  detail: string;
+}
+
 export interface BenchTestRequest {
   kind: BenchKind;
   distance?: number;
@@ -534,6 +589,238 @@ export interface BenchTestRequest {
 export interface SaveSetRequest {
   name: string;
   note?: string;
+}
+
+export interface RunIdentity {
+  link: string;
+  path: string;
+  address: number;
+  name: string;
+}
+
+export interface RunTest {
+  kind: BenchKind;
+  distance: number;
+  velocity: number;
+  pwm: number;
+  duration_s: number;
+  note: string;
+  amplitude?: number | null;
+  low_hz?: number | null;
+  high_hz?: number | null;
+  model_based?: boolean | null;
+  loop?: "closed" | "open" | null;
+}
+
+export interface RunPlan {
+  response: string;
+  y0: number;
+  y_final: number;
+  band: number | null;
+  overrides: Record<string, number>;
+}
+
+export interface RunMetrics {
+  step: number;
+  band: number | null;
+  samples: number;
+  max_sample_gap_s: number | null;
+  rise_time_s: number | null;
+  overshoot_pct: number | null;
+  peak_time_s: number | null;
+  peak_value: number | null;
+  settling_time_s: number | null;
+  steady_state_error: number | null;
+  oscillations: number | null;
+  peak_following_error: number | null;
+  rms_following_error: number | null;
+  time_to_flag_s: Record<string, number | null>;
+  time_in_flag_s: Record<string, number>;
+  time_to_flag_resolution_s?: Record<string, number | null>;
+  time_in_flag_resolution_s?: Record<string, number>;
+}
+
+export interface RunReason {
+  code: string;
+  message: string;
+}
+
+export interface RunQuality {
+  status: "good" | "doubtful" | "bad";
+  reasons: RunReason[];
+  untrusted?: Record<string, string>;
+  sampling_rule?: number | null;
+}
+
+export interface RunReturn {
+  ok: boolean;
+  to: number;
+  error: number | null;
+  message: string;
+}
+
+export interface BenchRun {
+  id: string;
+  axis_id: string;
+  created_s: number | null;
+  status: RunStatus;
+  baseline?: boolean;
+  axis_key: string;
+  device: string;
+  model: string;
+  identity?: RunIdentity | null;
+  test: RunTest;
+  params: Record<string, number>;
+  plan: RunPlan;
+  columns: string[];
+  flags: string[];
+  metrics: RunMetrics | null;
+  quality?: RunQuality | null;
+  message: string;
+  t0_s?: number | null;
+  imported_from?: string | null;
+  autotune?: Record<string, unknown> | null;
+  excitation?: Record<string, unknown> | null;
+  plant_model?: Record<string, unknown> | null;
+  trigger_latency_s?: number | null;
+  left_oscillating?: Record<string, unknown> | null;
+  loop_unverified?: Record<string, unknown> | null;
+  return?: RunReturn | null;
+}
+
+export interface BenchRunDetail extends BenchRun {
+  samples: ((number | number[] | null)[])[];
+}
+
+export interface MarginReport {
+  gain_margin_db: number | null;
+  phase_margin_deg: number | null;
+  gain_crossover_hz: number | null;
+  phase_crossover_hz: number | null;
+  stable: boolean | null;
+  target: MarginTarget;
+  meets_target: boolean | null;
+  warning: string | null;
+}
+
+export interface AutoTuneSide {
+  phase_margin_deg: number | null;
+  gain_margin_db: number | null;
+  stable: boolean | null;
+  meets_target: boolean | null;
+  settling_time_s: number | null;
+  overshoot_pct: number | null;
+}
+
+export interface AutoTuneRecommendation {
+  action: AutoTuneAction;
+  reason: string;
+  target: MarginTarget;
+  proposal: AutoTuneSide;
+  current: AutoTuneSide;
+}
+
+export interface AutoTuneDecision {
+  action: AutoTuneAction;
+  gains: Record<string, number>;
+  recommended: AutoTuneAction | null;
+  followed: boolean;
+  reason: string | null;
+  at_s: number;
+  identification_run_id: string | null;
+}
+
+export interface FrfBode {
+  frequency_hz: (number | null)[];
+  magnitude_db: (number | null)[];
+  phase_deg: (number | null)[];
+  coherence?: (number | null)[];
+  relative_error?: (number | null)[];
+  error_db?: (number | null)[];
+  error_deg?: (number | null)[];
+  trusted?: boolean[];
+  not_trusted_because?: (string | null)[];
+  measurable?: boolean[];
+}
+
+export interface FrfNyquist {
+  frequency_hz: (number | null)[];
+  re: (number | null)[];
+  im: (number | null)[];
+  measurable?: boolean[];
+}
+
+export interface FrfMargins extends MarginReport {
+  gain_margin_problem?: string | null;
+  phase_margin_problem?: string | null;
+  gain_margin_error_db?: number | null;
+  phase_margin_error_deg?: number | null;
+}
+
+export interface FrfTrust {
+  trusted_tones: number;
+  tones: number;
+  max_error_db: number;
+  max_error_deg: number;
+  coverage: number;
+  not_trusted: string[];
+  input_check_counts: number | null;
+  input_check_excess_counts: number | null;
+  input_check_samples_over: number;
+  stalled_samples_left_out: number;
+  stalled_targets_bounded: number;
+  max_latch_span_ms: number | null;
+  spans: string;
+  max_gap_ms: number | null;
+  gaps_over_50_ms: number;
+}
+
+export interface FrfModel {
+  margins: MarginReport;
+  bandwidth_hz: number | null;
+  resonance_db: number | null;
+  closed_loop: FrfBode;
+  open_loop: FrfBode;
+  nyquist: FrfNyquist;
+  plant: WhatIfPlant;
+  law: string;
+}
+
+export interface FrfMeasured {
+  loop: "closed" | "open";
+  closed_loop: FrfBode;
+  open_loop: FrfBode;
+  plant?: FrfBode | null;
+  nyquist: FrfNyquist;
+  margins: FrfMargins;
+  input: string;
+  usable_from_hz: number | null;
+  usable_until_hz: number | null;
+  sample_rate_hz: number | null;
+  nyquist_hz: number | null;
+  periods: number;
+  samples: number;
+  input_check_counts: number | null;
+  trust: FrfTrust;
+  estimator: string;
+  not_measured_hz: (number | null)[];
+  not_measured_reason: string | null;
+  wire: Record<string, unknown> | null;
+  bandwidth_hz: number | null;
+  resonance_db: number | null;
+}
+
+export interface FrfData {
+  run_id: string | null;
+  device: string;
+  model_based: boolean;
+  loop: string;
+  low_hz: number;
+  high_hz: number;
+  measured: FrfMeasured | null;
+  measured_problem: string | null;
+  model: FrfModel | null;
+  model_problem: string | null;
 }
 
 export type ServerMessage = Hello | Telemetry | LinkStatus | AxisStatus | Params | Event | RunUpdate | StorageStatus | ClientStats | MoveOutcome;

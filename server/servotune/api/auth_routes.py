@@ -37,24 +37,24 @@ from servotune.auth.store import (
     USER_NAME,
     AccountError,
     Session,
+    Token,
 )
 from servotune.auth.throttle import Attempt, ThrottledError
 from servotune.auth.ws_auth import close_websockets
+from servotune.schema import (
+    AuditEntry,
+    NewToken,
+    SessionInfo,
+    TicketReply,
+    TokenInfo,
+    UserChanged,
+    UserInfo,
+)
 
 # What the account routes can answer besides their success (bodies are ``ErrorBody``).
 router = APIRouter(tags=["auth"], responses=errors(404, 409, 422, 429))
 
 Role = Literal["viewer", "operator", "admin"]
-
-
-class SessionInfo(BaseModel):
-    mode: Literal["local", "exposed"]
-    user: str | None
-    role: str | None
-    permissions: list[str]
-    csrf_token: str
-    via: str | None = None
-    roles: list[str] = list(ROLE_ORDER)
 
 
 class LoginRequest(BaseModel):
@@ -69,11 +69,6 @@ class PasswordRequest(BaseModel):
 class PasswordChange(BaseModel):
     current_password: str = Field(min_length=1, max_length=MAX_PASSWORD_LENGTH)
     new_password: str = Field(min_length=MIN_PASSWORD_LENGTH, max_length=MAX_PASSWORD_LENGTH)
-
-
-class TicketReply(BaseModel):
-    ticket: str
-    expires_in_s: float
 
 
 class TokenCreate(BaseModel):
@@ -153,6 +148,7 @@ def _info(security: SecurityState, principal: Principal | None, cookie: str | No
         permissions=sorted(principal.permissions) if principal else [],
         csrf_token=security.csrf_token(cookie),
         via=principal.via if principal else None,
+        roles=list(ROLE_ORDER),
     )
 
 
@@ -299,28 +295,28 @@ async def ws_ticket(request: Request) -> TicketReply:
 # --- API tokens (admin) ---------------------------------------------------------------
 
 
-def _token_row(token: Any) -> dict[str, Any]:
-    return {
-        "id": token.id,
-        "user": token.user,
-        "name": token.name,
-        "role": token.role,
-        "created_s": token.created_s,
-        "expires_s": token.expires_s,
-        "last_used_s": token.last_used_s,
-    }
+def _token_row(token: Token) -> TokenInfo:
+    return TokenInfo(
+        id=token.id,
+        user=token.user,
+        name=token.name,
+        role=token.role,
+        created_s=token.created_s,
+        expires_s=token.expires_s,
+        last_used_s=token.last_used_s,
+    )
 
 
-@router.get("/api/auth/tokens")
-async def list_tokens(request: Request, user: str | None = None) -> list[dict[str, Any]]:
+@router.get("/api/auth/tokens", response_model=list[TokenInfo])
+async def list_tokens(request: Request, user: str | None = None) -> list[TokenInfo]:
     """Every token (``?user=`` filters); never the secret, which is not stored."""
     security = _security(request)
     store = security.require_store()
     return [_token_row(t) for t in await security.db(store.list_tokens, user)]
 
 
-@router.post("/api/auth/tokens", status_code=201)
-async def create_token(body: TokenCreate, request: Request) -> dict[str, Any]:
+@router.post("/api/auth/tokens", status_code=201, response_model=NewToken)
+async def create_token(body: TokenCreate, request: Request) -> NewToken:
     """A new API token; its secret is in this answer and nowhere else, ever."""
     principal = _principal(request)
     security = _security(request)
@@ -340,7 +336,7 @@ async def create_token(body: TokenCreate, request: Request) -> dict[str, Any]:
         address=client_address(request.scope),
         after={"id": token.id, "user": owner, "name": body.name, "role": role, "days": body.days},
     )
-    return {**_token_row(token), "token": secret}
+    return NewToken(**_token_row(token).model_dump(), token=secret)
 
 
 @router.delete("/api/auth/tokens/{token_id}", status_code=204, response_model=None)
@@ -364,18 +360,18 @@ async def revoke_token(token_id: str, request: Request) -> None:
 # --- users (admin) --------------------------------------------------------------------
 
 
-@router.get("/api/users")
-async def list_users(request: Request) -> list[dict[str, Any]]:
+@router.get("/api/users", response_model=list[UserInfo])
+async def list_users(request: Request) -> list[UserInfo]:
     security = _security(request)
     store = security.require_store()
     return [
-        {"name": u.name, "role": u.role, "created_s": u.created_s}
+        UserInfo(name=u.name, role=u.role, created_s=u.created_s)
         for u in await security.db(store.list_users)
     ]
 
 
-@router.post("/api/users", status_code=201)
-async def add_user(body: UserCreate, request: Request) -> dict[str, Any]:
+@router.post("/api/users", status_code=201, response_model=UserInfo)
+async def add_user(body: UserCreate, request: Request) -> UserInfo:
     """A new account (the first admin comes from the command line only)."""
     principal = _principal(request)
     security = _security(request)
@@ -393,11 +389,11 @@ async def add_user(body: UserCreate, request: Request) -> dict[str, Any]:
         address=client_address(request.scope),
         after={"name": user.name, "role": user.role},
     )
-    return {"name": user.name, "role": user.role, "created_s": user.created_s}
+    return UserInfo(name=user.name, role=user.role, created_s=user.created_s)
 
 
-@router.patch("/api/users/{name}")
-async def change_user(name: str, body: UserChange, request: Request) -> dict[str, Any]:
+@router.patch("/api/users/{name}", response_model=UserChanged)
+async def change_user(name: str, body: UserChange, request: Request) -> UserChanged:
     """New role and/or password: the user's sessions end and their websockets close."""
     principal = _principal(request)
     security = _security(request)
@@ -427,7 +423,7 @@ async def change_user(name: str, body: UserChange, request: Request) -> dict[str
         after={"name": name, "role": body.role or user.role},
         detail=f"changed {', '.join(changes) or 'nothing'}; {closed} websocket(s) closed",
     )
-    return {"name": name, "role": body.role or user.role}
+    return UserChanged(name=name, role=body.role or user.role)
 
 
 @router.delete("/api/users/{name}", status_code=204, response_model=None)
@@ -481,7 +477,7 @@ def _audit_filter(default_limit: int) -> Callable[..., AuditQuery]:
     return dependency
 
 
-@router.get("/api/audit")
+@router.get("/api/audit", response_model=list[AuditEntry])
 async def audit_entries(
     request: Request, query: Annotated[AuditQuery, Depends(_audit_filter(500))]
 ) -> list[dict[str, Any]]:

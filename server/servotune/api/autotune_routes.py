@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from servotune.api.routes import ERRORS
 from servotune.autotune.service import AutoTuning
 from servotune.autotune.session import IdentifyRequest
-from servotune.schema import ErrorBody
+from servotune.schema import AutoTuneDecision, ErrorBody
 
 TUNE_ERRORS: dict[int | str, dict[str, Any]] = {
     **ERRORS,
@@ -74,7 +74,10 @@ async def autotune_accept(
     return await autotuner.accept(axis_id, confirm_unstable=confirm_unstable)
 
 
-@router.post("/api/axes/{axis_id}/autotune/keep", responses=TUNE_ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/autotune/keep",
+    responses={**TUNE_ERRORS, 200: {"model": AutoTuneDecision, "description": "the decision"}},
+)
 async def autotune_keep(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
     """Decline the proposal and keep the gains in use: nothing is written to the device.
     The proposal's ``recommendation`` says which of keep and accept the rule advises

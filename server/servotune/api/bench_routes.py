@@ -24,7 +24,14 @@ from servotune.bench.service import BenchTestRequest, TestBench
 from servotune.descriptor import DeviceDescriptor
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DriverError, InvalidArgumentError
-from servotune.schema import BenchField, BenchInfo, ErrorBody, StorageStatus
+from servotune.schema import (
+    BenchField,
+    BenchInfo,
+    BenchRun,
+    BenchRunDetail,
+    ErrorBody,
+    StorageStatus,
+)
 from servotune.storage import Storage, dumps_strict
 
 STORE_ERRORS: dict[int | str, dict[str, Any]] = {
@@ -155,7 +162,11 @@ async def set_limits(axis_id: str, limits: BenchLimits, bench: BenchDep) -> Benc
     return await bench.set_limits(axis_id, limits)
 
 
-@router.post("/api/axes/{axis_id}/bench/runs", status_code=202, responses=STORE_ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/bench/runs",
+    status_code=202,
+    responses={**STORE_ERRORS, 202: {"model": BenchRun, "description": "the run, recording"}},
+)
 async def start_run(
     axis_id: str, test: BenchTestRequest, bench: BenchDep, request: Request
 ) -> dict[str, Any]:
@@ -171,7 +182,10 @@ async def start_run(
     return await bench.start_run(axis_id, test, identified)
 
 
-@router.get("/api/axes/{axis_id}/bench/runs", responses=ERRORS)
+@router.get(
+    "/api/axes/{axis_id}/bench/runs",
+    responses={**ERRORS, 200: {"model": list[BenchRun], "description": "the runs"}},
+)
 async def list_runs(axis_id: str, bench: BenchDep) -> list[dict[str, Any]]:
     """Every stored run of this axis, oldest first, without samples."""
     return await bench.list_runs(axis_id)
@@ -280,7 +294,7 @@ async def storage_status(request: Request) -> StorageStatus:
 
 @router.get(
     "/api/bench/runs/{run_id}",
-    responses={**ERRORS, 200: {"content": {"application/json": {"schema": {"type": "object"}}}}},
+    responses={**ERRORS, 200: {"model": BenchRunDetail, "description": "the run"}},
     response_class=StreamingResponse,
 )
 async def get_run(run_id: str, bench: BenchDep) -> StreamingResponse:

@@ -24,7 +24,7 @@ from servotune.bench import frf
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub, NotFoundError
 from servotune.link.base import DeviceRefusedError, DriverError, InvalidArgumentError
-from servotune.schema import WhatIfInfo
+from servotune.schema import FrfData, WhatIfInfo
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS
 from servotune.tuning.whatif import browser_model, plant_from_identification
 
@@ -64,7 +64,10 @@ def get_compute(request: Request) -> ComputePool:
 ComputeDep = Annotated[ComputePool, Depends(get_compute)]
 
 
-@router.get("/api/bench/runs/{run_id}/frf", responses=errors(404, 422))
+@router.get(
+    "/api/bench/runs/{run_id}/frf",
+    responses={**errors(404, 422), 200: {"model": FrfData, "description": "the analysis"}},
+)
 async def run_frf(
     run_id: str, request: Request, bench: BenchDep, compute: ComputeDep
 ) -> dict[str, Any]:

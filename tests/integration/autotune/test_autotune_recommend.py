@@ -3,6 +3,9 @@
 The rule (``servotune.autotune.recommend``) on margin reports of the one margin rule
 (``tuning.targets.margin_report``) and on real proposals of the SLAP2 search for the
 loaded demo plant. The browser and the API around it: tests/browser/test_browser_autotune_keep.py.
+The bodies are checked against their documented shapes (``schema.MarginReport``,
+``AutoTuneRecommendation``, ``AutoTuneDecision``), which the web client's types are
+generated from.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from servotune.devices.slap2.law import Gains
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.schema import AutoTuneDecision, AutoTuneRecommendation, MarginReport
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import Margins
 from servotune.tuning.targets import PRESETS, margin_report
@@ -151,6 +155,8 @@ def test_a_decision_is_recorded_with_what_was_recommended() -> None:
         "keep", rec, {"kp": 600, "ki": 10, "kd": 1500}, at_s=1.0, identification_run_id="r1"
     )
     assert kept["followed"] and kept["recommended"] == "keep"
+    AutoTuneDecision.model_validate(kept, strict=True)
+    AutoTuneRecommendation.model_validate(rec, strict=True)
     assert decision_text(kept) == (
         "kept the gains in use (kp=600 ki=10 kd=1500): nothing written as recommended"
     )
@@ -177,6 +183,9 @@ def test_a_z1100_proposal_carries_the_same_comparison() -> None:
         physics_plant(Z1100_LOADS_KG_M2[0]), PROFILE, "no_overshoot", MEDIOCRE, MEDIOCRE
     ).to_dict()
     rec = recommend(proposal)
+    AutoTuneRecommendation.model_validate(rec, strict=True)
+    for report_ in (proposal["margins"], proposal["margins_default"]):
+        MarginReport.model_validate(report_, strict=True)
     assert rec["action"] == "write", rec["reason"]
     assert rec["proposal"]["meets_target"] is True
     assert rec["proposal"]["phase_margin_deg"] == proposal["margins"]["phase_margin_deg"]
@@ -213,6 +222,9 @@ async def test_keep_writes_nothing_and_the_declined_proposal_cannot_be_accepted(
                 await asyncio.sleep(2.0)
             assert response.status_code == 200, response.text
             proposal = response.json()
+            AutoTuneRecommendation.model_validate(proposal["recommendation"], strict=True)
+            for report_ in (proposal["margins"], proposal["margins_default"]):
+                MarginReport.model_validate(report_, strict=True)
             assert proposal["recommendation"]["action"] == "keep", proposal["recommendation"]
             assert (await client.get(base)).json()["proposal"]["recommendation"] == (
                 proposal["recommendation"]
@@ -220,6 +232,7 @@ async def test_keep_writes_nothing_and_the_declined_proposal_cannot_be_accepted(
             response = await client.post(f"{base}/keep")
             assert response.status_code == 200, response.text
             decision = response.json()
+            AutoTuneDecision.model_validate(decision, strict=True)
             assert decision["action"] == "keep" and decision["followed"]
             assert decision["gains"] == gentle
             assert decision["identification_run_id"] == proposal["identification_run_id"]

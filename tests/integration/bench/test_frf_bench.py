@@ -32,6 +32,7 @@ from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100.law import z1100_loop_for
 from servotune.link.base import InvalidArgumentError
+from servotune.schema import FrfData
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import HostStalls, PtySimulator
 from servotune.tuning import frfrun
@@ -43,7 +44,7 @@ from servotune.tuning.whatif import (
     loop_for,
     plant_from_identification,
 )
-from tests.support.bench import finished_run, start
+from tests.support.bench import finished_run, frf_analysis, start
 from tests.support.plants import motor_model
 from tests.support.servers import LiveServer, live_server
 
@@ -189,6 +190,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
         "plant_model": identified,
     }
     out = frf.analyse_run(LAW(run["device"]), run, None)
+    FrfData.model_validate(out, strict=True)
     assert out["model_based"] and out["measured"] is None and out["model"] is not None
     plant = control.tf([90_000.0 / 255], [0.02, 1.0, 0.0])
     truth = z1100_loop_for(plant, 24, 32, 8).margins()
@@ -198,6 +200,7 @@ def test_model_margins_are_those_of_tuning_loops() -> None:
     assert margins["stable"] is truth.stable
     # without a model: a reason, not an error
     out = frf.analyse_run(LAW(run["device"]), run | {"plant_model": None}, None)
+    FrfData.model_validate(out, strict=True)
     assert out["model"] is None and "Identify" in out["model_problem"]
 
 
@@ -342,9 +345,7 @@ async def _measured_run(
             continue
         assert run["status"] == "complete", message
         # the analysis runs in the compute worker: seconds on a loaded host
-        analysis = (
-            await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)
-        ).json()
+        analysis = await frf_analysis(one_module_api.client, run_id)
         _check_against_simulator(analysis, run)
         return run, analysis
     raise AssertionError(f"every run ended on a wire timeout: {reasons}")
@@ -401,7 +402,7 @@ async def test_frequency_response_on_the_simulator_matches_its_plant(
     imported = (await one_module_api.client.get(f"/api/bench/runs/{imported_id}")).json()
     for key in ("test", "excitation", "params", "plan", "samples"):
         assert imported[key] == run[key], key
-    again = (await one_module_api.client.get(f"/api/bench/runs/{imported_id}/frf")).json()
+    again = await frf_analysis(one_module_api.client, imported_id)
     assert again["measured"] == analysis["measured"]
 
 
@@ -517,7 +518,7 @@ async def test_host_stalls_on_the_wire_are_recorded_and_never_trusted(
     spans = [span for _, span in run["excitation"]["spans"]] + [row[3] for row in sent]
     assert min(spans) >= 0.0 and max(spans) >= 0.015, max(spans)
     began = time.monotonic()
-    analysis = (await one_module_api.client.get(f"/api/bench/runs/{run_id}/frf", timeout=60)).json()
+    analysis = await frf_analysis(one_module_api.client, run_id)
     analysed_s = time.monotonic() - began
     measured = analysis["measured"]
     assert measured is not None, analysis["measured_problem"]
@@ -563,7 +564,7 @@ async def test_z1100_frequency_response_is_model_based_and_moves_nothing(tmp_pat
             assert response.status_code == 202, response.text
             run = response.json()
             assert run["status"] == "complete" and run["test"]["model_based"] is True
-            analysis = (await client.get(f"/api/bench/runs/{run['id']}/frf")).json()
+            analysis = await frf_analysis(client, run["id"])
             assert analysis["model_based"] and analysis["measured"] is None
             params = (await client.get(f"/api/bench/runs/{run['id']}")).json()["params"]
             plant = plant_from_identification(LAW("z1100"), identified)

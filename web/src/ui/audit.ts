@@ -2,21 +2,8 @@
 // Admins see everyone's entries; other roles their own (the server filters).
 import { ApiError, request } from "../api";
 import { h, replace } from "../dom";
-import type { SessionInfo } from "./login";
+import type { AuditEntry, SessionInfo } from "../schema.gen";
 import "./auth.css";
-
-interface AuditEntry {
-  id: number;
-  t_s: number;
-  who: string;
-  action: string;
-  axis: string | null;
-  address: string | null;
-  before: string | null;
-  after: string | null;
-  result: string;
-  detail: string;
-}
 
 function query(filters: Record<string, string>): string {
   const params = new URLSearchParams();

@@ -8,103 +8,18 @@ import uPlot from "uplot";
 import "./frf.css";
 import { api, request } from "../api";
 import { h, replace, setText } from "../dom";
-import type { MarginTarget } from "../api";
+import type { FrfBode, FrfData, FrfMargins, FrfMeasured, FrfModel, FrfTrust, MarginTarget } from "../schema.gen";
 import { errorText } from "./feedback";
 import { plotTheme, type PlotTheme } from "./benchplot";
 import { targetText } from "./margins";
 
-export interface Bode {
-  frequency_hz: (number | null)[];
-  magnitude_db: (number | null)[];
-  phase_deg: (number | null)[];
-  /** Measured: the magnitude-squared coherence over the run's periods. */
-  coherence?: (number | null)[];
-  /** Measured: the tone is known within the instrument's limits (every bias bounded). */
-  trusted?: boolean[];
-  /** Measured: the error bounds (about 95 %) and, for an untrusted tone, why. */
-  error_db?: (number | null)[];
-  error_deg?: (number | null)[];
-  not_trusted_because?: (string | null)[];
-  /** Measured open loop: whether L = T/(1-T) is known at the tone (T's error propagated). */
-  measurable?: boolean[];
-}
-
-/** Why a measured run's tones are (not) trusted: tuning/frftrust.py. */
-export interface Trust {
-  trusted_tones: number;
-  tones: number;
-  max_error_db: number;
-  max_error_deg: number;
-  not_trusted: string[];
-  input_check_counts: number | null;
-  input_check_excess_counts: number | null;
-  input_check_samples_over: number;
-  stalled_samples_left_out: number;
-  stalled_targets_bounded: number;
-  max_latch_span_ms: number | null;
-  spans: string;
-  max_gap_ms: number | null;
-  gaps_over_50_ms: number;
-}
-
-export interface Margins {
-  gain_margin_db: number | null;
-  phase_margin_deg: number | null;
-  gain_crossover_hz: number | null;
-  phase_crossover_hz: number | null;
-  stable: boolean | null;
-  /** Measured runs: why a margin is null ("not measurable from this run: ..."). */
-  gain_margin_problem?: string | null;
-  phase_margin_problem?: string | null;
-  /** Measured runs: the margin's uncertainty (about 95 %). */
-  gain_margin_error_db?: number | null;
-  phase_margin_error_deg?: number | null;
-  /** Against the margin target: met, not (with the warning), or unknown (null). */
-  target?: MarginTarget;
-  meets_target?: boolean | null;
-  warning?: string | null;
-}
-
-interface Nyquist {
-  frequency_hz: (number | null)[];
-  re: (number | null)[];
-  im: (number | null)[];
-  measurable?: boolean[];
-}
-
-interface Part {
-  closed_loop: Bode;
-  /** An open-loop run: the plant P measured (the closed loop is derived from it). */
-  plant?: Bode;
-  open_loop: Bode;
-  nyquist: Nyquist;
-  margins: Margins;
-  bandwidth_hz: number | null;
-  resonance_db: number | null;
-  usable_from_hz?: number;
-  usable_until_hz?: number;
-  sample_rate_hz?: number;
-  nyquist_hz?: number;
-  input?: string;
-  law?: string;
-  loop?: "closed" | "open";
-  // tones of the requested band the wire cannot resolve: not sent, not measured
-  not_measured_hz?: number[];
-  not_measured_reason?: string | null;
-  trust?: Trust;
-}
-
-export interface FrfData {
-  run_id: string;
-  device: string;
-  model_based: boolean;
-  low_hz: number;
-  high_hz: number;
-  measured: Part | null;
-  measured_problem: string | null;
-  model: Part | null;
-  model_problem: string | null;
-}
+// The analysis' shapes are generated (schema.gen.ts, servotune/schema.py): a measured
+// part or the model's, each drawn with the same curves.
+export type Bode = FrfBode;
+export type Trust = FrfTrust;
+// The model's margins are a MarginReport: FrfMargins without the measured-only fields.
+export type Margins = FrfMargins;
+type Part = FrfMeasured | FrfModel;
 
 export interface FrfRun {
   id: string;
@@ -473,20 +388,22 @@ export class FrfPanel {
             { class: `mono margin-value ${v === null || target === undefined ? "" : v >= target ? "ok" : "low"}`, testid, title: target === undefined ? "" : `target ≥ ${target} ${unit}` },
             err !== null && err !== undefined && v !== null ? `${v.toFixed(1)} ± ${err.toFixed(1)} ${unit}` : fmt(v, 1, unit),
           );
-    const row = (label: string, color: string, source: string, p: Part): HTMLElement =>
-      h(
+    const row = (label: string, color: string, source: string, p: Part): HTMLElement => {
+      const margins: Margins = p.margins;
+      return h(
         "tr",
-        { "data-source": source, "data-meets-target": p.margins.meets_target === undefined || p.margins.meets_target === null ? "" : String(p.margins.meets_target) },
+        { "data-source": source, "data-meets-target": margins.meets_target === undefined || margins.meets_target === null ? "" : String(margins.meets_target) },
         h("td", null, h("span", { class: "swatch", style: `background:${color}` }), ` ${label}`),
         h("td", null, source),
-        margin("frf-gm", p.margins.gain_margin_db, p.margins.gain_margin_error_db, "dB", p.margins.gain_margin_problem, p.margins.target?.gain_margin_db),
-        margin("frf-pm", p.margins.phase_margin_deg, p.margins.phase_margin_error_deg, "°", p.margins.phase_margin_problem, p.margins.target?.phase_margin_deg),
-        h("td", { class: "mono" }, fmt(p.margins.gain_crossover_hz, 1, "Hz")),
-        h("td", { class: "mono" }, fmt(p.margins.phase_crossover_hz, 1, "Hz")),
+        margin("frf-gm", margins.gain_margin_db, margins.gain_margin_error_db, "dB", margins.gain_margin_problem, margins.target?.gain_margin_db),
+        margin("frf-pm", margins.phase_margin_deg, margins.phase_margin_error_deg, "°", margins.phase_margin_problem, margins.target?.phase_margin_deg),
+        h("td", { class: "mono" }, fmt(margins.gain_crossover_hz, 1, "Hz")),
+        h("td", { class: "mono" }, fmt(margins.phase_crossover_hz, 1, "Hz")),
         h("td", { class: "mono", testid: "frf-bw" }, fmt(p.bandwidth_hz, 1, "Hz")),
         h("td", { class: "mono" }, fmt(p.resonance_db, 1, "dB")),
-        h("td", null, p.margins.stable === null ? "—" : p.margins.stable ? "stable" : "UNSTABLE"),
+        h("td", null, margins.stable === null ? "—" : margins.stable ? "stable" : "UNSTABLE"),
       );
+    };
     const rows: HTMLElement[] = [];
     const reasons: HTMLElement[] = [];
     const warnings: HTMLElement[] = [];
@@ -540,7 +457,7 @@ export class FrfPanel {
   }
 
   /** Every measured tone with its bounds and why it is (not) trusted. */
-  private toneTable(run: FrfRun, m: Part): HTMLElement {
+  private toneTable(run: FrfRun, m: FrfMeasured): HTMLElement {
     const b = m.loop === "open" ? (m.plant ?? m.closed_loop) : m.closed_loop;
     const n = (v: number | null | undefined, digits: number): string => (v === null || v === undefined ? "—" : v.toFixed(digits));
     return h(

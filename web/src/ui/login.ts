@@ -3,16 +3,8 @@
 // a login failed. The session lives in an HttpOnly cookie the page cannot read.
 import { ApiError, request, setCsrfToken, setReauthHandler } from "../api";
 import { h, replace } from "../dom";
+import type { SessionInfo } from "../schema.gen";
 import "./auth.css";
-
-export interface SessionInfo {
-  mode: "local" | "exposed";
-  user: string | null;
-  role: string | null;
-  permissions: string[];
-  csrf_token: string;
-  via: string | null;
-}
 
 export function getSession(): Promise<SessionInfo> {
   return request<SessionInfo>("GET", "/api/auth/session");

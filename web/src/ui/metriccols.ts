@@ -3,7 +3,7 @@
 import type { RunMetrics } from "../api";
 import { h, setText } from "../dom";
 import { metricHelp } from "../metrics";
-import type { DeviceDescriptor } from "../schema.gen";
+import type { DeviceDescriptor, RunQuality as StoredQuality } from "../schema.gen";
 
 export interface MetricColumn {
   key: string; // testid suffix: bench-metric-{run}-{key}
@@ -24,11 +24,7 @@ export interface MetricColumn {
 /** What the server says of a finished run (servotune/bench/quality.py): ``bad`` runs are
  * not comparable (limit switch, stall, did not move, ended outside the window, cut
  * off); ``untrusted`` names the metrics set to null and why. */
-export interface RunQuality {
-  status: "good" | "doubtful" | "bad";
-  reasons: { code: string; message: string }[];
-  untrusted: Record<string, string>;
-}
+export type RunQuality = Required<Pick<StoredQuality, "status" | "reasons" | "untrusted">>;
 
 /** The quality of a run, if the server stored one (older runs have none). */
 export function qualityOf(run: object | null | undefined): RunQuality | null {

@@ -4,7 +4,7 @@
 import { request } from "../api";
 import { h } from "../dom";
 import { openAudit } from "./audit";
-import type { SessionInfo } from "./login";
+import type { SessionInfo } from "../schema.gen";
 import "./auth.css";
 
 /** Controls (by data-testid) and the permission each needs. Stop-group buttons and

@@ -110,7 +110,7 @@ export class RunOverlay {
       const t0 = triggerTime(run);
       const y = column(run, run.plan.response, t0, run.plan.y0);
       if (!y) continue;
-      const trace: Trace = { id: run.id, color: runColor, x: y.x, y: y.y, bold: run.baseline, settle: run.metrics?.settling_time_s ?? null };
+      const trace: Trace = { id: run.id, color: runColor, x: y.x, y: y.y, bold: run.baseline ?? false, settle: run.metrics?.settling_time_s ?? null };
       const gains = differing.map((p) => `${p}=${run.params[p] ?? "—"}`).join(" ");
       const label = `${shortId(run.id)} ${KINDS[run.test.kind]?.short ?? run.test.kind} ${testSize(run, this.units)}`;
       const legendValue = h("span", { class: "legend-value" }, "");

@@ -116,7 +116,7 @@ export class RunsTable {
       },
       run.baseline ? "★" : "☆",
     );
-    const when = clock(run.created_s);
+    const when = clock(run.created_s ?? 0);
     const quality = qualityOf(run);
     const spec = KINDS[run.test.kind];
     const changed = baseline && baseline.id !== run.id ? diffParams([baseline, run]) : [];
@@ -221,7 +221,7 @@ export class RunsTable {
   private async remove(run: BenchRun): Promise<void> {
     const ok = await confirmDialog(
       `Delete run ${shortId(run.id)}`,
-      `Delete the ${KINDS[run.test.kind]?.label ?? run.test.kind} ${testSize(run, this.units)} of ${clock(run.created_s).full} with all its samples? This cannot be undone (export it first to keep a copy).`,
+      `Delete the ${KINDS[run.test.kind]?.label ?? run.test.kind} ${testSize(run, this.units)} of ${clock(run.created_s ?? 0).full} with all its samples? This cannot be undone (export it first to keep a copy).`,
       "Delete",
     );
     if (!ok) return;

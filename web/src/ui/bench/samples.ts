@@ -33,9 +33,9 @@ export function detail(run: BenchRun): Promise<BenchRunDetail> {
  */
 export function triggerTime(run: BenchRunDetail): number {
   // The server stores the trigger time (t0_s) with every run it records: use it.
-  const stored = (run as { t0_s?: unknown }).t0_s;
+  const stored = run.t0_s;
   if (typeof stored === "number" && Number.isFinite(stored)) return stored;
-  const first = run.samples[0]?.[0] ?? 0;
+  const first = (run.samples[0]?.[0] as number | undefined) ?? 0;
   const estimate = first + PRE_TRIGGER_S;
   const m = run.metrics;
   const index = run.columns.indexOf(run.plan.response);

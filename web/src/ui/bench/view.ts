@@ -282,7 +282,7 @@ export class BenchView {
   /** The selected runs in display order: the baseline first, then oldest to newest. */
   private selectedRuns(): BenchRun[] {
     const sel = new Set(this.selection.ids());
-    return this.runs.filter((r) => sel.has(r.id)).sort((a, b) => Number(b.baseline) - Number(a.baseline) || a.created_s - b.created_s);
+    return this.runs.filter((r) => sel.has(r.id)).sort((a, b) => Number(b.baseline) - Number(a.baseline) || (a.created_s ?? 0) - (b.created_s ?? 0));
   }
 
   private async draw(): Promise<void> {
