@@ -98,8 +98,5 @@ def test_the_run_shapes_name_the_fields_the_bench_stores() -> None:
     assert list(ImportMetrics.model_fields) == metrics
     listed = {f.alias or name for name, f in schema.BenchRun.model_fields.items()}
     exported = {f.alias or name for name, f in RunExport.model_fields.items()}
-    # left_oscillating, loop_unverified: stored with a run whose after-check found the
-    # loop oscillating or could not tell, which the import's model does not name (bench
-    # area: such an export is refused on import).
-    assert listed - exported == {"left_oscillating", "loop_unverified"}
+    assert listed - exported == set()
     assert exported - listed == set()

@@ -161,6 +161,10 @@ class RunExport(_Strict):
     excitation: dict[str, Any] | None = None
     plant_model: dict[str, Any] | None = None
     trigger_latency_s: FiniteFloat | None = None
+    # What the check after the run found: the axis left oscillating, or its loop not
+    # verified (the run's quality names it too).
+    left_oscillating: dict[str, Any] | None = None
+    loop_unverified: dict[str, Any] | None = None
     return_: ImportReturn | None = Field(default=None, alias="return")
 
 
@@ -310,6 +314,8 @@ def store_import(
         "excitation",
         "plant_model",
         "trigger_latency_s",
+        "left_oscillating",
+        "loop_unverified",
     ):
         if stored.get(optional) is None:
             stored.pop(optional, None)

@@ -273,3 +273,30 @@ async def test_a_run_judged_by_an_older_rule_is_judged_again_when_imported_or_st
         assert untouched is not None and untouched["metrics"]["peak_time_s"] == 0.001
     finally:
         storage.close()
+
+
+async def test_a_run_the_after_check_marked_keeps_its_finding_through_export_and_import(
+    api: LiveServer,
+) -> None:
+    """A run after which the axis was found oscillating (or its loop could not be
+    verified) is exported with that finding; importing the export keeps it, and
+    the quality reason that names it, instead of refusing the file."""
+    _, meta, csv_text = await _exported(api)
+    for key, code in (
+        ("left_oscillating", "left_oscillating"),
+        ("loop_unverified", "loop_unverified"),
+    ):
+        marked = json.loads(json.dumps(meta))
+        finding = {
+            "reason": "oscillation",
+            "message": f"{code}: test",
+            "restored": True,
+            "holds": True,
+        }
+        marked[key] = finding
+        marked["quality"]["reasons"].insert(0, {"code": code, "message": finding["message"]})
+        response = await _import(api, marked, csv_text)
+        assert response.status_code == 201, response.text
+        imported = (await api.client.get(f"/api/bench/runs/{response.json()['id']}")).json()
+        assert imported[key] == finding
+        assert imported["quality"]["reasons"][0]["code"] == code
