@@ -492,7 +492,14 @@ async def test_z1100_capture_polls_one_motor(tmp_path: Path) -> None:
         async with capture_of(motor, "test"):
             assert running.sink.health[link.axis_id(0)][0] == "paused"
             assert running.sink.health[link.axis_id(2)] == ("paused", "paused: capture on motor 2")
-            await asyncio.sleep(0.2)
+            # A poll of the others may still be under way when the capture starts; once
+            # the capture's own samples arrive, the wire is the capture's alone.
+            captured_from = len(running.sink.samples[link.axis_id(1)])
+            await wait_for(
+                lambda: len(running.sink.samples[link.axis_id(1)]) >= captured_from + 3,
+                10,
+                "captured samples",
+            )
             others = [len(running.sink.samples[link.axis_id(i)]) for i in (0, 2)]
             captured = await _rate_z(running, 1, 1.5)
             assert [len(running.sink.samples[link.axis_id(i)]) for i in (0, 2)] == others
