@@ -228,8 +228,14 @@ async def _flood(lab: Lab, tmp_path: Path, rig: object, wire: object) -> None:
         assert gap - waited - hub_cpu_ms / 1000 < lease_s, (gap, waited, summary)
     # The move the hub started was not stopped by rig-a's dead-man (unless rig-a itself,
     # in this test's process, was starved of the CPU: the kernel's account again).
-    stopped = wire.first("st", 0, moved)  # type: ignore[attr-defined]
-    if stopped is not None:
+    # A STOP of a moving SLAP2 axis sends pm (a hold), or st and the spwm 0 brake when
+    # its loop could not be judged: any of them means it was stopped.
+    stops = [
+        at
+        for at, sent in wire.since(moved, 0)  # type: ignore[attr-defined]
+        if sent in ("st", "pm") or sent.replace(" ", "") == "spwm0"
+    ]
+    if stops:
         assert test_waited > lease_s, f"STOP on rig-a; this process waited {test_waited:.2f} s"
     else:
         assert wire.bus.module(0).rss & VM  # type: ignore[attr-defined]
