@@ -5,9 +5,7 @@ else waits it out and drops its reply (counted)."""
 from __future__ import annotations
 
 import asyncio
-import os
 import time
-import tty
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -15,22 +13,13 @@ import pytest
 
 from servotune.devices.slap2.echo import EchoLine
 from servotune.transports.base import LinkClosedError
-from servotune.transports.serial import SerialConnector
-from tests.support.pty_peer import PtyPeer
+from tests.support.pty_peer import PtyPeer, pty_channel
 
 
 @pytest.fixture
 async def pty_echo_line() -> AsyncIterator[tuple[int, EchoLine]]:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    path = os.ttyname(slave)
-    channel = await SerialConnector(path, 38400).open()
-    try:
+    async with pty_channel() as (master, channel):
         yield master, EchoLine(channel)
-    finally:
-        await channel.close()
-        os.close(master)
-        os.close(slave)
 
 
 # --- transact(then=...): the next read chained from the receive callback --------------

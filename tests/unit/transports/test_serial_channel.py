@@ -9,28 +9,19 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-import tty
 from collections.abc import AsyncIterator
 
 import pytest
 
 from servotune.transports.base import LinkClosedError
-from servotune.transports.serial import SerialChannel, SerialConnector
-from tests.support.pty_peer import PtyPeer
+from servotune.transports.serial import SerialChannel
+from tests.support.pty_peer import PtyPeer, pty_channel
 
 
 @pytest.fixture
 async def line() -> AsyncIterator[tuple[int, SerialChannel]]:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    path = os.ttyname(slave)
-    channel = await SerialConnector(path, 38400).open()
-    try:
-        yield master, channel
-    finally:
-        await channel.close()
-        os.close(master)
-        os.close(slave)
+    async with pty_channel() as opened:
+        yield opened
 
 
 async def test_read_at_least_waits_for_the_whole_count(line: tuple[int, SerialChannel]) -> None:
