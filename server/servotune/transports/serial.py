@@ -15,15 +15,23 @@ from servotune.transports.base import ByteChannel, LinkClosedError, ReceiveHandl
 
 
 class _Run:
-    """A handler being driven: its waiter and its deadline timer."""
+    """A handler being driven: the tasks waiting for its end, its deadline timer."""
 
-    __slots__ = ("armed_s", "future", "handler", "timer")
+    __slots__ = ("armed_s", "ended", "handler", "timer", "waiters")
 
-    def __init__(self, handler: ReceiveHandler, future: asyncio.Future[None]) -> None:
+    def __init__(self, handler: ReceiveHandler) -> None:
         self.handler = handler
-        self.future = future
+        self.ended = False
+        # One future per waiting task: a cancelled wait cancels its own only.
+        self.waiters: list[asyncio.Future[None]] = []
         self.timer: asyncio.TimerHandle | None = None
         self.armed_s = 0.0  # the deadline ``timer`` was armed for
+
+    async def wait(self, loop: asyncio.AbstractEventLoop) -> None:
+        if not self.ended:
+            waiter = loop.create_future()
+            self.waiters.append(waiter)
+            await waiter
 
 
 class _SerialProtocol(asyncio.Protocol):
@@ -70,7 +78,7 @@ class _SerialProtocol(asyncio.Protocol):
 
     def begin(self, handler: ReceiveHandler, now_s: float, *, detached: bool = False) -> _Run:
         """Install ``handler``, send what it starts with, feed it what is buffered."""
-        run = _Run(handler, self.loop.create_future())
+        run = _Run(handler)
         self.run = run
         if detached:
             self.detached = run
@@ -131,8 +139,11 @@ class _SerialProtocol(asyncio.Protocol):
             run.timer = None
         if self.run is run:
             self.run = None
-        if not run.future.done():
-            run.future.set_result(None)
+        if not run.ended:
+            run.ended = True
+            for waiter in run.waiters:
+                if not waiter.done():
+                    waiter.set_result(None)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.is_closed = True
@@ -194,13 +205,13 @@ class SerialChannel(ByteChannel):
 
     async def _settle(self) -> None:
         """Before any other use of the line: wait for a running follow-up to end, so
-        that its bytes never mix with the next exchange's. Shielded: a cancelled
-        caller leaves it running, for the next call to wait out."""
+        that its bytes never mix with the next exchange's. A cancelled caller leaves
+        it running, for the next call to wait out."""
         protocol = self._protocol
         detached = protocol.detached
         if detached is None:
             return
-        await asyncio.shield(detached.future)
+        await detached.wait(protocol.loop)
         if protocol.detached is detached:
             protocol.detached = None
 
@@ -208,14 +219,23 @@ class SerialChannel(ByteChannel):
         protocol = self._protocol
         detached = protocol.detached
         if detached is not None and detached.handler is handler:
-            await self._settle()
+            if not detached.ended:
+                waiter = protocol.loop.create_future()
+                detached.waiters.append(waiter)
+                await waiter
+            if protocol.detached is detached:
+                protocol.detached = None
             self._check_open()
             return
-        await self._settle()
+        if detached is not None:
+            await self._settle()
         self._check_open()
         run = protocol.begin(handler, time.monotonic())
         try:
-            await run.future
+            if not run.ended:  # (inline: this is every exchange's path)
+                waiter = protocol.loop.create_future()
+                run.waiters.append(waiter)
+                await waiter
         finally:
             if protocol.run is run:
                 protocol.end(run)  # cancelled: the handler ends where it is
@@ -266,7 +286,7 @@ class SerialChannel(ByteChannel):
 
     def discard_input(self) -> bytes:
         detached = self._protocol.detached
-        if detached is not None and not detached.future.done():
+        if detached is not None and not detached.ended:
             return b""  # what came belongs to the follow-up under way
         data = bytes(self._protocol.buffer)
         self._protocol.buffer.clear()

@@ -273,8 +273,10 @@ class EchoLine:
         over; any other call first lets it end and drops its outcome. A caller that
         must know how a dropped one ended calls ``settle`` before its next exchange.
         """
-        await self.settle(data)
         chained = self._chained
+        if chained is not None and chained.payload != data:
+            await self.settle()
+            chained = None
         if chained is not None:
             # Chained by the previous transact: already under way (or done).
             chained.then, chained.may_chain = then, may_chain
