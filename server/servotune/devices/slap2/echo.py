@@ -294,7 +294,11 @@ class EchoLine:
                 then=then,
                 may_chain=may_chain,
             )
-            await self.channel.drive(handler)
+            try:
+                await self.channel.drive(handler)
+            finally:  # (cancelled right after it chained: the chain is still known)
+                self._chained = handler.chained
+            return handler.outcome()
         self._chained = handler.chained
         return handler.outcome()
 
