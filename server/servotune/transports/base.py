@@ -78,6 +78,11 @@ class ByteChannel(Protocol):
         (a cancelled wait leaves it running). Cancelling ``drive`` of any other
         handler ends that handler where it is. Raises ``LinkClosedError`` if the port
         is closed, or closes before the handler is done.
+
+        ``expire`` comes when the deadline armed first has passed and then whenever
+        the handler's current ``deadline_s`` has: a deadline that moves earlier than
+        the armed one (a long first wait, then a short gap) is noticed only when the
+        armed one fires.
         """
         ...
 

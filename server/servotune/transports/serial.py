@@ -17,7 +17,7 @@ from servotune.transports.base import ByteChannel, LinkClosedError, ReceiveHandl
 class _Run:
     """A handler being driven: the tasks waiting for its end, its deadline timer."""
 
-    __slots__ = ("armed_s", "ended", "handler", "timer", "waiters")
+    __slots__ = ("ended", "handler", "timer", "waiters")
 
     def __init__(self, handler: ReceiveHandler) -> None:
         self.handler = handler
@@ -25,7 +25,6 @@ class _Run:
         # One future per waiting task: a cancelled wait cancels its own only.
         self.waiters: list[asyncio.Future[None]] = []
         self.timer: asyncio.TimerHandle | None = None
-        self.armed_s = 0.0  # the deadline ``timer`` was armed for
 
     async def wait(self, loop: asyncio.AbstractEventLoop) -> None:
         if not self.ended:
@@ -102,20 +101,17 @@ class _SerialProtocol(asyncio.Protocol):
             if follow is not None:
                 self.begin(follow, now_s, detached=True)
             return
-        deadline_s = handler.deadline_s
-        if deadline_s is None:
-            return
-        # A later deadline leaves the armed timer (it re-arms itself when it fires
+        # A moved deadline leaves the armed timer (it re-arms itself when it fires
         # early): cancelling and re-arming for every byte would cost more than the
-        # rest of the per-byte work.
-        if run.timer is None or deadline_s < run.armed_s:
-            if run.timer is not None:
-                run.timer.cancel()
-            self.arm(run, deadline_s, now_s)
+        # rest of the per-byte work. So one moved earlier is checked only when the
+        # armed one fires (see ``ByteChannel.drive``).
+        if run.timer is None:
+            deadline_s = handler.deadline_s
+            if deadline_s is not None:
+                self.arm(run, deadline_s, now_s)
 
     def arm(self, run: _Run, deadline_s: float, now_s: float) -> None:
         # The loop's clock may differ from time.monotonic() (uvloop): arm by the delay.
-        run.armed_s = deadline_s
         run.timer = self.loop.call_at(self.loop.time() + (deadline_s - now_s), self.on_timer, run)
 
     def on_timer(self, run: _Run) -> None:
