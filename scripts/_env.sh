@@ -26,8 +26,28 @@ ensure_web() {
     (cd "$ROOT/web" && npm ci --no-audit --no-fund --loglevel=error)
     touch "$stamp"
   fi
+  # The build (`tsc --noEmit && vite build`) runs again only when what it reads changed:
+  # the digest of its inputs is kept beside a bundle that was built from them.
+  local digest_file="$ROOT/server/servotune/web_dist/.servotune-inputs"
+  local digest
+  digest="$(web_inputs_digest)"
+  if [ -f "$ROOT/server/servotune/web_dist/index.html" ] && [ -f "$digest_file" ] \
+    && [ "$(cat "$digest_file")" = "$digest" ]; then
+    echo "==> the web bundle is up to date (type-checked and built from these sources)"
+    return
+  fi
   echo "==> building the web bundle"
   (cd "$ROOT/web" && npm run --silent build)
+  echo "$digest" > "$digest_file"
+}
+
+web_inputs_digest() {  # what the web build reads: sources, configs, locked packages, node
+  (
+    cd "$ROOT/web"
+    node --version
+    find src index.html package.json package-lock.json tsconfig.json vite.config.ts \
+      node_modules/.package-lock.json -type f -print0 | LC_ALL=C sort -z | xargs -0 sha256sum
+  ) | sha256sum | cut -d' ' -f1
 }
 
 ensure_chromium() {

@@ -1,7 +1,8 @@
 """Details a user meets on a SLAP2 line, in headless Chromium: the console's
 answer to a command without a reply and to one the device refused (7), a gain slider
 moved by arrow keys writes once when the keys rest, not once per step (6), and a
-tile of the rig overview opens its axis (5).
+tile of the rig overview opens its axis (5), and an edit made while the tuning panel
+reads the device is kept.
 """
 
 from __future__ import annotations
@@ -9,10 +10,11 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from playwright.async_api import Page, Request, expect
+from playwright.async_api import Browser, Page, Request, Route, WebSocketRoute, expect
 
 from tests.support.paths import ARTIFACTS
 from tests.support.servers import LiveServer
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.browser
 
@@ -110,3 +112,67 @@ async def test_the_live_plot_of_a_captured_axis_gets_every_captured_sample(
     recorded = len(run["samples"])
     assert recorded > 20, recorded
     assert received >= recorded, f"the page got {received} samples of the run's {recorded}"
+
+
+async def test_an_edit_made_while_the_panel_reads_the_device_is_kept(
+    slap2: LiveServer, browser: Browser
+) -> None:
+    """The tuning panel reads the device when it opens; the websocket may bring the
+    device's values first, and the user may edit a field before the read answers. That
+    read must fill in the device values, not throw the user's edit away.
+
+    Both orders are forced: the websocket's ``params`` messages and the panel's
+    ``GET …/params`` are held by Playwright routes and let go one after the other."""
+    held_messages: list[str] = []
+    hold_params = True
+    pages: list[WebSocketRoute] = []
+
+    async def socket(ws: WebSocketRoute) -> None:
+        server = ws.connect_to_server()
+        pages.append(ws)
+
+        def to_page(message: str | bytes) -> None:
+            if (
+                hold_params
+                and isinstance(message, str)
+                and '"type":"params"' in message.replace(" ", "")
+            ):
+                held_messages.append(message)
+            else:
+                ws.send(message)
+
+        server.on_message(to_page)
+
+    held_reads: list[Route] = []
+
+    async def params(route: Route) -> None:
+        if route.request.method == "GET":
+            held_reads.append(route)
+        else:
+            await route.continue_()
+
+    page = await browser.new_page(viewport={"width": 1400, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    await page.route_web_socket("**/ws", socket)
+    await page.route("**/api/axes/line-0/params", params)
+    await page.goto(f"{slap2.base_url}/#/axis/line-0")
+    device = page.get_by_test_id("param-kp-device")
+    await expect(device).to_have_text("—", timeout=10_000)
+    await wait_for(lambda: bool(held_reads and held_messages), timeout_s=10)
+    hold_params = False
+    for message in held_messages:
+        pages[0].send(message)
+    await expect(device).to_have_text("40", timeout=5000)
+    field = page.get_by_test_id("param-kp-input")
+    await field.fill("55")  # staged in the field, not written (no Enter)
+    row = page.locator("[data-param='kp']")
+    await expect(row).to_have_attribute("data-differs", "1")
+    await held_reads[0].continue_()
+    await expect(page.get_by_test_id("tuning-status")).to_contain_text("✓ Read", timeout=5000)
+    await expect(row).to_have_attribute("data-differs", "1")
+    await page.get_by_test_id("tuning-status").click()  # the field loses focus
+    await expect(field).to_have_value("55")
+    assert slap2.bus.module(0).settings["kp"] == 40
+    assert not errors, errors
+    await page.close()

@@ -23,7 +23,7 @@ from servotune.link.base import BenchKind, DeviceRefusedError, DriverError, Samp
 # "No telemetry" means the link is down, not that a loaded host polled late: a link
 # that delivers nothing for this long is also shown down by its status.
 SAMPLE_TIMEOUT_S: Final = 2.0
-RUN_GRACE_S: Final = 10.0  # a recorded test may finish this much after its duration
+RUN_GRACE_S: Final = 15.0  # a recorded test may finish this much after its duration
 # At rest before an identification: the position watched this long (and over at least
 # REST_SAMPLES samples) must stay within REST_SPREAD_COUNTS. An axis ringing in a limit
 # cycle shows no move flag (the profile has ended) and may read no velocity at the
@@ -183,11 +183,11 @@ class TuningContext:
         """Run a bench test of ``kind`` (recorded like any other) and wait for it:
         ``wanted_s`` long at most the bench's duration limit. Returns its metadata
         (with ``samples``: the whole run); DriverError when it does not complete, or
-        when it left the axis oscillating (the bench then brought it to rest and put
-        ``restore_gains`` back, default the gains in force when it started) unless
-        ``oscillation_is_a_result`` (a baseline of gains that may oscillate: the run,
-        with its ``left_oscillating``, is returned; the axis is at rest, maybe
-        unpowered)."""
+        when it left the axis oscillating or its loop could not be verified after it
+        (the bench then brought it to rest and put ``restore_gains`` back, default the
+        gains in force when it started) unless ``oscillation_is_a_result`` (a baseline
+        of gains that may oscillate: the run, with its ``left_oscillating`` or
+        ``loop_unverified``, is returned; the axis is at rest, maybe unpowered)."""
         limits = await self.bench.limits(entry.info.id)
         duration = min(limits.max_duration_s, wanted_s)
         started = await self.bench.start_run(
@@ -203,7 +203,7 @@ class TuningContext:
             if run["status"] != "recording":
                 if run["status"] != "complete":
                     raise DriverError(f"test {run_id} {run['status']}: {run.get('message')}")
-                left = run.get("left_oscillating")
+                left = run.get("left_oscillating") or run.get("loop_unverified")
                 if left and not oscillation_is_a_result:
                     raise DriverError(f"test {run_id}: {left['message']}")
                 return await self.bench.get_run(run_id) if samples else run

@@ -25,14 +25,13 @@ import asyncio
 import contextlib
 import math
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
-from servotune.bench import frf
+from servotune.bench.kinds import FLAGS_T_COLUMN, TestKind
 from servotune.bench.limits import BenchLimits as BenchLimits  # importable from here too
 from servotune.bench.limits import LimitsStore
-from servotune.bench.metrics import compute_metrics
-from servotune.bench.quality import POSITION_KINDS, assess
+from servotune.bench.quality import assess
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.hub.stops import Settled, gains_of
@@ -52,10 +51,6 @@ from servotune.storage import Storage
 from servotune.tuning.frfrun import Excitation
 
 PRE_TRIGGER_S = 0.2
-FLAGS_T_COLUMN = "flags_t_s"
-"""The recorded column of when each sample's flags were read (``Sample.flags_t``; the
-sample's own time where the driver reads them with it): time to a polled flag is
-located between its reads, not at the samples that carry an older read."""
 FLUSH_PERIOD_S = 0.5
 SETTLED_HOLD_S = 0.3
 RETURN_TIMEOUT_S = 5.0  # after the return move's profile time
@@ -90,9 +85,16 @@ class Recording:
 
 
 def left_oscillating(quality: dict[str, Any], settled: Settled) -> dict[str, Any]:
-    """The run's quality with the reason that it left the axis oscillating first."""
-    reason = {"code": "left_oscillating", "message": settled.message}
-    return {**quality, "status": "bad", "reasons": [reason, *quality.get("reasons", [])]}
+    """The run's quality with what the check after it found first: the axis left
+    oscillating (``bad``), or its loop not verified (``loop_unverified``: at least
+    ``doubtful``)."""
+    if settled.found == "oscillating":
+        code, status = "left_oscillating", "bad"
+    else:
+        code = "loop_unverified"
+        status = "bad" if quality.get("status") == "bad" else "doubtful"
+    reason = {"code": code, "message": settled.message}
+    return {**quality, "status": status, "reasons": [reason, *quality.get("reasons", [])]}
 
 
 def run_meta(entry: AxisEntry, test: dict[str, Any], plan: BenchPlan) -> dict[str, Any]:
@@ -276,7 +278,9 @@ class Runner:
                 stop_generation=recording.stop_generation,
             )
 
-    async def run(self, recording: Recording, test: BenchTest, meta: dict[str, Any]) -> None:
+    async def run(
+        self, recording: Recording, test: BenchTest, meta: dict[str, Any], kind: TestKind
+    ) -> None:
         entry, plan = recording.entry, recording.plan
         status, message = "complete", ""
         saved: dict[str, int] = {}
@@ -316,7 +320,7 @@ class Runner:
                             await exciter
             await self._send(recording, plan.finish)
             recording.ended = True
-            if test.kind in POSITION_KINDS:
+            if kind.returns_to_start:
                 # The profile of the test stays in force only for the test: the way
                 # back is an ordinary move with the axis' own profile.
                 if saved:
@@ -374,9 +378,14 @@ class Runner:
                         "sent": recording.sent,
                         "spans": recording.spans,
                     }
-                meta["metrics"], meta["quality"] = self._metrics(recording, test, status, message)
+                meta["metrics"], meta["quality"] = self._metrics(
+                    recording, test, kind, status, message
+                )
                 if settled is not None:
-                    meta["left_oscillating"] = settled.as_dict()
+                    key = (
+                        "left_oscillating" if settled.found == "oscillating" else "loop_unverified"
+                    )
+                    meta[key] = settled.as_dict()
                     meta["quality"] = left_oscillating(meta["quality"], settled)
                 await asyncio.to_thread(self._storage.finish_run, recording.run_id, status, meta)
                 self.update(recording, status, message or "done")
@@ -474,45 +483,12 @@ class Runner:
                     settled_since = None
 
     def _metrics(
-        self, recording: Recording, test: BenchTest, status: str, message: str
+        self, recording: Recording, test: BenchTest, kind: TestKind, status: str, message: str
     ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
-        """The run's metrics (untrusted ones null) and its quality (``bench.quality``)."""
+        """The run's metrics (the kind's; untrusted ones null) and its quality
+        (``bench.quality``)."""
         plan = recording.plan
-        raw: dict[str, Any] | None = None
-        if test.kind != frf.KIND and recording.t0 is not None and recording.samples:
-            index = recording.columns.index(plan.response)
-            rows = [r for r in recording.samples if r[index] is not None]
-            if len(rows) >= 3:
-                error_index = (
-                    recording.columns.index("following_error")
-                    if "following_error" in recording.columns
-                    else None
-                )
-                flag_series = {
-                    name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(recording.flags)
-                }
-                flags_t_index = (
-                    recording.columns.index(FLAGS_T_COLUMN)
-                    if FLAGS_T_COLUMN in recording.columns
-                    else None
-                )
-                raw = asdict(
-                    compute_metrics(
-                        [r[0] for r in rows],
-                        [r[index] for r in rows],
-                        t0_s=recording.t0,
-                        y0=plan.y0,
-                        y_final=plan.y_final,
-                        band=plan.band,
-                        following_error=(
-                            [r[error_index] for r in rows] if error_index is not None else None
-                        ),
-                        flags=flag_series,
-                        flags_t_s=(
-                            [r[flags_t_index] for r in rows] if flags_t_index is not None else None
-                        ),
-                    )
-                )
+        raw = kind.metrics(recording)
         return assess(
             kind=test.kind,
             columns=recording.columns,

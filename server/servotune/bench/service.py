@@ -14,9 +14,11 @@ the limit), a kind the device cannot run or an axis already under test (409).
 The seam: this module is the bench's front desk — what the API and the hub's peers
 call: the request model, the refusals, the plan and the stored run, then the stored
 runs (list, read, export, import). ``TestBench`` has the parts: a ``LimitsStore``
-(``servotune.bench.limits``, the per-axis limits in storage), the ``ActiveRuns`` table and
-the ``Runner`` (``servotune.bench.runner``: what happens once a test has started — the
-recorder, the test's sequence, the checks while it runs, the metrics).
+(``servotune.bench.limits``, the per-axis limits in storage), the ``KindTable``
+(``servotune.bench.kinds``: what differs per kind of test — its checks, its plan, its
+metrics), the ``ActiveRuns`` table and the ``Runner`` (``servotune.bench.runner``: what
+happens once a test has started — the recorder, the test's sequence, the checks while
+it runs, the metrics).
 
 """
 
@@ -35,9 +37,9 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
-from servotune.bench import files, frf
+from servotune.bench import files
+from servotune.bench.kinds import KindTable, TestKind
 from servotune.bench.limits import BenchLimits, LimitsStore
-from servotune.bench.quality import POSITION_KINDS
 from servotune.bench.runner import ActiveRuns, ExternalRecording, Recording, Runner, run_meta
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
@@ -54,7 +56,6 @@ from servotune.link.validation import validate_command, validate_params
 from servotune.schema import BenchTestRequest as BenchTestRequest  # importable from here too
 from servotune.schema import StorageStatus
 from servotune.storage import Storage, StorageError
-from servotune.tuning.frfrun import Excitation
 from servotune.tuning.law import DeviceLaws
 
 logger = logging.getLogger(__name__)
@@ -86,6 +87,7 @@ class TestBench:
         self._hub = hub
         self._storage = storage
         self.laws = laws
+        self._kinds = KindTable.standard(laws)
         self._clock = clock
         self._active = ActiveRuns()
         self._limits = LimitsStore(hub, storage)
@@ -210,34 +212,14 @@ class TestBench:
             )
         limits = await self.limits(axis_id)
         self._check_limits(request, limits)
-        if request.kind == frf.KIND:
-            inject = frf.injection_for(self.laws.law(entry.info.device))
-            frf.check_request(
-                entry.info.device,
-                inject,
-                request.amplitude,
-                request.low_hz,
-                request.high_hz,
-                request.duration_s,
-                limits.max_distance_counts,
-                loop=request.loop,
-                pwm=request.pwm,
-                max_pwm=limits.max_pwm,
-                confirm_open_loop=request.confirm_open_loop,
-                window=(limits.min_position_counts, limits.max_position_counts),
-                baud=entry.link.baud,
-            )
-            if inject is None and not identified:
-                raise DeviceRefusedError(
-                    f"a {entry.info.device} frequency response is model-based: identify the "
-                    "plant first (auto-tune, Identify)"
-                )
+        kind = self._kinds.get(request.kind)
+        kind.check(entry, request, limits, identified)
         if self._active.busy(axis_id):
             raise DeviceRefusedError("a test is already running on this axis")
         # Claimed before the first await, so a second request cannot slip in.
         with self._active.claim(axis_id):
             return await self._start_claimed(
-                axis_id, entry, driver, request, limits, identified, restore_gains
+                axis_id, entry, driver, kind, request, limits, identified, restore_gains
             )
 
     async def _start_claimed(
@@ -245,6 +227,7 @@ class TestBench:
         axis_id: str,
         entry: AxisEntry,
         driver: BenchPlanner,
+        kind: TestKind,
         request: BenchTestRequest,
         limits: BenchLimits,
         identified: Mapping[str, Any] | None = None,
@@ -260,35 +243,9 @@ class TestBench:
             pwm=request.pwm,
             duration_s=request.duration_s,
         )
-        excitation: Excitation | None = None
-        model_based = False
-        inject = frf.injection_for(self.laws.law(entry.info.device))
-        if test.kind == frf.KIND:
-            if inject is not None and request.loop == "open":
-                plan, excitation = frf.plan_open(
-                    inject,
-                    entry.latest,
-                    request.pwm,
-                    request.low_hz,
-                    request.high_hz,
-                    entry.link.baud,
-                )
-            elif inject is not None:
-                plan, excitation = frf.plan_closed(
-                    inject,
-                    entry.latest,
-                    entry.device_values,
-                    request.amplitude,
-                    request.low_hz,
-                    request.high_hz,
-                    entry.link.baud,
-                )
-                self._check_excursion(plan.y0, request.amplitude, limits)
-            else:
-                plan, model_based = frf.model_plan(entry.latest), True
-        else:
-            plan = driver.bench_plan(test, entry.latest, entry.device_values)
-        self._check_window(test, plan, entry.latest, limits)
+        planned = kind.plan(entry, driver, test, request, entry.latest, limits)
+        plan = planned.plan
+        self._check_window(kind, test, plan, entry.latest, limits)
         # The plan is checked like user input before anything moves (422 naming the
         # field): a test must not put a value on the wire the descriptor forbids.
         if plan.overrides:
@@ -297,19 +254,11 @@ class TestBench:
             validate_command(entry.driver.descriptor, name, args)
         self._hub.mark_operated(entry)
         run_id = uuid.uuid4().hex[:12]
-        test_dict = asdict(test) | {"note": request.note}
-        if test.kind == frf.KIND:
-            test_dict |= {
-                "amplitude": request.amplitude,
-                "low_hz": request.low_hz,
-                "high_hz": request.high_hz,
-                "model_based": model_based,
-                "loop": request.loop,
-            }
+        test_dict = asdict(test) | {"note": request.note} | planned.test
         meta = run_meta(entry, test_dict, plan)
         columns, flags = meta["columns"], meta["flags"]
         created_s = time.time()
-        if model_based:
+        if planned.model_based:
             return await self._model_run(run_id, entry, axis_id, created_s, meta, identified)
         await asyncio.to_thread(
             self._storage.create_run, run_id, entry.storage_key, axis_id, created_s, meta
@@ -321,11 +270,11 @@ class TestBench:
             columns,
             flags,
             stop_generation=entry.stop_generation,
-            excitation=excitation,
+            excitation=planned.excitation,
             restore_gains=dict(restore_gains) if restore_gains else None,
         )
         self._active.add(axis_id, recording)
-        task = asyncio.create_task(self._runner.run(recording, test, meta))
+        task = asyncio.create_task(self._runner.run(recording, test, meta, kind))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
         self._runner.update(recording, "recording", "armed")
@@ -395,18 +344,8 @@ class TestBench:
         }
 
     @staticmethod
-    def _check_excursion(y0: float, amplitude: int, limits: BenchLimits) -> None:
-        """A multisine must stay inside the travel window at its peaks (422)."""
-        for edge in (y0 - amplitude, y0 + amplitude):
-            if why := limits.outside(edge):
-                raise InvalidArgumentError(
-                    "amplitude",
-                    f"amplitude {amplitude} around {y0:.0f} would reach {why} (bench limits)",
-                )
-
-    @staticmethod
     def _check_window(
-        test: BenchTest, plan: BenchPlan, latest: Sample, limits: BenchLimits
+        kind: TestKind, test: BenchTest, plan: BenchPlan, latest: Sample, limits: BenchLimits
     ) -> None:
         """Refuse a test that starts or ends outside the user's travel window (422)."""
         position = latest.channels.get("position")
@@ -414,7 +353,7 @@ class TestBench:
             raise InvalidArgumentError(
                 "distance", f"the axis stands outside your travel window: {why}"
             )
-        if test.kind in POSITION_KINDS and (why := limits.outside(plan.y_final)):
+        if kind.returns_to_start and (why := limits.outside(plan.y_final)):
             raise InvalidArgumentError(
                 "distance", f"distance {test.distance} would end at {why} (bench limits)"
             )

@@ -67,3 +67,7 @@ class LinkEntry:
     running: bool = False
     updated_at: float = 0.0
     restarts: int = 0
+    # The link's ``host_stalls`` counter as last published, and when it last grew (the
+    # hub's clock; None: never): its timeouts were excused, the host held its bytes.
+    host_stalls: int = 0
+    host_stalled_at: float | None = None

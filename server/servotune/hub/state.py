@@ -58,6 +58,11 @@ logger = logging.getLogger(__name__)
 
 # A link that has not published its status for this long is shown stalled, not connected.
 STATUS_STALE_S = 3.5
+# The server's own loop: the fan-out takes the telemetry every ``BATCH_PERIOD_S``; a
+# take this much later than the one before means the whole server did not run (a
+# host far beyond its cores), its links included. Their silence over that time is
+# not theirs: they are judged for staleness from the loop's return.
+LOOP_STALL_S: Final = 1.0
 # An axis shown "ok" whose link is up (connected, or error while it still polls) and
 # that sent no telemetry sample for this long is shown offline. A module on a
 # shared line can stop answering its polls while the others answer: the link then
@@ -67,6 +72,12 @@ STATUS_STALE_S = 3.5
 # to STATUS_STALE_S, the hub's horizon for a link that stopped reporting, so a short
 # hold-up of a busy host does not trip it.
 AXIS_SILENT_S: Final = 3.0
+# ... unless its link excused timeouts because the host itself held the bytes back
+# (``host_stalls`` grew within the last HOST_HELD_RECENT_S): the device answers, the
+# host delays it. Judged again then, for at most HOST_HELD_GRACE_S more (the link's own
+# bound on that excuse, ``link.engine.TTY_STALL_EXCUSE_S``).
+HOST_HELD_RECENT_S: Final = 2.0
+HOST_HELD_GRACE_S: Final = 5.0
 
 
 class UnknownAxisError(KeyError):
@@ -99,6 +110,10 @@ class HubState:
         # Background tasks: saves and pending STOP deliveries (cancelled by the hub's stop).
         self.tasks: list[asyncio.Task[None]] = []
         self._sample_listeners: list[Callable[[str, Sample], None]] = []
+        # The fan-out's last telemetry take (None: not running), and when the server's
+        # loop last came back from a stall (see LOOP_STALL_S).
+        self._loop_beat: float | None = None
+        self._loop_back_at = 0.0
         # Every stop of an axis goes through it (servotune.hub.stops).
         self.stops = StopService(self.on_event, clock=clock)
         self.delivery = StopDelivery(self, self.stops, clock=clock)
@@ -186,7 +201,11 @@ class HubState:
         if not link_entry.running:
             self.show_link_down(link_entry, "the link's task is not running")
             return
-        silent_s = self._clock() - link_entry.updated_at
+        now = self._clock()
+        beat = self._loop_beat
+        if beat is not None and now - beat >= LOOP_STALL_S:
+            return  # the loop is just back from a stall: the fan-out will say so
+        silent_s = now - max(link_entry.updated_at, self._loop_back_at)
         if link_entry.updated_at and silent_s > STATUS_STALE_S:
             self.on_link_status(
                 status.link,
@@ -285,6 +304,10 @@ class HubState:
         if link_entry.restarts:
             counters["restarts"] = counters.get("restarts", 0) + link_entry.restarts
         link_entry.updated_at = self._clock()
+        host_stalls = counters.get("host_stalls", 0)
+        if host_stalls > link_entry.host_stalls:
+            link_entry.host_stalled_at = link_entry.updated_at
+        link_entry.host_stalls = host_stalls
         link_entry.status = LinkStatus(
             link=link_id,
             state=state,
@@ -441,7 +464,21 @@ class HubState:
 
     def take_telemetry(self, build: bool) -> list[str]:
         """Every axis' samples since the last call, taken; one telemetry message (JSON)
-        per axis that had any if ``build`` (the fan-out has clients)."""
+        per axis that had any if ``build`` (the fan-out has clients). Also the
+        server's heartbeat (``LOOP_STALL_S``): a take that comes that late after the
+        last one means the server did not run meanwhile; said once in a warning
+        event, and the links' staleness is judged from now."""
+        now = self._clock()
+        beat, self._loop_beat = self._loop_beat, now
+        if beat is not None and now - beat >= LOOP_STALL_S:
+            self._loop_back_at = now
+            if now - beat >= STATUS_STALE_S:
+                self.on_event(
+                    "warning",
+                    None,
+                    f"the server did not run for {now - beat:.1f} s (the host is "
+                    "overloaded): telemetry and link status were held up meanwhile",
+                )
         messages = []
         for entry in self._axes.values():
             if not entry.pending:
@@ -469,14 +506,26 @@ class HubState:
         that got no sample for ``AXIS_SILENT_S``: its device does not answer its polls
         although the line works. Its next sample shows it ok again (``on_sample``).
         Axes paused, offline or reset and links connecting or disconnected are not
-        judged: no telemetry is expected from them."""
+        judged: no telemetry is expected from them. A link that excused timeouts
+        because the host held its bytes back (``HOST_HELD_RECENT_S``) gets
+        ``HOST_HELD_GRACE_S`` more: the device answers, its bytes are late. The
+        server's own stall (``LOOP_STALL_S``) is not the device's: judged from its end."""
         for entry in self._axes.values():
             if entry.health != "ok" or entry.silent:
                 continue
-            if self._links[entry.link.id].status.state not in ("connected", "error"):
+            link_entry = self._links[entry.link.id]
+            if link_entry.status.state not in ("connected", "error"):
                 continue
-            silent_s = now - entry.last_sample_at
+            # Judged from the server's return from a stall, if later (LOOP_STALL_S).
+            silent_s = now - max(entry.last_sample_at, self._loop_back_at)
             if silent_s < AXIS_SILENT_S:
+                continue
+            held_at = link_entry.host_stalled_at
+            if (
+                held_at is not None
+                and now - held_at < HOST_HELD_RECENT_S
+                and silent_s < AXIS_SILENT_S + HOST_HELD_GRACE_S
+            ):
                 continue
             entry.silent = True
             entry.health = "offline"

@@ -15,8 +15,16 @@ end or abort of a bench run or an auto-tune step), and the explicit power-off
   watched until it is at rest (``hub.loopcheck.at_rest``), at most ``WATCH_S``: if the loop
   oscillates, runs away or holds the current limit meanwhile, or the axis is not at
   rest by then, it gets the brake and an error event says why.
+* A watch whose telemetry stops for ``WATCH_SILENT_S`` (a link down, a device that
+  stopped answering its polls) says so in a warning event: the hold is *not verified*.
+  Nothing is sent on no evidence (a brake or a power-off would drop a vertical axis that
+  may well be holding). The watch goes on until telemetry returns and then judges the
+  samples after the gap afresh, as after the stop itself: at rest is told (an info
+  event), a loop that does not work gets the brake. It never ends silently without a
+  verdict; only a new change of the axis or the hub's stop ends it.
 * A brake (``action == "brake"``) is switched off (``StopModes.power_off``) once the
-  axis is at rest, at the latest after ``BRAKE_MAX_S``.
+  axis is at rest, at the latest after ``BRAKE_MAX_S``; the event says whether it was
+  seen at rest or switched off on the time limit.
 * A new change of the axis (any command, write, console line) ends its watch: what
   the user does next is theirs (``cancel_watch``).
 
@@ -37,7 +45,7 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final, Literal, Protocol, runtime_checkable
 
@@ -67,9 +75,16 @@ WATCH_S: Final = 3.0
 BRAKE_MAX_S: Final = 2.0
 # How often the watch looks at the samples.
 WATCH_PERIOD_S: Final = 0.02
+# A watch without a new sample for this long says the hold is not verified (as long as
+# the hub's own horizon for an axis that sent no sample, ``hub.state.AXIS_SILENT_S``:
+# a short hold-up of a busy host is not an outage).
+WATCH_SILENT_S: Final = 3.0
 # After a bench run or an auto-tune step the axis is watched this long for a loop that
 # does not work (enough for four swings of the slowest limit cycle seen, ~3 Hz).
 SETTLE_WATCH_S: Final = 1.5
+# Telemetry too sparse to judge the loop by then (a starved host, a hole in it): the
+# check waits this much longer for evidence before it treats the loop as not working.
+SETTLE_EVIDENCE_S: Final = 3.5
 
 StopKind = Literal["stop", "controlled", "power_off"]
 
@@ -85,6 +100,8 @@ class _Axis:
     # Stops of this axis so far, and the outcome of its watches (tests, benchmark).
     watches: int = 0
     escalations: int = 0
+    # The running watch has had no telemetry for WATCH_SILENT_S: its hold is not verified.
+    unverified: bool = False
 
 
 class StopService:
@@ -95,9 +112,12 @@ class StopService:
         on_event: Callable[[EventLevel, str | None, str], None],
         *,
         clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
     ) -> None:
         self._on_event = on_event
         self._clock = clock
+        # The watches' pause between two looks (tests inject one that moves their clock).
+        self._sleep = sleep
         self._axes: dict[str, _Axis] = {}
 
     # --- what the hub feeds in ----------------------------------------------------------
@@ -130,6 +150,12 @@ class StopService:
     def watching(self, axis_id: str) -> bool:
         ax = self._axes.get(axis_id)
         return ax is not None and ax.watch is not None and not ax.watch.done()
+
+    def unverified(self, axis_id: str) -> bool:
+        """The axis' watch after a stop has had no telemetry for ``WATCH_SILENT_S`` and
+        waits for it: whether the axis rests and holds is not known."""
+        ax = self._axes.get(axis_id)
+        return ax is not None and ax.unverified and self.watching(axis_id)
 
     def cancel_watch(self, axis_id: str) -> None:
         """A new change of the axis: what follows is the user's (see the module doc)."""
@@ -215,64 +241,131 @@ class StopService:
         watch_s: float = SETTLE_WATCH_S,
     ) -> Settled | None:
         """After a bench run or an auto-tune step: nothing the product started may be
-        left oscillating. Watches the axis until it is at rest, at most ``watch_s``
-        (unpowered and still counts as at rest too); if its loop is not working
-        (``hub.loopcheck``), brings it to rest without the loop (the brake, then power off
-        at rest), writes ``restore`` (the gains in force before the run, or the last
-        verified ones) where they differ from ``gains_now``, and holds with them, watched
-        like any hold. Returns what it found and did (None: the loop works, or there was
-        nothing to judge); says it in an error event."""
+        left oscillating. Watches the axis until it is at rest, at most ``watch_s`` of
+        its telemetry (unpowered and still counts as at rest too). Returns None only on
+        evidence: at rest in telemetry dense enough to judge the loop, a loop judged
+        working (``hub.loopcheck``), or the loop off.
+
+        If the loop is not working, brings the axis to rest without the loop (the brake,
+        then power off at rest), writes ``restore`` (the gains in force before the run,
+        or the last verified ones) where they differ from ``gains_now``, and holds with
+        them, watched like any hold; with no other gains to go back to (the ones in
+        force oscillate) it is left unpowered. Says it in an error event.
+
+        If the telemetry stays too sparse (or absent) to judge, even ``SETTLE_EVIDENCE_S``
+        longer, the loop is not verified and is treated as not working, except that the
+        axis holds again in the end: brought to rest without the loop, ``restore`` written
+        where it differs, held (watched) - with the gains in force before the run, which
+        nothing showed to oscillate. Says it in a warning event. Returns what it found
+        (``Settled.found``) and did."""
         ax = self._axes.get(axis_id)
         if ax is None or ax.loop is None or not isinstance(ax.driver, StopModes):
             return None
-        modes = ax.driver
         mark = self._start_mark(ax)
-        deadline = self._clock() + watch_s + 2.0
-        verdict = loopcheck.NO_EVIDENCE
+        deadline = self._clock() + watch_s + SETTLE_EVIDENCE_S
+        verdict: loopcheck.LoopVerdict | None = None  # None: no sample since the run
         while self._clock() < deadline:
-            await asyncio.sleep(WATCH_PERIOD_S * 5)
+            await self._sleep(WATCH_PERIOD_S * 5)
             after = [s for s in ax.history if s.t > mark]
             if not after:
                 continue
-            verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
-            if verdict.working is False or after[-1].t - after[0].t >= watch_s:
+            age_s = max(0.0, self._clock() - ax.arrived)
+            verdict = loopcheck.judge(after, ax.loop, since=after[0].t, age_s=age_s)
+            if verdict.working is False:
                 break
+            if verdict.sparse:
+                continue  # holes in the telemetry hide a swing as well as rest
             if loopcheck.at_rest(after, ax.loop, since=after[0].t):
                 return None  # at rest and holding: nothing oscillates
-        if verdict.working is not False:
+            if after[-1].t - after[0].t >= watch_s and (
+                verdict.working or verdict == loopcheck.NO_EVIDENCE
+            ):
+                return None  # a loop judged working, or the loop off: none to oscillate
+        if verdict is not None and verdict.working is False:
+            return await self._left_oscillating(ax, axis_id, verdict, gains_now, restore, reason)
+        if verdict is not None and (verdict.working or verdict == loopcheck.NO_EVIDENCE):
             return None
-        self.cancel_watch(axis_id)
-        outcome = await modes.brake()
-        if outcome.action == "brake":
-            await self._rest(ax, BRAKE_MAX_S)
-            await modes.power_off()
-        done = [f"brought to rest ({', '.join(outcome.sent)}, then unpowered)"]
-        wanted = {k: v for k, v in restore.items() if gains_now.get(k) != v}
-        restored: dict[str, int] | None = None
-        holds = False
-        if wanted:
-            await ax.driver.write_params(dict(restore))
-            restored = dict(restore)
-            done.append("gains " + " ".join(f"{k} {v}" for k, v in restore.items()) + " restored")
-            held = await modes.hold_here()
-            holds = True
-            done.append("holding under power")
-            self.follow(axis_id, held, reason)
+        why = verdict.reason if verdict is not None else "no telemetry came after it"
+        return await self._unverified(ax, axis_id, why, gains_now, restore, reason)
+
+    async def _left_oscillating(
+        self,
+        ax: _Axis,
+        axis_id: str,
+        verdict: loopcheck.LoopVerdict,
+        gains_now: Mapping[str, int],
+        restore: Mapping[str, int],
+        reason: str,
+    ) -> Settled:
+        done, restored = await self._to_rest_and_restore(ax, axis_id, gains_now, restore)
+        holds = restored is not None
+        if holds:
+            await self._hold_again(ax, axis_id, reason, done)
         else:
             done.append("no other gains to restore (the ones in force oscillate): left unpowered")
         message = f"{reason}: left the axis oscillating ({verdict.reason}); " + "; ".join(done)
         self._on_event("error", axis_id, message)
         return Settled(verdict.reason, message, restored, holds)
 
-    async def _rest(self, ax: _Axis, timeout_s: float) -> None:
+    async def _unverified(
+        self,
+        ax: _Axis,
+        axis_id: str,
+        why: str,
+        gains_now: Mapping[str, int],
+        restore: Mapping[str, int],
+        reason: str,
+    ) -> Settled:
+        done, restored = await self._to_rest_and_restore(ax, axis_id, gains_now, restore)
+        await self._hold_again(ax, axis_id, reason, done)
+        message = (
+            f"{reason}: could not verify that the loop works after it ({why}); treated as "
+            "not working: " + "; ".join(done)
+        )
+        self._on_event("warning", axis_id, message)
+        return Settled(why, message, restored, True, found="unverified")
+
+    async def _to_rest_and_restore(
+        self, ax: _Axis, axis_id: str, gains_now: Mapping[str, int], restore: Mapping[str, int]
+    ) -> tuple[list[str], dict[str, int] | None]:
+        """The brake, power off at rest, ``restore`` written where it differs from
+        ``gains_now``: what was done (words) and the gains written (None: none)."""
+        assert isinstance(ax.driver, StopModes)
+        modes = ax.driver
+        self.cancel_watch(axis_id)
+        outcome = await modes.brake()
+        if outcome.action == "brake":
+            await self._rest(ax, BRAKE_MAX_S)
+            await modes.power_off()
+        done = [f"brought to rest ({', '.join(outcome.sent)}, then unpowered)"]
+        if not {k: v for k, v in restore.items() if gains_now.get(k) != v}:
+            return done, None
+        await ax.driver.write_params(dict(restore))
+        done.append("gains " + " ".join(f"{k} {v}" for k, v in restore.items()) + " restored")
+        return done, dict(restore)
+
+    async def _hold_again(self, ax: _Axis, axis_id: str, reason: str, done: list[str]) -> None:
+        assert isinstance(ax.driver, StopModes)
+        held = await ax.driver.hold_here()
+        done.append("holding under power")
+        self.follow(axis_id, held, reason)
+
+    async def _rest(self, ax: _Axis, timeout_s: float) -> str:
+        """Wait until the axis is seen at rest, ``timeout_s`` at most: "" when it was,
+        else why not (for the event that follows)."""
         assert ax.loop is not None
         mark = self._start_mark(ax)
         deadline = self._clock() + timeout_s
+        seen = False
         while self._clock() < deadline:
-            await asyncio.sleep(WATCH_PERIOD_S)
+            await self._sleep(WATCH_PERIOD_S)
             after = [s for s in ax.history if s.t > mark]
+            seen = seen or bool(after)
             if after and loopcheck.at_rest(after, ax.loop, since=after[0].t):
-                return
+                return ""
+        if not seen:
+            return f"no telemetry in {timeout_s:g} s: not seen at rest"
+        return f"not seen at rest within {timeout_s:g} s"
 
     # --- watches ------------------------------------------------------------------------
 
@@ -281,25 +374,13 @@ class StopService:
         return ax.history[-1].t if ax.history else -float("inf")
 
     async def _watch_hold(self, axis_id: str, ax: _Axis, reason: str) -> None:
-        assert ax.loop is not None
-        mark = self._start_mark(ax)
-        deadline = self._clock() + WATCH_S
-        why = ""
-        while True:
-            await asyncio.sleep(WATCH_PERIOD_S)
-            after = [s for s in ax.history if s.t > mark]
-            if after:
-                verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
-                if verdict.working is False:
-                    why = verdict.reason
-                    break
-                if loopcheck.at_rest(after, ax.loop, since=after[0].t):
-                    return
-                if after[-1].t - after[0].t >= WATCH_S:
-                    why = f"not at rest {WATCH_S:g} s after the stop"
-                    break
-            if self._clock() > deadline + WATCH_S:
-                return  # no telemetry (link down): nothing to judge, nothing to do
+        ax.unverified = False
+        try:
+            why = await self._hold_verdict(axis_id, ax, reason)
+        finally:
+            ax.unverified = False
+        if not why:
+            return
         ax.escalations += 1
         modes = ax.driver if isinstance(ax.driver, StopModes) else None
         try:
@@ -318,9 +399,58 @@ class StopService:
         if outcome is not None and outcome.action == "brake":
             await self._watch_brake(axis_id, ax, reason)
 
+    async def _hold_verdict(self, axis_id: str, ax: _Axis, reason: str) -> str:
+        """Watch a hold until a verdict: "" at rest, else why the loop does not hold.
+        Telemetry that stops for ``WATCH_SILENT_S`` is told (not verified) and waited
+        for; the samples after such a gap are judged afresh (module docstring)."""
+        assert ax.loop is not None
+        mark = self._start_mark(ax)
+        started = self._clock()
+        gap_s: float | None = None  # the last gap told, how long (the service's clock)
+        silent_since = started
+        while True:
+            await self._sleep(WATCH_PERIOD_S)
+            heard = max(started, ax.arrived)
+            silent_s = self._clock() - heard
+            if silent_s >= WATCH_SILENT_S:
+                if not ax.unverified:
+                    silent_since = heard
+                    ax.unverified = True
+                    mark = max(mark, self._start_mark(ax))
+                    self._on_event(
+                        "warning",
+                        axis_id,
+                        f"{reason}: no telemetry for {silent_s:.0f} s after the stop: the "
+                        "hold is not verified (nothing sent on no evidence); the axis is "
+                        "judged again when its telemetry returns",
+                    )
+                continue
+            if ax.unverified:
+                # Telemetry is back: what came after the gap is judged afresh.
+                ax.unverified = False
+                gap_s = heard - silent_since
+            after = [s for s in ax.history if s.t > mark]
+            if not after:
+                continue
+            verdict = loopcheck.judge(after, ax.loop, since=after[0].t)
+            if verdict.working is False:
+                return verdict.reason
+            if loopcheck.at_rest(after, ax.loop, since=after[0].t):
+                if gap_s is not None:
+                    self._on_event(
+                        "info",
+                        axis_id,
+                        f"{reason}: telemetry back after {gap_s:.1f} s without: the axis "
+                        "is at rest and holding",
+                    )
+                return ""
+            if after[-1].t - after[0].t >= WATCH_S:
+                since = "its telemetry returned" if gap_s is not None else "the stop"
+                return f"not at rest {WATCH_S:g} s after {since}"
+
     async def _watch_brake(self, axis_id: str, ax: _Axis, reason: str) -> None:
         assert ax.loop is not None
-        await self._rest(ax, BRAKE_MAX_S)
+        not_rested = await self._rest(ax, BRAKE_MAX_S)
         modes = ax.driver if isinstance(ax.driver, StopModes) else None
         try:
             if modes is not None:
@@ -330,20 +460,30 @@ class StopService:
                 "error", axis_id, f"{reason}: the brake could not be switched off: {exc}"
             )
             return
-        self._on_event("info", axis_id, f"{reason}: at rest, motor unpowered")
+        if not_rested:
+            self._on_event(
+                "warning",
+                axis_id,
+                f"{reason}: motor unpowered after {BRAKE_MAX_S:g} s of brake ({not_rested})",
+            )
+        else:
+            self._on_event("info", axis_id, f"{reason}: at rest, motor unpowered")
 
 
 @dataclass(frozen=True, slots=True)
 class Settled:
     """What ``settle_check`` found and did when a loop the product set going was not
-    working after it: ``reason`` (the loop check's words), what was done (``message``,
-    a sentence for the run's quality and the event log), the gains written back
-    (``restored``, None: none) and whether the axis holds under power at the end."""
+    working after it (``found`` "oscillating"), or could not be verified to work
+    (``found`` "unverified": the telemetry too sparse to tell): ``reason`` (the loop
+    check's words), what was done (``message``, a sentence for the run's quality and
+    the event log), the gains written back (``restored``, None: none) and whether the
+    axis holds under power at the end."""
 
     reason: str
     message: str
     restored: dict[str, int] | None
     holds: bool
+    found: Literal["oscillating", "unverified"] = "oscillating"
 
     def as_dict(self) -> dict[str, object]:
         return {

@@ -36,6 +36,14 @@ offline) and the two rates of its status. The engine provides:
   a long wait). Counting requests, not wall time, keeps a stalled host from raising
   it: a host that did not run sent nothing and missed no answer. The next good poll
   shows ``connected`` again, as after any line error.
+* the host's excuse (``host_stalled``): a timeout is no evidence against the device
+  when the host itself held the answer back for longer than the request listened -
+  the server's loop noticed the timeout late (``ByteChannel.take_timeout_late_s``), or
+  the host's tty layer held a canary byte that long meanwhile (``TtyGauge``; by
+  default a ``transports.tty_probe.TtyProbe`` runs beside the session: every link here
+  is a serial line whose bytes pass that layer). Bounded by ``HOST_STALL_EXCUSE_S``
+  (``TTY_STALL_EXCUSE_S`` on the canary's evidence) without an answer, so a cut line
+  still shows on a host that stalls all the time.
 """
 
 from __future__ import annotations
@@ -52,6 +60,7 @@ from typing import Any, Generic, Protocol, TypeVar, overload
 from servotune.link.base import DeviceRefusedError, DriverSink, LinkDownError
 from servotune.schema import LinkState
 from servotune.transports.base import ByteChannel, Connector, LinkClosedError
+from servotune.transports.tty_probe import TtyProbe
 
 T = TypeVar("T")
 
@@ -73,6 +82,12 @@ SILENT_S = 1.0
 # show (``_host_stalled``). Longer than the host's stalls measured under a CPU hog
 # (docs/simulator.md, "Under load"), short against the silence rule's message.
 HOST_STALL_EXCUSE_S = 2.0
+# The same bound where the host's tty layer was seen holding bytes back (the canary,
+# ``TtyGauge``): that is direct evidence of the moment, and such stalls last longer than
+# the loop's own (a pty byte held up to 3.0 s while the server's timers ran on time,
+# load 10-22 on 2 cores: docs/simulator.md, "Under load"). A line cut then shows once
+# the layer flows again, or after this long.
+TTY_STALL_EXCUSE_S = 5.0
 _SILENT_PREFIX = "no answer from the device for"
 
 
@@ -104,6 +119,15 @@ class Job:
     future: asyncio.Future[object]
     axis: int | None = None
     motion: bool = False
+
+
+class TtyGauge(Protocol):
+    """How long the host's tty layer is holding bytes back (``TtyProbe``)."""
+
+    def held_s(self, window_s: float) -> float:
+        """The longest a byte was held among those in flight during the last
+        ``window_s`` (one still in flight: until now); 0 without evidence."""
+        ...
 
 
 class LinkSession(Protocol):
@@ -199,6 +223,7 @@ class LinkEngine:
         *,
         clock: Callable[[], float] = time.monotonic,
         reconnect_max_s: float = 5.0,
+        tty_gauge: TtyGauge | None = None,
     ) -> None:
         self._link_id = link_id
         self._path = path
@@ -228,6 +253,9 @@ class LinkEngine:
         self._unanswered = 0
         # The first timeout a host stall excused since the device last answered.
         self._stall_excused_since: float | None = None
+        # The host tty layer's gauge: the one given, else a canary run by ``run``.
+        self._tty_gauge: TtyGauge | None = tty_gauge
+        self._own_probe = tty_gauge is None
 
     # --- Link protocol ----------------------------------------------------------------
 
@@ -315,12 +343,19 @@ class LinkEngine:
         for any reason is reported and started again (see the module docstring).
         """
         ticker = asyncio.create_task(self._status_ticker(), name=f"status of link {self.id}")
+        probe = TtyProbe() if self._own_probe else None
+        if probe is not None and probe.start():
+            self._tty_gauge = probe
         try:
             await self._supervise()
         finally:
             ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await ticker
+            if probe is not None:
+                if self._tty_gauge is probe:
+                    self._tty_gauge = None
+                await probe.close()
 
     async def _status_ticker(self) -> None:
         while True:
@@ -351,33 +386,44 @@ class LinkEngine:
 
     def host_stalled(self, waited_s: float) -> bool:
         """A read that timed out since the last check (``take_timeout_late_s``) was
-        noticed more than ``waited_s`` (the time a request listens) after its deadline:
-        the host itself was away for longer than it
+        noticed more than ``waited_s`` (the time a request listens) after its deadline,
+        or the host's tty layer held a byte for longer than that during the last
+        ``waited_s`` (``TtyGauge``): the host itself was away for longer than it
         listened, so the silence is no evidence against the device - its answer may
         be held up in the host's tty layer, starved along with the host (measured:
         docs/simulator.md, "Under load"). Counted (``host_stalls``) and logged, never
         an alarm: a line that is really down shows at its next timeouts noticed on
         time (the server's own stalls are shown by the hub's status watch), and on a
-        host that stalls all the time once ``HOST_STALL_EXCUSE_S`` have passed since
-        the first excused timeout without an answer (``device_answered`` ends the
-        run)."""
+        host that stalls all the time once ``HOST_STALL_EXCUSE_S`` (on the tty layer's
+        evidence ``TTY_STALL_EXCUSE_S``) have passed since the first excused timeout
+        without an answer (``device_answered`` ends the run)."""
         channel = self._channel
         late_s = 0.0 if channel is None else channel.take_timeout_late_s()
-        if late_s <= waited_s:
+        gauge = self._tty_gauge
+        held_s = 0.0 if gauge is None else gauge.held_s(waited_s)
+        if late_s <= waited_s and held_s <= waited_s:
             return False
+        bound_s = TTY_STALL_EXCUSE_S if held_s > waited_s else HOST_STALL_EXCUSE_S
         now = self.clock()
         if self._stall_excused_since is None:
             self._stall_excused_since = now
-        elif now - self._stall_excused_since >= HOST_STALL_EXCUSE_S:
+        elif now - self._stall_excused_since >= bound_s:
             return False
         self.count("host_stalls")
         logger.info(
-            "link %s: a timeout noticed %.0f ms late (the host stalled): not counted "
-            "against the device",
+            "link %s: a timeout noticed %.0f ms late, the host's tty layer holding bytes "
+            "for %.0f ms (the host stalled): not counted against the device",
             self.id,
             1000 * late_s,
+            1000 * held_s,
         )
         return True
+
+    @property
+    def host_stall_count(self) -> int:
+        """Timeouts excused by ``host_stalled`` so far (a device's own rules compare it
+        before and after a poll cycle: one excused timeout excuses the cycle)."""
+        return self._counters.get("host_stalls", 0)
 
     def _check_silent(self) -> None:
         if self._channel is None or self._state not in ("connected", "error"):

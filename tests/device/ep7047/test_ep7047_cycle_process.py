@@ -18,7 +18,7 @@ import time
 import pytest
 
 from servotune.devices.ep7047.codec import StartType
-from servotune.devices.ep7047.cycle import _CycleThread
+from servotune.devices.ep7047.cycle import Cycle
 from servotune.devices.ep7047.link import Ep7047Link, build_ep7047_link
 from servotune.devices.ep7047.sim.slave import (
     DEMO_COUNTS_PER_REV,
@@ -59,15 +59,15 @@ async def test_a_held_server_thread_does_not_hold_the_cycle(
         }
         await axis.command("execute_move", move)
         held = {"done": False}
-        original = _CycleThread._emit
+        original = Cycle._emit
 
-        def held_once(self: _CycleThread, *args: object) -> None:
+        def held_once(self: Cycle, *args: object) -> None:
             if not held["done"]:
                 held["done"] = True
                 time.sleep(2.5)  # the server's thread, held up mid-move
             original(self, *args)  # type: ignore[arg-type]
 
-        monkeypatch.setattr(_CycleThread, "_emit", held_once)
+        monkeypatch.setattr(Cycle, "_emit", held_once)
         await wait_for(lambda: held["done"], 5, "the hold")
         samples = sink.samples[axis.id]
         await wait_for(

@@ -151,7 +151,7 @@ async def test_fake_master_bring_up_assigns_pdos_in_preop_reads_settings_and_str
     async with running() as run:
         slave = run.slave
         assert slave.al_state == OP_STATE
-        assert "rev 0x00100005" in run.link._message
+        assert "rev 0x00100005" in run.link.message
         assert run.sink.health[run.axis.id][0] == "ok"
         # PDO assignment over CoE, in PRE-OP, by the CiA procedure
         assignment = [
@@ -194,7 +194,7 @@ async def test_fake_master_identity_mismatch_is_a_clear_error_and_never_reaches_
     master.set_identity(product=0x1B773052, name="EL7037")
     async with running(master, connect=False) as run:
         await wait_for(lambda: run.link.state == "error", 3, "the error state")
-        message = run.link._message
+        message = run.link.message
         assert "not an EP7047-1032" in message
         assert "0x1B773052" in message and "0x1B874052" in message and "EL7037" in message
         assert run.slave.al_state == PREOP_STATE
@@ -211,7 +211,7 @@ async def test_fake_master_unavailable_ethercat_is_reported_with_the_fix(tmp_pat
         pytest.skip("the raw socket check is Linux only")
     async with running(master, connect=False) as run:
         await wait_for(lambda: run.link.state == "error", 3, "the error state")
-        assert run.link._message == master.open_error
+        assert run.link.message == master.open_error
 
 
 def test_raw_socket_problem_names_the_exact_fix(tmp_path: Path) -> None:
@@ -490,7 +490,7 @@ async def test_fake_master_drop_out_of_op_reports_then_recovers_with_settings() 
         await wait_for(
             lambda: run.link.state in ("error", "reconnecting"), 2, "the link to go down"
         )
-        assert "SAFE-OP + ERROR" in run.link._message and "0x001A" in run.link._message
+        assert "SAFE-OP + ERROR" in run.link.message and "0x001A" in run.link.message
         assert run.sink.health[run.axis.id][0] == "offline"
         with pytest.raises(LinkDownError):
             await run.axis.command("enable", {})
@@ -686,7 +686,7 @@ async def test_fake_master_cycle_thread_crash_is_reported_and_restarted(
     thread is restarted on a new master, the axis comes back with Enable off."""
     async with running() as run:
         await run.axis.command("enable", {})
-        original = run.link._cyclic
+        original = run.link.cycle._cyclic
         crashed: list[bool] = []
 
         def crashing(master: object, slave: object) -> None:
@@ -696,7 +696,7 @@ async def test_fake_master_cycle_thread_crash_is_reported_and_restarted(
             original(master, slave)  # type: ignore[arg-type]
 
         index = len(run.sink.states)
-        monkeypatch.setattr(run.link, "_cyclic", crashing)
+        monkeypatch.setattr(run.link.cycle, "_cyclic", crashing)
         run.master.drop_out_of_op()  # the drop-out makes the thread enter _cyclic again
         await wait_for(
             lambda: any(s == "reconnecting" for s, _ in run.sink.states[index:]), 5, "drop-out"

@@ -356,6 +356,39 @@ def test_timeouts_noticed_after_a_host_stall_are_no_dead_line() -> None:
     assert sink.states[-1][0] == "error"
 
 
+class _TtyLayer:
+    """The host tty layer's gauge: holding bytes back for ``held`` s (0: it flows)."""
+
+    def __init__(self) -> None:
+        self.held = 0.0
+
+    def held_s(self, window_s: float) -> float:
+        return self.held
+
+
+def test_timeouts_while_the_hosts_tty_layer_held_bytes_are_no_dead_line() -> None:
+    """The server ran on time, but the kernel's tty worker held the module's bytes
+    (a pty byte held 2.1 s under a CPU hog, the server's timers on time): those
+    timeouts are host stalls, not an error; with the tty layer flowing the same
+    timeouts are an error at the third."""
+    link, sink, now = _rule_link()
+    module = link.module_state(0)
+    link.engine._channel = _StalledHostChannel()  # type: ignore[assignment]
+    tty_layer = _TtyLayer()
+    link.engine._tty_gauge = tty_layer
+    tty_layer.held = 0.4
+    for t in (100.0, 100.2, 100.4, 100.6):
+        now.append(t)
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 1"))
+    assert not sink.states and link.counters["host_stalls"] == 4
+    link.modules.answered(module)
+    tty_layer.held = 0.01
+    for t in (101.0, 101.2, 101.4):
+        now.append(t)
+        link.modules.failed(module, DeviceTimeoutError("no module answers at address 1"))
+    assert sink.states[-1][0] == "error"
+
+
 def test_a_host_stalled_all_the_time_still_shows_a_cut_line() -> None:
     """Every timeout noticed late (a host that never stops stalling) and no answer: the
     stalls excuse the failures for HOST_STALL_EXCUSE_S from the first of them, then they

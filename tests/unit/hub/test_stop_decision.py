@@ -4,7 +4,9 @@ timestamps and arrival times (an injected clock: nothing depends on the host's s
 
 from __future__ import annotations
 
+import asyncio
 import math
+from collections.abc import Callable
 
 import pytest
 
@@ -148,3 +150,104 @@ async def test_a_stop_after_an_outage_is_the_stop_safe_either_way() -> None:
     # 3 s ago: what it does now is unknown.
     asked, events = await stop_after(quiet(every(0.04)), late_s=3.0)
     assert asked == ["unjudged_stop"] and "no telemetry for the last 3.00 s" in events[0]
+
+
+# --- the watch after a stop that holds, when its telemetry stops ------------------------
+
+
+class World:
+    """The watch's pause, injected: each pause moves the service's clock and delivers the
+    samples due by then (``(arrival on the clock, sample)``), so the watch runs through
+    any length of (simulated) time at once and exactly the same way every time."""
+
+    def __init__(self, clock: Clock, service: StopService) -> None:
+        self.clock = clock
+        self.service = service
+        self.due: list[tuple[float, Sample]] = []
+
+    async def sleep(self, seconds: float) -> None:
+        self.clock.now += seconds
+        while self.due and self.due[0][0] <= self.clock.now:
+            _, sample = self.due.pop(0)
+            self.service.on_sample("a", sample)
+        await asyncio.sleep(0)
+
+
+async def watched_stop(
+    later: list[Sample], *, arrive_from: float, run_for_s: float
+) -> tuple[StopService, Recorder, list[tuple[str, str]], World]:
+    """A quiet axis STOPped (it holds) at clock 101.5; ``later`` samples (their own time
+    stamps, on the stop's time line) arrive from ``arrive_from`` s after the stop, as
+    they are due; the world runs ``run_for_s`` s of the service's clock (or until the
+    watch ends). Returns the service (still running its watch, if it does), the driver,
+    the events (level, message) and the world."""
+    clock = Clock()
+    events: list[tuple[str, str]] = []
+    world: World
+    service = StopService(
+        lambda level, axis, message: events.append((level, message)),
+        clock=clock,
+        sleep=lambda s: world.sleep(s),
+    )
+    world = World(clock, service)
+    driver = Recorder()
+    service.add_axis("a", driver, slap2_descriptor(1))  # type: ignore[arg-type]
+    for sample in quiet(every(0.04)):
+        clock.now = 100.0 + sample.t
+        service.on_sample("a", sample)
+    stopped_at = clock.now
+    assert await service.stop("a", "stop", "STOP") is not None
+    world.due = [(stopped_at + arrive_from + (s.t - later[0].t), s) for s in later]
+    end = stopped_at + run_for_s
+    for _ in range(100_000):
+        if clock.now >= end or not service.watching("a"):
+            break
+        await asyncio.sleep(0)
+    return service, driver, events, world
+
+
+def after_stop(make: Callable[[list[float]], list[Sample]], from_s: float) -> list[Sample]:
+    """1.5 s of samples every 20 ms, stamped from ``from_s`` after the stop (1.5 s)."""
+    return make([1.5 + from_s + t for t in every(0.02, 1.5)])
+
+
+async def test_a_watch_without_telemetry_says_the_hold_is_unverified_and_keeps_watching() -> None:
+    # The link goes down with the STOP: nothing for a minute.
+    service, driver, events, _ = await watched_stop(
+        after_stop(quiet, 100.0), arrive_from=100.0, run_for_s=60.0
+    )
+    assert service.watching("a") and service.unverified("a")
+    assert driver.asked == ["stop"]  # nothing sent on no evidence
+    warnings = [m for level, m in events if level == "warning"]
+    assert len(warnings) == 1 and "hold is not verified" in warnings[0], events
+    await service.close()
+
+
+async def test_telemetry_back_at_rest_is_told_and_ends_the_watch() -> None:
+    service, driver, events, _ = await watched_stop(
+        after_stop(quiet, 10.0), arrive_from=10.0, run_for_s=30.0
+    )
+    assert not service.watching("a") and not service.unverified("a")
+    assert driver.asked == ["stop"]
+    assert [level for level, _ in events] == ["warning", "info"], events
+    assert "telemetry back after 10.0 s without: the axis is at rest" in events[1][1]
+
+
+async def test_telemetry_back_oscillating_gets_the_brake() -> None:
+    # The loop broke into a limit cycle while nobody could see it.
+    service, driver, events, _ = await watched_stop(
+        after_stop(limit_cycle, 10.0), arrive_from=10.0, run_for_s=30.0
+    )
+    assert driver.asked[:2] == ["stop", "brake"], (driver.asked, events)
+    assert any(level == "error" and "does not hold the axis" in m for level, m in events)
+    await service.close()
+
+
+async def test_a_brake_switched_off_without_telemetry_does_not_claim_rest() -> None:
+    # Half a second of a limit cycle after the STOP (the watch brakes it), then nothing.
+    cycle = limit_cycle([1.5 + t for t in every(0.02, 0.5)])
+    service, driver, events, _ = await watched_stop(cycle, arrive_from=0.0, run_for_s=30.0)
+    assert not service.watching("a")
+    assert driver.asked == ["stop", "brake", "power_off"], (driver.asked, events)
+    level, last = events[-1]
+    assert level == "warning" and "not seen at rest" in last, events

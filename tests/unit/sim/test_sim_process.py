@@ -198,7 +198,7 @@ async def test_ep7047_driver_over_a_process_master_brings_up_moves_and_stops(
     tmp_path: Path,
 ) -> None:
     async with process_link(tmp_path) as (link, axis, sink, simulator, master):
-        assert "in OP on sim:" in link._message
+        assert "in OP on sim:" in link.message
         samples = sink.samples[axis.id]
         params = sink.params[axis.id]
         assert params["modulo_factor_counts"] == DEMO_COUNTS_PER_REV  # read over CoE

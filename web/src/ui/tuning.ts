@@ -537,13 +537,17 @@ export class TuningPanel {
     }
   }
 
+  /** Reads every parameter from the device. The "Read" button (``quiet`` false) makes the
+   * fields show what the device has, dropping unapplied edits; the quiet read when the
+   * panel opens only fills in the device values, so an edit made while it was under way
+   * (the websocket may deliver the values first) is kept. */
   async read(quiet = false): Promise<void> {
     this.readButton.classList.add("busy");
     this.status.dataset.kind = "pending";
     setText(this.status, "Reading parameters …");
     try {
       const values = await api.readParams(this.axisId);
-      store.setDeviceParams(this.axisId, values, true);
+      store.setDeviceParams(this.axisId, values, !quiet);
       this.status.dataset.kind = "ok";
       setText(this.status, `✓ Read ${Object.keys(values).length} parameters from the device`);
     } catch (error) {

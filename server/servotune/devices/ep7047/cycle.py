@@ -1,5 +1,7 @@
-"""The EP7047-1032 cycle thread: bring-up, the cyclic exchange to an absolute deadline,
-the working-counter check, SDO slots, the samples and the shutdown. See
+"""The EP7047-1032 cycle: the thread that owns the master - bring-up, the cyclic
+exchange to an absolute deadline, the working-counter check, SDO slots, the samples and
+the shutdown. It has the command handshakes (``devices.ep7047.handshakes``, sans-IO) and
+tells the event loop what happens through ``CycleReports``, declared here. See
 ``servotune.devices.ep7047.link`` for the design ("The owner: one cycle thread").
 """
 
@@ -11,12 +13,20 @@ import os
 import struct
 import threading
 import time
-from typing import Final
+from collections.abc import Callable, Mapping
+from typing import Final, Protocol
 
 from servotune.devices.ep7047 import codec
-from servotune.devices.ep7047.codec import CodecError, Inputs, PosStatus, StmStatus
+from servotune.devices.ep7047.codec import (
+    CodecError,
+    Inputs,
+    PosSettings,
+    PosStatus,
+    SdoObject,
+    StmStatus,
+)
 from servotune.devices.ep7047.descriptor import INVERSION_BITS, INVERSION_PARAMETER, PARAMETER_SDO
-from servotune.devices.ep7047.handshakes import _CommandCycle
+from servotune.devices.ep7047.handshakes import HandshakeReports, Handshakes
 from servotune.devices.ep7047.requests import (
     _DIAG_BITS,
     _POS_BITS,
@@ -26,14 +36,14 @@ from servotune.devices.ep7047.requests import (
     STATE_ACTIVE_S,
     VALUE_ABORT_CODES,
     WATCHDOG_MARGIN_S,
+    CycleCounters,
+    RequestQueue,
     SdoValueRefusedError,
     _BringUpError,
-    _CycleState,
     _DropOutError,
     _Exec,
     _Kind,
     _Request,
-    _settle,
     _StopPhase,
     watchdog_trip_text,
 )
@@ -44,7 +54,7 @@ from servotune.link.base import (
     ProtocolError,
     Sample,
 )
-from servotune.schema import EventLevel, LinkState
+from servotune.schema import AxisHealth, EventLevel, LinkState
 from servotune.transports.ethercat import (
     INIT_STATE,
     OP_STATE,
@@ -71,8 +81,116 @@ logger = logging.getLogger(__name__)
 _STM_SHOWN: Final = 0xFFFF & ~int(StmStatus.TXPDO_TOGGLE)
 
 
-class _CycleThread(_CommandCycle):
-    """The cycle thread (see the module docstring)."""
+class CycleReports(HandshakeReports, Protocol):
+    """What the cycle tells the event loop (``devices.ep7047.bridge.EventLoopBridge``
+    implements it). Calls come from the cycle thread, in order; each post is delivered
+    after the samples posted before it."""
+
+    def post_state(self, state: LinkState, message: str) -> None: ...
+
+    def post_health(self, health: AxisHealth, message: str) -> None: ...
+
+    def post_params(self, values: Mapping[str, int], source: str) -> None: ...
+
+    def post_sample(self, sample: Sample) -> None:
+        """May be held back to be posted in a batch with the next samples."""
+        ...
+
+    def flush_samples(self) -> None:
+        """Post the samples held back so far."""
+        ...
+
+    def begin_cycle(self) -> None:
+        """Results of requests from here on wait for ``end_cycle``."""
+        ...
+
+    def end_cycle(self) -> None:
+        """Post the results held since ``begin_cycle``, after this cycle's sample."""
+        ...
+
+
+class Cycle:
+    """The owner of one EtherCAT master and its slave's process data: ``run(master)`` is
+    the cycle thread (see the module docstring). It has the command ``handshakes`` and
+    reports through ``CycleReports``; the event loop hands it requests through the
+    ``RequestQueue`` and stops it with ``halt``."""
+
+    def __init__(
+        self,
+        link_id: str,
+        ifname: str,
+        slave: int,
+        *,
+        queue: RequestQueue,
+        reports: CycleReports,
+        counters: CycleCounters,
+        cycle_s: float,
+        speed_range_steps_s: int,
+        settings: PosSettings | None,
+        clock: Callable[[], float],
+        state_poll_s: float,
+        rest_state_poll_s: float,
+        max_lost_frames: int,
+        reconnect_max_s: float,
+        watchdog_s: float,
+    ) -> None:
+        self.id = link_id
+        self._ifname = ifname
+        self._slave_pos = slave
+        self._queue = queue
+        self._reports = reports
+        self._counters = counters
+        self._cycle_s = cycle_s
+        self._speed_range = speed_range_steps_s
+        self._clock = clock
+        # The drive state (0xA010:11) is only in the mailbox: one SDO per read. Read every
+        # state_poll_s while the drive does something (Busy, Execute, a STOP ramp, or
+        # within STATE_ACTIVE_S of any status flag changing), every rest_state_poll_s
+        # at rest, where it does not change by itself: the state timeline keeps its
+        # 10 ms detail where there is detail, and a real drive's mailbox (and this
+        # thread) is spared 90 % of the reads while nothing moves.
+        self._state_poll_s = state_poll_s
+        self._rest_state_poll_s = max(rest_state_poll_s, state_poll_s)
+        self._active_until = 0.0
+        self._max_lost = max_lost_frames
+        self._reconnect_max_s = reconnect_max_s
+        self._watchdog_s = watchdog_s
+        # No frame back at all for this long is a pulled cable (an error): half the
+        # watchdog, so that the user reads it before the drive has stopped, and a few
+        # lost frames in a row (each ~10 ms of SOEM's waiting) are only counted.
+        self._silent_limit_s = max(max_lost_frames * cycle_s, watchdog_s / 2)
+        self.halt = threading.Event()
+        """Set: the cycle thread shuts the slave down and ends."""
+        self._connected = False
+        self._paced_lost = 0  # the cycle process's lost exchanges counted so far
+        # CoE values: last read or written, and what to write at every bring-up
+        self._coe: dict[SdoObject, int] = {}
+        self._stored: dict[SdoObject, int] = {}
+        if settings is not None:
+            for obj, value in codec.settings_writes(settings):
+                if obj != codec.TIME_INFORMATION:  # manual: cannot be changed
+                    self._stored[obj] = value
+        self.handshakes = self._hs = Handshakes(
+            cycle_s=cycle_s, queue=queue, reports=reports, coe=self._coe, counters=counters
+        )
+        self._revision: int | None = None
+        # When the last frame the slave took was sent (see WATCHDOG_MARGIN_S).
+        self._last_good = time.monotonic()
+        # the last outputs encoded and inputs decoded: most cycles send the same
+        # outputs, and at rest receive the same inputs, as the one before
+        self._outputs_key: tuple[object, ...] | None = None
+        self._outputs_bytes = b""
+        self._inputs_raw = b""
+        self._inputs_decoded = Inputs()
+        # the flags of the last sample and what they were built from: they change
+        # rarely, so consecutive samples share one (never mutated) dict
+        self._flags_key: tuple[int, int, int, bool, bool, bool] | None = None
+        self._flags: dict[str, bool] = {}
+
+    @property
+    def connected(self) -> bool:
+        """In OP and exchanging (the thread's view; the link's state follows it)."""
+        return self._connected
 
     # --- the cycle thread -------------------------------------------------------------------
 
@@ -95,6 +213,17 @@ class _CycleThread(_CommandCycle):
         else:
             logger.info("%s: cycle thread at nice %d", self.id, CYCLE_THREAD_NICE)
 
+    def _read_coe(self, slave: EthercatSlave, obj: SdoObject) -> int:
+        value = codec.decode_sdo(obj, slave.sdo_read(obj.index, obj.subindex, obj.data_type.size))
+        self._coe[obj] = value
+        return value
+
+    def _check_stall(self) -> None:
+        """After a gap longer than the watchdog the slave has dropped its outputs."""
+        gap_s = time.monotonic() - self._last_good
+        if gap_s > self._watchdog_s - WATCHDOG_MARGIN_S:
+            self._hs.drop_outputs(gap_s, self._watchdog_s)
+
     def _refresh_last_good(self, master: EthercatMaster) -> None:
         """With a paced master the slave's watchdog runs on the cycle process's
         exchanges: take the send time of its last good one (this thread may have been
@@ -104,14 +233,16 @@ class _CycleThread(_CommandCycle):
             if last is not None:
                 self._last_good = max(self._last_good, last)
 
-    def _thread_main(self, master: EthercatMaster) -> None:
+    def run(self, master: EthercatMaster) -> None:
+        """The cycle thread: bring-up, cycles, drop-outs and bring-up again, until
+        ``halt``; then the shutdown. Reports every fault; never raises."""
         connected_once = False
         told_priority = False
         tripped = False
         backoff_s = 0.25
         self._raise_priority()
         try:
-            while not self._halt.is_set():
+            while not self.halt.is_set():
                 try:
                     slave = self._bring_up(master)
                 except _BringUpError as exc:
@@ -121,13 +252,13 @@ class _CycleThread(_CommandCycle):
                         if exc.fatal or exc.no_answer or not connected_once
                         else "reconnecting"
                     )
-                    self._post_state(state, str(exc))
-                    if self._halt.wait(backoff_s):
+                    self._reports.post_state(state, str(exc))
+                    if self.halt.wait(backoff_s):
                         break
                     backoff_s = min(backoff_s * 2, self._reconnect_max_s)
                     continue
                 if connected_once:
-                    self._post_event(
+                    self._reports.post_event(
                         "warning",
                         f"{self.id}: slave {self._slave_pos} is back in OP"
                         + (" after its watchdog trip" if tripped else "")
@@ -141,27 +272,29 @@ class _CycleThread(_CommandCycle):
                     told_priority = True
                     if master.priority_text:
                         level: EventLevel = "info" if master.priority_granted else "warning"
-                        self._post_event(level, f"{self.id}: {master.priority_text}", axis=False)
+                        self._reports.post_event(
+                            level, f"{self.id}: {master.priority_text}", axis=False
+                        )
                 revision = f"rev 0x{self._revision or 0:08X}"
-                self._post_state(
+                self._reports.post_state(
                     "connected",
                     f"EP7047-1032 {revision} in OP on {self._ifname}, slave {self._slave_pos}, "
                     f"{self._cycle_s * 1000:g} ms cycle",
                 )
-                self._post_health("ok", f"EP7047-1032 {revision}")
+                self._reports.post_health("ok", f"EP7047-1032 {revision}")
                 try:
                     try:
                         self._cyclic(master, slave)
                     except (EthercatError, OSError) as exc:  # e.g. the NIC went away
                         raise _DropOutError(f"EtherCAT failed on {self._ifname}: {exc}") from exc
                 except _DropOutError as exc:
-                    self._errors += 1
+                    self._counters.errors += 1
                     tripped = exc.watchdog
                     self._went_down(master, slave, LinkDownError(f"link {self.id} is down: {exc}"))
-                    self._post_health("offline", str(exc))
-                    self._post_state(exc.state, str(exc))
-                    self._post_event("error", f"{self.id}: {exc}", axis=False)
-                    if self._halt.wait(0.25):
+                    self._reports.post_health("offline", str(exc))
+                    self._reports.post_state(exc.state, str(exc))
+                    self._reports.post_event("error", f"{self.id}: {exc}", axis=False)
+                    if self.halt.wait(0.25):
                         break
                     continue
                 self._shutdown(master, slave)
@@ -169,11 +302,11 @@ class _CycleThread(_CommandCycle):
         except Exception as exc:  # a bug here must be visible, and the link must say so
             logger.exception("EtherCAT cycle thread of %s failed", self.id)
             self._went_down(master, None, LinkDownError(f"link {self.id} failed: {exc}"))
-            self._post_state("error", f"internal error in the cycle thread: {exc!r}")
-            self._post_health("offline", "internal error in the EtherCAT driver")
+            self._reports.post_state("error", f"internal error in the cycle thread: {exc!r}")
+            self._reports.post_health("offline", "internal error in the EtherCAT driver")
         finally:
-            self._flush_samples()
-            self._thread_connected = False
+            self._reports.flush_samples()
+            self._connected = False
             self._close_quietly(master)
             if isinstance(master, PacedMaster):
                 with contextlib.suppress(Exception):
@@ -183,7 +316,7 @@ class _CycleThread(_CommandCycle):
         self, master: EthercatMaster, slave: EthercatSlave | None, error: Exception
     ) -> None:
         """The link is down: fail every request, acknowledge errors, close the master."""
-        self._thread_connected = False
+        self._connected = False
         self._fail_all(error)
         if slave is not None:
             self._acknowledge(master, slave)
@@ -194,18 +327,14 @@ class _CycleThread(_CommandCycle):
             master.close()
 
     def _fail_all(self, error: Exception) -> None:
-        cs = self._cs
+        cs = self._hs.state
         for request in (cs.pending, cs.sdo_job, *cs.after_exchange):
             if request is not None:
-                self._reject(request, error)
+                self._reports.reject(request, error)
         cs.pending = cs.sdo_job = None
         cs.after_exchange.clear()
-        with self._lock:
-            queued = [*self._urgent, *self._normal]
-            self._urgent.clear()
-            self._normal.clear()
-        for request in queued:
-            self._reject(request, error)
+        for request in self._queue.take_all():
+            self._reports.reject(request, error)
 
     def _acknowledge(self, master: EthercatMaster, slave: EthercatSlave) -> None:
         """Acknowledge the slave's error indication (the bring-up acknowledges again)."""
@@ -293,19 +422,19 @@ class _CycleThread(_CommandCycle):
                 f"{al_status_text(slave.al_status)}"
             )
         # Valid (all-zero: Enable off) outputs before OP, then request OP.
-        self._cs = _CycleState()
-        slave.output = codec.encode_outputs(self._cs.outputs())
+        self._hs.reset()
+        slave.output = codec.encode_outputs(self._hs.state.outputs())
         master.send_processdata()
         master.receive_processdata(self._receive_timeout_us())
         master.state = OP_STATE
         master.write_state()
         for _ in range(40):
-            slave.output = codec.encode_outputs(self._cs.outputs())
+            slave.output = codec.encode_outputs(self._hs.state.outputs())
             master.send_processdata()
             master.receive_processdata(self._receive_timeout_us())
             if master.state_check(OP_STATE, 50_000) == OP_STATE:
                 break
-            if self._halt.is_set():
+            if self.halt.is_set():
                 raise _BringUpError("shutting down")
         else:
             master.read_state()
@@ -313,11 +442,11 @@ class _CycleThread(_CommandCycle):
                 f"slave did not reach OP ({where}): {state_name(slave.state)}, "
                 f"{al_status_text(slave.al_status)}"
             )
-        self._cs.inputs = codec.decode_inputs(slave.input)
-        self._cs.next_state_poll = self._clock()
+        self._hs.state.inputs = codec.decode_inputs(slave.input)
+        self._hs.state.next_state_poll = self._clock()
         self._last_good = time.monotonic()
-        self._thread_connected = True
-        self._post_params(values, "read")
+        self._connected = True
+        self._reports.post_params(values, "read")
         return slave
 
     def _receive_timeout_us(self) -> int:
@@ -359,7 +488,7 @@ class _CycleThread(_CommandCycle):
         code = self._read_coe(slave, codec.SPEED_RANGE)
         steps_s = codec.SPEED_RANGE_STEPS_S.get(code)
         if steps_s != self._speed_range:
-            self._post_event(
+            self._reports.post_event(
                 "warning",
                 f"the drive's speed range 0x8012:05 is code {code} "
                 f"({steps_s or 'unknown'} full steps/s) but the link is configured for "
@@ -377,21 +506,21 @@ class _CycleThread(_CommandCycle):
             # cycles in SAFE-OP (working counter 1) are no lost frames: count from here.
             master.last_good_t()
             self._paced_lost = master.cycle_lost
-            while not self._halt.is_set():
+            while not self.halt.is_set():
                 self._one_cycle(master, slave)
             return
-        while not self._halt.is_set():
+        while not self.halt.is_set():
             self._one_cycle(master, slave)
             deadline += period
             delay = deadline - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
             elif delay < -period:
-                self._overruns += 1
+                self._counters.overruns += 1
                 deadline = time.monotonic()
 
     def _exchange(self, master: EthercatMaster, slave: EthercatSlave) -> bool:
-        cs = self._cs
+        cs = self._hs.state
         # Checked again here, after this cycle's other steps (an SDO, a request) and right
         # before the frame leaves: the slave's watchdog runs between frames, whatever
         # held this thread up.
@@ -415,20 +544,20 @@ class _CycleThread(_CommandCycle):
             # The cycle process sees every exchange, this thread only some: count its.
             lost = master.cycle_lost
             if lost > self._paced_lost:
-                self._errors += lost - self._paced_lost
-                self._lost_frames += lost - self._paced_lost
+                self._counters.errors += lost - self._paced_lost
+                self._counters.lost_frames += lost - self._paced_lost
             self._paced_lost = lost
         if wkc == master.expected_wkc:
-            self._cs.lost_in_row = self._cs.silent_in_row = 0
+            self._hs.state.lost_in_row = self._hs.state.silent_in_row = 0
             # The send time, not now: the slave restarted its watchdog when the frame
             # arrived, and this thread may have run again only long after the reply.
             self._last_good = sent_t
             self._refresh_last_good(master)
             return True
         if not paced:
-            self._errors += 1
-            self._lost_frames += 1
-        cs = self._cs
+            self._counters.errors += 1
+            self._counters.lost_frames += 1
+        cs = self._hs.state
         cs.lost_in_row += 1
         if wkc < 0:
             # No frame came back at all: nothing on the wire answers, so no state can be
@@ -467,41 +596,39 @@ class _CycleThread(_CommandCycle):
                 f"slave {self._slave_pos} on {self._ifname} left OP: now {state_name(state)}, "
                 f"{al_status_text(slave.al_status)}"
             )
-        if self._cs.lost_in_row >= self._max_lost:
+        if self._hs.state.lost_in_row >= self._max_lost:
             raise _DropOutError(
                 f"no process data from slave {self._slave_pos} on {self._ifname} for "
-                f"{self._cs.lost_in_row} cycles (working counter {wkc}, expected "
+                f"{self._hs.state.lost_in_row} cycles (working counter {wkc}, expected "
                 f"{master.expected_wkc}): cable or power?"
             )
         return False
 
     def _one_cycle(self, master: EthercatMaster, slave: EthercatSlave) -> None:
-        self._in_cycle = True
+        self._reports.begin_cycle()
         try:
             self._cycle_steps(master, slave)
         finally:
-            self._in_cycle = False
-            outbox, self._outbox = self._outbox, []
-            for request, result, error in outbox:
-                self._post(_settle, request.future, result, error)
+            self._reports.end_cycle()
 
     def _cycle_steps(self, master: EthercatMaster, slave: EthercatSlave) -> None:
         # Each step is called only when it has work (the same tests it starts with): at
         # 500 cycles/s the calls of idle steps were a good part of the thread's Python
         # time, and every microsecond here is one the event loop waits for the GIL.
-        cs = self._cs
+        cs = self._hs.state
+        queue = self._queue
         now = self._clock()
         if time.monotonic() - self._last_good > self._watchdog_s - WATCHDOG_MARGIN_S:
             self._refresh_last_good(master)
             self._check_stall()
         # A racy peek at the deque (no lock): a request appended meanwhile is taken next
-        # cycle, and _take_urgent reads it under the lock.
-        if self._urgent:
-            self._take_urgent(now)
+        # cycle, and take_urgent reads it under the lock.
+        if queue.urgent:
+            self._hs.take_urgent(now)
         if cs.pending is not None or cs.exec_state is _Exec.ARMING:
-            self._before_exchange(now)  # what an earlier cycle prepared (Execute after ARMING)
-        if cs.pending is None and cs.sdo_job is None and self._normal:
-            self._take_normal(now)
+            self._hs.before_exchange(now)  # what an earlier cycle prepared (Execute after ARMING)
+        if cs.pending is None and cs.sdo_job is None and queue.normal:
+            self._hs.take_normal(now)
         if not self._exchange(master, slave):
             return  # stale inputs: no sample, nothing decided on them
         now = self._clock()
@@ -513,16 +640,23 @@ class _CycleThread(_CommandCycle):
         cs.inputs = inputs = self._inputs_decoded
         if cs.after_exchange:
             for request in cs.after_exchange:
-                self._resolve(request, "sent")
+                self._reports.resolve(request, "sent")
             cs.after_exchange.clear()
-        if int(inputs.pos_status) & _POS_WARNING or int(cs.diag):
-            self._update_diag(slave, previous, inputs, now)
+        if (int(inputs.pos_status) & _POS_WARNING or int(cs.diag)) and self._hs.diag_due(
+            previous, inputs, now
+        ):
+            try:
+                word = self._read_coe(slave, codec.POS_STATUS_WORD)
+            except (EthercatError, CodecError):
+                self._counters.errors += 1
+            else:
+                self._hs.take_diag(word, now)
         if cs.stop_phase is not _StopPhase.NONE:
-            self._advance_stop(inputs, now)
+            self._hs.advance_stop(inputs, now)
         if cs.exec_state is _Exec.RUNNING or cs.exec_state is _Exec.HALTING:
-            self._advance_exec(inputs, now)
+            self._hs.advance_exec(inputs, now)
         if cs.pending is not None:
-            self._advance_pending(inputs, now)
+            self._hs.advance_pending(inputs, now)
         if cs.sdo_job is not None or now >= cs.next_state_poll:
             fresh_state = self._sdo_slot(slave, now)
         else:
@@ -533,7 +667,7 @@ class _CycleThread(_CommandCycle):
 
     def _sdo_slot(self, slave: EthercatSlave, now: float) -> int | None:
         """Run the user's SDO transfer, else sample the drive state when it is due."""
-        cs = self._cs
+        cs = self._hs.state
         job = cs.sdo_job
         if job is not None:
             cs.sdo_job = None
@@ -551,7 +685,7 @@ class _CycleThread(_CommandCycle):
         try:
             cs.drive_state = self._read_coe(slave, codec.DRIVE_STATE)
         except (EthercatError, CodecError):
-            self._errors += 1
+            self._counters.errors += 1
             return None
         return cs.drive_state
 
@@ -561,15 +695,15 @@ class _CycleThread(_CommandCycle):
         where = f"0x{obj.index:04X}:{obj.subindex:02X} {obj.name}"
         try:
             if job.kind is _Kind.SDO_READ:
-                self._resolve(job, self._read_coe(slave, obj))
+                self._reports.resolve(job, self._read_coe(slave, obj))
             else:
                 data = codec.encode_sdo(obj, job.value)
                 slave.sdo_write(obj.index, obj.subindex, data)
                 self._coe[obj] = job.value
                 self._stored[obj] = job.value
-                self._resolve(job, None)
+                self._reports.resolve(job, None)
         except EthercatSdoError as exc:
-            self._errors += 1
+            self._counters.errors += 1
             message = f"{where}: the drive refused it: {exc}"
             if job.kind is _Kind.SDO_WRITE and exc.abort_code in VALUE_ABORT_CODES:
                 error: DeviceRefusedError = SdoValueRefusedError(
@@ -577,16 +711,16 @@ class _CycleThread(_CommandCycle):
                 )
             else:
                 error = DeviceRefusedError(message)
-            self._reject(job, error)
+            self._reports.reject(job, error)
         except EthercatMailboxError as exc:
-            self._errors += 1
-            self._reject(job, DeviceTimeoutError(f"{where}: no answer: {exc}"))
+            self._counters.errors += 1
+            self._reports.reject(job, DeviceTimeoutError(f"{where}: no answer: {exc}"))
         except CodecError as exc:
-            self._errors += 1
-            self._reject(job, ProtocolError(f"{where}: {exc}"))
+            self._counters.errors += 1
+            self._reports.reject(job, ProtocolError(f"{where}: {exc}"))
 
     def _emit(self, inputs: Inputs, now: float, drive_state: int | None) -> None:
-        cs = self._cs
+        cs = self._hs.state
         velocity = inputs.actual_velocity_bp * self._speed_range / codec.SPEED_RANGE_FULL_SCALE_BP
         channels: dict[str, float | None] = {
             "position": float(inputs.actual_position_counts),
@@ -612,13 +746,13 @@ class _CycleThread(_CommandCycle):
             flags["execute_out"] = cs.execute
             flags["emergency_stop_out"] = cs.emergency
             self._flags_key, self._flags = key, flags
-        self._post_sample(Sample(now, channels, self._flags))
+        self._reports.post_sample(Sample(now, channels, self._flags))
 
     # --- shutdown -------------------------------------------------------------------------
 
     def _shutdown(self, master: EthercatMaster, slave: EthercatSlave) -> None:
         """Server stops: ramp a moving axis down, Enable off, slave to INIT."""
-        cs = self._cs
+        cs = self._hs.state
         self._fail_all(LinkDownError(f"link {self.id} is shutting down"))
         with contextlib.suppress(Exception):
             if cs.enable and (cs.inputs.busy or cs.inputs.actual_velocity_bp):
@@ -631,7 +765,7 @@ class _CycleThread(_CommandCycle):
                         if not cs.inputs.busy and cs.inputs.actual_velocity_bp == 0:
                             break
                     time.sleep(self._cycle_s)
-            self._cs = _CycleState()
+            self._hs.reset()
             for _ in range(2):
                 self._exchange(master, slave)
                 time.sleep(self._cycle_s)

@@ -1,20 +1,25 @@
-"""The command handshakes of the EP7047-1032 cycle thread: urgent requests (STOP,
+"""The command handshakes of the EP7047-1032 cycle, sans-IO: urgent requests (STOP,
 emergency stop, Halt), starts and their Execute/Busy handshake, Enable/Reset, the
-diagnosis watch and the end of a move. Runs only on the cycle thread; see
-``servotune.devices.ep7047.link`` for the rules (the module docstring's "Decisions").
+diagnosis watch and the end of a move. See ``servotune.devices.ep7047.link`` for the
+rules (the module docstring's "Decisions").
+
+``Handshakes`` holds the cycle state (``state``: the outputs to send, what is known of
+the drive) and does no I/O: the cycle gives it the requests (a ``RequestQueue``), the
+inputs of each exchange and the time, sends ``state.outputs()``, reads the diagnosis
+word when ``diag_due`` asks for it, and the handshakes report results and events
+through ``HandshakeReports``. Called from one thread at a time (the cycle's).
 """
 
 from __future__ import annotations
 
 import math
-import time
-from collections import deque
+from collections.abc import Mapping
+from typing import Protocol
 
 from servotune.devices.ep7047 import codec
 from servotune.devices.ep7047.codec import (
     CHANGE_START_TYPES,
     MODULO_START_TYPES,
-    CodecError,
     Inputs,
     PosDiag,
     SdoObject,
@@ -26,10 +31,11 @@ from servotune.devices.ep7047.requests import (
     _CALIBRATION_MOVES,
     _ENDLESS_TYPES,
     _SDO_KINDS,
-    WATCHDOG_MARGIN_S,
+    CycleCounters,
+    RequestQueue,
+    _CycleState,
     _Exec,
     _Kind,
-    _LinkCore,
     _Request,
     _state_label,
     _StopPhase,
@@ -37,69 +43,92 @@ from servotune.devices.ep7047.requests import (
 )
 from servotune.link.base import DeviceRefusedError
 from servotune.schema import EventLevel
-from servotune.transports.ethercat import EthercatError, EthercatSlave
 
 
-class _CommandCycle(_LinkCore):
-    """The command handshakes (cycle thread only)."""
+class HandshakeReports(Protocol):
+    """What the handshakes tell the event loop: results of requests and events."""
 
-    def _read_coe(self, slave: EthercatSlave, obj: SdoObject) -> int:
-        value = codec.decode_sdo(obj, slave.sdo_read(obj.index, obj.subindex, obj.data_type.size))
-        self._coe[obj] = value
-        return value
+    def post_event(self, level: EventLevel, message: str, *, axis: bool = True) -> None: ...
 
-    def _check_stall(self) -> None:
-        """After a gap longer than the watchdog the slave has dropped its outputs (Enable
-        off, the move aborted): never re-assert them silently - drop them here too."""
-        cs = self._cs
-        gap = time.monotonic() - self._last_good
-        if gap <= self._watchdog_s - WATCHDOG_MARGIN_S or not (
-            cs.enable or cs.execute or cs.emergency
-        ):
+    def resolve(self, request: _Request, result: object = None) -> None: ...
+
+    def reject(self, request: _Request, error: BaseException) -> None: ...
+
+
+class Handshakes:
+    """The command handshakes of one drive (see the module docstring).
+
+    ``coe`` is the cycle's record of CoE values (last read or written; the emergency
+    deceleration and the modulo settings are read from it), ``counters`` the link's
+    counters (a watchdog drop counts).
+    """
+
+    def __init__(
+        self,
+        *,
+        cycle_s: float,
+        queue: RequestQueue,
+        reports: HandshakeReports,
+        coe: Mapping[SdoObject, int],
+        counters: CycleCounters,
+    ) -> None:
+        self._cycle_s = cycle_s
+        self._queue = queue
+        self._reports = reports
+        self._coe = coe
+        self._counters = counters
+        self.state = _CycleState()
+
+    def reset(self) -> _CycleState:
+        """Start from zero outputs and nothing known (a bring-up, a shutdown)."""
+        self.state = _CycleState()
+        return self.state
+
+    def drop_outputs(self, gap_s: float, watchdog_s: float) -> None:
+        """No good process data for ``gap_s`` (about the slave's watchdog ``watchdog_s``):
+        the slave has dropped its outputs (Enable off, the move aborted); never re-assert
+        them silently - drop them here too, and say so."""
+        cs = self.state
+        if not (cs.enable or cs.execute or cs.emergency):
             return
         if cs.pending is not None:
-            self._reject(
+            self._reports.reject(
                 cs.pending, DeviceRefusedError("no process data for too long: the drive dropped it")
             )
             cs.pending = None
         cs.enable = cs.execute = cs.emergency = cs.reset = False
         cs.stop_phase = _StopPhase.NONE
         self._drop_execute()
-        self._errors += 1
-        self._watchdog_trips += 1
-        self._post_event(
+        self._counters.errors += 1
+        self._counters.watchdog_trips += 1
+        self._reports.post_event(
             "error",
-            f"no good process data for {gap * 1000:.0f} ms (the drive's watchdog is "
-            f"{self._watchdog_s * 1000:.0f} ms): the drive dropped Enable because process "
+            f"no good process data for {gap_s * 1000:.0f} ms (the drive's watchdog is "
+            f"{watchdog_s * 1000:.0f} ms): the drive dropped Enable because process "
             "data stopped (or was about to) - the motor stops without holding torque, its "
             "settings are kept; Enable is off - press Enable to continue",
         )
 
     # --- requests (thread side) ---------------------------------------------------------
 
-    def _take_urgent(self, now: float) -> None:
-        with self._lock:
-            urgent = list(self._urgent)
-            self._urgent.clear()
-        for request in urgent:
+    def take_urgent(self, now: float) -> None:
+        """Apply the queued urgent requests (STOP, Emergency stop, Halt) to this cycle's
+        outputs."""
+        for request in self._queue.take_urgent():
             if request.kind is _Kind.HALT:
                 self._apply_halt(request)
             else:
                 self._apply_stop(request, now)
 
     def _apply_stop(self, request: _Request, now: float) -> None:
-        cs = self._cs
+        cs = self.state
         label = "STOP" if request.kind is _Kind.STOP else "Emergency stop"
         error = DeviceRefusedError(f"not sent: {label} came first")
         if cs.pending is not None:
-            self._reject(cs.pending, DeviceRefusedError(f"aborted by {label}"))
+            self._reports.reject(cs.pending, DeviceRefusedError(f"aborted by {label}"))
             cs.pending = None
-        with self._lock:
-            keep = deque(r for r in self._normal if r.kind in _SDO_KINDS)
-            dropped = [r for r in self._normal if r.kind not in _SDO_KINDS]
-            self._normal = keep
-        for queued in dropped:
-            self._reject(queued, error)
+        for queued in self._queue.drop_commands():
+            self._reports.reject(queued, error)
         cs.reset = False
         self._drop_execute()
         if cs.enable:
@@ -113,16 +142,18 @@ class _CommandCycle(_LinkCore):
         cs.after_exchange.append(request)
 
     def _apply_halt(self, request: _Request) -> None:
-        cs = self._cs
+        cs = self.state
         if cs.pending is not None and cs.pending.kind is _Kind.START:
-            self._reject(cs.pending, DeviceRefusedError("halted before the drive took the move"))
+            self._reports.reject(
+                cs.pending, DeviceRefusedError("halted before the drive took the move")
+            )
             cs.pending = None
         self._drop_execute()
         cs.after_exchange.append(request)
 
     def _drop_execute(self) -> None:
         """Execute low now; a move that may have started is watched until Busy falls."""
-        cs = self._cs
+        cs = self.state
         cs.execute = False
         if cs.exec_state is _Exec.ARMING:  # Execute never rose: nothing started
             cs.exec_state = _Exec.IDLE
@@ -130,13 +161,14 @@ class _CommandCycle(_LinkCore):
         elif cs.exec_state is not _Exec.IDLE:
             cs.exec_state = _Exec.HALTING
 
-    def _take_normal(self, now: float) -> None:
-        cs = self._cs
+    def take_normal(self, now: float) -> None:
+        """Take the next request that is still wanted: an SDO transfer becomes
+        ``state.sdo_job`` (the cycle runs it), a command begins."""
+        cs = self.state
         while True:
-            with self._lock:
-                if not self._normal:
-                    return
-                request = self._normal.popleft()
+            request = self._queue.pop_normal()
+            if request is None:
+                return
             if request.future.done():  # the caller gave up
                 continue
             if request.kind in _SDO_KINDS:
@@ -146,11 +178,13 @@ class _CommandCycle(_LinkCore):
             return
 
     def _begin_command(self, request: _Request, now: float) -> None:
-        cs = self._cs
+        cs = self.state
         kind = request.kind
         if kind is _Kind.ENABLE:
             if cs.stop_phase is _StopPhase.STOPPING:
-                self._reject(request, DeviceRefusedError("a STOP is in progress: wait for it"))
+                self._reports.reject(
+                    request, DeviceRefusedError("a STOP is in progress: wait for it")
+                )
                 return
             cs.enable = True
             request.deadline = now + 0.5
@@ -162,7 +196,7 @@ class _CommandCycle(_LinkCore):
             cs.after_exchange.append(request)
         elif kind is _Kind.RESET:
             if cs.inputs.busy:
-                self._reject(
+                self._reports.reject(
                     request,
                     DeviceRefusedError(
                         "Reset is ignored while Busy: wait for the move to end or stop it"
@@ -175,11 +209,11 @@ class _CommandCycle(_LinkCore):
         elif kind is _Kind.START:
             self._begin_start(request, now)
         else:  # pragma: no cover - urgent kinds never reach the normal queue
-            self._reject(request, DeviceRefusedError(f"unexpected request {kind}"))
+            self._reports.reject(request, DeviceRefusedError(f"unexpected request {kind}"))
 
     def _refuse_start(self, request: _Request) -> str | None:
         """Why the drive would refuse this start now (the server knows it), or None."""
-        cs = self._cs
+        cs = self.state
         inputs = cs.inputs
         start_type = request.start_type
         if cs.stop_phase is not _StopPhase.NONE:
@@ -220,10 +254,10 @@ class _CommandCycle(_LinkCore):
         return None
 
     def _begin_start(self, request: _Request, now: float) -> None:
-        cs = self._cs
+        cs = self.state
         reason = self._refuse_start(request)
         if reason is not None:
-            self._reject(request, DeviceRefusedError(reason))
+            self._reports.reject(request, DeviceRefusedError(reason))
             return
         cs.target = request.target
         cs.velocity_bp = request.velocity_bp
@@ -242,7 +276,7 @@ class _CommandCycle(_LinkCore):
         cs.running = request.start_type
 
     def _estimate_target(self, start_type: StartType, operand: int) -> float | None:
-        cs = self._cs
+        cs = self.state
         actual = cs.inputs.actual_position_counts
         if start_type in (StartType.ABSOLUTE, StartType.ABSOLUTE_CHANGE):
             return float(operand)
@@ -269,8 +303,9 @@ class _CommandCycle(_LinkCore):
             return float(actual + travel)
         return None  # ENDLESS, calibration: no target
 
-    def _before_exchange(self, now: float) -> None:
-        cs = self._cs
+    def before_exchange(self, now: float) -> None:
+        """What an earlier cycle prepared: Execute rises after ARMING, Reset pulses."""
+        cs = self.state
         if cs.exec_state is _Exec.ARMING:
             cs.execute = True
             cs.exec_state = _Exec.WAIT_BUSY
@@ -287,25 +322,27 @@ class _CommandCycle(_LinkCore):
 
     # --- evaluation after an exchange ---------------------------------------------------
 
-    def _update_diag(
-        self, slave: EthercatSlave, previous: Inputs, inputs: Inputs, now: float
-    ) -> None:
-        cs = self._cs
+    def diag_due(self, previous: Inputs, inputs: Inputs, now: float) -> bool:
+        """Whether the diagnosis word (0x9020:01) must be read now: Warning rose (or
+        Error), a change is being watched, or the last read is older than 0.1 s. Without
+        Warning the diagnosis is cleared and nothing is read."""
+        cs = self.state
         if not inputs.warning:
             cs.diag = PosDiag.NONE
-            return
+            return False
         pending = cs.pending
         watching_change = pending is not None and pending.stage == 1
         rose = not previous.warning or (inputs.error and not previous.error)
-        if rose or watching_change or now - cs.diag_t > 0.1:
-            try:
-                cs.diag = PosDiag(self._read_coe(slave, codec.POS_STATUS_WORD) & 0x7)
-                cs.diag_t = now
-            except (EthercatError, CodecError):
-                self._errors += 1
+        return rose or watching_change or now - cs.diag_t > 0.1
 
-    def _advance_stop(self, inputs: Inputs, now: float) -> None:
-        cs = self._cs
+    def take_diag(self, status_word: int, now: float) -> None:
+        """The diagnosis word (0x9020:01) read at ``now``."""
+        cs = self.state
+        cs.diag = PosDiag(status_word & 0x7)
+        cs.diag_t = now
+
+    def advance_stop(self, inputs: Inputs, now: float) -> None:
+        cs = self.state
         if cs.stop_phase is _StopPhase.NONE:
             return
         cs.stop_cycles += 1
@@ -316,27 +353,27 @@ class _CommandCycle(_LinkCore):
         position = inputs.actual_position_counts
         if cs.stop_phase is _StopPhase.STOPPING:
             cs.enable = False
-            self._post_event("warning", f"STOP: stopped at {position} counts, Enable off")
+            self._reports.post_event("warning", f"STOP: stopped at {position} counts, Enable off")
         else:
-            self._post_event(
+            self._reports.post_event(
                 "warning", f"Emergency stop: stopped at {position} counts, Enable kept"
             )
         cs.stop_phase = _StopPhase.NONE
 
-    def _advance_exec(self, inputs: Inputs, now: float) -> None:
+    def advance_exec(self, inputs: Inputs, now: float) -> None:
         """Execute: held while the move runs, dropped once Busy has risen and fallen."""
-        cs = self._cs
+        cs = self.state
         if cs.exec_state in (_Exec.RUNNING, _Exec.HALTING) and not inputs.busy:
             pending = cs.pending
             if pending is not None and pending.kind is _Kind.START and pending.stage == 1:
-                return  # a change is being watched: _advance_pending ends it first
+                return  # a change is being watched: advance_pending ends it first
             halted = cs.exec_state is _Exec.HALTING
             cs.execute = False
             cs.exec_state = _Exec.IDLE
             self._finish_move(inputs, now, halted=halted)
 
     def _finish_move(self, inputs: Inputs, now: float, *, halted: bool) -> None:
-        cs = self._cs
+        cs = self.state
         running = cs.running
         cs.running = None
         if running is None:
@@ -359,10 +396,10 @@ class _CommandCycle(_LinkCore):
         else:
             level = "error" if inputs.error else "warning"
             text = f"{running.name} ended {where}: {text}"
-        self._post_event(level, text)
+        self._reports.post_event(level, text)
 
     def _end_outcome(self, start_type: StartType, inputs: Inputs) -> tuple[bool, str]:
-        cs = self._cs
+        cs = self.state
         if inputs.error:
             detail = diag_text(cs.diag) if cs.diag else self._error_hint(start_type)
             return False, f"the drive answered Error: {detail}"
@@ -390,23 +427,23 @@ class _CommandCycle(_LinkCore):
     def _error_hint(self, start_type: StartType) -> str:
         if start_type in MODULO_START_TYPES:
             return "modulo factor or modulo target out of range"
-        state = self._cs.drive_state
+        state = self.state.drive_state
         named = f" (last drive state {_state_label(state)})" if state is not None else ""
         return f"no diagnosis bit set{named}"
 
-    def _advance_pending(self, inputs: Inputs, now: float) -> None:
-        cs = self._cs
+    def advance_pending(self, inputs: Inputs, now: float) -> None:
+        cs = self.state
         request = cs.pending
         if request is None:
             return
         if request.kind is _Kind.ENABLE:
             if inputs.stm_status & StmStatus.READY:
                 cs.pending = None
-                self._resolve(request, "enabled")
+                self._reports.resolve(request, "enabled")
             elif now > request.deadline:
                 cs.pending = None
                 cs.enable = False
-                self._reject(
+                self._reports.reject(
                     request,
                     DeviceRefusedError(
                         "the drive did not report STM Ready within 0.5 s after Enable: check "
@@ -428,7 +465,7 @@ class _CommandCycle(_LinkCore):
                         if flag
                     ]
                     if still:
-                        self._reject(
+                        self._reports.reject(
                             request,
                             DeviceRefusedError(
                                 f"{' and '.join(still)} still set after Reset: {diag_text(cs.diag)}"
@@ -436,7 +473,7 @@ class _CommandCycle(_LinkCore):
                         )
                     else:
                         cs.diag = PosDiag.NONE
-                        self._resolve(request, "cleared")
+                        self._reports.resolve(request, "cleared")
         elif request.kind is _Kind.START:
             if request.stage == 1:
                 self._watch_change(request, inputs, now)
@@ -445,7 +482,7 @@ class _CommandCycle(_LinkCore):
 
     def _watch_start(self, request: _Request, inputs: Inputs, now: float) -> None:
         """WAIT_BUSY: the drive has taken the move once Busy is seen twice without Error."""
-        cs = self._cs
+        cs = self.state
         if cs.exec_state is _Exec.ARMING:
             return
         if inputs.busy:
@@ -454,7 +491,7 @@ class _CommandCycle(_LinkCore):
             if request.count >= 2 and not inputs.error:
                 cs.exec_state = _Exec.RUNNING
                 cs.pending = None
-                self._resolve(request, f"{request.start_type.name} started")
+                self._reports.resolve(request, f"{request.start_type.name} started")
             return
         if not request.saw_busy and now <= request.deadline:
             return
@@ -466,17 +503,17 @@ class _CommandCycle(_LinkCore):
         cs.running = None
         if not ok:
             cs.target_estimate = request.previous_target
-            self._reject(request, DeviceRefusedError(f"{request.start_type.name}: {text}"))
+            self._reports.reject(request, DeviceRefusedError(f"{request.start_type.name}: {text}"))
         else:
-            self._resolve(request, f"{request.start_type.name} done: {text}")
+            self._reports.resolve(request, f"{request.start_type.name} done: {text}")
 
     def _watch_change(self, request: _Request, inputs: Inputs, now: float) -> None:
-        cs = self._cs
+        cs = self.state
         new = cs.diag & ~request.diag_before
         if new & PosDiag.COMMAND_REJECTED:
             cs.pending = None
             cs.target_estimate = request.previous_target
-            self._reject(
+            self._reports.reject(
                 request,
                 DeviceRefusedError(
                     f"{request.start_type.name}: the drive rejected the change: "
@@ -486,4 +523,4 @@ class _CommandCycle(_LinkCore):
         elif not inputs.busy or now > request.deadline:
             cs.pending = None
             note = f"; {diag_text(PosDiag.TARGET_OVERRUN)}" if new & PosDiag.TARGET_OVERRUN else ""
-            self._resolve(request, f"{request.start_type.name} taken{note}")
+            self._reports.resolve(request, f"{request.start_type.name} taken{note}")

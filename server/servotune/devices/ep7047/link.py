@@ -25,14 +25,15 @@ The owner: one cycle thread
     ``loop.call_soon_threadsafe``. Every cycle's sample is delivered, in batches of
     ``SAMPLE_BATCH_S`` (one loop wake-up per batch, not per cycle).
 
-Modules (this one re-exports their public names): ``transports.ethercat`` the library
-seam (protocols, errors, state values, pysoem adapter); ``devices.ep7047.requests``
-requests, the cycle state and ``_LinkCore`` (status, posts from the thread to the loop,
-sample batches); ``devices.ep7047.handshakes`` ``_CommandCycle`` (the command
-handshakes); ``devices.ep7047.cycle`` ``_CycleThread`` (bring-up, exchange, SDO slots,
-samples, shutdown); ``devices.ep7047.axis`` ``Ep7047Axis`` (parameters, commands,
-console, bench planner; it talks to the link through ``Ep7047AxisLink``); here
-``Ep7047Link`` (the event-loop side) and the glue.
+Parts (this module re-exports their public names): ``transports.ethercat`` the library
+seam (protocols, errors, state values, pysoem adapter); ``devices.ep7047.requests`` the
+requests, their queue, the cycle state and counters (data); here ``Ep7047Link``, which
+*has* a ``devices.ep7047.bridge.EventLoopBridge`` (status, the posts from the thread to the
+loop, sample batches) and a ``devices.ep7047.cycle.Cycle`` (bring-up, exchange, SDO
+slots, samples, shutdown; it reports through ``CycleReports``, which the bridge
+implements), which *has* the ``devices.ep7047.handshakes.Handshakes`` (the command
+handshakes, sans-IO); ``devices.ep7047.axis`` ``Ep7047Axis`` (parameters, commands,
+console, bench planner; it talks to the link through ``Ep7047AxisLink``).
 
 Each cycle: (1) urgent requests (STOP, emergency stop, Halt) go into the outputs of this
 very exchange; (2) the next user request, one at a time (an SDO transfer, or a command
@@ -84,18 +85,22 @@ import asyncio
 import functools
 import logging
 import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from servotune.descriptor import DeviceDescriptor
 from servotune.devices.ep7047.axis import Ep7047Axis
+from servotune.devices.ep7047.bridge import EventLoopBridge
 from servotune.devices.ep7047.codec import PosSettings, SdoObject
-from servotune.devices.ep7047.cycle import _CycleThread
+from servotune.devices.ep7047.cycle import Cycle
+from servotune.devices.ep7047.descriptor import ep7047_descriptor
 from servotune.devices.ep7047.requests import (
-    _URGENT_KINDS,
     DEFAULT_COUNTS_PER_REV,
     DEFAULT_SPEED_RANGE_STEPS_S,
     WATCHDOG_S,
-    _CycleState,
+    CycleCounters,
+    RequestQueue,
     _Kind,
     _Request,
     diag_text,
@@ -106,6 +111,7 @@ from servotune.link.base import (
     DriverSink,
     LinkDownError,
 )
+from servotune.schema import LinkState
 from servotune.transports.ethercat import (
     BOOT_STATE,
     INIT_STATE,
@@ -131,10 +137,139 @@ from servotune.transports.ethercat_cycle import CycleProcessMaster
 logger = logging.getLogger(__name__)
 
 
-class Ep7047Link(_CycleThread):
-    """One EtherCAT network interface with one EP7047-1032 slave; see the module docstring."""
+class Ep7047Link:
+    """One EtherCAT network interface with one EP7047-1032 slave; see the module docstring.
+
+    It has an ``EventLoopBridge`` (status, samples and results on the event loop) and a
+    ``Cycle`` (the thread that owns the master, with the command handshakes); requests
+    go to the cycle through a ``RequestQueue``.
+    """
 
     device = "ep7047"
+
+    def __init__(
+        self,
+        link_id: str,
+        ifname: str,
+        slave: int,
+        sink: DriverSink,
+        master_factory: Callable[[], EthercatMaster],
+        *,
+        cycle_s: float = 0.002,
+        speed_range_steps_s: int = DEFAULT_SPEED_RANGE_STEPS_S,
+        counts_per_rev: int = DEFAULT_COUNTS_PER_REV,
+        settings: PosSettings | None = None,
+        name: str | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        state_poll_s: float = 0.01,
+        rest_state_poll_s: float = 0.1,
+        max_lost_frames: int = 10,
+        reconnect_max_s: float = 5.0,
+        watchdog_s: float = WATCHDOG_S,
+    ) -> None:
+        if not 0.001 <= cycle_s <= 0.004:
+            raise ValueError(f"cycle_s must be 0.001..0.004 s, got {cycle_s}")
+        if slave < 1:
+            raise ValueError(f"slave positions start at 1, got {slave}")
+        self._link_id = link_id
+        self._ifname = ifname
+        self._slave_pos = slave
+        self._sink = sink
+        self._master_factory = master_factory
+        self._cycle_s = cycle_s
+        self._counts_per_rev = counts_per_rev
+        self._clock = clock
+        self._reconnect_max_s = reconnect_max_s
+        self._descriptor = ep7047_descriptor(speed_range_steps_s, counts_per_rev)
+        self._axis_name = name or f"EP7047-1032 #{slave}"
+        self._counters = CycleCounters()
+        self._queue = RequestQueue()
+        self.bridge = EventLoopBridge(
+            link_id,
+            self.axis_id,
+            sink,
+            self._counters,
+            wire_limit_hz=self.wire_limit_hz(),
+            clock=clock,
+        )
+        self.cycle = Cycle(
+            link_id,
+            ifname,
+            slave,
+            queue=self._queue,
+            reports=self.bridge,
+            counters=self._counters,
+            cycle_s=cycle_s,
+            speed_range_steps_s=speed_range_steps_s,
+            settings=settings,
+            clock=clock,
+            state_poll_s=state_poll_s,
+            rest_state_poll_s=rest_state_poll_s,
+            max_lost_frames=max_lost_frames,
+            reconnect_max_s=reconnect_max_s,
+            watchdog_s=watchdog_s,
+        )
+
+    # --- Link protocol ------------------------------------------------------------------
+
+    @property
+    def id(self) -> str:
+        return self._link_id
+
+    @property
+    def path(self) -> str:
+        return f"{self._ifname} slave {self._slave_pos}"
+
+    @property
+    def baud(self) -> int:
+        return 0  # not a serial line
+
+    @property
+    def state(self) -> LinkState:
+        return self.bridge.state
+
+    @property
+    def message(self) -> str:
+        """What the link's state means now (the status message)."""
+        return self.bridge.message
+
+    @property
+    def errors(self) -> int:
+        """Lost cycles (bad working counter) and failed SDO transfers since start."""
+        return self._counters.errors
+
+    @property
+    def descriptor(self) -> DeviceDescriptor:
+        return self._descriptor
+
+    @property
+    def axis_id(self) -> str:
+        return f"{self._link_id}-{self._slave_pos}"
+
+    @property
+    def cycle_s(self) -> float:
+        return self._cycle_s
+
+    def wire_limit_hz(self) -> float:
+        return 1 / self._cycle_s
+
+    def achieved_rate_hz(self) -> float:
+        """Samples/s over the last 2 s, falling to 0 within 2 s when the cycles stop."""
+        return self.bridge.achieved_rate_hz()
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Lost frames (bad working counter), cycle overruns (a cycle thread more than one
+        period late), watchdog trips (more than ``watchdog_s`` without good process data:
+        the drive dropped its outputs), restarts of the cycle thread after an internal
+        error."""
+        counters = self._counters
+        return {
+            "lost_frames": counters.lost_frames,
+            "overruns": counters.overruns,
+            "watchdog_trips": counters.watchdog_trips,
+            "restarts": counters.restarts,
+        }
 
     @functools.cached_property
     def _axis(self) -> Ep7047Axis:
@@ -149,10 +284,10 @@ class Ep7047Link(_CycleThread):
             try:
                 return self._master_factory()
             except EthercatUnavailableError as exc:
-                self._set_state("error", str(exc))
+                self.bridge.set_state("error", str(exc))
             except Exception as exc:
                 logger.exception("creating the EtherCAT master of %s failed", self.id)
-                self._set_state("error", f"cannot create the EtherCAT master: {exc!r}")
+                self.bridge.set_state("error", f"cannot create the EtherCAT master: {exc!r}")
             await asyncio.sleep(self._reconnect_max_s)
 
     async def run(self) -> None:
@@ -164,16 +299,17 @@ class Ep7047Link(_CycleThread):
         drop-out; the axis never resumes Enable or a move by itself (the bring-up
         starts from zero outputs).
         """
-        self._loop = asyncio.get_running_loop()
-        self._halt.clear()
+        bridge, cycle = self.bridge, self.cycle
+        bridge.attach(asyncio.get_running_loop())
+        cycle.halt.clear()
         backoff_s = 0.25
         thread: threading.Thread | None = None
         try:
             while True:
                 master = await self._create_master()
-                self._cs = _CycleState()
+                cycle.handshakes.reset()
                 thread = threading.Thread(
-                    target=self._thread_main,
+                    target=cycle.run,
                     args=(master,),
                     name=f"ep7047-cycle-{self.id}",
                     daemon=True,
@@ -185,34 +321,34 @@ class Ep7047Link(_CycleThread):
                     await asyncio.sleep(0.1)
                     if self._clock() - last_status >= 1.0:
                         last_status = self._clock()
-                        self._publish_status()
+                        bridge.publish_status()
                 thread = None
-                self._restarts += 1
+                self._counters.restarts += 1
                 if self._clock() - started > 30.0:
                     backoff_s = 0.25
                 self._fail_queued(LinkDownError(f"link {self.id} is restarting: nothing was sent"))
-                reason = self._message or "the cycle thread ended"
-                self._set_state("error", f"{reason}; restarting in {backoff_s:g} s")
+                reason = bridge.message or "the cycle thread ended"
+                bridge.set_state("error", f"{reason}; restarting in {backoff_s:g} s")
                 await asyncio.sleep(backoff_s)
                 backoff_s = min(backoff_s * 2, self._reconnect_max_s)
         finally:
-            self._halt.set()
+            cycle.halt.set()
             self._fail_queued(LinkDownError(f"link {self.id} is shutting down"))
             if thread is not None:
                 await asyncio.to_thread(thread.join, 10.0)
+
+    def _fail_queued(self, error: Exception) -> None:
+        self.bridge.fail(self._queue.take_all(), error)
 
     # --- requests (event loop side) -----------------------------------------------------
 
     async def submit(self, request: _Request) -> Any:
         """Queue ``request`` for the cycle thread and wait for its result."""
-        if self._loop is None or self._state != "connected" or not self._thread_connected:
+        state = self.bridge.state
+        if not self.bridge.attached or state != "connected" or not self.cycle.connected:
             request.future.cancel()
-            raise LinkDownError(f"link {self.id} is {self._state}: nothing was sent")
-        with self._lock:
-            if request.kind in _URGENT_KINDS:
-                self._urgent.append(request)
-            else:
-                self._normal.append(request)
+            raise LinkDownError(f"link {self.id} is {state}: nothing was sent")
+        self._queue.put(request)
         return await request.future
 
     def new_request(self, kind: _Kind, **values: Any) -> _Request:

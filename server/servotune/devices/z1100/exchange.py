@@ -192,7 +192,7 @@ class Z1100Exchange:
         self._engine.add_error()
         self._engine.count("fence_timeouts")
         if not heard:
-            self._engine.unanswered_request()
+            self._engine.unanswered_request(self._settings.fence_timeout_s)
         await self._drain_quiet(channel)
         return False
 

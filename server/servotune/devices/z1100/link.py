@@ -217,6 +217,7 @@ class Z1100Link:
                 if not self._engine.jobs_pending:
                     await self._probe()
                 continue
+            stalls = self._engine.host_stall_count
             try:
                 captured = [m for m in self._motors if m.capture is not None]
                 if captured:
@@ -230,14 +231,22 @@ class Z1100Link:
             except DriverError as exc:
                 # A poll is never a reason to end the session (a refusal or an odd
                 # reply to a poll is a desynchronisation): resynchronise and go on.
-                await self._poll_failed(channel, exc)
+                excused = self._engine.host_stall_count > stalls
+                await self._poll_failed(channel, exc, excused=excused)
             else:
                 self._failed_cycles = 0
                 if self._engine.state == "error":
                     self._engine.set_state("connected", self._connector.description)
 
-    async def _poll_failed(self, channel: ByteChannel, exc: DriverError) -> None:
-        self._failed_cycles += 1
+    async def _poll_failed(
+        self, channel: ByteChannel, exc: DriverError, *, excused: bool = False
+    ) -> None:
+        """A poll cycle failed: resynchronise; ``error`` after
+        ``error_after_failures`` in a row. A cycle that failed while the host held its
+        answers back (``excused``: a timeout of it was excused, ``LinkEngine.host_stalled``)
+        is no evidence against the chip and does not count."""
+        if not excused:
+            self._failed_cycles += 1
         self._engine.count("desyncs")
         logger.info("%s: poll failed (%s), resynchronising", self.id, exc)
         await self._resync(channel)
