@@ -1,12 +1,32 @@
 """A device on the master side of a pty, in a thread: each byte the host sends is
 handed to ``handle``, and what it returns is written back (the tests' stand-in for
-a module when the simulator's wire timing is not the subject)."""
+a module when the simulator's wire timing is not the subject); ``pty_channel`` opens
+the host's end as a ``SerialChannel``."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import threading
+import tty
+from collections.abc import AsyncIterator
+
+from servotune.transports.serial import SerialChannel, SerialConnector
+
+
+@contextlib.asynccontextmanager
+async def pty_channel(baud: int = 38400) -> AsyncIterator[tuple[int, SerialChannel]]:
+    """A raw pty: its master fd (the device's end) and a channel open on its slave."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    channel = await SerialConnector(os.ttyname(slave), baud).open()
+    try:
+        yield master, channel
+    finally:
+        await channel.close()
+        os.close(master)
+        os.close(slave)
 
 
 class PtyPeer:

@@ -118,14 +118,14 @@ class HostStalls:
 class PtySimulator:
     """A ``SimDevice`` on a pseudo-terminal (see the module docstring).
 
+    ``baud``: the line rate the device is paced at; the caller takes it from the
+    device (its ``LinkRules.default_baud``, or what the user asked for).
     ``link_path``: also maintain a symlink there pointing at the current slave device
     (replaced if it exists; removed on ``unplug`` and ``stop``). ``path`` is the name
     hosts should open: the link if given, otherwise the slave's ``/dev/pts/N``.
     """
 
-    def __init__(
-        self, device: SimDevice, *, baud: int = 19200, link_path: str | None = None
-    ) -> None:
+    def __init__(self, device: SimDevice, *, baud: int, link_path: str | None = None) -> None:
         if baud <= 0:
             raise ValueError("baud must be positive")
         self.device = device
@@ -520,9 +520,7 @@ def device_scheduling(what: str, *, own_session: bool = False) -> str:
     return f"{what}{group} at real-time priority (SCHED_FIFO {SIM_RT_PRIORITY})"
 
 
-def run_pty_simulator(
-    device: SimDevice, *, baud: int = 19200, link_path: str | None = None
-) -> None:
+def run_pty_simulator(device: SimDevice, *, baud: int, link_path: str | None = None) -> None:
     """Serve ``device`` on a pty until SIGINT or SIGTERM; call from the main thread.
 
     The first line on stdout is the path to open (flushed at once, for scripts that

@@ -7,8 +7,6 @@ pseudo-terminal and lets the demo use exactly the path real hardware uses.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 
@@ -16,118 +14,48 @@ class LinkClosedError(ConnectionError):
     """The port went away (USB adapter unplugged, pty closed)."""
 
 
-@dataclass(frozen=True, slots=True)
-class EchoResult:
-    """Outcome of ``write_echoed``: how many bytes were echoed correctly.
+class ReceiveHandler(Protocol):
+    """A device's exchange rules, run by ``ByteChannel.drive`` inside the channel's
+    receive callback (sans-IO: it sends and reads nothing itself).
 
-    ``echoed == len(data)`` means every byte came back. Otherwise byte ``echoed`` was
-    sent and either nothing came back in time (``got is None``) or ``got`` came back.
+    The channel calls ``start`` once, then ``feed`` with everything received and not
+    yet taken (at once for what is already buffered, then after every arrival), and
+    ``expire`` once ``deadline_s`` has passed. Each returns the bytes to write at once
+    (``b""``: none). ``feed`` takes what it consumes from the front of ``received``;
+    what it leaves stays buffered for the next read. Times are ``time.monotonic()``
+    seconds, read in the callback when the bytes came (or the deadline fired). Once
+    ``done`` the handler is called no more, except ``follow_up`` once, right then.
     """
 
-    echoed: int
-    got: int | None
+    def start(self, now_s: float) -> bytes: ...
 
+    def feed(self, received: bytearray, now_s: float) -> bytes: ...
 
-@dataclass(frozen=True, slots=True)
-class Transaction:
-    """Outcome of ``transact``: the echo, the reply, and when their last bytes came.
+    def expire(self, now_s: float) -> bytes: ...
 
-    ``reply`` is the reply up to and including the terminator, ``None`` if the echo
-    failed (see ``echo``) or a reply gap exceeded its timeout (the bytes received so
-    far stay buffered). ``t_echo_s`` / ``t_reply_s`` are ``time.monotonic()`` read in
-    the channel's receive callback when the last echo byte / the terminator arrived,
-    not when the awaiting task resumed: a busy event loop delays the task's resumption
-    by far more than it delays the callback (``None`` where that byte never came).
-    Both can only be late. ``t_sent_s`` is read just before the last byte of ``data``
-    was written: it can only be early, so the device received that byte after it (a
-    host that ran the echo's callback late leaves the two far apart).
-    """
+    @property
+    def deadline_s(self) -> float | None:
+        """When ``expire`` is due (None: never)."""
+        ...
 
-    echo: EchoResult
-    reply: bytes | None
-    t_echo_s: float | None
-    t_reply_s: float | None
-    t_sent_s: float | None = None
+    @property
+    def done(self) -> bool: ...
+
+    def follow_up(self) -> ReceiveHandler | None:
+        """The handler to start from the same callback, now that this one is done
+        (None: none). The channel runs it as a follow-up: see ``ByteChannel.drive``."""
+        ...
 
 
 class ByteChannel(Protocol):
     """An open, full-duplex byte stream.
 
-    ``read_byte`` and ``read_available`` return ``None`` / ``b""`` on timeout and raise
+    ``read_available`` returns ``b""`` on timeout; every call raises
     ``LinkClosedError`` once the port is gone. Received bytes are buffered in the
     channel, so no byte is lost between calls.
     """
 
     async def write(self, data: bytes) -> None: ...
-
-    async def read_byte(self, timeout_s: float) -> int | None: ...
-
-    async def write_echoed(self, data: bytes, char_timeout_s: float) -> EchoResult:
-        """Send ``data`` one byte at a time, each only after the previous one's echo.
-
-        Stops at the first missing (``char_timeout_s``) or wrong echo. Bytes that
-        arrive after the last echo stay buffered for the next read.
-        """
-        ...
-
-    async def read_until(
-        self, terminator: int, first_timeout_s: float, char_timeout_s: float
-    ) -> bytes | None:
-        """Read up to and including ``terminator``; ``None`` if a gap exceeds its timeout.
-
-        ``first_timeout_s`` applies to the first byte, ``char_timeout_s`` between bytes.
-        On a timeout the bytes received so far stay buffered.
-        """
-        ...
-
-    async def transact(
-        self,
-        data: bytes,
-        terminator: int,
-        char_timeout_s: float,
-        first_reply_timeout_s: float,
-        *,
-        then: bytes = b"",
-        may_chain: Callable[[], bool] | None = None,
-    ) -> Transaction:
-        """``write_echoed(data)`` then ``read_until(terminator)`` as one exchange.
-
-        The reply is collected from the same receive callback that checks the last
-        echo (no task wake-up in between), and both arrival times are stamped there
-        (see ``Transaction``). ``first_reply_timeout_s`` applies from the last echo to
-        the reply's first byte, ``char_timeout_s`` to every other gap.
-
-        ``then``: the exchange the caller expects to make next (only one that may
-        be sent for nothing: a read). That same callback starts it when the reply is
-        complete, nothing else is buffered, and ``may_chain()`` (checked then, e.g.
-        "no STOP is waiting") allows it, so the line does not idle while the caller
-        wakes up and parses. The next ``transact`` with exactly that payload takes it
-        over; any other call first lets it end and drops its outcome
-        (``chains_dropped`` counts those). A caller that must know how a dropped
-        one ended calls ``settle`` before its next exchange.
-        """
-        ...
-
-    async def settle(self, adopt: bytes = b"") -> Transaction | None:
-        """End a chained exchange (``transact(then=...)``) other than ``adopt``: wait
-        for it, drop it, and return how it ended (a reply of None: it failed before
-        its reply was complete, so the device may hold part of that command). None
-        when nothing is chained, or when it is ``adopt`` (left to be taken over)."""
-        ...
-
-    def take_timeout_late_s(self) -> float:
-        """The longest any read that timed out since the last call was noticed after
-        its deadline (0: all on time); resets it. More than a read listened: the host
-        itself did not run for longer than it listened, so that silence is no evidence
-        against the device (its bytes may be held up in the host's tty layer, which a
-        starved host starves too)."""
-        ...
-
-    @property
-    def chains_dropped(self) -> int:
-        """Exchanges started with ``transact(then=...)`` that the caller did not
-        take over (it asked for something else): sent, their reply dropped."""
-        ...
 
     async def read_available(self, timeout_s: float) -> bytes: ...
 
@@ -140,8 +68,35 @@ class ByteChannel(Protocol):
         """
         ...
 
+    async def drive(self, handler: ReceiveHandler) -> None:
+        """Run ``handler`` from the receive callback until it is ``done`` (one task
+        wake-up for a whole exchange, however many steps it has).
+
+        A handler's ``follow_up`` is started from the callback that finished it and
+        runs on unawaited; every other call first waits for it to end, except
+        ``drive`` of that very follow-up, which waits for it instead of starting it
+        (a cancelled wait leaves it running). Cancelling ``drive`` of any other
+        handler ends that handler where it is. Raises ``LinkClosedError`` if the port
+        is closed, or closes before the handler is done.
+
+        ``expire`` comes when the deadline armed first has passed and then whenever
+        the handler's current ``deadline_s`` has: a deadline that moves earlier than
+        the armed one (a long first wait, then a short gap) is noticed only when the
+        armed one fires.
+        """
+        ...
+
+    def take_timeout_late_s(self) -> float:
+        """The longest any read or handler deadline that passed since the last call
+        was noticed after it (0: all on time); resets it. More than a read listened:
+        the host itself did not run for longer than it listened, so that silence is no
+        evidence against the device (its bytes may be held up in the host's tty
+        layer, which a starved host starves too)."""
+        ...
+
     def discard_input(self) -> bytes:
-        """Drop and return everything received but not yet read."""
+        """Drop and return everything received but not yet read (``b""`` while a
+        follow-up runs: what came is its own)."""
         ...
 
     @property

@@ -7,153 +7,40 @@ import errno
 import functools
 import os
 import time
-from collections.abc import Callable
 
 import serial
 import serial_asyncio_fast
 
-from servotune.transports.base import ByteChannel, EchoResult, LinkClosedError, Transaction
+from servotune.transports.base import ByteChannel, LinkClosedError, ReceiveHandler
 
 
-class _Exchange:
-    """An echoed write, a read-until, or both in a row, advanced from ``data_received``.
+class _Run:
+    """A handler being driven: the tasks waiting for its end, its deadline timer."""
 
-    Running the per-character steps in the protocol callback, instead of waking the
-    waiting task for every echo, takes one task switch per character out of the
-    round trip (the SLAP2 protocol is nothing but round trips). With both a payload
-    and a terminator (``transact``) the reply is read on from the callback that took
-    the last echo: one task wake-up per transaction, and the arrival times stamped
-    where the bytes come in.
-    """
+    __slots__ = ("ended", "handler", "timer", "waiters")
 
-    def __init__(
-        self,
-        protocol: _SerialProtocol,
-        *,
-        payload: bytes = b"",
-        terminator: int | None = None,
-        count: int | None = None,
-        first_timeout_s: float,
-        char_timeout_s: float,
-        first_reply_timeout_s: float | None = None,
-        then: bytes = b"",
-        may_chain: Callable[[], bool] | None = None,
-    ) -> None:
-        self.protocol = protocol
-        self.payload = payload
-        self.then = then
-        self.may_chain = may_chain
-        self.terminator = terminator
-        self.count = count
-        self.char_timeout_s = char_timeout_s
-        self.first_reply_timeout_s = first_reply_timeout_s
-        self.index = 0
-        self.echo: EchoResult | None = None if payload else EchoResult(0, None)
-        self.t_echo_s: float | None = None
-        self.t_reply_s: float | None = None
-        self.t_sent_s: float | None = None  # just before the last payload byte left
-        self.loop = asyncio.get_running_loop()
-        self.future: asyncio.Future[EchoResult | bytes | None] = self.loop.create_future()
-        self.deadline = self.loop.time() + first_timeout_s
-        self.timer = self.loop.call_at(self.deadline, self.on_timer)
+    def __init__(self, handler: ReceiveHandler) -> None:
+        self.handler = handler
+        self.ended = False
+        # One future per waiting task: a cancelled wait cancels its own only.
+        self.waiters: list[asyncio.Future[None]] = []
+        self.timer: asyncio.TimerHandle | None = None
 
-    def restart_timer(self, timeout_s: float | None = None) -> None:
-        # Only move the deadline; the armed timer re-arms itself when it fires early.
-        # Cancelling and re-arming a timer for every character would cost more than
-        # the rest of the per-character work.
-        self.deadline = self.loop.time() + (self.char_timeout_s if timeout_s is None else timeout_s)
-
-    def on_timer(self) -> None:
-        if self.loop.time() < self.deadline:
-            self.timer = self.loop.call_at(self.deadline, self.on_timer)
-        else:
-            self.on_timeout()
-
-    def finish(self, result: EchoResult | bytes | None) -> None:
-        self.timer.cancel()
-        self.protocol.exchange = None
-        if not self.future.done():
-            self.future.set_result(result)
-
-    def on_timeout(self) -> None:
-        self.protocol.note_late(self.loop.time() - self.deadline)
-        if self.echo is None:
-            self.echo = EchoResult(self.index, None)
-            self.finish(self.echo)
-        else:
-            self.finish(None)
-
-    def step(self, now_s: float) -> None:
-        """Consume what the buffer holds; called after every ``data_received`` with
-        the time it was called."""
-        buffer = self.protocol.buffer
-        if self.echo is None:
-            while buffer:
-                expected = self.payload[self.index]
-                got = buffer[0]
-                del buffer[0]
-                if got != expected:
-                    self.echo = EchoResult(self.index, got)
-                    self.finish(self.echo)
-                    return
-                self.index += 1
-                if self.index == len(self.payload):
-                    self.echo = EchoResult(self.index, None)
-                    self.t_echo_s = now_s
-                    if self.terminator is None:
-                        self.finish(self.echo)
-                        return
-                    self.restart_timer(self.first_reply_timeout_s)
-                    break
-                self.send_next(now_s)
-                self.restart_timer()
-            else:
-                return
-        if self.count is not None:
-            if len(buffer) >= self.count:
-                data = bytes(buffer)
-                buffer.clear()
-                self.t_reply_s = now_s
-                self.finish(data)
-            return
-        if self.terminator is not None:
-            end = buffer.find(self.terminator)
-            if end < 0:
-                if buffer:  # the reply has begun: the gap between characters applies
-                    self.restart_timer()
-                return
-            line = bytes(buffer[: end + 1])
-            del buffer[: end + 1]
-            self.t_reply_s = now_s
-            self.finish(line)
-            if self.then and not buffer and (self.may_chain is None or self.may_chain()):
-                self._chain()
-
-    def send_next(self, now_s: float) -> None:
-        """Write payload byte ``index`` (stamping ``t_sent_s`` for the last one)."""
-        if self.index == len(self.payload) - 1:
-            self.t_sent_s = now_s
-        self.protocol.send(self.payload[self.index : self.index + 1])
-
-    def _chain(self) -> None:
-        """Start the follow-up exchange ``then`` from this callback: its first byte
-        leaves now, not after the waiting task has woken up and parsed this reply.
-        ``SerialChannel.transact`` adopts it when that task asks for it."""
-        chained = _Exchange(
-            self.protocol,
-            payload=self.then,
-            terminator=self.terminator,
-            first_timeout_s=self.char_timeout_s,
-            char_timeout_s=self.char_timeout_s,
-            first_reply_timeout_s=self.first_reply_timeout_s,
-        )
-        self.protocol.exchange = chained
-        self.protocol.chained = chained
-        chained.send_next(time.monotonic())
+    async def wait(self, loop: asyncio.AbstractEventLoop) -> None:
+        if not self.ended:
+            waiter = loop.create_future()
+            self.waiters.append(waiter)
+            await waiter
 
 
 class _SerialProtocol(asyncio.Protocol):
-    """Buffers received bytes and wakes a waiting reader; records a lost connection."""
+    """Buffers received bytes, advances the driven handler from ``data_received``,
+    wakes a waiting reader; records a lost connection.
+
+    Running a handler's steps in the protocol callback, instead of waking the waiting
+    task for every byte, takes one task switch per step out of a round trip (an
+    echo-per-character protocol is nothing but round trips).
+    """
 
     def __init__(self) -> None:
         self.buffer = bytearray()
@@ -161,10 +48,11 @@ class _SerialProtocol(asyncio.Protocol):
         self.lost: Exception | None = None
         self.is_closed = False
         self.transport: asyncio.Transport | None = None
-        self.exchange: _Exchange | None = None
-        # A follow-up started from the receive callback (``_Exchange.then``) that no
-        # ``transact`` has taken over yet; it may still be running (``exchange``).
-        self.chained: _Exchange | None = None
+        self.loop = asyncio.get_running_loop()
+        self.run: _Run | None = None  # the handler fed from data_received
+        # A follow-up started from the receive callback (``ReceiveHandler.follow_up``)
+        # that no ``drive`` has taken over yet; it may still be running (``run``).
+        self.detached: _Run | None = None
         # The latest any read that timed out was noticed (SerialChannel.take_timeout_late_s).
         self.timeout_late_s = 0.0
 
@@ -181,16 +69,117 @@ class _SerialProtocol(asyncio.Protocol):
 
     def data_received(self, data: bytes) -> None:
         self.buffer += data
-        if self.exchange is not None:
-            self.exchange.step(time.monotonic())
+        run = self.run
+        if run is not None:
+            now_s = time.monotonic()
+            self.advance(run, run.handler.feed(self.buffer, now_s), now_s)
         self.data_event.set()
+
+    def begin(self, handler: ReceiveHandler, now_s: float, *, detached: bool = False) -> _Run:
+        """Install ``handler``, send what it starts with, feed it what is buffered."""
+        run = _Run(handler)
+        self.run = run
+        if detached:
+            self.detached = run
+        out = handler.start(now_s)
+        if not handler.done:
+            if out:
+                self.send(out)
+            out = handler.feed(self.buffer, now_s)
+        self.advance(run, out, now_s)
+        return run
+
+    def advance(self, run: _Run, out: bytes, now_s: float) -> None:
+        """After a step of ``run``'s handler: send ``out``; end it (and start its
+        follow-up) once done, else keep a timer for its deadline."""
+        if out:
+            self.send(out)
+        handler = run.handler
+        if handler.done:
+            self.end(run)
+            follow = handler.follow_up()
+            if follow is not None:
+                self.begin(follow, now_s, detached=True)
+            return
+        # A moved deadline leaves the armed timer (it re-arms itself when it fires
+        # early): cancelling and re-arming for every byte would cost more than the
+        # rest of the per-byte work. So one moved earlier is checked only when the
+        # armed one fires (see ``ByteChannel.drive``).
+        if run.timer is None:
+            deadline_s = handler.deadline_s
+            if deadline_s is not None:
+                self.arm(run, deadline_s, now_s)
+
+    def arm(self, run: _Run, deadline_s: float, now_s: float) -> None:
+        # The loop's clock may differ from time.monotonic() (uvloop): arm by the delay.
+        run.timer = self.loop.call_at(self.loop.time() + (deadline_s - now_s), self.on_timer, run)
+
+    def on_timer(self, run: _Run) -> None:
+        run.timer = None
+        if self.run is not run:
+            return
+        handler = run.handler
+        deadline_s = handler.deadline_s
+        if deadline_s is None:
+            return
+        now_s = time.monotonic()
+        if now_s < deadline_s:
+            self.arm(run, deadline_s, now_s)
+            return
+        self.note_late(now_s - deadline_s)
+        self.advance(run, handler.expire(now_s), now_s)
+
+    def end(self, run: _Run) -> None:
+        if run.timer is not None:
+            run.timer.cancel()
+            run.timer = None
+        if self.run is run:
+            self.run = None
+        if not run.ended:
+            run.ended = True
+            for waiter in run.waiters:
+                if not waiter.done():
+                    waiter.set_result(None)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.is_closed = True
         self.lost = exc
-        if self.exchange is not None:
-            self.exchange.finish(None)
+        if self.run is not None:
+            self.end(self.run)
         self.data_event.set()
+
+
+class _AtLeast:
+    """``read_at_least`` as a handler: done once ``count`` bytes are buffered."""
+
+    __slots__ = ("count", "data", "deadline_s", "done", "t_s", "timeout_s")
+
+    def __init__(self, count: int, timeout_s: float) -> None:
+        self.count = count
+        self.timeout_s = timeout_s
+        self.deadline_s: float | None = None
+        self.done = False
+        self.data: bytes | None = None
+        self.t_s: float | None = None
+
+    def start(self, now_s: float) -> bytes:
+        self.deadline_s = now_s + self.timeout_s
+        return b""
+
+    def feed(self, received: bytearray, now_s: float) -> bytes:
+        if len(received) >= self.count:
+            self.data = bytes(received)
+            received.clear()
+            self.t_s = now_s
+            self.done = True
+        return b""
+
+    def expire(self, now_s: float) -> bytes:
+        self.done = True
+        return b""
+
+    def follow_up(self) -> None:
+        return None
 
 
 class SerialChannel(ByteChannel):
@@ -200,66 +189,54 @@ class SerialChannel(ByteChannel):
         self._transport = transport
         self._protocol = protocol
         self._path = path
-        self._chains_dropped = 0
 
     def _check_open(self) -> None:
         if self._protocol.is_closed:
             reason = f": {self._protocol.lost}" if self._protocol.lost else ""
             raise LinkClosedError(f"{self._path} closed{reason}")
 
-    @property
-    def chains_dropped(self) -> int:
-        return self._chains_dropped
-
     def take_timeout_late_s(self) -> float:
         late_s, self._protocol.timeout_late_s = self._protocol.timeout_late_s, 0.0
         return late_s
 
-    async def settle(self, adopt: bytes = b"") -> Transaction | None:
-        """End an exchange chained with ``transact(then=...)`` that is not ``adopt``:
-        wait for it (its own timeouts bound that), drop it and return its outcome;
-        None when there is none, or when it is ``adopt`` (left to be taken over)."""
-        chained = self._protocol.chained
-        if chained is None or (adopt and chained.payload == adopt):
-            return None
-        await self._settle()
-        return self._outcome(chained)
-
-    async def _settle(self, adopt: bytes = b"") -> _Exchange | None:
-        """Before any other use of the line: the chained exchange, if it is the one
-        asked for now (``adopt``, the next ``transact``'s payload), is handed back to
-        be awaited; any other is waited out and dropped, so that its bytes never mix
-        with the next exchange's. A caller that must know how a dropped one ended
-        (the SLAP2 driver sends Ctrl-X after a half-sent command) calls ``settle``
-        first."""
+    async def _settle(self) -> None:
+        """Before any other use of the line: wait for a running follow-up to end, so
+        that its bytes never mix with the next exchange's. A cancelled caller leaves
+        it running, for the next call to wait out."""
         protocol = self._protocol
-        chained = protocol.chained
-        if chained is None:
-            return None
-        if adopt and chained.payload == adopt:
-            protocol.chained = None
-            return chained
-        # Shielded: a cancelled caller leaves the chain running and still pending, for
-        # the next call to settle (cancelling its future would orphan its bytes).
-        await asyncio.shield(chained.future)
-        if protocol.chained is chained:
-            protocol.chained = None
-            self._chains_dropped += 1
-        chained.timer.cancel()
-        if protocol.exchange is chained:
-            protocol.exchange = None
-        return None
+        detached = protocol.detached
+        if detached is None:
+            return
+        await detached.wait(protocol.loop)
+        if protocol.detached is detached:
+            protocol.detached = None
 
-    @staticmethod
-    def _outcome(exchange: _Exchange) -> Transaction:
-        """What an ended exchange got: its echo, and its reply line or None."""
-        echo = exchange.echo
-        if echo is None:  # the port closed during the echo
-            echo = EchoResult(exchange.index, None)
-        future = exchange.future
-        result = future.result() if future.done() and not future.cancelled() else None
-        reply = result if isinstance(result, bytes) else None
-        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s, exchange.t_sent_s)
+    async def drive(self, handler: ReceiveHandler) -> None:
+        protocol = self._protocol
+        detached = protocol.detached
+        if detached is not None and detached.handler is handler:
+            if not detached.ended:
+                waiter = protocol.loop.create_future()
+                detached.waiters.append(waiter)
+                await waiter
+            if protocol.detached is detached:
+                protocol.detached = None
+            self._check_open()
+            return
+        if detached is not None:
+            await self._settle()
+        self._check_open()
+        run = protocol.begin(handler, time.monotonic())
+        try:
+            if not run.ended:  # (inline: this is every exchange's path)
+                waiter = protocol.loop.create_future()
+                run.waiters.append(waiter)
+                await waiter
+        finally:
+            if protocol.run is run:
+                protocol.end(run)  # cancelled: the handler ends where it is
+        if not handler.done:
+            self._check_open()
 
     async def write(self, data: bytes) -> None:
         await self._settle()
@@ -279,110 +256,6 @@ class SerialChannel(ByteChannel):
         except TimeoutError:
             protocol.note_late(loop.time() - deadline)
 
-    async def read_byte(self, timeout_s: float) -> int | None:
-        await self._settle()
-        await self._wait_data(timeout_s)
-        buffer = self._protocol.buffer
-        if buffer:
-            byte = buffer[0]
-            del buffer[0]
-            return byte
-        self._check_open()
-        return None
-
-    async def write_echoed(self, data: bytes, char_timeout_s: float) -> EchoResult:
-        await self._settle()
-        self._check_open()
-        if not data:
-            return EchoResult(0, None)
-        exchange = _Exchange(
-            self._protocol,
-            payload=data,
-            first_timeout_s=char_timeout_s,
-            char_timeout_s=char_timeout_s,
-        )
-        result = await self._run(exchange, data[:1])
-        if result is None:  # the port closed meanwhile
-            self._check_open()
-        assert isinstance(result, EchoResult)
-        return result
-
-    async def read_until(
-        self, terminator: int, first_timeout_s: float, char_timeout_s: float
-    ) -> bytes | None:
-        await self._settle()
-        self._check_open()
-        exchange = _Exchange(
-            self._protocol,
-            terminator=terminator,
-            first_timeout_s=first_timeout_s,
-            char_timeout_s=char_timeout_s,
-        )
-        result = await self._run(exchange, b"")
-        if result is None:
-            self._check_open()
-            return None
-        assert isinstance(result, bytes)
-        return result
-
-    async def transact(
-        self,
-        data: bytes,
-        terminator: int,
-        char_timeout_s: float,
-        first_reply_timeout_s: float,
-        *,
-        then: bytes = b"",
-        may_chain: Callable[[], bool] | None = None,
-    ) -> Transaction:
-        exchange = await self._settle(data)
-        self._check_open()
-        if exchange is not None:
-            # Chained by the previous transact: already under way (or done).
-            exchange.then, exchange.may_chain = then, may_chain
-            result = await self._run(exchange, b"", started=True)
-        else:
-            exchange = _Exchange(
-                self._protocol,
-                payload=data,
-                terminator=terminator,
-                first_timeout_s=char_timeout_s,
-                char_timeout_s=char_timeout_s,
-                first_reply_timeout_s=first_reply_timeout_s,
-                then=then,
-                may_chain=may_chain,
-            )
-            result = await self._run(exchange, data[:1])
-        echo = exchange.echo
-        if echo is None:  # the port closed during the echo
-            self._check_open()
-            echo = EchoResult(exchange.index, None)
-        reply = result if isinstance(result, bytes) else None
-        if reply is None and echo.echoed == len(data):
-            self._check_open()
-        return Transaction(echo, reply, exchange.t_echo_s, exchange.t_reply_s, exchange.t_sent_s)
-
-    async def _run(
-        self, exchange: _Exchange, first: bytes, *, started: bool = False
-    ) -> EchoResult | bytes | None:
-        """Install ``exchange``, send ``first`` (the first payload byte, or nothing),
-        and wait for its outcome, advanced from ``data_received``. ``started``: it was
-        chained from the receive callback and runs already."""
-        protocol = self._protocol
-        if not started:
-            protocol.exchange = exchange
-        try:
-            if first:
-                exchange.send_next(time.monotonic())
-            if not started:
-                exchange.step(time.monotonic())  # what already sits in the buffer
-            return await exchange.future
-        finally:
-            exchange.timer.cancel()
-            # Not a follow-up this exchange chained from its last callback.
-            if protocol.exchange is exchange:
-                protocol.exchange = None
-
     async def read_available(self, timeout_s: float) -> bytes:
         await self._settle()
         await self._wait_data(timeout_s)
@@ -395,21 +268,22 @@ class SerialChannel(ByteChannel):
     async def read_at_least(self, count: int, timeout_s: float) -> tuple[bytes, float | None]:
         await self._settle()
         self._check_open()
-        exchange = _Exchange(
-            self._protocol, count=count, first_timeout_s=timeout_s, char_timeout_s=timeout_s
-        )
-        result = await self._run(exchange, b"")
-        if isinstance(result, bytes):
-            return result, exchange.t_reply_s
-        data = self.discard_input()  # a timeout: what came so far
-        if not data:
-            self._check_open()
-        return data, None
+        handler = _AtLeast(count, timeout_s)
+        try:
+            await self.drive(handler)
+        except LinkClosedError:
+            data = self.discard_input()  # what came before the port closed
+            if not data:
+                raise
+            return data, None
+        if handler.data is not None:
+            return handler.data, handler.t_s
+        return self.discard_input(), None  # a timeout: what came so far
 
     def discard_input(self) -> bytes:
-        chained = self._protocol.chained
-        if chained is not None and not chained.future.done():
-            return b""  # what came belongs to the chained exchange under way
+        detached = self._protocol.detached
+        if detached is not None and not detached.ended:
+            return b""  # what came belongs to the follow-up under way
         data = bytes(self._protocol.buffer)
         self._protocol.buffer.clear()
         return data

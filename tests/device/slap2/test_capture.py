@@ -18,6 +18,7 @@ import pytest
 
 from servotune.bench.metrics import compute_metrics
 from servotune.bench.quality import assess
+from servotune.devices.slap2.echo import EchoLine
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.profile import (
     COUNTS_TICK2_PER_SA,
@@ -32,7 +33,7 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import Capturer, DeviceRefusedError, DriverError, capture_of
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.pty import PtySimulator
-from servotune.transports.serial import SerialChannel, SerialConnector
+from servotune.transports.serial import SerialConnector
 from tests.support.sim_lines import RunningLink, chip_line, run_link, running_simulator
 from tests.support.sink import RecordingSink
 from tests.support.waiting import wait_for
@@ -527,17 +528,17 @@ async def test_polls_chain_their_next_read_and_keep_the_wire_order(
 ) -> None:
     """The poll loop hands the channel the read it makes next (rp -> pe -> rss of a
     module; in a capture rp -> rp), so the port's callback can send it right after
-    the reply (devices/slap2/exchange.py, _exchange_once). What the modules receive is
+    the reply (devices/slap2/echo.py, EchoLine.transact). What the modules receive is
     the same sequence as without it, no chained read is wasted while nothing else
     runs, and a STOP in between still reaches the wire."""
     chained: list[tuple[bytes, bytes]] = []
-    original = SerialChannel.transact
+    original = EchoLine.transact
 
-    async def spy(self: SerialChannel, data: bytes, *args: Any, **kwargs: Any) -> Any:
+    async def spy(self: EchoLine, data: bytes, *args: Any, **kwargs: Any) -> Any:
         chained.append((data, kwargs.get("then", b"")))
         return await original(self, data, *args, **kwargs)
 
-    monkeypatch.setattr(SerialChannel, "transact", spy)
+    monkeypatch.setattr(EchoLine, "transact", spy)
     with _recorded_line(tmp_path) as (clock, simulator, bus):
         async with run_link(simulator, bus, [0, 1]) as line:
             await line.connected()

@@ -13,10 +13,11 @@ from pathlib import Path
 import pytest
 import serial
 
+from servotune.devices.slap2.codec import DEFAULT_BAUD
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.sim.pty import PtySimulator
 
-BAUD = 19200
+BAUD = DEFAULT_BAUD
 CHAR_S = 10 / BAUD
 
 
@@ -166,7 +167,7 @@ def test_unplug_and_replug(simulator: PtySimulator) -> None:
 
 def test_stop_removes_the_link(tmp_path: Path) -> None:
     link = tmp_path / "tty"
-    sim = PtySimulator(Slap2Line.with_addresses([0]), link_path=str(link))
+    sim = PtySimulator(Slap2Line.with_addresses([0]), baud=BAUD, link_path=str(link))
     sim.start()
     assert link.is_symlink()
     sim.stop()

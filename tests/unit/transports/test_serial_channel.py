@@ -1,37 +1,27 @@
 """SerialChannel over a real pseudo-terminal. read_at_least: one wake-up for a reply
 that arrives in pieces, the arrival stamped when the last needed byte came, and a
-timeout that hands back what came so far. transact(then=...): the next read chained
-from the receive callback, taken over by the next transact, or waited out and dropped
-when something else is asked for."""
+timeout that hands back what came so far. drive: a handler advanced from the receive
+callback, its deadline kept (also when it moves on), its follow-up run unawaited
+and waited out by any other call or taken over by driving it."""
 
 from __future__ import annotations
 
 import asyncio
 import os
 import time
-import tty
 from collections.abc import AsyncIterator
-from typing import Any
 
 import pytest
 
 from servotune.transports.base import LinkClosedError
-from servotune.transports.serial import SerialChannel, SerialConnector
-from tests.support.pty_peer import PtyPeer
+from servotune.transports.serial import SerialChannel
+from tests.support.pty_peer import PtyPeer, pty_channel
 
 
 @pytest.fixture
 async def line() -> AsyncIterator[tuple[int, SerialChannel]]:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    path = os.ttyname(slave)
-    channel = await SerialConnector(path, 38400).open()
-    try:
-        yield master, channel
-    finally:
-        await channel.close()
-        os.close(master)
-        os.close(slave)
+    async with pty_channel() as opened:
+        yield opened
 
 
 async def test_read_at_least_waits_for_the_whole_count(line: tuple[int, SerialChannel]) -> None:
@@ -80,150 +70,6 @@ async def test_read_at_least_on_a_closed_port_raises(line: tuple[int, SerialChan
         await channel.read_at_least(6, 0.1)
 
 
-# --- transact(then=...): the next read chained from the receive callback --------------
-
-
-class EchoPeer(PtyPeer):
-    """A device on the pty's master side: echoes every byte; after a CR answers
-    ``<command>=ok`` CR. Records when each command's first byte arrived."""
-
-    def __init__(self, master: int, slow: bytes = b"", delay_s: float = 0.0) -> None:
-        self.started: list[tuple[bytes, float]] = []  # (command, first byte's arrival)
-        self.slow, self.delay_s = slow, delay_s  # echo a command starting so late
-        self._pending = b""
-        super().__init__(master)
-
-    def handle(self, byte: int) -> bytes:
-        if not self._pending:
-            self.started.append((b"", time.monotonic()))
-        self._pending += bytes([byte])
-        if self.slow and self._pending.startswith(self.slow):
-            time.sleep(self.delay_s)
-        if byte != 0x0D:
-            return bytes([byte])
-        command, self._pending = self._pending[:-1], b""
-        self.started[-1] = (command, self.started[-1][1])
-        return b"\r" + command + b"=ok\r"
-
-    def commands(self) -> list[bytes]:
-        return [command for command, _ in self.started]
-
-
-@pytest.fixture
-async def peer(line: tuple[int, SerialChannel]) -> AsyncIterator[tuple[EchoPeer, SerialChannel]]:
-    master, channel = line
-    device = EchoPeer(master)
-    try:
-        yield device, channel
-    finally:
-        device.stop()
-
-
-async def _transact(channel: SerialChannel, data: bytes, **kwargs: Any) -> bytes | None:
-    done = await channel.transact(data, 0x0D, 0.5, 0.5, **kwargs)
-    assert done.echo.echoed == len(data), done.echo
-    return done.reply
-
-
-async def test_a_chained_read_is_on_the_wire_before_it_is_asked_for(
-    peer: tuple[EchoPeer, SerialChannel],
-) -> None:
-    device, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    await asyncio.sleep(0.2)  # the caller is busy: the line is not idle meanwhile
-    asked_at = time.monotonic()
-    assert device.commands() == [b"rp", b"pe"]
-    assert device.started[1][1] < asked_at
-    done = await channel.transact(b"pe\r", 0x0D, 0.5, 0.5)
-    assert done.reply == b"pe=ok\r" and done.echo.echoed == 3
-    assert done.t_reply_s is not None and done.t_reply_s < asked_at  # stamped when it came
-    assert channel.chains_dropped == 0
-
-
-async def test_no_chain_while_may_chain_says_no(peer: tuple[EchoPeer, SerialChannel]) -> None:
-    device, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r", may_chain=lambda: False) == b"rp=ok\r"
-    await asyncio.sleep(0.2)
-    assert device.commands() == [b"rp"]  # a STOP waiting: nothing more went out
-    assert await _transact(channel, b"st\r") == b"st=ok\r"
-    assert device.commands() == [b"rp", b"st"]
-
-
-async def test_chains_follow_each_other(peer: tuple[EchoPeer, SerialChannel]) -> None:
-    device, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    assert await _transact(channel, b"pe\r", then=b"rss\r") == b"pe=ok\r"
-    assert await _transact(channel, b"rss\r") == b"rss=ok\r"
-    assert device.commands() == [b"rp", b"pe", b"rss"]
-    assert channel.chains_dropped == 0
-
-
-async def test_another_call_waits_for_the_chain_and_drops_its_reply(
-    peer: tuple[EchoPeer, SerialChannel],
-) -> None:
-    device, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    assert channel.discard_input() == b""  # the chain's bytes are not stray input
-    # Not the read that was guessed: it ends first, its reply never reaches this one.
-    assert await _transact(channel, b"se1\r") == b"se1=ok\r"
-    assert device.commands() == [b"rp", b"pe", b"se1"]
-    assert channel.chains_dropped == 1
-
-
-async def test_a_plain_write_waits_for_the_chain(peer: tuple[EchoPeer, SerialChannel]) -> None:
-    device, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    await channel.write(b"\x18")  # e.g. Ctrl-X: not inside the chained read's bytes
-    data, _ = await channel.read_at_least(1, 0.5)
-    assert data == b"\x18"  # its echo, after the whole chained read
-    assert device.commands()[:2] == [b"rp", b"pe"]
-    assert channel.chains_dropped == 1
-
-
-async def test_a_chain_on_a_port_that_closed_raises_when_taken_over(
-    line: tuple[int, SerialChannel],
-) -> None:
-    master, channel = line
-    device = EchoPeer(master)
-    try:
-        assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    finally:
-        device.stop()
-    await channel.close()
-    with pytest.raises(LinkClosedError):
-        await channel.transact(b"pe\r", 0x0D, 0.5, 0.5)
-
-
-async def test_settle_says_how_a_dropped_chain_ended(peer: tuple[EchoPeer, SerialChannel]) -> None:
-    _, channel = peer
-    assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-    assert await channel.settle(b"pe\r") is None  # the one asked for: left to take over
-    assert channel.chains_dropped == 0
-    dropped = await channel.settle(b"st\r")
-    assert dropped is not None and dropped.reply == b"pe=ok\r" and dropped.echo.echoed == 3
-    assert await channel.settle() is None and channel.chains_dropped == 1
-    assert await _transact(channel, b"st\r") == b"st=ok\r"
-
-
-async def test_a_cancelled_wait_leaves_the_chain_to_the_next_call(
-    line: tuple[int, SerialChannel],
-) -> None:
-    master, channel = line
-    device = EchoPeer(master, slow=b"pe", delay_s=0.1)  # the chained read takes 0.2 s
-    try:
-        assert await _transact(channel, b"rp\r", then=b"pe\r") == b"rp=ok\r"
-        waiting = asyncio.create_task(channel.read_available(1.0))
-        await asyncio.sleep(0.05)
-        waiting.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await waiting
-        dropped = await channel.settle()  # still known, still running, then ended
-        assert dropped is not None and dropped.reply == b"pe=ok\r"
-        assert await _transact(channel, b"st\r") == b"st=ok\r"
-    finally:
-        device.stop()
-
-
 async def test_a_timeout_the_stalled_host_noticed_late_is_reported_once(
     line: tuple[int, SerialChannel],
 ) -> None:
@@ -232,11 +78,148 @@ async def test_a_timeout_the_stalled_host_noticed_late_is_reported_once(
     _, channel = line
     loop = asyncio.get_running_loop()
     channel.take_timeout_late_s()
-    for read in (
-        lambda: channel.read_until(0x0D, 0.05, 0.05),  # the exchange path (its timer)
-        lambda: channel.read_available(0.05),  # the plain wait
-    ):
-        loop.call_later(0.01, time.sleep, 0.4)  # the host stalls for 0.4 s
-        assert not await read()
-        assert channel.take_timeout_late_s() >= 0.3
-        assert channel.take_timeout_late_s() == 0.0
+    loop.call_later(0.01, time.sleep, 0.4)  # the host stalls for 0.4 s
+    assert await channel.read_at_least(1, 0.05) == (b"", None)  # a handler's deadline
+    assert channel.take_timeout_late_s() >= 0.3
+    assert channel.take_timeout_late_s() == 0.0
+    loop.call_later(0.01, time.sleep, 0.4)
+    assert await channel.read_available(0.05) == b""  # the plain wait
+    assert channel.take_timeout_late_s() >= 0.3
+    assert channel.take_timeout_late_s() == 0.0
+
+
+# --- drive: a device's handler in the receive callback ------------------------------
+
+
+class Ask:
+    """Sends ``question``, done at the first ``\\n`` received (the line taken), or when
+    no byte came for ``gap_s`` (``first_s`` for the first); then ``then`` follows."""
+
+    def __init__(
+        self, question: bytes, *, first_s: float = 1.0, gap_s: float = 1.0, then: bytes = b""
+    ) -> None:
+        self.question, self.first_s, self.gap_s, self.then = question, first_s, gap_s, then
+        self.deadline_s: float | None = None
+        self.done = False
+        self.answer: bytes | None = None
+        self.fed: list[bytes] = []
+        self.followed: Ask | None = None
+
+    def start(self, now_s: float) -> bytes:
+        self.deadline_s = now_s + self.first_s
+        return self.question
+
+    def feed(self, received: bytearray, now_s: float) -> bytes:
+        self.fed.append(bytes(received))
+        end = received.find(b"\n")
+        if end < 0:
+            if received:
+                self.deadline_s = now_s + self.gap_s
+            return b""
+        self.answer = bytes(received[: end + 1])
+        del received[: end + 1]
+        self.done = True
+        return b""
+
+    def expire(self, now_s: float) -> bytes:
+        self.done = True
+        return b""
+
+    def follow_up(self) -> Ask | None:
+        self.followed = Ask(self.then) if self.then else None
+        return self.followed
+
+
+class Answerer(PtyPeer):
+    """Answers every ``?`` with ``<n>\\n`` (n counts the questions), after ``delay_s``."""
+
+    def __init__(self, master: int, delay_s: float = 0.0) -> None:
+        self.asked, self.delay_s = 0, delay_s
+        super().__init__(master)
+
+    def handle(self, byte: int) -> bytes:
+        if byte != ord("?"):
+            return bytes([byte])
+        self.asked += 1
+        time.sleep(self.delay_s)
+        return b"%d\n" % self.asked
+
+
+async def test_drive_runs_a_handler_to_its_end(line: tuple[int, SerialChannel]) -> None:
+    master, channel = line
+    peer = Answerer(master)
+    try:
+        ask = Ask(b"?")
+        await channel.drive(ask)
+        assert ask.answer == b"1\n" and ask.done
+    finally:
+        peer.stop()
+
+
+async def test_a_follow_up_runs_unawaited_and_is_waited_out_by_other_calls(
+    line: tuple[int, SerialChannel],
+) -> None:
+    master, channel = line
+    peer = Answerer(master, delay_s=0.1)
+    try:
+        ask = Ask(b"?", then=b"?")
+        await channel.drive(ask)
+        assert ask.answer == b"1\n" and ask.followed is not None
+        assert channel.discard_input() == b""  # its bytes are the follow-up's
+        await channel.write(b"x")  # after the follow-up ended, not inside it
+        assert ask.followed.answer == b"2\n"
+        data, _ = await channel.read_at_least(1, 1.0)
+        assert data == b"x"
+    finally:
+        peer.stop()
+
+
+async def test_driving_the_follow_up_takes_it_over(line: tuple[int, SerialChannel]) -> None:
+    master, channel = line
+    peer = Answerer(master, delay_s=0.1)
+    try:
+        ask = Ask(b"?", then=b"?")
+        await channel.drive(ask)
+        follow = ask.followed
+        assert follow is not None and not follow.done
+        await channel.drive(follow)  # waits for it: not sent again
+        assert follow.answer == b"2\n" and peer.asked == 2
+    finally:
+        peer.stop()
+
+
+async def test_a_deadline_moved_later_is_kept(line: tuple[int, SerialChannel]) -> None:
+    """The first byte came in time and moved the deadline on: the timer armed for the
+    first byte does not end the handler, the gap's deadline does not pass either."""
+    master, channel = line
+    ask = Ask(b"", first_s=0.05, gap_s=2.0)
+    loop = asyncio.get_running_loop()
+    loop.call_later(0.01, os.write, master, b"1")
+    loop.call_later(0.3, os.write, master, b"\n")
+    await channel.drive(ask)
+    assert ask.answer == b"1\n"
+
+
+async def test_a_cancelled_drive_ends_its_handler(line: tuple[int, SerialChannel]) -> None:
+    master, channel = line
+    ask = Ask(b"")
+    task = asyncio.create_task(channel.drive(ask))
+    await asyncio.sleep(0.05)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    os.write(master, b"late\n")
+    await asyncio.sleep(0.05)
+    assert ask.fed == [b""] and not ask.done  # fed no more
+    assert await channel.read_available(1.0) == b"late\n"
+
+
+async def test_drive_raises_when_the_port_closes(line: tuple[int, SerialChannel]) -> None:
+    _, channel = line
+    task = asyncio.create_task(channel.drive(Ask(b"")))
+    await asyncio.sleep(0.05)
+    await channel.close()
+    with pytest.raises(LinkClosedError):
+        await task
+    with pytest.raises(LinkClosedError):
+        await channel.drive(Ask(b""))

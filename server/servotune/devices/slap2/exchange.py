@@ -46,9 +46,10 @@ import asyncio
 from typing import Protocol
 
 from servotune.devices.slap2 import codec
+from servotune.devices.slap2.echo import EchoLine, EchoResult
 from servotune.link.base import DeviceTimeoutError, DriverError, ProtocolError
 from servotune.link.engine import LinkEngine
-from servotune.transports.base import ByteChannel, EchoResult
+from servotune.transports.base import ByteChannel
 
 # Commands that may run twice with the same effect: sent again after a failure that
 # came after their CR (for any other command that failure is final: it may have run).
@@ -100,9 +101,9 @@ class Slap2Exchange:
         self._engine = engine
         self._events = events
         self._clock = engine.clock
-        # Chained reads the channel sent for nothing (see exchange_once), counted
-        # per channel into the ``chained_reads_dropped`` counter.
-        self._chain_channel: ByteChannel | None = None
+        # The echo operations on the current session's channel; the chained reads
+        # it sent for nothing (see exchange_once) go to ``chained_reads_dropped``.
+        self._line: EchoLine | None = None
         self._chain_drops_seen = 0
         engine.count("chained_reads_dropped", 0)
         self._selected: int | None = None
@@ -172,7 +173,7 @@ class Slap2Exchange:
         """Send ``text`` + CR one char at a time, each after the previous echo.
 
         ``first``: the outcome of an echoed write of the whole line already made (by
-        ``channel.transact``) that stopped early; the rest is sent from there.
+        ``EchoLine.transact``) that stopped early; the rest is sent from there.
         Raises ``_AbandonedError`` for failures before CR was sent (the command was
         abandoned with Ctrl-X and did not execute, so it may be retried).
         """
@@ -182,7 +183,9 @@ class Slap2Exchange:
             if first is not None:
                 result, first = first, None
             else:
-                result = await channel.write_echoed(payload[done:], self._timing.char_timeout_s)
+                result = await self._line_of(channel).write_echoed(
+                    payload[done:], self._timing.char_timeout_s
+                )
             done += result.echoed
             if done == len(payload):
                 return
@@ -191,7 +194,7 @@ class Slap2Exchange:
             # A late echo of our own Ctrl-X (nothing else sends 0x18): skip it; the
             # echo of the byte just sent is due next.
             self._engine.count("desyncs")
-            echo = await channel.read_byte(self._timing.char_timeout_s)
+            echo = await self._line_of(channel).read_byte(self._timing.char_timeout_s)
             if echo != payload[done]:
                 result = EchoResult(result.echoed, echo)
                 break
@@ -225,7 +228,7 @@ class Slap2Exchange:
         """The reply's lines; ``raw``: its first line if already read (by ``transact``)."""
         decoder = codec.LineDecoder()
         if raw is None:
-            raw = await channel.read_until(
+            raw = await self._line_of(channel).read_until(
                 codec.CR, self._first_reply_timeout_s(command), self._timing.char_timeout_s
             )
         if raw is None:
@@ -273,7 +276,7 @@ class Slap2Exchange:
                 and command_mnemonic(command.text) in CHAINABLE_READS
                 and command_mnemonic(then.text) in CHAINABLE_READS
             )
-            done = await channel.transact(
+            done = await self._line_of(channel).transact(
                 payload,
                 codec.CR,
                 self._timing.char_timeout_s,
@@ -432,21 +435,28 @@ class Slap2Exchange:
         refused: a STOP lost). So Ctrl-X and drain, as after any failed exchange.
         True when it failed so (the selection is then in doubt, like after a timeout).
         """
-        dropped = await channel.settle(adopt)
-        self._count_dropped_chains(channel)
+        line = self._line_of(channel)
+        dropped = await line.settle(adopt)
+        self._count_dropped_chains(line)
         if dropped is None or dropped.reply is not None:
             return False
         await self.abandon(channel)
         return True
 
-    def _count_dropped_chains(self, channel: ByteChannel) -> None:
-        if channel is not self._chain_channel:
-            self._chain_channel, self._chain_drops_seen = channel, 0
-        if channel.chains_dropped != self._chain_drops_seen:
+    def _line_of(self, channel: ByteChannel) -> EchoLine:
+        """The echo operations on ``channel`` (a new session's channel: a new line)."""
+        line = self._line
+        if line is None or line.channel is not channel:
+            line = self._line = EchoLine(channel)
+            self._chain_drops_seen = 0
+        return line
+
+    def _count_dropped_chains(self, line: EchoLine) -> None:
+        if line.chains_dropped != self._chain_drops_seen:
             self._engine.count(
-                "chained_reads_dropped", channel.chains_dropped - self._chain_drops_seen
+                "chained_reads_dropped", line.chains_dropped - self._chain_drops_seen
             )
-            self._chain_drops_seen = channel.chains_dropped
+            self._chain_drops_seen = line.chains_dropped
 
     def _may_chain(self) -> bool:
         """Called from the receive callback: no job waits for the line."""

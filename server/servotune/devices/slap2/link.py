@@ -82,7 +82,7 @@ class Slap2LinkConfig:
     link_id: str
     path: str
     addresses: list[int]
-    baud: int = 19200
+    baud: int = codec.DEFAULT_BAUD
     lines: int = 512
     names: dict[int, str] = field(default_factory=dict)
     char_timeout_s: float = 0.15
