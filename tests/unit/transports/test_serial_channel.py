@@ -16,6 +16,7 @@ import pytest
 from servotune.transports.base import LinkClosedError
 from servotune.transports.serial import SerialChannel
 from tests.support.pty_peer import PtyPeer, pty_channel
+from tests.support.waiting import wait_for
 
 
 @pytest.fixture
@@ -46,7 +47,8 @@ async def test_read_at_least_takes_what_is_buffered_at_once(
 ) -> None:
     master, channel = line
     os.write(master, b"abcdef")
-    await asyncio.sleep(0.05)
+    # Delivered by the kernel's tty worker, which a loaded host can hold for seconds.
+    await wait_for(lambda: len(channel._protocol.buffer) >= 6, 10, "the bytes at the channel")
     data, t_s = await channel.read_at_least(6, 0.0)
     assert data == b"abcdef" and t_s is not None
 
