@@ -117,8 +117,8 @@ class TracedDevice(Generic[D]):
                 rest_since = None
             elif rest_since is None:
                 rest_since = elapsed_s
-            elif elapsed_s - rest_since >= rest_for_s:
-                break
+            elif elapsed_s - rest_since >= rest_for_s + UNPOWERED_STEP_S:
+                break  # a step past it: the points' host times round differently
         return points
 
     def powered(self) -> bool:

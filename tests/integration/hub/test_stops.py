@@ -1,9 +1,12 @@
 """Stops that stop: STOP against the power-off alone on the demo plants,
 jog both ways, and no axis left oscillating after a bench run.
 
-The stopping distances are compared with the power-off measured in the same test on
-the same plant (a ratio: the host's speed only adds its latency to both). The
-table of every demo plant is ``scripts/perf_stops.py`` (docs/control.md).
+The stopping distances are taken from the stop's arrival at the simulated device and
+compared, as ratios, with the power-off alone measured in the same test from the very
+state the STOP arrived in (a copy of the simulated device, run unpowered in the
+simulator's process), so neither the host's latency nor the phase it gives a limit
+cycle favours either. The table of every demo plant is ``scripts/perf_stops.py``
+(docs/control.md).
 """
 
 from __future__ import annotations
@@ -24,6 +27,10 @@ from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import simulator_process
 
 VM, PM, MOVE = 1 << 2, 1 << 3, 1 << 4  # rss bits
+# From this speed at the stop's arrival, STOP is far shorter than the power-off alone.
+FAST_COUNTS_S = 20_000
+# A coast of at most this many counts: the shaft stood when the stop arrived.
+STOOD_COUNTS = 10
 COUNTS_PER_RAD = 2048 / (2 * math.pi)
 
 
@@ -57,9 +64,13 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
     # From the stop's arrival at the device, with the shaft's state there, as the
     # device's own process recorded it: the host's latency (this test process runs the
     # hub, beside whatever else loads the machine) is not the method's distance.
-    assert stop.wire_speed_counts_s and off.wire_speed_counts_s
-    assert abs(stop.wire_speed_counts_s) > 20_000, f"the STOP found the shaft still: {stop}"
+    assert stop.wire_speed_counts_s is not None and off.wire_speed_counts_s is not None
     assert stop.wire_distance_counts is not None and stop.wire_time_s is not None
+    # A top speed is found at top speed whatever the latency. A limit cycle's phase at
+    # the arrival is the host latency's (pressed near its peak, it arrives anywhere in
+    # the cycle on a loaded host, a reversal's standstill included).
+    fast = abs(stop.wire_speed_counts_s) > FAST_COUNTS_S
+    assert fast or plant.state == "limit cycle", f"the STOP found the shaft slow: {stop}"
     if off.unpowered_distance_counts is not None:
         # The simulator's copy of the device, powered off alone from the state the
         # power-off itself arrived in, did what the device did: the copy is honest.
@@ -68,22 +79,33 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
             0.05 * off.wire_distance_counts + 50
         ), off
         # The same copy from the state the STOP arrived in (position, speed, the loop's
-        # state, the limit cycle's phase): the power-off alone shares the STOP's start.
+        # state, the limit cycle's phase): the power-off alone shares the STOP's start,
+        # at whatever phase the latency made it.
         assert stop.unpowered_distance_counts is not None, stop
         stop_counts, off_counts = stop.wire_distance_counts, stop.unpowered_distance_counts
         off_time_s = stop.unpowered_time_s if stop.unpowered_time_s is not None else math.inf
         assert stop.wire_time_s <= off_time_s, stop
+        # Never longer, from any state: shorter than the coast (the power-off alone
+        # from the same state is that coast, to the count), or, where the shaft stood
+        # and the coast is nothing, not moving it either.
+        if off_counts > STOOD_COUNTS:
+            assert stop_counts < off_counts, stop
+        else:
+            assert stop_counts <= STOOD_COUNTS, stop
     else:
         # No copy on this rig (the EP7047's drive runs in this process): the two runs'
         # distances per unit of the speed each found at its arrival (a stopping time:
         # the same at any speed for a damped stop, shorter for a coast that friction
         # ends, so the comparison never favours the STOP).
-        assert plant.state == "top speed" and abs(off.wire_speed_counts_s) > 20_000, off
+        assert plant.state == "top speed" and abs(off.wire_speed_counts_s) > FAST_COUNTS_S
         assert off.wire_distance_counts is not None and off.wire_time_s is not None
         stop_counts = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
         off_counts = off.wire_distance_counts / abs(off.wire_speed_counts_s)
         assert stop.wire_time_s <= off.wire_time_s, (stop, off)
-    assert stop_counts <= ratio * off_counts, (stop, off)
+    if fast:
+        # Far shorter from speed (a brake's edge over a coast shrinks with the speed:
+        # from a slow phase of a limit cycle only 'never longer' above is guaranteed).
+        assert stop_counts <= ratio * off_counts, (stop, off)
     if plant.state == "limit cycle":
         # Not trusted to hold: braked, then unpowered once at rest.
         assert not stop.holds and any(
