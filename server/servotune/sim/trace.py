@@ -42,6 +42,35 @@ def _wire_text(text: str) -> str:
     return text.replace(" ", "").lower()
 
 
+def unpowered_points(
+    advance: Callable[[float], object],
+    read: Callable[[], tuple[float, float]],
+    at: float,
+    rest_counts_s: float,
+    rest_for_s: float,
+    max_s: float,
+) -> list[ShaftPoint]:
+    """A copy of a device, already powered off, run forward in ``UNPOWERED_STEP_S``
+    steps (``advance(elapsed_s)`` to that long after the copy was taken; ``read()``
+    its shaft) until its speed stayed below ``rest_counts_s`` for ``rest_for_s`` or
+    ``max_s`` passed: points on the host's clock from ``at``, when it was taken."""
+    points = [(at, *read())]
+    rest_since: float | None = None
+    elapsed_s = 0.0
+    while elapsed_s < max_s:
+        elapsed_s += UNPOWERED_STEP_S
+        advance(elapsed_s)
+        position, speed = read()
+        points.append((at + elapsed_s, position, speed))
+        if abs(speed) >= rest_counts_s:
+            rest_since = None
+        elif rest_since is None:
+            rest_since = elapsed_s
+        elif elapsed_s - rest_since >= rest_for_s + UNPOWERED_STEP_S:
+            break  # a step past it: the points' host times round differently
+    return points
+
+
 class TracedDevice(Generic[D]):
     """``device`` on the line, recording ``read(device)`` (position, speed) after every
     advance; ``powered()`` says whether the traced motor is under power; ``decode``
@@ -105,21 +134,14 @@ class TracedDevice(Generic[D]):
             return None
         device_time_s, device = kept
         self._power_off(device)
-        points = [(at, *self._read(device))]
-        rest_since: float | None = None
-        elapsed_s = 0.0
-        while elapsed_s < max_s:
-            elapsed_s += UNPOWERED_STEP_S
-            device.advance_to(device_time_s + elapsed_s)
-            position, speed = self._read(device)
-            points.append((at + elapsed_s, position, speed))
-            if abs(speed) >= rest_counts_s:
-                rest_since = None
-            elif rest_since is None:
-                rest_since = elapsed_s
-            elif elapsed_s - rest_since >= rest_for_s + UNPOWERED_STEP_S:
-                break  # a step past it: the points' host times round differently
-        return points
+        return unpowered_points(
+            lambda elapsed_s: device.advance_to(device_time_s + elapsed_s),
+            lambda: self._read(device),
+            at,
+            rest_counts_s,
+            rest_for_s,
+            max_s,
+        )
 
     def powered(self) -> bool:
         return self._powered()

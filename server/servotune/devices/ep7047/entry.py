@@ -215,13 +215,7 @@ async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
     async def powered() -> bool:
         return plant.powered()
 
-    async def nothing() -> None:
-        return None
-
-    async def no_copy(at: float, rest_counts_s: float, rest_for_s: float, max_s: float) -> None:
-        return None  # the drive runs in this process: no copy is taken (yet)
-
-    yield StopRig(link, trace, powered, plant.reached, nothing, nothing, no_copy)
+    yield StopRig(link, trace, powered, plant.reached, plant.arm, plant.disarm, plant.unpowered)
 
 
 async def _top_speed(axis: StopAxis) -> None:
