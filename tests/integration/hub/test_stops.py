@@ -99,10 +99,13 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
         # from a slow phase of a limit cycle only 'never longer' above is guaranteed).
         assert stop_counts <= ratio * off_counts, (stop, off)
     if plant.state == "limit cycle":
-        # Not trusted to hold: braked, then unpowered once at rest.
+        # Not trusted to hold: braked, then unpowered once at rest - judged not working,
+        # or, where a loaded host's telemetry was too sparse to judge it, the stop safe
+        # either way (SLAP2: the same brake, then off).
         assert not stop.holds and any(
-            "not working" in e or "does not hold" in e for e in stop.events
-        )
+            "not working" in e or "does not hold" in e or "telemetry too sparse" in e
+            for e in stop.events
+        ), stop
     elif plant.device == "ep7047":
         # Its safe state is Enable off (no holding torque), reached at standstill.
         assert not stop.holds and "Enable off at standstill" in stop.sent, stop
