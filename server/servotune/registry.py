@@ -12,11 +12,11 @@ factory, the CLI, the benchmarks) injects a ``Registry``, which implements them 
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable, Iterable, Iterator, Sequence
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager, AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, TypeAlias
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeAlias
 
 from servotune.config import LinkRules, LinkSpec
 from servotune.link.base import DriverSink, Link
@@ -29,6 +29,8 @@ if TYPE_CHECKING:
 
 # How perf.stops ends a motion: the product's STOP, or the device's power-off alone.
 StopMethod: TypeAlias = Literal["STOP", "power off"]
+# The state perf.stops stops an axis from.
+StopState: TypeAlias = Literal["top speed", "limit cycle"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +74,37 @@ class StopRigArgs:
     data_dir: Path  # scratch files (a flash, an EEPROM) for this rig's lifetime
 
 
+class StopAxis(Protocol):
+    """The axis a ``StopCase.setup`` brings into its state: the product's own commands
+    and parameter writes, and its latest telemetry."""
+
+    async def command(self, name: str, args: dict[str, Any]) -> None: ...
+
+    async def write_params(self, values: dict[str, int]) -> None: ...
+
+    def channel(self, name: str) -> float | None:
+        """The latest sample's channel ``name`` (None: none yet)."""
+        ...
+
+    def flag(self, name: str) -> bool:
+        """The latest sample's flag ``name`` (False: none yet)."""
+        ...
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StopCase:
+    """One of a device's demo plants in one state, as ``perf.stops`` stops it."""
+
+    name: str  # unique among the device's cases ("loaded-limit-cycle")
+    axis: str  # the axis's suffix on the stop rig's link ("1", "x")
+    label: str  # the plant, for people ("SLAP2 #1 with load")
+    state: StopState
+    gains: Mapping[str, int]  # the gains ``setup`` writes ({}: the demo's own)
+    speed: str  # the state in words, for the table ("vm sv 20000", "±1900 @ step")
+    # Brings the axis (on the stop rig, link up, telemetry flowing) into ``state``.
+    setup: Callable[[StopAxis], Awaitable[None]]
+
+
 @dataclass(frozen=True, slots=True)
 class StopRig:
     """A device's demo plant set up to measure a stop on (``perf.stops``): limit
@@ -88,6 +121,15 @@ class StopRig:
     # counts, counts/s) when the stop reached the device on its wire; None where the
     # rig did not see it arrive.
     reached: Callable[[StopMethod, float, list[str]], Awaitable[ShaftPoint | None]]
+    # From arming until disarming, the rig keeps a copy of the device as each command
+    # finds it (no-ops where ``unpowered`` is not offered).
+    arm: Callable[[], Awaitable[None]]
+    disarm: Callable[[], Awaitable[None]]
+    # (a ``reached`` time, rest speed in counts/s, rest for s, at most s) -> the shaft
+    # of the copy taken then, powered off as the device's power-off alone does and run
+    # forward until at rest (the same start as the stop that arrived then); None where
+    # the rig took no copy then.
+    unpowered: Callable[[float, float, float, float], Awaitable[list[ShaftPoint] | None]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,6 +148,8 @@ class SimulatorEntry:
     # The demo plant as ``perf.stops`` measures a stop on it: entered, it has started
     # the simulated device; leaving it (after the link was stopped) powers it off.
     stop_rig: Callable[[StopRigArgs], AbstractAsyncContextManager[StopRig]] | None = None
+    # The states of the demo plants ``perf.stops`` measures on the stop rig.
+    stop_cases: tuple[StopCase, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

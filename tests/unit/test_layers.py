@@ -4,9 +4,12 @@ Every module has a role (``role``); ``ALLOWED`` says which roles a role may impo
 Besides the roles: a device imports no other device, a device's non-``sim`` code does
 not import its own simulator (only its ``entry`` does, to wire the demo and ``servotune
 sim``), and only the registry (``servotune.devices``) imports device folders, and only
-their ``entry``. Imports inside functions count too: they break a cycle at run time but
-not the layering. Module-level imports form no cycle, and a package's ``__init__`` imports
-nothing (a re-export runs the package on every import of one of its modules).
+their ``entry``. Code outside the device folders does not name a device either (no
+string that is a device's name: a ``device == "..."`` branch or a list of devices
+belongs in the device's registry entry). Imports inside functions count too: they break
+a cycle at run time but not the layering. Module-level imports form no cycle, and a
+package's ``__init__`` imports nothing (a re-export runs the package on every import of
+one of its modules).
 
 ``KNOWN`` lists violations a later change removes (empty now); a listed violation that
 no longer exists fails too, so the list only shrinks.
@@ -228,6 +231,62 @@ def test_every_module_imports_only_what_its_role_may() -> None:
 def test_the_checker_finds_an_injected_violation(module: str, source: str, expected: bool) -> None:
     # The checker's self-check: a rule that never fires proves nothing.
     assert bool(violations({module: ast.parse(source)})) is expected
+
+
+# A device's name is its folder's (``servotune.devices.<name>.NAME``).
+DEVICE_NAMES = frozenset(path.parent.name for path in (PACKAGE / "devices").glob("*/entry.py"))
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    kinds = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+    return {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, kinds)
+        and node.body
+        and isinstance(node.body[0], ast.Expr)
+        and isinstance(node.body[0].value, ast.Constant)
+    }
+
+
+def devices_named(sources: Mapping[str, ast.AST]) -> set[str]:
+    """Every string in the code (docstrings aside) of a module outside the device
+    folders that is a device's name, as 'module names device'."""
+    named: set[str] = set()
+    for module, tree in sources.items():
+        if module.startswith("servotune.devices"):
+            continue
+        docstrings = _docstrings(tree)
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Constant)
+                and isinstance(node.value, str)
+                and id(node) not in docstrings
+                and node.value.lower() in DEVICE_NAMES
+            ):
+                named.add(f"{module} names {node.value}")
+    return named
+
+
+def test_no_generic_module_names_a_device() -> None:
+    assert {"slap2", "z1100", "ep7047"} <= DEVICE_NAMES, DEVICE_NAMES
+    wrong = devices_named(SOURCES)
+    assert not wrong, "\n".join(sorted(wrong))
+
+
+@pytest.mark.parametrize(
+    ("module", "source", "expected"),
+    [
+        ("servotune.perf.fake", 'if case.device == "slap2":\n    pass', True),
+        ("servotune.hub.fake", 'CASES = (Case("Z1100", "bench-x"),)', True),
+        ("servotune.perf.fake", '"""Stops on the slap2."""\nNAME = "bench"', False),
+        ("servotune.devices.slap2.entry", 'NAME = "slap2"', False),
+    ],
+)
+def test_the_device_name_check_finds_an_injected_name(
+    module: str, source: str, expected: bool
+) -> None:
+    assert bool(devices_named({module: ast.parse(source)})) is expected
 
 
 def test_package_inits_import_nothing() -> None:

@@ -37,6 +37,19 @@ def test_each_entry_is_consistent() -> None:
     assert DEVICES.tuned() == ("gräbner SLAP2", "CNC Designer Z1100")
 
 
+def test_each_stop_rig_has_its_cases_named_once() -> None:
+    # perf.stops takes its cases from here: a device with a stop rig says what to stop.
+    for entry in DEVICES:
+        simulator = entry.simulator
+        assert simulator is not None
+        assert bool(simulator.stop_cases) == (simulator.stop_rig is not None), entry.name
+        names = [case.name for case in simulator.stop_cases]
+        assert len(set(names)) == len(names), names
+        assert {case.state for case in simulator.stop_cases} == {"top speed", "limit cycle"} or (
+            entry.name == "ep7047"  # a stepper drive: no loop of its own to oscillate
+        )
+
+
 def test_the_auto_tunes_pwm_bound_is_each_tuned_devices_full_scale() -> None:
     """``max_pwm`` is bounded by the generic ``OUTPUT_FULL_SCALE``: the PWM full scale
     of both tuned devices, so the API accepts exactly what either device can apply."""

@@ -4,11 +4,12 @@ Each run starts one simulated device (the demo's plants, limit switches removed 
 nothing but the stop ends the motion) in a process of its own (as the demo runs it:
 ``servotune.sim.process``, so a busy host process cannot starve the device and make
 its echoes late), its real driver on a pseudo-terminal (or the EtherCAT seam), and a
-real ``Hub``; brings one axis into a state (``top speed``, or a
-``limit cycle``: a loop whose gains oscillate around a held position); then asks the
-hub for ``STOP`` (the product's STOP, ``Hub.command(axis, "stop")``) or for the
-explicit power-off (``power_off``: SLAP2 ``st`` alone, Z1100 Job 0, EP7047 Enable off),
-and records the shaft as the simulated device sees it until it is at rest.
+real ``Hub``; brings one axis into a state (a case of the device's registry entry,
+``SimulatorEntry.stop_cases``: ``top speed``, or a ``limit cycle``: a loop whose gains
+oscillate around a held position); then asks the hub for ``STOP`` (the product's STOP,
+``Hub.command(axis, "stop")``) or for the explicit power-off (``power_off``: SLAP2
+``st`` alone, Z1100 Job 0, EP7047 Enable off), and records the shaft as the simulated
+device sees it until it is at rest.
 
 * distance: the largest excursion of the shaft from where it was when the stop was
   asked for, until it is at rest (counts); a limit cycle is pressed near its highest
@@ -19,13 +20,20 @@ and records the shaft as the simulated device sees it until it is at rest.
   the simulated device, with the shaft's position and speed at that moment, as the
   device's own process (or, for the EP7047, the exchange that carried it) recorded
   them: what the method itself does, the host's latency left out; that latency is
-  ``wire_latency_s``.
+  ``wire_latency_s``;
+* unpowered (``unpowered_*``): where the rig offers it (``StopRig.unpowered``), the
+  power-off alone from the very state that stop arrived in: a copy of the simulated
+  device taken as the stop's first command reached it (position, speed, currents, the
+  loop's state and its phase in a limit cycle), powered off as the device's power-off
+  command does and run forward in the simulator's process. The method's distance and
+  time from its arrival against these share their start, whatever the host's latency.
 
-A composition root: the hub is built here, each device's plant, link and shaft trace
-come from its registry entry (``SimulatorEntry.stop_rig``); used by
-``scripts/perf_stops.py`` (the table in docs/control.md) and tests/integration/hub/test_stops.py
-(ratios against the power-off measured in the same test). Figures depend on the host
-only through the host's latency (a STOP's few milliseconds on the wire).
+A composition root: the hub is built here; the cases, and each device's plant, link
+and shaft trace come from its registry entry (``SimulatorEntry.stop_cases``,
+``stop_rig``): this module names no device. Used by ``scripts/perf_stops.py`` (the
+table in docs/control.md) and tests/integration/hub/test_stops.py (ratios against the
+power-off alone measured in the same test). Figures from the press depend on the
+host's latency; those from the arrival, and the copy's, do not.
 """
 
 from __future__ import annotations
@@ -34,20 +42,21 @@ import asyncio
 import contextlib
 import tempfile
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final, Literal
+from typing import Any, Final
 
 from servotune.devices import default_registry
 from servotune.hub.hub import Hub
-from servotune.link.base import Sample
-from servotune.registry import Registry, StopMethod, StopRigArgs
+from servotune.registry import Registry, StopCase, StopMethod, StopRig, StopRigArgs, StopState
 from servotune.sim.trace import ShaftPoint
 from servotune.storage import Storage
 
-State = Literal["top speed", "limit cycle"]
+State = StopState
 Method = StopMethod
+# The bench's link id on every stop rig: an axis is ``bench-<the case's axis>``.
+LINK_ID: Final = "bench"
 
 # Below this shaft speed the axis counts as at rest (counts/s), for this long.
 REST_COUNTS_S: Final = 200.0
@@ -58,14 +67,54 @@ MAX_STOP_S: Final = 8.0
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Case:
-    """One demo plant in one state; ``setup`` are (what, args) steps for the hub."""
+    """A device's stop case (``SimulatorEntry.stop_cases``) on that device's stop rig."""
 
-    device: str
-    axis: str  # axis id on the bench's link
-    label: str
-    state: State
-    gains: dict[str, int]
-    speed: str  # in words, for the table
+    device: str  # the registry's name of the device
+    stop: StopCase
+
+    @property
+    def name(self) -> str:
+        return self.stop.name
+
+    @property
+    def axis(self) -> str:  # axis id on the rig's link
+        return f"{LINK_ID}-{self.stop.axis}"
+
+    @property
+    def label(self) -> str:
+        return self.stop.label
+
+    @property
+    def state(self) -> State:
+        return self.stop.state
+
+    @property
+    def gains(self) -> Mapping[str, int]:
+        return self.stop.gains
+
+    @property
+    def speed(self) -> str:  # in words, for the table
+        return self.stop.speed
+
+
+def cases(registry: Registry | None = None) -> tuple[Case, ...]:
+    """Every stop case of every device in ``registry`` (default: ``default_registry()``),
+    in the registry's order."""
+    return tuple(
+        Case(entry.name, stop)
+        for entry in (registry or default_registry())
+        if entry.simulator is not None
+        for stop in entry.simulator.stop_cases
+    )
+
+
+def case(device: str, name: str, registry: Registry | None = None) -> Case:
+    """The stop case ``name`` of ``device``; KeyError naming the known ones if none."""
+    known = [c for c in cases(registry) if c.device == device]
+    for found in known:
+        if found.name == name:
+            return found
+    raise KeyError(f"{device} has no stop case {name!r} (it has {[c.name for c in known]})")
 
 
 @dataclass(slots=True)
@@ -84,51 +133,25 @@ class Result:
     wire_distance_counts: float | None = None
     wire_speed_counts_s: float | None = None
     wire_time_s: float | None = None  # from the arrival until at rest
-
-
-SLAP2_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
-SLAP2_GOOD = {"kp": 600, "ki": 10, "kd": 1500}  # a stable loop on both modules
-SLAP2_FACTORY = {"kp": 40, "ki": 40, "kd": 80}
-
-# A slow sampling time stretches the chip's derivative window: with the unloaded
-# motor's K at its maximum the loop settles into a limit cycle (docs/z1100-simulator.md).
-Z1100_OSCILLATING = {"stm": 16} | {
-    f"{s}_{g}": v for s in ("kabh", "kabd") for g, v in (("k", 255), ("a", 64), ("b", 8))
-}
-SLAP2_OSCILLATING = {"kp": 2000, "ki": 0, "kd": 0}
-
-CASES: Final[tuple[Case, ...]] = (
-    Case("slap2", "bench-0", "SLAP2 #0 unloaded", "top speed", SLAP2_FACTORY, "vm sv 20000"),
-    Case("slap2", "bench-0", "SLAP2 #0 unloaded", "limit cycle", SLAP2_OSCILLATING, "±190"),
-    Case("slap2", "bench-1", "SLAP2 #1 with load", "top speed", SLAP2_GOOD, "vm sv 20000"),
-    Case("slap2", "bench-1", "SLAP2 #1 with load", "top speed", SLAP2_FACTORY, "vm sv 20000"),
-    Case("slap2", "bench-1", "SLAP2 #1 with load", "limit cycle", SLAP2_FACTORY, "±1900 @ step"),
-    Case("z1100", "bench-x", "Z1100 X unloaded", "top speed", {}, "Vmax 100 000"),
-    Case("z1100", "bench-y", "Z1100 Y 5x load", "top speed", {}, "Vmax 100 000"),
-    Case("z1100", "bench-z", "Z1100 Z 20x load", "top speed", {}, "Vmax 100 000"),
-    Case("z1100", "bench-x", "Z1100 X unloaded", "limit cycle", Z1100_OSCILLATING, "±600"),
-    Case("ep7047", "bench-1", "EP7047 stepper", "top speed", {}, "endless, 10 000 bp"),
-)  # fmt: skip
+    # The power-off alone from the state the stop arrived in (a copy of the device);
+    # None where the rig offers no copy.
+    unpowered_distance_counts: float | None = None
+    unpowered_time_s: float | None = None  # None also: not at rest within MAX_STOP_S
 
 
 Trace = Callable[[], Awaitable[list[ShaftPoint]]]
-Powered = Callable[[], Awaitable[bool]]
-# (method, asked at, the commands it sent) -> (time, position, speed) at its arrival
-Reached = Callable[[Method, float, list[str]], Awaitable["ShaftPoint | None"]]
 
 
 @contextlib.asynccontextmanager
 async def _rig(
     case: Case, data_dir: Path, registry: Registry | None = None
-) -> AsyncIterator[tuple[Hub, Trace, Powered, Reached]]:
+) -> AsyncIterator[tuple[Hub, StopRig]]:
     """A hub with the device of ``case`` on the device's stop rig (its registry entry's
-    ``simulator.stop_rig``); yields (hub, trace of the axis, powered?, when a stop
-    reached the device)."""
+    ``simulator.stop_rig``); yields (hub, rig)."""
     entry = (registry or default_registry()).get(case.device)
     if entry.simulator is None or entry.simulator.stop_rig is None:
         raise ValueError(f"{entry.title} has no stop rig")
-    link_id = case.axis.rsplit("-", 1)[0]
-    async with entry.simulator.stop_rig(StopRigArgs(link_id, case.axis, data_dir)) as rig:
+    async with entry.simulator.stop_rig(StopRigArgs(LINK_ID, case.axis, data_dir)) as rig:
         storage = Storage(data_dir / "servotune.db")
         hub = Hub([], storage)
         hub.add_link(rig.build_link(hub))
@@ -136,63 +159,37 @@ async def _rig(
         try:
             deadline = time.monotonic() + 20
             while (
-                hub.entry(case.axis).latest is None or hub.link_status(link_id).state != "connected"
+                hub.entry(case.axis).latest is None or hub.link_status(LINK_ID).state != "connected"
             ):
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"{case.label}: the link did not come up")
                 await asyncio.sleep(0.05)
-            yield hub, rig.trace, rig.powered, rig.reached
+            yield hub, rig
         finally:
             await hub.stop()
             await hub.stops.close()
 
 
-async def _bring_into_state(hub: Hub, case: Case) -> None:
-    axis = case.axis
-    if case.device == "slap2":
-        await hub.command(axis, "power_off", {})
-        await hub.write_params(axis, dict(case.gains))
-        if case.state == "top speed":
-            await hub.write_params(axis, {"velocity": SLAP2_TOP_SV, "acceleration": 65535})
-            await hub.command(axis, "velocity_mode", {})
-            # Long enough for the loop check to see the loop work (loopcheck.EVIDENCE_S).
-            await asyncio.sleep(1.2)
-        else:
-            await hub.write_params(axis, {"velocity": 65535, "acceleration": 65535})
-            await hub.command(axis, "position_mode", {})
-            await hub.command(axis, "move_relative", {"distance": 2000})
-            await asyncio.sleep(1.5)  # the step's limit cycle settles in
-    elif case.device == "z1100":
-        if case.gains:
-            await hub.write_params(axis, dict(case.gains))
-        if case.state == "top speed":
-            await hub.command(axis, "constant_velocity", {"direction": 1})
-            await asyncio.sleep(1.0)
-        else:
-            position = (hub.entry(axis).latest or Sample(0, {}, {})).channels.get("position") or 0
-            await hub.command(axis, "go_to_target", {"target": int(position) + 20000})
-            await asyncio.sleep(1.5)
-    else:
-        await hub.command(axis, "enable", {})
-        # Until the drive says Ready to execute (a fixed wait was too short on a loaded
-        # host: the start was then refused with "not enabled").
-        deadline = time.monotonic() + 10
-        while not _flag(hub, axis, "ready_to_execute"):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"{case.label}: the drive did not become ready")
-            await asyncio.sleep(0.02)
-        await hub.command(
-            axis,
-            "execute_move",
-            {
-                "start_type": 3,
-                "target": 0,
-                "velocity": 10000,
-                "acceleration_ms": 300,
-                "deceleration_ms": 300,
-            },
-        )
-        await asyncio.sleep(1.5)
+class _HubAxis:
+    """``registry.StopAxis`` on a hub's axis."""
+
+    def __init__(self, hub: Hub, axis: str) -> None:
+        self._hub = hub
+        self._axis = axis
+
+    async def command(self, name: str, args: dict[str, Any]) -> None:
+        await self._hub.command(self._axis, name, args)
+
+    async def write_params(self, values: dict[str, int]) -> None:
+        await self._hub.write_params(self._axis, values)
+
+    def channel(self, name: str) -> float | None:
+        latest = self._hub.entry(self._axis).latest
+        return None if latest is None else latest.channels.get(name)
+
+    def flag(self, name: str) -> bool:
+        latest = self._hub.entry(self._axis).latest
+        return bool(latest is not None and latest.flags.get(name))
 
 
 async def _near_peak_speed(trace: Trace) -> None:
@@ -208,11 +205,6 @@ async def _near_peak_speed(trace: Trace) -> None:
         await asyncio.sleep(0.001)
 
 
-def _flag(hub: Hub, axis: str, name: str) -> bool:
-    latest = hub.entry(axis).latest
-    return bool(latest is not None and latest.flags.get(name))
-
-
 def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, float]:
     """Position and speed at host time ``t``: the last point before it, carried on at
     its own speed to ``t`` (every rig records the shaft's exact speed with the point;
@@ -224,46 +216,54 @@ def _at(points: Sequence[tuple[float, float, float]], t: float) -> tuple[float, 
     return x1 + v1 * (t - t1), v1
 
 
+def _rested_at(points: Sequence[ShaftPoint]) -> float | None:
+    """When the shaft of ``points`` came to rest: the start of the last run of points
+    below ``REST_COUNTS_S`` if that run lasts ``REST_FOR_S``; None otherwise."""
+    rest_since: float | None = None
+    for t, _, speed in points:
+        if abs(speed) < REST_COUNTS_S:
+            rest_since = t if rest_since is None else rest_since
+        else:
+            rest_since = None
+    if rest_since is not None and points[-1][0] - rest_since >= REST_FOR_S:
+        return rest_since
+    return None
+
+
 async def measure(
     case: Case, method: Method, data_dir: Path | None = None, registry: Registry | None = None
 ) -> Result:
     """One stop of ``case`` by ``method`` (see the module docstring) on the stop rig of
     ``case.device`` in ``registry`` (default: ``default_registry()``)."""
     with tempfile.TemporaryDirectory() as scratch:
-        rig = _rig(case, data_dir or Path(scratch), registry)
-        async with rig as (hub, trace, powered, reached):
-            await _bring_into_state(hub, case)
+        async with _rig(case, data_dir or Path(scratch), registry) as (hub, rig):
+            await case.stop.setup(_HubAxis(hub, case.axis))
             events_before = len(hub._events)
+            await rig.arm()
             if case.state == "limit cycle":
-                await _near_peak_speed(trace)
+                await _near_peak_speed(rig.trace)
             asked = time.monotonic()
             name = "stop" if method == "STOP" else "power_off"
             # The command first: the trace keeps its stamped points, and reading it
             # (a request to the simulator's process) must not delay the press.
             outcome = await hub.command(case.axis, name, {})
-            position0, speed0 = _at(await trace(), asked)
-            rest_since: float | None = None
+            # What the stop sent has reached the device (its echoes or replies are in).
+            await rig.disarm()
+            position0, speed0 = _at(await rig.trace(), asked)
             rested_at: float | None = None
             distance = 0.0
             while time.monotonic() - asked < MAX_STOP_S:
                 await asyncio.sleep(0.05)
-                everything = await trace()
+                everything = await rig.trace()
                 # The points up to the press may arrive after it (see _at).
                 position0, speed0 = _at(everything, asked)
                 points = [p for p in everything if p[0] >= asked]
                 if not points:
                     continue
                 distance = max(abs(p[1] - position0) for p in points)
-                rest_since = None
-                for t, _, speed in points:
-                    if abs(speed) < REST_COUNTS_S:
-                        rest_since = t if rest_since is None else rest_since
-                    else:
-                        rest_since = None
-                if rest_since is not None and points[-1][0] - rest_since >= REST_FOR_S:
-                    rested_at = rest_since
-                    if not hub.stops.watching(case.axis):
-                        break
+                rested_at = _rested_at(points)
+                if rested_at is not None and not hub.stops.watching(case.axis):
+                    break
             await asyncio.sleep(0.2)  # let a watch's last command land
             events = [e.message for e in list(hub._events)[events_before:]]
             result = Result(
@@ -272,40 +272,51 @@ async def measure(
                 speed0,
                 distance,
                 None if rested_at is None else rested_at - asked,
-                await powered(),
+                await rig.powered(),
                 outcome.sent,
                 events,
             )
-            on_wire = await reached(method, asked, outcome.sent)
+            on_wire = await rig.reached(method, asked, outcome.sent)
             if on_wire is not None:
                 t1, position1, result.wire_speed_counts_s = on_wire
-                after = [p for p in await trace() if p[0] >= t1]
+                after = [p for p in await rig.trace() if p[0] >= t1]
                 result.wire_latency_s = t1 - asked
                 result.wire_distance_counts = max(
                     (abs(p[1] - position1) for p in after), default=0.0
                 )
                 if rested_at is not None:
                     result.wire_time_s = max(rested_at, t1) - t1
+                unpowered = await rig.unpowered(t1, REST_COUNTS_S, REST_FOR_S, MAX_STOP_S)
+                if unpowered:
+                    result.unpowered_distance_counts = max(abs(p[1] - position1) for p in unpowered)
+                    unpowered_rest = _rested_at(unpowered)
+                    if unpowered_rest is not None:
+                        result.unpowered_time_s = unpowered_rest - t1
             return result
 
 
 async def measure_all(
-    cases: Sequence[Case] = CASES, methods: Sequence[Method] = ("power off", "STOP")
+    chosen: Sequence[Case], methods: Sequence[Method] = ("power off", "STOP")
 ) -> list[Result]:
     results = []
-    for case in cases:
+    for one in chosen:
         for method in methods:
-            results.append(await measure(case, method))
+            results.append(await measure(one, method))
     return results
 
 
 def table(results: Sequence[Result]) -> str:
-    """A markdown table: per case, the power-off and STOP side by side (one row per
-    round: the n-th power-off of a case beside its n-th STOP)."""
+    """A markdown table: per case, the power-off run and the STOP run side by side (one
+    row per round: the n-th power-off of a case beside its n-th STOP), each from the
+    press and from its arrival on the wire, and the power-off alone from the STOP's
+    arrival (the copy). The ratio is the STOP's distance from its arrival over the
+    copy's, where the rig offers a copy; else over the power-off run's, per unit of the
+    speed each found at its arrival."""
     lines = [
-        "| plant | state | gains | speed at the press (counts/s) | power off alone: "
-        "distance / time | STOP: distance / time | ratio | STOP ends |",
-        "|---|---|---|---|---|---|---|---|",
+        "| plant | state | gains | speed at the STOP's arrival (counts/s) | power off "
+        "alone, its own run: distance / time | power off alone from the STOP's arrival "
+        "(copy) | STOP: distance / time | ratio | STOP ends |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     rounds: dict[tuple[Case, str], int] = {}
     by_case: dict[tuple[Case, int], dict[str, Result]] = {}
@@ -313,36 +324,54 @@ def table(results: Sequence[Result]) -> str:
         n = rounds[result.case, result.method] = rounds.get((result.case, result.method), -1) + 1
         by_case.setdefault((result.case, n), {})[result.method] = result
 
+    def seconds(t: float | None) -> str:
+        return f"{t:.2f} s" if t is not None else f"> {MAX_STOP_S:g} s"
+
     def cell(r: Result | None) -> str:
         if r is None:
             return "–"
-        t = f"{r.time_s:.2f} s" if r.time_s is not None else f"> {MAX_STOP_S:g} s"
-        text = f"{r.distance_counts:,.0f} counts / {t}"
+        text = f"{r.distance_counts:,.0f} counts / {seconds(r.time_s)} from the press"
         if r.wire_distance_counts is not None and r.wire_latency_s is not None:
             text += (
-                f" ({r.wire_distance_counts:,.0f} from the wire at "
-                f"{abs(r.wire_speed_counts_s or 0):,.0f} counts/s, "
-                f"{r.wire_latency_s * 1000:.0f} ms after the press)"
+                f"; {r.wire_distance_counts:,.0f} / {seconds(r.wire_time_s)} from its "
+                f"arrival {r.wire_latency_s * 1000:.0f} ms later at "
+                f"{abs(r.wire_speed_counts_s or 0):,.0f} counts/s"
             )
+        if r.method == "power off" and r.unpowered_distance_counts is not None:
+            text += f" (its copy: {r.unpowered_distance_counts:,.0f})"
         return text
 
-    for (case, _), pair in by_case.items():
+    def ratio(stop: Result | None, off: Result | None) -> str:
+        if stop is None or stop.wire_distance_counts is None:
+            return "–"
+        if stop.unpowered_distance_counts:
+            return f"{stop.wire_distance_counts / stop.unpowered_distance_counts:.3f}"
+        if (
+            off is None
+            or not off.wire_distance_counts
+            or not off.wire_speed_counts_s
+            or not stop.wire_speed_counts_s
+        ):
+            return "–"
+        per_speed_stop = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
+        return f"{per_speed_stop / (off.wire_distance_counts / abs(off.wire_speed_counts_s)):.3f}"
+
+    for (one, _), pair in by_case.items():
         off, stop = pair.get("power off"), pair.get("STOP")
-        ratio = (
-            f"{stop.distance_counts / off.distance_counts:.3f}"
-            if off is not None and stop is not None and off.distance_counts > 0
-            else "–"
-        )
-        gains = " ".join(f"{k} {v}" for k, v in case.gains.items()) or "demo"
-        ends = ""
+        gains = " ".join(f"{k} {v}" for k, v in one.gains.items()) or "demo"
+        ends, copy = "", "–"
         if stop is not None:
             ends = ("holding: " if stop.holds else "unpowered: ") + ", ".join(stop.sent)
             if any("not working" in e or "does not hold" in e for e in stop.events):
                 ends += " (loop not working: brake, then off)"
-        either = off or stop
-        speed = either.speed_counts_s if either is not None else 0.0
+            if stop.unpowered_distance_counts is not None:
+                copy = (
+                    f"{stop.unpowered_distance_counts:,.0f} counts / "
+                    f"{seconds(stop.unpowered_time_s)}"
+                )
+        speed = abs(stop.wire_speed_counts_s or 0) if stop is not None else 0.0
         lines.append(
-            f"| {case.label} | {case.state} | {gains} | {abs(speed):,.0f} | {cell(off)} | "
-            f"{cell(stop)} | {ratio} | {ends} |"
+            f"| {one.label} | {one.state} | {gains} | {speed:,.0f} | {cell(off)} | {copy} | "
+            f"{cell(stop)} | {ratio(stop, off)} | {ends} |"
         )
     return "\n".join(lines)

@@ -1,9 +1,12 @@
 """Stops that stop: STOP against the power-off alone on the demo plants,
 jog both ways, and no axis left oscillating after a bench run.
 
-The stopping distances are compared with the power-off measured in the same test on
-the same plant (a ratio: the host's speed only adds its latency to both). The
-table of every demo plant is ``scripts/perf_stops.py`` (docs/control.md).
+The stopping distances are taken from the stop's arrival at the simulated device and
+compared, as ratios, with the power-off alone measured in the same test from the very
+state the STOP arrived in (a copy of the simulated device, run unpowered in the
+simulator's process), so neither the host's latency nor the phase it gives a limit
+cycle favours either. The table of every demo plant is ``scripts/perf_stops.py``
+(docs/control.md).
 """
 
 from __future__ import annotations
@@ -24,32 +27,30 @@ from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import simulator_process
 
 VM, PM, MOVE = 1 << 2, 1 << 3, 1 << 4  # rss bits
+# From this speed at the stop's arrival, STOP is far shorter than the power-off alone.
+FAST_COUNTS_S = 20_000
+# A coast of at most this many counts: the shaft stood when the stop arrived. STOP may
+# then move it a little too: the brake shorts a winding whose current still turns the
+# shaft, where st opens it (the unloaded SLAP2 from a limit cycle's reversal: 8 counts).
+STOOD_COUNTS = 50
 COUNTS_PER_RAD = 2048 / (2 * math.pi)
-
-
-def case(label: str, state: str, gains: dict[str, int] | None = None) -> stopbench.Case:
-    return next(
-        c
-        for c in stopbench.CASES
-        if c.label == label and c.state == state and (gains is None or c.gains == gains)
-    )
 
 
 @pytest.mark.parametrize(
     ("plant", "ratio"),
     [
         # The loop works: pm where the shaft is against st (coasting): far shorter.
-        (case("SLAP2 #1 with load", "top speed", stopbench.SLAP2_GOOD), 0.2),
+        (stopbench.case("slap2", "loaded-top-speed"), 0.2),
         # The loop oscillates (factory gains, loaded, after a position step): the brake
         # (spwm 0) against st: still far shorter.
-        (case("SLAP2 #1 with load", "limit cycle"), 0.35),
+        (stopbench.case("slap2", "loaded-limit-cycle"), 0.35),
         # The Z1100's Estop holds; Job 0 lets the loaded motor coast for seconds.
-        (case("Z1100 Y 5x load", "top speed"), 0.35),
+        (stopbench.case("z1100", "y-top-speed"), 0.35),
         # The EP7047's emergency ramp (0x8020:07, the demo's 100 ms from full speed:
         # 2048 counts from 10 turns/s) against Enable off, where rotor and load coast
-        # (~4760 counts on the demo's mechanics): 0.43, from the exchange that carried
-        # each (the host's latency left out: it is not the method's).
-        (case("EP7047 stepper", "top speed"), 0.6),
+        # (~4750 counts on the demo's mechanics): 0.43, from the exchange that carried
+        # the STOP (the host's latency left out: it is not the method's).
+        (stopbench.case("ep7047", "top-speed"), 0.6),
     ],
     ids=["slap2-loaded-top-speed", "slap2-loaded-limit-cycle", "z1100-5x-top-speed", "ep7047"],
 )
@@ -62,35 +63,49 @@ async def test_stop_is_far_shorter_than_the_power_off_alone(
         assert trial.wire_latency_s is not None, f"the stop never reached the device: {trial}"
         assert trial.wire_distance_counts is not None and trial.wire_time_s is not None, trial
         assert trial.time_s is not None, f"not at rest within {stopbench.MAX_STOP_S} s: {trial}"
-    # Two trials never start at quite the same speed: the distance per unit of starting
-    # speed is compared (a stopping time: the same at any speed for a damped stop,
-    # shorter for a coast that friction ends, so the comparison never favours the STOP).
-    if plant.state == "top speed":
-        # From the stop's arrival at the device, with the shaft's state there, as the
-        # device's own process recorded it: the host's latency (this test process runs
-        # the hub, beside whatever else loads the machine) is not the method's distance.
-        assert stop.wire_speed_counts_s and off.wire_speed_counts_s
-        assert min(abs(off.wire_speed_counts_s), abs(stop.wire_speed_counts_s)) > 20_000
-        assert stop.wire_distance_counts is not None and off.wire_distance_counts is not None
-        stop_s = stop.wire_distance_counts / abs(stop.wire_speed_counts_s)
-        off_s = off.wire_distance_counts / abs(off.wire_speed_counts_s)
-        assert stop.wire_time_s is not None and off.wire_time_s is not None
-        assert stop.wire_time_s <= off.wire_time_s, (stop, off)
+    # From the stop's arrival at the device, with the shaft's state there, as the
+    # device's own process recorded it: the host's latency (this test process runs the
+    # hub, beside whatever else loads the machine) is not the method's distance.
+    assert stop.wire_speed_counts_s is not None and off.wire_speed_counts_s is not None
+    assert stop.wire_distance_counts is not None and stop.wire_time_s is not None
+    # A top speed is found at top speed whatever the latency. A limit cycle's phase at
+    # the arrival is the host latency's (pressed near its peak, it arrives anywhere in
+    # the cycle on a loaded host, a reversal's standstill included).
+    fast = abs(stop.wire_speed_counts_s) > FAST_COUNTS_S
+    assert fast or plant.state == "limit cycle", f"the STOP found the shaft slow: {stop}"
+    # The simulator's copy of the device, powered off alone from the state the power-off
+    # itself arrived in, did what the device did: the copy is honest.
+    assert off.wire_distance_counts is not None and off.unpowered_distance_counts is not None
+    assert abs(off.unpowered_distance_counts - off.wire_distance_counts) <= (
+        0.05 * off.wire_distance_counts + 50
+    ), off
+    # The same copy from the state the STOP arrived in (position, speed, the loop's
+    # state, the limit cycle's phase): the power-off alone shares the STOP's start, at
+    # whatever phase the latency made it.
+    assert stop.unpowered_distance_counts is not None, stop
+    stop_counts, off_counts = stop.wire_distance_counts, stop.unpowered_distance_counts
+    # Never longer, from any state: shorter than the coast (the power-off alone from
+    # the same state is that coast, to the count) and at rest no later, or, where the
+    # shaft stood and the coast is nothing, not moving it either (a time to rest from
+    # a standstill is the trace's sampling, not the stop's).
+    if off_counts > STOOD_COUNTS:
+        assert stop_counts < off_counts, stop
+        off_time_s = stop.unpowered_time_s if stop.unpowered_time_s is not None else math.inf
+        assert stop.wire_time_s <= off_time_s, stop
     else:
-        # A limit cycle is pressed near its peak speed as the host sees it; where the
-        # cycle is when the stop arrives is the host's latency's (a standstill at a
-        # reversal, now and then, on a loaded host), so it is compared from the press,
-        # with the speed aimed at: the latency moves the shaft within the cycle only.
-        assert min(abs(off.speed_counts_s), abs(stop.speed_counts_s)) > 20_000, (off, stop)
-        stop_s = stop.distance_counts / abs(stop.speed_counts_s)
-        off_s = off.distance_counts / abs(off.speed_counts_s)
-        assert stop.time_s <= off.time_s, (stop, off)
-    assert stop_s <= ratio * off_s, (stop, off)
+        assert stop_counts <= STOOD_COUNTS, stop
+    if fast:
+        # Far shorter from speed (a brake's edge over a coast shrinks with the speed:
+        # from a slow phase of a limit cycle only 'never longer' above is guaranteed).
+        assert stop_counts <= ratio * off_counts, (stop, off)
     if plant.state == "limit cycle":
-        # Not trusted to hold: braked, then unpowered once at rest.
+        # Not trusted to hold: braked, then unpowered once at rest - judged not working,
+        # or, where a loaded host's telemetry was too sparse to judge it, the stop safe
+        # either way (SLAP2: the same brake, then off).
         assert not stop.holds and any(
-            "not working" in e or "does not hold" in e for e in stop.events
-        )
+            "not working" in e or "does not hold" in e or "telemetry too sparse" in e
+            for e in stop.events
+        ), stop
     elif plant.device == "ep7047":
         # Its safe state is Enable off (no holding torque), reached at standstill.
         assert not stop.holds and "Enable off at standstill" in stop.sent, stop

@@ -10,9 +10,11 @@ sim ep7047 --socket PATH``).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import sys
+import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
@@ -25,6 +27,8 @@ from servotune.registry import (
     DeviceEntry,
     SimArgs,
     SimulatorEntry,
+    StopAxis,
+    StopCase,
     StopRig,
     StopRigArgs,
 )
@@ -211,7 +215,35 @@ async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
     async def powered() -> bool:
         return plant.powered()
 
-    yield StopRig(link, trace, powered, plant.reached)
+    yield StopRig(link, trace, powered, plant.reached, plant.arm, plant.disarm, plant.unpowered)
+
+
+async def _top_speed(axis: StopAxis) -> None:
+    """Enabled, then an endless move (start type 3) at 10 000 steps/s."""
+    await axis.command("enable", {})
+    # Until the drive says Ready to execute (a fixed wait was too short on a loaded
+    # host: the start was then refused with "not enabled").
+    deadline = time.monotonic() + 10
+    while not axis.flag("ready_to_execute"):
+        if time.monotonic() > deadline:
+            raise RuntimeError("the drive did not become ready")
+        await asyncio.sleep(0.02)
+    await axis.command(
+        "execute_move",
+        {
+            "start_type": 3,
+            "target": 0,
+            "velocity": 10000,
+            "acceleration_ms": 300,
+            "deceleration_ms": 300,
+        },
+    )
+    await asyncio.sleep(1.5)
+
+
+STOP_CASES: Final = (
+    StopCase("top-speed", "1", "EP7047 stepper", "top speed", {}, "endless, 10 000 bp", _top_speed),
+)
 
 
 def demo(args: DemoArgs) -> contextlib.AbstractContextManager[list[LinkSpec]]:
@@ -233,5 +265,7 @@ ENTRY: Final = DeviceEntry(
         example="ep7047:eth0?slave=1",
     ),
     build_link=build_link,
-    simulator=SimulatorEntry(serve=serve, demo=demo, pty=False, stop_rig=stop_rig),
+    simulator=SimulatorEntry(
+        serve=serve, demo=demo, pty=False, stop_rig=stop_rig, stop_cases=STOP_CASES
+    ),
 )

@@ -7,9 +7,10 @@ Builders import their modules when called: the registry is read by every command
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import functools
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -23,6 +24,8 @@ from servotune.registry import (
     PollSet,
     SimArgs,
     SimulatorEntry,
+    StopAxis,
+    StopCase,
     StopRig,
     StopRigArgs,
 )
@@ -110,7 +113,60 @@ async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
     async with traced_serial_process("stops-slap2", build, DEFAULT_BAUD) as (path, remote):
         spec = LinkSpec(NAME, path, args.link_id, DEFAULT_BAUD, list(DEMO_ADDRESSES), 512)
         link = functools.partial(build_link, spec)
-        yield StopRig(link, remote.trace, remote.powered, remote.reached)
+        yield StopRig(
+            link,
+            remote.trace,
+            remote.powered,
+            remote.reached,
+            remote.arm,
+            remote.disarm,
+            remote.unpowered,
+        )
+
+
+STOP_TOP_SV: Final = 20000  # the sv slider's end: 187 000 counts/s (5 500 rpm)
+STOP_GOOD_GAINS: Final = {"kp": 600, "ki": 10, "kd": 1500}  # stable on both modules
+STOP_FACTORY_GAINS: Final = {"kp": 40, "ki": 40, "kd": 80}
+STOP_OSCILLATING_GAINS: Final = {"kp": 2000, "ki": 0, "kd": 0}
+
+
+async def _top_speed(gains: Mapping[str, int], axis: StopAxis) -> None:
+    """Unpowered, ``gains`` written, then velocity mode at the sv slider's end."""
+    await axis.command("power_off", {})
+    await axis.write_params(dict(gains))
+    await axis.write_params({"velocity": STOP_TOP_SV, "acceleration": 65535})
+    await axis.command("velocity_mode", {})
+    # Long enough for the loop check to see the loop work (hub.loopcheck.EVIDENCE_S).
+    await asyncio.sleep(1.2)
+
+
+async def _limit_cycle(gains: Mapping[str, int], axis: StopAxis) -> None:
+    """Unpowered, ``gains`` written, then a 2000-count position step, whose limit cycle
+    settles in."""
+    await axis.command("power_off", {})
+    await axis.write_params(dict(gains))
+    await axis.write_params({"velocity": 65535, "acceleration": 65535})
+    await axis.command("position_mode", {})
+    await axis.command("move_relative", {"distance": 2000})
+    await asyncio.sleep(1.5)
+
+
+def _case(name: str, address: int, gains: Mapping[str, int], speed: str) -> StopCase:
+    label = ("SLAP2 #0 unloaded", "SLAP2 #1 with load")[address]
+    if "limit-cycle" in name:
+        setup = functools.partial(_limit_cycle, gains)
+        return StopCase(name, str(address), label, "limit cycle", gains, speed, setup)
+    setup = functools.partial(_top_speed, gains)
+    return StopCase(name, str(address), label, "top speed", gains, speed, setup)
+
+
+STOP_CASES: Final = (
+    _case("unloaded-top-speed", 0, STOP_FACTORY_GAINS, "vm sv 20000"),
+    _case("unloaded-limit-cycle", 0, STOP_OSCILLATING_GAINS, "±190"),
+    _case("loaded-top-speed", 1, STOP_GOOD_GAINS, "vm sv 20000"),
+    _case("loaded-top-speed-factory", 1, STOP_FACTORY_GAINS, "vm sv 20000"),
+    _case("loaded-limit-cycle", 1, STOP_FACTORY_GAINS, "±1900 @ step"),
+)
 
 
 def load_law() -> DeviceLaw:
@@ -136,7 +192,12 @@ ENTRY: Final = DeviceEntry(
     ),
     build_link=build_link,
     simulator=SimulatorEntry(
-        serve=serve, demo=demo, pty=True, poll_set=poll_set, stop_rig=stop_rig
+        serve=serve,
+        demo=demo,
+        pty=True,
+        poll_set=poll_set,
+        stop_rig=stop_rig,
+        stop_cases=STOP_CASES,
     ),
     law=load_law,
     tuner=build_tuner,

@@ -4,9 +4,10 @@ called, see ``devices/slap2/entry.py``)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import functools
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
@@ -20,6 +21,8 @@ from servotune.registry import (
     PollSet,
     SimArgs,
     SimulatorEntry,
+    StopAxis,
+    StopCase,
     StopRig,
     StopRigArgs,
 )
@@ -104,7 +107,52 @@ async def stop_rig(args: StopRigArgs) -> AsyncIterator[StopRig]:
     async with traced_serial_process("stops-z1100", build, DEFAULT_BAUD) as (path, remote):
         spec = LinkSpec(NAME, path, args.link_id, DEFAULT_BAUD, list(AXES), 512)
         link = functools.partial(build_link, spec)
-        yield StopRig(link, remote.trace, remote.powered, remote.reached)
+        yield StopRig(
+            link,
+            remote.trace,
+            remote.powered,
+            remote.reached,
+            remote.arm,
+            remote.disarm,
+            remote.unpowered,
+        )
+
+
+# A slow sampling time stretches the chip's derivative window: with the unloaded
+# motor's K at its maximum the loop settles into a limit cycle (docs/z1100-simulator.md).
+STOP_OSCILLATING_GAINS: Final = {"stm": 16} | {
+    f"{s}_{g}": v for s in ("kabh", "kabd") for g, v in (("k", 255), ("a", 64), ("b", 8))
+}
+
+
+async def _top_speed(axis: StopAxis) -> None:
+    """The demo's gains, constant velocity at the flash's Vmax."""
+    await axis.command("constant_velocity", {"direction": 1})
+    await asyncio.sleep(1.0)
+
+
+async def _limit_cycle(gains: Mapping[str, int], axis: StopAxis) -> None:
+    """``gains`` written, then a move of 20 000 counts, whose limit cycle settles in."""
+    await axis.write_params(dict(gains))
+    position = axis.channel("position") or 0
+    await axis.command("go_to_target", {"target": int(position) + 20000})
+    await asyncio.sleep(1.5)
+
+
+STOP_CASES: Final = (
+    StopCase("x-top-speed", "x", "Z1100 X unloaded", "top speed", {}, "Vmax 100 000", _top_speed),
+    StopCase("y-top-speed", "y", "Z1100 Y 5x load", "top speed", {}, "Vmax 100 000", _top_speed),
+    StopCase("z-top-speed", "z", "Z1100 Z 20x load", "top speed", {}, "Vmax 100 000", _top_speed),
+    StopCase(
+        "x-limit-cycle",
+        "x",
+        "Z1100 X unloaded",
+        "limit cycle",
+        STOP_OSCILLATING_GAINS,
+        "±600",
+        functools.partial(_limit_cycle, STOP_OSCILLATING_GAINS),
+    ),
+)
 
 
 def load_law() -> DeviceLaw:
@@ -133,7 +181,12 @@ ENTRY: Final = DeviceEntry(
     ),
     build_link=build_link,
     simulator=SimulatorEntry(
-        serve=serve, demo=demo, pty=True, poll_set=poll_set, stop_rig=stop_rig
+        serve=serve,
+        demo=demo,
+        pty=True,
+        poll_set=poll_set,
+        stop_rig=stop_rig,
+        stop_cases=STOP_CASES,
     ),
     law=load_law,
     tuner=build_tuner,

@@ -1,20 +1,25 @@
 """The demo's EP7047 as ``perf.stops`` measures a stop on it: the simulated drive
-in-process behind a master that records the shaft after every exchange, and the
-exchange that carried a stop to the drive."""
+in-process behind a master that records the shaft after every exchange, the exchange
+that carried a stop to the drive, and (armed) a copy of the drive's engine as each
+exchange found it, to run forward with Enable off from a stop's arrival."""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Final
 
-from servotune.devices.ep7047.codec import PosControl, StmControl, StmStatus
+from servotune.devices.ep7047.codec import CYCLE_S, PosControl, StmControl, StmStatus
+from servotune.devices.ep7047.sim.engine import Ep7047Engine
 from servotune.devices.ep7047.sim.slave import (
     SimulatedEp7047Slave,
     SimulatedEthercatMaster,
     demo_slave,
 )
-from servotune.sim.trace import ShaftPoint
+from servotune.sim.trace import MAX_COPIES, ShaftPoint, unpowered_points
 
 # The drive's and its driver's process-data watchdog on this rig: the host is what
 # stalls here, not the drive (the measuring host's own thread cycles the in-process
@@ -29,16 +34,21 @@ class TracedMaster(SimulatedEthercatMaster):
     after every exchange, as ``sim.trace.TracedDevice`` does for a serial device."""
 
     def __init__(
-        self, slaves: Sequence[SimulatedEp7047Slave], read: Callable[[], tuple[float, float]]
+        self,
+        slaves: Sequence[SimulatedEp7047Slave],
+        read: Callable[[], tuple[float, float]],
+        exchanged: Callable[[], None] = lambda: None,
     ) -> None:
         super().__init__(slaves)
         self._read = read
+        self._exchanged = exchanged
         self.points: list[ShaftPoint] = []
 
     def receive_processdata(self, timeout: int = 2000) -> int:
         wkc = super().receive_processdata(timeout)
         position, speed = self._read()
         self.points.append((time.monotonic(), position, speed))
+        self._exchanged()
         return wkc
 
 
@@ -50,7 +60,56 @@ class StopPlant:
         self.drive = demo_slave()
         self.drive.watchdog_s = STOP_PLANT_WATCHDOG_S
         plant = self.drive.engine.plant
-        self.master = TracedMaster([self.drive], lambda: (plant.shaft_counts, plant.speed_counts_s))
+        self.master = TracedMaster(
+            [self.drive], lambda: (plant.shaft_counts, plant.speed_counts_s), self._exchanged
+        )
+        self._armed = False
+        # exchange time -> the drive's engine as that exchange found it (armed only)
+        self._copies: dict[float, Ep7047Engine] = {}
+
+    def _exchanged(self) -> None:
+        history = self.drive.history
+        if self._armed and history and history[-1].t not in self._copies:
+            # The engine has run up to this exchange with the outputs before it: the
+            # drive as the exchange's new outputs find it.
+            self._copies[history[-1].t] = copy.deepcopy(self.drive.engine)
+            if len(self._copies) > MAX_COPIES:
+                del self._copies[next(iter(self._copies))]
+
+    async def arm(self) -> None:
+        """From now until ``disarm``, keep a copy of the engine at each exchange."""
+        self._copies.clear()
+        self._armed = True
+
+    async def disarm(self) -> None:
+        self._armed = False
+
+    async def unpowered(
+        self, at: float, rest_counts_s: float, rest_for_s: float, max_s: float
+    ) -> list[ShaftPoint] | None:
+        """The engine copied at the exchange at ``at`` (a ``reached`` time), run on with
+        the outputs of the exchange before it with Enable off (what the power-off alone
+        sends), as ``sim.trace.TracedDevice.unpowered`` does for a serial device."""
+        engine = self._copies.pop(at, None)
+        before = [e for e in list(self.drive.history) if e.t < at]
+        if engine is None or not before:
+            return None
+        outputs = before[-1].outputs
+        off = dataclasses.replace(outputs, stm_control=outputs.stm_control & ~StmControl.ENABLE)
+        plant = engine.plant
+        ran = 0
+
+        def advance(elapsed_s: float) -> None:
+            nonlocal ran
+            due = math.floor(elapsed_s / CYCLE_S + 1e-9)  # the drive's 250 us cycles
+            if due > ran:
+                engine.run(off, due - ran)
+                ran = due
+
+        def read() -> tuple[float, float]:
+            return plant.shaft_counts, plant.speed_counts_s
+
+        return unpowered_points(advance, read, at, rest_counts_s, rest_for_s, max_s)
 
     def powered(self) -> bool:
         """The drive reports its output stage ready (enabled, powered) in its last

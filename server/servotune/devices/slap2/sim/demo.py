@@ -39,10 +39,11 @@ def build_slap2_line(state_dir: Path) -> Slap2Line:
     )
 
 
-def stop_plant(address: int, state_dir: Path) -> TracedDevice:
+def stop_plant(address: int, state_dir: Path) -> TracedDevice[Slap2Line]:
     """The demo's line without limit switches (nothing but a stop ends a motion), EEPROMs
-    in memory, tracing module ``address``'s shaft; powered while in pm or vm
-    (``perf.stops``; ``state_dir`` is unused: nothing is kept)."""
+    in memory, tracing module ``address``'s shaft; powered while in pm or vm; a copy is
+    powered off as ``st`` does (``perf.stops``; ``state_dir`` is unused: nothing is
+    kept)."""
     free = {"limit1_count": None, "limit2_count": None}
     line = Slap2Line(
         [
@@ -52,11 +53,17 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
     )
     module = line.module(address)
     counts_per_rad = module.motor.params.counts_per_rev / (2 * math.pi)
+
+    def read(device: Slap2Line) -> tuple[float, float]:
+        motor = device.module(address).motor
+        return float(motor.count), motor.speed_rad_s * counts_per_rad
+
     return TracedDevice(
         line,
-        lambda: (float(module.motor.count), module.motor.speed_rad_s * counts_per_rad),
+        read,
         lambda: bool(module.rss & 0b1100),  # pm or vm
         LineCommands(cancel=0x18),  # CR ends a line, Ctrl-X discards it
+        lambda copy: copy.module(address).controller.stop(),  # st: the bridge off
     )
 
 

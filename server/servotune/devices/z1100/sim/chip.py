@@ -220,6 +220,10 @@ class Z1100Chip:
         """A copy of one axis's RAM parameters."""
         return replace(self._axis(axis).p)
 
+    def free(self, axis: int) -> None:
+        """What SetJob 0 does to motor ``axis`` (0..2): power off, the shaft free."""
+        self._set_job(self._axis(axis), int(Job.FREE))
+
     def _axis(self, axis: int) -> _Axis:
         if not 0 <= axis < AXES:
             raise ValueError(f"axis must be 0..{AXES - 1}, got {axis}")

@@ -68,9 +68,10 @@ def build_z1100_chip(state_dir: Path) -> Z1100Chip:
     return Z1100Chip.with_loads(Z1100_LOADS_KG_M2, flash_path=flash, jumper_baud=DEFAULT_BAUD)
 
 
-def stop_plant(address: int, state_dir: Path) -> TracedDevice:
+def stop_plant(address: int, state_dir: Path) -> TracedDevice[Z1100Chip]:
     """The demo's chip without home switches (nothing but a stop ends a motion), its
-    flash in ``state_dir``, tracing motor ``address``'s shaft (``perf.stops``)."""
+    flash in ``state_dir``, tracing motor ``address``'s shaft; a copy is powered off as
+    Job 0 does (``perf.stops``)."""
     flash = state_dir / "z1100_flash.json"
     write_demo_flash(flash)
     chip = Z1100Chip(
@@ -82,7 +83,7 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
         jumper_baud=DEFAULT_BAUD,
     )
 
-    def read() -> tuple[float, float]:
+    def read(chip: Z1100Chip) -> tuple[float, float]:
         state = chip.axis_state(address)
         return float(state.encoder_counts), float(state.speed_counts_s)
 
@@ -93,7 +94,13 @@ def stop_plant(address: int, state_dir: Path) -> TracedDevice:
         events = decoder.feed(bytes((byte,)))
         return [request_name(e) for e in events if not isinstance(e, BadRequest)]
 
-    return TracedDevice(chip, read, lambda: bool(chip.axis_state(address).powered), decode)
+    return TracedDevice(
+        chip,
+        read,
+        lambda: bool(chip.axis_state(address).powered),
+        decode,
+        lambda copy: copy.free(address),  # the driver's power-off: SetJob 0
+    )
 
 
 def z1100_record(chip: Z1100Chip) -> dict[str, Any]:
