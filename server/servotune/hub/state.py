@@ -72,12 +72,11 @@ LOOP_STALL_S: Final = 1.0
 # to STATUS_STALE_S, the hub's horizon for a link that stopped reporting, so a short
 # hold-up of a busy host does not trip it.
 AXIS_SILENT_S: Final = 3.0
-# ... unless its link excused timeouts because the host itself held the bytes back
-# (``host_stalls`` grew within the last HOST_HELD_RECENT_S): the device answers, the
-# host delays it. Judged again then, for at most HOST_HELD_GRACE_S more (the link's own
-# bound on that excuse, ``link.engine.TTY_STALL_EXCUSE_S``).
+# When its link excused timeouts because the host itself held the bytes back
+# (``host_stalls`` grew within the last HOST_HELD_RECENT_S), the axis is shown offline
+# all the same - it has no live values, and "ok" would claim some - but the message
+# names the host, not the device.
 HOST_HELD_RECENT_S: Final = 2.0
-HOST_HELD_GRACE_S: Final = 5.0
 
 
 class UnknownAxisError(KeyError):
@@ -506,10 +505,10 @@ class HubState:
         that got no sample for ``AXIS_SILENT_S``: its device does not answer its polls
         although the line works. Its next sample shows it ok again (``on_sample``).
         Axes paused, offline or reset and links connecting or disconnected are not
-        judged: no telemetry is expected from them. A link that excused timeouts
-        because the host held its bytes back (``HOST_HELD_RECENT_S``) gets
-        ``HOST_HELD_GRACE_S`` more: the device answers, its bytes are late. The
-        server's own stall (``LOOP_STALL_S``) is not the device's: judged from its end."""
+        judged: no telemetry is expected from them. When its link excused timeouts
+        because the host held its bytes back (``HOST_HELD_RECENT_S``), the message says
+        so instead of blaming the device. The server's own stall (``LOOP_STALL_S``) is
+        not the device's: judged from its end."""
         for entry in self._axes.values():
             if entry.health != "ok" or entry.silent:
                 continue
@@ -521,17 +520,17 @@ class HubState:
             if silent_s < AXIS_SILENT_S:
                 continue
             held_at = link_entry.host_stalled_at
-            if (
-                held_at is not None
-                and now - held_at < HOST_HELD_RECENT_S
-                and silent_s < AXIS_SILENT_S + HOST_HELD_GRACE_S
-            ):
-                continue
+            if held_at is not None and now - held_at < HOST_HELD_RECENT_S:
+                cause = (
+                    "this computer's serial (tty) layer is holding the bytes back "
+                    "(the host is overloaded); the device's answers come late"
+                )
+            else:
+                cause = "the device does not answer its polls"
             entry.silent = True
             entry.health = "offline"
             entry.health_message = (
-                f"no telemetry for {silent_s:.0f} s while its link is up: "
-                "the device does not answer its polls"
+                f"no telemetry for {silent_s:.0f} s while its link is up: {cause}"
             )
             self.on_event("warning", entry.info.id, entry.health_message)
             self.show_status(entry)
