@@ -13,10 +13,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import sys
 import time
 
 import pytest
 
+from servotune.config import LinkSpec
+from servotune.devices import default_registry
 from servotune.devices.ep7047.codec import StartType
 from servotune.devices.ep7047.cycle import Cycle
 from servotune.devices.ep7047.link import Ep7047Link, build_ep7047_link
@@ -91,3 +94,45 @@ async def test_a_held_server_thread_does_not_hold_the_cycle(
         for _ in range(100):
             os.kill(pid, 0)
             await asyncio.sleep(0.05)
+
+
+def _hold_the_interpreter(seconds: float) -> None:
+    """Hold the interpreter lock for ``seconds``, as a full garbage collection of a big
+    heap does on a loaded host: no other thread of this process runs meanwhile (the
+    switch interval, 5 ms, is what would otherwise hand the lock on)."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(30.0)
+    try:
+        time.sleep(0.02)  # threads that waited under the old interval take and leave it
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(interval)
+
+
+async def test_the_sim_link_spec_keeps_the_drive_enabled_through_a_held_interpreter() -> None:
+    # ``ep7047:sim`` (the tests' and the page's simulated drive) must feed the drive's
+    # 100 ms watchdog from the cycle process, as a real NIC's link does: a held
+    # interpreter in the server (measured: full collections of 0.3-1.9 s under load)
+    # delays the server, it must not drop Enable (docs/notes 24-i24j).
+    sink = RecordingSink()
+    link = default_registry().build_link(LinkSpec("ep7047", "sim", "ep", 0, [1]), sink)
+    assert isinstance(link, Ep7047Link)
+    task = asyncio.create_task(link.run())
+    try:
+        await wait_for(lambda: link.state == "connected", 60, "OP through the cycle process")
+        axis = link.axes[0]
+        await axis.command("enable", {})
+        samples = sink.samples[axis.id]
+        await wait_for(lambda: samples and samples[-1].flags["stm_ready"], 20, "enabled")
+        _hold_the_interpreter(0.5)
+        held_at = len(samples)
+        await wait_for(lambda: len(samples) > held_at + 5, 20, "samples after the hold")
+        assert link.counters["watchdog_trips"] == 0, sink.events
+        assert samples[-1].flags["stm_ready"], sink.events[-3:]
+        assert link.state == "connected"
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
