@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import time
 from collections.abc import AsyncIterator, Callable
@@ -180,9 +181,16 @@ def create_app(config: AppConfig) -> FastAPI:
             app.state.twin = await Twin.start(hub) if config.twin else None
             if bus is not None:
                 await bus.start(hub, control, storage, bench, app.state.autotuner)
+            # Decision: the heap built by start-up (modules, descriptors, the hub) lives as
+            # long as the app, so it is frozen: full collections then skip it instead of
+            # holding the interpreter lock while they walk it (docs/performance.md,
+            # "Garbage collection"). Unfrozen at shutdown, so that nothing stays frozen
+            # past the app (a test process runs many apps one after the other).
+            gc.freeze()
             try:
                 yield
             finally:
+                gc.unfreeze()
                 if bus is not None:
                     await bus.stop()
                 await control.shutdown()

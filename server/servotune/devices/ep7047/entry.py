@@ -3,7 +3,7 @@ how its simulator is served and what the demo runs (builders import their module
 called, see ``devices/slap2/entry.py``).
 
 The link spec's path is the master's network interface, or a simulated slave:
-``ep7047:sim`` in-process (tests, trying the page without hardware), or
+``ep7047:sim`` in the link's cycle process (tests, trying the page without hardware), or
 ``ep7047:sim:PATH`` in a process of its own behind a Unix socket (the demo, ``servotune
 sim ep7047 --socket PATH``).
 """
@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-# ``ep7047:sim`` runs the simulated slave in-process instead of a NIC.
+# ``ep7047:sim`` runs the simulated slave in the cycle process instead of a NIC.
 SIMULATED_NIC: Final = "sim"
 
 
@@ -70,7 +70,12 @@ def build_link(spec: LinkSpec, sink: DriverSink) -> Link:
             name="ec-cycle-sim",
         )
     elif spec.path == SIMULATED_NIC:
-        master = demo_master()  # in-process, behind the same master interface
+        # The simulated slave in the cycle process, paced like a real NIC's master: a
+        # stall of this process (a full garbage collection holds the interpreter lock
+        # for hundreds of ms on a loaded host) then delays the link's requests, as with
+        # real hardware, but never starves the drive's 100 ms watchdog (a false trip
+        # that a real installation would not see).
+        master = CycleProcessMaster(demo_master, name="ec-cycle-sim")
     else:
         return build_ep7047_link(
             spec.link_id, spec.path, slave, sink, counts_per_rev=4 * spec.lines, name=name
