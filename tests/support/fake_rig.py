@@ -1,7 +1,7 @@
 """A fake rig: a client of the lab's bus with a rig's credentials that speaks the rig
 agent's protocol (manifest, presence, clock answers, snapshot, command answers, and
 telemetry at a chosen rate) without a device behind it. Used by the flood test
-(tests/integration/bus/test_bus_faults.py, in a process of its own) and scripts/perf_bus_lab.py.
+(tests/integration/bus/test_faults.py, in a process of its own) and scripts/perf_bus_lab.py.
 
     python -m tests.support.fake_rig --url nats://... --credentials rig-b.cred --rig rig-b \\
         --axes 1 --samples-per-s 5000 --batch 1 --seconds 20

@@ -1,4 +1,4 @@
-"""A login flood from a process of its own (``test_auth_flood.py`` in tests/integration/auth/
+"""A login flood from a process of its own (``test_flood.py`` in tests/integration/auth/
 starts it).
 
 ``python tests/support/login_flood.py BASE_URL COUNT ADDRESS``: COUNT concurrent

@@ -5,7 +5,7 @@ a TCP proxy per rig the test can cut (the rig's network cable to the lab).
 The rigs in these tests are in-process: each is a whole servotune app (its own hub,
 control lock, storage) on its own simulated SLAP2 line, connected to the lab's server
 with its own credentials. A rig behind its own leaf node (JetStream domain per rig):
-tests/integration/bus/test_bus_leaf.py, docs/lab.md.
+tests/integration/bus/test_leaf.py, docs/lab.md.
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ UNAVAILABLE = 1011
 # viser client -> server messages the twin needs: the camera pose of the viewer (viser
 # keeps it per client and counts a client as connected after the first one). The twin
 # has no GUI element, no click or drag binding and no upload; sharing is never wanted.
-# Recorded from viser 1.1.1's browser client in tests/browser/test_twin_browser.py.
+# Recorded from viser 1.1.1's browser client in tests/browser/test_twin.py.
 ALLOWED_CLIENT_MESSAGES = frozenset({"ViewerCameraMessage"})
 # Refused messages written to the audit log per connection (then only counted).
 _AUDITED_REFUSALS = 20

@@ -17,7 +17,7 @@ Why processes in a session of their own and not threads: a hashing thread, even 
 nice 10, belongs to the server's scheduling entity (its autogroup or cgroup). On a
 loaded machine a server that keeps the cores busy with hashes loses its "sleeper"
 credit, and the event loop then waits behind every other runnable process each time it
-wakes. Measured on the 2-core VM at a load of 15-20 (tests/integration/auth/test_auth_flood.py,
+wakes. Measured on the 2-core VM at a load of 15-20 (tests/integration/auth/test_flood.py,
 alternating runs): STOP answered median 219 and 243 ms during a flood of 20 checks
 against 59 and 38 ms without it with nice-10 threads, 45 and 44 ms against 41 and
 42 ms with a nice-10 process of its own; with a nice-0 process of its own (single

@@ -3,7 +3,7 @@
 Keys are ``(method, route path template)`` exactly as FastAPI matched them
 (``request.scope["route"].path``), websockets under method ``"WS"``. A route that is
 not in this table answers 500 at request time and fails
-``tests/integration/auth/test_auth_routes.py``, which walks ``app.routes``: a route added
+``tests/integration/auth/test_routes.py``, which walks ``app.routes``: a route added
 later without a declared permission cannot slip through.
 
 Special values:

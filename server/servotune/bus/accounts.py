@@ -76,7 +76,7 @@ def rig_permissions(rig: str, *, leaf: bool = False) -> Permissions:
     # the rig's token (``servotune.v1.*.presence``, ``*.manifest``: how the hub finds
     # a rig it does not know yet) to a leaf only if one of its user's publish entries
     # matches them token by token (nats-server 2.9.10, checked in
-    # tests/integration/bus/test_bus_leaf.py; without them such a subscription hears no leaf rig).
+    # tests/integration/bus/test_leaf.py; without them such a subscription hears no leaf rig).
     publish: tuple[str, ...] = (f"{root}.>", subjects.presence(rig), subjects.manifest(rig))
     subscribe: tuple[str, ...] = (
         f"{root}.*.*.cmd.*",

@@ -272,7 +272,7 @@ class HubBus:
         assert self._view_nc is not None
         self._control = control
         # Manifests of every rig (the rig token a wildcard: nats-server 2.9.10 carries
-        # it across a leaf link, tests/integration/bus/test_bus_leaf.py); telemetry and
+        # it across a leaf link, tests/integration/bus/test_leaf.py); telemetry and
         # events per rig.
         await self._view_nc.subscribe(subjects.RIGS_SUBJECTS, cb=self._on_manifest)
         for rig in list(self._rigs):

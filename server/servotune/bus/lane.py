@@ -325,7 +325,7 @@ class SafetyLane:
                 role_settings(self._settings, "stop"), name=f"hub-{self._hub_name}-stop"
             )
             # Every rig's presence (a leaf rig's too: nats-server 2.9.10 carries this
-            # subscription across a leaf link, checked in tests/integration/bus/test_bus_leaf.py).
+            # subscription across a leaf link, checked in tests/integration/bus/test_leaf.py).
             await self._nc.subscribe(subjects.PRESENCE_SUBJECTS, cb=self._on_presence)
             await self._nc.flush()
         except BaseException as exc:

@@ -3,7 +3,7 @@
 nats-server 2.9 does not extend the lab's JetStream to a leaf node's clients ("JetStream
 Not Extended, adding deny [$JS.API.> $KV.> $OBJ.>]" in both servers' logs when the leaf
 connects): a rig behind its leaf cannot publish into the lab's streams. The documented
-way, and what works here (``tests/integration/bus/test_bus_leaf.py``, nats-server 2.9.10):
+way, and what works here (``tests/integration/bus/test_leaf.py``, nats-server 2.9.10):
 
 * the rig's server runs JetStream in a domain of its own, named after the rig
   (``jetstream { domain: rig-1 }``), and keeps the rig's runs in a stream there,

@@ -3,7 +3,7 @@
 The rigs are in-process (each a whole servotune app with its own hub, control lock and
 store, on its own simulated SLAP2 line, a client of the lab's nats-server through a
 proxy: its network cable); the nats-server and the proxy are real processes and
-sockets (leaf nodes: tests/integration/bus/test_bus_leaf.py). Assertions about a device are on the
+sockets (leaf nodes: tests/integration/bus/test_leaf.py). Assertions about a device are on the
 simulated line's own record of the wire (``WireRecorder``): a refused change sent
 nothing.
 """

@@ -6,7 +6,7 @@ dropped, and the user told, when a command reached the axis after it was pressed
 another STOP reached the axis since (the dead-man's, a hand-over's, the user's again),
 and after ``PENDING_STOP_MAX_S``; when it does go out, it says when it was pressed.
 The remote side of the same rule (a rig refusing a hub's STOP pressed before its local
-user moved the axis) is in tests/integration/bus/test_bus_faults.py.
+user moved the axis) is in tests/integration/bus/test_faults.py.
 """
 
 from __future__ import annotations

@@ -163,7 +163,7 @@ def simulate_move(
     runs once per step of ``coarse`` samples, on the first sample's reference against
     the position at the step's start (the chip's timing), with the derivative window
     in steps (32 / coarse), and its duty is held for the whole step. Checked against
-    the chip simulator in tests/device/z1100/test_autotune_z1100.py: coarse 4 and 1 agree with it
+    the chip simulator in tests/device/z1100/test_autotune.py: coarse 4 and 1 agree with it
     equally well (about 2 counts rms on a 10 000-count move). Records every
     ``record_every`` steps: time, position, following error (reference - position).
     """

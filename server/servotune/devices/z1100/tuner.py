@@ -45,7 +45,7 @@ TEST_RECORD_S: Final = 1.0  # recorded after the profile's end
 # proposed with a warning. A capture reads GetError every 3rd sample while the motor
 # runs: at 9600 baud (13.5 ms per read) a 2000-count move of the demo's X motor (0.12 s)
 # got 3; at 38400 baud a 10 000-count move (0.2 s) gets 7-11 on a loaded 2-core host
-# (tests/device/z1100/test_autotune_z1100.py), whose models verify better.
+# (tests/device/z1100/test_autotune.py), whose models verify better.
 MIN_MOVE_ERROR_SAMPLES: Final = 5
 WELL_SAMPLED_MOVE: Final = 12
 

@@ -39,7 +39,7 @@ PACKET_OUTGOING: Final = 4
 # between) or at normal priority under a CPU hog it answered late enough for SOEM to
 # count a lost frame no wire lost (docs/ep7047-wire.md, the soaks).
 # It never spins: the loop sleeps in select() until a frame, a control request or the
-# watchdog's deadline (at least WAIT_MIN_S away); tests/device/ep7047/test_ep7047_rt.py measures it.
+# watchdog's deadline (at least WAIT_MIN_S away); tests/device/ep7047/test_rt.py measures it.
 RT_PRIORITY: Final = 60
 # The shortest wait for the watchdog's deadline: the drive steps in 250 us cycles and a
 # trip is judged at the cycle where it falls, so waking earlier than the next cycle

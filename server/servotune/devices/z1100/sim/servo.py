@@ -508,7 +508,7 @@ class _Axis:
     # motor's step inlined (the "bridge on, shaft turning" case of DcMotor._advance,
     # one piece, no chopper): the same operations in the same order as ``sample`` ->
     # ``profile_step`` -> ``_approach`` -> ``DcMotor.step``, so the results are the same
-    # bit for bit (tests/device/z1100/test_sim_z1100.py compares the two). It hands over to
+    # bit for bit (tests/device/z1100/test_sim.py compares the two). It hands over to
     # ``sample`` - before changing anything - for every sample that may take another
     # branch: the shaft at rest, the move ending, the stall limit exceeded.
 

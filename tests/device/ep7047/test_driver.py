@@ -2,7 +2,7 @@
 
 Every ``test_fake_master_*`` test runs the real driver (cycle thread, bring-up, SDO,
 handshakes) against the simulated master and slave in real time, 2 ms cycle; nothing
-here touches a network interface. Real hardware: ``tests/device/ep7047/test_ep7047_hardware.py``.
+here touches a network interface. Real hardware: ``tests/device/ep7047/test_hardware.py``.
 
 The logic tests give the watchdog 0.5 s on both sides (driver and simulated slave) so
 that a busy CI host cannot abort their moves; the stall test uses the real 100 ms.

@@ -12,7 +12,7 @@
    are refused.
 7. Bounded streams; the presence stream is back after the lab server's restart.
 
-4 (the flood) is in tests/integration/bus/test_bus_flood.py. Rigs are in-process apps (test_bus) but
+4 (the flood) is in tests/integration/bus/test_flood.py. Rigs are in-process apps (test_bus) but
 in test 1, where the rig is a process of its own.
 """
 

@@ -1,6 +1,6 @@
 """The EP7047-1032 driver on REAL hardware: opt-in, skipped unless configured.
 
-    SERVOTUNE_EP7047_IFNAME=eth1 pytest tests/device/ep7047/test_ep7047_hardware.py
+    SERVOTUNE_EP7047_IFNAME=eth1 pytest tests/device/ep7047/test_hardware.py
 
 needs ``pip install 'servotune[ethercat]'``, raw-socket rights (root or CAP_NET_RAW, see
 docs/ep7047-driver.md) and an EP7047-1032 on that NIC. Optional:

@@ -131,7 +131,7 @@ async def test_role_cannot_call_what_it_lacks(tmp_path: Path, user: str) -> None
             if needed == COMMAND:
                 needed = "move"  # a move command (stop is tested below)
             elif needed == CONSOLE_LINE:
-                # and then what the line is (tests/integration/auth/test_auth_console.py)
+                # and then what the line is (tests/integration/auth/test_console.py)
                 needed = "console"
             if needed == PUBLIC or needed in allowed:
                 continue

@@ -2,7 +2,7 @@
 
 The rule (``servotune.autotune.recommend``) on margin reports of the one margin rule
 (``tuning.targets.margin_report``) and on real proposals of the SLAP2 search for the
-loaded demo plant. The browser and the API around it: tests/browser/test_browser_autotune_keep.py.
+loaded demo plant. The browser and the API around it: tests/browser/test_autotune_keep.py.
 The bodies are checked against their documented shapes (``schema.MarginReport``,
 ``AutoTuneRecommendation``, ``AutoTuneDecision``), which the web client's types are
 generated from.
