@@ -13,39 +13,21 @@ from typing import Any
 from servotune.bench.runner import left_oscillating
 from servotune.devices.slap2.descriptor import slap2_descriptor
 from servotune.hub.stops import SETTLE_EVIDENCE_S, SETTLE_WATCH_S, Settled, StopService
-from servotune.link.base import Sample, StopOutcome
+from servotune.link.base import Sample
+from tests.support.stop_driver import RecordingStops
 
 T0 = 100.0  # the virtual clock when the run ended
 BEFORE = {"kp": 600, "ki": 10, "kd": 1500}  # the gains in force before the run
 NOW = {"kp": 900, "ki": 10, "kd": 1500}  # the gains the run left
 
 
-class Driver:
+class Driver(RecordingStops):
     """A driver with the stop modes whose brake is its power-off (a Z1100-like one):
     records what it is asked for and sends nothing."""
 
     def __init__(self) -> None:
-        self.asked: list[str] = []
+        super().__init__(brake_action="power_off")
         self.written: list[dict[str, int]] = []
-
-    async def _say(self, name: str, action: str) -> StopOutcome:
-        self.asked.append(name)
-        return StopOutcome([name], action, name)  # type: ignore[arg-type]
-
-    async def stop(self) -> StopOutcome:
-        return await self._say("stop", "hold")
-
-    async def controlled_stop(self) -> StopOutcome:
-        return await self._say("controlled_stop", "hold")
-
-    async def power_off(self) -> StopOutcome:
-        return await self._say("power_off", "power_off")
-
-    async def brake(self) -> StopOutcome:
-        return await self._say("brake", "power_off")
-
-    async def hold_here(self) -> StopOutcome:
-        return await self._say("hold_here", "hold")
 
     async def write_params(self, values: dict[str, int]) -> dict[str, Any]:
         self.written.append(dict(values))

@@ -13,33 +13,12 @@ import pytest
 from servotune.devices.slap2.descriptor import slap2_descriptor
 from servotune.hub.stops import StopService
 from servotune.link.base import Sample, StopOutcome
+from tests.support.stop_driver import RecordingStops
 
 
-class Recorder:
+class Recorder(RecordingStops):
     """A driver with the stop modes and no stop for an unjudged loop (a Z1100-like one):
     its stops say what they are and send nothing."""
-
-    def __init__(self) -> None:
-        self.asked: list[str] = []
-
-    async def _say(self, name: str, action: str) -> StopOutcome:
-        self.asked.append(name)
-        return StopOutcome([name], action, name)  # type: ignore[arg-type]
-
-    async def stop(self) -> StopOutcome:
-        return await self._say("stop", "hold")
-
-    async def controlled_stop(self) -> StopOutcome:
-        return await self._say("controlled_stop", "hold")
-
-    async def power_off(self) -> StopOutcome:
-        return await self._say("power_off", "power_off")
-
-    async def brake(self) -> StopOutcome:
-        return await self._say("brake", "brake")
-
-    async def hold_here(self) -> StopOutcome:
-        return await self._say("hold_here", "hold")
 
 
 class Slap2Like(Recorder):
