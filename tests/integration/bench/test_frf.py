@@ -602,8 +602,8 @@ async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_
     """Open loop through spwm: 422 naming the field without a travel window on both
     sides, without confirmation, or with a PWM above the bench's max_pwm — nothing
     sent. Confirmed, inside a narrow window, the PWM multisine drives the axis out of
-    it and the run ends "left your travel window" with the axis stopped (st: no PWM,
-    neither pm nor vm), every PWM sent within the peak."""
+    it and the run ends "left your travel window" with the axis held in pm (not left in
+    open-loop PWM), every PWM sent within the peak."""
     base = {
         "kind": "frequency_response",
         "loop": "open",
@@ -640,8 +640,10 @@ async def test_open_loop_is_refused_without_window_or_confirmation_and_stops_at_
     assert run["status"] == "incomplete", run
     assert "left your travel window" in run["message"], run["message"]
     module = one_module_api.bus.module(0)
-    # Stopped: no PWM, held in pm where it is (a run's abort holds), not vm.
-    assert module.pwm == 0 and module.rss & 0b1100 == 0b1000
+    # Stopped by a hold: the bridge is back under the position loop (pm), neither in
+    # open-loop PWM nor in vm. The hold's own PID output may be a few PWM steps while
+    # it brings the coasting shaft back, so the PWM value is not asserted.
+    assert module.rss & 0b1100 == 0b1000, bin(module.rss)
     sent = run["excitation"]["sent"]
     assert sent and all(abs(row[1]) <= 60 for row in sent)
     assert run["excitation"]["command"] == "open_loop_pwm"
