@@ -178,13 +178,15 @@ def exposed_security() -> Any:
 
 @contextlib.asynccontextmanager
 async def exposed_line_server(
-    tmp_path: Path, addresses: list[int], *, twin: bool = False
+    tmp_path: Path, addresses: list[int], *, twin: bool = False, password_cost: Any = None
 ) -> AsyncIterator[ExposedServer]:
     """A real server in exposed mode (the accounts of ``tests/support/auth.py``) on a
-    recorded simulated SLAP2 line (``exposed_security``, ``served``)."""
-    from tests.support.auth import make_accounts
+    recorded simulated SLAP2 line (``exposed_security``, ``served``). Passwords at
+    ``password_cost`` (accounts and app; None: ``TEST_PASSWORD_COST``)."""
+    from tests.support.auth import TEST_PASSWORD_COST, make_accounts
 
-    make_accounts(tmp_path / "data")
+    cost = password_cost or TEST_PASSWORD_COST
+    make_accounts(tmp_path / "data", cost=cost)
     with recorded_line(tmp_path, addresses) as (simulator, wire):
         spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
         config = AppConfig(
@@ -193,6 +195,7 @@ async def exposed_line_server(
             web_dir=tmp_path / "no-web",
             security=exposed_security(),
             twin=twin,
+            password_cost=cost,
         )
         async with served(create_app(config), wire) as server:
             yield server

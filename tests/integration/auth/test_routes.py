@@ -17,6 +17,7 @@ from fastapi.routing import APIRoute, APIWebSocketRoute, iter_route_contexts
 from starlette.routing import Mount, Route
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.passwords import PRODUCT_PASSWORD_COST
 from servotune.auth.permissions import ROLES
 from servotune.auth.routes_table import COMMAND, CONSOLE_LINE, PUBLIC, ROUTE_PERMISSIONS
 from servotune.auth.security import AUTH_DB, SecurityConfig, SecurityConfigError
@@ -447,8 +448,11 @@ async def test_login_throttling_per_account_and_address_then_recovers(tmp_path: 
 async def test_concurrent_guesses_of_one_account_get_the_limit_and_no_more(tmp_path: Path) -> None:
     """Finding 1: 30 concurrent guesses for one account all passed the throttle's check
     (29 x 401 and 1 x 200, the right password being the 20th). The attempt is reserved
-    before hashing now: 5 are checked, the rest answer 429 unchecked."""
-    app = await exposed_app(tmp_path)
+    before hashing now: 5 are checked, the rest answer 429 unchecked.
+
+    At the product's password cost: a check that takes real time is the window the
+    guesses raced through."""
+    app = await exposed_app(tmp_path, password_cost=PRODUCT_PASSWORD_COST)
     async with running(app), client(app) as http:
         passwords = [f"guess-number-{i:02d}" for i in range(30)]
         passwords[19] = PASSWORDS["olga"]
