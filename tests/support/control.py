@@ -31,6 +31,7 @@ import websockets
 from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.passwords import PasswordCost
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
@@ -178,7 +179,11 @@ def exposed_security() -> Any:
 
 @contextlib.asynccontextmanager
 async def exposed_line_server(
-    tmp_path: Path, addresses: list[int], *, twin: bool = False, password_cost: Any = None
+    tmp_path: Path,
+    addresses: list[int],
+    *,
+    twin: bool = False,
+    password_cost: PasswordCost | None = None,
 ) -> AsyncIterator[ExposedServer]:
     """A real server in exposed mode (the accounts of ``tests/support/auth.py``) on a
     recorded simulated SLAP2 line (``exposed_security``, ``served``). Passwords at
