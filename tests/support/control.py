@@ -35,6 +35,7 @@ from servotune.auth.passwords import PasswordCost
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
+from servotune.perf.demo import free_port
 from servotune.sim.process import Remote
 from tests.support.servers import use_csrf_token
 from tests.support.sim_builders import WireRecorder, recorded_slap2_line
@@ -66,13 +67,6 @@ class Server:
     @property
     def bus(self) -> Slap2Line:
         return self.wire.bus
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 @contextlib.asynccontextmanager
