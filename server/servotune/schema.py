@@ -764,30 +764,42 @@ class RunPlan(_Shape):
     overrides: dict[str, int]
 
 
-class RunMetrics(_Shape):
-    """``servotune.bench.metrics.Metrics``: times in s after the trigger t0; null where
-    not defined, not reached or not trusted (``RunQuality.untrusted`` says why)."""
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+"""A JSON number (not a string), never NaN or infinite (JSON has neither)."""
 
-    step: float
-    band: float | None
-    samples: int
-    max_sample_gap_s: float | None
-    rise_time_s: float | None
-    overshoot_pct: float | None
-    peak_time_s: float | None
-    peak_value: float | None
-    settling_time_s: float | None
-    steady_state_error: float | None
+
+class RunMetrics(_Shape):
+    """The step-response metrics of a run, the one definition: ``bench.metrics.
+    compute_metrics`` returns it, the bench stores and lists it, the auto-tune predicts
+    it, an imported run's are checked against it. Times in s after the trigger t0; null
+    where not defined, not reached or not trusted (``RunQuality.untrusted`` says why).
+    What each one is: ``bench.metrics.DEFINITIONS`` (served as ``BenchInfo.definitions``).
+
+    Strict (a number is a JSON number, not a string) and finite (NaN and infinities are
+    refused: JSON has none), immutable once computed."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    step: FiniteFloat
+    band: FiniteFloat | None
+    samples: int = Field(ge=0)
+    max_sample_gap_s: FiniteFloat | None
+    rise_time_s: FiniteFloat | None
+    overshoot_pct: FiniteFloat | None
+    peak_time_s: FiniteFloat | None
+    peak_value: FiniteFloat | None
+    settling_time_s: FiniteFloat | None
+    steady_state_error: FiniteFloat | None
     oscillations: int | None
-    peak_following_error: float | None
-    rms_following_error: float | None
-    time_to_flag_s: dict[str, float | None]
-    time_in_flag_s: dict[str, float]
-    time_to_flag_resolution_s: dict[str, float | None] = Field(
+    peak_following_error: FiniteFloat | None
+    rms_following_error: FiniteFloat | None
+    time_to_flag_s: dict[str, FiniteFloat | None]
+    time_in_flag_s: dict[str, FiniteFloat]
+    time_to_flag_resolution_s: dict[str, FiniteFloat | None] = Field(
         default_factory=dict,
         description="the ± of the flag times (flags are polled); absent on older runs",
     )
-    time_in_flag_resolution_s: dict[str, float] = Field(default_factory=dict)
+    time_in_flag_resolution_s: dict[str, FiniteFloat] = Field(default_factory=dict)
 
 
 class RunReason(_Shape):

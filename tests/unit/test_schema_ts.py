@@ -115,17 +115,16 @@ def test_a_subclass_extends_its_rendered_parent() -> None:
 
 
 def test_the_run_shapes_name_the_fields_the_bench_stores() -> None:
-    """``RunMetrics`` is ``bench.metrics.Metrics`` as JSON and the run export the import
-    takes (``bench.files.RunExport``) is the run as listed: the same field names, so the
-    documented shape and the TypeScript cannot drift from what the bench writes."""
-    import dataclasses
+    """The run export the import takes (``bench.files.RunExport``) is the run as listed,
+    with the bench's own metrics model: the same field names, so the documented shape
+    and the TypeScript cannot drift from what the bench writes."""
+    from servotune.bench.files import RunExport
+    from servotune.bench.metrics import DEFINITIONS, compute_metrics
 
-    from servotune.bench.files import ImportMetrics, RunExport
-    from servotune.bench.metrics import Metrics
-
-    metrics = [f.name for f in dataclasses.fields(Metrics)]
-    assert list(schema.RunMetrics.model_fields) == metrics
-    assert list(ImportMetrics.model_fields) == metrics
+    assert RunExport.model_fields["metrics"].annotation == schema.RunMetrics | None
+    computed = compute_metrics([0.0, 0.1, 0.2], [0.0, 5.0, 10.0], t0_s=0.0, y0=0.0, y_final=10.0)
+    assert type(computed) is schema.RunMetrics
+    assert set(DEFINITIONS) == set(schema.RunMetrics.model_fields)
     listed = {f.alias or name for name, f in schema.BenchRun.model_fields.items()}
     exported = {f.alias or name for name, f in RunExport.model_fields.items()}
     assert listed - exported == set()

@@ -1,4 +1,4 @@
-// What each bench metric means: the sentences of ``Metrics.definitions`` in
+// What each bench metric means: the sentences of ``DEFINITIONS`` in
 // server/servotune/bench/metrics.py, copied here because the server does not serve them (yet).
 // Keep in step with that file; they are the hover text of the runs table's headers.
 

@@ -11,7 +11,7 @@ and no thread that holds the interpreter lock against it.
 from __future__ import annotations
 
 import asyncio
-from dataclasses import asdict, replace
+from dataclasses import replace
 from typing import Any, Final
 
 from servotune.autotune.context import TuningContext
@@ -430,9 +430,9 @@ class Slap2Tuner:
         return {
             "gains": proposal.gains.to_dict(),
             "previous_gains": proposal.current_gains.to_dict(),
-            "predicted": asdict(proposal.predicted),
+            "predicted": proposal.predicted.model_dump(),
             "measured": measured,
-            "predicted_default": asdict(proposal.predicted_default),
+            "predicted_default": proposal.predicted_default.model_dump(),
             "baseline_measured": baseline_measured,
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,
