@@ -154,13 +154,12 @@ class TestBench:
     async def _in_import_process(self, call: Callable[[], T]) -> T:
         """``call()`` in an import process: one at a time, each process fresh.
 
-        Fresh per call, as the import was designed (``bench.files``): its own
-        interpreter (a parse never holds the event loop's), at nice 10, and its memory
-        goes with it. The processes are forks of the server's fork server
-        (``compute.worker_context``), which has ``bench.files`` imported: a fresh
-        interpreter per import spent ~0.5 s of CPU on imports before it read a byte
-        (a refused file too), a fork ~6 ms (docs/bench.md). Created and submitted from
-        a worker thread: the first fork may wait for the fork server's own start.
+        Fresh per call (``bench.files``): its own interpreter (a parse never holds the
+        event loop's), at nice 10, and its memory goes with it. The processes are
+        forks of the server's fork server (``compute.worker_context``), which has
+        ``bench.files`` imported, so a refused file costs a fork rather than an
+        interpreter start and its imports (docs/bench.md). Submitted from a worker
+        thread: the first fork may wait for the fork server's own start.
 
         A process that died under the call (killed, out of memory) is a 507 (nothing
         was stored) and the next call gets a new pool."""
@@ -488,17 +487,25 @@ class TestBench:
         entry = self._hub.entry(axis_id)
         if self._storage.problem:
             raise StorageError(f"not saved: {self._storage.problem}")
-        outcome = await self._in_import_process(
-            functools.partial(
-                files.import_in_process,
-                str(self._storage.path),
-                entry.storage_key,
-                axis_id,
-                entry.info.device,
-                str(body_path),
-                meta,
-            ),
-        )
+        run_id = uuid.uuid4().hex[:12]
+        try:
+            outcome = await self._in_import_process(
+                functools.partial(
+                    files.import_in_process,
+                    str(self._storage.path),
+                    entry.storage_key,
+                    axis_id,
+                    entry.info.device,
+                    str(body_path),
+                    meta,
+                    run_id,
+                ),
+            )
+        except StorageError:
+            # The process died under the import: what it had stored goes too.
+            with contextlib.suppress(StorageError):
+                await asyncio.to_thread(self._storage.delete_run, run_id)
+            raise
         kind, value, message = outcome
         if kind == "invalid":
             raise InvalidArgumentError(value, message)

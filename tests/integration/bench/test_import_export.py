@@ -115,6 +115,32 @@ async def test_each_import_runs_in_a_fresh_process_forked_with_the_import_code_l
     assert third_pid not in (os.getpid(), first_pid, second_pid)
 
 
+async def test_an_import_whose_process_died_midway_leaves_no_run(
+    api: LiveServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The import process chose no id of its own: the server gives it one, so that
+    when the process dies after it stored part of the run (the test above: a 507),
+    the server deletes that part. The death is played here by a stand-in that stores
+    the run's start, as the import process does first, and then fails as a dead
+    process does."""
+    _, meta, csv_text = await _exported(api)
+    bench = api.app.state.bench
+    storage: Storage = bench._storage
+    axis_key = api.app.state.hub.entry("line-1").storage_key
+
+    async def dies_after_the_first_write(call: functools.partial[Any]) -> Any:
+        run_id = call.args[-1]
+        storage.create_run(run_id, axis_key, "line-1", 1.0, {"test": {}})
+        assert [r["id"] for r in storage.list_runs(axis_key)] == [run_id]
+        raise StorageError("not saved: the import process ended before it answered")
+
+    monkeypatch.setattr(bench, "_in_import_process", dies_after_the_first_write)
+    response = await _import(api, meta, csv_text)
+    assert response.status_code == 507, response.text
+    assert "ended before it answered" in response.json()["detail"]
+    assert (await api.client.get("/api/axes/line-1/bench/runs")).json() == []
+
+
 async def test_multipart_import_round_trip_and_streamed_exports(api: LiveServer) -> None:
     run, meta, csv_text = await _exported(api)
     response = await api.client.post(
