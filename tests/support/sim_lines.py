@@ -28,8 +28,11 @@ from tests.support.waiting import wait_for
 # The test simulators' processes are forks of multiprocessing's fork server (started
 # clean once per session), which has the simulators imported already, and what the
 # servers' worker processes import (``compute.PRELOAD``: fits, bench imports): the
-# first to start the fork server decides what it preloads.
-multiprocessing.set_forkserver_preload([*PRELOAD, "servotune.sim.process", sim_builders.__name__])
+# first to start the fork server decides what it preloads. Last, ``frozen_heap``
+# freezes all of it, so that a simulator's garbage collections do not walk numpy's.
+multiprocessing.set_forkserver_preload(
+    [*PRELOAD, "servotune.sim.process", sim_builders.__name__, "tests.support.frozen_heap"]
+)
 
 
 @contextlib.contextmanager

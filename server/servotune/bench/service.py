@@ -161,8 +161,9 @@ class TestBench:
         interpreter start and its imports (docs/bench.md). Submitted from a worker
         thread: the first fork may wait for the fork server's own start.
 
-        A process that died under the call (killed, out of memory) is a 507 (nothing
-        was stored) and the next call gets a new pool."""
+        A process that died under the call (killed, out of memory) is a
+        ``StorageError`` (507; what it stored is the caller's to remove, see
+        ``import_run``), and the next call gets a new pool."""
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 max_workers=1, mp_context=worker_context(), max_tasks_per_child=1
