@@ -101,6 +101,7 @@ REST_RESPONSES: list[type[BaseModel]] = [
 REST_REQUESTS: list[type[BaseModel]] = [
     schema.BenchTestRequest,
     schema.SaveSetRequest,
+    schema.AutoTuneRequest,
 ]
 # Response bodies the server builds as dicts (the route documents the model): a field with
 # a default may be absent, so it is optional in TypeScript like a request's.
@@ -118,6 +119,10 @@ REST_SHAPES: list[type[BaseModel]] = [
     schema.AutoTuneSide,
     schema.AutoTuneRecommendation,
     schema.AutoTuneDecision,
+    schema.AutoTuneProposal,
+    schema.AutoTuneResult,
+    schema.AutoTuneStopped,
+    schema.AutoTuneSession,
     schema.FrfBode,
     schema.FrfNyquist,
     schema.FrfMargins,
@@ -130,6 +135,10 @@ ALIASES = {
     "BenchKind": schema.BenchKind,
     "RunStatus": schema.RunStatus,
     "AutoTuneAction": schema.AutoTuneAction,
+    "AutoTuneGoal": schema.AutoTuneGoal,
+    "AutoTuneTestKind": schema.AutoTuneTestKind,
+    "AutoTuneState": schema.AutoTuneState,
+    "AutoTuneVerdict": schema.AutoTuneVerdict,
     "MarginPreset": schema.MarginPreset,
     "LinkState": schema.LinkState,
     "AxisHealth": schema.AxisHealth,
@@ -172,7 +181,7 @@ def ts_type(annotation: object) -> str:
         return "number"
     if annotation is bool:
         return "boolean"
-    if annotation is type(None):
+    if annotation is None or annotation is type(None):
         return "null"
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return annotation.__name__

@@ -14,7 +14,7 @@ from playwright.async_api import Browser, Page, expect
 from servotune.api.app import WEB_DIST, AppConfig, create_app
 from servotune.auth.security import SecurityConfig
 from servotune.config import LinkSpec
-from tests.support.auth import PASSWORDS, make_accounts
+from tests.support.auth import PASSWORDS, TEST_PASSWORD_COST, make_accounts
 from tests.support.paths import ARTIFACTS
 from tests.support.servers import free_port
 from tests.support.sim_lines import running_simulator
@@ -34,7 +34,13 @@ async def exposed_server(tmp_path: Path) -> AsyncIterator[str]:
         spec = LinkSpec("slap2", sim.path, "line", sim.baud, [0, 1], 512)
         security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
         app = create_app(
-            AppConfig(links=[spec], data_dir=data_dir, web_dir=WEB_DIST, security=security)
+            AppConfig(
+                links=[spec],
+                data_dir=data_dir,
+                web_dir=WEB_DIST,
+                security=security,
+                password_cost=TEST_PASSWORD_COST,
+            )
         )
         port = free_port()
         server = uvicorn.Server(

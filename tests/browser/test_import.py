@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from playwright.async_api import Page, expect
 
+from servotune.bench.metrics import DEFINITIONS
 from tests.support.servers import LiveServer
 
 pytestmark = pytest.mark.browser
@@ -48,6 +49,11 @@ async def test_a_run_exported_and_imported_from_the_page_is_listed(
     await expect(page.get_by_test_id(f"bench-run-row-{run_id}")).to_be_visible(timeout=15_000)
     rows = page.locator("tr.run-row")
     before = await rows.count()
+    # a metric's header explains it in the server's words (bench.metrics.DEFINITIONS,
+    # served with the bench info), not a copy kept in the web client
+    settle = page.locator('th[data-metric="settling_time_s"]').first
+    sentence = DEFINITIONS["settling_time_s"].replace("None", "—")
+    assert sentence in (await settle.get_attribute("title") or "")
     # one file after the other, as a user picks them
     await page.get_by_test_id("bench-import-file").set_input_files(str(json_path))
     await expect(page.get_by_test_id("bench-import-status")).to_contain_text("now pick")

@@ -31,9 +31,11 @@ import websockets
 from websockets.typing import Origin
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.passwords import PasswordCost
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
+from servotune.perf.demo import free_port
 from servotune.sim.process import Remote
 from tests.support.servers import use_csrf_token
 from tests.support.sim_builders import WireRecorder, recorded_slap2_line
@@ -65,13 +67,6 @@ class Server:
     @property
     def bus(self) -> Slap2Line:
         return self.wire.bus
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 @contextlib.asynccontextmanager
@@ -178,13 +173,19 @@ def exposed_security() -> Any:
 
 @contextlib.asynccontextmanager
 async def exposed_line_server(
-    tmp_path: Path, addresses: list[int], *, twin: bool = False
+    tmp_path: Path,
+    addresses: list[int],
+    *,
+    twin: bool = False,
+    password_cost: PasswordCost | None = None,
 ) -> AsyncIterator[ExposedServer]:
     """A real server in exposed mode (the accounts of ``tests/support/auth.py``) on a
-    recorded simulated SLAP2 line (``exposed_security``, ``served``)."""
-    from tests.support.auth import make_accounts
+    recorded simulated SLAP2 line (``exposed_security``, ``served``). Passwords at
+    ``password_cost`` (accounts and app; None: ``TEST_PASSWORD_COST``)."""
+    from tests.support.auth import TEST_PASSWORD_COST, make_accounts
 
-    make_accounts(tmp_path / "data")
+    cost = password_cost or TEST_PASSWORD_COST
+    make_accounts(tmp_path / "data", cost=cost)
     with recorded_line(tmp_path, addresses) as (simulator, wire):
         spec = LinkSpec("slap2", simulator.path, "line", simulator.baud, addresses, 512)
         config = AppConfig(
@@ -193,6 +194,7 @@ async def exposed_line_server(
             web_dir=tmp_path / "no-web",
             security=exposed_security(),
             twin=twin,
+            password_cost=cost,
         )
         async with served(create_app(config), wire) as server:
             yield server

@@ -26,15 +26,9 @@ from typing import Any
 import pytest
 
 from servotune.bus.accounts import lab_accounts, write_lab_accounts
+from servotune.perf.demo import free_port
 
 NATS_SERVER = shutil.which("nats-server") or "/usr/sbin/nats-server"
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def require_nats_server() -> None:

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Iterator
@@ -22,6 +21,7 @@ from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.demo import demo_simulators
 from servotune.hub.control_client import ControlSettings
+from servotune.perf.demo import free_port
 from servotune.sim.pty import PtySimulator
 from tests.support.waiting import wait_for
 
@@ -61,13 +61,6 @@ class LiveServer:
         assert response.status_code == 200, response.text
         result: dict[str, Any] = response.json()
         return result
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 @contextlib.asynccontextmanager

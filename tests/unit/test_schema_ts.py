@@ -74,8 +74,38 @@ def test_the_bench_pwm_bound_is_the_models_output_full_scale() -> None:
     from servotune.schema import BenchLimits
     from servotune.tuning.plants import OUTPUT_FULL_SCALE
 
-    bound = next(m.le for m in BenchLimits.model_fields["max_pwm"].metadata if hasattr(m, "le"))
-    assert bound == OUTPUT_FULL_SCALE
+    for model in (BenchLimits, schema.AutoTuneRequest):
+        field = model.model_fields["max_pwm"]
+        bound = next(m.le for m in field.metadata if hasattr(m, "le"))
+        assert bound == OUTPUT_FULL_SCALE, model
+
+
+def test_the_autotune_request_defaults_to_the_tuning_default_target() -> None:
+    """The request's margin preset is written as a literal in the schema too."""
+    from servotune.tuning.targets import DEFAULT_PRESET
+
+    assert schema.AutoTuneRequest.model_fields["margins"].default == DEFAULT_PRESET
+
+
+def test_the_autotune_bodies_are_generated_not_device_specific() -> None:
+    """The auto-tune's REST bodies are generated, with gains by parameter name (any
+    device's descriptor) and the session's result either a verification or how it
+    ended early; a session as the server starts it has that shape."""
+    from servotune.autotune.session import IdentifyRequest, Session
+
+    text = schema_ts.render()
+    proposal = text.split("export interface AutoTuneProposal {", 1)[1].split("}", 1)[0]
+    assert "  gains: Record<string, number>;" in proposal
+    assert "  predicted: RunMetrics;" in proposal
+    assert "  recommendation: AutoTuneRecommendation;" in proposal
+    session = text.split("export interface AutoTuneSession {", 1)[1].split("}", 1)[0]
+    assert "  result: AutoTuneResult | AutoTuneStopped | null;" in session
+    assert "  state: AutoTuneState;" in session
+    fresh = Session("line-0").to_dict()
+    schema.AutoTuneSession.model_validate(fresh, strict=True)
+    started = Session("line-0")
+    started.reset(IdentifyRequest(max_pwm=60, max_distance_counts=4000))
+    schema.AutoTuneSession.model_validate(started.to_dict(), strict=True)
 
 
 def test_a_subclass_extends_its_rendered_parent() -> None:
@@ -85,17 +115,16 @@ def test_a_subclass_extends_its_rendered_parent() -> None:
 
 
 def test_the_run_shapes_name_the_fields_the_bench_stores() -> None:
-    """``RunMetrics`` is ``bench.metrics.Metrics`` as JSON and the run export the import
-    takes (``bench.files.RunExport``) is the run as listed: the same field names, so the
-    documented shape and the TypeScript cannot drift from what the bench writes."""
-    import dataclasses
+    """The run export the import takes (``bench.files.RunExport``) is the run as listed,
+    with the bench's own metrics model: the same field names, so the documented shape
+    and the TypeScript cannot drift from what the bench writes."""
+    from servotune.bench.files import RunExport
+    from servotune.bench.metrics import DEFINITIONS, compute_metrics
 
-    from servotune.bench.files import ImportMetrics, RunExport
-    from servotune.bench.metrics import Metrics
-
-    metrics = [f.name for f in dataclasses.fields(Metrics)]
-    assert list(schema.RunMetrics.model_fields) == metrics
-    assert list(ImportMetrics.model_fields) == metrics
+    assert RunExport.model_fields["metrics"].annotation == schema.RunMetrics | None
+    computed = compute_metrics([0.0, 0.1, 0.2], [0.0, 5.0, 10.0], t0_s=0.0, y0=0.0, y_final=10.0)
+    assert type(computed) is schema.RunMetrics
+    assert set(DEFINITIONS) == set(schema.RunMetrics.model_fields)
     listed = {f.alias or name for name, f in schema.BenchRun.model_fields.items()}
     exported = {f.alias or name for name, f in RunExport.model_fields.items()}
     assert listed - exported == set()

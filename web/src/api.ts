@@ -8,13 +8,15 @@ import type {
   BenchLimits,
   BenchTestRequest,
   AutoTuneDecision,
-  AutoTuneRecommendation,
+  AutoTuneProposal,
+  AutoTuneRequest,
+  AutoTuneResult,
+  AutoTuneSession,
+  AutoTuneStopped,
   CommandResult,
   ConsoleReply,
   DeviceDescriptor,
   LinkInfo,
-  MarginPreset,
-  MarginReport,
   ParamSet,
   ParamSetComparison,
   RunMetrics,
@@ -27,8 +29,17 @@ import type {
 // REST bodies generated from server/servotune/schema.py, re-exported for the views.
 export type {
   AutoTuneDecision,
+  AutoTuneGoal,
+  AutoTuneProposal,
   AutoTuneRecommendation,
+  AutoTuneRequest,
+  AutoTuneResult,
+  AutoTuneSession,
   AutoTuneSide,
+  AutoTuneState,
+  AutoTuneStopped,
+  AutoTuneTestKind,
+  AutoTuneVerdict,
   MarginReport,
   BenchInfo,
   BenchKind,
@@ -169,86 +180,22 @@ export async function reauthenticate(): Promise<boolean> {
 
 // --- parameter sets (server/servotune/api/param_set_routes.py) ---
 
-// --- auto-tune (server/servotune/api/autotune_routes.py, servotune/autotune.py) ---
+// --- auto-tune (server/servotune/api/autotune_routes.py) ---
 
-export type AutoTuneGoal = "no_overshoot" | "fast";
+// AutoTuneRequest, AutoTuneProposal, AutoTuneResult, AutoTuneStopped, AutoTuneSession:
+// generated (schema.gen.ts, servotune/schema.py). Gains are by the descriptor's
+// parameter names, whatever the device.
 
-
-/** ``POST .../autotune/identify``: the user's limits and the goal. */
-export interface AutoTuneRequest {
-  max_pwm: number;
-  max_distance_counts: number;
-  response: AutoTuneGoal;
-  /** The bench test tuned for and verified with (server default position_step). */
-  test?: "position_step" | "move";
-  /** Identification and tests towards positive (1) or negative (-1) counts. */
-  direction?: 1 | -1;
-  /** Distance of the tests, counts (server default: 1000 or half the distance limit). */
-  distance?: number;
-  /** The margin target the gains are designed to (server default medium). */
-  margins?: MarginPreset;
-}
-
-/** Gains by parameter name (kp, ki, kd for the SLAP2). */
+/** Gains by parameter name (the descriptor's: kp, ki, kd for a SLAP2, kabh_k, ... for a Z1100). */
 export type GainSet = Record<string, number>;
 
-/** The proposal: fitted model, gains, the metrics predicted on the model. */
-export interface AutoTuneProposal {
-  model: Record<string, number>; // gain_counts_s_per_pwm, tau_s, friction_pwm, rms_error_counts, samples, delay_s
-  test?: Record<string, number>; // the move tuned for: distance, velocity, acceleration, band, ...
-  response?: AutoTuneGoal;
-  gains: GainSet;
-  current_gains: GainSet;
-  predicted: RunMetrics;
-  predicted_default: RunMetrics; // the gains in use, on the same model
-  predicted_peak_pwm?: number;
-  predicted_excursion?: number;
-  default_excursion?: number;
-  design?: Record<string, unknown>;
-  rule: string;
-  candidates?: number;
-  simulations?: number;
-  identification_run_id: string;
-  identification_run_ids?: string[]; // every attempt (a failed fit is repeated)
-  travel_counts?: number;
-  warnings?: string[]; // doubts about the model, in words
-  baseline_possible?: boolean;
-  /** The proposal's and the gains in use's margins on the model, against the target. */
-  margins?: MarginReport;
-  margins_default?: MarginReport;
-  /** Keep the gains in use or write the proposal (server/servotune/autotune/recommend.py). */
-  recommendation?: AutoTuneRecommendation;
-}
+/** What ``POST .../autotune/accept`` answers: the verification's result, or how it ended
+ * early when the user pressed STOP. */
+export type AutoTuneAccepted = AutoTuneResult | AutoTuneStopped;
 
-/** ``POST .../autotune/accept``: baseline test, write, verification test. */
-export interface AutoTuneResult {
-  gains?: GainSet;
-  previous_gains?: GainSet;
-  predicted: RunMetrics;
-  measured: RunMetrics | null;
-  predicted_default?: RunMetrics;
-  baseline_measured?: RunMetrics | null;
-  verification_run_id: string;
-  baseline_run_id: string | null;
-  baseline_note?: string;
-  verdict?: "better" | "not better" | "unknown" | string;
-  /** Why the verdict is what it is (e.g. a settling time the bench could not measure). */
-  verdict_reason?: string | null;
-}
-
-export interface AutoTuneSession {
-  axis: string;
-  state: "idle" | "identifying" | "proposed" | "verifying" | "verified" | "failed" | string;
-  message: string;
-  request: (AutoTuneRequest & Record<string, unknown>) | null;
-  identification_run_id: string | null;
-  model?: Record<string, number> | null;
-  proposal: AutoTuneProposal | null;
-  result: AutoTuneResult | null;
-  /** The choice made for the current proposal; ``history``: this axis' decisions, newest last. */
-  decision?: AutoTuneDecision | null;
-  history?: AutoTuneDecision[];
-  updated_s: number;
+/** The verification's measured metrics, null when its run has none (the server sends {}). */
+export function measuredMetrics(measured: AutoTuneResult["measured"] | undefined): RunMetrics | null {
+  return measured && "step" in measured ? (measured as RunMetrics) : null;
 }
 
 const axis = (id: string): string => `/api/axes/${encodeURIComponent(id)}`;
@@ -284,7 +231,7 @@ export const api = {
   deleteParamSet: (id: string, name: string) => request<null>("DELETE", paramSet(id, name)),
   autotune: (id: string) => request<AutoTuneSession>("GET", `${axis(id)}/autotune`),
   autotuneIdentify: (id: string, body: AutoTuneRequest) => request<AutoTuneProposal>("POST", `${axis(id)}/autotune/identify`, body),
-  autotuneAccept: (id: string) => confirmed((confirm) => request<AutoTuneResult>("POST", `${axis(id)}/autotune/accept${confirm}`)),
+  autotuneAccept: (id: string) => confirmed((confirm) => request<AutoTuneAccepted>("POST", `${axis(id)}/autotune/accept${confirm}`)),
   autotuneKeep: (id: string) => request<AutoTuneDecision>("POST", `${axis(id)}/autotune/keep`),
   autotuneRevert: (id: string) => request<Record<string, number>>("POST", `${axis(id)}/autotune/revert`),
 };

@@ -4,6 +4,10 @@
 export type BenchKind = "move" | "position_step" | "velocity_step" | "pwm_step" | "frequency_response";
 export type RunStatus = "recording" | "complete" | "incomplete";
 export type AutoTuneAction = "keep" | "write";
+export type AutoTuneGoal = "no_overshoot" | "fast";
+export type AutoTuneTestKind = "position_step" | "move";
+export type AutoTuneState = "idle" | "identifying" | "proposed" | "kept" | "verifying" | "verified" | "failed";
+export type AutoTuneVerdict = "better" | "not better" | "unknown";
 export type MarginPreset = "stiff" | "medium" | "soft";
 export type LinkState = "connecting" | "connected" | "reconnecting" | "error" | "disconnected";
 export type AxisHealth = "ok" | "reset" | "offline" | "paused";
@@ -484,7 +488,7 @@ export interface MarginTarget {
 }
 
 export interface VerifyProfile {
-  kind: "position_step" | "move";
+  kind: AutoTuneTestKind;
   velocity_counts_s: number;
   acceleration_counts_s2: number;
 }
@@ -589,6 +593,16 @@ export interface BenchTestRequest {
 export interface SaveSetRequest {
   name: string;
   note?: string;
+}
+
+export interface AutoTuneRequest {
+  max_pwm: number;
+  max_distance_counts: number;
+  response?: AutoTuneGoal;
+  test?: AutoTuneTestKind;
+  direction?: 1 | -1;
+  margins?: MarginPreset;
+  distance?: number | null;
 }
 
 export interface RunIdentity {
@@ -728,6 +742,70 @@ export interface AutoTuneDecision {
   reason: string | null;
   at_s: number;
   identification_run_id: string | null;
+}
+
+export interface AutoTuneProposal {
+  model: Record<string, number>;
+  test: Record<string, number>;
+  response: AutoTuneGoal;
+  gains: Record<string, number>;
+  current_gains: Record<string, number>;
+  predicted: RunMetrics;
+  predicted_default: RunMetrics;
+  predicted_peak_pwm: number;
+  predicted_excursion: number;
+  default_excursion: number;
+  design: Record<string, unknown>;
+  rule: string;
+  candidates: number;
+  simulations: number;
+  margins: MarginReport;
+  margins_default: MarginReport;
+  identification_run_id: string;
+  identification_run_ids: string[];
+  travel_counts: number;
+  warnings: string[];
+  baseline_possible: boolean;
+  recommendation: AutoTuneRecommendation;
+  device?: string | null;
+  model_samples?: number | null;
+}
+
+export interface AutoTuneResult {
+  gains: Record<string, number>;
+  previous_gains: Record<string, number>;
+  predicted: RunMetrics;
+  measured: RunMetrics | Record<string, null>;
+  predicted_default: RunMetrics;
+  baseline_measured: RunMetrics | null;
+  verification_run_id: string;
+  baseline_run_id: string | null;
+  baseline_note: string;
+  verdict: AutoTuneVerdict;
+  verdict_reason: string | null;
+}
+
+export interface AutoTuneStopped {
+  stopped: boolean;
+  unverified: boolean;
+  message: string;
+  verdict: "stopped" | "failed";
+  previous_gains: Record<string, number>;
+  gains_in_force: Record<string, number | null>;
+}
+
+export interface AutoTuneSession {
+  axis: string;
+  state: AutoTuneState;
+  message: string;
+  request: AutoTuneRequest | null;
+  identification_run_id: string | null;
+  model: Record<string, number> | null;
+  proposal: AutoTuneProposal | null;
+  result: AutoTuneResult | AutoTuneStopped | null;
+  decision: AutoTuneDecision | null;
+  history: AutoTuneDecision[];
+  updated_s: number;
 }
 
 export interface FrfBode {

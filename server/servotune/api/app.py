@@ -33,6 +33,7 @@ from servotune.api.routes import router
 from servotune.api.twin_routes import router as twin_router
 from servotune.api.ws import router as ws_router
 from servotune.auth.install import install_security
+from servotune.auth.passwords import PRODUCT_PASSWORD_COST, PasswordCost
 from servotune.auth.security import SecurityConfig
 from servotune.autotune.service import AutoTuner
 from servotune.bench.service import TestBench
@@ -82,6 +83,11 @@ class AppConfig:
     # so the dead-man's rule is checked on the server's own time, not on how fast a
     # loaded machine runs the test.
     control_clock: Callable[[], float] = time.monotonic
+    # The Argon2id cost of new password hashes and of the unknown-user check. Decision:
+    # a field the code building the app sets, never an option of the CLI or the config
+    # file, so no deployment can weaken it; the tests pass a cheap one, except where
+    # the real cost is what they test (tests/support/auth.py).
+    password_cost: PasswordCost = PRODUCT_PASSWORD_COST
     twin: bool = True  # the 3D twin (viser on 127.0.0.1, proxied at /twin/)
     bus: BusSettings | None = None  # bus: a rig on NATS, or the lab's hub (docs/lab.md)
     # The devices the links may name (None: servotune.devices.default_registry()).
@@ -217,7 +223,9 @@ def create_app(config: AppConfig) -> FastAPI:
         redoc_url=None,
     )
     # Before every include_router: the authorization dependency is app-wide.
-    security = install_security(app, config.security, config.data_dir)
+    security = install_security(
+        app, config.security, config.data_dir, password_cost=config.password_cost
+    )
     app.include_router(router)
     app.include_router(bench_router)
     app.include_router(frf_router)

@@ -1,4 +1,5 @@
-"""REST resources of the auto-tune assistant under ``/api/axes/{id}/autotune`` (SLAP2).
+"""REST resources of the auto-tune assistant under ``/api/axes/{id}/autotune`` (every
+device whose registry entry has a tuner). The bodies' shapes are ``schema.AutoTune*``.
 
 The calls are synchronous: ``identify`` returns when the proposal is ready (about
 2-4 s: the staircase, the return move and the gain search), ``accept`` when the
@@ -16,7 +17,14 @@ from fastapi import APIRouter, Depends, Query, Request
 from servotune.api.routes import ERRORS
 from servotune.autotune.service import AutoTuning
 from servotune.autotune.session import IdentifyRequest
-from servotune.schema import AutoTuneDecision, ErrorBody
+from servotune.schema import (
+    AutoTuneDecision,
+    AutoTuneProposal,
+    AutoTuneResult,
+    AutoTuneSession,
+    AutoTuneStopped,
+    ErrorBody,
+)
 
 TUNE_ERRORS: dict[int | str, dict[str, Any]] = {
     **ERRORS,
@@ -35,14 +43,20 @@ def get_autotuner(request: Request) -> AutoTuning:
 AutoTunerDep = Annotated[AutoTuning, Depends(get_autotuner)]
 
 
-@router.get("/api/axes/{axis_id}/autotune", responses=TUNE_ERRORS)
+@router.get(
+    "/api/axes/{axis_id}/autotune",
+    responses={**TUNE_ERRORS, 200: {"model": AutoTuneSession, "description": "the session"}},
+)
 async def autotune_session(axis_id: str, autotuner: AutoTunerDep) -> dict[str, Any]:
     """The axis' auto-tune session: state (idle, identifying, proposed, verifying,
     verified, failed), message, the last request, proposal and verification result."""
     return autotuner.session(axis_id)
 
 
-@router.post("/api/axes/{axis_id}/autotune/identify", responses=TUNE_ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/autotune/identify",
+    responses={**TUNE_ERRORS, 200: {"model": AutoTuneProposal, "description": "the proposal"}},
+)
 async def autotune_identify(
     axis_id: str, body: IdentifyRequest, autotuner: AutoTunerDep
 ) -> dict[str, Any]:
@@ -50,12 +64,22 @@ async def autotune_identify(
     propose gains: ``{model, gains, current_gains, predicted, predicted_default, rule,
     margins, margins_default, recommendation, identification_run_id, ...}``
     (``recommendation``: ``{action: keep | write, reason, ...}``, see ``keep``).
-    422 naming the limit; 409 for an axis that is neither a SLAP2 module nor a Z1100
-    motor, or a busy, moving or disconnected one; nothing moves before these checks."""
+    422 naming the limit; 409 for an axis whose device has no tuner (the registry
+    says which do), or a busy, moving or disconnected one; nothing moves before these
+    checks."""
     return await autotuner.identify(axis_id, body)
 
 
-@router.post("/api/axes/{axis_id}/autotune/accept", responses=TUNE_ERRORS)
+@router.post(
+    "/api/axes/{axis_id}/autotune/accept",
+    responses={
+        **TUNE_ERRORS,
+        200: {
+            "model": AutoTuneResult | AutoTuneStopped,
+            "description": "the verification, or how a user's STOP ended it",
+        },
+    },
+)
 async def autotune_accept(
     axis_id: str,
     autotuner: AutoTunerDep,

@@ -18,7 +18,7 @@ from servotune.api.gains_check import device_law
 from servotune.api.responses import json_errors
 from servotune.api.routes import ERRORS
 from servotune.bench.files import MAX_IMPORT_BYTES, MAX_IMPORT_JSON_BYTES, MAX_META_BYTES
-from servotune.bench.metrics import Metrics
+from servotune.bench.metrics import DEFINITIONS
 from servotune.bench.runner import BenchLimits
 from servotune.bench.service import BenchTestRequest, TestBench
 from servotune.descriptor import DeviceDescriptor
@@ -149,7 +149,7 @@ async def bench_info(axis_id: str, bench: BenchDep, request: Request) -> BenchIn
     return BenchInfo(
         kinds=kinds,
         limits=await bench.limits(axis_id),
-        definitions=dict(Metrics.definitions),
+        definitions=dict(DEFINITIONS),
         fields=bench_fields(entry.driver.descriptor),
         whatif=law is not None,
         frequency_response=frequency_response,

@@ -11,6 +11,7 @@ from fastapi import Depends, FastAPI
 
 from servotune.auth.authz import authorize
 from servotune.auth.middleware import SecurityMiddleware
+from servotune.auth.passwords import PRODUCT_PASSWORD_COST, PasswordCost
 from servotune.auth.security import SecurityConfig, SecurityState, check_exposed_startup
 from servotune.auth.store import AuthStore
 from servotune.auth.ws_auth import recheck_websockets
@@ -47,11 +48,18 @@ class InstalledSecurity:
             await self.state.close()
 
 
-def install_security(app: FastAPI, config: SecurityConfig, data_dir: Path) -> InstalledSecurity:
+def install_security(
+    app: FastAPI,
+    config: SecurityConfig,
+    data_dir: Path,
+    *,
+    password_cost: PasswordCost = PRODUCT_PASSWORD_COST,
+) -> InstalledSecurity:
     """Add the checks to ``app``. Call it BEFORE ``include_router``: the authorization
     dependency is app-wide and FastAPI copies router dependencies when a router is
-    included. Raises SecurityConfigError when exposed mode would start unsafe."""
-    state = SecurityState(config, data_dir)
+    included. Raises SecurityConfigError when exposed mode would start unsafe.
+    ``password_cost``: see ``SecurityState``."""
+    state = SecurityState(config, data_dir, password_cost=password_cost)
     if config.exposed:
         # Fail at creation (before uvicorn binds the port), not in the lifespan.
         store = AuthStore(state.auth_path)

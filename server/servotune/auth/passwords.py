@@ -28,29 +28,51 @@ on a saturated machine (seconds each): the prompt lane is why a single login is 
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import math
 import os
+import secrets
 import sys
 import time
 from collections.abc import Callable
-from typing import TypeVar
+from dataclasses import dataclass
+from typing import Final, TypeVar
 
-from argon2 import PasswordHasher
+from argon2 import PasswordHasher, profiles
 from argon2.exceptions import InvalidHashError, VerificationError, VerifyMismatchError
+from argon2.low_level import ARGON2_VERSION
 
 from servotune.compute import ComputePool
 
 MIN_PASSWORD_LENGTH = 10
 MAX_PASSWORD_LENGTH = 1024
 
-# argon2-cffi's defaults are RFC 9106's "second recommended option" (Argon2id,
-# t=3, m=64 MiB, p=4), kept as they are.
-_HASHER = PasswordHasher()
 
-# Verified against when the user name does not exist, so a login for an unknown name
-# costs as long as one for a known name (no user enumeration by timing).
-_DUMMY_HASH = _HASHER.hash("servotune-no-such-user")
+@dataclass(frozen=True, slots=True)
+class PasswordCost:
+    """The work of one Argon2id hash: ``time_cost`` passes over ``memory_kib`` KiB in
+    ``parallelism`` lanes. Algorithm (Argon2id), salt (16 bytes) and digest (32 bytes)
+    are argon2-cffi's and never change with the cost."""
+
+    time_cost: int
+    memory_kib: int
+    parallelism: int
+
+    def hasher(self) -> PasswordHasher:
+        return PasswordHasher(
+            time_cost=self.time_cost, memory_cost=self.memory_kib, parallelism=self.parallelism
+        )
+
+
+# The cost every password is hashed at: RFC 9106's "second recommended option"
+# (Argon2id, t=3, m=64 MiB, p=4), argon2-cffi's own default. No option of the CLI or
+# the config file changes it; only code that builds the app (the tests) passes another.
+PRODUCT_PASSWORD_COST: Final = PasswordCost(
+    time_cost=profiles.RFC_9106_LOW_MEMORY.time_cost,
+    memory_kib=profiles.RFC_9106_LOW_MEMORY.memory_cost,
+    parallelism=profiles.RFC_9106_LOW_MEMORY.parallelism,
+)
 
 # Nice value of the hashing processes (and of their autogroup on Linux).
 HASH_NICE = 10
@@ -76,17 +98,37 @@ def check_password_rule(password: str) -> None:
         )
 
 
-def hash_password(password: str) -> str:
+def hash_password(password: str, cost: PasswordCost = PRODUCT_PASSWORD_COST) -> str:
     """The Argon2id hash string (salt and parameters included) of ``password``."""
-    return _HASHER.hash(password)
+    return cost.hasher().hash(password)
 
 
-def verify_password(stored_hash: str | None, password: str) -> bool:
-    """True when ``password`` matches; ``stored_hash`` None verifies a dummy (same cost)."""
+def verify_password(stored_hash: str, password: str) -> bool:
+    """True when ``password`` matches ``stored_hash``; the parameters written in the hash
+    decide what the check costs, whatever the cost new hashes are made at."""
     try:
-        return _HASHER.verify(stored_hash or _DUMMY_HASH, password) and stored_hash is not None
+        return PasswordHasher().verify(stored_hash, password)
     except (VerifyMismatchError, VerificationError, InvalidHashError):
         return False
+
+
+def dummy_hash(cost: PasswordCost) -> str:
+    """A well-formed Argon2id hash string at ``cost`` that no password matches.
+
+    Verified against when a user name does not exist, so that a login for an unknown
+    name costs what one for a known name costs (no user enumeration by timing). Its salt
+    and digest are random bytes: verifying it computes a full hash like any other, and
+    making it costs nothing (no hash at import or start-up).
+    """
+    hasher = cost.hasher()
+
+    def b64(size: int) -> str:
+        return base64.b64encode(secrets.token_bytes(size)).decode("ascii").rstrip("=")
+
+    return (
+        f"$argon2id$v={ARGON2_VERSION}$m={cost.memory_kib},t={cost.time_cost},"
+        f"p={cost.parallelism}${b64(hasher.salt_len)}${b64(hasher.hash_len)}"
+    )
 
 
 def _isolate() -> None:
@@ -133,7 +175,8 @@ class PasswordWorkers:
     route answers 429 with ``Retry-After``): a flood costs a queue of bounded length,
     never the memory and CPU of an unbounded one. ``checks`` counts verifications
     started. The processes start on :meth:`start` or on the first call
-    (``servotune.compute.ComputePool``).
+    (``servotune.compute.ComputePool``). New hashes are made at ``cost``; a check costs
+    what its stored hash says, and a check for an unknown user what ``cost`` says.
     """
 
     def __init__(
@@ -141,7 +184,10 @@ class PasswordWorkers:
         workers: int | None = None,
         max_waiting: int = 32,
         clock: Callable[[], float] = time.monotonic,
+        cost: PasswordCost = PRODUCT_PASSWORD_COST,
     ) -> None:
+        self.cost = cost
+        self._dummy_hash = dummy_hash(cost)
         self.workers = workers or default_workers()
         self.max_waiting = max_waiting
         self.checks = 0
@@ -160,21 +206,25 @@ class PasswordWorkers:
         await asyncio.gather(self._prompt.start(), self._low.start())
 
     async def verify(self, stored_hash: str | None, password: str) -> bool:
-        """``verify_password`` in a worker (see the class doc for the bound)."""
+        """``verify_password`` in a worker (see the class doc for the bound).
+
+        ``stored_hash`` None (no such user) verifies a dummy hash at ``cost``: the same
+        work, and False."""
         self._admit()
         self.checks += 1
-        return await self._run(verify_password, stored_hash, password)
+        matches = await self._run(verify_password, stored_hash or self._dummy_hash, password)
+        return matches and stored_hash is not None
 
     async def hash(self, password: str) -> str:
-        """``hash_password`` in a worker."""
+        """``hash_password`` at ``cost``, in a worker."""
         self._admit()
-        return await self._run(hash_password, password)
+        return await self._run(hash_password, password, self.cost)
 
     def _admit(self) -> None:
         if self.in_flight >= 1 + self.workers + self.max_waiting:
             raise PasswordWorkersBusyError("too many password checks at once: try again shortly")
 
-    async def _run(self, fn: Callable[..., T], *args: str | None) -> T:
+    async def _run(self, fn: Callable[..., T], *args: str | PasswordCost) -> T:
         now = self._clock()
         prompt = not self._prompt_busy and now >= self._prompt_next_s
         self.in_flight += 1

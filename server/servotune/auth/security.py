@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Literal, ParamSpec, TypeVar
 
 from servotune.auth.audit import ANONYMOUS_RETENTION_DAYS, AuditLog
-from servotune.auth.passwords import PasswordWorkers
+from servotune.auth.passwords import PRODUCT_PASSWORD_COST, PasswordCost, PasswordWorkers
 from servotune.auth.principal import Principal
 from servotune.auth.store import AuthStore
 from servotune.auth.throttle import LoginThrottle
@@ -167,10 +167,21 @@ class WsRegistry:
 
 
 class SecurityState:
-    """Everything the checks share; lives on ``app.state.security``."""
+    """Everything the checks share; lives on ``app.state.security``.
 
-    def __init__(self, config: SecurityConfig, data_dir: Path) -> None:
+    ``password_cost``: the Argon2id parameters new password hashes are made at (the
+    product's unless the code building the app passes others; see ``AppConfig``).
+    """
+
+    def __init__(
+        self,
+        config: SecurityConfig,
+        data_dir: Path,
+        *,
+        password_cost: PasswordCost = PRODUCT_PASSWORD_COST,
+    ) -> None:
         self.config = config
+        self.password_cost = password_cost
         self.exposed = config.exposed
         self.auth_path = data_dir / AUTH_DB
         self.proxies = proxy_networks(config.proxy)
@@ -223,7 +234,7 @@ class SecurityState:
             self.auth_path, anonymous_retention_days=self.config.audit_anonymous_days
         )
         self._secret = self.store.server_secret()
-        self.passwords = PasswordWorkers()
+        self.passwords = PasswordWorkers(cost=self.password_cost)
         self._db_pool = ThreadPoolExecutor(
             max_workers=AUTH_DB_THREADS, thread_name_prefix="servotune-auth-db"
         )

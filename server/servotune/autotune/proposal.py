@@ -2,16 +2,19 @@
 picks (``Response``) and the proposal as a session holds it (``Proposal``).
 
 Each device's rule returns its own proposal type (its gains, its model, its test); the
-session and the REST routes need only its ``to_dict()`` body. Pure: typing only, so the
-compute worker that imports a gain rule loads nothing else with it.
+session and the REST routes need only its ``to_dict()`` body, whose shape is
+``schema.AutoTuneProposal``. Typing only: the compute worker that imports a gain rule
+loads nothing with it that the rule's ``tuning.targets`` does not load already.
 """
 
 from __future__ import annotations
 
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
+
+from servotune.schema import AutoTuneGoal
 
 # no_overshoot: at most 1 % overshoot; fast: at most 10 % (each rule's OVERSHOOT_LIMIT_PCT)
-Response = Literal["no_overshoot", "fast"]
+Response = AutoTuneGoal
 
 
 class Proposal(Protocol):

@@ -18,7 +18,7 @@ from typing import Any, Literal, Protocol
 
 from servotune.autotune.context import TuningContext
 from servotune.autotune.recommend import Action, decision_record, decision_text, recommend
-from servotune.autotune.session import IdentifyRequest, Session, SessionState
+from servotune.autotune.session import IdentifyRequest, Session
 from servotune.bench.service import TestBench
 from servotune.compute import ComputePool
 from servotune.hub.hub import Hub
@@ -33,6 +33,7 @@ from servotune.link.base import (
     LinkDownError,
     MeasurementError,
 )
+from servotune.schema import AutoTuneState
 from servotune.storage import StorageError
 from servotune.tuning.law import DeviceLaw
 from servotune.tuning.predicted import unstable_reason
@@ -176,7 +177,7 @@ class AutoTuner:
             raise DeviceRefusedError("auto-tune is already running on this axis")
         return lock
 
-    def _set(self, session: Session, state: SessionState, message: str) -> None:
+    def _set(self, session: Session, state: AutoTuneState, message: str) -> None:
         session.set(state, message)
         level: Literal["info", "error"] = "error" if state == "failed" else "info"
         self._hub.on_event(level, session.axis_id, f"auto-tune: {message}")

@@ -4,55 +4,17 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Final, Literal
+from typing import Any, Final
 
-from pydantic import BaseModel, Field
-
-from servotune.autotune.proposal import Proposal, Response
+from servotune.autotune.proposal import Proposal
 from servotune.link.base import InvalidArgumentError
-from servotune.tuning.plants import OUTPUT_FULL_SCALE
-from servotune.tuning.targets import DEFAULT_PRESET, Preset
+from servotune.schema import AutoTuneRequest, AutoTuneState
 
-TestKind = Literal["position_step", "move"]
-SessionState = Literal["idle", "identifying", "proposed", "kept", "verifying", "verified", "failed"]
-DEFAULT_TEST_DISTANCE: Final = 1000
 HISTORY_LENGTH: Final = 20  # decisions a session keeps (the runs keep theirs for good)
 
 
-class IdentifyRequest(BaseModel):
-    """``POST /api/axes/{id}/autotune/identify``: the user's limits and the goal."""
-
-    max_pwm: int = Field(
-        ge=1, le=OUTPUT_FULL_SCALE, description="largest open-loop PWM (-255..255)"
-    )
-    max_distance_counts: int = Field(
-        ge=1,
-        le=1 << 24,
-        description="no test travels further than this from where it starts (counts)",
-    )
-    response: Response = Field(
-        default="no_overshoot", description="no_overshoot (<= 1 %) or fast (<= 10 %)"
-    )
-    test: TestKind = Field(
-        default="position_step",
-        description="the test the gains are tuned for: position_step (sv/sa at maximum) "
-        "or move (the axis' own sv/sa)",
-    )
-    direction: Literal[1, -1] = Field(
-        default=1, description="1: identify and test towards positive counts, -1: negative"
-    )
-    margins: Preset = Field(
-        default=DEFAULT_PRESET,
-        description="the margin target the gains are designed to: stiff (PM 40 deg / GM 6 dB), "
-        "medium (45 deg / 8 dB) or soft (60 deg / 12 dB)",
-    )
-    distance: int | None = Field(
-        default=None,
-        ge=1,
-        le=1 << 24,
-        description="distance of the baseline and verification tests, counts "
-        f"(default: {DEFAULT_TEST_DISTANCE} or half of max_distance_counts if smaller)",
-    )
+class IdentifyRequest(AutoTuneRequest):
+    """``schema.AutoTuneRequest`` with the travel checks every device shares."""
 
     def checked_distance(
         self, bench_max_distance_counts: int, min_distance: int, default_distance: int
@@ -85,7 +47,7 @@ class IdentifyRequest(BaseModel):
 @dataclass(slots=True)
 class Session:
     axis_id: str
-    state: SessionState = "idle"
+    state: AutoTuneState = "idle"
     message: str = ""
     request: IdentifyRequest | None = None
     identification_run_id: str | None = None
@@ -127,7 +89,7 @@ class Session:
         self.decision = decision
         self.history = [*self.history, decision][-HISTORY_LENGTH:]
 
-    def set(self, state: SessionState, message: str) -> None:
+    def set(self, state: AutoTuneState, message: str) -> None:
         self.state = state
         self.message = message
         self.updated_s = time.time()

@@ -1,7 +1,7 @@
 """Is the tuned run better than the baseline? (docs/autotune.md, "Predicted vs
 measured, and better"; the Z1100's rule in its section).
 
-Both rules read the bench's measured metrics (``bench.metrics.Metrics`` as dicts) and the
+Both rules read the bench's measured metrics (``schema.RunMetrics`` as dicts) and the
 run quality's reason when a settling time could not be measured. Each verdict comes
 with the sentence that says what it rests on (``*_with_reason``): the UI shows it next
 to the badge, so a "better" won over a settling time that is no better than the

@@ -33,12 +33,13 @@ import re
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import IO, Annotated, Any, Literal
+from typing import IO, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError
 
 from servotune.bench.quality import SAMPLING_RULE, rejudge
 from servotune.link.base import BenchKind, InvalidArgumentError
+from servotune.schema import FiniteFloat, RunMetrics
 from servotune.storage import Storage, StorageError, dumps_strict
 
 MAX_IMPORT_BYTES = 64 * 1024 * 1024
@@ -49,8 +50,6 @@ limit because a JSON document is parsed in one call that holds the interpreter
 (about 10 ms per 4 MiB here, 2.5x that on a loaded host): bigger runs go as multipart."""
 MAX_META_BYTES = 1024 * 1024
 IMPORT_CHUNK_ROWS = 1000
-
-FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 
 
 class _Strict(BaseModel):
@@ -85,29 +84,6 @@ class ImportPlan(_Strict):
     y_final: FiniteFloat
     band: FiniteFloat | None = Field(default=None, ge=0)
     overrides: dict[str, StrictInt] = Field(default_factory=dict)
-
-
-class ImportMetrics(_Strict):
-    """The fields of ``bench.metrics.Metrics``: finite numbers or null."""
-
-    step: FiniteFloat
-    band: FiniteFloat | None
-    samples: StrictInt = Field(ge=0)
-    max_sample_gap_s: FiniteFloat | None
-    rise_time_s: FiniteFloat | None
-    overshoot_pct: FiniteFloat | None
-    peak_time_s: FiniteFloat | None
-    peak_value: FiniteFloat | None
-    settling_time_s: FiniteFloat | None
-    steady_state_error: FiniteFloat | None
-    oscillations: StrictInt | None
-    peak_following_error: FiniteFloat | None
-    rms_following_error: FiniteFloat | None
-    time_to_flag_s: dict[str, FiniteFloat | None]
-    time_in_flag_s: dict[str, FiniteFloat]
-    # Runs exported before flags were timed by their reads have no resolutions.
-    time_to_flag_resolution_s: dict[str, FiniteFloat | None] = Field(default_factory=dict)
-    time_in_flag_resolution_s: dict[str, FiniteFloat] = Field(default_factory=dict)
 
 
 class ImportReason(_Strict):
@@ -149,7 +125,7 @@ class RunExport(_Strict):
     plan: ImportPlan
     columns: list[str] = Field(min_length=1, max_length=64)
     flags: list[str] = Field(max_length=64)
-    metrics: ImportMetrics | None
+    metrics: RunMetrics | None  # the bench's own definition, strict and finite
     quality: ImportQuality | None = None
     message: str = Field(default="", max_length=2000)
     t0_s: FiniteFloat | None = None

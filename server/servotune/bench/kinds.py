@@ -18,7 +18,7 @@ nothing here knows a device.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Final, Protocol
 
 from servotune.bench import frf
@@ -159,21 +159,18 @@ class DriverPlannedKind:
         error_index = columns.index("following_error") if "following_error" in columns else None
         flag_series = {name: [bool(r[-1][i]) for r in rows] for i, name in enumerate(record.flags)}
         flags_t_index = columns.index(FLAGS_T_COLUMN) if FLAGS_T_COLUMN in columns else None
-        return asdict(
-            compute_metrics(
-                [r[0] for r in rows],
-                [r[index] for r in rows],
-                t0_s=record.t0,
-                y0=plan.y0,
-                y_final=plan.y_final,
-                band=plan.band,
-                following_error=(
-                    [r[error_index] for r in rows] if error_index is not None else None
-                ),
-                flags=flag_series,
-                flags_t_s=([r[flags_t_index] for r in rows] if flags_t_index is not None else None),
-            )
+        metrics = compute_metrics(
+            [r[0] for r in rows],
+            [r[index] for r in rows],
+            t0_s=record.t0,
+            y0=plan.y0,
+            y_final=plan.y_final,
+            band=plan.band,
+            following_error=([r[error_index] for r in rows] if error_index is not None else None),
+            flags=flag_series,
+            flags_t_s=([r[flags_t_index] for r in rows] if flags_t_index is not None else None),
         )
+        return metrics.model_dump()
 
 
 @dataclass(frozen=True, slots=True)

@@ -37,6 +37,7 @@ from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError
+from servotune.schema import AutoTuneProposal, AutoTuneResult, AutoTuneSession
 from servotune.sim.physics import DcMotorParams
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.identify import fit_plant
@@ -301,6 +302,7 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
             response = await client.post(f"{base}/identify", json=LIMITS, timeout=60)
             assert response.status_code == 200, response.text
             proposal = response.json()
+            AutoTuneProposal.model_validate(proposal, strict=True)  # the generated type's
             true = plant_model(PLANTS["loaded" if address else "unloaded"])
             model = proposal["model"]
             # K comes from steady slopes (robust); tau from the transients, which the
@@ -323,11 +325,14 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
             assert proposal["identification_run_id"]
             run = (await client.get(f"/api/bench/runs/{proposal['identification_run_id']}")).json()
             assert run["status"] == "complete" and len(run["samples"]) > 10
-            assert (await client.get(base)).json()["state"] == "proposed"
+            session = (await client.get(base)).json()
+            AutoTuneSession.model_validate(session, strict=True)
+            assert session["state"] == "proposed" and session["proposal"] == proposal
 
             response = await client.post(f"{base}/accept", timeout=60)
             assert response.status_code == 200, response.text
             result = response.json()
+            AutoTuneResult.model_validate(result, strict=True)
             assert module.settings["kp"] == proposal["gains"]["kp"]
             assert module.settings["kd"] == proposal["gains"]["kd"]
             measured, baseline = result["measured"], result["baseline_measured"]
@@ -382,6 +387,7 @@ async def test_assistant_beats_the_defaults_on_each_demo_plant(
             tuned_peak = _peak_beyond(tuned_run)
             assert tuned_peak <= 0.01 * abs(proposal["test"]["distance"]) + band, tuned_peak
             session = (await client.get(base)).json()
+            AutoTuneSession.model_validate(session, strict=True)
             assert session["state"] == "verified" and session["result"] == result
             await asyncio.sleep(0.2)
             assert abs(module.position - position) <= 3 * band  # back where it started

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import functools
 import itertools
 import statistics
@@ -444,7 +443,7 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                     band=m.band,
                     fault_flags=[],
                     done_flag=None,
-                    metrics=dataclasses.asdict(m),
+                    metrics=m.model_dump(),
                     status="complete",
                     message="",
                 )

@@ -25,6 +25,7 @@ from servotune.devices.z1100.law import (
 )
 from servotune.devices.z1100.sim.chip import Z1100Chip
 from servotune.devices.z1100.sim.demo import Z1100_LOADS_KG_M2, write_demo_flash
+from servotune.schema import AutoTuneProposal, AutoTuneResult, AutoTuneSession
 from servotune.tuning.identify import interpolate
 from servotune.tuning.plants import Z1100Plant
 from tests.support.autotune import MEDIOCRE, PROFILE, physics_plant
@@ -133,10 +134,12 @@ async def test_assistant_beats_mediocre_gains_on_each_demo_plant(tmp_path: Path,
             response = await client.post(f"{base}/identify", json=limits, timeout=120)
             assert response.status_code == 200, response.text
             proposal = response.json()
+            AutoTuneProposal.model_validate(proposal, strict=True)  # the generated type's
             assert proposal["current_gains"]["kabh_k"] == MEDIOCRE.k
             response = await client.post(f"{base}/accept", timeout=120)
             assert response.status_code == 200, response.text
             result = response.json()
+            AutoTuneResult.model_validate(result, strict=True)
             measured, baseline = result["measured"], result["baseline_measured"]
             print(
                 f"\n{axis_id} model {proposal['model']}\n  gains {proposal['gains']}"
@@ -170,6 +173,7 @@ async def test_assistant_beats_mediocre_gains_on_each_demo_plant(tmp_path: Path,
             assert {k: params[k] for k in gains} == gains
             assert gains["kabd_k"] == round(gains["kabh_k"] * 0.75)
             session = (await client.get(base)).json()
+            AutoTuneSession.model_validate(session, strict=True)
             assert session["state"] == "verified" and session["result"] == result
 
 

@@ -46,6 +46,7 @@ from servotune.config import LinkSpec  # noqa: E402
 from servotune.devices.ep7047.entry import demo_slave as ep7047_demo_slave  # noqa: E402
 from servotune.devices.slap2.entry import demo_line as slap2_demo_line  # noqa: E402
 from servotune.devices.z1100.entry import demo_line as z1100_demo_line  # noqa: E402
+from tests.support.auth import TEST_PASSWORD_COST  # noqa: E402
 
 MAX_EXAMPLES = 2
 
@@ -152,6 +153,8 @@ def demo_server(data_dir: Path, security: SecurityConfig | None = None) -> Itera
         ],
         web_dir=data_dir / "no-web",
         security=security or SecurityConfig(),
+        # Users created by the fuzzer are hashed at the tests' cost (tests/support/auth.py).
+        password_cost=TEST_PASSWORD_COST,
     )
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

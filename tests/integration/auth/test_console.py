@@ -36,7 +36,7 @@ from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.devices.z1100 import codec as z1100_codec
 from servotune.devices.z1100.descriptor import z1100_descriptor
 from servotune.devices.z1100.entry import demo_line as z1100_demo_line
-from tests.support.auth import make_accounts
+from tests.support.auth import TEST_PASSWORD_COST, make_accounts
 from tests.support.control import (
     ExposedServer,
     exposed_line_server,
@@ -307,6 +307,7 @@ async def test_console_setflash_of_an_operator_is_refused(tmp_path: Path) -> Non
         simulators=[lambda: z1100_demo_line(state)],
         security=exposed_security(),
         twin=False,
+        password_cost=TEST_PASSWORD_COST,
     )
     async with served(create_app(config)) as server:
         olga = await session_of(server, "olga")

@@ -17,12 +17,14 @@ from fastapi.routing import APIRoute, APIWebSocketRoute, iter_route_contexts
 from starlette.routing import Mount, Route
 
 from servotune.api.app import AppConfig, create_app
+from servotune.auth.passwords import PRODUCT_PASSWORD_COST
 from servotune.auth.permissions import ROLES
 from servotune.auth.routes_table import COMMAND, CONSOLE_LINE, PUBLIC, ROUTE_PERMISSIONS
 from servotune.auth.security import AUTH_DB, SecurityConfig, SecurityConfigError
 from tests.support.auth import (
     LAB,
     PASSWORDS,
+    TEST_PASSWORD_COST,
     client,
     exposed_app,
     exposed_config,
@@ -292,6 +294,7 @@ async def test_forwarded_headers_ignored_without_proxy(tmp_path: Path) -> None:
             security=SecurityConfig(
                 mode="exposed", tls_cert=tmp_path / "c", tls_key=tmp_path / "k"
             ),
+            password_cost=TEST_PASSWORD_COST,
         )
     )
     async with running(app), client(app, base="https://127.0.0.1", peer="203.0.113.9") as http:
@@ -447,8 +450,12 @@ async def test_login_throttling_per_account_and_address_then_recovers(tmp_path: 
 async def test_concurrent_guesses_of_one_account_get_the_limit_and_no_more(tmp_path: Path) -> None:
     """Finding 1: 30 concurrent guesses for one account all passed the throttle's check
     (29 x 401 and 1 x 200, the right password being the 20th). The attempt is reserved
-    before hashing now: 5 are checked, the rest answer 429 unchecked."""
-    app = await exposed_app(tmp_path)
+    before hashing now: 5 are checked, the rest answer 429 unchecked.
+
+    At the product's password cost: a check that takes real time (0.1-0.3 s, not the
+    tests' microseconds) is the window the guesses raced through, so a regression shows
+    however the requests are scheduled."""
+    app = await exposed_app(tmp_path, password_cost=PRODUCT_PASSWORD_COST)
     async with running(app), client(app) as http:
         passwords = [f"guess-number-{i:02d}" for i in range(30)]
         passwords[19] = PASSWORDS["olga"]

@@ -23,7 +23,7 @@ import websockets
 
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import AUTH_DB, SecurityConfig
-from tests.support.auth import PASSWORDS, make_accounts
+from tests.support.auth import PASSWORDS, TEST_PASSWORD_COST, make_accounts
 from tests.support.servers import free_port, use_csrf_token
 from tests.support.waiting import wait_for
 
@@ -44,7 +44,13 @@ async def live(data_dir: Path, *, exposed: bool) -> AsyncIterator[Live]:
         security = SecurityConfig(mode="exposed", proxy=["127.0.0.1"], public_hosts=["127.0.0.1"])
     else:
         security = SecurityConfig()
-    app = create_app(AppConfig(data_dir=data_dir, web_dir=data_dir / "no-web", security=security))
+    config = AppConfig(
+        data_dir=data_dir,
+        web_dir=data_dir / "no-web",
+        security=security,
+        password_cost=TEST_PASSWORD_COST,
+    )
+    app = create_app(config)
     port = free_port()
     server = uvicorn.Server(
         # log_config None: uvicorn's loggers (access log included) propagate to caplog.

@@ -25,7 +25,13 @@ from servotune.devices.slap2.law import Gains
 from servotune.devices.slap2.sim.demo import SLAP2_LOADED
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
-from servotune.schema import AutoTuneDecision, AutoTuneRecommendation, MarginReport
+from servotune.schema import (
+    AutoTuneDecision,
+    AutoTuneProposal,
+    AutoTuneRecommendation,
+    AutoTuneSession,
+    MarginReport,
+)
 from servotune.sim.pty import PtySimulator
 from servotune.tuning.loops import Margins
 from servotune.tuning.targets import PRESETS, margin_report
@@ -222,6 +228,7 @@ async def test_keep_writes_nothing_and_the_declined_proposal_cannot_be_accepted(
                 await asyncio.sleep(2.0)
             assert response.status_code == 200, response.text
             proposal = response.json()
+            AutoTuneProposal.model_validate(proposal, strict=True)
             AutoTuneRecommendation.model_validate(proposal["recommendation"], strict=True)
             for report_ in (proposal["margins"], proposal["margins_default"]):
                 MarginReport.model_validate(report_, strict=True)
@@ -242,4 +249,5 @@ async def test_keep_writes_nothing_and_the_declined_proposal_cannot_be_accepted(
             assert (await client.post(f"{base}/keep")).status_code == 409
             assert {k: module.settings[k] for k in gentle} == gentle
             session = (await client.get(base)).json()
+            AutoTuneSession.model_validate(session, strict=True)  # the generated type's
             assert session["state"] == "kept" and session["decision"] == decision

@@ -12,6 +12,7 @@ import pytest
 from servotune.devices.slap2 import tuner as slap2_tuner
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
+from servotune.schema import AutoTuneSession, AutoTuneStopped
 from servotune.sim.pty import PtySimulator
 from tests.support.servers import live_server
 
@@ -46,12 +47,15 @@ async def test_stop_during_accept_answers_normally_and_restores_the_previous_gai
             response = await accept
             assert response.status_code == 200, response.text
             body = response.json()
+            AutoTuneStopped.model_validate(body, strict=True)  # the generated type's
             assert body["stopped"] is True and body["unverified"] is False
             assert "STOP" in body["message"] and "previous gains are in force" in body["message"]
             assert {k: module.settings[k] for k in ("kp", "ki", "kd")} == previous
             assert body["gains_in_force"] == previous
             session = (await client.get("/api/axes/line-0/autotune")).json()
+            AutoTuneSession.model_validate(session, strict=True)
             assert session["state"] == "failed" and "STOP" in session["message"]
+            assert session["result"] == body
 
 
 def failing_fit(*args: object, **kwargs: object) -> object:
@@ -79,4 +83,6 @@ async def test_a_failed_identification_returns_the_axis_and_says_everything(
             band = int(module.settings.get("sipw", 5))
             assert abs(module.position - start) <= 2 * max(band, 5)
             session = (await server.client.get("/api/axes/line-0/autotune")).json()
+            AutoTuneSession.model_validate(session, strict=True)
             assert session["state"] == "failed" and session["message"].endswith(detail[-40:])
+            assert session["proposal"] is None and session["result"] is None

@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -54,19 +53,17 @@ def _run(
         [t, p, fe[i], read[i], [series[name][i] for name in FLAGS]]
         for i, (t, p) in enumerate(zip(times, positions, strict=True))
     ]
-    metrics = asdict(
-        compute_metrics(
-            times,
-            positions,
-            t0_s=0.0,
-            y0=0.0,
-            y_final=target,
-            band=band,
-            following_error=fe,
-            flags={name: [bool(v) for v in series[name]] for name in FLAGS},
-            flags_t_s=read,
-        )
-    )
+    metrics = compute_metrics(
+        times,
+        positions,
+        t0_s=0.0,
+        y0=0.0,
+        y_final=target,
+        band=band,
+        following_error=fe,
+        flags={name: [bool(v) for v in series[name]] for name in FLAGS},
+        flags_t_s=read,
+    ).model_dump()
     return assess(
         kind="move",
         columns=COLUMNS,

@@ -305,6 +305,18 @@ async def test_a_stop_pressed_during_a_cut_does_not_cut_the_local_users_move(
     wire = lab.rigs["rig-a"].wire
     proxy = lab.lab.proxies["rig-a"]
     assert any("will be sent the moment" in m for m in _events(hub))
+    # The hub dates the press on the rig's clock at the late end of its offset estimate
+    # (when in doubt the STOP acts), so "after the press" means after that late end:
+    # under load the one-way delay in the estimate can exceed the gap between the
+    # press and the next request. New round trips only narrow the interval (both apps
+    # share this process' clock); the margin covers its widening for drift.
+    live = hub.app.state.bus.hub.lane.liveness("rig-a")
+    bounds = live.clock_bounds()
+    assert bounds is not None
+    true_offset = -rig_app(lab, "rig-a").app.state.hub.clock_at(0.0)
+    pressed_at = hub.app.state.hub.entry("rig-a.line-0").stop_pressed_at
+    assert pressed_at is not None
+    await asyncio.sleep(max(0.0, pressed_at + (bounds[1] - true_offset) + 0.1 - time.monotonic()))
     # The rig's local user: a velocity move on axis 0, after the STOP was pressed.
     local = rig_app(lab, "rig-a").client
     response = await local.post("/api/axes/line-0/commands", json={"command": "velocity_mode"})

@@ -28,7 +28,7 @@ from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import SecurityConfig
 from servotune.bus.connection import BusSettings
 from servotune.bus.subjects import axis_cmd, rig_cmd
-from tests.support.auth import LAB, client, login, make_accounts
+from tests.support.auth import LAB, TEST_PASSWORD_COST, client, login, make_accounts
 from tests.support.bus_lab import (
     RIGS,
     LabRun,
@@ -241,6 +241,7 @@ def exposed_hub_config(run: LabRun) -> AppConfig:
         twin=False,
         security=SecurityConfig(host="0.0.0.0", proxy=["127.0.0.1"], public_hosts=[LAB]),
         bus=BusSettings(url=run.lab.url, hub="lab", credentials=run.lab.users["hub"].credentials),
+        password_cost=TEST_PASSWORD_COST,
     )
 
 

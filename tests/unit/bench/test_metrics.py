@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import random
 import re
@@ -12,12 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from servotune.bench.metrics import (
-    Metrics,
+    DEFINITIONS,
     compute_metrics,
     predict_first_order,
     predict_second_order,
 )
 from servotune.bench.quality import assess
+from servotune.schema import RunMetrics
 from tests.support.paths import DOCS
 
 METRICS_MD = DOCS / "metrics.md"
@@ -265,14 +265,14 @@ def test_negative_step_mirrors_positive(
     down = compute_metrics(
         t, [float(y0 - v) for v in d], t0_s=0.0, y0=y0, y_final=y0 - step, band=band_f
     )
-    for f in dataclasses.fields(Metrics):
-        a, b = getattr(up, f.name), getattr(down, f.name)
-        if f.name in ("step", "steady_state_error"):
-            assert b == -a, f.name
-        elif f.name == "peak_value":
-            assert b == 2 * y0 - a, f.name
+    for name in RunMetrics.model_fields:
+        a, b = getattr(up, name), getattr(down, name)
+        if name in ("step", "steady_state_error"):
+            assert b == -a, name
+        elif name == "peak_value":
+            assert b == 2 * y0 - a, name
         else:
-            assert b == a, f.name
+            assert b == a, name
 
 
 @settings(max_examples=60, deadline=None)
@@ -289,12 +289,12 @@ def test_only_time_since_the_command_matters(
     y = [float(v) for v in _counts(kind, p, zeta, 1000, t)]
     ref = compute_metrics(t, y, t0_s=0.0, y0=0.0, y_final=1000.0)
     shifted = compute_metrics([ti + offset_s for ti in t], y, t0_s=offset_s, y0=0.0, y_final=1000.0)
-    for f in dataclasses.fields(Metrics):
-        a, b = getattr(ref, f.name), getattr(shifted, f.name)
+    for name in RunMetrics.model_fields:
+        a, b = getattr(ref, name), getattr(shifted, name)
         if isinstance(a, float):
-            assert b == pytest.approx(a, rel=1e-6, abs=1e-6), f.name
+            assert b == pytest.approx(a, rel=1e-6, abs=1e-6), name
         else:
-            assert b == a, f.name
+            assert b == a, name
 
 
 finite = st.floats(-1e9, 1e9)
@@ -346,9 +346,9 @@ def test_arbitrary_data_never_raises(
         flags={"inpos": [r[3] for r in rows], "oc": [r[4] for r in rows]},
     )
     duration = max(0.0, clock - t0)
-    for f in dataclasses.fields(Metrics):
-        value = getattr(m, f.name)
-        assert not isinstance(value, float) or math.isfinite(value), f.name
+    for name in RunMetrics.model_fields:
+        value = getattr(m, name)
+        assert not isinstance(value, float) or math.isfinite(value), name
     assert 0 <= m.samples <= len(rows)
     assert m.rise_time_s is None or m.rise_time_s >= 0
     assert m.overshoot_pct is None or m.overshoot_pct >= 0
@@ -661,10 +661,10 @@ def test_predict_second_order_is_continuous_through_critical_damping() -> None:
 
 
 def test_every_field_has_a_definition_repeated_in_the_docs() -> None:
-    names = {f.name for f in dataclasses.fields(Metrics)}
-    assert set(Metrics.definitions) == names
+    names = set(RunMetrics.model_fields)
+    assert set(DEFINITIONS) == names
     docs = " ".join(METRICS_MD.read_text(encoding="utf-8").split())
-    for name, sentence in Metrics.definitions.items():
+    for name, sentence in DEFINITIONS.items():
         assert sentence.endswith("."), name
         assert " ".join(sentence.split()) in docs, f"docs/metrics.md lacks the definition of {name}"
 

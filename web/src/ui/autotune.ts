@@ -6,6 +6,7 @@
 import {
   ApiError,
   api,
+  type AutoTuneAccepted,
   type AutoTuneDecision,
   type AutoTuneGoal,
   type AutoTuneProposal,
@@ -18,6 +19,7 @@ import {
   type MarginPreset,
   type MarginReport,
   type RunMetrics,
+  measuredMetrics,
 } from "../api";
 import { h, replace, setText, toggleClass } from "../dom";
 import { store } from "../store";
@@ -305,14 +307,15 @@ export class AutoTunePanel {
     }
     const req = session.request;
     if (req) {
-      this.form.response = req.response;
-      this.goal.value = req.response;
+      if (req.response) this.goal.value = this.form.response = req.response;
       if (req.margins) this.margins.value = this.form.margins = req.margins;
       if (req.test === "position_step" || req.test === "move") this.test.value = this.form.test = req.test;
       if (req.direction === 1 || req.direction === -1) this.direction.value = this.form.direction = String(req.direction) as Form["direction"];
     }
     this.proposal = session.proposal;
-    this.result = session.result;
+    // A verification that ended early (STOP, a failure) is no result: the state says
+    // "failed" and the message why.
+    this.result = session.result && !("stopped" in session.result) ? session.result : null;
     this.decision = session.decision ?? null;
     this.history = session.history ?? [];
     if (session.state === "identifying" || session.state === "verifying") {
@@ -368,7 +371,7 @@ export class AutoTunePanel {
     if (this.busy || !this.proposal) return;
     this.clearError();
     this.start("accept");
-    let result: AutoTuneResult;
+    let result: AutoTuneAccepted;
     const proposal = this.proposal;
     try {
       result = await api.autotuneAccept(this.axisId);
@@ -380,13 +383,13 @@ export class AutoTunePanel {
     }
     const took = this.elapsed();
     this.stop();
-    const ended = result as unknown as { stopped?: boolean; unverified?: boolean; message?: string };
-    if (ended.stopped) {
+    if ("stopped" in result) {
+      const ended = result;
       // STOP during the verification: the server stopped the axis and put the previous
       // gains back, or says loudly that it could not (then: one click to revert).
       this.result = null;
       this.el.dataset.state = "failed";
-      const message = ended.message ?? "verification stopped";
+      const message = ended.message || "verification stopped";
       this.setProgress("error", `■ ${message}`);
       replace(
         this.error,
@@ -401,7 +404,7 @@ export class AutoTunePanel {
     }
     this.result = result;
     this.el.dataset.state = "verified";
-    this.setProgress("ok", `✓ verified: ${result.verdict ?? "done"} (${took})`);
+    this.setProgress("ok", `✓ verified: ${result.verdict} (${took})`);
     this.render();
     await this.host.showRuns([result.baseline_run_id, result.verification_run_id].filter((id): id is string => !!id));
   }
@@ -543,7 +546,7 @@ export class AutoTunePanel {
     }
     this.toggle.disabled = false;
     const busy = this.busy !== null;
-    const cols = this.host.columns([p.predicted, p.predicted_default, this.result?.measured, this.result?.baseline_measured]);
+    const cols = this.host.columns([p.predicted, p.predicted_default, measuredMetrics(this.result?.measured), this.result?.baseline_measured]);
     replace(this.details, this.proposalView(p, cols, busy), this.result ? this.resultView(p, this.result, cols, busy) : null);
   }
 
@@ -832,7 +835,7 @@ export class AutoTunePanel {
         "tr",
         { "data-row": "proposed-measured", class: "at-proposed-row", "data-run": r.verification_run_id },
         rowLabel("proposed · measured", `run #${r.verification_run_id.slice(0, 4)}`, r.verification_run_id),
-        cols.map((c) => metricCell(c, r.measured, r.baseline_measured ?? null, `at-result-measured-${c.key}`, null, "the baseline run")),
+        cols.map((c) => metricCell(c, measuredMetrics(r.measured), r.baseline_measured ?? null, `at-result-measured-${c.key}`, null, "the baseline run")),
       ),
       h(
         "tr",

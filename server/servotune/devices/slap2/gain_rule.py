@@ -15,7 +15,6 @@ from typing import Any, Final
 import control
 
 from servotune.autotune.proposal import Response
-from servotune.bench.metrics import Metrics
 from servotune.devices.slap2.law import (
     D_MUL,
     GAIN_MAX,
@@ -29,6 +28,7 @@ from servotune.devices.slap2.law import (
     simulate_response,
     slap2_pid_polynomials,
 )
+from servotune.schema import RunMetrics
 from servotune.tuning.loops import ZERO, Margins, MarginSearch
 from servotune.tuning.plants import IdentifiedPlant, PlantModel
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
@@ -159,8 +159,8 @@ class Slap2Proposal:
     response: Response
     gains: Gains
     current_gains: Gains
-    predicted: Metrics
-    predicted_default: Metrics
+    predicted: RunMetrics
+    predicted_default: RunMetrics
     predicted_peak_pwm: int
     predicted_excursion: int
     default_excursion: int
@@ -179,8 +179,8 @@ class Slap2Proposal:
             "response": self.response,
             "gains": self.gains.to_dict(),
             "current_gains": self.current_gains.to_dict(),
-            "predicted": asdict(self.predicted),
-            "predicted_default": asdict(self.predicted_default),
+            "predicted": self.predicted.model_dump(),
+            "predicted_default": self.predicted_default.model_dump(),
             "predicted_peak_pwm": self.predicted_peak_pwm,
             "predicted_excursion": self.predicted_excursion,
             "default_excursion": self.default_excursion,

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Final, Literal
 
 import control
 import numpy as np
 
-from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.bench.metrics import compute_metrics
 from servotune.devices.slap2 import NAME
 from servotune.devices.slap2.codec import (
     ACCELERATION_MAX,
@@ -39,7 +39,7 @@ from servotune.devices.slap2.codec import (
     VELOCITY_MAX,
 )
 from servotune.devices.slap2.injection import Slap2Injection
-from servotune.schema import ControllerLaw, LawGainSet, LawTerm
+from servotune.schema import ControllerLaw, LawGainSet, LawTerm, RunMetrics
 from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.law import VerifyProfile
 from servotune.tuning.loops import ZERO, LoopModel, MotorModel, Polynomial
@@ -187,7 +187,7 @@ class SimulatedResponse:
     peak_backward: int
     peak_pwm: int
 
-    def metrics(self) -> Metrics:
+    def metrics(self) -> RunMetrics:
         """The bench's metrics of the simulated record, except the overshoot: the one
         the rule judges (``overshoot_pct``, the largest tick), not a spline's peak drawn
         between the model's exact tick positions (it rose 3e-5 pp above a 1 % limit
@@ -206,7 +206,7 @@ class SimulatedResponse:
         )
         if measured.overshoot_pct is None:
             return measured
-        return replace(measured, overshoot_pct=self.overshoot_pct())
+        return measured.model_copy(update={"overshoot_pct": self.overshoot_pct()})
 
     def peak_excursion(self) -> int:
         """Largest distance from the start position, counts (either direction)."""

@@ -11,12 +11,12 @@ and no thread that holds the interpreter lock against it.
 from __future__ import annotations
 
 import asyncio
-from dataclasses import asdict, replace
+from dataclasses import replace
 from typing import Any, Final
 
 from servotune.autotune.context import TuningContext
 from servotune.autotune.recording import IdentificationRun
-from servotune.autotune.session import IdentifyRequest, Session, TestKind
+from servotune.autotune.session import IdentifyRequest, Session
 from servotune.autotune.verdict import verdict_with_reason
 from servotune.bench.metrics import unmeasured
 from servotune.devices.slap2.codec import ACCELERATION_MAX, DEFAULT_BAUD, VELOCITY_MAX
@@ -40,6 +40,7 @@ from servotune.link.base import (
     InvalidArgumentError,
     capture_of,
 )
+from servotune.schema import AutoTuneTestKind
 from servotune.tuning.identify import fit_plant
 from servotune.tuning.plants import PlantModel
 from servotune.tuning.targets import target_for
@@ -93,7 +94,9 @@ class Slap2Tuner:
             raise DeviceRefusedError("the axis' gains are not read yet") from None
 
     @staticmethod
-    def _spec(entry: AxisEntry, test: TestKind, distance: int, latency_s: float) -> MoveSpec:
+    def _spec(
+        entry: AxisEntry, test: AutoTuneTestKind, distance: int, latency_s: float
+    ) -> MoveSpec:
         values = entry.device_values
         if test == "position_step":
             velocity, acceleration = VELOCITY_MAX, ACCELERATION_MAX
@@ -427,9 +430,9 @@ class Slap2Tuner:
         return {
             "gains": proposal.gains.to_dict(),
             "previous_gains": proposal.current_gains.to_dict(),
-            "predicted": asdict(proposal.predicted),
+            "predicted": proposal.predicted.model_dump(),
             "measured": measured,
-            "predicted_default": asdict(proposal.predicted_default),
+            "predicted_default": proposal.predicted_default.model_dump(),
             "baseline_measured": baseline_measured,
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,

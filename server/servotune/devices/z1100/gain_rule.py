@@ -9,12 +9,11 @@ Pure: no I/O (it runs in a worker thread).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Final
 
 import control
 
-from servotune.bench.metrics import Metrics
 from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.law import (
     BAND_COUNTS,
@@ -28,6 +27,7 @@ from servotune.devices.z1100.law import (
     simulate_move,
     z1100_kab_polynomials,
 )
+from servotune.schema import RunMetrics
 from servotune.tuning.loops import Margins, MarginSearch
 from servotune.tuning.plants import IdentifiedPlant, Z1100Plant
 from servotune.tuning.targets import DEFAULT_PRESET, PRESETS, MarginTarget, margin_report
@@ -43,7 +43,7 @@ FEASIBLE_DUTY: Final = 0.9  # perturbed models needing more duty for the profile
 TIE_S: Final = 0.01  # settling times this close count as equal
 
 
-def _overshoot_counts(m: Metrics) -> float:
+def _overshoot_counts(m: RunMetrics) -> float:
     return (m.overshoot_pct or 0.0) / 100.0 * abs(m.step)
 
 
@@ -54,8 +54,8 @@ class Z1100Proposal:
     current_kabd: Kab
     plant: Z1100Plant
     profile: MoveProfile
-    predicted: Metrics
-    predicted_default: Metrics
+    predicted: RunMetrics
+    predicted_default: RunMetrics
     worst_case_settling_s: float | None
     candidates: int
     simulations: int
@@ -77,8 +77,8 @@ class Z1100Proposal:
             "model": self.plant.to_dict(),
             "gains": self.gains_dict(),
             "current_gains": kab_dict(self.current, self.current_kabd),
-            "predicted": asdict(self.predicted),
-            "predicted_default": asdict(self.predicted_default),
+            "predicted": self.predicted.model_dump(),
+            "predicted_default": self.predicted_default.model_dump(),
             "rule": self.rule,
             "design": {
                 "worst_case_settling_s": self.worst_case_settling_s,
@@ -105,7 +105,7 @@ class Z1100Proposal:
         }
 
 
-def _acceptable(m: Metrics, limit_counts: float) -> bool:
+def _acceptable(m: RunMetrics, limit_counts: float) -> bool:
     if m.settling_time_s is None or m.steady_state_error is None:
         return False
     return _overshoot_counts(m) <= limit_counts and (m.oscillations or 0) <= 1
@@ -145,7 +145,7 @@ def propose_kab(
         hold = gains.kabd() if gains != current else current_kabd
         return search_margins.margins(*z1100_kab_polynomials(hold.k, hold.a, hold.b))
 
-    settling: list[tuple[float, float, Kab, Metrics]] = []
+    settling: list[tuple[float, float, Kab, RunMetrics]] = []
     for k in K_GRID:
         for a in A_GRID:
             for b in B_GRID:
@@ -173,7 +173,7 @@ def propose_kab(
         # gains: it says nothing about robustness
         if (peak_v + plant.tau_s * tf * abs(profile.acc)) / (plant.gain * gf) <= FEASIBLE_DUTY
     ]
-    ranked: list[tuple[float, float, int, Kab, Metrics]] = []
+    ranked: list[tuple[float, float, int, Kab, RunMetrics]] = []
     for settle, peak_fe, gains, m in nominal[:ROBUST_CHECKS]:
         worst = settle
         for model in perturbed:

@@ -27,10 +27,10 @@ from typing import Any, Final, Literal
 import control
 import numpy as np
 
-from servotune.bench.metrics import Metrics, compute_metrics
+from servotune.bench.metrics import compute_metrics
 from servotune.devices.z1100 import NAME
 from servotune.devices.z1100.frame import STM_TICK_S
-from servotune.schema import ControllerLaw, LawGainSet, LawTerm
+from servotune.schema import ControllerLaw, LawGainSet, LawTerm, RunMetrics
 from servotune.tuning.frf import ComplexArray, FloatArray
 from servotune.tuning.identify import fit_closed_loop
 from servotune.tuning.law import VerifyProfile
@@ -244,7 +244,7 @@ def simulate_move(
     return SimulatedMove(out_t, out_x, out_e, out_m, peak)
 
 
-def move_metrics(sim: SimulatedMove, distance: int, band: float = BAND_COUNTS) -> Metrics:
+def move_metrics(sim: SimulatedMove, distance: int, band: float = BAND_COUNTS) -> RunMetrics:
     return compute_metrics(
         sim.t,
         sim.position,

@@ -11,7 +11,6 @@ run in worker threads.
 from __future__ import annotations
 
 import asyncio
-from dataclasses import asdict
 from typing import Any, Final
 
 from servotune.autotune.context import TuningContext
@@ -292,9 +291,9 @@ class Z1100Tuner:
         return {
             "gains": proposal.gains_dict(),
             "previous_gains": kab_dict(proposal.current, proposal.current_kabd),
-            "predicted": asdict(proposal.predicted),
+            "predicted": proposal.predicted.model_dump(),
             "measured": measured,
-            "predicted_default": asdict(proposal.predicted_default),
+            "predicted_default": proposal.predicted_default.model_dump(),
             "baseline_measured": baseline_measured,
             "verification_run_id": verification["id"],
             "baseline_run_id": baseline["id"] if baseline else None,

@@ -12,6 +12,7 @@ import { AutoTunePanel } from "../autotune";
 import { FrfPanel } from "../bode";
 import { errorText } from "../feedback";
 import { metricColumns } from "../metriccols";
+import { setMetricDefinitions } from "../../metrics";
 import { WhatIfPanel } from "../whatif";
 import { ParamDiff } from "./diff";
 import { BenchForm } from "./form";
@@ -147,6 +148,7 @@ export class BenchView {
       return;
     }
     if (this.signal.aborted) return;
+    setMetricDefinitions(this.info.definitions);
     for (const [name, field] of Object.entries(this.info.fields)) {
       if (!(name in this.units)) continue;
       this.units[name as FieldName] = field.unit;
