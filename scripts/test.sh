@@ -17,4 +17,7 @@ echo "==> mypy"
 echo "==> generated TypeScript schema types are current"
 "$VENV/bin/python" -m servotune.schema_ts --check web/src/schema.gen.ts
 echo "==> pytest"
-"$VENV/bin/pytest" "$@"
+# Two worker processes (pytest-xdist): most tests wait on devices that run in real
+# time, so two workers halve the wall time on two cores (docs/architecture.md, "Tests").
+# SERVOTUNE_TEST_WORKERS=0 runs in one process (e.g. with -x or --pdb).
+"$VENV/bin/pytest" -n "${SERVOTUNE_TEST_WORKERS:-2}" "$@"
