@@ -47,7 +47,24 @@ PRELOAD = (
     "servotune.tuning.threads",  # first: one BLAS thread, set before numpy loads
     "servotune.tuning.identify",
     "servotune.bench.frf",
+    "servotune.bench.files",  # the bench's import processes (bench.service)
 )
+
+
+def worker_context(preload: tuple[str, ...] = PRELOAD) -> BaseContext:
+    """The start method of the server's worker processes: ``forkserver`` with
+    ``PRELOAD`` and ``preload`` imported in the fork server, ``spawn`` where the
+    platform has no fork server.
+
+    The preload is only effective before the process' fork server starts; a later
+    call (another pool, or a fork server already running) leaves the imports to the
+    worker. Whichever pool starts it first preloads what every pool needs."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    forkserver = multiprocessing.get_context("forkserver")
+    # In PRELOAD's order, not sorted: ``tuning.threads`` must come before numpy.
+    forkserver.set_forkserver_preload(list(dict.fromkeys((*PRELOAD, *preload))))
+    return forkserver
 
 
 def _warm(modules: tuple[str, ...]) -> None:
@@ -110,18 +127,10 @@ class ComputePool:
             return self._pool
 
     def _start(self) -> ProcessPoolExecutor:
-        context: BaseContext
-        if "forkserver" in multiprocessing.get_all_start_methods():
-            forkserver = multiprocessing.get_context("forkserver")
-            # Only effective before the process' fork server starts; a later call
-            # (another pool, or a server already running) leaves the imports to _warm.
-            # Whichever pool starts it first preloads what every pool needs.
-            forkserver.set_forkserver_preload(sorted({*PRELOAD, *self._preload}))
-            context = forkserver
-        else:
-            context = multiprocessing.get_context("spawn")
         pool = ProcessPoolExecutor(
-            max_workers=self._workers, mp_context=context, initializer=self._initializer
+            max_workers=self._workers,
+            mp_context=worker_context(self._preload),
+            initializer=self._initializer,
         )
         pool.submit(_warm, self._preload).result()
         return pool

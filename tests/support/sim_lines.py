@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from servotune.compute import PRELOAD
 from servotune.devices.slap2.link import Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.z1100.link import Z1100Axis, Z1100Link, Z1100LinkConfig
@@ -25,8 +26,13 @@ from tests.support.sink import RecordingSink
 from tests.support.waiting import wait_for
 
 # The test simulators' processes are forks of multiprocessing's fork server (started
-# clean once per session), which has the simulators imported already.
-multiprocessing.set_forkserver_preload(["servotune.sim.process", sim_builders.__name__])
+# clean once per session), which has the simulators imported already, and what the
+# servers' worker processes import (``compute.PRELOAD``: fits, bench imports): the
+# first to start the fork server decides what it preloads. Last, ``frozen_heap``
+# freezes all of it, so that a simulator's garbage collections do not walk numpy's.
+multiprocessing.set_forkserver_preload(
+    [*PRELOAD, "servotune.sim.process", sim_builders.__name__, "tests.support.frozen_heap"]
+)
 
 
 @contextlib.contextmanager

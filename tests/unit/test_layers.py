@@ -83,7 +83,18 @@ ALLOWED: dict[str, set[str]] = {
     "device-sim": {"device-sim", "device-codec", "sim", "transport"},
     "tuning": {"tuning", "schema"},
     "hub": {"hub", "link", "schema", "storage", "identity", "package"},
-    "bench": {"bench", "hub", "link", "tuning", "schema", "storage", "identity", "package"},
+    # compute: the import processes are forks of the compute workers' fork server
+    "bench": {
+        "bench",
+        "hub",
+        "link",
+        "tuning",
+        "schema",
+        "storage",
+        "compute",
+        "identity",
+        "package",
+    },
     "autotune": {
         "autotune",
         "bench",

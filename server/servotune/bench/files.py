@@ -31,7 +31,6 @@ import math
 import os
 import re
 import time
-import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO, Any, Literal
@@ -271,10 +270,13 @@ def store_import(
     device: str,
     raw_meta: Any,
     csv_lines: Iterable[str],
+    *,
+    run_id: str,
 ) -> str:
-    """Validate and store an imported run chunk by chunk; returns the new run id.
+    """Validate and store an imported run chunk by chunk as ``run_id``; returns it.
 
-    On any refusal nothing stays stored (a partly written run is deleted)."""
+    On any refusal nothing stays stored (a partly written run is deleted). The caller
+    chooses the id, so that it can delete what a process killed meanwhile left."""
     meta = validate_meta(raw_meta, device)
     stored = meta.model_dump(
         by_alias=True, exclude={"id", "axis_id", "status", "baseline", "created_s"}
@@ -295,7 +297,6 @@ def store_import(
     ):
         if stored.get(optional) is None:
             stored.pop(optional, None)
-    run_id = uuid.uuid4().hex[:12]
     storage.create_run(run_id, axis_key, axis_id, meta.created_s or time.time(), stored)
     # What the sampling rule reads, kept compact: (t, response, following error).
     judged = _JudgedColumns(meta.columns, meta.plan.response)
@@ -334,7 +335,7 @@ class _JudgedColumns:
 
 
 def import_json_body(
-    storage: Storage, axis_key: str, axis_id: str, device: str, body: bytes
+    storage: Storage, axis_key: str, axis_id: str, device: str, body: bytes, *, run_id: str
 ) -> str:
     """An import sent as one JSON document ``{"meta": {...}, "csv": "..."}``."""
     try:
@@ -346,7 +347,9 @@ def import_json_body(
     if not isinstance(document["csv"], str):
         raise InvalidArgumentError("csv", "csv must be the CSV export as text")
     text: str = document.pop("csv")
-    return store_import(storage, axis_key, axis_id, device, document["meta"], _lines(text))
+    return store_import(
+        storage, axis_key, axis_id, device, document["meta"], _lines(text), run_id=run_id
+    )
 
 
 def import_files(
@@ -356,6 +359,8 @@ def import_files(
     device: str,
     meta_bytes: bytes,
     csv_file: IO[bytes],
+    *,
+    run_id: str,
 ) -> str:
     """An import sent as multipart: the ``meta`` JSON and the ``csv`` file (read lazily)."""
     if len(meta_bytes) > MAX_META_BYTES:
@@ -367,7 +372,7 @@ def import_files(
     csv_file.seek(0)
     text = io.TextIOWrapper(csv_file, encoding="utf-8", newline="")
     try:
-        return store_import(storage, axis_key, axis_id, device, raw, text)
+        return store_import(storage, axis_key, axis_id, device, raw, text, run_id=run_id)
     finally:
         text.detach()  # the caller closes the upload
 
@@ -395,10 +400,11 @@ def import_in_process(
     device: str,
     body_path: str,
     meta_bytes: bytes | None,
+    run_id: str,
 ) -> ImportOutcome:
     """Entry point of the import process: ``body_path`` holds the JSON body, or the
-    CSV file when ``meta_bytes`` (multipart) is given. Errors come back as values
-    (exceptions with extra fields do not survive pickling).
+    CSV file when ``meta_bytes`` (multipart) is given; the run is stored as ``run_id``.
+    Errors come back as values (exceptions with extra fields do not survive pickling).
 
     The process first lowers its own priority (``IMPORT_NICE``): on a 2-core host it
     otherwise takes a whole core from the server while the server's event loop and
@@ -412,9 +418,9 @@ def import_in_process(
             return ("storage", "", f"not saved: {storage.problem}")
         with open(body_path, "rb") as body:
             if meta_bytes is None:
-                run_id = import_json_body(storage, axis_key, axis_id, device, body.read())
+                import_json_body(storage, axis_key, axis_id, device, body.read(), run_id=run_id)
             else:
-                run_id = import_files(storage, axis_key, axis_id, device, meta_bytes, body)
+                import_files(storage, axis_key, axis_id, device, meta_bytes, body, run_id=run_id)
         return ("ok", run_id, "")
     except InvalidArgumentError as exc:
         return ("invalid", exc.field, str(exc))

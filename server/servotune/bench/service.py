@@ -28,19 +28,20 @@ import asyncio
 import contextlib
 import functools
 import logging
-import multiprocessing
 import time
 import uuid
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 from servotune.bench import files
 from servotune.bench.kinds import KindTable, TestKind
 from servotune.bench.limits import BenchLimits, LimitsStore
 from servotune.bench.runner import ActiveRuns, ExternalRecording, Recording, Runner, run_meta
+from servotune.compute import worker_context
 from servotune.hub.hub import Hub
 from servotune.hub.state import AxisEntry
 from servotune.link.base import (
@@ -59,6 +60,8 @@ from servotune.storage import Storage, StorageError
 from servotune.tuning.law import DeviceLaws
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 @runtime_checkable
@@ -126,9 +129,13 @@ class TestBench:
         is started only when some run needs it (a look at the stored metadata)."""
         if not await asyncio.to_thread(self._any_to_rejudge):
             return
-        changed = await asyncio.get_running_loop().run_in_executor(
-            self._import_pool(), files.rejudge_in_process, str(self._storage.path)
-        )
+        try:
+            changed = await self._in_import_process(
+                functools.partial(files.rejudge_in_process, str(self._storage.path))
+            )
+        except StorageError as exc:
+            self._hub.on_event("error", None, f"stored runs not judged again: {exc}")
+            return
         if changed:
             self._hub.on_event(
                 "info",
@@ -144,16 +151,33 @@ class TestBench:
                 return True
         return False
 
-    def _import_pool(self) -> ProcessPoolExecutor:
-        """One process at a time, each fresh (its memory goes with it): imports and the
-        re-judging of stored runs."""
+    async def _in_import_process(self, call: Callable[[], T]) -> T:
+        """``call()`` in an import process: one at a time, each process fresh.
+
+        Fresh per call (``bench.files``): its own interpreter (a parse never holds the
+        event loop's), at nice 10, and its memory goes with it. The processes are
+        forks of the server's fork server (``compute.worker_context``), which has
+        ``bench.files`` imported, so a refused file costs a fork rather than an
+        interpreter start and its imports (docs/bench.md). Submitted from a worker
+        thread: the first fork may wait for the fork server's own start.
+
+        A process that died under the call (killed, out of memory) is a
+        ``StorageError`` (507; what it stored is the caller's to remove, see
+        ``import_run``), and the next call gets a new pool."""
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                max_workers=1,
-                mp_context=multiprocessing.get_context("spawn"),
-                max_tasks_per_child=1,
+                max_workers=1, mp_context=worker_context(), max_tasks_per_child=1
             )
-        return self._pool
+        pool = self._pool
+        try:
+            return await asyncio.wrap_future(await asyncio.to_thread(pool.submit, call))
+        except BrokenProcessPool:
+            if self._pool is pool:
+                self._pool = None
+            await asyncio.to_thread(pool.shutdown, wait=False, cancel_futures=True)
+            raise StorageError(
+                "not saved: the import process ended before it answered (killed, or out of memory?)"
+            ) from None
 
     async def stop(self) -> None:
         if self._pool is not None:
@@ -464,18 +488,25 @@ class TestBench:
         entry = self._hub.entry(axis_id)
         if self._storage.problem:
             raise StorageError(f"not saved: {self._storage.problem}")
-        outcome = await asyncio.get_running_loop().run_in_executor(
-            self._import_pool(),
-            functools.partial(
-                files.import_in_process,
-                str(self._storage.path),
-                entry.storage_key,
-                axis_id,
-                entry.info.device,
-                str(body_path),
-                meta,
-            ),
-        )
+        run_id = uuid.uuid4().hex[:12]
+        try:
+            outcome = await self._in_import_process(
+                functools.partial(
+                    files.import_in_process,
+                    str(self._storage.path),
+                    entry.storage_key,
+                    axis_id,
+                    entry.info.device,
+                    str(body_path),
+                    meta,
+                    run_id,
+                ),
+            )
+        except StorageError:
+            # The process died under the import: what it had stored goes too.
+            with contextlib.suppress(StorageError):
+                await asyncio.to_thread(self._storage.delete_run, run_id)
+            raise
         kind, value, message = outcome
         if kind == "invalid":
             raise InvalidArgumentError(value, message)

@@ -5,10 +5,14 @@ numbers everywhere, body limits (413), multipart for big runs, stored garbage re
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
+import os
 import sqlite3
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from servotune.bench.files import (
     MAX_IMPORT_BYTES,
@@ -17,7 +21,7 @@ from servotune.bench.files import (
     rejudge_in_process,
 )
 from servotune.bench.quality import SAMPLING_RULE
-from servotune.storage import Storage
+from servotune.storage import Storage, StorageError
 from tests.support.bench import finished_run, start
 from tests.support.servers import LiveServer, live_server
 from tests.support.sim_lines import running_simulator
@@ -87,6 +91,56 @@ async def test_bad_imports_answer_422_naming_the_field_and_store_nothing(
     swapped = "\n".join([lines[0], lines[2], lines[1], *lines[3:]]) + "\n"
     response = await _import(api, meta, swapped)
     assert response.status_code == 422 and "before the line above" in response.json()["detail"]
+    assert (await api.client.get("/api/axes/line-1/bench/runs")).json() == []
+
+
+async def test_each_import_runs_in_a_fresh_process_forked_with_the_import_code_loaded(
+    api: LiveServer,
+) -> None:
+    """The isolation of an import (``bench.files``): a process of its own, a new one
+    per import, whose memory goes with it. That process is a fork of a fork server
+    that has ``bench.files`` imported, so a refused file costs a fork, not an
+    interpreter start with its imports (docs/bench.md). A process that dies under an
+    import is a 507, and the next import gets a new process."""
+    bench = api.app.state.bench
+    # A builtin as the call: unpickling it imports nothing into the process.
+    probe = functools.partial(
+        eval,
+        "(__import__('os').getpid(), 'servotune.bench.files' in __import__('sys').modules)",
+    )
+    first_pid, first_loaded = await bench._in_import_process(probe)
+    second_pid, second_loaded = await bench._in_import_process(probe)
+    assert first_pid != os.getpid() and second_pid not in (os.getpid(), first_pid)
+    assert first_loaded and second_loaded
+    with pytest.raises(StorageError, match="ended before it answered"):
+        await bench._in_import_process(functools.partial(os._exit, 1))
+    third_pid, _ = await bench._in_import_process(probe)
+    assert third_pid not in (os.getpid(), first_pid, second_pid)
+
+
+async def test_an_import_whose_process_died_midway_leaves_no_run(
+    api: LiveServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The import process chose no id of its own: the server gives it one, so that
+    when the process dies after it stored part of the run (the test above: a 507),
+    the server deletes that part. The death is played here by a stand-in that stores
+    the run's start, as the import process does first, and then fails as a dead
+    process does."""
+    _, meta, csv_text = await _exported(api)
+    bench = api.app.state.bench
+    storage: Storage = bench._storage
+    axis_key = api.app.state.hub.entry("line-1").storage_key
+
+    async def dies_after_the_first_write(call: functools.partial[Any]) -> Any:
+        run_id = call.args[-1]
+        storage.create_run(run_id, axis_key, "line-1", 1.0, {"test": {}})
+        assert [r["id"] for r in storage.list_runs(axis_key)] == [run_id]
+        raise StorageError("not saved: the import process ended before it answered")
+
+    monkeypatch.setattr(bench, "_in_import_process", dies_after_the_first_write)
+    response = await _import(api, meta, csv_text)
+    assert response.status_code == 507, response.text
+    assert "ended before it answered" in response.json()["detail"]
     assert (await api.client.get("/api/axes/line-1/bench/runs")).json() == []
 
 
