@@ -170,7 +170,17 @@ async def test_captured_move_carries_the_reconstructed_setpoint(tmp_path: Path) 
             await line.connected()
             drive = _axis(line, 0)
             await drive.command("position_mode", {})
-            await asyncio.sleep(0.3)
+            # The move's profile starts from the setpoint the host has seen held in pm
+            # (polls after pm): a loaded host may not have polled by a fixed time.
+            await line.until(
+                lambda: (
+                    bool(line.sink.samples["line-0"])
+                    and bool(line.sink.samples["line-0"][-1].flags["pm"])
+                    and line.sink.samples["line-0"][-1].channels["setpoint"] is not None
+                ),
+                "the module seen holding in pm",
+                timeout_s=10,
+            )
             async with drive.capture("test"):
                 await drive.command("move_relative", {"distance": 3000})
                 start = len(line.sink.samples["line-0"])
