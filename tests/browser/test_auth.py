@@ -16,7 +16,7 @@ from servotune.auth.security import SecurityConfig
 from servotune.config import LinkSpec
 from tests.support.auth import PASSWORDS, TEST_PASSWORD_COST, make_accounts
 from tests.support.paths import ARTIFACTS
-from tests.support.servers import free_port
+from tests.support.servers import bound_socket
 from tests.support.sim_lines import running_simulator
 from tests.support.waiting import wait_for
 
@@ -42,11 +42,12 @@ async def exposed_server(tmp_path: Path) -> AsyncIterator[str]:
                 password_cost=TEST_PASSWORD_COST,
             )
         )
-        port = free_port()
+        sock = bound_socket()
+        port = sock.getsockname()[1]
         server = uvicorn.Server(
             uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
         )
-        task = asyncio.create_task(server.serve())
+        task = asyncio.create_task(server.serve(sockets=[sock]))
         try:
             await wait_for(lambda: server.started, 20, "the server to start")
             yield f"http://127.0.0.1:{port}"

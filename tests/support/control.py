@@ -35,9 +35,8 @@ from servotune.auth.passwords import PasswordCost
 from servotune.config import LinkSpec
 from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.hub.control_client import CLIENT_HEADER, ControlSettings
-from servotune.perf.demo import free_port
 from servotune.sim.process import Remote
-from tests.support.servers import use_csrf_token
+from tests.support.servers import bound_socket, use_csrf_token
 from tests.support.sim_builders import WireRecorder, recorded_slap2_line
 from tests.support.sim_lines import simulator_process
 
@@ -94,7 +93,8 @@ async def control_server(
             control_clock=clock,
         )
         app = create_app(config)
-        port = free_port()
+        sock = bound_socket()
+        port = sock.getsockname()[1]
         options: dict[str, Any] = {}
         if ws_max_size is not None:
             options["ws_max_size"] = ws_max_size
@@ -103,7 +103,7 @@ async def control_server(
                 app, host="127.0.0.1", port=port, log_level="warning", lifespan="on", **options
             )
         )
-        task = asyncio.create_task(server.serve())
+        task = asyncio.create_task(server.serve(sockets=[sock]))
         try:
             deadline = time.monotonic() + 10
             while not server.started:
@@ -138,7 +138,9 @@ async def served(app: Any, wire: WireRecorder | None = None) -> AsyncIterator[Ex
     uvicorn's records propagate, so caplog sees them."""
     from servotune.cli import GRACEFUL_SHUTDOWN_S
 
-    port = free_port()
+    sock = bound_socket()
+
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(
             app,
@@ -151,7 +153,7 @@ async def served(app: Any, wire: WireRecorder | None = None) -> AsyncIterator[Ex
             log_config=None,
         )
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         deadline = time.monotonic() + 30
         while not server.started:

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Iterator
@@ -21,7 +22,6 @@ from servotune.api.app import AppConfig, create_app
 from servotune.config import LinkSpec
 from servotune.demo import demo_simulators
 from servotune.hub.control_client import ControlSettings
-from servotune.perf.demo import free_port
 from servotune.sim.pty import PtySimulator
 from tests.support.waiting import wait_for
 
@@ -63,6 +63,17 @@ class LiveServer:
         return result
 
 
+def bound_socket() -> socket.socket:
+    """A TCP socket bound to a free port of 127.0.0.1, for ``uvicorn.Server.serve(sockets=
+    [sock])``: held from the choice of the port to the server's listen, so nothing else
+    (another test worker, a client's ephemeral port) can take the port in between, as
+    it can with ``free_port()``. The server closes it when it stops."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    return sock
+
+
 @contextlib.asynccontextmanager
 async def live_server(
     simulator: PtySimulator | None,
@@ -85,11 +96,12 @@ async def live_server(
         control=ControlSettings(lease_s=10.0),
     )
     app = create_app(config)
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         await wait_for(lambda: server.started, 10, "the server to start")
         base = f"http://127.0.0.1:{port}"
@@ -121,11 +133,12 @@ async def serve(
     """A live server on ``spec`` (one link or several): (app, client, websocket url)."""
     specs = spec if isinstance(spec, list) else [spec]
     app = create_app(AppConfig(links=specs, data_dir=data_dir, web_dir=data_dir / "no-web"))
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         await wait_for(lambda: server.started, 10, "the server to start")
         async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
@@ -158,11 +171,12 @@ async def demo_server(tmp_path: Path, web_dir: Path | None = None) -> AsyncItera
         web_dir=web_dir or tmp_path / "no-web",
     )
     app = create_app(config)
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         await wait_for(lambda: server.started, 30, "the server to start")
         base = f"http://127.0.0.1:{port}"

@@ -5,7 +5,11 @@ sent, a documented shape's defaulted field may be absent, and the checked-in
 
 from __future__ import annotations
 
+import ast
+import importlib
 import inspect
+import pkgutil
+from types import ModuleType
 
 from pydantic import BaseModel
 
@@ -16,6 +20,48 @@ from tests.support.paths import REPO
 # request is free-form (its fields come from the descriptor).
 # ``_Shape`` is the base of the documented shapes, not a body.
 NOT_RENDERED = {"CommandRequest", "_Shape"}
+
+
+def schema_modules() -> list[ModuleType]:
+    """The modules of the ``servotune.schema`` package."""
+    return [
+        importlib.import_module(f"{schema.__name__}.{info.name}")
+        for info in pkgutil.iter_modules(schema.__path__)
+    ]
+
+
+def declared_in(module: ModuleType) -> dict[str, object]:
+    """The names ``module``'s source binds at its top level by a class or an assignment
+    (not the ones it imports)."""
+    names: list[str] = []
+    for node in ast.parse(inspect.getsource(module)).body:
+        if isinstance(node, ast.ClassDef):
+            names.append(node.name)
+        elif isinstance(node, ast.Assign):
+            names.extend(t.id for t in node.targets if isinstance(t, ast.Name))
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.append(node.target.id)
+    return {name: getattr(module, name) for name in names if name != "__all__"}
+
+
+def test_the_schema_package_was_found() -> None:
+    # An empty walk would make the checks below pass vacuously.
+    assert schema.RunMetrics.__module__ in {m.__name__ for m in schema_modules()}
+
+
+def test_every_public_name_is_importable_from_servotune_schema() -> None:
+    """The package is the one place to import from: every public name its modules
+    define is re-exported (the same object), and ``__all__`` lists exactly those."""
+    public = {
+        name: value
+        for module in schema_modules()
+        for name, value in declared_in(module).items()
+        if not name.startswith("_")
+    }
+    assert len(public) > 90, sorted(public)
+    missing = {name for name, value in public.items() if getattr(schema, name, None) is not value}
+    assert missing == set()
+    assert set(schema.__all__) == set(public)
 
 
 def test_every_schema_model_is_rendered() -> None:
@@ -30,11 +76,11 @@ def test_every_schema_model_is_rendered() -> None:
     }
     declared = {
         name
-        for name, value in vars(schema).items()
-        if inspect.isclass(value)
-        and issubclass(value, BaseModel)
-        and value.__module__ == schema.__name__
+        for module in schema_modules()
+        for name, value in declared_in(module).items()
+        if inspect.isclass(value) and issubclass(value, BaseModel)
     }
+    assert len(declared) > 70, declared
     assert declared - NOT_RENDERED - rendered == set()
 
 

@@ -719,7 +719,7 @@ class ControlLock:
         return ControlStatus(axis=ax.axis_id, holder=holder, pending=pending)
 
     def _hub_t0(self) -> float:
-        # Server times on the wire are seconds since the hub started (schema.py).
+        # Server times on the wire are seconds since the hub started (servotune.schema.websocket).
         return self._clock() - self._hub.now()
 
     def _broadcast_status(self, ax: _Axis) -> None:

@@ -10,7 +10,6 @@ import asyncio
 import contextlib
 import json
 import os
-import socket
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
@@ -30,6 +29,7 @@ from servotune.devices import default_registry
 from servotune.hub.control_client import ControlSettings
 from servotune.registry import Registry
 from servotune.sim.pty import PtySimulator
+from tests.support.servers import bound_socket
 
 from . import codec
 from .entry import ENTRY
@@ -86,15 +86,14 @@ async def serving(spec: LinkSpec, data_dir: Path) -> AsyncIterator[tuple[str, ht
         twin=False,
         control=ControlSettings(lease_s=10.0),  # a loaded browser heartbeats slowly
     )
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(
             create_app(config), host="127.0.0.1", port=port, log_level="warning", lifespan="on"
         )
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         await until(lambda: server.started, "the server to start")
         base = f"http://127.0.0.1:{port}"

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -47,6 +46,7 @@ from servotune.devices.ep7047.entry import demo_slave as ep7047_demo_slave  # no
 from servotune.devices.slap2.entry import demo_line as slap2_demo_line  # noqa: E402
 from servotune.devices.z1100.entry import demo_line as z1100_demo_line  # noqa: E402
 from tests.support.auth import TEST_PASSWORD_COST  # noqa: E402
+from tests.support.servers import bound_socket  # noqa: E402
 
 MAX_EXAMPLES = 2
 
@@ -156,9 +156,8 @@ def demo_server(data_dir: Path, security: SecurityConfig | None = None) -> Itera
         # Users created by the fuzzer are hashed at the tests' cost (tests/support/auth.py).
         password_cost=TEST_PASSWORD_COST,
     )
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     app = create_app(config)
     server = uvicorn.Server(
         uvicorn.Config(
@@ -170,7 +169,9 @@ def demo_server(data_dir: Path, security: SecurityConfig | None = None) -> Itera
             proxy_headers=False,  # as `servotune serve`
         )
     )
-    thread = threading.Thread(target=server.run, name="schemathesis-demo-server")
+    thread = threading.Thread(
+        target=server.run, kwargs={"sockets": [sock]}, name="schemathesis-demo-server"
+    )
     thread.start()
     try:
         deadline = time.monotonic() + 30

@@ -24,7 +24,7 @@ import websockets
 from servotune.api.app import AppConfig, create_app
 from servotune.auth.security import AUTH_DB, SecurityConfig
 from tests.support.auth import PASSWORDS, TEST_PASSWORD_COST, make_accounts
-from tests.support.servers import free_port, use_csrf_token
+from tests.support.servers import bound_socket, use_csrf_token
 from tests.support.waiting import wait_for
 
 
@@ -51,14 +51,15 @@ async def live(data_dir: Path, *, exposed: bool) -> AsyncIterator[Live]:
         password_cost=TEST_PASSWORD_COST,
     )
     app = create_app(config)
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         # log_config None: uvicorn's loggers (access log included) propagate to caplog.
         uvicorn.Config(
             app, host="127.0.0.1", port=port, log_level="info", lifespan="on", log_config=None
         )
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         await wait_for(lambda: server.started, 20, "the server to start")
         origin = f"http://127.0.0.1:{port}"

@@ -37,8 +37,8 @@ from tests.support.bus_lab import (
     stop_app,
 )
 from tests.support.control import take_with_raw_client
-from tests.support.nats import free_port, rig_request
-from tests.support.servers import use_csrf_token
+from tests.support.nats import rig_request
+from tests.support.servers import bound_socket, use_csrf_token
 from tests.support.waiting import wait_for
 
 
@@ -323,11 +323,12 @@ async def served_hub(run: LabRun) -> AsyncIterator[ServedHub]:
         bus=BusSettings(url=run.lab.url, hub="lab", credentials=run.lab.users["hub"].credentials),
     )
     app = create_app(config)
-    port = free_port()
+    sock = bound_socket()
+    port = sock.getsockname()[1]
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
     )
-    task = asyncio.create_task(server.serve())
+    task = asyncio.create_task(server.serve(sockets=[sock]))
     try:
         deadline = time.monotonic() + 15
         while not server.started:
