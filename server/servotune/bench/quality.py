@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import pairwise
 from typing import Any, Final
 
@@ -66,6 +66,11 @@ MAX_PEAK_GAP_RATIO: Final = 1.9
 the overshoot: wider gaps can hide the peak between samples by more than
 ``MAX_OVERSHOOT_UNCERTAINTY_PP``, and the capture's interleaved ``rss`` reads must stay
 below it (docs/bench.md, "Quality", has the measurement)."""
+MAX_STAMP_SPAN_RATIO: Final = 1.0
+"""The most a sample that locates the settling instant may have been latched before its
+stamp, in the record's usual spacings: the instant is then off by at most one spacing,
+half of the repeatability bound (identical steps settle within 2 spacings), as
+``MAX_OVERSHOOT_UNCERTAINTY_PP`` is for the overshoot."""
 SAMPLING_RULE: Final = 3
 """The version of the sampling rule (``_sampling_trust``) stored with a run's quality
 (``quality.sampling_rule``): a stored or imported run judged by an older one is judged
@@ -108,10 +113,14 @@ def assess(
     metrics: Mapping[str, Any] | None,
     status: str,
     message: str,
+    spans: Sequence[Sequence[float]] = (),
 ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
     """(metrics with untrusted values set to None, quality) of one finished run.
 
-    ``rows`` are the stored sample rows ``[t_s, value per column..., [flags 0/1]]``."""
+    ``rows`` are the stored sample rows ``[t_s, value per column..., [flags 0/1]]``;
+    ``spans``: ``[t_s, span_s]`` for the rows (same ``t_s``) whose latch the driver
+    places up to ``span_s`` before ``t_s`` (``Sample.t_span_s``; rows without one are
+    taken as stamped where they were latched)."""
     bad: list[dict[str, str]] = []
     doubts: list[dict[str, str]] = []
     untrusted: dict[str, str] = {}
@@ -212,8 +221,14 @@ def assess(
             untrusted[name] = why
             out[name] = None
     fe = columns.index("following_error") if "following_error" in columns else None
+    span_at = {float(t): float(span) for t, span in spans}
     series = _Series(
-        following_error_t=[r[0] - t0_s for r in rows if fe is not None and r[fe] is not None]
+        following_error_t=[r[0] - t0_s for r in rows if fe is not None and r[fe] is not None],
+        spans=[
+            span_at.get(float(r[0]), 0.0)
+            for r in after
+            if index is not None and r[index] is not None
+        ],
     )
     _sampling_trust(out, points, series, y0, step, band, untrusted)
     return out, _quality(bad, doubts, untrusted)
@@ -221,9 +236,12 @@ def assess(
 
 @dataclass(frozen=True, slots=True)
 class _Series:
-    """The times (after t0, the whole record) of the slower series a metric may rest on."""
+    """The times (after t0, the whole record) of the slower series a metric may rest on,
+    and how far before its stamp each response point may have been latched (``spans``,
+    aligned with the points; empty: not known, as for a stored run)."""
 
     following_error_t: list[float]
+    spans: list[float] = field(default_factory=list)
 
 
 def _sampling_trust(
@@ -278,9 +296,8 @@ def _sampling_trust(
     if settle is not None and settle > 0 and band is not None:
         null(
             "settling_time_s",
-            _unresolved(
-                sample_t, curve_t, 0.0, settle, settle, "settling time", "until it settled"
-            ),
+            _unresolved(sample_t, curve_t, 0.0, settle, settle, "settling time", "until it settled")
+            or _stamp_unvouched(points, series.spans, y0 + step, band),
         )
     # The move, for the metrics over it: from the command until the response settled
     # (the settling time before this rule judged it), else the whole record.
@@ -382,6 +399,30 @@ def _unresolved(
             f"{name} itself ({quantity_s * 1000:.0f} ms)"
         )
     return None
+
+
+def _stamp_unvouched(
+    points: Sequence[tuple[float, float]], spans: Sequence[float], y_final: float, band: float
+) -> str | None:
+    """Why the settling instant is not located by the stamps of the samples that bracket
+    it (``bench.metrics``' last sample outside the band and the one after it), or None:
+    one of them may have been latched more than ``MAX_STAMP_SPAN_RATIO`` times the
+    record's usual spacing before its stamp (``spans``, aligned with ``points``)."""
+    if len(spans) != len(points) or len(points) < 3:
+        return None
+    last_out = next(
+        (i for i in range(len(points) - 1, -1, -1) if abs(points[i][1] - y_final) > band), None
+    )
+    bracket = [0] if last_out is None else [last_out, last_out + 1]
+    usual = statistics.median(b - a for (a, _), (b, _) in pairwise(points))
+    worst = max((spans[i] for i in bracket if i < len(spans)), default=0.0)
+    if worst <= MAX_STAMP_SPAN_RATIO * usual:
+        return None
+    return (
+        f"a sample that locates it may have been latched up to {worst * 1000:.0f} ms before "
+        f"its stamp (a host that read the reply late; the record's usual spacing is "
+        f"{usual * 1000:.1f} ms): the axis may have settled that much earlier"
+    )
 
 
 def _shortest_half_cycle(t: Sequence[float], beyond: Sequence[float], band: float) -> float | None:

@@ -75,7 +75,8 @@ class Recording:
     ended: bool = False  # the record is over (the return move is not recorded)
     excitation: Excitation | None = None  # frequency_response: the targets to stream
     sent: list[list[float]] = field(default_factory=list)  # [t, target] as acknowledged
-    # frequency_response: [t, span] of the samples whose latch span the driver knows
+    # [t, span] of the samples whose latch span the driver knows (the quality judgement
+    # of every run; stored with a frequency_response's excitation)
     spans: list[list[float]] = field(default_factory=list)
     trigger_acked: float | None = None  # when the device acknowledged the trigger
     abort: str | None = None  # why the exciter stopped the axis (ends the record)
@@ -256,7 +257,7 @@ class Runner:
         ]
         row.append([int(bool(sample.flags.get(name))) for name in recording.flags])
         recording.samples.append(row)
-        if recording.excitation is not None and sample.t_span_s is not None:
+        if sample.t_span_s is not None:
             recording.spans.append([row[0], round(sample.t_span_s, 6)])
 
     async def flush(self, recording: Recording) -> None:
@@ -504,6 +505,7 @@ class Runner:
             metrics=raw,
             status=status,
             message=message,
+            spans=recording.spans,
         )
 
     async def _wait_settled(

@@ -296,6 +296,111 @@ async def test_latch_estimates_match_when_the_simulator_acted(tmp_path: Path) ->
     assert abs(statistics.median(errors)) <= char_s
 
 
+class _StallOnce:
+    """A host stall, injected on the wire (``PtySimulator.stall_host``): the output of the
+    first ``rp`` whose CR reaches the module ``after_s`` or more (simulation time) after
+    the CR of an ``mr`` is held back ``hold_s`` — the module latched on time, the host
+    reads echo and reply late, exactly as if its event loop had stalled right after
+    writing that CR. Bytes, not the machine's speed, decide which read it hits."""
+
+    def __init__(self, clock: _LineClock, after_s: float, hold_s: float) -> None:
+        self.clock = clock
+        self.after_s = after_s
+        self.hold_s = hold_s
+        self.t_move: float | None = None
+        self.held_at: float | None = None  # simulation time of the held rp's CR
+
+    def delay(self, byte: int) -> float:
+        # (Called on the simulator's thread after the clock advanced to the byte's
+        # arrival and before the byte is delivered: ``pending`` is the line so far.)
+        if byte != 13:
+            return 0.0
+        text = self.clock.pending.decode("ascii", "replace")
+        if text.startswith("mr"):
+            self.t_move = self.clock.t_s
+        elif (
+            text == "rp"
+            and self.held_at is None
+            and self.t_move is not None
+            and self.clock.t_s - self.t_move >= self.after_s
+        ):
+            self.held_at = self.clock.t_s
+            return self.hold_s
+        return 0.0
+
+
+async def test_a_stalled_read_leaves_no_trusted_late_settling_time(tmp_path: Path) -> None:
+    """A host stall between the CR of an ``rp`` in the ringing and the read of its reply
+    stamps a position from before the stall after it: the last sample outside the 2 %
+    band then sits ~0.1 s late and the settling time with it (0.256 s instead of
+    0.125 s was left trusted in a loaded CI run). The driver knows how early that
+    latch may lie (``Sample.t_span_s``); the bench's judgement, given the spans, must
+    not vouch for that settling time. The stall is injected on the wire
+    (``_StallOnce``), so it hits the same read on any machine."""
+    bus = build_slap2_line(tmp_path)
+    clock = _LineClock(bus)
+    simulator = PtySimulator(clock, baud=19200)
+    simulator.start()
+    stall = _StallOnce(clock, after_s=0.08, hold_s=0.1)
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            drive = _axis(line, 0)
+            await drive.write_params({"velocity": 65535, "acceleration": 65535})
+            await drive.command("position_mode", {})
+            await asyncio.sleep(0.3)
+            async with drive.capture("stall"):
+                await asyncio.sleep(0.3)
+                y0 = float(line.sink.samples["line-0"][-1].channels["setpoint"] or 0)
+                simulator.stall_host(stall)  # type: ignore[arg-type]
+                start = len(line.sink.samples["line-0"])
+                await drive.command("move_relative", {"distance": 2000})
+                t0 = drive.last_command_latch_s
+                assert t0 is not None
+                await asyncio.sleep(0.8)
+                samples = [s for s in line.sink.samples["line-0"][start:] if s.t > t0]
+            simulator.stall_host(None)
+        epoch = simulator._epoch  # the test's only window into simulation time
+    finally:
+        simulator.stop()
+    assert stall.held_at is not None, "the stall was not injected"
+    times = [s.t for s in samples]
+    positions = [float(s.channels["position"] or 0) for s in samples]
+    held = max(range(len(samples)), key=lambda i: samples[i].t_span_s or 0.0)
+    # The held read: stamped after the stall, and its span says how early it may lie.
+    assert (samples[held].t_span_s or 0.0) >= 0.09
+    assert samples[held].t - (epoch + stall.held_at) >= 0.09
+    m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000)
+    assert m.band is not None and m.settling_time_s is not None
+    # The premise: the held sample is the last one outside the band, so the stamped
+    # record settles late (the true instant is ~0.1 s earlier).
+    assert abs(positions[held] - (y0 + 2000)) > m.band, "the stall missed the ringing"
+    assert m.settling_time_s >= times[held] - t0
+    judged, quality = assess(
+        kind="move",
+        columns=["t_s", "position"],
+        flag_names=[],
+        rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
+        t0_s=t0,
+        response="position",
+        y0=y0,
+        y_final=y0 + 2000,
+        band=m.band,
+        fault_flags=[],
+        done_flag=None,
+        metrics=m.model_dump(),
+        status="complete",
+        message="",
+        spans=[[s.t, s.t_span_s] for s in samples if s.t_span_s is not None],
+    )
+    assert judged is not None
+    print(f"\nstamped settling {m.settling_time_s:.4f} s; judged: {quality['untrusted']}")
+    assert judged["settling_time_s"] is None
+    assert "before its stamp" in quality["untrusted"]["settling_time_s"]
+    # Only the settling time rests on that stamp: the overshoot keeps its own rules.
+    assert judged["overshoot_pct"] == m.overshoot_pct or "overshoot_pct" in quality["untrusted"]
+
+
 async def test_capture_switches_ucon_on_and_restores_it(tmp_path: Path) -> None:
     """During a capture the module answers a refused command with -1UC (syscon ucon
     on), so a move is followed by rp, not by the rss that tells a refusal otherwise;
@@ -428,8 +533,10 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                 positions = [float(s.channels["position"] or 0) for s in samples]
                 period = statistics.median(b - a for a, b in itertools.pairwise(times))
                 # A host that stalls the driver (a loaded machine) reads replies late:
-                # the bench's own judgement (runquality: a stamp followed by a shorter
-                # gap than usual was late) nulls the metrics it cannot trust, and such
+                # the bench's own judgement (bench.quality: a stamp followed by a shorter
+                # gap than usual was late; a settling instant located by a sample the
+                # driver may have latched long before its stamp, its t_span_s: one
+                # 0.256 s among 0.125 s was so) nulls the metrics it cannot trust, and such
                 # a run is taken again, as a user would (at most 60 times). A host too
                 # slow to keep the wire busy paces the whole record instead (every stamp
                 # late by a varying part of its delay; 21.0 and 22.9 % were read at a
@@ -456,6 +563,7 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                     metrics=m.model_dump(),
                     status="complete",
                     message="",
+                    spans=[[s.t, s.t_span_s] for s in samples if s.t_span_s is not None],
                 )
                 assert judged is not None and quality["status"] != "bad", quality
                 if judged["overshoot_pct"] is None or judged["settling_time_s"] is None:

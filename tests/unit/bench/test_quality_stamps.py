@@ -1,0 +1,116 @@
+"""The settling time against stamps the driver cannot vouch for (``bench.quality``,
+``_stamp_unvouched``): a sample whose latch may lie well before its stamp (a host that
+stalled after writing the command, ``Sample.t_span_s``) must not locate a trusted
+settling instant. Records are synthetic: a damped step sampled every 6 ms."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from servotune.bench.metrics import compute_metrics
+from servotune.bench.quality import assess
+
+PERIOD_S = 0.006
+STEP = 2000.0
+
+
+def _position(t_s: float) -> float:
+    """A 2000-count step with about 22 % overshoot, out of the 2 % band until ~0.12 s."""
+    zeta, omega = 0.43, 60.0
+    wd = omega * math.sqrt(1 - zeta * zeta)
+    decay = math.exp(-zeta * omega * t_s)
+    return STEP * (1 - decay * (math.cos(wd * t_s) + zeta * omega / wd * math.sin(wd * t_s)))
+
+
+def _judge(times: list[float], spans: list[list[float]]) -> tuple[dict[str, Any], Any, Any]:
+    positions = [_position(t) for t in times]
+    m = compute_metrics(times, positions, t0_s=0.0, y0=0.0, y_final=STEP)
+    judged, quality = assess(
+        kind="move",
+        columns=["t_s", "position"],
+        flag_names=[],
+        rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
+        t0_s=0.0,
+        response="position",
+        y0=0.0,
+        y_final=STEP,
+        band=m.band,
+        fault_flags=[],
+        done_flag=None,
+        metrics=m.model_dump(),
+        status="complete",
+        message="",
+        spans=spans,
+    )
+    assert judged is not None
+    return judged, quality, m
+
+
+def _clean_times() -> list[float]:
+    return [PERIOD_S * (k + 1) for k in range(100)]
+
+
+def _last_outside(times: list[float], band: float) -> int:
+    return max(i for i, t in enumerate(times) if abs(_position(t) - STEP) > band)
+
+
+def test_a_clean_record_with_short_spans_keeps_its_settling_time() -> None:
+    times = _clean_times()
+    judged, quality, m = _judge(times, [[t, 0.0006] for t in times])
+    assert m.settling_time_s is not None and 0.08 < m.settling_time_s < 0.2
+    assert judged["settling_time_s"] == m.settling_time_s, quality
+
+
+def test_a_late_stamp_on_the_last_sample_outside_the_band_nulls_the_settling_time() -> None:
+    """The CI case: the host stalled 0.13 s after the CR of the last read outside the
+    band; that read is stamped after the stall, the next one follows it at once."""
+    clean = _clean_times()
+    _, _, m = _judge(clean, [])
+    assert m.band is not None
+    k = _last_outside(clean, m.band)
+    stall_s = 0.13
+    latched = clean[: k + 1]
+    after = [t + stall_s for t in clean[k + 1 :]]
+    # what the host recorded: the held read's value under a stamp 0.13 s late
+    times = [*latched[:k], latched[k] + stall_s - 0.002, *after]
+    positions_at = latched + [t - stall_s for t in after]  # when each was latched
+    shown = [_position(t) for t in positions_at]
+    m_late = compute_metrics(times, shown, t0_s=0.0, y0=0.0, y_final=STEP)
+    assert m_late.settling_time_s is not None and m.settling_time_s is not None
+    assert m_late.settling_time_s - m.settling_time_s > 0.1  # the record settles late
+    rows = [[t, p, []] for t, p in zip(times, shown, strict=True)]
+    common: dict[str, Any] = dict(
+        kind="move",
+        columns=["t_s", "position"],
+        flag_names=[],
+        rows=rows,
+        t0_s=0.0,
+        response="position",
+        y0=0.0,
+        y_final=STEP,
+        band=m_late.band,
+        fault_flags=[],
+        done_flag=None,
+        metrics=m_late.model_dump(),
+        status="complete",
+        message="",
+    )
+    spans = [[t, 0.0006] for t in times]
+    spans[k] = [times[k], stall_s - 0.001]
+    judged, quality = assess(**common, spans=spans)
+    assert judged is not None
+    assert judged["settling_time_s"] is None
+    assert "before its stamp" in quality["untrusted"]["settling_time_s"]
+    # Without the spans (a stored run) the record alone cannot tell: kept, as before.
+    judged, _ = assess(**common)
+    assert judged is not None and judged["settling_time_s"] == m_late.settling_time_s
+
+
+def test_a_long_span_away_from_the_settling_instant_costs_it_nothing() -> None:
+    times = _clean_times()
+    spans = [[t, 0.0006] for t in times]
+    spans[3] = [times[3], 0.05]  # in the rise, far from the instant
+    spans[-5] = [times[-5], 0.05]  # long after it
+    judged, quality, m = _judge(times, spans)
+    assert judged["settling_time_s"] == m.settling_time_s, quality
