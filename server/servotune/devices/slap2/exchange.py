@@ -351,7 +351,7 @@ class Slap2Exchange:
             else:
                 try:
                     lines, blind = await self._select_echoed(channel, command)
-                except ProtocolError:
+                except ProtocolError as wrong:
                     # A wrong echo of ``se``: one garbled character on a loaded line, or
                     # two transmitters - module 0 powered up selected while another
                     # module held the selection, so every byte comes back twice (on a
@@ -362,7 +362,12 @@ class Slap2Exchange:
                     # transmitter, two or none. Commands that move are never resent.
                     # (Not a lost-selection cue: the selected module did not go silent.)
                     self._engine.count("retries")
-                    lines, blind = await self._select_blind(channel, command), False
+                    try:
+                        lines, blind = await self._select_blind(channel, command), False
+                    except DeviceTimeoutError:
+                        # No CR after it either: a line that answers only wrong bytes
+                        # (wrong baud rate, noise) - what it showed first says so.
+                        raise wrong from None
         except BaseException as exc:
             # Every module saw ``se n``: whoever was selected switched its transmitter
             # off, for a known reason; its later silence is no sign of a reset.
