@@ -399,7 +399,7 @@ async def test_sim_runs_hitting_the_switch_not_moving_or_cut_short_are_bad(
         api, "line-1", await start(api, "line-1", kind="move", distance=15000, duration_s=0.3)
     )
     assert run["quality"]["status"] == "bad", run["quality"]
-    assert "outside_window" in [r["code"] for r in run["quality"]["reasons"]]
+    assert "outside_window" in [r["code"] for r in run["quality"]["reasons"]], run["quality"]
 
 
 async def test_sim_position_step_rise_is_too_fast_for_the_telemetry(api: LiveServer) -> None:
