@@ -26,7 +26,7 @@ import type {
   StopResult,
 } from "./schema.gen";
 
-// REST bodies generated from server/servotune/schema.py, re-exported for the views.
+// REST bodies generated from server/servotune/schema/, re-exported for the views.
 export type {
   AutoTuneDecision,
   AutoTuneGoal,
@@ -176,14 +176,14 @@ export async function reauthenticate(): Promise<boolean> {
 
 // --- test bench (server/servotune/api/bench_routes.py) ---
 
-// BenchRun, BenchRunDetail, RunMetrics: generated (schema.gen.ts, servotune/schema.py).
+// BenchRun, BenchRunDetail, RunMetrics: generated (schema.gen.ts, servotune/schema/).
 
 // --- parameter sets (server/servotune/api/param_set_routes.py) ---
 
 // --- auto-tune (server/servotune/api/autotune_routes.py) ---
 
 // AutoTuneRequest, AutoTuneProposal, AutoTuneResult, AutoTuneStopped, AutoTuneSession:
-// generated (schema.gen.ts, servotune/schema.py). Gains are by the descriptor's
+// generated (schema.gen.ts, servotune/schema/). Gains are by the descriptor's
 // parameter names, whatever the device.
 
 /** Gains by parameter name (the descriptor's: kp, ki, kd for a SLAP2, kabh_k, ... for a Z1100). */

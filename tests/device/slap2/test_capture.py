@@ -37,6 +37,10 @@ from tests.support.sim_lines import RunningLink, chip_line, run_link, running_si
 from tests.support.sink import RecordingSink
 from tests.support.waiting import wait_for
 
+# What these tests measure is when samples were taken on this host: they run alone
+# (scripts/test.sh, docs/architecture.md "Tests").
+pytestmark = pytest.mark.host_timing
+
 
 def _send(module: Slap2Module, line: str) -> None:
     for byte in line.encode() + b"\r":

@@ -29,7 +29,7 @@ from packaging.requirements import Requirement
 
 from servotune.auth.cli import account_data_dir
 from servotune.cli import build_parser, local_bind_refusal, main
-from tests.support.control import free_port
+from servotune.perf.demo import free_port
 from tests.support.paths import REPO as ROOT
 
 ACCOUNT_ACTIONS = {

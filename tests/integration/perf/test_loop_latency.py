@@ -22,6 +22,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
 import websockets
 
 from servotune.config import LinkSpec
@@ -30,6 +31,9 @@ from tests.support.servers import origin, serve, sim_process
 
 IMPORT_ROWS = 250_000  # about 16 MB of CSV
 EXPORTS_MIN_S = 1.5  # the exports phase lasts at least this (see the test)
+
+# The product's own loop lag and STOP time on this host: run alone (scripts/test.sh).
+pytestmark = pytest.mark.host_timing
 
 
 def _big_csv(meta: dict[str, Any]) -> bytes:

@@ -34,7 +34,8 @@ from servotune.perf.looplag import LoopLagMeter
 from tests.support.bench import finished_run, start
 from tests.support.servers import serve, sim_process
 
-pytestmark = pytest.mark.slow
+# The product's own loop lag and STOP time on this host: run alone (scripts/test.sh).
+pytestmark = [pytest.mark.slow, pytest.mark.host_timing]
 
 OWN_LAG_MAX_S = 0.1
 STOP_OWN_MAX_S = 0.05  # the median of a phase's STOPs

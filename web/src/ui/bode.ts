@@ -13,7 +13,7 @@ import { errorText } from "./feedback";
 import { plotTheme, type PlotTheme } from "./benchplot";
 import { targetText } from "./margins";
 
-// The analysis' shapes are generated (schema.gen.ts, servotune/schema.py): a measured
+// The analysis' shapes are generated (schema.gen.ts, servotune/schema/): a measured
 // part or the model's, each drawn with the same curves.
 export type Bode = FrfBode;
 export type Trust = FrfTrust;
