@@ -13,9 +13,11 @@ from servotune.devices.slap2 import codec
 from servotune.devices.slap2.exchange import ReplyTimeoutError
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.modules import LINE_ERROR_SPAN_S
+from servotune.devices.slap2.sim.line import Slap2Line
 from servotune.devices.slap2.sim.module import Slap2Module
 from servotune.link.base import DeviceRefusedError, DeviceTimeoutError, LinkDownError, ProtocolError
 from servotune.link.engine import HOST_STALL_EXCUSE_S
+from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
 from tests.support.pty_peer import PtyPeer
 from tests.support.sim_lines import RunningLink, run_link, running_simulator
@@ -179,6 +181,50 @@ async def test_power_on_banner_marks_module_reset(line: RunningLink) -> None:
     # Polling goes on after the module's power-on selected itself again.
     count = len(line.sink.samples["line-1"])
     await line.until(lambda: len(line.sink.samples["line-1"]) > count + 5, "line-1 samples")
+
+
+async def test_reset_of_module_0_while_module_1_is_selected_leaves_no_second_transmitter(
+    tmp_path: Path,
+) -> None:
+    """Module 0 powers up selected while module 1 still holds the selection: two
+    transmitters, each echoing every byte (the simulator concatenates them, real ones
+    collide). An echoed ``se`` can never pass then - the polls of both modules failed
+    for as long as anyone watched (``echo mismatch in 'se0': sent 0x65, got 0x73``,
+    offline for more than 10 s). The driver must get back to one transmitter. The
+    reset is made while module 1 is known to be the selected one (checked on the
+    simulator's thread), not at a moment a loaded host happens to pick."""
+    bus = Slap2Line([Slap2Module(a, eeprom_path=tmp_path / f"eeprom_{a}.json") for a in (0, 1)])
+    simulator = PtySimulator(bus, baud=19200)
+    simulator.start()
+
+    def reset_0_if_1_selected() -> bool:
+        if bus.module(1).transmitting and not bus.module(0).transmitting:
+            bus.power_cycle(0)
+            return True
+        return False
+
+    try:
+        async with run_link(simulator, bus, [0, 1]) as line:
+            await line.connected()
+            for _ in range(2000):
+                if simulator.call(reset_0_if_1_selected):
+                    break
+                await asyncio.sleep(0.001)
+            else:
+                pytest.fail("module 1 was never the selected one")
+            await line.until(
+                lambda: line.sink.health.get("line-0", ("", ""))[0] == "reset", "reset seen"
+            )
+            counts = {a: len(line.sink.samples[f"line-{a}"]) for a in (0, 1)}
+            await line.until(
+                lambda: all(len(line.sink.samples[f"line-{a}"]) > counts[a] + 5 for a in (0, 1)),
+                "samples of both modules after the reset",
+                timeout_s=15,
+            )
+            transmitting = simulator.call(lambda: [m.transmitting for m in bus.modules])
+            assert transmitting.count(True) == 1, transmitting
+    finally:
+        simulator.stop()
 
 
 async def test_silent_reset_found_by_read_back(tmp_path: Path) -> None:

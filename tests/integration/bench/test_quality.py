@@ -385,19 +385,21 @@ async def test_sim_runs_hitting_the_switch_not_moving_or_cut_short_are_bad(
     assert run["metrics"]["settling_time_s"] is None
     assert "limit2" in run["quality"]["untrusted"]["steady_state_error"]
 
-    # PWM 1 does not overcome the motor's friction.
+    # PWM 1 does not overcome the motor's friction. (Not necessarily the first reason:
+    # a host too loaded to poll the axis during the check after the run adds
+    # loop_unverified, which the quality names first - bench.runner.left_oscillating.)
     run = await finished_run(
         api, "line-1", await start(api, "line-1", kind="pwm_step", pwm=1, duration_s=0.6)
     )
     assert run["quality"]["status"] == "bad", run["quality"]
-    assert run["quality"]["reasons"][0]["code"] == "did_not_move"
+    assert "did_not_move" in [r["code"] for r in run["quality"]["reasons"]], run["quality"]
 
     # A long move recorded for 0.3 s ends far from its target.
     run = await finished_run(
         api, "line-1", await start(api, "line-1", kind="move", distance=15000, duration_s=0.3)
     )
     assert run["quality"]["status"] == "bad", run["quality"]
-    assert "outside_window" in [r["code"] for r in run["quality"]["reasons"]]
+    assert "outside_window" in [r["code"] for r in run["quality"]["reasons"]], run["quality"]
 
 
 async def test_sim_position_step_rise_is_too_fast_for_the_telemetry(api: LiveServer) -> None:

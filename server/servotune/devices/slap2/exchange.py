@@ -351,13 +351,23 @@ class Slap2Exchange:
             else:
                 try:
                     lines, blind = await self._select_echoed(channel, command)
-                except ProtocolError:
-                    # A wrong echo of ``se`` (one garbled character on a loaded line):
-                    # selecting has no effect but the selection, and a second ``se n``
-                    # leaves n selected whether the first ran or not, so it is sent
-                    # once more (counted). Commands that move are never resent.
+                except ProtocolError as wrong:
+                    # A wrong echo of ``se``: one garbled character on a loaded line, or
+                    # two transmitters - module 0 powered up selected while another
+                    # module held the selection, so every byte comes back twice (on a
+                    # real line the two collide) and no echoed ``se`` can ever pass.
+                    # Selecting has no effect but the selection, and ``se n`` leaves n
+                    # alone transmitting whoever echoed it and whether the first ran,
+                    # so it is sent once more, blind (counted): that works with one
+                    # transmitter, two or none. Commands that move are never resent.
+                    # (Not a lost-selection cue: the selected module did not go silent.)
                     self._engine.count("retries")
-                    lines, blind = await self._select_echoed(channel, command)
+                    try:
+                        lines, blind = await self._select_blind(channel, command), False
+                    except DeviceTimeoutError:
+                        # No CR after it either: a line that answers only wrong bytes
+                        # (wrong baud rate, noise) - what it showed first says so.
+                        raise wrong from None
         except BaseException as exc:
             # Every module saw ``se n``: whoever was selected switched its transmitter
             # off, for a known reason; its later silence is no sign of a reset.
@@ -468,7 +478,8 @@ class Slap2Exchange:
         """Select ``address`` and exchange ``command``; retried once if abandoned.
 
         A retry re-selects first: a missing echo may mean the module lost its
-        selection (reset), which a plain resend could not fix. ``then``: see
+        selection (reset), a wrong one a second transmitter (module 0 reset while
+        another module was selected), which a plain resend could not fix. ``then``: see
         ``exchange_once`` (not on a retry).
         """
         idempotent = command_mnemonic(command.text) in IDEMPOTENT_COMMANDS
@@ -482,8 +493,10 @@ class Slap2Exchange:
             try:
                 return await self.exchange_once(command, None if attempt else then)
             except _AbandonedError as abandoned:
-                if isinstance(abandoned.error, DeviceTimeoutError):
-                    self._selected = None
+                # A missing echo may be a lost selection (a reset), a wrong one a second
+                # transmitter (module 0 reset while this one was selected): only an
+                # ``se`` ends either, so the retry selects again.
+                self._selected = None
                 if attempt == 1:
                     raise abandoned.error from None
             except (DeviceTimeoutError, ProtocolError):
