@@ -30,7 +30,12 @@
   (``bench.metrics.overshoot_stamp_uncertainty_pct``), or when a sample next to the highest
   one is more than ``MAX_PEAK_GAP_RATIO`` times the record's usual spacing away and
   the curve bends enough around the peak for the peak to hide in that gap
-  (``_peak_bound_pp``).
+  (``_peak_bound_pp``), or, for a response that ended in the band, when a gap before it
+  could hold a higher peak (``_hidden_peak``:
+  a hole over the first lobe leaves a lower lobe as the highest sample; the peak time
+  goes with it). The settling time also needs the record after it: no gap between the
+  instant and the end of the record wider than the settling time (the response may
+  have left the band in it).
 
 Facts that stay true whatever happened (step, band, samples, max gap, time in flags
 with its ±) are never nulled.
@@ -71,7 +76,7 @@ MAX_STAMP_SPAN_RATIO: Final = 1.0
 stamp, in the record's usual spacings: the instant is then off by at most one spacing,
 half of the repeatability bound (identical steps settle within 2 spacings), as
 ``MAX_OVERSHOOT_UNCERTAINTY_PP`` is for the overshoot."""
-SAMPLING_RULE: Final = 3
+SAMPLING_RULE: Final = 4
 """The version of the sampling rule (``_sampling_trust``) stored with a run's quality
 (``quality.sampling_rule``): a stored or imported run judged by an older one is judged
 again (``rejudge``), so the same rule holds for every run on the page."""
@@ -284,19 +289,38 @@ def _sampling_trust(
                 ),
             )
     overshoot = out.get("overshoot_pct")
+    # Only for a response that ended in the band (a decaying step: its later lobes are
+    # lower); a sustained oscillation's lobes are alike and stay judged as before.
+    ended_in_band = band is not None and bool(points) and abs(points[-1][1] - y0 - step) <= band
+    hidden = _hidden_peak(points, y0, step) if step != 0 and ended_in_band else None
     if overshoot is not None and overshoot > 0 and step != 0:
-        null("overshoot_pct", _overshoot_unresolved(points, y0, step))
+        null("overshoot_pct", hidden or _overshoot_unresolved(points, y0, step))
     peak_t = out.get("peak_time_s")
     if peak_t is not None and peak_t > 0:
         null(
             "peak_time_s",
-            _unresolved(sample_t, curve_t, 0.0, peak_t, peak_t, "peak time", "up to the peak"),
+            _unresolved(sample_t, curve_t, 0.0, peak_t, peak_t, "peak time", "up to the peak")
+            or hidden,
         )
     settle = out.get("settling_time_s")
     if settle is not None and settle > 0 and band is not None:
         null(
             "settling_time_s",
             _unresolved(sample_t, curve_t, 0.0, settle, settle, "settling time", "until it settled")
+            # "settled" says the response stayed in the band to the end of the record:
+            # a hole after the instant wider than the settling time could hide it leaving
+            or _unresolved(
+                sample_t,
+                curve_t,
+                settle,
+                sample_t[-1],
+                settle,
+                "settling time",
+                "after it settled",
+                "nothing shows the response stayed in the band",
+                min_samples=1,
+                bounded=True,
+            )
             or _stamp_unvouched(points, series.spans, y0 + step, band),
         )
     # The move, for the metrics over it: from the command until the response settled
@@ -467,6 +491,42 @@ def _overshoot_unresolved(points: list[tuple[float, float]], y0: float, step: fl
     return None
 
 
+def _hidden_peak(points: list[tuple[float, float]], y0: float, step: float) -> str | None:
+    """Why a peak higher than the highest sample may lie in a gap before it (a hole
+    over the first lobe leaves a later, lower lobe as the highest sample, with the usual
+    spacing around it), None when no gap can hide one. Only the gaps before the highest
+    sample, and not the one next to it (``_peak_gaps``' job): the caller asks only for a
+    response that ended in the band, a decaying step whose later lobes are lower. The
+    curve in a gap rises above
+    its higher end by at most ``A g² / 8`` (``A``: the largest curvature of the
+    parabolas through three successive samples with the gap among them), the bound
+    ``_peak_gaps`` uses next to the peak. A gap counts when it is wider than
+    ``MAX_PEAK_GAP_RATIO`` usual spacings and could rise above the highest sample by
+    more than ``MAX_OVERSHOOT_UNCERTAINTY_PP`` of the step."""
+    if len(points) < 3:
+        return None
+    direction = 1.0 if step > 0 else -1.0
+    curve = [(0.0, 0.0), *((t, (y - y0) * direction) for t, y in points)]
+    gaps = [b - a for (a, _), (b, _) in pairwise(curve)]
+    usual = statistics.median(gaps[1:])
+    k = max(range(len(curve)), key=lambda i: curve[i][1])
+    top = curve[k][1]
+    margin = MAX_OVERSHOOT_UNCERTAINTY_PP / 100.0 * abs(step)
+    for i, gap in enumerate(gaps[: max(0, k - 1)]):
+        if usual <= 0 or gap <= MAX_PEAK_GAP_RATIO * usual:
+            continue
+        curvature = _max_curvature(curve[max(0, i - 1) : i + 3])  # parabolas across gap i
+        rise = max(curve[i][1], curve[i + 1][1]) + curvature * gap * gap / 8.0 - top
+        if rise > margin:
+            return (
+                f"a hole of {gap * 1000:.0f} ms in the record ({curve[i][0] * 1000:.0f}.."
+                f"{curve[i + 1][0] * 1000:.0f} ms; the usual spacing is {usual * 1000:.1f} ms) "
+                f"where the curve bends enough to rise {rise / abs(step) * 100:.1f} percentage "
+                "points above the highest sample: the peak may lie in it"
+            )
+    return None
+
+
 def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[float, float, float]:
     """(the longer gap next to the sample furthest in the step direction, from the
     command point on; the median gap of the record; how far, in counts, the true peak
@@ -487,8 +547,15 @@ def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[flo
     travel = [y * direction for _, y in points]
     k = max(range(len(points)), key=lambda i: travel[i])
     around = [gaps[k], *(gaps[k + 1 : k + 2])]
-    window = points[max(0, k - 2) : k + 3]
-    curvature = max(
+    curvature = _max_curvature(points[max(0, k - 2) : k + 3])
+    gap_s = max(around)
+    return gap_s, statistics.median(gaps[1:]), curvature * (gap_s / 2.0) ** 2 / 2.0
+
+
+def _max_curvature(window: Sequence[tuple[float, float]]) -> float:
+    """The largest curvature of the parabolas through three successive points of
+    ``window`` (0 with fewer than three)."""
+    return max(
         (
             abs(2.0 * ((y2 - y1) / (t2 - t1) - (y1 - y0) / (t1 - t0)) / (t2 - t0))
             for (t0, y0), (t1, y1), (t2, y2) in zip(window, window[1:], window[2:], strict=False)
@@ -496,8 +563,6 @@ def _peak_gaps(points: list[tuple[float, float]], direction: float) -> tuple[flo
         ),
         default=0.0,
     )
-    gap_s = max(around)
-    return gap_s, statistics.median(gaps[1:]), curvature * (gap_s / 2.0) ** 2 / 2.0
 
 
 def _quality(

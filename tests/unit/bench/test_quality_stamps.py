@@ -114,3 +114,46 @@ def test_a_long_span_away_from_the_settling_instant_costs_it_nothing() -> None:
     spans[-5] = [times[-5], 0.05]  # long after it
     judged, quality, m = _judge(times, spans)
     assert judged["settling_time_s"] == m.settling_time_s, quality
+
+
+# Holes: a starved host reads nothing for a while (p4 beside a CPU hog: a record of
+# 0.1..0.4 s with no sample, and records whose first lobe fell in a hole). The metric
+# the record shows is then the wrong one, yet every sample bracketing it is on time.
+
+
+def test_a_hole_over_the_first_peak_nulls_the_overshoot_and_the_peak_time() -> None:
+    """The highest sample is the second lobe (~5 % on this plant, not ~22 %): the gaps
+    next to it are the usual ones, but the hole before it could hold a higher peak."""
+    times = [t for t in _clean_times() if not 0.035 < t < 0.1]
+    judged, quality, m = _judge(times, [[t, 0.0006] for t in times])
+    assert m.overshoot_pct is not None and m.overshoot_pct < 10  # what the record shows
+    assert judged["overshoot_pct"] is None, quality
+    assert "hole" in quality["untrusted"]["overshoot_pct"]
+    assert judged["peak_time_s"] is None, quality
+
+
+def test_a_hole_after_the_settling_instant_nulls_the_settling_time() -> None:
+    """A sample inside the band at a zero crossing of the ringing, then nothing for
+    0.3 s: the record settles there, but the ringing left the band in the hole."""
+    clean = _clean_times()
+    _, _, m = _judge(clean, [])
+    assert m.band is not None and m.settling_time_s is not None
+    last_out = _last_outside(clean, m.band)
+    k = max(
+        i for i in range(last_out) if abs(_position(clean[i]) - STEP) <= m.band
+    )  # inside the band, with the ringing still to leave it
+    times = [t for t in clean if not clean[k] < t < clean[k] + 0.3]
+    judged, quality, m_hole = _judge(times, [[t, 0.0006] for t in times])
+    assert m_hole.settling_time_s is not None
+    assert m_hole.settling_time_s < m.settling_time_s - 0.01  # the record settles early
+    assert judged["settling_time_s"] is None, quality
+    assert "after" in quality["untrusted"]["settling_time_s"]
+
+
+def test_sparse_reads_at_rest_cost_the_overshoot_and_settling_nothing() -> None:
+    """Gaps of 10 spacings once the axis rests (a loaded host late in a record) hide
+    nothing: no metric is lost to them."""
+    times = [t for t in _clean_times() if t < 0.3 or round(t / PERIOD_S) % 10 == 0]
+    judged, quality, m = _judge(times, [[t, 0.0006] for t in times])
+    assert judged["overshoot_pct"] == m.overshoot_pct, quality
+    assert judged["settling_time_s"] == m.settling_time_s, quality
