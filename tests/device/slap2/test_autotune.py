@@ -278,6 +278,10 @@ def test_only_slap2_axes() -> None:
 # --- end to end on the demo's plants --------------------------------------------------
 
 
+# Identification and verification judge records of polled telemetry: beside another
+# test the loaded plant's identification once said "the shaft did not move" after
+# moving 3898 counts (an open finding, docs/notes/issue-28-n-xdist.md). Run alone.
+@pytest.mark.host_timing
 @pytest.mark.parametrize("address", [0, 1], ids=["unloaded", "loaded"])
 async def test_assistant_beats_the_defaults_on_each_demo_plant(
     tmp_path: Path, address: int
