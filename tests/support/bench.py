@@ -9,11 +9,14 @@ true."""
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Sequence
 from typing import Any
 
 import pytest
 
-from servotune.schema import BenchRun, BenchRunDetail, FrfData
+from servotune.bench.metrics import compute_metrics
+from servotune.bench.quality import assess
+from servotune.schema import BenchRun, BenchRunDetail, FrfData, RunMetrics
 from tests.support.servers import LiveServer
 
 
@@ -46,3 +49,36 @@ async def frf_analysis(client: Any, run_id: str) -> dict[str, Any]:
     analysis: dict[str, Any] = response.json()
     FrfData.model_validate(analysis, strict=True)
     return analysis
+
+
+def judge_step(
+    times: list[float],
+    positions: list[float],
+    *,
+    t0_s: float,
+    y0: float,
+    step: float,
+    spans: Sequence[Sequence[float]] = (),
+) -> tuple[dict[str, Any], dict[str, Any], RunMetrics]:
+    """A position step record as the bench judges a move run: (the metrics it keeps,
+    its quality, the metrics as computed). ``spans``: ``[t, t_span_s]`` per sample."""
+    m = compute_metrics(times, positions, t0_s=t0_s, y0=y0, y_final=y0 + step)
+    judged, quality = assess(
+        kind="move",
+        columns=["t_s", "position"],
+        flag_names=[],
+        rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
+        t0_s=t0_s,
+        response="position",
+        y0=y0,
+        y_final=y0 + step,
+        band=m.band,
+        fault_flags=[],
+        done_flag=None,
+        metrics=m.model_dump(),
+        status="complete",
+        message="",
+        spans=spans,
+    )
+    assert judged is not None
+    return judged, quality, m

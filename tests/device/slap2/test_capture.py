@@ -16,7 +16,6 @@ from typing import Any
 import pytest
 
 from servotune.bench.metrics import compute_metrics
-from servotune.bench.quality import assess
 from servotune.devices.slap2.echo import EchoLine
 from servotune.devices.slap2.link import Slap2Axis, Slap2Link, Slap2LinkConfig
 from servotune.devices.slap2.profile import (
@@ -33,6 +32,7 @@ from servotune.link.base import Capturer, DeviceRefusedError, DriverError, captu
 from servotune.sim.process import SerialSimSpec, serial_sim_process
 from servotune.sim.pty import PtySimulator
 from servotune.transports.serial import SerialConnector
+from tests.support.bench import judge_step
 from tests.support.sim_lines import RunningLink, chip_line, run_link, running_simulator
 from tests.support.sink import RecordingSink
 from tests.support.waiting import wait_for
@@ -380,24 +380,8 @@ async def test_a_stalled_read_leaves_no_trusted_late_settling_time(tmp_path: Pat
     # record settles late (the true instant is ~0.1 s earlier).
     assert abs(positions[held] - (y0 + 2000)) > m.band, "the stall missed the ringing"
     assert m.settling_time_s >= times[held] - t0
-    judged, quality = assess(
-        kind="move",
-        columns=["t_s", "position"],
-        flag_names=[],
-        rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
-        t0_s=t0,
-        response="position",
-        y0=y0,
-        y_final=y0 + 2000,
-        band=m.band,
-        fault_flags=[],
-        done_flag=None,
-        metrics=m.model_dump(),
-        status="complete",
-        message="",
-        spans=[[s.t, s.t_span_s] for s in samples if s.t_span_s is not None],
-    )
-    assert judged is not None
+    spans = [[s.t, s.t_span_s] for s in samples if s.t_span_s is not None]
+    judged, quality, _ = judge_step(times, positions, t0_s=t0, y0=y0, step=2000, spans=spans)
     print(f"\nstamped settling {m.settling_time_s:.4f} s; judged: {quality['untrusted']}")
     assert judged["settling_time_s"] is None
     assert "before its stamp" in quality["untrusted"]["settling_time_s"]
@@ -551,23 +535,9 @@ async def test_five_identical_steps_measure_the_same(tmp_path: Path) -> None:
                     continue
                 # settling into 2 % of the step (the usual definition): the +-5 counts of the
                 # in-position window are grazed by a late ringing lobe, run by run
-                m = compute_metrics(times, positions, t0_s=t0, y0=y0, y_final=y0 + 2000)
-                judged, quality = assess(
-                    kind="move",
-                    columns=["t_s", "position"],
-                    flag_names=[],
-                    rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
-                    t0_s=t0,
-                    response="position",
-                    y0=y0,
-                    y_final=y0 + 2000,
-                    band=m.band,
-                    fault_flags=[],
-                    done_flag=None,
-                    metrics=m.model_dump(),
-                    status="complete",
-                    message="",
-                    spans=[[s.t, s.t_span_s] for s in samples if s.t_span_s is not None],
+                spans = [[s.t, s.t_span_s] for s in samples if s.t_span_s is not None]
+                judged, quality, _ = judge_step(
+                    times, positions, t0_s=t0, y0=y0, step=2000, spans=spans
                 )
                 assert judged is not None and quality["status"] != "bad", quality
                 if judged["overshoot_pct"] is None or judged["settling_time_s"] is None:

@@ -10,6 +10,7 @@ from typing import Any
 
 from servotune.bench.metrics import compute_metrics
 from servotune.bench.quality import assess
+from tests.support.bench import judge_step
 
 PERIOD_S = 0.006
 STEP = 2000.0
@@ -25,26 +26,7 @@ def _position(t_s: float) -> float:
 
 def _judge(times: list[float], spans: list[list[float]]) -> tuple[dict[str, Any], Any, Any]:
     positions = [_position(t) for t in times]
-    m = compute_metrics(times, positions, t0_s=0.0, y0=0.0, y_final=STEP)
-    judged, quality = assess(
-        kind="move",
-        columns=["t_s", "position"],
-        flag_names=[],
-        rows=[[t, p, []] for t, p in zip(times, positions, strict=True)],
-        t0_s=0.0,
-        response="position",
-        y0=0.0,
-        y_final=STEP,
-        band=m.band,
-        fault_flags=[],
-        done_flag=None,
-        metrics=m.model_dump(),
-        status="complete",
-        message="",
-        spans=spans,
-    )
-    assert judged is not None
-    return judged, quality, m
+    return judge_step(times, positions, t0_s=0.0, y0=0.0, step=STEP, spans=spans)
 
 
 def _clean_times() -> list[float]:
